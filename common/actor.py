@@ -1,0 +1,285 @@
+"""The stacked actors (section III, the actor objective, and Remark on the complemented stack).
+
+Decision variables are the held actions ``u_1 .. u_{N-1}``; ``s_1`` is the measured state and
+``s_2 .. s_N`` are predicted (Euler by default, the paper's choice). The problem is written in
+multiple-shooting form -- the predicted states are variables too, tied by equality
+constraints -- because that gives the stage-wise structure fatrop exploits. It is built ONCE
+per (agent, horizon); the measured state enters through the bounds of ``s_1`` (``lbx = ubx``)
+and the critic weights through the parameter vector, so a step never rebuilds anything.
+
+| agent   | objective                                                              |
+|---------|------------------------------------------------------------------------|
+| mpc     | sum_i delta r(s_i, u_i)                                                |
+| rlq     | sum_i Qhat(s_i, u_i; w)                                                |
+| rlqv    | sum_i Qhat(s_i, u_i; w) + Jhat(s_N; v)                                 |
+| rlqv+   | sum_i [Qhat(s_i, u_i; w) + (N - i) delta r(s_i, u_i)] + Jhat(s_N; v)   |
+
+The learned weights may make the problem non-convex (and the dynamics already do). When the
+solver fails, :meth:`StackedActor.step` still returns a finite, bounded action: the next
+action of the previous plan, else zero velocity, and counts the failure.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import casadi as ca
+import numpy as np
+
+from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
+from common.features import feature_count, phi_q, phi_v, stage_cost
+
+log = logging.getLogger(__name__)
+
+Agent = Literal["mpc", "rlq", "rlqv", "rlqv+"]
+AGENTS: tuple[Agent, ...] = ("mpc", "rlq", "rlqv", "rlqv+")
+Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)
+V_FEATURES = feature_count(STATE_DIM)
+
+
+@dataclass(frozen=True)
+class ActorProblem:
+    """Everything that fixes the shape of the optimization problem (changing it = rebuild)."""
+
+    agent: Agent
+    horizon: int  # N: N - 1 held actions, N predicted states
+    sampling_time: float
+    cost_diag: tuple[float, ...]  # diag(R), length 5
+    v_max: float
+    omega_max: float
+    predictor: str = "euler"
+    solver: str = "fatrop"
+    jit: bool = True
+    max_iter: int = 100
+    tolerance: float = 1e-8
+
+    def __post_init__(self) -> None:
+        if self.agent not in AGENTS:
+            raise ValueError(f"unknown agent {self.agent!r}; choose one of {', '.join(AGENTS)}")
+        if self.horizon < 2:
+            raise ValueError(f"horizon N must be >= 2 (N - 1 >= 1 actions), got {self.horizon}")
+        if not (np.isfinite(self.sampling_time) and self.sampling_time > 0):
+            raise ValueError(f"sampling_time must be a positive number, got {self.sampling_time}")
+        if len(self.cost_diag) != STATE_DIM + ACTION_DIM or not all(
+            np.isfinite(c) and c >= 0 for c in self.cost_diag
+        ):
+            raise ValueError(f"cost_diag must be 5 finite non-negative numbers, got {self.cost_diag}")
+        for name in ("v_max", "omega_max"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value}")
+        if self.predictor not in PREDICTORS:
+            raise ValueError(f"unknown predictor {self.predictor!r}; choose one of {sorted(PREDICTORS)}")
+        if self.solver not in ("fatrop", "ipopt"):
+            raise ValueError(f"unknown solver {self.solver!r}; choose fatrop or ipopt")
+
+
+@dataclass
+class ActorStep:
+    """What one actor step produced. ``action`` is always finite and within bounds."""
+
+    action: np.ndarray
+    plan: np.ndarray  # (N-1, 2) held actions, u_1 first
+    objective: float
+    success: bool
+    solve_seconds: float
+    status: str
+
+
+@dataclass
+class ActorCounters:
+    solves: int = 0
+    failures: int = 0
+    solve_seconds: list[float] = field(default_factory=list)
+
+
+def _compiler_available() -> bool:
+    import shutil
+
+    return shutil.which("gcc") is not None or shutil.which("cc") is not None
+
+
+class StackedActor:
+    """One agent at one horizon, built once, stepped every sampling interval."""
+
+    def __init__(self, problem: ActorProblem) -> None:
+        self.problem = problem
+        self.counters = ActorCounters()
+        self._previous_x: np.ndarray | None = None
+        self._solver, lbx, ubx, self._lbg, self._ubg = self._build()
+        self._lbx_np = np.asarray(lbx, dtype=float).ravel()
+        self._ubx_np = np.asarray(ubx, dtype=float).ravel()
+        self._n_x = self._lbx_np.size
+        self._zero_lam_x = ca.DM.zeros(self._n_x)
+        self._zero_lam_g = ca.DM.zeros(self._lbg.shape[0])
+        self._action_bounds = np.array([problem.v_max, problem.omega_max])
+
+    # -- construction -------------------------------------------------------------------
+    def _build(self) -> tuple[ca.Function, ca.DM, ca.DM, ca.DM, ca.DM]:
+        p = self.problem
+        n_act = p.horizon - 1
+        step = PREDICTORS[p.predictor]
+        w = ca.SX.sym("w", Q_FEATURES)
+        v = ca.SX.sym("v", V_FEATURES)
+        states = [ca.SX.sym(f"s{i + 1}", STATE_DIM) for i in range(p.horizon)]
+        actions = [ca.SX.sym(f"u{i + 1}", ACTION_DIM) for i in range(n_act)]
+
+        objective: Any = 0
+        constraints = []
+        for i in range(n_act):
+            s_i, u_i = states[i], actions[i]
+            running = p.sampling_time * stage_cost(s_i, u_i, p.cost_diag)
+            if p.agent == "mpc":
+                objective += running
+            else:
+                objective += ca.dot(w, phi_q(s_i, u_i))
+                if p.agent == "rlqv+":
+                    # Remark (complemented stack): (N - i) r with the paper's i = 1..N-1.
+                    objective += (p.horizon - (i + 1)) * running
+            constraints.append(states[i + 1] - step(s_i, u_i, p.sampling_time))
+        if p.agent in ("rlqv", "rlqv+"):
+            objective += ca.dot(v, phi_v(states[-1]))
+
+        # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
+        variables = []
+        for i in range(n_act):
+            variables += [states[i], actions[i]]
+        variables.append(states[-1])
+        nlp = {
+            "x": ca.vertcat(*variables),
+            "p": ca.vertcat(w, v),
+            "f": objective,
+            "g": ca.vertcat(*constraints),
+        }
+
+        inf = float("inf")
+        lbx, ubx = [], []
+        for _ in range(n_act):
+            lbx += [-inf] * STATE_DIM + [-p.v_max, -p.omega_max]
+            ubx += [inf] * STATE_DIM + [p.v_max, p.omega_max]
+        lbx += [-inf] * STATE_DIM
+        ubx += [inf] * STATE_DIM
+        n_g = STATE_DIM * n_act
+        zeros_g = ca.DM.zeros(n_g)
+
+        options: dict[str, Any] = {"print_time": False}
+        jit = p.jit and _compiler_available()
+        if p.jit and not jit:
+            log.warning("no C compiler found: building the actor without JIT (slower solves)")
+        if jit:
+            options.update(
+                {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O3"], "verbose": False}}
+            )
+        if p.solver == "fatrop":
+            options.update(
+                {
+                    "structure_detection": "auto",
+                    "equality": [True] * n_g,
+                    "fatrop": {"print_level": 0, "max_iter": p.max_iter, "tol": p.tolerance},
+                }
+            )
+        else:
+            options.update(
+                {
+                    "ipopt": {
+                        "print_level": 0,
+                        "max_iter": p.max_iter,
+                        "tol": p.tolerance,
+                        "sb": "yes",
+                    }
+                }
+            )
+        solver = ca.nlpsol(f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}", p.solver, nlp, options)
+        return solver, ca.DM(lbx), ca.DM(ubx), zeros_g, zeros_g
+
+    # -- stepping -----------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget the previous plan (new episode)."""
+        self._previous_x = None
+
+    def _initial_guess(self, state: np.ndarray) -> np.ndarray:
+        """Warm start: the previous primal solution shifted by one stage, last stage repeated.
+
+        With multiple shooting the guess needs not satisfy the dynamics, so shifting the
+        whole vector (states and actions) is both cheap and closer than a re-rollout.
+        """
+        stride = STATE_DIM + ACTION_DIM
+        if self._previous_x is None:
+            x0 = np.zeros(self._n_x)
+            x0[::stride] = state[0]
+            x0[1::stride] = state[1]
+            x0[2::stride] = state[2]
+        else:
+            prev = self._previous_x
+            x0 = np.empty_like(prev)
+            x0[:-stride] = prev[stride:]
+            # the last stage: repeat the last held action and the terminal state
+            x0[-stride - STATE_DIM : -STATE_DIM] = prev[-stride - STATE_DIM : -STATE_DIM]
+            x0[-STATE_DIM:] = prev[-STATE_DIM:]
+        x0[:STATE_DIM] = state
+        return x0
+
+    def _plan_of(self, x: np.ndarray) -> np.ndarray:
+        stride = STATE_DIM + ACTION_DIM
+        return x[:-STATE_DIM].reshape(-1, stride)[:, STATE_DIM:]
+
+    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep:
+        """Minimize the agent's objective from ``state``; return the first held action.
+
+        ``solve_seconds`` is the whole step (guess, solve, checks), not the solver alone.
+        """
+        started = time.perf_counter()
+        state = np.asarray(state, dtype=float)
+        params = np.concatenate([np.asarray(q_weights, float).ravel(), np.asarray(v_weights, float).ravel()])
+        if state.shape != (STATE_DIM,) or not np.all(np.isfinite(state)):
+            raise ValueError(f"state must be {STATE_DIM} finite numbers, got {state}")
+        if params.shape != (Q_FEATURES + V_FEATURES,) or not np.all(np.isfinite(params)):
+            raise ValueError(
+                f"critic weights must be {Q_FEATURES} + {V_FEATURES} finite numbers, "
+                f"got shapes {np.shape(q_weights)} and {np.shape(v_weights)}"
+            )
+        x0 = self._initial_guess(state)
+        self._lbx_np[:STATE_DIM] = state
+        self._ubx_np[:STATE_DIM] = state
+        try:
+            x_dm, f_dm = self._solver.call(
+                [ca.DM(x0), ca.DM(params), ca.DM(self._lbx_np), ca.DM(self._ubx_np), self._lbg, self._ubg,
+                 self._zero_lam_x, self._zero_lam_g]
+            )[:2]
+            stats = self._solver.stats()
+            success = bool(stats.get("success", False))
+            status = str(stats.get("return_status", "unknown"))
+            x_opt = x_dm.full().ravel()
+            objective = float(f_dm)
+        except RuntimeError as error:  # CasADi raises on evaluation errors
+            success, status, x_opt, objective = False, f"error: {error}", x0, float("nan")
+
+        if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
+            plan = np.clip(self._plan_of(x_opt), -self._action_bounds, self._action_bounds)
+            self._previous_x = x_opt
+        else:
+            success = False
+            self.counters.failures += 1
+            log.debug("actor solve failed (%s); falling back", status)
+            # Safe fallback: the previous plan shifted by one step if there is one (x0 holds
+            # it), else standing still. Either way finite and within bounds.
+            if self._previous_x is not None:
+                plan = np.clip(self._plan_of(x0), -self._action_bounds, self._action_bounds)
+                self._previous_x = x0
+            else:
+                plan = np.zeros((self.problem.horizon - 1, ACTION_DIM))
+            objective = float("nan")
+        elapsed = time.perf_counter() - started
+        self.counters.solves += 1
+        self.counters.solve_seconds.append(elapsed)
+        return ActorStep(
+            action=plan[0].copy(),
+            plan=plan,
+            objective=objective,
+            success=success,
+            solve_seconds=elapsed,
+            status=status,
+        )

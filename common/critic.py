@@ -1,0 +1,194 @@
+"""The double critic and its temporal-difference least-squares fit (section III, eq. critic-cost).
+
+``Qhat(s, u; w) = <w, phi_Q(s, u)>`` and ``Jhat(s; v) = <v, phi_V(s)>``. Over a replay of the
+last ``M`` samples ``(s_j, u_j, c_j)`` of one episode (``M - 1`` consecutive pairs; a gap in the
+step index ``j`` breaks the pair) the TD errors are
+
+    e_j(w) = <w, phi_Q(s_j, u_j)> - beta <w_prev, phi_Q(s_{j+1}, u_{j+1})> - c_j
+    e_j(v) = <v, phi_V(s_j)>      - beta <v_prev, phi_V(s_{j+1})>       - c_j
+
+and the fit minimizes ``1/2 sum e_j^2 + lambda/2 |w - w_prev|^2`` (optionally within box
+bounds). With ``w_prev`` frozen that is LINEAR least squares, solved as such: ``numpy.lstsq``
+without bounds, ``scipy.optimize.lsq_linear`` with them.
+
+Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M < 16``): we
+solve for the change ``dw = w - w_prev`` and take the minimum-norm ``dw``, i.e. the weights
+closest to the previous ones that fit the TDs best. That is the limit of the ridge as
+``lambda -> 0`` and it leaves weights untouched in directions the data does not see.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from common.features import phi_q, phi_v
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One replay entry: the step index, the state, the held action and its interval cost."""
+
+    step: int
+    state: np.ndarray
+    action: np.ndarray
+    cost: float  # c_j = delta * r(s_j, u_j)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    weights: np.ndarray
+    residual: float  # 1/2 sum e_j^2 at the new weights (the TD part, ridge excluded)
+    pairs: int
+
+
+def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
+    """Indices ``(a, b)`` into ``steps`` with ``steps[b] == steps[a] + 1`` and ``b == a + 1``.
+
+    Only neighbours in the replay can pair, and only if no step is missing between them:
+    a gap (lost or not yet received sample) is never bridged.
+    """
+    return [(a, a + 1) for a in range(len(steps) - 1) if steps[a + 1] == steps[a] + 1]
+
+
+def td_fit(
+    features_now: np.ndarray,
+    features_next: np.ndarray,
+    costs: np.ndarray,
+    previous_weights: np.ndarray,
+    discount: float,
+    ridge: float = 0.0,
+    bounds: tuple[float, float] | None = None,
+) -> FitResult:
+    """Least-squares TD fit of linear weights, dimension-generic.
+
+    ``features_now[j] = phi(z_j)``, ``features_next[j] = phi(z_{j+1})``, ``costs[j] = c_j``;
+    targets are ``c_j + discount * <previous_weights, phi(z_{j+1})>``.
+    """
+    previous = np.asarray(previous_weights, dtype=float)
+    a = np.atleast_2d(np.asarray(features_now, dtype=float))
+    pairs = a.shape[0] if np.size(costs) else 0
+    if pairs == 0:
+        return FitResult(previous.copy(), 0.0, 0)
+    targets = np.asarray(costs, float) + discount * (np.asarray(features_next, float) @ previous)
+    # Solve for dw = w - w_prev: A dw ~ targets - A w_prev, with the ridge as extra rows.
+    rhs = targets - a @ previous
+    if ridge > 0:
+        a_aug = np.vstack([a, np.sqrt(ridge) * np.eye(previous.size)])
+        rhs_aug = np.concatenate([rhs, np.zeros(previous.size)])
+    else:
+        a_aug, rhs_aug = a, rhs
+    if bounds is None:
+        delta_w = np.linalg.lstsq(a_aug, rhs_aug, rcond=None)[0]
+        weights = previous + delta_w
+    else:
+        low, high = bounds
+        # The previous weights may sit outside new bounds: clip before measuring the change.
+        base = np.clip(previous, low, high)
+        rhs_b = rhs_aug - a_aug @ (base - previous)
+        solution = lsq_linear(a_aug, rhs_b, bounds=(low - base, high - base), method="bvls")
+        weights = np.clip(base + solution.x, low, high)
+    errors = a @ weights - targets
+    return FitResult(weights, 0.5 * float(errors @ errors), pairs)
+
+
+class Replay:
+    """The last ``capacity`` samples of ONE episode, kept in step order."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 2:
+            raise ValueError(f"replay size M must be >= 2 (one TD pair), got {capacity}")
+        self.capacity = capacity
+        self._samples: deque[Sample] = deque(maxlen=capacity)
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    @property
+    def samples(self) -> list[Sample]:
+        return list(self._samples)
+
+    def clear(self) -> None:
+        self._samples.clear()
+
+    def add(self, sample: Sample) -> None:
+        """Insert in step order; a duplicate step replaces nothing and raises."""
+        if self._samples and sample.step <= self._samples[-1].step:
+            if any(s.step == sample.step for s in self._samples):
+                raise ValueError(f"step {sample.step} is already in the replay")
+            # Late arrival (out of order): insert where it belongs, then trim the oldest.
+            items = sorted([*self._samples, sample], key=lambda s: s.step)[-self.capacity :]
+            self._samples = deque(items, maxlen=self.capacity)
+            return
+        self._samples.append(sample)
+
+    def design(
+        self, features: Callable[[Sample], np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(features_now, features_next, costs)`` over the consecutive pairs."""
+        samples = self._samples
+        pairs = consecutive_pairs([s.step for s in samples])
+        if not pairs:
+            return np.empty((0, 0)), np.empty((0, 0)), np.empty(0)
+        phis = [features(s) for s in samples]
+        now = np.array([phis[a] for a, _ in pairs])
+        nxt = np.array([phis[b] for _, b in pairs])
+        costs = np.array([samples[a].cost for a, _ in pairs])
+        return now, nxt, costs
+
+
+@dataclass
+class CriticUpdate:
+    q: FitResult
+    v: FitResult
+
+
+class DoubleCritic:
+    """``Qhat`` and ``Jhat`` with their weights; :meth:`update` runs one TD fit of both."""
+
+    def __init__(
+        self,
+        q_weights: np.ndarray,
+        v_weights: np.ndarray,
+        discount: float,
+        ridge: float = 0.0,
+        bounds: tuple[float, float] | None = None,
+    ) -> None:
+        if not 0.0 <= discount <= 1.0:
+            raise ValueError(f"discount beta must lie in [0, 1], got {discount}")
+        if ridge < 0:
+            raise ValueError(f"ridge lambda must be >= 0, got {ridge}")
+        if bounds is not None and not bounds[0] < bounds[1]:
+            raise ValueError(f"weight bounds must satisfy low < high, got {bounds}")
+        self.q_weights = np.asarray(q_weights, dtype=float).copy()
+        self.v_weights = np.asarray(v_weights, dtype=float).copy()
+        for name, w in (("q", self.q_weights), ("v", self.v_weights)):
+            if not np.all(np.isfinite(w)):
+                raise ValueError(f"initial {name} weights must be finite")
+        self.discount = discount
+        self.ridge = ridge
+        self.bounds = bounds
+
+    def q_value(self, state: np.ndarray, action: np.ndarray) -> float:
+        return float(self.q_weights @ phi_q(state, action))
+
+    def value(self, state: np.ndarray) -> float:
+        return float(self.v_weights @ phi_v(state))
+
+    def update(self, replay: Replay) -> CriticUpdate:
+        """One TD least-squares fit of both critics on the replay (Algorithm 1, line 6)."""
+        args = (self.discount, self.ridge, self.bounds)
+        q_now, q_next, costs = replay.design(lambda s: phi_q(s.state, s.action))
+        q_fit = td_fit(q_now, q_next, costs, self.q_weights, *args)
+        v_now, v_next, costs = replay.design(lambda s: phi_v(s.state))
+        v_fit = td_fit(v_now, v_next, costs, self.v_weights, *args)
+        # Never accept a non-finite fit (ill-conditioned data): keep the previous weights.
+        if np.all(np.isfinite(q_fit.weights)):
+            self.q_weights = q_fit.weights
+        if np.all(np.isfinite(v_fit.weights)):
+            self.v_weights = v_fit.weights
+        return CriticUpdate(q_fit, v_fit)

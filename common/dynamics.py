@@ -1,0 +1,90 @@
+"""The unicycle (three-wheel robot) model of the paper, eq. (3w-robot).
+
+State ``s = (x, y, alpha)`` [m, m, rad] in the goal frame; action ``u = (v, omega)``
+[m/s, rad/s], held constant over each sampling interval (sample-and-hold).
+
+One definition of the right-hand side, :func:`unicycle_rhs`, serves both the actor's
+predictor (numerically, or symbolically with CasADi) and, through its closed-form
+integral :func:`exact_step`, the plant. The heading is never wrapped: it stays continuous.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+STATE_DIM = 3
+ACTION_DIM = 2
+
+
+def _is_symbolic(value: Any) -> bool:
+    # CasADi types are detected by duck typing so that this module never needs casadi
+    # for numeric use (the plant); the actor passes SX/MX symbols.
+    return type(value).__module__.startswith("casadi")
+
+
+def unicycle_rhs(state: Any, action: Any) -> Any:
+    """``f(s, u) = (v cos alpha, v sin alpha, omega)``; numpy arrays or CasADi symbols."""
+    alpha = state[2]
+    v, omega = action[0], action[1]
+    if _is_symbolic(state) or _is_symbolic(action):
+        import casadi as ca
+
+        return ca.vertcat(v * ca.cos(alpha), v * ca.sin(alpha), omega)
+    return np.array([v * np.cos(alpha), v * np.sin(alpha), omega], dtype=float)
+
+
+def euler_step(state: Any, action: Any, sampling_time: float) -> Any:
+    """The paper's predictor, eq. (Euler): ``s + delta f(s, u)``."""
+    return state + sampling_time * unicycle_rhs(state, action)
+
+
+def rk4_step(state: Any, action: Any, sampling_time: float) -> Any:
+    """Classic fourth-order Runge-Kutta over one held interval (optional predictor)."""
+    h = sampling_time
+    k1 = unicycle_rhs(state, action)
+    k2 = unicycle_rhs(state + h / 2 * k1, action)
+    k3 = unicycle_rhs(state + h / 2 * k2, action)
+    k4 = unicycle_rhs(state + h * k3, action)
+    return state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+PREDICTORS: dict[str, Callable[[Any, Any, float], Any]] = {"euler": euler_step, "rk4": rk4_step}
+
+
+def exact_step(state: FloatArray, action: FloatArray, duration: float) -> FloatArray:
+    """Exact sample-and-hold integration of the unicycle over ``duration`` seconds.
+
+    The textbook closed form is ``x += v/omega (sin(a + omega t) - sin a)`` and
+    ``y -= v/omega (cos(a + omega t) - cos a)``, a straight line when ``omega == 0``.
+    Using ``sin(b) - sin(a) = 2 cos((a+b)/2) sin((b-a)/2)`` it becomes
+    ``x += v t cos(a + omega t/2) sinc(omega t/2)``, which is the same function but has no
+    branch and no cancellation for tiny ``omega`` (``np.sinc(z) = sin(pi z)/(pi z)``).
+    """
+    x, y, alpha = (float(c) for c in state)
+    v, omega = (float(c) for c in action)
+    half_turn = omega * duration / 2.0
+    chord = v * duration * float(np.sinc(half_turn / np.pi))
+    mid_heading = alpha + half_turn
+    return np.array(
+        [x + chord * np.cos(mid_heading), y + chord * np.sin(mid_heading), alpha + omega * duration]
+    )
+
+
+def heading_away_from_target(x: float, y: float) -> float:
+    """The paper's start heading: turned away from the target at the origin.
+
+    ``atan2(y, x)``; at the origin itself (no direction) ``pi``, as DESIGN.md fixes.
+    """
+    if x == 0.0 and y == 0.0:
+        return float(np.pi)
+    return float(np.arctan2(y, x))
+
+
+def unwrap_heading(previous: float, measured: float) -> float:
+    """Continuous heading: the representative of ``measured`` (mod 2 pi) nearest ``previous``."""
+    return previous + float(np.remainder(measured - previous + np.pi, 2.0 * np.pi) - np.pi)

@@ -1,0 +1,69 @@
+"""Stage cost and the critics' quadratic features, in the paper's notation (section III).
+
+``phi(z)`` concatenates the entries of ``z z^T`` diagonal by diagonal: the main diagonal
+first (``i - j = 0``), then ``i - j = 1`` and so on, each diagonal in increasing row ``i``.
+For ``z = (s, u)`` in R^5 that is 15 features (``phi_Q``); for ``z = s`` in R^3, 6 (``phi_V``).
+The functions are dimension-generic and accept numpy arrays or CasADi symbols.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from common.dynamics import _is_symbolic
+
+
+def feature_count(dim: int) -> int:
+    """Number of products ``z_i z_j`` with ``i >= j`` of a vector of length ``dim``."""
+    return dim * (dim + 1) // 2
+
+
+def feature_index_pairs(dim: int) -> list[tuple[int, int]]:
+    """``(i, j)`` of each feature, in the paper's order (diagonal ``k = i - j`` outermost)."""
+    return [(i, i - k) for k in range(dim) for i in range(k, dim)]
+
+
+def quadratic_features(z: Any) -> Any:
+    """``concat_{k=0}^{n-1} concat_{i-j=k} (z z^T)_{ij}`` for numpy or CasADi ``z``."""
+    dim = int(z.shape[0])
+    products = [z[i] * z[j] for i, j in feature_index_pairs(dim)]
+    if _is_symbolic(z):
+        import casadi as ca
+
+        return ca.vertcat(*products)
+    return np.array(products, dtype=float)
+
+
+def phi_q(state: Any, action: Any) -> Any:
+    """Q-critic features ``phi_Q(s, u)`` (15 for the unicycle)."""
+    if _is_symbolic(state) or _is_symbolic(action):
+        import casadi as ca
+
+        return quadratic_features(ca.vertcat(state, action))
+    return quadratic_features(np.concatenate([np.asarray(state, float), np.asarray(action, float)]))
+
+
+def phi_v(state: Any) -> Any:
+    """Value-critic features ``phi_V(s)`` (6 for the unicycle)."""
+    return quadratic_features(state if _is_symbolic(state) else np.asarray(state, float))
+
+
+def stage_cost(state: Any, action: Any, cost_diag: Any) -> Any:
+    """``r(s, u) = chi^T R chi`` with ``chi = (s, u)`` and ``R = diag(cost_diag)``."""
+    n = int(state.shape[0])
+    total = 0.0
+    for i in range(n):
+        total = total + cost_diag[i] * state[i] * state[i]
+    for i in range(int(action.shape[0])):
+        total = total + cost_diag[n + i] * action[i] * action[i]
+    return total
+
+
+def quadratic_weights_for_diag(diag: Any) -> np.ndarray:
+    """Weights ``w`` with ``<w, phi(z)> = z^T diag(diag) z`` (main-diagonal features only)."""
+    diag = np.asarray(diag, dtype=float)
+    weights = np.zeros(feature_count(diag.size))
+    weights[: diag.size] = diag
+    return weights

@@ -1,0 +1,177 @@
+"""The paper's Algorithm 1 (actor step, apply to the plant, critic update, repeat).
+
+The loop is written against two small interfaces so that the same code runs in one process
+(``transport = inproc``: the exact plant and a local critic) and through the distributed
+services (the Zenoh plant queryable and the off-board critic): the distributed system runs
+the algorithm itself, not an approximation of it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from common.actor import ActorProblem, StackedActor
+from common.critic import DoubleCritic, Replay, Sample
+from common.dynamics import exact_step
+from common.features import stage_cost
+from common.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class Plant(Protocol):
+    def reset(self, state: np.ndarray) -> np.ndarray: ...
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray: ...
+
+
+class CriticPort(Protocol):
+    """Where samples go and critic weights come from."""
+
+    def reset(self) -> tuple[np.ndarray, np.ndarray]: ...
+    def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class ExactPlant:
+    """The simulated robot in process: exact sample-and-hold integration."""
+
+    def __init__(self) -> None:
+        self.state = np.zeros(3)
+
+    def reset(self, state: np.ndarray) -> np.ndarray:
+        self.state = np.asarray(state, dtype=float).copy()
+        return self.state.copy()
+
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
+        self.state = exact_step(self.state, action, duration)
+        return self.state.copy()
+
+
+class LocalCritic:
+    """The critic learner in process: replay of size M and a TD fit every ``update_every``."""
+
+    def __init__(self, settings: Settings, learn: bool = True) -> None:
+        self.settings = settings
+        self.learn = learn
+        self.critic = self._fresh_critic()
+        self.replay = Replay(settings.critic.replay_size)
+        self.updates = 0
+
+    def _fresh_critic(self) -> DoubleCritic:
+        s = self.settings
+        return DoubleCritic(
+            s.initial_q_weights(), s.initial_v_weights(), s.discount, s.critic.ridge, s.critic.bounds
+        )
+
+    def reset(self) -> tuple[np.ndarray, np.ndarray]:
+        self.critic = self._fresh_critic()
+        self.replay.clear()
+        self.updates = 0
+        return self.critic.q_weights, self.critic.v_weights
+
+    def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        self.replay.add(sample)
+        if self.learn and sample.step % self.settings.critic.update_every == 0:
+            self.critic.update(self.replay)
+            self.updates += 1
+        return self.critic.q_weights, self.critic.v_weights
+
+
+def build_actor(settings: Settings) -> StackedActor:
+    a, p = settings.actor, settings.plant
+    return StackedActor(
+        ActorProblem(
+            agent=a.agent,
+            horizon=a.horizon,
+            sampling_time=p.sampling_time,
+            cost_diag=tuple(settings.cost.r_diag),
+            v_max=p.v_max,
+            omega_max=p.omega_max,
+            predictor=a.predictor,
+            solver=a.solver,
+            jit=a.jit,
+            max_iter=a.max_iter,
+            tolerance=a.tolerance,
+        )
+    )
+
+
+@dataclass
+class Episode:
+    """Everything one run produced; ``states`` has ``steps + 1`` rows (start included)."""
+
+    agent: str
+    horizon: int
+    states: list[np.ndarray] = field(default_factory=list)
+    actions: list[np.ndarray] = field(default_factory=list)
+    costs: list[float] = field(default_factory=list)
+    solve_seconds: list[float] = field(default_factory=list)
+    solver_failures: int = 0
+
+    @property
+    def steps(self) -> int:
+        return len(self.actions)
+
+    @property
+    def accumulated_cost(self) -> float:
+        """``J = sum_k c_k`` with ``c_k = delta r(s_k, u_k)``: the score of every agent."""
+        return float(np.sum(self.costs))
+
+    @property
+    def final_state(self) -> np.ndarray:
+        return self.states[-1]
+
+
+def run_episode(
+    settings: Settings,
+    actor: StackedActor | None = None,
+    plant: Plant | None = None,
+    critic: CriticPort | None = None,
+) -> Episode:
+    """Algorithm 1 for ``settings.steps`` sampling intervals from ``settings.start_state()``."""
+    actor = actor or build_actor(settings)
+    plant = plant or ExactPlant()
+    critic = critic or LocalCritic(settings, learn=settings.actor.agent != "mpc")
+    delta = settings.plant.sampling_time
+    r_diag = settings.cost.r_diag
+
+    actor.reset()
+    failures_before = actor.counters.failures
+    q_weights, v_weights = critic.reset()
+    state = plant.reset(settings.start_state())
+    episode = Episode(agent=settings.actor.agent, horizon=settings.actor.horizon, states=[state])
+    for k in range(settings.steps):
+        step = actor.step(state, q_weights, v_weights)  # line 4: update actor
+        cost = delta * float(stage_cost(state, step.action, r_diag))
+        next_state = plant.apply(step.action, delta)  # line 5: apply u_1
+        q_weights, v_weights = critic.record(Sample(k, state, step.action, cost))  # line 6
+        episode.actions.append(step.action)
+        episode.costs.append(cost)
+        episode.solve_seconds.append(step.solve_seconds)
+        episode.states.append(next_state)
+        state = next_state
+    episode.solver_failures = actor.counters.failures - failures_before
+    return episode
+
+
+def episode_summary(episode: Episode, settings: Settings) -> dict[str, object]:
+    """The JSON-ready summary of a run (the contract of ``srl run --json``)."""
+    from common.stats import summarize
+
+    final = episode.final_state
+    return {
+        "agent": episode.agent,
+        "horizon": episode.horizon,
+        "steps": episode.steps,
+        "episode_seconds": episode.steps * settings.plant.sampling_time,
+        "accumulated_cost": episode.accumulated_cost,
+        "start_state": [float(c) for c in episode.states[0]],
+        "final_state": [float(c) for c in final],
+        "final_distance": float(np.hypot(final[0], final[1])),
+        "solve_ms": summarize(episode.solve_seconds, scale=1e3),
+        "solver_failures": episode.solver_failures,
+        "settings": settings.as_dict(),
+    }

@@ -1,0 +1,201 @@
+"""Settings: every constant in ONE TOML file (``common/srl.toml``), overridable.
+
+Precedence, highest first: explicit overrides (CLI flags) > ``SRL_<SECTION>__<NAME>``
+environment variables > a user TOML file (``--config`` or ``SRL_CONFIG``) > the packaged
+``srl.toml``. The models declare no defaults of their own, so the packaged file is the single
+source of truth. Settings are built in ``main()`` and passed down; nothing is created at import.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+from common.dynamics import heading_away_from_target
+from common.features import quadratic_weights_for_diag
+
+DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _finite(value: float, name: str) -> float:
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    return value
+
+
+class PlantSettings(_Section):
+    sampling_time: float = Field(gt=0, description="delta [s]")
+    v_max: float = Field(gt=0, description="[m/s]")
+    omega_max: float = Field(gt=0, description="[rad/s]")
+
+    @field_validator("sampling_time", "v_max", "omega_max")
+    @classmethod
+    def _is_finite(cls, v: float) -> float:
+        return _finite(v, "plant constant")
+
+
+class CostSettings(_Section):
+    r_diag: tuple[float, float, float, float, float] = Field(description="diag(R) over (x,y,alpha,v,omega)")
+
+    @field_validator("r_diag")
+    @classmethod
+    def _psd(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(math.isfinite(c) and c >= 0 for c in v):
+            raise ValueError(f"r_diag must be finite and >= 0 (R positive semi-definite), got {v}")
+        return v
+
+
+class CriticSettings(_Section):
+    discount_rate: float = Field(ge=0, description="gamma [1/s]")
+    replay_size: int = Field(ge=2, description="M")
+    ridge: float = Field(ge=0, description="lambda")
+    weight_bounds: tuple[()] | tuple[float, float] = Field(description="[] or [low, high]")
+    q_init: Literal["stage_cost"] | list[float]
+    v_init: Literal["stage_cost"] | list[float]
+    update_every: int = Field(ge=1)
+
+    @model_validator(mode="after")
+    def _check(self) -> CriticSettings:
+        if self.weight_bounds and not self.weight_bounds[0] < self.weight_bounds[1]:
+            raise ValueError(f"weight_bounds must be [low, high] with low < high, got {self.weight_bounds}")
+        for name, n in (("q_init", 15), ("v_init", 6)):
+            value = getattr(self, name)
+            if isinstance(value, list) and (len(value) != n or not all(math.isfinite(x) for x in value)):
+                raise ValueError(f"{name} must be 'stage_cost' or {n} finite numbers, got {value}")
+        return self
+
+    @property
+    def bounds(self) -> tuple[float, float] | None:
+        return (self.weight_bounds[0], self.weight_bounds[1]) if self.weight_bounds else None
+
+
+class ActorSettings(_Section):
+    agent: Literal["mpc", "rlq", "rlqv", "rlqv+"]
+    horizon: int = Field(ge=2, description="N")
+    predictor: Literal["euler", "rk4"]
+    solver: Literal["fatrop", "ipopt"]
+    jit: bool
+    max_iter: int = Field(ge=1)
+    tolerance: float = Field(gt=0)
+
+
+class EpisodeSettings(_Section):
+    duration: float = Field(gt=0, description="[s]")
+    start: tuple[float, float] | tuple[float, float, float]
+
+    @field_validator("start")
+    @classmethod
+    def _finite_start(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError(f"start must be finite numbers, got {v}")
+        return v
+
+
+class Settings(BaseSettings):
+    """All constants of a run. Build with :meth:`load`."""
+
+    model_config = SettingsConfigDict(
+        env_prefix="SRL_", env_nested_delimiter="__", extra="forbid", frozen=True
+    )
+
+    plant: PlantSettings
+    cost: CostSettings
+    critic: CriticSettings
+    actor: ActorSettings
+    episode: EpisodeSettings
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # First wins, and pydantic-settings deep-merges the layers: flags > env > TOML files.
+        toml = TomlConfigSettingsSource(settings_cls, deep_merge=True)
+        return (init_settings, env_settings, toml)
+
+    @classmethod
+    def load(cls, config_file: str | Path | None = None, **overrides: Any) -> Settings:
+        """Packaged ``srl.toml`` <- user file <- ``SRL_...`` environment <- ``overrides``.
+
+        ``overrides`` are nested dicts by section, e.g. ``actor={"horizon": 6}``.
+        """
+        files = [DEFAULT_CONFIG]
+        user_file = config_file or os.environ.get("SRL_CONFIG")
+        if user_file:
+            path = Path(user_file)
+            if not path.is_file():
+                raise FileNotFoundError(f"config file {path} does not exist")
+            files.append(path)
+
+        class _FromFiles(cls):  # type: ignore[valid-type,misc]
+            model_config = SettingsConfigDict(toml_file=files)
+
+        return cls.model_validate(_FromFiles(**overrides).model_dump())
+
+    # -- derived quantities, in the paper's terms ------------------------------------
+    @property
+    def discount(self) -> float:
+        """beta = exp(-gamma delta)."""
+        return math.exp(-self.critic.discount_rate * self.plant.sampling_time)
+
+    @property
+    def steps(self) -> int:
+        return max(1, round(self.episode.duration / self.plant.sampling_time))
+
+    def start_state(self) -> np.ndarray:
+        return start_state(self.episode.start)
+
+    def initial_q_weights(self) -> np.ndarray:
+        if self.critic.q_init == "stage_cost":
+            return self.plant.sampling_time * quadratic_weights_for_diag(self.cost.r_diag)
+        return np.array(self.critic.q_init, dtype=float)
+
+    def initial_v_weights(self) -> np.ndarray:
+        if self.critic.v_init == "stage_cost":
+            return self.plant.sampling_time * quadratic_weights_for_diag(self.cost.r_diag[:3])
+        return np.array(self.critic.v_init, dtype=float)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every constant used, plus the derived discount, for printing with each result."""
+        data = self.model_dump(mode="json")
+        data["derived"] = {"discount_beta": self.discount, "steps": self.steps}
+        return data
+
+
+def start_state(start: tuple[float, ...] | list[float]) -> np.ndarray:
+    """``(x, y)`` -> heading turned away from the target, as in the paper; ``(x, y, alpha)`` as is."""
+    values = [float(c) for c in start]
+    if len(values) not in (2, 3) or not all(math.isfinite(c) for c in values):
+        raise ValueError(f"a start is X,Y or X,Y,ALPHA with finite numbers, got {start}")
+    if len(values) == 2:
+        values.append(heading_away_from_target(values[0], values[1]))
+    return np.array(values)
+
+
+def parse_start(text: str) -> tuple[float, ...]:
+    """Parse the CLI form ``X,Y`` or ``X,Y,ALPHA``."""
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError as error:
+        raise ValueError(f"a start is X,Y or X,Y,ALPHA in numbers, got {text!r}") from error
+    start_state(values)  # validates count and finiteness
+    return values

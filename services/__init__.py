@@ -1,0 +1,1 @@
+"""The services of srl (actor, critic, plant_sim, robot_bridge) and the ``srl`` command."""
