@@ -106,6 +106,19 @@ class EpisodeSettings(_Section):
         return v
 
 
+class TransportSettings(_Section):
+    robot: str = Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")
+    mode: Literal["client", "peer"]
+    router: str = Field(description="endpoint of the Zenoh router, e.g. tcp/127.0.0.1:7447")
+    connect: list[str]
+    multicast_scouting: bool
+    query_timeout: float = Field(gt=0)
+    critic_timeout: float = Field(gt=0)
+    status_period: float = Field(gt=0)
+    state_rate: float = Field(gt=0, le=1000)
+    action_timeout_steps: int = Field(ge=1)
+
+
 class Settings(BaseSettings):
     """All constants of a run. Build with :meth:`load`."""
 
@@ -118,6 +131,7 @@ class Settings(BaseSettings):
     critic: CriticSettings
     actor: ActorSettings
     episode: EpisodeSettings
+    transport: TransportSettings
 
     @classmethod
     def settings_customise_sources(

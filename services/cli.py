@@ -42,10 +42,33 @@ def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--solver", choices=["fatrop", "ipopt"])
     parser.add_argument("--predictor", choices=["euler", "rk4"])
     parser.add_argument("--no-jit", action="store_true", help="do not JIT-compile the actor problem")
+    parser.add_argument("--router", help="Zenoh router endpoint (default from config: tcp/127.0.0.1:7447)")
+    parser.add_argument("--robot", help="robot id, the <robot> chunk of every key")
+
+
+SETTINGS_FLAGS = ("config", "agent", "horizon", "start", "duration", "solver", "predictor", "router", "robot")
+
+
+def settings_argv(args: argparse.Namespace) -> list[str]:
+    """The settings flags that were given, as argv, to hand the same settings to children."""
+    argv: list[str] = []
+    for name in SETTINGS_FLAGS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        if name == "start":
+            value = ",".join(repr(float(c)) for c in value)
+        argv += [f"--{name}", str(value)]
+    if getattr(args, "no_jit", False):
+        argv.append("--no-jit")
+    return argv
 
 
 def settings_from_args(args: argparse.Namespace) -> Settings:
-    overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}}
+    overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}, "transport": {}}
+    for name in ("router", "robot"):
+        if getattr(args, name, None) is not None:
+            overrides["transport"][name] = getattr(args, name)
     for name in ("agent", "horizon", "solver", "predictor"):
         if getattr(args, name, None) is not None:
             overrides["actor"][name] = getattr(args, name)
@@ -71,11 +94,22 @@ def cmd_run(args: argparse.Namespace) -> int:
     from common.loop import episode_summary, run_episode
 
     settings = settings_from_args(args)
-    if args.transport != "inproc":
-        raise UsageError(f"transport {args.transport!r} is not available in this build")
     started = time.perf_counter()
-    episode = run_episode(settings)
-    summary = episode_summary(episode, settings)
+    if args.transport == "zenoh":
+        # The same Algorithm 1 through the real services: lockstep, synchronous critic.
+        from common.loop import Episode
+        from services.up import ServiceDied, run_up
+
+        try:
+            summary = run_up(settings, settings_argv(args), mode="lockstep", plant="sim",
+                             sync_critic=True, duration=settings.episode.duration, quiet=not args.verbose)
+        except (ServiceDied, TimeoutError) as error:
+            raise UsageError(str(error)) from error
+        episode = Episode(summary["agent"], summary["horizon"],
+                          states=[__import__("numpy").array(s) for s in summary["trajectory"]])
+    else:
+        episode = run_episode(settings)
+        summary = episode_summary(episode, settings)
     summary["wall_seconds"] = time.perf_counter() - started
     summary["transport"] = args.transport
     if args.plot:
@@ -83,6 +117,10 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         plot_episode(episode, settings.plant.sampling_time, args.plot)
         summary["plot"] = str(args.plot)
+    if not args.trajectory:
+        summary.pop("trajectory", None)
+    elif "trajectory" not in summary:
+        summary["trajectory"] = [[float(c) for c in s] for s in episode.states]
     print(format_run_summary(summary))
     if args.json:
         print(json.dumps(summary))
@@ -117,6 +155,121 @@ def _fmt_state(state: Sequence[float]) -> str:
     return f"x = {state[0]:+.3f} m, y = {state[1]:+.3f} m, alpha = {state[2]:+.3f} rad"
 
 
+# -- services -------------------------------------------------------------------------
+def _serve(args: argparse.Namespace, service: str, body: Callable[..., dict[str, Any]]) -> int:
+    """Common life of a service process: settings, signals, session, run, final JSON line."""
+    import signal
+    import threading
+
+    import zenoh
+
+    from common.transport import Bus
+
+    settings = settings_from_args(args)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    deadline = time.monotonic() + args.connect_timeout
+    while True:
+        try:
+            bus = Bus.open(settings.transport, service)
+            break
+        except zenoh.ZError as error:
+            if time.monotonic() > deadline or stop.is_set():
+                raise UsageError(f"{service}: cannot reach the Zenoh router at "
+                                 f"{settings.transport.router}: {error}") from error
+            time.sleep(0.2)
+    try:
+        result = body(settings, bus, stop)
+    finally:
+        bus.close()
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    import zenoh
+
+    from common.transport import zenoh_config
+
+    settings = settings_from_args(args)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    try:
+        session = zenoh.open(zenoh_config(settings.transport, router=True))
+    except zenoh.ZError as error:
+        raise UsageError(f"router: cannot listen on {settings.transport.router}: {error}") from error
+    log.warning("router listening on %s (multicast scouting %s)", settings.transport.router,
+                "on" if settings.transport.multicast_scouting else "off")
+    stop.wait()
+    session.close()
+    print(json.dumps({"service": "router", "endpoint": settings.transport.router}), flush=True)
+    return 0
+
+
+def cmd_plant_sim(args: argparse.Namespace) -> int:
+    from services.plant_sim.service import run
+
+    return _serve(args, "plant", lambda s, bus, stop: run(s, bus, args.mode, stop, args.run_seconds))
+
+
+def cmd_critic(args: argparse.Namespace) -> int:
+    from services.critic.service import run
+
+    return _serve(args, "critic", lambda s, bus, stop: run(s, bus, stop, args.run_seconds))
+
+
+def cmd_actor(args: argparse.Namespace) -> int:
+    from services.actor.service import run
+
+    return _serve(args, "actor", lambda s, bus, stop: run(s, bus, args.mode, stop, args.run_seconds,
+                                                          args.sync_critic))
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from services.up import ServiceDied, run_up
+
+    settings = settings_from_args(args)
+    try:
+        summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
+                         sync_critic=args.mode == "lockstep", duration=settings.episode.duration)
+    except ServiceDied as error:
+        print(f"srl up: error: {error}", file=sys.stderr)
+        for line in error.tail:
+            print(f"  [{error.name}] {line}", file=sys.stderr)
+        return 1
+    except (TimeoutError, ValueError) as error:
+        raise UsageError(str(error)) from error
+    summary.pop("trajectory", None)
+    print(format_up_summary(summary))
+    if args.json:
+        print(json.dumps(summary))
+    return 0
+
+
+def format_up_summary(summary: dict[str, Any]) -> str:
+    lines = [f"srl up: {summary['mode']} run, plant {summary['plant']}, agent {summary.get('agent')}, "
+             f"N = {summary.get('horizon')}"]
+    lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
+    lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
+    if summary.get("final_state"):
+        lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
+    lines.append(f"  critic         {summary.get('transitions_received')} transitions received, "
+                 f"actor used weights version {summary.get('weights_version')}")
+    if "loop" in summary:
+        period = summary["loop"]["period_ms"]
+        lines.append(f"  loop [ms]      period median {period['median']:.3f} p99 {period['p99']:.3f} "
+                     f"max {period['max']:.3f}, missed deadlines {summary['loop']['missed_deadlines']}")
+    staleness = summary.get("staleness_steps")
+    if staleness:
+        lines.append(f"  staleness      median {staleness['median']} max {staleness['max']} steps")
+    return "\n".join(lines)
+
+
 # -- srl bench -------------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "actor":
@@ -133,10 +286,41 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="one closed-loop episode of Algorithm 1 (actor, plant, critic)")
     add_settings_arguments(run)
-    run.add_argument("--transport", choices=["inproc"], default="inproc")
+    run.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
+                     help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes")
+    run.add_argument("--verbose", action="store_true", help="with --transport zenoh: show the services' logs")
+    run.add_argument("--trajectory", action="store_true", help="include the state trajectory in the JSON")
     run.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     run.add_argument("--plot", type=Path, help="write the trajectory and costs to this PNG")
     run.set_defaults(func=cmd_run)
+
+    router = sub.add_parser("router", help="a Zenoh router (Python, mode router)")
+    add_settings_arguments(router)
+    router.set_defaults(func=cmd_router)
+
+    for name, func, modes, helptext in (
+        ("plant-sim", cmd_plant_sim, True, "the simulated robot (real-time or lockstep queryable)"),
+        ("critic", cmd_critic, False, "the off-board critic learner (TD least squares)"),
+        ("actor", cmd_actor, True, "the delta-periodic actor loop"),
+    ):
+        svc = sub.add_parser(name, help=helptext)
+        add_settings_arguments(svc)
+        if modes:
+            svc.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
+        svc.add_argument("--run-seconds", type=float, help="stop after this long (default: until signalled; "
+                         "a lockstep actor stops after one episode)")
+        svc.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+        if name == "actor":
+            svc.add_argument("--sync-critic", action="store_true",
+                             help="lockstep: wait for the weights trained on the previous step")
+        svc.set_defaults(func=func)
+
+    up = sub.add_parser("up", help="router + every service as separate processes, one run")
+    add_settings_arguments(up)
+    up.add_argument("--plant", choices=["sim", "robot"], default="sim")
+    up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
+    up.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
+    up.set_defaults(func=cmd_up)
 
     bench = sub.add_parser("bench", help="benchmarks that print a table (and JSON)")
     bench.add_argument("what", choices=["actor"])

@@ -15,7 +15,7 @@ extern "C" {
   #define _CASADI_NAMESPACE_CONCAT(NS, ID) NS ## ID
   #define CASADI_PREFIX(ID) CASADI_NAMESPACE_CONCAT(CODEGEN_PREFIX, ID)
 #else
-  #define CASADI_PREFIX(ID) jit_tmpwA2pQR_ ## ID
+  #define CASADI_PREFIX(ID) jit_tmpTjmD8o_ ## ID
 #endif
 
 #include <math.h>
@@ -62,13 +62,13 @@ extern "C" {
 casadi_real casadi_sq(casadi_real x) { return x*x;}
 
 /* Configuration this file was compiled with */
-CASADI_SYMBOL_EXPORT void jit_tmpwA2pQR_casadi_version(int* major, int* minor, int* patch) {
+CASADI_SYMBOL_EXPORT void jit_tmpTjmD8o_casadi_version(int* major, int* minor, int* patch) {
   *major = 3;
   *minor = 8;
   *patch = 2;
 }
-CASADI_SYMBOL_EXPORT int jit_tmpwA2pQR_casadi_int_size(void) { return (int) sizeof(casadi_int); }
-CASADI_SYMBOL_EXPORT int jit_tmpwA2pQR_casadi_real_size(void) { return (int) sizeof(casadi_real); }
+CASADI_SYMBOL_EXPORT int jit_tmpTjmD8o_casadi_int_size(void) { return (int) sizeof(casadi_int); }
+CASADI_SYMBOL_EXPORT int jit_tmpTjmD8o_casadi_real_size(void) { return (int) sizeof(casadi_real); }
 
 static const casadi_int casadi_s0[3] = {58, 1, 1};
 static const casadi_int casadi_s1[3] = {21, 1, 1};

@@ -1,0 +1,81 @@
+"""Every Zenoh key expression of srl, and the only place one is written.
+
+Keys are namespaced by robot id: ``srl/<robot>/...``. A :class:`Topic` pairs a key pattern
+with the message schema that travels on it, so publishers and subscribers cannot disagree.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from common.messages import (
+    Action,
+    CriticWeights,
+    Message,
+    PlantState,
+    ResetRequest,
+    ServiceStatus,
+    StepRequest,
+    Transition,
+)
+
+M = TypeVar("M", bound=Message)
+R = TypeVar("R", bound=Message)
+_CHUNK = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def check_chunk(value: str, what: str) -> str:
+    """A robot or service id must be one plain key chunk (no ``/``, ``*``, ``$``, ``?``, ``#``)."""
+    if not _CHUNK.match(value):
+        raise ValueError(f"{what} {value!r} must be 1-64 characters of A-Z a-z 0-9 _ -")
+    return value
+
+
+@dataclass(frozen=True)
+class Topic(Generic[M]):
+    pattern: str
+    schema: type[M]
+
+    def key(self, robot: str, **chunks: str) -> str:
+        check_chunk(robot, "robot id")
+        for name, value in chunks.items():
+            check_chunk(value, name)
+        return self.pattern.format(robot=robot, **chunks)
+
+
+@dataclass(frozen=True)
+class Service(Generic[M, R]):
+    """A queryable: requests of ``request`` schema, replies of ``reply`` schema."""
+
+    pattern: str
+    request: type[M]
+    reply: type[R]
+
+    def key(self, robot: str) -> str:
+        return self.pattern.format(robot=check_chunk(robot, "robot id"))
+
+
+STATE = Topic("srl/{robot}/state", PlantState)
+ACTION = Topic("srl/{robot}/action", Action)
+TRANSITION = Topic("srl/{robot}/transition", Transition)
+WEIGHTS = Topic("srl/{robot}/critic/weights", CriticWeights)
+STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
+PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
+PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
+
+SERVICES = ("actor", "critic", "plant", "router")
+
+
+def liveliness_key(robot: str, service: str) -> str:
+    """Liveliness token of one service of one robot: ``srl/<robot>/alive/<service>``."""
+    return f"srl/{check_chunk(robot, 'robot id')}/alive/{check_chunk(service, 'service')}"
+
+
+def liveliness_pattern(robot: str) -> str:
+    return f"srl/{check_chunk(robot, 'robot id')}/alive/*"
+
+
+def status_pattern(robot: str) -> str:
+    return f"srl/{check_chunk(robot, 'robot id')}/status/*"

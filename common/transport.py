@@ -1,0 +1,181 @@
+"""Zenoh transport helpers: session config from settings and typed publish/subscribe/query.
+
+The only module of ``common`` that imports zenoh; the math never does. Every subscriber
+decodes with the schema of its :class:`~common.keys.Topic`; a payload that does not decode
+is counted under ``rejected.<topic>`` and logged (rate-limited), and never reaches the handler.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import zenoh
+
+from common.keys import Service, Topic, liveliness_key
+from common.messages import Message, MessageError, decode
+from common.settings import TransportSettings
+
+log = logging.getLogger(__name__)
+M = TypeVar("M", bound=Message)
+R = TypeVar("R", bound=Message)
+
+
+def zenoh_config(
+    transport: TransportSettings, *, router: bool = False, listen: list[str] | None = None
+) -> zenoh.Config:
+    """Explicit endpoints, multicast scouting off unless the settings say otherwise.
+
+    A router listens on ``transport.router``; a client connects to it (and to ``connect``).
+    """
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("router" if router else transport.mode))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(transport.multicast_scouting))
+    if router:
+        config.insert_json5("listen/endpoints", json.dumps(listen or [transport.router]))
+        config.insert_json5("connect/endpoints", json.dumps(transport.connect))
+    else:
+        config.insert_json5("listen/endpoints", json.dumps(listen or []))
+        config.insert_json5("connect/endpoints", json.dumps([transport.router, *transport.connect]))
+    return config
+
+
+class Bus:
+    """One Zenoh session of one service, with counters shared by all its handlers."""
+
+    def __init__(self, session: zenoh.Session, service: str) -> None:
+        self.session = session
+        self.service = service
+        self.counters: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self._last_warning: dict[str, float] = {}
+        self._keep: list[Any] = []  # declared entities live as long as the bus
+
+    @classmethod
+    def open(cls, transport: TransportSettings, service: str) -> Bus:
+        return cls(zenoh.open(zenoh_config(transport)), service)
+
+    def close(self) -> None:
+        for entity in reversed(self._keep):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as error:  # already gone with the session
+                log.debug("undeclare: %s", error)
+        self._keep.clear()
+        self.session.close()
+
+    def count(self, name: str, amount: int = 1) -> None:
+        with self._lock:
+            self.counters[name] += amount
+
+    def reject(self, what: str, reason: str) -> None:
+        """Count a refused input and log it, at most once a second per kind."""
+        self.count(f"rejected.{what}")
+        now = time.monotonic()
+        if now - self._last_warning.get(what, 0.0) >= 1.0:
+            self._last_warning[what] = now
+            log.warning("%s: rejected %s: %s (total %d)", self.service, what, reason,
+                        self.counters[f"rejected.{what}"])
+
+    # -- pub/sub ------------------------------------------------------------------------
+    def publisher(self, topic: Topic[M], robot: str, **chunks: str) -> Callable[[M], None]:
+        publisher = self.session.declare_publisher(topic.key(robot, **chunks))
+        self._keep.append(publisher)
+
+        def publish(message: M) -> None:
+            if not isinstance(message, topic.schema):
+                raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
+            publisher.put(message.encode())
+
+        return publish
+
+    def subscribe(
+        self, topic: Topic[M], key: str, handler: Callable[[M], None], what: str | None = None
+    ) -> None:
+        """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``."""
+        name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                message = decode(topic.schema, sample.payload.to_bytes())
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            self.count(f"received.{name}")
+            try:
+                handler(message)
+            except Exception:  # a handler bug must not kill zenoh's callback thread silently
+                self.count(f"handler_errors.{name}")
+                log.exception("%s: handler for %s failed", self.service, name)
+
+        self._keep.append(self.session.declare_subscriber(key, on_sample))
+
+    # -- queries ------------------------------------------------------------------------
+    def serve(self, service: Service[M, R], robot: str, handler: Callable[[M], R]) -> None:
+        """A queryable: each valid request gets the handler's reply; bad ones an error reply."""
+        name = service.pattern.split("/", 2)[-1]
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                request = decode(service.request, payload)
+                reply = handler(request)
+            except (MessageError, ValueError) as error:
+                self.reject(name, str(error))
+                query.reply_err(str(error).encode())
+                return
+            self.count(f"served.{name}")
+            query.reply(query.key_expr, reply.encode())
+
+        self._keep.append(self.session.declare_queryable(service.key(robot), on_query))
+
+    def query(self, service: Service[M, R], robot: str, request: M, timeout: float) -> R:
+        """One request, one validated reply; raises ``TimeoutError`` or ``MessageError``."""
+        replies = self.session.get(service.key(robot), payload=request.encode(), timeout=timeout)
+        for reply in replies:
+            if reply.ok is None:
+                raise MessageError(f"{service.pattern}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+            return decode(service.reply, reply.ok.payload.to_bytes())
+        raise TimeoutError(f"no reply from {service.key(robot)} within {timeout} s")
+
+    # -- liveliness ---------------------------------------------------------------------
+    def declare_alive(self, robot: str) -> None:
+        self._keep.append(self.session.liveliness().declare_token(liveliness_key(robot, self.service)))
+
+    def is_alive(self, robot: str, service: str, timeout: float = 1.0) -> bool:
+        replies = self.session.liveliness().get(liveliness_key(robot, service), timeout=timeout)
+        return any(reply.ok is not None for reply in replies)
+
+    def wait_alive(self, robot: str, service: str, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.is_alive(robot, service, timeout=min(0.5, timeout)):
+                return
+            time.sleep(0.05)
+        raise TimeoutError(f"service {service!r} of robot {robot!r} not alive after {timeout} s")
+
+
+def start_status_thread(
+    bus: Bus, robot: str, period: float, stop: threading.Event, extra: Callable[[], dict[str, float]]
+) -> threading.Thread:
+    """Publish this service's counters (and ``extra()``) every ``period`` seconds until stop."""
+    from common.keys import STATUS
+    from common.messages import ServiceStatus
+
+    publish = bus.publisher(STATUS, robot, service=bus.service)
+
+    def loop() -> None:
+        while not stop.wait(period):
+            counters = {k: float(v) for k, v in dict(bus.counters).items()}
+            counters.update(extra())
+            publish(ServiceStatus(robot=robot, service=bus.service, stamp_ns=time.monotonic_ns(),
+                                  counters={k: v for k, v in counters.items() if v == v and abs(v) != float("inf")}))
+
+    thread = threading.Thread(target=loop, name=f"{bus.service}-status", daemon=True)
+    thread.start()
+    return thread

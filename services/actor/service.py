@@ -1,0 +1,308 @@
+"""actor: the delta-periodic loop of stacked RL-QV (or its baselines).
+
+* realtime: ticks at absolute times ``t0 + k delta`` on the monotonic clock; at each tick it
+  takes the newest state, solves, publishes the action and one transition. It never waits for
+  the critic: it uses the newest weights it holds and reports their staleness. If the state is
+  older than ``action_timeout_steps * delta`` (or never came) it commands zero velocity and
+  records no transition (so the critic sees a gap, never a false pair).
+* lockstep: runs Algorithm 1 (:func:`common.loop.run_episode`) with the plant behind its Zenoh
+  queryable and the off-board critic; with ``sync_critic`` it waits (bounded) for the weights
+  trained on the previous step, which makes the distributed run the paper's algorithm exactly.
+
+Weights are accepted only for the current episode and a strictly newer version; the schema
+already guarantees finite values of the right length.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.critic import Sample
+from common.features import stage_cost
+from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE, TRANSITION, WEIGHTS
+from common.loop import build_actor, episode_summary, run_episode
+from common.messages import (
+    Action,
+    CriticWeights,
+    MessageError,
+    PlantState,
+    ResetRequest,
+    StepRequest,
+    Transition,
+)
+from common.settings import Settings
+from common.stats import summarize
+from common.transport import Bus, start_status_thread
+from services.clock import Ticker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class HeldWeights:
+    q: np.ndarray
+    v: np.ndarray
+    version: int
+    trained_step: int
+    received_at: float
+
+
+class WeightsInbox:
+    """Newest accepted critic weights of the current episode (thread-safe)."""
+
+    def __init__(self, settings: Settings, bus: Bus) -> None:
+        self.settings = settings
+        self.bus = bus
+        self.cond = threading.Condition()
+        self.episode = -1
+        self.held = HeldWeights(settings.initial_q_weights(), settings.initial_v_weights(), 0, -1,
+                                time.monotonic())
+
+    def reset(self, episode: int) -> HeldWeights:
+        with self.cond:
+            self.episode = episode
+            self.held = HeldWeights(self.settings.initial_q_weights(), self.settings.initial_v_weights(),
+                                    0, -1, time.monotonic())
+            return self.held
+
+    def offer(self, message: CriticWeights) -> None:
+        with self.cond:
+            if message.episode != self.episode:
+                self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
+                return
+            if message.version <= self.held.version:
+                self.bus.reject("critic/weights", f"version {message.version} <= held {self.held.version}")
+                return
+            self.held = HeldWeights(np.array(message.q_weights), np.array(message.v_weights),
+                                    message.version, message.trained_step, time.monotonic())
+            self.bus.count("weights_accepted")
+            self.cond.notify_all()
+
+    def current(self) -> HeldWeights:
+        with self.cond:
+            return self.held
+
+    def wait_trained(self, step: int, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: self.held.trained_step >= step, timeout)
+
+
+def new_episode_id() -> int:
+    """Episode ids increase across restarts (milliseconds since the epoch)."""
+    return time.time_ns() // 1_000_000
+
+
+class ZenohPlant:
+    """The plant behind its lockstep queryables; retries are safe (the plant is idempotent)."""
+
+    def __init__(self, settings: Settings, bus: Bus, episode: int) -> None:
+        self.settings, self.bus, self.episode = settings, bus, episode
+        self.robot = settings.transport.robot
+        self.step_index = 0
+
+    def _query(self, service, request):  # type: ignore[no-untyped-def]
+        timeout = self.settings.transport.query_timeout
+        for attempt in range(3):
+            try:
+                return self.bus.query(service, self.robot, request, timeout)
+            except TimeoutError:
+                self.bus.count("plant_query_retries")
+                log.warning("plant query timed out (attempt %d)", attempt + 1)
+        raise TimeoutError(f"plant did not answer {service.pattern} three times")
+
+    def reset(self, state: np.ndarray) -> np.ndarray:
+        self.step_index = 0
+        reply = self._query(PLANT_RESET, ResetRequest(robot=self.robot, episode=self.episode,
+                                                      state=tuple(float(c) for c in state)))
+        return np.array(reply.state)
+
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
+        request = StepRequest(robot=self.robot, episode=self.episode, step=self.step_index,
+                              action=(float(action[0]), float(action[1])), duration=duration)
+        reply = self._query(PLANT_STEP, request)
+        self.step_index += 1
+        return np.array(reply.state)
+
+
+class ZenohCriticPort:
+    """Transitions out to the off-board critic; weights back (optionally waited for)."""
+
+    def __init__(self, settings: Settings, bus: Bus, inbox: WeightsInbox, episode: int, sync: bool) -> None:
+        self.settings, self.bus, self.inbox, self.episode, self.sync = settings, bus, inbox, episode, sync
+        self.robot = settings.transport.robot
+        self.publish = bus.publisher(TRANSITION, self.robot)
+        self.staleness: list[int] = []
+        self.timeouts = 0
+
+    def reset(self) -> tuple[np.ndarray, np.ndarray]:
+        held = self.inbox.reset(self.episode)
+        return held.q, held.v
+
+    def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        self.publish(Transition(robot=self.robot, episode=self.episode, step=sample.step,
+                                state=tuple(float(c) for c in sample.state),
+                                action=(float(sample.action[0]), float(sample.action[1])),
+                                cost=float(sample.cost)))
+        needs_fit = self.settings.actor.agent != "mpc" and sample.step % self.settings.critic.update_every == 0
+        if self.sync and needs_fit and not self.inbox.wait_trained(
+            sample.step, self.settings.transport.critic_timeout
+        ):
+            self.timeouts += 1
+            self.bus.count("critic_timeouts")
+            log.warning("no weights trained on step %d within %.1f s; going on with version %d",
+                        sample.step, self.settings.transport.critic_timeout, self.inbox.current().version)
+        held = self.inbox.current()
+        # staleness of the weights the NEXT step will use: ideally trained on this step
+        self.staleness.append(sample.step - held.trained_step)
+        return held.q, held.v
+
+
+def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None,
+        sync_critic: bool) -> dict:
+    robot = settings.transport.robot
+    actor = build_actor(settings)  # built once, before the loop starts
+    inbox = WeightsInbox(settings, bus)
+    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer)
+    bus.declare_alive(robot)
+    if mode == "lockstep":
+        return _run_lockstep(settings, bus, actor, inbox, sync_critic)
+    return _run_realtime(settings, bus, actor, inbox, stop, duration)
+
+
+def _run_lockstep(settings, bus, actor, inbox, sync_critic) -> dict:  # type: ignore[no-untyped-def]
+    bus.wait_alive(settings.transport.robot, "plant", timeout=30.0)
+    if sync_critic and settings.actor.agent != "mpc":
+        bus.wait_alive(settings.transport.robot, "critic", timeout=30.0)
+    episode_id = new_episode_id()
+    inbox.reset(episode_id)
+    plant = ZenohPlant(settings, bus, episode_id)
+    port = ZenohCriticPort(settings, bus, inbox, episode_id, sync_critic)
+    log.info("actor lockstep episode %d: %s, N = %d, %d steps", episode_id, settings.actor.agent,
+             settings.actor.horizon, settings.steps)
+    episode = run_episode(settings, actor=actor, plant=plant, critic=port)
+    summary = episode_summary(episode, settings)
+    summary.update({
+        "service": "actor", "mode": "lockstep", "episode_id": episode_id,
+        "weights_version": inbox.current().version,
+        "staleness_steps": summarize(port.staleness) | {"max": float(max(port.staleness, default=0))},
+        "critic_timeouts": port.timeouts,
+        "trajectory": [[float(c) for c in s] for s in episode.states],
+        "counters": dict(bus.counters),
+    })
+    return summary
+
+
+def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type: ignore[no-untyped-def]
+    robot = settings.transport.robot
+    delta = settings.plant.sampling_time
+    stale_after = settings.transport.action_timeout_steps * delta
+    latest: dict[str, tuple[PlantState, float] | None] = {"state": None}
+    state_lock = threading.Lock()
+
+    def on_state(message: PlantState) -> None:
+        with state_lock:
+            held = latest["state"]
+            if held is not None and message.episode == held[0].episode and message.seq <= held[0].seq:
+                bus.reject("state", f"seq {message.seq} not newer than {held[0].seq}")
+                return
+            latest["state"] = (message, time.monotonic())
+
+    bus.subscribe(STATE, STATE.key(robot), on_state)
+    publish_action = bus.publisher(ACTION, robot)
+    publish_transition = bus.publisher(TRANSITION, robot)
+    episode_id = new_episode_id()
+    inbox.reset(episode_id)
+    actor.reset()
+
+    periods: list[float] = []
+    latencies: list[float] = []
+    staleness_steps: list[int] = []
+    staleness_ms: list[float] = []
+    costs: list[float] = []
+    publish_times: dict[int, float] = {}
+    counters = {"steps": 0, "stale_state_stops": 0}
+    start_state = None
+    start_time = time.monotonic()
+
+    def extra() -> dict[str, float]:
+        held = inbox.current()
+        return {
+            "steps": counters["steps"], "missed_deadlines": ticker.missed,
+            "solver_failures": actor.counters.failures, "weights_version": held.version,
+            "staleness_steps": float(staleness_steps[-1]) if staleness_steps else 0.0,
+            "solve_ms_last": actor.counters.solve_seconds[-1] * 1e3 if actor.counters.solve_seconds else 0.0,
+        }
+
+    ticker = Ticker(delta, stop)
+    start_status_thread(bus, robot, settings.transport.status_period, stop, extra)
+    end = None if duration is None else start_time + duration
+    previous_tick = None
+    while (tick := ticker.wait()) is not None and (end is None or tick < end):
+        if previous_tick is not None:
+            periods.append(tick - previous_tick)
+        previous_tick = tick
+        k = ticker.index - 1
+        with state_lock:
+            held_state = latest["state"]
+        if held_state is None or tick - held_state[1] > stale_after:
+            counters["stale_state_stops"] += 1
+            publish_action(Action(robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(),
+                                  action=(0.0, 0.0), state_seq=-1))
+            actor.reset()  # the plan no longer matches the robot
+            continue
+        message, received = held_state
+        state = np.array(message.state)
+        if start_state is None:
+            start_state = state
+        weights = inbox.current()
+        step = actor.step(state, weights.q, weights.v)
+        action = (float(step.action[0]), float(step.action[1]))
+        publish_action(Action(robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(),
+                              action=action, state_seq=message.seq))
+        done = time.monotonic()
+        # transport/loop latency: state arrival -> action out, minus the solve itself
+        latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
+        cost = delta * float(stage_cost(state, step.action, settings.cost.r_diag))
+        costs.append(cost)
+        publish_transition(Transition(robot=robot, episode=episode_id, step=k,
+                                      state=(float(state[0]), float(state[1]), float(state[2])),
+                                      action=action, cost=cost))
+        publish_times[k] = time.monotonic()
+        if settings.actor.agent != "mpc":
+            staleness_steps.append((k - 1) - weights.trained_step)
+            seen = publish_times.get(weights.trained_step)
+            staleness_ms.append((done - seen) * 1e3 if seen is not None else float("nan"))
+        counters["steps"] += 1
+
+    with state_lock:
+        last = latest["state"]
+    # on the way out: stop the robot
+    publish_action(Action(robot=robot, episode=episode_id, step=ticker.index, stamp_ns=time.monotonic_ns(),
+                          action=(0.0, 0.0), state_seq=-1))
+    jitter = [abs(p - delta) for p in periods]
+    return {
+        "service": "actor", "mode": "realtime", "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon, "episode_id": episode_id,
+        "steps": counters["steps"],
+        "accumulated_cost": float(np.sum(costs)),
+        "start_state": None if start_state is None else [float(c) for c in start_state],
+        "final_state": None if last is None else [float(c) for c in last[0].state],
+        "weights_version": inbox.current().version,
+        "loop": {"period_ms": summarize(periods, 1e3), "jitter_ms": summarize(jitter, 1e3),
+                 "missed_deadlines": ticker.missed},
+        "solve_ms": summarize(actor.counters.solve_seconds, 1e3),
+        "solver_failures": actor.counters.failures,
+        "latency_ms": summarize(latencies, 1e3),
+        "staleness_steps": summarize(staleness_steps),
+        "staleness_ms": summarize([s for s in staleness_ms if s == s]),
+        "stale_state_stops": counters["stale_state_stops"],
+        "counters": dict(bus.counters),
+    }
+
+
+__all__ = ["MessageError", "run"]

@@ -1,0 +1,1 @@
+"""The critic service (see service.py)."""

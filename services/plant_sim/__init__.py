@@ -1,0 +1,1 @@
+"""The plant_sim service (see service.py)."""

@@ -1,0 +1,1 @@
+"""The robot_bridge service (see service.py)."""

@@ -1,0 +1,248 @@
+"""The stacked actors against brute-force grid search, plus bounds, validation and failures.
+
+The oracle objective is written out here in numpy from DESIGN.md's table (Euler prediction,
+features from a hand-written pair list), evaluated on a grid of held actions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.actor import ActorProblem, StackedActor
+from common.dynamics import exact_step
+
+DELTA = 0.1
+R_DIAG = np.array([1.0, 10.0, 1.0, 0.01, 0.01])
+V_MAX, OMEGA_MAX = 0.22, 2.84
+PAIRS5 = [(0, 0), (1, 1), (2, 2), (3, 3), (4, 4), (1, 0), (2, 1), (3, 2), (4, 3),
+          (2, 0), (3, 1), (4, 2), (3, 0), (4, 1), (4, 0)]  # fmt: skip
+PAIRS3 = [(0, 0), (1, 1), (2, 2), (1, 0), (2, 1), (2, 0)]
+
+
+def make_actor(agent: str, horizon: int, **kwargs) -> StackedActor:
+    kwargs.setdefault("jit", False)  # no C files in the working directory; same problem
+    return StackedActor(
+        ActorProblem(
+            agent, horizon, sampling_time=DELTA, cost_diag=tuple(R_DIAG), v_max=V_MAX,
+            omega_max=OMEGA_MAX, **kwargs,
+        )  # fmt: skip
+    )
+
+
+def _quad(weights: np.ndarray, pairs, z: list[np.ndarray]) -> np.ndarray:
+    return sum(weights[k] * z[i] * z[j] for k, (i, j) in enumerate(pairs))
+
+
+def hand_objective(agent: str, state, plan: list[tuple[np.ndarray, np.ndarray]], w, v_w) -> np.ndarray:
+    """DESIGN.md's objective; ``plan`` is a list of (v_i, omega_i) arrays (broadcastable)."""
+    n = len(plan) + 1  # N
+    x, y, a = (np.float64(c) for c in state)
+    total = 0.0
+    for i, (vel, om) in enumerate(plan, start=1):  # the paper's i = 1 .. N-1
+        running = DELTA * (R_DIAG[0] * x**2 + R_DIAG[1] * y**2 + R_DIAG[2] * a**2
+                           + R_DIAG[3] * vel**2 + R_DIAG[4] * om**2)  # fmt: skip
+        if agent == "mpc":
+            total = total + running
+        else:
+            total = total + _quad(w, PAIRS5, [x, y, a, vel, om])
+            if agent == "rlqv+":
+                total = total + (n - i) * running
+        # Euler predictor
+        x, y, a = x + DELTA * vel * np.cos(a), y + DELTA * vel * np.sin(a), a + DELTA * om
+    if agent in ("rlqv", "rlqv+"):
+        total = total + _quad(v_w, PAIRS3, [x, y, a])
+    return total
+
+
+def psd_weights(rng: np.random.Generator, dim: int, pairs) -> np.ndarray:
+    """Weights of a random positive-definite quadratic z' M z in the feature order."""
+    L = rng.normal(size=(dim, dim))
+    M = L @ L.T / dim + 0.05 * np.eye(dim)
+    return np.array([M[i, j] if i == j else 2 * M[i, j] for i, j in pairs])
+
+
+STATES = [np.array([1.0, 0.5, 0.3]), np.array([-0.7, 1.2, -2.5]), np.array([2.0, 2.0, math.pi / 4])]
+
+
+@pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
+def test_one_action_optimum_beats_grid_search(agent: str) -> None:
+    rng = np.random.default_rng({"mpc": 1, "rlq": 2, "rlqv": 3, "rlqv+": 4}[agent])
+    actor = make_actor(agent, 2)
+    grid_v, grid_w = np.meshgrid(np.linspace(-V_MAX, V_MAX, 201), np.linspace(-OMEGA_MAX, OMEGA_MAX, 201))
+    for state in STATES:  # the same actor, warm-started from its previous solution
+        w = psd_weights(rng, 5, PAIRS5)
+        v_w = psd_weights(rng, 3, PAIRS3)
+        result = actor.step(state, w, v_w)
+        assert result.success, result.status
+        v, om = result.action
+        assert abs(v) <= V_MAX and abs(om) <= OMEGA_MAX
+        values = hand_objective(agent, state, [(grid_v, grid_w)], w, v_w)
+        best = float(values.min())
+        at_action = float(hand_objective(agent, state, [(np.float64(v), np.float64(om))], w, v_w))
+        assert result.objective == pytest.approx(at_action, rel=1e-7, abs=1e-10)
+        assert at_action <= best + 1e-7 * max(1.0, abs(best))
+        # and the grid is fine enough to be near the optimum (sanity of the oracle)
+        assert best - at_action < 1e-2 * max(1.0, abs(best))
+
+
+def test_mpc_one_action_is_zero() -> None:
+    # with N = 2 the MPC objective is delta r(s_1, u_1): only the action weights depend on u
+    result = make_actor("mpc", 2).step(np.array([1.0, -1.0, 0.5]), np.zeros(15), np.zeros(6))
+    np.testing.assert_allclose(result.action, [0.0, 0.0], atol=1e-6)
+    assert result.objective == pytest.approx(DELTA * (1 + 10 + 0.25), rel=1e-9)
+
+
+@pytest.mark.slow
+def test_mpc_two_actions_beats_grid_search() -> None:
+    actor = make_actor("mpc", 3)
+    axes = (np.linspace(-V_MAX, V_MAX, 21), np.linspace(-OMEGA_MAX, OMEGA_MAX, 21))
+    v1, w1, v2, w2 = np.meshgrid(axes[0], axes[1], axes[0], axes[1], indexing="ij", sparse=True)
+    for state in STATES:
+        result = actor.step(state, np.zeros(15), np.zeros(6))
+        assert result.success, result.status
+        assert result.plan.shape == (2, 2)
+        assert np.all(np.abs(result.plan) <= [V_MAX, OMEGA_MAX])
+        best = float(hand_objective("mpc", state, [(v1, w1), (v2, w2)], None, None).min())
+        plan = [(np.float64(p[0]), np.float64(p[1])) for p in result.plan]
+        at_plan = float(hand_objective("mpc", state, plan, None, None))
+        assert result.objective == pytest.approx(at_plan, rel=1e-7)
+        assert at_plan <= best + 1e-7 * max(1.0, abs(best))
+
+
+def test_ipopt_and_fatrop_agree() -> None:
+    rng = np.random.default_rng(12)
+    w, v_w = psd_weights(rng, 5, PAIRS5), psd_weights(rng, 3, PAIRS3)
+    state = np.array([0.8, -0.6, 1.0])
+    fatrop = make_actor("rlqv", 2).step(state, w, v_w)
+    ipopt = make_actor("rlqv", 2, solver="ipopt").step(state, w, v_w)
+    assert fatrop.success and ipopt.success
+    np.testing.assert_allclose(fatrop.action, ipopt.action, atol=1e-5)
+    assert fatrop.objective == pytest.approx(ipopt.objective, rel=1e-7)
+
+
+def test_jit_build_solves_the_same_problem(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)  # the JIT writes its C files to the working directory
+    rng = np.random.default_rng(13)
+    w, v_w = psd_weights(rng, 5, PAIRS5), psd_weights(rng, 3, PAIRS3)
+    state = np.array([0.8, -0.6, 1.0])
+    plain = make_actor("rlqv+", 3).step(state, w, v_w)
+    jitted = make_actor("rlqv+", 3, jit=True).step(state, w, v_w)
+    np.testing.assert_allclose(jitted.plan, plain.plan, atol=1e-7)
+    assert jitted.objective == pytest.approx(plain.objective, rel=1e-9)
+
+
+@pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
+def test_actions_stay_within_bounds_in_closed_loop(agent: str) -> None:
+    rng = np.random.default_rng(99)
+    actor = make_actor(agent, 5)
+    state = np.array([1.5, -1.0, 2.0])
+    for _ in range(15):
+        w = 3 * rng.normal(size=15)  # mixed signs: indefinite, possibly non-convex problems
+        v_w = 3 * rng.normal(size=6)
+        result = actor.step(state, w, v_w)
+        assert result.action.shape == (2,)
+        assert np.all(np.isfinite(result.action))
+        assert abs(result.action[0]) <= V_MAX and abs(result.action[1]) <= OMEGA_MAX
+        assert np.all(np.abs(result.plan) <= [V_MAX, OMEGA_MAX])
+        state = exact_step(state, result.action, DELTA)
+    assert actor.counters.solves == 15
+    assert len(actor.counters.solve_seconds) == 15
+
+
+@pytest.mark.parametrize(
+    ("state", "w", "v_w"),
+    [
+        ([np.nan, 0.0, 0.0], np.zeros(15), np.zeros(6)),
+        ([0.0, np.inf, 0.0], np.zeros(15), np.zeros(6)),
+        ([1.0, 2.0], np.zeros(15), np.zeros(6)),
+        ([1.0, 2.0, 0.0], np.zeros(14), np.zeros(6)),
+        ([1.0, 2.0, 0.0], np.zeros(15), np.zeros(7)),
+        ([1.0, 2.0, 0.0], np.zeros(16), np.zeros(5)),
+        ([1.0, 2.0, 0.0], np.r_[np.zeros(14), np.nan], np.zeros(6)),
+        ([1.0, 2.0, 0.0], np.zeros(15), np.r_[np.zeros(5), np.inf]),
+    ],
+)
+def test_step_rejects_bad_inputs(state, w, v_w) -> None:
+    actor = make_actor("rlqv", 2)
+    with pytest.raises(ValueError):
+        actor.step(np.array(state), w, v_w)
+    assert actor.counters.solves == 0
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"horizon": 1},
+        {"horizon": 0},
+        {"sampling_time": -0.1},
+        {"sampling_time": 0.0},
+        {"sampling_time": float("nan")},
+        {"agent": "dqn"},
+        {"cost_diag": (1.0, 10.0, 1.0, 0.01)},
+        {"cost_diag": (1.0, -10.0, 1.0, 0.01, 0.01)},
+        {"v_max": 0.0},
+        {"omega_max": -1.0},
+        {"predictor": "midpoint"},
+        {"solver": "snopt"},
+    ],
+)
+def test_bad_actor_problem_raises(changes: dict) -> None:
+    args = {
+        "agent": "rlqv", "horizon": 4, "sampling_time": DELTA, "cost_diag": tuple(R_DIAG),
+        "v_max": V_MAX, "omega_max": OMEGA_MAX, **changes,
+    }  # fmt: skip
+    with pytest.raises(ValueError):
+        ActorProblem(**args)
+
+
+def test_forced_failure_on_first_step_gives_zero_action() -> None:
+    actor = make_actor("rlqv", 4, max_iter=1)
+    rng = np.random.default_rng(5)
+    w, v_w = psd_weights(rng, 5, PAIRS5), psd_weights(rng, 3, PAIRS3)
+    result = actor.step(np.array([1.0, 0.5, 0.3]), w, v_w)
+    assert not result.success
+    assert actor.counters.failures == 1
+    np.testing.assert_array_equal(result.action, [0.0, 0.0])
+    assert np.all(np.isfinite(result.plan)) and result.plan.shape == (3, 2)
+    result = actor.step(np.array([1.0, 0.5, 0.3]), w, v_w)
+    assert actor.counters.failures == 2
+    assert np.all(np.isfinite(result.action))
+    assert abs(result.action[0]) <= V_MAX and abs(result.action[1]) <= OMEGA_MAX
+
+
+class _BrokenSolver:
+    def call(self, _args):
+        raise RuntimeError("forced failure")
+
+    def stats(self):
+        return {"success": False}
+
+
+def test_failure_after_success_falls_back_to_shifted_plan() -> None:
+    actor = make_actor("mpc", 4)
+    state = np.array([1.0, 0.5, 0.3])
+    first = actor.step(state, np.zeros(15), np.zeros(6))
+    assert first.success and actor.counters.failures == 0
+    actor._solver = _BrokenSolver()  # force every further solve to fail
+    second = actor.step(exact_step(state, first.action, DELTA), np.zeros(15), np.zeros(6))
+    assert not second.success
+    assert actor.counters.failures == 1
+    np.testing.assert_allclose(second.action, first.plan[1], atol=1e-12)  # u_2 of the last plan
+    third = actor.step(np.array([0.9, 0.5, 0.3]), np.zeros(15), np.zeros(6))
+    assert actor.counters.failures == 2
+    np.testing.assert_allclose(third.action, first.plan[2], atol=1e-12)
+    for r in (second, third):
+        assert np.all(np.isfinite(r.action))
+        assert abs(r.action[0]) <= V_MAX and abs(r.action[1]) <= OMEGA_MAX
+
+
+def test_reset_forgets_the_previous_plan() -> None:
+    actor = make_actor("mpc", 3)
+    actor.step(np.array([1.0, 0.5, 0.3]), np.zeros(15), np.zeros(6))
+    actor.reset()
+    actor._solver = _BrokenSolver()
+    result = actor.step(np.array([1.0, 0.5, 0.3]), np.zeros(15), np.zeros(6))
+    np.testing.assert_array_equal(result.action, [0.0, 0.0])
