@@ -1,4 +1,6 @@
 """Pure building blocks of stacked RL-QV: dynamics, costs, critics, the actor, settings.
 
-Nothing in this package imports zenoh or ROS (a test asserts it): the services wrap it.
+The math (dynamics, features, critic, actor, loop) and the contracts (settings, messages,
+keys) never import zenoh or ROS; ``common.transport`` is the one module that imports zenoh
+(tests assert both).
 """

@@ -21,8 +21,14 @@ action of the previous plan, else zero velocity, and counts the failure.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import logging
+import os
+import shutil
+import tempfile
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -96,9 +102,34 @@ class ActorCounters:
     solve_seconds: list[float] = field(default_factory=list)
 
 
-def _compiler_available() -> bool:
-    import shutil
+_JIT_DIRECTORY: list[str] = []
 
+
+def _jit_directory() -> str:
+    """One private temporary directory per process for JIT artifacts, removed at exit."""
+    if not _JIT_DIRECTORY:
+        path = tempfile.mkdtemp(prefix="srl-jit-")
+        atexit.register(shutil.rmtree, path, True)
+        _JIT_DIRECTORY.append(path)
+    return _JIT_DIRECTORY[0]
+
+
+@contextlib.contextmanager
+def _in_jit_directory() -> Iterator[None]:
+    """Run the JIT build with the private directory as working directory.
+
+    ``os.chdir`` is process-wide: actors are built before a service starts its threads, and
+    the previous directory is restored even if the build fails.
+    """
+    previous = os.getcwd()
+    os.chdir(_jit_directory())
+    try:
+        yield
+    finally:
+        os.chdir(previous)
+
+
+def _compiler_available() -> bool:
     return shutil.which("gcc") is not None or shutil.which("cc") is not None
 
 
@@ -170,8 +201,17 @@ class StackedActor:
         if p.jit and not jit:
             log.warning("no C compiler found: building the actor without JIT (slower solves)")
         if jit:
+            # CasADi writes the generated C file into the CURRENT directory whatever its
+            # options say, so the build runs inside a private temporary directory (see
+            # _in_jit_directory), which is removed at exit; CasADi's own cleanup is off.
             options.update(
-                {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O3"], "verbose": False}}
+                {
+                    "jit": True,
+                    "compiler": "shell",
+                    "jit_name": "srl_actor",
+                    "jit_cleanup": False,
+                    "jit_options": {"flags": ["-O3"], "verbose": False, "cleanup": False},
+                }
             )
         if p.solver == "fatrop":
             options.update(
@@ -192,7 +232,12 @@ class StackedActor:
                     }
                 }
             )
-        solver = ca.nlpsol(f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}", p.solver, nlp, options)
+        name = f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}"
+        if jit:
+            with _in_jit_directory():
+                solver = ca.nlpsol(name, p.solver, nlp, options)
+        else:
+            solver = ca.nlpsol(name, p.solver, nlp, options)
         return solver, ca.DM(lbx), ca.DM(ubx), zeros_g, zeros_g
 
     # -- stepping -----------------------------------------------------------------------
@@ -216,8 +261,8 @@ class StackedActor:
             prev = self._previous_x
             x0 = np.empty_like(prev)
             x0[:-stride] = prev[stride:]
-            # the last stage: repeat the last held action and the terminal state
-            x0[-stride - STATE_DIM : -STATE_DIM] = prev[-stride - STATE_DIM : -STATE_DIM]
+            # the new last stage: repeat the last held action and the terminal state
+            x0[-stride:-STATE_DIM] = prev[-stride:-STATE_DIM]
             x0[-STATE_DIM:] = prev[-STATE_DIM:]
         x0[:STATE_DIM] = state
         return x0
@@ -233,14 +278,14 @@ class StackedActor:
         """
         started = time.perf_counter()
         state = np.asarray(state, dtype=float)
-        params = np.concatenate([np.asarray(q_weights, float).ravel(), np.asarray(v_weights, float).ravel()])
+        q_weights = np.asarray(q_weights, dtype=float)
+        v_weights = np.asarray(v_weights, dtype=float)
         if state.shape != (STATE_DIM,) or not np.all(np.isfinite(state)):
             raise ValueError(f"state must be {STATE_DIM} finite numbers, got {state}")
-        if params.shape != (Q_FEATURES + V_FEATURES,) or not np.all(np.isfinite(params)):
-            raise ValueError(
-                f"critic weights must be {Q_FEATURES} + {V_FEATURES} finite numbers, "
-                f"got shapes {np.shape(q_weights)} and {np.shape(v_weights)}"
-            )
+        for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
+            if weights.shape != (size,) or not np.all(np.isfinite(weights)):
+                raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
+        params = np.concatenate([q_weights, v_weights])
         x0 = self._initial_guess(state)
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
@@ -264,9 +309,12 @@ class StackedActor:
             success = False
             self.counters.failures += 1
             log.debug("actor solve failed (%s); falling back", status)
-            # Safe fallback: the previous plan shifted by one step if there is one (x0 holds
-            # it), else standing still. Either way finite and within bounds.
+            # Safe fallback: the previous plan shifted by one step with zero velocity appended
+            # (x0 holds the shift; its last action is zeroed), so repeated failures run the
+            # plan out and then stand still. Else standing still. Always finite and bounded.
             if self._previous_x is not None:
+                stride = STATE_DIM + ACTION_DIM
+                x0[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
                 plan = np.clip(self._plan_of(x0), -self._action_bounds, self._action_bounds)
                 self._previous_x = x0
             else:

@@ -29,7 +29,7 @@ DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _finite(value: float, name: str) -> float:

@@ -37,7 +37,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="a TOML file overriding common/srl.toml (any subset)")
     parser.add_argument("--agent", choices=["mpc", "rlq", "rlqv", "rlqv+"])
     parser.add_argument("--horizon", type=int, help="N (N - 1 held actions)")
-    parser.add_argument("--start", type=_start_arg, help="X,Y (heading away from the target) or X,Y,ALPHA")
+    parser.add_argument("--start", type=_start_arg, help="X,Y (heading away from the target) or X,Y,ALPHA; negative: --start=-1.5,1")
     parser.add_argument("--duration", type=float, help="episode length [s]")
     parser.add_argument("--solver", choices=["fatrop", "ipopt"])
     parser.add_argument("--predictor", choices=["euler", "rk4"])
@@ -58,7 +58,7 @@ def settings_argv(args: argparse.Namespace) -> list[str]:
             continue
         if name == "start":
             value = ",".join(repr(float(c)) for c in value)
-        argv += [f"--{name}", str(value)]
+        argv.append(f"--{name}={value}")  # "=" form: a start such as -1.5,1 is not an option
     if getattr(args, "no_jit", False):
         argv.append("--no-jit")
     return argv

@@ -199,7 +199,7 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         "mode": mode,
         "plant": plant,
         "transitions_received": critic_summary.get("transitions_received"),
-        "critic_weights_published": critic_summary.get("weights_version"),
+        "critic_weights_published": critic_summary.get("weights_published"),
         "critic_fit_ms": critic_summary.get("fit_ms"),
         "wall_seconds": time.monotonic() - started,
     })

@@ -162,7 +162,7 @@ def test_replay_keeps_only_the_last_m() -> None:
         replay.add(_sample(step))
     assert len(replay) == 4
     assert [s.step for s in replay.samples] == [6, 7, 8, 9]
-    now, nxt, costs = replay.design(lambda s: s.state[:1])
+    now, _, costs = replay.design(lambda s: s.state[:1])
     assert now.shape == (3, 1)  # M - 1 pairs
     np.testing.assert_array_equal(costs, [106, 107, 108])
 

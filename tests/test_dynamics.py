@@ -6,6 +6,7 @@ written out here, hand-computed Euler steps, and hand-derived heading values.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -134,7 +135,7 @@ def test_rk4_local_error_is_fifth_order() -> None:
     for h in (0.2, 0.1, 0.05):
         errors.append(np.max(np.abs(rk4_step(state, action, h) - _reference(state, action, h))))
     # halving h divides the local error by ~2^5 = 32
-    for coarse, fine in zip(errors, errors[1:], strict=False):
+    for coarse, fine in itertools.pairwise(errors):
         assert 24 < coarse / fine < 40
 
 

@@ -65,7 +65,16 @@ def test_generic_quadratic_features_small_dims() -> None:
     assert quadratic_features(np.array([3.0])).tolist() == [9.0]
     assert quadratic_features(np.array([2.0, 3.0])).tolist() == [4.0, 9.0, 6.0]
     assert quadratic_features(np.array([2.0, 3.0, 5.0, 7.0])).tolist() == [
-        4, 9, 25, 49, 6, 15, 35, 10, 21, 14
+        4,
+        9,
+        25,
+        49,
+        6,
+        15,
+        35,
+        10,
+        21,
+        14,
     ]
 
 

@@ -21,7 +21,7 @@ from common.critic import DoubleCritic, Replay, Sample
 from common.keys import TRANSITION, WEIGHTS
 from common.messages import CriticWeights, Transition
 from common.settings import Settings
-from common.transport import Bus
+from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,9 @@ class CriticLearner:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.learners: dict[str, Learner] = {}
-        self.version = 0
+        # Versions increase strictly over the process's life and across restarts: they start
+        # from the wall clock in microseconds, so a restarted critic is never "older".
+        self.version = time.time_ns() // 1000
         self.fit_seconds: list[float] = []
         self.received = 0
         self.duplicates = 0
@@ -100,6 +102,8 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     # Every robot's transitions: srl/*/transition (the key chunk names the robot).
     bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot="*"), inbox.put)
     bus.declare_alive(settings.transport.robot)
+    start_status_thread(bus, settings.transport.robot, settings.transport.status_period, stop,
+                        lambda: {"transitions_received": learner.received, "duplicates": learner.duplicates})
     log.info("critic ready (M = %d, beta = %.4f)", settings.critic.replay_size, settings.discount)
     end = None if duration is None else time.monotonic() + duration
     while not stop.is_set() and (end is None or time.monotonic() < end):
@@ -121,7 +125,8 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         "service": "critic",
         "transitions_received": learner.received,
         "duplicates": learner.duplicates,
-        "weights_version": learner.version,
+        "weights_published": bus.counters["weights_published"],
+        "last_version": learner.version,
         "fit_ms": summarize(learner.fit_seconds, 1e3),
         "counters": dict(bus.counters),
     }

@@ -21,7 +21,7 @@ from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.settings import Settings
-from common.transport import Bus
+from common.transport import Bus, start_status_thread
 from services.clock import Ticker
 
 log = logging.getLogger(__name__)
@@ -97,6 +97,7 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     if mode == "realtime":
         bus.subscribe(ACTION, ACTION.key(robot), on_action)
     bus.declare_alive(robot)
+    start_status_thread(bus, robot, settings.transport.status_period, stop, lambda: {"seq": plant.seq})
     log.info("plant_sim ready (%s mode, robot %s)", mode, robot)
 
     if mode == "realtime":

@@ -1,0 +1,136 @@
+"""Start real service processes on free loopback ports, wait on readiness, clean up by pid."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def client_config(endpoint: str) -> zenoh.Config:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("listen/endpoints", "[]")
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    return config
+
+
+class Proc:
+    def __init__(self, name: str, argv: list[str]) -> None:
+        self.name = name
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", *argv],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True,
+        )
+        self.stdout: list[str] = []
+        self.stderr: list[str] = []
+        for stream, sink in ((self.process.stdout, self.stdout), (self.process.stderr, self.stderr)):
+            threading.Thread(target=lambda st=stream, sk=sink: [sk.append(x.rstrip()) for x in st],
+                             daemon=True).start()
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, sig)
+            try:
+                self.process.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.process.pid, signal.SIGKILL)
+                self.process.wait()
+        time.sleep(0.05)  # let the reader threads drain
+        return int(self.process.returncode)
+
+    def summary(self) -> dict[str, Any]:
+        for line in reversed(self.stdout):
+            if line.startswith("{"):
+                return dict(json.loads(line))
+        raise AssertionError(f"{self.name} printed no JSON summary; stderr: {self.stderr[-10:]}")
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+class Cluster:
+    """A router on a free port plus services started on demand; everything stopped on exit."""
+
+    def __init__(self, robot: str = "t0", extra: list[str] | None = None) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.robot = robot
+        self.common = ["--router", self.endpoint, "--robot", robot, *(extra or [])]
+        self.procs: dict[str, Proc] = {}
+        self.session: zenoh.Session | None = None
+
+    def start(self, name: str, command: str, *args: str) -> Proc:
+        proc = Proc(name, [command, *self.common, *args])
+        self.procs[name] = proc
+        return proc
+
+    def connect(self) -> zenoh.Session:
+        def opened() -> bool:
+            try:
+                self.session = zenoh.open(client_config(self.endpoint))
+            except zenoh.ZError:
+                return False
+            return True
+
+        wait_until(opened, 30, "the router")
+        assert self.session is not None
+        return self.session
+
+    def alive(self, service: str) -> bool:
+        assert self.session is not None
+        replies = self.session.liveliness().get(f"srl/{self.robot}/alive/{service}", timeout=0.5)
+        return any(r.ok is not None for r in replies)
+
+    def wait_alive(self, service: str, timeout: float = 60) -> None:
+        proc = self.procs.get(service)
+
+        def ready() -> bool:
+            if proc is not None and proc.process.poll() is not None:
+                raise AssertionError(f"{service} exited {proc.process.returncode}: {proc.stderr[-10:]}")
+            return self.alive(service)
+
+        wait_until(ready, timeout, f"liveliness of {service}")
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+        for proc in reversed(list(self.procs.values())):
+            proc.stop()
+
+
+@contextmanager
+def cluster(robot: str = "t0", extra: list[str] | None = None) -> Iterator[Cluster]:
+    c = Cluster(robot, extra)
+    try:
+        c.start("router", "router")
+        c.connect()
+        yield c
+    finally:
+        c.close()
