@@ -313,7 +313,6 @@ class StackedActor:
             # (x0 holds the shift; its last action is zeroed), so repeated failures run the
             # plan out and then stand still. Else standing still. Always finite and bounded.
             if self._previous_x is not None:
-                stride = STATE_DIM + ACTION_DIM
                 x0[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
                 plan = np.clip(self._plan_of(x0), -self._action_bounds, self._action_bounds)
                 self._previous_x = x0

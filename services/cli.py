@@ -37,7 +37,10 @@ def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, help="a TOML file overriding common/srl.toml (any subset)")
     parser.add_argument("--agent", choices=["mpc", "rlq", "rlqv", "rlqv+"])
     parser.add_argument("--horizon", type=int, help="N (N - 1 held actions)")
-    parser.add_argument("--start", type=_start_arg, help="X,Y (heading away from the target) or X,Y,ALPHA; negative: --start=-1.5,1")
+    parser.add_argument(
+        "--start", type=_start_arg,
+        help="X,Y (heading away from the target) or X,Y,ALPHA; negative: --start=-1.5,1",
+    )
     parser.add_argument("--duration", type=float, help="episode length [s]")
     parser.add_argument("--solver", choices=["fatrop", "ipopt"])
     parser.add_argument("--predictor", choices=["euler", "rk4"])
@@ -98,12 +101,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.transport == "zenoh":
         # The same Algorithm 1 through the real services: lockstep, synchronous critic.
         from common.loop import Episode
-        from services.up import ServiceDied, run_up
+        from services.up import ServiceDiedError, run_up
 
         try:
             summary = run_up(settings, settings_argv(args), mode="lockstep", plant="sim",
                              sync_critic=True, duration=settings.episode.duration, quiet=not args.verbose)
-        except (ServiceDied, TimeoutError) as error:
+        except (ServiceDiedError, TimeoutError) as error:
             raise UsageError(str(error)) from error
         episode = Episode(summary["agent"], summary["horizon"],
                           states=[__import__("numpy").array(s) for s in summary["trajectory"]])
@@ -183,8 +186,17 @@ def _serve(args: argparse.Namespace, service: str, body: Callable[..., dict[str,
         result = body(settings, bus, stop)
     finally:
         bus.close()
+    result["resources"] = own_resources()
     print(json.dumps(result), flush=True)
     return 0
+
+
+def own_resources() -> dict[str, float]:
+    """CPU seconds and peak resident memory of this process (for benchmarks)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return {"cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024.0}
 
 
 def cmd_router(args: argparse.Namespace) -> int:
@@ -207,7 +219,8 @@ def cmd_router(args: argparse.Namespace) -> int:
                 "on" if settings.transport.multicast_scouting else "off")
     stop.wait()
     session.close()
-    print(json.dumps({"service": "router", "endpoint": settings.transport.router}), flush=True)
+    print(json.dumps({"service": "router", "endpoint": settings.transport.router,
+                      "resources": own_resources()}), flush=True)
     return 0
 
 
@@ -231,13 +244,13 @@ def cmd_actor(args: argparse.Namespace) -> int:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from services.up import ServiceDied, run_up
+    from services.up import ServiceDiedError, run_up
 
     settings = settings_from_args(args)
     try:
         summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
                          sync_critic=args.mode == "lockstep", duration=settings.episode.duration)
-    except ServiceDied as error:
+    except ServiceDiedError as error:
         print(f"srl up: error: {error}", file=sys.stderr)
         for line in error.tail:
             print(f"  [{error.name}] {line}", file=sys.stderr)
@@ -272,6 +285,10 @@ def format_up_summary(summary: dict[str, Any]) -> str:
 
 # -- srl bench -------------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "loop":
+        from services.bench_loop import run_loop_benchmark
+
+        return run_loop_benchmark(args, settings_from_args(args), settings_argv(args))
     if args.what == "actor":
         from services.bench_actor import run_actor_benchmark
 
@@ -323,7 +340,10 @@ def build_parser() -> argparse.ArgumentParser:
     up.set_defaults(func=cmd_up)
 
     bench = sub.add_parser("bench", help="benchmarks that print a table (and JSON)")
-    bench.add_argument("what", choices=["actor"])
+    bench.add_argument("what", choices=["actor", "loop"])
+    bench.add_argument("--seconds", type=float, default=60.0, help="loop: real-time run length [s]")
+    bench.add_argument("--critic-load", action="store_true",
+                       help="loop: the critic fits a replay of M = 1000 every step")
     add_settings_arguments(bench)
     bench.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     bench.add_argument("--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99)")

@@ -7,10 +7,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from common.loop import Episode  # noqa: E402
+from common.loop import Episode
 
 
 def plot_episode(episode: Episode, sampling_time: float, path: Path) -> None:

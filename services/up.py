@@ -9,6 +9,7 @@ stopped and ``srl up`` exits non-zero naming it. Ctrl-C stops everything cleanly
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -29,7 +30,7 @@ log = logging.getLogger(__name__)
 GRACE_SECONDS = 5.0
 
 
-class ServiceDied(RuntimeError):
+class ServiceDiedError(RuntimeError):
     def __init__(self, name: str, code: int | None, tail: list[str]) -> None:
         self.name, self.code, self.tail = name, code, tail
         super().__init__(f"service {name!r} exited with code {code} before the run ended")
@@ -94,7 +95,7 @@ class Supervisor:
             if code is not None and child.name not in allowed_to_exit:
                 for thread in child.threads:
                     thread.join(timeout=1.0)
-                raise ServiceDied(child.name, code, child.stderr_tail[-10:])
+                raise ServiceDiedError(child.name, code, child.stderr_tail[-10:])
 
     def wait_for(self, what: str, probe: Any, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -109,10 +110,8 @@ class Supervisor:
         """SIGINT every child still running (newest first), then SIGKILL after the grace."""
         alive = [c for c in reversed(list(self.children.values())) if c.process.poll() is None]
         for child in alive:
-            try:
+            with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
                 os.killpg(child.process.pid, signal.SIGINT)
-            except ProcessLookupError:
-                pass
         deadline = time.monotonic() + GRACE_SECONDS
         for child in alive:
             try:
@@ -183,13 +182,13 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
             supervisor.check(allowed_to_exit={"actor"})
             time.sleep(0.05)
         if actor.process.returncode != 0:
-            raise ServiceDied("actor", actor.process.returncode, actor.stderr_tail[-10:])
+            raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
     finally:
         supervisor.stop_all()
     for name in ("router", "plant", "critic"):
         code = supervisor.children[name].process.returncode
         if code not in (0, -signal.SIGINT):
-            raise ServiceDied(name, code, supervisor.children[name].stderr_tail[-10:])
+            raise ServiceDiedError(name, code, supervisor.children[name].stderr_tail[-10:])
     actor_summary = supervisor.children["actor"].summary() or {}
     critic_summary = supervisor.children["critic"].summary() or {}
     merged = dict(actor_summary)
@@ -202,5 +201,6 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         "critic_weights_published": critic_summary.get("weights_published"),
         "critic_fit_ms": critic_summary.get("fit_ms"),
         "wall_seconds": time.monotonic() - started,
+        "resources": {name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()},
     })
     return merged

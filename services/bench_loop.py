@@ -1,0 +1,94 @@
+"""``srl bench loop``: the real-time system, every service a process, for N seconds.
+
+Prints tick period (median/p99/max), missed deadlines, state-to-action latency excluding the
+solve, weight staleness, and CPU / peak RSS per service; ``--critic-load`` makes the critic
+fit a replay of M = 1000 at every step. With ``--json`` the last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from typing import Any
+
+from common.settings import Settings
+from services.up import run_up
+
+TARGETS = {"missed_deadlines": 0, "jitter_p99_ms": 2.0, "latency_p99_ms": 1.0, "staleness_median_steps": 1.0}
+
+
+def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_argv: list[str]) -> int:
+    if args.critic_load:
+        # The children read settings from flags and environment: M goes by environment.
+        os.environ["SRL_CRITIC__REPLAY_SIZE"] = "1000"
+        settings = Settings.load(getattr(args, "config", None), **_overrides(settings))
+    summary = run_up(settings, settings_argv, mode="realtime", plant="sim", sync_critic=False,
+                     duration=args.seconds, quiet=True)
+    loop = summary["loop"]
+    result: dict[str, Any] = {
+        "seconds": args.seconds,
+        "critic_load": bool(args.critic_load),
+        "replay_size": settings.critic.replay_size,
+        "agent": summary.get("agent"),
+        "horizon": summary.get("horizon"),
+        "steps": summary.get("steps"),
+        "period_ms": loop["period_ms"],
+        "jitter_ms": loop["jitter_ms"],
+        "missed_deadlines": loop["missed_deadlines"],
+        "solve_ms": summary.get("solve_ms"),
+        "latency_ms": summary.get("latency_ms"),
+        "staleness_steps": summary.get("staleness_steps"),
+        "staleness_ms": summary.get("staleness_ms"),
+        "critic_fit_ms": summary.get("critic_fit_ms"),
+        "transitions_received": summary.get("transitions_received"),
+        "resources": summary.get("resources"),
+    }
+    checks = {
+        "missed_deadlines == 0": loop["missed_deadlines"] == TARGETS["missed_deadlines"],
+        "jitter p99 <= 2 ms": loop["jitter_ms"]["p99"] <= TARGETS["jitter_p99_ms"],
+        "latency p99 <= 1 ms": result["latency_ms"]["p99"] <= TARGETS["latency_p99_ms"],
+    }
+    if not args.critic_load:
+        checks["staleness median <= 1 step"] = (
+            result["staleness_steps"]["median"] <= TARGETS["staleness_median_steps"]
+        )
+    result["targets"] = {name: ("PASS" if ok else "FAIL") for name, ok in checks.items()}
+    print(format_table(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+def _overrides(settings: Settings) -> dict[str, Any]:
+    return {"actor": settings.actor.model_dump(), "episode": settings.episode.model_dump(),
+            "transport": settings.transport.model_dump()}
+
+
+def format_table(r: dict[str, Any]) -> str:
+    def row(name: str, stats: dict[str, float] | None, unit: str = "ms") -> str:
+        if not stats:
+            return f"  {name:<34} n/a"
+        return (f"  {name:<34} {stats['median']:>10.3f} {stats['p99']:>10.3f} {stats['max']:>10.3f}  {unit}")
+
+    lines = [
+        f"srl bench loop: {r['seconds']:.0f} s real time, agent {r['agent']}, N = {r['horizon']}, "
+        f"M = {r['replay_size']}{' (critic load)' if r['critic_load'] else ''}, {r['steps']} steps",
+        f"  {'':<34} {'median':>10} {'p99':>10} {'max':>10}",
+        row("tick period", r["period_ms"]),
+        row("tick jitter |period - delta|", r["jitter_ms"]),
+        row("actor solve", r["solve_ms"]),
+        row("state -> action latency (no solve)", r["latency_ms"]),
+        row("critic fit", r["critic_fit_ms"]),
+        row("weight staleness", r["staleness_steps"], "steps"),
+        row("weight age (data -> use)", r["staleness_ms"]),
+        f"  missed deadlines {r['missed_deadlines']}, transitions received by the critic "
+        f"{r['transitions_received']} of {r['steps']}",
+        f"  {'service':<10} {'CPU s':>8} {'CPU %':>7} {'peak RSS MB':>12}",
+    ]
+    for name, res in (r["resources"] or {}).items():
+        if res:
+            lines.append(f"  {name:<10} {res['cpu_seconds']:>8.2f} {100 * res['cpu_seconds'] / r['seconds']:>7.1f} "
+                         f"{res['peak_rss_mb']:>12.1f}")
+    lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in r["targets"].items()))
+    return "\n".join(lines)
