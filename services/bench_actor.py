@@ -1,0 +1,770 @@
+"""``srl bench actor``: the actor's step time, against the rcognita-style SLSQP baseline.
+
+For every agent and horizon ``N`` the CasADi actor (:class:`common.actor.StackedActor`, the
+solver of the settings, fatrop by default) is built ONCE (its build time is reported apart)
+and stepped over a closed loop of ``--steps`` sampling intervals on the exact plant from the
+settings' start, warm-started from its own shifted plan exactly as in ``srl run``. The time of
+each whole :meth:`StackedActor.step` (guess, solve, checks) gives median / p99 / max.
+
+Two fixed critic weight sets (nothing is learned while timing):
+
+* ``initial``: the stage cost's own quadratic (``settings.initial_q_weights()`` and
+  ``initial_v_weights()``); for ``mpc`` the weights do not enter, so it gets one row (``n/a``).
+* ``learned``: non-convex, mixed-sign weights, made reproducibly by adding seeded Gaussian
+  noise to the initial weights (:func:`learned_weights`; the seed is advanced, deterministically,
+  until the Q quadratic is indefinite and both weight vectors have mixed signs). The output
+  says which seed, noise level and eigenvalues were used.
+
+The baseline is the way the paper's framework rcognita runs its actor:
+``scipy.optimize.minimize(method="SLSQP")`` over the flattened ``N - 1`` actions, single
+shooting (the Euler predictor rolled out in numpy inside the objective), finite-difference
+gradients (no ``jac``), box bounds on the actions (``keep_feasible``), ``tol = 1e-7``,
+``maxiter = 300``, and NO warm start: the same fixed initial guess (zeros) every step. Its
+objective is the actor's, written in numpy (:class:`NumpyObjective`). It runs its own closed
+loop of ``--baseline-steps`` steps from the same start. ``speedup = baseline median / median``.
+
+Solution quality: at ~20 states spread over the actor's closed loop, the objective the actor
+reached there (warm-started, in the loop) is compared with the one a cold SLSQP solve reaches
+from the same state, both evaluated by the same numpy function. IPOPT reference rows (the same
+problem with ``solver = "ipopt"``) are timed the same way for the horizons in
+``args.reference_horizons`` (default ``"12"``, ``""`` for none, only horizons that are also
+benchmarked) and their objectives are compared with the main solver's along its trajectory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import math
+import os
+import platform
+import shutil
+import sys
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import Bounds, OptimizeResult, minimize
+
+from common.actor import AGENTS, ActorProblem, StackedActor
+from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
+from common.features import feature_count, feature_index_pairs
+from common.loop import ExactPlant, build_actor
+from common.settings import Settings
+from common.stats import summarize
+
+# -- constants of the benchmark -------------------------------------------------------------
+BASELINE_METHOD = "SLSQP"
+BASELINE_TOL = 1e-7  # rcognita: minimize(..., tol=1e-7)
+BASELINE_MAXITER = 300  # rcognita: options={"maxiter": 300}
+COMPARE_STATES = 20  # states of the actor's loop at which the objectives are compared
+OBJ_RTOL = 1e-6  # "ours <= reference" means ours <= ref + OBJ_RTOL |ref| + OBJ_ATOL
+OBJ_ATOL = 1e-7  # SLSQP's tol is an absolute change of the objective
+GAP_FLOOR = 1e-6  # relative gaps divide by max(|ref|, GAP_FLOOR)
+LEARNED_SEED = 0
+LEARNED_SIGMA = 0.3  # noise std, relative to the largest |initial weight|
+DEFAULT_REFERENCE_HORIZONS = "12"
+TARGET_HORIZON = 12
+TARGET_MEDIAN_MS = 0.75
+TARGET_P99_MS = 2.0
+TARGET_SPEEDUP_MPC = 20.0
+TARGET_SPEEDUP_ALL = 5.0
+NO_WEIGHTS = "n/a"  # the weights label of the mpc rows
+
+
+class BenchUsageError(ValueError):
+    """Bad benchmark arguments: one line on stderr in the CLI's format, exit code 2.
+
+    (Not ``services.cli.UsageError``: under ``python -m services.cli`` that module is
+    ``__main__`` and its class would not be the one ``main`` catches.)
+    """
+
+
+# -- weights ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class WeightSet:
+    name: str
+    q: np.ndarray
+    v: np.ndarray
+    info: dict[str, Any]
+
+
+def quadratic_form_matrix(weights: np.ndarray, dim: int) -> np.ndarray:
+    """Symmetric ``M`` with ``z^T M z = <weights, phi(z)>`` (features of :mod:`common.features`)."""
+    weights = np.asarray(weights, dtype=float)
+    if weights.shape != (feature_count(dim),):
+        raise ValueError(f"expected {feature_count(dim)} weights for dim {dim}, got {weights.shape}")
+    matrix = np.zeros((dim, dim))
+    for w, (i, j) in zip(weights, feature_index_pairs(dim), strict=True):
+        if i == j:
+            matrix[i, i] += w
+        else:
+            matrix[i, j] += w / 2.0
+            matrix[j, i] += w / 2.0
+    return matrix
+
+
+def _eigenvalues(weights: np.ndarray, dim: int) -> list[float]:
+    return [float(e) for e in np.linalg.eigvalsh(quadratic_form_matrix(weights, dim))]
+
+
+def initial_weights(settings: Settings) -> WeightSet:
+    q, v = settings.initial_q_weights(), settings.initial_v_weights()
+    return WeightSet(
+        "initial",
+        q,
+        v,
+        {
+            "source": "settings.initial_q_weights() / initial_v_weights()",
+            "q_eigenvalues": _eigenvalues(q, STATE_DIM + ACTION_DIM),
+            "v_eigenvalues": _eigenvalues(v, STATE_DIM),
+        },
+    )
+
+
+def learned_weights(settings: Settings, seed: int = LEARNED_SEED, sigma: float = LEARNED_SIGMA) -> WeightSet:
+    """Initial weights + seeded N(0, (sigma * max|w0|)^2) noise, indefinite Q and mixed signs.
+
+    Deterministic: the first seed from ``seed`` on whose draw gives an indefinite Q quadratic
+    and mixed-sign q and v weights is used (seed 0 already does with the packaged settings).
+    """
+    q0, v0 = settings.initial_q_weights(), settings.initial_v_weights()
+    scale = sigma * max(float(np.max(np.abs(q0))), float(np.max(np.abs(v0))), 1e-3)
+    for attempt in range(seed, seed + 1000):
+        rng = np.random.default_rng(attempt)
+        q = q0 + scale * rng.standard_normal(q0.size)
+        v = v0 + scale * rng.standard_normal(v0.size)
+        q_eig = _eigenvalues(q, STATE_DIM + ACTION_DIM)
+        mixed = all(np.any(w < 0) and np.any(w > 0) for w in (q, v))
+        if q_eig[0] < 0 < q_eig[-1] and mixed:
+            return WeightSet(
+                "learned",
+                q,
+                v,
+                {
+                    "source": "seeded mixed-sign noise on the initial weights (indefinite Q)",
+                    "seed": attempt,
+                    "sigma": scale,
+                    "q_eigenvalues": q_eig,
+                    "v_eigenvalues": _eigenvalues(v, STATE_DIM),
+                    "q": [float(x) for x in q],
+                    "v": [float(x) for x in v],
+                },
+            )
+    raise RuntimeError("no seed gave indefinite mixed-sign weights")  # pragma: no cover
+
+
+# -- the actor's objective in numpy (single shooting) ----------------------------------------
+class NumpyObjective:
+    """The objective of :class:`StackedActor` for fixed weights, over the flattened actions.
+
+    ``f(actions, s_1)`` rolls the predictor out from ``s_1`` (Euler: vectorized with cumulative
+    sums, exactly ``s_{i+1} = s_i + delta f(s_i, u_i)``) and sums the agent's stage terms:
+
+    * mpc:   sum_i delta r(s_i, u_i)
+    * rlq:   sum_i <w, phi_Q(s_i, u_i)>
+    * rlqv:  the rlq sum + <v, phi_V(s_N)>
+    * rlqv+: the rlqv objective + sum_i (N - i) delta r(s_i, u_i), i = 1 .. N-1
+    """
+
+    def __init__(self, problem: ActorProblem, q_weights: np.ndarray, v_weights: np.ndarray) -> None:
+        self.problem = problem
+        self.agent = problem.agent
+        self.horizon = problem.horizon
+        self.n_actions = problem.horizon - 1
+        self.delta = problem.sampling_time
+        self.r_diag = np.asarray(problem.cost_diag, dtype=float)
+        self.q_matrix = quadratic_form_matrix(q_weights, STATE_DIM + ACTION_DIM)
+        self.v_matrix = quadratic_form_matrix(v_weights, STATE_DIM)
+        # per-stage multiplier of delta r: 1 for mpc, (N - i) for rlqv+ (i = 1..N-1), else none
+        if self.agent == "mpc":
+            self.r_coef: np.ndarray | None = np.full(self.n_actions, self.delta)
+        elif self.agent == "rlqv+":
+            self.r_coef = self.delta * (self.horizon - np.arange(1, self.horizon, dtype=float))
+        else:
+            self.r_coef = None
+        self.use_q = self.agent != "mpc"
+        self.use_v = self.agent in ("rlqv", "rlqv+")
+        self.euler = problem.predictor == "euler"
+        self._step = PREDICTORS[problem.predictor]
+        limits = np.array([problem.v_max, problem.omega_max])
+        self.bounds = Bounds(np.tile(-limits, self.n_actions), np.tile(limits, self.n_actions), keep_feasible=True)
+
+    def rollout(self, state: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """Predicted states ``s_1 .. s_N`` as an ``(N, 3)`` array."""
+        u = np.asarray(actions, dtype=float).reshape(self.n_actions, ACTION_DIM)
+        states = np.empty((self.horizon, STATE_DIM))
+        states[0] = state
+        if self.euler:
+            d = self.delta
+            states[1:, 2] = np.cumsum(d * u[:, 1])
+            states[1:, 2] += state[2]
+            heading = states[:-1, 2]
+            dv = d * u[:, 0]
+            states[1:, 0] = np.cumsum(dv * np.cos(heading))
+            states[1:, 0] += state[0]
+            states[1:, 1] = np.cumsum(dv * np.sin(heading))
+            states[1:, 1] += state[1]
+        else:
+            for i in range(self.n_actions):
+                states[i + 1] = self._step(states[i], u[i], self.delta)
+        return states
+
+    def __call__(self, actions: np.ndarray, state: np.ndarray) -> float:
+        u = np.asarray(actions, dtype=float).reshape(self.n_actions, ACTION_DIM)
+        states = self.rollout(state, u)
+        z = np.hstack((states[:-1], u))
+        total = 0.0
+        if self.use_q:
+            total += float(np.sum((z @ self.q_matrix) * z))
+        if self.r_coef is not None:
+            total += float(self.r_coef @ ((z * z) @ self.r_diag))
+        if self.use_v:
+            terminal = states[-1]
+            total += float(terminal @ self.v_matrix @ terminal)
+        return total
+
+
+@dataclass
+class BaselineSolve:
+    plan: np.ndarray
+    value: float
+    success: bool
+    seconds: float
+    iterations: int
+
+
+def slsqp_solve(objective: NumpyObjective, state: np.ndarray) -> BaselineSolve:
+    """One rcognita-style actor step: SLSQP, finite differences, bounds, fixed zero guess."""
+    guess = np.zeros(objective.n_actions * ACTION_DIM)  # no warm start, the same guess every step
+    started = time.perf_counter()
+    try:
+        result: OptimizeResult = minimize(
+            objective,
+            guess,
+            args=(state,),
+            method=BASELINE_METHOD,
+            bounds=objective.bounds,
+            tol=BASELINE_TOL,
+            options={"maxiter": BASELINE_MAXITER},
+        )
+        x, success, iterations = result.x, bool(result.success), int(result.nit)
+    except (ValueError, ArithmeticError):  # rcognita falls back to the initial guess
+        x, success, iterations = guess, False, 0
+    elapsed = time.perf_counter() - started
+    plan = np.clip(
+        np.asarray(x, float).reshape(objective.n_actions, ACTION_DIM),
+        objective.bounds.lb.reshape(-1, ACTION_DIM),
+        objective.bounds.ub.reshape(-1, ACTION_DIM),
+    )
+    return BaselineSolve(plan, objective(plan, state), success, elapsed, iterations)
+
+
+# -- closed loops -----------------------------------------------------------------------------
+@dataclass
+class Loop:
+    """One closed loop: the state at each solve, what was reached there, and the times."""
+
+    seconds: list[float] = field(default_factory=list)
+    states: list[np.ndarray] = field(default_factory=list)
+    values: list[float] = field(default_factory=list)  # numpy objective at the plan
+    failures: int = 0
+
+    def stats_ms(self) -> dict[str, float]:
+        return summarize(self.seconds, scale=1e3)
+
+
+def actor_loop(
+    actor: StackedActor,
+    objective: NumpyObjective,
+    weights: WeightSet,
+    start: np.ndarray,
+    steps: int,
+) -> Loop:
+    """``steps`` actor steps on the exact plant from ``start`` (the actor's own warm start)."""
+    delta = actor.problem.sampling_time
+    plant = ExactPlant()
+    state = plant.reset(start)
+    actor.reset()
+    loop = Loop()
+    gc.collect()
+    for _ in range(steps):
+        step = actor.step(state, weights.q, weights.v)
+        loop.seconds.append(step.solve_seconds)
+        loop.failures += not step.success
+        loop.states.append(state)
+        loop.values.append(objective(step.plan, state))
+        state = plant.apply(step.action, delta)
+    return loop
+
+
+def actor_replay(actor: StackedActor, objective: NumpyObjective, weights: WeightSet, states: list) -> Loop:
+    """The actor along a given state sequence (warm-started from its own previous plan)."""
+    actor.reset()
+    loop = Loop()
+    for state in states:
+        step = actor.step(state, weights.q, weights.v)
+        loop.seconds.append(step.solve_seconds)
+        loop.failures += not step.success
+        loop.states.append(state)
+        loop.values.append(objective(step.plan, state))
+    return loop
+
+
+def actor_cold_values(actor: StackedActor, objective: NumpyObjective, weights: WeightSet, states: list) -> list[float]:
+    """The objective the actor reaches at each state from its cold guess (no warm start)."""
+    values = []
+    for state in states:
+        actor.reset()
+        values.append(objective(actor.step(state, weights.q, weights.v).plan, state))
+    actor.reset()
+    return values
+
+
+def baseline_loop(objective: NumpyObjective, start: np.ndarray, steps: int) -> Loop:
+    """The SLSQP baseline's own closed loop on the exact plant (it applies ``u_1`` as is)."""
+    plant = ExactPlant()
+    state = plant.reset(start)
+    loop = Loop()
+    gc.collect()
+    for _ in range(steps):
+        solve = slsqp_solve(objective, state)
+        loop.seconds.append(solve.seconds)
+        loop.failures += not solve.success
+        loop.states.append(state)
+        loop.values.append(solve.value)
+        state = plant.apply(solve.plan[0], objective.delta)
+    return loop
+
+
+def sample_indices(count: int, wanted: int = COMPARE_STATES) -> list[int]:
+    """``wanted`` indices spread evenly over ``range(count)`` (all of them if fewer)."""
+    if count <= wanted:
+        return list(range(count))
+    return sorted(set(np.linspace(0, count - 1, wanted).round().astype(int).tolist()))
+
+
+def compare_objectives(ours: Sequence[float], reference: Sequence[float]) -> dict[str, float | int]:
+    """Relative gaps ``(ours - ref) / max(|ref|, floor)`` (< 0: ours lower) and shares."""
+    a, b = np.asarray(ours, float), np.asarray(reference, float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    if a.size == 0:
+        nan = math.nan
+        return {"states": 0, "median_rel_gap": nan, "max_rel_gap": nan, "share_le": nan, "share_agree": nan}
+    tol = OBJ_RTOL * np.abs(b) + OBJ_ATOL
+    gap = (a - b) / np.maximum(np.abs(b), GAP_FLOOR)
+    return {
+        "states": int(a.size),
+        "median_rel_gap": float(np.median(gap)),
+        "max_rel_gap": float(np.max(gap)),
+        "share_le": float(np.mean(a <= b + tol)),
+        "share_agree": float(np.mean(np.abs(a - b) <= tol)),
+    }
+
+
+# -- the benchmark ----------------------------------------------------------------------------
+def _parse_list(text: str, what: str) -> list[str]:
+    items = [part.strip() for part in str(text).split(",") if part.strip()]
+    if not items:
+        raise BenchUsageError(f"--{what} needs at least one value")
+    return list(dict.fromkeys(items))
+
+
+def parse_agents(text: str) -> list[str]:
+    agents = _parse_list(text, "agents")
+    unknown = [a for a in agents if a not in AGENTS]
+    if unknown:
+        raise BenchUsageError(f"unknown agent(s) {', '.join(unknown)}; choose from {', '.join(AGENTS)}")
+    return agents
+
+
+def parse_horizons(text: str, what: str = "horizons", allow_empty: bool = False) -> list[int]:
+    if allow_empty and not str(text).strip():
+        return []
+    values = []
+    for item in _parse_list(text, what):
+        try:
+            n = int(item)
+        except ValueError as error:
+            raise BenchUsageError(f"--{what}: {item!r} is not an integer") from error
+        if n < 2:
+            raise BenchUsageError(f"--{what}: N must be >= 2, got {n}")
+        values.append(n)
+    return values
+
+
+def _settings_for(settings: Settings, agent: str, horizon: int, solver: str | None = None) -> Settings:
+    update: dict[str, Any] = {"agent": agent, "horizon": horizon}
+    if solver is not None:
+        update["solver"] = solver
+    return settings.model_copy(update={"actor": settings.actor.model_copy(update=update)})
+
+
+def _progress(message: str) -> None:
+    print(f"[bench] {message}", file=sys.stderr, flush=True)
+
+
+def machine_info(settings: Settings) -> dict[str, Any]:
+    import casadi
+    import scipy
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as handle:
+            for line in handle:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    compiler = shutil.which("gcc") or shutil.which("cc")
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpus_usable": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "cpu_model": model,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "casadi": casadi.__version__,
+        "solver": settings.actor.solver,
+        "predictor": settings.actor.predictor,
+        "jit": bool(settings.actor.jit and compiler),
+        "jit_requested": settings.actor.jit,
+        "compiler": compiler,
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+
+
+def _row(
+    agent: str,
+    horizon: int,
+    weights: str,
+    solver: str,
+    build_seconds: float,
+    loop: Loop,
+    baseline: Loop,
+    objective_reference: str,
+    comparison: dict[str, float | int],
+) -> dict[str, Any]:
+    ours, base = loop.stats_ms(), baseline.stats_ms()
+    return {
+        "agent": agent,
+        "horizon": horizon,
+        "weights": weights,
+        "solver": solver,
+        "build_s": build_seconds,
+        "steps": len(loop.seconds),
+        "median_ms": ours["median"],
+        "p99_ms": ours["p99"],
+        "max_ms": ours["max"],
+        "failures": loop.failures,
+        "baseline_steps": len(baseline.seconds),
+        "baseline_median_ms": base["median"],
+        "baseline_p99_ms": base["p99"],
+        "baseline_max_ms": base["max"],
+        "baseline_failures": baseline.failures,
+        "speedup": base["median"] / ours["median"],
+        "objective_reference": objective_reference,
+        "objective": comparison,
+    }
+
+
+def evaluate_targets(rows: list[dict[str, Any]], main_solver: str) -> dict[str, dict[str, Any]]:
+    """The issue's targets over the main-solver rows; ``pass`` is None when no row applies."""
+    main = [r for r in rows if r["solver"] == main_solver]
+    at_target = [r for r in main if r["horizon"] == TARGET_HORIZON]
+
+    def check(
+        name: str, description: str, subset: list[dict[str, Any]], key: str, threshold: float, upper: bool
+    ) -> tuple[str, dict[str, Any]]:
+        if not subset:
+            return name, {"description": description, "threshold": threshold, "pass": None, "worst": None}
+        pick: Callable[..., dict[str, Any]] = max if upper else min
+        worst = pick(subset, key=lambda r: r[key])
+        value = worst[key]
+        passed = bool(value <= threshold) if upper else bool(value >= threshold)
+        return name, {
+            "description": description,
+            "threshold": threshold,
+            "pass": passed,
+            "worst": value,
+            "worst_row": f"{worst['agent']} N={worst['horizon']} {worst['weights']}",
+            "rows": len(subset),
+        }
+
+    checks = [
+        check(
+            "median_n12",
+            f"N = {TARGET_HORIZON}: median <= {TARGET_MEDIAN_MS} ms, every agent and weight set",
+            at_target,
+            "median_ms",
+            TARGET_MEDIAN_MS,
+            True,
+        ),
+        check(
+            "p99_n12",
+            f"N = {TARGET_HORIZON}: p99 <= {TARGET_P99_MS} ms, every agent and weight set",
+            at_target,
+            "p99_ms",
+            TARGET_P99_MS,
+            True,
+        ),
+        check(
+            "speedup_mpc",
+            f"speedup >= {TARGET_SPEEDUP_MPC:g} for mpc (every benchmarked N)",
+            [r for r in main if r["agent"] == "mpc"],
+            "speedup",
+            TARGET_SPEEDUP_MPC,
+            False,
+        ),
+        check(
+            "speedup_all",
+            f"speedup >= {TARGET_SPEEDUP_ALL:g} for every agent (every benchmarked N and weight set)",
+            main,
+            "speedup",
+            TARGET_SPEEDUP_ALL,
+            False,
+        ),
+    ]
+    return dict(checks)
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return "nan"
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _gap(comparison: dict[str, Any] | None) -> str:
+    if not comparison or not math.isfinite(comparison["median_rel_gap"]):
+        return "-"
+    return f"{comparison['median_rel_gap']:+.1e}"
+
+
+def _share(comparison: dict[str, Any] | None) -> str:
+    if not comparison or not math.isfinite(comparison["share_le"]):
+        return "-"
+    return f"{comparison['share_le']:.2f}/{comparison['states']}"
+
+
+TABLE_HEADERS = (
+    "agent",
+    "N",
+    "weights",
+    "solver",
+    "build_s",
+    "median_ms",
+    "p99_ms",
+    "max_ms",
+    "failures",
+    "baseline_median_ms",
+    "speedup",
+    "obj_vs",
+    "gap_med",
+    "le_share",
+    "cold_gap_med",
+    "cold_le_share",
+)
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """Aligned plain text, one line per row (no terminal width or colour assumed)."""
+    body = [
+        [
+            r["agent"],
+            str(r["horizon"]),
+            r["weights"],
+            r["solver"],
+            _fmt(r["build_s"], 2),
+            _fmt(r["median_ms"]),
+            _fmt(r["p99_ms"]),
+            _fmt(r["max_ms"]),
+            str(r["failures"]),
+            _fmt(r["baseline_median_ms"], 2),
+            _fmt(r["speedup"], 1),
+            r["objective_reference"],
+            _gap(r["objective"]),
+            _share(r["objective"]),
+            _gap(r.get("objective_cold")),
+            _share(r.get("objective_cold")),
+        ]
+        for r in rows
+    ]
+    widths = [max(len(h), *(len(line[i]) for line in body)) for i, h in enumerate(TABLE_HEADERS)]
+    left = {0, 2, 3, 11}
+
+    def render(cells: Sequence[str]) -> str:
+        return "  ".join(
+            c.ljust(w) if i in left else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths, strict=True))
+        )
+
+    return "\n".join([render(TABLE_HEADERS), "  ".join("-" * w for w in widths), *map(render, body)])
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
+    """``srl bench actor``: print the table (and with ``--json`` one JSON line last); return 0."""
+    try:
+        agents = parse_agents(getattr(args, "agents", ",".join(AGENTS)))
+        horizons = parse_horizons(getattr(args, "horizons", "6,12,30"))
+        reference = parse_horizons(
+            getattr(args, "reference_horizons", DEFAULT_REFERENCE_HORIZONS) or "",
+            "reference-horizons",
+            allow_empty=True,
+        )
+        steps = int(getattr(args, "steps", 300))
+        baseline_steps = int(getattr(args, "baseline_steps", 30))
+        if steps < 1 or baseline_steps < 1:
+            raise BenchUsageError(f"--steps and --baseline-steps must be >= 1, got {steps}, {baseline_steps}")
+    except BenchUsageError as error:
+        print(f"srl: error: {error}", file=sys.stderr)
+        return 2
+
+    main_solver = settings.actor.solver
+    reference_solver = "ipopt" if main_solver == "fatrop" else "fatrop"
+    reference = [n for n in reference if n in horizons]
+    start = settings.start_state()
+    machine = machine_info(settings)
+    weight_sets = [initial_weights(settings), learned_weights(settings)]
+    learned_info = weight_sets[1].info
+    total = sum(1 if a == "mpc" else len(weight_sets) for a in agents) * (len(horizons) + len(reference))
+    began = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+
+    def note(message: str) -> None:
+        _progress(f"{len(rows)}/{total} rows, {time.perf_counter() - began:5.1f} s: {message}")
+
+    with warnings.catch_warnings():
+        # SLSQP's "clipping to bounds" and the like: the baseline is taken as it comes.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for horizon in horizons:
+            for agent in agents:
+                note(f"building {agent} N={horizon} ({main_solver})")
+                t0 = time.perf_counter()
+                actor = build_actor(_settings_for(settings, agent, horizon))
+                build_seconds = time.perf_counter() - t0
+                sets = weight_sets[:1] if agent == "mpc" else weight_sets
+                main_loops: dict[str, Loop] = {}
+                baselines: dict[str, Loop] = {}
+                for weights in sets:
+                    label = NO_WEIGHTS if agent == "mpc" else weights.name
+                    objective = NumpyObjective(actor.problem, weights.q, weights.v)
+                    note(f"{agent} N={horizon} {label}: {steps} actor steps")
+                    loop = actor_loop(actor, objective, weights, start, steps)
+                    note(f"{agent} N={horizon} {label}: {baseline_steps} SLSQP steps + comparison")
+                    baseline = baseline_loop(objective, start, baseline_steps)
+                    picked = sample_indices(len(loop.states))
+                    slsqp = [slsqp_solve(objective, loop.states[i]).value for i in picked]
+                    comparison = compare_objectives([loop.values[i] for i in picked], slsqp)
+                    cold = actor_cold_values(actor, objective, weights, [loop.states[i] for i in picked])
+                    row = _row(agent, horizon, label, main_solver, build_seconds, loop, baseline, "slsqp", comparison)
+                    row["objective_cold"] = compare_objectives(cold, slsqp)
+                    rows.append(row)
+                    main_loops[weights.name], baselines[weights.name] = loop, baseline
+                if horizon not in reference:
+                    continue
+                note(f"building {agent} N={horizon} ({reference_solver}, reference)")
+                t0 = time.perf_counter()
+                ref_actor = build_actor(_settings_for(settings, agent, horizon, reference_solver))
+                ref_build = time.perf_counter() - t0
+                for weights in sets:
+                    label = NO_WEIGHTS if agent == "mpc" else weights.name
+                    objective = NumpyObjective(ref_actor.problem, weights.q, weights.v)
+                    note(f"{agent} N={horizon} {label}: {steps} {reference_solver} steps + replay")
+                    loop = actor_loop(ref_actor, objective, weights, start, steps)
+                    main_loop = main_loops[weights.name]
+                    replay = actor_replay(ref_actor, objective, weights, main_loop.states)
+                    comparison = compare_objectives(replay.values, main_loop.values)
+                    rows.append(
+                        _row(
+                            agent,
+                            horizon,
+                            label,
+                            reference_solver,
+                            ref_build,
+                            loop,
+                            baselines[weights.name],
+                            main_solver,
+                            comparison,
+                        )
+                    )
+    note("done")
+    machine["load_average_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    machine["wall_seconds"] = time.perf_counter() - began
+    targets = evaluate_targets(rows, main_solver)
+
+    print(
+        f"srl bench actor: {steps} closed-loop steps per row (exact plant, start "
+        f"{np.array2string(start, precision=3)}), baseline {BASELINE_METHOD} (finite differences, "
+        f"bounds, zero guess every step, tol {BASELINE_TOL:g}, maxiter {BASELINE_MAXITER}) over "
+        f"{baseline_steps} steps"
+    )
+    print(format_table(rows))
+    print(
+        f"machine: {machine['cpu_count']} CPUs ({machine['cpus_usable']} usable, {machine['cpu_model']}), "
+        f"load {_fmt_load(machine['load_average'])} -> {_fmt_load(machine['load_average_end'])}, "
+        f"casadi {machine['casadi']}, scipy {machine['scipy']}, numpy {machine['numpy']}, "
+        f"solver {machine['solver']}, predictor {machine['predictor']}, jit {machine['jit']}, "
+        f"wall {machine['wall_seconds']:.0f} s"
+    )
+    print(
+        f"weights: initial = stage cost quadratic; learned = {learned_info['source']}, seed "
+        f"{learned_info['seed']}, sigma {learned_info['sigma']:.3g}, eig(Q) "
+        f"[{learned_info['q_eigenvalues'][0]:.3f} .. {learned_info['q_eigenvalues'][-1]:.3f}]; "
+        f"mpc ignores the weights (one row, weights {NO_WEIGHTS})"
+    )
+    print(
+        f"objective: gap_med = median of (row - ref) / max(|ref|, {GAP_FLOOR:g}) (< 0: row lower), "
+        f"le_share = share/count of states with row <= ref + {OBJ_RTOL:g}|ref| + {OBJ_ATOL:g}. "
+        f"obj_vs slsqp: at {COMPARE_STATES} states of the row's closed loop, the objective the actor "
+        f"reached there (warm-started, in the loop) vs a cold SLSQP solve; cold_*: the actor "
+        f"cold-started (no previous plan) at the same states vs the same SLSQP values. obj_vs "
+        f"{main_solver}: the reference solver along the {main_solver} loop's states vs {main_solver} there"
+    )
+    for target in targets.values():
+        status = "N/A " if target["pass"] is None else ("PASS" if target["pass"] else "FAIL")
+        detail = "" if target["pass"] is None else f" (worst {target['worst']:.3f}: {target['worst_row']})"
+        print(f"target {status} {target['description']}{detail}")
+    if getattr(args, "json", False):
+        payload = {
+            "rows": rows,
+            "machine": machine,
+            "settings": settings.as_dict(),
+            "targets": targets,
+            "weights": {w.name: w.info for w in weight_sets},
+            "baseline": {
+                "method": BASELINE_METHOD,
+                "tol": BASELINE_TOL,
+                "maxiter": BASELINE_MAXITER,
+                "gradient": "finite differences (scipy 2-point, no jac)",
+                "initial_guess": "zeros every step (no warm start)",
+                "steps": baseline_steps,
+            },
+        }
+        print(json.dumps(_jsonable(payload)))
+    return 0
+
+
+def _fmt_load(load: Sequence[float] | None) -> str:
+    return "?" if load is None else "/".join(f"{x:.2f}" for x in load)

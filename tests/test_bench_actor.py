@@ -1,0 +1,278 @@
+"""``srl bench actor``: the JSON contract, the baseline's numpy objective, the weight sets.
+
+Oracles: the CasADi actor's own NLP objective (its ``nlpsol`` oracle) evaluated at the actor's
+solution plan, a plain loop over :mod:`common.features` and :func:`common.dynamics.euler_step`,
+and hand-made rows for the target evaluation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+import pytest
+
+from common.actor import AGENTS, ActorProblem
+from common.dynamics import euler_step
+from common.features import phi_q, phi_v, stage_cost
+from common.loop import build_actor
+from common.settings import Settings
+from services import bench_actor
+from services.bench_actor import (
+    NumpyObjective,
+    compare_objectives,
+    evaluate_targets,
+    initial_weights,
+    learned_weights,
+    quadratic_form_matrix,
+    sample_indices,
+)
+from services.cli import main
+
+ROW_KEYS = {
+    "agent",
+    "horizon",
+    "weights",
+    "solver",
+    "median_ms",
+    "p99_ms",
+    "max_ms",
+    "failures",
+    "baseline_median_ms",
+    "speedup",
+    "build_s",
+    "steps",
+    "baseline_steps",
+    "objective",
+}
+
+
+def _settings(agent: str, horizon: int, jit: bool = False, solver: str = "fatrop") -> Settings:
+    base = Settings.load()
+    return base.model_copy(
+        update={
+            "actor": base.actor.model_copy(update={"agent": agent, "horizon": horizon, "jit": jit, "solver": solver})
+        }
+    )
+
+
+def _loop_objective(agent: str, horizon: int, settings: Settings, q, v, state, plan) -> float:
+    """The actor's objective written as the paper states it, stage by stage."""
+    delta, r_diag = settings.plant.sampling_time, settings.cost.r_diag
+    states = [np.asarray(state, float)]
+    for u in plan:
+        states.append(euler_step(states[-1], u, delta))
+    total = 0.0
+    for i, u in enumerate(plan):  # i = 0 .. N-2 is the paper's i = 1 .. N-1
+        running = delta * stage_cost(states[i], u, r_diag)
+        if agent == "mpc":
+            total += running
+            continue
+        total += q @ phi_q(states[i], u)
+        if agent == "rlqv+":
+            total += (horizon - (i + 1)) * running
+    if agent in ("rlqv", "rlqv+"):
+        total += v @ phi_v(states[-1])
+    return float(total)
+
+
+def _last_json(text: str) -> dict:
+    lines = [line for line in text.strip().splitlines() if line.strip()]
+    return json.loads(lines[-1])
+
+
+def _check_rows(rows: list[dict]) -> None:
+    for row in rows:
+        assert row.keys() >= ROW_KEYS, ROW_KEYS - row.keys()
+        for key in ("median_ms", "p99_ms", "max_ms", "baseline_median_ms", "speedup", "build_s"):
+            assert isinstance(row[key], float) and math.isfinite(row[key]) and row[key] > 0, (key, row)
+        assert row["median_ms"] <= row["p99_ms"] <= row["max_ms"]
+        assert row["failures"] >= 0
+        assert row["speedup"] == pytest.approx(row["baseline_median_ms"] / row["median_ms"], rel=1e-12)
+        assert row["objective"]["states"] >= 1
+        assert 0.0 <= row["objective"]["share_le"] <= 1.0
+
+
+# -- the numpy objective ------------------------------------------------------------------------
+def test_quadratic_form_matrix_matches_features() -> None:
+    rng = np.random.default_rng(3)
+    for dim, features in ((5, lambda z: phi_q(z[:3], z[3:])), (3, phi_v)):
+        w = rng.normal(size=dim * (dim + 1) // 2)
+        matrix = quadratic_form_matrix(w, dim)
+        assert np.allclose(matrix, matrix.T)
+        for _ in range(5):
+            z = rng.normal(size=dim)
+            assert z @ matrix @ z == pytest.approx(w @ features(z), rel=1e-12, abs=1e-12)
+
+
+@pytest.mark.parametrize("agent", AGENTS)
+@pytest.mark.parametrize("horizon", [2, 6, 13])
+def test_numpy_objective_matches_stagewise_loop(agent: str, horizon: int) -> None:
+    settings = _settings(agent, horizon)
+    problem = ActorProblem(
+        agent=agent,
+        horizon=horizon,
+        sampling_time=settings.plant.sampling_time,
+        cost_diag=tuple(settings.cost.r_diag),
+        v_max=settings.plant.v_max,
+        omega_max=settings.plant.omega_max,
+    )
+    rng = np.random.default_rng(horizon)
+    for weights in (initial_weights(settings), learned_weights(settings)):
+        objective = NumpyObjective(problem, weights.q, weights.v)
+        for _ in range(3):
+            state = rng.normal(size=3) * [2.0, 2.0, 4.0]
+            plan = rng.uniform(-1, 1, size=(horizon - 1, 2)) * [
+                settings.plant.v_max,
+                settings.plant.omega_max,
+            ]
+            expected = _loop_objective(agent, horizon, settings, weights.q, weights.v, state, plan)
+            assert objective(plan.ravel(), state) == pytest.approx(expected, rel=1e-12, abs=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("agent", AGENTS)
+def test_numpy_objective_matches_casadi_actor_at_its_solution(agent: str) -> None:
+    """Both objective implementations agree at the actor's own solution plans."""
+    horizon = 6
+    settings = _settings(agent, horizon)  # no JIT: the same problem, quicker to build
+    actor = build_actor(settings)
+    # The actor's NLP (x = s_1 u_1 s_2 ... s_N, p = (w, v)) -> (f, g), the problem it solves.
+    nlp = actor._solver.oracle()
+    for weights in (initial_weights(settings), learned_weights(settings)):
+        objective = NumpyObjective(actor.problem, weights.q, weights.v)
+        params = np.concatenate([weights.q, weights.v])
+        state = settings.start_state()
+        actor.reset()
+        for _ in range(8):
+            step = actor.step(state, weights.q, weights.v)
+            assert step.success, step.status
+            states = objective.rollout(state, step.plan)
+            x = np.concatenate([*(np.r_[states[i], step.plan[i]] for i in range(horizon - 1)), states[-1]])
+            out = nlp(x=x, p=params)
+            assert np.max(np.abs(out["g"].full())) < 1e-12  # the rollout satisfies the dynamics
+            casadi_value = float(out["f"])
+            numpy_value = objective(step.plan.ravel(), state)
+            assert numpy_value == pytest.approx(casadi_value, rel=1e-9, abs=1e-12)
+            # ... and the value the solver reports (its states meet the dynamics to its tolerance)
+            assert numpy_value == pytest.approx(step.objective, rel=1e-6, abs=1e-9)
+            state = state + np.array([0.02, -0.01, 0.1])
+
+
+# -- weights, comparison, targets ----------------------------------------------------------------
+def test_learned_weights_are_reproducible_indefinite_and_mixed_sign() -> None:
+    settings = Settings.load()
+    a, b = learned_weights(settings), learned_weights(settings)
+    assert np.array_equal(a.q, b.q) and np.array_equal(a.v, b.v)
+    eig = np.linalg.eigvalsh(quadratic_form_matrix(a.q, 5))
+    assert eig[0] < 0 < eig[-1]
+    for w in (a.q, a.v):
+        assert np.any(w < 0) and np.any(w > 0)
+    initial = initial_weights(settings)
+    assert np.array_equal(initial.q, settings.initial_q_weights())
+    assert np.linalg.eigvalsh(quadratic_form_matrix(initial.q, 5))[0] >= 0
+
+
+def test_sample_indices_and_comparison() -> None:
+    assert sample_indices(5) == [0, 1, 2, 3, 4]
+    picked = sample_indices(300)
+    assert len(picked) == 20 and picked[0] == 0 and picked[-1] == 299
+    result = compare_objectives([1.0, 2.0, 2.5, float("nan")], [1.0, 2.5, 2.0, 1.0])
+    assert result["states"] == 3
+    assert result["share_le"] == pytest.approx(2 / 3)
+    assert result["share_agree"] == pytest.approx(1 / 3)
+    assert result["median_rel_gap"] == pytest.approx(0.0)
+
+
+def test_targets_pass_fail_and_not_applicable() -> None:
+    def row(agent, horizon, median, p99, speedup, weights="initial", solver="fatrop"):
+        return {
+            "agent": agent,
+            "horizon": horizon,
+            "weights": weights,
+            "solver": solver,
+            "median_ms": median,
+            "p99_ms": p99,
+            "speedup": speedup,
+        }
+
+    rows = [
+        row("mpc", 12, 0.4, 1.0, 60.0),
+        row("rlqv", 12, 0.8, 1.5, 30.0, "learned"),
+        row("rlqv", 6, 0.3, 0.5, 4.0),
+        row("rlqv", 12, 3.0, 9.0, 1.0, solver="ipopt"),
+    ]
+    targets = evaluate_targets(rows, "fatrop")
+    assert targets["median_n12"]["pass"] is False and targets["median_n12"]["worst"] == 0.8
+    assert targets["p99_n12"]["pass"] is True  # the ipopt reference row is not judged
+    assert targets["speedup_mpc"]["pass"] is True
+    assert targets["speedup_all"]["pass"] is False and targets["speedup_all"]["worst"] == 4.0
+    assert evaluate_targets(rows[2:3], "fatrop")["median_n12"]["pass"] is None
+
+
+# -- the command --------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(
+        [
+            "bench",
+            "actor",
+            "--agents",
+            "mpc,rlqv",
+            "--horizons",
+            "6",
+            "--steps",
+            "20",
+            "--baseline-steps",
+            "3",
+            "--json",
+        ]
+    )
+    assert code == 0
+    out = capsys.readouterr().out
+    payload = _last_json(out)
+    assert payload.keys() >= {"rows", "machine", "settings", "targets"}
+    rows = payload["rows"]
+    assert [(r["agent"], r["horizon"], r["weights"], r["solver"]) for r in rows] == [
+        ("mpc", 6, "n/a", "fatrop"),
+        ("rlqv", 6, "initial", "fatrop"),
+        ("rlqv", 6, "learned", "fatrop"),
+    ]
+    _check_rows(rows)
+    for r in rows:
+        assert r["steps"] == 20 and r["baseline_steps"] == 3
+        assert r["objective_reference"] == "slsqp"
+    assert payload["machine"]["cpu_count"] >= 1 and payload["machine"]["casadi"]
+    assert payload["settings"]["actor"]["solver"] == "fatrop"
+    # N = 12 was not benchmarked: its targets are not applicable; the speedup ones are judged
+    assert payload["targets"]["median_n12"]["pass"] is None
+    assert isinstance(payload["targets"]["speedup_all"]["pass"], bool)
+    assert "baseline_median_ms" in out and ("PASS" in out or "FAIL" in out)
+
+
+@pytest.mark.slow
+def test_bench_actor_reference_rows(capsys: pytest.CaptureFixture[str]) -> None:
+    """The IPOPT reference rows, selected by ``reference_horizons``, agree with fatrop."""
+    args = argparse.Namespace(agents="rlq", horizons="6", steps=15, baseline_steps=2, json=True, reference_horizons="6")
+    assert bench_actor.run_actor_benchmark(args, Settings.load()) == 0
+    rows = _last_json(capsys.readouterr().out)["rows"]
+    assert [(r["weights"], r["solver"]) for r in rows] == [
+        ("initial", "fatrop"),
+        ("learned", "fatrop"),
+        ("initial", "ipopt"),
+        ("learned", "ipopt"),
+    ]
+    _check_rows(rows)
+    for ref in rows[2:]:
+        assert ref["objective_reference"] == "fatrop" and ref["objective"]["states"] == 15
+        # same warm-started problem along the same states: IPOPT finds fatrop's minima
+        assert ref["objective"]["share_agree"] >= 0.8
+
+
+def test_bench_actor_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "actor", "--agents", "mpc,nope"]) == 2
+    assert "unknown agent" in capsys.readouterr().err
+    assert main(["bench", "actor", "--horizons", "1"]) == 2
+    assert main(["bench", "actor", "--steps", "0"]) == 2
