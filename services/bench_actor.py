@@ -215,16 +215,32 @@ class NumpyObjective:
         return states
 
     def __call__(self, actions: np.ndarray, state: np.ndarray) -> float:
-        u = np.asarray(actions, dtype=float).reshape(self.n_actions, ACTION_DIM)
-        states = self.rollout(state, u)
-        z = np.hstack((states[:-1], u))
+        n = self.n_actions
+        u = np.asarray(actions, dtype=float).reshape(n, ACTION_DIM)
+        if self.euler:
+            # Few numpy calls: the baseline runs this (2 (N - 1) + 1) times per SLSQP iteration.
+            z = np.empty((self.horizon, STATE_DIM + ACTION_DIM))  # rows s_i u_i; last row s_N
+            z[:n, STATE_DIM:] = u
+            z[0, :STATE_DIM] = state
+            d = self.delta
+            np.cumsum(u[:, 1], out=z[1:, 2])
+            z[1:, 2] = state[2] + d * z[1:, 2]
+            dv = d * u[:, 0]
+            heading = z[:n, 2]
+            np.cumsum(dv * np.cos(heading), out=z[1:, 0])
+            z[1:, 0] += state[0]
+            np.cumsum(dv * np.sin(heading), out=z[1:, 1])
+            z[1:, 1] += state[1]
+            stages, terminal = z[:n], z[n, :STATE_DIM]
+        else:
+            states = self.rollout(state, u)
+            stages, terminal = np.hstack((states[:-1], u)), states[-1]
         total = 0.0
         if self.use_q:
-            total += float(np.sum((z @ self.q_matrix) * z))
+            total += float(np.sum((stages @ self.q_matrix) * stages))
         if self.r_coef is not None:
-            total += float(self.r_coef @ ((z * z) @ self.r_diag))
+            total += float(self.r_coef @ ((stages * stages) @ self.r_diag))
         if self.use_v:
-            terminal = states[-1]
             total += float(terminal @ self.v_matrix @ terminal)
         return total
 

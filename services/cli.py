@@ -341,6 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks that print a table (and JSON)")
     bench.add_argument("what", choices=["actor", "loop"])
+    bench.add_argument("--reference-horizons", default="12",
+                       help="actor: N values for the IPOPT reference rows ('' = none)")
     bench.add_argument("--seconds", type=float, default=60.0, help="loop: real-time run length [s]")
     bench.add_argument("--critic-load", action="store_true",
                        help="loop: the critic fits a replay of M = 1000 every step")
