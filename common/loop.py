@@ -95,6 +95,7 @@ def build_actor(settings: Settings) -> StackedActor:
             jit=a.jit,
             max_iter=a.max_iter,
             tolerance=a.tolerance,
+            mu_init=a.mu_init,
         )
     )
 

@@ -92,6 +92,7 @@ class ActorSettings(_Section):
     jit: bool
     max_iter: int = Field(ge=1)
     tolerance: float = Field(gt=0)
+    mu_init: float = Field(gt=0)
 
 
 class EpisodeSettings(_Section):

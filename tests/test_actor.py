@@ -245,12 +245,9 @@ def test_forced_failure_on_first_step_gives_zero_action() -> None:
     assert abs(result.action[0]) <= V_MAX and abs(result.action[1]) <= OMEGA_MAX
 
 
-class _BrokenSolver:
-    def call(self, _args):
-        raise RuntimeError("forced failure")
-
-    def stats(self):
-        return {"success": False}
+def _broken_solve() -> None:
+    """Stands in for the solver's evaluation: CasADi raises RuntimeError on evaluation errors."""
+    raise RuntimeError("forced failure")
 
 
 def test_failure_after_success_falls_back_to_shifted_plan() -> None:
@@ -258,7 +255,7 @@ def test_failure_after_success_falls_back_to_shifted_plan() -> None:
     state = np.array([1.0, 0.5, 0.3])
     first = actor.step(state, np.zeros(15), np.zeros(6))
     assert first.success and actor.counters.failures == 0
-    actor._solver = _BrokenSolver()  # force every further solve to fail
+    actor._evaluate = _broken_solve  # force every further solve to fail
     second = actor.step(exact_step(state, first.action, DELTA), np.zeros(15), np.zeros(6))
     assert not second.success
     assert actor.counters.failures == 1
@@ -281,7 +278,7 @@ def test_fallback_stops_once_the_previous_plan_is_used_up() -> None:
     first = actor.step(np.array([1.0, 0.5, 0.3]), w, v_w)
     assert first.success
     assert np.linalg.norm(first.plan[-1]) > 1e-3  # the last planned action is not standing still
-    actor._solver = _BrokenSolver()
+    actor._evaluate = _broken_solve
     second = actor.step(np.array([1.0, 0.5, 0.3]), w, v_w)
     np.testing.assert_allclose(second.action, first.plan[1], atol=1e-12)
     for _ in range(3):
@@ -294,6 +291,6 @@ def test_reset_forgets_the_previous_plan() -> None:
     actor = make_actor("mpc", 3)
     actor.step(np.array([1.0, 0.5, 0.3]), np.zeros(15), np.zeros(6))
     actor.reset()
-    actor._solver = _BrokenSolver()
+    actor._evaluate = _broken_solve
     result = actor.step(np.array([1.0, 0.5, 0.3]), np.zeros(15), np.zeros(6))
     np.testing.assert_array_equal(result.action, [0.0, 0.0])
