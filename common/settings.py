@@ -68,6 +68,7 @@ class CriticSettings(_Section):
     q_init: Literal["stage_cost"] | list[float]
     v_init: Literal["stage_cost"] | list[float]
     update_every: int = Field(ge=1)
+    checkpoint: str = Field(description="checkpoint file ({robot} = robot id); empty = none")
 
     @model_validator(mode="after")
     def _check(self) -> CriticSettings:
@@ -117,7 +118,8 @@ class TransportSettings(_Section):
     critic_timeout: float = Field(gt=0)
     status_period: float = Field(gt=0)
     state_rate: float = Field(gt=0, le=1000)
-    action_timeout_steps: int = Field(ge=1)
+    action_timeout_steps: int = Field(ge=2)
+    transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
 
 
 class Settings(BaseSettings):

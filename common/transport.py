@@ -16,6 +16,7 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 import zenoh
+import zenoh.ext
 
 from common.keys import Service, Topic, liveliness_key
 from common.messages import Message, MessageError, decode
@@ -24,6 +25,7 @@ from common.settings import TransportSettings
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
+RECOVERY_HEARTBEAT_S = 0.5  # advanced publishers announce their last sequence number this often
 
 
 def zenoh_config(
@@ -36,6 +38,8 @@ def zenoh_config(
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router" if router else transport.mode))
     config.insert_json5("scouting/multicast/enabled", json.dumps(transport.multicast_scouting))
+    # Advanced publishers (the transition cache) stamp their samples: timestamps must be on.
+    config.insert_json5("timestamping/enabled", "true")
     if router:
         config.insert_json5("listen/endpoints", json.dumps(listen or [transport.router]))
         config.insert_json5("connect/endpoints", json.dumps(transport.connect))
@@ -83,8 +87,20 @@ class Bus:
                         self.counters[f"rejected.{what}"])
 
     # -- pub/sub ------------------------------------------------------------------------
-    def publisher(self, topic: Topic[M], robot: str, **chunks: str) -> Callable[[M], None]:
-        publisher = self.session.declare_publisher(topic.key(robot, **chunks))
+    def publisher(self, topic: Topic[M], robot: str, *, cache: int = 0, **chunks: str) -> Callable[[M], None]:
+        """Typed put on ``topic``. ``cache > 0``: a Zenoh advanced publisher that keeps the last
+        ``cache`` samples and sends heartbeats, so a subscriber declared with ``recover=True``
+        gets what it missed (late start, restart, partition) instead of losing it."""
+        key = topic.key(robot, **chunks)
+        publisher: Any
+        if cache > 0:
+            publisher = zenoh.ext.declare_advanced_publisher(
+                self.session, key, cache=zenoh.ext.CacheConfig(cache),
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=RECOVERY_HEARTBEAT_S),
+                publisher_detection=True,
+            )
+        else:
+            publisher = self.session.declare_publisher(key)
         self._keep.append(publisher)
 
         def publish(message: M) -> None:
@@ -95,9 +111,15 @@ class Bus:
         return publish
 
     def subscribe(
-        self, topic: Topic[M], key: str, handler: Callable[[M], None], what: str | None = None
+        self, topic: Topic[M], key: str, handler: Callable[[M], None], what: str | None = None,
+        recover: bool = False,
     ) -> None:
-        """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``."""
+        """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``.
+
+        ``recover``: a Zenoh advanced subscriber that fetches the history cached by advanced
+        publishers (also of publishers that appear later) and recovers samples it missed, as
+        detected by their sequence numbers and heartbeats. The handler may then see a sample
+        more than once (history overlapping what it got live): it must be idempotent."""
         name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -113,7 +135,14 @@ class Bus:
                 self.count(f"handler_errors.{name}")
                 log.exception("%s: handler for %s failed", self.service, name)
 
-        self._keep.append(self.session.declare_subscriber(key, on_sample))
+        if recover:
+            self._keep.append(zenoh.ext.declare_advanced_subscriber(
+                self.session, key, on_sample,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
+            ))
+        else:
+            self._keep.append(self.session.declare_subscriber(key, on_sample))
 
     # -- queries ------------------------------------------------------------------------
     def serve(self, service: Service[M, R], robot: str, handler: Callable[[M], R]) -> None:
@@ -146,6 +175,16 @@ class Bus:
     # -- liveliness ---------------------------------------------------------------------
     def declare_alive(self, robot: str) -> None:
         self._keep.append(self.session.liveliness().declare_token(liveliness_key(robot, self.service)))
+
+    def watch_alive(self, robot: str, service: str, handler: Callable[[bool], None]) -> None:
+        """``handler(True)`` when the service's token appears (or already exists), ``False``
+        when it vanishes (its holder died or lost the network: ~ms after a kill)."""
+
+        def on_token(sample: zenoh.Sample) -> None:
+            handler(sample.kind == zenoh.SampleKind.PUT)
+
+        self._keep.append(self.session.liveliness().declare_subscriber(
+            liveliness_key(robot, service), on_token, history=True))
 
     def is_alive(self, robot: str, service: str, timeout: float = 1.0) -> bool:
         replies = self.session.liveliness().get(liveliness_key(robot, service), timeout=timeout)

@@ -171,7 +171,9 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
         assert c.session is not None
         sent: dict[str, int] = {}
         for key, bad in BAD_BY_KEY.items():
-            publisher = c.session.declare_publisher(f"srl/fz/{key}")
+            # BLOCK: the 70 kB payload must not make zenoh drop the samples after it (the
+            # default DROP congestion control may, under load) - every one must arrive.
+            publisher = c.session.declare_publisher(f"srl/fz/{key}", congestion_control=zenoh.CongestionControl.BLOCK)
             for payload in [*GARBAGE, *bad]:
                 publisher.put(payload)
             sent[key] = len(GARBAGE) + len(bad)

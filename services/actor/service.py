@@ -2,9 +2,11 @@
 
 * realtime: ticks at absolute times ``t0 + k delta`` on the monotonic clock; at each tick it
   takes the newest state, solves, publishes the action and one transition. It never waits for
-  the critic: it uses the newest weights it holds and reports their staleness. If the state is
-  older than ``action_timeout_steps * delta`` (or never came) it commands zero velocity and
-  records no transition (so the critic sees a gap, never a false pair).
+  the critic: it uses the newest weights it holds and reports their staleness. If the state
+  stopped arriving (zero goes out within ``action_timeout_steps * delta`` of the last state),
+  never came, or the plant's liveliness token vanished (zero at the next tick), it commands
+  zero velocity at every tick and records no transition (so the critic sees a gap, never a
+  false pair); fresh states resume the loop.
 * lockstep: runs Algorithm 1 (:func:`common.loop.run_episode`) with the plant behind its Zenoh
   queryable and the off-board critic; with ``sync_critic`` it waits (bounded) for the weights
   trained on the previous step, which makes the distributed run the paper's algorithm exactly.
@@ -18,6 +20,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,7 +138,7 @@ class ZenohCriticPort:
     def __init__(self, settings: Settings, bus: Bus, inbox: WeightsInbox, episode: int, sync: bool) -> None:
         self.settings, self.bus, self.inbox, self.episode, self.sync = settings, bus, inbox, episode, sync
         self.robot = settings.transport.robot
-        self.publish = bus.publisher(TRANSITION, self.robot)
+        self.publish = bus.publisher(TRANSITION, self.robot, cache=settings.transport.transition_cache)
         self.staleness: list[int] = []
         self.timeouts = 0
 
@@ -168,13 +171,14 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     actor = build_actor(settings)  # built once, before the loop starts
     inbox = WeightsInbox(settings, bus)
     bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer)
-    bus.declare_alive(robot)
+    # the liveliness token means "ready": declared by each mode once all its inputs are subscribed
     if mode == "lockstep":
         return _run_lockstep(settings, bus, actor, inbox, sync_critic)
     return _run_realtime(settings, bus, actor, inbox, stop, duration)
 
 
 def _run_lockstep(settings, bus, actor, inbox, sync_critic) -> dict:  # type: ignore[no-untyped-def]
+    bus.declare_alive(settings.transport.robot)
     bus.wait_alive(settings.transport.robot, "plant", timeout=30.0)
     if sync_critic and settings.actor.agent != "mpc":
         bus.wait_alive(settings.transport.robot, "critic", timeout=30.0)
@@ -200,7 +204,10 @@ def _run_lockstep(settings, bus, actor, inbox, sync_critic) -> dict:  # type: ig
 def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type: ignore[no-untyped-def]
     robot = settings.transport.robot
     delta = settings.plant.sampling_time
-    stale_after = settings.transport.action_timeout_steps * delta
+    # A state older than this at a tick means the plant is silent: command zero. The last state
+    # seen at t0 is then stale at the first tick after t0 + (n - 1) delta, i.e. the zero goes
+    # out within n delta of the state stopping (n = action_timeout_steps >= 2).
+    stale_after = (settings.transport.action_timeout_steps - 1) * delta
     latest: dict[str, tuple[PlantState, float] | None] = {"state": None}
     state_lock = threading.Lock()
 
@@ -213,8 +220,21 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
             latest["state"] = (message, time.monotonic())
 
     bus.subscribe(STATE, STATE.key(robot), on_state)
+
+    def on_plant_token(alive: bool) -> None:
+        # The plant (simulator or robot bridge) vanished: its last state is no longer the
+        # robot's. Forget it, so the next tick commands zero velocity instead of waiting for
+        # the state to go stale; fresh states resume the loop.
+        if not alive:
+            with state_lock:
+                latest["state"] = None
+            bus.count("plant_lost")
+            log.warning("plant liveliness lost: commanding zero velocity until its state returns")
+
+    bus.watch_alive(robot, "plant", on_plant_token)
+    bus.declare_alive(robot)
     publish_action = bus.publisher(ACTION, robot)
-    publish_transition = bus.publisher(TRANSITION, robot)
+    publish_transition = bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache)
     episode_id = new_episode_id()
     inbox.reset(episode_id)
     actor.reset()
@@ -224,7 +244,10 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
     staleness_steps: list[int] = []
     staleness_ms: list[float] = []
     costs: list[float] = []
+    # the last M transitions as published: what a critic's replay must hold (checked by tests)
+    tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)
     publish_times: dict[int, float] = {}
+    published_steps: list[list[int]] = []  # the steps of the transitions published, as [first, last] runs
     counters = {"steps": 0, "stale_state_stops": 0}
     start_state = None
     start_time = time.monotonic()
@@ -273,6 +296,11 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
                                       state=(float(state[0]), float(state[1]), float(state[2])),
                                       action=action, cost=cost))
         publish_times[k] = time.monotonic()
+        tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
+        if published_steps and published_steps[-1][1] == k - 1:
+            published_steps[-1][1] = k
+        else:
+            published_steps.append([k, k])
         if settings.actor.agent != "mpc":
             staleness_steps.append((k - 1) - weights.trained_step)
             seen = publish_times.get(weights.trained_step)
@@ -301,6 +329,8 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
         "staleness_steps": summarize(staleness_steps),
         "staleness_ms": summarize([s for s in staleness_ms if s == s]),
         "stale_state_stops": counters["stale_state_stops"],
+        "transitions_tail": list(tail),
+        "transition_steps": published_steps,
         "counters": dict(bus.counters),
     }
 

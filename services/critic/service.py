@@ -5,18 +5,37 @@ transition of a new episode starts afresh from the initial weights. After every
 ``update_every``-th transition both critics are fitted (TD least squares) and published with a
 version that increases strictly over the life of the process (so across episodes too), the
 step they were trained on and the fit residuals. Non-finite fits are never published.
+
+Nothing is lost across a crash:
+
+* the actor publishes transitions through a Zenoh advanced publisher that caches the last
+  ``transport.transition_cache`` of them; the critic subscribes with history and recovery, so
+  at (re)start it receives what was published while it was down, and after a partition what
+  it missed, in step order;
+* after every accepted transition the critic writes a checkpoint (``critic.checkpoint``:
+  weights, version, replay, the steps seen) atomically, and restores it at start. A transition
+  it already holds (history overlapping the checkpoint, or a re-delivery) is counted as a
+  duplicate and changes nothing, so the recovered fits are exactly those a critic that never
+  went down would have made. Restored weights are re-published under a new version.
+
+Steps more than ``retention`` behind the newest step of the episode are refused as too old
+(counted): this bounds the memory of seen steps and the checkpoint's size.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from common.checkpoint import CheckpointError, atomic_write_json, from_runs, read_json, set_aside, to_runs
 from common.critic import DoubleCritic, Replay, Sample
 from common.keys import TRANSITION, WEIGHTS
 from common.messages import CriticWeights, Transition
@@ -24,6 +43,7 @@ from common.settings import Settings
 from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
+CHECKPOINT_SCHEMA = 1
 
 
 @dataclass
@@ -32,6 +52,14 @@ class Learner:
     replay: Replay
     critic: DoubleCritic
     seen: set[int]
+    newest: int = -1
+
+
+def checkpoint_path(settings: Settings) -> Path | None:
+    template = settings.critic.checkpoint
+    if not template:
+        return None
+    return Path(os.path.expanduser(template.format(robot=settings.transport.robot)))
 
 
 class CriticLearner:
@@ -47,6 +75,11 @@ class CriticLearner:
         self.received = 0
         self.duplicates = 0
         self.stale_episode = 0
+        self.too_old = 0
+        self.accepted = 0  # transitions that entered a replay
+        # Seen steps kept per episode: enough to recognise anything the publisher's cache can
+        # still deliver again.
+        self.retention = 2 * max(settings.transport.transition_cache, settings.critic.replay_size)
 
     def _fresh(self, episode: int) -> Learner:
         s = self.settings
@@ -81,7 +114,16 @@ class CriticLearner:
         if message.step in learner.seen:
             self.duplicates += 1  # a re-delivered transition: already in the replay
             return None
+        if message.step <= learner.newest - self.retention:
+            self.too_old += 1
+            return None
         learner.seen.add(message.step)
+        self.accepted += 1
+        if message.step > learner.newest:
+            learner.newest = message.step
+            if len(learner.seen) > 2 * self.retention:
+                floor = learner.newest - self.retention
+                learner.seen = {step for step in learner.seen if step > floor}
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action),
                                   message.cost))
         if message.step % self.settings.critic.update_every != 0:
@@ -94,37 +136,131 @@ class CriticLearner:
         return self._message(message.robot, learner, message.step, update.q.residual,
                              update.v.residual, update.q.pairs)
 
+    # -- checkpoint ---------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        learners = {}
+        for robot, learner in self.learners.items():
+            learners[robot] = {
+                "episode": learner.episode,
+                "newest": learner.newest,
+                "q_weights": learner.critic.q_weights.tolist(),
+                "v_weights": learner.critic.v_weights.tolist(),
+                "replay": [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in learner.replay.samples],
+                "seen": to_runs(learner.seen),
+            }
+        return {"schema": CHECKPOINT_SCHEMA, "version": self.version, "learners": learners}
+
+    def restore(self, payload: dict[str, Any]) -> None:
+        """Load :meth:`state` output; raises :class:`CheckpointError` and changes nothing if bad."""
+        if payload.get("schema") != CHECKPOINT_SCHEMA:
+            raise CheckpointError(f"checkpoint schema {payload.get('schema')!r} is not {CHECKPOINT_SCHEMA}")
+        learners: dict[str, Learner] = {}
+        try:
+            for robot, entry in payload["learners"].items():
+                learner = self._fresh(int(entry["episode"]))
+                q, v = np.array(entry["q_weights"], dtype=float), np.array(entry["v_weights"], dtype=float)
+                if q.shape != learner.critic.q_weights.shape or v.shape != learner.critic.v_weights.shape:
+                    raise CheckpointError(f"{robot}: weights of shapes {q.shape}, {v.shape}")
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+                    raise CheckpointError(f"{robot}: non-finite weights")
+                learner.critic.q_weights, learner.critic.v_weights = q, v
+                for row in entry["replay"]:
+                    if len(row) != 7 or not all(np.isfinite(row)):
+                        raise CheckpointError(f"{robot}: bad replay row {row}")
+                    learner.replay.add(Sample(int(row[0]), np.array(row[1:4]), np.array(row[4:6]), float(row[6])))
+                learner.seen = from_runs(entry["seen"])
+                learner.newest = int(entry["newest"])
+                learners[robot] = learner
+            version = int(payload["version"])
+        except (KeyError, TypeError, ValueError) as error:
+            if isinstance(error, CheckpointError):
+                raise
+            raise CheckpointError(f"malformed checkpoint: {error!r}") from error
+        self.learners = learners
+        self.version = max(self.version, version)
+
+    def current_weights(self) -> list[CriticWeights]:
+        """The weights held for every robot, as new versions (to re-publish after a restore)."""
+        messages = []
+        for robot, learner in self.learners.items():
+            trained = learner.replay.samples[-1].step if len(learner.replay) else -1
+            messages.append(self._message(robot, learner, trained, 0.0, 0.0, 0))
+        return messages
+
+
+def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
+    """Restore from ``path`` if it holds a usable checkpoint; an unusable one is set aside."""
+    if path is None:
+        return False
+    try:
+        payload = read_json(path)
+        if payload is None:
+            return False
+        learner.restore(payload)
+    except CheckpointError as error:
+        moved = set_aside(path, str(error))
+        log.error("critic checkpoint %s unusable (%s); moved to %s, starting fresh", path, error, moved)
+        return False
+    log.info("critic restored from %s: version %d, %s", path, learner.version,
+             ", ".join(f"{r} episode {x.episode} replay {len(x.replay)}" for r, x in learner.learners.items()))
+    return True
+
 
 def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
     learner = CriticLearner(settings)
+    path = checkpoint_path(settings)
+    restored = load_checkpoint(learner, path)
+    checkpoint_seconds: list[float] = []
     publishers: dict[str, object] = {}
     inbox: queue.Queue[Transition] = queue.Queue()
-    # Every robot's transitions: srl/*/transition (the key chunk names the robot).
-    bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot="*"), inbox.put)
+
+    def publish(weights: CriticWeights) -> None:
+        publisher = publishers.get(weights.robot)
+        if publisher is None:
+            publisher = publishers[weights.robot] = bus.publisher(WEIGHTS, weights.robot)
+        publisher(weights)  # type: ignore[operator]
+        bus.count("weights_published")
+
+    if restored:
+        for weights in learner.current_weights():
+            publish(weights)
+    # Every robot's transitions: srl/*/transition (the key chunk names the robot), with the
+    # history the actors' publishers cache (recovery after a restart or a partition).
+    bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot="*"), inbox.put, recover=True)
     bus.declare_alive(settings.transport.robot)
     start_status_thread(bus, settings.transport.robot, settings.transport.status_period, stop,
-                        lambda: {"transitions_received": learner.received, "duplicates": learner.duplicates})
-    log.info("critic ready (M = %d, beta = %.4f)", settings.critic.replay_size, settings.discount)
+                        lambda: {"transitions_received": learner.received, "duplicates": learner.duplicates,
+                                 "too_old": learner.too_old})
+    log.info("critic ready (M = %d, beta = %.4f, checkpoint %s)", settings.critic.replay_size,
+             settings.discount, path or "off")
     end = None if duration is None else time.monotonic() + duration
     while not stop.is_set() and (end is None or time.monotonic() < end):
         try:
             message = inbox.get(timeout=0.05)
         except queue.Empty:
             continue
+        before = learner.accepted
         weights = learner.on_transition(message)
-        if weights is None:
-            continue
-        publish = publishers.get(message.robot)
-        if publish is None:
-            publish = publishers[message.robot] = bus.publisher(WEIGHTS, message.robot)
-        publish(weights)  # type: ignore[operator]
-        bus.count("weights_published")
+        if learner.accepted > before and path is not None:
+            # checkpoint first: a crash after it re-publishes these weights at restart
+            started = time.perf_counter()
+            atomic_write_json(path, learner.state())
+            checkpoint_seconds.append(time.perf_counter() - started)
+        if weights is not None:
+            publish(weights)
     from common.stats import summarize
 
     return {
         "service": "critic",
         "transitions_received": learner.received,
         "duplicates": learner.duplicates,
+        "too_old": learner.too_old,
+        "restored": restored,
+        "checkpoint": None if path is None else str(path),
+        "checkpoint_ms": summarize(checkpoint_seconds, 1e3),
+        "seen_steps": {robot: to_runs(x.seen) for robot, x in learner.learners.items()},
+        "replay": {robot: [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in x.replay.samples]
+                   for robot, x in learner.learners.items()},
         "weights_published": bus.counters["weights_published"],
         "last_version": learner.version,
         "fit_ms": summarize(learner.fit_seconds, 1e3),

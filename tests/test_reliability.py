@@ -1,0 +1,225 @@
+"""Faults survived, nothing lost: critic checkpoint + recovery, liveness, router restart.
+
+Unit tests check the critic's checkpoint against an uninterrupted critic (the oracle: a
+critic that never went down must end with the same replay and weights). Process tests inject
+the fault (``kill -9``, a vanished plant, a restarted router) and watch the invariants.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.checkpoint import CheckpointError, atomic_write_json, from_runs, to_runs
+from common.messages import Action, CriticWeights, Transition
+from common.settings import Settings
+from services.critic.service import CriticLearner, load_checkpoint
+from tests.harness import cluster, wait_until
+
+
+def _transitions(count: int, episode: int = 7, seed: int = 3) -> list[Transition]:
+    rng = np.random.default_rng(seed)
+    return [
+        Transition(robot="r1", episode=episode, step=k, state=tuple(rng.uniform(-2, 2, 3)),
+                   action=tuple(rng.uniform(-0.2, 0.2, 2)), cost=float(rng.uniform(0, 1)))
+        for k in range(count)
+    ]
+
+
+def _replay(learner: CriticLearner, robot: str = "r1") -> list[list[float]]:
+    return [[s.step, *s.state, *s.action, s.cost] for s in learner.learners[robot].replay.samples]
+
+
+def test_runs_round_trip() -> None:
+    steps = {0, 1, 2, 5, 7, 8, 100}
+    assert to_runs(steps) == [[0, 2], [5, 5], [7, 8], [100, 100]]
+    assert from_runs(to_runs(steps)) == steps
+    with pytest.raises(CheckpointError):
+        from_runs([[3, 1]])
+
+
+def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "c.json"
+    atomic_write_json(path, {"a": 1})
+    atomic_write_json(path, {"a": 2})
+    assert json.loads(path.read_text()) == {"a": 2}
+    assert sorted(p.name for p in path.parent.iterdir()) == ["c.json"]
+    with pytest.raises(ValueError):  # NaN is not JSON: refused, the old file stays
+        atomic_write_json(path, {"a": float("nan")})
+    assert json.loads(path.read_text()) == {"a": 2}
+
+
+def test_restored_critic_with_overlapping_history_equals_one_that_never_stopped(tmp_path: Path) -> None:
+    settings = Settings.load()
+    stream = _transitions(80)
+    oracle = CriticLearner(settings)
+    oracle_versions = [w.version for t in stream if (w := oracle.on_transition(t)) is not None]
+    assert oracle_versions == sorted(set(oracle_versions))
+
+    first = CriticLearner(settings)
+    for t in stream[:50]:
+        first.on_transition(t)
+    path = tmp_path / "critic.json"
+    atomic_write_json(path, first.state())
+
+    second = CriticLearner(settings)
+    assert load_checkpoint(second, path)
+    assert second.version >= first.version
+    republished = second.current_weights()
+    assert republished[0].version > first.version  # a restart never goes back in version
+    # The publisher's cache re-delivers 30..79: 30..49 are duplicates and must change nothing.
+    fits = [w for t in stream[30:] if (w := second.on_transition(t)) is not None]
+    assert second.duplicates == 20
+    assert len(fits) == 30
+    assert _replay(second) == _replay(oracle)
+    np.testing.assert_array_equal(second.learners["r1"].critic.q_weights, oracle.learners["r1"].critic.q_weights)
+    np.testing.assert_array_equal(second.learners["r1"].critic.v_weights, oracle.learners["r1"].critic.v_weights)
+    versions = [w.version for w in fits]
+    assert versions == sorted(set(versions)) and versions[0] > republished[0].version
+
+
+@pytest.mark.parametrize("content", ["{not json", "[]", '{"schema": 99}',
+                                     '{"schema": 1, "version": 5, "learners": {"r1": {"episode": 1}}}'])
+def test_unusable_checkpoint_is_set_aside_and_the_critic_starts_fresh(tmp_path: Path, content: str) -> None:
+    path = tmp_path / "critic.json"
+    path.write_text(content)
+    learner = CriticLearner(Settings.load())
+    version = learner.version
+    assert not load_checkpoint(learner, path)
+    assert learner.learners == {} and learner.version == version  # nothing changed
+    assert not path.exists()
+    assert (tmp_path / "critic.json.unusable").read_text() == content
+    assert (tmp_path / "critic.json.unusable.why").read_text().strip()
+
+
+def test_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path) -> None:
+    learner = CriticLearner(Settings.load())
+    for t in _transitions(5):
+        learner.on_transition(t)
+    state = learner.state()
+    state["learners"]["r1"]["q_weights"][0] = 1e400  # json.dumps writes Infinity
+    path = tmp_path / "critic.json"
+    path.write_text(json.dumps(state))
+    fresh = CriticLearner(Settings.load())
+    assert not load_checkpoint(fresh, path)
+    assert fresh.learners == {}
+
+
+def test_seen_steps_are_bounded_and_too_old_ones_refused() -> None:
+    settings = Settings.load(transport={"transition_cache": 10}, critic={"replay_size": 5})
+    learner = CriticLearner(settings)
+    assert learner.retention == 20
+    for t in _transitions(200):
+        learner.on_transition(t)
+    assert len(learner.learners["r1"].seen) <= 2 * learner.retention
+    assert learner.on_transition(_transitions(1)[0].model_copy(update={"step": 150})) is None
+    assert learner.too_old == 1
+
+
+# -- processes --------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(critic_checkpoint: Path) -> None:
+    checkpoint = Path(str(critic_checkpoint).format(robot="kr"))
+    with cluster(robot="kr") as c:
+        c.start("plant", "plant-sim", "--mode", "realtime")
+        c.start("critic", "critic")
+        c.wait_alive("plant")
+        c.wait_alive("critic")
+        versions: list[int] = []
+        assert c.session is not None
+        c.session.declare_subscriber("srl/kr/critic/weights", lambda s: versions.append(
+            CriticWeights.model_validate_json(s.payload.to_bytes()).version))
+        actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "8")
+        c.wait_alive("actor")
+        wait_until(lambda: len(versions) >= 10, 30, "weights before the kill")
+        assert checkpoint.exists()
+        c.procs["critic"].stop(signal.SIGKILL)
+        time.sleep(1.5)  # ~15 transitions published while the critic is dead
+        c.start("critic", "critic")
+        c.wait_alive("critic")
+        assert actor.process.wait(timeout=60) == 0, actor.stderr[-10:]
+        time.sleep(1.0)  # the last transitions reach the critic
+        critic = c.procs["critic"]
+        assert critic.stop() == 0, critic.stderr[-10:]
+        actor_summary, critic_summary = actor.summary(), critic.summary()
+    assert critic_summary["restored"] is True
+    tail = actor_summary["transitions_tail"]
+    assert len(tail) == Settings.load().critic.replay_size
+    assert critic_summary["replay"]["kr"] == tail  # exactly the actor's record, bit for bit
+    # every transition the actor published reached the critic, those sent while it was dead too
+    assert critic_summary["seen_steps"]["kr"] == actor_summary["transition_steps"]
+    assert critic_summary["duplicates"] > 0  # the history overlapped the checkpoint: deduplicated
+    assert versions == sorted(set(versions)), "weight versions went back or repeated"
+    assert actor_summary["loop"]["missed_deadlines"] == 0
+
+
+@pytest.mark.slow
+def test_actor_stops_the_robot_when_the_plant_vanishes_and_resumes_when_it_returns() -> None:
+    with cluster(robot="lv") as c:
+        c.start("plant", "plant-sim", "--mode", "realtime")
+        c.wait_alive("plant")
+        actions: list[tuple[float, Action]] = []
+        assert c.session is not None
+        c.session.declare_subscriber("srl/lv/action", lambda s: actions.append(
+            (time.monotonic(), Action.model_validate_json(s.payload.to_bytes()))))
+        actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "9", "--agent", "mpc")
+        wait_until(lambda: sum(a.state_seq >= 0 for _, a in actions) >= 10, 60, "the actor commanding")
+        c.procs["plant"].stop(signal.SIGKILL)
+        killed = time.monotonic()
+        time.sleep(1.0)
+        after = [(t, a) for t, a in actions if t > killed]
+        zeros = [t for t, a in after if a.action == (0.0, 0.0) and a.state_seq == -1]
+        assert zeros, "no zero command after the plant died"
+        assert zeros[0] - killed <= 3 * 0.1, f"first zero {zeros[0] - killed:.3f} s after the kill"
+        # ...and it keeps commanding zero, never a stale plan
+        later = [a for t, a in after if t >= zeros[0]]
+        assert all(a.action == (0.0, 0.0) for a in later)
+        c.start("plant", "plant-sim", "--mode", "realtime")
+        c.wait_alive("plant")
+        resumed_from = time.monotonic()
+        wait_until(lambda: any(t > resumed_from and a.state_seq >= 0 for t, a in actions), 10,
+                   "commands again after the plant returned")
+        assert actor.process.wait(timeout=60) == 0, actor.stderr[-10:]
+        summary = actor.summary()
+    assert summary["counters"].get("plant_lost", 0) >= 1
+    assert summary["stale_state_stops"] >= 5
+    assert summary["loop"]["missed_deadlines"] == 0
+
+
+@pytest.mark.slow
+def test_every_client_reconnects_after_a_router_restart() -> None:
+    with cluster(robot="rr") as c:
+        c.start("plant", "plant-sim", "--mode", "realtime")
+        c.start("critic", "critic")
+        c.wait_alive("plant")
+        c.wait_alive("critic")
+        actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "12")
+        c.wait_alive("actor")
+        time.sleep(1.0)
+        c.procs["router"].stop(signal.SIGKILL)
+        time.sleep(1.0)
+        c.start("router", "router")
+        assert c.session is not None
+        c.session.close()
+        c.session = None
+        c.connect()
+        for service in ("plant", "critic", "actor"):
+            c.wait_alive(service, timeout=20)
+        assert actor.process.wait(timeout=60) == 0, actor.stderr[-10:]
+        time.sleep(0.5)
+        critic = c.procs["critic"]
+        assert critic.stop() == 0
+        summary, critic_summary = actor.summary(), critic.summary()
+    # the loop ran on (zero velocity while cut off), and after the restart the critic got the
+    # transitions again, including those published while the router was down (recovery)
+    assert summary["loop"]["missed_deadlines"] == 0
+    assert summary["steps"] >= 60
+    assert critic_summary["replay"]["rr"] == summary["transitions_tail"]
+    assert critic_summary["seen_steps"]["rr"] == summary["transition_steps"]
