@@ -15,8 +15,17 @@ SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024  # nothing we send comes close; bigger is refused unparsed
 
 Finite = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = tuple[Finite, Finite, Finite]
-Vec2 = tuple[Finite, Finite]
+# Physical sanity bounds, far beyond any robot but finite in every product the math forms
+# (a cost r(s, u) of a state at 1e300 m would overflow to inf): "huge" is refused on the wire.
+MAX_POSITION = 1e4  # [m] x, y in the goal frame
+MAX_HEADING = 1e6  # [rad] alpha, unwrapped (continuous), so it may grow by 2 pi per turn
+MAX_SPEED = 100.0  # [m/s], [rad/s]: commands are clamped to the robot's limits after this
+MAX_COST = 1e12  # a stage cost of bounded states and actions stays far below (no poisoned replay)
+Position = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_POSITION, le=MAX_POSITION)]
+Heading = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_HEADING, le=MAX_HEADING)]
+Speed = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_SPEED, le=MAX_SPEED)]
+Vec3 = tuple[Position, Position, Heading]  # a state (x, y, alpha)
+Vec2 = tuple[Speed, Speed]  # an action (v, omega)
 RobotId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]
 
 
@@ -78,7 +87,7 @@ class Transition(Message):
     step: int = Field(ge=0)
     state: Vec3 = Field(description="s_k, goal frame")
     action: Vec2 = Field(description="u_k held over [k delta, (k+1) delta)")
-    cost: Finite = Field(ge=0, description="c_k = delta r(s_k, u_k)")
+    cost: Finite = Field(ge=0, le=MAX_COST, description="c_k = delta r(s_k, u_k)")
 
 
 class CriticWeights(Message):

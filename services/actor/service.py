@@ -44,6 +44,8 @@ from common.transport import Bus, start_status_thread
 from services.clock import Ticker
 
 log = logging.getLogger(__name__)
+MAX_VERSION_AHEAD_US = 60_000_000  # clock skew allowed between the critic's host and ours
+PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
 
 
 @dataclass
@@ -77,6 +79,11 @@ class WeightsInbox:
         with self.cond:
             if message.episode != self.episode:
                 self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
+                return
+            if message.version > time.time_ns() // 1000 + MAX_VERSION_AHEAD_US:
+                # critic versions count from the wall clock in microseconds: one far ahead is
+                # forged or corrupt, and accepting it would lock out every real update after it
+                self.bus.reject("critic/weights", f"version {message.version} is from the future")
                 return
             if message.version <= self.held.version:
                 self.bus.reject("critic/weights", f"version {message.version} <= held {self.held.version}")
@@ -261,23 +268,14 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
             "solve_ms_last": actor.counters.solve_seconds[-1] * 1e3 if actor.counters.solve_seconds else 0.0,
         }
 
-    ticker = Ticker(delta, stop)
-    start_status_thread(bus, robot, settings.transport.status_period, stop, extra)
-    end = None if duration is None else start_time + duration
-    previous_tick = None
-    while (tick := ticker.wait()) is not None and (end is None or tick < end):
-        if previous_tick is not None:
-            periods.append(tick - previous_tick)
-        previous_tick = tick
-        k = ticker.index - 1
-        with state_lock:
-            held_state = latest["state"]
-        if held_state is None or tick - held_state[1] > stale_after:
-            counters["stale_state_stops"] += 1
-            publish_action(Action(robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(),
-                                  action=(0.0, 0.0), state_seq=-1))
-            actor.reset()  # the plan no longer matches the robot
-            continue
+
+    def stop_robot(k: int) -> None:
+        publish_action(Action(robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(),
+                              action=(0.0, 0.0), state_seq=-1))
+        actor.reset()  # the plan no longer matches the robot
+
+    def step_once(k: int, tick: float, held_state: tuple[PlantState, float]) -> None:
+        nonlocal start_state
         message, received = held_state
         state = np.array(message.state)
         if start_state is None:
@@ -296,6 +294,7 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
                                       state=(float(state[0]), float(state[1]), float(state[2])),
                                       action=action, cost=cost))
         publish_times[k] = time.monotonic()
+        publish_times.pop(k - PUBLISH_TIMES_KEPT, None)
         tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
         if published_steps and published_steps[-1][1] == k - 1:
             published_steps[-1][1] = k
@@ -306,6 +305,28 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
             seen = publish_times.get(weights.trained_step)
             staleness_ms.append((done - seen) * 1e3 if seen is not None else float("nan"))
         counters["steps"] += 1
+
+    ticker = Ticker(delta, stop)
+    start_status_thread(bus, robot, settings.transport.status_period, stop, extra)
+    end = None if duration is None else start_time + duration
+    previous_tick = None
+    while (tick := ticker.wait()) is not None and (end is None or tick < end):
+        if previous_tick is not None:
+            periods.append(tick - previous_tick)
+        previous_tick = tick
+        k = ticker.index - 1
+        with state_lock:
+            held_state = latest["state"]
+        if held_state is None or tick - held_state[1] > stale_after:
+            counters["stale_state_stops"] += 1
+            stop_robot(k)
+            continue
+        try:
+            step_once(k, tick, held_state)
+        except Exception:  # never let one bad tick end the loop that keeps the robot safe
+            bus.count("tick_errors")
+            log.exception("actor tick %d failed; commanding zero velocity", k)
+            stop_robot(k)
 
     with state_lock:
         last = latest["state"]

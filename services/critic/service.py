@@ -255,6 +255,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         "transitions_received": learner.received,
         "duplicates": learner.duplicates,
         "too_old": learner.too_old,
+        "stale_episode": learner.stale_episode,
         "restored": restored,
         "checkpoint": None if path is None else str(path),
         "checkpoint_ms": summarize(checkpoint_seconds, 1e3),
