@@ -17,7 +17,9 @@ already guarantees finite values of the right length.
 
 from __future__ import annotations
 
+import gc
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -310,23 +312,39 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
     start_status_thread(bus, robot, settings.transport.status_period, stop, extra)
     end = None if duration is None else start_time + duration
     previous_tick = None
-    while (tick := ticker.wait()) is not None and (end is None or tick < end):
-        if previous_tick is not None:
-            periods.append(tick - previous_tick)
-        previous_tick = tick
-        k = ticker.index - 1
-        with state_lock:
-            held_state = latest["state"]
-        if held_state is None or tick - held_state[1] > stale_after:
-            counters["stale_state_stops"] += 1
-            stop_robot(k)
-            continue
-        try:
-            step_once(k, tick, held_state)
-        except Exception:  # never let one bad tick end the loop that keeps the robot safe
-            bus.count("tick_errors")
-            log.exception("actor tick %d failed; commanding zero velocity", k)
-            stop_robot(k)
+    # Garbage collection off the critical path: what exists now is frozen out of the collector,
+    # automatic collection is off, and the loop collects in its slack time after each tick's
+    # work is out (the young generation every tick, the middle one every 10, all every 600).
+    # SRL_ACTOR_AUTOMATIC_GC=1 keeps Python's automatic collection (for comparison).
+    gc.collect()
+    gc.freeze()
+    manual_gc = gc.isenabled() and os.environ.get("SRL_ACTOR_AUTOMATIC_GC") != "1"
+    if manual_gc:
+        gc.disable()
+    try:
+        while (tick := ticker.wait()) is not None and (end is None or tick < end):
+            if previous_tick is not None:
+                periods.append(tick - previous_tick)
+            previous_tick = tick
+            k = ticker.index - 1
+            with state_lock:
+                held_state = latest["state"]
+            if held_state is None or tick - held_state[1] > stale_after:
+                counters["stale_state_stops"] += 1
+                stop_robot(k)
+            else:
+                try:
+                    step_once(k, tick, held_state)
+                except Exception:  # never let one bad tick end the loop that keeps the robot safe
+                    bus.count("tick_errors")
+                    log.exception("actor tick %d failed; commanding zero velocity", k)
+                    stop_robot(k)
+            if manual_gc:
+                gc.collect(2 if k % 600 == 599 else 1 if k % 10 == 9 else 0)
+    finally:
+        if manual_gc:
+            gc.enable()
+        gc.unfreeze()
 
     with state_lock:
         last = latest["state"]
