@@ -23,8 +23,10 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         # The children read settings from flags and environment: M goes by environment.
         os.environ["SRL_CRITIC__REPLAY_SIZE"] = "1000"
         settings = Settings.load(getattr(args, "config", None), **_overrides(settings))
+    load_before = os.getloadavg()
     summary = run_up(settings, settings_argv, mode="realtime", plant="sim", sync_critic=False,
                      duration=args.seconds, quiet=True)
+    load_after = os.getloadavg()
     loop = summary["loop"]
     result: dict[str, Any] = {
         "seconds": args.seconds,
@@ -43,6 +45,8 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         "critic_fit_ms": summary.get("critic_fit_ms"),
         "transitions_received": summary.get("transitions_received"),
         "resources": summary.get("resources"),
+        # other work on the machine disturbs real-time numbers: say how much there was
+        "machine": {"cpus": os.cpu_count(), "load_before": list(load_before), "load_after": list(load_after)},
     }
     checks = {
         "missed_deadlines == 0": loop["missed_deadlines"] == TARGETS["missed_deadlines"],
@@ -90,5 +94,10 @@ def format_table(r: dict[str, Any]) -> str:
         if res:
             lines.append(f"  {name:<10} {res['cpu_seconds']:>8.2f} {100 * res['cpu_seconds'] / r['seconds']:>7.1f} "
                          f"{res['peak_rss_mb']:>12.1f}")
+    machine = r.get("machine")
+    if machine:
+        lines.append(f"  machine: {machine['cpus']} CPUs, load average "
+                     f"{'/'.join(f'{x:.2f}' for x in machine['load_before'])} -> "
+                     f"{'/'.join(f'{x:.2f}' for x in machine['load_after'])}")
     lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in r["targets"].items()))
     return "\n".join(lines)
