@@ -308,8 +308,6 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
             staleness_ms.append((done - seen) * 1e3 if seen is not None else float("nan"))
         counters["steps"] += 1
 
-    ticker = Ticker(delta, stop)
-    start_status_thread(bus, robot, settings.transport.status_period, stop, extra)
     end = None if duration is None else start_time + duration
     previous_tick = None
     # Garbage collection off the critical path: what exists now is frozen out of the collector,
@@ -321,6 +319,9 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
     manual_gc = gc.isenabled() and os.environ.get("SRL_ACTOR_AUTOMATIC_GC") != "1"
     if manual_gc:
         gc.disable()
+    # the clock starts after that collection (it can take longer than a tick on a busy machine)
+    ticker = Ticker(delta, stop)
+    start_status_thread(bus, robot, settings.transport.status_period, stop, extra)
     try:
         while (tick := ticker.wait()) is not None and (end is None or tick < end):
             if previous_tick is not None:
