@@ -65,12 +65,15 @@ STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
 PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
 PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
 
+ALIVE = "srl/{robot}/alive/{service}"  # liveliness tokens (see liveliness_key)
+ALL_KEYS = "srl/**"  # every key of srl (but the verbatim @adv chunks: see advanced_pattern)
+
 SERVICES = ("actor", "critic", "plant", "router")
 
 
 def liveliness_key(robot: str, service: str) -> str:
     """Liveliness token of one service of one robot: ``srl/<robot>/alive/<service>``."""
-    return f"srl/{check_chunk(robot, 'robot id')}/alive/{check_chunk(service, 'service')}"
+    return ALIVE.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"))
 
 
 def liveliness_pattern(robot: str) -> str:
@@ -79,3 +82,11 @@ def liveliness_pattern(robot: str) -> str:
 
 def status_pattern(robot: str) -> str:
     return f"srl/{check_chunk(robot, 'robot id')}/status/*"
+
+
+def advanced_pattern(key: str) -> str:
+    """The keys zenoh-ext's advanced publisher/subscriber on ``key`` use for themselves: the
+    publisher's cache queryable, heartbeats and liveliness token live at ``<key>/@adv/pub/<zid>/...``
+    (and a subscriber's token at ``<key>/@adv/sub/...``). ``@adv`` is a verbatim chunk: no ``*``
+    or ``**`` matches it, so access rules name it explicitly."""
+    return f"{key}/@adv/**"

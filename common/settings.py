@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -120,6 +120,51 @@ class TransportSettings(_Section):
     state_rate: float = Field(gt=0, le=1000)
     action_timeout_steps: int = Field(ge=2)
     transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
+    # Zenoh authentication and access control (common/security.py, README "Security")
+    secure: bool = Field(description="router: require user/password, enforce role rules; others: log in")
+    user: str = Field(description="this process's Zenoh user = its role (actor, critic, plant, monitor)")
+    password: SecretStr = Field(description="usually from SRL_TRANSPORT__PASSWORD; never commit one")
+    password_file: str = Field(description="file whose first line is the user's password")
+    users_file: str = Field(description="router: the 'user:password' dictionary file")
+
+    @model_validator(mode="after")
+    def _secure_needs_client_mode(self) -> TransportSettings:
+        # the router enforces the rules; peers could also talk to each other directly, unchecked
+        if self.secure and self.mode != "client":
+            raise ValueError("transport.secure needs transport.mode = 'client' (the router enforces the rules)")
+        return self
+
+
+_ROS_NAME = r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
+
+
+class BridgeSettings(_Section):
+    """The robot bridge's view of the ROS 2 robot (see services/robot_bridge)."""
+
+    profile: Literal["rmw_zenoh", "ros2dds"] = Field(description="wire profile of the robot's Zenoh side")
+    ros_distro: Literal["humble", "jazzy"]
+    domain_id: int = Field(ge=0, le=232, description="ROS_DOMAIN_ID of the robot (rmw_zenoh keys)")
+    namespace: str = Field(pattern=rf"^(|{_ROS_NAME})$", description="ROS namespace, no leading slash")
+    cmd_type: Literal["auto", "twist", "twist_stamped"]
+    odom_topic: str = Field(pattern=rf"^{_ROS_NAME}$")
+    cmd_vel_topic: str = Field(pattern=rf"^{_ROS_NAME}$")
+    goal: tuple[float, float, float] = Field(description="goal pose (x [m], y [m], theta [rad]) in the odom frame")
+    watchdog_timeout_steps: int = Field(ge=1, description="zero velocity after this many delta without action")
+    robot_endpoint: str = Field(description="'' = the robot is on srl's router; else its Zenoh endpoint")
+    discovery_timeout: float = Field(gt=0, description="[s] auto cmd_type: wait this long for the robot's tokens")
+
+    @field_validator("namespace", mode="before")
+    @classmethod
+    def _strip_slashes(cls, v: object) -> object:
+        return v.strip("/") if isinstance(v, str) else v
+
+    @field_validator("goal", "discovery_timeout")
+    @classmethod
+    def _finite_values(cls, v: object) -> object:
+        values = v if isinstance(v, tuple) else (v,)
+        if not all(math.isfinite(c) for c in values):
+            raise ValueError(f"must be finite, got {v}")
+        return v
 
 
 class Settings(BaseSettings):
@@ -135,6 +180,7 @@ class Settings(BaseSettings):
     actor: ActorSettings
     episode: EpisodeSettings
     transport: TransportSettings
+    bridge: BridgeSettings
 
     @classmethod
     def settings_customise_sources(

@@ -20,6 +20,7 @@ import zenoh.ext
 
 from common.keys import Service, Topic, liveliness_key
 from common.messages import Message, MessageError, decode
+from common.security import zenoh_entries
 from common.settings import TransportSettings
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,8 @@ def zenoh_config(
     """Explicit endpoints, multicast scouting off unless the settings say otherwise.
 
     A router listens on ``transport.router``; a client connects to it (and to ``connect``).
+    ``transport.secure``: the router authenticates users and enforces the role rules, a client
+    logs in as ``transport.user`` (raises :class:`common.security.SecurityError` if it cannot).
     """
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router" if router else transport.mode))
@@ -46,6 +49,9 @@ def zenoh_config(
     else:
         config.insert_json5("listen/endpoints", json.dumps(listen or []))
         config.insert_json5("connect/endpoints", json.dumps([transport.router, *transport.connect]))
+    if transport.secure:  # Zenoh's own user/password authentication and access rules (common/security.py)
+        for path, value in zenoh_entries(transport, router=router).items():
+            config.insert_json5(path, json.dumps(value))
     return config
 
 
@@ -95,12 +101,14 @@ class Bus:
         publisher: Any
         if cache > 0:
             publisher = zenoh.ext.declare_advanced_publisher(
-                self.session, key, cache=zenoh.ext.CacheConfig(cache),
+                self.session, key, cache=zenoh.ext.CacheConfig(cache), express=True,
                 sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=RECOVERY_HEARTBEAT_S),
                 publisher_detection=True,
             )
         else:
-            publisher = self.session.declare_publisher(key)
+            # express: sent at once, never held back to fill a batch (zenoh batches by default,
+            # which cost ~1 ms per hop here); every srl message is small and time-critical.
+            publisher = self.session.declare_publisher(key, express=True)
         self._keep.append(publisher)
 
         def publish(message: M) -> None:
@@ -212,8 +220,13 @@ def start_status_thread(
         while not stop.wait(period):
             counters = {k: float(v) for k, v in dict(bus.counters).items()}
             counters.update(extra())
-            publish(ServiceStatus(robot=robot, service=bus.service, stamp_ns=time.monotonic_ns(),
-                                  counters={k: v for k, v in counters.items() if v == v and abs(v) != float("inf")}))
+            try:
+                publish(ServiceStatus(robot=robot, service=bus.service, stamp_ns=time.monotonic_ns(),
+                                      counters={k: v for k, v in counters.items()
+                                                if v == v and abs(v) != float("inf")}))
+            except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
+                log.debug("%s status: %s", bus.service, error)
+                return
 
     thread = threading.Thread(target=loop, name=f"{bus.service}-status", daemon=True)
     thread.start()

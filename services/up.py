@@ -5,6 +5,10 @@ lines are forwarded to stderr prefixed with ``[name]``; each prints one JSON sum
 stdout line when it ends. The actor defines the end of the run: when it exits, the others are
 stopped (SIGINT, then SIGKILL after a grace period). If any child dies first, everything is
 stopped and ``srl up`` exits non-zero naming it. Ctrl-C stops everything cleanly.
+
+``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
+configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
+before everything else.
 """
 
 from __future__ import annotations
@@ -13,16 +17,20 @@ import contextlib
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import IO, Any
 
 import zenoh
 
+from common.security import write_credentials
 from common.settings import Settings
 from common.transport import zenoh_config
 
@@ -72,10 +80,10 @@ class Supervisor:
         self.quiet = quiet
         self.children: dict[str, Child] = {}
 
-    def spawn(self, name: str, argv: list[str]) -> Child:
+    def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
         command = [sys.executable, "-m", "services.cli", *argv]
         process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=self.env,
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**self.env, **(env or {})},
             start_new_session=True,  # our Ctrl-C is forwarded by us, in order
         )
         child = Child(name, process)
@@ -105,6 +113,20 @@ class Supervisor:
                 return
             time.sleep(0.05)
         raise TimeoutError(f"{what} not ready after {timeout:.0f} s")
+
+    def stop_one(self, name: str) -> None:
+        """SIGINT one child and wait for it (SIGKILL after the grace period)."""
+        child = self.children[name]
+        if child.process.poll() is not None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(child.process.pid, signal.SIGINT)
+        try:
+            child.process.wait(timeout=GRACE_SECONDS)
+        except subprocess.TimeoutExpired:
+            log.warning("%s did not stop within %.0f s: killing it", name, GRACE_SECONDS)
+            os.killpg(child.process.pid, signal.SIGKILL)
+            child.process.wait()
 
     def stop_all(self) -> None:
         """SIGINT every child still running (newest first), then SIGKILL after the grace."""
@@ -155,48 +177,117 @@ def alive_probe(settings: Settings, service: str) -> Any:
     return probe
 
 
+def state_probe(settings: Settings) -> Any:
+    """True once a state sample has been seen (the robot's odometry came through the bridge)."""
+    from common.keys import STATE
+
+    seen = threading.Event()
+    held: dict[str, Any] = {}
+
+    def probe() -> bool:
+        if "session" not in held:
+            try:
+                held["session"] = zenoh.open(zenoh_config(settings.transport))
+            except zenoh.ZError:
+                return False
+            held["subscriber"] = held["session"].declare_subscriber(
+                STATE.key(settings.transport.robot), lambda _: seen.set())
+        if seen.wait(0.1):
+            held["subscriber"].undeclare()
+            held["session"].close()
+            return True
+        return False
+
+    return probe
+
+
 def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
-           duration: float, quiet: bool = False) -> dict[str, Any]:
-    """Start everything, run one actor episode/duration, stop everything; the merged summary."""
-    if plant != "sim":
-        raise ValueError("--plant robot needs the robot bridge, which this build does not have yet")
+           duration: float, quiet: bool = False, bridge_args: list[str] | None = None,
+           secure: bool = False) -> dict[str, Any]:
+    """Start everything, run one actor episode/duration, stop everything; the merged summary.
+
+    ``plant="robot"``: the robot bridge in place of plant_sim, and the TurtleBot3 emulator as the
+    robot unless ``settings.bridge.robot_endpoint`` names a real one. Real time only: a robot
+    cannot be stepped by a lockstep query.
+
+    ``secure``: fresh random credentials for every role in a private temporary directory
+    (0700, files 0600, removed at exit); the router authenticates users and enforces the role
+    rules of common/security.py, each child logs in as its role, this supervisor as ``monitor``.
+    """
+    if plant not in ("sim", "robot"):
+        raise ValueError(f"unknown plant {plant!r} (sim or robot)")
+    if plant == "robot" and mode != "realtime":
+        raise ValueError("--plant robot runs in real time only: lockstep steps plant_sim through its "
+                         "plant/step queryable, and a robot cannot be stepped; use --mode realtime")
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     supervisor = Supervisor(settings_args, env, quiet=quiet)
     common_args = [*settings_args]
+    robot_args = [*common_args, *(bridge_args or [])]
     started = time.monotonic()
+    if secure and plant == "robot" and not settings.bridge.robot_endpoint:
+        raise ValueError("--secure --plant robot needs the robot on its own Zenoh router (--robot-endpoint): "
+                         "the access rules cover srl's keys, not the emulated robot's ROS 2 traffic")
+    credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
+    role: dict[str, dict[str, str]] = {}  # child -> its login environment
+    if credentials is not None:
+        role = {name: credentials.role_environment(user) for name, user in
+                (("plant", "plant"), ("robot_bridge", "plant"), ("critic", "critic"), ("actor", "actor"))}
+        role["router"] = credentials.router_environment()
+        # this supervisor's own probes log in as the read-only monitor
+        settings = settings.model_copy(update={"transport": credentials.transport(settings.transport, "monitor")})
     try:
-        supervisor.spawn("router", ["router", *common_args])
+        supervisor.spawn("router", ["router", *common_args], role.get("router"))
         supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
-        supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args])
-        supervisor.spawn("critic", ["critic", *common_args])
-        supervisor.wait_for("plant", alive_probe(settings, "plant"), timeout=60)
+        if plant == "sim":
+            supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
+        else:
+            if not settings.bridge.robot_endpoint:
+                supervisor.spawn("tb3_emulator", ["tb3-emulator", *robot_args])
+            supervisor.spawn("robot_bridge", ["robot-bridge", *robot_args], role.get("robot_bridge"))
+        supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
+        supervisor.wait_for("plant" if plant == "sim" else "robot_bridge", alive_probe(settings, "plant"),
+                            timeout=60)
+        if plant == "robot":
+            supervisor.wait_for(f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
+                                f"{settings.bridge.profile}, {settings.bridge.ros_distro}, domain "
+                                f"{settings.bridge.domain_id}, namespace '{settings.bridge.namespace}')",
+                                state_probe(settings), timeout=60)
         supervisor.wait_for("critic", alive_probe(settings, "critic"), timeout=60)
         actor_args = ["actor", "--mode", mode, *common_args]
         if mode == "realtime":
             actor_args += ["--run-seconds", str(duration)]
         if sync_critic:
             actor_args.append("--sync-critic")
-        actor = supervisor.spawn("actor", actor_args)
+        actor = supervisor.spawn("actor", actor_args, role.get("actor"))
         while actor.process.poll() is None:
             supervisor.check(allowed_to_exit={"actor"})
             time.sleep(0.05)
         if actor.process.returncode != 0:
             raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
     finally:
+        if "robot_bridge" in supervisor.children:  # first, so that its last zero reaches the robot
+            supervisor.stop_one("robot_bridge")
         supervisor.stop_all()
-    for name in ("router", "plant", "critic"):
-        code = supervisor.children[name].process.returncode
-        if code not in (0, -signal.SIGINT):
-            raise ServiceDiedError(name, code, supervisor.children[name].stderr_tail[-10:])
+        if credentials is not None:
+            shutil.rmtree(credentials.directory, ignore_errors=True)
+    for name, child in supervisor.children.items():
+        code = child.process.returncode
+        if name != "actor" and code not in (0, -signal.SIGINT):
+            raise ServiceDiedError(name, code, child.stderr_tail[-10:])
     actor_summary = supervisor.children["actor"].summary() or {}
     critic_summary = supervisor.children["critic"].summary() or {}
     merged = dict(actor_summary)
+    if plant == "robot":
+        merged["bridge"] = supervisor.children["robot_bridge"].summary()
+        if "tb3_emulator" in supervisor.children:
+            merged["emulator"] = supervisor.children["tb3_emulator"].summary()
     merged.update({
         "services": {name: child.process.pid for name, child in supervisor.children.items()},
         "exit_codes": {name: child.process.returncode for name, child in supervisor.children.items()},
         "mode": mode,
         "plant": plant,
+        "secure": secure,
         "transitions_received": critic_summary.get("transitions_received"),
         "critic_weights_published": critic_summary.get("weights_published"),
         "critic_fit_ms": critic_summary.get("fit_ms"),

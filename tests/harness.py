@@ -36,12 +36,12 @@ def client_config(endpoint: str) -> zenoh.Config:
 
 
 class Proc:
-    def __init__(self, name: str, argv: list[str]) -> None:
+    def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
         self.name = name
         self.process = subprocess.Popen(
             [sys.executable, "-m", "services.cli", *argv],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}, start_new_session=True,
         )
         self.stdout: list[str] = []
         self.stderr: list[str] = []
@@ -86,8 +86,8 @@ class Cluster:
         self.procs: dict[str, Proc] = {}
         self.session: zenoh.Session | None = None
 
-    def start(self, name: str, command: str, *args: str) -> Proc:
-        proc = Proc(name, [command, *self.common, *args])
+    def start(self, name: str, command: str, *args: str, env: dict[str, str] | None = None) -> Proc:
+        proc = Proc(name, [command, *self.common, *args], env)
         self.procs[name] = proc
         return proc
 

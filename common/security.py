@@ -1,0 +1,276 @@
+"""Who may do what on the bus: srl's roles, their Zenoh access-control rules, their credentials.
+
+With ``transport.secure`` (``srl up --secure``) the router runs Zenoh's own user/password
+authentication (``transport/auth/usrpwd``: a session with an unknown user or a wrong password
+is refused when it connects) and Zenoh's access control (``access_control``, default deny):
+every process logs in as the user of its role, and the router lets each role publish, read,
+serve, query and announce only its own keys. This module is pure: it builds dicts and writes
+credential files, and never imports zenoh; :func:`common.transport.zenoh_config` inserts
+:func:`zenoh_entries` into a session's config.
+
+How Zenoh applies the rules (zenoh 1.10, ``zenoh/src/net/routing/interceptor/``): the router
+checks every message on the transport of an authenticated user in two flows, ``ingress`` (from
+that user into the router) and ``egress`` (from the router out to that user), and a rule's key
+expression must INCLUDE the message's key expression. In srl's terms:
+
+* publish K: ingress ``put`` on K.
+* read K: ingress ``declare_subscriber`` on K and egress ``put`` on K (a sample reaches a
+  subscriber only if its user may read the key, whoever subscribed).
+* query K: ingress ``query`` on K, egress ``reply`` on K. serve K: ingress ``declare_queryable``
+  and ``reply`` on K.
+* token K: ingress ``liveliness_token`` on K. watch K: ingress ``liveliness_query`` and
+  ``declare_liveliness_subscriber`` on K, egress ``liveliness_token`` on K.
+* discovery: a client's publisher sends only once the router has told it of a matching
+  subscriber (write-side filtering, measured: without it nothing is delivered), and the same
+  holds for queriers and queryables. So every role receives subscriber and queryable
+  declarations and queries anywhere in srl's key space (:data:`DISCOVERY`). They carry no data
+  it may not see: a query reaches a session only through a queryable it was allowed to declare.
+
+Zenoh-ext's advanced publisher (the actor's transition cache) and advanced subscriber (the
+critic's recovery) use ``<key>/@adv/...`` for their cache queryable, heartbeats and liveliness
+tokens, and the cache answers with replies on ``<key>`` itself: :func:`advanced_publish` and
+:func:`advanced_read` grant exactly that.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import stat
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from common.keys import (
+    ACTION,
+    ALIVE,
+    ALL_KEYS,
+    PLANT_RESET,
+    PLANT_STEP,
+    STATE,
+    STATUS,
+    TRANSITION,
+    WEIGHTS,
+    advanced_pattern,
+    check_chunk,
+)
+from common.settings import TransportSettings
+
+log = logging.getLogger(__name__)
+
+ROLES = ("actor", "critic", "plant", "monitor")
+"""Zenoh users. plant_sim and robot_bridge share ``plant`` (same keys, DESIGN.md section 3);
+``monitor`` is the read-only observer: ``srl up``'s readiness probes, ``srl health``, dashboards."""
+
+PASSWORD_BYTES = 32  # secrets.token_urlsafe(32): 256 random bits, 43 URL-safe characters
+Flow = Literal["ingress", "egress"]
+
+
+class SecurityError(ValueError):
+    """A secure configuration that cannot work (no user, no password, no users file)."""
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One allow rule: ``messages`` in ``flow`` on ``keys``; ``what`` names it in srl's terms."""
+
+    what: str
+    flow: Flow
+    messages: tuple[str, ...]
+    keys: tuple[str, ...]
+
+    def as_zenoh(self, rule_id: str) -> dict[str, Any]:
+        return {"id": rule_id, "messages": list(self.messages), "flows": [self.flow], "permission": "allow",
+                "key_exprs": list(self.keys)}
+
+
+def publish(*keys: str) -> list[Rule]:
+    return [Rule("publish", "ingress", ("put",), keys)]
+
+
+def read(*keys: str) -> list[Rule]:
+    return [Rule("read", "ingress", ("declare_subscriber",), keys), Rule("read", "egress", ("put",), keys)]
+
+
+def query(*keys: str) -> list[Rule]:
+    return [Rule("query", "ingress", ("query",), keys), Rule("query", "egress", ("reply",), keys)]
+
+
+def serve(*keys: str) -> list[Rule]:
+    return [Rule("serve", "ingress", ("declare_queryable", "reply"), keys)]
+
+
+def token(*keys: str) -> list[Rule]:
+    return [Rule("token", "ingress", ("liveliness_token",), keys)]
+
+
+def watch(*keys: str) -> list[Rule]:
+    return [Rule("watch", "ingress", ("liveliness_query", "declare_liveliness_subscriber"), keys),
+            Rule("watch", "egress", ("liveliness_token",), keys)]
+
+
+def advanced_publish(key: str) -> list[Rule]:
+    """A zenoh-ext advanced publisher with a cache and heartbeats (common.transport.Bus.publisher)."""
+    adv = advanced_pattern(key)
+    return [*publish(key, adv), *serve(adv), Rule("serve history", "ingress", ("reply",), (key,)), *token(adv)]
+
+
+def advanced_read(key: str) -> list[Rule]:
+    """A zenoh-ext advanced subscriber with history and recovery (Bus.subscribe(recover=True))."""
+    adv = advanced_pattern(key)
+    return [*read(key, adv), *query(adv), Rule("query history", "egress", ("reply",), (key,)), *watch(adv)]
+
+
+DISCOVERY = Rule("discover", "egress", ("declare_subscriber", "declare_queryable", "query"),
+                 (ALL_KEYS, advanced_pattern(ALL_KEYS)))
+
+
+def role_rules(robot: str) -> dict[str, list[Rule]]:
+    """Every role's rules for robot ``robot`` (besides :data:`DISCOVERY`, which all roles get)."""
+    check_chunk(robot, "robot id")
+
+    def key(pattern: str, service: str = "*", robot: str = robot) -> str:
+        return pattern.format(robot=robot, service=service)
+
+    alive = key(ALIVE)  # every role may see which services are alive (srl/<robot>/alive/*)
+    return {
+        "actor": [
+            *publish(key(ACTION.pattern), key(STATUS.pattern, "actor")),
+            *advanced_publish(key(TRANSITION.pattern)),
+            *read(key(STATE.pattern), key(WEIGHTS.pattern)),
+            *query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)),
+            *token(key(ALIVE, "actor")),
+            *watch(alive),
+        ],
+        "critic": [
+            *publish(key(WEIGHTS.pattern), key(STATUS.pattern, "critic")),
+            # the critic subscribes to every robot's transitions (srl/*/transition): the rule
+            # must include that wildcard; it still publishes weights for this robot only
+            *advanced_read(key(TRANSITION.pattern, robot="*")),
+            *token(key(ALIVE, "critic")),
+            *watch(alive),
+        ],
+        "plant": [
+            *publish(key(STATE.pattern), key(STATUS.pattern, "plant")),
+            *read(key(ACTION.pattern)),
+            *serve(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)),
+            *token(key(ALIVE, "plant"), key(ALIVE, "robot_bridge")),
+            *watch(alive),
+        ],
+        "monitor": [
+            *read(key(STATUS.pattern), key(STATE.pattern)),
+            *watch(alive),
+        ],
+    }
+
+
+def acl_config(robot: str) -> dict[str, Any]:
+    """The router's ``access_control`` section: default deny, one subject and policy per role."""
+    rules: list[dict[str, Any]] = [DISCOVERY.as_zenoh("discover")]
+    policies: list[dict[str, Any]] = []
+    for role, granted in role_rules(robot).items():
+        ids = []
+        for i, rule in enumerate(granted):
+            rule_id = f"{role}-{i}-{rule.what.replace(' ', '-')}-{rule.flow}"
+            rules.append(rule.as_zenoh(rule_id))
+            ids.append(rule_id)
+        policies.append({"id": role, "rules": ["discover", *ids], "subjects": [role]})
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": [{"id": role, "usernames": [role]} for role in ROLES],
+        "policies": policies,
+    }
+
+
+# -- credentials -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Credentials:
+    """Fresh credentials of one run: the router's users file and one password file per role."""
+
+    directory: Path
+    users_file: Path
+    password_files: dict[str, Path]
+
+    def router_environment(self) -> dict[str, str]:
+        """Environment (SRL_<SECTION>__<NAME> settings) of the secure router."""
+        return {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USERS_FILE": str(self.users_file)}
+
+    def role_environment(self, role: str) -> dict[str, str]:
+        """Environment of a process that logs in as ``role``."""
+        return {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USER": role,
+                "SRL_TRANSPORT__PASSWORD_FILE": str(self.password_files[role])}
+
+    def transport(self, transport: TransportSettings, role: str) -> TransportSettings:
+        """``transport`` as seen by a process in this process that logs in as ``role``."""
+        return transport.model_copy(update={"secure": True, "user": role,
+                                            "password_file": str(self.password_files[role])})
+
+
+def _write_private(path: Path, text: str) -> None:
+    """Create ``path`` readable by its owner only (0600), failing if it exists."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as file:
+        file.write(text)
+
+
+def write_credentials(directory: Path, roles: Iterable[str] = ROLES) -> Credentials:
+    """A random password per role (``secrets.token_urlsafe``), written into ``directory``
+    (created 0700): ``users.txt`` (``user:password`` lines, Zenoh's usrpwd dictionary) and
+    ``<role>.password``, all 0600. Nothing is ever written into the repository."""
+    directory.mkdir(mode=0o700, parents=True, exist_ok=True)
+    directory.chmod(0o700)
+    passwords = {role: secrets.token_urlsafe(PASSWORD_BYTES) for role in roles}
+    users_file = directory / "users.txt"
+    _write_private(users_file, "".join(f"{role}:{password}\n" for role, password in passwords.items()))
+    files = {}
+    for role, password in passwords.items():
+        files[role] = directory / f"{role}.password"
+        _write_private(files[role], password + "\n")
+    return Credentials(directory, users_file, files)
+
+
+def _read_secret_file(path_text: str, what: str) -> str:
+    path = Path(path_text).expanduser()
+    try:
+        mode = path.stat().st_mode
+        text = path.read_text()
+    except OSError as error:
+        raise SecurityError(f"{what} {path}: {error.strerror}") from error
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        log.warning("%s %s is readable by others (mode %o): chmod 600 it", what, path, stat.S_IMODE(mode))
+    return text
+
+
+def client_credentials(transport: TransportSettings) -> tuple[str, str]:
+    """(user, password) of this process: ``transport.user`` and ``transport.password``
+    (``SRL_TRANSPORT__PASSWORD``) or else the first line of ``transport.password_file``."""
+    if not transport.user:
+        raise SecurityError("transport.secure needs transport.user (SRL_TRANSPORT__USER): one of "
+                            + ", ".join(ROLES))
+    password = transport.password.get_secret_value()
+    if not password and transport.password_file:
+        lines = _read_secret_file(transport.password_file, "password file").splitlines()
+        password = lines[0].strip() if lines else ""
+    if not password:
+        raise SecurityError(f"transport.secure: no password for user {transport.user!r}: set "
+                            "transport.password_file or SRL_TRANSPORT__PASSWORD")
+    return transport.user, password
+
+
+def zenoh_entries(transport: TransportSettings, *, router: bool) -> dict[str, Any]:
+    """Config entries (path -> JSON value) that secure a session: the router checks users
+    against ``transport.users_file`` and enforces :func:`acl_config`; a client logs in."""
+    if router:
+        if not transport.users_file:
+            raise SecurityError("a secure router needs transport.users_file (SRL_TRANSPORT__USERS_FILE): "
+                                "'user:password' lines")
+        users_file = Path(transport.users_file).expanduser()
+        _read_secret_file(str(users_file), "users file")  # fail here with a clear message
+        return {"transport/auth/usrpwd/dictionary_file": str(users_file),
+                "access_control": acl_config(transport.robot)}
+    user, password = client_credentials(transport)
+    return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}

@@ -1,0 +1,497 @@
+"""robot_bridge: a ROS 2 robot as the plant -- odometry in, ``cmd_vel`` out, over Zenoh.
+
+It publishes and consumes the same keys as plant_sim (``srl/<robot>/state``, ``srl/<robot>/action``)
+and declares the same liveliness token (``srl/<robot>/alive/plant``, plus ``alive/robot_bridge``),
+so the actor and the critic cannot tell which plant they talk to.
+
+Decisions (README, "Robot bridge"):
+
+* **Goal frame.** The goal is a configured pose ``bridge.goal`` in the robot's odom frame, default
+  ``(0, 0, 0)``: the odom origin, where the robot's odometry started (TurtleBot3: at bringup or
+  after ``reset_odometry``). Not "the pose at bridge start-up": a bridge restart would then move
+  the target to wherever the robot stands, silently. The state is ``common.frames.to_goal_frame``
+  of the odometry pose, its heading unwrapped (continuous) from sample to sample.
+* **Odometry** is refused (counted, never published) when it does not decode as
+  nav_msgs/msg/Odometry, carries a foreign type hash, has no rmw_zenoh attachment (the profile
+  requires one), has a non-finite pose or a zero quaternion, or is not newer than the last sample
+  by its header stamp (out of order). After 20 refused stale samples in a row the robot's clock
+  is taken to have been reset and the new time base is accepted.
+* **Commands.** An action is applied only if it is for this robot, newer (episode, step) than the
+  last one, and the actor's liveliness token is present. It is clamped to ``plant.v_max``,
+  ``plant.omega_max`` and the TurtleBot3 Burger's 0.22 m/s, 2.84 rad/s; a non-finite value can
+  never reach ``cmd_vel`` (the schema refuses it, and the last guard before the wire sends zero).
+* **Watchdog.** Every ``delta / 10`` the bridge checks that the last applied action is younger than
+  ``bridge.watchdog_timeout_steps * delta`` and that the actor is alive; otherwise it commands zero
+  velocity at once and keeps commanding zero every ``delta / 2`` until a fresh action arrives (a
+  TurtleBot3 holds its last command forever, so the zero must come from here). The actor's token
+  vanishing stops the robot at once (from the liveliness callback). On shutdown: zero, three times.
+* **cmd_vel type.** ``bridge.cmd_type`` twist / twist_stamped forces it; ``auto`` reads it from the
+  robot's subscription tokens (rmw_zenoh ``MS`` tokens carry type and hash; zenoh-bridge-ros2dds
+  announces ``MS`` with the ROS type) and publishes to every subscription found. With no token
+  after ``bridge.discovery_timeout`` it falls back to the distro's TurtleBot3 default (Humble
+  Twist, Jazzy TwistStamped) and says so. On rmw_zenoh, a Humble robot's ``TypeHashNotSupported``
+  subscription is served even when the bridge is configured for Jazzy (the CDR of Twist,
+  TwistStamped and Odometry is the same), an unknown RIHS01 hash is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import zenoh
+from pydantic import ValidationError
+
+from common.dynamics import unwrap_heading
+from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
+from common.keys import ACTION, STATE, liveliness_key
+from common.messages import Action, PlantState
+from common.settings import BridgeSettings, Settings
+from common.stats import summarize
+from common.transport import Bus, start_status_thread
+from services.clock import Ticker
+from services.robot_bridge import ros_wire
+from services.robot_bridge.ros_wire import (
+    ODOMETRY,
+    TWIST,
+    TWIST_STAMPED,
+    Attachment,
+    CmdEndpoint,
+    Odometry,
+    RosGraph,
+    WireError,
+)
+
+log = logging.getLogger(__name__)
+CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a robot clock reset
+SHUTDOWN_ZEROS = 3
+FALLBACK = "fallback"  # the source of a cmd_vel target guessed from the distro, not discovered
+
+
+class Counts(Protocol):
+    def count(self, name: str, amount: int = 1) -> None: ...
+
+    def reject(self, what: str, reason: str) -> None: ...
+
+
+class RobotBridge:
+    """Transport-free logic: odometry -> PlantState, Action -> command, the watchdog.
+
+    ``send_command(v, omega)`` puts one command on the wire; it is called with the bridge's
+    lock held so that commands leave in the order they were decided.
+    """
+
+    def __init__(self, settings: Settings, publish_state: Callable[[PlantState], None],
+                 send_command: Callable[[float, float], None], counts: Counts) -> None:
+        self.robot = settings.transport.robot
+        self.goal = Pose2D(*settings.bridge.goal)
+        self.v_max = min(settings.plant.v_max, ros_wire.TB3_BURGER_V_MAX)
+        self.omega_max = min(settings.plant.omega_max, ros_wire.TB3_BURGER_OMEGA_MAX)
+        self.timeout = settings.bridge.watchdog_timeout_steps * settings.plant.sampling_time
+        self.zero_repeat = settings.plant.sampling_time / 2.0
+        self.last_zero_at: float | None = None
+        self.publish_state = publish_state
+        self.send_command = send_command
+        self.counts = counts
+        self.lock = threading.Lock()
+        # odometry
+        self.seq = 0
+        self.last_stamp_ns: int | None = None
+        self.stale_run = 0
+        self.alpha: float | None = None
+        self.last_state: tuple[float, float, float] | None = None
+        self.frames: tuple[str, str] | None = None
+        # commands
+        self.actor_alive = False
+        self.last_action: tuple[int, int] | None = None
+        self.last_action_at: float | None = None
+        self.driving = False
+        self.last_command = (0.0, 0.0)
+        self.max_abs_command = [0.0, 0.0]
+        # timing (seconds)
+        self.state_sent_at: OrderedDict[int, float] = OrderedDict()
+        self.odom_to_state: list[float] = []
+        self.action_to_cmd: list[float] = []
+        self.state_to_cmd: list[float] = []
+
+    # -- odometry -------------------------------------------------------------------------
+    def on_odometry(self, odom: Odometry, received: float) -> PlantState | None:
+        try:
+            yaw = yaw_from_quaternion(*odom.orientation)
+            if not (math.isfinite(odom.x) and math.isfinite(odom.y)):
+                raise ValueError(f"position ({odom.x}, {odom.y}) is not finite")
+        except ValueError as error:
+            self.counts.reject("odom", str(error))
+            return None
+        with self.lock:
+            if self.last_stamp_ns is not None and odom.stamp_ns <= self.last_stamp_ns:
+                self.stale_run += 1
+                if self.stale_run < CLOCK_RESET_AFTER:
+                    self.counts.reject("odom", f"stamp {odom.stamp_ns} not newer than {self.last_stamp_ns}")
+                    return None
+                log.warning("robot_bridge: %d odometry samples older than the last: taking it as a robot "
+                            "clock reset", self.stale_run)
+                self.counts.count("odom_clock_resets")
+            pose = to_goal_frame(Pose2D(odom.x, odom.y, yaw), self.goal)
+            alpha = wrap_angle(pose.theta) if self.alpha is None else unwrap_heading(self.alpha, pose.theta)
+            try:
+                state = PlantState(robot=self.robot, episode=0, seq=self.seq + 1, stamp_ns=time.monotonic_ns(),
+                                   state=(pose.x, pose.y, alpha), source="robot")
+            except ValidationError as error:  # beyond the schema's physical bounds (1e4 m)
+                self.counts.reject("odom", f"state {pose} out of range: {error.errors()[0]['msg']}")
+                return None
+            self.stale_run = 0
+            self.last_stamp_ns = odom.stamp_ns
+            self.alpha = alpha
+            self.seq += 1
+            if self.frames != (odom.frame_id, odom.child_frame_id):
+                self.frames = (odom.frame_id, odom.child_frame_id)
+                log.info("robot_bridge: odometry of %s in frame %s", odom.child_frame_id, odom.frame_id)
+            self.publish_state(state)
+            now = time.monotonic()
+            self.state_sent_at[self.seq] = now
+            if len(self.state_sent_at) > 200:
+                self.state_sent_at.popitem(last=False)
+            self.odom_to_state.append(now - received)
+            self.last_state = state.state
+            self.counts.count("states_published")
+            return state
+
+    # -- commands -------------------------------------------------------------------------
+    def on_action(self, message: Action, received: float) -> None:
+        with self.lock:
+            if message.robot != self.robot:
+                self.counts.reject("action", f"for robot {message.robot!r}, this is {self.robot!r}")
+                return
+            if not self.actor_alive:
+                self.counts.reject("action", "the actor's liveliness token is absent")
+                return
+            order = (message.episode, message.step)
+            if self.last_action is not None and order <= self.last_action:
+                self.counts.reject("action", f"(episode, step) {order} not newer than {self.last_action}")
+                return
+            try:
+                v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
+            except ValueError as error:
+                self.counts.reject("action", str(error))
+                return
+            self.last_action = order
+            self.last_action_at = received
+            self.driving = True
+            self._command(v, omega)
+            now = time.monotonic()
+            self.action_to_cmd.append(now - received)
+            sent = self.state_sent_at.get(message.state_seq)
+            if sent is not None:
+                self.state_to_cmd.append(now - sent)
+            self.counts.count("actions_applied")
+
+    def set_actor_alive(self, alive: bool) -> None:
+        with self.lock:
+            if self.actor_alive and not alive:
+                log.warning("robot_bridge: the actor's liveliness token vanished: stopping the robot")
+                self.counts.count("actor_lost_stops")
+                self.driving = False
+                self.last_action_at = None
+                self._zero(time.monotonic())
+            self.actor_alive = alive
+
+    def tick(self, now: float) -> None:
+        """The watchdog: zero velocity, repeated, while no fresh action from a live actor."""
+        with self.lock:
+            fresh = (self.actor_alive and self.last_action_at is not None
+                     and now - self.last_action_at <= self.timeout)
+            if fresh:
+                return
+            if self.driving:
+                self.driving = False
+                self.counts.count("watchdog_stops")
+                log.warning("robot_bridge: no fresh action for %.2f s: commanding zero velocity", self.timeout)
+                self._zero(now)
+            elif self.last_zero_at is None or now - self.last_zero_at >= self.zero_repeat:
+                self._zero(now)
+
+    def _zero(self, now: float) -> None:
+        self.last_zero_at = now
+        self._command(0.0, 0.0)
+
+    def stop(self) -> None:
+        with self.lock:
+            self.driving = False
+            self.last_action_at = None
+            self._command(0.0, 0.0)
+
+    def _command(self, v: float, omega: float) -> None:
+        # The last guard before the wire: nothing non-finite or out of bounds ever leaves.
+        if not (math.isfinite(v) and math.isfinite(omega)):
+            v, omega = 0.0, 0.0
+            self.counts.count("nonfinite_commands_zeroed")
+        v = min(max(v, -self.v_max), self.v_max)
+        omega = min(max(omega, -self.omega_max), self.omega_max)
+        self.last_command = (v, omega)
+        self.max_abs_command = [max(self.max_abs_command[0], abs(v)), max(self.max_abs_command[1], abs(omega))]
+        self.send_command(v, omega)
+
+    def timing(self) -> dict[str, Any]:
+        return {"odom_to_state_ms": summarize(self.odom_to_state, 1e3),
+                "action_to_cmd_ms": summarize(self.action_to_cmd, 1e3),
+                "state_to_cmd_ms": summarize(self.state_to_cmd, 1e3)}
+
+
+class _Target:
+    """One cmd_vel subscription of the robot, with our publisher (and rmw_zenoh identity) for it."""
+
+    def __init__(self, endpoint: CmdEndpoint, publisher: Any, token: Any, gid: bytes) -> None:
+        self.endpoint, self.publisher, self.token, self.gid = endpoint, publisher, token, gid
+        self.seq = 0
+        self.sources: set[str] = set()  # liveliness tokens that announced it ("" = configured)
+
+
+class RosLink:
+    """The robot's side of the bridge: Zenoh keys, tokens and CDR of one wire profile."""
+
+    def __init__(self, session: zenoh.Session, graph: RosGraph, bridge: BridgeSettings, counts: Counts) -> None:
+        self.session, self.graph, self.bridge, self.counts = session, graph, bridge, counts
+        self.on_odometry: Callable[[Odometry, float], object] = lambda odom, received: None
+        self.lock = threading.Lock()
+        self.targets: dict[str, _Target] = {}
+        self.entities: list[Any] = []
+        self.zid = str(session.info.zid())
+        self.started = time.monotonic()
+        self.fallback = False
+        self.discovered: list[str] = []
+        self.dropped = 0
+
+    # -- setup ----------------------------------------------------------------------------
+    def start(self) -> None:
+        ros_wire.typestore(self.graph.distro)  # load it now, not on the first odometry sample
+        odom_key = self.graph.data_key(self.bridge.odom_topic, ODOMETRY, "*")
+        self.entities.append(self.session.declare_subscriber(odom_key, self._on_odom_sample))
+        if self.graph.profile == "rmw_zenoh":
+            liveliness = self.session.liveliness()
+            self.entities.append(liveliness.declare_token(self.graph.node_token(self.zid, 0, ros_wire.BRIDGE_NODE)))
+            self.entities.append(liveliness.declare_token(self.graph.endpoint_token(
+                self.zid, 0, 1, "MS", ros_wire.BRIDGE_NODE, self.bridge.odom_topic, ODOMETRY)))
+        if self.bridge.cmd_type == "auto":
+            pattern = self.graph.discovery_pattern(self.bridge.cmd_vel_topic)
+            self.entities.append(self.session.liveliness().declare_subscriber(
+                pattern, self._on_token, history=True))
+        else:
+            self._add_target(self.graph.cmd_endpoint(self.bridge.cmd_vel_topic,
+                                                     ros_wire.CMD_TYPES[self.bridge.cmd_type]), "")
+        log.info("robot_bridge: %s (%s), odometry on %s, cmd_vel type %s", self.graph.profile,
+                 self.graph.distro, odom_key, self.bridge.cmd_type)
+
+    def close(self) -> None:
+        with self.lock:
+            targets = list(self.targets.values())
+            self.targets.clear()
+        for entity in [*(t.publisher for t in targets), *(t.token for t in targets if t.token), *self.entities]:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as error:
+                log.debug("undeclare: %s", error)
+        self.entities.clear()
+
+    # -- odometry in ----------------------------------------------------------------------
+    def _on_odom_sample(self, sample: zenoh.Sample) -> None:
+        received = time.monotonic()
+        key = str(sample.key_expr)
+        if self.graph.profile == "rmw_zenoh":
+            if sample.attachment is None:
+                self.counts.reject("odom", f"{key}: no rmw_zenoh attachment")
+                return
+            try:
+                Attachment.decode(bytes(sample.attachment.to_bytes()))
+            except WireError as error:
+                self.counts.reject("odom", f"{key}: {error}")
+                return
+            chunk = self.graph.hash_chunk_of(key)
+            if not self.graph.accepts_hash(ODOMETRY, chunk):
+                self.counts.reject("odom", f"{key}: type hash {chunk} is not {ODOMETRY}'s")
+                return
+        try:
+            odom = ros_wire.decode_odometry(self.graph.distro, bytes(sample.payload.to_bytes()))
+        except WireError as error:
+            self.counts.reject("odom", str(error))
+            return
+        self.counts.count("odom_received")
+        try:
+            self.on_odometry(odom, received)
+        except Exception:  # a handler bug must not kill zenoh's callback thread silently
+            self.counts.count("handler_errors.odom")
+            log.exception("robot_bridge: odometry handler failed")
+
+    # -- cmd_vel type discovery ------------------------------------------------------------
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        token = str(sample.key_expr)
+        parsed = self.graph.parse_subscription(token, self.bridge.cmd_vel_topic)
+        if parsed is None:
+            return
+        ros_type, chunk = parsed
+        if ros_type not in (TWIST, TWIST_STAMPED):
+            self.counts.reject("cmd_vel_discovery", f"robot subscribes {ros_type}, not a velocity command")
+            return
+        if self.graph.profile == "rmw_zenoh" and not self.graph.accepts_hash(ros_type, chunk):
+            self.counts.reject("cmd_vel_discovery", f"{ros_type} with unknown type hash {chunk}")
+            return
+        endpoint = self.graph.cmd_endpoint(self.bridge.cmd_vel_topic, ros_type, chunk or None)
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self._remove_source(endpoint, token)
+            return
+        if self.graph.profile == "rmw_zenoh" and chunk != ros_wire.type_hash(self.graph.distro, ros_type):
+            log.warning("robot_bridge: the robot's %s subscription has type hash %s (configured distro %s): "
+                        "serving it", ros_type, chunk, self.graph.distro)
+        self.discovered.append(ros_type)
+        self.counts.count("cmd_vel_discovered")
+        log.info("robot_bridge: the robot subscribes %s on %s", ros_type, endpoint.key)
+        self._add_target(endpoint, token)
+
+    def _add_target(self, endpoint: CmdEndpoint, source: str) -> None:
+        with self.lock:
+            if source not in ("", FALLBACK) and self.fallback:  # the robot has spoken: forget the guess
+                for guessed in list(self.targets.values()):
+                    guessed.sources.discard(FALLBACK)
+                self._prune()
+                self.fallback = False
+            target: _Target | None = self.targets.get(endpoint.key + "|" + endpoint.ros_type)
+            if target is None:
+                taken = any(t.endpoint.key == endpoint.key for t in self.targets.values())
+                if self.graph.profile == "ros2dds" and taken:
+                    log.warning("robot_bridge: %s is also announced as %s; the plain ros2dds key cannot carry "
+                                "both, keeping the first", endpoint.key, endpoint.ros_type)
+                    return
+                publisher = self.session.declare_publisher(endpoint.key, express=True)
+                token = gid_token = None
+                if self.graph.profile == "rmw_zenoh":
+                    gid_token = self.graph.endpoint_token(self.zid, 0, 2 + len(self.targets), "MP",
+                                                          ros_wire.BRIDGE_NODE, self.bridge.cmd_vel_topic,
+                                                          endpoint.ros_type, endpoint.type_hash)
+                    token = self.session.liveliness().declare_token(gid_token)
+                gid = ros_wire.gid_for(gid_token or endpoint.key)
+                target = _Target(endpoint, publisher, token, gid)
+                self.targets[endpoint.key + "|" + endpoint.ros_type] = target
+            target.sources.add(source)
+
+    def _remove_source(self, endpoint: CmdEndpoint, source: str) -> None:
+        with self.lock:
+            target = self.targets.get(endpoint.key + "|" + endpoint.ros_type)
+            if target is not None:
+                target.sources.discard(source)
+                self._prune()
+
+    def _prune(self) -> None:
+        for name, target in list(self.targets.items()):
+            if not target.sources:
+                del self.targets[name]
+                target.publisher.undeclare()
+                if target.token is not None:
+                    target.token.undeclare()
+
+    def tick(self, now: float) -> None:
+        """Fall back to the distro's default type when discovery found nothing in time."""
+        if (self.bridge.cmd_type != "auto" or self.fallback or self.discovered
+                or now - self.started < self.bridge.discovery_timeout):
+            return  # once the robot has announced its subscription, never guess (it may be restarting)
+        with self.lock:
+            if self.targets:
+                return
+            self.fallback = True
+        ros_type = ros_wire.DEFAULT_CMD_TYPE[self.graph.distro]
+        log.warning("robot_bridge: no cmd_vel subscription of the robot seen in %.1f s: sending %s "
+                    "(the TurtleBot3 %s default)", self.bridge.discovery_timeout, ros_type, self.graph.distro)
+        self.counts.count("cmd_vel_fallback")
+        self._add_target(self.graph.cmd_endpoint(self.bridge.cmd_vel_topic, ros_type), FALLBACK)
+
+    # -- commands out ----------------------------------------------------------------------
+    def send(self, v: float, omega: float) -> None:
+        with self.lock:
+            targets = list(self.targets.values())
+        if not targets:
+            self.dropped += 1
+            self.counts.count("commands_without_subscriber")
+            return
+        stamp = time.time_ns()  # ROS time is the system clock
+        for target in targets:
+            payload = ros_wire.encode_command(self.graph.distro, target.endpoint.ros_type, v, omega,
+                                              stamp_ns=stamp, frame_id=self.graph.frame_id(ros_wire.BASE_FRAME))
+            try:
+                if self.graph.profile == "rmw_zenoh":
+                    target.seq += 1
+                    target.publisher.put(payload, attachment=Attachment(target.seq, stamp, target.gid).encode())
+                else:
+                    target.publisher.put(payload)
+            except zenoh.ZError as error:  # the robot's subscription vanished while we sent
+                self.counts.reject("cmd_vel", f"{target.endpoint.key}: {error}")
+        self.counts.count("commands_sent")
+
+    def describe(self) -> dict[str, Any]:
+        with self.lock:
+            return {"cmd_vel": [{"type": t.endpoint.ros_type, "key": t.endpoint.key} for t in self.targets.values()],
+                    "fallback": self.fallback, "discovered": sorted(set(self.discovered))}
+
+
+def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
+    """A client session to the robot's own Zenoh router (multicast scouting off)."""
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("client"))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(transport.multicast_scouting))
+    config.insert_json5("listen/endpoints", "[]")
+    config.insert_json5("connect/endpoints", json.dumps([bridge.robot_endpoint]))
+    return zenoh.open(config)
+
+
+def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
+    robot = settings.transport.robot
+    graph = RosGraph.from_settings(settings.bridge)
+    own_session = bool(settings.bridge.robot_endpoint)
+    session = robot_session(settings.bridge, settings.transport) if own_session else bus.session
+    link = RosLink(session, graph, settings.bridge, bus)
+    bridge = RobotBridge(settings, bus.publisher(STATE, robot), link.send, bus)
+    link.on_odometry = bridge.on_odometry
+    entities: list[Any] = []
+    try:
+        bus.subscribe(ACTION, ACTION.key(robot), lambda message: bridge.on_action(message, time.monotonic()))
+
+        def on_actor_token(sample: zenoh.Sample) -> None:
+            bridge.set_actor_alive(sample.kind == zenoh.SampleKind.PUT)
+
+        entities.append(bus.session.liveliness().declare_subscriber(
+            liveliness_key(robot, "actor"), on_actor_token, history=True))
+        link.start()
+        bus.declare_alive(robot)
+        entities.append(bus.session.liveliness().declare_token(liveliness_key(robot, "robot_bridge")))
+        start_status_thread(bus, robot, settings.transport.status_period, stop,
+                            lambda: {"seq": bridge.seq, "cmd_v": bridge.last_command[0],
+                                     "cmd_omega": bridge.last_command[1]})
+        log.info("robot_bridge ready (robot %s, %s, goal %s in the odom frame)", robot, graph.profile,
+                 settings.bridge.goal)
+        ticker = Ticker(settings.plant.sampling_time / 10.0, stop)
+        end = None if duration is None else time.monotonic() + duration
+        while (now := ticker.wait()) is not None and (end is None or now < end):
+            link.tick(now)
+            bridge.tick(now)
+    finally:
+        wire = link.describe()
+        for _ in range(SHUTDOWN_ZEROS):  # on the way out: stop the robot
+            bridge.stop()
+            time.sleep(0.02)
+        for entity in entities:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as error:
+                log.debug("undeclare: %s", error)
+        link.close()
+        if own_session:
+            session.close()
+    return {"service": "robot_bridge", "profile": graph.profile, "ros_distro": graph.distro,
+            "namespace": graph.namespace, "goal": list(settings.bridge.goal), **wire,
+            "final_state": None if bridge.last_state is None else list(bridge.last_state),
+            "max_abs_command": bridge.max_abs_command, "timing": bridge.timing(),
+            "counters": dict(bus.counters)}

@@ -1,0 +1,1 @@
+"""The emulated TurtleBot3 Burger (see service.py)."""

@@ -1,0 +1,211 @@
+"""tb3_emulator: a TurtleBot3 Burger that speaks ROS 2 over Zenoh as the real robot does.
+
+What it emulates, per wire profile (services/robot_bridge/ros_wire.py has the formats):
+
+* ``rmw_zenoh`` -- the robot's ``turtlebot3_node`` subscribes ``cmd_vel`` (Twist on Humble,
+  TwistStamped on Jazzy: turtlebot3_bringup's ``enable_stamped_cmd_vel``; ``--cmd-type``
+  overrides) with ``KeepLast(10)``; its ``diff_drive_controller`` publishes ``odom``. The
+  emulator declares the liveliness tokens of both nodes, of the subscription and of the
+  publisher, exactly as rmw_zenoh_cpp would, and, like rmw_zenoh's subscriber, drops a
+  ``cmd_vel`` sample without the 33-byte attachment (counted). Its own odometry carries one.
+* ``ros2dds`` -- a DDS robot behind zenoh-bridge-ros2dds: plain keys (``cmd_vel``, ``odom``,
+  ``<namespace>/...``), raw CDR, no attachment; the bridge's ``@/<zid>/@ros2_lv/...`` tokens.
+
+The command path is the real one: turtlebot3_node writes ``int32(v * 100)`` (C++
+``static_cast<int32_t>``: truncation toward zero; on the robot's ARM CPU an out-of-range value
+saturates and NaN becomes 0) to the OpenCR control table, whose firmware multiplies by ``0.01f``
+(float32) and constrains to its limits. So velocities have a resolution of 0.01 m/s and
+0.01 rad/s, and ``|v| < 0.01`` is zero. The limits default to the Burger's published 0.22 m/s
+and 2.84 rad/s (the OpenCR ROS 2 firmware computes 0.2108 m/s and 2.635 rad/s from its 61 rpm
+motors; pass ``--v-max``/``--omega-max`` to emulate that). Wheels reach the command at once (no
+motor dynamics); the pose integrates the unicycle exactly (``common.dynamics.exact_step``),
+piecewise at every command change. Odometry is published at 20 Hz (turtlebot3_node's 50 ms
+sensor timer), frame ``odom``, child ``base_footprint`` (namespace-prefixed when namespaced),
+with the applied velocity in its twist; optional seeded Gaussian noise on the reported pose and
+a command latency.
+
+No cmd_vel timeout by default, like the real robot: the OpenCR stops only when the heartbeat
+from turtlebot3_node stops for 500 ms (``HEARTBEAT_TIMEOUT_MS``), and turtlebot3_node writes it
+every 100 ms whatever cmd_vel does -- a TurtleBot3 holds its last command forever. That is why the
+bridge has a watchdog. ``--cmd-timeout`` emulates a robot that does time out.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import Counter, deque
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from common.dynamics import exact_step
+from common.frames import Pose2D, quaternion_from_yaw
+from services.clock import Ticker
+from services.robot_bridge import ros_wire
+from services.robot_bridge.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph, WireError
+
+log = logging.getLogger(__name__)
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+
+
+def firmware_velocity(value: float, limit: float) -> float:
+    """One velocity component as the TurtleBot3 applies it.
+
+    turtlebot3_node: ``static_cast<int32_t>(value * 100)`` (toward zero; ARM's conversion
+    saturates and maps NaN to 0); OpenCR firmware: ``data * 0.01f`` in float32, then
+    ``constrain(-limit, limit)``.
+    """
+    scaled = value * 100.0
+    if math.isnan(scaled):
+        ticks = 0
+    elif scaled >= INT32_MAX:
+        ticks = INT32_MAX
+    elif scaled <= INT32_MIN:
+        ticks = INT32_MIN
+    else:
+        ticks = math.trunc(scaled)
+    applied = float(np.float32(ticks) * np.float32(0.01))
+    return min(max(applied, -limit), limit)
+
+
+class Tb3Model:
+    """The emulated robot: applied velocity, exact unicycle pose in the odom frame."""
+
+    def __init__(self, pose: Pose2D, v_max: float, omega_max: float, latency: float, cmd_timeout: float,
+                 noise: tuple[float, float], seed: int, now: float) -> None:
+        self.state = np.array([pose.x, pose.y, pose.theta], dtype=float)
+        self.v_max, self.omega_max = v_max, omega_max
+        self.latency, self.cmd_timeout = latency, cmd_timeout
+        self.noise = noise
+        self.rng = np.random.default_rng(seed)
+        self.applied = (0.0, 0.0)
+        self.applied_at = now
+        self.t = now
+        self.pending: deque[tuple[float, float, float]] = deque()
+        self.lock = threading.Lock()
+        self.max_abs = [0.0, 0.0]
+        self.timeouts = 0
+
+    def command(self, v: float, omega: float, now: float) -> tuple[float, float]:
+        """A cmd_vel arrives: convert as the firmware does; apply now or after the latency."""
+        target = (firmware_velocity(v, self.v_max), firmware_velocity(omega, self.omega_max))
+        with self.lock:
+            self.pending.append((now + self.latency, *target))
+            self._advance(now)
+        return target
+
+    def _advance(self, now: float) -> None:
+        while self.pending and self.pending[0][0] <= now:
+            due, v, omega = self.pending.popleft()
+            self._integrate(max(due, self.t))
+            self.applied, self.applied_at = (v, omega), due
+            self.max_abs = [max(self.max_abs[0], abs(v)), max(self.max_abs[1], abs(omega))]
+        if self.cmd_timeout > 0 and self.applied != (0.0, 0.0) and now - self.applied_at > self.cmd_timeout:
+            self._integrate(self.applied_at + self.cmd_timeout)
+            self.applied = (0.0, 0.0)
+            self.timeouts += 1
+        self._integrate(now)
+
+    def _integrate(self, until: float) -> None:
+        if until > self.t:
+            self.state = exact_step(self.state, np.array(self.applied), until - self.t)
+            self.t = until
+
+    def sample(self, now: float) -> tuple[np.ndarray, tuple[float, float]]:
+        """Advance to ``now``; the reported pose (with noise) and the applied velocity."""
+        with self.lock:
+            self._advance(now)
+            pose = self.state.copy()
+            applied = self.applied
+        sigma_xy, sigma_theta = self.noise
+        if sigma_xy > 0 or sigma_theta > 0:
+            pose = pose + self.rng.normal(0.0, 1.0, 3) * np.array([sigma_xy, sigma_xy, sigma_theta])
+        return pose, applied
+
+
+def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model, stop: threading.Event,
+        duration: float | None, odom_topic: str, cmd_topic: str, odom_rate: float) -> dict[str, Any]:
+    counters: Counter[str] = Counter()
+    lock = threading.Lock()
+    zid = str(session.info.zid())
+    entities: list[Any] = []
+
+    def count(name: str) -> None:
+        with lock:
+            counters[name] += 1
+
+    def on_cmd(sample: zenoh.Sample) -> None:
+        now = time.monotonic()
+        count("cmd_received")
+        if graph.profile == "rmw_zenoh":
+            if sample.attachment is None:  # rmw_zenoh: "Unable to obtain attachment"
+                count("rejected_no_attachment")
+                return
+            try:
+                Attachment.decode(bytes(sample.attachment.to_bytes()))
+            except WireError:
+                count("rejected_bad_attachment")
+                return
+        try:
+            v, omega = ros_wire.decode_command(graph.distro, cmd_type, bytes(sample.payload.to_bytes()))
+        except WireError:
+            count("rejected_cdr")
+            return
+        if not (math.isfinite(v) and math.isfinite(omega)):
+            count("nonfinite_commands")  # the robot would apply 0 (ARM) -- a bridge must never send it
+        model.command(v, omega, now)
+        count("cmd_applied")
+
+    ros_wire.typestore(graph.distro)  # load it now, not on the first sample
+    cmd_key = graph.data_key(cmd_topic, cmd_type)
+    odom_key = graph.data_key(odom_topic, ODOMETRY)
+    entities.append(session.declare_subscriber(cmd_key, on_cmd))
+    liveliness = session.liveliness()
+    if graph.profile == "rmw_zenoh":
+        tokens = [graph.node_token(zid, 0, ros_wire.TB3_CMD_NODE),
+                  graph.endpoint_token(zid, 0, 10, "MS", ros_wire.TB3_CMD_NODE, cmd_topic, cmd_type),
+                  graph.node_token(zid, 20, ros_wire.TB3_ODOM_NODE),
+                  graph.endpoint_token(zid, 20, 21, "MP", ros_wire.TB3_ODOM_NODE, odom_topic, ODOMETRY)]
+    else:
+        tokens = [graph.ros2dds_plugin_token(zid), graph.ros2dds_token(zid, "MS", cmd_topic, cmd_type),
+                  graph.ros2dds_token(zid, "MP", odom_topic, ODOMETRY)]
+    entities.extend(liveliness.declare_token(token) for token in tokens)
+    odom_gid = ros_wire.gid_for(tokens[-1])
+    publisher = session.declare_publisher(odom_key)
+    entities.append(publisher)
+    frame, child = graph.frame_id(ros_wire.ODOM_FRAME), graph.frame_id(ros_wire.BASE_FRAME)
+    log.warning("tb3-emulator ready: %s %s, cmd_vel %s on %s, odom on %s", graph.profile, graph.distro,
+                cmd_type, cmd_key, odom_key)
+
+    seq = 0
+    ticker = Ticker(1.0 / odom_rate, stop)
+    end = None if duration is None else time.monotonic() + duration
+    try:
+        while (now := ticker.wait()) is not None and (end is None or now < end):
+            pose, (v, omega) = model.sample(now)
+            stamp = time.time_ns()
+            payload = ros_wire.encode_odometry(graph.distro, Odometry(
+                stamp_ns=stamp, frame_id=frame, child_frame_id=child, x=float(pose[0]), y=float(pose[1]),
+                orientation=quaternion_from_yaw(float(pose[2])), v=v, omega=omega))
+            seq += 1
+            if graph.profile == "rmw_zenoh":
+                publisher.put(payload, attachment=Attachment(seq, stamp, odom_gid).encode())
+            else:
+                publisher.put(payload)
+            count("odom_published")
+    finally:
+        for entity in reversed(entities):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as error:
+                log.debug("undeclare: %s", error)
+    _, applied = model.sample(time.monotonic())
+    return {"service": "tb3_emulator", "profile": graph.profile, "ros_distro": graph.distro,
+            "cmd_type": cmd_type, "cmd_key": cmd_key, "odom_key": odom_key,
+            "final_pose": [float(c) for c in model.state], "applied": list(applied),
+            "max_abs_applied": model.max_abs, "cmd_timeouts": model.timeouts,
+            "counters": dict(counters), "missed_ticks": ticker.missed}

@@ -1,0 +1,451 @@
+"""Access control: only the actor commands, only the critic trains, only the plant reports.
+
+Unit tests check every role's Zenoh access rules (common/security.py) against an independent
+oracle: a decision function over the generated ``access_control`` dict that uses Zenoh's own
+key-expression inclusion (``zenoh.KeyExpr.includes``), as the router does. Process tests run
+the real services through a secured router with credentials generated at test time, and show
+that strangers cannot connect and wrong roles can neither publish nor read what is not theirs:
+legitimate observers and the services' own counters never see a rogue sample.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import socket
+import stat
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+from pydantic import ValidationError
+
+from common.messages import CriticWeights
+from common.security import (
+    ROLES,
+    Credentials,
+    SecurityError,
+    acl_config,
+    client_credentials,
+    role_rules,
+    write_credentials,
+    zenoh_entries,
+)
+from common.settings import Settings
+from common.transport import zenoh_config
+from tests.harness import ROOT, Cluster, client_config, free_port, wait_until
+
+ROBOT = "t0"
+
+
+# -- the oracle: Zenoh's decision over the generated config ------------------------------------
+def allowed(acl: dict[str, Any], user: str, message: str, flow: str, key: str) -> bool:
+    """May ``user`` send/receive ``message`` on ``key`` in ``flow``? Default deny; a rule
+    applies when one of its key expressions includes ``key`` (zenoh's policy decision point)."""
+    subjects = {s["id"] for s in acl["subjects"] if user in s.get("usernames", [])}
+    rule_ids = {r for p in acl["policies"] if subjects & set(p["subjects"]) for r in p["rules"]}
+    for rule in acl["rules"]:
+        if (rule["id"] in rule_ids and message in rule["messages"] and flow in rule["flows"]
+                and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in rule["key_exprs"])):
+            assert rule["permission"] == "allow"
+            return True
+    return False
+
+
+def who(acl: dict[str, Any], message: str, flow: str, key: str) -> set[str]:
+    return {user for user in (*ROLES, "stranger") if allowed(acl, user, message, flow, key)}
+
+
+ACL = acl_config(ROBOT)
+HEARTBEAT = "srl/t0/transition/@adv/pub/1234abcd/1/uhlc"  # an advanced publisher's own key
+
+
+@pytest.mark.parametrize(("key", "writers"), [
+    ("srl/t0/action", {"actor"}),
+    ("srl/t0/transition", {"actor"}),
+    (HEARTBEAT, {"actor"}),
+    ("srl/t0/critic/weights", {"critic"}),
+    ("srl/t0/state", {"plant"}),
+    ("srl/t0/status/actor", {"actor"}),
+    ("srl/t0/status/critic", {"critic"}),
+    ("srl/t0/status/plant", {"plant"}),
+    ("srl/t1/action", set()),  # another robot's keys: no role of this robot
+    ("srl/t1/critic/weights", set()),
+    ("srl/t0/plant/step", set()),
+    ("other/key", set()),
+])
+def test_only_the_owner_role_may_publish_a_key(key: str, writers: set[str]) -> None:
+    assert who(ACL, "put", "ingress", key) == writers
+    assert who(ACL, "delete", "ingress", key) == set()
+
+
+@pytest.mark.parametrize(("key", "readers"), [
+    ("srl/t0/state", {"actor", "monitor"}),
+    ("srl/t0/action", {"plant"}),
+    ("srl/t0/critic/weights", {"actor"}),
+    ("srl/t0/transition", {"critic"}),
+    ("srl/*/transition", {"critic"}),  # the critic's own (wildcard) subscription
+    (HEARTBEAT, {"critic"}),
+    ("srl/t0/status/*", {"monitor"}),
+    ("srl/**", set()),
+    ("**", set()),
+])
+def test_only_roles_with_business_may_read_a_key(key: str, readers: set[str]) -> None:
+    assert who(ACL, "declare_subscriber", "ingress", key) == readers
+    if "*" not in key:  # samples are published on concrete keys
+        assert who(ACL, "put", "egress", key) == readers
+
+
+def test_queries_queryables_and_liveliness_per_role() -> None:
+    for service in ("srl/t0/plant/step", "srl/t0/plant/reset"):
+        assert who(ACL, "declare_queryable", "ingress", service) == {"plant"}
+        assert who(ACL, "query", "ingress", service) == {"actor"}
+        assert who(ACL, "reply", "ingress", service) == {"plant"}
+        assert who(ACL, "reply", "egress", service) == {"actor"}
+    # the transition cache: the actor serves it, the critic queries it (history, recovery)
+    history_query = "srl/*/transition/@adv/*/1234abcd/1/**"
+    assert who(ACL, "declare_queryable", "ingress", "srl/t0/transition/@adv/pub/1234abcd/1/uhlc") == {"actor"}
+    assert who(ACL, "query", "ingress", history_query) == {"critic"}
+    assert who(ACL, "reply", "ingress", "srl/t0/transition") == {"actor"}
+    assert who(ACL, "reply", "egress", "srl/t0/transition") == {"critic"}
+    assert who(ACL, "declare_liveliness_subscriber", "ingress", "srl/*/transition/@adv/pub/**") == {"critic"}
+    # liveliness: each role announces only its own services; every role may see who is alive
+    for service, owner in (("actor", "actor"), ("critic", "critic"), ("plant", "plant"),
+                           ("robot_bridge", "plant")):
+        assert who(ACL, "liveliness_token", "ingress", f"srl/t0/alive/{service}") == {owner}
+        assert who(ACL, "liveliness_token", "egress", f"srl/t0/alive/{service}") == set(ROLES)
+    assert who(ACL, "liveliness_token", "ingress", "srl/t0/alive/monitor") == set()
+    assert who(ACL, "liveliness_query", "ingress", "srl/t0/alive/*") == set(ROLES)
+    # discovery (declarations, queries to one's own queryables) carries no samples: every role
+    assert who(ACL, "declare_subscriber", "egress", "srl/*/transition") == set(ROLES)
+
+
+def test_acl_config_is_well_formed() -> None:
+    assert ACL["enabled"] is True and ACL["default_permission"] == "deny"
+    ids = [rule["id"] for rule in ACL["rules"]]
+    assert len(ids) == len(set(ids))
+    assert {s["id"] for s in ACL["subjects"]} == set(ROLES) == {p["id"] for p in ACL["policies"]}
+    for policy in ACL["policies"]:
+        assert set(policy["rules"]) <= set(ids) and policy["subjects"] == [policy["id"]]
+    for rule in ACL["rules"]:
+        assert rule["permission"] == "allow" and rule["flows"] in (["ingress"], ["egress"])
+        assert rule["messages"] and rule["key_exprs"]
+        for key in rule["key_exprs"]:
+            zenoh.KeyExpr(key)  # a valid key expression (raises otherwise)
+    assert set(role_rules(ROBOT)) == set(ROLES)
+    json.dumps(ACL)  # insertable as JSON5
+    with pytest.raises(ValueError, match="robot id"):
+        acl_config("a/b")
+
+
+# -- credentials and settings -------------------------------------------------------------------
+def test_credentials_are_random_private_and_read_back(tmp_path: Path) -> None:
+    first = write_credentials(tmp_path / "one")
+    second = write_credentials(tmp_path / "two")
+    assert stat.S_IMODE(first.directory.stat().st_mode) == 0o700
+    files = [first.users_file, *first.password_files.values()]
+    assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in files)
+    users = dict(line.split(":", 1) for line in first.users_file.read_text().splitlines())
+    assert set(users) == set(ROLES)
+    assert len(set(users.values())) == len(ROLES) and all(len(p) >= 43 for p in users.values())
+    assert all(first.password_files[r].read_text().strip() == users[r] for r in ROLES)
+    assert not set(users.values()) & {p.read_text().strip() for p in second.password_files.values()}
+
+    base = Settings.load().transport
+    transport = first.transport(base, "critic")
+    assert client_credentials(transport) == ("critic", users["critic"])
+    entries = zenoh_entries(transport, router=False)
+    assert entries == {"transport/auth/usrpwd/user": "critic", "transport/auth/usrpwd/password": users["critic"]}
+    router = zenoh_entries(base.model_copy(update={"secure": True, "users_file": str(first.users_file)}),
+                           router=True)
+    assert router["transport/auth/usrpwd/dictionary_file"] == str(first.users_file)
+    assert router["access_control"] == acl_config(base.robot)
+    env = first.role_environment("plant")
+    assert env["SRL_TRANSPORT__USER"] == "plant" and users["plant"] not in json.dumps(env)
+
+
+def test_secure_settings_refuse_what_cannot_work(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    base = Settings.load().transport.model_copy(update={"secure": True})
+    with pytest.raises(SecurityError, match=r"transport\.user"):
+        zenoh_entries(base, router=False)
+    with pytest.raises(SecurityError, match="no password"):
+        zenoh_entries(base.model_copy(update={"user": "actor"}), router=False)
+    with pytest.raises(SecurityError, match="password file"):
+        zenoh_entries(base.model_copy(update={"user": "actor", "password_file": str(tmp_path / "nope")}),
+                      router=False)
+    with pytest.raises(SecurityError, match="users_file"):
+        zenoh_entries(base, router=True)
+    with pytest.raises(ValidationError, match="client"):
+        Settings.load(transport={"secure": True, "mode": "peer"})
+    # the password comes from the environment; it never appears in the printed settings
+    monkeypatch.setenv("SRL_TRANSPORT__PASSWORD", "not-a-real-secret-0123")
+    monkeypatch.setenv("SRL_TRANSPORT__USER", "monitor")
+    monkeypatch.setenv("SRL_TRANSPORT__SECURE", "true")
+    settings = Settings.load()
+    assert client_credentials(settings.transport) == ("monitor", "not-a-real-secret-0123")
+    assert "not-a-real-secret-0123" not in json.dumps(settings.as_dict())
+
+
+def test_no_secret_is_committed() -> None:
+    transport = Settings.load(ROOT / "common" / "srl.toml").transport
+    assert (transport.secure, transport.user, transport.password.get_secret_value(), transport.password_file,
+            transport.users_file) == (False, "", "", "", "")
+    if not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    tracked = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                             capture_output=True, text=True, check=True).stdout.split()
+    suspicious = [f for f in tracked if f.endswith((".password", ".pem", ".key")) or Path(f).name == "users.txt"]
+    assert suspicious == []
+
+
+# -- processes: a secured router with the real services -------------------------------------------
+def session_as(endpoint: str, user: str | None, password: str | None = None) -> zenoh.Session:
+    config = client_config(endpoint)
+    if user is not None:
+        config.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+    if password is not None:
+        config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    return zenoh.open(config)
+
+
+def password_of(credentials: Credentials, role: str) -> str:
+    return credentials.password_files[role].read_text().strip()
+
+
+class Logins:
+    """Sessions to a secured router, one per call, all closed at the end."""
+
+    def __init__(self, endpoint: str, credentials: Credentials) -> None:
+        self.endpoint, self.credentials = endpoint, credentials
+        self.sessions: list[zenoh.Session] = []
+
+    def __call__(self, role: str) -> zenoh.Session:
+        session = session_as(self.endpoint, role, password_of(self.credentials, role))
+        self.sessions.append(session)
+        return session
+
+    def close(self) -> None:
+        for session in self.sessions:
+            session.close()
+
+
+@contextmanager
+def secured_cluster(robot: str, credentials: Credentials) -> Iterator[tuple[Cluster, Logins]]:
+    """A secured router (services started on demand); the cluster's own session is a monitor."""
+    c = Cluster(robot)
+    login = Logins(c.endpoint, credentials)
+    try:
+        c.start("router", "router", env=credentials.router_environment())
+
+        def opened() -> bool:
+            try:
+                c.session = session_as(c.endpoint, "monitor", password_of(credentials, "monitor"))
+            except zenoh.ZError:
+                return False
+            return True
+
+        wait_until(opened, 30, "the secured router")
+        yield c, login
+    finally:
+        login.close()
+        c.close()  # closes the monitor session, stops every process by its pid
+
+
+class Recorder:
+    def __init__(self) -> None:
+        self.payloads: list[bytes] = []
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        self.payloads.append(sample.payload.to_bytes())
+
+    def rogue(self) -> list[bytes]:
+        return [p for p in self.payloads if p.startswith(b"ROGUE")]
+
+
+# (user, key) a wrong role tries to publish on; the legitimate reader of each key watches
+ROGUE_PUTS = [("critic", "action"), ("plant", "action"), ("monitor", "action"),
+              ("plant", "critic/weights"), ("actor", "critic/weights"), ("monitor", "critic/weights"),
+              ("actor", "state"), ("critic", "state"), ("monitor", "state"),
+              ("plant", "transition"), ("critic", "transition"),
+              ("critic", "status/actor"), ("plant", "status/critic")]
+LEGIT_READER = {"action": "plant", "critic/weights": "actor", "state": "monitor", "transition": "critic",
+                "status/actor": "monitor", "status/critic": "monitor"}
+# (user, key) a wrong role tries to read
+ROGUE_READS = [("plant", "critic/weights"), ("plant", "transition"), ("critic", "action"), ("critic", "state"),
+               ("monitor", "action"), ("monitor", "critic/weights"), ("monitor", "transition"),
+               ("actor", "transition"), ("actor", "action"), ("critic", "**"), ("monitor", "**")]
+
+
+@pytest.mark.slow
+def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_path: Path) -> None:
+    credentials = write_credentials(tmp_path / "credentials")
+    robot = "sec"
+    with secured_cluster(robot, credentials) as (c, login):
+        # observers, rogue writers and rogue readers are separate sessions: a session delivers its
+        # own puts to its own subscribers locally, without the router
+        observers = {role: login(role) for role in ROLES}
+        rogues = {role: login(role) for role in ROLES}
+        thieves = {role: login(role) for role in ROLES}
+        legit: dict[str, Recorder] = {}
+        for key, role in LEGIT_READER.items():
+            legit[key] = Recorder()
+            observers[role].declare_subscriber(f"srl/{robot}/{key}", legit[key])
+        versions: list[int] = []
+        observers["actor"].declare_subscriber(f"srl/{robot}/critic/weights", lambda s: versions.append(
+            CriticWeights.model_validate_json(s.payload.to_bytes()).version))
+        stolen: dict[tuple[str, str], Recorder] = {}
+        for user, key in ROGUE_READS:
+            stolen[user, key] = Recorder()
+            thieves[user].declare_subscriber(key if key == "**" else f"srl/{robot}/{key}", stolen[user, key])
+
+        c.start("plant", "plant-sim", "--mode", "realtime", env=credentials.role_environment("plant"))
+        c.wait_alive("plant")
+        actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "8",
+                        env=credentials.role_environment("actor"))
+        c.wait_alive("actor")
+        # the critic comes late: it must recover the transitions published before it through
+        # the advanced subscriber's history query, which the rules must let through
+        wait_until(lambda: len(legit["transition"].payloads) >= 10, 30, "transitions before the critic starts")
+        c.start("critic", "critic", env=credentials.role_environment("critic"))
+        c.wait_alive("critic")
+        wait_until(lambda: len(versions) >= 5, 30, "weights from the secured critic")
+
+        # wrong roles publish garbage (which the services would count as rejected if it arrived)
+        publishers = [(user, key, rogues[user].declare_publisher(f"srl/{robot}/{key}")) for user, key in ROGUE_PUTS]
+        for i in range(10):
+            for user, key, publisher in publishers:
+                publisher.put(f"ROGUE {user} {key} {i}".encode())
+                rogues[user].put(f"srl/{robot}/{key}", f"ROGUE {user} {key} session-put {i}".encode())
+            time.sleep(0.05)
+        # wrong roles query the plant and announce a service that is not theirs
+        rogue_replies = [r for user in ("critic", "monitor")
+                         for r in rogues[user].get(f"srl/{robot}/plant/reset", payload=b"ROGUE", timeout=1.0)]
+        control_replies = list(observers["actor"].get(f"srl/{robot}/plant/reset", payload=b"{", timeout=5.0))
+        impostor = rogues["critic"].liveliness().declare_token(f"srl/{robot}/alive/robot_bridge")
+        time.sleep(0.5)
+        impersonated = c.alive("robot_bridge")
+        impostor.undeclare()
+        genuine = observers["plant"].liveliness().declare_token(f"srl/{robot}/alive/robot_bridge")
+        wait_until(lambda: c.alive("robot_bridge"), 5, "a token the plant role may declare")
+        genuine.undeclare()
+
+        assert actor.process.wait(timeout=60) == 0, actor.stderr[-10:]
+        time.sleep(1.0)  # the last transitions reach the critic
+        summaries = {}
+        for name in ("critic", "plant"):
+            assert c.procs[name].stop() == 0, c.procs[name].stderr[-10:]
+            summaries[name] = c.procs[name].summary()
+        summaries["actor"] = actor.summary()
+
+    # the legitimate readers saw the system run, and never a rogue sample
+    assert all(legit[key].payloads for key in ("action", "critic/weights", "state", "transition")), \
+        {key: len(r.payloads) for key, r in legit.items()}
+    assert {key: r.rogue() for key, r in legit.items()} == {key: [] for key in legit}
+    # the wrong readers got nothing at all, while the same keys carried hundreds of samples
+    assert {k: len(r.payloads) for k, r in stolen.items()} == {k: 0 for k in stolen}
+    assert rogue_replies == []
+    assert len(control_replies) == 1 and control_replies[0].err is not None  # the plant answered the actor
+    assert not impersonated, "a critic announced the robot bridge"
+    actor_summary, critic_summary, plant_summary = summaries["actor"], summaries["critic"], summaries["plant"]
+    # the services never saw a rogue payload: nothing was rejected, except the actor-role control query
+    rejected = {name: {k: v for k, v in s["counters"].items() if k.startswith("rejected.")}
+                for name, s in summaries.items()}
+    assert rejected == {"actor": {}, "critic": {}, "plant": {"rejected.plant/reset": 1}}, rejected
+    # the system ran normally through the secured router
+    steps = actor_summary["steps"]
+    assert steps >= 70 and actor_summary["loop"]["missed_deadlines"] == 0
+    assert critic_summary["seen_steps"][robot] == actor_summary["transition_steps"]  # late critic recovered all
+    assert critic_summary["transitions_received"] >= steps
+    assert actor_summary["weights_version"] in versions and all(b > a for a, b in itertools.pairwise(versions))
+    assert plant_summary["counters"]["received.action"] >= steps
+    print(f"\nfigures: secured run: {steps} steps, latency median {actor_summary['latency_ms']['median']:.2f} ms "
+          f"p99 {actor_summary['latency_ms']['p99']:.2f} ms, {len(versions)} weight versions, late critic "
+          f"recovered {critic_summary['seen_steps'][robot]}; rogue: {len(ROGUE_PUTS) * 20} puts by wrong roles, "
+          f"{len(ROGUE_READS)} wrong subscriptions, 2 wrong queries, 1 impostor token: 0 got through")
+
+
+@pytest.mark.slow
+def test_strangers_and_wrong_passwords_cannot_connect(tmp_path: Path) -> None:
+    credentials = write_credentials(tmp_path / "credentials")
+    other = write_credentials(tmp_path / "other")  # valid-looking passwords of another deployment
+    with secured_cluster("gate", credentials) as (c, _):
+        attempts: list[tuple[str | None, str | None]] = [
+            (None, None),  # no credentials at all
+            ("stranger", "whatever"),  # unknown user
+            ("actor", password_of(other, "actor")),  # right user, wrong password
+            ("actor", password_of(credentials, "critic")),  # another role's password
+            ("actor", ""),
+        ]
+        for user, password in attempts:
+            started = time.monotonic()
+            with pytest.raises(zenoh.ZError):
+                session_as(c.endpoint, user, password).close()
+            assert time.monotonic() - started < 5.0
+        # a peer-mode session opens even when its connection fails (peers keep retrying in the
+        # background): without credentials it never gets a link to the router
+        config = client_config(c.endpoint)
+        config.insert_json5("mode", '"peer"')
+        peer = zenoh.open(config)
+        try:
+            time.sleep(1.0)
+            assert list(peer.info.routers_zid()) == [] and list(peer.info.peers_zid()) == []
+        finally:
+            peer.close()
+        # the services' own code path (zenoh_config from settings) logs in; the router is unharmed
+        transport = credentials.transport(Settings.load().transport, "plant").model_copy(
+            update={"router": c.endpoint, "robot": "gate"})
+        zenoh.open(zenoh_config(transport)).close()
+        assert c.session is not None and c.session.info.routers_zid()
+
+
+def _tcp_open(endpoint: str) -> bool:
+    host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+    with socket.socket() as sock:
+        sock.settimeout(0.2)
+        return sock.connect_ex((host, int(port))) == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["realtime", "lockstep"])
+def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: str) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--secure", "--mode", mode, "--router", endpoint,
+                           "--robot", "su", "--duration", "5", "--json"], cwd=ROOT, text=True,
+                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                          env={**os.environ, "TMPDIR": str(temp)})
+    refused = 0
+    try:
+        wait_until(lambda: _tcp_open(endpoint) or up.poll() is not None, 60, "the router of srl up --secure")
+        credential_dirs = list(temp.iterdir())
+        # the router accepts TCP connections, but no Zenoh session without credentials
+        for _ in range(3):
+            with pytest.raises(zenoh.ZError):
+                session_as(endpoint, None).close()
+            refused += 1
+        out, err = up.communicate(timeout=180)
+    finally:
+        if up.poll() is None:
+            os.killpg(up.pid, 9)
+            up.wait()
+    assert up.returncode == 0, err[-3000:]
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["secure"] is True and set(summary["services"]) == {"router", "plant", "critic", "actor"}
+    assert summary["steps"] >= (45 if mode == "realtime" else 50)
+    assert summary["transitions_received"] >= summary["steps"]
+    assert summary["weights_version"] > 0 and summary["critic_weights_published"] >= summary["steps"] - 1
+    if mode == "lockstep":  # the synchronous critic's weights came through every step
+        assert summary["critic_timeouts"] == 0 and summary["staleness_steps"]["max"] == 0
+    assert [d.name.startswith("srl-secure-") for d in credential_dirs] == [True]
+    assert list(temp.iterdir()) == [], "srl up left its credentials behind"
+    assert refused == 3
+    print(f"\nfigures: srl up --secure --mode {mode}: {summary['steps']} steps, weights version "
+          f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic")
