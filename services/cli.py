@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -16,6 +17,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from common.security import SecurityError
 from common.settings import Settings, parse_start
 
 log = logging.getLogger(__name__)
@@ -67,8 +69,33 @@ def settings_argv(args: argparse.Namespace) -> list[str]:
     return argv
 
 
+BRIDGE_FLAGS = ("profile", "ros_distro", "domain_id", "namespace", "cmd_type", "robot_endpoint")
+
+
+def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags of the robot bridge's [bridge] settings (srl up, robot-bridge, tb3-emulator)."""
+    parser.add_argument("--profile", choices=["rmw_zenoh", "ros2dds"],
+                        help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds)")
+    parser.add_argument("--ros-distro", choices=["humble", "jazzy"], help="the robot's ROS 2 distribution")
+    parser.add_argument("--domain-id", type=int, help="the robot's ROS_DOMAIN_ID")
+    parser.add_argument("--namespace", help="the robot's ROS namespace (e.g. tb3_1)")
+    parser.add_argument("--cmd-type", choices=["auto", "twist", "twist_stamped"],
+                        help="cmd_vel message type (auto: read from the robot's liveliness tokens)")
+    parser.add_argument("--robot-endpoint", help="the robot's Zenoh router, e.g. tcp/192.168.1.20:7447 "
+                        "(srl up: no emulator is started)")
+
+
+def bridge_argv(args: argparse.Namespace) -> list[str]:
+    """The bridge flags that were given, as argv, for the bridge and emulator children."""
+    return [f"--{name.replace('_', '-')}={getattr(args, name)}" for name in BRIDGE_FLAGS
+            if getattr(args, name, None) is not None]
+
+
 def settings_from_args(args: argparse.Namespace) -> Settings:
-    overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}, "transport": {}}
+    overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}, "transport": {}, "bridge": {}}
+    for name in BRIDGE_FLAGS:
+        if getattr(args, name, None) is not None:
+            overrides["bridge"][name] = getattr(args, name)
     for name in ("router", "robot"):
         if getattr(args, name, None) is not None:
             overrides["transport"][name] = getattr(args, name)
@@ -215,8 +242,10 @@ def cmd_router(args: argparse.Namespace) -> int:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:
         raise UsageError(f"router: cannot listen on {settings.transport.router}: {error}") from error
-    log.warning("router listening on %s (multicast scouting %s)", settings.transport.router,
-                "on" if settings.transport.multicast_scouting else "off")
+    log.warning("router listening on %s (multicast scouting %s%s)", settings.transport.router,
+                "on" if settings.transport.multicast_scouting else "off",
+                f"; users and access rules of robot {settings.transport.robot} enforced"
+                if settings.transport.secure else "")
     stop.wait()
     session.close()
     print(json.dumps({"service": "router", "endpoint": settings.transport.router,
@@ -243,13 +272,85 @@ def cmd_actor(args: argparse.Namespace) -> int:
                                                           args.sync_critic))
 
 
+def cmd_robot_bridge(args: argparse.Namespace) -> int:
+    from services.robot_bridge.service import run
+
+    return _serve(args, "plant", lambda s, bus, stop: run(s, bus, stop, args.run_seconds))
+
+
+def cmd_tb3_emulator(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    import zenoh
+
+    from common.frames import Pose2D, from_goal_frame
+    from common.transport import zenoh_config
+    from services.robot_bridge import ros_wire
+    from services.robot_bridge.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph
+    from services.tb3_emulator.service import Tb3Model, run
+
+    settings = settings_from_args(args)
+    bridge = settings.bridge
+    if args.initial_pose is not None:
+        pose = Pose2D(*args.initial_pose)
+    else:  # the episode's start (goal frame) where the bridge's goal puts it in the odom frame
+        pose = from_goal_frame(Pose2D(*(float(c) for c in settings.start_state())), Pose2D(*bridge.goal))
+    cmd_type = DEFAULT_CMD_TYPE[bridge.ros_distro] if bridge.cmd_type == "auto" else CMD_TYPES[bridge.cmd_type]
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
+        config = zenoh_config(settings.transport, router=True, listen=[args.listen])
+        config.insert_json5("connect/endpoints", "[]")
+        session = zenoh.open(config)
+    else:
+        deadline = time.monotonic() + args.connect_timeout
+        while True:
+            try:
+                session = zenoh.open(zenoh_config(settings.transport))
+                break
+            except zenoh.ZError as error:
+                if time.monotonic() > deadline or stop.is_set():
+                    raise UsageError(f"tb3-emulator: cannot reach the Zenoh router at "
+                                     f"{settings.transport.router}: {error}") from error
+                time.sleep(0.2)
+    v_max = ros_wire.TB3_BURGER_V_MAX if args.v_max is None else args.v_max
+    omega_max = ros_wire.TB3_BURGER_OMEGA_MAX if args.omega_max is None else args.omega_max
+    model = Tb3Model(pose, v_max, omega_max, args.latency, args.cmd_timeout,
+                     (args.noise[0], args.noise[1]), args.seed, time.monotonic())
+    try:
+        result = run(session, RosGraph.from_settings(bridge), cmd_type, model, stop, args.run_seconds,
+                     bridge.odom_topic, bridge.cmd_vel_topic, args.odom_rate)
+    finally:
+        session.close()
+    result["initial_pose"] = list(pose)
+    result["resources"] = own_resources()
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+def _floats_arg(count: int) -> Callable[[str], tuple[float, ...]]:
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(part) for part in text.split(","))
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(f"expected {count} comma-separated numbers, got {text!r}") from error
+        if len(values) != count or not all(math.isfinite(v) for v in values):
+            raise argparse.ArgumentTypeError(f"expected {count} finite comma-separated numbers, got {text!r}")
+        return values
+
+    return parse
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from services.up import ServiceDiedError, run_up
 
     settings = settings_from_args(args)
     try:
         summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
-                         sync_critic=args.mode == "lockstep", duration=settings.episode.duration)
+                         sync_critic=args.mode == "lockstep", duration=settings.episode.duration,
+                         bridge_args=bridge_argv(args), secure=args.secure)
     except ServiceDiedError as error:
         print(f"srl up: error: {error}", file=sys.stderr)
         for line in error.tail:
@@ -268,6 +369,8 @@ def format_up_summary(summary: dict[str, Any]) -> str:
     lines = [f"srl up: {summary['mode']} run, plant {summary['plant']}, agent {summary.get('agent')}, "
              f"N = {summary.get('horizon')}"]
     lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
+    if summary.get("secure"):
+        lines.append("  security       user/password login per role + access rules at the router (common/security.py)")
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
@@ -289,6 +392,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from services.bench_loop import run_loop_benchmark
 
         return run_loop_benchmark(args, settings_from_args(args), settings_argv(args))
+    if args.what == "bridge":
+        from services.bench_bridge import run_bridge_benchmark
+
+        return run_bridge_benchmark(args, settings_from_args(args), settings_argv(args), bridge_argv(args))
     if args.what == "actor":
         from services.bench_actor import run_actor_benchmark
 
@@ -332,21 +439,55 @@ def build_parser() -> argparse.ArgumentParser:
                              help="lockstep: wait for the weights trained on the previous step")
         svc.set_defaults(func=func)
 
+    bridge = sub.add_parser("robot-bridge", help="a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh")
+    add_settings_arguments(bridge)
+    add_bridge_arguments(bridge)
+    bridge.add_argument("--run-seconds", type=float, help="stop after this long (default: until signalled)")
+    bridge.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+    bridge.set_defaults(func=cmd_robot_bridge)
+
+    emulator = sub.add_parser("tb3-emulator", help="an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh")
+    add_settings_arguments(emulator)
+    add_bridge_arguments(emulator)
+    emulator.add_argument("--initial-pose", type=_floats_arg(3), metavar="X,Y,THETA",
+                          help="start pose in the odom frame (default: the episode start, through bridge.goal)")
+    emulator.add_argument("--noise", type=_floats_arg(2), default=(0.0, 0.0), metavar="SIGMA_XY,SIGMA_THETA",
+                          help="std. dev. of Gaussian noise on the reported pose [m, rad] (default 0,0)")
+    emulator.add_argument("--seed", type=int, default=0, help="noise seed")
+    emulator.add_argument("--latency", type=float, default=0.0, help="[s] cmd_vel -> wheels delay")
+    emulator.add_argument("--cmd-timeout", type=float, default=0.0,
+                          help="[s] stop when cmd_vel is older (0: never, like a real TurtleBot3)")
+    emulator.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
+    emulator.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
+    emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate")
+    emulator.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to "
+                          "--router)")
+    emulator.add_argument("--run-seconds", type=float, help="stop after this long (default: until signalled)")
+    emulator.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+    emulator.set_defaults(func=cmd_tb3_emulator)
+
     up = sub.add_parser("up", help="router + every service as separate processes, one run")
     add_settings_arguments(up)
-    up.add_argument("--plant", choices=["sim", "robot"], default="sim")
+    add_bridge_arguments(up)
+    up.add_argument("--plant", choices=["sim", "robot"], default="sim",
+                    help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint)")
     up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
+    up.add_argument("--secure", action="store_true",
+                    help="Zenoh user/password login with fresh random credentials per role, and access rules "
+                         "at the router: only the actor publishes actions, the critic weights, the plant state")
     up.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     up.set_defaults(func=cmd_up)
 
     bench = sub.add_parser("bench", help="benchmarks that print a table (and JSON)")
-    bench.add_argument("what", choices=["actor", "loop"])
+    bench.add_argument("what", choices=["actor", "loop", "bridge"])
     bench.add_argument("--reference-horizons", default="12",
                        help="actor: N values for the IPOPT reference rows ('' = none)")
-    bench.add_argument("--seconds", type=float, default=60.0, help="loop: real-time run length [s]")
+    bench.add_argument("--seconds", type=float, default=60.0,
+                       help="loop: real-time run length [s]; bridge: both phases together")
     bench.add_argument("--critic-load", action="store_true",
                        help="loop: the critic fits a replay of M = 1000 every step")
     add_settings_arguments(bench)
+    add_bridge_arguments(bench)
     bench.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     bench.add_argument("--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99)")
     bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values")
@@ -355,6 +496,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row"
     )
     bench.set_defaults(func=cmd_bench)
+
+    # srl experiment paper (services/experiment.py): the paper's grid of runs, ratios and plots
+    from services.experiment import add_experiment_arguments, cmd_experiment
+
+    experiment = sub.add_parser("experiment", help="the paper's experiment: grid of starts, cost ratios, plots")
+    add_experiment_arguments(experiment)
+    experiment.set_defaults(func=cmd_experiment)
+
+    # srl health (services/health.py): readiness of a service, for container healthchecks
+    from services.health import add_health_parser
+
+    add_health_parser(sub)
     return parser
 
 
@@ -369,7 +522,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
-    except UsageError as error:
+    except (UsageError, SecurityError) as error:
         print(f"srl: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,0 +1,1072 @@
+"""``srl experiment paper``: the paper's section IV experiment, end to end.
+
+A grid of starts over the ``2 extent x 2 extent`` polygon (default 5 x 5 over ``[-2, 2]^2``),
+each turned away from the target (``alpha_0 = atan2(y_0, x_0)``, ``pi`` at the centre); every
+agent at every horizon parks from every start with Algorithm 1 in lockstep, each RL run
+learning online from the initial weights (no pretraining). The marks are the paper's
+``J_agent / J_mpc * 100 %`` per start and horizon (eqs. rql, rql-v), drawn as contour plots
+(figures 3-4) and summarized in a table.
+
+Runs are spread over worker processes (spawned, so no Zenoh or CasADi state is forked). A
+worker builds each ``(agent, N)`` actor once and reuses it for every run of that pair (the
+solver is stateless between episodes except for the warm start, which ``reset`` clears; the
+same run is bit-identical on a fresh and on a reused actor). The scheduler hands a worker
+runs of the pair it already built while any are left, so the ~1 s JIT builds happen about
+once per pair and worker.
+
+Transports:
+
+* ``inproc``: each worker runs :func:`common.loop.run_episode` with the exact plant and the
+  local critic, as ``srl run`` does.
+* ``zenoh``: a router and, per worker, one ``srl plant-sim --mode lockstep`` and one
+  ``srl critic`` process (robot id ``exp<worker>``), all on a free loopback port with
+  multicast scouting off, started once and kept up across runs: the plant is reset and the
+  critic starts a fresh learner per episode id. Each worker is that robot's actor: it runs
+  the actor service's lockstep code (``ZenohPlant``, ``ZenohCriticPort`` with the synchronous
+  critic, ``WeightsInbox``) through :func:`run_episode`, so the distributed system executes
+  Algorithm 1 exactly and reproduces the inproc numbers.
+
+Outputs (``--out``): ``runs.csv``, ``trajectories.npz``, ``config.toml`` (loadable with
+``--config``) and ``settings.json``, ``summary.md`` and ``summary.json``, ``ratio_N<N>.png``
+per horizon and ``trajectories.png``. Ctrl-C stops the workers and services, writes what has
+finished (marked interrupted) and exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import json
+import logging
+import math
+import os
+import queue
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.dynamics import heading_away_from_target
+from common.settings import Settings
+
+log = logging.getLogger(__name__)
+
+AGENTS = ("mpc", "rlq", "rlqv", "rlqv+")
+DEFAULT_AGENTS = ("mpc", "rlq", "rlqv")
+DEFAULT_HORIZONS = (12, 6)
+PARK_TOLERANCE_M = 0.25  # "parked": final distance to the target at most this (as tests/test_closed_loop.py)
+# A ratio within this of 100 % is a tie, not a win: the solver's tolerance alone moves J that much
+# (an agent whose objective equals MPC's up to scale lands 1e-4 % off 100 %, either side).
+TIE_PERCENT = 0.1
+STARTS = ("paper", "held-out")
+EXIT_INTERRUPTED = 130
+OUTPUT_FILES = ("runs.csv", "trajectories.npz", "config.toml", "settings.json", "summary.md", "summary.json",
+                "trajectories.png")
+
+
+# Everything a ZenohCriticPort holds; the experiment resets its per-episode part (settings,
+# episode, staleness, timeouts) to reuse one port per worker, and refuses a port that holds more.
+PORT_ATTRIBUTES = {"settings", "bus", "inbox", "episode", "sync", "robot", "publish", "staleness", "timeouts"}
+
+
+class ExperimentError(RuntimeError):
+    """A run or a service failed: the experiment stops (partial results are still written)."""
+
+
+# -- the grid of starts -----------------------------------------------------------------
+@dataclass(frozen=True)
+class Start:
+    index: int
+    x: float
+    y: float
+    alpha: float  # turned away from the target: atan2(y, x), pi at the centre
+
+
+def _start(index: int, x: float, y: float) -> Start:
+    x, y = float(x), float(y)
+    return Start(index, x, y, heading_away_from_target(x, y))
+
+
+def grid_starts(k: int, extent: float) -> list[Start]:
+    """The paper's grid: ``k x k`` lattice over ``[-extent, extent]^2``, corners included.
+
+    Row-major from the bottom-left: ``index = row * k + column``. ``k = 1`` is the centre.
+    """
+    if k < 1 or not (math.isfinite(extent) and extent > 0):
+        raise ValueError(f"a grid needs k >= 1 and a positive extent, got k = {k}, extent = {extent}")
+    ticks = np.linspace(-extent, extent, k) if k > 1 else np.zeros(1)
+    ticks = np.where(np.abs(ticks) < 1e-12 * extent, 0.0, ticks)  # the centre exactly, not 1e-17
+    return [_start(row * k + col, x, y) for row, y in enumerate(ticks) for col, x in enumerate(ticks)]
+
+
+def held_out_starts(k: int, extent: float, seed: int) -> list[Start]:
+    """The held-out grid: the square cut into ``k x k`` equal cells, one start drawn
+    uniformly inside each cell (stratified jitter, ``numpy.random.default_rng(seed)``).
+
+    Same count and coverage as the paper's grid, but generic positions (off the axes and
+    the diagonals, where the paper's lattice has its symmetric starts), so a setting chosen
+    on one grid is checked on starts it never saw.
+    """
+    if k < 1 or not (math.isfinite(extent) and extent > 0):
+        raise ValueError(f"a grid needs k >= 1 and a positive extent, got k = {k}, extent = {extent}")
+    rng = np.random.default_rng(seed)
+    edges = np.linspace(-extent, extent, k + 1)
+    starts = []
+    for row in range(k):
+        for col in range(k):
+            x = rng.uniform(edges[col], edges[col + 1])
+            y = rng.uniform(edges[row], edges[row + 1])
+            starts.append(_start(row * k + col, x, y))
+    return starts
+
+
+def make_starts(kind: str, k: int, extent: float, seed: int) -> list[Start]:
+    if kind == "paper":
+        return grid_starts(k, extent)
+    if kind == "held-out":
+        return held_out_starts(k, extent, seed)
+    raise ValueError(f"unknown set of starts {kind!r}; choose one of {', '.join(STARTS)}")
+
+
+# -- the runs ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RunSpec:
+    run_id: str
+    agent: str
+    horizon: int
+    start: Start
+
+    @property
+    def group(self) -> tuple[str, int]:
+        return (self.agent, self.horizon)
+
+
+def plan_runs(starts: Sequence[Start], agents: Sequence[str], horizons: Sequence[int]) -> list[RunSpec]:
+    return [
+        RunSpec(f"{agent}-N{horizon}-s{start.index:03d}", agent, horizon, start)
+        for agent in agents
+        for horizon in horizons
+        for start in starts
+    ]
+
+
+def run_settings(base: dict[str, Any], spec: RunSpec) -> Settings:
+    """The settings of one run: the resolved base with this run's agent, horizon and start."""
+    data = json.loads(json.dumps(base))  # a deep copy of plain JSON data
+    data["actor"].update(agent=spec.agent, horizon=spec.horizon)
+    data["episode"]["start"] = [spec.start.x, spec.start.y, spec.start.alpha]
+    return Settings.model_validate(data)
+
+
+@dataclass
+class WorkerConfig:
+    slot: int
+    base: dict[str, Any]  # Settings.model_dump(mode="json") of the resolved base settings
+    transport: str
+    robot: str = ""
+
+
+class _InprocRunner:
+    def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
+        from common.loop import ExactPlant, LocalCritic, run_episode
+
+        critic = LocalCritic(settings, learn=settings.actor.agent != "mpc")
+        return run_episode(settings, actor=actor, plant=ExactPlant(), critic=critic), {}
+
+    def close(self) -> None:
+        pass
+
+
+class _ZenohRunner:
+    """This worker as the actor of robot ``config.robot``, the actor service's lockstep code."""
+
+    def __init__(self, base: Settings) -> None:
+        from common.keys import WEIGHTS
+        from common.transport import Bus
+        from services.actor.service import WeightsInbox
+
+        self.robot = base.transport.robot
+        self.bus = Bus.open(base.transport, "actor")
+        self.inbox = WeightsInbox(base, self.bus)  # initial weights depend on cost and delta only
+        self.bus.subscribe(WEIGHTS, WEIGHTS.key(self.robot), self.inbox.offer)
+        self.bus.declare_alive(self.robot)
+        self.bus.wait_alive(self.robot, "plant", timeout=60.0)
+        self.bus.wait_alive(self.robot, "critic", timeout=60.0)
+        self.episode_id = 0
+        self.port: Any = None
+
+    def _port(self, settings: Settings) -> Any:
+        """The critic port for this episode: ONE per worker, so one transition publisher
+        (a cached, heartbeating advanced publisher) for the worker's life, as the actor
+        service has; only the per-episode state is reset."""
+        from services.actor.service import ZenohCriticPort
+
+        if self.port is None:
+            self.port = ZenohCriticPort(settings, self.bus, self.inbox, self.episode_id, sync=True)
+            if set(vars(self.port)) != PORT_ATTRIBUTES:
+                raise ExperimentError(f"ZenohCriticPort's state changed ({sorted(vars(self.port))}): update "
+                                      "services/experiment.py's per-episode reset")
+        self.port.settings, self.port.episode = settings, self.episode_id
+        self.port.staleness, self.port.timeouts = [], 0
+        return self.port
+
+    def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
+        from common.loop import LocalCritic, run_episode
+        from services.actor.service import ZenohPlant, new_episode_id
+
+        # Episode ids must increase (the critic starts a fresh learner on a newer one).
+        self.episode_id = max(new_episode_id(), self.episode_id + 1)
+        plant = ZenohPlant(settings, self.bus, self.episode_id)
+        if settings.actor.agent == "mpc":
+            # MPC has no critic: nothing to send to the learner (inproc fits nothing either).
+            critic = LocalCritic(settings, learn=False)
+            return run_episode(settings, actor=actor, plant=plant, critic=critic), {}
+        port = self._port(settings)
+        episode = run_episode(settings, actor=actor, plant=plant, critic=port)
+        return episode, {"critic_timeouts": port.timeouts, "max_staleness_steps": int(max(port.staleness, default=0))}
+
+    def close(self) -> None:
+        self.bus.close()
+
+
+def _run_one(runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec,
+             slot: int) -> dict[str, Any]:
+    from common.loop import build_actor
+    from common.stats import summarize
+
+    settings = run_settings(base, spec)
+    actor = actors.get(spec.group)
+    if actor is None:
+        actor = actors[spec.group] = build_actor(settings)
+    started = time.perf_counter()
+    episode, extra = runner.run(settings, actor)
+    wall = time.perf_counter() - started
+    final = episode.final_state
+    solve = summarize(episode.solve_seconds, scale=1e3)
+    row = {
+        "run_id": spec.run_id, "agent": spec.agent, "horizon": spec.horizon, "start_index": spec.start.index,
+        "start_x": spec.start.x, "start_y": spec.start.y, "start_alpha": spec.start.alpha,
+        "accumulated_cost": episode.accumulated_cost,
+        "final_x": float(final[0]), "final_y": float(final[1]), "final_alpha": float(final[2]),
+        "final_distance": float(np.hypot(final[0], final[1])),
+        "steps": episode.steps, "solver_failures": episode.solver_failures,
+        "solve_ms_median": solve["median"], "solve_ms_p99": solve["p99"], "solve_ms_max": solve["max"],
+        "wall_seconds": wall, "worker": slot,
+        "critic_timeouts": extra.get("critic_timeouts", 0),
+        "max_staleness_steps": extra.get("max_staleness_steps", 0),
+    }
+    arrays = {
+        "states": np.asarray(episode.states, dtype=float),
+        "actions": np.asarray(episode.actions, dtype=float),
+        "costs": np.asarray(episode.costs, dtype=float),
+    }
+    return {"row": row, "arrays": arrays}
+
+
+def _worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
+    """A worker process: build actors lazily, run what the scheduler sends, until ``None``."""
+    # Ctrl-C is the parent's business (it stops us by pid); SIGTERM ends us through
+    # SystemExit so that ``finally`` blocks and atexit (JIT directory removal) still run.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s %(levelname)s [worker {config.slot}] "
+                        "%(name)s: %(message)s", stream=sys.stderr)
+    # Weights of a finished episode arriving after the next reset are refused by design
+    # (episode id); that is expected here, not worth a warning per episode.
+    logging.getLogger("common.transport").setLevel(logging.ERROR)
+    runner: Any = None
+    try:
+        base = Settings.model_validate(config.base)
+        runner = _ZenohRunner(base) if config.transport == "zenoh" else _InprocRunner()
+        actors: dict[tuple[str, int], Any] = {}
+        results.put(("ready", config.slot, None))
+        while (spec := tasks.get()) is not None:
+            try:
+                outcome = _run_one(runner, actors, config.base, spec, config.slot)
+            except Exception:
+                results.put(("error", config.slot, f"run {spec.run_id}: {traceback.format_exc()}"))
+                return
+            results.put(("done", config.slot, outcome))
+    except Exception:
+        results.put(("error", config.slot, f"worker {config.slot}: {traceback.format_exc()}"))
+    finally:
+        if runner is not None:
+            runner.close()
+
+
+class Scheduler:
+    """Hand each worker runs of the ``(agent, N)`` it already built, while any are left;
+    else the pair with most runs left that no other worker is on (else the largest)."""
+
+    def __init__(self, specs: Iterable[RunSpec]) -> None:
+        self.pending: dict[tuple[str, int], deque[RunSpec]] = {}
+        for spec in specs:
+            self.pending.setdefault(spec.group, deque()).append(spec)
+        self.current: dict[int, tuple[str, int] | None] = {}
+
+    def next_for(self, slot: int) -> RunSpec | None:
+        group = self.current.get(slot)
+        if group is None or not self.pending.get(group):
+            left = [g for g, q in self.pending.items() if q]
+            if not left:
+                self.current[slot] = None
+                return None
+            taken = {g for s, g in self.current.items() if s != slot}
+            free = [g for g in left if g not in taken]
+            group = max(free or left, key=lambda g: len(self.pending[g]))
+            self.current[slot] = group
+        return self.pending[group].popleft()
+
+
+# -- options ----------------------------------------------------------------------------
+@dataclass
+class ExperimentOptions:
+    grid: int = 5
+    extent: float = 2.0
+    starts: str = "paper"
+    seed: int = 0
+    agents: tuple[str, ...] = DEFAULT_AGENTS
+    horizons: tuple[int, ...] = DEFAULT_HORIZONS
+    transport: str = "inproc"
+    workers: int = 0  # 0 = every core this process may use
+    out: Path = field(default_factory=lambda: Path("out"))
+    plots: bool = True
+    progress: bool = True
+    command: str = ""
+
+    def worker_count(self, runs: int) -> int:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, min(self.workers or cores, runs))
+
+
+def parse_agents(text: str) -> tuple[str, ...]:
+    agents = tuple(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
+    unknown = [a for a in agents if a not in AGENTS]
+    if not agents or unknown:
+        raise ValueError(f"--agents: choose from {', '.join(AGENTS)} (comma-separated), got {text!r}")
+    return agents
+
+
+def parse_horizons(text: str) -> tuple[int, ...]:
+    try:
+        horizons = tuple(dict.fromkeys(int(h) for h in text.split(",") if h.strip()))
+    except ValueError as error:
+        raise ValueError(f"--horizons: comma-separated integers N >= 2, got {text!r}") from error
+    if not horizons or any(h < 2 for h in horizons):
+        raise ValueError(f"--horizons: comma-separated integers N >= 2, got {text!r}")
+    return horizons
+
+
+# -- the experiment ---------------------------------------------------------------------
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+class _Services:
+    """Router + one plant_sim (lockstep) and one critic per worker, kept up across runs."""
+
+    def __init__(self, config_path: Path, base: Settings, workers: int) -> None:
+        from services.up import Supervisor
+
+        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.robots = [f"exp{slot}" for slot in range(workers)]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.supervisor = Supervisor([], env, quiet=True)
+        self.common = ["--config", str(config_path), "--router", self.endpoint]
+        self.base = base
+
+    def transport_for(self, robot: str) -> dict[str, Any]:
+        return {"router": self.endpoint, "robot": robot, "mode": "client", "multicast_scouting": False,
+                "connect": []}
+
+    def start(self) -> None:
+        from services.up import ServiceDiedError
+
+        try:
+            self._start()
+        except ServiceDiedError as error:
+            raise ExperimentError(f"{error}: {' | '.join(error.tail)}") from error
+        except TimeoutError as error:
+            raise ExperimentError(str(error)) from error
+
+    def _start(self) -> None:
+        from services.up import alive_probe, router_reachable
+
+        sup = self.supervisor
+        sup.spawn("router", ["router", *self.common, "--robot", self.robots[0]])
+        router_settings = self._settings(self.robots[0])
+        sup.wait_for("router", lambda: router_reachable(router_settings), timeout=30)
+        for robot in self.robots:
+            sup.spawn(f"plant-{robot}", ["plant-sim", "--mode", "lockstep", *self.common, "--robot", robot])
+            sup.spawn(f"critic-{robot}", ["critic", *self.common, "--robot", robot])
+        for robot in self.robots:
+            settings = self._settings(robot)
+            sup.wait_for(f"plant of {robot}", alive_probe(settings, "plant"), timeout=60)
+            sup.wait_for(f"critic of {robot}", alive_probe(settings, "critic"), timeout=60)
+
+    def _settings(self, robot: str) -> Settings:
+        data = self.base.model_dump(mode="json")
+        data["transport"].update(self.transport_for(robot))
+        return Settings.model_validate(data)
+
+    def check(self) -> None:
+        from services.up import ServiceDiedError
+
+        try:
+            self.supervisor.check()
+        except ServiceDiedError as error:
+            raise ExperimentError(f"{error}: {' | '.join(error.tail)}") from error
+
+    def pids(self) -> dict[str, int]:
+        return {name: child.process.pid for name, child in self.supervisor.children.items()}
+
+    def stop(self) -> dict[str, int | None]:
+        self.supervisor.stop_all()  # SIGINT by process group (= pid), SIGKILL after the grace
+        return {name: child.process.returncode for name, child in self.supervisor.children.items()}
+
+    def resources(self) -> dict[str, Any]:
+        """CPU seconds and peak RSS each service reported when it stopped (its last JSON line)."""
+        report: dict[str, Any] = {}
+        for name, child in self.supervisor.children.items():
+            summary = child.summary() or {}
+            report[name] = {**summary.get("resources", {}),
+                            **({"transitions": summary["transitions_received"], "fit_ms": summary.get("fit_ms")}
+                               if "transitions_received" in summary else {})}
+        return report
+
+
+@dataclass
+class Outcome:
+    rows: list[dict[str, Any]]
+    arrays: dict[str, dict[str, np.ndarray]]
+    planned: int
+    interrupted: bool
+    error: str | None
+    wall_seconds: float
+    setup_seconds: float
+    workers: int
+    services: dict[str, Any]
+    worker_pids: list[int]
+
+
+def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], config_path: Path) -> Outcome:
+    """Run every spec over the workers; on Ctrl-C or a failure return what finished."""
+    import multiprocessing
+
+    workers = options.worker_count(len(specs))
+    context = multiprocessing.get_context("spawn")  # never fork a process that holds Zenoh threads
+    results = context.Queue()
+    task_queues = [context.Queue() for _ in range(workers)]
+    processes: list[Any] = []
+    services: _Services | None = None
+    services_info: dict[str, Any] = {}
+    done: list[dict[str, Any]] = []
+    arrays: dict[str, dict[str, np.ndarray]] = {}
+    interrupted = False
+    error: str | None = None
+    started = time.perf_counter()
+    setup_seconds = 0.0
+    progress = _progress(options.progress)
+    previous_sigterm = _set_signal(signal.SIGTERM, _sigterm_as_interrupt)
+    try:
+        with progress:
+            task = progress.add_task("starting workers", total=len(specs))
+            base_data = base.model_dump(mode="json")
+            if options.transport == "zenoh":
+                progress.update(task, description="starting router, plant_sim and critic services")
+                services = _Services(config_path, base, workers)
+                services.start()
+                services_info["endpoint"] = services.endpoint
+            setup_seconds = time.perf_counter() - started
+            for slot in range(workers):
+                data = json.loads(json.dumps(base_data))
+                robot = ""
+                if services is not None:
+                    robot = services.robots[slot]
+                    data["transport"].update(services.transport_for(robot))
+                process = context.Process(
+                    target=_worker_main, args=(WorkerConfig(slot, data, options.transport, robot),
+                                               task_queues[slot], results),
+                    name=f"srl-experiment-worker-{slot}", daemon=True,
+                )
+                # Started with SIGINT ignored, a spawned interpreter never installs its own
+                # KeyboardInterrupt handler: a Ctrl-C while it still imports cannot kill it.
+                handler = _set_signal(signal.SIGINT, signal.SIG_IGN)
+                try:
+                    process.start()
+                finally:
+                    _set_signal(signal.SIGINT, handler)
+                processes.append(process)
+            scheduler = Scheduler(specs)
+            released: set[int] = set()  # workers told to finish (None sent): they may exit
+            progress.update(task, description="building actors")
+            while len(done) < len(specs):
+                try:
+                    kind, slot, payload = results.get(timeout=0.5)
+                except queue.Empty:
+                    for index, process in enumerate(processes):
+                        if process.exitcode is not None and index not in released:
+                            raise ExperimentError(f"worker {index} (pid {process.pid}) exited with code "
+                                                  f"{process.exitcode}") from None
+                    if services is not None:
+                        services.check()
+                    continue
+                if kind == "error":
+                    raise ExperimentError(str(payload))
+                if kind == "done":
+                    row = payload["row"]
+                    done.append(row)
+                    arrays[row["run_id"]] = payload["arrays"]
+                    progress.update(task, advance=1, description=f"{row['run_id']}  J = {row['accumulated_cost']:.2f}")
+                    log.info("run %s done (%d/%d): J = %.4f", row["run_id"], len(done), len(specs),
+                             row["accumulated_cost"])
+                spec = scheduler.next_for(slot)
+                task_queues[slot].put(spec)
+                if spec is None:
+                    released.add(slot)
+    except KeyboardInterrupt:
+        interrupted = True
+    except ExperimentError as failure:
+        error = str(failure)
+    finally:
+        # A second Ctrl-C must not cut the cleanup short (it is bounded: a few seconds).
+        previous_sigint = _set_signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            _stop_workers(processes, task_queues)
+            if services is not None:
+                services_info["pids"] = services.pids()
+                services_info["exit_codes"] = services.stop()
+                services_info["resources"] = services.resources()
+        finally:
+            _set_signal(signal.SIGINT, previous_sigint)
+            _set_signal(signal.SIGTERM, previous_sigterm)
+    return Outcome(done, arrays, len(specs), interrupted, error, time.perf_counter() - started, setup_seconds,
+                   workers, services_info, [p.pid for p in processes])
+
+
+def _sigterm_as_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _set_signal(signum: int, handler: Any) -> Any:
+    """``signal.signal`` where Python allows it (the main thread); elsewhere a no-op."""
+    if handler is None or threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signum, handler)
+
+
+def _stop_workers(processes: list[Any], task_queues: list[Any]) -> None:
+    """Ask idle workers to finish, end busy ones by pid (SIGTERM, then SIGKILL)."""
+    for task_queue in task_queues:
+        with contextlib.suppress(Exception):
+            task_queue.put(None)
+    deadline = time.monotonic() + 0.5
+    for process in processes:
+        process.join(timeout=max(0.0, deadline - time.monotonic()))
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    deadline = time.monotonic() + 5.0
+    for process in processes:
+        process.join(timeout=max(0.1, deadline - time.monotonic()))
+        if process.is_alive():
+            log.warning("worker pid %d did not stop: killing it", process.pid)
+            process.kill()
+            process.join(timeout=5.0)
+    for task_queue in task_queues:
+        task_queue.cancel_join_thread()
+
+
+def _progress(enabled: bool) -> Any:
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(
+        TextColumn("[bold]srl experiment[/bold]"), BarColumn(), MofNCompleteColumn(), TextColumn("runs"),
+        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), TextColumn("{task.description}"),
+        console=Console(stderr=True), disable=not enabled, transient=False,
+    )
+
+
+# -- analysis ---------------------------------------------------------------------------
+def ratio_table(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``J_agent / J_mpc * 100 %`` for every non-MPC run whose start has an MPC run at its N."""
+    mpc = {(r["horizon"], r["start_index"]): r["accumulated_cost"] for r in rows if r["agent"] == "mpc"}
+    table = []
+    for r in rows:
+        if r["agent"] == "mpc" or (r["horizon"], r["start_index"]) not in mpc:
+            continue
+        reference = mpc[(r["horizon"], r["start_index"])]
+        ratio = 100.0 * r["accumulated_cost"] / reference if reference > 0 else float("nan")
+        table.append({"agent": r["agent"], "horizon": r["horizon"], "start_index": r["start_index"],
+                      "start_x": r["start_x"], "start_y": r["start_y"], "run_id": r["run_id"],
+                      "j_agent": r["accumulated_cost"], "j_mpc": reference, "ratio_percent": ratio})
+    return table
+
+
+def group_summary(rows: Sequence[dict[str, Any]], agents: Sequence[str], horizons: Sequence[int],
+                  ratios: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    groups = []
+    for horizon in horizons:
+        for agent in agents:
+            runs = [r for r in rows if r["agent"] == agent and r["horizon"] == horizon]
+            if not runs:
+                continue
+            costs = np.array([r["accumulated_cost"] for r in runs])
+            marks = np.array([t["ratio_percent"] for t in ratios if t["agent"] == agent and t["horizon"] == horizon])
+            marks = marks[np.isfinite(marks)]
+            parked = sum(r["final_distance"] <= PARK_TOLERANCE_M for r in runs)
+            entry: dict[str, Any] = {
+                "agent": agent, "horizon": horizon, "runs": len(runs),
+                "median_cost": float(np.median(costs)), "mean_cost": float(np.mean(costs)),
+                "parked": int(parked), "median_final_distance": float(np.median([r["final_distance"] for r in runs])),
+                "solver_failures": int(sum(r["solver_failures"] for r in runs)),
+                "solve_ms_median": float(np.median([r["solve_ms_median"] for r in runs])),
+                "solve_ms_max": float(max(r["solve_ms_max"] for r in runs)),
+                "critic_timeouts": int(sum(r.get("critic_timeouts", 0) for r in runs)),
+            }
+            if agent != "mpc" and marks.size:
+                entry.update({
+                    "ratios": int(marks.size),
+                    "median_ratio_percent": float(np.median(marks)),
+                    "beat_mpc": int(np.sum(marks < 100.0 - TIE_PERCENT)),
+                    "beat_mpc_share": float(np.mean(marks < 100.0 - TIE_PERCENT)),
+                    "ties": int(np.sum(np.abs(marks - 100.0) <= TIE_PERCENT)),
+                    "min_ratio_percent": float(np.min(marks)),
+                    "max_ratio_percent": float(np.max(marks)),
+                })
+            groups.append(entry)
+    return groups
+
+
+def head_to_head(rows: Sequence[dict[str, Any]], first: str, second: str, horizon: int) -> dict[str, Any] | None:
+    """Starts where ``first`` has a lower J than ``second`` at ``horizon``."""
+    a = {r["start_index"]: r["accumulated_cost"] for r in rows if r["agent"] == first and r["horizon"] == horizon}
+    b = {r["start_index"]: r["accumulated_cost"] for r in rows if r["agent"] == second and r["horizon"] == horizon}
+    common_starts = sorted(set(a) & set(b))
+    if not common_starts:
+        return None
+    wins = sum(100.0 * a[i] / b[i] < 100.0 - TIE_PERCENT for i in common_starts)
+    return {"first": first, "second": second, "horizon": horizon, "starts": len(common_starts), "wins": wins,
+            "median_ratio_percent": float(np.median([100.0 * a[i] / b[i] for i in common_starts]))}
+
+
+def check_claims(groups: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]],
+                 horizons: Sequence[int]) -> list[dict[str, Any]]:
+    """The paper's three claims (section IV), each judged on this run's numbers."""
+    by = {(g["agent"], g["horizon"]): g for g in groups if "beat_mpc_share" in g}
+    claims = []
+    rl = [a for a in ("rlq", "rlqv") if any(k[0] == a for k in by)]
+    if rl:
+        parts, holds = [], True
+        for agent in rl:
+            for horizon in horizons:
+                g = by.get((agent, horizon))
+                if g is None:
+                    continue
+                ok = g["beat_mpc_share"] > 0.5
+                holds &= ok
+                parts.append(f"{agent} N={horizon}: better than MPC from {g['beat_mpc']}/{g['ratios']} starts "
+                             f"(median {g['median_ratio_percent']:.1f} %)")
+        claims.append({"claim": "both RL agents mostly below 100 % (better than MPC)", "holds": holds,
+                       "detail": "; ".join(parts)})
+    if all(any(k[0] == a for k in by) for a in ("rlq", "rlqv")):
+        parts, holds = [], True
+        for horizon in horizons:
+            q, qv = by.get(("rlq", horizon)), by.get(("rlqv", horizon))
+            duel = head_to_head(rows, "rlqv", "rlq", horizon)
+            if q is None or qv is None or duel is None:
+                continue
+            ok = qv["median_ratio_percent"] < q["median_ratio_percent"] and duel["wins"] > duel["starts"] / 2
+            holds &= ok
+            parts.append(f"N={horizon}: median {qv['median_ratio_percent']:.1f} % (QV) vs "
+                         f"{q['median_ratio_percent']:.1f} % (Q), QV better than Q from {duel['wins']}/"
+                         f"{duel['starts']} starts")
+        claims.append({"claim": "QV better than Q", "holds": holds, "detail": "; ".join(parts)})
+    if len(horizons) >= 2 and rl:
+        long_h, short_h = max(horizons), min(horizons)
+        parts, holds = [], True
+        for agent in rl:
+            g_long, g_short = by.get((agent, long_h)), by.get((agent, short_h))
+            if g_long is None or g_short is None:
+                continue
+            ok = g_long["beat_mpc_share"] > g_short["beat_mpc_share"]
+            holds &= ok
+            parts.append(f"{agent}: better than MPC from {g_long['beat_mpc']}/{g_long['ratios']} starts at "
+                         f"N={long_h} vs {g_short['beat_mpc']}/{g_short['ratios']} at N={short_h}")
+        claims.append({"claim": f"RL better than MPC more consistently at the longer horizon (N={long_h})",
+                       "holds": holds, "detail": "; ".join(parts)})
+    return claims
+
+
+# -- outputs ----------------------------------------------------------------------------
+CSV_COLUMNS = (
+    "run_id", "agent", "horizon", "start_index", "start_x", "start_y", "start_alpha", "accumulated_cost",
+    "ratio_to_mpc_percent", "final_x", "final_y", "final_alpha", "final_distance", "parked", "steps",
+    "solver_failures", "solve_ms_median", "solve_ms_p99", "solve_ms_max", "wall_seconds", "worker",
+    "critic_timeouts", "max_staleness_steps",
+)
+
+
+def sorted_rows(rows: Iterable[dict[str, Any]], agents: Sequence[str], horizons: Sequence[int]) -> list[dict]:
+    order = {a: i for i, a in enumerate(agents)}
+    horizon_order = {h: i for i, h in enumerate(horizons)}
+    return sorted(rows, key=lambda r: (horizon_order.get(r["horizon"], 99), order.get(r["agent"], 99),
+                                       r["start_index"]))
+
+
+def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[dict[str, Any]]) -> None:
+    by_run = {t["run_id"]: t["ratio_percent"] for t in ratios}
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for r in rows:
+            ratio = by_run.get(r["run_id"], 100.0 if r["agent"] == "mpc" else None)
+            writer.writerow({**{k: r.get(k) for k in CSV_COLUMNS},
+                             "ratio_to_mpc_percent": "" if ratio is None else repr(float(ratio)),
+                             "parked": int(r["final_distance"] <= PARK_TOLERANCE_M),
+                             **{k: repr(float(r[k])) for k in ("start_x", "start_y", "start_alpha",
+                                                               "accumulated_cost", "final_x", "final_y",
+                                                               "final_alpha", "final_distance")}})
+
+
+def read_runs_csv(path: Path | str) -> list[dict[str, Any]]:
+    """``runs.csv`` back as typed rows (numbers as numbers)."""
+    path = Path(path)
+    ints = {"horizon", "start_index", "steps", "solver_failures", "worker", "parked", "critic_timeouts",
+            "max_staleness_steps"}
+    rows = []
+    with path.open(newline="") as handle:
+        for raw in csv.DictReader(handle):
+            row: dict[str, Any] = {}
+            for key, value in raw.items():
+                if key in ("run_id", "agent"):
+                    row[key] = value
+                elif value == "":
+                    row[key] = None
+                elif key in ints:
+                    row[key] = int(value)
+                else:
+                    row[key] = float(value)
+            rows.append(row)
+    return rows
+
+
+def write_trajectories(path: Path, rows: Sequence[dict[str, Any]], arrays: dict[str, dict[str, np.ndarray]]) -> None:
+    """One compressed ``.npz``: ``run_id[R]``, ``states[R, S+1, 3]``, ``actions[R, S, 2]``,
+    ``costs[R, S]`` in the row order of ``runs.csv`` (every run has the same ``S`` steps)."""
+    ids = [r["run_id"] for r in rows if r["run_id"] in arrays]
+    if not ids:
+        np.savez_compressed(path, run_id=np.array([], dtype=str))
+        return
+    np.savez_compressed(
+        path,
+        run_id=np.array(ids),
+        states=np.stack([arrays[i]["states"] for i in ids]),
+        actions=np.stack([arrays[i]["actions"] for i in ids]),
+        costs=np.stack([arrays[i]["costs"] for i in ids]),
+    )
+
+
+def toml_dumps(data: dict[str, Any]) -> str:
+    """A small TOML writer for the settings' shape: tables of scalars and scalar lists."""
+
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, int):
+            return str(v)
+        if isinstance(v, float):
+            if not math.isfinite(v):
+                raise ValueError(f"TOML settings must be finite, got {v}")
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)  # JSON string escapes are valid TOML basic-string escapes
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+    lines: list[str] = []
+
+    def table(name: str, body: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in body.items() if not isinstance(v, dict) and v is not None}
+        if name:
+            lines.append(f"[{name}]")
+        lines.extend(f"{k} = {value(v)}" for k, v in scalars.items())
+        lines.append("")
+        for k, v in body.items():
+            if isinstance(v, dict):
+                table(f"{name}.{k}" if name else k, v)
+
+    table("", data)
+    return "\n".join(lines).lstrip("\n")
+
+
+def _git_commit() -> str | None:
+    try:
+        done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
+                              cwd=Path(__file__).resolve().parent, check=False)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=5, cwd=Path(__file__).resolve().parent, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if done.returncode != 0:
+        return None
+    return done.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+
+
+def _fmt_init(value: str | list[float]) -> str:
+    return value if isinstance(value, str) else "[" + ", ".join(f"{w:.4g}" for w in value) + "]"
+
+
+def _fmt_ratio(v: float | None) -> str:
+    return "—" if v is None or not math.isfinite(v) else f"{v:.1f} %"
+
+
+def summary_markdown(summary: dict[str, Any]) -> str:
+    e, s = summary["experiment"], summary["settings"]
+    lines = [f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}", ""]
+    status = "INTERRUPTED: partial results" if summary["interrupted"] else (
+        f"FAILED: {summary['error'].splitlines()[0]}" if summary.get("error") else "complete")
+    lines += [
+        f"* command: `{e['command']}`" if e.get("command") else "* command: (library call)",
+        f"* status: {status}, {summary['runs_completed']}/{summary['runs_planned']} runs",
+        f"* starts: {e['grid']} x {e['grid']} "
+        + ("lattice" if e["starts"] == "paper" else f"stratified-jittered (seed {e['seed']})")
+        + f" over [-{e['extent']:g}, {e['extent']:g}]^2, heading turned away from the target (pi at the centre)",
+        f"* agents {', '.join(e['agents'])}; horizons N = {', '.join(str(h) for h in e['horizons'])}; "
+        f"episode {e['duration']:g} s = {e['steps']} steps of delta = {s['plant']['sampling_time']} s; "
+        "every RL run learns online from the initial weights (no pretraining)",
+        f"* wall time **{summary['wall_seconds']:.1f} s** on {summary['workers']} worker processes "
+        f"({summary['cpu_count']} cores; setup {summary['setup_seconds']:.1f} s), git {summary.get('git') or '?'}",
+        f"* settings: R = diag{tuple(s['cost']['r_diag'])}, gamma = {s['critic']['discount_rate']} /s "
+        f"(beta = {s['derived']['discount_beta']:.4f}), M = {s['critic']['replay_size']}, "
+        f"ridge lambda = {s['critic']['ridge']}, weight bounds = {s['critic']['weight_bounds'] or 'none'}, "
+        f"initial weights q = {_fmt_init(s['critic']['q_init'])}, v = {_fmt_init(s['critic']['v_init'])}, "
+        f"solver {s['actor']['solver']}, predictor {s['actor']['predictor']} (all in config.toml)",
+        f"* parked = final distance to the target <= {summary['park_tolerance_m']} m; better than MPC = "
+        f"J/J_mpc < {100 - summary['tie_percent']:g} % (within {summary['tie_percent']:g} % of 100 % is a tie: "
+        "the solver tolerance alone moves J that much)",
+        "",
+        "| agent | N | runs | median J | median J/J_mpc | better than MPC | ties | min J/J_mpc | max J/J_mpc "
+        "| parked | solver failures |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for g in summary["groups"]:
+        beat = f"{g['beat_mpc']}/{g['ratios']} ({100 * g['beat_mpc_share']:.0f} %)" if "beat_mpc" in g else "—"
+        lines.append(
+            f"| {g['agent']} | {g['horizon']} | {g['runs']} | {g['median_cost']:.2f} | "
+            f"{_fmt_ratio(g.get('median_ratio_percent'))} | {beat} | {g.get('ties', '—')} | "
+            f"{_fmt_ratio(g.get('min_ratio_percent'))} | {_fmt_ratio(g.get('max_ratio_percent'))} | "
+            f"{g['parked']}/{g['runs']} | {g['solver_failures']} |"
+        )
+    if summary.get("head_to_head"):
+        lines += ["", "RL-QV vs RL-Q, start by start:", ""]
+        for d in summary["head_to_head"]:
+            lines.append(f"* N = {d['horizon']}: RL-QV better than RL-Q from {d['wins']}/{d['starts']} starts, "
+                         f"median J_rlqv/J_rlq = {d['median_ratio_percent']:.1f} %")
+    if summary.get("claims"):
+        lines += ["", "The paper's claims on these numbers:", ""]
+        for c in summary["claims"]:
+            lines.append(f"* **{'holds' if c['holds'] else 'does not hold'}** — {c['claim']}: {c['detail']}")
+    if e["transport"] == "zenoh":
+        timeouts = sum(g["critic_timeouts"] for g in summary["groups"])
+        lines += ["", f"Zenoh lockstep with the synchronous critic: {timeouts} critic timeouts."]
+    lines += ["", "Files: runs.csv (one row per run), trajectories.npz, config.toml (use with --config), "
+              "settings.json, summary.json, " + ", ".join(summary.get("plots", [])) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome: Outcome) -> dict[str, Any]:
+    rows = sorted_rows(outcome.rows, options.agents, options.horizons)
+    ratios = ratio_table(rows)
+    groups = group_summary(rows, options.agents, options.horizons, ratios)
+    duels = [d for h in options.horizons if (d := head_to_head(rows, "rlqv", "rlq", h)) is not None]
+    write_runs_csv(out / "runs.csv", rows, ratios)
+    write_trajectories(out / "trajectories.npz", rows, outcome.arrays)
+    summary: dict[str, Any] = {
+        "experiment": {
+            "starts": options.starts, "grid": options.grid, "extent": options.extent, "seed": options.seed,
+            "agents": list(options.agents), "horizons": list(options.horizons), "transport": options.transport,
+            "duration": base.episode.duration, "steps": base.steps, "command": options.command,
+        },
+        "status": "interrupted" if outcome.interrupted else ("failed" if outcome.error else "complete"),
+        "interrupted": outcome.interrupted, "error": outcome.error,
+        "runs_planned": outcome.planned, "runs_completed": len(rows),
+        "wall_seconds": outcome.wall_seconds, "setup_seconds": outcome.setup_seconds,
+        "workers": outcome.workers, "cpu_count": os.cpu_count(), "git": _git_commit(),
+        "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
+        "park_tolerance_m": PARK_TOLERANCE_M, "tie_percent": TIE_PERCENT,
+        "groups": groups, "head_to_head": duels,
+        "claims": check_claims(groups, rows, options.horizons) if not outcome.interrupted else [],
+        "ratios": [{k: t[k] for k in ("run_id", "agent", "horizon", "start_index", "start_x", "start_y",
+                                      "ratio_percent")} for t in ratios],
+        "services": outcome.services, "worker_pids": outcome.worker_pids,
+        "settings": base.as_dict(),
+        "plots": [],
+    }
+    if options.plots and rows:
+        from services.experiment_plots import plot_ratio_contours, plot_trajectory_overview
+
+        for horizon in options.horizons:
+            path = out / f"ratio_N{horizon}.png"
+            if plot_ratio_contours([t for t in ratios if t["horizon"] == horizon], horizon, options.extent, path):
+                summary["plots"].append(path.name)
+        plot_trajectory_overview(rows, outcome.arrays, options.agents, options.horizons, options.extent,
+                                 out / "trajectories.png", PARK_TOLERANCE_M)
+        summary["plots"].append("trajectories.png")
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    (out / "summary.md").write_text(summary_markdown(summary))
+    return summary
+
+
+def prepare_output(out: Path, base: Settings) -> Path:
+    """Create ``out``, remove our own stale files, write the resolved config; return its path."""
+    out.mkdir(parents=True, exist_ok=True)
+    for name in OUTPUT_FILES:
+        (out / name).unlink(missing_ok=True)
+    for stale in out.glob("ratio_N*.png"):
+        stale.unlink()
+    config_path = out / "config.toml"
+    config_path.write_text(
+        "# Every setting of this experiment, resolved (packaged srl.toml < --config < SRL_ env < flags).\n"
+        "# Runs override only actor.agent, actor.horizon and episode.start. Reuse: --config config.toml\n"
+        + toml_dumps(base.model_dump(mode="json"))
+    )
+    if Settings.load(config_path) != base:  # the file must reproduce these settings exactly
+        raise ExperimentError(f"{config_path} does not reproduce the resolved settings")
+    (out / "settings.json").write_text(json.dumps(base.as_dict(), indent=2) + "\n")
+    return config_path
+
+
+def experiment_settings(base: Settings) -> Settings:
+    """The base settings as the experiment uses them: no critic checkpoint file.
+
+    Every episode starts from the initial weights by design, and a checkpoint per robot id
+    (``exp<worker>``) would be shared by concurrent experiments and cost a synced write per step.
+    """
+    data = base.model_dump(mode="json")
+    if data["critic"].get("checkpoint"):
+        data["critic"]["checkpoint"] = ""
+        return Settings.model_validate(data)
+    return base
+
+
+def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dict[str, Any]]:
+    """Everything ``srl experiment paper`` does after parsing: (exit code, summary)."""
+    base = experiment_settings(base)
+    starts = make_starts(options.starts, options.grid, options.extent, options.seed)
+    specs = plan_runs(starts, options.agents, options.horizons)
+    config_path = prepare_output(options.out, base)
+    outcome = run_grid(options, base, specs, config_path)
+    summary = write_outputs(options.out, options, base, outcome)
+    if outcome.interrupted:
+        return EXIT_INTERRUPTED, summary
+    return (1 if outcome.error else 0), summary
+
+
+# -- command line -----------------------------------------------------------------------
+def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("which", choices=["paper"], help="paper: section IV, the grid of starts and cost ratios")
+    parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
+    parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
+    parser.add_argument("--starts", choices=STARTS, default="paper",
+                        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells")
+    parser.add_argument("--seed", type=int, default=0, help="seed of everything random (the held-out starts)")
+    parser.add_argument("--agents", default=",".join(DEFAULT_AGENTS), help="comma-separated: mpc,rlq,rlqv,rlqv+")
+    parser.add_argument("--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS),
+                        help="comma-separated N values (default 12,6)")
+    parser.add_argument("--duration", type=float, help="episode length [s] (default from the config: 30)")
+    parser.add_argument("--config", type=Path, help="a TOML file overriding common/srl.toml (any subset)")
+    parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
+    parser.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
+                        help="inproc: workers run Algorithm 1 in process; zenoh: through router, plant_sim "
+                             "and critic service processes (lockstep, synchronous critic)")
+    parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _load_settings(args: argparse.Namespace) -> Settings:
+    from pydantic import ValidationError
+
+    overrides: dict[str, Any] = {}
+    if args.duration is not None:
+        overrides["episode"] = {"duration": args.duration}
+    try:
+        return Settings.load(args.config, **overrides)
+    except ValidationError as error:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
+        raise ValueError(f"invalid settings: {problems}") from error
+    except FileNotFoundError as error:
+        raise ValueError(str(error)) from error
+
+
+def cmd_experiment(args: argparse.Namespace) -> int:
+    try:
+        if args.grid < 1:
+            raise ValueError(f"--grid must be >= 1, got {args.grid}")
+        if not (math.isfinite(args.extent) and args.extent > 0):
+            raise ValueError(f"--extent must be a positive number, got {args.extent}")
+        if args.workers < 0:
+            raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
+        options = ExperimentOptions(
+            grid=args.grid, extent=args.extent, starts=args.starts, seed=args.seed,
+            agents=parse_agents(args.agents), horizons=parse_horizons(args.horizons),
+            transport=args.transport, workers=args.workers,
+            out=args.out or Path("out") / f"paper-{datetime.now(UTC):%Y%m%d-%H%M%S}",
+            plots=not args.no_plots, progress=not args.no_progress,
+        )
+        options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
+        base = _load_settings(args)
+    except ValueError as error:
+        print(f"srl experiment: error: {error}", file=sys.stderr)
+        return 2
+    code, summary = run_experiment(options, base)
+    print(summary_markdown(summary), end="")
+    print(f"\nresults in {options.out}/", file=sys.stderr)
+    if summary.get("error"):
+        print(f"srl experiment: error: {summary['error']}", file=sys.stderr)
+    elif summary["interrupted"]:
+        print(f"srl experiment: interrupted; {summary['runs_completed']} of {summary['runs_planned']} runs "
+              f"written to {options.out}/", file=sys.stderr)
+    return code
+
+
+def _argv_of(args: argparse.Namespace) -> list[str]:
+    """A re-runnable command line for the summary (what was given, defaults spelled out)."""
+    argv = [args.which, f"--grid={args.grid}", f"--extent={args.extent:g}", f"--starts={args.starts}",
+            f"--seed={args.seed}", f"--agents={args.agents}", f"--horizons={args.horizons}",
+            f"--transport={args.transport}"]
+    if args.duration is not None:
+        argv.append(f"--duration={args.duration:g}")
+    if args.config is not None:
+        argv.append(f"--config={args.config}")
+    if args.workers:
+        argv.append(f"--workers={args.workers}")
+    return argv
+
+
+__all__ = ["ExperimentOptions", "RunSpec", "Start", "grid_starts", "held_out_starts", "run_experiment"]
