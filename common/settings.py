@@ -65,8 +65,8 @@ class CriticSettings(_Section):
     replay_size: int = Field(ge=2, description="M")
     ridge: float = Field(ge=0, description="lambda")
     weight_bounds: tuple[()] | tuple[float, float] = Field(description="[] or [low, high]")
-    q_init: Literal["stage_cost"] | list[float]
-    v_init: Literal["stage_cost"] | list[float]
+    q_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
+    v_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
     update_every: int = Field(ge=1)
     checkpoint: str = Field(description="checkpoint file ({robot} = robot id); empty = none")
 
@@ -227,14 +227,23 @@ class Settings(BaseSettings):
     def start_state(self) -> np.ndarray:
         return start_state(self.episode.start)
 
+    def _initial_scale(self, kind: str) -> float:
+        """``stage_cost``: delta (one interval's cost); ``discounted_stage_cost``: delta / (1 - beta),
+        the discounted cost of holding (s, u) for ever, the scale of the TD targets."""
+        if kind == "discounted_stage_cost":
+            if self.discount >= 1.0:
+                raise ValueError("critic init 'discounted_stage_cost' needs discount_rate > 0 (beta < 1)")
+            return self.plant.sampling_time / (1.0 - self.discount)
+        return self.plant.sampling_time
+
     def initial_q_weights(self) -> np.ndarray:
-        if self.critic.q_init == "stage_cost":
-            return self.plant.sampling_time * quadratic_weights_for_diag(self.cost.r_diag)
+        if isinstance(self.critic.q_init, str):
+            return self._initial_scale(self.critic.q_init) * quadratic_weights_for_diag(self.cost.r_diag)
         return np.array(self.critic.q_init, dtype=float)
 
     def initial_v_weights(self) -> np.ndarray:
-        if self.critic.v_init == "stage_cost":
-            return self.plant.sampling_time * quadratic_weights_for_diag(self.cost.r_diag[:3])
+        if isinstance(self.critic.v_init, str):
+            return self._initial_scale(self.critic.v_init) * quadratic_weights_for_diag(self.cost.r_diag[:3])
         return np.array(self.critic.v_init, dtype=float)
 
     def as_dict(self) -> dict[str, Any]:

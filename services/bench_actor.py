@@ -8,7 +8,7 @@ each whole :meth:`StackedActor.step` (guess, solve, checks) gives median / p99 /
 
 Two fixed critic weight sets (nothing is learned while timing):
 
-* ``initial``: the stage cost's own quadratic (``settings.initial_q_weights()`` and
+* ``initial``: the settings' initial critic weights (``settings.initial_q_weights()`` and
   ``initial_v_weights()``); for ``mpc`` the weights do not enter, so it gets one row (``n/a``).
 * ``learned``: non-convex, mixed-sign weights, made reproducibly by adding seeded Gaussian
   noise to the initial weights (:func:`learned_weights`; the seed is advanced, deterministically,
@@ -745,7 +745,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
         f"wall {machine['wall_seconds']:.0f} s"
     )
     print(
-        f"weights: initial = stage cost quadratic; learned = {learned_info['source']}, seed "
+        f"weights: initial = the settings' initial critic weights; learned = {learned_info['source']}, seed "
         f"{learned_info['seed']}, sigma {learned_info['sigma']:.3g}, eig(Q) "
         f"[{learned_info['q_eigenvalues'][0]:.3f} .. {learned_info['q_eigenvalues'][-1]:.3f}]; "
         f"mpc ignores the weights (one row, weights {NO_WEIGHTS})"

@@ -284,8 +284,8 @@ def _worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s %(levelname)s [worker {config.slot}] "
                         "%(name)s: %(message)s", stream=sys.stderr)
-    # Weights of a finished episode arriving after the next reset are refused by design
-    # (episode id); that is expected here, not worth a warning per episode.
+    # A late weight message of a finished episode is refused by design (its episode id), which
+    # is expected between episodes here and not worth a warning.
     logging.getLogger("common.transport").setLevel(logging.ERROR)
     runner: Any = None
     try:
