@@ -264,27 +264,27 @@ class StackedActor:
         """Forget the previous plan (new episode)."""
         self._previous_x = None
 
-    def _initial_guess(self, state: np.ndarray) -> np.ndarray:
-        """Warm start: the previous primal solution shifted by one stage, last stage repeated.
+    def _initial_guess(self, state: np.ndarray) -> None:
+        """Warm start, written in place into the solver's input ``self._x0``: the previous
+        primal solution shifted by one stage, last stage repeated.
 
         With multiple shooting the guess needs not satisfy the dynamics, so shifting the
         whole vector (states and actions) is both cheap and closer than a re-rollout.
         """
         stride = STATE_DIM + ACTION_DIM
+        x0 = self._x0
         if self._previous_x is None:
-            x0 = np.zeros(self._n_x)
+            x0[:] = 0.0
             x0[::stride] = state[0]
             x0[1::stride] = state[1]
             x0[2::stride] = state[2]
         else:
             prev = self._previous_x
-            x0 = np.empty_like(prev)
             x0[:-stride] = prev[stride:]
             # the new last stage: repeat the last held action and the terminal state
             x0[-stride:-STATE_DIM] = prev[-stride:-STATE_DIM]
             x0[-STATE_DIM:] = prev[-STATE_DIM:]
         x0[:STATE_DIM] = state
-        return x0
 
     def _plan_of(self, x: np.ndarray) -> np.ndarray:
         stride = STATE_DIM + ACTION_DIM
@@ -304,8 +304,7 @@ class StackedActor:
         for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
             if weights.shape != (size,) or not np.all(np.isfinite(weights)):
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
-        x0 = self._initial_guess(state)
-        self._x0[:] = x0
+        self._initial_guess(state)
         self._params[:Q_FEATURES] = q_weights
         self._params[Q_FEATURES:] = v_weights
         self._lbx_np[:STATE_DIM] = state
@@ -318,7 +317,7 @@ class StackedActor:
             x_opt = self._x_out.copy()
             objective = float(self._f_out[0])
         except RuntimeError as error:  # CasADi raises on evaluation errors
-            success, status, x_opt, objective = False, f"error: {error}", x0, float("nan")
+            success, status, x_opt, objective = False, f"error: {error}", self._x0, float("nan")
 
         if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
             plan = np.clip(self._plan_of(x_opt), -self._action_bounds, self._action_bounds)
@@ -328,9 +327,10 @@ class StackedActor:
             self.counters.failures += 1
             log.debug("actor solve failed (%s); falling back", status)
             # Safe fallback: the previous plan shifted by one step with zero velocity appended
-            # (x0 holds the shift; its last action is zeroed), so repeated failures run the
-            # plan out and then stand still. Else standing still. Always finite and bounded.
+            # (the warm start holds the shift; its last action is zeroed), so repeated failures
+            # run the plan out and then stand still. Else standing still. Finite and bounded.
             if self._previous_x is not None:
+                x0 = self._x0.copy()  # the solver's input buffer is reused next step
                 x0[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
                 plan = np.clip(self._plan_of(x0), -self._action_bounds, self._action_bounds)
                 self._previous_x = x0

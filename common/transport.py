@@ -106,8 +106,8 @@ class Bus:
                 publisher_detection=True,
             )
         else:
-            # express: sent at once, never held back to fill a batch (zenoh batches by default,
-            # which cost ~1 ms per hop here); every srl message is small and time-critical.
+            # express: sent at once, never held back to fill a batch; every srl message is small
+            # and time-critical (measured here: no difference in latency either way on loopback).
             publisher = self.session.declare_publisher(key, express=True)
         self._keep.append(publisher)
 

@@ -108,11 +108,6 @@ def _first_after(events: list[tuple[float, float]], start: float, value: float, 
     return None
 
 
-def _reported(v: float, v_max: float) -> float:
-    """The speed the robot reports for command ``v``: its firmware truncates to 0.01 m/s."""
-    return firmware_velocity(v, v_max)
-
-
 def _latencies(sent: list[tuple[float, float]], events: list[tuple[float, float]], expect: Any,
                horizon: float) -> list[float]:
     out = []
@@ -220,7 +215,8 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
         with recorder.lock:
             commands, odom, states = list(recorder.commands), list(recorder.odom), list(recorder.states)
         action_to_cmd = _latencies(sent, commands, lambda v: v, 0.1)
-        command_to_odom = _latencies(sent, odom, lambda v: _reported(v, v_max), 0.2)
+        # the robot reports the speed its firmware applies: truncated to 0.01 m/s
+        command_to_odom = _latencies(sent, odom, lambda v: firmware_velocity(v, v_max), 0.2)
         odom_to_state = _odom_to_state([o for o in odom if o[0] >= start], [s for s in states if s >= start])
 
         # phase 2: the robot alone (bridge stopped, commands straight to the robot)
@@ -246,7 +242,7 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
         time.sleep(0.3)
         with recorder.lock:
             odom2 = [o for o in recorder.odom if o[0] >= start2]
-        direct_to_odom = _latencies(direct, odom2, lambda v: _reported(v, v_max), 0.2)
+        direct_to_odom = _latencies(direct, odom2, lambda v: firmware_velocity(v, v_max), 0.2)
         del keep
         resources = bridge_summary.get("resources") or {}
         result = {
