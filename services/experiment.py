@@ -385,7 +385,9 @@ class _Services:
 
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         self.robots = [f"exp{slot}" for slot in range(workers)]
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        # No critic checkpoint (see experiment_settings), even if the environment names one:
+        # SRL_ variables outrank the --config file the services read.
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "SRL_CRITIC__CHECKPOINT": ""}
         self.supervisor = Supervisor([], env, quiet=True)
         self.common = ["--config", str(config_path), "--router", self.endpoint]
         self.base = base
@@ -955,8 +957,12 @@ def prepare_output(out: Path, base: Settings) -> Path:
         "# Runs override only actor.agent, actor.horizon and episode.start. Reuse: --config config.toml\n"
         + toml_dumps(base.model_dump(mode="json"))
     )
-    if Settings.load(config_path) != base:  # the file must reproduce these settings exactly
-        raise ExperimentError(f"{config_path} does not reproduce the resolved settings")
+    # The file must reproduce these settings exactly (as the experiment uses them: an SRL_
+    # environment variable naming a checkpoint still applies on load, and is switched off again).
+    reloaded, expected = experiment_settings(Settings.load(config_path)), experiment_settings(base)
+    if reloaded != expected:
+        differ = [k for k, v in expected.model_dump().items() if reloaded.model_dump()[k] != v]
+        raise ExperimentError(f"{config_path} does not reproduce the resolved settings (sections {differ})")
     (out / "settings.json").write_text(json.dumps(base.as_dict(), indent=2) + "\n")
     return config_path
 

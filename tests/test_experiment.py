@@ -154,9 +154,11 @@ def test_ratios_pair_each_run_with_mpc_from_the_same_start_and_horizon() -> None
 
 
 # -- the command, end to end --------------------------------------------------------------
-def _experiment(out: Path, *extra: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+def _experiment(out: Path, *extra: str, timeout: float = 120,
+                env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "services.cli", "experiment", "paper", *REDUCED, "--out", str(out),
-                           *extra], cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False)
+                           *extra], cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
+                          env=None if env is None else {**os.environ, **env})
 
 
 @pytest.fixture(scope="module")
@@ -219,8 +221,13 @@ def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> 
 
 @pytest.mark.slow
 def test_zenoh_transport_gives_the_inproc_numbers(reduced_inproc: Path, tmp_path: Path) -> None:
-    done = _experiment(tmp_path, "--transport", "zenoh", "--no-plots")
+    # A checkpoint named in the environment (it outranks --config) is still switched off:
+    # every episode starts from the initial weights, and nothing is written per step.
+    checkpoints = tmp_path / "checkpoints"
+    done = _experiment(tmp_path, "--transport", "zenoh", "--no-plots",
+                       env={"SRL_CRITIC__CHECKPOINT": str(checkpoints / "critic-{robot}.json")})
     assert done.returncode == 0, done.stderr[-3000:]
+    assert not checkpoints.exists()
     local = {r["run_id"]: r for r in read_runs_csv(reduced_inproc / "runs.csv")}
     distributed = {r["run_id"]: r for r in read_runs_csv(tmp_path / "runs.csv")}
     assert distributed.keys() == local.keys()
