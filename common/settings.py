@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -69,6 +70,15 @@ class CriticSettings(_Section):
     v_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
     update_every: int = Field(ge=1)
     checkpoint: str = Field(description="checkpoint file ({robot} = robot id); empty = none")
+    robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
+
+    @field_validator("robots")
+    @classmethod
+    def _robots(cls, v: str) -> str:
+        if v != "*" and not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", v):
+            raise ValueError(f"critic.robots must be '*' (every robot) or one robot id "
+                             f"(1-64 characters of A-Z a-z 0-9 _ -), got {v!r}")
+        return v
 
     @model_validator(mode="after")
     def _check(self) -> CriticSettings:

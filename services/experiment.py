@@ -415,7 +415,9 @@ class _Services:
         sup.wait_for("router", lambda: router_reachable(router_settings), timeout=30)
         for robot in self.robots:
             sup.spawn(f"plant-{robot}", ["plant-sim", "--mode", "lockstep", *self.common, "--robot", robot])
-            sup.spawn(f"critic-{robot}", ["critic", *self.common, "--robot", robot])
+            # each critic learns from its own worker's robot only (critic.robots; "*" would make
+            # every critic fit every robot's transitions, W times the work)
+            sup.spawn(f"critic-{robot}", ["critic", *self.common, "--robot", robot], {"SRL_CRITIC__ROBOTS": robot})
         for robot in self.robots:
             settings = self._settings(robot)
             sup.wait_for(f"plant of {robot}", alive_probe(settings, "plant"), timeout=60)

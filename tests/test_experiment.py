@@ -241,6 +241,10 @@ def test_zenoh_transport_gives_the_inproc_numbers(reduced_inproc: Path, tmp_path
     assert services["endpoint"].startswith("tcp/127.0.0.1:")
     assert set(services["pids"]) == {"router", "plant-exp0", "critic-exp0", "plant-exp1", "critic-exp1"}
     assert all(code in (0, -signal.SIGINT) for code in services["exit_codes"].values()), services
+    # each worker's critic learned from that worker's runs only, every transition once
+    for slot in (0, 1):
+        sent = sum(r["steps"] for r in distributed.values() if r["worker"] == slot and r["agent"] != "mpc")
+        assert services["resources"][f"critic-exp{slot}"]["transitions"] == sent, slot
     _assert_all_gone([*services["pids"].values(), *summary["worker_pids"]])
 
 

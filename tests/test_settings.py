@@ -140,6 +140,9 @@ def test_explicit_overrides_beat_env_and_files(tmp_path: Path, monkeypatch: pyte
         {"critic": {"replay_size": 1}},
         {"critic": {"weight_bounds": [1.0, -1.0]}},
         {"critic": {"discount_rate": -1.0}},
+        {"critic": {"robots": "a/b"}},  # one key chunk: "*" or a robot id, never a path
+        {"critic": {"robots": "**"}},
+        {"critic": {"robots": ""}},
         {"cost": {"r_diag": [1.0, 10.0, -1.0, 0.01, 0.01]}},
         {"cost": {"r_diag": [1.0, 10.0, 1.0, 0.01]}},
         {"actor": {"unknown_key": 3}},

@@ -224,15 +224,16 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     if restored:
         for weights in learner.current_weights():
             publish(weights)
-    # Every robot's transitions: srl/*/transition (the key chunk names the robot), with the
-    # history the actors' publishers cache (recovery after a restart or a partition).
-    bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot="*"), inbox.put, recover=True)
+    # critic.robots' transitions: srl/*/transition (every robot; the key chunk names it) or
+    # srl/<id>/transition, with the history the actors' publishers cache (recovery after a
+    # restart or a partition).
+    bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot=settings.critic.robots), inbox.put, recover=True)
     bus.declare_alive(settings.transport.robot)
     start_status_thread(bus, settings.transport.robot, settings.transport.status_period, stop,
                         lambda: {"transitions_received": learner.received, "duplicates": learner.duplicates,
                                  "too_old": learner.too_old})
-    log.info("critic ready (M = %d, beta = %.4f, checkpoint %s)", settings.critic.replay_size,
-             settings.discount, path or "off")
+    log.info("critic ready (robots %s, M = %d, beta = %.4f, checkpoint %s)", settings.critic.robots,
+             settings.critic.replay_size, settings.discount, path or "off")
     end = None if duration is None else time.monotonic() + duration
     while not stop.is_set() and (end is None or time.monotonic() < end):
         try:
