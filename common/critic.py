@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import lsq_linear
 
-from common.features import phi_q, phi_v
+from common.features import phi_q, phi_q_rows, phi_v, phi_v_rows
 
 
 @dataclass(frozen=True)
@@ -127,18 +127,21 @@ class Replay:
         self._samples.append(sample)
 
     def design(
-        self, features: Callable[[Sample], np.ndarray]
+        self, features: Callable[[np.ndarray, np.ndarray], np.ndarray]
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(features_now, features_next, costs)`` over the consecutive pairs."""
+        """``(features_now, features_next, costs)`` over the consecutive pairs.
+
+        ``features(states, actions)`` maps the replay's stacked states ``(n, 3)`` and actions
+        ``(n, 2)`` to one feature row per sample (vectorized: one call per fit, not per sample).
+        """
         samples = self._samples
         pairs = consecutive_pairs([s.step for s in samples])
         if not pairs:
             return np.empty((0, 0)), np.empty((0, 0)), np.empty(0)
-        phis = [features(s) for s in samples]
-        now = np.array([phis[a] for a, _ in pairs])
-        nxt = np.array([phis[b] for _, b in pairs])
+        phis = features(np.array([s.state for s in samples]), np.array([s.action for s in samples]))
+        now_index = np.array([a for a, _ in pairs], dtype=np.intp)
         costs = np.array([samples[a].cost for a, _ in pairs])
-        return now, nxt, costs
+        return phis[now_index], phis[now_index + 1], costs
 
 
 @dataclass
@@ -182,9 +185,9 @@ class DoubleCritic:
     def update(self, replay: Replay) -> CriticUpdate:
         """One TD least-squares fit of both critics on the replay (Algorithm 1, line 6)."""
         args = (self.discount, self.ridge, self.bounds)
-        q_now, q_next, costs = replay.design(lambda s: phi_q(s.state, s.action))
+        q_now, q_next, costs = replay.design(phi_q_rows)
         q_fit = td_fit(q_now, q_next, costs, self.q_weights, *args)
-        v_now, v_next, costs = replay.design(lambda s: phi_v(s.state))
+        v_now, v_next, costs = replay.design(lambda states, _: phi_v_rows(states))
         v_fit = td_fit(v_now, v_next, costs, self.v_weights, *args)
         # Never accept a non-finite fit (ill-conditioned data): keep the previous weights.
         if np.all(np.isfinite(q_fit.weights)):

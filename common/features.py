@@ -36,6 +36,28 @@ def quadratic_features(z: Any) -> Any:
     return np.array(products, dtype=float)
 
 
+def quadratic_feature_rows(z: np.ndarray) -> np.ndarray:
+    """:func:`quadratic_features` of every row of ``z`` (numpy, shape ``(n, dim)``) at once.
+
+    Row ``k`` equals ``quadratic_features(z[k])`` bit for bit (the same products, vectorized).
+    """
+    z = np.asarray(z, dtype=float)
+    pairs = feature_index_pairs(z.shape[1])
+    rows = np.array([i for i, _ in pairs], dtype=np.intp)
+    cols = np.array([j for _, j in pairs], dtype=np.intp)
+    return z[:, rows] * z[:, cols]
+
+
+def phi_q_rows(states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """``phi_Q`` of many ``(s, u)`` at once: shape ``(n, 15)``."""
+    return quadratic_feature_rows(np.hstack([np.asarray(states, float), np.asarray(actions, float)]))
+
+
+def phi_v_rows(states: np.ndarray) -> np.ndarray:
+    """``phi_V`` of many states at once: shape ``(n, 6)``."""
+    return quadratic_feature_rows(states)
+
+
 def phi_q(state: Any, action: Any) -> Any:
     """Q-critic features ``phi_Q(s, u)`` (15 for the unicycle)."""
     if _is_symbolic(state) or _is_symbolic(action):

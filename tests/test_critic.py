@@ -141,7 +141,7 @@ def test_replay_design_never_joins_across_a_gap() -> None:
     replay = Replay(10)
     for step in (0, 1, 2, 4, 5, 8):
         replay.add(_sample(step))
-    now, nxt, costs = replay.design(lambda s: s.state[:1])
+    now, nxt, costs = replay.design(lambda states, _: states[:, :1])
     # pairs (0,1), (1,2), (4,5): never (2,4) nor (5,8)
     np.testing.assert_array_equal(now.ravel(), [0, 1, 4])
     np.testing.assert_array_equal(nxt.ravel(), [1, 2, 5])
@@ -152,7 +152,7 @@ def test_replay_design_empty_when_no_pairs() -> None:
     replay = Replay(5)
     replay.add(_sample(0))
     replay.add(_sample(2))
-    now, nxt, costs = replay.design(lambda s: s.state)
+    now, nxt, costs = replay.design(lambda states, _: states)
     assert now.shape[0] == 0 and nxt.shape[0] == 0 and costs.size == 0
 
 
@@ -162,7 +162,7 @@ def test_replay_keeps_only_the_last_m() -> None:
         replay.add(_sample(step))
     assert len(replay) == 4
     assert [s.step for s in replay.samples] == [6, 7, 8, 9]
-    now, _, costs = replay.design(lambda s: s.state[:1])
+    now, _, costs = replay.design(lambda states, _: states[:, :1])
     assert now.shape == (3, 1)  # M - 1 pairs
     np.testing.assert_array_equal(costs, [106, 107, 108])
 
@@ -172,7 +172,7 @@ def test_replay_out_of_order_insertion() -> None:
     for step in (0, 1, 3, 2, 5, 4):
         replay.add(_sample(step))
     assert [s.step for s in replay.samples] == [0, 1, 2, 3, 4, 5]
-    now, _, _ = replay.design(lambda s: s.state[:1])
+    now, _, _ = replay.design(lambda states, _: states[:, :1])
     np.testing.assert_array_equal(now.ravel(), [0, 1, 2, 3, 4])
 
 

@@ -14,7 +14,9 @@ from common.features import (
     feature_count,
     feature_index_pairs,
     phi_q,
+    phi_q_rows,
     phi_v,
+    phi_v_rows,
     quadratic_features,
     quadratic_weights_for_diag,
     stage_cost,
@@ -55,6 +57,17 @@ def test_phi_v_order_and_count() -> None:
     got = phi_v(S)
     assert got.shape == (6,)
     assert got.tolist() == PHI_V_EXPECTED
+
+
+def test_row_features_equal_the_per_sample_ones_bit_for_bit() -> None:
+    rng = np.random.default_rng(3)
+    states, actions = rng.normal(size=(40, 3)) * 7, rng.normal(size=(40, 2))
+    q_rows, v_rows = phi_q_rows(states, actions), phi_v_rows(states)
+    assert q_rows.shape == (40, 15) and v_rows.shape == (40, 6)
+    for k in range(40):  # exactly equal: the critic's fits must not change by vectorizing
+        assert q_rows[k].tolist() == phi_q(states[k], actions[k]).tolist()
+        assert v_rows[k].tolist() == phi_v(states[k]).tolist()
+    assert phi_q_rows(S[None], U[None])[0].tolist() == PHI_Q_EXPECTED
 
 
 def test_phi_q_accepts_lists() -> None:
