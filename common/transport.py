@@ -65,12 +65,19 @@ class Bus:
         self._lock = threading.Lock()
         self._last_warning: dict[str, float] = {}
         self._keep: list[Any] = []  # declared entities live as long as the bus
+        # Our own threads (status): ended and joined by close(), before the session goes, so
+        # none is inside Zenoh or pydantic when the interpreter finalizes.
+        self.closing = threading.Event()
+        self._threads: list[threading.Thread] = []
 
     @classmethod
     def open(cls, transport: TransportSettings, service: str) -> Bus:
         return cls(zenoh.open(zenoh_config(transport)), service)
 
     def close(self) -> None:
+        self.closing.set()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
         for entity in reversed(self._keep):
             try:
                 entity.undeclare()
@@ -210,14 +217,15 @@ class Bus:
 def start_status_thread(
     bus: Bus, robot: str, period: float, stop: threading.Event, extra: Callable[[], dict[str, float]]
 ) -> threading.Thread:
-    """Publish this service's counters (and ``extra()``) every ``period`` seconds until stop."""
+    """Publish this service's counters (and ``extra()``) every ``period`` seconds until stop
+    or until the bus closes (which joins the thread, so it is never left inside Zenoh)."""
     from common.keys import STATUS
     from common.messages import ServiceStatus
 
     publish = bus.publisher(STATUS, robot, service=bus.service)
 
     def loop() -> None:
-        while not stop.wait(period):
+        while not bus.closing.wait(period) and not stop.is_set():
             counters = {k: float(v) for k, v in dict(bus.counters).items()}
             counters.update(extra())
             try:
@@ -230,4 +238,5 @@ def start_status_thread(
 
     thread = threading.Thread(target=loop, name=f"{bus.service}-status", daemon=True)
     thread.start()
+    bus._threads.append(thread)  # joined by bus.close()
     return thread

@@ -530,5 +530,36 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
+def entry(argv: Sequence[str] | None = None) -> None:
+    """The ``srl`` command: :func:`main`, then, in a process that used Zenoh, an exit that
+    skips the interpreter's finalization.
+
+    Zenoh runs Python callbacks on its own native (Rust) threads. A thread that asks for the
+    GIL while the interpreter finalizes is ended by CPython with ``pthread_exit``, and that
+    forced unwinding through Rust frames aborts the whole process (SIGABRT, exit -6) after its
+    work is done and reported: seen once in the test suite, an actor that had printed its
+    summary. Such a process therefore runs its ``atexit`` handlers (logging, multiprocessing,
+    the actor's JIT directory), flushes its streams and leaves with ``os._exit``: nothing of
+    ours is left to finalize (every service has closed its Zenoh session by then).
+    """
+    import os
+
+    try:
+        code: int | str | None = main(argv)
+    except SystemExit as done:
+        code = done.code
+    if "zenoh" in sys.modules and (code is None or isinstance(code, int)):
+        import atexit
+
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):  # closed, or a broken pipe: nothing more to say
+                pass
+        os._exit(code or 0)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

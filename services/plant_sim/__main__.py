@@ -2,6 +2,6 @@
 
 import sys
 
-from services.cli import main
+from services.cli import entry
 
-sys.exit(main(["plant-sim", *sys.argv[1:]]))
+entry(["plant-sim", *sys.argv[1:]])

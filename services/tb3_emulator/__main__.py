@@ -2,6 +2,6 @@
 
 import sys
 
-from services.cli import main
+from services.cli import entry
 
-sys.exit(main(["tb3-emulator", *sys.argv[1:]]))
+entry(["tb3-emulator", *sys.argv[1:]])
