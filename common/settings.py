@@ -123,6 +123,7 @@ class TransportSettings(_Section):
     mode: Literal["client", "peer"]
     router: str = Field(description="endpoint of the Zenoh router, e.g. tcp/127.0.0.1:7447")
     connect: list[str]
+    listen: list[str] = Field(description="endpoints a client/peer session listens on")
     multicast_scouting: bool
     query_timeout: float = Field(gt=0)
     critic_timeout: float = Field(gt=0)
