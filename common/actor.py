@@ -61,7 +61,7 @@ class ActorProblem:
     jit: bool = True
     max_iter: int = 100
     tolerance: float = 1e-8
-    mu_init: float = 0.001  # interior-point barrier start; small suits the warm start (measured)
+    mu_init: float = 0.01  # interior-point barrier start; small suits the warm start (measured)
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
