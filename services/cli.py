@@ -431,9 +431,8 @@ def build_parser() -> argparse.ArgumentParser:
         add_settings_arguments(svc)
         if modes:
             svc.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
-        svc.add_argument("--run-seconds", type=float, help="stop after this long (default: until signalled; "
-                         "a lockstep actor stops after one episode)")
-        svc.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+        _add_lifetime_arguments(svc, "stop after this long (default: until signalled; a lockstep actor stops "
+                                "after one episode)")
         if name == "actor":
             svc.add_argument("--sync-critic", action="store_true",
                              help="lockstep: wait for the weights trained on the previous step")
@@ -442,8 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     bridge = sub.add_parser("robot-bridge", help="a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh")
     add_settings_arguments(bridge)
     add_bridge_arguments(bridge)
-    bridge.add_argument("--run-seconds", type=float, help="stop after this long (default: until signalled)")
-    bridge.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+    _add_lifetime_arguments(bridge)
     bridge.set_defaults(func=cmd_robot_bridge)
 
     emulator = sub.add_parser("tb3-emulator", help="an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh")
@@ -462,8 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate")
     emulator.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to "
                           "--router)")
-    emulator.add_argument("--run-seconds", type=float, help="stop after this long (default: until signalled)")
-    emulator.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+    _add_lifetime_arguments(emulator)
     emulator.set_defaults(func=cmd_tb3_emulator)
 
     up = sub.add_parser("up", help="router + every service as separate processes, one run")
@@ -511,6 +508,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_lifetime_arguments(parser: argparse.ArgumentParser,
+                            run_help: str = "stop after this long (default: until signalled)") -> None:
+    """--run-seconds and --connect-timeout, as every long-running service process takes them."""
+    parser.add_argument("--run-seconds", type=float, help=run_help)
+    parser.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -550,13 +554,12 @@ def entry(argv: Sequence[str] | None = None) -> None:
         code = done.code
     if "zenoh" in sys.modules and (code is None or isinstance(code, int)):
         import atexit
+        import contextlib
 
         atexit._run_exitfuncs()
         for stream in (sys.stdout, sys.stderr):
-            try:
+            with contextlib.suppress(OSError, ValueError):  # closed, or a broken pipe: nothing more to say
                 stream.flush()
-            except (OSError, ValueError):  # closed, or a broken pipe: nothing more to say
-                pass
         os._exit(code or 0)
     sys.exit(code)
 
