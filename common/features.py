@@ -8,6 +8,7 @@ The functions are dimension-generic and accept numpy arrays or CasADi symbols.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -42,10 +43,15 @@ def quadratic_feature_rows(z: np.ndarray) -> np.ndarray:
     Row ``k`` equals ``quadratic_features(z[k])`` bit for bit (the same products, vectorized).
     """
     z = np.asarray(z, dtype=float)
-    pairs = feature_index_pairs(z.shape[1])
-    rows = np.array([i for i, _ in pairs], dtype=np.intp)
-    cols = np.array([j for _, j in pairs], dtype=np.intp)
+    rows, cols = _index_arrays(z.shape[1])
     return z[:, rows] * z[:, cols]
+
+
+@functools.cache
+def _index_arrays(dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`feature_index_pairs` as two index arrays (built once per dimension)."""
+    pairs = feature_index_pairs(dim)
+    return np.array([i for i, _ in pairs], dtype=np.intp), np.array([j for _, j in pairs], dtype=np.intp)
 
 
 def phi_q_rows(states: np.ndarray, actions: np.ndarray) -> np.ndarray:
