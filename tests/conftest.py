@@ -15,3 +15,13 @@ def critic_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterat
     path = tmp_path / "critic-{robot}.json"
     monkeypatch.setenv("SRL_CRITIC__CHECKPOINT", str(path))
     yield path
+
+
+@pytest.fixture
+def no_srl_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No ``SRL_*`` variable set (tests of how settings are resolved, from files and flags only)."""
+    import os
+
+    for name in list(os.environ):
+        if name.upper().startswith("SRL_"):
+            monkeypatch.delenv(name)

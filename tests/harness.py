@@ -20,6 +20,17 @@ import zenoh
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def run_bench(kind: str, robot: str, seconds: float = 4) -> dict[str, Any]:
+    """``srl bench <kind> --json`` on a free router port, as a user runs it: its JSON result
+    (plus ``"stdout"``, the printed table); fails the test on a non-zero exit."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    done = subprocess.run(
+        [sys.executable, "-m", "services.cli", "bench", kind, "--seconds", str(seconds), "--json", "--router", router,
+         "--robot", robot], cwd=ROOT, capture_output=True, text=True, timeout=180, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return {**json.loads(done.stdout.strip().splitlines()[-1]), "stdout": done.stdout}
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -90,6 +101,13 @@ class Cluster:
         proc = Proc(name, [command, *self.common, *args], env)
         self.procs[name] = proc
         return proc
+
+    def start_plant_and_critic(self) -> None:
+        """A real-time plant_sim and a critic, both alive (the usual ground under an actor)."""
+        self.start("plant", "plant-sim", "--mode", "realtime")
+        self.start("critic", "critic")
+        self.wait_alive("plant")
+        self.wait_alive("critic")
 
     def connect(self) -> zenoh.Session:
         def opened() -> bool:

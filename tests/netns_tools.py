@@ -26,7 +26,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 CHUNK = 65536
@@ -209,29 +209,21 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
             counts[kind] += 1
             emit(kind, **fields)
 
-    def on_weights(sample: zenoh.Sample) -> None:
-        try:
-            w = decode(CriticWeights, sample.payload.to_bytes())
-        except MessageError:
-            record("undecodable", key=str(sample.key_expr))
-            return
-        record("weights", version=w.version, trained_step=w.trained_step, episode=w.episode)
+    def recorder(schema: Any, kind: str, fields: Callable[[Any], dict[str, Any]]) -> Callable[[zenoh.Sample], None]:
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                message = decode(schema, sample.payload.to_bytes())
+            except MessageError:
+                record("undecodable", key=str(sample.key_expr))
+                return
+            record(kind, **fields(message))
 
-    def on_status(sample: zenoh.Sample) -> None:
-        try:
-            s = decode(ServiceStatus, sample.payload.to_bytes())
-        except MessageError:
-            record("undecodable", key=str(sample.key_expr))
-            return
-        record("status", service=s.service, counters=s.counters)
+        return on_sample
 
-    def on_transition(sample: zenoh.Sample) -> None:
-        try:
-            t = decode(Transition, sample.payload.to_bytes())
-        except MessageError:
-            record("undecodable", key=str(sample.key_expr))
-            return
-        record("transition", step=t.step, episode=t.episode)
+    on_weights = recorder(CriticWeights, "weights",
+                          lambda w: {"version": w.version, "trained_step": w.trained_step, "episode": w.episode})
+    on_status = recorder(ServiceStatus, "status", lambda s: {"service": s.service, "counters": s.counters})
+    on_transition = recorder(Transition, "transition", lambda t: {"step": t.step, "episode": t.episode})
 
     def on_token(sample: zenoh.Sample) -> None:
         record("alive", service=str(sample.key_expr).rsplit("/", 1)[-1],

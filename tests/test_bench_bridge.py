@@ -2,24 +2,15 @@
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
 import pytest
 
-from tests.harness import ROOT, free_port
+from tests.harness import run_bench
 
 pytestmark = pytest.mark.slow
 
 
 def test_bench_bridge_short_run_reports_paths_and_baselines() -> None:
-    router = f"tcp/127.0.0.1:{free_port()}"
-    done = subprocess.run(
-        [sys.executable, "-m", "services.cli", "bench", "bridge", "--seconds", "4", "--json", "--router", router,
-         "--robot", "bb"], cwd=ROOT, capture_output=True, text=True, timeout=180, check=False)
-    assert done.returncode == 0, done.stderr[-2000:]
-    r = json.loads(done.stdout.strip().splitlines()[-1])
+    r = run_bench("bridge", "bb")
     assert r["steps"] == 20
     # every command reached cmd_vel; the robot reports most new speeds (a command sent at a random
     # phase may be replaced by the next one before the robot's next 20 Hz odometry sample)

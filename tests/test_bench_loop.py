@@ -2,24 +2,15 @@
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
 import pytest
 
-from tests.harness import ROOT, free_port
+from tests.harness import run_bench
 
 pytestmark = pytest.mark.slow
 
 
 def test_bench_loop_short_run_reports_every_figure() -> None:
-    router = f"tcp/127.0.0.1:{free_port()}"
-    done = subprocess.run(
-        [sys.executable, "-m", "services.cli", "bench", "loop", "--seconds", "4", "--json", "--router", router,
-         "--robot", "bl"], cwd=ROOT, capture_output=True, text=True, timeout=180, check=False)
-    assert done.returncode == 0, done.stderr[-2000:]
-    result = json.loads(done.stdout.strip().splitlines()[-1])
+    result = run_bench("loop", "bl")
     assert 30 <= result["steps"] <= 41  # 4 s at delta = 0.1 s
     assert result["transitions_received"] == result["steps"]  # none lost on loopback
     for name in ("period_ms", "jitter_ms", "solve_ms", "latency_ms", "critic_fit_ms"):
@@ -31,4 +22,4 @@ def test_bench_loop_short_run_reports_every_figure() -> None:
     assert result["machine"]["cpus"] >= 1 and len(result["machine"]["load_before"]) == 3
     assert set(result["targets"]) >= {"missed_deadlines == 0", "jitter p99 <= 2 ms", "latency p99 <= 1 ms"}
     assert all(v in ("PASS", "FAIL") for v in result["targets"].values())
-    assert "srl bench loop" in done.stdout and "targets:" in done.stdout
+    assert "srl bench loop" in result["stdout"] and "targets:" in result["stdout"]

@@ -43,11 +43,7 @@ REDUCED = ["--grid", "2", "--duration", "3", "--agents", "mpc,rlqv", "--horizons
 REDUCED_RUNS = 2 * 2 * 2 * 1  # starts x agents x horizons
 
 
-@pytest.fixture(autouse=True)
-def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name in list(os.environ):
-        if name.upper().startswith("SRL_"):
-            monkeypatch.delenv(name)
+pytestmark = pytest.mark.usefixtures("no_srl_environment")
 
 
 # -- the grid of starts (pure) ----------------------------------------------------------

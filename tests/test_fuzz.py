@@ -170,10 +170,7 @@ def test_live_fuzz_every_key_for_ten_seconds() -> None:
     actions: list[tuple[float, float]] = []
     episodes: list[int] = []  # the actor's episode id: the rogue forges weights for it
     with cluster(robot="fz") as c:
-        c.start("plant", "plant-sim", "--mode", "realtime")
-        c.start("critic", "critic")
-        for name in ("plant", "critic"):
-            c.wait_alive(name)
+        c.start_plant_and_critic()
         actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", str(FUZZ_SECONDS + 4))
         c.wait_alive("actor")
         assert c.session is not None

@@ -147,6 +147,16 @@ def fmt(stats: dict[str, float], unit: str = "", digits: int = 1) -> str:
     return ", ".join(f"{k} {stats[k]:.{digits}f}{unit}" for k in keys if not math.isnan(stats[k]))
 
 
+def loop_rows(summary: dict) -> list[tuple[str, str]]:
+    """The actor's deadlines and weight staleness, as every fault report states them."""
+    return [
+        ("actor deadlines", f"missed {summary['loop']['missed_deadlines']}; period "
+                            f"{fmt(summary['loop']['period_ms'], ' ms', 2)}"),
+        ("staleness [steps]", fmt(summary["staleness_steps"], "", 1)),
+        ("staleness [ms]", fmt(summary["staleness_ms"], " ms")),
+    ]
+
+
 def print_figures(title: str, rows: list[tuple[str, str]]) -> None:
     print(f"\n**{title}**\n\n| figure | value |\n|---|---|")
     for name, value in rows:
@@ -237,10 +247,7 @@ def test_loss_and_delay_on_the_critics_link_cost_no_deadline_and_no_transition()
                          f"{critic_link['bytes']['to_target']} B up, {critic_link['bytes']['to_client']} B down); "
                          f"RTT critic->router host: direct median {rtt_direct['median']:.2f} ms, through the relay "
                          f"median {rtt_relay['median']:.1f} ms; through it under loss {fmt(lossy_rtt, ' ms')}"),
-        ("actor deadlines", f"missed {summary['loop']['missed_deadlines']}; period "
-                            f"{fmt(summary['loop']['period_ms'], ' ms', 2)}"),
-        ("staleness [steps]", fmt(summary["staleness_steps"], "", 1)),
-        ("staleness [ms]", fmt(summary["staleness_ms"], " ms")),
+        *loop_rows(summary),
         ("weights", f"{summary['counters'].get('weights_accepted', 0)} accepted by the actor, last version "
                     f"{summary['weights_version']}; {len(versions)} seen at the router, strictly increasing: "
                     f"{strictly_increasing(versions)}"),
@@ -329,10 +336,7 @@ def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(metho
         ("actor during the partition", f"{len(in_partition)} transitions published; weights version "
                                        f"{sorted({int(c['weights_version']) for c in during})} (held at the cut: "
                                        f"{version_at_cut}); staleness [steps] at 1 Hz: {staleness_series}"),
-        ("actor deadlines", f"missed {summary['loop']['missed_deadlines']}; period "
-                            f"{fmt(summary['loop']['period_ms'], ' ms', 2)}"),
-        ("staleness [steps]", fmt(summary["staleness_steps"], "", 1)),
-        ("staleness [ms]", fmt(summary["staleness_ms"], " ms")),
+        *loop_rows(summary),
         ("catch-up", f"first weights {first_after['t'] - restored:.2f} s after the link came back; trained on the "
                      f"live edge (step {live_edge}) after {at_edge['t'] - restored:.2f} s; all {total} transitions "
                      f"at the critic {final:.1f} s after the actor's end"),

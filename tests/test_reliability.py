@@ -128,10 +128,7 @@ def test_seen_steps_are_bounded_and_too_old_ones_refused() -> None:
 def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(critic_checkpoint: Path) -> None:
     checkpoint = Path(str(critic_checkpoint).format(robot="kr"))
     with cluster(robot="kr") as c:
-        c.start("plant", "plant-sim", "--mode", "realtime")
-        c.start("critic", "critic")
-        c.wait_alive("plant")
-        c.wait_alive("critic")
+        c.start_plant_and_critic()
         versions: list[int] = []
         assert c.session is not None
         c.session.declare_subscriber("srl/kr/critic/weights", lambda s: versions.append(
@@ -202,10 +199,7 @@ def test_actor_stops_the_robot_when_the_plant_vanishes_and_resumes_when_it_retur
 @pytest.mark.slow
 def test_every_client_reconnects_after_a_router_restart() -> None:
     with cluster(robot="rr") as c:
-        c.start("plant", "plant-sim", "--mode", "realtime")
-        c.start("critic", "critic")
-        c.wait_alive("plant")
-        c.wait_alive("critic")
+        c.start_plant_and_critic()
         actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "12")
         c.wait_alive("actor")
         time.sleep(1.0)

@@ -96,10 +96,7 @@ def test_realtime_up_every_service_a_process() -> None:
 
 def test_actor_keeps_its_loop_without_critic_and_resumes_with_new_weights() -> None:
     with cluster(robot="ck") as c:
-        c.start("plant", "plant-sim", "--mode", "realtime")
-        c.start("critic", "critic")
-        c.wait_alive("plant")
-        c.wait_alive("critic")
+        c.start_plant_and_critic()
         actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "9")
         weights: list[int] = []
         action_times: list[float] = []

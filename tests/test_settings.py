@@ -21,13 +21,7 @@ TOML_PATH = Path(common.__file__).with_name("srl.toml")
 RAW = tomllib.loads(TOML_PATH.read_text())
 
 
-@pytest.fixture(autouse=True)
-def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    import os
-
-    for name in list(os.environ):
-        if name.upper().startswith("SRL_"):
-            monkeypatch.delenv(name)
+pytestmark = pytest.mark.usefixtures("no_srl_environment")
 
 
 def test_load_reads_packaged_toml() -> None:
