@@ -62,6 +62,10 @@ class ActorProblem:
     max_iter: int = 100
     tolerance: float = 1e-8
     mu_init: float = 0.01  # interior-point barrier start; small suits the warm start (measured)
+    # How far the interior point pushes the initial guess off the action bounds (the solvers'
+    # bound_push and bound_frac). The defaults (0.01) move a saturated warm start inward and
+    # cost iterations to walk it back; 1e-4 keeps it (measured, README "Actor benchmark").
+    bound_push: float = 1e-4
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -84,6 +88,8 @@ class ActorProblem:
             raise ValueError(f"unknown solver {self.solver!r}; choose fatrop or ipopt")
         if not (np.isfinite(self.mu_init) and self.mu_init > 0):
             raise ValueError(f"mu_init must be a positive number, got {self.mu_init}")
+        if not (np.isfinite(self.bound_push) and 0 < self.bound_push <= 0.5):
+            raise ValueError(f"bound_push must be in (0, 0.5], got {self.bound_push}")
 
 
 @dataclass
@@ -143,6 +149,7 @@ class StackedActor:
         self.problem = problem
         self.counters = ActorCounters()
         self._previous_x: np.ndarray | None = None
+        self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
         self._solver, lbx, ubx, n_g = self._build()
         self._n_x = lbx.size
         # Zero-copy calls: CasADi's buffer API reads the inputs from, and writes the outputs
@@ -166,8 +173,37 @@ class StackedActor:
         self._buffer.set_res(0, memoryview(self._x_out))
         self._buffer.set_res(1, memoryview(self._f_out))
         self._action_bounds = np.array([problem.v_max, problem.omega_max])
+        # The warm-start merit, called the same zero-copy way: (s_1, actions, weights) -> cost.
+        stride = STATE_DIM + ACTION_DIM
+        self._action_index = np.concatenate(
+            [np.arange(k, k + ACTION_DIM) for k in range(STATE_DIM, self._n_x - STATE_DIM, stride)]
+        )
+        self._merit_state = np.zeros(STATE_DIM)
+        self._merit_actions = np.zeros(self._action_index.size)
+        self._merit_out = np.zeros(1)
+        self._merit_buffer, self._evaluate_merit = self._merit.buffer()
+        for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
+            self._merit_buffer.set_arg(index, memoryview(array))
+        self._merit_buffer.set_res(0, memoryview(self._merit_out))
 
     # -- construction -------------------------------------------------------------------
+    def _objective(self, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:
+        """The agent's objective (module docstring table) over N states and N - 1 actions."""
+        p = self.problem
+        objective: Any = 0
+        for i, (s_i, u_i) in enumerate(zip(states[:-1], actions, strict=True)):
+            running = p.sampling_time * stage_cost(s_i, u_i, p.cost_diag)
+            if p.agent == "mpc":
+                objective += running
+            else:
+                objective += ca.dot(w, phi_q(s_i, u_i))
+                if p.agent == "rlqv+":
+                    # Remark (complemented stack): (N - i) r with the paper's i = 1..N-1.
+                    objective += (p.horizon - (i + 1)) * running
+        if p.agent in ("rlqv", "rlqv+"):
+            objective += ca.dot(v, phi_v(states[-1]))
+        return objective
+
     def _build(self) -> tuple[ca.Function, np.ndarray, np.ndarray, int]:
         p = self.problem
         n_act = p.horizon - 1
@@ -177,21 +213,14 @@ class StackedActor:
         states = [ca.SX.sym(f"s{i + 1}", STATE_DIM) for i in range(p.horizon)]
         actions = [ca.SX.sym(f"u{i + 1}", ACTION_DIM) for i in range(n_act)]
 
-        objective: Any = 0
-        constraints = []
-        for i in range(n_act):
-            s_i, u_i = states[i], actions[i]
-            running = p.sampling_time * stage_cost(s_i, u_i, p.cost_diag)
-            if p.agent == "mpc":
-                objective += running
-            else:
-                objective += ca.dot(w, phi_q(s_i, u_i))
-                if p.agent == "rlqv+":
-                    # Remark (complemented stack): (N - i) r with the paper's i = 1..N-1.
-                    objective += (p.horizon - (i + 1)) * running
-            constraints.append(states[i + 1] - step(s_i, u_i, p.sampling_time))
-        if p.agent in ("rlqv", "rlqv+"):
-            objective += ca.dot(v, phi_v(states[-1]))
+        objective = self._objective(states, actions, w, v)
+        constraints = [states[i + 1] - step(states[i], actions[i], p.sampling_time) for i in range(n_act)]
+        # The same objective along a single-shooting rollout of the actions from s_1 (states
+        # consistent with the predictor): the merit by which step() picks its warm start.
+        rollout = [states[0]]
+        for u_i in actions:
+            rollout.append(step(rollout[-1], u_i, p.sampling_time))
+        merit_args = ([states[0], ca.vertcat(*actions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
 
         # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
         variables = []
@@ -214,7 +243,9 @@ class StackedActor:
         ubx += [inf] * STATE_DIM
         n_g = STATE_DIM * n_act
 
-        options: dict[str, Any] = {"print_time": False}
+        # error_on_fail: a failed solve raises, so a successful step never builds the stats
+        # dict (~20 us, 3 % of a solve); step() reads the stats only after a failure.
+        options: dict[str, Any] = {"print_time": False, "error_on_fail": True}
         jit = p.jit and _compiler_available()
         if p.jit and not jit:
             log.warning("no C compiler found: building the actor without JIT (slower solves)")
@@ -231,12 +262,25 @@ class StackedActor:
                     "jit_options": {"flags": ["-O3"], "verbose": False, "cleanup": False},
                 }
             )
+        if jit:
+            merit_options = {key: value for key, value in options.items() if key.startswith(("jit", "compiler"))}
+            with _in_jit_directory():
+                self._merit = ca.Function("merit", *merit_args, merit_options | {"jit_name": "srl_merit"})
+        else:
+            self._merit = ca.Function("merit", *merit_args)
         if p.solver == "fatrop":
             options.update(
                 {
                     "structure_detection": "auto",
                     "equality": [True] * n_g,
-                    "fatrop": {"print_level": 0, "max_iter": p.max_iter, "tol": p.tolerance, "mu_init": p.mu_init},
+                    "fatrop": {
+                        "print_level": 0,
+                        "max_iter": p.max_iter,
+                        "tol": p.tolerance,
+                        "mu_init": p.mu_init,
+                        "bound_push": p.bound_push,
+                        "bound_frac": p.bound_push,
+                    },
                 }
             )
         else:
@@ -247,6 +291,8 @@ class StackedActor:
                         "max_iter": p.max_iter,
                         "tol": p.tolerance,
                         "mu_init": p.mu_init,
+                        "bound_push": p.bound_push,
+                        "bound_frac": p.bound_push,
                         "sb": "yes",
                     }
                 }
@@ -261,15 +307,23 @@ class StackedActor:
 
     # -- stepping -----------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the previous plan (new episode)."""
+        """Forget the previous plans (new episode)."""
         self._previous_x = None
+        self._earlier_x = None
 
     def _initial_guess(self, state: np.ndarray) -> None:
-        """Warm start, written in place into the solver's input ``self._x0``: the previous
-        primal solution shifted by one stage, last stage repeated.
+        """Warm start, written in place into the solver's input ``self._x0`` (the weights
+        must already be in ``self._params``).
 
-        With multiple shooting the guess needs not satisfy the dynamics, so shifting the
-        whole vector (states and actions) is both cheap and closer than a re-rollout.
+        The usual guess is the previous primal solution shifted by one stage, last stage
+        repeated: with multiple shooting it needs not satisfy the dynamics, so shifting the
+        whole vector (states and actions) is both cheap and closer than a re-rollout. The
+        other candidate is the solution from two steps ago, unshifted, and the one whose
+        actions cost less along a rollout from ``state`` is used. That candidate wins when the
+        loop alternates between two local minima (period-2 chattering, which the benchmark's
+        non-convex "learned" weights produce: the robot returns to the state of two steps
+        ago, where that solution is optimal, while the shifted guess lies in the other basin
+        and costs 2-4 times the iterations). Two merit evaluations cost ~5 us.
         """
         stride = STATE_DIM + ACTION_DIM
         x0 = self._x0
@@ -279,12 +333,24 @@ class StackedActor:
             x0[1::stride] = state[1]
             x0[2::stride] = state[2]
         else:
-            prev = self._previous_x
-            x0[:-stride] = prev[stride:]
-            # the new last stage: repeat the last held action and the terminal state
-            x0[-stride:-STATE_DIM] = prev[-stride:-STATE_DIM]
-            x0[-STATE_DIM:] = prev[-STATE_DIM:]
+            self._shift_into(x0, self._previous_x)
+            if self._earlier_x is not None and self._merit_of(state, self._earlier_x) < self._merit_of(state, x0):
+                x0[:] = self._earlier_x
         x0[:STATE_DIM] = state
+
+    @staticmethod
+    def _shift_into(out: np.ndarray, x: np.ndarray) -> None:
+        """``out`` = ``x`` shifted by one stage, its last held action and state repeated."""
+        stride = STATE_DIM + ACTION_DIM
+        out[:-stride] = x[stride:]
+        out[-stride:-STATE_DIM] = x[-stride:-STATE_DIM]
+        out[-STATE_DIM:] = x[-STATE_DIM:]
+
+    def _merit_of(self, state: np.ndarray, x: np.ndarray) -> float:
+        self._merit_state[:] = state
+        self._merit_actions[:] = x[self._action_index]
+        self._evaluate_merit()
+        return float(self._merit_out[0])
 
     def _plan_of(self, x: np.ndarray) -> np.ndarray:
         stride = STATE_DIM + ACTION_DIM
@@ -304,36 +370,39 @@ class StackedActor:
         for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
             if weights.shape != (size,) or not np.all(np.isfinite(weights)):
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
-        self._initial_guess(state)
         self._params[:Q_FEATURES] = q_weights
         self._params[Q_FEATURES:] = v_weights
+        self._initial_guess(state)
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
         try:
             self._evaluate()
-            stats = self._buffer.stats()
-            success = bool(stats.get("success", False))
-            status = str(stats.get("return_status", "unknown"))
+            success, status = True, "success"
             x_opt = self._x_out.copy()
             objective = float(self._f_out[0])
-        except RuntimeError as error:  # CasADi raises on evaluation errors
-            success, status, x_opt, objective = False, f"error: {error}", self._x0, float("nan")
+        except RuntimeError as error:  # a failed solve (error_on_fail) or an evaluation error
+            stats = self._buffer.stats()
+            status = str(stats.get("return_status", "unknown"))
+            if "process failed" not in str(error):  # an evaluation error, not a failed solve
+                status += f" (error: {str(error).strip().splitlines()[-1]})"
+            success, x_opt, objective = False, self._x0, float("nan")
 
         if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
             plan = np.clip(self._plan_of(x_opt), -self._action_bounds, self._action_bounds)
-            self._previous_x = x_opt
+            self._earlier_x, self._previous_x = self._previous_x, x_opt
         else:
             success = False
             self.counters.failures += 1
             log.debug("actor solve failed (%s); falling back", status)
-            # Safe fallback: the previous plan shifted by one step with zero velocity appended
-            # (the warm start holds the shift; its last action is zeroed), so repeated failures
-            # run the plan out and then stand still. Else standing still. Finite and bounded.
+            # Safe fallback: the previous plan shifted by one step with zero velocity appended,
+            # so repeated failures run the plan out and then stand still. Else standing
+            # still. Finite and bounded.
             if self._previous_x is not None:
-                x0 = self._x0.copy()  # the solver's input buffer is reused next step
-                x0[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
-                plan = np.clip(self._plan_of(x0), -self._action_bounds, self._action_bounds)
-                self._previous_x = x0
+                fallback = np.empty(self._n_x)
+                self._shift_into(fallback, self._previous_x)
+                fallback[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
+                plan = np.clip(self._plan_of(fallback), -self._action_bounds, self._action_bounds)
+                self._earlier_x, self._previous_x = self._previous_x, fallback
             else:
                 plan = np.zeros((self.problem.horizon - 1, ACTION_DIM))
             objective = float("nan")

@@ -96,6 +96,7 @@ def build_actor(settings: Settings) -> StackedActor:
             max_iter=a.max_iter,
             tolerance=a.tolerance,
             mu_init=a.mu_init,
+            bound_push=a.bound_push,
         )
     )
 

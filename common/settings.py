@@ -104,6 +104,7 @@ class ActorSettings(_Section):
     max_iter: int = Field(ge=1)
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)
+    bound_push: float = Field(gt=0, le=0.5)
 
 
 class EpisodeSettings(_Section):
