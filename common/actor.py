@@ -21,7 +21,6 @@ action of the previous plan, else zero velocity, and counts the failure.
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import logging
 import os
@@ -111,31 +110,25 @@ class ActorCounters:
     solve_seconds: list[float] = field(default_factory=list)
 
 
-_JIT_DIRECTORY: list[str] = []
-
-
-def _jit_directory() -> str:
-    """One private temporary directory per process for JIT artifacts, removed at exit."""
-    if not _JIT_DIRECTORY:
-        path = tempfile.mkdtemp(prefix="srl-jit-")
-        atexit.register(shutil.rmtree, path, True)
-        _JIT_DIRECTORY.append(path)
-    return _JIT_DIRECTORY[0]
-
-
 @contextlib.contextmanager
 def _in_jit_directory() -> Iterator[None]:
-    """Run the JIT build with the private directory as working directory.
+    """Run a JIT build inside a fresh private temporary directory, removed right after.
 
+    CasADi writes its C files and shared objects into the CURRENT directory whatever its
+    options say. Once built, the shared objects are loaded (dlopen), and removing their files
+    leaves the mapping intact, so the directory is gone before the actor takes its first step:
+    nothing is left in /tmp even when the process is later killed with SIGKILL.
     ``os.chdir`` is process-wide: actors are built before a service starts its threads, and
     the previous directory is restored even if the build fails.
     """
     previous = os.getcwd()
-    os.chdir(_jit_directory())
+    path = tempfile.mkdtemp(prefix="srl-jit-")
+    os.chdir(path)
     try:
         yield
     finally:
         os.chdir(previous)
+        shutil.rmtree(path, ignore_errors=True)
 
 
 def _compiler_available() -> bool:
@@ -250,9 +243,8 @@ class StackedActor:
         if p.jit and not jit:
             log.warning("no C compiler found: building the actor without JIT (slower solves)")
         if jit:
-            # CasADi writes the generated C file into the CURRENT directory whatever its
-            # options say, so the build runs inside a private temporary directory (see
-            # _in_jit_directory), which is removed at exit; CasADi's own cleanup is off.
+            # The build runs inside a private temporary directory, removed once the compiled
+            # code is loaded (see _in_jit_directory); CasADi's own cleanup is off.
             options.update(
                 {
                     "jit": True,

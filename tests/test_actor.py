@@ -148,15 +148,27 @@ def test_ipopt_and_fatrop_agree() -> None:
     assert fatrop.objective == pytest.approx(ipopt.objective, rel=1e-7)
 
 
-def test_jit_build_solves_the_same_problem(tmp_path, monkeypatch) -> None:
-    monkeypatch.chdir(tmp_path)  # the JIT writes its C files to the working directory
+def test_jit_build_solves_the_same_problem_and_leaves_no_files(tmp_path, monkeypatch) -> None:
+    import tempfile
+
+    work, scratch = tmp_path / "work", tmp_path / "tmp"
+    work.mkdir()
+    scratch.mkdir()
+    monkeypatch.chdir(work)
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     rng = np.random.default_rng(13)
     w, v_w = psd_weights(rng, 5, PAIRS5), psd_weights(rng, 3, PAIRS3)
     state = np.array([0.8, -0.6, 1.0])
-    plain = make_actor("rlqv+", 3).step(state, w, v_w)
-    jitted = make_actor("rlqv+", 3, jit=True).step(state, w, v_w)
-    np.testing.assert_allclose(jitted.plan, plain.plan, atol=1e-7)
-    assert jitted.objective == pytest.approx(plain.objective, rel=1e-9)
+    plain = make_actor("rlqv+", 3)
+    jitted = make_actor("rlqv+", 3, jit=True)
+    # the build directory is removed once the compiled code is loaded: nothing is left for a
+    # SIGKILL to orphan, and nothing is written where the user runs the command
+    assert list(scratch.iterdir()) == [] and list(work.iterdir()) == []
+    for _ in range(3):  # the jitted solver and merit keep working without their files
+        expected, got = plain.step(state, w, v_w), jitted.step(state, w, v_w)
+        np.testing.assert_allclose(got.plan, expected.plan, atol=1e-7)
+        assert got.objective == pytest.approx(expected.objective, rel=1e-9)
+        state = exact_step(state, got.action, DELTA)
 
 
 @pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
