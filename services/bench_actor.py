@@ -3,7 +3,8 @@
 For every agent and horizon ``N`` the CasADi actor (:class:`common.actor.StackedActor`, the
 solver of the settings, fatrop by default) is built ONCE (its build time is reported apart)
 and stepped over a closed loop of ``--steps`` sampling intervals on the exact plant from the
-settings' start, warm-started from its own shifted plan exactly as in ``srl run``. The time of
+settings' start, warm-started exactly as in ``srl run`` (its shifted previous plan, or the plan of
+two steps ago when that is cheaper, see :meth:`StackedActor._initial_guess`). The time of
 each whole :meth:`StackedActor.step` (guess, solve, checks) gives median / p99 / max.
 
 Two fixed critic weight sets (nothing is learned while timing):
