@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 Agent = Literal["mpc", "rlq", "rlqv", "rlqv+"]
 AGENTS: tuple[Agent, ...] = ("mpc", "rlq", "rlqv", "rlqv+")
 Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)
+STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
 V_FEATURES = feature_count(STATE_DIM)
 
 
@@ -167,12 +168,8 @@ class StackedActor:
         self._buffer.set_res(1, memoryview(self._f_out))
         self._action_bounds = np.array([problem.v_max, problem.omega_max])
         # The warm-start merit, called the same zero-copy way: (s_1, actions, weights) -> cost.
-        stride = STATE_DIM + ACTION_DIM
-        self._action_index = np.concatenate(
-            [np.arange(k, k + ACTION_DIM) for k in range(STATE_DIM, self._n_x - STATE_DIM, stride)]
-        )
         self._merit_state = np.zeros(STATE_DIM)
-        self._merit_actions = np.zeros(self._action_index.size)
+        self._merit_actions = np.zeros((problem.horizon - 1, ACTION_DIM))  # row-major = u_1, u_2, ...
         self._merit_out = np.zeros(1)
         self._merit_buffer, self._evaluate_merit = self._merit.buffer()
         for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
@@ -239,62 +236,36 @@ class StackedActor:
         # error_on_fail: a failed solve raises, so a successful step never builds the stats
         # dict (~20 us, 3 % of a solve); step() reads the stats only after a failure.
         options: dict[str, Any] = {"print_time": False, "error_on_fail": True}
+        interior_point = {
+            "print_level": 0,
+            "max_iter": p.max_iter,
+            "tol": p.tolerance,
+            "mu_init": p.mu_init,
+            "bound_push": p.bound_push,
+            "bound_frac": p.bound_push,
+        }
+        if p.solver == "fatrop":
+            options.update({"structure_detection": "auto", "equality": [True] * n_g, "fatrop": interior_point})
+        else:
+            options["ipopt"] = interior_point | {"sb": "yes"}
+
         jit = p.jit and _compiler_available()
         if p.jit and not jit:
             log.warning("no C compiler found: building the actor without JIT (slower solves)")
-        if jit:
+
+        def compiled(jit_name: str) -> dict[str, Any]:
             # The build runs inside a private temporary directory, removed once the compiled
             # code is loaded (see _in_jit_directory); CasADi's own cleanup is off.
-            options.update(
-                {
-                    "jit": True,
-                    "compiler": "shell",
-                    "jit_name": "srl_actor",
-                    "jit_cleanup": False,
-                    "jit_options": {"flags": ["-O3"], "verbose": False, "cleanup": False},
-                }
-            )
-        if jit:
-            merit_options = {key: value for key, value in options.items() if key.startswith(("jit", "compiler"))}
-            with _in_jit_directory():
-                self._merit = ca.Function("merit", *merit_args, merit_options | {"jit_name": "srl_merit"})
-        else:
-            self._merit = ca.Function("merit", *merit_args)
-        if p.solver == "fatrop":
-            options.update(
-                {
-                    "structure_detection": "auto",
-                    "equality": [True] * n_g,
-                    "fatrop": {
-                        "print_level": 0,
-                        "max_iter": p.max_iter,
-                        "tol": p.tolerance,
-                        "mu_init": p.mu_init,
-                        "bound_push": p.bound_push,
-                        "bound_frac": p.bound_push,
-                    },
-                }
-            )
-        else:
-            options.update(
-                {
-                    "ipopt": {
-                        "print_level": 0,
-                        "max_iter": p.max_iter,
-                        "tol": p.tolerance,
-                        "mu_init": p.mu_init,
-                        "bound_push": p.bound_push,
-                        "bound_frac": p.bound_push,
-                        "sb": "yes",
-                    }
-                }
-            )
+            if not jit:
+                return {}
+            jit_options = {"flags": ["-O3"], "verbose": False, "cleanup": False}
+            return {"jit": True, "compiler": "shell", "jit_name": jit_name, "jit_cleanup": False,
+                    "jit_options": jit_options}  # fmt: skip
+
         name = f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}"
-        if jit:
-            with _in_jit_directory():
-                solver = ca.nlpsol(name, p.solver, nlp, options)
-        else:
-            solver = ca.nlpsol(name, p.solver, nlp, options)
+        with _in_jit_directory() if jit else contextlib.nullcontext():
+            solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor"))
+            self._merit = ca.Function("merit", *merit_args, compiled("srl_merit"))
         return solver, np.array(lbx, dtype=float), np.array(ubx, dtype=float), n_g
 
     # -- stepping -----------------------------------------------------------------------
@@ -315,38 +286,37 @@ class StackedActor:
         loop alternates between two local minima (period-2 chattering, which the benchmark's
         non-convex "learned" weights produce: the robot returns to the state of two steps
         ago, where that solution is optimal, while the shifted guess lies in the other basin
-        and costs 2-4 times the iterations). Two merit evaluations cost ~5 us.
+        and costs 2-4 times the iterations). A merit evaluation (JIT) costs ~2 us.
         """
-        stride = STATE_DIM + ACTION_DIM
         x0 = self._x0
         if self._previous_x is None:
             x0[:] = 0.0
-            x0[::stride] = state[0]
-            x0[1::stride] = state[1]
-            x0[2::stride] = state[2]
+            for k in range(STATE_DIM):
+                x0[k::STAGE] = state[k]
         else:
             self._shift_into(x0, self._previous_x)
-            if self._earlier_x is not None and self._merit_of(state, self._earlier_x) < self._merit_of(state, x0):
-                x0[:] = self._earlier_x
+            if self._earlier_x is not None:
+                self._merit_state[:] = state
+                if self._merit_of(self._earlier_x) < self._merit_of(x0):
+                    x0[:] = self._earlier_x
         x0[:STATE_DIM] = state
 
     @staticmethod
     def _shift_into(out: np.ndarray, x: np.ndarray) -> None:
         """``out`` = ``x`` shifted by one stage, its last held action and state repeated."""
-        stride = STATE_DIM + ACTION_DIM
-        out[:-stride] = x[stride:]
-        out[-stride:-STATE_DIM] = x[-stride:-STATE_DIM]
+        out[:-STAGE] = x[STAGE:]
+        out[-STAGE:-STATE_DIM] = x[-STAGE:-STATE_DIM]
         out[-STATE_DIM:] = x[-STATE_DIM:]
 
-    def _merit_of(self, state: np.ndarray, x: np.ndarray) -> float:
-        self._merit_state[:] = state
-        self._merit_actions[:] = x[self._action_index]
+    def _merit_of(self, x: np.ndarray) -> float:
+        """The objective of ``x``'s actions along a rollout from ``self._merit_state``."""
+        self._merit_actions[:] = self._plan_of(x)
         self._evaluate_merit()
         return float(self._merit_out[0])
 
     def _plan_of(self, x: np.ndarray) -> np.ndarray:
-        stride = STATE_DIM + ACTION_DIM
-        return x[:-STATE_DIM].reshape(-1, stride)[:, STATE_DIM:]
+        """The held actions of a decision vector, one row per stage (a view)."""
+        return x[:-STATE_DIM].reshape(-1, STAGE)[:, STATE_DIM:]
 
     def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep:
         """Minimize the agent's objective from ``state``; return the first held action.

@@ -542,8 +542,8 @@ def entry(argv: Sequence[str] | None = None) -> None:
     GIL while the interpreter finalizes is ended by CPython with ``pthread_exit``, and that
     forced unwinding through Rust frames aborts the whole process (SIGABRT, exit -6) after its
     work is done and reported: seen once in the test suite, an actor that had printed its
-    summary. Such a process therefore runs its ``atexit`` handlers (logging, multiprocessing,
-    the actor's JIT directory), flushes its streams and leaves with ``os._exit``: nothing of
+    summary. Such a process therefore runs its ``atexit`` handlers (logging, multiprocessing),
+    flushes its streams and leaves with ``os._exit``: nothing of
     ours is left to finalize (every service has closed its Zenoh session by then).
     """
     import os

@@ -280,7 +280,7 @@ def _run_one(runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, An
 def _worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
     """A worker process: build actors lazily, run what the scheduler sends, until ``None``."""
     # Ctrl-C is the parent's business (it stops us by pid); SIGTERM ends us through
-    # SystemExit so that ``finally`` blocks and atexit (JIT directory removal) still run.
+    # SystemExit so that ``finally`` blocks (the runner's close) and atexit still run.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s %(levelname)s [worker {config.slot}] "
