@@ -321,7 +321,7 @@ def cmd_tb3_emulator(args: argparse.Namespace) -> int:
                      (args.noise[0], args.noise[1]), args.seed, time.monotonic())
     try:
         result = run(session, RosGraph.from_settings(bridge), cmd_type, model, stop, args.run_seconds,
-                     bridge.odom_topic, bridge.cmd_vel_topic, args.odom_rate)
+                     bridge.odom_topic, bridge.cmd_vel_topic, args.odom_rate, attachment=args.attachment)
     finally:
         session.close()
     result["initial_pose"] = list(pose)
@@ -458,6 +458,9 @@ def build_parser() -> argparse.ArgumentParser:
     emulator.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
     emulator.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
     emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate")
+    emulator.add_argument("--attachment", choices=("compact", "legacy"), default="compact",
+                          help="rmw_zenoh attachment format: compact (rmw_zenoh_cpp Humble >= 0.1.2, Jazzy >= 0.2.4) "
+                               "or legacy (Humble 0.1.0-0.1.1, Jazzy 0.2.0-0.2.3)")
     emulator.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to "
                           "--router)")
     _add_lifetime_arguments(emulator)
