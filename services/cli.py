@@ -330,6 +330,26 @@ def cmd_tb3_emulator(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_certs(args: argparse.Namespace) -> int:
+    """``srl certs --out DIR``: TLS material (common/certs.py) and, with --passwords, credentials."""
+    from common.certs import write_tls_material
+    from common.security import ROLES, write_credentials
+
+    out = Path(args.out).expanduser()
+    if (out / "ca.pem").exists():
+        if args.if_missing:
+            print(f"srl certs: {out} already holds a CA: kept", flush=True)
+            return 0
+        raise UsageError(f"{out} already holds a CA (ca.pem): choose a new directory (or --if-missing)")
+    files = write_tls_material(out, ROLES, args.hosts)
+    if args.passwords:
+        write_credentials(out)
+    print(f"srl certs: CA, router ({', '.join(['localhost', '127.0.0.1', '::1', *args.hosts])}) and "
+          f"{', '.join(ROLES)} certificates{' and passwords' if args.passwords else ''} in {files.directory} "
+          "(0700, files 0600)", flush=True)
+    return 0
+
+
 def _floats_arg(count: int) -> Callable[[str], tuple[float, ...]]:
     def parse(text: str) -> tuple[float, ...]:
         try:
@@ -417,6 +437,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     run.add_argument("--plot", type=Path, help="write the trajectory and costs to this PNG")
     run.set_defaults(func=cmd_run)
+
+    certs = sub.add_parser("certs", help="a private CA, the router's and each role's TLS certificate (mTLS)")
+    certs.add_argument("--out", required=True, help="directory to create (0700; files 0600); never in the repository")
+    certs.add_argument("--hosts", nargs="*", default=[], metavar="HOST",
+                       help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1")
+    certs.add_argument("--passwords", action="store_true",
+                       help="also a random password per role: users.txt (router) and <role>.password")
+    certs.add_argument("--if-missing", action="store_true", help="exit 0 without writing if DIR already has a CA")
+    certs.set_defaults(func=cmd_certs)
 
     router = sub.add_parser("router", help="a Zenoh router (Python, mode router)")
     add_settings_arguments(router)
