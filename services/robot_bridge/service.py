@@ -58,6 +58,7 @@ from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
+from common.security import SecurityError
 from common.settings import BridgeSettings, Settings
 from common.stats import summarize
 from common.transport import Bus, start_status_thread
@@ -487,6 +488,11 @@ def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
 
 
 def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
+    if settings.transport.secure and not settings.bridge.robot_endpoint:
+        # srl's access rules cover srl's keys: a robot's ROS 2 traffic on srl's secured router
+        # would be refused, and the bridge would wait for odometry that never comes
+        raise SecurityError("robot_bridge: with transport.secure the robot must be on its own Zenoh router: set "
+                            "bridge.robot_endpoint (SRL_BRIDGE__ROBOT_ENDPOINT, --robot-endpoint)")
     robot = settings.transport.robot
     graph = RosGraph.from_settings(settings.bridge)
     own_session = bool(settings.bridge.robot_endpoint)
