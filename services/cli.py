@@ -390,7 +390,8 @@ def format_up_summary(summary: dict[str, Any]) -> str:
              f"N = {summary.get('horizon')}"]
     lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
     if summary.get("secure"):
-        lines.append("  security       user/password login per role + access rules at the router (common/security.py)")
+        lines.append("  security       user/password login per role + access rules at the router (common/security.py)"
+                     + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""))
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")

@@ -197,6 +197,17 @@ def test_legacy_attachment_layout() -> None:
             Attachment.decode(bad)
 
 
+def test_huge_length_prefixes_are_wire_errors_not_panics() -> None:
+    """zenoh.ext.z_deserialize panics (pyo3 PanicException, "capacity overflow") on these: the
+    decoder must parse them itself and refuse them like any other bad attachment."""
+    for bad in (bytes(16) + b"\xff" * 9 + b"\x01" + bytes(7),          # compact, 33 bytes
+                bytes(16) + b"\xff\xff\xff\xff\x0f" + bytes(12),
+                bytes.fromhex(LEGACY_GOLDEN)[:16] + b"\xff" * 9 + b"\x01" + bytes(60),
+                b"\x0fsequence_number" + bytes(8) + b"\xff" * 12):
+        with pytest.raises(WireError):
+            Attachment.decode(bad)
+
+
 # (token, GID bytes as rmw_zenoh's Entity stores them) -- see the module docstring
 GID_GOLDEN = [
     ("", "7f498d4624c30160d8984701d306aa99"),  # = reversed 99aa06d3014798d86001c324468d497f

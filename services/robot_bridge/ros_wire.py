@@ -267,9 +267,6 @@ def gid_for(token: str) -> bytes:
 
 
 # -- the rmw_zenoh attachment -----------------------------------------------------------------
-_LEGACY_LAYOUT = tuple[str, zenoh.ext.Int64, str, zenoh.ext.Int64, str, bytes]
-
-
 @dataclass(frozen=True)
 class Attachment:
     seq: int
@@ -292,35 +289,69 @@ class Attachment:
 
     @classmethod
     def decode(cls, raw: bytes) -> Attachment:
-        """Either format (recorded in ``format``); WireError for anything else."""
-        if raw[:1] == bytes([len(LEGACY_FIELDS[0])]) and raw[1:1 + len(LEGACY_FIELDS[0])] == LEGACY_FIELDS[0].encode():
-            return cls._decode_legacy(raw)
-        if len(raw) != ATTACHMENT_SIZE:
-            raise WireError(f"attachment of {len(raw)} bytes, expected {ATTACHMENT_SIZE} (compact) or the legacy "
-                            f"named fields")
-        try:
-            seq, stamp, gid = zenoh.ext.z_deserialize(tuple[zenoh.ext.Int64, zenoh.ext.Int64, bytes],
-                                                      zenoh.ZBytes(raw))
-        except zenoh.ext.ZDeserializeError as error:
-            raise WireError(f"attachment does not deserialize: {error}") from None
-        if len(gid) != GID_SIZE:
-            raise WireError(f"attachment GID of {len(gid)} bytes")
-        return cls(int(seq), int(stamp), bytes(gid))
+        """Either format (recorded in ``format``); WireError for anything else.
 
-    @classmethod
-    def _decode_legacy(cls, raw: bytes) -> Attachment:
-        try:
-            n1, seq, n2, stamp, n3, gid = zenoh.ext.z_deserialize(_LEGACY_LAYOUT, zenoh.ZBytes(raw))
-        except (zenoh.ext.ZDeserializeError, UnicodeDecodeError) as error:
-            raise WireError(f"legacy attachment does not deserialize: {error}") from None
-        if (n1, n2, n3) != LEGACY_FIELDS:
-            raise WireError(f"legacy attachment with fields {(n1, n2, n3)}, expected {LEGACY_FIELDS}")
+        Parsed here, by the zenoh-ext rules, not by ``zenoh.ext.z_deserialize``: that one panics
+        (``pyo3_runtime.PanicException``, not an Exception; measured: "capacity overflow", and
+        an abort of the process under hypothesis) on a length prefix of 10 bytes."""
+        reader = _Reader(raw)
+        if raw[:1] == bytes([len(LEGACY_FIELDS[0])]) and raw[1:1 + len(LEGACY_FIELDS[0])] == LEGACY_FIELDS[0].encode():
+            names, values = [], []
+            for _ in range(2):
+                names.append(reader.string())
+                values.append(reader.int64())
+            names.append(reader.string())
+            if tuple(names) != LEGACY_FIELDS:
+                raise WireError(f"legacy attachment with fields {tuple(names)}, expected {LEGACY_FIELDS}")
+            attachment_format: AttachmentFormat = "legacy"
+        else:
+            if len(raw) != ATTACHMENT_SIZE:
+                raise WireError(f"attachment of {len(raw)} bytes, expected {ATTACHMENT_SIZE} (compact) or the "
+                                "legacy named fields")
+            values = [reader.int64(), reader.int64()]
+            attachment_format = "compact"
+        gid = reader.sequence()
         if len(gid) != GID_SIZE:
             raise WireError(f"attachment GID of {len(gid)} bytes")
-        decoded = cls(int(seq), int(stamp), bytes(gid), "legacy")
-        if decoded.encode() != raw:  # zenoh-ext ignores trailing bytes: be exact
-            raise WireError(f"legacy attachment of {len(raw)} bytes has trailing data")
-        return decoded
+        if reader.pos != len(raw):
+            raise WireError(f"attachment of {len(raw)} bytes has {len(raw) - reader.pos} trailing bytes")
+        return cls(values[0], values[1], gid, attachment_format)
+
+
+class _Reader:
+    """zenoh-ext's wire rules for what attachments hold: int64 = 8 bytes little endian; a
+    sequence (bytes, string) = LEB128 length then the bytes. Every read is bounded by the input."""
+
+    MAX_LENGTH_BYTES = 5  # LEB128 of a length below 2**35: far more than any attachment
+
+    def __init__(self, raw: bytes) -> None:
+        self.raw, self.pos = raw, 0
+
+    def take(self, n: int) -> bytes:
+        if n < 0 or self.pos + n > len(self.raw):
+            raise WireError(f"attachment truncated: {n} bytes wanted at offset {self.pos} of {len(self.raw)}")
+        chunk = self.raw[self.pos:self.pos + n]
+        self.pos += n
+        return bytes(chunk)
+
+    def int64(self) -> int:
+        return int.from_bytes(self.take(8), "little", signed=True)
+
+    def sequence(self) -> bytes:
+        length, shift = 0, 0
+        for _ in range(self.MAX_LENGTH_BYTES):
+            byte = self.take(1)[0]
+            length |= (byte & 0x7F) << shift
+            shift += 7
+            if not byte & 0x80:
+                return self.take(length)
+        raise WireError(f"attachment length prefix longer than {self.MAX_LENGTH_BYTES} bytes")
+
+    def string(self) -> str:
+        try:
+            return self.sequence().decode("utf-8")
+        except UnicodeDecodeError as error:
+            raise WireError(f"attachment field name is not UTF-8: {error}") from None
 
 
 # -- CDR ------------------------------------------------------------------------------------
