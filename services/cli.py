@@ -504,7 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
     up.add_argument("--secure", action="store_true",
                     help="Zenoh user/password login with fresh random credentials per role, and access rules "
-                         "at the router: only the actor publishes actions, the critic weights, the plant state")
+                         "at the router: only the actor publishes actions, the critic weights, the plant state; "
+                         "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA)")
     up.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     up.set_defaults(func=cmd_up)
 
