@@ -34,6 +34,7 @@ tokens, and the cache answers with replies on ``<key>`` itself: :func:`advanced_
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import os
 import secrets
@@ -274,3 +275,85 @@ def zenoh_entries(transport: TransportSettings, *, router: bool) -> dict[str, An
                 "access_control": acl_config(transport.robot)}
     user, password = client_credentials(transport)
     return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}
+
+
+# -- TLS and network exposure -----------------------------------------------------------------
+LOOPBACK_NAMES = ("localhost",)
+
+
+def endpoint_host(endpoint: str) -> tuple[str, str]:
+    """``(protocol, host)`` of a Zenoh endpoint such as ``tls/[::1]:7447#iface=lo`` or ``tcp/router:7447``."""
+    protocol, _, rest = endpoint.partition("/")
+    address = rest.split("#", 1)[0].split("?", 1)[0]
+    if address.startswith("["):  # [v6]:port
+        return protocol, address[1:address.find("]")]
+    return protocol, address.rsplit(":", 1)[0] if ":" in address else address
+
+
+def is_loopback(endpoint: str) -> bool:
+    """True for an endpoint bound to loopback only: 127.0.0.0/8, ::1, localhost (and unix sockets)."""
+    protocol, host = endpoint_host(endpoint)
+    if protocol in ("unixsock-stream", "unixpipe"):
+        return True
+    if host.lower() in LOOPBACK_NAMES:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name or 0.0.0.0 / [::]: reachable from elsewhere
+
+
+def check_network_exposure(transport: TransportSettings, listen: list[str]) -> None:
+    """A router that listens off loopback must be secure (login + role rules) and TLS on every
+    such endpoint, unless ``transport.allow_insecure_network`` (a private container network)."""
+    exposed = [endpoint for endpoint in listen if not is_loopback(endpoint)]
+    if not exposed or transport.allow_insecure_network:
+        if exposed:
+            log.warning("router listens on %s without the secure-network checks (allow_insecure_network): "
+                        "only safe inside a private container network", ", ".join(exposed))
+        return
+    problems = []
+    if not transport.secure:
+        problems.append("transport.secure is off (no login, no access rules)")
+    plain = [endpoint for endpoint in exposed if endpoint_host(endpoint)[0] != "tls"]
+    if plain:
+        problems.append(f"{', '.join(plain)} is not a tls/ endpoint")
+    if not (transport.tls_ca and transport.tls_cert and transport.tls_key):
+        problems.append("transport.tls_ca, tls_cert and tls_key are not all set (srl certs --out DIR)")
+    if problems:
+        raise SecurityError(
+            f"refusing to run a router on {', '.join(exposed)}, reachable from the network: "
+            + "; ".join(problems) + ". Use a loopback endpoint, or secure = true with a tls/ endpoint and "
+            "certificates (README, Security), or allow_insecure_network = true ONLY inside a private "
+            "container network")
+
+
+def tls_entries(transport: TransportSettings, *, router: bool) -> dict[str, Any]:
+    """Config entries (path -> JSON value) of Zenoh's TLS links (zenoh 1.10 ``transport/link/tls``):
+    the CA every side verifies the other against, this process's certificate and key (the
+    router's as listener and for its own outgoing links, a client's as its mTLS identity)."""
+    for name in ("tls_ca", "tls_cert", "tls_key"):
+        path = getattr(transport, name)
+        if path and not Path(path).expanduser().is_file():
+            raise SecurityError(f"transport.{name}: {path} is not a file")
+    if not transport.tls_ca:
+        raise SecurityError("a tls/ endpoint needs transport.tls_ca (SRL_TRANSPORT__TLS_CA): the CA certificate "
+                            "(srl certs --out DIR writes ca.pem)")
+    if transport.tls_key:
+        _read_secret_file(transport.tls_key, "TLS private key")  # warns if others may read it
+    entries: dict[str, Any] = {"transport/link/tls/root_ca_certificate": str(Path(transport.tls_ca).expanduser())}
+    cert = str(Path(transport.tls_cert).expanduser()) if transport.tls_cert else ""
+    key = str(Path(transport.tls_key).expanduser()) if transport.tls_key else ""
+    if router:
+        if not (cert and key):
+            raise SecurityError("a router on a tls/ endpoint needs transport.tls_cert and tls_key "
+                                "(srl certs writes router.pem and router.key)")
+        entries.update({"transport/link/tls/listen_certificate": cert, "transport/link/tls/listen_private_key": key,
+                        "transport/link/tls/enable_mtls": transport.tls_mtls})
+    elif transport.tls_mtls and not (cert and key):
+        raise SecurityError("mutual TLS (transport.tls_mtls) needs this process's transport.tls_cert and tls_key "
+                            "(srl certs writes <role>.pem and <role>.key)")
+    if cert and key:  # outgoing links: a client's identity, a router's links to other routers
+        entries.update({"transport/link/tls/connect_certificate": cert, "transport/link/tls/connect_private_key": key,
+                        "transport/link/tls/enable_mtls": transport.tls_mtls})
+    return entries

@@ -138,6 +138,13 @@ class TransportSettings(_Section):
     password: SecretStr = Field(description="usually from SRL_TRANSPORT__PASSWORD; never commit one")
     password_file: str = Field(description="file whose first line is the user's password")
     users_file: str = Field(description="router: the 'user:password' dictionary file")
+    # TLS on tls/ endpoints (common/security.py tls_entries, common/certs.py, README "Security")
+    tls_ca: str = Field(description="PEM file of the CA that signs the router's and the clients' certificates")
+    tls_cert: str = Field(description="PEM certificate of this process (router: its server certificate)")
+    tls_key: str = Field(description="PEM private key of tls_cert (mode 600)")
+    tls_mtls: bool = Field(description="mutual TLS: the router accepts only clients with a certificate from tls_ca")
+    allow_insecure_network: bool = Field(
+        description="let a router listen off loopback without secure + TLS: only inside a private container network")
 
     @model_validator(mode="after")
     def _secure_needs_client_mode(self) -> TransportSettings:

@@ -20,7 +20,7 @@ import zenoh.ext
 
 from common.keys import Service, Topic, liveliness_key
 from common.messages import Message, MessageError, decode
-from common.security import zenoh_entries
+from common.security import check_network_exposure, tls_entries, zenoh_entries
 from common.settings import TransportSettings
 
 log = logging.getLogger(__name__)
@@ -37,6 +37,8 @@ def zenoh_config(
     A router listens on ``transport.router``; a client connects to it (and to ``connect``).
     ``transport.secure``: the router authenticates users and enforces the role rules, a client
     logs in as ``transport.user`` (raises :class:`common.security.SecurityError` if it cannot).
+    ``tls/`` endpoints: TLS with ``transport.tls_*`` (mutual unless ``tls_mtls`` is off). A router
+    listening off loopback raises SecurityError unless secure and TLS (or ``allow_insecure_network``).
     """
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps("router" if router else transport.mode))
@@ -44,11 +46,15 @@ def zenoh_config(
     # Advanced publishers (the transition cache) stamp their samples: timestamps must be on.
     config.insert_json5("timestamping/enabled", "true")
     if router:
-        config.insert_json5("listen/endpoints", json.dumps(listen or [transport.router]))
-        config.insert_json5("connect/endpoints", json.dumps(transport.connect))
+        listening, connecting = listen or [transport.router], transport.connect
+        check_network_exposure(transport, listening)  # off loopback only with login + TLS (or opted out)
     else:
-        config.insert_json5("listen/endpoints", json.dumps(listen or transport.listen))
-        config.insert_json5("connect/endpoints", json.dumps([transport.router, *transport.connect]))
+        listening, connecting = listen or transport.listen, [transport.router, *transport.connect]
+    config.insert_json5("listen/endpoints", json.dumps(listening))
+    config.insert_json5("connect/endpoints", json.dumps(connecting))
+    if any(endpoint.startswith("tls/") for endpoint in [*listening, *connecting]):
+        for path, value in tls_entries(transport, router=router).items():
+            config.insert_json5(path, json.dumps(value))
     if transport.secure:  # Zenoh's own user/password authentication and access rules (common/security.py)
         for path, value in zenoh_entries(transport, router=router).items():
             config.insert_json5(path, json.dumps(value))

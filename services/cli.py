@@ -321,12 +321,32 @@ def cmd_tb3_emulator(args: argparse.Namespace) -> int:
                      (args.noise[0], args.noise[1]), args.seed, time.monotonic())
     try:
         result = run(session, RosGraph.from_settings(bridge), cmd_type, model, stop, args.run_seconds,
-                     bridge.odom_topic, bridge.cmd_vel_topic, args.odom_rate)
+                     bridge.odom_topic, bridge.cmd_vel_topic, args.odom_rate, attachment=args.attachment)
     finally:
         session.close()
     result["initial_pose"] = list(pose)
     result["resources"] = own_resources()
     print(json.dumps(result), flush=True)
+    return 0
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    """``srl certs --out DIR``: TLS material (common/certs.py) and, with --passwords, credentials."""
+    from common.certs import write_tls_material
+    from common.security import ROLES, write_credentials
+
+    out = Path(args.out).expanduser()
+    if (out / "ca.pem").exists():
+        if args.if_missing:
+            print(f"srl certs: {out} already holds a CA: kept", flush=True)
+            return 0
+        raise UsageError(f"{out} already holds a CA (ca.pem): choose a new directory (or --if-missing)")
+    files = write_tls_material(out, ROLES, args.hosts)
+    if args.passwords:
+        write_credentials(out)
+    print(f"srl certs: CA, router ({', '.join(['localhost', '127.0.0.1', '::1', *args.hosts])}) and "
+          f"{', '.join(ROLES)} certificates{' and passwords' if args.passwords else ''} in {files.directory} "
+          "(0700, files 0600)", flush=True)
     return 0
 
 
@@ -370,7 +390,8 @@ def format_up_summary(summary: dict[str, Any]) -> str:
              f"N = {summary.get('horizon')}"]
     lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
     if summary.get("secure"):
-        lines.append("  security       user/password login per role + access rules at the router (common/security.py)")
+        lines.append("  security       user/password login per role + access rules at the router (common/security.py)"
+                     + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""))
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
@@ -418,6 +439,15 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--plot", type=Path, help="write the trajectory and costs to this PNG")
     run.set_defaults(func=cmd_run)
 
+    certs = sub.add_parser("certs", help="a private CA, the router's and each role's TLS certificate (mTLS)")
+    certs.add_argument("--out", required=True, help="directory to create (0700; files 0600); never in the repository")
+    certs.add_argument("--hosts", nargs="*", default=[], metavar="HOST",
+                       help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1")
+    certs.add_argument("--passwords", action="store_true",
+                       help="also a random password per role: users.txt (router) and <role>.password")
+    certs.add_argument("--if-missing", action="store_true", help="exit 0 without writing if DIR already has a CA")
+    certs.set_defaults(func=cmd_certs)
+
     router = sub.add_parser("router", help="a Zenoh router (Python, mode router)")
     add_settings_arguments(router)
     router.set_defaults(func=cmd_router)
@@ -458,6 +488,9 @@ def build_parser() -> argparse.ArgumentParser:
     emulator.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
     emulator.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
     emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate")
+    emulator.add_argument("--attachment", choices=("compact", "legacy"), default="compact",
+                          help="rmw_zenoh attachment format: compact (rmw_zenoh_cpp Humble >= 0.1.2, Jazzy >= 0.2.4) "
+                               "or legacy (Humble 0.1.0-0.1.1, Jazzy 0.2.0-0.2.3)")
     emulator.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to "
                           "--router)")
     _add_lifetime_arguments(emulator)
@@ -471,7 +504,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
     up.add_argument("--secure", action="store_true",
                     help="Zenoh user/password login with fresh random credentials per role, and access rules "
-                         "at the router: only the actor publishes actions, the critic weights, the plant state")
+                         "at the router: only the actor publishes actions, the critic weights, the plant state; "
+                         "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA)")
     up.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     up.set_defaults(func=cmd_up)
 

@@ -108,7 +108,7 @@ def client_config(transport: dict[str, Any], config_file: Path | None = None) ->
     ``secure`` on, ``zenoh_config`` itself (it adds this process's login)."""
     import zenoh
 
-    if transport["secure"]:
+    if transport["secure"] or str(transport["router"]).startswith("tls/"):  # login or TLS: the full settings
         from common.settings import Settings
         from common.transport import zenoh_config
 

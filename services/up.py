@@ -30,7 +30,8 @@ from typing import IO, Any
 
 import zenoh
 
-from common.security import write_credentials
+from common.certs import write_tls_material
+from common.security import ROLES, write_credentials
 from common.settings import Settings
 from common.transport import zenoh_config
 
@@ -201,6 +202,13 @@ def state_probe(settings: Settings) -> Any:
     return probe
 
 
+def _tls_endpoint(endpoint: str) -> str | None:
+    """``tcp/H:P`` -> ``tls/H:P`` (``srl up --secure``); a tls/ endpoint as is; None for others."""
+    if endpoint.startswith("tls/"):
+        return endpoint
+    return "tls/" + endpoint[len("tcp/"):] if endpoint.startswith("tcp/") else None
+
+
 def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
            duration: float, quiet: bool = False, bridge_args: list[str] | None = None,
            secure: bool = False) -> dict[str, Any]:
@@ -213,6 +221,8 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     ``secure``: fresh random credentials for every role in a private temporary directory
     (0700, files 0600, removed at exit); the router authenticates users and enforces the role
     rules of common/security.py, each child logs in as its role, this supervisor as ``monitor``.
+    A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
+    fresh private CA and one certificate per role in the same directory (common/certs.py).
     """
     if plant not in ("sim", "robot"):
         raise ValueError(f"unknown plant {plant!r} (sim or robot)")
@@ -231,11 +241,22 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
     role: dict[str, dict[str, str]] = {}  # child -> its login environment
     if credentials is not None:
-        role = {name: credentials.role_environment(user) for name, user in
-                (("plant", "plant"), ("robot_bridge", "plant"), ("critic", "critic"), ("actor", "actor"))}
+        users = {"plant": "plant", "robot_bridge": "plant", "critic": "critic", "actor": "actor"}
+        role = {name: credentials.role_environment(user) for name, user in users.items()}
         role["router"] = credentials.router_environment()
+        monitor = credentials.transport(settings.transport, "monitor")
+        tls_router = _tls_endpoint(settings.transport.router)
+        if tls_router is not None:  # the same address over mutual TLS (certificates next to the passwords)
+            tls = write_tls_material(credentials.directory / "tls", ROLES)
+            for name, user in [*users.items(), ("router", "router")]:
+                role[name] = {**role[name], **tls.environment(user), "SRL_TRANSPORT__ROUTER": tls_router}
+            common_args = [f"--router={tls_router}" if arg.startswith("--router=") else arg for arg in common_args]
+            robot_args = [f"--router={tls_router}" if arg.startswith("--router=") else arg for arg in robot_args]
+            monitor = monitor.model_copy(update={"router": tls_router, "tls_ca": str(tls.ca),
+                                                 "tls_cert": str(tls.cert("monitor")),
+                                                 "tls_key": str(tls.key("monitor"))})
         # this supervisor's own probes log in as the read-only monitor
-        settings = settings.model_copy(update={"transport": credentials.transport(settings.transport, "monitor")})
+        settings = settings.model_copy(update={"transport": monitor})
     try:
         supervisor.spawn("router", ["router", *common_args], role.get("router"))
         supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
@@ -288,6 +309,7 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         "mode": mode,
         "plant": plant,
         "secure": secure,
+        "router": settings.transport.router,
         "transitions_received": critic_summary.get("transitions_received"),
         "critic_weights_published": critic_summary.get("weights_published"),
         "critic_fit_ms": critic_summary.get("fit_ms"),

@@ -390,8 +390,8 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
             PlantState.model_validate_json(s.payload.to_bytes())))
         c.start("bridge", "robot-bridge", "--profile", "rmw_zenoh", "--ros-distro", "jazzy")
         c.wait_alive("plant")
-        wait_until(lambda: len(commands) >= 3, 10, "zero commands on the fallback TwistStamped key")
-        assert all(cmd[:2] == (0.0, 0.0) for cmd in commands)  # no actor: the watchdog holds zero
+        time.sleep(1.0)  # fallback after 0.5 s; the watchdog's zeros wait for the attachment format
+        assert commands == []  # no odometry yet: the robot's rmw_zenoh release is unknown
 
         odom_key = graph.data_key("odom", ODOMETRY)
         odom = c.session.declare_publisher(odom_key)
@@ -411,6 +411,9 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
 
         put(sample(10, 1.0))
         wait_until(lambda: len(states) == 1, 5, "the first state")
+        wait_until(lambda: len(commands) >= 3, 10, "zero commands on the fallback TwistStamped key")
+        assert all(cmd[:2] == (0.0, 0.0) for cmd in commands)  # no actor: the watchdog holds zero
+        assert all(cmd[2].format == "compact" for cmd in commands)  # the format of the robot's odometry
         bad = 0
         for payload, attachment, key in [
             (sample(11, 2.0), None, None),                      # no attachment
@@ -453,6 +456,77 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
     assert counters["states_published"] == 2
     assert counters["rejected.action"] >= 2  # the NaN and the huge action, refused by the schema
     assert counters["cmd_vel_fallback"] == 1 and summary["fallback"]
+    assert counters["commands_format_unknown"] >= 5  # zeros held back before the first odometry
+    assert summary["attachment_format"] == "compact"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("distro", ["jazzy", "humble"])
+def test_bridge_speaks_the_legacy_attachment_of_an_older_robot(distro: str) -> None:
+    """An emulated rmw_zenoh_cpp Jazzy 0.2.0-0.2.3 / Humble 0.1.0-0.1.1 robot (attachment with
+    field names): the bridge reads the format from its odometry and drives it; the robot never
+    sees an attachment its subscriber would throw on, and the GID is the token's XXH3-128."""
+    robot = f"legacy_{distro}"
+    wire = ["--profile", "rmw_zenoh", "--ros-distro", distro]
+    with cluster(robot=robot) as c:
+        assert c.session is not None
+        graph = RosGraph("rmw_zenoh", distro, 0, "")
+        watch = RobotWatch(c.session, graph, robot)
+        attachments: list[Attachment] = []
+        cmd_type = TWIST_STAMPED if distro == "jazzy" else TWIST
+        c.session.declare_subscriber(graph.data_key("cmd_vel", cmd_type), lambda s: attachments.append(
+            Attachment.decode(bytes(s.attachment.to_bytes()))) if s.attachment is not None else None)
+        publishers: list[str] = []
+        c.session.liveliness().declare_subscriber(
+            f"@ros2_lv/0/*/*/*/MP/%/%/{ros_wire.BRIDGE_NODE}/%cmd_vel/**",
+            lambda s: publishers.append(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT else None, history=True)
+        c.start("emulator", "tb3-emulator", *wire, "--attachment", "legacy", "--initial-pose=-1,0.5,0")
+        c.start("bridge", "robot-bridge", *wire)
+        c.wait_alive("plant")
+        wait_until(lambda: len(watch.states) >= 5, 30, "srl state from the legacy robot's odometry")
+        token = c.session.liveliness().declare_token(f"srl/{robot}/alive/actor")
+        _drive(c.session, robot, watch, 1.5, 0, (0.1, 0.2))
+        assert watch.applied() == (firmware(0.1), firmware(0.2))
+        token.undeclare()
+        wait_until(lambda: watch.applied() == (0.0, 0.0), 5, "the robot to stop")
+        assert c.procs["bridge"].stop() == 0
+        assert c.procs["emulator"].stop() == 0
+        bridge, emulator = c.procs["bridge"].summary(), c.procs["emulator"].summary()
+    print(f"legacy {distro}: {emulator['counters']['cmd_applied']} cmd_vel applied, "
+          f"{emulator['counters'].get('attachment_format_errors', 0)} format errors, "
+          f"{bridge['counters'].get('commands_format_unknown', 0)} commands held before the format was known")
+    assert emulator["attachment"] == "legacy" and bridge["attachment_format"] == "legacy"
+    assert emulator["counters"].get("attachment_format_errors", 0) == 0
+    assert emulator["counters"].get("rejected_bad_attachment", 0) == 0
+    assert emulator["counters"]["cmd_applied"] > 10
+    assert bridge["counters"].get("rejected.odom", 0) == 0
+    assert attachments and all(a.format == "legacy" for a in attachments)
+    assert [a.seq for a in attachments] == list(range(1, len(attachments) + 1))
+    assert len(publishers) == 1  # the bridge's MP token; the attachment GID is its XXH3-128
+    assert {a.gid for a in attachments} == {ros_wire.gid_for(publishers[0])}
+
+
+@pytest.mark.slow
+def test_a_compact_attachment_is_refused_by_a_legacy_robot() -> None:
+    """The attack of finding 8, against the emulator: what srl sent before (compact attachment)
+    is what an rmw_zenoh_cpp 0.2.0-0.2.3 subscriber throws on; the emulator counts it."""
+    with cluster(robot="legacy_neg") as c:
+        assert c.session is not None
+        graph = RosGraph("rmw_zenoh", "jazzy", 0, "")
+        watch = RobotWatch(c.session, graph, "legacy_neg")
+        c.start("emulator", "tb3-emulator", "--attachment", "legacy")
+        wait_until(lambda: len(watch.odom) >= 3, 30, "odometry")
+        key = graph.data_key("cmd_vel", TWIST_STAMPED)
+        payload = ros_wire.encode_command("jazzy", TWIST_STAMPED, 0.2, 0.0, stamp_ns=time.time_ns())
+        publisher = c.session.declare_publisher(key)
+        publisher.put(payload, attachment=Attachment(1, time.time_ns(), bytes(16)).encode())
+        time.sleep(0.5)
+        assert watch.applied() == (0.0, 0.0)
+        publisher.put(payload, attachment=Attachment(2, time.time_ns(), bytes(16), "legacy").encode())
+        wait_until(lambda: watch.applied()[0] > 0.19, 5, "the legacy command to be applied")
+        assert c.procs["emulator"].stop() == 0
+        counters = c.procs["emulator"].summary()["counters"]
+    assert counters["attachment_format_errors"] == 1 and counters["cmd_applied"] == 1
 
 
 @pytest.mark.slow

@@ -10,6 +10,13 @@ Sources of the literals:
 * Keys, tokens, attachment: rmw_zenoh_cpp 0.1.x (Humble) and 0.2.x (Jazzy) sources
   (liveliness_utils.cpp, rmw_publisher_data.cpp, attachment_helpers.cpp, qos.cpp); Humble's
   rmw_zenoh writes the literal ``TypeHashNotSupported`` where Jazzy writes the RIHS01 hash.
+  The legacy attachment (Jazzy 0.2.0-0.2.3, Humble 0.1.0-0.1.1) is written out field by field
+  from the zenoh-ext rules (string = LEB128 length + UTF-8, int64 = 8 bytes little endian).
+* GIDs: XXH3-128 of the empty string is xxHash's published test value
+  ``99aa06d3014798d86001c324468d497f`` (canonical, big endian); the token GIDs were computed
+  by compiling rmw_zenoh's own ``src/detail/simplified_xxhash3.cpp`` (ros2/rmw_zenoh, rolling,
+  2024-10) with a 10-line driver that copies ``low64`` then ``high64`` as ``Entity::Entity``
+  in liveliness_utils.cpp does, and printing the 16 bytes.
 """
 
 from __future__ import annotations
@@ -164,6 +171,70 @@ def test_attachment_layout() -> None:
             Attachment.decode(bad)
 
 
+LEGACY_GOLDEN = (
+    "0f" "73657175656e63655f6e756d626572"        # "sequence_number": LEB128 length 15, UTF-8
+    "0100000000000000"                          # int64 LE 1
+    "10" "736f757263655f74696d657374616d70"      # "source_timestamp": length 16
+    "15cd853dfe9c9717"                          # int64 LE 1700000000123456789
+    "0a" "736f757263655f676964"                  # "source_gid": length 10
+    "10" "000102030405060708090a0b0c0d0e0f"      # the GID: LEB128 length 16, 16 bytes
+)
+
+
+def test_legacy_attachment_layout() -> None:
+    gid = bytes(range(16))
+    raw = Attachment(1, 1_700_000_000_123_456_789, gid, "legacy").encode()
+    assert len(raw) == 77
+    assert raw.hex() == LEGACY_GOLDEN
+    decoded = Attachment.decode(bytes.fromhex(LEGACY_GOLDEN))
+    assert decoded == Attachment(1, 1_700_000_000_123_456_789, gid, "legacy")
+    # the compact golden bytes decode as compact: the format is read from the bytes
+    compact = Attachment(1, 1_700_000_000_123_456_789, gid).encode()
+    assert Attachment.decode(compact).format == "compact"
+    renamed = raw.replace(b"source_gid", b"source_gix")
+    for bad in (raw[:-1], raw + b"\x00", renamed, raw[:40], raw.replace(b"\x10\x00\x01", b"\x0f\x00\x01")):
+        with pytest.raises(WireError):
+            Attachment.decode(bad)
+
+
+def test_huge_length_prefixes_are_wire_errors_not_panics() -> None:
+    """zenoh.ext.z_deserialize panics (pyo3 PanicException, "capacity overflow") on these: the
+    decoder must parse them itself and refuse them like any other bad attachment."""
+    for bad in (bytes(16) + b"\xff" * 9 + b"\x01" + bytes(7),          # compact, 33 bytes
+                bytes(16) + b"\xff\xff\xff\xff\x0f" + bytes(12),
+                bytes.fromhex(LEGACY_GOLDEN)[:16] + b"\xff" * 9 + b"\x01" + bytes(60),
+                b"\x0fsequence_number" + bytes(8) + b"\xff" * 12):
+        with pytest.raises(WireError):
+            Attachment.decode(bad)
+
+
+# (token, GID bytes as rmw_zenoh's Entity stores them) -- see the module docstring
+GID_GOLDEN = [
+    ("", "7f498d4624c30160d8984701d306aa99"),  # = reversed 99aa06d3014798d86001c324468d497f
+    ("a", "1f4e961eb632c6e63468f15a70af6fa9"),
+    ("@ros2_lv/0/1f2e3d4c5b6a79880f1e2d3c4b5a6978/0/2/MP/%/%/srl_robot_bridge/%cmd_vel/"
+     "geometry_msgs::msg::dds_::TwistStamped_/"
+     "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64/::,10:,:,:,,",
+     "9a292280a901961f7f29611bd4126c6d"),
+    ("@ros2_lv/0/1f2e3d4c5b6a79880f1e2d3c4b5a6978/20/21/MP/%/%tb3_1/diff_drive_controller/%tb3_1%odom/"
+     "nav_msgs::msg::dds_::Odometry_/TypeHashNotSupported/::,10:,:,:,,",
+     "aa15e9768bae822ea3883b84252975a2"),
+]
+
+
+@pytest.mark.parametrize(("token", "gid"), GID_GOLDEN)
+def test_gid_is_rmw_zenohs_xxh3_128(token: str, gid: str) -> None:
+    assert ros_wire.gid_for(token).hex() == gid
+
+
+def test_gid_of_the_bridges_own_publisher_token() -> None:
+    zid = "1f2e3d4c5b6a79880f1e2d3c4b5a6978"
+    token = RosGraph("rmw_zenoh", "jazzy", 0, "").endpoint_token(
+        zid, 0, 2, "MP", ros_wire.BRIDGE_NODE, "cmd_vel", TWIST_STAMPED)
+    assert token == GID_GOLDEN[2][0]  # the token the bridge declares is the one hashed above
+    assert ros_wire.gid_for(token).hex() == GID_GOLDEN[2][1]
+
+
 def _cdr_string(text: str, offset: int) -> tuple[bytes, int]:
     """A CDR string at ``offset`` (counted after the 4-byte header): uint32 length with NUL, bytes."""
     pad = b"\x00" * (-offset % 4)
@@ -219,6 +290,16 @@ def test_decoders_raise_only_wire_errors(data: bytes) -> None:
                    Attachment.decode):
         with contextlib.suppress(WireError):  # anything else fails the test
             decode(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 76), st.integers(0, 255), st.binary(max_size=80))
+def test_corrupted_legacy_attachments_raise_only_wire_errors(index: int, value: int, tail: bytes) -> None:
+    raw = bytearray.fromhex(LEGACY_GOLDEN)
+    raw[index] = value
+    for candidate in (bytes(raw), bytes.fromhex(LEGACY_GOLDEN)[:index] + tail):
+        with contextlib.suppress(WireError):  # anything else fails the test
+            Attachment.decode(candidate)
 
 
 @settings(max_examples=200, deadline=None)

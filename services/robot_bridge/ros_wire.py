@@ -12,10 +12,27 @@ rmw_zenoh_cpp sources, 0.1.x for Humble and 0.2.x for Jazzy, ``src/detail/liveli
   topic: ``0/tb3_1/cmd_vel/...``). The dds type is ``<pkg>::msg::dds_::<Name>_``.
 * type hash: Jazzy writes the RIHS01 hash of the type description; **Humble has no type hashes
   and rmw_zenoh writes the constant ``TypeHashNotSupported``** in the key and the tokens.
-* every sample carries a 33-byte attachment, zenoh-ext serialized: int64 sequence number (from
-  1), int64 source timestamp (system clock, ns), the 16-byte GID as a sequence (one LEB128 length
-  byte ``0x10``, then 16 bytes). A subscriber drops samples without it ("Unable to obtain
-  attachment").
+* every sample carries an attachment, zenoh-ext serialized, in one of two formats
+  (``attachment_helpers.cpp``, ``AttachmentData``):
+
+  - ``compact`` (33 bytes; rmw_zenoh_cpp Jazzy >= 0.2.4, Humble >= 0.1.2, Kilted, Lyrical and
+    Rolling >= 0.6.0: "Change serialization format in attachment_helpers.cpp", ros2/rmw_zenoh#601,
+    backported as #605 to Jazzy and #606 to Humble): int64 sequence number (from 1), int64
+    source timestamp (system clock, ns), the 16-byte GID as a sequence (one LEB128 length byte
+    ``0x10``, then 16 bytes);
+  - ``legacy`` (77 bytes; Jazzy 0.2.0-0.2.3, Humble 0.1.0-0.1.1): each field preceded by its
+    name as a zenoh-ext string (LEB128 length, UTF-8): ``"sequence_number"``, int64,
+    ``"source_timestamp"``, int64, ``"source_gid"``, the GID as above. The deserializer of that
+    release throws ``std::runtime_error`` when a name does not match, inside the Zenoh callback
+    and uncaught: a compact attachment can abort a legacy robot's process, and a legacy one
+    is garbage to a compact reader. So the bridge speaks the format the robot's own odometry
+    carries and sends nothing on ``cmd_vel`` before it knows it (services/robot_bridge/service.py).
+
+  A subscriber drops samples without an attachment ("Unable to obtain attachment").
+* the GID of an entity (``Entity::Entity`` in ``liveliness_utils.cpp``) is XXH3-128 (seed 0,
+  ``simplified_xxhash3.cpp``, the reference algorithm without its speed-ups) of the entity's
+  full liveliness token, stored as the low 64 bits then the high 64 bits, each in the host's
+  byte order (little endian on x86-64 and ARM64): :func:`gid_for`.
 * liveliness tokens, the ROS graph (the same shape on Humble and Jazzy):
   ``@ros2_lv/<domain>/<zid>/<nid>/<eid>/<NN|MP|MS|SS|SC>/<enclave>/<namespace>/<node>``
   and, for publishers and subscriptions, ``/<topic>/<dds type>/<type hash>/<qos>``. Names are
@@ -35,13 +52,13 @@ hand-written packing.
 from __future__ import annotations
 
 import functools
-import hashlib
 import math
 import re
 from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+import xxhash
 import zenoh
 import zenoh.ext
 from rosbags.serde import SerdeError
@@ -69,8 +86,14 @@ BASE_FRAME = "base_footprint"
 BRIDGE_NODE = "srl_robot_bridge"
 QOS_DEPTH = 10  # the TurtleBot3's rclcpp::QoS(rclcpp::KeepLast(10)) on cmd_vel and odom
 
-ATTACHMENT_SIZE = 33
+ATTACHMENT_SIZE = 33  # the compact format
 GID_SIZE = 16
+AttachmentFormat = Literal["compact", "legacy"]
+ATTACHMENT_FORMATS: tuple[AttachmentFormat, ...] = ("compact", "legacy")
+LEGACY_FIELDS = ("sequence_number", "source_timestamp", "source_gid")
+# What the README and every refusal name: the rmw_zenoh_cpp releases whose wire srl speaks.
+SUPPORTED_RMW_ZENOH = ("rmw_zenoh_cpp Humble 0.1.0-0.1.1 and Jazzy 0.2.0-0.2.3 (legacy attachment), "
+                       "Humble >= 0.1.2, Jazzy >= 0.2.4, Kilted, Lyrical and Rolling >= 0.6.0 (compact attachment)")
 ADMIN = "@ros2_lv"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _STORES = {"humble": Stores.ROS2_HUMBLE, "jazzy": Stores.ROS2_JAZZY}
@@ -233,9 +256,14 @@ class RosGraph:
 
 
 def gid_for(token: str) -> bytes:
-    """A 16-byte GID for the entity of ``token``. rmw_zenoh takes XXH3-128 of the token; any
-    stable unique 16 bytes serve (receivers use the GID only as an identity): SHA-256 here."""
-    return hashlib.sha256(token.encode()).digest()[:GID_SIZE]
+    """The 16-byte GID rmw_zenoh gives the entity of liveliness token ``token``.
+
+    rmw_zenoh_cpp ``src/detail/liveliness_utils.cpp``, ``Entity::Entity``: ``simplified_XXH3_128bits``
+    of the whole token string, then ``memcpy(gid_, &low64, 8)``, ``memcpy(gid_ + 8, &high64, 8)``
+    (host order, little endian). That is the 128-bit value in little-endian byte order: the
+    reverse of xxHash's canonical (big-endian) digest. So ``ros2 topic info -v`` and a subscriber's
+    ``publisher_gid`` show the same GID for the bridge's publisher."""
+    return xxhash.xxh3_128(token.encode()).intdigest().to_bytes(GID_SIZE, "little")
 
 
 # -- the rmw_zenoh attachment -----------------------------------------------------------------
@@ -244,26 +272,86 @@ class Attachment:
     seq: int
     stamp_ns: int
     gid: bytes
+    format: AttachmentFormat = "compact"
 
     def encode(self) -> bytes:
         """zenoh-ext serialization, the same serializer rmw_zenoh uses (zenoh::ext::Serializer)."""
         if len(self.gid) != GID_SIZE:
             raise ValueError(f"a GID has {GID_SIZE} bytes, not {len(self.gid)}")
-        raw = zenoh.ext.z_serialize((zenoh.ext.Int64(self.seq), zenoh.ext.Int64(self.stamp_ns), self.gid))
-        return bytes(raw.to_bytes())
+        seq, stamp = zenoh.ext.Int64(self.seq), zenoh.ext.Int64(self.stamp_ns)
+        if self.format == "legacy":
+            fields: tuple[Any, ...] = (LEGACY_FIELDS[0], seq, LEGACY_FIELDS[1], stamp, LEGACY_FIELDS[2], self.gid)
+        elif self.format == "compact":
+            fields = (seq, stamp, self.gid)
+        else:
+            raise ValueError(f"unknown attachment format {self.format!r}")
+        return bytes(zenoh.ext.z_serialize(fields).to_bytes())
 
     @classmethod
     def decode(cls, raw: bytes) -> Attachment:
-        if len(raw) != ATTACHMENT_SIZE:
-            raise WireError(f"attachment of {len(raw)} bytes, expected {ATTACHMENT_SIZE}")
-        try:
-            seq, stamp, gid = zenoh.ext.z_deserialize(tuple[zenoh.ext.Int64, zenoh.ext.Int64, bytes],
-                                                      zenoh.ZBytes(raw))
-        except zenoh.ext.ZDeserializeError as error:
-            raise WireError(f"attachment does not deserialize: {error}") from None
+        """Either format (recorded in ``format``); WireError for anything else.
+
+        Parsed here, by the zenoh-ext rules, not by ``zenoh.ext.z_deserialize``: that one panics
+        (``pyo3_runtime.PanicException``, not an Exception; measured: "capacity overflow", and
+        an abort of the process under hypothesis) on a length prefix of 10 bytes."""
+        reader = _Reader(raw)
+        if raw[:1] == bytes([len(LEGACY_FIELDS[0])]) and raw[1:1 + len(LEGACY_FIELDS[0])] == LEGACY_FIELDS[0].encode():
+            names, values = [], []
+            for _ in range(2):
+                names.append(reader.string())
+                values.append(reader.int64())
+            names.append(reader.string())
+            if tuple(names) != LEGACY_FIELDS:
+                raise WireError(f"legacy attachment with fields {tuple(names)}, expected {LEGACY_FIELDS}")
+            attachment_format: AttachmentFormat = "legacy"
+        else:
+            if len(raw) != ATTACHMENT_SIZE:
+                raise WireError(f"attachment of {len(raw)} bytes, expected {ATTACHMENT_SIZE} (compact) or the "
+                                "legacy named fields")
+            values = [reader.int64(), reader.int64()]
+            attachment_format = "compact"
+        gid = reader.sequence()
         if len(gid) != GID_SIZE:
             raise WireError(f"attachment GID of {len(gid)} bytes")
-        return cls(int(seq), int(stamp), bytes(gid))
+        if reader.pos != len(raw):
+            raise WireError(f"attachment of {len(raw)} bytes has {len(raw) - reader.pos} trailing bytes")
+        return cls(values[0], values[1], gid, attachment_format)
+
+
+class _Reader:
+    """zenoh-ext's wire rules for what attachments hold: int64 = 8 bytes little endian; a
+    sequence (bytes, string) = LEB128 length then the bytes. Every read is bounded by the input."""
+
+    MAX_LENGTH_BYTES = 5  # LEB128 of a length below 2**35: far more than any attachment
+
+    def __init__(self, raw: bytes) -> None:
+        self.raw, self.pos = raw, 0
+
+    def take(self, n: int) -> bytes:
+        if n < 0 or self.pos + n > len(self.raw):
+            raise WireError(f"attachment truncated: {n} bytes wanted at offset {self.pos} of {len(self.raw)}")
+        chunk = self.raw[self.pos:self.pos + n]
+        self.pos += n
+        return bytes(chunk)
+
+    def int64(self) -> int:
+        return int.from_bytes(self.take(8), "little", signed=True)
+
+    def sequence(self) -> bytes:
+        length, shift = 0, 0
+        for _ in range(self.MAX_LENGTH_BYTES):
+            byte = self.take(1)[0]
+            length |= (byte & 0x7F) << shift
+            shift += 7
+            if not byte & 0x80:
+                return self.take(length)
+        raise WireError(f"attachment length prefix longer than {self.MAX_LENGTH_BYTES} bytes")
+
+    def string(self) -> str:
+        try:
+            return self.sequence().decode("utf-8")
+        except UnicodeDecodeError as error:
+            raise WireError(f"attachment field name is not UTF-8: {error}") from None
 
 
 # -- CDR ------------------------------------------------------------------------------------

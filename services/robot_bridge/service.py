@@ -32,6 +32,12 @@ Decisions (README, "Robot bridge"):
   Twist, Jazzy TwistStamped) and says so. On rmw_zenoh, a Humble robot's ``TypeHashNotSupported``
   subscription is served even when the bridge is configured for Jazzy (the CDR of Twist,
   TwistStamped and Odometry is the same), an unknown RIHS01 hash is refused.
+* **rmw_zenoh attachment format.** rmw_zenoh_cpp changed its attachment format in Jazzy 0.2.4 /
+  Humble 0.1.2 (ros_wire.py); an older robot's subscriber throws (and may abort) on the new
+  one. The bridge reads the format from the robot's odometry and writes every ``cmd_vel`` in
+  it; until the first valid odometry sample it sends nothing on ``cmd_vel`` (counted under
+  ``commands_format_unknown``; the actor cannot act before a state anyway). Odometry in neither
+  format is refused with one error naming the supported releases.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
+from common.security import SecurityError
 from common.settings import BridgeSettings, Settings
 from common.stats import summarize
 from common.transport import Bus, start_status_thread
@@ -62,6 +69,7 @@ from services.robot_bridge.ros_wire import (
     TWIST,
     TWIST_STAMPED,
     Attachment,
+    AttachmentFormat,
     CmdEndpoint,
     Odometry,
     RosGraph,
@@ -267,6 +275,9 @@ class RosLink:
         self.fallback = False
         self.discovered: list[str] = []
         self.dropped = 0
+        # the robot's rmw_zenoh attachment format, from its odometry (None: not seen yet)
+        self.attachment_format: AttachmentFormat | None = None
+        self.format_warned = False
 
     # -- setup ----------------------------------------------------------------------------
     def start(self) -> None:
@@ -308,9 +319,9 @@ class RosLink:
                 self.counts.reject("odom", f"{key}: no rmw_zenoh attachment")
                 return
             try:
-                Attachment.decode(bytes(sample.attachment.to_bytes()))
+                attachment = Attachment.decode(bytes(sample.attachment.to_bytes()))
             except WireError as error:
-                self.counts.reject("odom", f"{key}: {error}")
+                self.counts.reject("odom", f"{key}: {error}; srl speaks {ros_wire.SUPPORTED_RMW_ZENOH}")
                 return
             chunk = self.graph.hash_chunk_of(key)
             if not self.graph.accepts_hash(ODOMETRY, chunk):
@@ -321,12 +332,29 @@ class RosLink:
         except WireError as error:
             self.counts.reject("odom", str(error))
             return
+        if self.graph.profile == "rmw_zenoh":
+            self._learn_format(attachment.format)
         self.counts.count("odom_received")
         try:
             self.on_odometry(odom, received)
         except Exception:  # a handler bug must not kill zenoh's callback thread silently
             self.counts.count("handler_errors.odom")
             log.exception("robot_bridge: odometry handler failed")
+
+    def _learn_format(self, found: AttachmentFormat) -> None:
+        """The robot's attachment format, from a valid odometry sample: cmd_vel follows it."""
+        with self.lock:
+            previous, self.attachment_format = self.attachment_format, found
+        if previous == found:
+            return
+        if previous is None:
+            log.info("robot_bridge: the robot's rmw_zenoh attachments are %s%s: cmd_vel in that format", found,
+                     " (rmw_zenoh_cpp Humble 0.1.0-0.1.1 / Jazzy 0.2.0-0.2.3)" if found == "legacy" else "")
+        else:
+            log.warning("robot_bridge: the robot's rmw_zenoh attachment format changed from %s to %s (robot "
+                        "software changed?): cmd_vel follows", previous, found)
+            self.counts.count("attachment_format_changes")
+        self.counts.count(f"attachment_format.{found}")
 
     # -- cmd_vel type discovery ------------------------------------------------------------
     def _on_token(self, sample: zenoh.Sample) -> None:
@@ -417,6 +445,16 @@ class RosLink:
             self.dropped += 1
             self.counts.count("commands_without_subscriber")
             return
+        with self.lock:
+            attachment_format = self.attachment_format
+        if self.graph.profile == "rmw_zenoh" and attachment_format is None:
+            # a wrong attachment can abort the robot's process (ros_wire.py): say nothing yet
+            self.counts.count("commands_format_unknown")
+            if not self.format_warned:
+                self.format_warned = True
+                log.warning("robot_bridge: no cmd_vel until the robot's odometry shows its rmw_zenoh attachment "
+                            "format (srl speaks %s)", ros_wire.SUPPORTED_RMW_ZENOH)
+            return
         stamp = time.time_ns()  # ROS time is the system clock
         for target in targets:
             payload = ros_wire.encode_command(self.graph.distro, target.endpoint.ros_type, v, omega,
@@ -424,7 +462,8 @@ class RosLink:
             try:
                 if self.graph.profile == "rmw_zenoh":
                     target.seq += 1
-                    target.publisher.put(payload, attachment=Attachment(target.seq, stamp, target.gid).encode())
+                    attachment = Attachment(target.seq, stamp, target.gid, attachment_format or "compact")
+                    target.publisher.put(payload, attachment=attachment.encode())
                 else:
                     target.publisher.put(payload)
             except zenoh.ZError as error:  # the robot's subscription vanished while we sent
@@ -434,7 +473,8 @@ class RosLink:
     def describe(self) -> dict[str, Any]:
         with self.lock:
             return {"cmd_vel": [{"type": t.endpoint.ros_type, "key": t.endpoint.key} for t in self.targets.values()],
-                    "fallback": self.fallback, "discovered": sorted(set(self.discovered))}
+                    "fallback": self.fallback, "discovered": sorted(set(self.discovered)),
+                    "attachment_format": self.attachment_format}
 
 
 def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
@@ -448,6 +488,11 @@ def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
 
 
 def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
+    if settings.transport.secure and not settings.bridge.robot_endpoint:
+        # srl's access rules cover srl's keys: a robot's ROS 2 traffic on srl's secured router
+        # would be refused, and the bridge would wait for odometry that never comes
+        raise SecurityError("robot_bridge: with transport.secure the robot must be on its own Zenoh router: set "
+                            "bridge.robot_endpoint (SRL_BRIDGE__ROBOT_ENDPOINT, --robot-endpoint)")
     robot = settings.transport.robot
     graph = RosGraph.from_settings(settings.bridge)
     own_session = bool(settings.bridge.robot_endpoint)

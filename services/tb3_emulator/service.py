@@ -7,7 +7,11 @@ What it emulates, per wire profile (services/robot_bridge/ros_wire.py has the fo
   overrides) with ``KeepLast(10)``; its ``diff_drive_controller`` publishes ``odom``. The
   emulator declares the liveliness tokens of both nodes, of the subscription and of the
   publisher, exactly as rmw_zenoh_cpp would, and, like rmw_zenoh's subscriber, drops a
-  ``cmd_vel`` sample without the 33-byte attachment (counted). Its own odometry carries one.
+  ``cmd_vel`` sample without the attachment (counted). Its own odometry carries one.
+  ``--attachment legacy`` emulates rmw_zenoh_cpp Humble 0.1.0-0.1.1 / Jazzy 0.2.0-0.2.3 (the
+  attachment with field names, ros_wire.py): its odometry carries that format, and a ``cmd_vel``
+  attachment in the other format is counted under ``attachment_format_errors`` -- where that
+  release's subscriber throws inside its Zenoh callback (the robot's process may abort).
 * ``ros2dds`` -- a DDS robot behind zenoh-bridge-ros2dds: plain keys (``cmd_vel``, ``odom``,
   ``<namespace>/...``), raw CDR, no attachment; the bridge's ``@/<zid>/@ros2_lv/...`` tokens.
 
@@ -46,7 +50,7 @@ from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from services.clock import Ticker
 from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph, WireError
+from services.robot_bridge.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 
 log = logging.getLogger(__name__)
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
@@ -128,7 +132,8 @@ class Tb3Model:
 
 
 def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model, stop: threading.Event,
-        duration: float | None, odom_topic: str, cmd_topic: str, odom_rate: float) -> dict[str, Any]:
+        duration: float | None, odom_topic: str, cmd_topic: str, odom_rate: float,
+        attachment: AttachmentFormat = "compact") -> dict[str, Any]:
     counters: Counter[str] = Counter()
     lock = threading.Lock()
     zid = str(session.info.zid())
@@ -146,9 +151,17 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
                 count("rejected_no_attachment")
                 return
             try:
-                Attachment.decode(bytes(sample.attachment.to_bytes()))
+                received = Attachment.decode(bytes(sample.attachment.to_bytes()))
             except WireError:
                 count("rejected_bad_attachment")
+                return
+            if received.format != attachment:  # the robot's rmw_zenoh cannot read it
+                count("rejected_bad_attachment")
+                count("attachment_format_errors")
+                log.error("tb3-emulator: cmd_vel with a %s attachment; this robot's rmw_zenoh reads %s only%s",
+                          received.format, attachment,
+                          " (rmw_zenoh_cpp 0.2.0-0.2.3 throws here: the process may abort)"
+                          if attachment == "legacy" else "")
                 return
         try:
             v, omega = ros_wire.decode_command(graph.distro, cmd_type, bytes(sample.payload.to_bytes()))
@@ -193,7 +206,7 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
                 orientation=quaternion_from_yaw(float(pose[2])), v=v, omega=omega))
             seq += 1
             if graph.profile == "rmw_zenoh":
-                publisher.put(payload, attachment=Attachment(seq, stamp, odom_gid).encode())
+                publisher.put(payload, attachment=Attachment(seq, stamp, odom_gid, attachment).encode())
             else:
                 publisher.put(payload)
             count("odom_published")
@@ -205,7 +218,8 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
                 log.debug("undeclare: %s", error)
     _, applied = model.sample(time.monotonic())
     return {"service": "tb3_emulator", "profile": graph.profile, "ros_distro": graph.distro,
-            "cmd_type": cmd_type, "cmd_key": cmd_key, "odom_key": odom_key,
+            "cmd_type": cmd_type, "attachment": attachment if graph.profile == "rmw_zenoh" else None,
+            "cmd_key": cmd_key, "odom_key": odom_key,
             "final_pose": [float(c) for c in model.state], "applied": list(applied),
             "max_abs_applied": model.max_abs, "cmd_timeouts": model.timeouts,
             "counters": dict(counters), "missed_ticks": ticker.missed}
