@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
+import signal
 import subprocess
 import sys
 
@@ -82,13 +84,25 @@ def compose_test_commands() -> list[str]:
     return re.findall(r"^readme_\w+='(.*)'$", COMPOSE_TEST, flags=re.M)
 
 
+def run(argv: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
+    """Run in a session of its own; on timeout (or any error) its whole process group is killed."""
+    process = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+    return subprocess.CompletedProcess(argv, process.returncode, stdout, stderr)
+
+
 def test_first_command_prints_the_j_the_readme_quotes() -> None:
     command, comment = bash_commands(README)[0]
     assert command.startswith("./srl run "), command
     quoted = re.search(r"J\s+(-?[0-9]+\.[0-9]+)", comment)
     assert quoted, f"the README quotes no J next to its first command: {comment!r}"
-    done = subprocess.run(["bash", "-c", command], cwd=ROOT, capture_output=True, text=True, timeout=600,
-                          check=False)
+    done = run(["bash", "-c", command], timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     printed = J_IN_OUTPUT.search(done.stdout)
     assert printed, done.stdout
@@ -134,8 +148,7 @@ def test_srl_up_examples_run(command: str) -> None:
     assert "--duration" in argv
     argv[argv.index("--duration") + 1] = "6"
     argv += ["--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "readme", "--json"]
-    done = subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=ROOT, capture_output=True, text=True,
-                          timeout=240, check=False)
+    done = run([sys.executable, "-m", "services.cli", *argv], timeout=240)
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
