@@ -1,11 +1,73 @@
-"""Test-wide isolation: no test reads or writes the user's real critic checkpoint."""
+"""Test-wide rules.
+
+* Isolation: no test reads or writes the user's real critic checkpoint.
+* Machine requirements: a test that needs more than python3 (root, iproute2 and iptables for
+  network namespaces) carries a marker (``needs_root``); where the machine lacks it, the test is
+  SKIPPED with one line saying what it needs and how to run it, so that ``./srl test`` passes on a
+  fresh machine with only python3. ``SRL_TEST_REQUIRE_ALL=1`` (CI, ``.ci/run``) turns every such
+  skip into a failure, and fails the session if any test at all was skipped.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import os
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+
+REQUIRE_ALL = "SRL_TEST_REQUIRE_ALL"
+
+
+def _netns_missing() -> list[str]:
+    from tests import netns  # imported when a marked test runs (it imports zenoh)
+
+    return netns.missing_requirements()
+
+
+# marker -> (what is missing on this machine (empty: nothing), how to run these tests)
+REQUIREMENTS: dict[str, tuple[Callable[[], list[str]], str]] = {
+    "needs_root": (_netns_missing, "run as root on Debian with iproute2 and iptables: sudo ./srl test {path}"),
+}
+
+
+def require_all() -> bool:
+    return os.environ.get(REQUIRE_ALL, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def unmet(item: pytest.Item) -> str | None:
+    """One line naming what this test needs and how to run it, or None when the machine has it."""
+    for marker, (missing, how) in REQUIREMENTS.items():
+        if item.get_closest_marker(marker) is None:
+            continue
+        reasons = missing()
+        if reasons:
+            path = item.path.relative_to(item.config.rootpath) if item.path.is_relative_to(item.config.rootpath) \
+                else item.path
+            return f"{marker}: {'; '.join(reasons)}; {how.format(path=path)}"
+    return None
+
+
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    reason = unmet(item)
+    if reason is None:
+        return
+    if require_all():  # CI: the machine must run every test
+        pytest.fail(f"{REQUIRE_ALL} is set and this test cannot run: {reason}", pytrace=False)
+    pytest.skip(reason)
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    # any skip at all (a marker above, importorskip, pytest.skip in a test) fails a session that
+    # must run everything
+    if not require_all():
+        return
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    skipped = len(reporter.stats.get("skipped", [])) if reporter is not None else 0
+    if skipped and session.exitstatus == pytest.ExitCode.OK:
+        if reporter is not None:
+            reporter.write_line(f"{REQUIRE_ALL} is set: {skipped} test(s) skipped, failing the run", red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 @pytest.fixture(autouse=True)

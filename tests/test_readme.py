@@ -1,0 +1,156 @@
+"""The README's commands work as written, and every one of them is run by a test or by CI.
+
+* The first command is run as written and prints the J the README quotes next to it.
+* The compose commands of "Containers" are, character for character, the ones .ci/compose-test
+  runs (its ``readme_*`` lines): CI runs exactly what a user reads.
+* ``COVERAGE`` says, for every command line of the README's ``bash`` blocks, which test or CI
+  step runs it; a command added to the README without an entry here fails this test, and so
+  does an entry whose command is no longer in the README or whose test does not exist.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from tests.harness import ROOT, free_port
+
+README = (ROOT / "README.md").read_text()
+COMPOSE_TEST = (ROOT / ".ci" / "compose-test").read_text()
+NOT_IN_CI = "(not in CI)"
+# a comment: `#` after whitespace, followed by whitespace (not `"*"`, not `--start=-1,2`)
+COMMENT = re.compile(r"\s+#(?:\s.*)?$")
+J_IN_OUTPUT = re.compile(r"\bJ\b[^0-9\n-]*(-?[0-9]+\.[0-9]+)")
+
+# README command -> who runs it ("CI: ..." or a test as path::name, plus how it differs)
+COVERAGE: dict[str, str] = {
+    "./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30":
+        "tests/test_readme.py::test_first_command_prints_the_j_the_readme_quotes (as written)",
+    "./srl test": "CI: .ci/run (as `SRL_TEST_REQUIRE_ALL=1 ./srl test`)",
+    "./srl up --plant robot --duration 20":
+        "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
+    "./srl up --plant robot --profile ros2dds --ros-distro humble --duration 20":
+        "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
+    "./srl up --plant robot --robot-endpoint tcp/<robot-ip>:7447 --ros-distro jazzy":
+        "tests/test_robot_bridge.py::test_up_with_a_robot_endpoint_starts_no_emulator (an emulator as the robot)",
+    "SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=/etc/srl/users.txt ./srl router":
+        "tests/test_security.py::test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read "
+        "(the same variables, credentials in a temporary directory)",
+    "SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USER=critic "
+    "SRL_TRANSPORT__PASSWORD_FILE=/etc/srl/critic.password ./srl critic --router tcp/ROUTER:7447":
+        "tests/test_security.py::test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read "
+        "(the same variables, credentials in a temporary directory)",
+    "./srl experiment paper":
+        "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
+    "./srl experiment paper --starts held-out":
+        "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",
+    "./srl experiment paper --transport zenoh":
+        "tests/test_experiment.py::test_zenoh_transport_gives_the_inproc_numbers (a reduced grid)",
+}
+
+
+def bash_commands(text: str) -> list[tuple[str, str]]:
+    """(command, its comment) of every logical line of every ```bash block, continuations joined."""
+    commands = []
+    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
+        logical = ""
+        for line in block.splitlines():
+            body = COMMENT.sub("", line)
+            comment = line[len(body):].strip()
+            if body.rstrip().endswith("\\"):
+                logical += body.rstrip()[:-1].strip() + " "
+                continue
+            logical += body.strip()
+            if logical:
+                commands.append((logical, comment))
+            logical = ""
+    return commands
+
+
+def section(title: str) -> str:
+    start = README.index(f"\n## {title}")
+    end = README.find("\n## ", start + 1)
+    return README[start:end if end > 0 else None]
+
+
+def compose_test_commands() -> list[str]:
+    return re.findall(r"^readme_\w+='(.*)'$", COMPOSE_TEST, flags=re.M)
+
+
+def run(argv: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
+    """Run in a session of its own; on timeout (or any error) its whole process group is killed."""
+    process = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True)
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.communicate()
+    return subprocess.CompletedProcess(argv, process.returncode, stdout, stderr)
+
+
+def test_first_command_prints_the_j_the_readme_quotes() -> None:
+    command, comment = bash_commands(README)[0]
+    assert command.startswith("./srl run "), command
+    quoted = re.search(r"J\s+(-?[0-9]+\.[0-9]+)", comment)
+    assert quoted, f"the README quotes no J next to its first command: {comment!r}"
+    done = run(["bash", "-c", command], timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    printed = J_IN_OUTPUT.search(done.stdout)
+    assert printed, done.stdout
+    decimals = len(quoted.group(1).split(".")[1])
+    print(f"README: J {quoted.group(1)}; `{command}` printed J {printed.group(1)}")
+    # the README quotes it to `decimals` places: equal when rounded to them
+    assert round(float(printed.group(1)), decimals) == float(quoted.group(1)), (printed.group(1), quoted.group(1))
+
+
+def test_the_compose_commands_ci_runs_are_the_readmes() -> None:
+    readme = {command for command, _ in bash_commands(section("Containers"))}
+    ci = compose_test_commands()
+    assert len(ci) >= 5, ci
+    assert {"docker compose up", "COMPOSE_PROFILES=demo-robot docker compose up"} <= set(ci)
+    missing = [command for command in ci if command not in readme]
+    assert not missing, f".ci/compose-test runs commands the README does not show: {missing}"
+    not_run = [command for command, comment in bash_commands(section("Containers"))
+               if command not in ci and NOT_IN_CI not in comment]
+    assert not not_run, f"README compose commands that .ci/compose-test does not run: {not_run}"
+
+
+def test_every_readme_command_is_run_by_a_test_or_ci() -> None:
+    ci = set(compose_test_commands())
+    commands = bash_commands(README)
+    unaccounted = [command for command, comment in commands
+                   if command not in COVERAGE and command not in ci and NOT_IN_CI not in comment]
+    assert not unaccounted, f"README commands no test or CI step runs (add them to COVERAGE): {unaccounted}"
+    stale = set(COVERAGE) - {command for command, _ in commands}
+    assert not stale, f"COVERAGE names commands the README no longer shows: {stale}"
+    for who in COVERAGE.values():
+        if who.startswith("CI:"):
+            continue
+        path, name = who.split(" ")[0].split("::")
+        assert re.search(rf"^def {name}\(", (ROOT / path).read_text(), flags=re.M), who
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", [c for c, _ in bash_commands(README)
+                                     if c.startswith("./srl up ") and "<" not in c])
+def test_srl_up_examples_run(command: str) -> None:
+    """Each `./srl up` example of the README, on a free loopback port and for 6 s instead of 20."""
+    argv = command.split()[1:]
+    assert "--duration" in argv
+    argv[argv.index("--duration") + 1] = "6"
+    argv += ["--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "readme", "--json"]
+    done = run([sys.executable, "-m", "services.cli", *argv], timeout=240)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    start, final = summary["start_state"], summary["final_state"]
+    assert math.hypot(*final[:2]) < math.hypot(*start[:2]), (start, final)
