@@ -43,6 +43,10 @@ def zenoh_config(
     config.insert_json5("scouting/multicast/enabled", json.dumps(transport.multicast_scouting))
     # Advanced publishers (the transition cache) stamp their samples: timestamps must be on.
     config.insert_json5("timestamping/enabled", "true")
+    # Zenoh's own bound on a (defragmented) message: a bigger one is dropped on arrival, before
+    # it is reassembled in memory and handed to us (measured: a 10 MB put grew each receiving
+    # service by ~50 MB, retained). srl's messages are a few kB.
+    config.insert_json5("transport/link/rx/max_message_size", json.dumps(transport.max_message_bytes))
     if router:
         config.insert_json5("listen/endpoints", json.dumps(listen or [transport.router]))
         config.insert_json5("connect/endpoints", json.dumps(transport.connect))
