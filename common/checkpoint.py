@@ -2,18 +2,23 @@
 
 A reader never sees a half-written file: the new content goes to a temporary file in the same
 directory, is flushed to disk, and replaces the old file with one ``os.replace`` (atomic on
-POSIX). A process killed at any moment leaves either the old or the new checkpoint.
+POSIX). A process killed at any moment leaves either the old or the new checkpoint -- and, if it
+was killed mid-write, its temporary file (``.<name>.<pid>.<random>.tmp``), which
+:func:`remove_stale_temporaries` deletes at the next start.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 class CheckpointError(ValueError):
@@ -23,7 +28,8 @@ class CheckpointError(ValueError):
 def atomic_write_json(path: Path, payload: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     data = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    # the writer's pid in the name: a later start can tell a dead writer's leftover from a live one's
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
@@ -34,6 +40,45 @@ def atomic_write_json(path: Path, payload: dict[str, Any]) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: Path) -> list[Path]:
+    """Delete the temporary files that writers of ``path`` killed mid-write left beside it.
+
+    Only files named as :func:`atomic_write_json` names them (``.<name>.<pid>.<random>.tmp``, or
+    the older ``.<name>.<random>.tmp``) are considered, and one whose writer is still running
+    (another process; never this one, which is only starting) is kept. The removed paths."""
+    prefix = f".{path.name}."
+    removed: list[Path] = []
+    try:
+        candidates = list(path.parent.glob(f"{glob_escape(prefix)}*.tmp"))
+    except OSError:
+        return removed
+    for candidate in candidates:
+        middle = candidate.name[len(prefix):-len(".tmp")]
+        pid_text = middle.split(".", 1)[0] if "." in middle else ""
+        if pid_text.isdigit() and int(pid_text) != os.getpid() and _pid_alive(int(pid_text)):
+            continue  # a live writer's file, about to be renamed
+        with contextlib.suppress(FileNotFoundError):
+            candidate.unlink()
+            removed.append(candidate)
+            log.warning("removed %s, left by a write that was killed", candidate)
+    return removed
+
+
+def glob_escape(text: str) -> str:
+    """``text`` with glob's special characters taken literally."""
+    return "".join(f"[{c}]" if c in "*?[" else c for c in text)
 
 
 def read_json(path: Path) -> dict[str, Any] | None:

@@ -128,8 +128,12 @@ DISCOVERY = Rule("discover", "egress", ("declare_subscriber", "declare_queryable
                  (ALL_KEYS, advanced_pattern(ALL_KEYS)))
 
 
-def role_rules(robot: str) -> dict[str, list[Rule]]:
-    """Every role's rules for robot ``robot`` (besides :data:`DISCOVERY`, which all roles get)."""
+def role_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
+    """Every role's rules for robot ``robot`` (besides :data:`DISCOVERY`, which all roles get).
+
+    ``lockstep`` (``transport.plant_queries``): the actor may query ``plant/step`` and
+    ``plant/reset`` and the plant may serve them. In real time nobody may: a real-time plant
+    declares no queryable, and a step or reset would move the robot behind the actor's back."""
     check_chunk(robot, "robot id")
 
     def key(pattern: str, service: str = "*", robot: str = robot) -> str:
@@ -141,7 +145,7 @@ def role_rules(robot: str) -> dict[str, list[Rule]]:
             *publish(key(ACTION.pattern), key(STATUS.pattern, "actor")),
             *advanced_publish(key(TRANSITION.pattern)),
             *read(key(STATE.pattern), key(WEIGHTS.pattern)),
-            *query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)),
+            *(query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
             *token(key(ALIVE, "actor")),
             *watch(alive),
         ],
@@ -156,7 +160,7 @@ def role_rules(robot: str) -> dict[str, list[Rule]]:
         "plant": [
             *publish(key(STATE.pattern), key(STATUS.pattern, "plant")),
             *read(key(ACTION.pattern)),
-            *serve(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)),
+            *(serve(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
             *token(key(ALIVE, "plant"), key(ALIVE, "robot_bridge")),
             *watch(alive),
         ],
@@ -167,11 +171,12 @@ def role_rules(robot: str) -> dict[str, list[Rule]]:
     }
 
 
-def acl_config(robot: str) -> dict[str, Any]:
-    """The router's ``access_control`` section: default deny, one subject and policy per role."""
+def acl_config(robot: str, *, lockstep: bool) -> dict[str, Any]:
+    """The router's ``access_control`` section: default deny, one subject and policy per role
+    (``lockstep``: the plant queries are allowed, see :func:`role_rules`)."""
     rules: list[dict[str, Any]] = [DISCOVERY.as_zenoh("discover")]
     policies: list[dict[str, Any]] = []
-    for role, granted in role_rules(robot).items():
+    for role, granted in role_rules(robot, lockstep=lockstep).items():
         ids = []
         for i, rule in enumerate(granted):
             rule_id = f"{role}-{i}-{rule.what.replace(' ', '-')}-{rule.flow}"
@@ -196,9 +201,11 @@ class Credentials:
     users_file: Path
     password_files: dict[str, Path]
 
-    def router_environment(self) -> dict[str, str]:
-        """Environment (SRL_<SECTION>__<NAME> settings) of the secure router."""
-        return {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USERS_FILE": str(self.users_file)}
+    def router_environment(self, *, lockstep: bool = False) -> dict[str, str]:
+        """Environment (SRL_<SECTION>__<NAME> settings) of the secure router; ``lockstep`` lets the
+        actor query (and the plant serve) plant/step and plant/reset (``transport.plant_queries``)."""
+        return {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USERS_FILE": str(self.users_file),
+                "SRL_TRANSPORT__PLANT_QUERIES": "true" if lockstep else "false"}
 
     def role_environment(self, role: str) -> dict[str, str]:
         """Environment of a process that logs in as ``role``."""
@@ -272,7 +279,7 @@ def zenoh_entries(transport: TransportSettings, *, router: bool) -> dict[str, An
         users_file = Path(transport.users_file).expanduser()
         _read_secret_file(str(users_file), "users file")  # fail here with a clear message
         return {"transport/auth/usrpwd/dictionary_file": str(users_file),
-                "access_control": acl_config(transport.robot)}
+                "access_control": acl_config(transport.robot, lockstep=transport.plant_queries)}
     user, password = client_credentials(transport)
     return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}
 

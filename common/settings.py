@@ -132,6 +132,7 @@ class TransportSettings(_Section):
     state_rate: float = Field(gt=0, le=1000)
     action_timeout_steps: int = Field(ge=2)
     transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
+    max_message_bytes: int = Field(ge=65_536, le=2**30, description="Zenoh drops bigger messages on arrival")
     # Zenoh authentication and access control (common/security.py, README "Security")
     secure: bool = Field(description="router: require user/password, enforce role rules; others: log in")
     user: str = Field(description="this process's Zenoh user = its role (actor, critic, plant, monitor)")
@@ -145,6 +146,7 @@ class TransportSettings(_Section):
     tls_mtls: bool = Field(description="mutual TLS: the router accepts only clients with a certificate from tls_ca")
     allow_insecure_network: bool = Field(
         description="let a router listen off loopback without secure + TLS: only inside a private container network")
+    plant_queries: bool = Field(description="secure router: allow plant/step and plant/reset (lockstep runs only)")
 
     @model_validator(mode="after")
     def _secure_needs_client_mode(self) -> TransportSettings:

@@ -45,6 +45,12 @@ def zenoh_config(
     config.insert_json5("scouting/multicast/enabled", json.dumps(transport.multicast_scouting))
     # Advanced publishers (the transition cache) stamp their samples: timestamps must be on.
     config.insert_json5("timestamping/enabled", "true")
+    # Zenoh's own bound on a (defragmented) message: a bigger one is dropped on arrival, before
+    # it is reassembled in memory and handed to us (measured: a 10 MB put grew each receiving
+    # service by ~50 MB, retained). srl's messages are a few kB. Measured on zenoh 1.10.2: only the
+    # FIRST oversized message of a session is dropped, later ones are delivered (RELIABILITY.md):
+    # this bounds one message, not a flood, until Zenoh enforces it on every message.
+    config.insert_json5("transport/link/rx/max_message_size", json.dumps(transport.max_message_bytes))
     if router:
         listening, connecting = listen or [transport.router], transport.connect
         check_network_exposure(transport, listening)  # off loopback only with login + TLS (or opted out)

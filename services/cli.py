@@ -17,6 +17,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from common.lifeline import die_with_parent
 from common.security import SecurityError
 from common.settings import Settings, parse_start
 
@@ -199,6 +200,7 @@ def _serve(args: argparse.Namespace, service: str, body: Callable[..., dict[str,
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
+    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     deadline = time.monotonic() + args.connect_timeout
     while True:
         try:
@@ -238,6 +240,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
+    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:
@@ -278,6 +281,12 @@ def cmd_robot_bridge(args: argparse.Namespace) -> int:
     return _serve(args, "plant", lambda s, bus, stop: run(s, bus, stop, args.run_seconds))
 
 
+# The emulator's cmd_vel timeout. 0.5 s is the OpenCR firmware's own HEARTBEAT_TIMEOUT_MS (it
+# stops the wheels when turtlebot3_node falls silent for 500 ms) and twist_mux's customary topic
+# timeout: five missed 10 Hz commands. At 0.22 m/s a broken command path then costs <= 11 cm.
+CMD_TIMEOUT_DEFAULT = 0.5
+
+
 def cmd_tb3_emulator(args: argparse.Namespace) -> int:
     import signal
     import threading
@@ -300,6 +309,7 @@ def cmd_tb3_emulator(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
+    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
         config = zenoh_config(settings.transport, router=True, listen=[args.listen])
         config.insert_json5("connect/endpoints", "[]")
@@ -364,13 +374,16 @@ def _floats_arg(count: int) -> Callable[[str], tuple[float, ...]]:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from services.up import ServiceDiedError, run_up
+    from services.up import ServiceDiedError, Stopped, run_up
 
     settings = settings_from_args(args)
     try:
         summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
                          sync_critic=args.mode == "lockstep", duration=settings.episode.duration,
                          bridge_args=bridge_argv(args), secure=args.secure)
+    except Stopped as stopped:  # SIGINT, SIGTERM, SIGHUP: everything was stopped, credentials removed
+        print(f"srl up: stopped by {stopped}: every service stopped", file=sys.stderr)
+        return stopped.exit_code
     except ServiceDiedError as error:
         print(f"srl up: error: {error}", file=sys.stderr)
         for line in error.tail:
@@ -483,8 +496,10 @@ def build_parser() -> argparse.ArgumentParser:
                           help="std. dev. of Gaussian noise on the reported pose [m, rad] (default 0,0)")
     emulator.add_argument("--seed", type=int, default=0, help="noise seed")
     emulator.add_argument("--latency", type=float, default=0.0, help="[s] cmd_vel -> wheels delay")
-    emulator.add_argument("--cmd-timeout", type=float, default=0.0,
-                          help="[s] stop when cmd_vel is older (0: never, like a real TurtleBot3)")
+    emulator.add_argument("--cmd-timeout", type=float, default=CMD_TIMEOUT_DEFAULT,
+                          help=f"[s] stop when cmd_vel is older (default {CMD_TIMEOUT_DEFAULT}: a robot must stop "
+                          "when its command stream breaks; 0: hold the last command forever, like a stock "
+                          "TurtleBot3)")
     emulator.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
     emulator.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
     emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate")

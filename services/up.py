@@ -4,11 +4,17 @@ Children are ``python -m services.cli <service> ...`` with the same configuratio
 lines are forwarded to stderr prefixed with ``[name]``; each prints one JSON summary as its last
 stdout line when it ends. The actor defines the end of the run: when it exits, the others are
 stopped (SIGINT, then SIGKILL after a grace period). If any child dies first, everything is
-stopped and ``srl up`` exits non-zero naming it. Ctrl-C stops everything cleanly.
+stopped and ``srl up`` exits non-zero naming it. SIGINT (Ctrl-C), SIGTERM and SIGHUP all stop
+everything the same way (children by pid, credentials removed) and ``srl up`` exits with
+128 + the signal number (130, 143, 129). Every child gets ``SRL_PARENT_PID``: it dies with this
+process even when this process is killed with SIGKILL (common/lifeline.py).
 
 ``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
 configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
-before everything else.
+before everything else. The emulator runs as the robot's own Zenoh router on a free loopback port
+(as a real robot runs ``rmw_zenohd``) and the bridge talks to it there: when srl's router dies,
+the bridge still reaches the robot and stops it (the actor's liveliness token vanishes from the
+bridge's srl session within milliseconds).
 """
 
 from __future__ import annotations
@@ -37,6 +43,68 @@ from common.transport import zenoh_config
 
 log = logging.getLogger(__name__)
 GRACE_SECONDS = 5.0
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class Stopped(KeyboardInterrupt):
+    """``srl up`` was stopped by a signal; everything has been cleaned up as for Ctrl-C.
+
+    A KeyboardInterrupt, so that a caller that handles Ctrl-C handles SIGTERM and SIGHUP alike."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(signal.Signals(signum).name)
+
+    @property
+    def exit_code(self) -> int:
+        """The shell's convention: 128 + the signal number (SIGINT 130, SIGTERM 143, SIGHUP 129)."""
+        return 128 + self.signum
+
+
+class SignalGuard:
+    """While active, SIGINT, SIGTERM and SIGHUP raise :class:`Stopped` in the main thread, once.
+
+    During cleanup (``cleaning``) a signal is only remembered, never raised: an exception in the
+    middle of stopping the children would leave some of them running and the credentials on disk.
+    """
+
+    def __init__(self) -> None:
+        self.cleaning = False
+        self.received: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> SignalGuard:
+        if threading.current_thread() is threading.main_thread():  # signals reach the main thread only
+            for signum in STOP_SIGNALS:
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def _handle(self, signum: int, _frame: Any) -> None:
+        first = self.received is None
+        self.received = self.received or signum
+        if self.cleaning or not first:
+            log.warning("srl up: %s while stopping: finishing the cleanup", signal.Signals(signum).name)
+            return
+        log.warning("srl up: %s: stopping every service", signal.Signals(signum).name)
+        raise Stopped(signum)
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
+
+    def raise_if_received(self) -> None:
+        """After the cleanup: a signal that came during it still ends the run as stopped."""
+        if self.received is not None:
+            raise Stopped(self.received)
+
+
+def free_loopback_endpoint() -> str:
+    """``tcp/127.0.0.1:<port>`` on a port that was free a moment ago (the OS picked it)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
 
 
 class ServiceDiedError(RuntimeError):
@@ -84,7 +152,9 @@ class Supervisor:
     def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
         command = [sys.executable, "-m", "services.cli", *argv]
         process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**self.env, **(env or {})},
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            # SRL_PARENT_PID: the child stops when this process dies, however it dies (common/lifeline.py)
+            env={**self.env, **(env or {}), "SRL_PARENT_PID": str(os.getpid())},
             start_new_session=True,  # our Ctrl-C is forwarded by us, in order
         )
         child = Child(name, process)
@@ -148,9 +218,13 @@ class Supervisor:
                 thread.join(timeout=2.0)
 
 
-def router_reachable(settings: Settings) -> bool:
+def router_reachable(settings: Settings, endpoint: str | None = None) -> bool:
+    """Can a client session open to srl's router (or, without login, to ``endpoint``)?"""
+    transport = settings.transport
+    if endpoint is not None:
+        transport = transport.model_copy(update={"router": endpoint, "connect": [], "secure": False})
     try:
-        session = zenoh.open(zenoh_config(settings.transport))
+        session = zenoh.open(zenoh_config(transport))
     except zenoh.ZError:
         return False
     session.close()
@@ -215,14 +289,19 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     """Start everything, run one actor episode/duration, stop everything; the merged summary.
 
     ``plant="robot"``: the robot bridge in place of plant_sim, and the TurtleBot3 emulator as the
-    robot unless ``settings.bridge.robot_endpoint`` names a real one. Real time only: a robot
-    cannot be stepped by a lockstep query.
+    robot unless ``settings.bridge.robot_endpoint`` names a real one. The emulator is the robot's
+    own Zenoh router (``--listen`` on a free loopback port) and the bridge its client, so the
+    bridge's path to the robot does not go through srl's router. Real time only: a robot cannot
+    be stepped by a lockstep query.
 
     ``secure``: fresh random credentials for every role in a private temporary directory
     (0700, files 0600, removed at exit); the router authenticates users and enforces the role
-    rules of common/security.py, each child logs in as its role, this supervisor as ``monitor``.
+    rules of common/security.py (plant/step and plant/reset in lockstep only), each child logs in
+    as its role, this supervisor as ``monitor``.
     A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
     fresh private CA and one certificate per role in the same directory (common/certs.py).
+
+    SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
     """
     if plant not in ("sim", "robot"):
         raise ValueError(f"unknown plant {plant!r} (sim or robot)")
@@ -232,18 +311,24 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     supervisor = Supervisor(settings_args, env, quiet=quiet)
-    common_args = [*settings_args]
-    robot_args = [*common_args, *(bridge_args or [])]
+    robot_args = [*settings_args, *(bridge_args or [])]
     started = time.monotonic()
-    if secure and plant == "robot" and not settings.bridge.robot_endpoint:
-        raise ValueError("--secure --plant robot needs the robot on its own Zenoh router (--robot-endpoint): "
-                         "the access rules cover srl's keys, not the emulated robot's ROS 2 traffic")
+    with SignalGuard() as guard:
+        summary = _run_up(settings, settings_args, mode, plant, sync_critic, duration, supervisor, robot_args,
+                          secure, started, guard)
+    return summary
+
+
+def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
+            duration: float, supervisor: Supervisor, robot_args: list[str], secure: bool, started: float,
+            guard: SignalGuard) -> dict[str, Any]:
+    common_args = [*settings_args]
     credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
     role: dict[str, dict[str, str]] = {}  # child -> its login environment
     if credentials is not None:
         users = {"plant": "plant", "robot_bridge": "plant", "critic": "critic", "actor": "actor"}
         role = {name: credentials.role_environment(user) for name, user in users.items()}
-        role["router"] = credentials.router_environment()
+        role["router"] = credentials.router_environment(lockstep=mode == "lockstep")
         monitor = credentials.transport(settings.transport, "monitor")
         tls_router = _tls_endpoint(settings.transport.router)
         if tls_router is not None:  # the same address over mutual TLS (certificates next to the passwords)
@@ -263,9 +348,15 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         if plant == "sim":
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
-            if not settings.bridge.robot_endpoint:
-                supervisor.spawn("tb3_emulator", ["tb3-emulator", *robot_args])
-            supervisor.spawn("robot_bridge", ["robot-bridge", *robot_args], role.get("robot_bridge"))
+            robot_endpoint = settings.bridge.robot_endpoint
+            if not robot_endpoint:  # the emulated robot runs its own Zenoh router, as a real one does
+                robot_endpoint = free_loopback_endpoint()
+                supervisor.spawn("tb3_emulator", ["tb3-emulator", *robot_args, "--listen", robot_endpoint])
+                log.info("the emulated robot's Zenoh router: %s", robot_endpoint)
+                supervisor.wait_for(f"the emulated robot's router ({robot_endpoint})",
+                                    lambda: router_reachable(settings, robot_endpoint), timeout=30)
+            supervisor.spawn("robot_bridge", ["robot-bridge", *robot_args, f"--robot-endpoint={robot_endpoint}"],
+                             role.get("robot_bridge"))
         supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
         supervisor.wait_for("plant" if plant == "sim" else "robot_bridge", alive_probe(settings, "plant"),
                             timeout=60)
@@ -287,11 +378,13 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         if actor.process.returncode != 0:
             raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
     finally:
+        guard.cleaning = True  # a signal from here on is remembered, never raised mid-cleanup
         if "robot_bridge" in supervisor.children:  # first, so that its last zero reaches the robot
             supervisor.stop_one("robot_bridge")
         supervisor.stop_all()
         if credentials is not None:
             shutil.rmtree(credentials.directory, ignore_errors=True)
+    guard.raise_if_received()
     for name, child in supervisor.children.items():
         code = child.process.returncode
         if name != "actor" and code not in (0, -signal.SIGINT):

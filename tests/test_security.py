@@ -63,7 +63,8 @@ def who(acl: dict[str, Any], message: str, flow: str, key: str) -> set[str]:
     return {user for user in (*ROLES, "stranger") if allowed(acl, user, message, flow, key)}
 
 
-ACL = acl_config(ROBOT)
+ACL = acl_config(ROBOT, lockstep=False)  # real time (the default): nobody steps or resets the plant
+ACL_LOCKSTEP = acl_config(ROBOT, lockstep=True)
 HEARTBEAT = "srl/t0/transition/@adv/pub/1234abcd/1/uhlc"  # an advanced publisher's own key
 
 
@@ -103,12 +104,21 @@ def test_only_roles_with_business_may_read_a_key(key: str, readers: set[str]) ->
         assert who(ACL, "put", "egress", key) == readers
 
 
-def test_queries_queryables_and_liveliness_per_role() -> None:
+@pytest.mark.parametrize(("acl", "server", "client"), [(ACL_LOCKSTEP, {"plant"}, {"actor"}), (ACL, set(), set())],
+                         ids=["lockstep", "realtime"])
+def test_plant_queries_only_in_lockstep(acl: dict[str, Any], server: set[str], client: set[str]) -> None:
     for service in ("srl/t0/plant/step", "srl/t0/plant/reset"):
-        assert who(ACL, "declare_queryable", "ingress", service) == {"plant"}
-        assert who(ACL, "query", "ingress", service) == {"actor"}
-        assert who(ACL, "reply", "ingress", service) == {"plant"}
-        assert who(ACL, "reply", "egress", service) == {"actor"}
+        assert who(acl, "declare_queryable", "ingress", service) == server
+        assert who(acl, "query", "ingress", service) == client
+        assert who(acl, "reply", "ingress", service) == server
+        assert who(acl, "reply", "egress", service) == client
+    # everything else is the same in both modes
+    others = {k: [r for r in v if "plant/step" not in str(r.keys) and "plant/reset" not in str(r.keys)]
+              for k, v in role_rules(ROBOT, lockstep=True).items()}
+    assert others == role_rules(ROBOT, lockstep=False)
+
+
+def test_queries_queryables_and_liveliness_per_role() -> None:
     # the transition cache: the actor serves it, the critic queries it (history, recovery)
     history_query = "srl/*/transition/@adv/*/1234abcd/1/**"
     assert who(ACL, "declare_queryable", "ingress", "srl/t0/transition/@adv/pub/1234abcd/1/uhlc") == {"actor"}
@@ -127,22 +137,23 @@ def test_queries_queryables_and_liveliness_per_role() -> None:
     assert who(ACL, "declare_subscriber", "egress", "srl/*/transition") == set(ROLES)
 
 
-def test_acl_config_is_well_formed() -> None:
-    assert ACL["enabled"] is True and ACL["default_permission"] == "deny"
-    ids = [rule["id"] for rule in ACL["rules"]]
+@pytest.mark.parametrize("acl", [ACL, ACL_LOCKSTEP], ids=["realtime", "lockstep"])
+def test_acl_config_is_well_formed(acl: dict[str, Any]) -> None:
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    ids = [rule["id"] for rule in acl["rules"]]
     assert len(ids) == len(set(ids))
-    assert {s["id"] for s in ACL["subjects"]} == set(ROLES) == {p["id"] for p in ACL["policies"]}
-    for policy in ACL["policies"]:
+    assert {s["id"] for s in acl["subjects"]} == set(ROLES) == {p["id"] for p in acl["policies"]}
+    for policy in acl["policies"]:
         assert set(policy["rules"]) <= set(ids) and policy["subjects"] == [policy["id"]]
-    for rule in ACL["rules"]:
+    for rule in acl["rules"]:
         assert rule["permission"] == "allow" and rule["flows"] in (["ingress"], ["egress"])
         assert rule["messages"] and rule["key_exprs"]
         for key in rule["key_exprs"]:
             zenoh.KeyExpr(key)  # a valid key expression (raises otherwise)
-    assert set(role_rules(ROBOT)) == set(ROLES)
-    json.dumps(ACL)  # insertable as JSON5
+    assert set(role_rules(ROBOT, lockstep=False)) == set(ROLES)
+    json.dumps(acl)  # insertable as JSON5
     with pytest.raises(ValueError, match="robot id"):
-        acl_config("a/b")
+        acl_config("a/b", lockstep=False)
 
 
 # -- credentials and settings -------------------------------------------------------------------
@@ -166,7 +177,10 @@ def test_credentials_are_random_private_and_read_back(tmp_path: Path) -> None:
     router = zenoh_entries(base.model_copy(update={"secure": True, "users_file": str(first.users_file)}),
                            router=True)
     assert router["transport/auth/usrpwd/dictionary_file"] == str(first.users_file)
-    assert router["access_control"] == acl_config(base.robot)
+    assert router["access_control"] == acl_config(base.robot, lockstep=False)  # real time unless asked
+    lockstep = zenoh_entries(base.model_copy(update={"secure": True, "users_file": str(first.users_file),
+                                                     "plant_queries": True}), router=True)
+    assert lockstep["access_control"] == acl_config(base.robot, lockstep=True) != router["access_control"]
     env = first.role_environment("plant")
     assert env["SRL_TRANSPORT__USER"] == "plant" and users["plant"] not in json.dumps(env)
 
@@ -327,7 +341,8 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
         # wrong roles query the plant and announce a service that is not theirs
         rogue_replies = [r for user in ("critic", "monitor")
                          for r in rogues[user].get(f"srl/{robot}/plant/reset", payload=b"ROGUE", timeout=1.0)]
-        control_replies = list(observers["actor"].get(f"srl/{robot}/plant/reset", payload=b"{", timeout=5.0))
+        # real time: even the actor may not reset the plant (the router refuses; plant_sim serves none)
+        actor_replies = list(observers["actor"].get(f"srl/{robot}/plant/reset", payload=b"{", timeout=2.0))
         impostor = rogues["critic"].liveliness().declare_token(f"srl/{robot}/alive/robot_bridge")
         time.sleep(0.5)
         impersonated = c.alive("robot_bridge")
@@ -351,13 +366,13 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
     # the wrong readers got nothing at all, while the same keys carried hundreds of samples
     assert {k: len(r.payloads) for k, r in stolen.items()} == {k: 0 for k in stolen}
     assert rogue_replies == []
-    assert len(control_replies) == 1 and control_replies[0].err is not None  # the plant answered the actor
+    assert actor_replies == []
     assert not impersonated, "a critic announced the robot bridge"
     actor_summary, critic_summary, plant_summary = summaries["actor"], summaries["critic"], summaries["plant"]
-    # the services never saw a rogue payload: nothing was rejected, except the actor-role control query
+    # the services never saw a rogue payload or query: nothing was rejected
     rejected = {name: {k: v for k, v in s["counters"].items() if k.startswith("rejected.")}
                 for name, s in summaries.items()}
-    assert rejected == {"actor": {}, "critic": {}, "plant": {"rejected.plant/reset": 1}}, rejected
+    assert rejected == {"actor": {}, "critic": {}, "plant": {}}, rejected
     # the system ran normally through the secured router
     steps = actor_summary["steps"]
     assert steps >= 70 and actor_summary["loop"]["missed_deadlines"] == 0
@@ -368,7 +383,8 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
     print(f"\nfigures: secured run: {steps} steps, latency median {actor_summary['latency_ms']['median']:.2f} ms "
           f"p99 {actor_summary['latency_ms']['p99']:.2f} ms, {len(versions)} weight versions, late critic "
           f"recovered {critic_summary['seen_steps'][robot]}; rogue: {len(ROGUE_PUTS) * 20} puts by wrong roles, "
-          f"{len(ROGUE_READS)} wrong subscriptions, 2 wrong queries, 1 impostor token: 0 got through")
+          f"{len(ROGUE_READS)} wrong subscriptions, 3 plant/reset queries (actor's included), 1 impostor token: "
+          "0 got through")
 
 
 @pytest.mark.slow
@@ -405,6 +421,10 @@ def test_strangers_and_wrong_passwords_cannot_connect(tmp_path: Path) -> None:
         assert c.session is not None and c.session.info.routers_zid()
 
 
+def _plant_alive(session: zenoh.Session, robot: str) -> bool:
+    return any(r.ok is not None for r in session.liveliness().get(f"srl/{robot}/alive/plant", timeout=0.5))
+
+
 def _tcp_open(endpoint: str) -> bool:
     host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
     with socket.socket() as sock:
@@ -431,6 +451,15 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
             with pytest.raises(zenoh.ZError):
                 session_as(endpoint, None).close()
             refused += 1
+        # the actor's own login may query plant/reset in lockstep only (a malformed request: the
+        # plant answers with an error and changes nothing); in real time the router refuses it
+        actor_password = (credential_dirs[0] / "actor.password").read_text().strip()
+        actor = session_as(endpoint, "actor", actor_password)
+        try:
+            wait_until(lambda: _plant_alive(actor, "su") or up.poll() is not None, 60, "the plant of srl up --secure")
+            reset_replies = list(actor.get("srl/su/plant/reset", payload=b"{", timeout=2.0))
+        finally:
+            actor.close()
         out, err = up.communicate(timeout=180)
     finally:
         if up.poll() is None:
@@ -447,5 +476,10 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
     assert [d.name.startswith("srl-secure-") for d in credential_dirs] == [True]
     assert list(temp.iterdir()) == [], "srl up left its credentials behind"
     assert refused == 3
+    if mode == "lockstep":
+        assert len(reset_replies) == 1 and reset_replies[0].err is not None
+    else:
+        assert reset_replies == [], "real time: the router let the actor role reset the plant"
     print(f"\nfigures: srl up --secure --mode {mode}: {summary['steps']} steps, weights version "
-          f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic")
+          f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic; "
+          f"the actor role's plant/reset query got {len(reset_replies)} replies")

@@ -161,6 +161,9 @@ BAD_BY_KEY = {
 def test_malformed_messages_are_rejected_counted_and_survived() -> None:
     with cluster(robot="fz") as c:
         c.start("plant", "plant-sim", "--mode", "realtime")
+        # plant/step and plant/reset exist in lockstep only: a lockstep plant of its own robot id
+        # receives the malformed queries
+        c.start("lockstep", "plant-sim", "--mode", "lockstep", "--robot", "fz_lock")
         c.start("critic", "critic")
         c.start("actor", "actor", "--mode", "realtime")
         for name in ("plant", "critic", "actor"):
@@ -175,9 +178,11 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
                 publisher.put(payload)
             sent[key] = len(GARBAGE) + len(bad)
         errors = []
+        wait_until(lambda: any(r.ok is not None for r in c.session.liveliness().get(  # type: ignore[union-attr]
+            "srl/fz_lock/alive/plant", timeout=0.5)), 60, "the lockstep plant")
         for key in ("plant/step", "plant/reset"):
             for payload in GARBAGE[1:4]:
-                for reply in c.session.get(f"srl/fz/{key}", payload=payload, timeout=5):
+                for reply in c.session.get(f"srl/fz_lock/{key}", payload=payload, timeout=5):
                     errors.append(reply.err is not None)
         assert errors and all(errors), "every malformed query must get an error reply"
         counters: dict[str, dict[str, float]] = {}
@@ -190,11 +195,11 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
         for name in ("plant", "critic", "actor"):
             assert c.alive(name), f"{name} died"
         summaries = {}
-        for name in ("actor", "critic", "plant"):
+        for name in ("actor", "critic", "plant", "lockstep"):
             assert c.procs[name].stop() == 0, c.procs[name].stderr[-10:]
             summaries[name] = c.procs[name].summary()["counters"]
     assert summaries["plant"]["rejected.action"] >= sent["action"]
     assert summaries["actor"]["rejected.state"] >= sent["state"]
     assert summaries["actor"]["rejected.critic/weights"] >= sent["critic/weights"]
     assert summaries["critic"]["rejected.transition"] >= sent["transition"]
-    assert summaries["plant"]["rejected.plant/step"] + summaries["plant"]["rejected.plant/reset"] >= 6
+    assert summaries["lockstep"]["rejected.plant/step"] + summaries["lockstep"]["rejected.plant/reset"] >= 6

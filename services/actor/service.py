@@ -362,7 +362,7 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
         "final_state": None if last is None else [float(c) for c in last[0].state],
         "weights_version": inbox.current().version,
         "loop": {"period_ms": summarize(periods, 1e3), "jitter_ms": summarize(jitter, 1e3),
-                 "missed_deadlines": ticker.missed},
+                 "missed_deadlines": ticker.missed, "late_ticks": ticker.late},
         "solve_ms": summarize(actor.counters.solve_seconds, 1e3),
         "solver_failures": actor.counters.failures,
         "latency_ms": summarize(latencies, 1e3),

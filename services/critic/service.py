@@ -35,7 +35,15 @@ from typing import Any
 
 import numpy as np
 
-from common.checkpoint import CheckpointError, atomic_write_json, from_runs, read_json, set_aside, to_runs
+from common.checkpoint import (
+    CheckpointError,
+    atomic_write_json,
+    from_runs,
+    read_json,
+    remove_stale_temporaries,
+    set_aside,
+    to_runs,
+)
 from common.critic import DoubleCritic, Replay, Sample
 from common.keys import TRANSITION, WEIGHTS
 from common.messages import CriticWeights, Transition
@@ -192,6 +200,7 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
     """Restore from ``path`` if it holds a usable checkpoint; an unusable one is set aside."""
     if path is None:
         return False
+    remove_stale_temporaries(path)  # a write killed mid-way (kill -9) leaves its temporary file
     try:
         payload = read_json(path)
         if payload is None:

@@ -1,11 +1,13 @@
 """plant_sim: the simulated robot (exact sample-and-hold unicycle).
 
-* lockstep: queryables ``plant/reset`` and ``plant/step`` (apply this action for ``duration``,
-  return the next state). A repeated request for the step just applied (a retry after a lost
-  reply) returns the same reply again instead of applying the action twice.
+* lockstep: queryables ``plant/reset`` and ``plant/step`` (declared in this mode only: apply
+  this action for ``duration``, return the next state). A repeated request for the step just
+  applied (a retry after a lost reply) returns the same reply again instead of applying the
+  action twice.
 * realtime: integrates continuously at ``state_rate`` Hz with the newest action held, publishes
   the state each period, and stops the robot (zero velocity) when no action arrived for
-  ``action_timeout_steps * delta``.
+  ``action_timeout_steps * delta``. It serves no query: a step or reset from anyone would move
+  the robot behind the actor's back (issue 13, finding 3), so neither queryable is declared.
 Every applied action is clamped to the robot's limits; messages are validated by schema.
 """
 
@@ -84,8 +86,9 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     plant = SimulatedPlant(settings)
     robot = settings.transport.robot
     publish_state = bus.publisher(STATE, robot)
-    bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
-    bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
+    if mode == "lockstep":  # real time: nobody may teleport or step the robot (the queryables do not exist)
+        bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
+        bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
 
     latest: dict[str, object] = {"action": np.zeros(2), "at": None}
 

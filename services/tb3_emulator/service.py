@@ -28,10 +28,13 @@ sensor timer), frame ``odom``, child ``base_footprint`` (namespace-prefixed when
 with the applied velocity in its twist; optional seeded Gaussian noise on the reported pose and
 a command latency.
 
-No cmd_vel timeout by default, like the real robot: the OpenCR stops only when the heartbeat
-from turtlebot3_node stops for 500 ms (``HEARTBEAT_TIMEOUT_MS``), and turtlebot3_node writes it
-every 100 ms whatever cmd_vel does -- a TurtleBot3 holds its last command forever. That is why the
-bridge has a watchdog. ``--cmd-timeout`` emulates a robot that does time out.
+A stock TurtleBot3 has no cmd_vel timeout: the OpenCR stops only when the heartbeat from
+turtlebot3_node stops for 500 ms (``HEARTBEAT_TIMEOUT_MS``), and turtlebot3_node writes it every
+100 ms whatever cmd_vel does -- it holds its last command forever. That is why the bridge has a
+watchdog, and why a robot whose command path can break (its cmd_vel comes through a router that
+may die) needs a timeout of its own (README "Robot bridge": turtlebot3_node's timeout or a
+``twist_mux`` with one). The emulator therefore times out by default (``--cmd-timeout``, 0.5 s,
+the OpenCR's own heartbeat bound); ``--cmd-timeout 0`` emulates the stock robot that holds.
 """
 
 from __future__ import annotations
