@@ -40,13 +40,22 @@ COVERAGE: dict[str, str] = {
         "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
     "./srl up --plant robot --robot-endpoint tcp/<robot-ip>:7447 --ros-distro jazzy":
         "tests/test_robot_bridge.py::test_up_with_a_robot_endpoint_starts_no_emulator (an emulator as the robot)",
-    "SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=/etc/srl/users.txt ./srl router":
-        "tests/test_security.py::test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read "
-        "(the same variables, credentials in a temporary directory)",
-    "SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USER=critic "
-    "SRL_TRANSPORT__PASSWORD_FILE=/etc/srl/critic.password ./srl critic --router tcp/ROUTER:7447":
-        "tests/test_security.py::test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read "
-        "(the same variables, credentials in a temporary directory)",
+    'srl certs --out ~/srl-secrets --hosts robot-pc --passwords':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    'SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=~/srl-secrets/users.txt SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem SRL_TRANSPORT__TLS_CERT=~/srl-secrets/router.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/router.key srl router --router tls/0.0.0.0:7447':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    "ssh new-host 'mkdir -m 700 -p ~/srl-secrets'":
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    'scp ~/srl-secrets/{ca.pem,critic.pem,critic.key,critic.password} new-host:srl-secrets/':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    'export SRL_TRANSPORT__ROUTER=tls/robot-pc:7447 SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USER=critic':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    'export SRL_TRANSPORT__PASSWORD_FILE=~/srl-secrets/critic.password SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    'export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+    'srl critic':
+        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
     "./srl experiment paper":
         "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out":
