@@ -220,8 +220,15 @@ def test_no_secret_is_committed() -> None:
 
 
 # -- processes: a secured router with the real services -------------------------------------------
-def session_as(endpoint: str, user: str | None, password: str | None = None) -> zenoh.Session:
+def session_as(endpoint: str, user: str | None, password: str | None = None,
+               tls: tuple[Path, Path, Path] | None = None) -> zenoh.Session:
+    """A client session logged in as ``user``; ``tls`` = (CA, certificate, key) for a mutual-TLS link."""
     config = client_config(endpoint)
+    if tls is not None:
+        ca, cert, key = (str(path) for path in tls)
+        for path, value in (("root_ca_certificate", ca), ("connect_certificate", cert),
+                            ("connect_private_key", key), ("enable_mtls", True)):
+            config.insert_json5(f"transport/link/tls/{path}", json.dumps(value))
     if user is not None:
         config.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
     if password is not None:
@@ -454,7 +461,11 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
         # the actor's own login may query plant/reset in lockstep only (a malformed request: the
         # plant answers with an error and changes nothing); in real time the router refuses it
         actor_password = (credential_dirs[0] / "actor.password").read_text().strip()
-        actor = session_as(endpoint, "actor", actor_password)
+        # srl up --secure serves its tcp/ address over mutual TLS: log in with the actor's certificate
+        tls = credential_dirs[0] / "tls"
+        wait_until(lambda: (tls / "actor.key").is_file() or up.poll() is not None, 30, "the TLS material")
+        actor = session_as(endpoint.replace("tcp/", "tls/", 1), "actor", actor_password, tls=(
+            tls / "ca.pem", tls / "actor.pem", tls / "actor.key"))
         try:
             wait_until(lambda: _plant_alive(actor, "su") or up.poll() is not None, 60, "the plant of srl up --secure")
             reset_replies = list(actor.get("srl/su/plant/reset", payload=b"{", timeout=2.0))
