@@ -66,6 +66,9 @@ PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
 PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
 
 ALIVE = "srl/{robot}/alive/{service}"  # liveliness tokens (see liveliness_key)
+# Identity tokens: one per live session of a service, naming the session's Zenoh id, so a
+# receiver knows WHICH session is the live plant / actor / critic (see identity_key).
+IDENTITY = "srl/{robot}/alive/{service}/{zid}"
 ALL_KEYS = "srl/**"  # every key of srl (but the verbatim @adv chunks: see advanced_pattern)
 
 SERVICES = ("actor", "critic", "plant", "router")
@@ -74,6 +77,26 @@ SERVICES = ("actor", "critic", "plant", "router")
 def liveliness_key(robot: str, service: str) -> str:
     """Liveliness token of one service of one robot: ``srl/<robot>/alive/<service>``."""
     return ALIVE.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"))
+
+
+def identity_key(robot: str, service: str, zid: str) -> str:
+    """Identity token of one session of a service: ``srl/<robot>/alive/<service>/<zid>``.
+
+    Declared beside :func:`liveliness_key` by every service (common.transport.Bus.declare_alive);
+    a receiver accepts a plant's states, an actor's actions or a critic's weights only from a
+    session whose identity token is live (common.provenance.SourceGate)."""
+    return IDENTITY.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"),
+                           zid=check_chunk(zid, "zid"))
+
+
+def identity_pattern(robot: str, service: str) -> str:
+    """Every identity token of ``service`` of ``robot``: ``srl/<robot>/alive/<service>/*``."""
+    return f"{liveliness_key(robot, service)}/*"
+
+
+def identity_of(key: str) -> str:
+    """The zid chunk of an identity token key (the last chunk)."""
+    return key.rsplit("/", 1)[-1]
 
 
 def liveliness_pattern(robot: str) -> str:

@@ -139,34 +139,39 @@ def role_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
     def key(pattern: str, service: str = "*", robot: str = robot) -> str:
         return pattern.format(robot=robot, service=service)
 
-    alive = key(ALIVE)  # every role may see which services are alive (srl/<robot>/alive/*)
+    # every role may see which services are alive (srl/<robot>/alive/*) and which sessions they
+    # are (identity tokens srl/<robot>/alive/<service>/<zid>, common.provenance)
+    alive = (key(ALIVE), key(ALIVE) + "/*")
+
+    def own(service: str) -> tuple[str, str]:  # a service's liveliness and identity tokens
+        return key(ALIVE, service), key(ALIVE, service) + "/*"
     return {
         "actor": [
             *publish(key(ACTION.pattern), key(STATUS.pattern, "actor")),
             *advanced_publish(key(TRANSITION.pattern)),
             *read(key(STATE.pattern), key(WEIGHTS.pattern)),
             *(query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
-            *token(key(ALIVE, "actor")),
-            *watch(alive),
+            *token(*own("actor")),
+            *watch(*alive),
         ],
         "critic": [
             *publish(key(WEIGHTS.pattern), key(STATUS.pattern, "critic")),
             # the critic subscribes to every robot's transitions (srl/*/transition): the rule
             # must include that wildcard; it still publishes weights for this robot only
             *advanced_read(key(TRANSITION.pattern, robot="*")),
-            *token(key(ALIVE, "critic")),
-            *watch(alive),
+            *token(*own("critic")),
+            *watch(*alive),
         ],
         "plant": [
             *publish(key(STATE.pattern), key(STATUS.pattern, "plant")),
             *read(key(ACTION.pattern)),
             *(serve(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
-            *token(key(ALIVE, "plant"), key(ALIVE, "robot_bridge")),
-            *watch(alive),
+            *token(*own("plant"), key(ALIVE, "robot_bridge")),
+            *watch(*alive),
         ],
         "monitor": [
             *read(key(STATUS.pattern), key(STATE.pattern)),
-            *watch(alive),
+            *watch(*alive),
         ],
     }
 

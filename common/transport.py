@@ -18,8 +18,9 @@ from typing import Any, TypeVar
 import zenoh
 import zenoh.ext
 
-from common.keys import Service, Topic, liveliness_key
+from common.keys import Service, Topic, identity_key, identity_of, identity_pattern, liveliness_key
 from common.messages import Message, MessageError, decode
+from common.provenance import SourceGate
 from common.security import check_network_exposure, tls_entries, zenoh_entries
 from common.settings import TransportSettings
 
@@ -138,16 +139,25 @@ class Bus:
 
         return publish
 
+    @property
+    def zid(self) -> str:
+        """This session's Zenoh id: the id Zenoh stamps on every sample it publishes."""
+        return str(self.session.info.zid())
+
     def subscribe(
-        self, topic: Topic[M], key: str, handler: Callable[[M], None], what: str | None = None,
-        recover: bool = False,
+        self, topic: Topic[M], key: str, handler: Callable[..., None], what: str | None = None,
+        recover: bool = False, with_source: bool = False,
     ) -> None:
         """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``.
 
         ``recover``: a Zenoh advanced subscriber that fetches the history cached by advanced
         publishers (also of publishers that appear later) and recovers samples it missed, as
         detected by their sequence numbers and heartbeats. The handler may then see a sample
-        more than once (history overlapping what it got live): it must be idempotent."""
+        more than once (history overlapping what it got live): it must be idempotent.
+
+        ``with_source``: the handler is called as ``handler(message, source)``, ``source`` the id
+        of the session that published the sample (its Zenoh timestamp's id; None if unstamped),
+        to be checked against the live identities (:meth:`watch_identities`)."""
         name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -158,7 +168,11 @@ class Bus:
                 return
             self.count(f"received.{name}")
             try:
-                handler(message)
+                if with_source:
+                    stamp = sample.timestamp
+                    handler(message, None if stamp is None else str(stamp.get_id()))
+                else:
+                    handler(message)
             except Exception:  # a handler bug must not kill zenoh's callback thread silently
                 self.count(f"handler_errors.{name}")
                 log.exception("%s: handler for %s failed", self.service, name)
@@ -210,7 +224,39 @@ class Bus:
 
     # -- liveliness ---------------------------------------------------------------------
     def declare_alive(self, robot: str) -> None:
-        self._keep.append(self.session.liveliness().declare_token(liveliness_key(robot, self.service)))
+        """This service's liveliness token ``srl/<robot>/alive/<service>`` (readiness, health
+        checks) and its session's identity token ``.../<service>/<zid>`` (provenance)."""
+        liveliness = self.session.liveliness()
+        self._keep.append(liveliness.declare_token(liveliness_key(robot, self.service)))
+        self._keep.append(liveliness.declare_token(identity_key(robot, self.service, self.zid)))
+
+    def live_identities(self, robot: str, service: str, timeout: float = 1.0) -> list[str]:
+        """The session ids of every live identity token of ``service`` of ``robot`` (not ours)."""
+        replies = self.session.liveliness().get(identity_pattern(robot, service), timeout=timeout)
+        found = {identity_of(str(reply.ok.key_expr)) for reply in replies if reply.ok is not None}
+        return sorted(found - {self.zid})
+
+    def watch_identities(self, robot: str, service: str, gate: SourceGate,
+                         on_change: Callable[[str, bool], None] | None = None) -> None:
+        """Keep ``gate`` up to date with the live identities of ``service`` of ``robot``.
+
+        The identities alive now are read synchronously before this returns (a liveliness
+        query), so a sample that arrives right after is judged against them; later changes come
+        from a liveliness subscriber (a vanished session: ~ms after a kill or a lost router)."""
+
+        def on_token(sample: zenoh.Sample) -> None:
+            zid, alive = identity_of(str(sample.key_expr)), sample.kind == zenoh.SampleKind.PUT
+            gate.update(zid, alive)
+            if on_change is not None:
+                on_change(zid, alive)
+
+        self._keep.append(self.session.liveliness().declare_subscriber(
+            identity_pattern(robot, service), on_token, history=True))
+        for zid in self.live_identities(robot, service, timeout=1.0):
+            if zid not in gate.sources():
+                gate.update(zid, True)
+                if on_change is not None:
+                    on_change(zid, True)
 
     def watch_alive(self, robot: str, service: str, handler: Callable[[bool], None]) -> None:
         """``handler(True)`` when the service's token appears (or already exists), ``False``

@@ -133,6 +133,13 @@ def test_queries_queryables_and_liveliness_per_role() -> None:
         assert who(ACL, "liveliness_token", "egress", f"srl/t0/alive/{service}") == set(ROLES)
     assert who(ACL, "liveliness_token", "ingress", "srl/t0/alive/monitor") == set()
     assert who(ACL, "liveliness_query", "ingress", "srl/t0/alive/*") == set(ROLES)
+    # identity tokens (common.provenance): a role announces the sessions of its own services only
+    zid = "0123456789abcdef0123456789abcdef"
+    for service, owner in (("actor", "actor"), ("critic", "critic"), ("plant", "plant")):
+        assert who(ACL, "liveliness_token", "ingress", f"srl/t0/alive/{service}/{zid}") == {owner}
+        assert who(ACL, "liveliness_token", "egress", f"srl/t0/alive/{service}/{zid}") == set(ROLES)
+        assert who(ACL, "declare_liveliness_subscriber", "ingress", f"srl/t0/alive/{service}/*") == set(ROLES)
+    assert who(ACL, "liveliness_token", "ingress", f"srl/t1/alive/plant/{zid}") == set()
     # discovery (declarations, queries to one's own queryables) carries no samples: every role
     assert who(ACL, "declare_subscriber", "egress", "srl/*/transition") == set(ROLES)
 

@@ -40,6 +40,7 @@ from common.messages import (
     StepRequest,
     Transition,
 )
+from common.provenance import SequenceGuard, SourceGate
 from common.settings import Settings
 from common.stats import summarize
 from common.transport import Bus, start_status_thread
@@ -47,6 +48,13 @@ from services.clock import Ticker
 
 log = logging.getLogger(__name__)
 MAX_VERSION_AHEAD_US = 60_000_000  # clock skew allowed between the critic's host and ours
+# A state's seq may run at most this far ahead of the last accepted one of its plant session
+# (plant_sim publishes at transport.state_rate <= 1000 Hz, the bridge at the odometry rate):
+# one forged PlantState(seq=2**62) must not make every real state "old" for the rest of the run.
+MAX_SEQ_JUMP = 10_000
+# Weights beyond the critic's box are refused; without a box (critic.weight_bounds = []) this
+# is the bound: far above any fit of ours (README), far below where the objective overflows.
+MAX_ABS_WEIGHT_UNBOXED = 1e6
 PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
 
 
@@ -60,36 +68,76 @@ class HeldWeights:
 
 
 class WeightsInbox:
-    """Newest accepted critic weights of the current episode (thread-safe)."""
+    """Newest accepted critic weights of the current episode (thread-safe).
 
-    def __init__(self, settings: Settings, bus: Bus) -> None:
+    Weights are accepted only (issue 13): from the live critic session when a ``gate`` is given
+    (its identity token, common.provenance), for the current episode, newer than the held
+    version of the same critic session (a new session -- a restarted critic -- resynchronizes),
+    within the configured weight box (else the last good weights are kept), and trained on a
+    step the actor has already published (``published_step``): a forged far-future version or
+    trained step can neither lock out the real critic nor falsify the staleness figures.
+    """
+
+    def __init__(self, settings: Settings, bus: Bus, gate: SourceGate | None = None) -> None:
         self.settings = settings
         self.bus = bus
+        self.gate = gate
         self.cond = threading.Condition()
         self.episode = -1
+        self.published_step = -1  # the newest transition step this actor published (this episode)
+        self.source: str | None = None  # the critic session whose versions are held
+        bounds = settings.critic.bounds
+        self.box = bounds if bounds is not None else (-MAX_ABS_WEIGHT_UNBOXED, MAX_ABS_WEIGHT_UNBOXED)
         self.held = HeldWeights(settings.initial_q_weights(), settings.initial_v_weights(), 0, -1,
                                 time.monotonic())
 
     def reset(self, episode: int) -> HeldWeights:
         with self.cond:
             self.episode = episode
+            self.published_step = -1
+            self.source = None
             self.held = HeldWeights(self.settings.initial_q_weights(), self.settings.initial_v_weights(),
                                     0, -1, time.monotonic())
             return self.held
 
-    def offer(self, message: CriticWeights) -> None:
+    def published(self, step: int) -> None:
+        with self.cond:
+            self.published_step = max(self.published_step, step)
+
+    def offer(self, message: CriticWeights, source: str | None = None) -> None:
+        if self.gate is not None:
+            verdict = self.gate.verdict(source)
+            if verdict != "accept":
+                self.bus.reject("critic/weights", f"from session {source} ({verdict}: live critic "
+                                f"{self.gate.sources() or 'none'})")
+                return
+        low, high = self.box
+        weights = (*message.q_weights, *message.v_weights)
+        if min(weights) < low or max(weights) > high:
+            self.bus.reject("critic/weights", f"weights outside the box [{low:g}, {high:g}] "
+                            f"(min {min(weights):g}, max {max(weights):g}); keeping version {self.held.version}")
+            return
         with self.cond:
             if message.episode != self.episode:
                 self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
                 return
+            if message.trained_step > self.published_step:
+                self.bus.reject("critic/weights", f"trained on step {message.trained_step}, but the actor "
+                                f"published only up to {self.published_step}")
+                return
             if message.version > time.time_ns() // 1000 + MAX_VERSION_AHEAD_US:
                 # critic versions count from the wall clock in microseconds: one far ahead is
-                # forged or corrupt, and accepting it would lock out every real update after it
+                # forged or corrupt (a sanity bound; provenance is what keeps forgers out)
                 self.bus.reject("critic/weights", f"version {message.version} is from the future")
                 return
-            if message.version <= self.held.version:
+            same_source = source == self.source
+            if same_source and message.version <= self.held.version:
                 self.bus.reject("critic/weights", f"version {message.version} <= held {self.held.version}")
                 return
+            if not same_source and self.source is not None:
+                log.info("critic session %s replaces %s: versions resynchronized", source, self.source)
+                self.bus.count("critic_resyncs")
+            self.source = source
             self.held = HeldWeights(np.array(message.q_weights), np.array(message.v_weights),
                                     message.version, message.trained_step, time.monotonic())
             self.bus.count("weights_accepted")
@@ -156,6 +204,7 @@ class ZenohCriticPort:
         return held.q, held.v
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        self.inbox.published(sample.step)
         self.publish(Transition(robot=self.robot, episode=self.episode, step=sample.step,
                                 state=tuple(float(c) for c in sample.state),
                                 action=(float(sample.action[0]), float(sample.action[1])),
@@ -178,8 +227,10 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         sync_critic: bool) -> dict:
     robot = settings.transport.robot
     actor = build_actor(settings)  # built once, before the loop starts
-    inbox = WeightsInbox(settings, bus)
-    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer)
+    critic_gate = SourceGate("critic")
+    bus.watch_identities(robot, "critic", critic_gate)
+    inbox = WeightsInbox(settings, bus, critic_gate)
+    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
     # the liveliness token means "ready": declared by each mode once all its inputs are subscribed
     if mode == "lockstep":
         return _run_lockstep(settings, bus, actor, inbox, sync_critic)
@@ -218,17 +269,48 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
     # out within n delta of the state stopping (n = action_timeout_steps >= 2).
     stale_after = (settings.transport.action_timeout_steps - 1) * delta
     latest: dict[str, tuple[PlantState, float] | None] = {"state": None}
+    last_accepted: dict[str, PlantState | None] = {"state": None}  # for the summary: never a refused one
     state_lock = threading.Lock()
+    # Provenance (issue 13): states only from the live plant session (its identity token), in
+    # order per session, never more than MAX_SEQ_JUMP ahead; a new session resynchronizes.
+    plant_gate = SourceGate("plant")
+    order = SequenceGuard(MAX_SEQ_JUMP)
+    episodes: dict[str, int] = {}
+    refused_at = [0.0]  # when the live plant's last state was refused (a lockout shows in status)
 
-    def on_state(message: PlantState) -> None:
+    def on_plant_identity(zid: str, alive: bool) -> None:
         with state_lock:
-            held = latest["state"]
-            if held is not None and message.episode == held[0].episode and message.seq <= held[0].seq:
-                bus.reject("state", f"seq {message.seq} not newer than {held[0].seq}")
-                return
-            latest["state"] = (message, time.monotonic())
+            order.forget(set(plant_gate.sources()))
+            if not alive:
+                episodes.pop(zid, None)
+            if plant_gate.conflict:
+                latest["state"] = None  # follow neither of two plants
+        if plant_gate.conflict:
+            bus.count("plant_conflicts")
+            log.error("two plants are alive for robot %s (sessions %s): commanding zero velocity until one "
+                      "is gone", robot, ", ".join(plant_gate.sources()))
 
-    bus.subscribe(STATE, STATE.key(robot), on_state)
+    def on_state(message: PlantState, source: str | None) -> None:
+        verdict = plant_gate.verdict(source)
+        if verdict != "accept":
+            bus.reject(f"state.{verdict}", f"from session {source} (live plant: {plant_gate.sources() or 'none'})")
+            return
+        assert source is not None
+        with state_lock:
+            if episodes.get(source) != message.episode:  # a new stream of the live plant (or its reset)
+                episodes[source] = message.episode
+                order.last.pop(source, None)
+            refusal = order.check(source, message.seq)
+            now = time.monotonic()
+            if refusal is not None:
+                refused_at[0] = now
+                bus.reject("state", f"seq {refusal}")
+                return
+            latest["state"] = (message, now)
+            last_accepted["state"] = message
+
+    bus.watch_identities(robot, "plant", plant_gate, on_plant_identity)
+    bus.subscribe(STATE, STATE.key(robot), on_state, with_source=True)
 
     def on_plant_token(alive: bool) -> None:
         # The plant (simulator or robot bridge) vanished: its last state is no longer the
@@ -257,7 +339,7 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
     tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)
     publish_times: dict[int, float] = {}
     published_steps: list[list[int]] = []  # the steps of the transitions published, as [first, last] runs
-    counters = {"steps": 0, "stale_state_stops": 0}
+    counters = {"steps": 0, "stale_state_stops": 0, "plant_conflict_stops": 0}
     start_state = None
     start_time = time.monotonic()
 
@@ -268,7 +350,18 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
             "solver_failures": actor.counters.failures, "weights_version": held.version,
             "staleness_steps": float(staleness_steps[-1]) if staleness_steps else 0.0,
             "solve_ms_last": actor.counters.solve_seconds[-1] * 1e3 if actor.counters.solve_seconds else 0.0,
+            "plant_sources": float(len(plant_gate.sources())),
+            "plant_conflict": float(plant_gate.conflict),
+            "lockout_suspect": float(lockout_suspect()),
         }
+
+    def lockout_suspect() -> bool:
+        """The live plant's states are being refused and none was accepted for over a second:
+        the pattern a forged far-ahead sequence number or episode leaves (status, issue 13)."""
+        with state_lock:
+            held = latest["state"]
+        now = time.monotonic()
+        return now - refused_at[0] < 1.0 and (held is None or now - held[1] > 1.0)
 
 
     def stop_robot(k: int) -> None:
@@ -292,6 +385,7 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
         latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
         cost = delta * float(stage_cost(state, step.action, settings.cost.r_diag))
         costs.append(cost)
+        inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         publish_transition(Transition(robot=robot, episode=episode_id, step=k,
                                       state=(float(state[0]), float(state[1]), float(state[2])),
                                       action=action, cost=cost))
@@ -330,7 +424,10 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
             k = ticker.index - 1
             with state_lock:
                 held_state = latest["state"]
-            if held_state is None or tick - held_state[1] > stale_after:
+            if plant_gate.conflict:
+                counters["plant_conflict_stops"] += 1
+                stop_robot(k)
+            elif held_state is None or tick - held_state[1] > stale_after:
                 counters["stale_state_stops"] += 1
                 stop_robot(k)
             else:
@@ -348,7 +445,7 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
         gc.unfreeze()
 
     with state_lock:
-        last = latest["state"]
+        last = last_accepted["state"]
     # on the way out: stop the robot
     publish_action(Action(robot=robot, episode=episode_id, step=ticker.index, stamp_ns=time.monotonic_ns(),
                           action=(0.0, 0.0), state_seq=-1))
@@ -359,7 +456,7 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
         "steps": counters["steps"],
         "accumulated_cost": float(np.sum(costs)),
         "start_state": None if start_state is None else [float(c) for c in start_state],
-        "final_state": None if last is None else [float(c) for c in last[0].state],
+        "final_state": None if last is None else [float(c) for c in last.state],
         "weights_version": inbox.current().version,
         "loop": {"period_ms": summarize(periods, 1e3), "jitter_ms": summarize(jitter, 1e3),
                  "missed_deadlines": ticker.missed, "late_ticks": ticker.late},
@@ -369,6 +466,8 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
         "staleness_steps": summarize(staleness_steps),
         "staleness_ms": summarize([s for s in staleness_ms if s == s]),
         "stale_state_stops": counters["stale_state_stops"],
+        "plant_conflict_stops": counters["plant_conflict_stops"],
+        "plant_sources": plant_gate.sources(),
         "transitions_tail": list(tail),
         "transition_steps": published_steps,
         "counters": dict(bus.counters),
