@@ -27,6 +27,10 @@ from typing import Literal
 Verdict = Literal["accept", "foreign", "conflict", "unknown"]
 
 
+class PlantConflictError(RuntimeError):
+    """A plant (simulator or robot bridge) would start beside a live plant of the same robot."""
+
+
 @dataclass
 class SourceGate:
     """Live identities of one singleton service, and the verdict on a sample's source."""

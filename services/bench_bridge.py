@@ -35,7 +35,7 @@ from typing import Any
 
 import zenoh
 
-from common.keys import ACTION, STATE, liveliness_key
+from common.keys import ACTION, STATE, identity_key, liveliness_key
 from common.messages import Action
 from common.settings import Settings
 from common.stats import summarize
@@ -180,6 +180,8 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
             session.declare_subscriber(f"srl/{robot}/bench/echo_out",
                                        lambda _s: recorder.echoes.append(time.monotonic())),
             session.liveliness().declare_token(liveliness_key(robot, "actor")),
+            # the bridge follows only the live actor session's actions (common.provenance)
+            session.liveliness().declare_token(identity_key(robot, "actor", str(session.info.zid()))),
         ]
         ping = session.declare_publisher(f"srl/{robot}/bench/ping", express=True)
         echo_pub = session.declare_publisher(f"srl/{robot}/bench/echo_in", express=True)

@@ -18,6 +18,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from common.lifeline import die_with_parent
+from common.provenance import PlantConflictError
 from common.security import SecurityError
 from common.settings import Settings, parse_start
 
@@ -575,7 +576,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
-    except (UsageError, SecurityError) as error:
+    except (UsageError, SecurityError, PlantConflictError) as error:
         print(f"srl: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -41,9 +41,21 @@ def client_config(endpoint: str) -> zenoh.Config:
     config = zenoh.Config()
     config.insert_json5("mode", '"client"')
     config.insert_json5("scouting/multicast/enabled", "false")
+    # like every srl session: its samples carry its own id (common.provenance)
+    config.insert_json5("timestamping/enabled", "true")
     config.insert_json5("listen/endpoints", "[]")
     config.insert_json5("connect/endpoints", json.dumps([endpoint]))
     return config
+
+
+def declare_service_tokens(session: zenoh.Session, robot: str, service: str) -> list[Any]:
+    """Make ``session`` look alive as ``service`` of ``robot``: its liveliness token and its
+    identity token (common.keys.identity_key), as common.transport.Bus.declare_alive does."""
+    from common.keys import identity_key, liveliness_key
+
+    liveliness = session.liveliness()
+    return [liveliness.declare_token(liveliness_key(robot, service)),
+            liveliness.declare_token(identity_key(robot, service, str(session.info.zid())))]
 
 
 class Proc:

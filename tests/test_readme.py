@@ -29,6 +29,9 @@ NOT_IN_CI = "(not in CI)"
 COMMENT = re.compile(r"\s+#(?:\s.*)?$")
 J_IN_OUTPUT = re.compile(r"\bJ\b[^0-9\n-]*(-?[0-9]+\.[0-9]+)")
 
+ADD_A_HOST = ("tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two "
+              "hosts, loopback and a free port for the addresses, `srl` = this checkout's)")
+
 # README command -> who runs it ("CI: ..." or a test as path::name, plus how it differs)
 COVERAGE: dict[str, str] = {
     "./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30":
@@ -41,21 +44,21 @@ COVERAGE: dict[str, str] = {
     "./srl up --plant robot --robot-endpoint tcp/<robot-ip>:7447 --ros-distro jazzy":
         "tests/test_robot_bridge.py::test_up_with_a_robot_endpoint_starts_no_emulator (an emulator as the robot)",
     'srl certs --out ~/srl-secrets --hosts robot-pc --passwords':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
-    'SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=~/srl-secrets/users.txt SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem SRL_TRANSPORT__TLS_CERT=~/srl-secrets/router.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/router.key srl router --router tls/0.0.0.0:7447':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
+    'SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=~/srl-secrets/users.txt SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem SRL_TRANSPORT__TLS_CERT=~/srl-secrets/router.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/router.key srl router --router tls/0.0.0.0:7447':  # noqa: E501 (a README line, verbatim)
+        ADD_A_HOST,
     "ssh new-host 'mkdir -m 700 -p ~/srl-secrets'":
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
     'scp ~/srl-secrets/{ca.pem,critic.pem,critic.key,critic.password} new-host:srl-secrets/':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
     'export SRL_TRANSPORT__ROUTER=tls/robot-pc:7447 SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USER=critic':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
     'export SRL_TRANSPORT__PASSWORD_FILE=~/srl-secrets/critic.password SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
     'export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
     'srl critic':
-        "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two hosts, loopback and a free port for the addresses, `srl` = this checkout's)",
+        ADD_A_HOST,
     "./srl experiment paper":
         "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out":

@@ -26,12 +26,13 @@ from pydantic import ValidationError
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from common.messages import Action, PlantState
+from common.provenance import SourceGate
 from common.settings import Settings
 from services.robot_bridge import ros_wire
 from services.robot_bridge.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
-from tests.harness import ROOT, client_config, cluster, free_port, wait_until
+from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, wait_until
 
 DELTA = 0.1
 TIMEOUT = 3 * DELTA  # bridge.watchdog_timeout_steps x delta (srl.toml)
@@ -168,6 +169,57 @@ def test_watchdog_commands_zero_and_keeps_commanding_it() -> None:
     assert commands[-1] == (0.0, 0.0)  # refused while the actor is gone
 
 
+def test_odometry_from_the_far_future_does_not_lock_out_the_real_samples() -> None:
+    """Issue 13: one odometry sample stamped an hour ahead made the bridge drop the next 19 real
+    ones; now it is refused without becoming the reference."""
+    bridge, states, _, counts = _bridge()
+    t0, second = 1_000_000.0, 10**9
+    bridge.on_odometry(_odom(100 * second, 0.5), t0)
+    for k in range(1, 6):  # a forged sample once a "second", each followed by real 20 Hz samples
+        assert bridge.on_odometry(_odom((100 + 3600 + k) * second, 9.0), t0 + k) is None
+        for j in range(20):
+            stamp = 100 * second + k * second + j * (second // 20)
+            assert bridge.on_odometry(_odom(stamp, 0.5), t0 + k + j / 20) is not None
+    assert len(states) == 1 + 5 * 20 and counts.counters["rejected.odom"] == 5
+    assert all(s.state[0] == 0.5 for s in states)
+    # a robot clock that really jumped forward is followed after CLOCK_RESET_AFTER samples in a row
+    for j in range(CLOCK_RESET_AFTER):
+        bridge.on_odometry(_odom((5000 + j) * second, 0.6), t0 + 6 + j / 20)
+    assert states[-1].state[0] == 0.6 and counts.counters["odom_clock_jumps"] == 1
+
+
+def test_actions_only_from_the_live_actor_session() -> None:
+    """Issue 13: one Action(episode=2**62) from another session locked out every real action;
+    now actions are followed only from the live actor session, and a new session resyncs."""
+    settings = Settings.load(transport={"robot": "u0"})
+    commands: list[tuple[float, float]] = []
+    counts = FakeCounts()
+    gate = SourceGate("actor")
+    bridge = RobotBridge(settings, lambda s: None, lambda v, w: commands.append((v, w)), counts, gate)
+    gate.update("a1", True)  # as Bus.watch_identities does: the gate first, then the bridge
+    bridge.on_actor_identity("a1", True)
+    bridge.on_action(_action(1, 0.1), time.monotonic(), "a1")
+    bridge.on_action(_action(0, 0.2, episode=2**62), time.monotonic(), "rogue")  # foreign session
+    bridge.on_action(_action(2, 0.1), time.monotonic(), None)  # unstamped
+    bridge.on_action(_action(2, 0.15), time.monotonic(), "a1")
+    assert commands == [(0.1, 0.0), (0.15, 0.0)] and counts.counters["rejected.action.foreign"] == 2
+    bridge.on_action(_action(2 + 20_000, 0.2), time.monotonic(), "a1")  # a step from the far future
+    assert commands[-1] == (0.15, 0.0) and counts.counters["rejected.action"] == 1
+    # a rogue identity beside the real one: a conflict, nothing is followed
+    gate.update("rogue", True)
+    bridge.on_action(_action(3, 0.2), time.monotonic(), "a1")
+    assert commands[-1] == (0.15, 0.0) and counts.counters["rejected.action.conflict"] == 1
+    gate.update("rogue", False)
+    # the followed session dies while another actor token lingers: stop at once
+    gate.update("a2", True)
+    gate.update("a1", False)
+    bridge.on_actor_identity("a1", False)
+    assert commands[-1] == (0.0, 0.0) and counts.counters["actor_lost_stops"] == 1
+    # the new actor session (a restart) starts its own episode and steps: followed
+    bridge.on_action(_action(0, 0.05, episode=3), time.monotonic(), "a2")
+    assert commands[-1] == (0.05, 0.0)
+
+
 # -- the emulated robot's model ------------------------------------------------------------------
 def test_emulator_integrates_exactly_with_latency_and_timeout() -> None:
     model = Tb3Model(Pose2D(1.0, 2.0, 0.3), 0.22, 2.84, latency=0.2, cmd_timeout=0.0, noise=(0.0, 0.0), seed=0,
@@ -275,7 +327,7 @@ def test_bridge_drives_the_emulated_robot(profile: str, distro: str, emulator_cm
         first = watch.states[-1]
         assert first.source == "robot"
         np.testing.assert_allclose(first.state, (-1.0, 0.5, 0.0), atol=1e-9)
-        token = c.session.liveliness().declare_token(f"srl/{robot}/alive/actor")
+        tokens = declare_service_tokens(c.session, robot, "actor")
 
         step, last_put = _drive(c.session, robot, watch, 1.5, 0, (0.1, 0.2))
         assert watch.applied() == (firmware(0.1), firmware(0.2))  # int32(v * 100) * 0.01f
@@ -292,7 +344,8 @@ def test_bridge_drives_the_emulated_robot(profile: str, distro: str, emulator_cm
         assert watch.applied() == (firmware(0.15), 0.0)
         threading.Thread(target=_drive, args=(c.session, robot, watch, 1.0, step, (0.15, 0.0))).start()
         time.sleep(0.4)
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         lost = time.monotonic()
         wait_until(lambda: watch.first_stop_after(lost) is not None, 5, "the robot to stop")
         assert watch.first_stop_after(lost) - lost <= DELTA + ODOM_PERIOD + SLACK  # type: ignore[operator]
@@ -331,13 +384,14 @@ def test_two_robots_by_namespace() -> None:
             wait_until(lambda i=index: len(watches[i].states) >= 3 and len(watches[i].odom) >= 3, 30,
                        f"odometry and state of robot r{index}")
         assert watches[1].odom[-1][1].frame_id == "tb3_1/odom"  # TurtleBot3 prefixes its frames
-        token = c.session.liveliness().declare_token("srl/r1/alive/actor")
+        tokens = declare_service_tokens(c.session, "r1", "actor")
         _drive(c.session, "r1", watches[1], 1.0, 0, (0.2, 0.0))
         time.sleep(0.2)
         assert watches[1].states[-1].state[0] > 1.15
         assert watches[2].states[-1].state[0] == 2.0  # the other robot never moved
         assert all(odom.v == 0.0 for _, odom in watches[2].odom)
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         for name in ("bridge1", "bridge2", "emulator1", "emulator2"):
             assert c.procs[name].stop() == 0
         emulators = [c.procs[f"emulator{i}"].summary() for i in (1, 2)]
@@ -432,7 +486,7 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
         time.sleep(0.3)
         assert [s.state[0] for s in states] == [1.0, 3.0]
 
-        token = c.session.liveliness().declare_token("srl/fz/alive/actor")
+        tokens = declare_service_tokens(c.session, "fz", "actor")
         time.sleep(0.2)
         actions = c.session.declare_publisher("srl/fz/action")
         actions.put(b'{"schema_version":1,"robot":"fz","episode":1,"step":0,"stamp_ns":0,'
@@ -442,7 +496,8 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
                     b'"action":[1e300,0],"state_seq":0}')  # huge: refused by the schema
         actions.put(Action(robot="fz", episode=1, step=3, stamp_ns=0, action=(-50.0, 50.0), state_seq=2).encode())
         wait_until(lambda: any(cmd[:2] == (-0.22, 2.84) for cmd in commands), 5, "the clamped command")
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         time.sleep(0.2)
         assert c.procs["bridge"].stop() == 0
         summary = c.procs["bridge"].summary()
@@ -484,10 +539,11 @@ def test_bridge_speaks_the_legacy_attachment_of_an_older_robot(distro: str) -> N
         c.start("bridge", "robot-bridge", *wire)
         c.wait_alive("plant")
         wait_until(lambda: len(watch.states) >= 5, 30, "srl state from the legacy robot's odometry")
-        token = c.session.liveliness().declare_token(f"srl/{robot}/alive/actor")
+        tokens = declare_service_tokens(c.session, robot, "actor")
         _drive(c.session, robot, watch, 1.5, 0, (0.1, 0.2))
         assert watch.applied() == (firmware(0.1), firmware(0.2))
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         wait_until(lambda: watch.applied() == (0.0, 0.0), 5, "the robot to stop")
         assert c.procs["bridge"].stop() == 0
         assert c.procs["emulator"].stop() == 0

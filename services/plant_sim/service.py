@@ -22,6 +22,7 @@ import numpy as np
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
+from common.provenance import PlantConflictError
 from common.settings import Settings
 from common.transport import Bus, start_status_thread
 from services.clock import Ticker
@@ -85,6 +86,12 @@ class SimulatedPlant:
 def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None) -> dict:
     plant = SimulatedPlant(settings)
     robot = settings.transport.robot
+    # one plant per robot (issue 13): a second simulator (or a bridge) for the same robot would
+    # make the actor follow one robot's states while commanding another
+    others = bus.live_identities(robot, "plant")
+    if others:
+        raise PlantConflictError(f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
+                                 "one plant per robot; stop it first")
     publish_state = bus.publisher(STATE, robot)
     if mode == "lockstep":  # real time: nobody may teleport or step the robot (the queryables do not exist)
         bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))

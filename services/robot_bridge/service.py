@@ -58,6 +58,7 @@ from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
+from common.provenance import PlantConflictError, SourceGate
 from common.security import SecurityError
 from common.settings import BridgeSettings, Settings
 from common.stats import summarize
@@ -78,6 +79,13 @@ from services.robot_bridge.ros_wire import (
 
 log = logging.getLogger(__name__)
 CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a robot clock reset
+# An odometry stamp more than this ahead of where the robot's clock should be (the last stamp
+# plus the time elapsed here) is refused WITHOUT becoming the reference: one sample stamped an
+# hour ahead must not make the next real samples "old" (issue 13). CLOCK_RESET_AFTER such
+# samples in a row are taken as the robot's clock having jumped forward.
+FUTURE_STAMP_TOLERANCE_NS = 5_000_000_000
+# An action's step may run at most this far ahead of the last applied one of the same episode.
+MAX_STEP_JUMP = 10_000
 SHUTDOWN_ZEROS = 3
 FALLBACK = "fallback"  # the source of a cmd_vel target guessed from the distro, not discovered
 
@@ -96,8 +104,12 @@ class RobotBridge:
     """
 
     def __init__(self, settings: Settings, publish_state: Callable[[PlantState], None],
-                 send_command: Callable[[float, float], None], counts: Counts) -> None:
+                 send_command: Callable[[float, float], None], counts: Counts,
+                 actor_gate: SourceGate | None = None) -> None:
         self.robot = settings.transport.robot
+        # provenance (issue 13): with a gate, actions only from the live actor session
+        self.actor_gate = actor_gate
+        self.action_source: str | None = None  # the session whose actions are being applied
         self.goal = Pose2D(*settings.bridge.goal)
         self.v_max = min(settings.plant.v_max, ros_wire.TB3_BURGER_V_MAX)
         self.omega_max = min(settings.plant.omega_max, ros_wire.TB3_BURGER_OMEGA_MAX)
@@ -111,7 +123,9 @@ class RobotBridge:
         # odometry
         self.seq = 0
         self.last_stamp_ns: int | None = None
+        self.last_stamp_at: float | None = None  # when (our monotonic clock) last_stamp_ns came
         self.stale_run = 0
+        self.future_run = 0
         self.alpha: float | None = None
         self.last_state: tuple[float, float, float] | None = None
         self.frames: tuple[str, str] | None = None
@@ -138,6 +152,17 @@ class RobotBridge:
             self.counts.reject("odom", str(error))
             return None
         with self.lock:
+            if self.last_stamp_ns is not None and self.last_stamp_at is not None:
+                expected = self.last_stamp_ns + int((received - self.last_stamp_at) * 1e9)
+                if odom.stamp_ns > expected + FUTURE_STAMP_TOLERANCE_NS:
+                    self.future_run += 1
+                    if self.future_run < CLOCK_RESET_AFTER:
+                        self.counts.reject("odom", f"stamp {odom.stamp_ns} is {(odom.stamp_ns - expected) / 1e9:.1f} s "
+                                           "ahead of the robot's clock")
+                        return None
+                    log.warning("robot_bridge: %d odometry samples ahead of the robot's clock: taking it as a "
+                                "clock jump", self.future_run)
+                    self.counts.count("odom_clock_jumps")
             if self.last_stamp_ns is not None and odom.stamp_ns <= self.last_stamp_ns:
                 self.stale_run += 1
                 if self.stale_run < CLOCK_RESET_AFTER:
@@ -155,7 +180,9 @@ class RobotBridge:
                 self.counts.reject("odom", f"state {pose} out of range: {error.errors()[0]['msg']}")
                 return None
             self.stale_run = 0
+            self.future_run = 0
             self.last_stamp_ns = odom.stamp_ns
+            self.last_stamp_at = received
             self.alpha = alpha
             self.seq += 1
             if self.frames != (odom.frame_id, odom.child_frame_id):
@@ -172,7 +199,7 @@ class RobotBridge:
             return state
 
     # -- commands -------------------------------------------------------------------------
-    def on_action(self, message: Action, received: float) -> None:
+    def on_action(self, message: Action, received: float, source: str | None = None) -> None:
         with self.lock:
             if message.robot != self.robot:
                 self.counts.reject("action", f"for robot {message.robot!r}, this is {self.robot!r}")
@@ -180,9 +207,22 @@ class RobotBridge:
             if not self.actor_alive:
                 self.counts.reject("action", "the actor's liveliness token is absent")
                 return
+            if self.actor_gate is not None:
+                verdict = self.actor_gate.verdict(source)
+                if verdict != "accept":
+                    self.counts.reject(f"action.{verdict}", f"from session {source} (live actor: "
+                                       f"{self.actor_gate.sources() or 'none'})")
+                    return
+                if source != self.action_source:  # a new actor session: its own episode and steps
+                    self.action_source, self.last_action = source, None
             order = (message.episode, message.step)
             if self.last_action is not None and order <= self.last_action:
                 self.counts.reject("action", f"(episode, step) {order} not newer than {self.last_action}")
+                return
+            if (self.last_action is not None and order[0] == self.last_action[0]
+                    and order[1] > self.last_action[1] + MAX_STEP_JUMP):
+                self.counts.reject("action", f"step {order[1]} jumps more than {MAX_STEP_JUMP} ahead of "
+                                   f"{self.last_action[1]}")
                 return
             try:
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
@@ -199,6 +239,25 @@ class RobotBridge:
             if sent is not None:
                 self.state_to_cmd.append(now - sent)
             self.counts.count("actions_applied")
+
+    def on_actor_identity(self, zid: str, alive: bool) -> None:
+        """An actor session's identity token came or went: the actor is alive while one is; the
+        robot stops at once when the session whose actions it follows is gone (a stray or forged
+        ``alive/actor`` token of another session cannot hide that death)."""
+        if self.actor_gate is None:
+            return
+        live = bool(self.actor_gate.sources())
+        with self.lock:
+            if not alive and zid == self.action_source and self.actor_alive:
+                log.warning("robot_bridge: the actor session %s is gone: stopping the robot", zid)
+                self.counts.count("actor_lost_stops")
+                self.driving = False
+                self.last_action_at = None
+                self.action_source = None
+                self._zero(time.monotonic())
+                self.actor_alive = live  # counted once: the stop above is the actor's loss
+                return
+        self.set_actor_alive(live)
 
     def set_actor_alive(self, alive: bool) -> None:
         with self.lock:
@@ -498,17 +557,20 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     own_session = bool(settings.bridge.robot_endpoint)
     session = robot_session(settings.bridge, settings.transport) if own_session else bus.session
     link = RosLink(session, graph, settings.bridge, bus)
-    bridge = RobotBridge(settings, bus.publisher(STATE, robot), link.send, bus)
+    actor_gate = SourceGate("actor")
+    bridge = RobotBridge(settings, bus.publisher(STATE, robot), link.send, bus, actor_gate)
     link.on_odometry = bridge.on_odometry
     entities: list[Any] = []
     try:
-        bus.subscribe(ACTION, ACTION.key(robot), lambda message: bridge.on_action(message, time.monotonic()))
-
-        def on_actor_token(sample: zenoh.Sample) -> None:
-            bridge.set_actor_alive(sample.kind == zenoh.SampleKind.PUT)
-
-        entities.append(bus.session.liveliness().declare_subscriber(
-            liveliness_key(robot, "actor"), on_actor_token, history=True))
+        # one plant per robot (issue 13): never a second plant beside a live one
+        others = bus.live_identities(robot, "plant")
+        if others:
+            raise PlantConflictError(f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
+                                     "one plant per robot; stop it first")
+        # the actor is alive while one of its sessions' identity tokens is (common.provenance)
+        bus.watch_identities(robot, "actor", actor_gate, bridge.on_actor_identity)
+        bus.subscribe(ACTION, ACTION.key(robot),
+                      lambda message, source: bridge.on_action(message, time.monotonic(), source), with_source=True)
         link.start()
         bus.declare_alive(robot)
         entities.append(bus.session.liveliness().declare_token(liveliness_key(robot, "robot_bridge")))
