@@ -1,0 +1,124 @@
+"""Issue 13 at the robot bridge and the plants: valid but malicious messages against real processes.
+
+Each test runs the attack of the issue's findings against the real bridge (with the emulated
+TurtleBot3 behind it) or plant_sim processes, prints one ``figures:`` line, and asserts that the
+attack no longer works: a far-future action or odometry stamp from a rogue session locks nothing
+out, and a second plant for one robot refuses to start.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import zenoh
+
+from common.messages import Action
+from services.robot_bridge import ros_wire
+from services.robot_bridge.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
+from tests.harness import client_config, cluster, declare_service_tokens, wait_until
+from tests.test_robot_bridge import DELTA, RobotWatch
+
+pytestmark = pytest.mark.slow
+GRAPH = RosGraph("rmw_zenoh", "jazzy", 0, "")
+
+
+def _rogue(endpoint: str) -> zenoh.Session:
+    """Another client on the same router, as a hostile or buggy process would be (its own id)."""
+    return zenoh.open(client_config(endpoint))
+
+
+def test_one_far_future_action_from_another_session_locks_nothing_out() -> None:
+    """Before: one Action(episode=2**62) made the bridge refuse every later real action (145 real
+    non-zero actions, 0 non-zero cmd_vel in 14 s). After: the rogue action is refused as foreign
+    and the real actor's actions keep driving the robot."""
+    robot = "atk_a"
+    with cluster(robot=robot) as c:
+        assert c.session is not None
+        watch = RobotWatch(c.session, GRAPH, robot)
+        c.start("emulator", "tb3-emulator", "--initial-pose=-1,0,0")
+        c.start("bridge", "robot-bridge")
+        c.wait_alive("plant")
+        wait_until(lambda: len(watch.states) >= 3, 30, "the robot's state")
+        tokens = declare_service_tokens(c.session, robot, "actor")  # this session is the real actor
+        actions = c.session.declare_publisher(f"srl/{robot}/action")
+        rogue = _rogue(c.endpoint)
+        try:
+            moved_from = watch.states[-1].state[0]
+            for step in range(40):
+                if step == 5:  # the attack, once
+                    rogue.put(f"srl/{robot}/action", Action(robot=robot, episode=2**62, step=0, stamp_ns=0,
+                                                            action=(-0.2, 0.0), state_seq=-1).encode())
+                actions.put(Action(robot=robot, episode=1, step=step, stamp_ns=time.monotonic_ns(),
+                                   action=(0.15, 0.0), state_seq=-1).encode())
+                time.sleep(DELTA)
+            moved = watch.states[-1].state[0] - moved_from
+            driving = watch.applied()
+        finally:
+            rogue.close()
+            for token in tokens:
+                token.undeclare()
+        assert c.procs["bridge"].stop() == 0
+        counters = c.procs["bridge"].summary()["counters"]
+    print(f"\nfigures: far-future action from another session: {counters.get('actions_applied', 0)} of 40 real "
+          f"actions applied, {counters.get('rejected.action.foreign', 0)} foreign refused, robot moved {moved:.2f} m "
+          f"forward, still commanded {driving}")
+    assert counters.get("rejected.action.foreign", 0) == 1
+    assert counters["actions_applied"] >= 38  # every real action (the first may race the token)
+    assert moved > 0.4 and driving[0] > 0.1  # 0.15 m/s for 4 s, still driving at the end
+
+
+def test_odometry_from_the_far_future_drops_no_real_sample() -> None:
+    """Before: odometry stamped 1 h ahead, once a second, made the bridge drop the next 19 real
+    samples each time (190 in total). After: each forged sample is refused alone."""
+    robot = "atk_o"
+    with cluster(robot=robot) as c:
+        assert c.session is not None
+        c.start("emulator", "tb3-emulator", "--initial-pose=0.5,0,0")
+        c.start("bridge", "robot-bridge")
+        c.wait_alive("plant")
+        watch = RobotWatch(c.session, GRAPH, robot)
+        wait_until(lambda: len(watch.states) >= 3, 30, "the robot's state")
+        rogue = _rogue(c.endpoint)
+        forged = 0
+        try:
+            publisher = rogue.declare_publisher(GRAPH.data_key("odom", ODOMETRY))
+            for k in range(6):
+                stamp = time.time_ns() + 3600 * 10**9
+                payload = ros_wire.encode_odometry("jazzy", Odometry(stamp, "odom", "base_footprint", 9.0, 9.0,
+                                                                     (0.0, 0.0, 0.0, 1.0), 0.0, 0.0))
+                publisher.put(payload, attachment=Attachment(k + 1, stamp, bytes(16)).encode())
+                forged += 1
+                time.sleep(1.0)
+        finally:
+            rogue.close()
+        assert c.procs["bridge"].stop() == 0
+        counters = c.procs["bridge"].summary()["counters"]
+    dropped = counters["odom_received"] - counters["states_published"] - forged
+    print(f"\nfigures: odometry stamped 1 h ahead, {forged} times in 6 s: {counters.get('rejected.odom', 0)} refused, "
+          f"{dropped} real samples dropped of {counters['odom_received'] - forged}; states "
+          f"{counters['states_published']}")
+    assert counters["rejected.odom"] == forged
+    assert dropped == 0
+    assert all(abs(s.state[0]) < 5 for s in watch.states)  # the forged pose (9, 9) never became a state
+
+
+@pytest.mark.parametrize("second", ["plant-sim", "robot-bridge"])
+def test_a_second_plant_for_one_robot_refuses_to_start(second: str) -> None:
+    """Before: plant_sim and the emulated TurtleBot3 ran for one robot id and the actor followed
+    one while driving the other blind. After: the second plant exits 2 with one clear line."""
+    robot = "atk_p"
+    with cluster(robot=robot) as c:
+        c.start("plant", "plant-sim", "--mode", "realtime")
+        c.wait_alive("plant")
+        started = time.monotonic()
+        proc = c.start("second", second)
+        wait_until(lambda: proc.process.poll() is not None, 30, f"the second plant ({second}) to exit")
+        took = time.monotonic() - started
+        code = proc.process.returncode
+        time.sleep(0.1)
+        errors = [line for line in proc.stderr if "another plant" in line]
+        assert c.alive("plant")  # the first one is untouched
+    print(f"\nfigures: a second plant ({second}) for robot {robot}: exit {code} after {took:.1f} s: {errors[:1]}")
+    assert code == 2
+    assert len(errors) == 1 and "one plant per robot" in errors[0]
