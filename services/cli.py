@@ -9,16 +9,19 @@ import argparse
 import json
 import logging
 import math
+import os
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from pydantic import ValidationError
+from pydantic_settings import SettingsError
 
 from common.security import SecurityError
-from common.settings import Settings, parse_start
+from common.settings import MAX_HORIZON, WORKSPACE_HALF_WIDTH, Settings, parse_start
 
 log = logging.getLogger(__name__)
 
@@ -34,28 +37,89 @@ def _start_arg(text: str) -> tuple[float, ...]:
         raise argparse.ArgumentTypeError(str(error)) from error
 
 
-def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
+# The packaged defaults, shown in every option's help (the settings file is the one source).
+def _packaged_defaults() -> dict[str, dict[str, Any]]:
+    import tomllib
+
+    from common.settings import DEFAULT_CONFIG
+
+    with DEFAULT_CONFIG.open("rb") as file:
+        return tomllib.load(file)
+
+
+def _default(section: str, name: str) -> str:
+    value = _packaged_defaults().get(section, {}).get(name)
+    if isinstance(value, list):
+        value = ",".join(str(v) for v in value)
+    return f"(default: {value!r} from common/srl.toml)" if isinstance(value, str) and not value else \
+        f"(default: {value}, common/srl.toml)"
+
+
+# Which settings flags each subcommand takes: a flag a command would ignore is refused
+# (argparse: "unrecognized arguments"), so a typo'd intent never passes silently.
+TRANSPORT_FLAGS = ("config", "router", "robot")
+ACTOR_FLAGS = ("agent", "horizon", "solver", "predictor", "no_jit")
+EPISODE_FLAGS = ("start", "duration")
+ALL_FLAGS = (*TRANSPORT_FLAGS, *ACTOR_FLAGS, *EPISODE_FLAGS)
+COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
+    "run": ALL_FLAGS,
+    "up": (*ALL_FLAGS, "resume"),
+    "bench": ALL_FLAGS,
+    "actor": ALL_FLAGS,
+    "router": TRANSPORT_FLAGS,
+    "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts
+    "critic": (*TRANSPORT_FLAGS, "agent", "horizon", "resume"),  # the stack names its checkpoint
+    "robot-bridge": TRANSPORT_FLAGS,
+    "tb3-emulator": (*TRANSPORT_FLAGS, "start"),  # default initial pose
+}
+
+
+def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str] = ALL_FLAGS) -> None:
     """Flags that override the config file (only those given take effect)."""
-    parser.add_argument("--config", type=Path, help="a TOML file overriding common/srl.toml (any subset)")
-    parser.add_argument("--agent", choices=["mpc", "rlq", "rlqv", "rlqv+"])
-    parser.add_argument("--horizon", type=int, help="N (N - 1 held actions)")
-    parser.add_argument(
-        "--start", type=_start_arg,
-        help="X,Y (heading away from the target) or X,Y,ALPHA; negative: --start=-1.5,1",
-    )
-    parser.add_argument("--duration", type=float, help="episode length [s]")
-    parser.add_argument("--solver", choices=["fatrop", "ipopt"])
-    parser.add_argument("--predictor", choices=["euler", "rk4"])
-    parser.add_argument("--no-jit", action="store_true", help="do not JIT-compile the actor problem")
-    parser.add_argument("--router", help="Zenoh router endpoint (default from config: tcp/127.0.0.1:7447)")
-    parser.add_argument("--robot", help="robot id, the <robot> chunk of every key")
+    if "config" in flags:
+        parser.add_argument("--config", type=Path, metavar="FILE",
+                            help="a TOML file overriding common/srl.toml (any subset; also SRL_CONFIG)")
+    if "agent" in flags:
+        parser.add_argument("--agent", choices=["mpc", "rlq", "rlqv", "rlqv+"],
+                            help=f"the stacked actor's objective {_default('actor', 'agent')}")
+    if "horizon" in flags:
+        parser.add_argument("--horizon", type=int, metavar="N",
+                            help=f"N (N - 1 held actions), 2..{MAX_HORIZON} {_default('actor', 'horizon')}")
+    if "start" in flags:
+        parser.add_argument("--start", type=_start_arg, metavar="X,Y[,ALPHA]",
+                            help="start in the goal frame [m, m, rad]; X,Y heads away from the target, "
+                                 f"e.g. --start -1.2,0.7 {_default('episode', 'start')}")
+    if "duration" in flags:
+        parser.add_argument("--duration", type=float, metavar="SECONDS",
+                            help=f"episode length [s] {_default('episode', 'duration')}")
+    if "solver" in flags:
+        parser.add_argument("--solver", choices=["fatrop", "ipopt"],
+                            help=f"NLP solver of the actor {_default('actor', 'solver')}")
+    if "predictor" in flags:
+        parser.add_argument("--predictor", choices=["euler", "rk4"],
+                            help=f"the actor's state predictor {_default('actor', 'predictor')}")
+    if "no_jit" in flags:
+        parser.add_argument("--no-jit", action="store_true",
+                            help="do not JIT-compile the actor problem with the C compiler (default: compile)")
+    if "router" in flags:
+        parser.add_argument("--router", metavar="ENDPOINT",
+                            help=f"Zenoh router endpoint {_default('transport', 'router')}")
+    if "robot" in flags:
+        parser.add_argument("--robot", metavar="ID",
+                            help=f"robot id, the <robot> chunk of every key {_default('transport', 'robot')}")
+    if "resume" in flags:
+        parser.add_argument("--resume", action="store_true",
+                            help="start the critic from its checkpoint of an earlier run of this robot and stack "
+                                 "(default: a fresh critic per run; setting critic.resume)")
 
 
 SETTINGS_FLAGS = ("config", "agent", "horizon", "start", "duration", "solver", "predictor", "router", "robot")
 
 
 def settings_argv(args: argparse.Namespace) -> list[str]:
-    """The settings flags that were given, as argv, to hand the same settings to children."""
+    """The settings flags that were given, as argv, to hand the same settings to children.
+
+    A child gets only the flags its subcommand takes: :func:`child_argv` filters."""
     argv: list[str] = []
     for name in SETTINGS_FLAGS:
         value = getattr(args, name, None)
@@ -63,10 +127,21 @@ def settings_argv(args: argparse.Namespace) -> list[str]:
             continue
         if name == "start":
             value = ",".join(repr(float(c)) for c in value)
-        argv.append(f"--{name}={value}")  # "=" form: a start such as -1.5,1 is not an option
-    if getattr(args, "no_jit", False):
-        argv.append("--no-jit")
+        argv.append(f"--{name}={value}")
+    for name in ("no_jit", "resume"):
+        if getattr(args, name, False):
+            argv.append(f"--{name.replace('_', '-')}")
     return argv
+
+
+def child_argv(argv: list[str]) -> list[str]:
+    """``[command, ...]`` without the settings flags ``command`` does not take (it would refuse them)."""
+    takes = COMMAND_SETTINGS.get(argv[0]) if argv else None
+    if takes is None:
+        return argv
+    known = {f"--{n.replace('_', '-')}" for n in (*ALL_FLAGS, "resume")}
+    return [a for a in argv if a.split("=", 1)[0] not in known
+            or a.split("=", 1)[0][2:].replace("-", "_") in takes]
 
 
 BRIDGE_FLAGS = ("profile", "ros_distro", "domain_id", "namespace", "cmd_type", "robot_endpoint")
@@ -104,19 +179,39 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
             overrides["actor"][name] = getattr(args, name)
     if getattr(args, "no_jit", False):
         overrides["actor"]["jit"] = False
+    if getattr(args, "resume", False):
+        overrides["critic"] = {"resume": True}
     if getattr(args, "start", None) is not None:
         overrides["episode"]["start"] = args.start
     if getattr(args, "duration", None) is not None:
         overrides["episode"]["duration"] = args.duration
     try:
-        return Settings.load(getattr(args, "config", None), **{k: v for k, v in overrides.items() if v})
+        settings = Settings.load(getattr(args, "config", None), **{k: v for k, v in overrides.items() if v})
     except ValidationError as error:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors()
-        )
+        problems = "; ".join(_setting_problem(e, overrides) for e in error.errors())
         raise UsageError(f"invalid settings: {problems}") from error
+    except SettingsError as error:  # an SRL_... variable that is not even JSON where a list is due
+        raise UsageError(f"invalid settings: {error} (check the SRL_* environment variables)") from error
     except (FileNotFoundError, ValueError) as error:
         raise UsageError(str(error)) from error
+    x, y = settings.episode.start[:2]
+    if max(abs(x), abs(y)) > WORKSPACE_HALF_WIDTH:
+        log.warning("start (%g, %g) m is more than %g m from the target: outside any workspace the robot "
+                    "could park in (the paper's starts are within 2 m)", x, y, WORKSPACE_HALF_WIDTH)
+    return settings
+
+
+def _setting_problem(error: Any, overrides: dict[str, dict[str, Any]]) -> str:
+    """One validation error, naming where the bad value came from (flag, variable or file)."""
+    loc = [str(p) for p in error["loc"]]
+    where = ".".join(loc)
+    message = f"{where}: {error['msg']}"
+    if len(loc) >= 2 and loc[1] not in overrides.get(loc[0], {}):
+        variable = f"SRL_{loc[0]}__{loc[1]}".upper()
+        for name, value in os.environ.items():
+            if name.upper() == variable:
+                return f"{message} (from the environment variable {name}={value!r})"
+    return message
 
 
 # -- srl run ---------------------------------------------------------------------------
@@ -403,23 +498,62 @@ def cmd_bench(args: argparse.Namespace) -> int:
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="srl", description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--log-level", default="WARNING", help="DEBUG, INFO, WARNING (default), ERROR")
-    sub = parser.add_subparsers(dest="command", required=True)
+# A value that is a number or a comma-separated list of numbers, negative first: "-1.2,0.7", "-1e9,0".
+_NUMBER = r"(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+_NEGATIVE_NUMBERS = re.compile(rf"^-{_NUMBER}(,[-+]?{_NUMBER})*$")
 
-    run = sub.add_parser("run", help="one closed-loop episode of Algorithm 1 (actor, plant, critic)")
-    add_settings_arguments(run)
+
+class Parser(argparse.ArgumentParser):
+    """argparse, but ``--start -1.2,0.7`` works: a token of negative numbers is a value.
+
+    argparse takes any token starting with ``-`` for an option unless it looks like ONE negative
+    number (its ``_negative_number_matcher``); lists such as ``-1.2,0.7`` and exponents such as
+    ``-1e9`` are widened into that class. No srl option looks like a number, so nothing is lost.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_NUMBERS
+
+    def error(self, message: str) -> NoReturn:
+        """One line (argparse adds its usage block first): what is wrong and where help is."""
+        self.exit(2, f"{self.prog}: error: {message} (see: {self.prog} --help)\n")
+
+
+DESCRIPTION = """srl: stacked RL-QV (actor, critic, plant) as Zenoh services, and the tools around them.
+
+Settings come from common/srl.toml, overridden by --config FILE (or SRL_CONFIG), by
+SRL_<SECTION>__<NAME> environment variables and by the flags of each subcommand.
+Start with:  srl run            (one episode in this process)
+             srl up             (router + every service as processes, a live status line)
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="srl", description=DESCRIPTION)
+    parser.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        type=str.upper, help="console log level (default: WARNING: warnings and errors only)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, helptext: str, description: str | None = None) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=helptext, description=description or helptext[0].upper() + helptext[1:] + ".")
+
+    run = command("run", "one closed-loop episode of Algorithm 1 (actor, plant, critic)",
+                  "One closed-loop episode of Algorithm 1 (actor step, plant, critic update) and a summary.\n"
+                  "Ctrl-C: exit 130; SIGTERM: 143; a closed stdout pipe (srl run | head): 141.")
+    add_settings_arguments(run, COMMAND_SETTINGS["run"])
     run.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
                      help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes")
     run.add_argument("--verbose", action="store_true", help="with --transport zenoh: show the services' logs")
     run.add_argument("--trajectory", action="store_true", help="include the state trajectory in the JSON")
     run.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
-    run.add_argument("--plot", type=Path, help="write the trajectory and costs to this PNG")
+    run.add_argument("--plot", type=Path, metavar="PNG",
+                     help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals)")
     run.set_defaults(func=cmd_run)
 
-    router = sub.add_parser("router", help="a Zenoh router (Python, mode router)")
-    add_settings_arguments(router)
+    router = command("router", "a Zenoh router (Python, mode router)")
+    add_settings_arguments(router, COMMAND_SETTINGS["router"])
     router.set_defaults(func=cmd_router)
 
     for name, func, modes, helptext in (
@@ -427,10 +561,12 @@ def build_parser() -> argparse.ArgumentParser:
         ("critic", cmd_critic, False, "the off-board critic learner (TD least squares)"),
         ("actor", cmd_actor, True, "the delta-periodic actor loop"),
     ):
-        svc = sub.add_parser(name, help=helptext)
-        add_settings_arguments(svc)
+        svc = command(name, helptext)
+        add_settings_arguments(svc, COMMAND_SETTINGS[name])
         if modes:
-            svc.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
+            svc.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime",
+                             help="realtime: every delta by the clock; lockstep: the actor steps the plant "
+                                  "(default: realtime)")
         _add_lifetime_arguments(svc, "stop after this long (default: until signalled; a lockstep actor stops "
                                 "after one episode)")
         if name == "actor":
@@ -438,66 +574,75 @@ def build_parser() -> argparse.ArgumentParser:
                              help="lockstep: wait for the weights trained on the previous step")
         svc.set_defaults(func=func)
 
-    bridge = sub.add_parser("robot-bridge", help="a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh")
-    add_settings_arguments(bridge)
+    bridge = command("robot-bridge", "a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh")
+    add_settings_arguments(bridge, COMMAND_SETTINGS["robot-bridge"])
     add_bridge_arguments(bridge)
     _add_lifetime_arguments(bridge)
     bridge.set_defaults(func=cmd_robot_bridge)
 
-    emulator = sub.add_parser("tb3-emulator", help="an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh")
-    add_settings_arguments(emulator)
+    emulator = command("tb3-emulator", "an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh")
+    add_settings_arguments(emulator, COMMAND_SETTINGS["tb3-emulator"])
     add_bridge_arguments(emulator)
     emulator.add_argument("--initial-pose", type=_floats_arg(3), metavar="X,Y,THETA",
                           help="start pose in the odom frame (default: the episode start, through bridge.goal)")
     emulator.add_argument("--noise", type=_floats_arg(2), default=(0.0, 0.0), metavar="SIGMA_XY,SIGMA_THETA",
                           help="std. dev. of Gaussian noise on the reported pose [m, rad] (default 0,0)")
-    emulator.add_argument("--seed", type=int, default=0, help="noise seed")
-    emulator.add_argument("--latency", type=float, default=0.0, help="[s] cmd_vel -> wheels delay")
+    emulator.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
+    emulator.add_argument("--latency", type=float, default=0.0, help="[s] cmd_vel -> wheels delay (default: 0)")
     emulator.add_argument("--cmd-timeout", type=float, default=0.0,
                           help="[s] stop when cmd_vel is older (0: never, like a real TurtleBot3)")
     emulator.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
     emulator.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
-    emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate")
+    emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate (default: 20)")
     emulator.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to "
                           "--router)")
     _add_lifetime_arguments(emulator)
     emulator.set_defaults(func=cmd_tb3_emulator)
 
-    up = sub.add_parser("up", help="router + every service as separate processes, one run")
-    add_settings_arguments(up)
+    up = command("up", "router + every service as separate processes, one run",
+                 "The router and every service as separate processes, one run, a live status line once a second.\n"
+                 "Each service's JSON summary is written to a file (--summary-dir); --json prints the merged one.")
+    add_settings_arguments(up, COMMAND_SETTINGS["up"])
     add_bridge_arguments(up)
     up.add_argument("--plant", choices=["sim", "robot"], default="sim",
-                    help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint)")
-    up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime")
+                    help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint) "
+                         "(default: sim)")
+    up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime",
+                    help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)")
     up.add_argument("--secure", action="store_true",
                     help="Zenoh user/password login with fresh random credentials per role, and access rules "
                          "at the router: only the actor publishes actions, the critic weights, the plant state")
-    up.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
+    up.add_argument("--json", action="store_true", help="last stdout line: the merged summary as one JSON object")
+    up.add_argument("--summary-dir", type=Path, metavar="DIR",
+                    help="write each service's JSON summary to DIR/<service>.json (default: a fresh directory "
+                         "under the system's temporary directory, named in the summary)")
     up.set_defaults(func=cmd_up)
 
-    bench = sub.add_parser("bench", help="benchmarks that print a table (and JSON)")
+    bench = command("bench", "benchmarks that print a table (and JSON)")
     bench.add_argument("what", choices=["actor", "loop", "bridge"])
     bench.add_argument("--reference-horizons", default="12",
-                       help="actor: N values for the IPOPT reference rows ('' = none)")
+                       help="actor: N values for the IPOPT reference rows ('' = none) (default: 12)")
     bench.add_argument("--seconds", type=float, default=60.0,
-                       help="loop: real-time run length [s]; bridge: both phases together")
+                       help="loop: real-time run length [s]; bridge: both phases together (default: 60)")
     bench.add_argument("--critic-load", action="store_true",
                        help="loop: the critic fits a replay of M = 1000 every step")
-    add_settings_arguments(bench)
+    add_settings_arguments(bench, COMMAND_SETTINGS["bench"])
     add_bridge_arguments(bench)
     bench.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
-    bench.add_argument("--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99)")
-    bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values")
-    bench.add_argument("--agents", default="mpc,rlq,rlqv,rlqv+", help="comma-separated agents")
+    bench.add_argument("--steps", type=int, default=300,
+                       help="closed-loop steps per row (>= 300 for p99) (default: 300)")
+    bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
+    bench.add_argument("--agents", default="mpc,rlq,rlqv,rlqv+",
+                       help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)")
     bench.add_argument(
-        "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row"
+        "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
     )
     bench.set_defaults(func=cmd_bench)
 
     # srl experiment paper (services/experiment.py): the paper's grid of runs, ratios and plots
     from services.experiment import add_experiment_arguments, cmd_experiment
 
-    experiment = sub.add_parser("experiment", help="the paper's experiment: grid of starts, cost ratios, plots")
+    experiment = command("experiment", "the paper's experiment: grid of starts, cost ratios, plots")
     add_experiment_arguments(experiment)
     experiment.set_defaults(func=cmd_experiment)
 
@@ -505,6 +650,10 @@ def build_parser() -> argparse.ArgumentParser:
     from services.health import add_health_parser
 
     add_health_parser(sub)
+    for action in sub._choices_actions:  # every subcommand's --help opens with what it does
+        subparser = sub.choices[action.dest]
+        if not subparser.description:
+            subparser.description = (action.help or "")[:1].upper() + (action.help or "")[1:] + "."
     return parser
 
 
@@ -512,7 +661,8 @@ def _add_lifetime_arguments(parser: argparse.ArgumentParser,
                             run_help: str = "stop after this long (default: until signalled)") -> None:
     """--run-seconds and --connect-timeout, as every long-running service process takes them."""
     parser.add_argument("--run-seconds", type=float, help=run_help)
-    parser.add_argument("--connect-timeout", type=float, default=30.0, help="[s] wait for the router")
+    parser.add_argument("--connect-timeout", type=float, default=30.0,
+                        help="[s] wait this long for the router (default: 30)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
