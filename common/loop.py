@@ -9,6 +9,7 @@ the algorithm itself, not an approximation of it.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -132,8 +133,12 @@ def run_episode(
     actor: StackedActor | None = None,
     plant: Plant | None = None,
     critic: CriticPort | None = None,
+    stop: threading.Event | None = None,
 ) -> Episode:
-    """Algorithm 1 for ``settings.steps`` sampling intervals from ``settings.start_state()``."""
+    """Algorithm 1 for ``settings.steps`` sampling intervals from ``settings.start_state()``.
+
+    ``stop`` (set by a signal handler) ends the episode between two steps: a signal never
+    interrupts a solve or a fit half way (CasADi callbacks cannot take an exception)."""
     actor = actor or build_actor(settings)
     plant = plant or ExactPlant()
     critic = critic or LocalCritic(settings, learn=settings.actor.agent != "mpc")
@@ -145,7 +150,10 @@ def run_episode(
     q_weights, v_weights = critic.reset()
     state = plant.reset(settings.start_state())
     episode = Episode(agent=settings.actor.agent, horizon=settings.actor.horizon, states=[state])
+    log.info("episode started: %s, N = %d, %d steps", settings.actor.agent, settings.actor.horizon, settings.steps)
     for k in range(settings.steps):
+        if stop is not None and stop.is_set():
+            break
         step = actor.step(state, q_weights, v_weights)  # line 4: update actor
         cost = delta * float(stage_cost(state, step.action, r_diag))
         next_state = plant.apply(step.action, delta)  # line 5: apply u_1

@@ -6,14 +6,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
 import os
 import re
 import sys
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -28,6 +30,44 @@ log = logging.getLogger(__name__)
 
 class UsageError(Exception):
     """A problem with what the user asked for: printed as one clear line, exit code 2."""
+
+
+class SignalledError(Exception):
+    """Ended by a signal: one line, exit 128 + the signal's number (130 Ctrl-C, 143 SIGTERM)."""
+
+    def __init__(self, signum: int) -> None:
+        import signal
+
+        self.signum = signum
+        super().__init__(f"{signal.Signals(signum).name}")
+
+
+class SignalStop(threading.Event):
+    """A stop event that remembers the signal that set it."""
+
+    signum: int | None = None
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[SignalStop]:
+    """SIGINT and SIGTERM set an event (checked between steps) instead of raising inside native
+    code: a KeyboardInterrupt raised in a CasADi callback surfaces as ``SystemError ... returned a
+    result with an exception set``. The previous handlers are restored after."""
+    import signal
+
+    stop = SignalStop()
+
+    def handler(signum: int, _frame: object) -> None:
+        if stop.signum is None:
+            stop.signum = signum
+        stop.set()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for signum, action in previous.items():
+            signal.signal(signum, action)
 
 
 def _start_arg(text: str) -> tuple[float, ...]:
@@ -233,7 +273,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         episode = Episode(summary["agent"], summary["horizon"],
                           states=[__import__("numpy").array(s) for s in summary["trajectory"]])
     else:
-        episode = run_episode(settings)
+        with stop_on_signals() as stop:
+            episode = run_episode(settings, stop=stop)
+        if stop.signum is not None:
+            raise SignalledError(stop.signum)
         summary = episode_summary(episode, settings)
     summary["wall_seconds"] = time.perf_counter() - started
     summary["transport"] = args.transport
@@ -679,9 +722,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (UsageError, SecurityError) as error:
         print(f"srl: error: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("srl: interrupted", file=sys.stderr)
-        return 130
+    except SignalledError as stopped:
+        print(f"srl: interrupted ({stopped}): stopped", file=sys.stderr)
+        return 128 + stopped.signum
+    except KeyboardInterrupt as error:  # also common.actor.BuildInterrupted (a signal during the JIT build)
+        import signal
+
+        signum = getattr(error, "signum", signal.SIGINT)
+        print(f"srl: interrupted ({signal.Signals(signum).name}): stopped", file=sys.stderr)
+        return 128 + signum
+    except BrokenPipeError:
+        # the reader went away (srl run | head): no traceback; as a shell reports SIGPIPE
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 141
 
 
 def entry(argv: Sequence[str] | None = None) -> None:
