@@ -329,24 +329,14 @@ def _serve(args: argparse.Namespace, service: str, body: Callable[..., dict[str,
     import signal
     import threading
 
-    import zenoh
-
     from common.transport import Bus
 
     settings = settings_from_args(args)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
-    deadline = time.monotonic() + args.connect_timeout
-    while True:
-        try:
-            bus = Bus.open(settings.transport, service)
-            break
-        except zenoh.ZError as error:
-            if time.monotonic() > deadline or stop.is_set():
-                raise UsageError(f"{service}: cannot reach the Zenoh router at "
-                                 f"{settings.transport.router}: {error}") from error
-            time.sleep(0.2)
+    bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service,
+                             args.connect_timeout, stop)
     try:
         result = body(settings, bus, stop)
     finally:
@@ -354,6 +344,64 @@ def _serve(args: argparse.Namespace, service: str, body: Callable[..., dict[str,
     result["resources"] = own_resources()
     print(json.dumps(result), flush=True)
     return 0
+
+
+# A router that accepts TCP but refuses the session this long is refusing the login (a wrong
+# password does not become right); shorter, it may still be starting.
+LOGIN_REFUSED_AFTER = 2.0
+
+
+def connect_with_retry(opener: Callable[[], Any], settings: Settings, service: str, timeout: float,
+                       stop: threading.Event) -> Any:
+    """Open the Zenoh session, retrying every 0.2 s for ``timeout`` s, and say why it failed.
+
+    "waiting for the router" is said at once; at the end a router that listens but refuses the
+    session (secure: the login) is told apart from one that is not there at all, without Zenoh's
+    Rust internals (those go to DEBUG)."""
+    import zenoh
+
+    transport = settings.transport
+    deadline = time.monotonic() + timeout
+    refused_since: float | None = None
+    said = False
+    while True:
+        try:
+            return opener()
+        except zenoh.ZError as error:
+            log.debug("%s: zenoh.open: %s", service, error)
+            now = time.monotonic()
+            listening = _endpoint_listening(transport.router)
+            refused_since = (refused_since or now) if listening else None
+            if transport.secure and refused_since is not None and now - refused_since >= LOGIN_REFUSED_AFTER:
+                raise UsageError(f"{service}: the router at {transport.router} refused the login of user "
+                                 f"{transport.user!r}: wrong password or unknown user (check transport.password_file "
+                                 "or SRL_TRANSPORT__PASSWORD against the router's users file)") from None
+            if now > deadline or stop.is_set():
+                if listening:
+                    raise UsageError(f"{service}: something listens at {transport.router} but refused a Zenoh "
+                                     "session (not a Zenoh router, or it requires a login: transport.secure)") from None
+                raise UsageError(f"{service}: cannot reach the Zenoh router at {transport.router} after "
+                                 f"{timeout:.0f} s (is `srl router` running? see --router, --connect-timeout)"
+                                 ) from None
+            if not said:
+                log.warning("%s: waiting for the Zenoh router at %s (up to %.0f s)", service, transport.router, timeout)
+                said = True
+            time.sleep(0.2)
+
+
+def _endpoint_listening(endpoint: str) -> bool:
+    """Whether a TCP-based endpoint (tcp/, tls/, ws/) accepts a plain connection."""
+    import socket
+
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in ("tcp", "tls", "ws"):
+        return False
+    host, _, port = address.split("?")[0].split("#")[0].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+            return True
+    except (OSError, ValueError):
+        return False
 
 
 def own_resources() -> dict[str, float]:
@@ -380,7 +428,7 @@ def cmd_router(args: argparse.Namespace) -> int:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:
         raise UsageError(f"router: cannot listen on {settings.transport.router}: {error}") from error
-    log.warning("router listening on %s (multicast scouting %s%s)", settings.transport.router,
+    log.info("router listening on %s (multicast scouting %s%s)", settings.transport.router,
                 "on" if settings.transport.multicast_scouting else "off",
                 f"; users and access rules of robot {settings.transport.robot} enforced"
                 if settings.transport.secure else "")
@@ -443,16 +491,8 @@ def cmd_tb3_emulator(args: argparse.Namespace) -> int:
         config.insert_json5("connect/endpoints", "[]")
         session = zenoh.open(config)
     else:
-        deadline = time.monotonic() + args.connect_timeout
-        while True:
-            try:
-                session = zenoh.open(zenoh_config(settings.transport))
-                break
-            except zenoh.ZError as error:
-                if time.monotonic() > deadline or stop.is_set():
-                    raise UsageError(f"tb3-emulator: cannot reach the Zenoh router at "
-                                     f"{settings.transport.router}: {error}") from error
-                time.sleep(0.2)
+        session = connect_with_retry(lambda: zenoh.open(zenoh_config(settings.transport)), settings,
+                                     "tb3-emulator", args.connect_timeout, stop)
     v_max = ros_wire.TB3_BURGER_V_MAX if args.v_max is None else args.v_max
     omega_max = ros_wire.TB3_BURGER_OMEGA_MAX if args.omega_max is None else args.omega_max
     model = Tb3Model(pose, v_max, omega_max, args.latency, args.cmd_timeout,
