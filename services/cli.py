@@ -525,10 +525,18 @@ def cmd_up(args: argparse.Namespace) -> int:
     from services.up import ServiceDiedError, run_up
 
     settings = settings_from_args(args)
+    run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
+    summary_dir = args.summary_dir or default_runs_dir() / run_name
+    started = time.monotonic()
+
+    def show_status(counters: dict[str, float]) -> None:
+        print(format_status_line(counters, time.monotonic() - started), file=sys.stderr, flush=True)
+
     try:
         summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
                          sync_critic=args.mode == "lockstep", duration=settings.episode.duration,
-                         bridge_args=bridge_argv(args), secure=args.secure)
+                         bridge_args=bridge_argv(args), secure=args.secure, on_status=show_status,
+                         summary_dir=summary_dir)
     except ServiceDiedError as error:
         print(f"srl up: error: {error}", file=sys.stderr)
         for line in error.tail:
@@ -543,6 +551,22 @@ def cmd_up(args: argparse.Namespace) -> int:
     return 0
 
 
+def default_runs_dir() -> Path:
+    """Where ``srl up`` writes its runs' JSON summaries: ``SRL_RUNS_DIR`` or ~/.local/state/srl/runs."""
+    return Path(os.environ.get("SRL_RUNS_DIR") or Path.home() / ".local/state/srl/runs")
+
+
+def format_status_line(c: dict[str, float], elapsed: float) -> str:
+    """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``)."""
+    pose = ""
+    if all(k in c for k in ("x", "y", "alpha")):
+        pose = (f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}"
+                f"  distance {math.hypot(c['x'], c['y']):.2f} m")
+    return (f"srl up {elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
+            f"  weights v{int(c.get('weights_version', -1))}  missed {int(c.get('missed_deadlines', 0))}"
+            f"  solver failures {int(c.get('solver_failures', 0))}")
+
+
 def format_up_summary(summary: dict[str, Any]) -> str:
     lines = [f"srl up: {summary['mode']} run, plant {summary['plant']}, agent {summary.get('agent')}, "
              f"N = {summary.get('horizon')}"]
@@ -554,6 +578,11 @@ def format_up_summary(summary: dict[str, Any]) -> str:
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
     lines.append(f"  critic         {summary.get('transitions_received')} transitions received, "
                  f"actor used weights version {summary.get('weights_version')}")
+    if summary.get("critic_checkpoint"):
+        lines.append(f"  checkpoint     {summary['critic_checkpoint']} "
+                     f"({'restored' if summary.get('critic_restored') else 'fresh critic; --resume to restore'})")
+    if summary.get("summary_dir"):
+        lines.append(f"  summaries      {summary['summary_dir']}/<service>.json")
     if "loop" in summary:
         period = summary["loop"]["period_ms"]
         lines.append(f"  loop [ms]      period median {period['median']:.3f} p99 {period['p99']:.3f} "

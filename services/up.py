@@ -1,10 +1,13 @@
 """``srl up``: the router and every service as separate child processes.
 
-Children are ``python -m services.cli <service> ...`` with the same configuration. Their log
-lines are forwarded to stderr prefixed with ``[name]``; each prints one JSON summary as its last
-stdout line when it ends. The actor defines the end of the run: when it exits, the others are
-stopped (SIGINT, then SIGKILL after a grace period). If any child dies first, everything is
-stopped and ``srl up`` exits non-zero naming it. Ctrl-C stops everything cleanly.
+Children are ``python -m services.cli <service> ...`` with the same configuration (each gets
+only the flags its subcommand takes). Their log lines are forwarded to stderr prefixed with
+``[name]``; each prints one JSON summary as its last stdout line when it ends: those are kept,
+written to ``<summary_dir>/<name>.json``, never echoed. While the actor runs, its 1 Hz status
+(``srl/<robot>/status/actor``) is handed to ``on_status`` (``srl up`` prints a status line).
+The actor defines the end of the run: when it exits, the others are stopped (SIGINT, then
+SIGKILL after a grace period). If any child dies first, everything is stopped and ``srl up``
+exits non-zero naming it. Ctrl-C stops everything cleanly.
 
 ``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
 configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
@@ -63,6 +66,7 @@ class Child:
 
 
 def _pump(stream: IO[str], name: str, sink: list[str], echo: IO[str] | None, keep: int | None) -> None:
+    """Keep a child's lines (``keep`` at most); echo them (its logs) if ``echo``."""
     for line in stream:
         line = line.rstrip("\n")
         sink.append(line)
@@ -81,16 +85,19 @@ class Supervisor:
         self.children: dict[str, Child] = {}
 
     def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
-        command = [sys.executable, "-m", "services.cli", *argv]
+        from services.cli import child_argv
+
+        command = [sys.executable, "-m", "services.cli", *child_argv(argv)]
         process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**self.env, **(env or {})},
             start_new_session=True,  # our Ctrl-C is forwarded by us, in order
         )
         child = Child(name, process)
         echo = None if self.quiet else sys.stderr
-        for stream, sink, keep in ((process.stdout, child.stdout_lines, None),
-                                   (process.stderr, child.stderr_tail, 200)):
-            thread = threading.Thread(target=_pump, args=(stream, name, sink, echo, keep), daemon=True)
+        # stdout holds the JSON summary (kilobytes): kept, not echoed; stderr holds the logs
+        for stream, sink, keep, shown in ((process.stdout, child.stdout_lines, 1000, None),
+                                          (process.stderr, child.stderr_tail, 200, echo)):
+            thread = threading.Thread(target=_pump, args=(stream, name, sink, shown, keep), daemon=True)
             thread.start()
             child.threads.append(thread)
         self.children[name] = child
@@ -201,9 +208,47 @@ def state_probe(settings: Settings) -> Any:
     return probe
 
 
+class StatusMonitor:
+    """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session."""
+
+    def __init__(self, settings: Settings) -> None:
+        from common.keys import STATUS
+        from common.messages import ServiceStatus
+
+        self.latest: dict[str, float] | None = None
+        self.seen = 0
+        self.session = zenoh.open(zenoh_config(settings.transport))
+
+        def on_sample(sample: Any) -> None:
+            try:
+                status = ServiceStatus.model_validate_json(sample.payload.to_bytes())
+            except ValueError:
+                return  # the actor's own schema: a bad one is not ours to report
+            self.latest = dict(status.counters)
+            self.seen += 1
+
+        self.subscriber = self.session.declare_subscriber(
+            STATUS.key(settings.transport.robot, service="actor"), on_sample)
+
+    def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            self.subscriber.undeclare()
+        self.session.close()
+
+
+def write_summaries(directory: Path, children: dict[str, Child], merged: dict[str, Any]) -> None:
+    """Each child's JSON summary line to ``<name>.json`` and the merged one to ``summary.json``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, child in children.items():
+        summary = child.summary()
+        if summary is not None:
+            (directory / f"{name}.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (directory / "summary.json").write_text(json.dumps(merged, indent=1) + "\n")
+
+
 def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
            duration: float, quiet: bool = False, bridge_args: list[str] | None = None,
-           secure: bool = False) -> dict[str, Any]:
+           secure: bool = False, on_status: Any = None, summary_dir: Path | None = None) -> dict[str, Any]:
     """Start everything, run one actor episode/duration, stop everything; the merged summary.
 
     ``plant="robot"``: the robot bridge in place of plant_sim, and the TurtleBot3 emulator as the
@@ -260,9 +305,18 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         if sync_critic:
             actor_args.append("--sync-critic")
         actor = supervisor.spawn("actor", actor_args, role.get("actor"))
-        while actor.process.poll() is None:
-            supervisor.check(allowed_to_exit={"actor"})
-            time.sleep(0.05)
+        monitor = StatusMonitor(settings) if on_status is not None else None
+        try:
+            shown = 0
+            while actor.process.poll() is None:
+                supervisor.check(allowed_to_exit={"actor"})
+                if monitor is not None and monitor.seen > shown and monitor.latest is not None:
+                    shown = monitor.seen
+                    on_status(monitor.latest)
+                time.sleep(0.05)
+        finally:
+            if monitor is not None:
+                monitor.close()
         if actor.process.returncode != 0:
             raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
     finally:
@@ -278,6 +332,7 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     actor_summary = supervisor.children["actor"].summary() or {}
     critic_summary = supervisor.children["critic"].summary() or {}
     merged = dict(actor_summary)
+    merged.pop("transitions_tail", None)  # kept in actor.json
     if plant == "robot":
         merged["bridge"] = supervisor.children["robot_bridge"].summary()
         if "tb3_emulator" in supervisor.children:
@@ -291,7 +346,12 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
         "transitions_received": critic_summary.get("transitions_received"),
         "critic_weights_published": critic_summary.get("weights_published"),
         "critic_fit_ms": critic_summary.get("fit_ms"),
+        "critic_checkpoint": critic_summary.get("checkpoint"),
+        "critic_restored": critic_summary.get("restored"),
         "wall_seconds": time.monotonic() - started,
         "resources": {name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()},
     })
+    if summary_dir is not None:
+        merged["summary_dir"] = str(summary_dir)
+        write_summaries(summary_dir, supervisor.children, merged)
     return merged
