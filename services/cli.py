@@ -118,7 +118,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
     """Flags that override the config file (only those given take effect)."""
     if "config" in flags:
         parser.add_argument("--config", type=Path, metavar="FILE",
-                            help="a TOML file overriding common/srl.toml (any subset; also SRL_CONFIG)")
+                            help="a TOML file overriding common/srl.toml (any subset; also SRL_CONFIG) (default: none)")
     if "agent" in flags:
         parser.add_argument("--agent", choices=["mpc", "rlq", "rlqv", "rlqv+"],
                             help=f"the stacked actor's objective {_default('actor', 'agent')}")
@@ -190,14 +190,17 @@ BRIDGE_FLAGS = ("profile", "ros_distro", "domain_id", "namespace", "cmd_type", "
 def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of the robot bridge's [bridge] settings (srl up, robot-bridge, tb3-emulator)."""
     parser.add_argument("--profile", choices=["rmw_zenoh", "ros2dds"],
-                        help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds)")
-    parser.add_argument("--ros-distro", choices=["humble", "jazzy"], help="the robot's ROS 2 distribution")
-    parser.add_argument("--domain-id", type=int, help="the robot's ROS_DOMAIN_ID")
-    parser.add_argument("--namespace", help="the robot's ROS namespace (e.g. tb3_1)")
+                        help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds) "
+                        f"{_default('bridge', 'profile')}")
+    parser.add_argument("--ros-distro", choices=["humble", "jazzy"],
+                        help=f"the robot's ROS 2 distribution {_default('bridge', 'ros_distro')}")
+    parser.add_argument("--domain-id", type=int, help=f"the robot's ROS_DOMAIN_ID {_default('bridge', 'domain_id')}")
+    parser.add_argument("--namespace", help=f"the robot's ROS namespace (e.g. tb3_1) {_default('bridge', 'namespace')}")
     parser.add_argument("--cmd-type", choices=["auto", "twist", "twist_stamped"],
-                        help="cmd_vel message type (auto: read from the robot's liveliness tokens)")
+                        help="cmd_vel message type (auto: read from the robot's liveliness tokens) "
+                        f"{_default('bridge', 'cmd_type')}")
     parser.add_argument("--robot-endpoint", help="the robot's Zenoh router, e.g. tcp/192.168.1.20:7447 "
-                        "(srl up: no emulator is started)")
+                        f"(srl up: no emulator is started) {_default('bridge', 'robot_endpoint')}")
 
 
 def bridge_argv(args: argparse.Namespace) -> list[str]:
@@ -656,12 +659,13 @@ def build_parser() -> argparse.ArgumentParser:
                   "Ctrl-C: exit 130; SIGTERM: 143; a closed stdout pipe (srl run | head): 141.")
     add_settings_arguments(run, COMMAND_SETTINGS["run"])
     run.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
-                     help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes")
+                     help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes (default: inproc)")
     run.add_argument("--verbose", action="store_true", help="with --transport zenoh: show the services' logs")
     run.add_argument("--trajectory", action="store_true", help="include the state trajectory in the JSON")
     run.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     run.add_argument("--plot", type=Path, metavar="PNG",
-                     help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals)")
+                     help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals) "
+                          "(default: no figure)")
     run.set_defaults(func=cmd_run)
 
     router = command("router", "a Zenoh router (Python, mode router)")
@@ -702,7 +706,7 @@ def build_parser() -> argparse.ArgumentParser:
     emulator.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
     emulator.add_argument("--latency", type=float, default=0.0, help="[s] cmd_vel -> wheels delay (default: 0)")
     emulator.add_argument("--cmd-timeout", type=float, default=0.0,
-                          help="[s] stop when cmd_vel is older (0: never, like a real TurtleBot3)")
+                          help="[s] stop when cmd_vel is older (0: never, like a real TurtleBot3) (default: 0)")
     emulator.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
     emulator.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
     emulator.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate (default: 20)")
