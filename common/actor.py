@@ -121,7 +121,7 @@ _JIT_WRAPPER = r"""#!/bin/sh
 owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"
 setsid "$@" &
 child=$!
-stop() { kill -KILL -- -"$child" 2>/dev/null; kill -KILL "$child" 2>/dev/null; }
+stop() { kill -KILL -"$child" 2>/dev/null; kill -KILL "$child" 2>/dev/null; }  # dash: no "--"
 trap 'stop; printf "\002" >> "$signals"; exit 130' INT
 trap 'stop; printf "\017" >> "$signals"; exit 143' TERM HUP
 while state=$(sed -n "s/^.*) \(.\).*/\1/p" "/proc/$child/stat" 2>/dev/null) && [ -n "$state" ] && [ "$state" != Z ]
