@@ -111,6 +111,7 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "critic": (*TRANSPORT_FLAGS, "agent", "horizon", "resume"),  # the stack names its checkpoint
     "robot-bridge": TRANSPORT_FLAGS,
     "tb3-emulator": (*TRANSPORT_FLAGS, "start"),  # default initial pose
+    "status": TRANSPORT_FLAGS,
 }
 
 
@@ -532,8 +533,11 @@ def cmd_up(args: argparse.Namespace) -> int:
     summary_dir = args.summary_dir or default_runs_dir() / run_name
     started = time.monotonic()
 
+    first_version: list[float] = []
+
     def show_status(counters: dict[str, float]) -> None:
-        print(format_status_line(counters, time.monotonic() - started), file=sys.stderr, flush=True)
+        line = format_status_line(counters, time.monotonic() - started, first_version)
+        print(f"srl up {line}", file=sys.stderr, flush=True)
 
     try:
         summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
@@ -559,15 +563,46 @@ def default_runs_dir() -> Path:
     return Path(os.environ.get("SRL_RUNS_DIR") or Path.home() / ".local/state/srl/runs")
 
 
-def format_status_line(c: dict[str, float], elapsed: float) -> str:
-    """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``)."""
+def format_status_line(c: dict[str, float], elapsed: float, first_version: list[float]) -> str:
+    """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``).
+
+    Weight versions are microsecond clock values (they never go back across critic restarts);
+    shown is how many versions the actor moved on since this line first saw one, and how many
+    steps old the weights it used were (staleness)."""
     pose = ""
     if all(k in c for k in ("x", "y", "alpha")):
         pose = (f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}"
                 f"  distance {math.hypot(c['x'], c['y']):.2f} m")
-    return (f"srl up {elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
-            f"  weights v{int(c.get('weights_version', -1))}  missed {int(c.get('missed_deadlines', 0))}"
+    version = c.get("weights_version", -1.0)
+    if not first_version and version > 0:
+        first_version.append(version)
+    weights = f"weights +{int(version - first_version[0])}" if first_version else "weights initial"
+    return (f"{elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
+            f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
+            f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
             f"  solver failures {int(c.get('solver_failures', 0))}")
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """The actor's status line once a second, from a monitor session, until Ctrl-C or --seconds."""
+    from services.up import StatusMonitor
+
+    settings = settings_from_args(args)
+    with stop_on_signals() as stop:
+        monitor = connect_with_retry(lambda: StatusMonitor(settings), settings, "status", args.connect_timeout,
+                                     stop)
+        try:
+            started, shown, first_version = time.monotonic(), 0, []  # type: ignore[var-annotated]
+            end = None if args.seconds is None else started + args.seconds
+            while not stop.is_set() and (end is None or time.monotonic() < end):
+                if monitor.seen > shown and monitor.latest is not None:
+                    shown = monitor.seen
+                    line = format_status_line(monitor.latest, time.monotonic() - started, first_version)
+                    print(f"{settings.transport.robot} {line}", flush=True)
+                stop.wait(0.05)
+        finally:
+            monitor.close()
+    return 0
 
 
 def format_up_summary(summary: dict[str, Any]) -> str:
@@ -754,6 +789,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
     )
     bench.set_defaults(func=cmd_bench)
+
+    status = command("status", "the actor's live status line once a second (step, pose, J, weights, deadlines)",
+                     "The actor's live status line once a second, read from srl/<robot>/status/actor by a "
+                     "monitor session\n(any running system: srl up, the containers); until Ctrl-C or --seconds.")
+    add_settings_arguments(status, COMMAND_SETTINGS["status"])
+    status.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    status.add_argument("--connect-timeout", type=float, default=30.0,
+                        help="[s] wait this long for the router (default: 30)")
+    status.set_defaults(func=cmd_status)
 
     # srl experiment paper (services/experiment.py): the paper's grid of runs, ratios and plots
     from services.experiment import add_experiment_arguments, cmd_experiment

@@ -344,16 +344,30 @@ def test_a_new_run_starts_fresh_and_a_crash_in_the_same_run_continues(tmp_path: 
 def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fresh_critic(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     runs = []
+    # `srl status`: the same line from any running system (a monitor session), e.g. the containers
+    watcher = subprocess.Popen([*CLI, "status", "--router", endpoint, "--robot", "h5up", "--seconds", "20",
+                                "--connect-timeout", "60"], cwd=ROOT, text=True, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, start_new_session=True)
     for extra in ([], [], ["--resume", "--json"]):
         summaries = tmp_path / f"run{len(runs)}"
         done = srl("up", "--router", endpoint, "--robot", "h5up", "--duration", "4", "--summary-dir", str(summaries),
                    *extra, timeout=180)
         assert done.returncode == 0, done.stderr[-3000:]
         runs.append((done, summaries))
+        if watcher.poll() is None and len(runs) == 1:
+            os.killpg(watcher.pid, signal.SIGINT)
+    try:
+        watched, watcher_err = watcher.communicate(timeout=30)
+    finally:
+        if watcher.poll() is None:
+            os.killpg(watcher.pid, signal.SIGKILL)
+            watcher.wait()
+    assert watcher.returncode in (0, 130), watcher_err
+    assert len([line for line in watched.splitlines() if line.startswith("h5up ") and ": step " in line]) >= 2
     first, second, resumed = runs
     status = [line for line in first[0].stderr.splitlines() if line.startswith("srl up ") and ": step " in line]
     assert len(status) >= 2, first[0].stderr
-    assert all(" distance " in line and " J " in line and " weights v" in line and " missed " in line
+    assert all(" distance " in line and " J " in line and " weights " in line and " missed deadlines " in line
                for line in status)
     assert "{" not in first[0].stdout and len(first[0].stderr) < 4000, "JSON on the console"
     assert not [line for line in first[0].stderr.splitlines() if " WARNING " in line], first[0].stderr
