@@ -171,11 +171,14 @@ def _in_jit_directory() -> Iterator[str]:
     os.environ["SRL_JIT_OWNER"] = str(os.getpid())
     os.chdir(path)
     compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
+    keeper = _SigintKeeper() if main else None
     try:
         yield compiler
     except Exception as error:
         raise _build_signal(signals, error) from error
     finally:
+        if keeper is not None:
+            keeper.stop()
         if main:
             signal.set_wakeup_fd(old_fd)
         os.close(fd)
@@ -185,6 +188,54 @@ def _in_jit_directory() -> Iterator[str]:
         else:
             os.environ["SRL_JIT_OWNER"] = owner
         shutil.rmtree(path, ignore_errors=True)
+
+
+class _SigintKeeper:
+    """Keep SIGINT heard while CasADi runs gcc through ``system()``.
+
+    ``system()`` sets SIGINT to "ignore" in the whole process until gcc ends (POSIX), so a
+    SIGINT sent to srl alone (``kill -INT``, not a terminal's Ctrl-C to the whole group) would
+    be lost for the minutes of a large build. CasADi releases the GIL meanwhile, so this thread
+    puts Python's own C-level handler back (read with ``sigaction`` before the build) every
+    10 ms: the signal then reaches the wakeup file, and the wrapper stops gcc. ``system()``
+    restores the same handler when it returns. Linux/glibc only; elsewhere it does nothing.
+    """
+
+    def __init__(self) -> None:
+        import ctypes
+        import signal
+        import sys
+        import threading
+
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        if not sys.platform.startswith("linux"):
+            return
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            saved = ctypes.create_string_buffer(256)  # >= sizeof(struct sigaction) (152 on x86_64)
+            if libc.sigaction(signal.SIGINT, None, saved) != 0:
+                return
+        except (OSError, AttributeError):
+            return
+        handler = ctypes.c_void_p.from_buffer(saved).value  # sa_handler, the struct's first field
+        if handler in (None, 0, 1):  # SIG_DFL or SIG_IGN: no Python handler to keep
+            return
+
+        def keep() -> None:
+            current = ctypes.create_string_buffer(256)
+            while not self._done.wait(0.01):
+                if libc.sigaction(signal.SIGINT, None, current) == 0 and \
+                        ctypes.c_void_p.from_buffer(current).value == 1:  # SIG_IGN: system() runs gcc
+                    libc.sigaction(signal.SIGINT, saved, None)
+
+        self._thread = threading.Thread(target=keep, name="jit-sigint", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
 
 
 def _build_signal(signals: str, error: Exception) -> Exception:

@@ -231,6 +231,14 @@ def test_a_closed_pipe_ends_srl_run_quietly() -> None:
 
 
 # -- point 6: the horizon's JIT build ends promptly on a signal, leaving nothing -----------
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (a killed process whose parent has not reaped it yet holds nothing)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
 def _build_processes(owner: int) -> list[int]:
     """Processes of srl ``owner``'s JIT build (the wrapper, gcc, cc1, as): they carry its pid."""
     found = []
@@ -247,7 +255,8 @@ def _build_processes(owner: int) -> list[int]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("signum", "group", "code"), [(signal.SIGTERM, False, 143), (signal.SIGINT, True, 130)])
+@pytest.mark.parametrize(("signum", "group", "code"), [(signal.SIGTERM, False, 143), (signal.SIGINT, True, 130),
+                                                       (signal.SIGINT, False, 130)])
 def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_directory(
         tmp_path: Path, signum: int, group: bool, code: int) -> None:
     env = {**os.environ, "TMPDIR": str(tmp_path)}
@@ -270,13 +279,13 @@ def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_direct
         _, err = process.communicate(timeout=30)  # its stderr's end: no compiler holds it any more
         ended = time.monotonic() - sent
         deadline = time.monotonic() + 1
-        while any(Path(f"/proc/{p}").exists() for p in compilers) and time.monotonic() < deadline:
+        while any(_running(p) for p in compilers) and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
-    left = [p for p in compilers if Path(f"/proc/{p}").exists()]
+    left = [p for p in compilers if _running(p)]
     print(f"\nfigures: {signal.Signals(signum).name} during gcc at N = 60: srl ended after {ended:.2f} s "
           f"(exit {process.returncode}), {len(compilers)} compiler processes, {len(left)} left, "
           f"build directories left {len(list(tmp_path.glob('srl-jit-*')))} (before: gcc orphaned, directory left)")
