@@ -393,6 +393,11 @@ def connect_with_retry(opener: Callable[[], Any], settings: Settings, service: s
             time.sleep(0.2)
 
 
+def zenoh_reason(error: Exception) -> str:
+    """Zenoh's error text without its Rust source location (`` at /root/.cargo/...rs:447.``)."""
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(error)).strip()
+
+
 def _endpoint_listening(endpoint: str) -> bool:
     """Whether a TCP-based endpoint (tcp/, tls/, ws/) accepts a plain connection."""
     import socket
@@ -431,11 +436,13 @@ def cmd_router(args: argparse.Namespace) -> int:
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:
-        raise UsageError(f"router: cannot listen on {settings.transport.router}: {error}") from error
-    log.info("router listening on %s (multicast scouting %s%s)", settings.transport.router,
-                "on" if settings.transport.multicast_scouting else "off",
-                f"; users and access rules of robot {settings.transport.robot} enforced"
-                if settings.transport.secure else "")
+        raise UsageError(f"router: cannot listen on {settings.transport.router}: {zenoh_reason(error)} "
+                         "(another router on that port? choose one with --router)") from error
+    # its one line of normal output, on stdout (not a warning): what it serves and how
+    transport = settings.transport
+    rules = f"; users and access rules of robot {transport.robot} enforced" if transport.secure else ""
+    print(f"srl router: router listening on {settings.transport.router} (multicast scouting "
+          f"{'on' if settings.transport.multicast_scouting else 'off'}{rules})", flush=True)
     stop.wait()
     session.close()
     print(json.dumps({"service": "router", "endpoint": settings.transport.router,

@@ -407,3 +407,21 @@ def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
     path = tmp_path / "run.png"
     plot_episode(episode, settings.plant.sampling_time, path)
     assert path.stat().st_size > 20_000
+
+
+# -- point 8: log levels that mean something; point 9: no Rust internals --------------------
+def test_the_router_says_it_listens_on_stdout_and_a_taken_port_in_one_line() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([*CLI, "router", "--router", endpoint], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        lines = _wait_for_line(router.stdout, "router listening on " + endpoint, 60)
+        taken = srl("router", "--router", endpoint, timeout=60)
+    finally:
+        os.killpg(router.pid, signal.SIGINT)
+        _, err = router.communicate(timeout=30)
+    assert lines[-1].startswith("srl router: router listening on")
+    assert err == "", "a normal start logged on stderr"
+    assert taken.returncode == 2
+    assert taken.stderr.strip().splitlines() == [taken.stderr.strip()]
+    assert "Address already in use" in taken.stderr and ".rs:" not in taken.stderr and "--router" in taken.stderr
