@@ -111,8 +111,39 @@ class ActorCounters:
     solve_seconds: list[float] = field(default_factory=list)
 
 
+# The C compiler runs through this wrapper (CasADi's shell compiler calls system(), which
+# ignores SIGINT in the caller and holds the GIL until gcc ends: minutes at a large N). gcc gets
+# its own process group; the wrapper kills that group and removes the build directory when
+# srl dies (SIGTERM/SIGKILL), when srl received SIGTERM/SIGINT (Python's C-level handler writes
+# the signal number to SIGNALS, see _in_jit_directory), or when the terminal's Ctrl-C reaches
+# the wrapper itself; it leaves the signal number in SIGNALS for Python to report.
+_JIT_WRAPPER = r"""#!/bin/sh
+owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"
+setsid "$@" &
+child=$!
+stop() { kill -KILL -"$child" 2>/dev/null; kill -KILL "$child" 2>/dev/null; }  # dash: no "--"
+trap 'stop; printf "\002" >> "$signals"; exit 130' INT
+trap 'stop; printf "\017" >> "$signals"; exit 143' TERM HUP
+while state=$(sed -n "s/^.*) \(.\).*/\1/p" "/proc/$child/stat" 2>/dev/null) && [ -n "$state" ] && [ "$state" != Z ]
+do
+    if ! kill -0 "$owner" 2>/dev/null; then stop; rm -rf "$dir"; exit 1; fi
+    if [ -s "$signals" ]; then stop; exit 1; fi
+    sleep 0.1
+done
+wait "$child"
+"""
+
+
+class BuildInterrupted(KeyboardInterrupt):
+    """A signal ended the JIT build (its compiler killed, its directory removed)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"signal {signum} during the actor's JIT build")
+        self.signum = signum
+
+
 @contextlib.contextmanager
-def _in_jit_directory() -> Iterator[None]:
+def _in_jit_directory() -> Iterator[str]:
     """Run a JIT build inside a fresh private temporary directory, removed right after.
 
     CasADi writes its C files and shared objects into the CURRENT directory whatever its
@@ -120,16 +151,101 @@ def _in_jit_directory() -> Iterator[None]:
     leaves the mapping intact, so the directory is gone before the actor takes its first step:
     nothing is left in /tmp even when the process is later killed with SIGKILL.
     ``os.chdir`` is process-wide: actors are built before a service starts its threads, and
-    the previous directory is restored even if the build fails.
+    the previous directory is restored even if the build fails. Yields the compiler command
+    (the wrapper above around gcc or cc).
     """
+    import signal
+    import threading
+
     previous = os.getcwd()
     path = tempfile.mkdtemp(prefix="srl-jit-")
+    wrapper = os.path.join(path, "cc.sh")
+    with open(wrapper, "w") as file:
+        file.write(_JIT_WRAPPER)
+    os.chmod(wrapper, 0o700)
+    signals = os.path.join(path, "SIGNALS")
+    main = threading.current_thread() is threading.main_thread()
+    fd = os.open(signals, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NONBLOCK, 0o600)
+    old_fd = signal.set_wakeup_fd(fd, warn_on_full_buffer=False) if main else -1
+    owner = os.environ.get("SRL_JIT_OWNER")
+    os.environ["SRL_JIT_OWNER"] = str(os.getpid())
     os.chdir(path)
+    compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
+    keeper = _SigintKeeper() if main else None
     try:
-        yield
+        yield compiler
+    except Exception as error:
+        raise _build_signal(signals, error) from error
     finally:
+        if keeper is not None:
+            keeper.stop()
+        if main:
+            signal.set_wakeup_fd(old_fd)
+        os.close(fd)
         os.chdir(previous)
+        if owner is None:
+            os.environ.pop("SRL_JIT_OWNER", None)
+        else:
+            os.environ["SRL_JIT_OWNER"] = owner
         shutil.rmtree(path, ignore_errors=True)
+
+
+class _SigintKeeper:
+    """Keep SIGINT heard while CasADi runs gcc through ``system()``.
+
+    ``system()`` sets SIGINT to "ignore" in the whole process until gcc ends (POSIX), so a
+    SIGINT sent to srl alone (``kill -INT``, not a terminal's Ctrl-C to the whole group) would
+    be lost for the minutes of a large build. CasADi releases the GIL meanwhile, so this thread
+    puts Python's own C-level handler back (read with ``sigaction`` before the build) every
+    10 ms: the signal then reaches the wakeup file, and the wrapper stops gcc. ``system()``
+    restores the same handler when it returns. Linux/glibc only; elsewhere it does nothing.
+    """
+
+    def __init__(self) -> None:
+        import ctypes
+        import signal
+        import sys
+        import threading
+
+        self._done = threading.Event()
+        self._thread: threading.Thread | None = None
+        if not sys.platform.startswith("linux"):
+            return
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            saved = ctypes.create_string_buffer(256)  # >= sizeof(struct sigaction) (152 on x86_64)
+            if libc.sigaction(signal.SIGINT, None, saved) != 0:
+                return
+        except (OSError, AttributeError):
+            return
+        handler = ctypes.c_void_p.from_buffer(saved).value  # sa_handler, the struct's first field
+        if handler in (None, 0, 1):  # SIG_DFL or SIG_IGN: no Python handler to keep
+            return
+
+        def keep() -> None:
+            current = ctypes.create_string_buffer(256)
+            while not self._done.wait(0.01):
+                if libc.sigaction(signal.SIGINT, None, current) == 0 and \
+                        ctypes.c_void_p.from_buffer(current).value == 1:  # SIG_IGN: system() runs gcc
+                    libc.sigaction(signal.SIGINT, saved, None)
+
+        self._thread = threading.Thread(target=keep, name="jit-sigint", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+
+
+def _build_signal(signals: str, error: Exception) -> Exception:
+    """The failed build's error, or :class:`BuildInterrupted` if a signal ended it."""
+    try:
+        with open(signals, "rb") as file:
+            received = file.read()
+    except OSError:
+        received = b""
+    return BuildInterrupted(received[0]) if received else error
 
 
 def _compiler_available() -> bool:
@@ -253,19 +369,27 @@ class StackedActor:
         if p.jit and not jit:
             log.warning("no C compiler found: building the actor without JIT (slower solves)")
 
-        def compiled(jit_name: str) -> dict[str, Any]:
+        def compiled(jit_name: str, compiler: str | None) -> dict[str, Any]:
             # The build runs inside a private temporary directory, removed once the compiled
             # code is loaded (see _in_jit_directory); CasADi's own cleanup is off.
-            if not jit:
+            if compiler is None:
                 return {}
-            jit_options = {"flags": ["-O3"], "verbose": False, "cleanup": False}
+            jit_options = {"flags": ["-O3"], "verbose": False, "cleanup": False, "compiler": compiler}
             return {"jit": True, "compiler": "shell", "jit_name": jit_name, "jit_cleanup": False,
                     "jit_options": jit_options}  # fmt: skip
 
         name = f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}"
-        with _in_jit_directory() if jit else contextlib.nullcontext():
-            solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor"))
-            self._merit = ca.Function("merit", *merit_args, compiled("srl_merit"))
+        started = time.perf_counter()
+        log.log(logging.WARNING if p.horizon > 30 else logging.INFO,  # large N: the build takes a while
+                "building the actor problem (N = %d, agent %s, solver %s%s) ...", p.horizon, p.agent, p.solver,
+                 ", JIT-compiled with the C compiler" if jit else "")
+        with _in_jit_directory() if jit else contextlib.nullcontext() as compiler:
+            solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
+            self._merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
+        elapsed = time.perf_counter() - started
+        # a long build is worth a line at the default level; a usual one (N = 12: ~1 s) is not
+        log.log(logging.WARNING if elapsed > 10.0 else logging.INFO if elapsed > 1.0 else logging.DEBUG,
+                "built the actor problem (N = %d, agent %s) in %.1f s", p.horizon, p.agent, elapsed)
         return solver, np.array(lbx, dtype=float), np.array(ubx, dtype=float), n_g
 
     # -- stepping -----------------------------------------------------------------------

@@ -9,6 +9,7 @@ the algorithm itself, not an approximation of it.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -59,6 +60,7 @@ class LocalCritic:
         self.critic = self._fresh_critic()
         self.replay = Replay(settings.critic.replay_size)
         self.updates = 0
+        self.last_residuals = (float("nan"), float("nan"))  # of the newest fit (Q, V)
 
     def _fresh_critic(self) -> DoubleCritic:
         s = self.settings
@@ -74,8 +76,10 @@ class LocalCritic:
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
         self.replay.add(sample)
+        self.last_residuals = (float("nan"), float("nan"))
         if self.learn and sample.step % self.settings.critic.update_every == 0:
-            self.critic.update(self.replay)
+            update = self.critic.update(self.replay)
+            self.last_residuals = (float(update.q.residual), float(update.v.residual))
             self.updates += 1
         return self.critic.q_weights, self.critic.v_weights
 
@@ -112,6 +116,11 @@ class Episode:
     costs: list[float] = field(default_factory=list)
     solve_seconds: list[float] = field(default_factory=list)
     solver_failures: int = 0
+    # the learning, one row per step (bounded by the episode's length): the weights the actor
+    # used at step k, and the TD residuals (Q, V) of the fit after step k (nan: no fit / unknown)
+    q_weights: list[np.ndarray] = field(default_factory=list)
+    v_weights: list[np.ndarray] = field(default_factory=list)
+    td_residuals: list[tuple[float, float]] = field(default_factory=list)
 
     @property
     def steps(self) -> int:
@@ -132,8 +141,12 @@ def run_episode(
     actor: StackedActor | None = None,
     plant: Plant | None = None,
     critic: CriticPort | None = None,
+    stop: threading.Event | None = None,
 ) -> Episode:
-    """Algorithm 1 for ``settings.steps`` sampling intervals from ``settings.start_state()``."""
+    """Algorithm 1 for ``settings.steps`` sampling intervals from ``settings.start_state()``.
+
+    ``stop`` (set by a signal handler) ends the episode between two steps: a signal never
+    interrupts a solve or a fit half way (CasADi callbacks cannot take an exception)."""
     actor = actor or build_actor(settings)
     plant = plant or ExactPlant()
     critic = critic or LocalCritic(settings, learn=settings.actor.agent != "mpc")
@@ -145,11 +158,17 @@ def run_episode(
     q_weights, v_weights = critic.reset()
     state = plant.reset(settings.start_state())
     episode = Episode(agent=settings.actor.agent, horizon=settings.actor.horizon, states=[state])
+    log.info("episode started: %s, N = %d, %d steps", settings.actor.agent, settings.actor.horizon, settings.steps)
     for k in range(settings.steps):
+        if stop is not None and stop.is_set():
+            break
+        episode.q_weights.append(np.array(q_weights, dtype=float))
+        episode.v_weights.append(np.array(v_weights, dtype=float))
         step = actor.step(state, q_weights, v_weights)  # line 4: update actor
         cost = delta * float(stage_cost(state, step.action, r_diag))
         next_state = plant.apply(step.action, delta)  # line 5: apply u_1
         q_weights, v_weights = critic.record(Sample(k, state, step.action, cost))  # line 6
+        episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
         episode.actions.append(step.action)
         episode.costs.append(cost)
         episode.solve_seconds.append(step.solve_seconds)

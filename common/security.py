@@ -246,6 +246,9 @@ def write_credentials(directory: Path, roles: Iterable[str] = ROLES) -> Credenti
     return Credentials(directory, users_file, files)
 
 
+_WARNED: set[tuple[Path, int]] = set()
+
+
 def _read_secret_file(path_text: str, what: str) -> str:
     path = Path(path_text).expanduser()
     try:
@@ -253,7 +256,9 @@ def _read_secret_file(path_text: str, what: str) -> str:
         text = path.read_text()
     except OSError as error:
         raise SecurityError(f"{what} {path}: {error.strerror}") from error
-    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+    if mode & (stat.S_IRWXG | stat.S_IRWXO) and (path, mode) not in _WARNED:
+        # once per file and mode: a client retrying its login every 200 ms must not repeat it
+        _WARNED.add((path, mode))
         log.warning("%s %s is readable by others (mode %o): chmod 600 it", what, path, stat.S_IMODE(mode))
     return text
 

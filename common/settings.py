@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
@@ -27,6 +28,26 @@ from common.dynamics import heading_away_from_target
 from common.features import quadratic_weights_for_diag
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
+# The actor's horizon bound. The JIT build (code generation + gcc -O3) grows with N:
+# measured (README "Bounds"): N = 100 builds in 35 s with 0.6 GB peak (gcc included; 2 shared cores), N = 10000 had
+# reached 8.9 GB of gcc memory after 8.5 min. The paper uses N = 6 and 12.
+MAX_HORIZON = 100
+# Starts beyond this distance [m] from the target (per coordinate) are outside any room the
+# robot could park in: warned. Beyond the state schema's bound (common/messages.py) refused.
+WORKSPACE_HALF_WIDTH = 10.0
+MAX_START = 1e4
+# Endpoints as Zenoh spells them: <protocol>/<address>, e.g. tcp/127.0.0.1:7447, tls/host:7447.
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):[0-9]{1,5}([?#].*)?$"
+                       r"|^unixsock-stream/\S+$")
+
+
+def check_endpoint(value: str, name: str) -> str:
+    """A Zenoh endpoint, refused here with a readable message (Zenoh's own is a Rust ``Json5Err``)."""
+    match = _ENDPOINT.match(value)
+    if not match or (match.group(1) and not 0 < int(value.rsplit(":", 1)[1].split("?")[0].split("#")[0]) < 65536):
+        raise ValueError(f"{name} must be a Zenoh endpoint <protocol>/<host>:<port>, e.g. tcp/127.0.0.1:7447 "
+                         f"(protocols tcp, udp, tls, quic, ws; or unixsock-stream/<path>), got {value!r}")
+    return value
 
 
 class _Section(BaseModel):
@@ -69,7 +90,8 @@ class CriticSettings(_Section):
     q_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
     v_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
     update_every: int = Field(ge=1)
-    checkpoint: str = Field(description="checkpoint file ({robot} = robot id); empty = none")
+    checkpoint: str = Field(description="checkpoint file ({robot}, {agent}, {horizon}); empty = none")
+    resume: bool = Field(default=False, description="restore the checkpoint of an earlier run at start")
     robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
 
     @field_validator("robots")
@@ -97,7 +119,7 @@ class CriticSettings(_Section):
 
 class ActorSettings(_Section):
     agent: Literal["mpc", "rlq", "rlqv", "rlqv+"]
-    horizon: int = Field(ge=2, description="N")
+    horizon: int = Field(description="N, 2 .. MAX_HORIZON")
     predictor: Literal["euler", "rk4"]
     solver: Literal["fatrop", "ipopt"]
     jit: bool
@@ -105,6 +127,14 @@ class ActorSettings(_Section):
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)
     bound_push: float = Field(gt=0, le=0.5)
+
+    @field_validator("horizon")
+    @classmethod
+    def _bounded_horizon(cls, v: int) -> int:
+        if not 2 <= v <= MAX_HORIZON:
+            raise ValueError(f"the horizon N must be 2 .. {MAX_HORIZON} (N - 1 >= 1 actions; above {MAX_HORIZON} "
+                             f"the compiled problem outgrows the machine: gcc needs gigabytes), got {v}")
+        return v
 
 
 class EpisodeSettings(_Section):
@@ -116,6 +146,9 @@ class EpisodeSettings(_Section):
     def _finite_start(cls, v: tuple[float, ...]) -> tuple[float, ...]:
         if not all(math.isfinite(c) for c in v):
             raise ValueError(f"start must be finite numbers, got {v}")
+        if max(abs(v[0]), abs(v[1])) > MAX_START:
+            raise ValueError(f"start ({v[0]:g}, {v[1]:g}) m is beyond the {MAX_START:g} m every state message "
+                             "allows (common/messages.py): the paper's starts are within 2 m of the target")
         return v
 
 
@@ -123,6 +156,16 @@ class TransportSettings(_Section):
     robot: str = Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")
     mode: Literal["client", "peer"]
     router: str = Field(description="endpoint of the Zenoh router, e.g. tcp/127.0.0.1:7447")
+
+    @field_validator("router")
+    @classmethod
+    def _router_endpoint(cls, v: str) -> str:
+        return check_endpoint(v, "transport.router")
+
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e, "every transport.connect/listen entry") for e in v]
     connect: list[str]
     listen: list[str] = Field(description="endpoints a client/peer session listens on")
     multicast_scouting: bool
@@ -229,6 +272,11 @@ class Settings(BaseSettings):
             if not path.is_file():
                 raise FileNotFoundError(f"config file {path} does not exist")
             files.append(path)
+        for path in files:  # a syntax error names its file (tomllib alone does not)
+            try:
+                tomllib.loads(path.read_text())
+            except tomllib.TOMLDecodeError as error:
+                raise ValueError(f"config file {path}: TOML syntax error: {error}") from error
 
         class _FromFiles(cls):  # type: ignore[valid-type,misc]
             model_config = SettingsConfigDict(toml_file=files)

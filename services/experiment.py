@@ -1007,17 +1007,21 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
     parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
     parser.add_argument("--starts", choices=STARTS, default="paper",
-                        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells")
-    parser.add_argument("--seed", type=int, default=0, help="seed of everything random (the held-out starts)")
-    parser.add_argument("--agents", default=",".join(DEFAULT_AGENTS), help="comma-separated: mpc,rlq,rlqv,rlqv+")
+                        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells "
+                             "(default: paper)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of everything random (the held-out starts) (default: 0)")
+    parser.add_argument("--agents", default=",".join(DEFAULT_AGENTS),
+                        help="comma-separated (default: mpc,rlq,rlqv,rlqv+)")
     parser.add_argument("--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS),
                         help="comma-separated N values (default 12,6)")
     parser.add_argument("--duration", type=float, help="episode length [s] (default from the config: 30)")
-    parser.add_argument("--config", type=Path, help="a TOML file overriding common/srl.toml (any subset)")
+    parser.add_argument("--config", type=Path,
+                        help="a TOML file overriding common/srl.toml (any subset) (default: none)")
     parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
     parser.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
                         help="inproc: workers run Algorithm 1 in process; zenoh: through router, plant_sim "
-                             "and critic service processes (lockstep, synchronous critic)")
+                             "and critic service processes (lockstep, synchronous critic) (default: inproc)")
     parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

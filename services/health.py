@@ -61,11 +61,13 @@ def add_health_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("service", nargs="?", default="router",
                         help="router (default); robot (the ROS 2 robot's graph); or a service whose token "
                         "srl/<robot>/alive/<service> to look for (actor, critic, plant, robot_bridge)")
-    parser.add_argument("--key", help="instead: any liveliness token matching this key expression")
-    parser.add_argument("--config", type=Path, help="a TOML file overriding common/srl.toml (any subset)")
+    parser.add_argument("--key",
+                        help="instead: any liveliness token matching this key expression (default: the service's)")
+    parser.add_argument("--config", type=Path,
+                        help="a TOML file overriding common/srl.toml (any subset) (default: none)")
     parser.add_argument("--router", help="Zenoh router endpoint (default from config/environment)")
-    parser.add_argument("--robot", help="robot id, the <robot> chunk of the key")
-    parser.add_argument("--timeout", type=float, default=2.0, help="[s] how long to wait for an answer")
+    parser.add_argument("--robot", help="robot id, the <robot> chunk of the key (default from config: tb3_0)")
+    parser.add_argument("--timeout", type=float, default=2.0, help="[s] how long to wait for an answer (default: 2)")
 
 
 def transport_settings(config: Path | None = None, router: str | None = None,

@@ -1,13 +1,16 @@
 """``srl up``: the router and every service as separate child processes.
 
-Children are ``python -m services.cli <service> ...`` with the same configuration. Their log
-lines are forwarded to stderr prefixed with ``[name]``; each prints one JSON summary as its last
-stdout line when it ends. The actor defines the end of the run: when it exits, the others are
-stopped (SIGINT, then SIGKILL after a grace period). If any child dies first, everything is
-stopped and ``srl up`` exits non-zero naming it. SIGINT (Ctrl-C), SIGTERM and SIGHUP all stop
-everything the same way (children by pid, credentials removed) and ``srl up`` exits with
-128 + the signal number (130, 143, 129). Every child gets ``SRL_PARENT_PID``: it dies with this
-process even when this process is killed with SIGKILL (common/lifeline.py).
+Children are ``python -m services.cli <service> ...`` with the same configuration (each gets
+only the flags its subcommand takes). Their log lines are forwarded to stderr prefixed with
+``[name]``; each prints one JSON summary as its last stdout line when it ends: those are kept,
+written to ``<summary_dir>/<name>.json``, never echoed. While the actor runs, its 1 Hz status
+(``srl/<robot>/status/actor``) is handed to ``on_status`` (``srl up`` prints a status line).
+The actor defines the end of the run: when it exits, the others are stopped (SIGINT, then
+SIGKILL after a grace period). If any child dies first, everything is stopped and ``srl up``
+exits non-zero naming it. SIGINT (Ctrl-C), SIGTERM and SIGHUP all stop everything the same
+way (children by pid, credentials removed) and ``srl up`` exits with 128 + the signal number
+(130, 143, 129). Every child gets ``SRL_PARENT_PID``: it dies with this process even when this
+process is killed with SIGKILL (common/lifeline.py).
 
 ``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
 configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
@@ -132,6 +135,7 @@ class Child:
 
 
 def _pump(stream: IO[str], name: str, sink: list[str], echo: IO[str] | None, keep: int | None) -> None:
+    """Keep a child's lines (``keep`` at most); echo them (its logs) if ``echo``."""
     for line in stream:
         line = line.rstrip("\n")
         sink.append(line)
@@ -150,7 +154,9 @@ class Supervisor:
         self.children: dict[str, Child] = {}
 
     def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
-        command = [sys.executable, "-m", "services.cli", *argv]
+        from services.cli import child_argv
+
+        command = [sys.executable, "-m", "services.cli", *child_argv(argv)]
         process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             # SRL_PARENT_PID: the child stops when this process dies, however it dies (common/lifeline.py)
@@ -159,9 +165,10 @@ class Supervisor:
         )
         child = Child(name, process)
         echo = None if self.quiet else sys.stderr
-        for stream, sink, keep in ((process.stdout, child.stdout_lines, None),
-                                   (process.stderr, child.stderr_tail, 200)):
-            thread = threading.Thread(target=_pump, args=(stream, name, sink, echo, keep), daemon=True)
+        # stdout holds the JSON summary (kilobytes): kept, not echoed; stderr holds the logs
+        for stream, sink, keep, shown in ((process.stdout, child.stdout_lines, 1000, None),
+                                          (process.stderr, child.stderr_tail, 200, echo)):
+            thread = threading.Thread(target=_pump, args=(stream, name, sink, shown, keep), daemon=True)
             thread.start()
             child.threads.append(thread)
         self.children[name] = child
@@ -283,9 +290,47 @@ def _tls_endpoint(endpoint: str) -> str | None:
     return "tls/" + endpoint[len("tcp/"):] if endpoint.startswith("tcp/") else None
 
 
+class StatusMonitor:
+    """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session."""
+
+    def __init__(self, settings: Settings) -> None:
+        from common.keys import STATUS
+        from common.messages import ServiceStatus
+
+        self.latest: dict[str, float] | None = None
+        self.seen = 0
+        self.session = zenoh.open(zenoh_config(settings.transport))
+
+        def on_sample(sample: Any) -> None:
+            try:
+                status = ServiceStatus.model_validate_json(sample.payload.to_bytes())
+            except ValueError:
+                return  # the actor's own schema: a bad one is not ours to report
+            self.latest = dict(status.counters)
+            self.seen += 1
+
+        self.subscriber = self.session.declare_subscriber(
+            STATUS.key(settings.transport.robot, service="actor"), on_sample)
+
+    def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            self.subscriber.undeclare()
+        self.session.close()
+
+
+def write_summaries(directory: Path, children: dict[str, Child], merged: dict[str, Any]) -> None:
+    """Each child's JSON summary line to ``<name>.json`` and the merged one to ``summary.json``."""
+    directory.mkdir(parents=True, exist_ok=True)
+    for name, child in children.items():
+        summary = child.summary()
+        if summary is not None:
+            (directory / f"{name}.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (directory / "summary.json").write_text(json.dumps(merged, indent=1) + "\n")
+
+
 def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
            duration: float, quiet: bool = False, bridge_args: list[str] | None = None,
-           secure: bool = False) -> dict[str, Any]:
+           secure: bool = False, on_status: Any = None, summary_dir: Path | None = None) -> dict[str, Any]:
     """Start everything, run one actor episode/duration, stop everything; the merged summary.
 
     ``plant="robot"``: the robot bridge in place of plant_sim, and the TurtleBot3 emulator as the
@@ -315,13 +360,13 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     started = time.monotonic()
     with SignalGuard() as guard:
         summary = _run_up(settings, settings_args, mode, plant, sync_critic, duration, supervisor, robot_args,
-                          secure, started, guard)
+                          secure, started, guard, on_status, summary_dir)
     return summary
 
 
 def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
             duration: float, supervisor: Supervisor, robot_args: list[str], secure: bool, started: float,
-            guard: SignalGuard) -> dict[str, Any]:
+            guard: SignalGuard, on_status: Any, summary_dir: Path | None) -> dict[str, Any]:
     common_args = [*settings_args]
     credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
     role: dict[str, dict[str, str]] = {}  # child -> its login environment
@@ -372,9 +417,18 @@ def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str,
         if sync_critic:
             actor_args.append("--sync-critic")
         actor = supervisor.spawn("actor", actor_args, role.get("actor"))
-        while actor.process.poll() is None:
-            supervisor.check(allowed_to_exit={"actor"})
-            time.sleep(0.05)
+        status = StatusMonitor(settings) if on_status is not None else None
+        try:
+            shown = 0
+            while actor.process.poll() is None:
+                supervisor.check(allowed_to_exit={"actor"})
+                if status is not None and status.seen > shown and status.latest is not None:
+                    shown = status.seen
+                    on_status(status.latest)
+                time.sleep(0.05)
+        finally:
+            if status is not None:
+                status.close()
         if actor.process.returncode != 0:
             raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
     finally:
@@ -392,6 +446,7 @@ def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str,
     actor_summary = supervisor.children["actor"].summary() or {}
     critic_summary = supervisor.children["critic"].summary() or {}
     merged = dict(actor_summary)
+    merged.pop("transitions_tail", None)  # kept in actor.json
     if plant == "robot":
         merged["bridge"] = supervisor.children["robot_bridge"].summary()
         if "tb3_emulator" in supervisor.children:
@@ -406,7 +461,12 @@ def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str,
         "transitions_received": critic_summary.get("transitions_received"),
         "critic_weights_published": critic_summary.get("weights_published"),
         "critic_fit_ms": critic_summary.get("fit_ms"),
+        "critic_checkpoint": critic_summary.get("checkpoint"),
+        "critic_restored": critic_summary.get("restored"),
         "wall_seconds": time.monotonic() - started,
         "resources": {name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()},
     })
+    if summary_dir is not None:
+        merged["summary_dir"] = str(summary_dir)
+        write_summaries(summary_dir, supervisor.children, merged)
     return merged

@@ -76,6 +76,7 @@ def critic_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterat
     """The checkpoint template of this test (``{robot}`` = robot id)."""
     path = tmp_path / "critic-{robot}.json"
     monkeypatch.setenv("SRL_CRITIC__CHECKPOINT", str(path))
+    monkeypatch.setenv("SRL_RUNS_DIR", str(tmp_path / "runs"))  # srl up's JSON summaries
     yield path
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import os
 import threading
 import time
@@ -345,7 +346,10 @@ def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type:
 
     def extra() -> dict[str, float]:
         held = inbox.current()
+        shown = latest["state"]  # for the live status line of `srl up`: pose and J so far
+        pose = shown[0].state if shown is not None else (float("nan"),) * 3  # nan: left out
         return {
+            "x": pose[0], "y": pose[1], "alpha": pose[2], "accumulated_cost": math.fsum(costs),
             "steps": counters["steps"], "missed_deadlines": ticker.missed,
             "solver_failures": actor.counters.failures, "weights_version": held.version,
             "staleness_steps": float(staleness_steps[-1]) if staleness_steps else 0.0,

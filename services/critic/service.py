@@ -12,8 +12,11 @@ Nothing is lost across a crash:
   ``transport.transition_cache`` of them; the critic subscribes with history and recovery, so
   at (re)start it receives what was published while it was down, and after a partition what
   it missed, in step order;
-* after every accepted transition the critic writes a checkpoint (``critic.checkpoint``:
-  weights, version, replay, the steps seen) atomically, and restores it at start. A transition
+* after every accepted transition the critic writes a checkpoint (``critic.checkpoint``, per
+  robot and stack: weights, version, replay, the steps seen) atomically, and reads it at start.
+  A learner read from it continues only if the first transition is of its own episode (this
+  critic crashed during the run); a new run starts fresh -- its result never depends on what
+  ran before -- unless ``critic.resume`` (``--resume``) carries the weights into it. A transition
   it already holds (history overlapping the checkpoint, or a re-delivery) is counted as a
   duplicate and changes nothing, so the recovered fits are exactly those a critic that never
   went down would have made. Restored weights are re-published under a new version.
@@ -67,7 +70,9 @@ def checkpoint_path(settings: Settings) -> Path | None:
     template = settings.critic.checkpoint
     if not template:
         return None
-    return Path(os.path.expanduser(template.format(robot=settings.transport.robot)))
+    # per robot AND per stack: a run of another agent or horizon never starts from this one's critic
+    return Path(os.path.expanduser(template.format(robot=settings.transport.robot, agent=settings.actor.agent,
+                                                   horizon=settings.actor.horizon)))
 
 
 class CriticLearner:
@@ -85,6 +90,10 @@ class CriticLearner:
         self.stale_episode = 0
         self.too_old = 0
         self.accepted = 0  # transitions that entered a replay
+        self.resume = settings.critic.resume
+        self.pending: set[str] = set()  # robots read from a checkpoint, their run not yet confirmed
+        self.continued: set[str] = set()  # robots whose checkpointed learner continued (same run)
+        self.loaded = False  # a checkpoint was restored
         # Seen steps kept per episode: enough to recognise anything the publisher's cache can
         # still deliver again.
         self.retention = 2 * max(settings.transport.transition_cache, settings.critic.replay_size)
@@ -110,11 +119,32 @@ class CriticLearner:
             q_residual=q_res, v_residual=v_res, pairs=pairs,
         )
 
+    def confirm(self, message: Transition) -> CriticWeights | None:
+        """The first transition of a robot read from the checkpoint: the same run continues
+        (the weights held are re-published, under a new version) or a new one starts fresh."""
+        if message.robot not in self.pending:
+            return None
+        self.pending.discard(message.robot)
+        learner = self.learners[message.robot]
+        if message.episode != learner.episode:
+            return None  # on_transition starts the new run (fresh, or resumed weights)
+        self.continued.add(message.robot)
+        trained = learner.replay.samples[-1].step if len(learner.replay) else -1
+        return self._message(message.robot, learner, trained, 0.0, 0.0, 0)
+
+    @property
+    def restored(self) -> bool:
+        """A checkpoint's learner is in use: resumed on request, or continued within its run."""
+        return bool(self.continued) or (self.resume and self.loaded)
+
     def on_transition(self, message: Transition) -> CriticWeights | None:
         self.received += 1
         learner = self.learners.get(message.robot)
         if learner is None or message.episode > learner.episode:
-            learner = self._fresh(message.episode)
+            previous, learner = learner, self._fresh(message.episode)
+            if previous is not None and self.resume:  # learning carried across runs, on request
+                learner.critic.q_weights = previous.critic.q_weights.copy()
+                learner.critic.v_weights = previous.critic.v_weights.copy()
             self.learners[message.robot] = learner
         elif message.episode < learner.episode:
             self.stale_episode += 1
@@ -186,6 +216,8 @@ class CriticLearner:
             raise CheckpointError(f"malformed checkpoint: {error!r}") from error
         self.learners = learners
         self.version = max(self.version, version)
+        self.pending = set(learners)
+        self.loaded = True
 
     def current_weights(self) -> list[CriticWeights]:
         """The weights held for every robot, as new versions (to re-publish after a restore)."""
@@ -230,7 +262,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         publisher(weights)  # type: ignore[operator]
         bus.count("weights_published")
 
-    if restored:
+    if restored and learner.resume:  # asked to start from them: the actor may use them from step 0
         for weights in learner.current_weights():
             publish(weights)
     # critic.robots' transitions: srl/*/transition (every robot; the key chunk names it) or
@@ -249,6 +281,10 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             message = inbox.get(timeout=0.05)
         except queue.Empty:
             continue
+        continued = learner.confirm(message)
+        if continued is not None:
+            log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
+            publish(continued)
         before = learner.accepted
         weights = learner.on_transition(message)
         if learner.accepted > before and path is not None:
@@ -266,7 +302,8 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         "duplicates": learner.duplicates,
         "too_old": learner.too_old,
         "stale_episode": learner.stale_episode,
-        "restored": restored,
+        "restored": learner.restored,
+        "resume": learner.resume,
         "checkpoint": None if path is None else str(path),
         "checkpoint_ms": summarize(checkpoint_seconds, 1e3),
         "seen_steps": {robot: to_runs(x.seen) for robot, x in learner.learners.items()},

@@ -194,8 +194,8 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
     publisher = session.declare_publisher(odom_key)
     entities.append(publisher)
     frame, child = graph.frame_id(ros_wire.ODOM_FRAME), graph.frame_id(ros_wire.BASE_FRAME)
-    log.warning("tb3-emulator ready: %s %s, cmd_vel %s on %s, odom on %s", graph.profile, graph.distro,
-                cmd_type, cmd_key, odom_key)
+    log.info("tb3-emulator ready: %s %s, cmd_vel %s on %s, odom on %s", graph.profile, graph.distro,
+             cmd_type, cmd_key, odom_key)
 
     seq = 0
     ticker = Ticker(1.0 / odom_rate, stop)

@@ -1,0 +1,427 @@
+"""Issue 14, the command line "out of the box": negative numbers, help, refused options,
+errors that name the cause and the fix, signals and pipes, bounds, checkpoints, status, plot.
+
+Every process test runs the real ``srl`` as a user does (``python -m services.cli``) on free
+loopback ports, waits on what the process prints, bounds every wait and kills by pid.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.messages import Transition
+from common.security import write_credentials
+from common.settings import Settings
+from services.cli import COMMAND_SETTINGS, build_parser, child_argv
+from services.critic.service import CriticLearner, checkpoint_path, load_checkpoint
+from tests.harness import ROOT, free_port
+
+CLI = [sys.executable, "-m", "services.cli"]
+
+
+def srl(*argv: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*CLI, *argv], cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
+                          env={**os.environ, **(env or {})})
+
+
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+# -- point 5: negative numbers -------------------------------------------------------------
+@pytest.mark.parametrize(("argv", "name", "value"), [
+    (["run", "--start", "-1.2,0.7"], "start", (-1.2, 0.7)),
+    (["run", "--start=-1.2,0.7"], "start", (-1.2, 0.7)),
+    (["run", "--start", "-1,-0.5,-3.1"], "start", (-1.0, -0.5, -3.1)),
+    (["run", "--start", "-1e3,2E-1"], "start", (-1e3, 0.2)),
+    (["up", "--start", "-0.5,-.5"], "start", (-0.5, -0.5)),
+    (["tb3-emulator", "--initial-pose", "-1.5,-2,-0.3"], "initial_pose", (-1.5, -2.0, -0.3)),
+    (["tb3-emulator", "--noise", "-0,0.01"], "noise", (0.0, 0.01)),
+])
+def test_negative_numbers_are_values_everywhere(argv: list[str], name: str, value: tuple[float, ...]) -> None:
+    args = build_parser().parse_args(argv)
+    assert getattr(args, name) == pytest.approx(value)
+
+
+def test_a_negative_start_runs_an_episode() -> None:
+    done = srl("run", "--start", "-1.2,0.7", "--horizon", "4", "--duration", "0.3", "--no-jit", "--json")
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.splitlines()[-1])["start_state"][:2] == [-1.2, 0.7]
+
+
+# -- point 10: help and refused options ----------------------------------------------------
+def test_every_subcommand_has_a_description_and_every_option_its_default() -> None:
+    parser = build_parser()
+    top = parser.format_help()
+    assert "``" not in top and "COMMAND" in top
+    missing = []
+    for name, sub in _subparsers(parser).items():
+        assert sub.description, f"srl {name} has no description"
+        for action in sub._actions:
+            if not action.option_strings or isinstance(action, argparse._HelpAction):
+                continue
+            if action.nargs == 0:  # an on/off flag: off unless given, says its help
+                assert action.help, f"srl {name} {action.option_strings[0]} has no help"
+                continue
+            if "default" not in (action.help or "").lower():
+                missing.append(f"srl {name} {action.option_strings[0]}")
+    assert not missing, f"options whose help shows no default: {missing}"
+
+
+@pytest.mark.parametrize(("command", "flag"), [("router", "--agent=mpc"), ("router", "--horizon=6"),
+                                                ("critic", "--start=1,1"), ("plant-sim", "--solver=ipopt"),
+                                                ("robot-bridge", "--duration=5")])
+def test_options_a_command_ignores_are_refused_in_one_line(command: str, flag: str) -> None:
+    done = srl(command, flag, timeout=60)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "unrecognized arguments" in lines[0] and flag in lines[0], done.stderr
+
+
+def test_children_get_only_the_flags_their_command_takes() -> None:
+    given = ["--config=c.toml", "--agent=mpc", "--horizon=6", "--solver=ipopt", "--predictor=rk4",
+             "--start=-1.0,1.0", "--duration=5.0",
+             "--router=tcp/127.0.0.1:1", "--robot=r", "--no-jit", "--resume"]
+    parser = build_parser()
+    for command, takes in COMMAND_SETTINGS.items():
+        if command in ("bench",):
+            continue
+        argv = child_argv([command, *given])
+        assert {a.split("=")[0][2:].replace("-", "_") for a in argv[1:]} == set(takes) - {"resume"} | (
+            {"resume"} & set(takes)), command
+        parser.parse_args(argv)  # accepted as a whole
+
+
+# -- point 9 / 6: errors that name the cause and the fix ----------------------------------
+def test_settings_errors_name_the_file_the_variable_and_the_bound(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[actor]\nhorizon = [\n")
+    cases = [
+        (srl("run", "--config", str(bad)), [str(bad), "TOML syntax error"]),
+        (srl("run", env={"SRL_ACTOR__HORIZON": "foo"}), ["actor.horizon", "SRL_ACTOR__HORIZON", "'foo'"]),
+        (srl("run", "--router", "garbage"), ["transport.router", "tcp/127.0.0.1:7447", "'garbage'"]),
+        (srl("critic", "--router", "garbage"), ["transport.router"]),
+        (srl("run", "--horizon", "10000"), ["actor.horizon", "2 .. 100", "10000"]),
+        (srl("run", "--start", "1e9,0"), ["episode.start", "10000 m"]),
+    ]
+    for done, expected in cases:
+        assert done.returncode == 2, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1, done.stderr
+        assert all(e in lines[0] for e in expected), (expected, lines[0])
+        assert "Json5Err" not in done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_start_far_outside_the_workspace_warns_once() -> None:
+    done = srl("run", "--start", "20,0", "--horizon", "4", "--duration", "0.2", "--no-jit")
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.count("more than 10 m from the target") == 1
+
+
+def test_a_readable_password_file_warns_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    from common.security import client_credentials
+
+    password = tmp_path / "pw"
+    password.write_text("secret\n")
+    password.chmod(0o644)
+    transport = Settings.load(transport={"user": "critic", "password_file": str(password)}).transport
+    with caplog.at_level(logging.WARNING, logger="common.security"):
+        for _ in range(150):  # as a client retrying its login every 200 ms for 30 s
+            assert client_credentials(transport) == ("critic", "secret")
+    warnings = [r for r in caplog.records if "readable by others" in r.getMessage()]
+    print(f"\nfigures: 150 logins with a 0644 password file: {len(warnings)} warning(s) (before: 150)")
+    assert len(warnings) == 1
+
+
+def test_router_unreachable_and_wrong_password_are_told_apart(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    started = time.monotonic()
+    unreachable = srl("critic", "--router", endpoint, "--connect-timeout", "2")
+    unreachable_s = time.monotonic() - started
+    lines = unreachable.stderr.strip().splitlines()
+    assert unreachable.returncode == 2
+    assert "waiting for the Zenoh router at " + endpoint in lines[0]  # said at once, before the timeout
+    assert f"cannot reach the Zenoh router at {endpoint} after 2 s (is `srl router` running?" in lines[-1]
+    assert ".rs:" not in unreachable.stderr and "Traceback" not in unreachable.stderr
+
+    credentials = write_credentials(tmp_path / "secure")
+    router = subprocess.Popen([*CLI, "router", "--router", endpoint], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+                              env={**os.environ, **credentials.router_environment()})
+    try:
+        wrong = tmp_path / "wrong"
+        wrong.write_text("not-the-password\n")
+        wrong.chmod(0o600)
+        started = time.monotonic()
+        refused = srl("critic", "--router", endpoint, env={**credentials.role_environment("critic"),
+                                                           "SRL_TRANSPORT__PASSWORD_FILE": str(wrong)})
+        refused_s = time.monotonic() - started
+    finally:
+        os.killpg(router.pid, signal.SIGKILL)
+        router.wait(timeout=10)
+    assert refused.returncode == 2
+    last = refused.stderr.strip().splitlines()[-1]
+    assert f"the router at {endpoint} refused the login of user 'critic': wrong password" in last, refused.stderr
+    assert refused_s < 15, f"the refusal took {refused_s:.1f} s"  # not the 30 s connect timeout
+    print(f"\nfigures: unreachable router reported after {unreachable_s:.1f} s (timeout 2 s), "
+          f"wrong password reported after {refused_s:.1f} s (before: 33 s, as 'cannot reach')")
+
+
+# -- point 7: signals and pipes during srl run ---------------------------------------------
+def _start_run(*extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([*CLI, "--log-level", "INFO", "run", "--horizon", "6", "--no-jit", *extra], cwd=ROOT,
+                            text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+
+
+def _wait_for_line(stream: object, needle: str, timeout: float) -> list[str]:
+    seen: list[str] = []
+    done = threading.Event()
+
+    def read() -> None:
+        for line in stream:  # type: ignore[attr-defined]
+            seen.append(line)
+            if needle in line:
+                done.set()
+                return
+
+    threading.Thread(target=read, daemon=True).start()
+    assert done.wait(timeout), f"no {needle!r} within {timeout} s: {seen[-5:]}"
+    return seen
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130)] * 5 + [(signal.SIGTERM, 143)])
+def test_a_signal_during_srl_run_ends_it_in_one_line(signum: int, code: int) -> None:
+    process = _start_run("--duration", "600")  # 6000 steps: seconds of solving
+    try:
+        _wait_for_line(process.stderr, "episode started", 60)
+        time.sleep(random.uniform(0.0, 1.0))
+        os.killpg(process.pid, signum)  # as a terminal does: the whole process group
+        _, err = process.communicate(timeout=30)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode == code, err
+    assert "Traceback" not in err and "SystemError" not in err
+    assert err.strip().splitlines() == [f"srl: interrupted ({signal.Signals(signum).name}): stopped"]
+
+
+def test_a_closed_pipe_ends_srl_run_quietly() -> None:
+    read, write = os.pipe()
+    os.close(read)  # `srl run | head` once head has gone
+    done = subprocess.run([*CLI, "run", "--horizon", "4", "--duration", "0.3", "--no-jit"], cwd=ROOT, stdout=write,
+                          stderr=subprocess.PIPE, text=True, timeout=120, check=False)
+    os.close(write)
+    assert done.returncode == 141, done.stderr
+    assert done.stderr == ""
+
+
+# -- point 6: the horizon's JIT build ends promptly on a signal, leaving nothing -----------
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (a killed process whose parent has not reaped it yet holds nothing)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def _build_processes(owner: int) -> list[int]:
+    """Processes of srl ``owner``'s JIT build (the wrapper, gcc, cc1, as): they carry its pid."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            environ = (entry / "environ").read_bytes()
+        except OSError:
+            continue
+        if f"SRL_JIT_OWNER={owner}".encode() in environ.split(b"\0"):
+            found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("signum", "group", "code"), [(signal.SIGTERM, False, 143), (signal.SIGINT, True, 130),
+                                                       (signal.SIGINT, False, 130)])
+def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_directory(
+        tmp_path: Path, signum: int, group: bool, code: int) -> None:
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    process = subprocess.Popen([*CLI, "run", "--horizon", "60", "--duration", "1"], cwd=ROOT, text=True, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        _wait_for_line(process.stderr, "building the actor problem (N = 60", 60)
+        deadline = time.monotonic() + 120
+        while not any(Path(f"/proc/{p}/cmdline").exists() and b"cc1" in Path(f"/proc/{p}/cmdline").read_bytes()
+                      for p in _build_processes(process.pid)):
+            assert time.monotonic() < deadline and process.poll() is None, "gcc never started"
+            time.sleep(0.1)
+        compilers = _build_processes(process.pid)
+        assert list(tmp_path.glob("srl-jit-*")), "no build directory"
+        sent = time.monotonic()
+        if group:
+            os.killpg(process.pid, signum)  # Ctrl-C at a terminal
+        else:
+            os.kill(process.pid, signum)  # docker stop, systemd, kill
+        _, err = process.communicate(timeout=30)  # its stderr's end: no compiler holds it any more
+        ended = time.monotonic() - sent
+        deadline = time.monotonic() + 1
+        while any(_running(p) for p in compilers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    left = [p for p in compilers if _running(p)]
+    print(f"\nfigures: {signal.Signals(signum).name} during gcc at N = 60: srl ended after {ended:.2f} s "
+          f"(exit {process.returncode}), {len(compilers)} compiler processes, {len(left)} left, "
+          f"build directories left {len(list(tmp_path.glob('srl-jit-*')))} (before: gcc orphaned, directory left)")
+    assert process.returncode == code, err
+    assert ended < 10
+    assert not left
+    assert not list(tmp_path.glob("srl-jit-*"))
+    assert "Traceback" not in err
+
+
+# -- point 11: checkpoints ------------------------------------------------------------------
+def _transitions(episode: int, steps: range, robot: str = "r1") -> list[Transition]:
+    return [Transition(robot=robot, episode=episode, step=k, state=(1.0 - 0.01 * k, 0.5, 0.1),
+                       action=(0.1, -0.2), cost=0.1 * (1.0 - 0.01 * k)) for k in steps]
+
+
+def test_checkpoint_path_is_per_robot_and_stack() -> None:
+    import tomllib
+
+    from common.settings import DEFAULT_CONFIG
+
+    default = tomllib.loads(DEFAULT_CONFIG.read_text())["critic"]["checkpoint"]  # not the test's own
+    settings = Settings.load(critic={"checkpoint": default}, actor={"agent": "rlqv+", "horizon": 6},
+                             transport={"robot": "tb3_7"})
+    path = checkpoint_path(settings)
+    assert path is not None and path.name == "critic-tb3_7-rlqv+-N6.json"
+
+
+def test_a_new_run_starts_fresh_and_a_crash_in_the_same_run_continues(tmp_path: Path) -> None:
+    settings = Settings.load()
+    path = tmp_path / "critic.json"
+    first = CriticLearner(settings)
+    for t in _transitions(1, range(20)):
+        first.on_transition(t)
+    from common.checkpoint import atomic_write_json
+
+    atomic_write_json(path, first.state())
+
+    # a later run (new episode): fresh initial weights, "restored" false
+    later = CriticLearner(settings)
+    assert load_checkpoint(later, path)
+    assert later.confirm(_transitions(2, range(1))[0]) is None
+    later.on_transition(_transitions(2, range(1))[0])
+    np.testing.assert_array_equal(later.learners["r1"].critic.q_weights, settings.initial_q_weights())
+    assert later.restored is False
+
+    # the same run after a crash: the checkpointed learner continues, its weights re-published
+    again = CriticLearner(settings)
+    assert load_checkpoint(again, path)
+    republished = again.confirm(_transitions(1, range(20, 21))[0])
+    assert republished is not None and republished.q_weights == tuple(first.learners["r1"].critic.q_weights)
+    assert again.restored is True
+
+    # --resume: a new run starts from the checkpoint's weights
+    resumed = CriticLearner(Settings.load(critic={"resume": True}))
+    assert load_checkpoint(resumed, path)
+    resumed.confirm(_transitions(2, range(1))[0])
+    resumed.on_transition(_transitions(2, range(1))[0])
+    np.testing.assert_array_equal(resumed.learners["r1"].critic.q_weights, first.learners["r1"].critic.q_weights)
+    assert resumed.restored is True
+
+
+# -- points 8 and 11: srl up's status line, summaries and checkpoints -----------------------
+@pytest.mark.slow
+def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fresh_critic(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    runs = []
+    # `srl status`: the same line from any running system (a monitor session), e.g. the containers
+    watcher = subprocess.Popen([*CLI, "status", "--router", endpoint, "--robot", "h5up", "--seconds", "20",
+                                "--connect-timeout", "60"], cwd=ROOT, text=True, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, start_new_session=True)
+    for extra in ([], [], ["--resume", "--json"]):
+        summaries = tmp_path / f"run{len(runs)}"
+        done = srl("up", "--router", endpoint, "--robot", "h5up", "--duration", "4", "--summary-dir", str(summaries),
+                   *extra, timeout=180)
+        assert done.returncode == 0, done.stderr[-3000:]
+        runs.append((done, summaries))
+        if watcher.poll() is None and len(runs) == 1:
+            os.killpg(watcher.pid, signal.SIGINT)
+    try:
+        watched, watcher_err = watcher.communicate(timeout=30)
+    finally:
+        if watcher.poll() is None:
+            os.killpg(watcher.pid, signal.SIGKILL)
+            watcher.wait()
+    assert watcher.returncode in (0, 130), watcher_err
+    assert len([line for line in watched.splitlines() if line.startswith("h5up ") and ": step " in line]) >= 2
+    first, second, resumed = runs
+    status = [line for line in first[0].stderr.splitlines() if line.startswith("srl up ") and ": step " in line]
+    assert len(status) >= 2, first[0].stderr
+    assert all(" distance " in line and " J " in line and " weights " in line and " missed deadlines " in line
+               for line in status)
+    assert "{" not in first[0].stdout and len(first[0].stderr) < 4000, "JSON on the console"
+    assert not [line for line in first[0].stderr.splitlines() if " WARNING " in line], first[0].stderr
+    for _done, summaries in runs:
+        assert {"actor.json", "critic.json", "plant.json", "router.json", "summary.json"} <= {
+            p.name for p in summaries.iterdir()}
+    critic = json.loads((first[1] / "critic.json").read_text())
+    assert "replay" in critic  # kept in the file, for whoever needs it
+    assert "(fresh critic; --resume to restore)" in second[0].stdout  # not "restored" by an earlier run
+    assert json.loads((second[1] / "critic.json").read_text())["restored"] is False
+    merged = json.loads(resumed[0].stdout.splitlines()[-1])
+    assert merged["critic_restored"] is True
+    assert merged["critic_checkpoint"].endswith("critic-h5up.json") or "h5up" in merged["critic_checkpoint"]
+    print(f"\nfigures: srl up --duration 4: {len(status)} status lines, stdout {len(first[0].stdout)} B, "
+          f"stderr {len(first[0].stderr)} B (before: 9 KB of JSON); second run restored "
+          f"{json.loads((second[1] / 'critic.json').read_text())['restored']} (before: true)")
+
+
+# -- point 13: the plot ---------------------------------------------------------------------
+def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
+    from common.loop import run_episode
+    from services.plots import plot_episode
+
+    settings = Settings.load(actor={"horizon": 4, "jit": False}, episode={"duration": 2.0, "start": (-1.2, 0.7)})
+    episode = run_episode(settings)
+    assert len(episode.q_weights) == len(episode.v_weights) == len(episode.td_residuals) == episode.steps
+    assert np.isfinite(np.array(episode.td_residuals)[1:]).all()  # a fit after every step but the first
+    path = tmp_path / "run.png"
+    plot_episode(episode, settings.plant.sampling_time, path)
+    assert path.stat().st_size > 20_000
+
+
+# -- point 8: log levels that mean something; point 9: no Rust internals --------------------
+def test_the_router_says_it_listens_on_stdout_and_a_taken_port_in_one_line() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([*CLI, "router", "--router", endpoint], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        lines = _wait_for_line(router.stdout, "router listening on " + endpoint, 60)
+        taken = srl("router", "--router", endpoint, timeout=60)
+    finally:
+        os.killpg(router.pid, signal.SIGINT)
+        _, err = router.communicate(timeout=30)
+    assert lines[-1].startswith("srl router: router listening on")
+    assert err == "", "a normal start logged on stderr"
+    assert taken.returncode == 2
+    assert taken.stderr.strip().splitlines() == [taken.stderr.strip()]
+    assert "Address already in use" in taken.stderr and ".rs:" not in taken.stderr and "--router" in taken.stderr
