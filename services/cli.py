@@ -746,9 +746,11 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(func=cmd_run)
 
     certs = command("certs", "a private CA, the router's and each role's TLS certificate (mTLS)")
-    certs.add_argument("--out", required=True, help="directory to create (0700; files 0600); never in the repository")
+    certs.add_argument("--out", required=True,
+                       help="directory to create (0700; files 0600); never in the repository (default: none, required)")
     certs.add_argument("--hosts", nargs="*", default=[], metavar="HOST",
-                       help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1")
+                       help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1 "
+                       "(default: none)")
     certs.add_argument("--passwords", action="store_true",
                        help="also a random password per role: users.txt (router) and <role>.password")
     certs.add_argument("--if-missing", action="store_true",
