@@ -119,6 +119,7 @@ class ActorCounters:
 # the wrapper itself; it leaves the signal number in SIGNALS for Python to report.
 _JIT_WRAPPER = r"""#!/bin/sh
 owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"
+TMPDIR="$dir"; export TMPDIR  # gcc's own temporaries (cc*.s) go with the build directory, even on SIGKILL
 setsid "$@" &
 child=$!
 stop() { kill -KILL -"$child" 2>/dev/null; kill -KILL "$child" 2>/dev/null; }  # dash: no "--"

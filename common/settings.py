@@ -41,10 +41,12 @@ _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.
                        r"|^unixsock-stream/\S+$")
 
 
-def check_endpoint(value: str, name: str) -> str:
-    """A Zenoh endpoint, refused here with a readable message (Zenoh's own is a Rust ``Json5Err``)."""
+def check_endpoint(value: str, name: str, listen: bool = False) -> str:
+    """A Zenoh endpoint, refused here with a readable message (Zenoh's own is a Rust ``Json5Err``).
+    ``listen``: port 0 (any free port, as the experiment's peers listen) is allowed."""
     match = _ENDPOINT.match(value)
-    if not match or (match.group(1) and not 0 < int(value.rsplit(":", 1)[1].split("?")[0].split("#")[0]) < 65536):
+    lowest = 0 if listen else 1
+    if not match or (match.group(1) and not lowest <= int(value.rsplit(":", 1)[1].split("?")[0].split("#")[0]) < 65536):
         raise ValueError(f"{name} must be a Zenoh endpoint <protocol>/<host>:<port>, e.g. tcp/127.0.0.1:7447 "
                          f"(protocols tcp, udp, tls, quic, ws; or unixsock-stream/<path>), got {value!r}")
     return value
@@ -162,10 +164,15 @@ class TransportSettings(_Section):
     def _router_endpoint(cls, v: str) -> str:
         return check_endpoint(v, "transport.router")
 
-    @field_validator("connect", "listen")
+    @field_validator("connect")
     @classmethod
-    def _endpoints(cls, v: list[str]) -> list[str]:
-        return [check_endpoint(e, "every transport.connect/listen entry") for e in v]
+    def _connect_endpoints(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e, "every transport.connect entry") for e in v]
+
+    @field_validator("listen")
+    @classmethod
+    def _listen_endpoints(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e, "every transport.listen entry", listen=True) for e in v]
     connect: list[str]
     listen: list[str] = Field(description="endpoints a client/peer session listens on")
     multicast_scouting: bool
