@@ -100,6 +100,10 @@ class Bus:
         self._keep.clear()
         self.session.close()
 
+    def adopt(self, thread: threading.Thread) -> None:
+        """A thread of this service that uses the session: :meth:`close` ends and joins it first."""
+        self._threads.append(thread)
+
     def count(self, name: str, amount: int = 1) -> None:
         with self._lock:
             self.counters[name] += amount
@@ -305,5 +309,5 @@ def start_status_thread(
 
     thread = threading.Thread(target=loop, name=f"{bus.service}-status", daemon=True)
     thread.start()
-    bus._threads.append(thread)  # joined by bus.close()
+    bus.adopt(thread)  # joined by bus.close()
     return thread

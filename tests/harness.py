@@ -25,7 +25,7 @@ def run_bench(kind: str, robot: str, seconds: float = 4) -> dict[str, Any]:
     (plus ``"stdout"``, the printed table); fails the test on a non-zero exit."""
     router = f"tcp/127.0.0.1:{free_port()}"
     done = subprocess.run(
-        [sys.executable, "-m", "services.cli", "bench", kind, "--seconds", str(seconds), "--json", "--router", router,
+        [sys.executable, "-m", "tools.cli", "bench", kind, "--seconds", str(seconds), "--json", "--router", router,
          "--robot", robot], cwd=ROOT, capture_output=True, text=True, timeout=180, check=False)
     assert done.returncode == 0, done.stderr[-2000:]
     return {**json.loads(done.stdout.strip().splitlines()[-1]), "stdout": done.stdout}
@@ -62,7 +62,7 @@ class Proc:
     def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
         self.name = name
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", *argv],
+            [sys.executable, "-m", "tools.cli", *argv],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
             env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}, start_new_session=True,
         )

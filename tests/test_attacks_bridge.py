@@ -13,9 +13,9 @@ import time
 import pytest
 import zenoh
 
+from common import ros_wire
 from common.messages import Action
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
+from common.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
 from tests.test_robot_bridge import DELTA, RobotWatch
 

@@ -1,6 +1,6 @@
 """``srl`` exits without interpreter finalization once Zenoh ran, and loses nothing by it.
 
-(The reason, in :func:`services.cli.entry`: a Zenoh thread that wants the GIL while the
+(The reason, in :func:`tools.cli.entry`: a Zenoh thread that wants the GIL while the
 interpreter finalizes aborts the process.) The exit must still run the atexit handlers, flush
 what was written, and keep the exit code.
 """
@@ -19,7 +19,7 @@ SCRIPT = """
 import atexit, sys
 from pathlib import Path
 {zenoh}
-from services.cli import entry
+from tools.cli import entry
 atexit.register(lambda: Path(sys.argv[1]).write_text("atexit ran"))
 sys.stdout.write("unflushed output")  # no newline, no flush: the exit must flush it
 entry(sys.argv[2:])

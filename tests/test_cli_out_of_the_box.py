@@ -1,7 +1,7 @@
 """Issue 14, the command line "out of the box": negative numbers, help, refused options,
 errors that name the cause and the fix, signals and pipes, bounds, checkpoints, status, plot.
 
-Every process test runs the real ``srl`` as a user does (``python -m services.cli``) on free
+Every process test runs the real ``srl`` as a user does (``python -m tools.cli``) on free
 loopback ports, waits on what the process prints, bounds every wait and kills by pid.
 """
 
@@ -22,14 +22,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.arguments import COMMAND_SETTINGS, child_argv
 from common.messages import Transition
 from common.security import write_credentials
 from common.settings import Settings
-from services.cli import COMMAND_SETTINGS, build_parser, child_argv
 from services.critic.service import CriticLearner, checkpoint_path, load_checkpoint
 from tests.harness import ROOT, free_port
+from tools.cli import build_parser
 
-CLI = [sys.executable, "-m", "services.cli"]
+CLI = [sys.executable, "-m", "tools.cli"]
 
 
 def srl(*argv: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -397,8 +398,8 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
 
 # -- point 13: the plot ---------------------------------------------------------------------
 def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
-    from common.loop import run_episode
-    from services.plots import plot_episode
+    from common.assembly import run_episode
+    from tools.plots import plot_episode
 
     settings = Settings.load(actor={"horizon": 4, "jit": False}, episode={"duration": 2.0, "start": (-1.2, 0.7)})
     episode = run_episode(settings)

@@ -1,7 +1,7 @@
 """``srl experiment paper``: the grid of starts, the outputs' consistency, transports, Ctrl-C.
 
 The process-level tests run a reduced grid (2 x 2 starts, 3 s episodes, mpc and rlqv at N = 6)
-as the user would, through ``python -m services.cli``, each bounded in time.
+as the user would, through ``python -m tools.cli``, each bounded in time.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ import numpy as np
 import pytest
 
 from common.settings import Settings
-from services.experiment import (
+from tests.harness import ROOT
+from tools.experiment.runner import (
     RunSpec,
     Scheduler,
     grid_starts,
@@ -37,7 +38,6 @@ from services.experiment import (
     run_settings,
     toml_dumps,
 )
-from tests.harness import ROOT
 
 REDUCED = ["--grid", "2", "--duration", "3", "--agents", "mpc,rlqv", "--horizons", "6", "--no-progress"]
 REDUCED_RUNS = 2 * 2 * 2 * 1  # starts x agents x horizons
@@ -152,7 +152,7 @@ def test_ratios_pair_each_run_with_mpc_from_the_same_start_and_horizon() -> None
 # -- the command, end to end --------------------------------------------------------------
 def _experiment(out: Path, *extra: str, timeout: float = 120,
                 env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", "experiment", "paper", *REDUCED, "--out", str(out),
+    return subprocess.run([sys.executable, "-m", "tools.cli", "experiment", "paper", *REDUCED, "--out", str(out),
                            *extra], cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
                           env=None if env is None else {**os.environ, **env})
 
@@ -268,7 +268,7 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("transport", ["inproc", "zenoh"])
 def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, transport: str) -> None:
     # 3 x 3 starts, 30 s episodes: far more work than the time we give it
-    argv = [sys.executable, "-m", "services.cli", "--log-level", "INFO", "experiment", "paper", "--grid", "3",
+    argv = [sys.executable, "-m", "tools.cli", "--log-level", "INFO", "experiment", "paper", "--grid", "3",
             "--duration", "30", "--agents", "mpc,rlqv", "--horizons", "6", "--no-progress",
             "--transport", transport, "--out", str(tmp_path)]
     process = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -307,7 +307,7 @@ def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, tra
 
 def test_bad_options_are_usage_errors(tmp_path: Path) -> None:
     for bad in (["--agents", "mpc,dqn"], ["--horizons", "1"], ["--grid", "0"], ["--config", "/nonexistent.toml"]):
-        done = subprocess.run([sys.executable, "-m", "services.cli", "experiment", "paper", *bad, "--out",
+        done = subprocess.run([sys.executable, "-m", "tools.cli", "experiment", "paper", *bad, "--out",
                                str(tmp_path / "x")], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
         assert done.returncode == 2, (bad, done.stderr)
         assert "srl experiment: error:" in done.stderr

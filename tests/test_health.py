@@ -1,6 +1,6 @@
-"""``srl health`` / ``python -m services.health``: the containers' readiness checks.
+"""``srl health`` / ``python -m tools.health``: the containers' readiness checks.
 
-Its fast path reads three transport settings itself (see services/health.py for why): the
+Its fast path reads three transport settings itself (see tools/health.py for why): the
 oracle is :class:`common.settings.Settings` and :func:`common.keys.liveliness_key`.
 """
 
@@ -15,8 +15,8 @@ import pytest
 
 from common.keys import liveliness_key
 from common.settings import Settings
-from services.health import ALIVE_KEY, transport_settings
 from tests.harness import ROOT, cluster, free_port
+from tools.health import ALIVE_KEY, transport_settings
 
 
 @pytest.fixture(autouse=True)
@@ -70,7 +70,7 @@ def test_bad_robot_id_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_client_config_is_zenoh_config_for_a_client(monkeypatch: pytest.MonkeyPatch) -> None:
     from common.transport import zenoh_config
-    from services.health import client_config
+    from tools.health import client_config
 
     monkeypatch.setenv("SRL_TRANSPORT__CONNECT", '["tcp/127.0.0.1:7448"]')
     ours, theirs = client_config(transport_settings()), zenoh_config(Settings.load().transport)
@@ -80,7 +80,7 @@ def test_client_config_is_zenoh_config_for_a_client(monkeypatch: pytest.MonkeyPa
 
 def test_secure_sessions_are_made_by_zenoh_config(monkeypatch: pytest.MonkeyPatch) -> None:
     from common.security import SecurityError
-    from services.health import client_config
+    from tools.health import client_config
 
     monkeypatch.setenv("SRL_TRANSPORT__SECURE", "true")  # and no user: zenoh_config refuses
     with pytest.raises(SecurityError):
@@ -93,7 +93,7 @@ def test_alive_key_is_the_liveliness_key(robot: str, service: str) -> None:
 
 
 def _health(*argv: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.health", *argv], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "tools.health", *argv], cwd=ROOT, capture_output=True,
                           text=True, timeout=60, check=False)
 
 
@@ -115,7 +115,7 @@ def test_exit_codes_against_real_services() -> None:
         other_robot = _health("critic", "--router", c.endpoint, "--robot", "other", "--timeout", "0.5")
         assert other_robot.returncode == 1, other_robot
         # the srl subcommand is the same check
-        via_cli = subprocess.run([sys.executable, "-m", "services.cli", "health", "critic", *args], cwd=ROOT,
+        via_cli = subprocess.run([sys.executable, "-m", "tools.cli", "health", "critic", *args], cwd=ROOT,
                                  capture_output=True, text=True, timeout=60, check=False)
         assert via_cli.returncode == 0, via_cli
         c.procs["critic"].stop()

@@ -60,7 +60,7 @@ class System:
         self.endpoint = f"tcp/{router_ip}:{ROUTER_PORT}"
         # its own network namespace is the private network of the opt-out (README "Security"): a
         # router on 10.213.x.y would otherwise refuse to start without login and TLS
-        self.router = topo.spawn("r", "router", [sys.executable, "-m", "services.cli", "router", "--router",
+        self.router = topo.spawn("r", "router", [sys.executable, "-m", "tools.cli", "router", "--router",
                                                  self.endpoint, "--robot", robot],
                                  env={"SRL_TRANSPORT__ALLOW_INSECURE_NETWORK": "true"})
         self.router.wait_output("router listening", START_TIMEOUT_S)
@@ -82,7 +82,7 @@ class System:
         self.wait_alive("critic")
 
     def service(self, role: str, command: str, *args: str, router: str | None = None) -> NsProc:
-        return self.topo.python(role, command, "services.cli", command, "--router", router or self.endpoint,
+        return self.topo.python(role, command, "tools.cli", command, "--router", router or self.endpoint,
                                 "--robot", self.robot, *args)
 
     def start_actor(self, seconds: float) -> NsProc:

@@ -160,7 +160,7 @@ def test_srl_up_examples_run(command: str) -> None:
     assert "--duration" in argv
     argv[argv.index("--duration") + 1] = "6"
     argv += ["--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "readme", "--json"]
-    done = run([sys.executable, "-m", "services.cli", *argv], timeout=240)
+    done = run([sys.executable, "-m", "tools.cli", *argv], timeout=240)
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]

@@ -23,13 +23,13 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
+from common import ros_wire
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from common.messages import Action, PlantState
 from common.provenance import SourceGate
+from common.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.settings import Settings
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
 from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, wait_until
@@ -611,7 +611,7 @@ def test_killing_the_actor_stops_the_robot() -> None:
 
 
 def _run_up(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", "up", *argv], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "tools.cli", "up", *argv], cwd=ROOT, capture_output=True,
                           text=True, timeout=timeout, check=False)
 
 
@@ -664,7 +664,7 @@ def test_swap_sim_and_robot_agree() -> None:
 def test_up_with_a_robot_endpoint_starts_no_emulator() -> None:
     robot_endpoint = f"tcp/127.0.0.1:{free_port()}"
     emulator = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "tb3-emulator", "--listen", robot_endpoint, "--ros-distro", "humble",
+        [sys.executable, "-m", "tools.cli", "tb3-emulator", "--listen", robot_endpoint, "--ros-distro", "humble",
          "--initial-pose=-1,-1,0.5"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
     try:

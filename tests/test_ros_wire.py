@@ -32,6 +32,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from common import ros_wire
 from common.frames import (
     Pose2D,
     clamp_command,
@@ -41,8 +42,7 @@ from common.frames import (
     wrap_angle,
     yaw_from_quaternion,
 )
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import (
+from common.ros_wire import (
     ODOMETRY,
     TWIST,
     TWIST_STAMPED,
@@ -387,3 +387,24 @@ def test_firmware_truncation(command: float, limit: float, applied: float) -> No
     assert firmware_velocity(command, limit) == pytest.approx(applied, abs=1e-7)
     if abs(applied) < limit:  # not limited: exactly the float32 count of 0.01 steps
         assert firmware_velocity(command, limit) == float(np.float32(round(applied * 100)) * np.float32(0.01))
+
+
+@pytest.mark.parametrize("fmt", ["compact", "legacy"])
+def test_attachment_encoding_is_zenoh_exts_serialization(fmt: str) -> None:
+    """common/ros_wire.py writes the zenoh-ext serialization itself (common never imports zenoh
+    outside common/transport.py): byte for byte what zenoh.ext.z_serialize writes."""
+    import random
+
+    import zenoh.ext
+
+    from common.ros_wire import LEGACY_FIELDS
+
+    rng = random.Random(7)
+    for _ in range(100):
+        attachment = Attachment(rng.randint(-(2**63), 2**63 - 1), rng.randint(-(2**63), 2**63 - 1),
+                                bytes(rng.randrange(256) for _ in range(16)), fmt)
+        seq, stamp = zenoh.ext.Int64(attachment.seq), zenoh.ext.Int64(attachment.stamp_ns)
+        fields = ((LEGACY_FIELDS[0], seq, LEGACY_FIELDS[1], stamp, LEGACY_FIELDS[2], attachment.gid)
+                  if fmt == "legacy" else (seq, stamp, attachment.gid))
+        assert attachment.encode() == bytes(zenoh.ext.z_serialize(fields).to_bytes())
+        assert Attachment.decode(attachment.encode()) == attachment

@@ -24,14 +24,14 @@ import numpy as np
 import pytest
 import zenoh
 
+from common import ros_wire
 from common.checkpoint import atomic_write_json, remove_stale_temporaries
+from common.clock import Ticker
 from common.lifeline import die_with_parent
 from common.messages import PlantState, ResetRequest, StepRequest
+from common.ros_wire import ODOMETRY, RosGraph
 from common.settings import Settings
-from services.cli import CMD_TIMEOUT_DEFAULT
-from services.clock import Ticker
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, RosGraph
+from services.tb3_emulator.command import CMD_TIMEOUT_DEFAULT
 from tests.harness import ROOT, client_config, cluster, free_port, wait_until
 
 V_MAX = 0.22  # the TurtleBot3 Burger's limit (srl.toml plant.v_max)
@@ -164,7 +164,7 @@ def _distance_after(odometry: Odometry, killed: float, reference: tuple[float, f
 def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     """``srl up --plant robot`` (the default topology): kill -9 srl's router while the robot drives."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "--log-level", "INFO", "up", "--plant", "robot",
+    up = subprocess.Popen([sys.executable, "-m", "tools.cli", "--log-level", "INFO", "up", "--plant", "robot",
                            "--agent", "mpc", "--router", endpoint, "--robot", "rk", "--start=2,1.5",
                            "--duration", "60"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                           start_new_session=True)
@@ -247,7 +247,7 @@ def test_router_kill_robot_through_srl_router_stops_by_its_own_timeout() -> None
 def _start_up(tmp_path: Path, *argv: str) -> tuple[subprocess.Popen[str], Path]:
     temp = tmp_path / "tmp"
     temp.mkdir()
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--router", f"tcp/127.0.0.1:{free_port()}",
+    up = subprocess.Popen([sys.executable, "-m", "tools.cli", "up", "--router", f"tcp/127.0.0.1:{free_port()}",
                            "--duration", "120", *argv], cwd=ROOT, text=True, stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, start_new_session=True, env={**os.environ, "TMPDIR": str(temp)})
     return up, temp

@@ -452,7 +452,7 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     temp = tmp_path / "tmp"
     temp.mkdir()
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--secure", "--mode", mode, "--router", endpoint,
+    up = subprocess.Popen([sys.executable, "-m", "tools.cli", "up", "--secure", "--mode", mode, "--router", endpoint,
                            "--robot", "su", "--duration", "5", "--json"], cwd=ROOT, text=True,
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
                           env={**os.environ, "TMPDIR": str(temp)})

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.loop import run_episode
+from common.assembly import run_episode
 from common.messages import Action, CriticWeights, ServiceStatus
 from common.settings import Settings
 from tests.harness import ROOT, cluster, free_port, wait_until
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 
 
 def _run_cli(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=ROOT, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "tools.cli", *argv], cwd=ROOT, capture_output=True,
                           text=True, timeout=timeout, check=False)
 
 
@@ -49,7 +49,7 @@ def test_lockstep_through_zenoh_equals_inproc(agent: str) -> None:
 def test_realtime_up_every_service_a_process() -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--router", endpoint, "--robot", "rt",
+    up = subprocess.Popen([sys.executable, "-m", "tools.cli", "up", "--router", endpoint, "--robot", "rt",
                            "--agent", "rlqv", "--duration", "10", "--json"], cwd=ROOT,
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     versions: list[int] = []

@@ -70,7 +70,7 @@ def test_a_network_router_needs_login_and_tls(tmp_path: Path) -> None:
 
 def test_certs_are_private_and_named_by_role(tmp_path: Path) -> None:
     out = tmp_path / "secrets"
-    done = subprocess.run([sys.executable, "-m", "services.cli", "certs", "--out", str(out), "--hosts", "router",
+    done = subprocess.run([sys.executable, "-m", "tools.cli", "certs", "--out", str(out), "--hosts", "router",
                            "192.168.1.20", "--passwords"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert stat.S_IMODE(out.stat().st_mode) == 0o700
@@ -87,10 +87,10 @@ def test_certs_are_private_and_named_by_role(tmp_path: Path) -> None:
         cert = x509.load_pem_x509_certificate((out / f"{role}.pem").read_bytes())
         assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == role
         cert.verify_directly_issued_by(ca)
-    again = subprocess.run([sys.executable, "-m", "services.cli", "certs", "--out", str(out)], cwd=ROOT,
+    again = subprocess.run([sys.executable, "-m", "tools.cli", "certs", "--out", str(out)], cwd=ROOT,
                            capture_output=True, text=True, timeout=60)
     assert again.returncode == 2 and "already holds a CA" in again.stderr  # never overwritten
-    kept = subprocess.run([sys.executable, "-m", "services.cli", "certs", "--out", str(out), "--if-missing"],
+    kept = subprocess.run([sys.executable, "-m", "tools.cli", "certs", "--out", str(out), "--if-missing"],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert kept.returncode == 0 and "kept" in kept.stdout
 
@@ -98,7 +98,7 @@ def test_certs_are_private_and_named_by_role(tmp_path: Path) -> None:
 def test_router_off_loopback_refuses_to_start() -> None:
     """``srl router`` on a network address (TEST-NET-1: nothing is ever bound) without login and
     TLS exits 2 with one clear line, before Zenoh tries to listen."""
-    done = subprocess.run([sys.executable, "-m", "services.cli", "router", "--router", "tcp/192.0.2.1:7447"],
+    done = subprocess.run([sys.executable, "-m", "tools.cli", "router", "--router", "tcp/192.0.2.1:7447"],
                           cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert "refusing to run a router on tcp/192.0.2.1:7447" in done.stderr
@@ -265,7 +265,7 @@ def test_readme_add_a_host_steps_work(tmp_path: Path) -> None:
     router_home, new_home = tmp_path / "router-pc", tmp_path / "new-host"
     router_home.mkdir()
     new_home.mkdir()
-    srl = f"{sys.executable} -m services.cli"
+    srl = f"{sys.executable} -m tools.cli"
 
     def local(block: str, home: Path) -> str:
         block = block.replace("robot-pc:7447", f"127.0.0.1:{port}").replace("0.0.0.0:7447", f"127.0.0.1:{port}")

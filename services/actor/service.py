@@ -7,7 +7,7 @@
   never came, or the plant's liveliness token vanished (zero at the next tick), it commands
   zero velocity at every tick and records no transition (so the critic sees a gap, never a
   false pair); fresh states resume the loop.
-* lockstep: runs Algorithm 1 (:func:`common.loop.run_episode`) with the plant behind its Zenoh
+* lockstep: runs Algorithm 1 (:func:`common.assembly.run_episode`) with the plant behind its Zenoh
   queryable and the off-board critic; with ``sync_critic`` it waits (bounded) for the weights
   trained on the previous step, which makes the distributed run the paper's algorithm exactly.
 
@@ -28,10 +28,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.assembly import build_actor, episode_summary, run_episode
+from common.clock import Ticker
 from common.critic import Sample
 from common.features import stage_cost
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE, TRANSITION, WEIGHTS
-from common.loop import build_actor, episode_summary, run_episode
 from common.messages import (
     Action,
     CriticWeights,
@@ -45,7 +46,6 @@ from common.provenance import SequenceGuard, SourceGate
 from common.settings import Settings
 from common.stats import summarize
 from common.transport import Bus, start_status_thread
-from services.clock import Ticker
 
 log = logging.getLogger(__name__)
 MAX_VERSION_AHEAD_US = 60_000_000  # clock skew allowed between the critic's host and ours

@@ -19,13 +19,13 @@ import time
 
 import numpy as np
 
+from common.clock import Ticker
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.provenance import PlantConflictError
 from common.settings import Settings
 from common.transport import Bus, start_status_thread
-from services.clock import Ticker
 
 log = logging.getLogger(__name__)
 

@@ -54,18 +54,14 @@ from typing import Any, Protocol
 import zenoh
 from pydantic import ValidationError
 
+from common import ros_wire
+from common.clock import Ticker
 from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
 from common.provenance import PlantConflictError, SourceGate
-from common.security import SecurityError
-from common.settings import BridgeSettings, Settings
-from common.stats import summarize
-from common.transport import Bus, start_status_thread
-from services.clock import Ticker
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import (
+from common.ros_wire import (
     ODOMETRY,
     TWIST,
     TWIST_STAMPED,
@@ -76,6 +72,10 @@ from services.robot_bridge.ros_wire import (
     RosGraph,
     WireError,
 )
+from common.security import SecurityError
+from common.settings import BridgeSettings, Settings
+from common.stats import summarize
+from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
 CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a robot clock reset

@@ -1,6 +1,6 @@
 """tb3_emulator: a TurtleBot3 Burger that speaks ROS 2 over Zenoh as the real robot does.
 
-What it emulates, per wire profile (services/robot_bridge/ros_wire.py has the formats):
+What it emulates, per wire profile (common/ros_wire.py has the formats):
 
 * ``rmw_zenoh`` -- the robot's ``turtlebot3_node`` subscribes ``cmd_vel`` (Twist on Humble,
   TwistStamped on Jazzy: turtlebot3_bringup's ``enable_stamped_cmd_vel``; ``--cmd-type``
@@ -49,11 +49,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from common import ros_wire
+from common.clock import Ticker
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
-from services.clock import Ticker
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
+from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 
 log = logging.getLogger(__name__)
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1

@@ -1,6 +1,6 @@
 """``srl up``: the router and every service as separate child processes.
 
-Children are ``python -m services.cli <service> ...`` with the same configuration (each gets
+Children are ``python -m tools.cli <service> ...`` with the same configuration (each gets
 only the flags its subcommand takes). Their log lines are forwarded to stderr prefixed with
 ``[name]``; each prints one JSON summary as its last stdout line when it ends: those are kept,
 written to ``<summary_dir>/<name>.json``, never echoed. While the actor runs, its 1 Hz status
@@ -154,9 +154,9 @@ class Supervisor:
         self.children: dict[str, Child] = {}
 
     def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
-        from services.cli import child_argv
+        from common.arguments import child_argv
 
-        command = [sys.executable, "-m", "services.cli", *child_argv(argv)]
+        command = [sys.executable, "-m", "tools.cli", *child_argv(argv)]
         process = subprocess.Popen(
             command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             # SRL_PARENT_PID: the child stops when this process dies, however it dies (common/lifeline.py)

@@ -35,15 +35,15 @@ from typing import Any
 
 import zenoh
 
+from common import ros_wire
 from common.keys import ACTION, STATE, identity_key, liveliness_key
 from common.messages import Action
+from common.ros_wire import Attachment, RosGraph
 from common.settings import Settings
 from common.stats import summarize
 from common.transport import zenoh_config
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import Attachment, RosGraph
 from services.tb3_emulator.service import firmware_velocity
-from services.up import Supervisor, alive_probe, router_reachable, state_probe
+from tools.up import Supervisor, alive_probe, router_reachable, state_probe
 
 TARGET_P99_MS = 1.0
 SPEEDS = [round(0.02 + 0.01 * i, 2) for i in range(15)]  # 0.02 .. 0.16 m/s, all below the limits
@@ -131,7 +131,7 @@ def _odom_to_state(odom: list[tuple[float, float]], states: list[float]) -> list
 
 
 def echo_main(argv: list[str]) -> None:
-    """``python -m services.bench_bridge ENDPOINT ROBOT``: the transport baseline's far end, a
+    """``python -m tools.bench.bridge ENDPOINT ROBOT``: the transport baseline's far end, a
     process that only republishes what it gets (what any service pays for two Zenoh legs)."""
     endpoint, robot = argv
     config = zenoh.Config()
@@ -166,7 +166,7 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
         supervisor.spawn("robot_bridge", ["robot-bridge", *settings_args, *bridge_args])
         supervisor.wait_for("robot_bridge", alive_probe(settings, "plant"), timeout=60)
         supervisor.wait_for("odometry through the bridge", state_probe(settings), timeout=60)
-        echo = subprocess.Popen([sys.executable, "-m", "services.bench_bridge", settings.transport.router, robot],
+        echo = subprocess.Popen([sys.executable, "-m", "tools.bench.bridge", settings.transport.router, robot],
                                 start_new_session=True)
         supervisor_extra.append(echo)
         session = zenoh.open(zenoh_config(settings.transport))

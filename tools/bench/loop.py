@@ -13,7 +13,7 @@ import os
 from typing import Any
 
 from common.settings import Settings
-from services.up import run_up
+from tools.up import run_up
 
 TARGETS = {"missed_deadlines": 0, "jitter_p99_ms": 2.0, "latency_p99_ms": 1.0, "staleness_median_steps": 1.0}
 

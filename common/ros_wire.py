@@ -59,8 +59,6 @@ from typing import Any, Literal
 
 import numpy as np
 import xxhash
-import zenoh
-import zenoh.ext
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
@@ -267,6 +265,23 @@ def gid_for(token: str) -> bytes:
 
 
 # -- the rmw_zenoh attachment -----------------------------------------------------------------
+# zenoh-ext serialization, written here (no zenoh import in common/ but common/transport.py):
+# an int64 is its 8 little-endian bytes; a string or a byte sequence is its length as LEB128
+# then its bytes; a tuple is its fields one after the other (tests/test_ros_wire.py holds these
+# bytes equal to zenoh.ext.z_serialize's and to golden attachments).
+def _int64(value: int) -> bytes:
+    return int(value).to_bytes(8, "little", signed=True)
+
+
+def _sequence(data: bytes) -> bytes:
+    length, prefix = len(data), bytearray()
+    while True:
+        byte, length = length & 0x7F, length >> 7
+        prefix.append(byte | (0x80 if length else 0))
+        if not length:
+            return bytes(prefix) + data
+
+
 @dataclass(frozen=True)
 class Attachment:
     seq: int
@@ -278,14 +293,15 @@ class Attachment:
         """zenoh-ext serialization, the same serializer rmw_zenoh uses (zenoh::ext::Serializer)."""
         if len(self.gid) != GID_SIZE:
             raise ValueError(f"a GID has {GID_SIZE} bytes, not {len(self.gid)}")
-        seq, stamp = zenoh.ext.Int64(self.seq), zenoh.ext.Int64(self.stamp_ns)
+        seq, stamp = _int64(self.seq), _int64(self.stamp_ns)
         if self.format == "legacy":
-            fields: tuple[Any, ...] = (LEGACY_FIELDS[0], seq, LEGACY_FIELDS[1], stamp, LEGACY_FIELDS[2], self.gid)
+            names = [_sequence(name.encode()) for name in LEGACY_FIELDS]
+            fields: tuple[bytes, ...] = (names[0], seq, names[1], stamp, names[2], _sequence(self.gid))
         elif self.format == "compact":
-            fields = (seq, stamp, self.gid)
+            fields = (seq, stamp, _sequence(self.gid))
         else:
             raise ValueError(f"unknown attachment format {self.format!r}")
-        return bytes(zenoh.ext.z_serialize(fields).to_bytes())
+        return b"".join(fields)
 
     @classmethod
     def decode(cls, raw: bytes) -> Attachment:

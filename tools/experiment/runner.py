@@ -16,7 +16,7 @@ once per pair and worker.
 
 Transports:
 
-* ``inproc``: each worker runs :func:`common.loop.run_episode` with the exact plant and the
+* ``inproc``: each worker runs :func:`common.assembly.run_episode` with the exact plant and the
   local critic, as ``srl run`` does.
 * ``zenoh``: a router and, per worker, one ``srl plant-sim --mode lockstep`` and one
   ``srl critic`` process (robot id ``exp<worker>``), all on a free loopback port with
@@ -182,9 +182,10 @@ class WorkerConfig:
 
 class _InprocRunner:
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.loop import ExactPlant, LocalCritic, run_episode
+        from common.assembly import local_critic, run_episode
+        from common.loop import ExactPlant
 
-        critic = LocalCritic(settings, learn=settings.actor.agent != "mpc")
+        critic = local_critic(settings, learn=settings.actor.agent != "mpc")
         return run_episode(settings, actor=actor, plant=ExactPlant(), critic=critic), {}
 
     def close(self) -> None:
@@ -219,13 +220,13 @@ class _ZenohRunner:
             self.port = ZenohCriticPort(settings, self.bus, self.inbox, self.episode_id, sync=True)
             if set(vars(self.port)) != PORT_ATTRIBUTES:
                 raise ExperimentError(f"ZenohCriticPort's state changed ({sorted(vars(self.port))}): update "
-                                      "services/experiment.py's per-episode reset")
+                                      "tools/experiment/runner.py's per-episode reset")
         self.port.settings, self.port.episode = settings, self.episode_id
         self.port.staleness, self.port.timeouts = [], 0
         return self.port
 
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.loop import LocalCritic, run_episode
+        from common.assembly import local_critic, run_episode
         from services.actor.service import ZenohPlant, new_episode_id
 
         # Episode ids must increase (the critic starts a fresh learner on a newer one).
@@ -233,7 +234,7 @@ class _ZenohRunner:
         plant = ZenohPlant(settings, self.bus, self.episode_id)
         if settings.actor.agent == "mpc":
             # MPC has no critic: nothing to send to the learner (inproc fits nothing either).
-            critic = LocalCritic(settings, learn=False)
+            critic = local_critic(settings, learn=False)
             return run_episode(settings, actor=actor, plant=plant, critic=critic), {}
         port = self._port(settings)
         episode = run_episode(settings, actor=actor, plant=plant, critic=port)
@@ -245,7 +246,7 @@ class _ZenohRunner:
 
 def _run_one(runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec,
              slot: int) -> dict[str, Any]:
-    from common.loop import build_actor
+    from common.assembly import build_actor
     from common.stats import summarize
 
     settings = run_settings(base, spec)
@@ -382,7 +383,7 @@ class _Services:
     """Router + one plant_sim (lockstep) and one critic per worker, kept up across runs."""
 
     def __init__(self, config_path: Path, base: Settings, workers: int) -> None:
-        from services.up import Supervisor
+        from tools.up import Supervisor
 
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         self.robots = [f"exp{slot}" for slot in range(workers)]
@@ -403,7 +404,7 @@ class _Services:
                 "mode": PEER_MODE, "listen": PEER_LISTEN}
 
     def start(self) -> None:
-        from services.up import ServiceDiedError
+        from tools.up import ServiceDiedError
 
         try:
             self._start()
@@ -413,7 +414,7 @@ class _Services:
             raise ExperimentError(str(error)) from error
 
     def _start(self) -> None:
-        from services.up import alive_probe, router_reachable
+        from tools.up import alive_probe, router_reachable
 
         sup = self.supervisor
         sup.spawn("router", ["router", *self.common, "--robot", self.robots[0]])
@@ -435,7 +436,7 @@ class _Services:
         return Settings.model_validate(data)
 
     def check(self) -> None:
-        from services.up import ServiceDiedError
+        from tools.up import ServiceDiedError
 
         try:
             self.supervisor.check()
@@ -938,7 +939,7 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
         "plots": [],
     }
     if options.plots and rows:
-        from services.experiment_plots import plot_ratio_contours, plot_trajectory_overview
+        from tools.experiment.plots import plot_ratio_contours, plot_trajectory_overview
 
         for horizon in options.horizons:
             path = out / f"ratio_N{horizon}.png"

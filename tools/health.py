@@ -16,7 +16,7 @@ The session is a client of the router: explicit endpoint, multicast scouting as 
 (off by default), listening nowhere.
 
 Why this module reads three transport settings itself: Docker runs a healthcheck every few
-seconds in every container, and ``python -m services.health`` then costs 0.05 s of CPU where
+seconds in every container, and ``python -m tools.health`` then costs 0.05 s of CPU where
 ``srl health`` (which imports the full settings stack: pydantic, numpy) costs 0.5 s (measured:
 five containers checked every 2 s would take most of a core on a 2-core machine). So
 ``transport_settings`` resolves ``router``, ``robot``, ``multicast_scouting`` and ``connect``
@@ -128,8 +128,8 @@ def client_config(transport: dict[str, Any], config_file: Path | None = None) ->
 
 def robot_graph_pattern(config: Path | None) -> str:
     """The liveliness pattern of the robot's ROS 2 graph, from the full ``[bridge]`` settings."""
+    from common.ros_wire import RosGraph
     from common.settings import Settings
-    from services.robot_bridge.ros_wire import RosGraph
 
     bridge = Settings.load(config).bridge
     return str(RosGraph.from_settings(bridge).discovery_pattern(bridge.cmd_vel_topic))
@@ -182,8 +182,8 @@ def cmd_health(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m services.health``: the same as ``srl health``, without the ``srl`` imports."""
-    parser = argparse.ArgumentParser(prog="python -m services.health", description=(__doc__ or "").split("\n", 1)[0])
+    """``python -m tools.health``: the same as ``srl health``, without the ``srl`` imports."""
+    parser = argparse.ArgumentParser(prog="python -m tools.health", description=(__doc__ or "").split("\n", 1)[0])
     add_health_arguments(parser)
     return cmd_health(parser.parse_args(argv))
 
