@@ -21,7 +21,7 @@ import numpy as np
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.tri import Triangulation
 
-from tools.experiment.runner import TIE_PERCENT
+from tools.experiment.marks import TIE_PERCENT
 
 TITLES = {"rlq": "RL-Q", "rlqv": "RL-QV", "rlqv+": "RL-QV+ (complemented)"}
 

@@ -61,16 +61,13 @@ import numpy as np
 
 from common.dynamics import heading_away_from_target
 from common.settings import Settings
+from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
 log = logging.getLogger(__name__)
 
 AGENTS = ("mpc", "rlq", "rlqv", "rlqv+")
 DEFAULT_AGENTS = ("mpc", "rlq", "rlqv")
 DEFAULT_HORIZONS = (12, 6)
-PARK_TOLERANCE_M = 0.25  # "parked": final distance to the target at most this (as tests/test_closed_loop.py)
-# A ratio within this of 100 % is a tie, not a win: the solver's tolerance alone moves J that much
-# (an agent whose objective equals MPC's up to scale lands 1e-4 % off 100 %, either side).
-TIE_PERCENT = 0.1
 STARTS = ("paper", "held-out")
 EXIT_INTERRUPTED = 130
 PEER_MODE, PEER_LISTEN = "peer", ["tcp/127.0.0.1:0"]  # the zenoh transport's sessions (see transport_for)
