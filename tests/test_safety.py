@@ -27,7 +27,6 @@ import zenoh
 from common import ros_wire
 from common.checkpoint import atomic_write_json, remove_stale_temporaries
 from common.clock import Ticker
-from common.lifeline import die_with_parent
 from common.messages import PlantState, ResetRequest, StepRequest
 from common.ros_wire import ODOMETRY, RosGraph
 from common.settings import Settings
@@ -312,14 +311,31 @@ def test_kill_9_of_srl_up_takes_every_service_with_it(tmp_path: Path) -> None:
     assert took <= 5.0
 
 
-def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone(monkeypatch: pytest.MonkeyPatch) -> None:
-    stop = threading.Event()
-    monkeypatch.setenv("SRL_PARENT_PID", str(os.getppid() + 10**6))  # not our parent
-    assert die_with_parent(stop) == os.getppid() + 10**6
-    assert stop.is_set()
-    monkeypatch.delenv("SRL_PARENT_PID")
-    other = threading.Event()
-    assert die_with_parent(other) is None and not other.is_set()
+def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None:
+    """In a child process (the guard arms PR_SET_PDEATHSIG and an exit watchdog on the process
+    that calls it: never on the test runner): a process whose SRL_PARENT_PID is not its parent
+    stops at once, and exits with code 3 if it is still running after the grace period; without
+    the variable nothing is armed."""
+    script = (
+        "import os, sys, threading, time\n"
+        "import common.lifeline as lifeline\n"
+        "lifeline.EXIT_GRACE_SECONDS = 0.5\n"
+        "os.environ['SRL_PARENT_PID'] = str(os.getppid() + 10**6)\n"
+        "stop = threading.Event()\n"
+        "assert lifeline.die_with_parent(stop) == os.getppid() + 10**6\n"
+        "assert stop.is_set()\n"
+        "del os.environ['SRL_PARENT_PID']\n"
+        "other = threading.Event()\n"
+        "assert lifeline.die_with_parent(other) is None and not other.is_set()\n"
+        "print('armed', flush=True)\n"
+        "time.sleep(10)\n"  # still running after the grace: the watchdog ends it with code 3
+    )
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60,
+                          check=False)
+    took = time.monotonic() - started
+    assert done.stdout.strip() == "armed", done.stderr[-2000:]
+    assert done.returncode == 3 and took < 8.0, (done.returncode, took, done.stderr[-2000:])
 
 
 # -- finding 10: smaller points ----------------------------------------------------------------------
