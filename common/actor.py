@@ -239,7 +239,7 @@ class _SigintKeeper:
             self._thread.join(timeout=1.0)
 
 
-def _build_signal(signals: str, error: Exception) -> Exception:
+def _build_signal(signals: str, error: Exception) -> BaseException:
     """The failed build's error, or :class:`BuildInterrupted` if a signal ended it."""
     try:
         with open(signals, "rb") as file:
@@ -280,9 +280,9 @@ class StackedActor:
             (self._x0, self._params, self._lbx_np, self._ubx_np, self._zeros_g, self._zeros_g, self._zeros_x,
              self._zeros_g)
         ):
-            self._buffer.set_arg(index, memoryview(array))
-        self._buffer.set_res(0, memoryview(self._x_out))
-        self._buffer.set_res(1, memoryview(self._f_out))
+            self._buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._buffer.set_res(0, memoryview(self._x_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._buffer.set_res(1, memoryview(self._f_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
         self._action_bounds = np.array([problem.v_max, problem.omega_max])
         # The warm-start merit, called the same zero-copy way: (s_1, actions, weights) -> cost.
         self._merit_state = np.zeros(STATE_DIM)
@@ -290,8 +290,8 @@ class StackedActor:
         self._merit_out = np.zeros(1)
         self._merit_buffer, self._evaluate_merit = self._merit.buffer()
         for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
-            self._merit_buffer.set_arg(index, memoryview(array))
-        self._merit_buffer.set_res(0, memoryview(self._merit_out))
+            self._merit_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._merit_buffer.set_res(0, memoryview(self._merit_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
 
     # -- construction -------------------------------------------------------------------
     def _objective(self, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:

@@ -44,7 +44,8 @@ def quadratic_feature_rows(z: np.ndarray) -> np.ndarray:
     """
     z = np.asarray(z, dtype=float)
     rows, cols = _index_arrays(z.shape[1])
-    return z[:, rows] * z[:, cols]
+    features: np.ndarray = z[:, rows] * z[:, cols]
+    return features
 
 
 @functools.cache

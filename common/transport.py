@@ -98,7 +98,7 @@ class Bus:
             except zenoh.ZError as error:  # already gone with the session
                 log.debug("undeclare: %s", error)
         self._keep.clear()
-        self.session.close()
+        self.session.close()  # type: ignore[no-untyped-call]  # zenoh stub: close(self) has no annotations
 
     def adopt(self, thread: threading.Thread) -> None:
         """A thread of this service that uses the session: :meth:`close` ends and joins it first."""
@@ -127,7 +127,8 @@ class Bus:
         if cache > 0:
             publisher = zenoh.ext.declare_advanced_publisher(
                 self.session, key, cache=zenoh.ext.CacheConfig(cache), express=True,
-                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=RECOVERY_HEARTBEAT_S),
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                    heartbeat=RECOVERY_HEARTBEAT_S, sporadic_heartbeat=None),
                 publisher_detection=True,
             )
         else:
@@ -185,7 +186,7 @@ class Bus:
             self._keep.append(zenoh.ext.declare_advanced_subscriber(
                 self.session, key, on_sample,
                 history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
-                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
+                recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
             ))
         else:
             self._keep.append(self.session.declare_subscriber(key, on_sample))
@@ -222,7 +223,8 @@ class Bus:
         replies = querier.get(payload=request.encode())
         for reply in replies:
             if reply.ok is None:
-                raise MessageError(f"{service.pattern}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+                why = reply.err.payload.to_bytes().decode(errors="replace") if reply.err is not None else "no reply"
+                raise MessageError(f"{service.pattern}: {why}")
             return decode(service.reply, reply.ok.payload.to_bytes())
         raise TimeoutError(f"no reply from {service.key(robot)} within {timeout} s")
 

@@ -25,17 +25,20 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from common.actor import StackedActor
 from common.assembly import build_actor, episode_summary, run_episode
 from common.clock import Ticker
 from common.critic import Sample
 from common.features import stage_cost
-from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE, TRANSITION, WEIGHTS
+from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE, TRANSITION, WEIGHTS, Service
 from common.messages import (
     Action,
     CriticWeights,
+    Message,
     MessageError,
     PlantState,
     ResetRequest,
@@ -166,7 +169,7 @@ class ZenohPlant:
         self.robot = settings.transport.robot
         self.step_index = 0
 
-    def _query(self, service, request):  # type: ignore[no-untyped-def]
+    def _query(self, service: Service[Any, Any], request: Message) -> Any:
         timeout = self.settings.transport.query_timeout
         for attempt in range(3):
             try:
@@ -179,7 +182,7 @@ class ZenohPlant:
     def reset(self, state: np.ndarray) -> np.ndarray:
         self.step_index = 0
         reply = self._query(PLANT_RESET, ResetRequest(robot=self.robot, episode=self.episode,
-                                                      state=tuple(float(c) for c in state)))
+                                                      state=(float(state[0]), float(state[1]), float(state[2]))))
         return np.array(reply.state)
 
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
@@ -207,7 +210,7 @@ class ZenohCriticPort:
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
         self.inbox.published(sample.step)
         self.publish(Transition(robot=self.robot, episode=self.episode, step=sample.step,
-                                state=tuple(float(c) for c in sample.state),
+                                state=(float(sample.state[0]), float(sample.state[1]), float(sample.state[2])),
                                 action=(float(sample.action[0]), float(sample.action[1])),
                                 cost=float(sample.cost)))
         needs_fit = self.settings.actor.agent != "mpc" and sample.step % self.settings.critic.update_every == 0
@@ -238,7 +241,8 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     return _run_realtime(settings, bus, actor, inbox, stop, duration)
 
 
-def _run_lockstep(settings, bus, actor, inbox, sync_critic) -> dict:  # type: ignore[no-untyped-def]
+def _run_lockstep(settings: Settings, bus: Bus, actor: StackedActor, inbox: WeightsInbox,
+                  sync_critic: bool) -> dict[str, Any]:
     bus.declare_alive(settings.transport.robot)
     bus.wait_alive(settings.transport.robot, "plant", timeout=30.0)
     if sync_critic and settings.actor.agent != "mpc":
@@ -262,7 +266,8 @@ def _run_lockstep(settings, bus, actor, inbox, sync_critic) -> dict:  # type: ig
     return summary
 
 
-def _run_realtime(settings, bus, actor, inbox, stop, duration) -> dict:  # type: ignore[no-untyped-def]
+def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: WeightsInbox, stop: threading.Event,
+                  duration: float | None) -> dict[str, Any]:
     robot = settings.transport.robot
     delta = settings.plant.sampling_time
     # A state older than this at a tick means the plant is silent: command zero. The last state

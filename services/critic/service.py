@@ -286,14 +286,14 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
             publish(continued)
         before = learner.accepted
-        weights = learner.on_transition(message)
+        fitted = learner.on_transition(message)
         if learner.accepted > before and path is not None:
             # checkpoint first: a crash after it re-publishes these weights at restart
             started = time.perf_counter()
             atomic_write_json(path, learner.state())
             checkpoint_seconds.append(time.perf_counter() - started)
-        if weights is not None:
-            publish(weights)
+        if fitted is not None:
+            publish(fitted)
     from common.stats import summarize
 
     return {

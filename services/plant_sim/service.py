@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -133,6 +134,6 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
             "counters": dict(bus.counters)}
 
 
-def _publish(publish_state, message: PlantState) -> PlantState:  # type: ignore[no-untyped-def]
+def _publish(publish_state: Callable[[PlantState], None], message: PlantState) -> PlantState:
     publish_state(message)
     return message

@@ -449,7 +449,7 @@ def machine_info(settings: Settings) -> dict[str, Any]:
         "python": platform.python_version(),
         "numpy": np.__version__,
         "scipy": scipy.__version__,
-        "casadi": casadi.__version__,
+        "casadi": casadi.__version__,  # type: ignore[attr-defined]  # not in casadi's stubs
         "solver": settings.actor.solver,
         "predictor": settings.actor.predictor,
         "jit": bool(settings.actor.jit and compiler),
