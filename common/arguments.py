@@ -42,8 +42,11 @@ def _default(section: str, name: str) -> str:
     value = _packaged_defaults().get(section, {}).get(name)
     if isinstance(value, list):
         value = ",".join(str(v) for v in value)
-    return f"(default: {value!r} from common/srl.toml)" if isinstance(value, str) and not value else \
-        f"(default: {value}, common/srl.toml)"
+    return (
+        f"(default: {value!r} from common/srl.toml)"
+        if isinstance(value, str) and not value
+        else f"(default: {value}, common/srl.toml)"
+    )
 
 
 # Which settings flags each subcommand takes: a flag a command would ignore is refused
@@ -69,40 +72,68 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
 def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str] = ALL_FLAGS) -> None:
     """Flags that override the config file (only those given take effect)."""
     if "config" in flags:
-        parser.add_argument("--config", type=Path, metavar="FILE",
-                            help="a TOML file overriding common/srl.toml (any subset; also SRL_CONFIG) (default: none)")
+        parser.add_argument(
+            "--config",
+            type=Path,
+            metavar="FILE",
+            help="a TOML file overriding common/srl.toml (any subset; also SRL_CONFIG) (default: none)",
+        )
     if "agent" in flags:
-        parser.add_argument("--agent", choices=["mpc", "rlq", "rlqv", "rlqv+"],
-                            help=f"the stacked actor's objective {_default('actor', 'agent')}")
+        parser.add_argument(
+            "--agent",
+            choices=["mpc", "rlq", "rlqv", "rlqv+"],
+            help=f"the stacked actor's objective {_default('actor', 'agent')}",
+        )
     if "horizon" in flags:
-        parser.add_argument("--horizon", type=int, metavar="N",
-                            help=f"N (N - 1 held actions), 2..{MAX_HORIZON} {_default('actor', 'horizon')}")
+        parser.add_argument(
+            "--horizon",
+            type=int,
+            metavar="N",
+            help=f"N (N - 1 held actions), 2..{MAX_HORIZON} {_default('actor', 'horizon')}",
+        )
     if "start" in flags:
-        parser.add_argument("--start", type=_start_arg, metavar="X,Y[,ALPHA]",
-                            help="start in the goal frame [m, m, rad]; X,Y heads away from the target, "
-                                 f"e.g. --start -1.2,0.7 {_default('episode', 'start')}")
+        parser.add_argument(
+            "--start",
+            type=_start_arg,
+            metavar="X,Y[,ALPHA]",
+            help="start in the goal frame [m, m, rad]; X,Y heads away from the target, "
+            f"e.g. --start -1.2,0.7 {_default('episode', 'start')}",
+        )
     if "duration" in flags:
-        parser.add_argument("--duration", type=float, metavar="SECONDS",
-                            help=f"episode length [s] {_default('episode', 'duration')}")
+        parser.add_argument(
+            "--duration", type=float, metavar="SECONDS", help=f"episode length [s] {_default('episode', 'duration')}"
+        )
     if "solver" in flags:
-        parser.add_argument("--solver", choices=["fatrop", "ipopt"],
-                            help=f"NLP solver of the actor {_default('actor', 'solver')}")
+        parser.add_argument(
+            "--solver", choices=["fatrop", "ipopt"], help=f"NLP solver of the actor {_default('actor', 'solver')}"
+        )
     if "predictor" in flags:
-        parser.add_argument("--predictor", choices=["euler", "rk4"],
-                            help=f"the actor's state predictor {_default('actor', 'predictor')}")
+        parser.add_argument(
+            "--predictor",
+            choices=["euler", "rk4"],
+            help=f"the actor's state predictor {_default('actor', 'predictor')}",
+        )
     if "no_jit" in flags:
-        parser.add_argument("--no-jit", action="store_true",
-                            help="do not JIT-compile the actor problem with the C compiler (default: compile)")
+        parser.add_argument(
+            "--no-jit",
+            action="store_true",
+            help="do not JIT-compile the actor problem with the C compiler (default: compile)",
+        )
     if "router" in flags:
-        parser.add_argument("--router", metavar="ENDPOINT",
-                            help=f"Zenoh router endpoint {_default('transport', 'router')}")
+        parser.add_argument(
+            "--router", metavar="ENDPOINT", help=f"Zenoh router endpoint {_default('transport', 'router')}"
+        )
     if "robot" in flags:
-        parser.add_argument("--robot", metavar="ID",
-                            help=f"robot id, the <robot> chunk of every key {_default('transport', 'robot')}")
+        parser.add_argument(
+            "--robot", metavar="ID", help=f"robot id, the <robot> chunk of every key {_default('transport', 'robot')}"
+        )
     if "resume" in flags:
-        parser.add_argument("--resume", action="store_true",
-                            help="start the critic from its checkpoint of an earlier run of this robot and stack "
-                                 "(default: a fresh critic per run; setting critic.resume)")
+        parser.add_argument(
+            "--resume",
+            action="store_true",
+            help="start the critic from its checkpoint of an earlier run of this robot and stack "
+            "(default: a fresh critic per run; setting critic.resume)",
+        )
 
 
 SETTINGS_FLAGS = ("config", "agent", "horizon", "start", "duration", "solver", "predictor", "router", "robot")
@@ -132,8 +163,7 @@ def child_argv(argv: list[str]) -> list[str]:
     if takes is None:
         return argv
     known = {f"--{n.replace('_', '-')}" for n in (*ALL_FLAGS, "resume")}
-    return [a for a in argv if a.split("=", 1)[0] not in known
-            or a.split("=", 1)[0][2:].replace("-", "_") in takes]
+    return [a for a in argv if a.split("=", 1)[0] not in known or a.split("=", 1)[0][2:].replace("-", "_") in takes]
 
 
 BRIDGE_FLAGS = ("profile", "ros_distro", "domain_id", "namespace", "cmd_type", "robot_endpoint")
@@ -141,24 +171,38 @@ BRIDGE_FLAGS = ("profile", "ros_distro", "domain_id", "namespace", "cmd_type", "
 
 def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of the robot bridge's [bridge] settings (srl up, robot-bridge, tb3-emulator)."""
-    parser.add_argument("--profile", choices=["rmw_zenoh", "ros2dds"],
-                        help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds) "
-                        f"{_default('bridge', 'profile')}")
-    parser.add_argument("--ros-distro", choices=["humble", "jazzy"],
-                        help=f"the robot's ROS 2 distribution {_default('bridge', 'ros_distro')}")
+    parser.add_argument(
+        "--profile",
+        choices=["rmw_zenoh", "ros2dds"],
+        help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds) "
+        f"{_default('bridge', 'profile')}",
+    )
+    parser.add_argument(
+        "--ros-distro",
+        choices=["humble", "jazzy"],
+        help=f"the robot's ROS 2 distribution {_default('bridge', 'ros_distro')}",
+    )
     parser.add_argument("--domain-id", type=int, help=f"the robot's ROS_DOMAIN_ID {_default('bridge', 'domain_id')}")
     parser.add_argument("--namespace", help=f"the robot's ROS namespace (e.g. tb3_1) {_default('bridge', 'namespace')}")
-    parser.add_argument("--cmd-type", choices=["auto", "twist", "twist_stamped"],
-                        help="cmd_vel message type (auto: read from the robot's liveliness tokens) "
-                        f"{_default('bridge', 'cmd_type')}")
-    parser.add_argument("--robot-endpoint", help="the robot's Zenoh router, e.g. tcp/192.168.1.20:7447 "
-                        f"(srl up: no emulator is started) {_default('bridge', 'robot_endpoint')}")
+    parser.add_argument(
+        "--cmd-type",
+        choices=["auto", "twist", "twist_stamped"],
+        help=f"cmd_vel message type (auto: read from the robot's liveliness tokens) {_default('bridge', 'cmd_type')}",
+    )
+    parser.add_argument(
+        "--robot-endpoint",
+        help="the robot's Zenoh router, e.g. tcp/192.168.1.20:7447 "
+        f"(srl up: no emulator is started) {_default('bridge', 'robot_endpoint')}",
+    )
 
 
 def bridge_argv(args: argparse.Namespace) -> list[str]:
     """The bridge flags that were given, as argv, for the bridge and emulator children."""
-    return [f"--{name.replace('_', '-')}={getattr(args, name)}" for name in BRIDGE_FLAGS
-            if getattr(args, name, None) is not None]
+    return [
+        f"--{name.replace('_', '-')}={getattr(args, name)}"
+        for name in BRIDGE_FLAGS
+        if getattr(args, name, None) is not None
+    ]
 
 
 def settings_from_args(args: argparse.Namespace) -> Settings:
@@ -191,8 +235,13 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
         raise UsageError(str(error)) from error
     x, y = settings.episode.start[:2]
     if max(abs(x), abs(y)) > WORKSPACE_HALF_WIDTH:
-        log.warning("start (%g, %g) m is more than %g m from the target: outside any workspace the robot "
-                    "could park in (the paper's starts are within 2 m)", x, y, WORKSPACE_HALF_WIDTH)
+        log.warning(
+            "start (%g, %g) m is more than %g m from the target: outside any workspace the robot "
+            "could park in (the paper's starts are within 2 m)",
+            x,
+            y,
+            WORKSPACE_HALF_WIDTH,
+        )
     return settings
 
 

@@ -41,8 +41,16 @@ def build_actor(settings: Settings) -> StackedActor:
 def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:
     """The in-process critic learner of the settings (initial weights, beta, lambda, box, M)."""
     c = settings.critic
-    return LocalCritic(settings.initial_q_weights(), settings.initial_v_weights(), settings.discount, c.ridge,
-                       c.bounds, c.replay_size, c.update_every, learn=learn)
+    return LocalCritic(
+        settings.initial_q_weights(),
+        settings.initial_v_weights(),
+        settings.discount,
+        c.ridge,
+        c.bounds,
+        c.replay_size,
+        c.update_every,
+        learn=learn,
+    )
 
 
 def run_episode(

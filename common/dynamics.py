@@ -70,9 +70,7 @@ def exact_step(state: FloatArray, action: FloatArray, duration: float) -> FloatA
     half_turn = omega * duration / 2.0
     chord = v * duration * float(np.sinc(half_turn / np.pi))
     mid_heading = alpha + half_turn
-    return np.array(
-        [x + chord * np.cos(mid_heading), y + chord * np.sin(mid_heading), alpha + omega * duration]
-    )
+    return np.array([x + chord * np.cos(mid_heading), y + chord * np.sin(mid_heading), alpha + omega * duration])
 
 
 def heading_away_from_target(x: float, y: float) -> float:

@@ -55,8 +55,17 @@ class LocalCritic:
 
     Built from settings by :func:`common.assembly.local_critic`; here only numbers and arrays."""
 
-    def __init__(self, q_init: np.ndarray, v_init: np.ndarray, discount: float, ridge: float,
-                 bounds: tuple[float, float] | None, replay_size: int, update_every: int, learn: bool = True) -> None:
+    def __init__(
+        self,
+        q_init: np.ndarray,
+        v_init: np.ndarray,
+        discount: float,
+        ridge: float,
+        bounds: tuple[float, float] | None,
+        replay_size: int,
+        update_every: int,
+        learn: bool = True,
+    ) -> None:
         self.q_init, self.v_init = q_init, v_init
         self.discount, self.ridge, self.bounds = discount, ridge, bounds
         self.update_every = update_every

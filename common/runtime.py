@@ -84,8 +84,7 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
-    bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service,
-                             connect_timeout, stop)
+    bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:
         result = body(settings, bus, stop)
     finally:
@@ -100,8 +99,9 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
 LOGIN_REFUSED_AFTER = 2.0
 
 
-def connect_with_retry(opener: Callable[[], Any], settings: Settings, service: str, timeout: float,
-                       stop: threading.Event) -> Any:
+def connect_with_retry(
+    opener: Callable[[], Any], settings: Settings, service: str, timeout: float, stop: threading.Event
+) -> Any:
     """Open the Zenoh session, retrying every 0.2 s for ``timeout`` s, and say why it failed.
 
     "waiting for the router" is said at once; at the end a router that listens but refuses the
@@ -122,16 +122,21 @@ def connect_with_retry(opener: Callable[[], Any], settings: Settings, service: s
             listening = _endpoint_listening(transport.router)
             refused_since = (refused_since or now) if listening else None
             if transport.secure and refused_since is not None and now - refused_since >= LOGIN_REFUSED_AFTER:
-                raise UsageError(f"{service}: the router at {transport.router} refused the login of user "
-                                 f"{transport.user!r}: wrong password or unknown user (check transport.password_file "
-                                 "or SRL_TRANSPORT__PASSWORD against the router's users file)") from None
+                raise UsageError(
+                    f"{service}: the router at {transport.router} refused the login of user "
+                    f"{transport.user!r}: wrong password or unknown user (check transport.password_file "
+                    "or SRL_TRANSPORT__PASSWORD against the router's users file)"
+                ) from None
             if now > deadline or stop.is_set():
                 if listening:
-                    raise UsageError(f"{service}: something listens at {transport.router} but refused a Zenoh "
-                                     "session (not a Zenoh router, or it requires a login: transport.secure)") from None
-                raise UsageError(f"{service}: cannot reach the Zenoh router at {transport.router} after "
-                                 f"{timeout:.0f} s (is `srl router` running? see --router, --connect-timeout)"
-                                 ) from None
+                    raise UsageError(
+                        f"{service}: something listens at {transport.router} but refused a Zenoh "
+                        "session (not a Zenoh router, or it requires a login: transport.secure)"
+                    ) from None
+                raise UsageError(
+                    f"{service}: cannot reach the Zenoh router at {transport.router} after "
+                    f"{timeout:.0f} s (is `srl router` running? see --router, --connect-timeout)"
+                ) from None
             if not said:
                 log.warning("%s: waiting for the Zenoh router at %s (up to %.0f s)", service, transport.router, timeout)
                 said = True
@@ -201,12 +206,14 @@ def floats_arg(count: int) -> Callable[[str], tuple[float, ...]]:
     return parse
 
 
-def add_lifetime_arguments(parser: argparse.ArgumentParser,
-                            run_help: str = "stop after this long (default: until signalled)") -> None:
+def add_lifetime_arguments(
+    parser: argparse.ArgumentParser, run_help: str = "stop after this long (default: until signalled)"
+) -> None:
     """--run-seconds and --connect-timeout, as every long-running service process takes them."""
     parser.add_argument("--run-seconds", type=float, help=run_help)
-    parser.add_argument("--connect-timeout", type=float, default=30.0,
-                        help="[s] wait this long for the router (default: 30)")
+    parser.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
 
 
 def main(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
@@ -271,8 +278,13 @@ def entry(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[st
 
 
 def add_log_level(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--log-level", default="WARNING", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
-                        type=str.upper, help="console log level (default: WARNING: warnings and errors only)")
+    parser.add_argument(
+        "--log-level",
+        default="WARNING",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        type=str.upper,
+        help="console log level (default: WARNING: warnings and errors only)",
+    )
 
 
 def service_parser(command: Any) -> argparse.ArgumentParser:

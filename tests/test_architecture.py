@@ -21,8 +21,16 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("common", "services", "tools")
-MATH = ("common.dynamics", "common.features", "common.critic", "common.actor", "common.loop", "common.frames",
-        "common.stats", "common.provenance")
+MATH = (
+    "common.dynamics",
+    "common.features",
+    "common.critic",
+    "common.actor",
+    "common.loop",
+    "common.frames",
+    "common.stats",
+    "common.provenance",
+)
 NOT_FOR_MATH = ("common.settings", "common.transport", "common.assembly", "zenoh")
 # Private names of other libraries that our code uses on purpose, each with its reason.
 FOREIGN_PRIVATE = {
@@ -67,27 +75,42 @@ def floor_violations(module: str, source: str) -> list[str]:
     found = imports(source, module)
     problems = []
     if under(module, ("services",)):
-        problems += [f"{module} imports {name} (services never import tools)" for name in found
-                     if under(name, ("tools",))]
+        problems += [
+            f"{module} imports {name} (services never import tools)" for name in found if under(name, ("tools",))
+        ]
     if under(module, ("common",)):
-        problems += [f"{module} imports {name} (common never imports services or tools)" for name in found
-                     if under(name, ("services", "tools"))]
+        problems += [
+            f"{module} imports {name} (common never imports services or tools)"
+            for name in found
+            if under(name, ("services", "tools"))
+        ]
     if module in MATH:
-        problems += [f"{module} imports {name} (the math never imports settings or transport)" for name in found
-                     if under(name, NOT_FOR_MATH)]
+        problems += [
+            f"{module} imports {name} (the math never imports settings or transport)"
+            for name in found
+            if under(name, NOT_FOR_MATH)
+        ]
     return problems
 
 
 def private_violations(module: str, source: str) -> list[str]:
     """``from ours import _x``, ``ours_module._x`` and ``obj._x`` on anything but self/cls."""
     tree = ast.parse(source)
-    ours = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.Import)
-            for alias in node.names if under(alias.name, PACKAGES)}
+    ours = {
+        alias.asname or alias.name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Import)
+        for alias in node.names
+        if under(alias.name, PACKAGES)
+    }
     problems = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and under(node.module or "", PACKAGES):
-            problems += [f"{module} imports {node.module}.{a.name}" for a in node.names
-                         if a.name.startswith("_") and not a.name.startswith("__")]
+            problems += [
+                f"{module} imports {node.module}.{a.name}"
+                for a in node.names
+                if a.name.startswith("_") and not a.name.startswith("__")
+            ]
         elif isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
             owner = node.value
             if isinstance(owner, ast.Name) and owner.id in ("self", "cls"):
@@ -113,31 +136,39 @@ def test_no_module_uses_another_modules_underscore_names() -> None:
     assert problems == []
 
 
-@pytest.mark.parametrize(("module", "source", "expected"), [
-    ("services.actor.service", "from tools.cli import main\n", "services never import tools"),
-    ("services.critic.command", "def f():\n    import tools.up\n", "services never import tools"),
-    ("common.runtime", "from services.actor import command\n", "common never imports services or tools"),
-    ("common.keys", "import tools.health\n", "common never imports services or tools"),
-    ("common.loop", "from common.settings import Settings\n", "the math never imports settings or transport"),
-    ("common.actor", "def f():\n    from common.transport import Bus\n", "the math never imports settings"),
-    ("common.critic", "import zenoh\n", "the math never imports settings or transport"),
-])
+@pytest.mark.parametrize(
+    ("module", "source", "expected"),
+    [
+        ("services.actor.service", "from tools.cli import main\n", "services never import tools"),
+        ("services.critic.command", "def f():\n    import tools.up\n", "services never import tools"),
+        ("common.runtime", "from services.actor import command\n", "common never imports services or tools"),
+        ("common.keys", "import tools.health\n", "common never imports services or tools"),
+        ("common.loop", "from common.settings import Settings\n", "the math never imports settings or transport"),
+        ("common.actor", "def f():\n    from common.transport import Bus\n", "the math never imports settings"),
+        ("common.critic", "import zenoh\n", "the math never imports settings or transport"),
+    ],
+)
 def test_the_floor_rules_catch_an_upward_import(module: str, source: str, expected: str) -> None:
     problems = floor_violations(module, source)
     assert len(problems) == 1 and expected in problems[0]
 
 
-@pytest.mark.parametrize("source", [
-    "from services.actor.service import _run_lockstep\n",
-    "import common.transport\ncommon.transport._threads\n",
-    "def f(port):\n    port._settings = 1\n",
-    "def f(bus):\n    return bus._keep\n",
-])
+@pytest.mark.parametrize(
+    "source",
+    [
+        "from services.actor.service import _run_lockstep\n",
+        "import common.transport\ncommon.transport._threads\n",
+        "def f(port):\n    port._settings = 1\n",
+        "def f(bus):\n    return bus._keep\n",
+    ],
+)
 def test_the_private_rule_catches_another_modules_underscore_name(source: str) -> None:
     assert len(private_violations("tools.experiment.runner", source)) == 1
 
 
 def test_the_private_rule_allows_own_names() -> None:
-    source = "class A:\n    def f(self):\n        return self._x, type(self).__name__\n    @classmethod\n" \
-             "    def g(cls):\n        return cls._y\n"
+    source = (
+        "class A:\n    def f(self):\n        return self._x, type(self).__name__\n    @classmethod\n"
+        "    def g(cls):\n        return cls._y\n"
+    )
     assert private_violations("common.x", source) == []

@@ -27,14 +27,23 @@ entry(sys.argv[2:])
 
 
 @pytest.mark.parametrize("with_zenoh", [True, False])
-@pytest.mark.parametrize(("argv", "code"), [(["health", "--help"], 0), (["run", "--horizon", "x"], 2),
-                                            (["run", "--horizon", "1", "--duration", "1"], 2)])
-def test_exit_runs_atexit_flushes_and_keeps_the_code(tmp_path: Path, argv: list[str], code: int,
-                                                    with_zenoh: bool) -> None:
+@pytest.mark.parametrize(
+    ("argv", "code"),
+    [(["health", "--help"], 0), (["run", "--horizon", "x"], 2), (["run", "--horizon", "1", "--duration", "1"], 2)],
+)
+def test_exit_runs_atexit_flushes_and_keeps_the_code(
+    tmp_path: Path, argv: list[str], code: int, with_zenoh: bool
+) -> None:
     marker = tmp_path / "marker"
     script = SCRIPT.format(zenoh="import zenoh" if with_zenoh else "")
-    done = subprocess.run([sys.executable, "-c", script, str(marker), *argv], cwd=ROOT, capture_output=True,
-                          text=True, timeout=60, check=False)
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(marker), *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
     assert done.returncode == code, done.stderr[-2000:]
     assert done.stdout.startswith("unflushed output")
     assert marker.read_text() == "atexit ran"

@@ -53,12 +53,20 @@ def cmd_run(args: argparse.Namespace) -> int:
         from tools.up import ServiceDiedError, run_up
 
         try:
-            summary = run_up(settings, settings_argv(args), mode="lockstep", plant="sim",
-                             sync_critic=True, duration=settings.episode.duration, quiet=not args.verbose)
+            summary = run_up(
+                settings,
+                settings_argv(args),
+                mode="lockstep",
+                plant="sim",
+                sync_critic=True,
+                duration=settings.episode.duration,
+                quiet=not args.verbose,
+            )
         except (ServiceDiedError, TimeoutError) as error:
             raise UsageError(str(error)) from error
-        episode = Episode(summary["agent"], summary["horizon"],
-                          states=[__import__("numpy").array(s) for s in summary["trajectory"]])
+        episode = Episode(
+            summary["agent"], summary["horizon"], states=[__import__("numpy").array(s) for s in summary["trajectory"]]
+        )
     else:
         with stop_on_signals() as stop:
             episode = run_episode(settings, stop=stop)
@@ -88,8 +96,7 @@ def format_run_summary(summary: dict[str, Any]) -> str:
     lines = [
         f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}",
         f"  start          {_fmt_state(summary['start_state'])}",
-        f"  final state    {_fmt_state(summary['final_state'])}   "
-        f"distance to target {summary['final_distance']:.3f} m",
+        f"  final state    {_fmt_state(summary['final_state'])}   distance to target {summary['final_distance']:.3f} m",
         f"  steps          {summary['steps']} x delta = {s['plant']['sampling_time']} s "
         f"({summary['episode_seconds']:.1f} s episode)",
         f"  accumulated J  {summary['accumulated_cost']:.4f}",
@@ -126,17 +133,24 @@ def cmd_router(args: argparse.Namespace) -> int:
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:
-        raise UsageError(f"router: cannot listen on {settings.transport.router}: {zenoh_reason(error)} "
-                         "(another router on that port? choose one with --router)") from error
+        raise UsageError(
+            f"router: cannot listen on {settings.transport.router}: {zenoh_reason(error)} "
+            "(another router on that port? choose one with --router)"
+        ) from error
     # its one line of normal output, on stdout (not a warning): what it serves and how
     transport = settings.transport
     rules = f"; users and access rules of robot {transport.robot} enforced" if transport.secure else ""
-    print(f"srl router: router listening on {settings.transport.router} (multicast scouting "
-          f"{'on' if settings.transport.multicast_scouting else 'off'}{rules})", flush=True)
+    print(
+        f"srl router: router listening on {settings.transport.router} (multicast scouting "
+        f"{'on' if settings.transport.multicast_scouting else 'off'}{rules})",
+        flush=True,
+    )
     stop.wait()
     session.close()
-    print(json.dumps({"service": "router", "endpoint": settings.transport.router,
-                      "resources": own_resources()}), flush=True)
+    print(
+        json.dumps({"service": "router", "endpoint": settings.transport.router, "resources": own_resources()}),
+        flush=True,
+    )
     return 0
 
 
@@ -154,9 +168,12 @@ def cmd_certs(args: argparse.Namespace) -> int:
     files = write_tls_material(out, ROLES, args.hosts)
     if args.passwords:
         write_credentials(out)
-    print(f"srl certs: CA, router ({', '.join(['localhost', '127.0.0.1', '::1', *args.hosts])}) and "
-          f"{', '.join(ROLES)} certificates{' and passwords' if args.passwords else ''} in {files.directory} "
-          "(0700, files 0600)", flush=True)
+    print(
+        f"srl certs: CA, router ({', '.join(['localhost', '127.0.0.1', '::1', *args.hosts])}) and "
+        f"{', '.join(ROLES)} certificates{' and passwords' if args.passwords else ''} in {files.directory} "
+        "(0700, files 0600)",
+        flush=True,
+    )
     return 0
 
 
@@ -175,10 +192,18 @@ def cmd_up(args: argparse.Namespace) -> int:
         print(f"srl up {line}", file=sys.stderr, flush=True)
 
     try:
-        summary = run_up(settings, settings_argv(args), mode=args.mode, plant=args.plant,
-                         sync_critic=args.mode == "lockstep", duration=settings.episode.duration,
-                         bridge_args=bridge_argv(args), secure=args.secure, on_status=show_status,
-                         summary_dir=summary_dir)
+        summary = run_up(
+            settings,
+            settings_argv(args),
+            mode=args.mode,
+            plant=args.plant,
+            sync_critic=args.mode == "lockstep",
+            duration=settings.episode.duration,
+            bridge_args=bridge_argv(args),
+            secure=args.secure,
+            on_status=show_status,
+            summary_dir=summary_dir,
+        )
     except Stopped as stopped:  # SIGINT, SIGTERM, SIGHUP: everything was stopped, credentials removed
         print(f"srl up: stopped by {stopped}: every service stopped", file=sys.stderr)
         return stopped.exit_code
@@ -209,16 +234,17 @@ def format_status_line(c: dict[str, float], elapsed: float, first_version: list[
     steps old the weights it used were (staleness)."""
     pose = ""
     if all(k in c for k in ("x", "y", "alpha")):
-        pose = (f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}"
-                f"  distance {math.hypot(c['x'], c['y']):.2f} m")
+        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {math.hypot(c['x'], c['y']):.2f} m"
     version = c.get("weights_version", -1.0)
     if not first_version and version > 0:
         first_version.append(version)
     weights = f"weights +{int(version - first_version[0])}" if first_version else "weights initial"
-    return (f"{elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
-            f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
-            f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
-            f"  solver failures {int(c.get('solver_failures', 0))}")
+    return (
+        f"{elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
+        f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
+        f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
+        f"  solver failures {int(c.get('solver_failures', 0))}"
+    )
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -227,8 +253,7 @@ def cmd_status(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args)
     with stop_on_signals() as stop:
-        monitor = connect_with_retry(lambda: StatusMonitor(settings), settings, "status", args.connect_timeout,
-                                     stop)
+        monitor = connect_with_retry(lambda: StatusMonitor(settings), settings, "status", args.connect_timeout, stop)
         try:
             started, shown, first_version = time.monotonic(), 0, []  # type: ignore[var-annotated]
             end = None if args.seconds is None else started + args.seconds
@@ -244,26 +269,36 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 
 def format_up_summary(summary: dict[str, Any]) -> str:
-    lines = [f"srl up: {summary['mode']} run, plant {summary['plant']}, agent {summary.get('agent')}, "
-             f"N = {summary.get('horizon')}"]
+    lines = [
+        f"srl up: {summary['mode']} run, plant {summary['plant']}, agent {summary.get('agent')}, "
+        f"N = {summary.get('horizon')}"
+    ]
     lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
     if summary.get("secure"):
-        lines.append("  security       user/password login per role + access rules at the router (common/security.py)"
-                     + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""))
+        lines.append(
+            "  security       user/password login per role + access rules at the router (common/security.py)"
+            + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else "")
+        )
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
-    lines.append(f"  critic         {summary.get('transitions_received')} transitions received, "
-                 f"actor used weights version {summary.get('weights_version')}")
+    lines.append(
+        f"  critic         {summary.get('transitions_received')} transitions received, "
+        f"actor used weights version {summary.get('weights_version')}"
+    )
     if summary.get("critic_checkpoint"):
-        lines.append(f"  checkpoint     {summary['critic_checkpoint']} "
-                     f"({'restored' if summary.get('critic_restored') else 'fresh critic; --resume to restore'})")
+        lines.append(
+            f"  checkpoint     {summary['critic_checkpoint']} "
+            f"({'restored' if summary.get('critic_restored') else 'fresh critic; --resume to restore'})"
+        )
     if summary.get("summary_dir"):
         lines.append(f"  summaries      {summary['summary_dir']}/<service>.json")
     if "loop" in summary:
         period = summary["loop"]["period_ms"]
-        lines.append(f"  loop [ms]      period median {period['median']:.3f} p99 {period['p99']:.3f} "
-                     f"max {period['max']:.3f}, missed deadlines {summary['loop']['missed_deadlines']}")
+        lines.append(
+            f"  loop [ms]      period median {period['median']:.3f} p99 {period['p99']:.3f} "
+            f"max {period['max']:.3f}, missed deadlines {summary['loop']['missed_deadlines']}"
+        )
     staleness = summary.get("staleness_steps")
     if staleness:
         lines.append(f"  staleness      median {staleness['median']} max {staleness['max']} steps")
@@ -305,32 +340,55 @@ def build_parser() -> argparse.ArgumentParser:
     def command(name: str, helptext: str, description: str | None = None) -> argparse.ArgumentParser:
         return sub.add_parser(name, help=helptext, description=description or helptext[0].upper() + helptext[1:] + ".")
 
-    run = command("run", "one closed-loop episode of Algorithm 1 (actor, plant, critic)",
-                  "One closed-loop episode of Algorithm 1 (actor step, plant, critic update) and a summary.\n"
-                  "Ctrl-C: exit 130; SIGTERM: 143; a closed stdout pipe (srl run | head): 141.")
+    run = command(
+        "run",
+        "one closed-loop episode of Algorithm 1 (actor, plant, critic)",
+        "One closed-loop episode of Algorithm 1 (actor step, plant, critic update) and a summary.\n"
+        "Ctrl-C: exit 130; SIGTERM: 143; a closed stdout pipe (srl run | head): 141.",
+    )
     add_settings_arguments(run, COMMAND_SETTINGS["run"])
-    run.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
-                     help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes (default: inproc)")
+    run.add_argument(
+        "--transport",
+        choices=["inproc", "zenoh"],
+        default="inproc",
+        help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes (default: inproc)",
+    )
     run.add_argument("--verbose", action="store_true", help="with --transport zenoh: show the services' logs")
     run.add_argument("--trajectory", action="store_true", help="include the state trajectory in the JSON")
     run.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
-    run.add_argument("--plot", type=Path, metavar="PNG",
-                     help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals) "
-                          "(default: no figure)")
+    run.add_argument(
+        "--plot",
+        type=Path,
+        metavar="PNG",
+        help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals) "
+        "(default: no figure)",
+    )
     run.set_defaults(func=cmd_run)
 
     certs = command("certs", "a private CA, the router's and each role's TLS certificate (mTLS)")
-    certs.add_argument("--out", required=True,
-                       help="directory to create (0700; files 0600); never in the repository (default: none, required)")
-    certs.add_argument("--hosts", nargs="*", default=[], metavar="HOST",
-                       help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1 "
-                       "(default: none)")
-    certs.add_argument("--passwords", action="store_true",
-                       help="also a random password per role: users.txt (router) and <role>.password")
-    certs.add_argument("--if-missing", action="store_true",
-                       help="exit 0 without writing if DIR already has a CA (default: write, and fail if it has one)")
+    certs.add_argument(
+        "--out",
+        required=True,
+        help="directory to create (0700; files 0600); never in the repository (default: none, required)",
+    )
+    certs.add_argument(
+        "--hosts",
+        nargs="*",
+        default=[],
+        metavar="HOST",
+        help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1 (default: none)",
+    )
+    certs.add_argument(
+        "--passwords",
+        action="store_true",
+        help="also a random password per role: users.txt (router) and <role>.password",
+    )
+    certs.add_argument(
+        "--if-missing",
+        action="store_true",
+        help="exit 0 without writing if DIR already has a CA (default: write, and fail if it has one)",
+    )
     certs.set_defaults(func=cmd_certs)
-
 
     router = command("router", "a Zenoh router (Python, mode router)")
     add_settings_arguments(router, COMMAND_SETTINGS["router"])
@@ -346,55 +404,85 @@ def build_parser() -> argparse.ArgumentParser:
     for service in (plant_sim_command, critic_command, actor_command, robot_bridge_command, tb3_emulator_command):
         service.add_arguments(command(service.NAME, service.HELP))
 
-
-    up = command("up", "router + every service as separate processes, one run",
-                 "The router and every service as separate processes, one run, a live status line once a second.\n"
-                 "Each service's JSON summary is written to a file (--summary-dir); --json prints the merged one.")
+    up = command(
+        "up",
+        "router + every service as separate processes, one run",
+        "The router and every service as separate processes, one run, a live status line once a second.\n"
+        "Each service's JSON summary is written to a file (--summary-dir); --json prints the merged one.",
+    )
     add_settings_arguments(up, COMMAND_SETTINGS["up"])
     add_bridge_arguments(up)
-    up.add_argument("--plant", choices=["sim", "robot"], default="sim",
-                    help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint) "
-                         "(default: sim)")
-    up.add_argument("--mode", choices=["realtime", "lockstep"], default="realtime",
-                    help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)")
-    up.add_argument("--secure", action="store_true",
-                    help="Zenoh user/password login with fresh random credentials per role, and access rules "
-                         "at the router: only the actor publishes actions, the critic weights, the plant state; "
-                         "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA)")
+    up.add_argument(
+        "--plant",
+        choices=["sim", "robot"],
+        default="sim",
+        help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint) (default: sim)",
+    )
+    up.add_argument(
+        "--mode",
+        choices=["realtime", "lockstep"],
+        default="realtime",
+        help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)",
+    )
+    up.add_argument(
+        "--secure",
+        action="store_true",
+        help="Zenoh user/password login with fresh random credentials per role, and access rules "
+        "at the router: only the actor publishes actions, the critic weights, the plant state; "
+        "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA)",
+    )
     up.add_argument("--json", action="store_true", help="last stdout line: the merged summary as one JSON object")
-    up.add_argument("--summary-dir", type=Path, metavar="DIR",
-                    help="write each service's JSON summary to DIR/<service>.json (default: a fresh directory "
-                         "under the system's temporary directory, named in the summary)")
+    up.add_argument(
+        "--summary-dir",
+        type=Path,
+        metavar="DIR",
+        help="write each service's JSON summary to DIR/<service>.json (default: a fresh directory "
+        "under the system's temporary directory, named in the summary)",
+    )
     up.set_defaults(func=cmd_up)
 
     bench = command("bench", "benchmarks that print a table (and JSON)")
     bench.add_argument("what", choices=["actor", "loop", "bridge"])
-    bench.add_argument("--reference-horizons", default="12",
-                       help="actor: N values for the IPOPT reference rows ('' = none) (default: 12)")
-    bench.add_argument("--seconds", type=float, default=60.0,
-                       help="loop: real-time run length [s]; bridge: both phases together (default: 60)")
-    bench.add_argument("--critic-load", action="store_true",
-                       help="loop: the critic fits a replay of M = 1000 every step")
+    bench.add_argument(
+        "--reference-horizons",
+        default="12",
+        help="actor: N values for the IPOPT reference rows ('' = none) (default: 12)",
+    )
+    bench.add_argument(
+        "--seconds",
+        type=float,
+        default=60.0,
+        help="loop: real-time run length [s]; bridge: both phases together (default: 60)",
+    )
+    bench.add_argument(
+        "--critic-load", action="store_true", help="loop: the critic fits a replay of M = 1000 every step"
+    )
     add_settings_arguments(bench, COMMAND_SETTINGS["bench"])
     add_bridge_arguments(bench)
     bench.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
-    bench.add_argument("--steps", type=int, default=300,
-                       help="closed-loop steps per row (>= 300 for p99) (default: 300)")
+    bench.add_argument(
+        "--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99) (default: 300)"
+    )
     bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
-    bench.add_argument("--agents", default="mpc,rlq,rlqv,rlqv+",
-                       help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)")
+    bench.add_argument(
+        "--agents", default="mpc,rlq,rlqv,rlqv+", help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)"
+    )
     bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
     )
     bench.set_defaults(func=cmd_bench)
 
-    status = command("status", "the actor's live status line once a second (step, pose, J, weights, deadlines)",
-                     "The actor's live status line once a second, read from srl/<robot>/status/actor by a "
-                     "monitor session\n(any running system: srl up, the containers); until Ctrl-C or --seconds.")
+    status = command(
+        "status",
+        "the actor's live status line once a second (step, pose, J, weights, deadlines)",
+        "The actor's live status line once a second, read from srl/<robot>/status/actor by a "
+        "monitor session\n(any running system: srl up, the containers); until Ctrl-C or --seconds.",
+    )
     add_settings_arguments(status, COMMAND_SETTINGS["status"])
     status.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
-    status.add_argument("--connect-timeout", type=float, default=30.0,
-                        help="[s] wait this long for the router (default: 30)")
+    status.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
     status.set_defaults(func=cmd_status)
 
     # srl experiment paper (tools/experiment/runner.py): the paper's grid of runs, ratios and plots

@@ -58,20 +58,27 @@ def add_health_parser(sub: Any) -> None:
 
 
 def add_health_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("service", nargs="?", default="router",
-                        help="router (default); robot (the ROS 2 robot's graph); or a service whose token "
-                        "srl/<robot>/alive/<service> to look for (actor, critic, plant, robot_bridge)")
-    parser.add_argument("--key",
-                        help="instead: any liveliness token matching this key expression (default: the service's)")
-    parser.add_argument("--config", type=Path,
-                        help="a TOML file overriding common/srl.toml (any subset) (default: none)")
+    parser.add_argument(
+        "service",
+        nargs="?",
+        default="router",
+        help="router (default); robot (the ROS 2 robot's graph); or a service whose token "
+        "srl/<robot>/alive/<service> to look for (actor, critic, plant, robot_bridge)",
+    )
+    parser.add_argument(
+        "--key", help="instead: any liveliness token matching this key expression (default: the service's)"
+    )
+    parser.add_argument(
+        "--config", type=Path, help="a TOML file overriding common/srl.toml (any subset) (default: none)"
+    )
     parser.add_argument("--router", help="Zenoh router endpoint (default from config/environment)")
     parser.add_argument("--robot", help="robot id, the <robot> chunk of the key (default from config: tb3_0)")
     parser.add_argument("--timeout", type=float, default=2.0, help="[s] how long to wait for an answer (default: 2)")
 
 
-def transport_settings(config: Path | None = None, router: str | None = None,
-                       robot: str | None = None) -> dict[str, Any]:
+def transport_settings(
+    config: Path | None = None, router: str | None = None, robot: str | None = None
+) -> dict[str, Any]:
     """``router``, ``robot``, ``multicast_scouting``, ``connect``, ``secure`` as Settings resolves them."""
     files = [PACKAGED_CONFIG]
     user_file = config or os.environ.get("SRL_CONFIG")
@@ -114,8 +121,7 @@ def client_config(transport: dict[str, Any], config_file: Path | None = None) ->
         from common.settings import Settings
         from common.transport import zenoh_config
 
-        settings = Settings.load(config_file, transport={"router": transport["router"],
-                                                         "robot": transport["robot"]})
+        settings = Settings.load(config_file, transport={"router": transport["router"], "robot": transport["robot"]})
         return zenoh_config(settings.transport)
 
     config = zenoh.Config()
@@ -135,8 +141,9 @@ def robot_graph_pattern(config: Path | None) -> str:
     return str(RosGraph.from_settings(bridge).discovery_pattern(bridge.cmd_vel_topic))
 
 
-def check(transport: dict[str, Any], service: str, key: str | None, timeout: float,
-          config: Path | None = None) -> tuple[bool, str]:
+def check(
+    transport: dict[str, Any], service: str, key: str | None, timeout: float, config: Path | None = None
+) -> tuple[bool, str]:
     """(ready, what was found). An unreachable router or a missing token is an answer, not an error."""
     import zenoh
 

@@ -92,16 +92,16 @@ class WeightsInbox:
         self.source: str | None = None  # the critic session whose versions are held
         bounds = settings.critic.bounds
         self.box = bounds if bounds is not None else (-MAX_ABS_WEIGHT_UNBOXED, MAX_ABS_WEIGHT_UNBOXED)
-        self.held = HeldWeights(settings.initial_q_weights(), settings.initial_v_weights(), 0, -1,
-                                time.monotonic())
+        self.held = HeldWeights(settings.initial_q_weights(), settings.initial_v_weights(), 0, -1, time.monotonic())
 
     def reset(self, episode: int) -> HeldWeights:
         with self.cond:
             self.episode = episode
             self.published_step = -1
             self.source = None
-            self.held = HeldWeights(self.settings.initial_q_weights(), self.settings.initial_v_weights(),
-                                    0, -1, time.monotonic())
+            self.held = HeldWeights(
+                self.settings.initial_q_weights(), self.settings.initial_v_weights(), 0, -1, time.monotonic()
+            )
             return self.held
 
     def published(self, step: int) -> None:
@@ -112,22 +112,28 @@ class WeightsInbox:
         if self.gate is not None:
             verdict = self.gate.verdict(source)
             if verdict != "accept":
-                self.bus.reject("critic/weights", f"from session {source} ({verdict}: live critic "
-                                f"{self.gate.sources() or 'none'})")
+                self.bus.reject(
+                    "critic/weights", f"from session {source} ({verdict}: live critic {self.gate.sources() or 'none'})"
+                )
                 return
         low, high = self.box
         weights = (*message.q_weights, *message.v_weights)
         if min(weights) < low or max(weights) > high:
-            self.bus.reject("critic/weights", f"weights outside the box [{low:g}, {high:g}] "
-                            f"(min {min(weights):g}, max {max(weights):g}); keeping version {self.held.version}")
+            self.bus.reject(
+                "critic/weights",
+                f"weights outside the box [{low:g}, {high:g}] "
+                f"(min {min(weights):g}, max {max(weights):g}); keeping version {self.held.version}",
+            )
             return
         with self.cond:
             if message.episode != self.episode:
                 self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
                 return
             if message.trained_step > self.published_step:
-                self.bus.reject("critic/weights", f"trained on step {message.trained_step}, but the actor "
-                                f"published only up to {self.published_step}")
+                self.bus.reject(
+                    "critic/weights",
+                    f"trained on step {message.trained_step}, but the actor published only up to {self.published_step}",
+                )
                 return
             if message.version > time.time_ns() // 1000 + MAX_VERSION_AHEAD_US:
                 # critic versions count from the wall clock in microseconds: one far ahead is
@@ -142,8 +148,13 @@ class WeightsInbox:
                 log.info("critic session %s replaces %s: versions resynchronized", source, self.source)
                 self.bus.count("critic_resyncs")
             self.source = source
-            self.held = HeldWeights(np.array(message.q_weights), np.array(message.v_weights),
-                                    message.version, message.trained_step, time.monotonic())
+            self.held = HeldWeights(
+                np.array(message.q_weights),
+                np.array(message.v_weights),
+                message.version,
+                message.trained_step,
+                time.monotonic(),
+            )
             self.bus.count("weights_accepted")
             self.cond.notify_all()
 
@@ -181,13 +192,22 @@ class ZenohPlant:
 
     def reset(self, state: np.ndarray) -> np.ndarray:
         self.step_index = 0
-        reply = self._query(PLANT_RESET, ResetRequest(robot=self.robot, episode=self.episode,
-                                                      state=(float(state[0]), float(state[1]), float(state[2]))))
+        reply = self._query(
+            PLANT_RESET,
+            ResetRequest(
+                robot=self.robot, episode=self.episode, state=(float(state[0]), float(state[1]), float(state[2]))
+            ),
+        )
         return np.array(reply.state)
 
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
-        request = StepRequest(robot=self.robot, episode=self.episode, step=self.step_index,
-                              action=(float(action[0]), float(action[1])), duration=duration)
+        request = StepRequest(
+            robot=self.robot,
+            episode=self.episode,
+            step=self.step_index,
+            action=(float(action[0]), float(action[1])),
+            duration=duration,
+        )
         reply = self._query(PLANT_STEP, request)
         self.step_index += 1
         return np.array(reply.state)
@@ -209,26 +229,35 @@ class ZenohCriticPort:
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
         self.inbox.published(sample.step)
-        self.publish(Transition(robot=self.robot, episode=self.episode, step=sample.step,
-                                state=(float(sample.state[0]), float(sample.state[1]), float(sample.state[2])),
-                                action=(float(sample.action[0]), float(sample.action[1])),
-                                cost=float(sample.cost)))
+        self.publish(
+            Transition(
+                robot=self.robot,
+                episode=self.episode,
+                step=sample.step,
+                state=(float(sample.state[0]), float(sample.state[1]), float(sample.state[2])),
+                action=(float(sample.action[0]), float(sample.action[1])),
+                cost=float(sample.cost),
+            )
+        )
         needs_fit = self.settings.actor.agent != "mpc" and sample.step % self.settings.critic.update_every == 0
-        if self.sync and needs_fit and not self.inbox.wait_trained(
-            sample.step, self.settings.transport.critic_timeout
-        ):
+        if self.sync and needs_fit and not self.inbox.wait_trained(sample.step, self.settings.transport.critic_timeout):
             self.timeouts += 1
             self.bus.count("critic_timeouts")
-            log.warning("no weights trained on step %d within %.1f s; going on with version %d",
-                        sample.step, self.settings.transport.critic_timeout, self.inbox.current().version)
+            log.warning(
+                "no weights trained on step %d within %.1f s; going on with version %d",
+                sample.step,
+                self.settings.transport.critic_timeout,
+                self.inbox.current().version,
+            )
         held = self.inbox.current()
         # staleness of the weights the NEXT step will use: ideally trained on this step
         self.staleness.append(sample.step - held.trained_step)
         return held.q, held.v
 
 
-def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None,
-        sync_critic: bool) -> dict:
+def run(
+    settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None, sync_critic: bool
+) -> dict:
     robot = settings.transport.robot
     actor = build_actor(settings)  # built once, before the loop starts
     critic_gate = SourceGate("critic")
@@ -241,8 +270,9 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     return _run_realtime(settings, bus, actor, inbox, stop, duration)
 
 
-def _run_lockstep(settings: Settings, bus: Bus, actor: StackedActor, inbox: WeightsInbox,
-                  sync_critic: bool) -> dict[str, Any]:
+def _run_lockstep(
+    settings: Settings, bus: Bus, actor: StackedActor, inbox: WeightsInbox, sync_critic: bool
+) -> dict[str, Any]:
     bus.declare_alive(settings.transport.robot)
     bus.wait_alive(settings.transport.robot, "plant", timeout=30.0)
     if sync_critic and settings.actor.agent != "mpc":
@@ -251,23 +281,38 @@ def _run_lockstep(settings: Settings, bus: Bus, actor: StackedActor, inbox: Weig
     inbox.reset(episode_id)
     plant = ZenohPlant(settings, bus, episode_id)
     port = ZenohCriticPort(settings, bus, inbox, episode_id, sync_critic)
-    log.info("actor lockstep episode %d: %s, N = %d, %d steps", episode_id, settings.actor.agent,
-             settings.actor.horizon, settings.steps)
+    log.info(
+        "actor lockstep episode %d: %s, N = %d, %d steps",
+        episode_id,
+        settings.actor.agent,
+        settings.actor.horizon,
+        settings.steps,
+    )
     episode = run_episode(settings, actor=actor, plant=plant, critic=port)
     summary = episode_summary(episode, settings)
-    summary.update({
-        "service": "actor", "mode": "lockstep", "episode_id": episode_id,
-        "weights_version": inbox.current().version,
-        "staleness_steps": summarize(port.staleness) | {"max": float(max(port.staleness, default=0))},
-        "critic_timeouts": port.timeouts,
-        "trajectory": [[float(c) for c in s] for s in episode.states],
-        "counters": dict(bus.counters),
-    })
+    summary.update(
+        {
+            "service": "actor",
+            "mode": "lockstep",
+            "episode_id": episode_id,
+            "weights_version": inbox.current().version,
+            "staleness_steps": summarize(port.staleness) | {"max": float(max(port.staleness, default=0))},
+            "critic_timeouts": port.timeouts,
+            "trajectory": [[float(c) for c in s] for s in episode.states],
+            "counters": dict(bus.counters),
+        }
+    )
     return summary
 
 
-def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: WeightsInbox, stop: threading.Event,
-                  duration: float | None) -> dict[str, Any]:
+def _run_realtime(
+    settings: Settings,
+    bus: Bus,
+    actor: StackedActor,
+    inbox: WeightsInbox,
+    stop: threading.Event,
+    duration: float | None,
+) -> dict[str, Any]:
     robot = settings.transport.robot
     delta = settings.plant.sampling_time
     # A state older than this at a tick means the plant is silent: command zero. The last state
@@ -293,8 +338,11 @@ def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: Weig
                 latest["state"] = None  # follow neither of two plants
         if plant_gate.conflict:
             bus.count("plant_conflicts")
-            log.error("two plants are alive for robot %s (sessions %s): commanding zero velocity until one "
-                      "is gone", robot, ", ".join(plant_gate.sources()))
+            log.error(
+                "two plants are alive for robot %s (sessions %s): commanding zero velocity until one is gone",
+                robot,
+                ", ".join(plant_gate.sources()),
+            )
 
     def on_state(message: PlantState, source: str | None) -> None:
         verdict = plant_gate.verdict(source)
@@ -354,9 +402,14 @@ def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: Weig
         shown = latest["state"]  # for the live status line of `srl up`: pose and J so far
         pose = shown[0].state if shown is not None else (float("nan"),) * 3  # nan: left out
         return {
-            "x": pose[0], "y": pose[1], "alpha": pose[2], "accumulated_cost": math.fsum(costs),
-            "steps": counters["steps"], "missed_deadlines": ticker.missed,
-            "solver_failures": actor.counters.failures, "weights_version": held.version,
+            "x": pose[0],
+            "y": pose[1],
+            "alpha": pose[2],
+            "accumulated_cost": math.fsum(costs),
+            "steps": counters["steps"],
+            "missed_deadlines": ticker.missed,
+            "solver_failures": actor.counters.failures,
+            "weights_version": held.version,
             "staleness_steps": float(staleness_steps[-1]) if staleness_steps else 0.0,
             "solve_ms_last": actor.counters.solve_seconds[-1] * 1e3 if actor.counters.solve_seconds else 0.0,
             "plant_sources": float(len(plant_gate.sources())),
@@ -372,10 +425,12 @@ def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: Weig
         now = time.monotonic()
         return now - refused_at[0] < 1.0 and (held is None or now - held[1] > 1.0)
 
-
     def stop_robot(k: int) -> None:
-        publish_action(Action(robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(),
-                              action=(0.0, 0.0), state_seq=-1))
+        publish_action(
+            Action(
+                robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(), action=(0.0, 0.0), state_seq=-1
+            )
+        )
         actor.reset()  # the plan no longer matches the robot
 
     def step_once(k: int, tick: float, held_state: tuple[PlantState, float]) -> None:
@@ -387,17 +442,32 @@ def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: Weig
         weights = inbox.current()
         step = actor.step(state, weights.q, weights.v)
         action = (float(step.action[0]), float(step.action[1]))
-        publish_action(Action(robot=robot, episode=episode_id, step=k, stamp_ns=time.monotonic_ns(),
-                              action=action, state_seq=message.seq))
+        publish_action(
+            Action(
+                robot=robot,
+                episode=episode_id,
+                step=k,
+                stamp_ns=time.monotonic_ns(),
+                action=action,
+                state_seq=message.seq,
+            )
+        )
         done = time.monotonic()
         # transport/loop latency: state arrival -> action out, minus the solve itself
         latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
         cost = delta * float(stage_cost(state, step.action, settings.cost.r_diag))
         costs.append(cost)
         inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
-        publish_transition(Transition(robot=robot, episode=episode_id, step=k,
-                                      state=(float(state[0]), float(state[1]), float(state[2])),
-                                      action=action, cost=cost))
+        publish_transition(
+            Transition(
+                robot=robot,
+                episode=episode_id,
+                step=k,
+                state=(float(state[0]), float(state[1]), float(state[2])),
+                action=action,
+                cost=cost,
+            )
+        )
         publish_times[k] = time.monotonic()
         publish_times.pop(k - PUBLISH_TIMES_KEPT, None)
         tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
@@ -456,19 +526,34 @@ def _run_realtime(settings: Settings, bus: Bus, actor: StackedActor, inbox: Weig
     with state_lock:
         last = last_accepted["state"]
     # on the way out: stop the robot
-    publish_action(Action(robot=robot, episode=episode_id, step=ticker.index, stamp_ns=time.monotonic_ns(),
-                          action=(0.0, 0.0), state_seq=-1))
+    publish_action(
+        Action(
+            robot=robot,
+            episode=episode_id,
+            step=ticker.index,
+            stamp_ns=time.monotonic_ns(),
+            action=(0.0, 0.0),
+            state_seq=-1,
+        )
+    )
     jitter = [abs(p - delta) for p in periods]
     return {
-        "service": "actor", "mode": "realtime", "agent": settings.actor.agent,
-        "horizon": settings.actor.horizon, "episode_id": episode_id,
+        "service": "actor",
+        "mode": "realtime",
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+        "episode_id": episode_id,
         "steps": counters["steps"],
         "accumulated_cost": float(np.sum(costs)),
         "start_state": None if start_state is None else [float(c) for c in start_state],
         "final_state": None if last is None else [float(c) for c in last.state],
         "weights_version": inbox.current().version,
-        "loop": {"period_ms": summarize(periods, 1e3), "jitter_ms": summarize(jitter, 1e3),
-                 "missed_deadlines": ticker.missed, "late_ticks": ticker.late},
+        "loop": {
+            "period_ms": summarize(periods, 1e3),
+            "jitter_ms": summarize(jitter, 1e3),
+            "missed_deadlines": ticker.missed,
+            "late_ticks": ticker.late,
+        },
         "solve_ms": summarize(actor.counters.solve_seconds, 1e3),
         "solver_failures": actor.counters.failures,
         "latency_ms": summarize(latencies, 1e3),

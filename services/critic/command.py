@@ -13,13 +13,18 @@ HELP = "the off-board critic learner (TD least squares)"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
-    add_lifetime_arguments(parser, "stop after this long (default: until signalled; a lockstep actor stops "
-                                   "after one episode)")
+    add_lifetime_arguments(
+        parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
+    )
     parser.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     from services.critic.service import run
 
-    return serve(settings_from_args(args), "critic", args.connect_timeout,
-                 lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds))
+    return serve(
+        settings_from_args(args),
+        "critic",
+        args.connect_timeout,
+        lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
+    )

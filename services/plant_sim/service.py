@@ -48,8 +48,12 @@ class SimulatedPlant:
     def _message(self) -> PlantState:
         self.seq += 1
         return PlantState(
-            robot=self.robot, episode=self.episode, seq=self.seq, stamp_ns=time.monotonic_ns(),
-            state=(float(self.state[0]), float(self.state[1]), float(self.state[2])), source="sim",
+            robot=self.robot,
+            episode=self.episode,
+            seq=self.seq,
+            stamp_ns=time.monotonic_ns(),
+            state=(float(self.state[0]), float(self.state[1]), float(self.state[2])),
+            source="sim",
         )
 
     def clamp(self, action: tuple[float, float]) -> np.ndarray:
@@ -91,8 +95,10 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     # make the actor follow one robot's states while commanding another
     others = bus.live_identities(robot, "plant")
     if others:
-        raise PlantConflictError(f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
-                                 "one plant per robot; stop it first")
+        raise PlantConflictError(
+            f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
+            "one plant per robot; stop it first"
+        )
     publish_state = bus.publisher(STATE, robot)
     if mode == "lockstep":  # real time: nobody may teleport or step the robot (the queryables do not exist)
         bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
@@ -130,8 +136,12 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.count("missed_ticks", ticker.missed)
     else:
         stop.wait(duration)
-    return {"service": "plant", "mode": mode, "final_state": [float(c) for c in plant.state],
-            "counters": dict(bus.counters)}
+    return {
+        "service": "plant",
+        "mode": mode,
+        "final_state": [float(c) for c in plant.state],
+        "counters": dict(bus.counters),
+    }
 
 
 def _publish(publish_state: Callable[[PlantState], None], message: PlantState) -> PlantState:

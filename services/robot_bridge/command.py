@@ -21,5 +21,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     from services.robot_bridge.service import run
 
-    return serve(settings_from_args(args), "plant", args.connect_timeout,
-                 lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds))
+    return serve(
+        settings_from_args(args),
+        "plant",
+        args.connect_timeout,
+        lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
+    )
