@@ -19,7 +19,7 @@ from common.assembly import build_actor
 from common.dynamics import euler_step
 from common.features import phi_q, phi_v, stage_cost
 from common.settings import Settings
-from services import bench_actor
+from tools.bench import actor as bench_actor
 from tools.bench.actor import (
     NumpyObjective,
     compare_objectives,
