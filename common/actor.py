@@ -36,6 +36,7 @@ import numpy as np
 
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.features import feature_count, phi_q, phi_v, stage_cost
+from common.stats import Window
 
 log = logging.getLogger(__name__)
 
@@ -104,9 +105,11 @@ class ActorStep:
 
 @dataclass
 class ActorCounters:
+    """Solves, failures and the step times (a fixed window: an actor runs for days)."""
+
     solves: int = 0
     failures: int = 0
-    solve_seconds: list[float] = field(default_factory=list)
+    solve_seconds: Window = field(default_factory=Window)
 
 
 # The C compiler runs through this wrapper (CasADi's shell compiler calls system(), which

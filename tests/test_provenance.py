@@ -16,7 +16,7 @@ import pytest
 from common.messages import CriticWeights
 from common.provenance import SequenceGuard, SourceGate
 from common.settings import Settings
-from services.actor.service import MAX_VERSION_AHEAD_US, WeightsInbox
+from services.actor.ports import MAX_VERSION_AHEAD_US, WeightsInbox
 
 CRITIC, ROGUE, RESTARTED = "aa01", "bb02", "cc03"
 EPISODE = 17
