@@ -36,6 +36,7 @@ import numpy as np
 
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.features import feature_count, phi_q, phi_v, stage_cost
+from common.stats import Window
 
 log = logging.getLogger(__name__)
 
@@ -74,9 +75,7 @@ class ActorProblem:
             raise ValueError(f"horizon N must be >= 2 (N - 1 >= 1 actions), got {self.horizon}")
         if not (np.isfinite(self.sampling_time) and self.sampling_time > 0):
             raise ValueError(f"sampling_time must be a positive number, got {self.sampling_time}")
-        if len(self.cost_diag) != STATE_DIM + ACTION_DIM or not all(
-            np.isfinite(c) and c >= 0 for c in self.cost_diag
-        ):
+        if len(self.cost_diag) != STATE_DIM + ACTION_DIM or not all(np.isfinite(c) and c >= 0 for c in self.cost_diag):
             raise ValueError(f"cost_diag must be 5 finite non-negative numbers, got {self.cost_diag}")
         for name in ("v_max", "omega_max"):
             value = getattr(self, name)
@@ -106,9 +105,11 @@ class ActorStep:
 
 @dataclass
 class ActorCounters:
+    """Solves, failures and the step times (a fixed window: an actor runs for days)."""
+
     solves: int = 0
     failures: int = 0
-    solve_seconds: list[float] = field(default_factory=list)
+    solve_seconds: Window = field(default_factory=Window)
 
 
 # The C compiler runs through this wrapper (CasADi's shell compiler calls system(), which
@@ -226,8 +227,10 @@ class _SigintKeeper:
         def keep() -> None:
             current = ctypes.create_string_buffer(256)
             while not self._done.wait(0.01):
-                if libc.sigaction(signal.SIGINT, None, current) == 0 and \
-                        ctypes.c_void_p.from_buffer(current).value == 1:  # SIG_IGN: system() runs gcc
+                if (
+                    libc.sigaction(signal.SIGINT, None, current) == 0
+                    and ctypes.c_void_p.from_buffer(current).value == 1
+                ):  # SIG_IGN: system() runs gcc
                     libc.sigaction(signal.SIGINT, saved, None)
 
         self._thread = threading.Thread(target=keep, name="jit-sigint", daemon=True)
@@ -239,7 +242,7 @@ class _SigintKeeper:
             self._thread.join(timeout=1.0)
 
 
-def _build_signal(signals: str, error: Exception) -> Exception:
+def _build_signal(signals: str, error: Exception) -> BaseException:
     """The failed build's error, or :class:`BuildInterrupted` if a signal ended it."""
     try:
         with open(signals, "rb") as file:
@@ -277,12 +280,20 @@ class StackedActor:
         self._f_out = np.zeros(1)
         self._buffer, self._evaluate = self._solver.buffer()
         for index, array in enumerate(
-            (self._x0, self._params, self._lbx_np, self._ubx_np, self._zeros_g, self._zeros_g, self._zeros_x,
-             self._zeros_g)
+            (
+                self._x0,
+                self._params,
+                self._lbx_np,
+                self._ubx_np,
+                self._zeros_g,
+                self._zeros_g,
+                self._zeros_x,
+                self._zeros_g,
+            )
         ):
-            self._buffer.set_arg(index, memoryview(array))
-        self._buffer.set_res(0, memoryview(self._x_out))
-        self._buffer.set_res(1, memoryview(self._f_out))
+            self._buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._buffer.set_res(0, memoryview(self._x_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._buffer.set_res(1, memoryview(self._f_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
         self._action_bounds = np.array([problem.v_max, problem.omega_max])
         # The warm-start merit, called the same zero-copy way: (s_1, actions, weights) -> cost.
         self._merit_state = np.zeros(STATE_DIM)
@@ -290,8 +301,8 @@ class StackedActor:
         self._merit_out = np.zeros(1)
         self._merit_buffer, self._evaluate_merit = self._merit.buffer()
         for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
-            self._merit_buffer.set_arg(index, memoryview(array))
-        self._merit_buffer.set_res(0, memoryview(self._merit_out))
+            self._merit_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._merit_buffer.set_res(0, memoryview(self._merit_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
 
     # -- construction -------------------------------------------------------------------
     def _objective(self, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:
@@ -381,16 +392,26 @@ class StackedActor:
 
         name = f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}"
         started = time.perf_counter()
-        log.log(logging.WARNING if p.horizon > 30 else logging.INFO,  # large N: the build takes a while
-                "building the actor problem (N = %d, agent %s, solver %s%s) ...", p.horizon, p.agent, p.solver,
-                 ", JIT-compiled with the C compiler" if jit else "")
+        log.log(
+            logging.WARNING if p.horizon > 30 else logging.INFO,  # large N: the build takes a while
+            "building the actor problem (N = %d, agent %s, solver %s%s) ...",
+            p.horizon,
+            p.agent,
+            p.solver,
+            ", JIT-compiled with the C compiler" if jit else "",
+        )
         with _in_jit_directory() if jit else contextlib.nullcontext() as compiler:
             solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
             self._merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
         elapsed = time.perf_counter() - started
         # a long build is worth a line at the default level; a usual one (N = 12: ~1 s) is not
-        log.log(logging.WARNING if elapsed > 10.0 else logging.INFO if elapsed > 1.0 else logging.DEBUG,
-                "built the actor problem (N = %d, agent %s) in %.1f s", p.horizon, p.agent, elapsed)
+        log.log(
+            logging.WARNING if elapsed > 10.0 else logging.INFO if elapsed > 1.0 else logging.DEBUG,
+            "built the actor problem (N = %d, agent %s) in %.1f s",
+            p.horizon,
+            p.agent,
+            elapsed,
+        )
         return solver, np.array(lbx, dtype=float), np.array(ubx, dtype=float), n_g
 
     # -- stepping -----------------------------------------------------------------------

@@ -65,7 +65,7 @@ def remove_stale_temporaries(path: Path) -> list[Path]:
     except OSError:
         return removed
     for candidate in candidates:
-        middle = candidate.name[len(prefix):-len(".tmp")]
+        middle = candidate.name[len(prefix) : -len(".tmp")]
         pid_text = middle.split(".", 1)[0] if "." in middle else ""
         if pid_text.isdigit() and int(pid_text) != os.getpid() and _pid_alive(int(pid_text)):
             continue  # a live writer's file, about to be renamed
@@ -124,4 +124,3 @@ def from_runs(runs: Iterable[Iterable[int]]) -> set[int]:
             raise CheckpointError(f"bad run [{first}, {last}]")
         steps.update(range(first, last + 1))
     return steps
-

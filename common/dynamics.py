@@ -21,7 +21,7 @@ STATE_DIM = 3
 ACTION_DIM = 2
 
 
-def _is_symbolic(value: Any) -> bool:
+def is_symbolic(value: Any) -> bool:
     # CasADi types are detected by duck typing so that this module never needs casadi
     # for numeric use (the plant); the actor passes SX/MX symbols.
     return type(value).__module__.startswith("casadi")
@@ -31,7 +31,7 @@ def unicycle_rhs(state: Any, action: Any) -> Any:
     """``f(s, u) = (v cos alpha, v sin alpha, omega)``; numpy arrays or CasADi symbols."""
     alpha = state[2]
     v, omega = action[0], action[1]
-    if _is_symbolic(state) or _is_symbolic(action):
+    if is_symbolic(state) or is_symbolic(action):
         import casadi as ca
 
         return ca.vertcat(v * ca.cos(alpha), v * ca.sin(alpha), omega)
@@ -70,9 +70,7 @@ def exact_step(state: FloatArray, action: FloatArray, duration: float) -> FloatA
     half_turn = omega * duration / 2.0
     chord = v * duration * float(np.sinc(half_turn / np.pi))
     mid_heading = alpha + half_turn
-    return np.array(
-        [x + chord * np.cos(mid_heading), y + chord * np.sin(mid_heading), alpha + omega * duration]
-    )
+    return np.array([x + chord * np.cos(mid_heading), y + chord * np.sin(mid_heading), alpha + omega * duration])
 
 
 def heading_away_from_target(x: float, y: float) -> float:

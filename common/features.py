@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from common.dynamics import _is_symbolic
+from common.dynamics import is_symbolic
 
 
 def feature_count(dim: int) -> int:
@@ -30,7 +30,7 @@ def quadratic_features(z: Any) -> Any:
     """``concat_{k=0}^{n-1} concat_{i-j=k} (z z^T)_{ij}`` for numpy or CasADi ``z``."""
     dim = int(z.shape[0])
     products = [z[i] * z[j] for i, j in feature_index_pairs(dim)]
-    if _is_symbolic(z):
+    if is_symbolic(z):
         import casadi as ca
 
         return ca.vertcat(*products)
@@ -44,7 +44,8 @@ def quadratic_feature_rows(z: np.ndarray) -> np.ndarray:
     """
     z = np.asarray(z, dtype=float)
     rows, cols = _index_arrays(z.shape[1])
-    return z[:, rows] * z[:, cols]
+    features: np.ndarray = z[:, rows] * z[:, cols]
+    return features
 
 
 @functools.cache
@@ -66,7 +67,7 @@ def phi_v_rows(states: np.ndarray) -> np.ndarray:
 
 def phi_q(state: Any, action: Any) -> Any:
     """Q-critic features ``phi_Q(s, u)`` (15 for the unicycle)."""
-    if _is_symbolic(state) or _is_symbolic(action):
+    if is_symbolic(state) or is_symbolic(action):
         import casadi as ca
 
         return quadratic_features(ca.vertcat(state, action))
@@ -75,7 +76,7 @@ def phi_q(state: Any, action: Any) -> Any:
 
 def phi_v(state: Any) -> Any:
     """Value-critic features ``phi_V(s)`` (6 for the unicycle)."""
-    return quadratic_features(state if _is_symbolic(state) else np.asarray(state, float))
+    return quadratic_features(state if is_symbolic(state) else np.asarray(state, float))
 
 
 def stage_cost(state: Any, action: Any, cost_diag: Any) -> Any:

@@ -60,8 +60,7 @@ def to_goal_frame(pose: Pose2D, goal: Pose2D) -> Pose2D:
 def from_goal_frame(state: Pose2D, goal: Pose2D) -> Pose2D:
     """Inverse of :func:`to_goal_frame`: a goal-frame state expressed in the odom frame."""
     c, s = math.cos(goal.theta), math.sin(goal.theta)
-    return Pose2D(goal.x + c * state.x - s * state.y, goal.y + s * state.x + c * state.y,
-                  state.theta + goal.theta)
+    return Pose2D(goal.x + c * state.x - s * state.y, goal.y + s * state.x + c * state.y, state.theta + goal.theta)
 
 
 def clamp_command(v: float, omega: float, v_max: float, omega_max: float) -> tuple[float, float]:

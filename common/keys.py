@@ -85,8 +85,9 @@ def identity_key(robot: str, service: str, zid: str) -> str:
     Declared beside :func:`liveliness_key` by every service (common.transport.Bus.declare_alive);
     a receiver accepts a plant's states, an actor's actions or a critic's weights only from a
     session whose identity token is live (common.provenance.SourceGate)."""
-    return IDENTITY.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"),
-                           zid=check_chunk(zid, "zid"))
+    return IDENTITY.format(
+        robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"), zid=check_chunk(zid, "zid")
+    )
 
 
 def identity_pattern(robot: str, service: str) -> str:

@@ -15,11 +15,10 @@ from typing import Protocol
 
 import numpy as np
 
-from common.actor import ActorProblem, StackedActor
+from common.actor import StackedActor
 from common.critic import DoubleCritic, Replay, Sample
 from common.dynamics import exact_step
 from common.features import stage_cost
-from common.settings import Settings
 
 log = logging.getLogger(__name__)
 
@@ -52,21 +51,32 @@ class ExactPlant:
 
 
 class LocalCritic:
-    """The critic learner in process: replay of size M and a TD fit every ``update_every``."""
+    """The critic learner in process: replay of size M and a TD fit every ``update_every``.
 
-    def __init__(self, settings: Settings, learn: bool = True) -> None:
-        self.settings = settings
+    Built from settings by :func:`common.assembly.local_critic`; here only numbers and arrays."""
+
+    def __init__(
+        self,
+        q_init: np.ndarray,
+        v_init: np.ndarray,
+        discount: float,
+        ridge: float,
+        bounds: tuple[float, float] | None,
+        replay_size: int,
+        update_every: int,
+        learn: bool = True,
+    ) -> None:
+        self.q_init, self.v_init = q_init, v_init
+        self.discount, self.ridge, self.bounds = discount, ridge, bounds
+        self.update_every = update_every
         self.learn = learn
         self.critic = self._fresh_critic()
-        self.replay = Replay(settings.critic.replay_size)
+        self.replay = Replay(replay_size)
         self.updates = 0
         self.last_residuals = (float("nan"), float("nan"))  # of the newest fit (Q, V)
 
     def _fresh_critic(self) -> DoubleCritic:
-        s = self.settings
-        return DoubleCritic(
-            s.initial_q_weights(), s.initial_v_weights(), s.discount, s.critic.ridge, s.critic.bounds
-        )
+        return DoubleCritic(self.q_init, self.v_init, self.discount, self.ridge, self.bounds)
 
     def reset(self) -> tuple[np.ndarray, np.ndarray]:
         self.critic = self._fresh_critic()
@@ -77,32 +87,11 @@ class LocalCritic:
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
         self.replay.add(sample)
         self.last_residuals = (float("nan"), float("nan"))
-        if self.learn and sample.step % self.settings.critic.update_every == 0:
+        if self.learn and sample.step % self.update_every == 0:
             update = self.critic.update(self.replay)
             self.last_residuals = (float(update.q.residual), float(update.v.residual))
             self.updates += 1
         return self.critic.q_weights, self.critic.v_weights
-
-
-def build_actor(settings: Settings) -> StackedActor:
-    a, p = settings.actor, settings.plant
-    return StackedActor(
-        ActorProblem(
-            agent=a.agent,
-            horizon=a.horizon,
-            sampling_time=p.sampling_time,
-            cost_diag=tuple(settings.cost.r_diag),
-            v_max=p.v_max,
-            omega_max=p.omega_max,
-            predictor=a.predictor,
-            solver=a.solver,
-            jit=a.jit,
-            max_iter=a.max_iter,
-            tolerance=a.tolerance,
-            mu_init=a.mu_init,
-            bound_push=a.bound_push,
-        )
-    )
 
 
 @dataclass
@@ -136,30 +125,30 @@ class Episode:
         return self.states[-1]
 
 
-def run_episode(
-    settings: Settings,
-    actor: StackedActor | None = None,
-    plant: Plant | None = None,
-    critic: CriticPort | None = None,
+def run_algorithm1(
+    actor: StackedActor,
+    plant: Plant,
+    critic: CriticPort,
+    start: np.ndarray,
+    steps: int,
+    sampling_time: float,
+    r_diag: tuple[float, ...],
     stop: threading.Event | None = None,
 ) -> Episode:
-    """Algorithm 1 for ``settings.steps`` sampling intervals from ``settings.start_state()``.
+    """Algorithm 1 for ``steps`` sampling intervals from ``start`` (the paper's lines 4-6).
 
     ``stop`` (set by a signal handler) ends the episode between two steps: a signal never
-    interrupts a solve or a fit half way (CasADi callbacks cannot take an exception)."""
-    actor = actor or build_actor(settings)
-    plant = plant or ExactPlant()
-    critic = critic or LocalCritic(settings, learn=settings.actor.agent != "mpc")
-    delta = settings.plant.sampling_time
-    r_diag = settings.cost.r_diag
-
+    interrupts a solve or a fit half way (CasADi callbacks cannot take an exception).
+    :func:`common.assembly.run_episode` runs it from settings."""
+    delta = sampling_time
+    agent, horizon = actor.problem.agent, actor.problem.horizon
     actor.reset()
     failures_before = actor.counters.failures
     q_weights, v_weights = critic.reset()
-    state = plant.reset(settings.start_state())
-    episode = Episode(agent=settings.actor.agent, horizon=settings.actor.horizon, states=[state])
-    log.info("episode started: %s, N = %d, %d steps", settings.actor.agent, settings.actor.horizon, settings.steps)
-    for k in range(settings.steps):
+    state = plant.reset(start)
+    episode = Episode(agent=agent, horizon=horizon, states=[state])
+    log.info("episode started: %s, N = %d, %d steps", agent, horizon, steps)
+    for k in range(steps):
         if stop is not None and stop.is_set():
             break
         episode.q_weights.append(np.array(q_weights, dtype=float))
@@ -176,23 +165,3 @@ def run_episode(
         state = next_state
     episode.solver_failures = actor.counters.failures - failures_before
     return episode
-
-
-def episode_summary(episode: Episode, settings: Settings) -> dict[str, object]:
-    """The JSON-ready summary of a run (the contract of ``srl run --json``)."""
-    from common.stats import summarize
-
-    final = episode.final_state
-    return {
-        "agent": episode.agent,
-        "horizon": episode.horizon,
-        "steps": episode.steps,
-        "episode_seconds": episode.steps * settings.plant.sampling_time,
-        "accumulated_cost": episode.accumulated_cost,
-        "start_state": [float(c) for c in episode.states[0]],
-        "final_state": [float(c) for c in final],
-        "final_distance": float(np.hypot(final[0], final[1])),
-        "solve_ms": summarize(episode.solve_seconds, scale=1e3),
-        "solver_failures": episode.solver_failures,
-        "settings": settings.as_dict(),
-    }

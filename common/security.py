@@ -83,8 +83,13 @@ class Rule:
     keys: tuple[str, ...]
 
     def as_zenoh(self, rule_id: str) -> dict[str, Any]:
-        return {"id": rule_id, "messages": list(self.messages), "flows": [self.flow], "permission": "allow",
-                "key_exprs": list(self.keys)}
+        return {
+            "id": rule_id,
+            "messages": list(self.messages),
+            "flows": [self.flow],
+            "permission": "allow",
+            "key_exprs": list(self.keys),
+        }
 
 
 def publish(*keys: str) -> list[Rule]:
@@ -108,8 +113,10 @@ def token(*keys: str) -> list[Rule]:
 
 
 def watch(*keys: str) -> list[Rule]:
-    return [Rule("watch", "ingress", ("liveliness_query", "declare_liveliness_subscriber"), keys),
-            Rule("watch", "egress", ("liveliness_token",), keys)]
+    return [
+        Rule("watch", "ingress", ("liveliness_query", "declare_liveliness_subscriber"), keys),
+        Rule("watch", "egress", ("liveliness_token",), keys),
+    ]
 
 
 def advanced_publish(key: str) -> list[Rule]:
@@ -124,8 +131,9 @@ def advanced_read(key: str) -> list[Rule]:
     return [*read(key, adv), *query(adv), Rule("query history", "egress", ("reply",), (key,)), *watch(adv)]
 
 
-DISCOVERY = Rule("discover", "egress", ("declare_subscriber", "declare_queryable", "query"),
-                 (ALL_KEYS, advanced_pattern(ALL_KEYS)))
+DISCOVERY = Rule(
+    "discover", "egress", ("declare_subscriber", "declare_queryable", "query"), (ALL_KEYS, advanced_pattern(ALL_KEYS))
+)
 
 
 def role_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
@@ -145,6 +153,7 @@ def role_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
 
     def own(service: str) -> tuple[str, str]:  # a service's liveliness and identity tokens
         return key(ALIVE, service), key(ALIVE, service) + "/*"
+
     return {
         "actor": [
             *publish(key(ACTION.pattern), key(STATUS.pattern, "actor")),
@@ -209,18 +218,25 @@ class Credentials:
     def router_environment(self, *, lockstep: bool = False) -> dict[str, str]:
         """Environment (SRL_<SECTION>__<NAME> settings) of the secure router; ``lockstep`` lets the
         actor query (and the plant serve) plant/step and plant/reset (``transport.plant_queries``)."""
-        return {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USERS_FILE": str(self.users_file),
-                "SRL_TRANSPORT__PLANT_QUERIES": "true" if lockstep else "false"}
+        return {
+            "SRL_TRANSPORT__SECURE": "true",
+            "SRL_TRANSPORT__USERS_FILE": str(self.users_file),
+            "SRL_TRANSPORT__PLANT_QUERIES": "true" if lockstep else "false",
+        }
 
     def role_environment(self, role: str) -> dict[str, str]:
         """Environment of a process that logs in as ``role``."""
-        return {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USER": role,
-                "SRL_TRANSPORT__PASSWORD_FILE": str(self.password_files[role])}
+        return {
+            "SRL_TRANSPORT__SECURE": "true",
+            "SRL_TRANSPORT__USER": role,
+            "SRL_TRANSPORT__PASSWORD_FILE": str(self.password_files[role]),
+        }
 
     def transport(self, transport: TransportSettings, role: str) -> TransportSettings:
         """``transport`` as seen by a process in this process that logs in as ``role``."""
-        return transport.model_copy(update={"secure": True, "user": role,
-                                            "password_file": str(self.password_files[role])})
+        return transport.model_copy(
+            update={"secure": True, "user": role, "password_file": str(self.password_files[role])}
+        )
 
 
 def _write_private(path: Path, text: str) -> None:
@@ -267,15 +283,16 @@ def client_credentials(transport: TransportSettings) -> tuple[str, str]:
     """(user, password) of this process: ``transport.user`` and ``transport.password``
     (``SRL_TRANSPORT__PASSWORD``) or else the first line of ``transport.password_file``."""
     if not transport.user:
-        raise SecurityError("transport.secure needs transport.user (SRL_TRANSPORT__USER): one of "
-                            + ", ".join(ROLES))
+        raise SecurityError("transport.secure needs transport.user (SRL_TRANSPORT__USER): one of " + ", ".join(ROLES))
     password = transport.password.get_secret_value()
     if not password and transport.password_file:
         lines = _read_secret_file(transport.password_file, "password file").splitlines()
         password = lines[0].strip() if lines else ""
     if not password:
-        raise SecurityError(f"transport.secure: no password for user {transport.user!r}: set "
-                            "transport.password_file or SRL_TRANSPORT__PASSWORD")
+        raise SecurityError(
+            f"transport.secure: no password for user {transport.user!r}: set "
+            "transport.password_file or SRL_TRANSPORT__PASSWORD"
+        )
     return transport.user, password
 
 
@@ -284,12 +301,15 @@ def zenoh_entries(transport: TransportSettings, *, router: bool) -> dict[str, An
     against ``transport.users_file`` and enforces :func:`acl_config`; a client logs in."""
     if router:
         if not transport.users_file:
-            raise SecurityError("a secure router needs transport.users_file (SRL_TRANSPORT__USERS_FILE): "
-                                "'user:password' lines")
+            raise SecurityError(
+                "a secure router needs transport.users_file (SRL_TRANSPORT__USERS_FILE): 'user:password' lines"
+            )
         users_file = Path(transport.users_file).expanduser()
         _read_secret_file(str(users_file), "users file")  # fail here with a clear message
-        return {"transport/auth/usrpwd/dictionary_file": str(users_file),
-                "access_control": acl_config(transport.robot, lockstep=transport.plant_queries)}
+        return {
+            "transport/auth/usrpwd/dictionary_file": str(users_file),
+            "access_control": acl_config(transport.robot, lockstep=transport.plant_queries),
+        }
     user, password = client_credentials(transport)
     return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}
 
@@ -303,7 +323,7 @@ def endpoint_host(endpoint: str) -> tuple[str, str]:
     protocol, _, rest = endpoint.partition("/")
     address = rest.split("#", 1)[0].split("?", 1)[0]
     if address.startswith("["):  # [v6]:port
-        return protocol, address[1:address.find("]")]
+        return protocol, address[1 : address.find("]")]
     return protocol, address.rsplit(":", 1)[0] if ":" in address else address
 
 
@@ -326,8 +346,11 @@ def check_network_exposure(transport: TransportSettings, listen: list[str]) -> N
     exposed = [endpoint for endpoint in listen if not is_loopback(endpoint)]
     if not exposed or transport.allow_insecure_network:
         if exposed:
-            log.warning("router listens on %s without the secure-network checks (allow_insecure_network): "
-                        "only safe inside a private container network", ", ".join(exposed))
+            log.warning(
+                "router listens on %s without the secure-network checks (allow_insecure_network): "
+                "only safe inside a private container network",
+                ", ".join(exposed),
+            )
         return
     problems = []
     if not transport.secure:
@@ -340,9 +363,11 @@ def check_network_exposure(transport: TransportSettings, listen: list[str]) -> N
     if problems:
         raise SecurityError(
             f"refusing to run a router on {', '.join(exposed)}, reachable from the network: "
-            + "; ".join(problems) + ". Use a loopback endpoint, or secure = true with a tls/ endpoint and "
+            + "; ".join(problems)
+            + ". Use a loopback endpoint, or secure = true with a tls/ endpoint and "
             "certificates (README, Security), or allow_insecure_network = true ONLY inside a private "
-            "container network")
+            "container network"
+        )
 
 
 def tls_entries(transport: TransportSettings, *, router: bool) -> dict[str, Any]:
@@ -354,8 +379,10 @@ def tls_entries(transport: TransportSettings, *, router: bool) -> dict[str, Any]
         if path and not Path(path).expanduser().is_file():
             raise SecurityError(f"transport.{name}: {path} is not a file")
     if not transport.tls_ca:
-        raise SecurityError("a tls/ endpoint needs transport.tls_ca (SRL_TRANSPORT__TLS_CA): the CA certificate "
-                            "(srl certs --out DIR writes ca.pem)")
+        raise SecurityError(
+            "a tls/ endpoint needs transport.tls_ca (SRL_TRANSPORT__TLS_CA): the CA certificate "
+            "(srl certs --out DIR writes ca.pem)"
+        )
     if transport.tls_key:
         _read_secret_file(transport.tls_key, "TLS private key")  # warns if others may read it
     entries: dict[str, Any] = {"transport/link/tls/root_ca_certificate": str(Path(transport.tls_ca).expanduser())}
@@ -363,14 +390,28 @@ def tls_entries(transport: TransportSettings, *, router: bool) -> dict[str, Any]
     key = str(Path(transport.tls_key).expanduser()) if transport.tls_key else ""
     if router:
         if not (cert and key):
-            raise SecurityError("a router on a tls/ endpoint needs transport.tls_cert and tls_key "
-                                "(srl certs writes router.pem and router.key)")
-        entries.update({"transport/link/tls/listen_certificate": cert, "transport/link/tls/listen_private_key": key,
-                        "transport/link/tls/enable_mtls": transport.tls_mtls})
+            raise SecurityError(
+                "a router on a tls/ endpoint needs transport.tls_cert and tls_key "
+                "(srl certs writes router.pem and router.key)"
+            )
+        entries.update(
+            {
+                "transport/link/tls/listen_certificate": cert,
+                "transport/link/tls/listen_private_key": key,
+                "transport/link/tls/enable_mtls": transport.tls_mtls,
+            }
+        )
     elif transport.tls_mtls and not (cert and key):
-        raise SecurityError("mutual TLS (transport.tls_mtls) needs this process's transport.tls_cert and tls_key "
-                            "(srl certs writes <role>.pem and <role>.key)")
+        raise SecurityError(
+            "mutual TLS (transport.tls_mtls) needs this process's transport.tls_cert and tls_key "
+            "(srl certs writes <role>.pem and <role>.key)"
+        )
     if cert and key:  # outgoing links: a client's identity, a router's links to other routers
-        entries.update({"transport/link/tls/connect_certificate": cert, "transport/link/tls/connect_private_key": key,
-                        "transport/link/tls/enable_mtls": transport.tls_mtls})
+        entries.update(
+            {
+                "transport/link/tls/connect_certificate": cert,
+                "transport/link/tls/connect_private_key": key,
+                "transport/link/tls/enable_mtls": transport.tls_mtls,
+            }
+        )
     return entries

@@ -37,8 +37,10 @@ MAX_HORIZON = 100
 WORKSPACE_HALF_WIDTH = 10.0
 MAX_START = 1e4
 # Endpoints as Zenoh spells them: <protocol>/<address>, e.g. tcp/127.0.0.1:7447, tls/host:7447.
-_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):[0-9]{1,5}([?#].*)?$"
-                       r"|^unixsock-stream/\S+$")
+_ENDPOINT = re.compile(
+    r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):[0-9]{1,5}([?#].*)?$"
+    r"|^unixsock-stream/\S+$"
+)
 
 
 def check_endpoint(value: str, name: str, listen: bool = False) -> str:
@@ -47,8 +49,10 @@ def check_endpoint(value: str, name: str, listen: bool = False) -> str:
     match = _ENDPOINT.match(value)
     lowest = 0 if listen else 1
     if not match or (match.group(1) and not lowest <= int(value.rsplit(":", 1)[1].split("?")[0].split("#")[0]) < 65536):
-        raise ValueError(f"{name} must be a Zenoh endpoint <protocol>/<host>:<port>, e.g. tcp/127.0.0.1:7447 "
-                         f"(protocols tcp, udp, tls, quic, ws; or unixsock-stream/<path>), got {value!r}")
+        raise ValueError(
+            f"{name} must be a Zenoh endpoint <protocol>/<host>:<port>, e.g. tcp/127.0.0.1:7447 "
+            f"(protocols tcp, udp, tls, quic, ws; or unixsock-stream/<path>), got {value!r}"
+        )
     return value
 
 
@@ -100,8 +104,10 @@ class CriticSettings(_Section):
     @classmethod
     def _robots(cls, v: str) -> str:
         if v != "*" and not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", v):
-            raise ValueError(f"critic.robots must be '*' (every robot) or one robot id "
-                             f"(1-64 characters of A-Z a-z 0-9 _ -), got {v!r}")
+            raise ValueError(
+                f"critic.robots must be '*' (every robot) or one robot id "
+                f"(1-64 characters of A-Z a-z 0-9 _ -), got {v!r}"
+            )
         return v
 
     @model_validator(mode="after")
@@ -134,8 +140,10 @@ class ActorSettings(_Section):
     @classmethod
     def _bounded_horizon(cls, v: int) -> int:
         if not 2 <= v <= MAX_HORIZON:
-            raise ValueError(f"the horizon N must be 2 .. {MAX_HORIZON} (N - 1 >= 1 actions; above {MAX_HORIZON} "
-                             f"the compiled problem outgrows the machine: gcc needs gigabytes), got {v}")
+            raise ValueError(
+                f"the horizon N must be 2 .. {MAX_HORIZON} (N - 1 >= 1 actions; above {MAX_HORIZON} "
+                f"the compiled problem outgrows the machine: gcc needs gigabytes), got {v}"
+            )
         return v
 
 
@@ -149,8 +157,10 @@ class EpisodeSettings(_Section):
         if not all(math.isfinite(c) for c in v):
             raise ValueError(f"start must be finite numbers, got {v}")
         if max(abs(v[0]), abs(v[1])) > MAX_START:
-            raise ValueError(f"start ({v[0]:g}, {v[1]:g}) m is beyond the {MAX_START:g} m every state message "
-                             "allows (common/messages.py): the paper's starts are within 2 m of the target")
+            raise ValueError(
+                f"start ({v[0]:g}, {v[1]:g}) m is beyond the {MAX_START:g} m every state message "
+                "allows (common/messages.py): the paper's starts are within 2 m of the target"
+            )
         return v
 
 
@@ -173,6 +183,7 @@ class TransportSettings(_Section):
     @classmethod
     def _listen_endpoints(cls, v: list[str]) -> list[str]:
         return [check_endpoint(e, "every transport.listen entry", listen=True) for e in v]
+
     connect: list[str]
     listen: list[str] = Field(description="endpoints a client/peer session listens on")
     multicast_scouting: bool
@@ -195,7 +206,8 @@ class TransportSettings(_Section):
     tls_key: str = Field(description="PEM private key of tls_cert (mode 600)")
     tls_mtls: bool = Field(description="mutual TLS: the router accepts only clients with a certificate from tls_ca")
     allow_insecure_network: bool = Field(
-        description="let a router listen off loopback without secure + TLS: only inside a private container network")
+        description="let a router listen off loopback without secure + TLS: only inside a private container network"
+    )
     plant_queries: bool = Field(description="secure router: allow plant/step and plant/reset (lockstep runs only)")
 
     @model_validator(mode="after")
@@ -241,9 +253,7 @@ class BridgeSettings(_Section):
 class Settings(BaseSettings):
     """All constants of a run. Build with :meth:`load`."""
 
-    model_config = SettingsConfigDict(
-        env_prefix="SRL_", env_nested_delimiter="__", extra="forbid", frozen=True
-    )
+    model_config = SettingsConfigDict(env_prefix="SRL_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
     plant: PlantSettings
     cost: CostSettings

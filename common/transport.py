@@ -98,7 +98,11 @@ class Bus:
             except zenoh.ZError as error:  # already gone with the session
                 log.debug("undeclare: %s", error)
         self._keep.clear()
-        self.session.close()
+        self.session.close()  # type: ignore[no-untyped-call]  # zenoh stub: close(self) has no annotations
+
+    def adopt(self, thread: threading.Thread) -> None:
+        """A thread of this service that uses the session: :meth:`close` ends and joins it first."""
+        self._threads.append(thread)
 
     def count(self, name: str, amount: int = 1) -> None:
         with self._lock:
@@ -110,8 +114,7 @@ class Bus:
         now = time.monotonic()
         if now - self._last_warning.get(what, 0.0) >= 1.0:
             self._last_warning[what] = now
-            log.warning("%s: rejected %s: %s (total %d)", self.service, what, reason,
-                        self.counters[f"rejected.{what}"])
+            log.warning("%s: rejected %s: %s (total %d)", self.service, what, reason, self.counters[f"rejected.{what}"])
 
     # -- pub/sub ------------------------------------------------------------------------
     def publisher(self, topic: Topic[M], robot: str, *, cache: int = 0, **chunks: str) -> Callable[[M], None]:
@@ -122,8 +125,13 @@ class Bus:
         publisher: Any
         if cache > 0:
             publisher = zenoh.ext.declare_advanced_publisher(
-                self.session, key, cache=zenoh.ext.CacheConfig(cache), express=True,
-                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=RECOVERY_HEARTBEAT_S),
+                self.session,
+                key,
+                cache=zenoh.ext.CacheConfig(cache),
+                express=True,
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                    heartbeat=RECOVERY_HEARTBEAT_S, sporadic_heartbeat=None
+                ),
                 publisher_detection=True,
             )
         else:
@@ -145,8 +153,13 @@ class Bus:
         return str(self.session.info.zid())
 
     def subscribe(
-        self, topic: Topic[M], key: str, handler: Callable[..., None], what: str | None = None,
-        recover: bool = False, with_source: bool = False,
+        self,
+        topic: Topic[M],
+        key: str,
+        handler: Callable[..., None],
+        what: str | None = None,
+        recover: bool = False,
+        with_source: bool = False,
     ) -> None:
         """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``.
 
@@ -178,11 +191,15 @@ class Bus:
                 log.exception("%s: handler for %s failed", self.service, name)
 
         if recover:
-            self._keep.append(zenoh.ext.declare_advanced_subscriber(
-                self.session, key, on_sample,
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
-                recovery=zenoh.ext.RecoveryConfig(heartbeat=True),
-            ))
+            self._keep.append(
+                zenoh.ext.declare_advanced_subscriber(
+                    self.session,
+                    key,
+                    on_sample,
+                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+                    recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
+                )
+            )
         else:
             self._keep.append(self.session.declare_subscriber(key, on_sample))
 
@@ -218,7 +235,8 @@ class Bus:
         replies = querier.get(payload=request.encode())
         for reply in replies:
             if reply.ok is None:
-                raise MessageError(f"{service.pattern}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+                why = reply.err.payload.to_bytes().decode(errors="replace") if reply.err is not None else "no reply"
+                raise MessageError(f"{service.pattern}: {why}")
             return decode(service.reply, reply.ok.payload.to_bytes())
         raise TimeoutError(f"no reply from {service.key(robot)} within {timeout} s")
 
@@ -236,8 +254,9 @@ class Bus:
         found = {identity_of(str(reply.ok.key_expr)) for reply in replies if reply.ok is not None}
         return sorted(found - {self.zid})
 
-    def watch_identities(self, robot: str, service: str, gate: SourceGate,
-                         on_change: Callable[[str, bool], None] | None = None) -> None:
+    def watch_identities(
+        self, robot: str, service: str, gate: SourceGate, on_change: Callable[[str, bool], None] | None = None
+    ) -> None:
         """Keep ``gate`` up to date with the live identities of ``service`` of ``robot``.
 
         The identities alive now are read synchronously before this returns (a liveliness
@@ -250,8 +269,9 @@ class Bus:
             if on_change is not None:
                 on_change(zid, alive)
 
-        self._keep.append(self.session.liveliness().declare_subscriber(
-            identity_pattern(robot, service), on_token, history=True))
+        self._keep.append(
+            self.session.liveliness().declare_subscriber(identity_pattern(robot, service), on_token, history=True)
+        )
         for zid in self.live_identities(robot, service, timeout=1.0):
             if zid not in gate.sources():
                 gate.update(zid, True)
@@ -265,8 +285,9 @@ class Bus:
         def on_token(sample: zenoh.Sample) -> None:
             handler(sample.kind == zenoh.SampleKind.PUT)
 
-        self._keep.append(self.session.liveliness().declare_subscriber(
-            liveliness_key(robot, service), on_token, history=True))
+        self._keep.append(
+            self.session.liveliness().declare_subscriber(liveliness_key(robot, service), on_token, history=True)
+        )
 
     def is_alive(self, robot: str, service: str, timeout: float = 1.0) -> bool:
         replies = self.session.liveliness().get(liveliness_key(robot, service), timeout=timeout)
@@ -296,14 +317,19 @@ def start_status_thread(
             counters = {k: float(v) for k, v in dict(bus.counters).items()}
             counters.update(extra())
             try:
-                publish(ServiceStatus(robot=robot, service=bus.service, stamp_ns=time.monotonic_ns(),
-                                      counters={k: v for k, v in counters.items()
-                                                if v == v and abs(v) != float("inf")}))
+                publish(
+                    ServiceStatus(
+                        robot=robot,
+                        service=bus.service,
+                        stamp_ns=time.monotonic_ns(),
+                        counters={k: v for k, v in counters.items() if v == v and abs(v) != float("inf")},
+                    )
+                )
             except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
                 log.debug("%s status: %s", bus.service, error)
                 return
 
     thread = threading.Thread(target=loop, name=f"{bus.service}-status", daemon=True)
     thread.start()
-    bus._threads.append(thread)  # joined by bus.close()
+    bus.adopt(thread)  # joined by bus.close()
     return thread

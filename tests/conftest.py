@@ -42,8 +42,11 @@ def unmet(item: pytest.Item) -> str | None:
             continue
         reasons = missing()
         if reasons:
-            path = item.path.relative_to(item.config.rootpath) if item.path.is_relative_to(item.config.rootpath) \
+            path = (
+                item.path.relative_to(item.config.rootpath)
+                if item.path.is_relative_to(item.config.rootpath)
                 else item.path
+            )
             return f"{marker}: {'; '.join(reasons)}; {how.format(path=path)}"
     return None
 

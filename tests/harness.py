@@ -25,8 +25,26 @@ def run_bench(kind: str, robot: str, seconds: float = 4) -> dict[str, Any]:
     (plus ``"stdout"``, the printed table); fails the test on a non-zero exit."""
     router = f"tcp/127.0.0.1:{free_port()}"
     done = subprocess.run(
-        [sys.executable, "-m", "services.cli", "bench", kind, "--seconds", str(seconds), "--json", "--router", router,
-         "--robot", robot], cwd=ROOT, capture_output=True, text=True, timeout=180, check=False)
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "bench",
+            kind,
+            "--seconds",
+            str(seconds),
+            "--json",
+            "--router",
+            router,
+            "--robot",
+            robot,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     return {**json.loads(done.stdout.strip().splitlines()[-1]), "stdout": done.stdout}
 
@@ -54,23 +72,28 @@ def declare_service_tokens(session: zenoh.Session, robot: str, service: str) -> 
     from common.keys import identity_key, liveliness_key
 
     liveliness = session.liveliness()
-    return [liveliness.declare_token(liveliness_key(robot, service)),
-            liveliness.declare_token(identity_key(robot, service, str(session.info.zid())))]
+    return [
+        liveliness.declare_token(liveliness_key(robot, service)),
+        liveliness.declare_token(identity_key(robot, service, str(session.info.zid()))),
+    ]
 
 
 class Proc:
     def __init__(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> None:
         self.name = name
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", *argv],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}, start_new_session=True,
+            [sys.executable, "-m", "tools.cli", *argv],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+            start_new_session=True,
         )
         self.stdout: list[str] = []
         self.stderr: list[str] = []
         for stream, sink in ((self.process.stdout, self.stdout), (self.process.stderr, self.stderr)):
-            threading.Thread(target=lambda st=stream, sk=sink: [sk.append(x.rstrip()) for x in st],
-                             daemon=True).start()
+            threading.Thread(target=lambda st=stream, sk=sink: [sk.append(x.rstrip()) for x in st], daemon=True).start()
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
         if self.process.poll() is None:

@@ -90,8 +90,13 @@ class NsProc:
         self.ns = ns
         self.argv = list(argv)
         self.process = subprocess.Popen(
-            ["ip", "netns", "exec", ns, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-            cwd=ROOT, env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}, start_new_session=True,
+            ["ip", "netns", "exec", ns, *argv],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+            start_new_session=True,
         )
         self.stdout: list[str] = []
         self.stderr: list[str] = []
@@ -154,8 +159,7 @@ class NsProc:
                 self._drain()
             found.extend(r for r in list(self.records) if predicate(r))
             if not found and exited:
-                raise AssertionError(f"{self.name} exited {self.process.returncode} before {what}: "
-                                     f"{self.stderr[-10:]}")
+                raise AssertionError(f"{self.name} exited {self.process.returncode} before {what}: {self.stderr[-10:]}")
             return bool(found)
 
         wait_for(seen, timeout, f"{what} ({self.name})")
@@ -168,8 +172,9 @@ class NsProc:
             if any(text in line for line in [*self.stdout, *self.stderr]):
                 return True
             if self.process.poll() is not None:
-                raise AssertionError(f"{self.name} exited {self.process.returncode} before printing {text!r}: "
-                                     f"{self.stderr[-10:]}")
+                raise AssertionError(
+                    f"{self.name} exited {self.process.returncode} before printing {text!r}: {self.stderr[-10:]}"
+                )
             return False
 
         wait_for(seen, timeout, f"{text!r} from {self.name}")
@@ -181,9 +186,11 @@ class NsProc:
         raise AssertionError(f"{self.name} printed no JSON summary; stderr: {self.stderr[-10:]}")
 
     def tail(self, lines: int = 15) -> str:
-        return "\n".join(f"  [{self.name} {stream}] {line}" for stream, sink in (("out", self.stdout),
-                                                                                ("err", self.stderr))
-                         for line in sink[-lines:])
+        return "\n".join(
+            f"  [{self.name} {stream}] {line}"
+            for stream, sink in (("out", self.stdout), ("err", self.stderr))
+            for line in sink[-lines:]
+        )
 
 
 @dataclass(frozen=True)
@@ -222,8 +229,9 @@ class Topology:
         self.tag = f"srl{os.getpid()}{''.join(rand.choices(string.ascii_lowercase, k=2))}"
         self.prefix = f"10.213.{rand.randint(1, 254)}"
         self.bridge_ns = f"{self.tag}b"
-        self.hosts = {role: Host(role, f"{self.tag}{role}", f"{self.prefix}.{i + 1}", f"v{role}")
-                      for i, role in enumerate(roles)}
+        self.hosts = {
+            role: Host(role, f"{self.tag}{role}", f"{self.prefix}.{i + 1}", f"v{role}") for i, role in enumerate(roles)
+        }
         self.namespaces: list[str] = []  # created, in order
         self.procs: list[NsProc] = []
         self._loss_rules: list[tuple[str, list[str]]] = []
@@ -240,8 +248,7 @@ class Topology:
             raise
         return self
 
-    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None, tb: TracebackType | None) -> None:
         if error is not None:
             print(f"\n--- {self.tag}: last output of every process ---", file=sys.stderr)
             for proc in self.procs:
@@ -266,8 +273,21 @@ class Topology:
             self._add_ns(host.ns)
             # the pair is created between the two namespaces directly: the machine's own
             # namespace never holds either end, so no name there can collide
-            sh("ip", "-n", self.bridge_ns, "link", "add", host.port, "type", "veth", "peer", "name", IFACE,
-               "netns", host.ns)
+            sh(
+                "ip",
+                "-n",
+                self.bridge_ns,
+                "link",
+                "add",
+                host.port,
+                "type",
+                "veth",
+                "peer",
+                "name",
+                IFACE,
+                "netns",
+                host.ns,
+            )
             sh("ip", "-n", self.bridge_ns, "link", "set", host.port, "master", BRIDGE, "up")
             sh("ip", "-n", host.ns, "addr", "add", f"{host.ip}/24", "dev", IFACE)
             sh("ip", "-n", host.ns, "link", "set", IFACE, "up")
@@ -335,8 +355,11 @@ class Topology:
         after a rule without target that only counts the packets it sees."""
         host = self.hosts[role]
         matches = [(role, ["INPUT", "-i", IFACE], f"{tag}-in")]
-        matches += [(peer.role, ["INPUT", "-i", IFACE, "-s", host.ip], f"{tag}-out")
-                    for peer in self.hosts.values() if peer.role != role]
+        matches += [
+            (peer.role, ["INPUT", "-i", IFACE, "-s", host.ip], f"{tag}-out")
+            for peer in self.hosts.values()
+            if peer.role != role
+        ]
         rules = []
         for ns_role, match, comment in matches:
             rules.append((ns_role, [*match, "-m", "comment", "--comment", f"{comment}-seen"]))
@@ -400,6 +423,20 @@ class Topology:
         wait_for(functools.partial(self.is_up, role), 10, f"{host.ns} {IFACE} up again")
         # the kernel drops a downed interface's routes; the connected one comes back with the
         # address, anything else would not: put the subnet's route back explicitly
-        sh("ip", "-n", host.ns, "route", "replace", f"{self.prefix}.0/24", "dev", IFACE, "proto", "kernel",
-           "scope", "link", "src", host.ip)
+        sh(
+            "ip",
+            "-n",
+            host.ns,
+            "route",
+            "replace",
+            f"{self.prefix}.0/24",
+            "dev",
+            IFACE,
+            "proto",
+            "kernel",
+            "scope",
+            "link",
+            "src",
+            host.ip,
+        )
         return Faults()

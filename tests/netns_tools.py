@@ -55,8 +55,12 @@ def _percentiles(values: Sequence[float], scale: float = 1.0) -> dict[str, float
     data = sorted(v * scale for v in values)
     if not data:
         return {}
-    return {"min": data[0], "median": data[len(data) // 2], "p99": data[min(len(data) - 1, int(0.99 * len(data)))],
-            "max": data[-1]}
+    return {
+        "min": data[0],
+        "median": data[len(data) // 2],
+        "p99": data[min(len(data) - 1, int(0.99 * len(data)))],
+        "max": data[-1],
+    }
 
 
 def _nodelay(writer: asyncio.StreamWriter) -> None:
@@ -74,12 +78,17 @@ class RelayStats:
         self.held: list[float] = []  # seconds each chunk was held (receive -> write)
 
     def summary(self) -> dict[str, Any]:
-        return {"connections": self.connections, "bytes": self.bytes, "chunks": self.chunks,
-                "held_ms": _percentiles(self.held, 1e3)}
+        return {
+            "connections": self.connections,
+            "bytes": self.bytes,
+            "chunks": self.chunks,
+            "held_ms": _percentiles(self.held, 1e3),
+        }
 
 
-async def _pipe(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, delay: float, stats: RelayStats,
-                direction: str) -> None:
+async def _pipe(
+    reader: asyncio.StreamReader, writer: asyncio.StreamWriter, delay: float, stats: RelayStats, direction: str
+) -> None:
     """Forward ``reader`` to ``writer``, each chunk written no earlier than ``delay`` after it was read.
 
     Reading goes on while earlier chunks wait: the delay is added to every byte, the throughput
@@ -116,8 +125,13 @@ async def _pipe(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, dela
     await asyncio.gather(receive(), send())
 
 
-async def _relay_connection(client_reader: asyncio.StreamReader, client_writer: asyncio.StreamWriter,
-                            target: tuple[str, int], delay: float, stats: RelayStats) -> None:
+async def _relay_connection(
+    client_reader: asyncio.StreamReader,
+    client_writer: asyncio.StreamWriter,
+    target: tuple[str, int],
+    delay: float,
+    stats: RelayStats,
+) -> None:
     try:
         target_reader, target_writer = await asyncio.open_connection(*target)
     except OSError:
@@ -127,8 +141,10 @@ async def _relay_connection(client_reader: asyncio.StreamReader, client_writer: 
     _nodelay(client_writer)
     _nodelay(target_writer)
     try:
-        await asyncio.gather(_pipe(client_reader, target_writer, delay, stats, "to_target"),
-                             _pipe(target_reader, client_writer, delay, stats, "to_client"))
+        await asyncio.gather(
+            _pipe(client_reader, target_writer, delay, stats, "to_target"),
+            _pipe(target_reader, client_writer, delay, stats, "to_client"),
+        )
     except OSError:
         pass  # a reset on one side: close both
     finally:
@@ -162,8 +178,12 @@ async def _serve_relay(args: argparse.Namespace) -> None:
         servers.append(await asyncio.start_server(handler, *listen))
     if args.echo is not None:
         servers.append(await asyncio.start_server(_echo, *args.echo))
-    emit("ready", delay_ms=args.delay_ms, forward=[f"{a[0]}:{a[1]}={b[0]}:{b[1]}" for a, b in args.forward],
-         echo=None if args.echo is None else f"{args.echo[0]}:{args.echo[1]}")
+    emit(
+        "ready",
+        delay_ms=args.delay_ms,
+        forward=[f"{a[0]}:{a[1]}={b[0]}:{b[1]}" for a, b in args.forward],
+        echo=None if args.echo is None else f"{args.echo[0]}:{args.echo[1]}",
+    )
     await stop.wait()
     for server in servers:
         server.close()
@@ -220,14 +240,14 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
 
         return on_sample
 
-    on_weights = recorder(CriticWeights, "weights",
-                          lambda w: {"version": w.version, "trained_step": w.trained_step, "episode": w.episode})
+    on_weights = recorder(
+        CriticWeights, "weights", lambda w: {"version": w.version, "trained_step": w.trained_step, "episode": w.episode}
+    )
     on_status = recorder(ServiceStatus, "status", lambda s: {"service": s.service, "counters": s.counters})
     on_transition = recorder(Transition, "transition", lambda t: {"step": t.step, "episode": t.episode})
 
     def on_token(sample: zenoh.Sample) -> None:
-        record("alive", service=str(sample.key_expr).rsplit("/", 1)[-1],
-               alive=sample.kind == zenoh.SampleKind.PUT)
+        record("alive", service=str(sample.key_expr).rsplit("/", 1)[-1], alive=sample.kind == zenoh.SampleKind.PUT)
 
     deadline = time.monotonic() + connect_timeout
     while True:
@@ -260,8 +280,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     relay = sub.add_parser("relay", help="delaying TCP relay (and an echo server)")
     relay.add_argument("--delay-ms", type=float, required=True, help="added to every chunk, each direction")
-    relay.add_argument("--forward", type=_forward, action="append", default=[],
-                       metavar="LISTEN_HOST:PORT=TARGET_HOST:PORT")
+    relay.add_argument(
+        "--forward", type=_forward, action="append", default=[], metavar="LISTEN_HOST:PORT=TARGET_HOST:PORT"
+    )
     relay.add_argument("--echo", type=_address, metavar="HOST:PORT", help="also serve a TCP echo here")
     rtt = sub.add_parser("probe", help="round trips to a TCP echo server")
     rtt.add_argument("--target", type=_address, required=True)

@@ -369,9 +369,10 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
     # The benchmark's non-convex "learned" weights make the closed loop alternate between two
     # local minima; starting from the solution of two steps ago when it is cheaper must save
     # solver iterations there (measured: 25-51 % fewer over 150 steps at N = 12).
-    from common.loop import ExactPlant, build_actor
+    from common.assembly import build_actor
+    from common.loop import ExactPlant
     from common.settings import Settings
-    from services.bench_actor import learned_weights
+    from tools.bench.actor import learned_weights
 
     settings = Settings.load(actor={"agent": agent, "horizon": 12, "jit": False})
     weights = learned_weights(settings)

@@ -52,16 +52,19 @@ class Watch:
                 except MessageError:
                     return
                 sink.append((time.monotonic(), message) if timed else message)
+
             return handler
 
         def on_status(sample: zenoh.Sample) -> None:
             self.status.append((time.monotonic(), decode(ServiceStatus, sample.payload.to_bytes()).counters))
 
-        return [session.declare_subscriber(f"srl/{robot}/transition", on(Transition, self.transitions, True, True)),
-                session.declare_subscriber(f"srl/{robot}/action", on(Action, self.actions, True, True)),
-                session.declare_subscriber(f"srl/{robot}/state", on(PlantState, self.states, False, True)),
-                session.declare_subscriber(f"srl/{robot}/critic/weights", on(CriticWeights, self.weights, True, True)),
-                session.declare_subscriber(f"srl/{robot}/status/actor", on_status)]
+        return [
+            session.declare_subscriber(f"srl/{robot}/transition", on(Transition, self.transitions, True, True)),
+            session.declare_subscriber(f"srl/{robot}/action", on(Action, self.actions, True, True)),
+            session.declare_subscriber(f"srl/{robot}/state", on(PlantState, self.states, False, True)),
+            session.declare_subscriber(f"srl/{robot}/critic/weights", on(CriticWeights, self.weights, True, True)),
+            session.declare_subscriber(f"srl/{robot}/status/actor", on_status),
+        ]
 
     def episode(self) -> int:
         return self.transitions[-1][1].episode
@@ -103,16 +106,22 @@ def test_one_far_future_plant_state_locks_nothing_out() -> None:
     robot = "atk_s"
     with attack_run(robot, 8) as (c, rogue, watch):
         real_seq = watch.states[-1].seq
-        rogue.put(f"srl/{robot}/state", PlantState(robot=robot, episode=0, seq=2**62, stamp_ns=time.monotonic_ns(),
-                                                   state=(0.5, 0.5, 0.0), source="sim").encode())
+        rogue.put(
+            f"srl/{robot}/state",
+            PlantState(
+                robot=robot, episode=0, seq=2**62, stamp_ns=time.monotonic_ns(), state=(0.5, 0.5, 0.0), source="sim"
+            ).encode(),
+        )
         attacked = time.monotonic()
         summary = _finish(c)
     after = watch.transitions_after(attacked)
     commanded = [a for at, a in watch.actions if at > attacked and a.state_seq >= 0]
     counters = summary["counters"]
-    print(f"\nfigures: one PlantState(seq=2**62) from another session: {counters.get('rejected.state.foreign', 0)} "
-          f"refused as foreign; {len(after)} transitions and {len(commanded)} commands from real states after it "
-          f"(real seq was {real_seq}); stale-state stops {summary['stale_state_stops']} in {summary['steps']} steps")
+    print(
+        f"\nfigures: one PlantState(seq=2**62) from another session: {counters.get('rejected.state.foreign', 0)} "
+        f"refused as foreign; {len(after)} transitions and {len(commanded)} commands from real states after it "
+        f"(real seq was {real_seq}); stale-state stops {summary['stale_state_stops']} in {summary['steps']} steps"
+    )
     assert counters.get("rejected.state.foreign", 0) == 1
     assert counters.get("rejected.state", 0) == 0  # no real state refused after it
     assert summary["stale_state_stops"] < 5
@@ -135,9 +144,20 @@ def test_critic_weights_from_the_future_lock_out_no_real_update() -> None:
         for _ in range(3):  # resent each second, as the attacker kept it going
             version = time.time_ns() // 1000 + 59_000_000
             forged.append(version)
-            rogue.put(f"srl/{robot}/critic/weights", CriticWeights(
-                robot=robot, episode=watch.episode(), version=version, trained_step=watch.transitions[-1][1].step,
-                q_weights=(1.0,) * 15, v_weights=(1.0,) * 6, q_residual=0.0, v_residual=0.0, pairs=1).encode())
+            rogue.put(
+                f"srl/{robot}/critic/weights",
+                CriticWeights(
+                    robot=robot,
+                    episode=watch.episode(),
+                    version=version,
+                    trained_step=watch.transitions[-1][1].step,
+                    q_weights=(1.0,) * 15,
+                    v_weights=(1.0,) * 6,
+                    q_residual=0.0,
+                    v_residual=0.0,
+                    pairs=1,
+                ).encode(),
+            )
             time.sleep(1.0)
         summary = _finish(c)
     counters = summary["counters"]
@@ -145,10 +165,12 @@ def test_critic_weights_from_the_future_lock_out_no_real_update() -> None:
     versions_after = [s.get("weights_version") for at, s in watch.status if at > attacked]
     real = {w.version for _, w in watch.weights}
     real_after = [w.version for at, w in watch.weights if at > attacked]
-    print(f"\nfigures: CriticWeights 59 s ahead, {len(forged)} times from another session: "
-          f"{counters.get('rejected.critic/weights', 0)} refused; {accepted_after:.0f} real updates accepted after "
-          f"the first (of {len(real_after)} the real critic published); final weights_version "
-          f"{summary['weights_version']} (the real critic's: {summary['weights_version'] in real})")
+    print(
+        f"\nfigures: CriticWeights 59 s ahead, {len(forged)} times from another session: "
+        f"{counters.get('rejected.critic/weights', 0)} refused; {accepted_after:.0f} real updates accepted after "
+        f"the first (of {len(real_after)} the real critic published); final weights_version "
+        f"{summary['weights_version']} (the real critic's: {summary['weights_version'] in real})"
+    )
     assert counters.get("rejected.critic/weights", 0) >= len(forged)
     assert accepted_after >= 10  # the real critic publishes after every transition it fits
     assert summary["weights_version"] in real and summary["weights_version"] >= max(real_after)
@@ -167,19 +189,31 @@ def test_weights_outside_the_box_do_not_spin_the_robot() -> None:
         attacked = time.monotonic()
         while time.monotonic() < attacked + 5.0:  # every 0.1 s for 5 s, alternating -100 and 1e300
             value = -100.0 if sent % 2 == 0 else 1e300
-            rogue.put(f"srl/{robot}/critic/weights", CriticWeights(
-                robot=robot, episode=watch.episode(), version=time.time_ns() // 1000,
-                trained_step=watch.transitions[-1][1].step, q_weights=(value,) * 15, v_weights=(value,) * 6,
-                q_residual=0.0, v_residual=0.0, pairs=1).encode())
+            rogue.put(
+                f"srl/{robot}/critic/weights",
+                CriticWeights(
+                    robot=robot,
+                    episode=watch.episode(),
+                    version=time.time_ns() // 1000,
+                    trained_step=watch.transitions[-1][1].step,
+                    q_weights=(value,) * 15,
+                    v_weights=(value,) * 6,
+                    q_residual=0.0,
+                    v_residual=0.0,
+                    pairs=1,
+                ).encode(),
+            )
             sent += 1
             time.sleep(DELTA)
         summary = _finish(c)
     after = [t for t in watch.transitions_after(attacked + 0.2)]
     spinning = sum(abs(t.action[1]) >= 0.99 * OMEGA_MAX for t in after)
     counters = summary["counters"]
-    print(f"\nfigures: weights -100 / 1e300 from another session, {sent} times in 5 s: "
-          f"{counters.get('rejected.critic/weights', 0)} refused; |omega| saturated on {spinning} of {len(after)} "
-          f"transitions after the attack began; solver failures {summary['solver_failures']}")
+    print(
+        f"\nfigures: weights -100 / 1e300 from another session, {sent} times in 5 s: "
+        f"{counters.get('rejected.critic/weights', 0)} refused; |omega| saturated on {spinning} of {len(after)} "
+        f"transitions after the attack began; solver failures {summary['solver_failures']}"
+    )
     assert counters.get("rejected.critic/weights", 0) >= sent
     assert len(after) >= 40
     assert spinning <= 0.25 * len(after)
@@ -198,8 +232,16 @@ def test_forged_states_just_before_each_tick_are_not_followed() -> None:
         attacked = time.monotonic()
         while time.monotonic() < attacked + 5.0:
             real = watch.states[-1]
-            publisher.put(PlantState(robot=robot, episode=real.episode, seq=real.seq + 1, stamp_ns=time.monotonic_ns(),
-                                     state=fake, source="sim").encode())
+            publisher.put(
+                PlantState(
+                    robot=robot,
+                    episode=real.episode,
+                    seq=real.seq + 1,
+                    stamp_ns=time.monotonic_ns(),
+                    state=fake,
+                    source="sim",
+                ).encode()
+            )
             sent += 1
             time.sleep(0.005)
         ended = time.monotonic()
@@ -208,10 +250,12 @@ def test_forged_states_just_before_each_tick_are_not_followed() -> None:
     during = [t for at, t in watch.transitions if attacked < at <= ended]
     followed = sum(t.state == fake for _, t in watch.transitions)
     counters = summary["counters"]
-    print(f"\nfigures: forged states every 5 ms for 5 s ({sent} sent, seq one past the real plant's): "
-          f"{followed} of {len(during)} transitions during the attack carry the forged state; "
-          f"{counters.get('rejected.state.foreign', 0)} refused as foreign; stale-state stops "
-          f"{summary['stale_state_stops']}")
+    print(
+        f"\nfigures: forged states every 5 ms for 5 s ({sent} sent, seq one past the real plant's): "
+        f"{followed} of {len(during)} transitions during the attack carry the forged state; "
+        f"{counters.get('rejected.state.foreign', 0)} refused as foreign; stale-state stops "
+        f"{summary['stale_state_stops']}"
+    )
     assert followed == 0
     assert len(during) >= 40
     assert counters.get("rejected.state.foreign", 0) >= 0.95 * sent  # a few may still be in flight at the end
@@ -229,25 +273,33 @@ def test_a_second_plant_session_stops_the_actor_until_it_is_gone() -> None:
         publisher = rogue.declare_publisher(f"srl/{robot}/state")
         seq = 0
         while time.monotonic() < declared + 2.5:  # a second plant: its own states at 50 Hz
-            publisher.put(PlantState(robot=robot, episode=1, seq=seq, stamp_ns=time.monotonic_ns(),
-                                     state=(-1.0, 1.0, 0.0), source="sim").encode())
+            publisher.put(
+                PlantState(
+                    robot=robot, episode=1, seq=seq, stamp_ns=time.monotonic_ns(), state=(-1.0, 1.0, 0.0), source="sim"
+                ).encode()
+            )
             seq += 1
             time.sleep(0.02)
         token.undeclare()
         undeclared = time.monotonic()
         publisher.undeclare()
-        wait_until(lambda: any(at > undeclared and a.state_seq >= 0 for at, a in watch.actions), 10,
-                   "commands from the real plant again")
+        wait_until(
+            lambda: any(at > undeclared and a.state_seq >= 0 for at, a in watch.actions),
+            10,
+            "commands from the real plant again",
+        )
         summary = _finish(c)
     # the token reaches the actor within ms; allow one tick in flight on either side
     during = [a for at, a in watch.actions if declared + DELTA < at < undeclared]
     moving = [a for a in during if a.action != (0.0, 0.0)]
     resumed = next(at for at, a in watch.actions if at > undeclared and a.state_seq >= 0)
     counters = summary["counters"]
-    print(f"\nfigures: a second plant session for {undeclared - declared:.1f} s: {len(moving)} of {len(during)} "
-          f"commands non-zero meanwhile; plant_conflict_stops {summary['plant_conflict_stops']}, "
-          f"{counters.get('rejected.state.conflict', 0)} states refused in conflict; commanding again "
-          f"{1e3 * (resumed - undeclared):.0f} ms after the second one left")
+    print(
+        f"\nfigures: a second plant session for {undeclared - declared:.1f} s: {len(moving)} of {len(during)} "
+        f"commands non-zero meanwhile; plant_conflict_stops {summary['plant_conflict_stops']}, "
+        f"{counters.get('rejected.state.conflict', 0)} states refused in conflict; commanding again "
+        f"{1e3 * (resumed - undeclared):.0f} ms after the second one left"
+    )
     assert summary["plant_conflict_stops"] >= 15
     assert len(during) >= 15 and not moving
     assert counters.get("plant_conflicts", 0) >= 1

@@ -13,9 +13,9 @@ import time
 import pytest
 import zenoh
 
+from common import ros_wire
 from common.messages import Action
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
+from common.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
 from tests.test_robot_bridge import DELTA, RobotWatch
 
@@ -47,10 +47,22 @@ def test_one_far_future_action_from_another_session_locks_nothing_out() -> None:
             moved_from = watch.states[-1].state[0]
             for step in range(40):
                 if step == 5:  # the attack, once
-                    rogue.put(f"srl/{robot}/action", Action(robot=robot, episode=2**62, step=0, stamp_ns=0,
-                                                            action=(-0.2, 0.0), state_seq=-1).encode())
-                actions.put(Action(robot=robot, episode=1, step=step, stamp_ns=time.monotonic_ns(),
-                                   action=(0.15, 0.0), state_seq=-1).encode())
+                    rogue.put(
+                        f"srl/{robot}/action",
+                        Action(
+                            robot=robot, episode=2**62, step=0, stamp_ns=0, action=(-0.2, 0.0), state_seq=-1
+                        ).encode(),
+                    )
+                actions.put(
+                    Action(
+                        robot=robot,
+                        episode=1,
+                        step=step,
+                        stamp_ns=time.monotonic_ns(),
+                        action=(0.15, 0.0),
+                        state_seq=-1,
+                    ).encode()
+                )
                 time.sleep(DELTA)
             moved = watch.states[-1].state[0] - moved_from
             driving = watch.applied()
@@ -60,9 +72,11 @@ def test_one_far_future_action_from_another_session_locks_nothing_out() -> None:
                 token.undeclare()
         assert c.procs["bridge"].stop() == 0
         counters = c.procs["bridge"].summary()["counters"]
-    print(f"\nfigures: far-future action from another session: {counters.get('actions_applied', 0)} of 40 real "
-          f"actions applied, {counters.get('rejected.action.foreign', 0)} foreign refused, robot moved {moved:.2f} m "
-          f"forward, still commanded {driving}")
+    print(
+        f"\nfigures: far-future action from another session: {counters.get('actions_applied', 0)} of 40 real "
+        f"actions applied, {counters.get('rejected.action.foreign', 0)} foreign refused, robot moved {moved:.2f} m "
+        f"forward, still commanded {driving}"
+    )
     assert counters.get("rejected.action.foreign", 0) == 1
     assert counters["actions_applied"] >= 38  # every real action (the first may race the token)
     assert moved > 0.4 and driving[0] > 0.1  # 0.15 m/s for 4 s, still driving at the end
@@ -85,8 +99,9 @@ def test_odometry_from_the_far_future_drops_no_real_sample() -> None:
             publisher = rogue.declare_publisher(GRAPH.data_key("odom", ODOMETRY))
             for k in range(6):
                 stamp = time.time_ns() + 3600 * 10**9
-                payload = ros_wire.encode_odometry("jazzy", Odometry(stamp, "odom", "base_footprint", 9.0, 9.0,
-                                                                     (0.0, 0.0, 0.0, 1.0), 0.0, 0.0))
+                payload = ros_wire.encode_odometry(
+                    "jazzy", Odometry(stamp, "odom", "base_footprint", 9.0, 9.0, (0.0, 0.0, 0.0, 1.0), 0.0, 0.0)
+                )
                 publisher.put(payload, attachment=Attachment(k + 1, stamp, bytes(16)).encode())
                 forged += 1
                 time.sleep(1.0)
@@ -95,9 +110,11 @@ def test_odometry_from_the_far_future_drops_no_real_sample() -> None:
         assert c.procs["bridge"].stop() == 0
         counters = c.procs["bridge"].summary()["counters"]
     dropped = counters["odom_received"] - counters["states_published"] - forged
-    print(f"\nfigures: odometry stamped 1 h ahead, {forged} times in 6 s: {counters.get('rejected.odom', 0)} refused, "
-          f"{dropped} real samples dropped of {counters['odom_received'] - forged}; states "
-          f"{counters['states_published']}")
+    print(
+        f"\nfigures: odometry stamped 1 h ahead, {forged} times in 6 s: {counters.get('rejected.odom', 0)} refused, "
+        f"{dropped} real samples dropped of {counters['odom_received'] - forged}; states "
+        f"{counters['states_published']}"
+    )
     assert counters["rejected.odom"] == forged
     assert dropped == 0
     assert all(abs(s.state[0]) < 5 for s in watch.states)  # the forged pose (9, 9) never became a state

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from common.actor import AGENTS, ActorProblem
+from common.assembly import build_actor
 from common.dynamics import euler_step
 from common.features import phi_q, phi_v, stage_cost
-from common.loop import build_actor
 from common.settings import Settings
-from services import bench_actor
-from services.bench_actor import (
+from tools.bench import actor as bench_actor
+from tools.bench.actor import (
     NumpyObjective,
     compare_objectives,
     evaluate_targets,
@@ -29,7 +29,7 @@ from services.bench_actor import (
     quadratic_form_matrix,
     sample_indices,
 )
-from services.cli import main
+from tools.cli import main
 
 ROW_KEYS = {
     "agent",

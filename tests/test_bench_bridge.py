@@ -19,8 +19,14 @@ def test_bench_bridge_short_run_reports_paths_and_baselines() -> None:
     assert r["odom_to_state_n"] >= 20  # 20 Hz odometry over ~2 s
     assert r["process_echo_n"] >= 18  # the transport baseline: to a process that only echoes
     assert set(r["added_over_echo_ms"]) == {"median", "p99"}
-    for key in ("zenoh_hop_ms", "process_echo_ms", "action_to_cmd_ms", "odom_to_state_ms", "command_to_odom_ms",
-                "direct_cmd_to_odom_ms"):
+    for key in (
+        "zenoh_hop_ms",
+        "process_echo_ms",
+        "action_to_cmd_ms",
+        "odom_to_state_ms",
+        "command_to_odom_ms",
+        "direct_cmd_to_odom_ms",
+    ):
         s = r[key]
         assert 0 <= s["median"] <= s["p99"] <= s["max"], key
     # the robot answers within its odometry period (50 ms) plus slack, with or without the bridge

@@ -1,7 +1,7 @@
 """Issue 14, the command line "out of the box": negative numbers, help, refused options,
 errors that name the cause and the fix, signals and pipes, bounds, checkpoints, status, plot.
 
-Every process test runs the real ``srl`` as a user does (``python -m services.cli``) on free
+Every process test runs the real ``srl`` as a user does (``python -m tools.cli``) on free
 loopback ports, waits on what the process prints, bounds every wait and kills by pid.
 """
 
@@ -22,19 +22,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.arguments import COMMAND_SETTINGS, child_argv
 from common.messages import Transition
 from common.security import write_credentials
 from common.settings import Settings
-from services.cli import COMMAND_SETTINGS, build_parser, child_argv
 from services.critic.service import CriticLearner, checkpoint_path, load_checkpoint
 from tests.harness import ROOT, free_port
+from tools.cli import build_parser
 
-CLI = [sys.executable, "-m", "services.cli"]
+CLI = [sys.executable, "-m", "tools.cli"]
 
 
 def srl(*argv: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([*CLI, *argv], cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
-                          env={**os.environ, **(env or {})})
+    return subprocess.run(
+        [*CLI, *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+        env={**os.environ, **(env or {})},
+    )
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -43,15 +51,18 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
 
 
 # -- point 5: negative numbers -------------------------------------------------------------
-@pytest.mark.parametrize(("argv", "name", "value"), [
-    (["run", "--start", "-1.2,0.7"], "start", (-1.2, 0.7)),
-    (["run", "--start=-1.2,0.7"], "start", (-1.2, 0.7)),
-    (["run", "--start", "-1,-0.5,-3.1"], "start", (-1.0, -0.5, -3.1)),
-    (["run", "--start", "-1e3,2E-1"], "start", (-1e3, 0.2)),
-    (["up", "--start", "-0.5,-.5"], "start", (-0.5, -0.5)),
-    (["tb3-emulator", "--initial-pose", "-1.5,-2,-0.3"], "initial_pose", (-1.5, -2.0, -0.3)),
-    (["tb3-emulator", "--noise", "-0,0.01"], "noise", (0.0, 0.01)),
-])
+@pytest.mark.parametrize(
+    ("argv", "name", "value"),
+    [
+        (["run", "--start", "-1.2,0.7"], "start", (-1.2, 0.7)),
+        (["run", "--start=-1.2,0.7"], "start", (-1.2, 0.7)),
+        (["run", "--start", "-1,-0.5,-3.1"], "start", (-1.0, -0.5, -3.1)),
+        (["run", "--start", "-1e3,2E-1"], "start", (-1e3, 0.2)),
+        (["up", "--start", "-0.5,-.5"], "start", (-0.5, -0.5)),
+        (["tb3-emulator", "--initial-pose", "-1.5,-2,-0.3"], "initial_pose", (-1.5, -2.0, -0.3)),
+        (["tb3-emulator", "--noise", "-0,0.01"], "noise", (0.0, 0.01)),
+    ],
+)
 def test_negative_numbers_are_values_everywhere(argv: list[str], name: str, value: tuple[float, ...]) -> None:
     args = build_parser().parse_args(argv)
     assert getattr(args, name) == pytest.approx(value)
@@ -82,9 +93,16 @@ def test_every_subcommand_has_a_description_and_every_option_its_default() -> No
     assert not missing, f"options whose help shows no default: {missing}"
 
 
-@pytest.mark.parametrize(("command", "flag"), [("router", "--agent=mpc"), ("router", "--horizon=6"),
-                                                ("critic", "--start=1,1"), ("plant-sim", "--solver=ipopt"),
-                                                ("robot-bridge", "--duration=5")])
+@pytest.mark.parametrize(
+    ("command", "flag"),
+    [
+        ("router", "--agent=mpc"),
+        ("router", "--horizon=6"),
+        ("critic", "--start=1,1"),
+        ("plant-sim", "--solver=ipopt"),
+        ("robot-bridge", "--duration=5"),
+    ],
+)
 def test_options_a_command_ignores_are_refused_in_one_line(command: str, flag: str) -> None:
     done = srl(command, flag, timeout=60)
     assert done.returncode == 2
@@ -93,16 +111,27 @@ def test_options_a_command_ignores_are_refused_in_one_line(command: str, flag: s
 
 
 def test_children_get_only_the_flags_their_command_takes() -> None:
-    given = ["--config=c.toml", "--agent=mpc", "--horizon=6", "--solver=ipopt", "--predictor=rk4",
-             "--start=-1.0,1.0", "--duration=5.0",
-             "--router=tcp/127.0.0.1:1", "--robot=r", "--no-jit", "--resume"]
+    given = [
+        "--config=c.toml",
+        "--agent=mpc",
+        "--horizon=6",
+        "--solver=ipopt",
+        "--predictor=rk4",
+        "--start=-1.0,1.0",
+        "--duration=5.0",
+        "--router=tcp/127.0.0.1:1",
+        "--robot=r",
+        "--no-jit",
+        "--resume",
+    ]
     parser = build_parser()
     for command, takes in COMMAND_SETTINGS.items():
         if command in ("bench",):
             continue
         argv = child_argv([command, *given])
         assert {a.split("=")[0][2:].replace("-", "_") for a in argv[1:]} == set(takes) - {"resume"} | (
-            {"resume"} & set(takes)), command
+            {"resume"} & set(takes)
+        ), command
         parser.parse_args(argv)  # accepted as a whole
 
 
@@ -159,16 +188,26 @@ def test_router_unreachable_and_wrong_password_are_told_apart(tmp_path: Path) ->
     assert ".rs:" not in unreachable.stderr and "Traceback" not in unreachable.stderr
 
     credentials = write_credentials(tmp_path / "secure")
-    router = subprocess.Popen([*CLI, "router", "--router", endpoint], cwd=ROOT, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-                              env={**os.environ, **credentials.router_environment()})
+    router = subprocess.Popen(
+        [*CLI, "router", "--router", endpoint],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+        env={**os.environ, **credentials.router_environment()},
+    )
     try:
         wrong = tmp_path / "wrong"
         wrong.write_text("not-the-password\n")
         wrong.chmod(0o600)
         started = time.monotonic()
-        refused = srl("critic", "--router", endpoint, env={**credentials.role_environment("critic"),
-                                                           "SRL_TRANSPORT__PASSWORD_FILE": str(wrong)})
+        refused = srl(
+            "critic",
+            "--router",
+            endpoint,
+            env={**credentials.role_environment("critic"), "SRL_TRANSPORT__PASSWORD_FILE": str(wrong)},
+        )
         refused_s = time.monotonic() - started
     finally:
         os.killpg(router.pid, signal.SIGKILL)
@@ -177,14 +216,22 @@ def test_router_unreachable_and_wrong_password_are_told_apart(tmp_path: Path) ->
     last = refused.stderr.strip().splitlines()[-1]
     assert f"the router at {endpoint} refused the login of user 'critic': wrong password" in last, refused.stderr
     assert refused_s < 15, f"the refusal took {refused_s:.1f} s"  # not the 30 s connect timeout
-    print(f"\nfigures: unreachable router reported after {unreachable_s:.1f} s (timeout 2 s), "
-          f"wrong password reported after {refused_s:.1f} s (before: 33 s, as 'cannot reach')")
+    print(
+        f"\nfigures: unreachable router reported after {unreachable_s:.1f} s (timeout 2 s), "
+        f"wrong password reported after {refused_s:.1f} s (before: 33 s, as 'cannot reach')"
+    )
 
 
 # -- point 7: signals and pipes during srl run ---------------------------------------------
 def _start_run(*extra: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([*CLI, "--log-level", "INFO", "run", "--horizon", "6", "--no-jit", *extra], cwd=ROOT,
-                            text=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    return subprocess.Popen(
+        [*CLI, "--log-level", "INFO", "run", "--horizon", "6", "--no-jit", *extra],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
 
 
 def _wait_for_line(stream: object, needle: str, timeout: float) -> list[str]:
@@ -223,8 +270,15 @@ def test_a_signal_during_srl_run_ends_it_in_one_line(signum: int, code: int) -> 
 def test_a_closed_pipe_ends_srl_run_quietly() -> None:
     read, write = os.pipe()
     os.close(read)  # `srl run | head` once head has gone
-    done = subprocess.run([*CLI, "run", "--horizon", "4", "--duration", "0.3", "--no-jit"], cwd=ROOT, stdout=write,
-                          stderr=subprocess.PIPE, text=True, timeout=120, check=False)
+    done = subprocess.run(
+        [*CLI, "run", "--horizon", "4", "--duration", "0.3", "--no-jit"],
+        cwd=ROOT,
+        stdout=write,
+        stderr=subprocess.PIPE,
+        text=True,
+        timeout=120,
+        check=False,
+    )
     os.close(write)
     assert done.returncode == 141, done.stderr
     assert done.stderr == ""
@@ -255,18 +309,29 @@ def _build_processes(owner: int) -> list[int]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("signum", "group", "code"), [(signal.SIGTERM, False, 143), (signal.SIGINT, True, 130),
-                                                       (signal.SIGINT, False, 130)])
+@pytest.mark.parametrize(
+    ("signum", "group", "code"), [(signal.SIGTERM, False, 143), (signal.SIGINT, True, 130), (signal.SIGINT, False, 130)]
+)
 def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_directory(
-        tmp_path: Path, signum: int, group: bool, code: int) -> None:
+    tmp_path: Path, signum: int, group: bool, code: int
+) -> None:
     env = {**os.environ, "TMPDIR": str(tmp_path)}
-    process = subprocess.Popen([*CLI, "run", "--horizon", "60", "--duration", "1"], cwd=ROOT, text=True, env=env,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    process = subprocess.Popen(
+        [*CLI, "run", "--horizon", "60", "--duration", "1"],
+        cwd=ROOT,
+        text=True,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         _wait_for_line(process.stderr, "building the actor problem (N = 60", 60)
         deadline = time.monotonic() + 120
-        while not any(Path(f"/proc/{p}/cmdline").exists() and b"cc1" in Path(f"/proc/{p}/cmdline").read_bytes()
-                      for p in _build_processes(process.pid)):
+        while not any(
+            Path(f"/proc/{p}/cmdline").exists() and b"cc1" in Path(f"/proc/{p}/cmdline").read_bytes()
+            for p in _build_processes(process.pid)
+        ):
             assert time.monotonic() < deadline and process.poll() is None, "gcc never started"
             time.sleep(0.1)
         compilers = _build_processes(process.pid)
@@ -286,9 +351,11 @@ def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_direct
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
     left = [p for p in compilers if _running(p)]
-    print(f"\nfigures: {signal.Signals(signum).name} during gcc at N = 60: srl ended after {ended:.2f} s "
-          f"(exit {process.returncode}), {len(compilers)} compiler processes, {len(left)} left, "
-          f"build directories left {len(list(tmp_path.glob('srl-jit-*')))} (before: gcc orphaned, directory left)")
+    print(
+        f"\nfigures: {signal.Signals(signum).name} during gcc at N = 60: srl ended after {ended:.2f} s "
+        f"(exit {process.returncode}), {len(compilers)} compiler processes, {len(left)} left, "
+        f"build directories left {len(list(tmp_path.glob('srl-jit-*')))} (before: gcc orphaned, directory left)"
+    )
     assert process.returncode == code, err
     assert ended < 10
     assert not left
@@ -298,8 +365,17 @@ def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_direct
 
 # -- point 11: checkpoints ------------------------------------------------------------------
 def _transitions(episode: int, steps: range, robot: str = "r1") -> list[Transition]:
-    return [Transition(robot=robot, episode=episode, step=k, state=(1.0 - 0.01 * k, 0.5, 0.1),
-                       action=(0.1, -0.2), cost=0.1 * (1.0 - 0.01 * k)) for k in steps]
+    return [
+        Transition(
+            robot=robot,
+            episode=episode,
+            step=k,
+            state=(1.0 - 0.01 * k, 0.5, 0.1),
+            action=(0.1, -0.2),
+            cost=0.1 * (1.0 - 0.01 * k),
+        )
+        for k in steps
+    ]
 
 
 def test_checkpoint_path_is_per_robot_and_stack() -> None:
@@ -308,8 +384,9 @@ def test_checkpoint_path_is_per_robot_and_stack() -> None:
     from common.settings import DEFAULT_CONFIG
 
     default = tomllib.loads(DEFAULT_CONFIG.read_text())["critic"]["checkpoint"]  # not the test's own
-    settings = Settings.load(critic={"checkpoint": default}, actor={"agent": "rlqv+", "horizon": 6},
-                             transport={"robot": "tb3_7"})
+    settings = Settings.load(
+        critic={"checkpoint": default}, actor={"agent": "rlqv+", "horizon": 6}, transport={"robot": "tb3_7"}
+    )
     path = checkpoint_path(settings)
     assert path is not None and path.name == "critic-tb3_7-rlqv+-N6.json"
 
@@ -354,13 +431,29 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     runs = []
     # `srl status`: the same line from any running system (a monitor session), e.g. the containers
-    watcher = subprocess.Popen([*CLI, "status", "--router", endpoint, "--robot", "h5up", "--seconds", "20",
-                                "--connect-timeout", "60"], cwd=ROOT, text=True, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, start_new_session=True)
+    watcher = subprocess.Popen(
+        [*CLI, "status", "--router", endpoint, "--robot", "h5up", "--seconds", "20", "--connect-timeout", "60"],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     for extra in ([], [], ["--resume", "--json"]):
         summaries = tmp_path / f"run{len(runs)}"
-        done = srl("up", "--router", endpoint, "--robot", "h5up", "--duration", "4", "--summary-dir", str(summaries),
-                   *extra, timeout=180)
+        done = srl(
+            "up",
+            "--router",
+            endpoint,
+            "--robot",
+            "h5up",
+            "--duration",
+            "4",
+            "--summary-dir",
+            str(summaries),
+            *extra,
+            timeout=180,
+        )
         assert done.returncode == 0, done.stderr[-3000:]
         runs.append((done, summaries))
         if watcher.poll() is None and len(runs) == 1:
@@ -376,13 +469,16 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
     first, second, resumed = runs
     status = [line for line in first[0].stderr.splitlines() if line.startswith("srl up ") and ": step " in line]
     assert len(status) >= 2, first[0].stderr
-    assert all(" distance " in line and " J " in line and " weights " in line and " missed deadlines " in line
-               for line in status)
+    assert all(
+        " distance " in line and " J " in line and " weights " in line and " missed deadlines " in line
+        for line in status
+    )
     assert "{" not in first[0].stdout and len(first[0].stderr) < 4000, "JSON on the console"
     assert not [line for line in first[0].stderr.splitlines() if " WARNING " in line], first[0].stderr
     for _done, summaries in runs:
         assert {"actor.json", "critic.json", "plant.json", "router.json", "summary.json"} <= {
-            p.name for p in summaries.iterdir()}
+            p.name for p in summaries.iterdir()
+        }
     critic = json.loads((first[1] / "critic.json").read_text())
     assert "replay" in critic  # kept in the file, for whoever needs it
     assert "(fresh critic; --resume to restore)" in second[0].stdout  # not "restored" by an earlier run
@@ -390,15 +486,17 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
     merged = json.loads(resumed[0].stdout.splitlines()[-1])
     assert merged["critic_restored"] is True
     assert merged["critic_checkpoint"].endswith("critic-h5up.json") or "h5up" in merged["critic_checkpoint"]
-    print(f"\nfigures: srl up --duration 4: {len(status)} status lines, stdout {len(first[0].stdout)} B, "
-          f"stderr {len(first[0].stderr)} B (before: 9 KB of JSON); second run restored "
-          f"{json.loads((second[1] / 'critic.json').read_text())['restored']} (before: true)")
+    print(
+        f"\nfigures: srl up --duration 4: {len(status)} status lines, stdout {len(first[0].stdout)} B, "
+        f"stderr {len(first[0].stderr)} B (before: 9 KB of JSON); second run restored "
+        f"{json.loads((second[1] / 'critic.json').read_text())['restored']} (before: true)"
+    )
 
 
 # -- point 13: the plot ---------------------------------------------------------------------
 def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
-    from common.loop import run_episode
-    from services.plots import plot_episode
+    from common.assembly import run_episode
+    from tools.plots import plot_episode
 
     settings = Settings.load(actor={"horizon": 4, "jit": False}, episode={"duration": 2.0, "start": (-1.2, 0.7)})
     episode = run_episode(settings)
@@ -412,8 +510,14 @@ def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
 # -- point 8: log levels that mean something; point 9: no Rust internals --------------------
 def test_the_router_says_it_listens_on_stdout_and_a_taken_port_in_one_line() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = subprocess.Popen([*CLI, "router", "--router", endpoint], cwd=ROOT, text=True,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    router = subprocess.Popen(
+        [*CLI, "router", "--router", endpoint],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         lines = _wait_for_line(router.stdout, "router listening on " + endpoint, 60)
         taken = srl("router", "--router", endpoint, timeout=60)

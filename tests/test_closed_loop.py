@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.assembly import run_episode
 from common.dynamics import exact_step
-from common.loop import run_episode
 from common.settings import Settings
 
 pytestmark = pytest.mark.slow

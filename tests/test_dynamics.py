@@ -104,14 +104,10 @@ def test_rhs_by_hand() -> None:
 
 
 @pytest.mark.parametrize(("state", "action", "duration"), CASES[:20])
-def test_euler_step_is_literally_s_plus_delta_f(
-    state: np.ndarray, action: np.ndarray, duration: float
-) -> None:
+def test_euler_step_is_literally_s_plus_delta_f(state: np.ndarray, action: np.ndarray, duration: float) -> None:
     x, y, a = state
     v, w = action
-    expected = np.array(
-        [x + duration * (v * math.cos(a)), y + duration * (v * math.sin(a)), a + duration * w]
-    )
+    expected = np.array([x + duration * (v * math.cos(a)), y + duration * (v * math.sin(a)), a + duration * w])
     np.testing.assert_allclose(euler_step(state, action, duration), expected, rtol=1e-15, atol=1e-15)
 
 

@@ -1,7 +1,7 @@
 """``srl experiment paper``: the grid of starts, the outputs' consistency, transports, Ctrl-C.
 
 The process-level tests run a reduced grid (2 x 2 starts, 3 s episodes, mpc and rlqv at N = 6)
-as the user would, through ``python -m services.cli``, each bounded in time.
+as the user would, through ``python -m tools.cli``, each bounded in time.
 """
 
 from __future__ import annotations
@@ -23,7 +23,8 @@ import numpy as np
 import pytest
 
 from common.settings import Settings
-from services.experiment import (
+from tests.harness import ROOT
+from tools.experiment.runner import (
     RunSpec,
     Scheduler,
     grid_starts,
@@ -37,7 +38,6 @@ from services.experiment import (
     run_settings,
     toml_dumps,
 )
-from tests.harness import ROOT
 
 REDUCED = ["--grid", "2", "--duration", "3", "--agents", "mpc,rlqv", "--horizons", "6", "--no-progress"]
 REDUCED_RUNS = 2 * 2 * 2 * 1  # starts x agents x horizons
@@ -136,25 +136,60 @@ def test_resolved_config_round_trips_through_toml(tmp_path: Path) -> None:
 
 def test_ratios_pair_each_run_with_mpc_from_the_same_start_and_horizon() -> None:
     rows = [
-        {"run_id": "mpc-a", "agent": "mpc", "horizon": 6, "start_index": 0, "start_x": 0, "start_y": 0,
-         "accumulated_cost": 4.0},
-        {"run_id": "mpc-b", "agent": "mpc", "horizon": 12, "start_index": 0, "start_x": 0, "start_y": 0,
-         "accumulated_cost": 8.0},
-        {"run_id": "q", "agent": "rlqv", "horizon": 6, "start_index": 0, "start_x": 0, "start_y": 0,
-         "accumulated_cost": 3.0},
-        {"run_id": "orphan", "agent": "rlqv", "horizon": 6, "start_index": 1, "start_x": 1, "start_y": 0,
-         "accumulated_cost": 3.0},
+        {
+            "run_id": "mpc-a",
+            "agent": "mpc",
+            "horizon": 6,
+            "start_index": 0,
+            "start_x": 0,
+            "start_y": 0,
+            "accumulated_cost": 4.0,
+        },
+        {
+            "run_id": "mpc-b",
+            "agent": "mpc",
+            "horizon": 12,
+            "start_index": 0,
+            "start_x": 0,
+            "start_y": 0,
+            "accumulated_cost": 8.0,
+        },
+        {
+            "run_id": "q",
+            "agent": "rlqv",
+            "horizon": 6,
+            "start_index": 0,
+            "start_x": 0,
+            "start_y": 0,
+            "accumulated_cost": 3.0,
+        },
+        {
+            "run_id": "orphan",
+            "agent": "rlqv",
+            "horizon": 6,
+            "start_index": 1,
+            "start_x": 1,
+            "start_y": 0,
+            "accumulated_cost": 3.0,
+        },
     ]
     table = ratio_table(rows)
     assert [(t["run_id"], t["ratio_percent"]) for t in table] == [("q", 75.0)]
 
 
 # -- the command, end to end --------------------------------------------------------------
-def _experiment(out: Path, *extra: str, timeout: float = 120,
-                env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", "experiment", "paper", *REDUCED, "--out", str(out),
-                           *extra], cwd=ROOT, capture_output=True, text=True, timeout=timeout, check=False,
-                          env=None if env is None else {**os.environ, **env})
+def _experiment(
+    out: Path, *extra: str, timeout: float = 120, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", "experiment", "paper", *REDUCED, "--out", str(out), *extra],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+        env=None if env is None else {**os.environ, **env},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -168,8 +203,16 @@ def reduced_inproc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
 @pytest.mark.slow
 def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> None:
     out = reduced_inproc
-    for name in ("runs.csv", "trajectories.npz", "config.toml", "settings.json", "summary.md", "summary.json",
-                 "ratio_N6.png", "trajectories.png"):
+    for name in (
+        "runs.csv",
+        "trajectories.npz",
+        "config.toml",
+        "settings.json",
+        "summary.md",
+        "summary.json",
+        "ratio_N6.png",
+        "trajectories.png",
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     for png in ("ratio_N6.png", "trajectories.png"):
         assert (out / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -186,8 +229,9 @@ def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> 
 
     # every ratio in the summary is J_agent / J_mpc of runs.csv for the same start
     mpc = {r["start_index"]: r["accumulated_cost"] for r in rows if r["agent"] == "mpc"}
-    expected = {r["start_index"]: 100.0 * r["accumulated_cost"] / mpc[r["start_index"]]
-                for r in rows if r["agent"] == "rlqv"}
+    expected = {
+        r["start_index"]: 100.0 * r["accumulated_cost"] / mpc[r["start_index"]] for r in rows if r["agent"] == "rlqv"
+    }
     ratios = {t["start_index"]: t["ratio_percent"] for t in summary["ratios"] if t["agent"] == "rlqv"}
     assert ratios.keys() == expected.keys() == {0, 1, 2, 3}
     for index, value in expected.items():
@@ -220,8 +264,13 @@ def test_zenoh_transport_gives_the_inproc_numbers(reduced_inproc: Path, tmp_path
     # A checkpoint named in the environment (it outranks --config) is still switched off:
     # every episode starts from the initial weights, and nothing is written per step.
     checkpoints = tmp_path / "checkpoints"
-    done = _experiment(tmp_path, "--transport", "zenoh", "--no-plots",
-                       env={"SRL_CRITIC__CHECKPOINT": str(checkpoints / "critic-{robot}.json")})
+    done = _experiment(
+        tmp_path,
+        "--transport",
+        "zenoh",
+        "--no-plots",
+        env={"SRL_CRITIC__CHECKPOINT": str(checkpoints / "critic-{robot}.json")},
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert not checkpoints.exists()
     local = {r["run_id"]: r for r in read_runs_csv(reduced_inproc / "runs.csv")}
@@ -268,11 +317,31 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("transport", ["inproc", "zenoh"])
 def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, transport: str) -> None:
     # 3 x 3 starts, 30 s episodes: far more work than the time we give it
-    argv = [sys.executable, "-m", "services.cli", "--log-level", "INFO", "experiment", "paper", "--grid", "3",
-            "--duration", "30", "--agents", "mpc,rlqv", "--horizons", "6", "--no-progress",
-            "--transport", transport, "--out", str(tmp_path)]
-    process = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True)
+    argv = [
+        sys.executable,
+        "-m",
+        "tools.cli",
+        "--log-level",
+        "INFO",
+        "experiment",
+        "paper",
+        "--grid",
+        "3",
+        "--duration",
+        "30",
+        "--agents",
+        "mpc,rlqv",
+        "--horizons",
+        "6",
+        "--no-progress",
+        "--transport",
+        transport,
+        "--out",
+        str(tmp_path),
+    ]
+    process = subprocess.Popen(
+        argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
     first_run = threading.Event()
     stderr: list[str] = []
 
@@ -307,8 +376,14 @@ def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, tra
 
 def test_bad_options_are_usage_errors(tmp_path: Path) -> None:
     for bad in (["--agents", "mpc,dqn"], ["--horizons", "1"], ["--grid", "0"], ["--config", "/nonexistent.toml"]):
-        done = subprocess.run([sys.executable, "-m", "services.cli", "experiment", "paper", *bad, "--out",
-                               str(tmp_path / "x")], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False)
+        done = subprocess.run(
+            [sys.executable, "-m", "tools.cli", "experiment", "paper", *bad, "--out", str(tmp_path / "x")],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
         assert done.returncode == 2, (bad, done.stderr)
         assert "srl experiment: error:" in done.stderr
         assert not (tmp_path / "x").exists()

@@ -35,19 +35,20 @@ from common.messages import (
 from common.settings import Settings
 from tests.harness import cluster, wait_until
 
-SCHEMAS: list[type[Message]] = [PlantState, Action, Transition, CriticWeights, StepRequest, ResetRequest,
-                                ServiceStatus]
+SCHEMAS: list[type[Message]] = [PlantState, Action, Transition, CriticWeights, StepRequest, ResetRequest, ServiceStatus]
 
 # -- property tests ---------------------------------------------------------------------
 
 WILD_NUMBERS = st.one_of(
-    st.floats(allow_nan=True, allow_infinity=True), st.integers(min_value=-(2**80), max_value=2**80),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(min_value=-(2**80), max_value=2**80),
     st.sampled_from([1e308, -1e308, 1e-320, 0.0, -0.0, 2**63, -(2**63) - 1]),
 )
 JSON_VALUES = st.recursive(
     st.one_of(st.none(), st.booleans(), WILD_NUMBERS, st.text(max_size=20)),
-    lambda children: st.one_of(st.lists(children, max_size=20), st.dictionaries(st.text(max_size=10), children,
-                                                                               max_size=5)),
+    lambda children: st.one_of(
+        st.lists(children, max_size=20), st.dictionaries(st.text(max_size=10), children, max_size=5)
+    ),
     max_leaves=40,
 )
 
@@ -80,9 +81,11 @@ def test_random_bytes_decode_or_message_error(schema: type[Message], payload: by
 def _field_values(schema: type[Message]) -> st.SearchStrategy[dict[str, Any]]:
     """Objects with the schema's own field names and wild values (the likeliest near-misses)."""
     names = list(schema.model_fields)
-    return st.dictionaries(st.sampled_from([*names, "extra"]), st.one_of(JSON_VALUES, st.lists(WILD_NUMBERS,
-                                                                                              max_size=16)),
-                           max_size=len(names) + 1)
+    return st.dictionaries(
+        st.sampled_from([*names, "extra"]),
+        st.one_of(JSON_VALUES, st.lists(WILD_NUMBERS, max_size=16)),
+        max_size=len(names) + 1,
+    )
 
 
 @pytest.mark.parametrize("schema", SCHEMAS, ids=lambda s: s.__name__)
@@ -96,10 +99,13 @@ def test_near_miss_objects_decode_or_message_error(schema: type[Message], data: 
 @given(
     state=st.tuples(*[st.floats(-1e4, 1e4)] * 2, st.floats(-1e6, 1e6)),
     action=st.tuples(*[st.floats(-100, 100)] * 2),
-    cost=st.floats(0, 1e12), step=st.integers(0, 2**62), episode=st.integers(0, 2**62),
+    cost=st.floats(0, 1e12),
+    step=st.integers(0, 2**62),
+    episode=st.integers(0, 2**62),
 )
-def test_valid_messages_round_trip_exactly(state: tuple[float, float, float], action: tuple[float, float],
-                                           cost: float, step: int, episode: int) -> None:
+def test_valid_messages_round_trip_exactly(
+    state: tuple[float, float, float], action: tuple[float, float], cost: float, step: int, episode: int
+) -> None:
     for message in (
         PlantState(robot="r", episode=episode, seq=step, stamp_ns=step, state=state, source="sim"),
         Action(robot="r", episode=episode, step=step, stamp_ns=0, action=action, state_seq=-1),
@@ -146,15 +152,40 @@ def _rogue_payload(rng: random.Random, key: str, now_us: int, episode: int) -> b
         return _dumps({"schema_version": rng.choice([0, 2, 99]), "robot": "fz"})
     bad = rng.choice([float("nan"), float("inf"), -float("inf"), 1e300, -1e308])
     if key == "state":
-        return _dumps({"robot": "fz", "episode": 0, "seq": rng.randrange(10**6), "stamp_ns": 0,
-                       "state": [bad, 0.0, 0.0], "source": "sim"})
+        return _dumps(
+            {
+                "robot": "fz",
+                "episode": 0,
+                "seq": rng.randrange(10**6),
+                "stamp_ns": 0,
+                "state": [bad, 0.0, 0.0],
+                "source": "sim",
+            }
+        )
     if key == "action":
         return _dumps({"robot": "fz", "episode": 0, "step": 0, "stamp_ns": 0, "action": [bad, bad], "state_seq": 0})
     if key == "transition":
-        return _dumps({"robot": "fz", "episode": 0, "step": 0, "state": [0.0, 0.0, 0.0], "action": [0.0, 0.0],
-                       "cost": bad if kind != 3 else -1.0})
-    weights = {"robot": "fz", "episode": episode, "version": 1, "trained_step": 0, "q_weights": [1.0] * 15,
-               "v_weights": [1.0] * 6, "q_residual": 0.0, "v_residual": 0.0, "pairs": 0}
+        return _dumps(
+            {
+                "robot": "fz",
+                "episode": 0,
+                "step": 0,
+                "state": [0.0, 0.0, 0.0],
+                "action": [0.0, 0.0],
+                "cost": bad if kind != 3 else -1.0,
+            }
+        )
+    weights = {
+        "robot": "fz",
+        "episode": episode,
+        "version": 1,
+        "trained_step": 0,
+        "q_weights": [1.0] * 15,
+        "v_weights": [1.0] * 6,
+        "q_residual": 0.0,
+        "v_residual": 0.0,
+        "pairs": 0,
+    }
     if kind == 3:  # valid schema, a version from the far future (would lock out the real critic)
         return _dumps({**weights, "version": now_us + 10**12})
     if kind == 4:  # valid schema, an old version (or an old episode)
@@ -176,8 +207,10 @@ def test_live_fuzz_every_key_for_ten_seconds() -> None:
         assert c.session is not None
         c.session.declare_subscriber("srl/fz/action", lambda s: _record_action(s, actions, episodes))
         wait_until(lambda: bool(episodes), 30, "the actor's first action")
-        publishers = {k: c.session.declare_publisher(f"srl/fz/{k}", congestion_control=zenoh.CongestionControl.BLOCK)
-                      for k in keys}
+        publishers = {
+            k: c.session.declare_publisher(f"srl/fz/{k}", congestion_control=zenoh.CongestionControl.BLOCK)
+            for k in keys
+        }
         started = time.monotonic()
         next_at = started
         while time.monotonic() < started + FUZZ_SECONDS:

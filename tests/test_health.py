@@ -1,6 +1,6 @@
-"""``srl health`` / ``python -m services.health``: the containers' readiness checks.
+"""``srl health`` / ``python -m tools.health``: the containers' readiness checks.
 
-Its fast path reads three transport settings itself (see services/health.py for why): the
+Its fast path reads three transport settings itself (see tools/health.py for why): the
 oracle is :class:`common.settings.Settings` and :func:`common.keys.liveliness_key`.
 """
 
@@ -15,8 +15,8 @@ import pytest
 
 from common.keys import liveliness_key
 from common.settings import Settings
-from services.health import ALIVE_KEY, transport_settings
 from tests.harness import ROOT, cluster, free_port
+from tools.health import ALIVE_KEY, transport_settings
 
 
 @pytest.fixture(autouse=True)
@@ -28,22 +28,30 @@ def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def _expected(config: Path | None = None, **transport: str) -> dict[str, object]:
     t = Settings.load(config, **({"transport": transport} if transport else {})).transport
-    return {"router": t.router, "robot": t.robot, "multicast_scouting": t.multicast_scouting,
-            "connect": list(t.connect), "secure": t.secure}
+    return {
+        "router": t.router,
+        "robot": t.robot,
+        "multicast_scouting": t.multicast_scouting,
+        "connect": list(t.connect),
+        "secure": t.secure,
+    }
 
 
 def test_defaults_are_the_packaged_ones() -> None:
     assert transport_settings() == _expected()
 
 
-@pytest.mark.parametrize("environment", [
-    {"SRL_TRANSPORT__ROUTER": "tcp/router:7447", "SRL_TRANSPORT__ROBOT": "tb3_7"},
-    {"SRL_TRANSPORT__MULTICAST_SCOUTING": "false"},
-    {"SRL_TRANSPORT__MULTICAST_SCOUTING": "True"},
-    {"srl_transport__robot": "lower_case_name"},
-    {"SRL_TRANSPORT__CONNECT": '["tcp/10.0.0.2:7447"]'},
-    {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USER": "monitor"},
-])
+@pytest.mark.parametrize(
+    "environment",
+    [
+        {"SRL_TRANSPORT__ROUTER": "tcp/router:7447", "SRL_TRANSPORT__ROBOT": "tb3_7"},
+        {"SRL_TRANSPORT__MULTICAST_SCOUTING": "false"},
+        {"SRL_TRANSPORT__MULTICAST_SCOUTING": "True"},
+        {"srl_transport__robot": "lower_case_name"},
+        {"SRL_TRANSPORT__CONNECT": '["tcp/10.0.0.2:7447"]'},
+        {"SRL_TRANSPORT__SECURE": "true", "SRL_TRANSPORT__USER": "monitor"},
+    ],
+)
 def test_environment_overrides_as_settings_do(monkeypatch: pytest.MonkeyPatch, environment: dict[str, str]) -> None:
     for name, value in environment.items():
         monkeypatch.setenv(name, value)
@@ -70,7 +78,7 @@ def test_bad_robot_id_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_client_config_is_zenoh_config_for_a_client(monkeypatch: pytest.MonkeyPatch) -> None:
     from common.transport import zenoh_config
-    from services.health import client_config
+    from tools.health import client_config
 
     monkeypatch.setenv("SRL_TRANSPORT__CONNECT", '["tcp/127.0.0.1:7448"]')
     ours, theirs = client_config(transport_settings()), zenoh_config(Settings.load().transport)
@@ -80,7 +88,7 @@ def test_client_config_is_zenoh_config_for_a_client(monkeypatch: pytest.MonkeyPa
 
 def test_secure_sessions_are_made_by_zenoh_config(monkeypatch: pytest.MonkeyPatch) -> None:
     from common.security import SecurityError
-    from services.health import client_config
+    from tools.health import client_config
 
     monkeypatch.setenv("SRL_TRANSPORT__SECURE", "true")  # and no user: zenoh_config refuses
     with pytest.raises(SecurityError):
@@ -93,8 +101,9 @@ def test_alive_key_is_the_liveliness_key(robot: str, service: str) -> None:
 
 
 def _health(*argv: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.health", *argv], cwd=ROOT, capture_output=True,
-                          text=True, timeout=60, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "tools.health", *argv], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False
+    )
 
 
 @pytest.mark.slow
@@ -115,8 +124,14 @@ def test_exit_codes_against_real_services() -> None:
         other_robot = _health("critic", "--router", c.endpoint, "--robot", "other", "--timeout", "0.5")
         assert other_robot.returncode == 1, other_robot
         # the srl subcommand is the same check
-        via_cli = subprocess.run([sys.executable, "-m", "services.cli", "health", "critic", *args], cwd=ROOT,
-                                 capture_output=True, text=True, timeout=60, check=False)
+        via_cli = subprocess.run(
+            [sys.executable, "-m", "tools.cli", "health", "critic", *args],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
         assert via_cli.returncode == 0, via_cli
         c.procs["critic"].stop()
         gone = _health("critic", *args, "--timeout", "0.5")

@@ -60,20 +60,34 @@ class System:
         self.endpoint = f"tcp/{router_ip}:{ROUTER_PORT}"
         # its own network namespace is the private network of the opt-out (README "Security"): a
         # router on 10.213.x.y would otherwise refuse to start without login and TLS
-        self.router = topo.spawn("r", "router", [sys.executable, "-m", "services.cli", "router", "--router",
-                                                 self.endpoint, "--robot", robot],
-                                 env={"SRL_TRANSPORT__ALLOW_INSECURE_NETWORK": "true"})
+        self.router = topo.spawn(
+            "r",
+            "router",
+            [sys.executable, "-m", "tools.cli", "router", "--router", self.endpoint, "--robot", robot],
+            env={"SRL_TRANSPORT__ALLOW_INSECURE_NETWORK": "true"},
+        )
         self.router.wait_output("router listening", START_TIMEOUT_S)
-        self.observer = topo.python("r", "observer", "tests.netns_tools", "observe", "--router", self.endpoint,
-                                    "--robot", robot)
+        self.observer = topo.python(
+            "r", "observer", "tests.netns_tools", "observe", "--router", self.endpoint, "--robot", robot
+        )
         self.observer.wait_record(lambda r: r.get("kind") == "ready", START_TIMEOUT_S, "observer ready")
         self.relay: NsProc | None = None
         self.critic_endpoint = self.endpoint
         if relay_delay_ms is not None:
-            self.relay = topo.python("r", "relay", "tests.netns_tools", "relay", "--delay-ms", str(relay_delay_ms),
-                                     "--forward", f"{router_ip}:{RELAY_PORT}={router_ip}:{ROUTER_PORT}",
-                                     "--forward", f"{router_ip}:{RELAY_ECHO_PORT}={router_ip}:{ECHO_PORT}",
-                                     "--echo", f"{router_ip}:{ECHO_PORT}")
+            self.relay = topo.python(
+                "r",
+                "relay",
+                "tests.netns_tools",
+                "relay",
+                "--delay-ms",
+                str(relay_delay_ms),
+                "--forward",
+                f"{router_ip}:{RELAY_PORT}={router_ip}:{ROUTER_PORT}",
+                "--forward",
+                f"{router_ip}:{RELAY_ECHO_PORT}={router_ip}:{ECHO_PORT}",
+                "--echo",
+                f"{router_ip}:{ECHO_PORT}",
+            )
             self.relay.wait_record(lambda r: r.get("kind") == "ready", START_TIMEOUT_S, "relay ready")
             self.critic_endpoint = f"tcp/{router_ip}:{RELAY_PORT}"
         self.plant = self.service("p", "plant-sim", "--mode", "realtime")
@@ -82,8 +96,9 @@ class System:
         self.wait_alive("critic")
 
     def service(self, role: str, command: str, *args: str, router: str | None = None) -> NsProc:
-        return self.topo.python(role, command, "services.cli", command, "--router", router or self.endpoint,
-                                "--robot", self.robot, *args)
+        return self.topo.python(
+            role, command, "tools.cli", command, "--router", router or self.endpoint, "--robot", self.robot, *args
+        )
 
     def start_actor(self, seconds: float) -> NsProc:
         actor = self.service("a", "actor", "--mode", "realtime", "--run-seconds", str(seconds))
@@ -118,8 +133,20 @@ class System:
 
     def probe(self, port: int, count: int) -> dict[str, Any]:
         """Round trips from the critic's host to the echo server (directly, or through the relay)."""
-        result = self.topo.run("c", [sys.executable, "-m", "tests.netns_tools", "probe", "--target",
-                                     f"{self.topo.hosts['r'].ip}:{port}", "--count", str(count)], timeout=60)
+        result = self.topo.run(
+            "c",
+            [
+                sys.executable,
+                "-m",
+                "tests.netns_tools",
+                "probe",
+                "--target",
+                f"{self.topo.hosts['r'].ip}:{port}",
+                "--count",
+                str(count),
+            ],
+            timeout=60,
+        )
         for line in result.stdout.splitlines():
             if '"rtt"' in line:
                 return dict(json.loads(line)["rtt_ms"])
@@ -148,8 +175,10 @@ def fmt(stats: dict[str, float], unit: str = "", digits: int = 1) -> str:
 def loop_rows(summary: dict) -> list[tuple[str, str]]:
     """The actor's deadlines and weight staleness, as every fault report states them."""
     return [
-        ("actor deadlines", f"missed {summary['loop']['missed_deadlines']}; period "
-                            f"{fmt(summary['loop']['period_ms'], ' ms', 2)}"),
+        (
+            "actor deadlines",
+            f"missed {summary['loop']['missed_deadlines']}; period {fmt(summary['loop']['period_ms'], ' ms', 2)}",
+        ),
         ("staleness [steps]", fmt(summary["staleness_steps"], "", 1)),
         ("staleness [ms]", fmt(summary["staleness_ms"], " ms")),
     ]
@@ -178,9 +207,11 @@ def liveliness_story(system: System, service: str, cut: float, restored: float) 
     changes = [r for r in system.records("alive") if r["service"] == service and r["t"] > cut]
     if not changes:
         return "token kept throughout"
-    return "; ".join(f"{'back' if r['alive'] else 'lost'} at " + (f"cut + {r['t'] - cut:.1f} s" if r["t"] < restored
-                                                                   else f"restore + {r['t'] - restored:.1f} s")
-                     for r in changes)
+    return "; ".join(
+        f"{'back' if r['alive'] else 'lost'} at "
+        + (f"cut + {r['t'] - cut:.1f} s" if r["t"] < restored else f"restore + {r['t'] - restored:.1f} s")
+        for r in changes
+    )
 
 
 # -- tests --------------------------------------------------------------------------------
@@ -202,9 +233,20 @@ def test_loss_and_delay_on_the_critics_link_cost_no_deadline_and_no_transition()
         topo.set_loss("c", LOSS)
         loss_on = time.monotonic()
         # the link's quality during the run: round trips through the lossy, delayed link
-        lossy_probe = topo.python("c", "probe", "tests.netns_tools", "probe", "--target",
-                                  f"{topo.hosts['r'].ip}:{RELAY_ECHO_PORT}", "--count", "150", "--interval", "0.04",
-                                  "--timeout", "30")
+        lossy_probe = topo.python(
+            "c",
+            "probe",
+            "tests.netns_tools",
+            "probe",
+            "--target",
+            f"{topo.hosts['r'].ip}:{RELAY_ECHO_PORT}",
+            "--count",
+            "150",
+            "--interval",
+            "0.04",
+            "--timeout",
+            "30",
+        )
         actor = system.start_actor(run_seconds)
         # every connection of the critic's host goes through the relay: its Zenoh session too
         critic_peers = topo.tcp_peers("c")
@@ -233,32 +275,51 @@ def test_loss_and_delay_on_the_critics_link_cost_no_deadline_and_no_transition()
 
     steps = summary["steps"]
     rows = [
-        ("load held", f"actor real-time, delta = 0.1 s, {run_seconds:.0f} s: {steps} steps, {total} transitions "
-                      f"published; plant state at 50 Hz; critic fits after every transition; machine load "
-                      f"{load_before} (1/5/15 min)"),
-        ("fault: loss", f"{LOSS:.0%} random each way on the critic's link (iptables statistic), "
-                        f"{loss_off - loss_on:.1f} s: to the critic {loss.dropped_in} of {loss.seen_in} packets "
-                        f"dropped ({loss.dropped_in / max(loss.seen_in, 1):.1%}), from it {loss.dropped_out} of "
-                        f"{loss.seen_out} ({loss.dropped_out / max(loss.seen_out, 1):.1%})"),
-        ("fault: delay", f"+{DELAY_MS:.0f} ms each way (TCP relay): the critic's Zenoh traffic held "
-                         f"{fmt(critic_link['held_ms'], ' ms')} per chunk ({critic_link['chunks']} chunks, "
-                         f"{critic_link['bytes']['to_target']} B up, {critic_link['bytes']['to_client']} B down); "
-                         f"RTT critic->router host: direct median {rtt_direct['median']:.2f} ms, through the relay "
-                         f"median {rtt_relay['median']:.1f} ms; through it under loss {fmt(lossy_rtt, ' ms')}"),
+        (
+            "load held",
+            f"actor real-time, delta = 0.1 s, {run_seconds:.0f} s: {steps} steps, {total} transitions "
+            f"published; plant state at 50 Hz; critic fits after every transition; machine load "
+            f"{load_before} (1/5/15 min)",
+        ),
+        (
+            "fault: loss",
+            f"{LOSS:.0%} random each way on the critic's link (iptables statistic), "
+            f"{loss_off - loss_on:.1f} s: to the critic {loss.dropped_in} of {loss.seen_in} packets "
+            f"dropped ({loss.dropped_in / max(loss.seen_in, 1):.1%}), from it {loss.dropped_out} of "
+            f"{loss.seen_out} ({loss.dropped_out / max(loss.seen_out, 1):.1%})",
+        ),
+        (
+            "fault: delay",
+            f"+{DELAY_MS:.0f} ms each way (TCP relay): the critic's Zenoh traffic held "
+            f"{fmt(critic_link['held_ms'], ' ms')} per chunk ({critic_link['chunks']} chunks, "
+            f"{critic_link['bytes']['to_target']} B up, {critic_link['bytes']['to_client']} B down); "
+            f"RTT critic->router host: direct median {rtt_direct['median']:.2f} ms, through the relay "
+            f"median {rtt_relay['median']:.1f} ms; through it under loss {fmt(lossy_rtt, ' ms')}",
+        ),
         *loop_rows(summary),
-        ("weights", f"{summary['counters'].get('weights_accepted', 0)} accepted by the actor, last version "
-                    f"{summary['weights_version']}; {len(versions)} seen at the router, strictly increasing: "
-                    f"{strictly_increasing(versions)}"),
-        ("transitions at the critic", f"{held_before_lift} of {total} while the loss was still on"
-                                      + (f" (complete {under_fault:.1f} s after the actor's end)"
-                                         if under_fault is not None else " (incomplete)")
-                                      + f"; after lifting: complete in {caught_up:.1f} s"),
-        ("lost", f"{missing_steps(summary, critic_summary, robot)} transitions; replay == actor's tail: "
-                 f"{critic_summary['replay'].get(robot) == summary['transitions_tail']}"),
+        (
+            "weights",
+            f"{summary['counters'].get('weights_accepted', 0)} accepted by the actor, last version "
+            f"{summary['weights_version']}; {len(versions)} seen at the router, strictly increasing: "
+            f"{strictly_increasing(versions)}",
+        ),
+        (
+            "transitions at the critic",
+            f"{held_before_lift} of {total} while the loss was still on"
+            + (f" (complete {under_fault:.1f} s after the actor's end)" if under_fault is not None else " (incomplete)")
+            + f"; after lifting: complete in {caught_up:.1f} s",
+        ),
+        (
+            "lost",
+            f"{missing_steps(summary, critic_summary, robot)} transitions; replay == actor's tail: "
+            f"{critic_summary['replay'].get(robot) == summary['transitions_tail']}",
+        ),
     ]
     print_figures("5 % loss + 20 ms delay on the critic's link", rows)
-    print(f"actor status (last): {actor_status[-1]['counters'] if actor_status else None}; "
-          f"actor end -> loss lifted {loss_off - actor_done:.1f} s")
+    print(
+        f"actor status (last): {actor_status[-1]['counters'] if actor_status else None}; "
+        f"actor end -> loss lifted {loss_off - actor_done:.1f} s"
+    )
 
     assert set(exit_codes.values()) == {0}, exit_codes
     assert summary["loop"]["missed_deadlines"] == 0
@@ -278,8 +339,11 @@ def test_loss_and_delay_on_the_critics_link_cost_no_deadline_and_no_transition()
     assert strictly_increasing(versions), "weight versions went back or repeated"
 
 
-@pytest.mark.parametrize(("method", "seconds"), [("drop", PARTITION_S), ("link", PARTITION_S), ("drop", 15.0)],
-                         ids=["drop-5s", "link-5s", "drop-15s-beyond-lease"])
+@pytest.mark.parametrize(
+    ("method", "seconds"),
+    [("drop", PARTITION_S), ("link", PARTITION_S), ("drop", 15.0)],
+    ids=["drop-5s", "link-5s", "drop-15s-beyond-lease"],
+)
 def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(method: str, seconds: float) -> None:
     """5 s: shorter than Zenoh's session lease (10 s): the sessions survive, TCP delivers what
     waited. 15 s (beyond the brief): the critic's session expires, it reconnects after the
@@ -290,8 +354,11 @@ def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(metho
     with Topology() as topo:
         system = System(topo, robot)
         actor = system.start_actor(run_seconds)
-        wait_for(lambda: any(w["trained_step"] >= 20 for w in system.records("weights")), 30,
-                 "weights trained on 20 steps before the partition")
+        wait_for(
+            lambda: any(w["trained_step"] >= 20 for w in system.records("weights")),
+            30,
+            "weights trained on 20 steps before the partition",
+        )
         version_at_cut = max(w["version"] for w in system.records("weights"))
         topo.cut("c", method)
         cut = time.monotonic()
@@ -301,10 +368,13 @@ def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(metho
         restored = time.monotonic()
         live_edge = max(t["step"] for t in system.records("transition") if t["t"] <= restored)
         first_after = system.observer.wait_record(
-            lambda r: r.get("kind") == "weights" and r["t"] > restored, CATCH_UP_S, "weights after the partition")
+            lambda r: r.get("kind") == "weights" and r["t"] > restored, CATCH_UP_S, "weights after the partition"
+        )
         at_edge = system.observer.wait_record(
             lambda r: r.get("kind") == "weights" and r["t"] > restored and r["trained_step"] >= live_edge,
-            CATCH_UP_S, f"weights trained on step {live_edge} (the actor's step when the link came back)")
+            CATCH_UP_S,
+            f"weights trained on step {live_edge} (the actor's step when the link came back)",
+        )
         assert actor.wait(run_seconds + 60) == 0, actor.stderr[-10:]
         summary = actor.summary()
         total = transitions_published(summary)
@@ -323,27 +393,49 @@ def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(metho
     in_partition = [t for t in transitions_seen if cut <= t["t"] < restored]
     versions = [w["version"] for w in weights]
     staleness_series = ", ".join(f"{c['staleness_steps']:.0f}" for c in during)
-    how = ("every packet of its link dropped where received, silently" if method == "drop"
-           else "its interface down, then up and its route re-added")
+    how = (
+        "every packet of its link dropped where received, silently"
+        if method == "drop"
+        else "its interface down, then up and its route re-added"
+    )
     rows = [
-        ("load held", f"actor real-time, delta = 0.1 s, {run_seconds:.0f} s: {summary['steps']} steps, {total} "
-                      f"transitions published; plant state at 50 Hz; machine load {load_before} (1/5/15 min)"),
-        ("fault", f"critic partitioned for {restored - cut:.2f} s ({how}"
-                  + (f"; {dropped.dropped} packets dropped" if method == "drop" else "") + ")"),
+        (
+            "load held",
+            f"actor real-time, delta = 0.1 s, {run_seconds:.0f} s: {summary['steps']} steps, {total} "
+            f"transitions published; plant state at 50 Hz; machine load {load_before} (1/5/15 min)",
+        ),
+        (
+            "fault",
+            f"critic partitioned for {restored - cut:.2f} s ({how}"
+            + (f"; {dropped.dropped} packets dropped" if method == "drop" else "")
+            + ")",
+        ),
         ("critic's liveliness", critic_token),
-        ("actor during the partition", f"{len(in_partition)} transitions published; weights version "
-                                       f"{sorted({int(c['weights_version']) for c in during})} (held at the cut: "
-                                       f"{version_at_cut}); staleness [steps] at 1 Hz: {staleness_series}"),
+        (
+            "actor during the partition",
+            f"{len(in_partition)} transitions published; weights version "
+            f"{sorted({int(c['weights_version']) for c in during})} (held at the cut: "
+            f"{version_at_cut}); staleness [steps] at 1 Hz: {staleness_series}",
+        ),
         *loop_rows(summary),
-        ("catch-up", f"first weights {first_after['t'] - restored:.2f} s after the link came back; trained on the "
-                     f"live edge (step {live_edge}) after {at_edge['t'] - restored:.2f} s; all {total} transitions "
-                     f"at the critic {final:.1f} s after the actor's end"),
-        ("weights", f"{len(versions)} versions seen at the router, strictly increasing: "
-                    f"{strictly_increasing(versions)}; none during the partition: {not weights_during}"),
-        ("lost", f"{missing_steps(summary, critic_summary, robot)} transitions; replay == actor's tail: "
-                 f"{critic_summary['replay'].get(robot) == summary['transitions_tail']}; critic received "
-                 f"{critic_summary['transitions_received']}, duplicates {critic_summary['duplicates']}, "
-                 f"too old {critic_summary['too_old']}"),
+        (
+            "catch-up",
+            f"first weights {first_after['t'] - restored:.2f} s after the link came back; trained on the "
+            f"live edge (step {live_edge}) after {at_edge['t'] - restored:.2f} s; all {total} transitions "
+            f"at the critic {final:.1f} s after the actor's end",
+        ),
+        (
+            "weights",
+            f"{len(versions)} versions seen at the router, strictly increasing: "
+            f"{strictly_increasing(versions)}; none during the partition: {not weights_during}",
+        ),
+        (
+            "lost",
+            f"{missing_steps(summary, critic_summary, robot)} transitions; replay == actor's tail: "
+            f"{critic_summary['replay'].get(robot) == summary['transitions_tail']}; critic received "
+            f"{critic_summary['transitions_received']}, duplicates {critic_summary['duplicates']}, "
+            f"too old {critic_summary['too_old']}",
+        ),
     ]
     print_figures(f"{seconds:.0f} s partition of the critic ({method})", rows)
 

@@ -16,7 +16,7 @@ import pytest
 from common.messages import CriticWeights
 from common.provenance import SequenceGuard, SourceGate
 from common.settings import Settings
-from services.actor.service import MAX_VERSION_AHEAD_US, WeightsInbox
+from services.actor.ports import MAX_VERSION_AHEAD_US, WeightsInbox
 
 CRITIC, ROGUE, RESTARTED = "aa01", "bb02", "cc03"
 EPISODE = 17
@@ -38,6 +38,7 @@ class FakeBus:
 
 
 # -- SourceGate ---------------------------------------------------------------------------
+
 
 def test_gate_verdicts_unknown_accept_foreign_conflict() -> None:
     gate = SourceGate("plant")
@@ -70,6 +71,7 @@ def test_gate_generation_counts_changes_only() -> None:
 
 
 # -- SequenceGuard ------------------------------------------------------------------------
+
 
 def test_guard_accepts_first_and_newer_refuses_old_and_equal() -> None:
     guard = SequenceGuard(max_jump=100, restart_after=5)
@@ -130,9 +132,19 @@ def test_guard_forget_drops_vanished_sources() -> None:
 
 # -- WeightsInbox -------------------------------------------------------------------------
 
+
 def _weights(version: int, *, value: float = 1.0, trained_step: int = 0, episode: int = EPISODE) -> CriticWeights:
-    return CriticWeights(robot="pv", episode=episode, version=version, trained_step=trained_step,
-                         q_weights=(value,) * 15, v_weights=(value,) * 6, q_residual=0.0, v_residual=0.0, pairs=0)
+    return CriticWeights(
+        robot="pv",
+        episode=episode,
+        version=version,
+        trained_step=trained_step,
+        q_weights=(value,) * 15,
+        v_weights=(value,) * 6,
+        q_residual=0.0,
+        v_residual=0.0,
+        pairs=0,
+    )
 
 
 def _inbox() -> tuple[WeightsInbox, FakeBus, SourceGate]:

@@ -29,42 +29,29 @@ NOT_IN_CI = "(not in CI)"
 COMMENT = re.compile(r"\s+#(?:\s.*)?$")
 J_IN_OUTPUT = re.compile(r"\bJ\b[^0-9\n-]*(-?[0-9]+\.[0-9]+)")
 
-ADD_A_HOST = ("tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two "
-              "hosts, loopback and a free port for the addresses, `srl` = this checkout's)")
+ADD_A_HOST = (
+    "tests/test_tls.py::test_readme_add_a_host_steps_work (as written; two home directories for the two "
+    "hosts, loopback and a free port for the addresses, `srl` = this checkout's)"
+)
 
 # README command -> who runs it ("CI: ..." or a test as path::name, plus how it differs)
 COVERAGE: dict[str, str] = {
-    "./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30":
-        "tests/test_readme.py::test_first_command_prints_the_j_the_readme_quotes (as written)",
+    "./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30": "tests/test_readme.py::test_first_command_prints_the_j_the_readme_quotes (as written)",
     "./srl test": "CI: .ci/run (as `SRL_TEST_REQUIRE_ALL=1 ./srl test`)",
-    "./srl up --plant robot --duration 20":
-        "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
-    "./srl up --plant robot --profile ros2dds --ros-distro humble --duration 20":
-        "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
-    "./srl up --plant robot --robot-endpoint tcp/<robot-ip>:7447 --ros-distro jazzy":
-        "tests/test_robot_bridge.py::test_up_with_a_robot_endpoint_starts_no_emulator (an emulator as the robot)",
-    'srl certs --out ~/srl-secrets --hosts robot-pc --passwords':
-        ADD_A_HOST,
-    'SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=~/srl-secrets/users.txt SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem SRL_TRANSPORT__TLS_CERT=~/srl-secrets/router.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/router.key srl router --router tls/0.0.0.0:7447':  # noqa: E501 (a README line, verbatim)
-        ADD_A_HOST,
-    "ssh new-host 'mkdir -m 700 -p ~/srl-secrets'":
-        ADD_A_HOST,
-    'scp ~/srl-secrets/{ca.pem,critic.pem,critic.key,critic.password} new-host:srl-secrets/':
-        ADD_A_HOST,
-    'export SRL_TRANSPORT__ROUTER=tls/robot-pc:7447 SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USER=critic':
-        ADD_A_HOST,
-    'export SRL_TRANSPORT__PASSWORD_FILE=~/srl-secrets/critic.password SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem':
-        ADD_A_HOST,
-    'export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key':
-        ADD_A_HOST,
-    'srl critic':
-        ADD_A_HOST,
-    "./srl experiment paper":
-        "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
-    "./srl experiment paper --starts held-out":
-        "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",
-    "./srl experiment paper --transport zenoh":
-        "tests/test_experiment.py::test_zenoh_transport_gives_the_inproc_numbers (a reduced grid)",
+    "./srl up --plant robot --duration 20": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
+    "./srl up --plant robot --profile ros2dds --ros-distro humble --duration 20": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6)",
+    "./srl up --plant robot --robot-endpoint tcp/<robot-ip>:7447 --ros-distro jazzy": "tests/test_robot_bridge.py::test_up_with_a_robot_endpoint_starts_no_emulator (an emulator as the robot)",
+    "srl certs --out ~/srl-secrets --hosts robot-pc --passwords": ADD_A_HOST,
+    "SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USERS_FILE=~/srl-secrets/users.txt SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem SRL_TRANSPORT__TLS_CERT=~/srl-secrets/router.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/router.key srl router --router tls/0.0.0.0:7447": ADD_A_HOST,
+    "ssh new-host 'mkdir -m 700 -p ~/srl-secrets'": ADD_A_HOST,
+    "scp ~/srl-secrets/{ca.pem,critic.pem,critic.key,critic.password} new-host:srl-secrets/": ADD_A_HOST,
+    "export SRL_TRANSPORT__ROUTER=tls/robot-pc:7447 SRL_TRANSPORT__SECURE=true SRL_TRANSPORT__USER=critic": ADD_A_HOST,
+    "export SRL_TRANSPORT__PASSWORD_FILE=~/srl-secrets/critic.password SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem": ADD_A_HOST,
+    "export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key": ADD_A_HOST,
+    "srl critic": ADD_A_HOST,
+    "./srl experiment paper": "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
+    "./srl experiment paper --starts held-out": "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",
+    "./srl experiment paper --transport zenoh": "tests/test_experiment.py::test_zenoh_transport_gives_the_inproc_numbers (a reduced grid)",
 }
 
 
@@ -75,7 +62,7 @@ def bash_commands(text: str) -> list[tuple[str, str]]:
         logical = ""
         for line in block.splitlines():
             body = COMMENT.sub("", line)
-            comment = line[len(body):].strip()
+            comment = line[len(body) :].strip()
             if body.rstrip().endswith("\\"):
                 logical += body.rstrip()[:-1].strip() + " "
                 continue
@@ -89,7 +76,7 @@ def bash_commands(text: str) -> list[tuple[str, str]]:
 def section(title: str) -> str:
     start = README.index(f"\n## {title}")
     end = README.find("\n## ", start + 1)
-    return README[start:end if end > 0 else None]
+    return README[start : end if end > 0 else None]
 
 
 def compose_test_commands() -> list[str]:
@@ -98,8 +85,9 @@ def compose_test_commands() -> list[str]:
 
 def run(argv: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
     """Run in a session of its own; on timeout (or any error) its whole process group is killed."""
-    process = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True)
+    process = subprocess.Popen(
+        argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
     try:
         stdout, stderr = process.communicate(timeout=timeout)
     finally:
@@ -131,16 +119,22 @@ def test_the_compose_commands_ci_runs_are_the_readmes() -> None:
     assert {"docker compose up", "COMPOSE_PROFILES=demo-robot docker compose up"} <= set(ci)
     missing = [command for command in ci if command not in readme]
     assert not missing, f".ci/compose-test runs commands the README does not show: {missing}"
-    not_run = [command for command, comment in bash_commands(section("Containers"))
-               if command not in ci and NOT_IN_CI not in comment]
+    not_run = [
+        command
+        for command, comment in bash_commands(section("Containers"))
+        if command not in ci and NOT_IN_CI not in comment
+    ]
     assert not not_run, f"README compose commands that .ci/compose-test does not run: {not_run}"
 
 
 def test_every_readme_command_is_run_by_a_test_or_ci() -> None:
     ci = set(compose_test_commands())
     commands = bash_commands(README)
-    unaccounted = [command for command, comment in commands
-                   if command not in COVERAGE and command not in ci and NOT_IN_CI not in comment]
+    unaccounted = [
+        command
+        for command, comment in commands
+        if command not in COVERAGE and command not in ci and NOT_IN_CI not in comment
+    ]
     assert not unaccounted, f"README commands no test or CI step runs (add them to COVERAGE): {unaccounted}"
     stale = set(COVERAGE) - {command for command, _ in commands}
     assert not stale, f"COVERAGE names commands the README no longer shows: {stale}"
@@ -152,15 +146,14 @@ def test_every_readme_command_is_run_by_a_test_or_ci() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("command", [c for c, _ in bash_commands(README)
-                                     if c.startswith("./srl up ") and "<" not in c])
+@pytest.mark.parametrize("command", [c for c, _ in bash_commands(README) if c.startswith("./srl up ") and "<" not in c])
 def test_srl_up_examples_run(command: str) -> None:
     """Each `./srl up` example of the README, on a free loopback port and for 6 s instead of 20."""
     argv = command.split()[1:]
     assert "--duration" in argv
     argv[argv.index("--duration") + 1] = "6"
     argv += ["--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "readme", "--json"]
-    done = run([sys.executable, "-m", "services.cli", *argv], timeout=240)
+    done = run([sys.executable, "-m", "tools.cli", *argv], timeout=240)
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]

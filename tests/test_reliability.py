@@ -25,8 +25,14 @@ from tests.harness import cluster, wait_until
 def _transitions(count: int, episode: int = 7, seed: int = 3) -> list[Transition]:
     rng = np.random.default_rng(seed)
     return [
-        Transition(robot="r1", episode=episode, step=k, state=tuple(rng.uniform(-2, 2, 3)),
-                   action=tuple(rng.uniform(-0.2, 0.2, 2)), cost=float(rng.uniform(0, 1)))
+        Transition(
+            robot="r1",
+            episode=episode,
+            step=k,
+            state=tuple(rng.uniform(-2, 2, 3)),
+            action=tuple(rng.uniform(-0.2, 0.2, 2)),
+            cost=float(rng.uniform(0, 1)),
+        )
         for k in range(count)
     ]
 
@@ -83,8 +89,9 @@ def test_restored_critic_with_overlapping_history_equals_one_that_never_stopped(
     assert versions == sorted(set(versions)) and versions[0] > republished[0].version
 
 
-@pytest.mark.parametrize("content", ["{not json", "[]", '{"schema": 99}',
-                                     '{"schema": 1, "version": 5, "learners": {"r1": {"episode": 1}}}'])
+@pytest.mark.parametrize(
+    "content", ["{not json", "[]", '{"schema": 99}', '{"schema": 1, "version": 5, "learners": {"r1": {"episode": 1}}}']
+)
 def test_unusable_checkpoint_is_set_aside_and_the_critic_starts_fresh(tmp_path: Path, content: str) -> None:
     path = tmp_path / "critic.json"
     path.write_text(content)
@@ -131,8 +138,10 @@ def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(critic_c
         c.start_plant_and_critic()
         versions: list[int] = []
         assert c.session is not None
-        c.session.declare_subscriber("srl/kr/critic/weights", lambda s: versions.append(
-            CriticWeights.model_validate_json(s.payload.to_bytes()).version))
+        c.session.declare_subscriber(
+            "srl/kr/critic/weights",
+            lambda s: versions.append(CriticWeights.model_validate_json(s.payload.to_bytes()).version),
+        )
         actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "8")
         c.wait_alive("actor")
         wait_until(lambda: len(versions) >= 10, 30, "weights before the kill")
@@ -154,9 +163,11 @@ def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(critic_c
     assert critic_summary["seen_steps"]["kr"] == actor_summary["transition_steps"]
     assert critic_summary["duplicates"] > 0  # the history overlapped the checkpoint: deduplicated
     steps = sum(last - first + 1 for first, last in actor_summary["transition_steps"])
-    print(f"\nfigures: critic kill -9 for 1.5 s during an 8 s real-time run: {steps} transitions published, "
-          f"{steps} in the critic (runs {critic_summary['seen_steps']['kr']}), {critic_summary['duplicates']} "
-          f"re-deliveries deduplicated, {len(versions)} weight versions strictly increasing, lost 0")
+    print(
+        f"\nfigures: critic kill -9 for 1.5 s during an 8 s real-time run: {steps} transitions published, "
+        f"{steps} in the critic (runs {critic_summary['seen_steps']['kr']}), {critic_summary['duplicates']} "
+        f"re-deliveries deduplicated, {len(versions)} weight versions strictly increasing, lost 0"
+    )
     assert versions == sorted(set(versions)), "weight versions went back or repeated"
     assert actor_summary["loop"]["missed_deadlines"] == 0
 
@@ -168,8 +179,10 @@ def test_actor_stops_the_robot_when_the_plant_vanishes_and_resumes_when_it_retur
         c.wait_alive("plant")
         actions: list[tuple[float, Action]] = []
         assert c.session is not None
-        c.session.declare_subscriber("srl/lv/action", lambda s: actions.append(
-            (time.monotonic(), Action.model_validate_json(s.payload.to_bytes()))))
+        c.session.declare_subscriber(
+            "srl/lv/action",
+            lambda s: actions.append((time.monotonic(), Action.model_validate_json(s.payload.to_bytes()))),
+        )
         actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "9", "--agent", "mpc")
         wait_until(lambda: sum(a.state_seq >= 0 for _, a in actions) >= 10, 60, "the actor commanding")
         c.procs["plant"].stop(signal.SIGKILL)
@@ -182,13 +195,18 @@ def test_actor_stops_the_robot_when_the_plant_vanishes_and_resumes_when_it_retur
         # ...and it keeps commanding zero, never a stale plan
         later = [a for t, a in after if t >= zeros[0]]
         assert all(a.action == (0.0, 0.0) for a in later)
-        print(f"\nfigures: plant kill -9: first zero command {1e3 * (zeros[0] - killed):.0f} ms later, "
-              f"{len(later)} zero commands while it was gone")
+        print(
+            f"\nfigures: plant kill -9: first zero command {1e3 * (zeros[0] - killed):.0f} ms later, "
+            f"{len(later)} zero commands while it was gone"
+        )
         c.start("plant", "plant-sim", "--mode", "realtime")
         c.wait_alive("plant")
         resumed_from = time.monotonic()
-        wait_until(lambda: any(t > resumed_from and a.state_seq >= 0 for t, a in actions), 10,
-                   "commands again after the plant returned")
+        wait_until(
+            lambda: any(t > resumed_from and a.state_seq >= 0 for t, a in actions),
+            10,
+            "commands again after the plant returned",
+        )
         assert actor.process.wait(timeout=60) == 0, actor.stderr[-10:]
         summary = actor.summary()
     assert summary["counters"].get("plant_lost", 0) >= 1
@@ -223,5 +241,7 @@ def test_every_client_reconnects_after_a_router_restart() -> None:
     assert summary["steps"] >= 60
     assert critic_summary["replay"]["rr"] == summary["transitions_tail"]
     assert critic_summary["seen_steps"]["rr"] == summary["transition_steps"]
-    print(f"\nfigures: router kill -9 + restart after 1 s: {summary['steps']} steps, "
-          f"{summary['stale_state_stops']} zero-command ticks while cut off, transitions lost 0")
+    print(
+        f"\nfigures: router kill -9 + restart after 1 s: {summary['steps']} steps, "
+        f"{summary['stale_state_stops']} zero-command ticks while cut off, transitions lost 0"
+    )

@@ -32,8 +32,9 @@ markers =
 """
 
 
-def _run(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch, missing: list[str],
-         require_all: str | None) -> pytest.RunResult:
+def _run(
+    pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch, missing: list[str], require_all: str | None
+) -> pytest.RunResult:
     monkeypatch.setattr(netns, "missing_requirements", lambda: missing)
     if require_all is None:
         monkeypatch.delenv("SRL_TEST_REQUIRE_ALL", raising=False)
@@ -45,8 +46,9 @@ def _run(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch, missing: li
     return pytester.runpytest("-ra", "-p", "no:cacheprovider")
 
 
-def test_missing_root_skips_with_one_line_saying_what_and_how(pytester: pytest.Pytester,
-                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+def test_missing_root_skips_with_one_line_saying_what_and_how(
+    pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
+) -> None:
     result = _run(pytester, monkeypatch, ["network namespaces and iptables need root (running as uid 1000)"], None)
     result.assert_outcomes(passed=1, skipped=1)
     assert result.ret == 0
@@ -56,17 +58,17 @@ def test_missing_root_skips_with_one_line_saying_what_and_how(pytester: pytest.P
     assert "sudo ./srl test test_probe.py" in lines[0]
 
 
-def test_require_all_turns_the_skip_into_a_failure(pytester: pytest.Pytester,
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+def test_require_all_turns_the_skip_into_a_failure(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
     result = _run(pytester, monkeypatch, ["`iptables` not found on PATH (apt-get install -y iptables)"], "1")
     result.assert_outcomes(passed=1, errors=1)  # a failure in setup
     assert result.ret == pytest.ExitCode.TESTS_FAILED
-    assert any("SRL_TEST_REQUIRE_ALL is set and this test cannot run" in line and "iptables" in line
-               for line in result.outlines), result.outlines
+    assert any(
+        "SRL_TEST_REQUIRE_ALL is set and this test cannot run" in line and "iptables" in line
+        for line in result.outlines
+    ), result.outlines
 
 
-def test_require_all_fails_a_session_with_any_skip(pytester: pytest.Pytester,
-                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+def test_require_all_fails_a_session_with_any_skip(pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("SRL_TEST_REQUIRE_ALL", "1")
     pytester.makeini(MARKERS)
     pytester.makeconftest(CONFTEST)

@@ -23,13 +23,13 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
+from common import ros_wire
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from common.messages import Action, PlantState
 from common.provenance import SourceGate
+from common.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.settings import Settings
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
 from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, wait_until
@@ -73,11 +73,22 @@ def _action(step: int, v: float = 0.1, omega: float = 0.0, episode: int = 1, rob
     return Action(robot=robot, episode=episode, step=step, stamp_ns=0, action=(v, omega), state_seq=-1)
 
 
-@pytest.mark.parametrize("bad", [
-    {"profile": "dds"}, {"ros_distro": "iron"}, {"namespace": "tb3 1"}, {"namespace": "1tb"},
-    {"goal": [0.0, math.nan, 0.0]}, {"goal": [0.0, 0.0]}, {"cmd_type": "twist_with_covariance"},
-    {"watchdog_timeout_steps": 0}, {"domain_id": -1}, {"discovery_timeout": math.inf}, {"odom_topic": "/odom"},
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"profile": "dds"},
+        {"ros_distro": "iron"},
+        {"namespace": "tb3 1"},
+        {"namespace": "1tb"},
+        {"goal": [0.0, math.nan, 0.0]},
+        {"goal": [0.0, 0.0]},
+        {"cmd_type": "twist_with_covariance"},
+        {"watchdog_timeout_steps": 0},
+        {"domain_id": -1},
+        {"discovery_timeout": math.inf},
+        {"odom_topic": "/odom"},
+    ],
+)
 def test_bridge_settings_are_validated(bad: dict[str, Any]) -> None:
     with pytest.raises(ValidationError):
         Settings.load(bridge=bad)
@@ -111,11 +122,15 @@ def test_state_is_in_the_goal_frame() -> None:
 def test_bad_odometry_is_refused() -> None:
     bridge, states, _, counts = _bridge()
     bridge.on_odometry(_odom(100, 0.5), time.monotonic())
-    bad = [_odom(101, math.nan), _odom(102, 0.0, math.inf),
-           Odometry(103, "odom", "base_footprint", 0.0, 0.0, (0.0, 0.0, 0.0, 0.0), 0.0, 0.0),
-           Odometry(104, "odom", "base_footprint", 0.0, 0.0, (math.nan, 0.0, 0.0, 1.0), 0.0, 0.0),
-           _odom(104, 2e4),  # beyond the schema's physical bounds
-           _odom(100, 9.0), _odom(50, 9.0)]  # not newer: out of order
+    bad = [
+        _odom(101, math.nan),
+        _odom(102, 0.0, math.inf),
+        Odometry(103, "odom", "base_footprint", 0.0, 0.0, (0.0, 0.0, 0.0, 0.0), 0.0, 0.0),
+        Odometry(104, "odom", "base_footprint", 0.0, 0.0, (math.nan, 0.0, 0.0, 1.0), 0.0, 0.0),
+        _odom(104, 2e4),  # beyond the schema's physical bounds
+        _odom(100, 9.0),
+        _odom(50, 9.0),
+    ]  # not newer: out of order
     for odom in bad:
         assert bridge.on_odometry(odom, time.monotonic()) is None
     assert len(states) == 1 and counts.counters["rejected.odom"] == len(bad)
@@ -137,8 +152,9 @@ def test_actions_are_checked_and_clamped() -> None:
     bridge.on_action(_action(1, 0.1), time.monotonic())  # the same step again
     bridge.on_action(_action(0, 0.1, episode=2, robot="other"), time.monotonic())
     bridge.on_action(_action(5, 0.1, episode=0), time.monotonic())  # an older episode
-    nan_action = Action.model_construct(robot="u0", episode=1, step=9, stamp_ns=0, action=(math.nan, 0.0),
-                                        state_seq=-1)  # bypasses the schema, which refuses NaN
+    nan_action = Action.model_construct(
+        robot="u0", episode=1, step=9, stamp_ns=0, action=(math.nan, 0.0), state_seq=-1
+    )  # bypasses the schema, which refuses NaN
     bridge.on_action(nan_action, time.monotonic())
     assert commands == [(0.22, -2.84)]
     assert counts.counters["rejected.action"] == 5
@@ -222,8 +238,9 @@ def test_actions_only_from_the_live_actor_session() -> None:
 
 # -- the emulated robot's model ------------------------------------------------------------------
 def test_emulator_integrates_exactly_with_latency_and_timeout() -> None:
-    model = Tb3Model(Pose2D(1.0, 2.0, 0.3), 0.22, 2.84, latency=0.2, cmd_timeout=0.0, noise=(0.0, 0.0), seed=0,
-                     now=10.0)
+    model = Tb3Model(
+        Pose2D(1.0, 2.0, 0.3), 0.22, 2.84, latency=0.2, cmd_timeout=0.0, noise=(0.0, 0.0), seed=0, now=10.0
+    )
     assert model.command(0.1, 0.5, 10.0) == (firmware(0.1), firmware(0.5))
     pose, applied = model.sample(10.1)
     assert applied == (0.0, 0.0)  # not yet: 0.2 s of latency
@@ -236,8 +253,7 @@ def test_emulator_integrates_exactly_with_latency_and_timeout() -> None:
     expected = exact_step(expected, np.array([0.22, -2.84]), 0.3)
     np.testing.assert_allclose(pose, expected, rtol=0, atol=1e-12)
     # with a command timeout the robot stops by itself
-    timed = Tb3Model(Pose2D(0.0, 0.0, 0.0), 0.22, 2.84, latency=0.0, cmd_timeout=0.5, noise=(0.0, 0.0), seed=0,
-                     now=0.0)
+    timed = Tb3Model(Pose2D(0.0, 0.0, 0.0), 0.22, 2.84, latency=0.0, cmd_timeout=0.5, noise=(0.0, 0.0), seed=0, now=0.0)
     timed.command(0.2, 0.0, 0.0)
     pose, applied = timed.sample(2.0)
     assert applied == (0.0, 0.0) and timed.timeouts == 1
@@ -270,8 +286,9 @@ class RobotWatch:
 
         self.entities = [
             session.declare_subscriber(graph.data_key("odom", ODOMETRY, "*"), on_odom),
-            session.declare_subscriber(f"srl/{robot}/state", lambda s: self.states.append(
-                PlantState.model_validate_json(s.payload.to_bytes()))),
+            session.declare_subscriber(
+                f"srl/{robot}/state", lambda s: self.states.append(PlantState.model_validate_json(s.payload.to_bytes()))
+            ),
         ]
 
     def applied(self) -> tuple[float, float]:
@@ -286,16 +303,20 @@ class RobotWatch:
         return None
 
 
-def _drive(session: zenoh.Session, robot: str, watch: RobotWatch, seconds: float, start_step: int,
-           action: tuple[float, float]) -> tuple[int, float]:
+def _drive(
+    session: zenoh.Session, robot: str, watch: RobotWatch, seconds: float, start_step: int, action: tuple[float, float]
+) -> tuple[int, float]:
     """Publish one action every delta for ``seconds`` (as the actor would); (next step, last put time)."""
     publisher = session.declare_publisher(f"srl/{robot}/action")
     step, last = start_step, time.monotonic()
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         seq = watch.states[-1].seq if watch.states else -1
-        publisher.put(Action(robot=robot, episode=1, step=step, stamp_ns=time.monotonic_ns(), action=action,
-                             state_seq=seq).encode())
+        publisher.put(
+            Action(
+                robot=robot, episode=1, step=step, stamp_ns=time.monotonic_ns(), action=action, state_seq=seq
+            ).encode()
+        )
         last = time.monotonic()
         step += 1
         time.sleep(DELTA)
@@ -304,23 +325,30 @@ def _drive(session: zenoh.Session, robot: str, watch: RobotWatch, seconds: float
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("profile", "distro", "emulator_cmd", "expected"), [
-    ("rmw_zenoh", "humble", None, TWIST),
-    ("rmw_zenoh", "jazzy", None, TWIST_STAMPED),
-    ("rmw_zenoh", "jazzy", "twist", TWIST),  # discovered from the robot's token, not the distro default
-    ("ros2dds", "jazzy", None, TWIST_STAMPED),
-    ("ros2dds", "humble", None, TWIST),
-])
-def test_bridge_drives_the_emulated_robot(profile: str, distro: str, emulator_cmd: str | None,
-                                          expected: str) -> None:
+@pytest.mark.parametrize(
+    ("profile", "distro", "emulator_cmd", "expected"),
+    [
+        ("rmw_zenoh", "humble", None, TWIST),
+        ("rmw_zenoh", "jazzy", None, TWIST_STAMPED),
+        ("rmw_zenoh", "jazzy", "twist", TWIST),  # discovered from the robot's token, not the distro default
+        ("ros2dds", "jazzy", None, TWIST_STAMPED),
+        ("ros2dds", "humble", None, TWIST),
+    ],
+)
+def test_bridge_drives_the_emulated_robot(profile: str, distro: str, emulator_cmd: str | None, expected: str) -> None:
     robot = f"e_{profile[:3]}_{distro[:3]}"
     wire = ["--profile", profile, "--ros-distro", distro]
     with cluster(robot=robot) as c:
         assert c.session is not None
         graph = RosGraph(profile, distro, 0, "")
         watch = RobotWatch(c.session, graph, robot)
-        c.start("emulator", "tb3-emulator", *wire, "--initial-pose=-1,0.5,0",
-                *(["--cmd-type", emulator_cmd] if emulator_cmd else []))
+        c.start(
+            "emulator",
+            "tb3-emulator",
+            *wire,
+            "--initial-pose=-1,0.5,0",
+            *(["--cmd-type", emulator_cmd] if emulator_cmd else []),
+        )
         c.start("bridge", "robot-bridge", *wire)  # cmd_type auto
         c.wait_alive("plant")
         wait_until(lambda: len(watch.states) >= 5, 30, "srl state from the robot's odometry")
@@ -364,8 +392,9 @@ def test_bridge_drives_the_emulated_robot(profile: str, distro: str, emulator_cm
     assert bridge["counters"]["rejected.action"] >= 1  # after the token vanished
     assert max(bridge["max_abs_command"]) <= 0.2 + 1e-12
     if profile == "rmw_zenoh":
-        assert emulator["cmd_key"].endswith("TypeHashNotSupported" if distro == "humble" else
-                                            ros_wire.type_hash("jazzy", expected))
+        assert emulator["cmd_key"].endswith(
+            "TypeHashNotSupported" if distro == "humble" else ros_wire.type_hash("jazzy", expected)
+        )
 
 
 @pytest.mark.slow
@@ -381,8 +410,11 @@ def test_two_robots_by_namespace() -> None:
             c.start(f"emulator{index}", "tb3-emulator", "--namespace", ns, f"--initial-pose={index},0,0")
             c.start(f"bridge{index}", "robot-bridge", "--namespace", ns, "--robot", f"r{index}")
         for index in (1, 2):
-            wait_until(lambda i=index: len(watches[i].states) >= 3 and len(watches[i].odom) >= 3, 30,
-                       f"odometry and state of robot r{index}")
+            wait_until(
+                lambda i=index: len(watches[i].states) >= 3 and len(watches[i].odom) >= 3,
+                30,
+                f"odometry and state of robot r{index}",
+            )
         assert watches[1].odom[-1][1].frame_id == "tb3_1/odom"  # TurtleBot3 prefixes its frames
         tokens = declare_service_tokens(c.session, "r1", "actor")
         _drive(c.session, "r1", watches[1], 1.0, 0, (0.2, 0.0))
@@ -435,13 +467,18 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
 
         def on_cmd(sample: zenoh.Sample) -> None:
             assert sample.attachment is not None
-            commands.append((*ros_wire.decode_command("jazzy", TWIST_STAMPED, bytes(sample.payload.to_bytes())),
-                             Attachment.decode(bytes(sample.attachment.to_bytes()))))
+            commands.append(
+                (
+                    *ros_wire.decode_command("jazzy", TWIST_STAMPED, bytes(sample.payload.to_bytes())),
+                    Attachment.decode(bytes(sample.attachment.to_bytes())),
+                )
+            )
 
         c.session.declare_subscriber(graph.data_key("cmd_vel", TWIST_STAMPED), on_cmd)
         states: list[PlantState] = []
-        c.session.declare_subscriber("srl/fz/state", lambda s: states.append(
-            PlantState.model_validate_json(s.payload.to_bytes())))
+        c.session.declare_subscriber(
+            "srl/fz/state", lambda s: states.append(PlantState.model_validate_json(s.payload.to_bytes()))
+        )
         c.start("bridge", "robot-bridge", "--profile", "rmw_zenoh", "--ros-distro", "jazzy")
         c.wait_alive("plant")
         time.sleep(1.0)  # fallback after 0.5 s; the watchdog's zeros wait for the attachment format
@@ -460,8 +497,9 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
                 c.session.put(key, payload, attachment=attachment)
 
         def sample(stamp_s: int, x: float, quaternion: tuple[float, float, float, float] = (0, 0, 0, 1)) -> bytes:
-            return ros_wire.encode_odometry("jazzy", Odometry(stamp_s * 10**9, "odom", "base_footprint", x, 0.0,
-                                                              quaternion, 0.0, 0.0))
+            return ros_wire.encode_odometry(
+                "jazzy", Odometry(stamp_s * 10**9, "odom", "base_footprint", x, 0.0, quaternion, 0.0, 0.0)
+            )
 
         put(sample(10, 1.0))
         wait_until(lambda: len(states) == 1, 5, "the first state")
@@ -470,13 +508,13 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
         assert all(cmd[2].format == "compact" for cmd in commands)  # the format of the robot's odometry
         bad = 0
         for payload, attachment, key in [
-            (sample(11, 2.0), None, None),                      # no attachment
-            (sample(11, 2.0), b"\x00" * 33, None),              # attachment with a bad GID length
-            (b"\x00\x01\x00\x00garbage", b"ok", None),          # malformed CDR
+            (sample(11, 2.0), None, None),  # no attachment
+            (sample(11, 2.0), b"\x00" * 33, None),  # attachment with a bad GID length
+            (b"\x00\x01\x00\x00garbage", b"ok", None),  # malformed CDR
             (ros_wire.encode_command("jazzy", TWIST, 0.1, 0.1), b"ok", None),  # wrong type
-            (sample(11, math.nan), b"ok", None),                 # NaN pose
+            (sample(11, math.nan), b"ok", None),  # NaN pose
             (sample(11, 2.0, (0.0, 0.0, 0.0, 0.0)), b"ok", None),  # no orientation
-            (sample(9, 2.0), b"ok", None),                       # out of order
+            (sample(9, 2.0), b"ok", None),  # out of order
             (sample(11, 2.0), b"ok", odom_key.rsplit("/", 1)[0] + "/RIHS01_" + "00" * 32),  # foreign hash
         ]:
             put(payload, attachment, key)
@@ -489,11 +527,13 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
         tokens = declare_service_tokens(c.session, "fz", "actor")
         time.sleep(0.2)
         actions = c.session.declare_publisher("srl/fz/action")
-        actions.put(b'{"schema_version":1,"robot":"fz","episode":1,"step":0,"stamp_ns":0,'
-                    b'"action":[NaN,0],"state_seq":0}')
+        actions.put(
+            b'{"schema_version":1,"robot":"fz","episode":1,"step":0,"stamp_ns":0,"action":[NaN,0],"state_seq":0}'
+        )
         actions.put(Action(robot="fz", episode=1, step=1, stamp_ns=0, action=(5.0, -10.0), state_seq=2).encode())
-        actions.put(b'{"schema_version":1,"robot":"fz","episode":1,"step":2,"stamp_ns":0,'
-                    b'"action":[1e300,0],"state_seq":0}')  # huge: refused by the schema
+        actions.put(
+            b'{"schema_version":1,"robot":"fz","episode":1,"step":2,"stamp_ns":0,"action":[1e300,0],"state_seq":0}'
+        )  # huge: refused by the schema
         actions.put(Action(robot="fz", episode=1, step=3, stamp_ns=0, action=(-50.0, 50.0), state_seq=2).encode())
         wait_until(lambda: any(cmd[:2] == (-0.22, 2.84) for cmd in commands), 5, "the clamped command")
         for token in tokens:
@@ -529,12 +569,20 @@ def test_bridge_speaks_the_legacy_attachment_of_an_older_robot(distro: str) -> N
         watch = RobotWatch(c.session, graph, robot)
         attachments: list[Attachment] = []
         cmd_type = TWIST_STAMPED if distro == "jazzy" else TWIST
-        c.session.declare_subscriber(graph.data_key("cmd_vel", cmd_type), lambda s: attachments.append(
-            Attachment.decode(bytes(s.attachment.to_bytes()))) if s.attachment is not None else None)
+        c.session.declare_subscriber(
+            graph.data_key("cmd_vel", cmd_type),
+            lambda s: (
+                attachments.append(Attachment.decode(bytes(s.attachment.to_bytes())))
+                if s.attachment is not None
+                else None
+            ),
+        )
         publishers: list[str] = []
         c.session.liveliness().declare_subscriber(
             f"@ros2_lv/0/*/*/*/MP/%/%/{ros_wire.BRIDGE_NODE}/%cmd_vel/**",
-            lambda s: publishers.append(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT else None, history=True)
+            lambda s: publishers.append(str(s.key_expr)) if s.kind == zenoh.SampleKind.PUT else None,
+            history=True,
+        )
         c.start("emulator", "tb3-emulator", *wire, "--attachment", "legacy", "--initial-pose=-1,0.5,0")
         c.start("bridge", "robot-bridge", *wire)
         c.wait_alive("plant")
@@ -548,9 +596,11 @@ def test_bridge_speaks_the_legacy_attachment_of_an_older_robot(distro: str) -> N
         assert c.procs["bridge"].stop() == 0
         assert c.procs["emulator"].stop() == 0
         bridge, emulator = c.procs["bridge"].summary(), c.procs["emulator"].summary()
-    print(f"legacy {distro}: {emulator['counters']['cmd_applied']} cmd_vel applied, "
-          f"{emulator['counters'].get('attachment_format_errors', 0)} format errors, "
-          f"{bridge['counters'].get('commands_format_unknown', 0)} commands held before the format was known")
+    print(
+        f"legacy {distro}: {emulator['counters']['cmd_applied']} cmd_vel applied, "
+        f"{emulator['counters'].get('attachment_format_errors', 0)} format errors, "
+        f"{bridge['counters'].get('commands_format_unknown', 0)} commands held before the format was known"
+    )
     assert emulator["attachment"] == "legacy" and bridge["attachment_format"] == "legacy"
     assert emulator["counters"].get("attachment_format_errors", 0) == 0
     assert emulator["counters"].get("rejected_bad_attachment", 0) == 0
@@ -611,15 +661,22 @@ def test_killing_the_actor_stops_the_robot() -> None:
 
 
 def _run_up(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", "up", *argv], cwd=ROOT, capture_output=True,
-                          text=True, timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", "up", *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 @pytest.mark.slow
 def test_up_with_the_emulated_robot() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    done = _run_up("--plant", "robot", "--router", endpoint, "--robot", "uprob", "--start=1.5,1",
-                   "--duration", "8", "--json")
+    done = _run_up(
+        "--plant", "robot", "--router", endpoint, "--robot", "uprob", "--start=1.5,1", "--duration", "8", "--json"
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert "srl up: realtime run, plant robot" in done.stdout
@@ -648,8 +705,20 @@ def test_swap_sim_and_robot_agree() -> None:
     """
     runs = {}
     for plant in ("sim", "robot"):
-        done = _run_up("--plant", plant, "--agent", "mpc", "--start=1.5,1", "--duration", "10", "--json",
-                       "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", f"swap_{plant}")
+        done = _run_up(
+            "--plant",
+            plant,
+            "--agent",
+            "mpc",
+            "--start=1.5,1",
+            "--duration",
+            "10",
+            "--json",
+            "--router",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--robot",
+            f"swap_{plant}",
+        )
         assert done.returncode == 0, done.stderr[-3000:]
         runs[plant] = json.loads(done.stdout.strip().splitlines()[-1])
     sim, robot = runs["sim"], runs["robot"]
@@ -664,9 +733,23 @@ def test_swap_sim_and_robot_agree() -> None:
 def test_up_with_a_robot_endpoint_starts_no_emulator() -> None:
     robot_endpoint = f"tcp/127.0.0.1:{free_port()}"
     emulator = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "tb3-emulator", "--listen", robot_endpoint, "--ros-distro", "humble",
-         "--initial-pose=-1,-1,0.5"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True)
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "tb3-emulator",
+            "--listen",
+            robot_endpoint,
+            "--ros-distro",
+            "humble",
+            "--initial-pose=-1,-1,0.5",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         session = None
 
@@ -681,8 +764,21 @@ def test_up_with_a_robot_endpoint_starts_no_emulator() -> None:
         wait_until(reachable, 30, "the robot's router")
         assert session is not None
         session.close()
-        done = _run_up("--plant", "robot", "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "ep",
-                       "--robot-endpoint", robot_endpoint, "--ros-distro", "humble", "--duration", "5", "--json")
+        done = _run_up(
+            "--plant",
+            "robot",
+            "--router",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--robot",
+            "ep",
+            "--robot-endpoint",
+            robot_endpoint,
+            "--ros-distro",
+            "humble",
+            "--duration",
+            "5",
+            "--json",
+        )
         assert done.returncode == 0, done.stderr[-3000:]
         summary = json.loads(done.stdout.strip().splitlines()[-1])
     finally:
@@ -697,8 +793,7 @@ def test_up_with_a_robot_endpoint_starts_no_emulator() -> None:
 
 
 def test_up_robot_lockstep_is_a_clear_error() -> None:
-    done = _run_up("--plant", "robot", "--mode", "lockstep", "--router", f"tcp/127.0.0.1:{free_port()}",
-                   timeout=60)
+    done = _run_up("--plant", "robot", "--mode", "lockstep", "--router", f"tcp/127.0.0.1:{free_port()}", timeout=60)
     assert done.returncode == 2
     assert "--plant robot runs in real time only" in done.stderr
     assert "Traceback" not in done.stderr

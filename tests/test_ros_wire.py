@@ -32,6 +32,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from common import ros_wire
 from common.frames import (
     Pose2D,
     clamp_command,
@@ -41,8 +42,7 @@ from common.frames import (
     wrap_angle,
     yaw_from_quaternion,
 )
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import (
+from common.ros_wire import (
     ODOMETRY,
     TWIST,
     TWIST_STAMPED,
@@ -60,14 +60,18 @@ ODOMETRY_HASH = "RIHS01_3cc97dc7fb7502f8714462c526d369e35b603cfc34d946e3f2eda276
 TWIST_GOLDEN = "000100009a9999999999b93f" + "00" * 32 + "000000000000e03f"
 # TwistStamped, stamp 1 s + 500000000 ns, frame_id "base_footprint", linear.x 0.1, angular.z 0.5:
 TWIST_STAMPED_GOLDEN = (
-    "00010000"                        # encapsulation: CDR little endian, options 0
-    "01000000"                        # header.stamp.sec      int32  = 1            (offset 0)
-    "0065cd1d"                        # header.stamp.nanosec  uint32 = 500000000    (offset 4)
-    "0f000000"                        # header.frame_id length uint32 = 14 chars + NUL (offset 8)
+    "00010000"  # encapsulation: CDR little endian, options 0
+    "01000000"  # header.stamp.sec      int32  = 1            (offset 0)
+    "0065cd1d"  # header.stamp.nanosec  uint32 = 500000000    (offset 4)
+    "0f000000"  # header.frame_id length uint32 = 14 chars + NUL (offset 8)
     "626173655f666f6f747072696e7400"  # "base_footprint\0"                         (offsets 12-26)
-    "0000000000"                      # padding: the next float64 must start at a multiple of 8 (32)
-    "9a9999999999b93f" "0000000000000000" "0000000000000000"  # twist.linear  x y z  (32-55)
-    "0000000000000000" "0000000000000000" "000000000000e03f"  # twist.angular x y z  (56-79)
+    "0000000000"  # padding: the next float64 must start at a multiple of 8 (32)
+    "9a9999999999b93f"
+    "0000000000000000"
+    "0000000000000000"  # twist.linear  x y z  (32-55)
+    "0000000000000000"
+    "0000000000000000"
+    "000000000000e03f"  # twist.angular x y z  (56-79)
 )
 
 
@@ -81,8 +85,9 @@ def test_twist_golden_bytes() -> None:
 
 def test_twist_stamped_golden_bytes() -> None:
     for distro in ("humble", "jazzy"):
-        payload = ros_wire.encode_command(distro, TWIST_STAMPED, 0.1, 0.5, stamp_ns=1_500_000_000,
-                                          frame_id="base_footprint")
+        payload = ros_wire.encode_command(
+            distro, TWIST_STAMPED, 0.1, 0.5, stamp_ns=1_500_000_000, frame_id="base_footprint"
+        )
         assert len(payload) == 4 + 80
         assert payload.hex() == TWIST_STAMPED_GOLDEN
         assert ros_wire.decode_command(distro, TWIST_STAMPED, bytes.fromhex(TWIST_STAMPED_GOLDEN)) == (0.1, 0.5)
@@ -103,11 +108,13 @@ def test_rmw_zenoh_data_keys() -> None:
     assert jazzy.data_key("cmd_vel", TWIST) == f"0/cmd_vel/geometry_msgs::msg::dds_::Twist_/{TWIST_HASH}"
     assert jazzy.data_key("cmd_vel", TWIST_STAMPED) == (
         "0/cmd_vel/geometry_msgs::msg::dds_::TwistStamped_/"
-        "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64")
+        "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64"
+    )
     assert jazzy.data_key("odom", ODOMETRY) == f"0/odom/nav_msgs::msg::dds_::Odometry_/{ODOMETRY_HASH}"
     # a namespaced robot on another domain: the namespace is part of the topic name
     assert RosGraph("rmw_zenoh", "jazzy", 7, "tb3_1").data_key("cmd_vel", TWIST) == (
-        f"7/tb3_1/cmd_vel/geometry_msgs::msg::dds_::Twist_/{TWIST_HASH}")
+        f"7/tb3_1/cmd_vel/geometry_msgs::msg::dds_::Twist_/{TWIST_HASH}"
+    )
     assert jazzy.data_key("odom", ODOMETRY, "*") == "0/odom/nav_msgs::msg::dds_::Odometry_/*"
 
 
@@ -122,21 +129,28 @@ def test_rmw_zenoh_liveliness_tokens() -> None:
     assert jazzy.node_token(zid, 0, "turtlebot3_node") == f"@ros2_lv/0/{zid}/0/0/NN/%/%/turtlebot3_node"
     assert jazzy.endpoint_token(zid, 0, 10, "MS", "turtlebot3_node", "cmd_vel", TWIST_STAMPED) == (
         f"@ros2_lv/0/{zid}/0/10/MS/%/%/turtlebot3_node/%cmd_vel/geometry_msgs::msg::dds_::TwistStamped_/"
-        f"{TWIST_STAMPED_HASH}/::,10:,:,:,,")
+        f"{TWIST_STAMPED_HASH}/::,10:,:,:,,"
+    )
     humble = RosGraph("rmw_zenoh", "humble", 0, "tb3_1")
     assert humble.node_token(zid, 20, "diff_drive_controller") == (
-        f"@ros2_lv/0/{zid}/20/20/NN/%/%tb3_1/diff_drive_controller")
+        f"@ros2_lv/0/{zid}/20/20/NN/%/%tb3_1/diff_drive_controller"
+    )
     assert humble.endpoint_token(zid, 20, 21, "MP", "diff_drive_controller", "odom", ODOMETRY) == (
         f"@ros2_lv/0/{zid}/20/21/MP/%/%tb3_1/diff_drive_controller/%tb3_1%odom/nav_msgs::msg::dds_::Odometry_/"
-        "TypeHashNotSupported/::,10:,:,:,,")
+        "TypeHashNotSupported/::,10:,:,:,,"
+    )
     # the QoS chunk lists what differs from rmw_zenoh's default (depth 42)
     assert ros_wire.qos_chunk(42) == "::,:,:,:,,"
 
 
 def test_discovery_parses_the_robot_subscription_only() -> None:
     zid = "aa"
-    for graph in (RosGraph("rmw_zenoh", "jazzy", 0, ""), RosGraph("rmw_zenoh", "humble", 0, "tb3_1"),
-                  RosGraph("ros2dds", "jazzy", 0, ""), RosGraph("ros2dds", "humble", 0, "tb3_1")):
+    for graph in (
+        RosGraph("rmw_zenoh", "jazzy", 0, ""),
+        RosGraph("rmw_zenoh", "humble", 0, "tb3_1"),
+        RosGraph("ros2dds", "jazzy", 0, ""),
+        RosGraph("ros2dds", "humble", 0, "tb3_1"),
+    ):
         for ros_type in (TWIST, TWIST_STAMPED):
             token = graph.endpoint_token(zid, 0, 10, "MS", "turtlebot3_node", "cmd_vel", ros_type)
             parsed = graph.parse_subscription(token, "cmd_vel")
@@ -150,17 +164,20 @@ def test_discovery_parses_the_robot_subscription_only() -> None:
             assert not zenoh.KeyExpr(graph.discovery_pattern("odom")).intersects(zenoh.KeyExpr(token))
     other_domain = RosGraph("rmw_zenoh", "jazzy", 1, "").endpoint_token(zid, 0, 1, "MS", "n", "cmd_vel", TWIST)
     assert RosGraph("rmw_zenoh", "jazzy", 0, "").parse_subscription(other_domain, "cmd_vel") is None
-    assert RosGraph("ros2dds", "jazzy", 0, "").ros2dds_token(zid, "MS", "cmd_vel", TWIST).startswith(
-        f"@/{zid}/@ros2_lv/MS/cmd_vel/geometry_msgs§msg§Twist/:1:0:0,10")
+    assert (
+        RosGraph("ros2dds", "jazzy", 0, "")
+        .ros2dds_token(zid, "MS", "cmd_vel", TWIST)
+        .startswith(f"@/{zid}/@ros2_lv/MS/cmd_vel/geometry_msgs§msg§Twist/:1:0:0,10")
+    )
 
 
 def test_attachment_layout() -> None:
     gid = bytes(range(16))
     expected = (
-        "0100000000000000"                    # int64 LE sequence number 1
-        "15cd853dfe9c9717"                    # int64 LE source timestamp 1700000000123456789 ns
-        "10"                                  # the GID as a sequence: LEB128 length 16
-        "000102030405060708090a0b0c0d0e0f"    # the 16 GID bytes
+        "0100000000000000"  # int64 LE sequence number 1
+        "15cd853dfe9c9717"  # int64 LE source timestamp 1700000000123456789 ns
+        "10"  # the GID as a sequence: LEB128 length 16
+        "000102030405060708090a0b0c0d0e0f"  # the 16 GID bytes
     )
     raw = Attachment(1, 1_700_000_000_123_456_789, gid).encode()
     assert len(raw) == 33
@@ -172,12 +189,16 @@ def test_attachment_layout() -> None:
 
 
 LEGACY_GOLDEN = (
-    "0f" "73657175656e63655f6e756d626572"        # "sequence_number": LEB128 length 15, UTF-8
-    "0100000000000000"                          # int64 LE 1
-    "10" "736f757263655f74696d657374616d70"      # "source_timestamp": length 16
-    "15cd853dfe9c9717"                          # int64 LE 1700000000123456789
-    "0a" "736f757263655f676964"                  # "source_gid": length 10
-    "10" "000102030405060708090a0b0c0d0e0f"      # the GID: LEB128 length 16, 16 bytes
+    "0f"
+    "73657175656e63655f6e756d626572"  # "sequence_number": LEB128 length 15, UTF-8
+    "0100000000000000"  # int64 LE 1
+    "10"
+    "736f757263655f74696d657374616d70"  # "source_timestamp": length 16
+    "15cd853dfe9c9717"  # int64 LE 1700000000123456789
+    "0a"
+    "736f757263655f676964"  # "source_gid": length 10
+    "10"
+    "000102030405060708090a0b0c0d0e0f"  # the GID: LEB128 length 16, 16 bytes
 )
 
 
@@ -200,10 +221,12 @@ def test_legacy_attachment_layout() -> None:
 def test_huge_length_prefixes_are_wire_errors_not_panics() -> None:
     """zenoh.ext.z_deserialize panics (pyo3 PanicException, "capacity overflow") on these: the
     decoder must parse them itself and refuse them like any other bad attachment."""
-    for bad in (bytes(16) + b"\xff" * 9 + b"\x01" + bytes(7),          # compact, 33 bytes
-                bytes(16) + b"\xff\xff\xff\xff\x0f" + bytes(12),
-                bytes.fromhex(LEGACY_GOLDEN)[:16] + b"\xff" * 9 + b"\x01" + bytes(60),
-                b"\x0fsequence_number" + bytes(8) + b"\xff" * 12):
+    for bad in (
+        bytes(16) + b"\xff" * 9 + b"\x01" + bytes(7),  # compact, 33 bytes
+        bytes(16) + b"\xff\xff\xff\xff\x0f" + bytes(12),
+        bytes.fromhex(LEGACY_GOLDEN)[:16] + b"\xff" * 9 + b"\x01" + bytes(60),
+        b"\x0fsequence_number" + bytes(8) + b"\xff" * 12,
+    ):
         with pytest.raises(WireError):
             Attachment.decode(bad)
 
@@ -212,13 +235,17 @@ def test_huge_length_prefixes_are_wire_errors_not_panics() -> None:
 GID_GOLDEN = [
     ("", "7f498d4624c30160d8984701d306aa99"),  # = reversed 99aa06d3014798d86001c324468d497f
     ("a", "1f4e961eb632c6e63468f15a70af6fa9"),
-    ("@ros2_lv/0/1f2e3d4c5b6a79880f1e2d3c4b5a6978/0/2/MP/%/%/srl_robot_bridge/%cmd_vel/"
-     "geometry_msgs::msg::dds_::TwistStamped_/"
-     "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64/::,10:,:,:,,",
-     "9a292280a901961f7f29611bd4126c6d"),
-    ("@ros2_lv/0/1f2e3d4c5b6a79880f1e2d3c4b5a6978/20/21/MP/%/%tb3_1/diff_drive_controller/%tb3_1%odom/"
-     "nav_msgs::msg::dds_::Odometry_/TypeHashNotSupported/::,10:,:,:,,",
-     "aa15e9768bae822ea3883b84252975a2"),
+    (
+        "@ros2_lv/0/1f2e3d4c5b6a79880f1e2d3c4b5a6978/0/2/MP/%/%/srl_robot_bridge/%cmd_vel/"
+        "geometry_msgs::msg::dds_::TwistStamped_/"
+        "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64/::,10:,:,:,,",
+        "9a292280a901961f7f29611bd4126c6d",
+    ),
+    (
+        "@ros2_lv/0/1f2e3d4c5b6a79880f1e2d3c4b5a6978/20/21/MP/%/%tb3_1/diff_drive_controller/%tb3_1%odom/"
+        "nav_msgs::msg::dds_::Odometry_/TypeHashNotSupported/::,10:,:,:,,",
+        "aa15e9768bae822ea3883b84252975a2",
+    ),
 ]
 
 
@@ -230,7 +257,8 @@ def test_gid_is_rmw_zenohs_xxh3_128(token: str, gid: str) -> None:
 def test_gid_of_the_bridges_own_publisher_token() -> None:
     zid = "1f2e3d4c5b6a79880f1e2d3c4b5a6978"
     token = RosGraph("rmw_zenoh", "jazzy", 0, "").endpoint_token(
-        zid, 0, 2, "MP", ros_wire.BRIDGE_NODE, "cmd_vel", TWIST_STAMPED)
+        zid, 0, 2, "MP", ros_wire.BRIDGE_NODE, "cmd_vel", TWIST_STAMPED
+    )
     assert token == GID_GOLDEN[2][0]  # the token the bridge declares is the one hashed above
     assert ros_wire.gid_for(token).hex() == GID_GOLDEN[2][1]
 
@@ -284,10 +312,12 @@ def test_wrong_type_and_garbage_are_wire_errors() -> None:
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=900))
 def test_decoders_raise_only_wire_errors(data: bytes) -> None:
-    for decode in (lambda b: ros_wire.decode_odometry("jazzy", b),
-                   lambda b: ros_wire.decode_command("humble", TWIST, b),
-                   lambda b: ros_wire.decode_command("jazzy", TWIST_STAMPED, b),
-                   Attachment.decode):
+    for decode in (
+        lambda b: ros_wire.decode_odometry("jazzy", b),
+        lambda b: ros_wire.decode_command("humble", TWIST, b),
+        lambda b: ros_wire.decode_command("jazzy", TWIST_STAMPED, b),
+        Attachment.decode,
+    ):
         with contextlib.suppress(WireError):  # anything else fails the test
             decode(data)
 
@@ -340,8 +370,10 @@ def test_yaw_from_quaternion_cases() -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.tuples(st.floats(-5, 5), st.floats(-5, 5), st.floats(-7, 7)),
-       st.tuples(st.floats(-5, 5), st.floats(-5, 5), st.floats(-7, 7)))
+@given(
+    st.tuples(st.floats(-5, 5), st.floats(-5, 5), st.floats(-7, 7)),
+    st.tuples(st.floats(-5, 5), st.floats(-5, 5), st.floats(-7, 7)),
+)
 def test_goal_frame_transform_matches_homogeneous_matrices(pose: tuple, goal: tuple) -> None:
     def matrix(p: tuple) -> np.ndarray:
         c, s = math.cos(p[2]), math.sin(p[2])
@@ -351,8 +383,10 @@ def test_goal_frame_transform_matches_homogeneous_matrices(pose: tuple, goal: tu
     got = to_goal_frame(Pose2D(*pose), Pose2D(*goal))
     np.testing.assert_allclose([got.x, got.y], relative[:2, 2], atol=1e-9)
     assert got.theta == pytest.approx(pose[2] - goal[2])
-    assert wrap_angle(got.theta) == pytest.approx(wrap_angle(math.atan2(relative[1, 0], relative[0, 0])), abs=1e-9) \
+    assert (
+        wrap_angle(got.theta) == pytest.approx(wrap_angle(math.atan2(relative[1, 0], relative[0, 0])), abs=1e-9)
         or abs(abs(wrap_angle(got.theta)) - math.pi) < 1e-9
+    )
     back = from_goal_frame(got, Pose2D(*goal))
     np.testing.assert_allclose(back, pose, atol=1e-9)
 
@@ -369,21 +403,52 @@ def test_clamp_command() -> None:
 
 
 # -- the TurtleBot3 firmware's velocity path ---------------------------------------------------
-@pytest.mark.parametrize(("command", "limit", "applied"), [
-    (0.1, 0.22, 0.1),        # int32(10.000000000000002) = 10 -> 10 * 0.01f
-    (0.219, 0.22, 0.21),     # truncated, not rounded
-    (0.2199999, 0.22, 0.21),
-    (0.009, 0.22, 0.0),      # below the 0.01 resolution: zero
-    (-0.019, 0.22, -0.01),   # toward zero for negative values too
-    (0.3, 0.22, 0.22),       # then constrained to the limit
-    (-5.0, 2.84, -2.84),
-    (2.849, 2.84, 2.84),
-    (0.29, 2.84, 0.28),      # 0.29 * 100 = 28.999999999999996 in binary floating point
-    (math.nan, 0.22, 0.0),   # ARM's float->int conversion: NaN -> 0
-    (1e300, 0.22, 0.22),     # saturates at INT32_MAX, then the limit
-])
+@pytest.mark.parametrize(
+    ("command", "limit", "applied"),
+    [
+        (0.1, 0.22, 0.1),  # int32(10.000000000000002) = 10 -> 10 * 0.01f
+        (0.219, 0.22, 0.21),  # truncated, not rounded
+        (0.2199999, 0.22, 0.21),
+        (0.009, 0.22, 0.0),  # below the 0.01 resolution: zero
+        (-0.019, 0.22, -0.01),  # toward zero for negative values too
+        (0.3, 0.22, 0.22),  # then constrained to the limit
+        (-5.0, 2.84, -2.84),
+        (2.849, 2.84, 2.84),
+        (0.29, 2.84, 0.28),  # 0.29 * 100 = 28.999999999999996 in binary floating point
+        (math.nan, 0.22, 0.0),  # ARM's float->int conversion: NaN -> 0
+        (1e300, 0.22, 0.22),  # saturates at INT32_MAX, then the limit
+    ],
+)
 def test_firmware_truncation(command: float, limit: float, applied: float) -> None:
     # applied within float32 resolution (the firmware multiplies in float32)
     assert firmware_velocity(command, limit) == pytest.approx(applied, abs=1e-7)
     if abs(applied) < limit:  # not limited: exactly the float32 count of 0.01 steps
         assert firmware_velocity(command, limit) == float(np.float32(round(applied * 100)) * np.float32(0.01))
+
+
+@pytest.mark.parametrize("fmt", ["compact", "legacy"])
+def test_attachment_encoding_is_zenoh_exts_serialization(fmt: str) -> None:
+    """common/ros_wire.py writes the zenoh-ext serialization itself (common never imports zenoh
+    outside common/transport.py): byte for byte what zenoh.ext.z_serialize writes."""
+    import random
+
+    import zenoh.ext
+
+    from common.ros_wire import LEGACY_FIELDS
+
+    rng = random.Random(7)
+    for _ in range(100):
+        attachment = Attachment(
+            rng.randint(-(2**63), 2**63 - 1),
+            rng.randint(-(2**63), 2**63 - 1),
+            bytes(rng.randrange(256) for _ in range(16)),
+            fmt,
+        )
+        seq, stamp = zenoh.ext.Int64(attachment.seq), zenoh.ext.Int64(attachment.stamp_ns)
+        fields = (
+            (LEGACY_FIELDS[0], seq, LEGACY_FIELDS[1], stamp, LEGACY_FIELDS[2], attachment.gid)
+            if fmt == "legacy"
+            else (seq, stamp, attachment.gid)
+        )
+        assert attachment.encode() == bytes(zenoh.ext.z_serialize(fields).to_bytes())
+        assert Attachment.decode(attachment.encode()) == attachment

@@ -24,13 +24,13 @@ import numpy as np
 import pytest
 import zenoh
 
+from common import ros_wire
 from common.checkpoint import atomic_write_json, remove_stale_temporaries
+from common.clock import Ticker
 from common.messages import PlantState, ResetRequest, StepRequest
+from common.ros_wire import ODOMETRY, RosGraph
 from common.settings import Settings
-from services.cli import CMD_TIMEOUT_DEFAULT
-from services.clock import Ticker
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, RosGraph
+from services.tb3_emulator.command import CMD_TIMEOUT_DEFAULT
 from tests.harness import ROOT, client_config, cluster, free_port, wait_until
 
 V_MAX = 0.22  # the TurtleBot3 Burger's limit (srl.toml plant.v_max)
@@ -114,8 +114,9 @@ def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
         c.wait_alive("plant")
         assert c.session is not None
         states: list[PlantState] = []
-        c.session.declare_subscriber("srl/rq/state", lambda s: states.append(
-            PlantState.model_validate_json(s.payload.to_bytes())))
+        c.session.declare_subscriber(
+            "srl/rq/state", lambda s: states.append(PlantState.model_validate_json(s.payload.to_bytes()))
+        )
         wait_until(lambda: len(states) >= 5, 10, "real-time states")
         start = states[-1].state
         replies = []
@@ -131,8 +132,13 @@ def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
         session = c.session
 
         def answered() -> bool:
-            control.extend(session.get("srl/rq_lock/plant/reset", timeout=1.0,
-                                       payload=reset.model_copy(update={"robot": "rq_lock"}).encode()))
+            control.extend(
+                session.get(
+                    "srl/rq_lock/plant/reset",
+                    timeout=1.0,
+                    payload=reset.model_copy(update={"robot": "rq_lock"}).encode(),
+                )
+            )
             return bool(control)
 
         wait_until(answered, 30, "the lockstep plant's reply")
@@ -142,8 +148,10 @@ def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
     assert control[0].ok is not None
     np.testing.assert_allclose(after, start, atol=1e-12)  # not moved, not teleported
     assert not any(k.startswith(("served.plant", "rejected.plant")) for k in counters), counters
-    print(f"\nfigures: real-time plant_sim: 3 rogue steps + 1 reset -> {len(replies)} replies, moved "
-          f"{math.dist(after[:2], start[:2]):.3f} m (before: 2.2 m per step, reset to (50, 50))")
+    print(
+        f"\nfigures: real-time plant_sim: 3 rogue steps + 1 reset -> {len(replies)} replies, moved "
+        f"{math.dist(after[:2], start[:2]):.3f} m (before: 2.2 m per step, reset to (50, 50))"
+    )
 
 
 # -- finding 4: the router dies while the robot drives ---------------------------------------------
@@ -163,10 +171,32 @@ def _distance_after(odometry: Odometry, killed: float, reference: tuple[float, f
 def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     """``srl up --plant robot`` (the default topology): kill -9 srl's router while the robot drives."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "--log-level", "INFO", "up", "--plant", "robot",
-                           "--agent", "mpc", "--router", endpoint, "--robot", "rk", "--start=2,1.5",
-                           "--duration", "60"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          start_new_session=True)
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "--log-level",
+            "INFO",
+            "up",
+            "--plant",
+            "robot",
+            "--agent",
+            "mpc",
+            "--router",
+            endpoint,
+            "--robot",
+            "rk",
+            "--start=2,1.5",
+            "--duration",
+            "60",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     lines: list[str] = []
 
     def read_stderr() -> None:
@@ -176,11 +206,15 @@ def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     threading.Thread(target=read_stderr, daemon=True).start()
     session = None
     try:
+
         def found(pattern: str) -> re.Match[str] | None:
             return next((m for line in list(lines) if (m := re.search(pattern, line))), None)
 
-        wait_until(lambda: found(r"emulated robot's Zenoh router: (\S+)") is not None or up.poll() is not None,
-                   60, "the emulated robot's router")
+        wait_until(
+            lambda: found(r"emulated robot's Zenoh router: (\S+)") is not None or up.poll() is not None,
+            60,
+            "the emulated robot's router",
+        )
         robot_endpoint = found(r"emulated robot's Zenoh router: (\S+)").group(1)  # type: ignore[union-attr]
         router_pid = int(found(r"started router \(pid (\d+)\)").group(1))  # type: ignore[union-attr]
         session = _open(robot_endpoint)  # the robot's own router: still there after srl's dies
@@ -208,9 +242,11 @@ def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     # the bridge saw the actor go (its session's identity token, common.provenance) and stopped the robot
     stopped = ("liveliness token vanished", "is gone: stopping the robot")
     assert any("[robot_bridge]" in line and any(s in line for s in stopped) for line in lines), lines[-20:]
-    print(f"\nfigures: srl up --plant robot, router kill -9 at |v| = {abs(reference[3]):.2f} m/s: the robot "
-          f"stopped {1e3 * (stopped_at - killed):.0f} ms later (odometry at 20 Hz), drove {100 * distance:.1f} cm "
-          f"after the kill (before: 0.67 m in a 3 s outage)")
+    print(
+        f"\nfigures: srl up --plant robot, router kill -9 at |v| = {abs(reference[3]):.2f} m/s: the robot "
+        f"stopped {1e3 * (stopped_at - killed):.0f} ms later (odometry at 20 Hz), drove {100 * distance:.1f} cm "
+        f"after the kill (before: 0.67 m in a 3 s outage)"
+    )
     assert distance <= 0.05
 
 
@@ -234,9 +270,11 @@ def test_router_kill_robot_through_srl_router_stops_by_its_own_timeout() -> None
         emulator = c.procs["emulator"].summary()
     distance = math.dist(emulator["final_pose"][:2], reference[1:3])
     bound = V_MAX * (CMD_TIMEOUT_DEFAULT + ODOM_PERIOD) + 0.01
-    print(f"\nfigures: robot through srl's router, router kill -9 at |v| = {abs(reference[3]):.2f} m/s: the "
-          f"emulator's {CMD_TIMEOUT_DEFAULT} s cmd_vel timeout stopped it after {100 * distance:.1f} cm "
-          f"(bound v_max x timeout = {100 * V_MAX * CMD_TIMEOUT_DEFAULT:.0f} cm; before: 0.67 m in 3 s, holding)")
+    print(
+        f"\nfigures: robot through srl's router, router kill -9 at |v| = {abs(reference[3]):.2f} m/s: the "
+        f"emulator's {CMD_TIMEOUT_DEFAULT} s cmd_vel timeout stopped it after {100 * distance:.1f} cm "
+        f"(bound v_max x timeout = {100 * V_MAX * CMD_TIMEOUT_DEFAULT:.0f} cm; before: 0.67 m in 3 s, holding)"
+    )
     assert emulator["cmd_timeouts"] >= 1 and emulator["applied"] == [0.0, 0.0]
     assert distance <= bound
     assert time.monotonic() - killed < 30
@@ -246,9 +284,25 @@ def test_router_kill_robot_through_srl_router_stops_by_its_own_timeout() -> None
 def _start_up(tmp_path: Path, *argv: str) -> tuple[subprocess.Popen[str], Path]:
     temp = tmp_path / "tmp"
     temp.mkdir()
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--router", f"tcp/127.0.0.1:{free_port()}",
-                           "--duration", "120", *argv], cwd=ROOT, text=True, stdout=subprocess.PIPE,
-                          stderr=subprocess.PIPE, start_new_session=True, env={**os.environ, "TMPDIR": str(temp)})
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "up",
+            "--router",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--duration",
+            "120",
+            *argv,
+        ],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+        env={**os.environ, "TMPDIR": str(temp)},
+    )
     return up, temp
 
 
@@ -259,9 +313,11 @@ def _wait_children(up: subprocess.Popen[str], count: int) -> list[int]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("signum", "argv"), [(signal.SIGTERM, ["--secure"]), (signal.SIGHUP, []),
-                                              (signal.SIGINT, ["--secure"])],
-                         ids=["SIGTERM-secure", "SIGHUP", "SIGINT-secure"])
+@pytest.mark.parametrize(
+    ("signum", "argv"),
+    [(signal.SIGTERM, ["--secure"]), (signal.SIGHUP, []), (signal.SIGINT, ["--secure"])],
+    ids=["SIGTERM-secure", "SIGHUP", "SIGINT-secure"],
+)
 def test_srl_up_cleans_up_on_sigterm_and_sighup(tmp_path: Path, signum: int, argv: list[str]) -> None:
     up, temp = _start_up(tmp_path, "--robot", "sg", *argv)
     try:
@@ -281,10 +337,12 @@ def test_srl_up_cleans_up_on_sigterm_and_sighup(tmp_path: Path, signum: int, arg
     assert f"stopped by {signal.Signals(signum).name}" in err
     assert [pid for pid in children if process_alive(pid)] == []
     assert list(temp.iterdir()) == [], "srl up left its credentials behind"
-    print(f"\nfigures: {signal.Signals(signum).name} to srl up {' '.join(argv)}: exit {up.returncode} after "
-          f"{took:.1f} s, {len(children)} children stopped, credentials removed: "
-          f"{not any(temp.iterdir())}" + ("" if signum == signal.SIGINT else
-                                            " (before: exit -15, credentials kept, 4 children running)"))
+    print(
+        f"\nfigures: {signal.Signals(signum).name} to srl up {' '.join(argv)}: exit {up.returncode} after "
+        f"{took:.1f} s, {len(children)} children stopped, credentials removed: "
+        f"{not any(temp.iterdir())}"
+        + ("" if signum == signal.SIGINT else " (before: exit -15, credentials kept, 4 children running)")
+    )
 
 
 @pytest.mark.slow
@@ -306,8 +364,10 @@ def test_kill_9_of_srl_up_takes_every_service_with_it(tmp_path: Path) -> None:
         for pid in children:  # only if the test failed: never leave a service behind
             if process_alive(pid):
                 os.kill(pid, signal.SIGKILL)
-    print(f"\nfigures: kill -9 of srl up --plant robot: all {len(children)} services gone {took:.2f} s later "
-          "(before: they kept running)")
+    print(
+        f"\nfigures: kill -9 of srl up --plant robot: all {len(children)} services gone {took:.2f} s later "
+        "(before: they kept running)"
+    )
     assert took <= 5.0
 
 
@@ -331,8 +391,9 @@ def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None
         "time.sleep(10)\n"  # still running after the grace: the watchdog ends it with code 3
     )
     started = time.monotonic()
-    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60,
-                          check=False)
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False
+    )
     took = time.monotonic() - started
     assert done.stdout.strip() == "armed", done.stderr[-2000:]
     assert done.returncode == 3 and took < 8.0, (done.returncode, took, done.stderr[-2000:])
@@ -344,20 +405,22 @@ def test_stale_checkpoint_temporaries_are_removed_at_start(tmp_path: Path) -> No
     atomic_write_json(path, {"a": 1})
     sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     try:
-        dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
-                              text=True, check=True)
+        dead = subprocess.run(
+            [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True
+        )
         dead_pid = int(dead.stdout)
-        stale = [tmp_path / f".critic-r.json.{dead_pid}.abc123.tmp",  # a writer killed mid-write
-                 tmp_path / ".critic-r.json.k2j_x9q1.tmp",  # the older name, without a pid
-                 tmp_path / f".critic-r.json.{os.getpid()}.zz.tmp"]  # this process's own, from before
+        stale = [
+            tmp_path / f".critic-r.json.{dead_pid}.abc123.tmp",  # a writer killed mid-write
+            tmp_path / ".critic-r.json.k2j_x9q1.tmp",  # the older name, without a pid
+            tmp_path / f".critic-r.json.{os.getpid()}.zz.tmp",
+        ]  # this process's own, from before
         live = tmp_path / f".critic-r.json.{sleeper.pid}.live.tmp"  # a running writer's: kept
         others = [tmp_path / ".critic-other.json.1.x.tmp", tmp_path / "critic-r.json.unusable"]
         for file in [*stale, live, *others]:
             file.write_bytes(b"")
         removed = remove_stale_temporaries(path)
         assert sorted(removed) == sorted(stale)
-        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-            [path.name, live.name, *(p.name for p in others)])
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, live.name, *(p.name for p in others)])
         assert json.loads(path.read_text()) == {"a": 1}
     finally:
         sleeper.kill()
@@ -424,8 +487,10 @@ def test_a_10_mb_payload_does_not_grow_the_receiving_service() -> None:
         wait_until(lambda: sum(t > mark for t in states) >= 20, 5, "states still flowing")
         assert c.procs["plant"].stop() == 0
         counters = c.procs["plant"].summary()["counters"]
-    print(f"\nfigures: one 10 MB put on srl/big/action: plant RSS +{growth:.1f} MB (before: +49-79 MB), "
-          f"rejected.action {counters.get('rejected.action', 0)}")
+    print(
+        f"\nfigures: one 10 MB put on srl/big/action: plant RSS +{growth:.1f} MB (before: +49-79 MB), "
+        f"rejected.action {counters.get('rejected.action', 0)}"
+    )
     assert counters.get("rejected.action", 0) == 0  # dropped by Zenoh before it was reassembled
     assert growth < 5.0
 

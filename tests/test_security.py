@@ -52,8 +52,12 @@ def allowed(acl: dict[str, Any], user: str, message: str, flow: str, key: str) -
     subjects = {s["id"] for s in acl["subjects"] if user in s.get("usernames", [])}
     rule_ids = {r for p in acl["policies"] if subjects & set(p["subjects"]) for r in p["rules"]}
     for rule in acl["rules"]:
-        if (rule["id"] in rule_ids and message in rule["messages"] and flow in rule["flows"]
-                and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in rule["key_exprs"])):
+        if (
+            rule["id"] in rule_ids
+            and message in rule["messages"]
+            and flow in rule["flows"]
+            and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in rule["key_exprs"])
+        ):
             assert rule["permission"] == "allow"
             return True
     return False
@@ -68,44 +72,53 @@ ACL_LOCKSTEP = acl_config(ROBOT, lockstep=True)
 HEARTBEAT = "srl/t0/transition/@adv/pub/1234abcd/1/uhlc"  # an advanced publisher's own key
 
 
-@pytest.mark.parametrize(("key", "writers"), [
-    ("srl/t0/action", {"actor"}),
-    ("srl/t0/transition", {"actor"}),
-    (HEARTBEAT, {"actor"}),
-    ("srl/t0/critic/weights", {"critic"}),
-    ("srl/t0/state", {"plant"}),
-    ("srl/t0/status/actor", {"actor"}),
-    ("srl/t0/status/critic", {"critic"}),
-    ("srl/t0/status/plant", {"plant"}),
-    ("srl/t1/action", set()),  # another robot's keys: no role of this robot
-    ("srl/t1/critic/weights", set()),
-    ("srl/t0/plant/step", set()),
-    ("other/key", set()),
-])
+@pytest.mark.parametrize(
+    ("key", "writers"),
+    [
+        ("srl/t0/action", {"actor"}),
+        ("srl/t0/transition", {"actor"}),
+        (HEARTBEAT, {"actor"}),
+        ("srl/t0/critic/weights", {"critic"}),
+        ("srl/t0/state", {"plant"}),
+        ("srl/t0/status/actor", {"actor"}),
+        ("srl/t0/status/critic", {"critic"}),
+        ("srl/t0/status/plant", {"plant"}),
+        ("srl/t1/action", set()),  # another robot's keys: no role of this robot
+        ("srl/t1/critic/weights", set()),
+        ("srl/t0/plant/step", set()),
+        ("other/key", set()),
+    ],
+)
 def test_only_the_owner_role_may_publish_a_key(key: str, writers: set[str]) -> None:
     assert who(ACL, "put", "ingress", key) == writers
     assert who(ACL, "delete", "ingress", key) == set()
 
 
-@pytest.mark.parametrize(("key", "readers"), [
-    ("srl/t0/state", {"actor", "monitor"}),
-    ("srl/t0/action", {"plant"}),
-    ("srl/t0/critic/weights", {"actor"}),
-    ("srl/t0/transition", {"critic"}),
-    ("srl/*/transition", {"critic"}),  # the critic's own (wildcard) subscription
-    (HEARTBEAT, {"critic"}),
-    ("srl/t0/status/*", {"monitor"}),
-    ("srl/**", set()),
-    ("**", set()),
-])
+@pytest.mark.parametrize(
+    ("key", "readers"),
+    [
+        ("srl/t0/state", {"actor", "monitor"}),
+        ("srl/t0/action", {"plant"}),
+        ("srl/t0/critic/weights", {"actor"}),
+        ("srl/t0/transition", {"critic"}),
+        ("srl/*/transition", {"critic"}),  # the critic's own (wildcard) subscription
+        (HEARTBEAT, {"critic"}),
+        ("srl/t0/status/*", {"monitor"}),
+        ("srl/**", set()),
+        ("**", set()),
+    ],
+)
 def test_only_roles_with_business_may_read_a_key(key: str, readers: set[str]) -> None:
     assert who(ACL, "declare_subscriber", "ingress", key) == readers
     if "*" not in key:  # samples are published on concrete keys
         assert who(ACL, "put", "egress", key) == readers
 
 
-@pytest.mark.parametrize(("acl", "server", "client"), [(ACL_LOCKSTEP, {"plant"}, {"actor"}), (ACL, set(), set())],
-                         ids=["lockstep", "realtime"])
+@pytest.mark.parametrize(
+    ("acl", "server", "client"),
+    [(ACL_LOCKSTEP, {"plant"}, {"actor"}), (ACL, set(), set())],
+    ids=["lockstep", "realtime"],
+)
 def test_plant_queries_only_in_lockstep(acl: dict[str, Any], server: set[str], client: set[str]) -> None:
     for service in ("srl/t0/plant/step", "srl/t0/plant/reset"):
         assert who(acl, "declare_queryable", "ingress", service) == server
@@ -113,8 +126,10 @@ def test_plant_queries_only_in_lockstep(acl: dict[str, Any], server: set[str], c
         assert who(acl, "reply", "ingress", service) == server
         assert who(acl, "reply", "egress", service) == client
     # everything else is the same in both modes
-    others = {k: [r for r in v if "plant/step" not in str(r.keys) and "plant/reset" not in str(r.keys)]
-              for k, v in role_rules(ROBOT, lockstep=True).items()}
+    others = {
+        k: [r for r in v if "plant/step" not in str(r.keys) and "plant/reset" not in str(r.keys)]
+        for k, v in role_rules(ROBOT, lockstep=True).items()
+    }
     assert others == role_rules(ROBOT, lockstep=False)
 
 
@@ -127,8 +142,7 @@ def test_queries_queryables_and_liveliness_per_role() -> None:
     assert who(ACL, "reply", "egress", "srl/t0/transition") == {"critic"}
     assert who(ACL, "declare_liveliness_subscriber", "ingress", "srl/*/transition/@adv/pub/**") == {"critic"}
     # liveliness: each role announces only its own services; every role may see who is alive
-    for service, owner in (("actor", "actor"), ("critic", "critic"), ("plant", "plant"),
-                           ("robot_bridge", "plant")):
+    for service, owner in (("actor", "actor"), ("critic", "critic"), ("plant", "plant"), ("robot_bridge", "plant")):
         assert who(ACL, "liveliness_token", "ingress", f"srl/t0/alive/{service}") == {owner}
         assert who(ACL, "liveliness_token", "egress", f"srl/t0/alive/{service}") == set(ROLES)
     assert who(ACL, "liveliness_token", "ingress", "srl/t0/alive/monitor") == set()
@@ -181,12 +195,13 @@ def test_credentials_are_random_private_and_read_back(tmp_path: Path) -> None:
     assert client_credentials(transport) == ("critic", users["critic"])
     entries = zenoh_entries(transport, router=False)
     assert entries == {"transport/auth/usrpwd/user": "critic", "transport/auth/usrpwd/password": users["critic"]}
-    router = zenoh_entries(base.model_copy(update={"secure": True, "users_file": str(first.users_file)}),
-                           router=True)
+    router = zenoh_entries(base.model_copy(update={"secure": True, "users_file": str(first.users_file)}), router=True)
     assert router["transport/auth/usrpwd/dictionary_file"] == str(first.users_file)
     assert router["access_control"] == acl_config(base.robot, lockstep=False)  # real time unless asked
-    lockstep = zenoh_entries(base.model_copy(update={"secure": True, "users_file": str(first.users_file),
-                                                     "plant_queries": True}), router=True)
+    lockstep = zenoh_entries(
+        base.model_copy(update={"secure": True, "users_file": str(first.users_file), "plant_queries": True}),
+        router=True,
+    )
     assert lockstep["access_control"] == acl_config(base.robot, lockstep=True) != router["access_control"]
     env = first.role_environment("plant")
     assert env["SRL_TRANSPORT__USER"] == "plant" and users["plant"] not in json.dumps(env)
@@ -199,8 +214,7 @@ def test_secure_settings_refuse_what_cannot_work(tmp_path: Path, monkeypatch: py
     with pytest.raises(SecurityError, match="no password"):
         zenoh_entries(base.model_copy(update={"user": "actor"}), router=False)
     with pytest.raises(SecurityError, match="password file"):
-        zenoh_entries(base.model_copy(update={"user": "actor", "password_file": str(tmp_path / "nope")}),
-                      router=False)
+        zenoh_entries(base.model_copy(update={"user": "actor", "password_file": str(tmp_path / "nope")}), router=False)
     with pytest.raises(SecurityError, match="users_file"):
         zenoh_entries(base, router=True)
     with pytest.raises(ValidationError, match="client"):
@@ -216,25 +230,40 @@ def test_secure_settings_refuse_what_cannot_work(tmp_path: Path, monkeypatch: py
 
 def test_no_secret_is_committed() -> None:
     transport = Settings.load(ROOT / "common" / "srl.toml").transport
-    assert (transport.secure, transport.user, transport.password.get_secret_value(), transport.password_file,
-            transport.users_file) == (False, "", "", "", "")
+    assert (
+        transport.secure,
+        transport.user,
+        transport.password.get_secret_value(),
+        transport.password_file,
+        transport.users_file,
+    ) == (False, "", "", "", "")
     if not (ROOT / ".git").exists():
         pytest.skip("not a git checkout")
-    tracked = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
-                             capture_output=True, text=True, check=True).stdout.split()
+    tracked = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
     suspicious = [f for f in tracked if f.endswith((".password", ".pem", ".key")) or Path(f).name == "users.txt"]
     assert suspicious == []
 
 
 # -- processes: a secured router with the real services -------------------------------------------
-def session_as(endpoint: str, user: str | None, password: str | None = None,
-               tls: tuple[Path, Path, Path] | None = None) -> zenoh.Session:
+def session_as(
+    endpoint: str, user: str | None, password: str | None = None, tls: tuple[Path, Path, Path] | None = None
+) -> zenoh.Session:
     """A client session logged in as ``user``; ``tls`` = (CA, certificate, key) for a mutual-TLS link."""
     config = client_config(endpoint)
     if tls is not None:
         ca, cert, key = (str(path) for path in tls)
-        for path, value in (("root_ca_certificate", ca), ("connect_certificate", cert),
-                            ("connect_private_key", key), ("enable_mtls", True)):
+        for path, value in (
+            ("root_ca_certificate", ca),
+            ("connect_certificate", cert),
+            ("connect_private_key", key),
+            ("enable_mtls", True),
+        ):
             config.insert_json5(f"transport/link/tls/{path}", json.dumps(value))
     if user is not None:
         config.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
@@ -298,17 +327,43 @@ class Recorder:
 
 
 # (user, key) a wrong role tries to publish on; the legitimate reader of each key watches
-ROGUE_PUTS = [("critic", "action"), ("plant", "action"), ("monitor", "action"),
-              ("plant", "critic/weights"), ("actor", "critic/weights"), ("monitor", "critic/weights"),
-              ("actor", "state"), ("critic", "state"), ("monitor", "state"),
-              ("plant", "transition"), ("critic", "transition"),
-              ("critic", "status/actor"), ("plant", "status/critic")]
-LEGIT_READER = {"action": "plant", "critic/weights": "actor", "state": "monitor", "transition": "critic",
-                "status/actor": "monitor", "status/critic": "monitor"}
+ROGUE_PUTS = [
+    ("critic", "action"),
+    ("plant", "action"),
+    ("monitor", "action"),
+    ("plant", "critic/weights"),
+    ("actor", "critic/weights"),
+    ("monitor", "critic/weights"),
+    ("actor", "state"),
+    ("critic", "state"),
+    ("monitor", "state"),
+    ("plant", "transition"),
+    ("critic", "transition"),
+    ("critic", "status/actor"),
+    ("plant", "status/critic"),
+]
+LEGIT_READER = {
+    "action": "plant",
+    "critic/weights": "actor",
+    "state": "monitor",
+    "transition": "critic",
+    "status/actor": "monitor",
+    "status/critic": "monitor",
+}
 # (user, key) a wrong role tries to read
-ROGUE_READS = [("plant", "critic/weights"), ("plant", "transition"), ("critic", "action"), ("critic", "state"),
-               ("monitor", "action"), ("monitor", "critic/weights"), ("monitor", "transition"),
-               ("actor", "transition"), ("actor", "action"), ("critic", "**"), ("monitor", "**")]
+ROGUE_READS = [
+    ("plant", "critic/weights"),
+    ("plant", "transition"),
+    ("critic", "action"),
+    ("critic", "state"),
+    ("monitor", "action"),
+    ("monitor", "critic/weights"),
+    ("monitor", "transition"),
+    ("actor", "transition"),
+    ("actor", "action"),
+    ("critic", "**"),
+    ("monitor", "**"),
+]
 
 
 @pytest.mark.slow
@@ -326,8 +381,10 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
             legit[key] = Recorder()
             observers[role].declare_subscriber(f"srl/{robot}/{key}", legit[key])
         versions: list[int] = []
-        observers["actor"].declare_subscriber(f"srl/{robot}/critic/weights", lambda s: versions.append(
-            CriticWeights.model_validate_json(s.payload.to_bytes()).version))
+        observers["actor"].declare_subscriber(
+            f"srl/{robot}/critic/weights",
+            lambda s: versions.append(CriticWeights.model_validate_json(s.payload.to_bytes()).version),
+        )
         stolen: dict[tuple[str, str], Recorder] = {}
         for user, key in ROGUE_READS:
             stolen[user, key] = Recorder()
@@ -335,8 +392,9 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
 
         c.start("plant", "plant-sim", "--mode", "realtime", env=credentials.role_environment("plant"))
         c.wait_alive("plant")
-        actor = c.start("actor", "actor", "--mode", "realtime", "--run-seconds", "8",
-                        env=credentials.role_environment("actor"))
+        actor = c.start(
+            "actor", "actor", "--mode", "realtime", "--run-seconds", "8", env=credentials.role_environment("actor")
+        )
         c.wait_alive("actor")
         # the critic comes late: it must recover the transitions published before it through
         # the advanced subscriber's history query, which the rules must let through
@@ -353,8 +411,11 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
                 rogues[user].put(f"srl/{robot}/{key}", f"ROGUE {user} {key} session-put {i}".encode())
             time.sleep(0.05)
         # wrong roles query the plant and announce a service that is not theirs
-        rogue_replies = [r for user in ("critic", "monitor")
-                         for r in rogues[user].get(f"srl/{robot}/plant/reset", payload=b"ROGUE", timeout=1.0)]
+        rogue_replies = [
+            r
+            for user in ("critic", "monitor")
+            for r in rogues[user].get(f"srl/{robot}/plant/reset", payload=b"ROGUE", timeout=1.0)
+        ]
         # real time: even the actor may not reset the plant (the router refuses; plant_sim serves none)
         actor_replies = list(observers["actor"].get(f"srl/{robot}/plant/reset", payload=b"{", timeout=2.0))
         impostor = rogues["critic"].liveliness().declare_token(f"srl/{robot}/alive/robot_bridge")
@@ -374,8 +435,9 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
         summaries["actor"] = actor.summary()
 
     # the legitimate readers saw the system run, and never a rogue sample
-    assert all(legit[key].payloads for key in ("action", "critic/weights", "state", "transition")), \
-        {key: len(r.payloads) for key, r in legit.items()}
+    assert all(legit[key].payloads for key in ("action", "critic/weights", "state", "transition")), {
+        key: len(r.payloads) for key, r in legit.items()
+    }
     assert {key: r.rogue() for key, r in legit.items()} == {key: [] for key in legit}
     # the wrong readers got nothing at all, while the same keys carried hundreds of samples
     assert {k: len(r.payloads) for k, r in stolen.items()} == {k: 0 for k in stolen}
@@ -384,8 +446,9 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
     assert not impersonated, "a critic announced the robot bridge"
     actor_summary, critic_summary, plant_summary = summaries["actor"], summaries["critic"], summaries["plant"]
     # the services never saw a rogue payload or query: nothing was rejected
-    rejected = {name: {k: v for k, v in s["counters"].items() if k.startswith("rejected.")}
-                for name, s in summaries.items()}
+    rejected = {
+        name: {k: v for k, v in s["counters"].items() if k.startswith("rejected.")} for name, s in summaries.items()
+    }
     assert rejected == {"actor": {}, "critic": {}, "plant": {}}, rejected
     # the system ran normally through the secured router
     steps = actor_summary["steps"]
@@ -394,11 +457,13 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
     assert critic_summary["transitions_received"] >= steps
     assert actor_summary["weights_version"] in versions and all(b > a for a, b in itertools.pairwise(versions))
     assert plant_summary["counters"]["received.action"] >= steps
-    print(f"\nfigures: secured run: {steps} steps, latency median {actor_summary['latency_ms']['median']:.2f} ms "
-          f"p99 {actor_summary['latency_ms']['p99']:.2f} ms, {len(versions)} weight versions, late critic "
-          f"recovered {critic_summary['seen_steps'][robot]}; rogue: {len(ROGUE_PUTS) * 20} puts by wrong roles, "
-          f"{len(ROGUE_READS)} wrong subscriptions, 3 plant/reset queries (actor's included), 1 impostor token: "
-          "0 got through")
+    print(
+        f"\nfigures: secured run: {steps} steps, latency median {actor_summary['latency_ms']['median']:.2f} ms "
+        f"p99 {actor_summary['latency_ms']['p99']:.2f} ms, {len(versions)} weight versions, late critic "
+        f"recovered {critic_summary['seen_steps'][robot]}; rogue: {len(ROGUE_PUTS) * 20} puts by wrong roles, "
+        f"{len(ROGUE_READS)} wrong subscriptions, 3 plant/reset queries (actor's included), 1 impostor token: "
+        "0 got through"
+    )
 
 
 @pytest.mark.slow
@@ -430,7 +495,8 @@ def test_strangers_and_wrong_passwords_cannot_connect(tmp_path: Path) -> None:
             peer.close()
         # the services' own code path (zenoh_config from settings) logs in; the router is unharmed
         transport = credentials.transport(Settings.load().transport, "plant").model_copy(
-            update={"router": c.endpoint, "robot": "gate"})
+            update={"router": c.endpoint, "robot": "gate"}
+        )
         zenoh.open(zenoh_config(transport)).close()
         assert c.session is not None and c.session.info.routers_zid()
 
@@ -452,10 +518,30 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     temp = tmp_path / "tmp"
     temp.mkdir()
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--secure", "--mode", mode, "--router", endpoint,
-                           "--robot", "su", "--duration", "5", "--json"], cwd=ROOT, text=True,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
-                          env={**os.environ, "TMPDIR": str(temp)})
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "up",
+            "--secure",
+            "--mode",
+            mode,
+            "--router",
+            endpoint,
+            "--robot",
+            "su",
+            "--duration",
+            "5",
+            "--json",
+        ],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+        env={**os.environ, "TMPDIR": str(temp)},
+    )
     refused = 0
     try:
         wait_until(lambda: _tcp_open(endpoint) or up.poll() is not None, 60, "the router of srl up --secure")
@@ -471,8 +557,12 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
         # srl up --secure serves its tcp/ address over mutual TLS: log in with the actor's certificate
         tls = credential_dirs[0] / "tls"
         wait_until(lambda: (tls / "actor.key").is_file() or up.poll() is not None, 30, "the TLS material")
-        actor = session_as(endpoint.replace("tcp/", "tls/", 1), "actor", actor_password, tls=(
-            tls / "ca.pem", tls / "actor.pem", tls / "actor.key"))
+        actor = session_as(
+            endpoint.replace("tcp/", "tls/", 1),
+            "actor",
+            actor_password,
+            tls=(tls / "ca.pem", tls / "actor.pem", tls / "actor.key"),
+        )
         try:
             wait_until(lambda: _plant_alive(actor, "su") or up.poll() is not None, 60, "the plant of srl up --secure")
             reset_replies = list(actor.get("srl/su/plant/reset", payload=b"{", timeout=2.0))
@@ -498,6 +588,8 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
         assert len(reset_replies) == 1 and reset_replies[0].err is not None
     else:
         assert reset_replies == [], "real time: the router let the actor role reset the plant"
-    print(f"\nfigures: srl up --secure --mode {mode}: {summary['steps']} steps, weights version "
-          f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic; "
-          f"the actor role's plant/reset query got {len(reset_replies)} replies")
+    print(
+        f"\nfigures: srl up --secure --mode {mode}: {summary['steps']} steps, weights version "
+        f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic; "
+        f"the actor role's plant/reset query got {len(reset_replies)} replies"
+    )

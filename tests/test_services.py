@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.loop import run_episode
+from common.assembly import run_episode
 from common.messages import Action, CriticWeights, ServiceStatus
 from common.settings import Settings
 from tests.harness import ROOT, cluster, free_port, wait_until
@@ -23,15 +23,35 @@ pytestmark = pytest.mark.slow
 
 
 def _run_cli(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "services.cli", *argv], cwd=ROOT, capture_output=True,
-                          text=True, timeout=timeout, check=False)
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+    )
 
 
 @pytest.mark.parametrize("agent", ["rlqv", "rlq"])
 def test_lockstep_through_zenoh_equals_inproc(agent: str) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    done = _run_cli("run", "--transport", "zenoh", "--router", endpoint, "--robot", "lock",
-                    "--agent", agent, "--start=-1.5,1", "--duration", "4", "--json", "--trajectory")
+    done = _run_cli(
+        "run",
+        "--transport",
+        "zenoh",
+        "--router",
+        endpoint,
+        "--robot",
+        "lock",
+        "--agent",
+        agent,
+        "--start=-1.5,1",
+        "--duration",
+        "4",
+        "--json",
+        "--trajectory",
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     distributed = json.loads(done.stdout.strip().splitlines()[-1])
     local = run_episode(Settings.load(actor={"agent": agent}, episode={"start": (-1.5, 1.0), "duration": 4}))
@@ -49,9 +69,28 @@ def test_lockstep_through_zenoh_equals_inproc(agent: str) -> None:
 def test_realtime_up_every_service_a_process() -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    up = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--router", endpoint, "--robot", "rt",
-                           "--agent", "rlqv", "--duration", "10", "--json"], cwd=ROOT,
-                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "up",
+            "--router",
+            endpoint,
+            "--robot",
+            "rt",
+            "--agent",
+            "rlqv",
+            "--duration",
+            "10",
+            "--json",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     versions: list[int] = []
     actions: list[tuple[float, float]] = []
     session = None
@@ -71,10 +110,13 @@ def test_realtime_up_every_service_a_process() -> None:
 
         wait_until(connected, 60, "the router of srl up")
         assert session is not None
-        session.declare_subscriber("srl/rt/critic/weights", lambda s: versions.append(
-            CriticWeights.model_validate_json(s.payload.to_bytes()).version))
-        session.declare_subscriber("srl/rt/action", lambda s: actions.append(
-            Action.model_validate_json(s.payload.to_bytes()).action))
+        session.declare_subscriber(
+            "srl/rt/critic/weights",
+            lambda s: versions.append(CriticWeights.model_validate_json(s.payload.to_bytes()).version),
+        )
+        session.declare_subscriber(
+            "srl/rt/action", lambda s: actions.append(Action.model_validate_json(s.payload.to_bytes()).action)
+        )
         out, err = up.communicate(timeout=180)
     finally:
         if session is not None:
@@ -102,11 +144,17 @@ def test_actor_keeps_its_loop_without_critic_and_resumes_with_new_weights() -> N
         action_times: list[float] = []
         accepted: list[float] = []
         assert c.session is not None
-        c.session.declare_subscriber("srl/ck/critic/weights", lambda s: weights.append(
-            CriticWeights.model_validate_json(s.payload.to_bytes()).version))
+        c.session.declare_subscriber(
+            "srl/ck/critic/weights",
+            lambda s: weights.append(CriticWeights.model_validate_json(s.payload.to_bytes()).version),
+        )
         c.session.declare_subscriber("srl/ck/action", lambda s: action_times.append(time.monotonic()))
-        c.session.declare_subscriber("srl/ck/status/actor", lambda s: accepted.append(
-            ServiceStatus.model_validate_json(s.payload.to_bytes()).counters.get("weights_version", 0)))
+        c.session.declare_subscriber(
+            "srl/ck/status/actor",
+            lambda s: accepted.append(
+                ServiceStatus.model_validate_json(s.payload.to_bytes()).counters.get("weights_version", 0)
+            ),
+        )
         c.wait_alive("actor")
         wait_until(lambda: len(weights) >= 5, 30, "first weights")
 
@@ -121,8 +169,11 @@ def test_actor_keeps_its_loop_without_critic_and_resumes_with_new_weights() -> N
         c.wait_alive("critic")
         wait_until(lambda: any(v > last_version_before for v in weights), 30, "weights from the new critic")
         new_version = max(weights)
-        wait_until(lambda: any(a >= new_version for a in accepted) or actor.process.poll() is not None, 15,
-                   "the actor using the new critic's weights")
+        wait_until(
+            lambda: any(a >= new_version for a in accepted) or actor.process.poll() is not None,
+            15,
+            "the actor using the new critic's weights",
+        )
         assert actor.process.wait(timeout=30) == 0, actor.stderr[-10:]
         summary = actor.summary()
         assert summary["loop"]["missed_deadlines"] == 0
@@ -131,30 +182,59 @@ def test_actor_keeps_its_loop_without_critic_and_resumes_with_new_weights() -> N
 
 
 GARBAGE = [
-    b"", b"\x00\xff\x10garbage", b"{", b"[]", b'{"schema_version": 2}', b"null",
+    b"",
+    b"\x00\xff\x10garbage",
+    b"{",
+    b"[]",
+    b'{"schema_version": 2}',
+    b"null",
     b"x" * 70_000,
 ]
 
 
 def _state(**kw: object) -> bytes:
-    base = {"schema_version": 1, "robot": "fz", "episode": 0, "seq": 1, "stamp_ns": 1,
-            "state": [0.0, 0.0, 0.0], "source": "sim"}
+    base = {
+        "schema_version": 1,
+        "robot": "fz",
+        "episode": 0,
+        "seq": 1,
+        "stamp_ns": 1,
+        "state": [0.0, 0.0, 0.0],
+        "source": "sim",
+    }
     base.update(kw)
     return json.dumps(base).replace('"NaN"', "NaN").encode()
 
 
 BAD_BY_KEY = {
-    "state": [_state(state=[float("nan"), 0, 0]), _state(state=[0, 0]), _state(schema_version=9),
-              _state(seq=-1), _state(extra=1)],
-    "action": [b'{"schema_version":1,"robot":"fz","episode":0,"step":0,"stamp_ns":0,'
-               b'"action":[NaN,0],"state_seq":0}',
-               b'{"schema_version":1,"robot":"fz","episode":0,"step":0,"stamp_ns":0,'
-               b'"action":[1e400,0],"state_seq":0}'],
-    "transition": [b'{"schema_version":1,"robot":"fz","episode":0,"step":0,"state":[0,0],'
-                   b'"action":[0,0],"cost":1}'],
-    "critic/weights": [json.dumps({"schema_version": 1, "robot": "fz", "episode": 0, "version": 1,
-                                   "trained_step": 0, "q_weights": [1.0] * 14, "v_weights": [1.0] * 6,
-                                   "q_residual": 0, "v_residual": 0, "pairs": 0}).encode()],
+    "state": [
+        _state(state=[float("nan"), 0, 0]),
+        _state(state=[0, 0]),
+        _state(schema_version=9),
+        _state(seq=-1),
+        _state(extra=1),
+    ],
+    "action": [
+        b'{"schema_version":1,"robot":"fz","episode":0,"step":0,"stamp_ns":0,"action":[NaN,0],"state_seq":0}',
+        b'{"schema_version":1,"robot":"fz","episode":0,"step":0,"stamp_ns":0,"action":[1e400,0],"state_seq":0}',
+    ],
+    "transition": [b'{"schema_version":1,"robot":"fz","episode":0,"step":0,"state":[0,0],"action":[0,0],"cost":1}'],
+    "critic/weights": [
+        json.dumps(
+            {
+                "schema_version": 1,
+                "robot": "fz",
+                "episode": 0,
+                "version": 1,
+                "trained_step": 0,
+                "q_weights": [1.0] * 14,
+                "v_weights": [1.0] * 6,
+                "q_residual": 0,
+                "v_residual": 0,
+                "pairs": 0,
+            }
+        ).encode()
+    ],
 }
 
 
@@ -178,20 +258,37 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
                 publisher.put(payload)
             sent[key] = len(GARBAGE) + len(bad)
         errors = []
-        wait_until(lambda: any(r.ok is not None for r in c.session.liveliness().get(  # type: ignore[union-attr]
-            "srl/fz_lock/alive/plant", timeout=0.5)), 60, "the lockstep plant")
+        wait_until(
+            lambda: any(
+                r.ok is not None
+                for r in c.session.liveliness().get(  # type: ignore[union-attr]
+                    "srl/fz_lock/alive/plant", timeout=0.5
+                )
+            ),
+            60,
+            "the lockstep plant",
+        )
         for key in ("plant/step", "plant/reset"):
             for payload in GARBAGE[1:4]:
                 for reply in c.session.get(f"srl/fz_lock/{key}", payload=payload, timeout=5):
                     errors.append(reply.err is not None)
         assert errors and all(errors), "every malformed query must get an error reply"
         counters: dict[str, dict[str, float]] = {}
-        c.session.declare_subscriber("srl/fz/status/*", lambda s: counters.__setitem__(
-            str(s.key_expr).rsplit("/", 1)[-1], ServiceStatus.model_validate_json(s.payload.to_bytes()).counters))
-        wait_until(lambda: counters.get("actor", {}).get("rejected.critic/weights", 0) >= sent["critic/weights"]
-                   and counters.get("critic", {}).get("rejected.transition", 0) >= sent["transition"]
-                   and counters.get("plant", {}).get("rejected.action", 0) >= sent["action"], 20,
-                   "the services to count every rejection")
+        c.session.declare_subscriber(
+            "srl/fz/status/*",
+            lambda s: counters.__setitem__(
+                str(s.key_expr).rsplit("/", 1)[-1], ServiceStatus.model_validate_json(s.payload.to_bytes()).counters
+            ),
+        )
+        wait_until(
+            lambda: (
+                counters.get("actor", {}).get("rejected.critic/weights", 0) >= sent["critic/weights"]
+                and counters.get("critic", {}).get("rejected.transition", 0) >= sent["transition"]
+                and counters.get("plant", {}).get("rejected.action", 0) >= sent["action"]
+            ),
+            20,
+            "the services to count every rejection",
+        )
         for name in ("plant", "critic", "actor"):
             assert c.alive(name), f"{name} died"
         summaries = {}

@@ -191,7 +191,7 @@ def test_parse_start() -> None:
 
 # -- the CLI ------------------------------------------------------------------------------
 def test_cli_rejects_horizon_one(capsys: pytest.CaptureFixture[str]) -> None:
-    from services.cli import main
+    from tools.cli import main
 
     assert main(["run", "--horizon", "1"]) == 2
     err = capsys.readouterr().err
@@ -200,7 +200,8 @@ def test_cli_rejects_horizon_one(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_cli_config_file_and_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from services.cli import build_parser, settings_from_args
+    from common.arguments import settings_from_args
+    from tools.cli import build_parser
 
     user = tmp_path / "mine.toml"
     user.write_text('[actor]\nhorizon = 6\nagent = "rlq"\n\n[plant]\nv_max = 0.5\n')
@@ -215,14 +216,14 @@ def test_cli_config_file_and_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPat
 
 
 def test_cli_rejects_infinite_duration(capsys: pytest.CaptureFixture[str]) -> None:
-    from services.cli import main
+    from tools.cli import main
 
     assert main(["run", "--duration", "inf", "--no-jit"]) == 2
     capsys.readouterr()
 
 
 def test_cli_rejects_bad_start(capsys: pytest.CaptureFixture[str]) -> None:
-    from services.cli import main
+    from tools.cli import main
 
     with pytest.raises(SystemExit) as info:
         main(["run", "--start", "1,nan"])
@@ -231,18 +232,18 @@ def test_cli_rejects_bad_start(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_cli_run_json_contract(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
-    import common.loop
-    from services.cli import main
+    import common.assembly
+    from tools.cli import main
 
     captured = []
-    original = common.loop.run_episode
+    original = common.assembly.run_episode
 
     def spy(*args, **kwargs):
         episode = original(*args, **kwargs)
         captured.append(episode)
         return episode
 
-    monkeypatch.setattr(common.loop, "run_episode", spy)
+    monkeypatch.setattr(common.assembly, "run_episode", spy)
     assert main(["run", "--agent", "mpc", "--duration", "1", "--json", "--no-jit"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
     summary = json.loads(out[-1])

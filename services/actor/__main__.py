@@ -1,7 +1,6 @@
-"""`python -m services.actor` = `srl actor`."""
+"""`python -m services.actor` = `srl actor`: the service's own command, no tools."""
 
-import sys
+from common.runtime import entry, service_parser
+from services.actor import command
 
-from services.cli import entry
-
-entry(["actor", *sys.argv[1:]])
+entry(lambda: service_parser(command))

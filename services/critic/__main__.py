@@ -1,7 +1,6 @@
-"""`python -m services.critic` = `srl critic`."""
+"""`python -m services.critic` = `srl critic`: the service's own command, no tools."""
 
-import sys
+from common.runtime import entry, service_parser
+from services.critic import command
 
-from services.cli import entry
-
-entry(["critic", *sys.argv[1:]])
+entry(lambda: service_parser(command))

@@ -71,8 +71,11 @@ def checkpoint_path(settings: Settings) -> Path | None:
     if not template:
         return None
     # per robot AND per stack: a run of another agent or horizon never starts from this one's critic
-    return Path(os.path.expanduser(template.format(robot=settings.transport.robot, agent=settings.actor.agent,
-                                                   horizon=settings.actor.horizon)))
+    return Path(
+        os.path.expanduser(
+            template.format(robot=settings.transport.robot, agent=settings.actor.agent, horizon=settings.actor.horizon)
+        )
+    )
 
 
 class CriticLearner:
@@ -100,8 +103,7 @@ class CriticLearner:
 
     def _fresh(self, episode: int) -> Learner:
         s = self.settings
-        critic = DoubleCritic(s.initial_q_weights(), s.initial_v_weights(), s.discount,
-                              s.critic.ridge, s.critic.bounds)
+        critic = DoubleCritic(s.initial_q_weights(), s.initial_v_weights(), s.discount, s.critic.ridge, s.critic.bounds)
         return Learner(episode, Replay(s.critic.replay_size), critic, set())
 
     def initial_weights(self, robot: str, episode: int) -> CriticWeights:
@@ -109,14 +111,20 @@ class CriticLearner:
         self.learners[robot] = learner
         return self._message(robot, learner, trained_step=-1, q_res=0.0, v_res=0.0, pairs=0)
 
-    def _message(self, robot: str, learner: Learner, trained_step: int, q_res: float, v_res: float,
-                 pairs: int) -> CriticWeights:
+    def _message(
+        self, robot: str, learner: Learner, trained_step: int, q_res: float, v_res: float, pairs: int
+    ) -> CriticWeights:
         self.version += 1
         return CriticWeights(
-            robot=robot, episode=learner.episode, version=self.version, trained_step=trained_step,
+            robot=robot,
+            episode=learner.episode,
+            version=self.version,
+            trained_step=trained_step,
             q_weights=tuple(float(w) for w in learner.critic.q_weights),
             v_weights=tuple(float(w) for w in learner.critic.v_weights),
-            q_residual=q_res, v_residual=v_res, pairs=pairs,
+            q_residual=q_res,
+            v_residual=v_res,
+            pairs=pairs,
         )
 
     def confirm(self, message: Transition) -> CriticWeights | None:
@@ -162,8 +170,7 @@ class CriticLearner:
             if len(learner.seen) > 2 * self.retention:
                 floor = learner.newest - self.retention
                 learner.seen = {step for step in learner.seen if step > floor}
-        learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action),
-                                  message.cost))
+        learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
         if message.step % self.settings.critic.update_every != 0:
             return None
         started = time.perf_counter()
@@ -171,8 +178,7 @@ class CriticLearner:
         self.fit_seconds.append(time.perf_counter() - started)
         if not (np.isfinite(update.q.residual) and np.isfinite(update.v.residual)):
             return None
-        return self._message(message.robot, learner, message.step, update.q.residual,
-                             update.v.residual, update.q.pairs)
+        return self._message(message.robot, learner, message.step, update.q.residual, update.v.residual, update.q.pairs)
 
     # -- checkpoint ---------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -242,8 +248,12 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
         moved = set_aside(path, str(error))
         log.error("critic checkpoint %s unusable (%s); moved to %s, starting fresh", path, error, moved)
         return False
-    log.info("critic restored from %s: version %d, %s", path, learner.version,
-             ", ".join(f"{r} episode {x.episode} replay {len(x.replay)}" for r, x in learner.learners.items()))
+    log.info(
+        "critic restored from %s: version %d, %s",
+        path,
+        learner.version,
+        ", ".join(f"{r} episode {x.episode} replay {len(x.replay)}" for r, x in learner.learners.items()),
+    )
     return True
 
 
@@ -270,11 +280,24 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     # restart or a partition).
     bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot=settings.critic.robots), inbox.put, recover=True)
     bus.declare_alive(settings.transport.robot)
-    start_status_thread(bus, settings.transport.robot, settings.transport.status_period, stop,
-                        lambda: {"transitions_received": learner.received, "duplicates": learner.duplicates,
-                                 "too_old": learner.too_old})
-    log.info("critic ready (robots %s, M = %d, beta = %.4f, checkpoint %s)", settings.critic.robots,
-             settings.critic.replay_size, settings.discount, path or "off")
+    start_status_thread(
+        bus,
+        settings.transport.robot,
+        settings.transport.status_period,
+        stop,
+        lambda: {
+            "transitions_received": learner.received,
+            "duplicates": learner.duplicates,
+            "too_old": learner.too_old,
+        },
+    )
+    log.info(
+        "critic ready (robots %s, M = %d, beta = %.4f, checkpoint %s)",
+        settings.critic.robots,
+        settings.critic.replay_size,
+        settings.discount,
+        path or "off",
+    )
     end = None if duration is None else time.monotonic() + duration
     while not stop.is_set() and (end is None or time.monotonic() < end):
         try:
@@ -286,14 +309,14 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
             publish(continued)
         before = learner.accepted
-        weights = learner.on_transition(message)
+        fitted = learner.on_transition(message)
         if learner.accepted > before and path is not None:
             # checkpoint first: a crash after it re-publishes these weights at restart
             started = time.perf_counter()
             atomic_write_json(path, learner.state())
             checkpoint_seconds.append(time.perf_counter() - started)
-        if weights is not None:
-            publish(weights)
+        if fitted is not None:
+            publish(fitted)
     from common.stats import summarize
 
     return {
@@ -307,8 +330,10 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         "checkpoint": None if path is None else str(path),
         "checkpoint_ms": summarize(checkpoint_seconds, 1e3),
         "seen_steps": {robot: to_runs(x.seen) for robot, x in learner.learners.items()},
-        "replay": {robot: [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in x.replay.samples]
-                   for robot, x in learner.learners.items()},
+        "replay": {
+            robot: [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in x.replay.samples]
+            for robot, x in learner.learners.items()
+        },
         "weights_published": bus.counters["weights_published"],
         "last_version": learner.version,
         "fit_ms": summarize(learner.fit_seconds, 1e3),

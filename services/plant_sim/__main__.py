@@ -1,7 +1,6 @@
-"""`python -m services.plant_sim` = `srl plant-sim`."""
+"""`python -m services.plant_sim` = `srl plant-sim`: the service's own command, no tools."""
 
-import sys
+from common.runtime import entry, service_parser
+from services.plant_sim import command
 
-from services.cli import entry
-
-entry(["plant-sim", *sys.argv[1:]])
+entry(lambda: service_parser(command))

@@ -16,16 +16,17 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
+from common.clock import Ticker
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.provenance import PlantConflictError
 from common.settings import Settings
 from common.transport import Bus, start_status_thread
-from services.clock import Ticker
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +48,12 @@ class SimulatedPlant:
     def _message(self) -> PlantState:
         self.seq += 1
         return PlantState(
-            robot=self.robot, episode=self.episode, seq=self.seq, stamp_ns=time.monotonic_ns(),
-            state=(float(self.state[0]), float(self.state[1]), float(self.state[2])), source="sim",
+            robot=self.robot,
+            episode=self.episode,
+            seq=self.seq,
+            stamp_ns=time.monotonic_ns(),
+            state=(float(self.state[0]), float(self.state[1]), float(self.state[2])),
+            source="sim",
         )
 
     def clamp(self, action: tuple[float, float]) -> np.ndarray:
@@ -90,8 +95,10 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     # make the actor follow one robot's states while commanding another
     others = bus.live_identities(robot, "plant")
     if others:
-        raise PlantConflictError(f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
-                                 "one plant per robot; stop it first")
+        raise PlantConflictError(
+            f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
+            "one plant per robot; stop it first"
+        )
     publish_state = bus.publisher(STATE, robot)
     if mode == "lockstep":  # real time: nobody may teleport or step the robot (the queryables do not exist)
         bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
@@ -129,10 +136,14 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.count("missed_ticks", ticker.missed)
     else:
         stop.wait(duration)
-    return {"service": "plant", "mode": mode, "final_state": [float(c) for c in plant.state],
-            "counters": dict(bus.counters)}
+    return {
+        "service": "plant",
+        "mode": mode,
+        "final_state": [float(c) for c in plant.state],
+        "counters": dict(bus.counters),
+    }
 
 
-def _publish(publish_state, message: PlantState) -> PlantState:  # type: ignore[no-untyped-def]
+def _publish(publish_state: Callable[[PlantState], None], message: PlantState) -> PlantState:
     publish_state(message)
     return message

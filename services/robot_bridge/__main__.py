@@ -1,7 +1,6 @@
-"""`python -m services.robot_bridge` = `srl robot-bridge`."""
+"""`python -m services.robot_bridge` = `srl robot-bridge`: the service's own command, no tools."""
 
-import sys
+from common.runtime import entry, service_parser
+from services.robot_bridge import command
 
-from services.cli import entry
-
-entry(["robot-bridge", *sys.argv[1:]])
+entry(lambda: service_parser(command))

@@ -54,18 +54,14 @@ from typing import Any, Protocol
 import zenoh
 from pydantic import ValidationError
 
+from common import ros_wire
+from common.clock import Ticker
 from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
 from common.provenance import PlantConflictError, SourceGate
-from common.security import SecurityError
-from common.settings import BridgeSettings, Settings
-from common.stats import summarize
-from common.transport import Bus, start_status_thread
-from services.clock import Ticker
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import (
+from common.ros_wire import (
     ODOMETRY,
     TWIST,
     TWIST_STAMPED,
@@ -76,6 +72,10 @@ from services.robot_bridge.ros_wire import (
     RosGraph,
     WireError,
 )
+from common.security import SecurityError
+from common.settings import BridgeSettings, Settings
+from common.stats import summarize
+from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
 CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a robot clock reset
@@ -103,9 +103,14 @@ class RobotBridge:
     lock held so that commands leave in the order they were decided.
     """
 
-    def __init__(self, settings: Settings, publish_state: Callable[[PlantState], None],
-                 send_command: Callable[[float, float], None], counts: Counts,
-                 actor_gate: SourceGate | None = None) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        publish_state: Callable[[PlantState], None],
+        send_command: Callable[[float, float], None],
+        counts: Counts,
+        actor_gate: SourceGate | None = None,
+    ) -> None:
         self.robot = settings.transport.robot
         # provenance (issue 13): with a gate, actions only from the live actor session
         self.actor_gate = actor_gate
@@ -157,25 +162,38 @@ class RobotBridge:
                 if odom.stamp_ns > expected + FUTURE_STAMP_TOLERANCE_NS:
                     self.future_run += 1
                     if self.future_run < CLOCK_RESET_AFTER:
-                        self.counts.reject("odom", f"stamp {odom.stamp_ns} is {(odom.stamp_ns - expected) / 1e9:.1f} s "
-                                           "ahead of the robot's clock")
+                        self.counts.reject(
+                            "odom",
+                            f"stamp {odom.stamp_ns} is {(odom.stamp_ns - expected) / 1e9:.1f} s "
+                            "ahead of the robot's clock",
+                        )
                         return None
-                    log.warning("robot_bridge: %d odometry samples ahead of the robot's clock: taking it as a "
-                                "clock jump", self.future_run)
+                    log.warning(
+                        "robot_bridge: %d odometry samples ahead of the robot's clock: taking it as a clock jump",
+                        self.future_run,
+                    )
                     self.counts.count("odom_clock_jumps")
             if self.last_stamp_ns is not None and odom.stamp_ns <= self.last_stamp_ns:
                 self.stale_run += 1
                 if self.stale_run < CLOCK_RESET_AFTER:
                     self.counts.reject("odom", f"stamp {odom.stamp_ns} not newer than {self.last_stamp_ns}")
                     return None
-                log.warning("robot_bridge: %d odometry samples older than the last: taking it as a robot "
-                            "clock reset", self.stale_run)
+                log.warning(
+                    "robot_bridge: %d odometry samples older than the last: taking it as a robot clock reset",
+                    self.stale_run,
+                )
                 self.counts.count("odom_clock_resets")
             pose = to_goal_frame(Pose2D(odom.x, odom.y, yaw), self.goal)
             alpha = wrap_angle(pose.theta) if self.alpha is None else unwrap_heading(self.alpha, pose.theta)
             try:
-                state = PlantState(robot=self.robot, episode=0, seq=self.seq + 1, stamp_ns=time.monotonic_ns(),
-                                   state=(pose.x, pose.y, alpha), source="robot")
+                state = PlantState(
+                    robot=self.robot,
+                    episode=0,
+                    seq=self.seq + 1,
+                    stamp_ns=time.monotonic_ns(),
+                    state=(pose.x, pose.y, alpha),
+                    source="robot",
+                )
             except ValidationError as error:  # beyond the schema's physical bounds (1e4 m)
                 self.counts.reject("odom", f"state {pose} out of range: {error.errors()[0]['msg']}")
                 return None
@@ -210,8 +228,10 @@ class RobotBridge:
             if self.actor_gate is not None:
                 verdict = self.actor_gate.verdict(source)
                 if verdict != "accept":
-                    self.counts.reject(f"action.{verdict}", f"from session {source} (live actor: "
-                                       f"{self.actor_gate.sources() or 'none'})")
+                    self.counts.reject(
+                        f"action.{verdict}",
+                        f"from session {source} (live actor: {self.actor_gate.sources() or 'none'})",
+                    )
                     return
                 if source != self.action_source:  # a new actor session: its own episode and steps
                     self.action_source, self.last_action = source, None
@@ -219,10 +239,14 @@ class RobotBridge:
             if self.last_action is not None and order <= self.last_action:
                 self.counts.reject("action", f"(episode, step) {order} not newer than {self.last_action}")
                 return
-            if (self.last_action is not None and order[0] == self.last_action[0]
-                    and order[1] > self.last_action[1] + MAX_STEP_JUMP):
-                self.counts.reject("action", f"step {order[1]} jumps more than {MAX_STEP_JUMP} ahead of "
-                                   f"{self.last_action[1]}")
+            if (
+                self.last_action is not None
+                and order[0] == self.last_action[0]
+                and order[1] > self.last_action[1] + MAX_STEP_JUMP
+            ):
+                self.counts.reject(
+                    "action", f"step {order[1]} jumps more than {MAX_STEP_JUMP} ahead of {self.last_action[1]}"
+                )
                 return
             try:
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
@@ -272,8 +296,7 @@ class RobotBridge:
     def tick(self, now: float) -> None:
         """The watchdog: zero velocity, repeated, while no fresh action from a live actor."""
         with self.lock:
-            fresh = (self.actor_alive and self.last_action_at is not None
-                     and now - self.last_action_at <= self.timeout)
+            fresh = self.actor_alive and self.last_action_at is not None and now - self.last_action_at <= self.timeout
             if fresh:
                 return
             if self.driving:
@@ -306,9 +329,11 @@ class RobotBridge:
         self.send_command(v, omega)
 
     def timing(self) -> dict[str, Any]:
-        return {"odom_to_state_ms": summarize(self.odom_to_state, 1e3),
-                "action_to_cmd_ms": summarize(self.action_to_cmd, 1e3),
-                "state_to_cmd_ms": summarize(self.state_to_cmd, 1e3)}
+        return {
+            "odom_to_state_ms": summarize(self.odom_to_state, 1e3),
+            "action_to_cmd_ms": summarize(self.action_to_cmd, 1e3),
+            "state_to_cmd_ms": summarize(self.state_to_cmd, 1e3),
+        }
 
 
 class _Target:
@@ -346,17 +371,27 @@ class RosLink:
         if self.graph.profile == "rmw_zenoh":
             liveliness = self.session.liveliness()
             self.entities.append(liveliness.declare_token(self.graph.node_token(self.zid, 0, ros_wire.BRIDGE_NODE)))
-            self.entities.append(liveliness.declare_token(self.graph.endpoint_token(
-                self.zid, 0, 1, "MS", ros_wire.BRIDGE_NODE, self.bridge.odom_topic, ODOMETRY)))
+            self.entities.append(
+                liveliness.declare_token(
+                    self.graph.endpoint_token(
+                        self.zid, 0, 1, "MS", ros_wire.BRIDGE_NODE, self.bridge.odom_topic, ODOMETRY
+                    )
+                )
+            )
         if self.bridge.cmd_type == "auto":
             pattern = self.graph.discovery_pattern(self.bridge.cmd_vel_topic)
-            self.entities.append(self.session.liveliness().declare_subscriber(
-                pattern, self._on_token, history=True))
+            self.entities.append(self.session.liveliness().declare_subscriber(pattern, self._on_token, history=True))
         else:
-            self._add_target(self.graph.cmd_endpoint(self.bridge.cmd_vel_topic,
-                                                     ros_wire.CMD_TYPES[self.bridge.cmd_type]), "")
-        log.info("robot_bridge: %s (%s), odometry on %s, cmd_vel type %s", self.graph.profile,
-                 self.graph.distro, odom_key, self.bridge.cmd_type)
+            self._add_target(
+                self.graph.cmd_endpoint(self.bridge.cmd_vel_topic, ros_wire.CMD_TYPES[self.bridge.cmd_type]), ""
+            )
+        log.info(
+            "robot_bridge: %s (%s), odometry on %s, cmd_vel type %s",
+            self.graph.profile,
+            self.graph.distro,
+            odom_key,
+            self.bridge.cmd_type,
+        )
 
     def close(self) -> None:
         with self.lock:
@@ -407,11 +442,18 @@ class RosLink:
         if previous == found:
             return
         if previous is None:
-            log.info("robot_bridge: the robot's rmw_zenoh attachments are %s%s: cmd_vel in that format", found,
-                     " (rmw_zenoh_cpp Humble 0.1.0-0.1.1 / Jazzy 0.2.0-0.2.3)" if found == "legacy" else "")
+            log.info(
+                "robot_bridge: the robot's rmw_zenoh attachments are %s%s: cmd_vel in that format",
+                found,
+                " (rmw_zenoh_cpp Humble 0.1.0-0.1.1 / Jazzy 0.2.0-0.2.3)" if found == "legacy" else "",
+            )
         else:
-            log.warning("robot_bridge: the robot's rmw_zenoh attachment format changed from %s to %s (robot "
-                        "software changed?): cmd_vel follows", previous, found)
+            log.warning(
+                "robot_bridge: the robot's rmw_zenoh attachment format changed from %s to %s (robot "
+                "software changed?): cmd_vel follows",
+                previous,
+                found,
+            )
             self.counts.count("attachment_format_changes")
         self.counts.count(f"attachment_format.{found}")
 
@@ -433,8 +475,12 @@ class RosLink:
             self._remove_source(endpoint, token)
             return
         if self.graph.profile == "rmw_zenoh" and chunk != ros_wire.type_hash(self.graph.distro, ros_type):
-            log.warning("robot_bridge: the robot's %s subscription has type hash %s (configured distro %s): "
-                        "serving it", ros_type, chunk, self.graph.distro)
+            log.warning(
+                "robot_bridge: the robot's %s subscription has type hash %s (configured distro %s): serving it",
+                ros_type,
+                chunk,
+                self.graph.distro,
+            )
         self.discovered.append(ros_type)
         self.counts.count("cmd_vel_discovered")
         log.info("robot_bridge: the robot subscribes %s on %s", ros_type, endpoint.key)
@@ -451,15 +497,26 @@ class RosLink:
             if target is None:
                 taken = any(t.endpoint.key == endpoint.key for t in self.targets.values())
                 if self.graph.profile == "ros2dds" and taken:
-                    log.warning("robot_bridge: %s is also announced as %s; the plain ros2dds key cannot carry "
-                                "both, keeping the first", endpoint.key, endpoint.ros_type)
+                    log.warning(
+                        "robot_bridge: %s is also announced as %s; the plain ros2dds key cannot carry "
+                        "both, keeping the first",
+                        endpoint.key,
+                        endpoint.ros_type,
+                    )
                     return
                 publisher = self.session.declare_publisher(endpoint.key, express=True)
                 token = gid_token = None
                 if self.graph.profile == "rmw_zenoh":
-                    gid_token = self.graph.endpoint_token(self.zid, 0, 2 + len(self.targets), "MP",
-                                                          ros_wire.BRIDGE_NODE, self.bridge.cmd_vel_topic,
-                                                          endpoint.ros_type, endpoint.type_hash)
+                    gid_token = self.graph.endpoint_token(
+                        self.zid,
+                        0,
+                        2 + len(self.targets),
+                        "MP",
+                        ros_wire.BRIDGE_NODE,
+                        self.bridge.cmd_vel_topic,
+                        endpoint.ros_type,
+                        endpoint.type_hash,
+                    )
                     token = self.session.liveliness().declare_token(gid_token)
                 gid = ros_wire.gid_for(gid_token or endpoint.key)
                 target = _Target(endpoint, publisher, token, gid)
@@ -483,16 +540,24 @@ class RosLink:
 
     def tick(self, now: float) -> None:
         """Fall back to the distro's default type when discovery found nothing in time."""
-        if (self.bridge.cmd_type != "auto" or self.fallback or self.discovered
-                or now - self.started < self.bridge.discovery_timeout):
+        if (
+            self.bridge.cmd_type != "auto"
+            or self.fallback
+            or self.discovered
+            or now - self.started < self.bridge.discovery_timeout
+        ):
             return  # once the robot has announced its subscription, never guess (it may be restarting)
         with self.lock:
             if self.targets:
                 return
             self.fallback = True
         ros_type = ros_wire.DEFAULT_CMD_TYPE[self.graph.distro]
-        log.warning("robot_bridge: no cmd_vel subscription of the robot seen in %.1f s: sending %s "
-                    "(the TurtleBot3 %s default)", self.bridge.discovery_timeout, ros_type, self.graph.distro)
+        log.warning(
+            "robot_bridge: no cmd_vel subscription of the robot seen in %.1f s: sending %s (the TurtleBot3 %s default)",
+            self.bridge.discovery_timeout,
+            ros_type,
+            self.graph.distro,
+        )
         self.counts.count("cmd_vel_fallback")
         self._add_target(self.graph.cmd_endpoint(self.bridge.cmd_vel_topic, ros_type), FALLBACK)
 
@@ -511,13 +576,22 @@ class RosLink:
             self.counts.count("commands_format_unknown")
             if not self.format_warned:
                 self.format_warned = True
-                log.warning("robot_bridge: no cmd_vel until the robot's odometry shows its rmw_zenoh attachment "
-                            "format (srl speaks %s)", ros_wire.SUPPORTED_RMW_ZENOH)
+                log.warning(
+                    "robot_bridge: no cmd_vel until the robot's odometry shows its rmw_zenoh attachment "
+                    "format (srl speaks %s)",
+                    ros_wire.SUPPORTED_RMW_ZENOH,
+                )
             return
         stamp = time.time_ns()  # ROS time is the system clock
         for target in targets:
-            payload = ros_wire.encode_command(self.graph.distro, target.endpoint.ros_type, v, omega,
-                                              stamp_ns=stamp, frame_id=self.graph.frame_id(ros_wire.BASE_FRAME))
+            payload = ros_wire.encode_command(
+                self.graph.distro,
+                target.endpoint.ros_type,
+                v,
+                omega,
+                stamp_ns=stamp,
+                frame_id=self.graph.frame_id(ros_wire.BASE_FRAME),
+            )
             try:
                 if self.graph.profile == "rmw_zenoh":
                     target.seq += 1
@@ -531,9 +605,12 @@ class RosLink:
 
     def describe(self) -> dict[str, Any]:
         with self.lock:
-            return {"cmd_vel": [{"type": t.endpoint.ros_type, "key": t.endpoint.key} for t in self.targets.values()],
-                    "fallback": self.fallback, "discovered": sorted(set(self.discovered)),
-                    "attachment_format": self.attachment_format}
+            return {
+                "cmd_vel": [{"type": t.endpoint.ros_type, "key": t.endpoint.key} for t in self.targets.values()],
+                "fallback": self.fallback,
+                "discovered": sorted(set(self.discovered)),
+                "attachment_format": self.attachment_format,
+            }
 
 
 def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
@@ -550,8 +627,10 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     if settings.transport.secure and not settings.bridge.robot_endpoint:
         # srl's access rules cover srl's keys: a robot's ROS 2 traffic on srl's secured router
         # would be refused, and the bridge would wait for odometry that never comes
-        raise SecurityError("robot_bridge: with transport.secure the robot must be on its own Zenoh router: set "
-                            "bridge.robot_endpoint (SRL_BRIDGE__ROBOT_ENDPOINT, --robot-endpoint)")
+        raise SecurityError(
+            "robot_bridge: with transport.secure the robot must be on its own Zenoh router: set "
+            "bridge.robot_endpoint (SRL_BRIDGE__ROBOT_ENDPOINT, --robot-endpoint)"
+        )
     robot = settings.transport.robot
     graph = RosGraph.from_settings(settings.bridge)
     own_session = bool(settings.bridge.robot_endpoint)
@@ -565,20 +644,31 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         # one plant per robot (issue 13): never a second plant beside a live one
         others = bus.live_identities(robot, "plant")
         if others:
-            raise PlantConflictError(f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
-                                     "one plant per robot; stop it first")
+            raise PlantConflictError(
+                f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
+                "one plant per robot; stop it first"
+            )
         # the actor is alive while one of its sessions' identity tokens is (common.provenance)
         bus.watch_identities(robot, "actor", actor_gate, bridge.on_actor_identity)
-        bus.subscribe(ACTION, ACTION.key(robot),
-                      lambda message, source: bridge.on_action(message, time.monotonic(), source), with_source=True)
+        bus.subscribe(
+            ACTION,
+            ACTION.key(robot),
+            lambda message, source: bridge.on_action(message, time.monotonic(), source),
+            with_source=True,
+        )
         link.start()
         bus.declare_alive(robot)
         entities.append(bus.session.liveliness().declare_token(liveliness_key(robot, "robot_bridge")))
-        start_status_thread(bus, robot, settings.transport.status_period, stop,
-                            lambda: {"seq": bridge.seq, "cmd_v": bridge.last_command[0],
-                                     "cmd_omega": bridge.last_command[1]})
-        log.info("robot_bridge ready (robot %s, %s, goal %s in the odom frame)", robot, graph.profile,
-                 settings.bridge.goal)
+        start_status_thread(
+            bus,
+            robot,
+            settings.transport.status_period,
+            stop,
+            lambda: {"seq": bridge.seq, "cmd_v": bridge.last_command[0], "cmd_omega": bridge.last_command[1]},
+        )
+        log.info(
+            "robot_bridge ready (robot %s, %s, goal %s in the odom frame)", robot, graph.profile, settings.bridge.goal
+        )
         ticker = Ticker(settings.plant.sampling_time / 10.0, stop)
         end = None if duration is None else time.monotonic() + duration
         while (now := ticker.wait()) is not None and (end is None or now < end):
@@ -597,8 +687,15 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         link.close()
         if own_session:
             session.close()
-    return {"service": "robot_bridge", "profile": graph.profile, "ros_distro": graph.distro,
-            "namespace": graph.namespace, "goal": list(settings.bridge.goal), **wire,
-            "final_state": None if bridge.last_state is None else list(bridge.last_state),
-            "max_abs_command": bridge.max_abs_command, "timing": bridge.timing(),
-            "counters": dict(bus.counters)}
+    return {
+        "service": "robot_bridge",
+        "profile": graph.profile,
+        "ros_distro": graph.distro,
+        "namespace": graph.namespace,
+        "goal": list(settings.bridge.goal),
+        **wire,
+        "final_state": None if bridge.last_state is None else list(bridge.last_state),
+        "max_abs_command": bridge.max_abs_command,
+        "timing": bridge.timing(),
+        "counters": dict(bus.counters),
+    }

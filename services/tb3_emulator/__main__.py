@@ -1,7 +1,6 @@
-"""`python -m services.tb3_emulator` = `srl tb3-emulator`."""
+"""`python -m services.tb3_emulator` = `srl tb3-emulator`: the service's own command, no tools."""
 
-import sys
+from common.runtime import entry, service_parser
+from services.tb3_emulator import command
 
-from services.cli import entry
-
-entry(["tb3-emulator", *sys.argv[1:]])
+entry(lambda: service_parser(command))

@@ -1,6 +1,6 @@
 """tb3_emulator: a TurtleBot3 Burger that speaks ROS 2 over Zenoh as the real robot does.
 
-What it emulates, per wire profile (services/robot_bridge/ros_wire.py has the formats):
+What it emulates, per wire profile (common/ros_wire.py has the formats):
 
 * ``rmw_zenoh`` -- the robot's ``turtlebot3_node`` subscribes ``cmd_vel`` (Twist on Humble,
   TwistStamped on Jazzy: turtlebot3_bringup's ``enable_stamped_cmd_vel``; ``--cmd-type``
@@ -49,11 +49,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from common import ros_wire
+from common.clock import Ticker
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
-from services.clock import Ticker
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
+from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 
 log = logging.getLogger(__name__)
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
@@ -82,8 +82,17 @@ def firmware_velocity(value: float, limit: float) -> float:
 class Tb3Model:
     """The emulated robot: applied velocity, exact unicycle pose in the odom frame."""
 
-    def __init__(self, pose: Pose2D, v_max: float, omega_max: float, latency: float, cmd_timeout: float,
-                 noise: tuple[float, float], seed: int, now: float) -> None:
+    def __init__(
+        self,
+        pose: Pose2D,
+        v_max: float,
+        omega_max: float,
+        latency: float,
+        cmd_timeout: float,
+        noise: tuple[float, float],
+        seed: int,
+        now: float,
+    ) -> None:
         self.state = np.array([pose.x, pose.y, pose.theta], dtype=float)
         self.v_max, self.omega_max = v_max, omega_max
         self.latency, self.cmd_timeout = latency, cmd_timeout
@@ -134,9 +143,18 @@ class Tb3Model:
         return pose, applied
 
 
-def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model, stop: threading.Event,
-        duration: float | None, odom_topic: str, cmd_topic: str, odom_rate: float,
-        attachment: AttachmentFormat = "compact") -> dict[str, Any]:
+def run(
+    session: zenoh.Session,
+    graph: RosGraph,
+    cmd_type: str,
+    model: Tb3Model,
+    stop: threading.Event,
+    duration: float | None,
+    odom_topic: str,
+    cmd_topic: str,
+    odom_rate: float,
+    attachment: AttachmentFormat = "compact",
+) -> dict[str, Any]:
     counters: Counter[str] = Counter()
     lock = threading.Lock()
     zid = str(session.info.zid())
@@ -161,10 +179,12 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
             if received.format != attachment:  # the robot's rmw_zenoh cannot read it
                 count("rejected_bad_attachment")
                 count("attachment_format_errors")
-                log.error("tb3-emulator: cmd_vel with a %s attachment; this robot's rmw_zenoh reads %s only%s",
-                          received.format, attachment,
-                          " (rmw_zenoh_cpp 0.2.0-0.2.3 throws here: the process may abort)"
-                          if attachment == "legacy" else "")
+                log.error(
+                    "tb3-emulator: cmd_vel with a %s attachment; this robot's rmw_zenoh reads %s only%s",
+                    received.format,
+                    attachment,
+                    " (rmw_zenoh_cpp 0.2.0-0.2.3 throws here: the process may abort)" if attachment == "legacy" else "",
+                )
                 return
         try:
             v, omega = ros_wire.decode_command(graph.distro, cmd_type, bytes(sample.payload.to_bytes()))
@@ -182,20 +202,31 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
     entities.append(session.declare_subscriber(cmd_key, on_cmd))
     liveliness = session.liveliness()
     if graph.profile == "rmw_zenoh":
-        tokens = [graph.node_token(zid, 0, ros_wire.TB3_CMD_NODE),
-                  graph.endpoint_token(zid, 0, 10, "MS", ros_wire.TB3_CMD_NODE, cmd_topic, cmd_type),
-                  graph.node_token(zid, 20, ros_wire.TB3_ODOM_NODE),
-                  graph.endpoint_token(zid, 20, 21, "MP", ros_wire.TB3_ODOM_NODE, odom_topic, ODOMETRY)]
+        tokens = [
+            graph.node_token(zid, 0, ros_wire.TB3_CMD_NODE),
+            graph.endpoint_token(zid, 0, 10, "MS", ros_wire.TB3_CMD_NODE, cmd_topic, cmd_type),
+            graph.node_token(zid, 20, ros_wire.TB3_ODOM_NODE),
+            graph.endpoint_token(zid, 20, 21, "MP", ros_wire.TB3_ODOM_NODE, odom_topic, ODOMETRY),
+        ]
     else:
-        tokens = [graph.ros2dds_plugin_token(zid), graph.ros2dds_token(zid, "MS", cmd_topic, cmd_type),
-                  graph.ros2dds_token(zid, "MP", odom_topic, ODOMETRY)]
+        tokens = [
+            graph.ros2dds_plugin_token(zid),
+            graph.ros2dds_token(zid, "MS", cmd_topic, cmd_type),
+            graph.ros2dds_token(zid, "MP", odom_topic, ODOMETRY),
+        ]
     entities.extend(liveliness.declare_token(token) for token in tokens)
     odom_gid = ros_wire.gid_for(tokens[-1])
     publisher = session.declare_publisher(odom_key)
     entities.append(publisher)
     frame, child = graph.frame_id(ros_wire.ODOM_FRAME), graph.frame_id(ros_wire.BASE_FRAME)
-    log.info("tb3-emulator ready: %s %s, cmd_vel %s on %s, odom on %s", graph.profile, graph.distro,
-             cmd_type, cmd_key, odom_key)
+    log.info(
+        "tb3-emulator ready: %s %s, cmd_vel %s on %s, odom on %s",
+        graph.profile,
+        graph.distro,
+        cmd_type,
+        cmd_key,
+        odom_key,
+    )
 
     seq = 0
     ticker = Ticker(1.0 / odom_rate, stop)
@@ -204,9 +235,19 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
         while (now := ticker.wait()) is not None and (end is None or now < end):
             pose, (v, omega) = model.sample(now)
             stamp = time.time_ns()
-            payload = ros_wire.encode_odometry(graph.distro, Odometry(
-                stamp_ns=stamp, frame_id=frame, child_frame_id=child, x=float(pose[0]), y=float(pose[1]),
-                orientation=quaternion_from_yaw(float(pose[2])), v=v, omega=omega))
+            payload = ros_wire.encode_odometry(
+                graph.distro,
+                Odometry(
+                    stamp_ns=stamp,
+                    frame_id=frame,
+                    child_frame_id=child,
+                    x=float(pose[0]),
+                    y=float(pose[1]),
+                    orientation=quaternion_from_yaw(float(pose[2])),
+                    v=v,
+                    omega=omega,
+                ),
+            )
             seq += 1
             if graph.profile == "rmw_zenoh":
                 publisher.put(payload, attachment=Attachment(seq, stamp, odom_gid, attachment).encode())
@@ -220,9 +261,18 @@ def run(session: zenoh.Session, graph: RosGraph, cmd_type: str, model: Tb3Model,
             except zenoh.ZError as error:
                 log.debug("undeclare: %s", error)
     _, applied = model.sample(time.monotonic())
-    return {"service": "tb3_emulator", "profile": graph.profile, "ros_distro": graph.distro,
-            "cmd_type": cmd_type, "attachment": attachment if graph.profile == "rmw_zenoh" else None,
-            "cmd_key": cmd_key, "odom_key": odom_key,
-            "final_pose": [float(c) for c in model.state], "applied": list(applied),
-            "max_abs_applied": model.max_abs, "cmd_timeouts": model.timeouts,
-            "counters": dict(counters), "missed_ticks": ticker.missed}
+    return {
+        "service": "tb3_emulator",
+        "profile": graph.profile,
+        "ros_distro": graph.distro,
+        "cmd_type": cmd_type,
+        "attachment": attachment if graph.profile == "rmw_zenoh" else None,
+        "cmd_key": cmd_key,
+        "odom_key": odom_key,
+        "final_pose": [float(c) for c in model.state],
+        "applied": list(applied),
+        "max_abs_applied": model.max_abs,
+        "cmd_timeouts": model.timeouts,
+        "counters": dict(counters),
+        "missed_ticks": ticker.missed,
+    }

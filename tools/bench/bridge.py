@@ -35,15 +35,15 @@ from typing import Any
 
 import zenoh
 
+from common import ros_wire
 from common.keys import ACTION, STATE, identity_key, liveliness_key
 from common.messages import Action
+from common.ros_wire import Attachment, RosGraph
 from common.settings import Settings
 from common.stats import summarize
 from common.transport import zenoh_config
-from services.robot_bridge import ros_wire
-from services.robot_bridge.ros_wire import Attachment, RosGraph
 from services.tb3_emulator.service import firmware_velocity
-from services.up import Supervisor, alive_probe, router_reachable, state_probe
+from tools.up import Supervisor, alive_probe, router_reachable, state_probe
 
 TARGET_P99_MS = 1.0
 SPEEDS = [round(0.02 + 0.01 * i, 2) for i in range(15)]  # 0.02 .. 0.16 m/s, all below the limits
@@ -88,8 +88,9 @@ class Recorder:
         return handler
 
 
-def _round_trip(publisher: Any, payload: bytes, arrivals: list[float], sink: list[float],
-                timeout: float = 0.05) -> None:
+def _round_trip(
+    publisher: Any, payload: bytes, arrivals: list[float], sink: list[float], timeout: float = 0.05
+) -> None:
     """Put ``payload`` and wait (bounded) for the next arrival; record the round trip."""
     before = len(arrivals)
     sent = time.monotonic()
@@ -108,8 +109,9 @@ def _first_after(events: list[tuple[float, float]], start: float, value: float, 
     return None
 
 
-def _latencies(sent: list[tuple[float, float]], events: list[tuple[float, float]], expect: Any,
-               horizon: float) -> list[float]:
+def _latencies(
+    sent: list[tuple[float, float]], events: list[tuple[float, float]], expect: Any, horizon: float
+) -> list[float]:
     out = []
     for index, (at, v) in enumerate(sent):
         until = sent[index + 1][0] if index + 1 < len(sent) else at + horizon
@@ -131,7 +133,7 @@ def _odom_to_state(odom: list[tuple[float, float]], states: list[float]) -> list
 
 
 def echo_main(argv: list[str]) -> None:
-    """``python -m services.bench_bridge ENDPOINT ROBOT``: the transport baseline's far end, a
+    """``python -m tools.bench.bridge ENDPOINT ROBOT``: the transport baseline's far end, a
     process that only republishes what it gets (what any service pays for two Zenoh legs)."""
     endpoint, robot = argv
     config = zenoh.Config()
@@ -147,8 +149,9 @@ def echo_main(argv: list[str]) -> None:
     del keep, keep_token
 
 
-def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_args: list[str],
-                         bridge_args: list[str]) -> int:
+def run_bridge_benchmark(
+    args: argparse.Namespace, settings: Settings, settings_args: list[str], bridge_args: list[str]
+) -> int:
     robot = settings.transport.robot
     delta = settings.plant.sampling_time
     graph = RosGraph.from_settings(settings.bridge)
@@ -166,19 +169,23 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
         supervisor.spawn("robot_bridge", ["robot-bridge", *settings_args, *bridge_args])
         supervisor.wait_for("robot_bridge", alive_probe(settings, "plant"), timeout=60)
         supervisor.wait_for("odometry through the bridge", state_probe(settings), timeout=60)
-        echo = subprocess.Popen([sys.executable, "-m", "services.bench_bridge", settings.transport.router, robot],
-                                start_new_session=True)
+        echo = subprocess.Popen(
+            [sys.executable, "-m", "tools.bench.bridge", settings.transport.router, robot], start_new_session=True
+        )
         supervisor_extra.append(echo)
         session = zenoh.open(zenoh_config(settings.transport))
         keep = [
-            session.declare_subscriber(graph.data_key(settings.bridge.odom_topic, ros_wire.ODOMETRY, "*"),
-                                       recorder.on_odom),
+            session.declare_subscriber(
+                graph.data_key(settings.bridge.odom_topic, ros_wire.ODOMETRY, "*"), recorder.on_odom
+            ),
             session.declare_subscriber(STATE.key(robot), recorder.on_state),
-            session.declare_subscriber(graph.data_key(settings.bridge.cmd_vel_topic, ros_type, "*"),
-                                       recorder.on_command(ros_type)),
+            session.declare_subscriber(
+                graph.data_key(settings.bridge.cmd_vel_topic, ros_type, "*"), recorder.on_command(ros_type)
+            ),
             session.declare_subscriber(f"srl/{robot}/bench/ping", lambda _s: recorder.pongs.append(time.monotonic())),
-            session.declare_subscriber(f"srl/{robot}/bench/echo_out",
-                                       lambda _s: recorder.echoes.append(time.monotonic())),
+            session.declare_subscriber(
+                f"srl/{robot}/bench/echo_out", lambda _s: recorder.echoes.append(time.monotonic())
+            ),
             session.liveliness().declare_token(liveliness_key(robot, "actor")),
             # the bridge follows only the live actor session's actions (common.provenance)
             session.liveliness().declare_token(identity_key(robot, "actor", str(session.info.zid()))),
@@ -206,8 +213,11 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
             time.sleep(max(0.0, due - time.monotonic()))
             v = SPEEDS[k % len(SPEEDS)] if k % 2 == 0 else SPEEDS[(k + 7) % len(SPEEDS)]
             at = time.monotonic()
-            action_pub.put(Action(robot=robot, episode=1, step=k, stamp_ns=time.monotonic_ns(),
-                                  action=(v, 0.0), state_seq=0).encode())
+            action_pub.put(
+                Action(
+                    robot=robot, episode=1, step=k, stamp_ns=time.monotonic_ns(), action=(v, 0.0), state_seq=0
+                ).encode()
+            )
             sent.append((at, v))
             _round_trip(ping, b"p", recorder.pongs, pings)
             # an Action-sized sample to another process and back: the transport both bridge paths pay
@@ -233,8 +243,7 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
             due = start2 + (k + rng.random()) * delta
             time.sleep(max(0.0, due - time.monotonic()))
             v = SPEEDS[k % len(SPEEDS)] if k % 2 == 0 else SPEEDS[(k + 7) % len(SPEEDS)]
-            payload = ros_wire.encode_command(settings.bridge.ros_distro, ros_type, v, 0.0,
-                                              stamp_ns=time.time_ns())
+            payload = ros_wire.encode_command(settings.bridge.ros_distro, ros_type, v, 0.0, stamp_ns=time.time_ns())
             at = time.monotonic()
             if graph.profile == "rmw_zenoh":
                 cmd_pub.put(payload, attachment=Attachment(k, time.time_ns(), gid).encode())
@@ -248,14 +257,23 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
         del keep
         resources = bridge_summary.get("resources") or {}
         result = {
-            "profile": graph.profile, "ros_distro": graph.distro, "cmd_type": ros_type, "steps": steps,
+            "profile": graph.profile,
+            "ros_distro": graph.distro,
+            "cmd_type": ros_type,
+            "steps": steps,
             "zenoh_hop_ms": summarize(pings, 1e3),
-            "process_echo_ms": summarize(echoes, 1e3), "process_echo_n": len(echoes),
-            "action_to_cmd_ms": summarize(action_to_cmd, 1e3), "action_to_cmd_n": len(action_to_cmd),
-            "odom_to_state_ms": summarize(odom_to_state, 1e3), "odom_to_state_n": len(odom_to_state),
-            "command_to_odom_ms": summarize(command_to_odom, 1e3), "command_to_odom_n": len(command_to_odom),
-            "direct_cmd_to_odom_ms": summarize(direct_to_odom, 1e3), "direct_cmd_to_odom_n": len(direct_to_odom),
-            "bridge_cpu_seconds": resources.get("cpu_seconds"), "bridge_peak_rss_mb": resources.get("peak_rss_mb"),
+            "process_echo_ms": summarize(echoes, 1e3),
+            "process_echo_n": len(echoes),
+            "action_to_cmd_ms": summarize(action_to_cmd, 1e3),
+            "action_to_cmd_n": len(action_to_cmd),
+            "odom_to_state_ms": summarize(odom_to_state, 1e3),
+            "odom_to_state_n": len(odom_to_state),
+            "command_to_odom_ms": summarize(command_to_odom, 1e3),
+            "command_to_odom_n": len(command_to_odom),
+            "direct_cmd_to_odom_ms": summarize(direct_to_odom, 1e3),
+            "direct_cmd_to_odom_n": len(direct_to_odom),
+            "bridge_cpu_seconds": resources.get("cpu_seconds"),
+            "bridge_peak_rss_mb": resources.get("peak_rss_mb"),
             "bridge_wall_seconds": start2 - start,
             "bridge_internal": bridge_summary.get("timing"),
         }
@@ -274,12 +292,12 @@ def run_bridge_benchmark(args: argparse.Namespace, settings: Settings, settings_
     echo = result["process_echo_ms"]
     result["added_over_echo_ms"] = {q: result["action_to_cmd_ms"][q] - echo[q] for q in ("median", "p99")}
     checks = {
-        f"inside the bridge action -> cmd_vel p99 <= {TARGET_P99_MS:g} ms":
-            internal.get("action_to_cmd_ms", nan)["p99"] <= TARGET_P99_MS,
-        f"inside the bridge odom -> state p99 <= {TARGET_P99_MS:g} ms":
-            internal.get("odom_to_state_ms", nan)["p99"] <= TARGET_P99_MS,
-        f"action -> cmd_vel over the echo baseline, p99 <= {TARGET_P99_MS:g} ms":
-            result["added_over_echo_ms"]["p99"] <= TARGET_P99_MS,
+        f"inside the bridge action -> cmd_vel p99 <= {TARGET_P99_MS:g} ms": internal.get("action_to_cmd_ms", nan)["p99"]
+        <= TARGET_P99_MS,
+        f"inside the bridge odom -> state p99 <= {TARGET_P99_MS:g} ms": internal.get("odom_to_state_ms", nan)["p99"]
+        <= TARGET_P99_MS,
+        f"action -> cmd_vel over the echo baseline, p99 <= {TARGET_P99_MS:g} ms": result["added_over_echo_ms"]["p99"]
+        <= TARGET_P99_MS,
     }
     result["targets"] = {name: ("PASS" if ok else "FAIL") for name, ok in checks.items()}
     print(format_table(result))
@@ -305,18 +323,24 @@ def format_table(r: dict[str, Any]) -> str:
         row("cmd_vel -> odometry (robot alone, baseline)", "direct_cmd_to_odom_ms", "direct_cmd_to_odom_n"),
     ]
     internal = r.get("bridge_internal") or {}
-    for key, name in (("action_to_cmd_ms", "inside the bridge: action -> cmd_vel"),
-                      ("odom_to_state_ms", "inside the bridge: odom -> state")):
+    for key, name in (
+        ("action_to_cmd_ms", "inside the bridge: action -> cmd_vel"),
+        ("odom_to_state_ms", "inside the bridge: odom -> state"),
+    ):
         if key in internal:
             s = internal[key]
             lines.append(f"  {name:<40} {s['median']:>9.3f} {s['p99']:>9.3f} {s['max']:>9.3f}  ms")
     added = r.get("added_over_echo_ms")
     if added:
-        lines.append(f"  {'action -> cmd_vel minus the echo baseline':<40} {added['median']:>9.3f} {added['p99']:>9.3f}"
-                     f" {'':>9}  ms")
+        lines.append(
+            f"  {'action -> cmd_vel minus the echo baseline':<40} {added['median']:>9.3f} {added['p99']:>9.3f}"
+            f" {'':>9}  ms"
+        )
     if r.get("bridge_cpu_seconds") is not None:
-        lines.append(f"  bridge process: {r['bridge_cpu_seconds']:.2f} CPU s over {r['bridge_wall_seconds']:.0f} s, "
-                     f"peak RSS {r['bridge_peak_rss_mb']:.1f} MB")
+        lines.append(
+            f"  bridge process: {r['bridge_cpu_seconds']:.2f} CPU s over {r['bridge_wall_seconds']:.0f} s, "
+            f"peak RSS {r['bridge_peak_rss_mb']:.1f} MB"
+        )
     lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in r["targets"].items()))
     return "\n".join(lines)
 

@@ -13,7 +13,7 @@ import os
 from typing import Any
 
 from common.settings import Settings
-from services.up import run_up
+from tools.up import run_up
 
 TARGETS = {"missed_deadlines": 0, "jitter_p99_ms": 2.0, "latency_p99_ms": 1.0, "staleness_median_steps": 1.0}
 
@@ -24,8 +24,9 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         os.environ["SRL_CRITIC__REPLAY_SIZE"] = "1000"
         settings = Settings.load(getattr(args, "config", None), **_overrides(settings))
     load_before = os.getloadavg()
-    summary = run_up(settings, settings_argv, mode="realtime", plant="sim", sync_critic=False,
-                     duration=args.seconds, quiet=True)
+    summary = run_up(
+        settings, settings_argv, mode="realtime", plant="sim", sync_critic=False, duration=args.seconds, quiet=True
+    )
     load_after = os.getloadavg()
     loop = summary["loop"]
     result: dict[str, Any] = {
@@ -54,9 +55,7 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         "latency p99 <= 1 ms": result["latency_ms"]["p99"] <= TARGETS["latency_p99_ms"],
     }
     if not args.critic_load:
-        checks["staleness median <= 1 step"] = (
-            result["staleness_steps"]["median"] <= TARGETS["staleness_median_steps"]
-        )
+        checks["staleness median <= 1 step"] = result["staleness_steps"]["median"] <= TARGETS["staleness_median_steps"]
     result["targets"] = {name: ("PASS" if ok else "FAIL") for name, ok in checks.items()}
     print(format_table(result))
     if args.json:
@@ -65,15 +64,18 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
 
 
 def _overrides(settings: Settings) -> dict[str, Any]:
-    return {"actor": settings.actor.model_dump(), "episode": settings.episode.model_dump(),
-            "transport": settings.transport.model_dump()}
+    return {
+        "actor": settings.actor.model_dump(),
+        "episode": settings.episode.model_dump(),
+        "transport": settings.transport.model_dump(),
+    }
 
 
 def format_table(r: dict[str, Any]) -> str:
     def row(name: str, stats: dict[str, float] | None, unit: str = "ms") -> str:
         if not stats:
             return f"  {name:<34} n/a"
-        return (f"  {name:<34} {stats['median']:>10.3f} {stats['p99']:>10.3f} {stats['max']:>10.3f}  {unit}")
+        return f"  {name:<34} {stats['median']:>10.3f} {stats['p99']:>10.3f} {stats['max']:>10.3f}  {unit}"
 
     lines = [
         f"srl bench loop: {r['seconds']:.0f} s real time, agent {r['agent']}, N = {r['horizon']}, "
@@ -92,12 +94,16 @@ def format_table(r: dict[str, Any]) -> str:
     ]
     for name, res in (r["resources"] or {}).items():
         if res:
-            lines.append(f"  {name:<10} {res['cpu_seconds']:>8.2f} {100 * res['cpu_seconds'] / r['seconds']:>7.1f} "
-                         f"{res['peak_rss_mb']:>12.1f}")
+            lines.append(
+                f"  {name:<10} {res['cpu_seconds']:>8.2f} {100 * res['cpu_seconds'] / r['seconds']:>7.1f} "
+                f"{res['peak_rss_mb']:>12.1f}"
+            )
     machine = r.get("machine")
     if machine:
-        lines.append(f"  machine: {machine['cpus']} CPUs, load average "
-                     f"{'/'.join(f'{x:.2f}' for x in machine['load_before'])} -> "
-                     f"{'/'.join(f'{x:.2f}' for x in machine['load_after'])}")
+        lines.append(
+            f"  machine: {machine['cpus']} CPUs, load average "
+            f"{'/'.join(f'{x:.2f}' for x in machine['load_before'])} -> "
+            f"{'/'.join(f'{x:.2f}' for x in machine['load_after'])}"
+        )
     lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in r["targets"].items()))
     return "\n".join(lines)

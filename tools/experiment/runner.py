@@ -16,7 +16,7 @@ once per pair and worker.
 
 Transports:
 
-* ``inproc``: each worker runs :func:`common.loop.run_episode` with the exact plant and the
+* ``inproc``: each worker runs :func:`common.assembly.run_episode` with the exact plant and the
   local critic, as ``srl run`` does.
 * ``zenoh``: a router and, per worker, one ``srl plant-sim --mode lockstep`` and one
   ``srl critic`` process (robot id ``exp<worker>``), all on a free loopback port with
@@ -61,26 +61,25 @@ import numpy as np
 
 from common.dynamics import heading_away_from_target
 from common.settings import Settings
+from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
 log = logging.getLogger(__name__)
 
 AGENTS = ("mpc", "rlq", "rlqv", "rlqv+")
 DEFAULT_AGENTS = ("mpc", "rlq", "rlqv")
 DEFAULT_HORIZONS = (12, 6)
-PARK_TOLERANCE_M = 0.25  # "parked": final distance to the target at most this (as tests/test_closed_loop.py)
-# A ratio within this of 100 % is a tie, not a win: the solver's tolerance alone moves J that much
-# (an agent whose objective equals MPC's up to scale lands 1e-4 % off 100 %, either side).
-TIE_PERCENT = 0.1
 STARTS = ("paper", "held-out")
 EXIT_INTERRUPTED = 130
 PEER_MODE, PEER_LISTEN = "peer", ["tcp/127.0.0.1:0"]  # the zenoh transport's sessions (see transport_for)
-OUTPUT_FILES = ("runs.csv", "trajectories.npz", "config.toml", "settings.json", "summary.md", "summary.json",
-                "trajectories.png")
-
-
-# Everything a ZenohCriticPort holds; the experiment resets its per-episode part (settings,
-# episode, staleness, timeouts) to reuse one port per worker, and refuses a port that holds more.
-PORT_ATTRIBUTES = {"settings", "bus", "inbox", "episode", "sync", "robot", "publish", "staleness", "timeouts"}
+OUTPUT_FILES = (
+    "runs.csv",
+    "trajectories.npz",
+    "config.toml",
+    "settings.json",
+    "summary.md",
+    "summary.json",
+    "trajectories.png",
+)
 
 
 class ExperimentError(RuntimeError):
@@ -182,9 +181,10 @@ class WorkerConfig:
 
 class _InprocRunner:
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.loop import ExactPlant, LocalCritic, run_episode
+        from common.assembly import local_critic, run_episode
+        from common.loop import ExactPlant
 
-        critic = LocalCritic(settings, learn=settings.actor.agent != "mpc")
+        critic = local_critic(settings, learn=settings.actor.agent != "mpc")
         return run_episode(settings, actor=actor, plant=ExactPlant(), critic=critic), {}
 
     def close(self) -> None:
@@ -197,7 +197,7 @@ class _ZenohRunner:
     def __init__(self, base: Settings) -> None:
         from common.keys import WEIGHTS
         from common.transport import Bus
-        from services.actor.service import WeightsInbox
+        from services.actor.ports import WeightsInbox
 
         self.robot = base.transport.robot
         self.bus = Bus.open(base.transport, "actor")
@@ -213,27 +213,23 @@ class _ZenohRunner:
         """The critic port for this episode: ONE per worker, so one transition publisher
         (a cached, heartbeating advanced publisher) for the worker's life, as the actor
         service has; only the per-episode state is reset."""
-        from services.actor.service import ZenohCriticPort
+        from services.actor.ports import ZenohCriticPort
 
         if self.port is None:
             self.port = ZenohCriticPort(settings, self.bus, self.inbox, self.episode_id, sync=True)
-            if set(vars(self.port)) != PORT_ATTRIBUTES:
-                raise ExperimentError(f"ZenohCriticPort's state changed ({sorted(vars(self.port))}): update "
-                                      "services/experiment.py's per-episode reset")
-        self.port.settings, self.port.episode = settings, self.episode_id
-        self.port.staleness, self.port.timeouts = [], 0
+        self.port.new_episode(settings, self.episode_id)  # the port's own public reset
         return self.port
 
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.loop import LocalCritic, run_episode
-        from services.actor.service import ZenohPlant, new_episode_id
+        from common.assembly import local_critic, run_episode
+        from services.actor.ports import ZenohPlant, new_episode_id
 
         # Episode ids must increase (the critic starts a fresh learner on a newer one).
         self.episode_id = max(new_episode_id(), self.episode_id + 1)
         plant = ZenohPlant(settings, self.bus, self.episode_id)
         if settings.actor.agent == "mpc":
             # MPC has no critic: nothing to send to the learner (inproc fits nothing either).
-            critic = LocalCritic(settings, learn=False)
+            critic = local_critic(settings, learn=False)
             return run_episode(settings, actor=actor, plant=plant, critic=critic), {}
         port = self._port(settings)
         episode = run_episode(settings, actor=actor, plant=plant, critic=port)
@@ -243,9 +239,10 @@ class _ZenohRunner:
         self.bus.close()
 
 
-def _run_one(runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec,
-             slot: int) -> dict[str, Any]:
-    from common.loop import build_actor
+def _run_one(
+    runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec, slot: int
+) -> dict[str, Any]:
+    from common.assembly import build_actor
     from common.stats import summarize
 
     settings = run_settings(base, spec)
@@ -258,14 +255,25 @@ def _run_one(runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, An
     final = episode.final_state
     solve = summarize(episode.solve_seconds, scale=1e3)
     row = {
-        "run_id": spec.run_id, "agent": spec.agent, "horizon": spec.horizon, "start_index": spec.start.index,
-        "start_x": spec.start.x, "start_y": spec.start.y, "start_alpha": spec.start.alpha,
+        "run_id": spec.run_id,
+        "agent": spec.agent,
+        "horizon": spec.horizon,
+        "start_index": spec.start.index,
+        "start_x": spec.start.x,
+        "start_y": spec.start.y,
+        "start_alpha": spec.start.alpha,
         "accumulated_cost": episode.accumulated_cost,
-        "final_x": float(final[0]), "final_y": float(final[1]), "final_alpha": float(final[2]),
+        "final_x": float(final[0]),
+        "final_y": float(final[1]),
+        "final_alpha": float(final[2]),
         "final_distance": float(np.hypot(final[0], final[1])),
-        "steps": episode.steps, "solver_failures": episode.solver_failures,
-        "solve_ms_median": solve["median"], "solve_ms_p99": solve["p99"], "solve_ms_max": solve["max"],
-        "wall_seconds": wall, "worker": slot,
+        "steps": episode.steps,
+        "solver_failures": episode.solver_failures,
+        "solve_ms_median": solve["median"],
+        "solve_ms_p99": solve["p99"],
+        "solve_ms_max": solve["max"],
+        "wall_seconds": wall,
+        "worker": slot,
         "critic_timeouts": extra.get("critic_timeouts", 0),
         "max_staleness_steps": extra.get("max_staleness_steps", 0),
     }
@@ -283,8 +291,11 @@ def _worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
     # SystemExit so that ``finally`` blocks (the runner's close) and atexit still run.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s %(levelname)s [worker {config.slot}] "
-                        "%(name)s: %(message)s", stream=sys.stderr)
+    logging.basicConfig(
+        level=logging.WARNING,
+        format=f"%(asctime)s %(levelname)s [worker {config.slot}] %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
     # A late weight message of a finished episode is refused by design (its episode id), which
     # is expected between episodes here and not worth a warning.
     logging.getLogger("common.transport").setLevel(logging.ERROR)
@@ -382,14 +393,19 @@ class _Services:
     """Router + one plant_sim (lockstep) and one critic per worker, kept up across runs."""
 
     def __init__(self, config_path: Path, base: Settings, workers: int) -> None:
-        from services.up import Supervisor
+        from tools.up import Supervisor
 
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         self.robots = [f"exp{slot}" for slot in range(workers)]
         # No critic checkpoint (see experiment_settings), even if the environment names one:
         # SRL_ variables outrank the --config file the services read.
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", "SRL_CRITIC__CHECKPOINT": "",
-               "SRL_TRANSPORT__MODE": PEER_MODE, "SRL_TRANSPORT__LISTEN": json.dumps(PEER_LISTEN)}
+        env = {
+            **os.environ,
+            "PYTHONUNBUFFERED": "1",
+            "SRL_CRITIC__CHECKPOINT": "",
+            "SRL_TRANSPORT__MODE": PEER_MODE,
+            "SRL_TRANSPORT__LISTEN": json.dumps(PEER_LISTEN),
+        }
         self.supervisor = Supervisor([], env, quiet=True)
         self.common = ["--config", str(config_path), "--router", self.endpoint]
         self.base = base
@@ -399,11 +415,17 @@ class _Services:
         # (gossip, no multicast): the worker's queries, transitions and weights go straight to
         # its plant and critic instead of through the router. Measured on the 3 x 3 grid:
         # 12-20 % less wall time than client mode, the router's CPU a third.
-        return {"router": self.endpoint, "robot": robot, "multicast_scouting": False, "connect": [],
-                "mode": PEER_MODE, "listen": PEER_LISTEN}
+        return {
+            "router": self.endpoint,
+            "robot": robot,
+            "multicast_scouting": False,
+            "connect": [],
+            "mode": PEER_MODE,
+            "listen": PEER_LISTEN,
+        }
 
     def start(self) -> None:
-        from services.up import ServiceDiedError
+        from tools.up import ServiceDiedError
 
         try:
             self._start()
@@ -413,7 +435,7 @@ class _Services:
             raise ExperimentError(str(error)) from error
 
     def _start(self) -> None:
-        from services.up import alive_probe, router_reachable
+        from tools.up import alive_probe, router_reachable
 
         sup = self.supervisor
         sup.spawn("router", ["router", *self.common, "--robot", self.robots[0]])
@@ -435,7 +457,7 @@ class _Services:
         return Settings.model_validate(data)
 
     def check(self) -> None:
-        from services.up import ServiceDiedError
+        from tools.up import ServiceDiedError
 
         try:
             self.supervisor.check()
@@ -454,9 +476,14 @@ class _Services:
         report: dict[str, Any] = {}
         for name, child in self.supervisor.children.items():
             summary = child.summary() or {}
-            report[name] = {**summary.get("resources", {}),
-                            **({"transitions": summary["transitions_received"], "fit_ms": summary.get("fit_ms")}
-                               if "transitions_received" in summary else {})}
+            report[name] = {
+                **summary.get("resources", {}),
+                **(
+                    {"transitions": summary["transitions_received"], "fit_ms": summary.get("fit_ms")}
+                    if "transitions_received" in summary
+                    else {}
+                ),
+            }
         return report
 
 
@@ -510,9 +537,10 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
                     robot = services.robots[slot]
                     data["transport"].update(services.transport_for(robot))
                 process = context.Process(
-                    target=_worker_main, args=(WorkerConfig(slot, data, options.transport, robot),
-                                               task_queues[slot], results),
-                    name=f"srl-experiment-worker-{slot}", daemon=True,
+                    target=_worker_main,
+                    args=(WorkerConfig(slot, data, options.transport, robot), task_queues[slot], results),
+                    name=f"srl-experiment-worker-{slot}",
+                    daemon=True,
                 )
                 # Started with SIGINT ignored, a spawned interpreter never installs its own
                 # KeyboardInterrupt handler: a Ctrl-C while it still imports cannot kill it.
@@ -531,8 +559,9 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
                 except queue.Empty:
                     for index, process in enumerate(processes):
                         if process.exitcode is not None and index not in released:
-                            raise ExperimentError(f"worker {index} (pid {process.pid}) exited with code "
-                                                  f"{process.exitcode}") from None
+                            raise ExperimentError(
+                                f"worker {index} (pid {process.pid}) exited with code {process.exitcode}"
+                            ) from None
                     if services is not None:
                         services.check()
                     continue
@@ -543,8 +572,9 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
                     done.append(row)
                     arrays[row["run_id"]] = payload["arrays"]
                     progress.update(task, advance=1, description=f"{row['run_id']}  J = {row['accumulated_cost']:.2f}")
-                    log.info("run %s done (%d/%d): J = %.4f", row["run_id"], len(done), len(specs),
-                             row["accumulated_cost"])
+                    log.info(
+                        "run %s done (%d/%d): J = %.4f", row["run_id"], len(done), len(specs), row["accumulated_cost"]
+                    )
                 spec = scheduler.next_for(slot)
                 task_queues[slot].put(spec)
                 if spec is None:
@@ -565,8 +595,18 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
         finally:
             _set_signal(signal.SIGINT, previous_sigint)
             _set_signal(signal.SIGTERM, previous_sigterm)
-    return Outcome(done, arrays, len(specs), interrupted, error, time.perf_counter() - started, setup_seconds,
-                   workers, services_info, [p.pid for p in processes])
+    return Outcome(
+        done,
+        arrays,
+        len(specs),
+        interrupted,
+        error,
+        time.perf_counter() - started,
+        setup_seconds,
+        workers,
+        services_info,
+        [p.pid for p in processes],
+    )
 
 
 def _sigterm_as_interrupt(signum: int, frame: Any) -> None:
@@ -614,9 +654,17 @@ def _progress(enabled: bool) -> Any:
     )
 
     return Progress(
-        TextColumn("[bold]srl experiment[/bold]"), BarColumn(), MofNCompleteColumn(), TextColumn("runs"),
-        TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(), TextColumn("{task.description}"),
-        console=Console(stderr=True), disable=not enabled, transient=False,
+        TextColumn("[bold]srl experiment[/bold]"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("runs"),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        TextColumn("{task.description}"),
+        console=Console(stderr=True),
+        disable=not enabled,
+        transient=False,
     )
 
 
@@ -630,14 +678,25 @@ def ratio_table(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             continue
         reference = mpc[(r["horizon"], r["start_index"])]
         ratio = 100.0 * r["accumulated_cost"] / reference if reference > 0 else float("nan")
-        table.append({"agent": r["agent"], "horizon": r["horizon"], "start_index": r["start_index"],
-                      "start_x": r["start_x"], "start_y": r["start_y"], "run_id": r["run_id"],
-                      "j_agent": r["accumulated_cost"], "j_mpc": reference, "ratio_percent": ratio})
+        table.append(
+            {
+                "agent": r["agent"],
+                "horizon": r["horizon"],
+                "start_index": r["start_index"],
+                "start_x": r["start_x"],
+                "start_y": r["start_y"],
+                "run_id": r["run_id"],
+                "j_agent": r["accumulated_cost"],
+                "j_mpc": reference,
+                "ratio_percent": ratio,
+            }
+        )
     return table
 
 
-def group_summary(rows: Sequence[dict[str, Any]], agents: Sequence[str], horizons: Sequence[int],
-                  ratios: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+def group_summary(
+    rows: Sequence[dict[str, Any]], agents: Sequence[str], horizons: Sequence[int], ratios: Sequence[dict[str, Any]]
+) -> list[dict[str, Any]]:
     groups = []
     for horizon in horizons:
         for agent in agents:
@@ -649,24 +708,30 @@ def group_summary(rows: Sequence[dict[str, Any]], agents: Sequence[str], horizon
             marks = marks[np.isfinite(marks)]
             parked = sum(r["final_distance"] <= PARK_TOLERANCE_M for r in runs)
             entry: dict[str, Any] = {
-                "agent": agent, "horizon": horizon, "runs": len(runs),
-                "median_cost": float(np.median(costs)), "mean_cost": float(np.mean(costs)),
-                "parked": int(parked), "median_final_distance": float(np.median([r["final_distance"] for r in runs])),
+                "agent": agent,
+                "horizon": horizon,
+                "runs": len(runs),
+                "median_cost": float(np.median(costs)),
+                "mean_cost": float(np.mean(costs)),
+                "parked": int(parked),
+                "median_final_distance": float(np.median([r["final_distance"] for r in runs])),
                 "solver_failures": int(sum(r["solver_failures"] for r in runs)),
                 "solve_ms_median": float(np.median([r["solve_ms_median"] for r in runs])),
                 "solve_ms_max": float(max(r["solve_ms_max"] for r in runs)),
                 "critic_timeouts": int(sum(r.get("critic_timeouts", 0) for r in runs)),
             }
             if agent != "mpc" and marks.size:
-                entry.update({
-                    "ratios": int(marks.size),
-                    "median_ratio_percent": float(np.median(marks)),
-                    "beat_mpc": int(np.sum(marks < 100.0 - TIE_PERCENT)),
-                    "beat_mpc_share": float(np.mean(marks < 100.0 - TIE_PERCENT)),
-                    "ties": int(np.sum(np.abs(marks - 100.0) <= TIE_PERCENT)),
-                    "min_ratio_percent": float(np.min(marks)),
-                    "max_ratio_percent": float(np.max(marks)),
-                })
+                entry.update(
+                    {
+                        "ratios": int(marks.size),
+                        "median_ratio_percent": float(np.median(marks)),
+                        "beat_mpc": int(np.sum(marks < 100.0 - TIE_PERCENT)),
+                        "beat_mpc_share": float(np.mean(marks < 100.0 - TIE_PERCENT)),
+                        "ties": int(np.sum(np.abs(marks - 100.0) <= TIE_PERCENT)),
+                        "min_ratio_percent": float(np.min(marks)),
+                        "max_ratio_percent": float(np.max(marks)),
+                    }
+                )
             groups.append(entry)
     return groups
 
@@ -679,12 +744,19 @@ def head_to_head(rows: Sequence[dict[str, Any]], first: str, second: str, horizo
     if not common_starts:
         return None
     wins = sum(100.0 * a[i] / b[i] < 100.0 - TIE_PERCENT for i in common_starts)
-    return {"first": first, "second": second, "horizon": horizon, "starts": len(common_starts), "wins": wins,
-            "median_ratio_percent": float(np.median([100.0 * a[i] / b[i] for i in common_starts]))}
+    return {
+        "first": first,
+        "second": second,
+        "horizon": horizon,
+        "starts": len(common_starts),
+        "wins": wins,
+        "median_ratio_percent": float(np.median([100.0 * a[i] / b[i] for i in common_starts])),
+    }
 
 
-def check_claims(groups: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]],
-                 horizons: Sequence[int]) -> list[dict[str, Any]]:
+def check_claims(
+    groups: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]], horizons: Sequence[int]
+) -> list[dict[str, Any]]:
     """The paper's three claims (section IV), each judged on this run's numbers."""
     by = {(g["agent"], g["horizon"]): g for g in groups if "beat_mpc_share" in g}
     claims = []
@@ -698,10 +770,13 @@ def check_claims(groups: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]
                     continue
                 ok = g["beat_mpc_share"] > 0.5
                 holds &= ok
-                parts.append(f"{agent} N={horizon}: better than MPC from {g['beat_mpc']}/{g['ratios']} starts "
-                             f"(median {g['median_ratio_percent']:.1f} %)")
-        claims.append({"claim": "both RL agents mostly below 100 % (better than MPC)", "holds": holds,
-                       "detail": "; ".join(parts)})
+                parts.append(
+                    f"{agent} N={horizon}: better than MPC from {g['beat_mpc']}/{g['ratios']} starts "
+                    f"(median {g['median_ratio_percent']:.1f} %)"
+                )
+        claims.append(
+            {"claim": "both RL agents mostly below 100 % (better than MPC)", "holds": holds, "detail": "; ".join(parts)}
+        )
     if all(any(k[0] == a for k in by) for a in ("rlq", "rlqv")):
         parts, holds = [], True
         for horizon in horizons:
@@ -711,9 +786,11 @@ def check_claims(groups: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]
                 continue
             ok = qv["median_ratio_percent"] < q["median_ratio_percent"] and duel["wins"] > duel["starts"] / 2
             holds &= ok
-            parts.append(f"N={horizon}: median {qv['median_ratio_percent']:.1f} % (QV) vs "
-                         f"{q['median_ratio_percent']:.1f} % (Q), QV better than Q from {duel['wins']}/"
-                         f"{duel['starts']} starts")
+            parts.append(
+                f"N={horizon}: median {qv['median_ratio_percent']:.1f} % (QV) vs "
+                f"{q['median_ratio_percent']:.1f} % (Q), QV better than Q from {duel['wins']}/"
+                f"{duel['starts']} starts"
+            )
         claims.append({"claim": "QV better than Q", "holds": holds, "detail": "; ".join(parts)})
     if len(horizons) >= 2 and rl:
         long_h, short_h = max(horizons), min(horizons)
@@ -724,27 +801,54 @@ def check_claims(groups: Sequence[dict[str, Any]], rows: Sequence[dict[str, Any]
                 continue
             ok = g_long["beat_mpc_share"] > g_short["beat_mpc_share"]
             holds &= ok
-            parts.append(f"{agent}: better than MPC from {g_long['beat_mpc']}/{g_long['ratios']} starts at "
-                         f"N={long_h} vs {g_short['beat_mpc']}/{g_short['ratios']} at N={short_h}")
-        claims.append({"claim": f"RL better than MPC more consistently at the longer horizon (N={long_h})",
-                       "holds": holds, "detail": "; ".join(parts)})
+            parts.append(
+                f"{agent}: better than MPC from {g_long['beat_mpc']}/{g_long['ratios']} starts at "
+                f"N={long_h} vs {g_short['beat_mpc']}/{g_short['ratios']} at N={short_h}"
+            )
+        claims.append(
+            {
+                "claim": f"RL better than MPC more consistently at the longer horizon (N={long_h})",
+                "holds": holds,
+                "detail": "; ".join(parts),
+            }
+        )
     return claims
 
 
 # -- outputs ----------------------------------------------------------------------------
 CSV_COLUMNS = (
-    "run_id", "agent", "horizon", "start_index", "start_x", "start_y", "start_alpha", "accumulated_cost",
-    "ratio_to_mpc_percent", "final_x", "final_y", "final_alpha", "final_distance", "parked", "steps",
-    "solver_failures", "solve_ms_median", "solve_ms_p99", "solve_ms_max", "wall_seconds", "worker",
-    "critic_timeouts", "max_staleness_steps",
+    "run_id",
+    "agent",
+    "horizon",
+    "start_index",
+    "start_x",
+    "start_y",
+    "start_alpha",
+    "accumulated_cost",
+    "ratio_to_mpc_percent",
+    "final_x",
+    "final_y",
+    "final_alpha",
+    "final_distance",
+    "parked",
+    "steps",
+    "solver_failures",
+    "solve_ms_median",
+    "solve_ms_p99",
+    "solve_ms_max",
+    "wall_seconds",
+    "worker",
+    "critic_timeouts",
+    "max_staleness_steps",
 )
 
 
 def sorted_rows(rows: Iterable[dict[str, Any]], agents: Sequence[str], horizons: Sequence[int]) -> list[dict]:
     order = {a: i for i, a in enumerate(agents)}
     horizon_order = {h: i for i, h in enumerate(horizons)}
-    return sorted(rows, key=lambda r: (horizon_order.get(r["horizon"], 99), order.get(r["agent"], 99),
-                                       r["start_index"]))
+    return sorted(
+        rows, key=lambda r: (horizon_order.get(r["horizon"], 99), order.get(r["agent"], 99), r["start_index"])
+    )
 
 
 def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[dict[str, Any]]) -> None:
@@ -754,19 +858,41 @@ def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[
         writer.writeheader()
         for r in rows:
             ratio = by_run.get(r["run_id"], 100.0 if r["agent"] == "mpc" else None)
-            writer.writerow({**{k: r.get(k) for k in CSV_COLUMNS},
-                             "ratio_to_mpc_percent": "" if ratio is None else repr(float(ratio)),
-                             "parked": int(r["final_distance"] <= PARK_TOLERANCE_M),
-                             **{k: repr(float(r[k])) for k in ("start_x", "start_y", "start_alpha",
-                                                               "accumulated_cost", "final_x", "final_y",
-                                                               "final_alpha", "final_distance")}})
+            writer.writerow(
+                {
+                    **{k: r.get(k) for k in CSV_COLUMNS},
+                    "ratio_to_mpc_percent": "" if ratio is None else repr(float(ratio)),
+                    "parked": int(r["final_distance"] <= PARK_TOLERANCE_M),
+                    **{
+                        k: repr(float(r[k]))
+                        for k in (
+                            "start_x",
+                            "start_y",
+                            "start_alpha",
+                            "accumulated_cost",
+                            "final_x",
+                            "final_y",
+                            "final_alpha",
+                            "final_distance",
+                        )
+                    },
+                }
+            )
 
 
 def read_runs_csv(path: Path | str) -> list[dict[str, Any]]:
     """``runs.csv`` back as typed rows (numbers as numbers)."""
     path = Path(path)
-    ints = {"horizon", "start_index", "steps", "solver_failures", "worker", "parked", "critic_timeouts",
-            "max_staleness_steps"}
+    ints = {
+        "horizon",
+        "start_index",
+        "steps",
+        "solver_failures",
+        "worker",
+        "parked",
+        "critic_timeouts",
+        "max_staleness_steps",
+    }
     rows = []
     with path.open(newline="") as handle:
         for raw in csv.DictReader(handle):
@@ -836,10 +962,22 @@ def toml_dumps(data: dict[str, Any]) -> str:
 
 def _git_commit() -> str | None:
     try:
-        done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=5,
-                              cwd=Path(__file__).resolve().parent, check=False)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, timeout=5, cwd=Path(__file__).resolve().parent, check=False)
+        done = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+            check=False,
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            cwd=Path(__file__).resolve().parent,
+            check=False,
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     if done.returncode != 0:
@@ -858,8 +996,11 @@ def _fmt_ratio(v: float | None) -> str:
 def summary_markdown(summary: dict[str, Any]) -> str:
     e, s = summary["experiment"], summary["settings"]
     lines = [f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}", ""]
-    status = "INTERRUPTED: partial results" if summary["interrupted"] else (
-        f"FAILED: {summary['error'].splitlines()[0]}" if summary.get("error") else "complete")
+    status = (
+        "INTERRUPTED: partial results"
+        if summary["interrupted"]
+        else (f"FAILED: {summary['error'].splitlines()[0]}" if summary.get("error") else "complete")
+    )
     lines += [
         f"* command: `{e['command']}`" if e.get("command") else "* command: (library call)",
         f"* status: {status}, {summary['runs_completed']}/{summary['runs_planned']} runs",
@@ -895,8 +1036,10 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     if summary.get("head_to_head"):
         lines += ["", "RL-QV vs RL-Q, start by start:", ""]
         for d in summary["head_to_head"]:
-            lines.append(f"* N = {d['horizon']}: RL-QV better than RL-Q from {d['wins']}/{d['starts']} starts, "
-                         f"median J_rlqv/J_rlq = {d['median_ratio_percent']:.1f} %")
+            lines.append(
+                f"* N = {d['horizon']}: RL-QV better than RL-Q from {d['wins']}/{d['starts']} starts, "
+                f"median J_rlqv/J_rlq = {d['median_ratio_percent']:.1f} %"
+            )
     if summary.get("claims"):
         lines += ["", "The paper's claims on these numbers:", ""]
         for c in summary["claims"]:
@@ -904,8 +1047,11 @@ def summary_markdown(summary: dict[str, Any]) -> str:
     if e["transport"] == "zenoh":
         timeouts = sum(g["critic_timeouts"] for g in summary["groups"])
         lines += ["", f"Zenoh lockstep with the synchronous critic: {timeouts} critic timeouts."]
-    lines += ["", "Files: runs.csv (one row per run), trajectories.npz, config.toml (use with --config), "
-              "settings.json, summary.json, " + ", ".join(summary.get("plots", [])) + "."]
+    lines += [
+        "",
+        "Files: runs.csv (one row per run), trajectories.npz, config.toml (use with --config), "
+        "settings.json, summary.json, " + ", ".join(summary.get("plots", [])) + ".",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -918,34 +1064,58 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
     write_trajectories(out / "trajectories.npz", rows, outcome.arrays)
     summary: dict[str, Any] = {
         "experiment": {
-            "starts": options.starts, "grid": options.grid, "extent": options.extent, "seed": options.seed,
-            "agents": list(options.agents), "horizons": list(options.horizons), "transport": options.transport,
-            "duration": base.episode.duration, "steps": base.steps, "command": options.command,
+            "starts": options.starts,
+            "grid": options.grid,
+            "extent": options.extent,
+            "seed": options.seed,
+            "agents": list(options.agents),
+            "horizons": list(options.horizons),
+            "transport": options.transport,
+            "duration": base.episode.duration,
+            "steps": base.steps,
+            "command": options.command,
         },
         "status": "interrupted" if outcome.interrupted else ("failed" if outcome.error else "complete"),
-        "interrupted": outcome.interrupted, "error": outcome.error,
-        "runs_planned": outcome.planned, "runs_completed": len(rows),
-        "wall_seconds": outcome.wall_seconds, "setup_seconds": outcome.setup_seconds,
-        "workers": outcome.workers, "cpu_count": os.cpu_count(), "git": _git_commit(),
+        "interrupted": outcome.interrupted,
+        "error": outcome.error,
+        "runs_planned": outcome.planned,
+        "runs_completed": len(rows),
+        "wall_seconds": outcome.wall_seconds,
+        "setup_seconds": outcome.setup_seconds,
+        "workers": outcome.workers,
+        "cpu_count": os.cpu_count(),
+        "git": _git_commit(),
         "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
-        "park_tolerance_m": PARK_TOLERANCE_M, "tie_percent": TIE_PERCENT,
-        "groups": groups, "head_to_head": duels,
+        "park_tolerance_m": PARK_TOLERANCE_M,
+        "tie_percent": TIE_PERCENT,
+        "groups": groups,
+        "head_to_head": duels,
         "claims": check_claims(groups, rows, options.horizons) if not outcome.interrupted else [],
-        "ratios": [{k: t[k] for k in ("run_id", "agent", "horizon", "start_index", "start_x", "start_y",
-                                      "ratio_percent")} for t in ratios],
-        "services": outcome.services, "worker_pids": outcome.worker_pids,
+        "ratios": [
+            {k: t[k] for k in ("run_id", "agent", "horizon", "start_index", "start_x", "start_y", "ratio_percent")}
+            for t in ratios
+        ],
+        "services": outcome.services,
+        "worker_pids": outcome.worker_pids,
         "settings": base.as_dict(),
         "plots": [],
     }
     if options.plots and rows:
-        from services.experiment_plots import plot_ratio_contours, plot_trajectory_overview
+        from tools.experiment.plots import plot_ratio_contours, plot_trajectory_overview
 
         for horizon in options.horizons:
             path = out / f"ratio_N{horizon}.png"
             if plot_ratio_contours([t for t in ratios if t["horizon"] == horizon], horizon, options.extent, path):
                 summary["plots"].append(path.name)
-        plot_trajectory_overview(rows, outcome.arrays, options.agents, options.horizons, options.extent,
-                                 out / "trajectories.png", PARK_TOLERANCE_M)
+        plot_trajectory_overview(
+            rows,
+            outcome.arrays,
+            options.agents,
+            options.horizons,
+            options.extent,
+            out / "trajectories.png",
+            PARK_TOLERANCE_M,
+        )
         summary["plots"].append("trajectories.png")
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=True) + "\n")
     (out / "summary.md").write_text(summary_markdown(summary))
@@ -1006,22 +1176,33 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("which", choices=["paper"], help="paper: section IV, the grid of starts and cost ratios")
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
     parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
-    parser.add_argument("--starts", choices=STARTS, default="paper",
-                        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells "
-                             "(default: paper)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of everything random (the held-out starts) (default: 0)")
-    parser.add_argument("--agents", default=",".join(DEFAULT_AGENTS),
-                        help="comma-separated (default: mpc,rlq,rlqv,rlqv+)")
-    parser.add_argument("--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS),
-                        help="comma-separated N values (default 12,6)")
+    parser.add_argument(
+        "--starts",
+        choices=STARTS,
+        default="paper",
+        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells (default: paper)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seed of everything random (the held-out starts) (default: 0)"
+    )
+    parser.add_argument(
+        "--agents", default=",".join(DEFAULT_AGENTS), help="comma-separated (default: mpc,rlq,rlqv,rlqv+)"
+    )
+    parser.add_argument(
+        "--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS), help="comma-separated N values (default 12,6)"
+    )
     parser.add_argument("--duration", type=float, help="episode length [s] (default from the config: 30)")
-    parser.add_argument("--config", type=Path,
-                        help="a TOML file overriding common/srl.toml (any subset) (default: none)")
+    parser.add_argument(
+        "--config", type=Path, help="a TOML file overriding common/srl.toml (any subset) (default: none)"
+    )
     parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
-    parser.add_argument("--transport", choices=["inproc", "zenoh"], default="inproc",
-                        help="inproc: workers run Algorithm 1 in process; zenoh: through router, plant_sim "
-                             "and critic service processes (lockstep, synchronous critic) (default: inproc)")
+    parser.add_argument(
+        "--transport",
+        choices=["inproc", "zenoh"],
+        default="inproc",
+        help="inproc: workers run Algorithm 1 in process; zenoh: through router, plant_sim "
+        "and critic service processes (lockstep, synchronous critic) (default: inproc)",
+    )
     parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -1051,11 +1232,17 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         if args.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
         options = ExperimentOptions(
-            grid=args.grid, extent=args.extent, starts=args.starts, seed=args.seed,
-            agents=parse_agents(args.agents), horizons=parse_horizons(args.horizons),
-            transport=args.transport, workers=args.workers,
+            grid=args.grid,
+            extent=args.extent,
+            starts=args.starts,
+            seed=args.seed,
+            agents=parse_agents(args.agents),
+            horizons=parse_horizons(args.horizons),
+            transport=args.transport,
+            workers=args.workers,
             out=args.out or Path("out") / f"paper-{datetime.now(UTC):%Y%m%d-%H%M%S}",
-            plots=not args.no_plots, progress=not args.no_progress,
+            plots=not args.no_plots,
+            progress=not args.no_progress,
         )
         options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
         base = _load_settings(args)
@@ -1068,16 +1255,26 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     if summary.get("error"):
         print(f"srl experiment: error: {summary['error']}", file=sys.stderr)
     elif summary["interrupted"]:
-        print(f"srl experiment: interrupted; {summary['runs_completed']} of {summary['runs_planned']} runs "
-              f"written to {options.out}/", file=sys.stderr)
+        print(
+            f"srl experiment: interrupted; {summary['runs_completed']} of {summary['runs_planned']} runs "
+            f"written to {options.out}/",
+            file=sys.stderr,
+        )
     return code
 
 
 def _argv_of(args: argparse.Namespace) -> list[str]:
     """A re-runnable command line for the summary (what was given, defaults spelled out)."""
-    argv = [args.which, f"--grid={args.grid}", f"--extent={args.extent:g}", f"--starts={args.starts}",
-            f"--seed={args.seed}", f"--agents={args.agents}", f"--horizons={args.horizons}",
-            f"--transport={args.transport}"]
+    argv = [
+        args.which,
+        f"--grid={args.grid}",
+        f"--extent={args.extent:g}",
+        f"--starts={args.starts}",
+        f"--seed={args.seed}",
+        f"--agents={args.agents}",
+        f"--horizons={args.horizons}",
+        f"--transport={args.transport}",
+    ]
     if args.duration is not None:
         argv.append(f"--duration={args.duration:g}")
     if args.config is not None:

@@ -64,13 +64,32 @@ def _plot_path(ax: plt.Axes, states: np.ndarray) -> None:
     stride = max(1, len(states) // 25)
     shown = states[::stride]
     dx, dy = length * np.cos(shown[:, 2]), length * np.sin(shown[:, 2])
-    ax.quiver(shown[:, 0], shown[:, 1], dx, dy, angles="xy", scale_units="xy", scale=1, width=0.004,
-              color="tab:gray", zorder=3, label="heading")
+    ax.quiver(
+        shown[:, 0],
+        shown[:, 1],
+        dx,
+        dy,
+        angles="xy",
+        scale_units="xy",
+        scale=1,
+        width=0.004,
+        color="tab:gray",
+        zorder=3,
+        label="heading",
+    )
     # the target under everything; the end on top, hollow and larger, so both stay visible
     ax.plot(0, 0, "*", ms=16, color="gold", markeredgecolor="k", label="target", zorder=4)
     ax.plot(*states[0, :2], "o", ms=9, color="tab:green", label="start", zorder=5)
-    ax.plot(*states[-1, :2], "s", ms=13, markerfacecolor="none", markeredgewidth=2.2, color="tab:red",
-            label=f"end ({states[-1, 0]:+.2f}, {states[-1, 1]:+.2f})", zorder=6)
+    ax.plot(
+        *states[-1, :2],
+        "s",
+        ms=13,
+        markerfacecolor="none",
+        markeredgewidth=2.2,
+        color="tab:red",
+        label=f"end ({states[-1, 0]:+.2f}, {states[-1, 1]:+.2f})",
+        zorder=6,
+    )
     xs = np.concatenate([states[:, 0], shown[:, 0] + dx, [0.0]])
     ys = np.concatenate([states[:, 1], shown[:, 1] + dy, [0.0]])
     margin = 0.08 * span

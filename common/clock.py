@@ -27,9 +27,15 @@ class Ticker:
     default the monotonic clock and ``stop.wait``.
     """
 
-    def __init__(self, period: float, stop: threading.Event | None = None, *,
-                 clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], bool] | None = None, late_fraction: float = LATE_FRACTION) -> None:
+    def __init__(
+        self,
+        period: float,
+        stop: threading.Event | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], bool] | None = None,
+        late_fraction: float = LATE_FRACTION,
+    ) -> None:
         if period <= 0:
             raise ValueError("period must be > 0")
         if not 0 < late_fraction <= 1:

@@ -16,7 +16,7 @@ The session is a client of the router: explicit endpoint, multicast scouting as 
 (off by default), listening nowhere.
 
 Why this module reads three transport settings itself: Docker runs a healthcheck every few
-seconds in every container, and ``python -m services.health`` then costs 0.05 s of CPU where
+seconds in every container, and ``python -m tools.health`` then costs 0.05 s of CPU where
 ``srl health`` (which imports the full settings stack: pydantic, numpy) costs 0.5 s (measured:
 five containers checked every 2 s would take most of a core on a 2-core machine). So
 ``transport_settings`` resolves ``router``, ``robot``, ``multicast_scouting`` and ``connect``
@@ -58,20 +58,27 @@ def add_health_parser(sub: Any) -> None:
 
 
 def add_health_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("service", nargs="?", default="router",
-                        help="router (default); robot (the ROS 2 robot's graph); or a service whose token "
-                        "srl/<robot>/alive/<service> to look for (actor, critic, plant, robot_bridge)")
-    parser.add_argument("--key",
-                        help="instead: any liveliness token matching this key expression (default: the service's)")
-    parser.add_argument("--config", type=Path,
-                        help="a TOML file overriding common/srl.toml (any subset) (default: none)")
+    parser.add_argument(
+        "service",
+        nargs="?",
+        default="router",
+        help="router (default); robot (the ROS 2 robot's graph); or a service whose token "
+        "srl/<robot>/alive/<service> to look for (actor, critic, plant, robot_bridge)",
+    )
+    parser.add_argument(
+        "--key", help="instead: any liveliness token matching this key expression (default: the service's)"
+    )
+    parser.add_argument(
+        "--config", type=Path, help="a TOML file overriding common/srl.toml (any subset) (default: none)"
+    )
     parser.add_argument("--router", help="Zenoh router endpoint (default from config/environment)")
     parser.add_argument("--robot", help="robot id, the <robot> chunk of the key (default from config: tb3_0)")
     parser.add_argument("--timeout", type=float, default=2.0, help="[s] how long to wait for an answer (default: 2)")
 
 
-def transport_settings(config: Path | None = None, router: str | None = None,
-                       robot: str | None = None) -> dict[str, Any]:
+def transport_settings(
+    config: Path | None = None, router: str | None = None, robot: str | None = None
+) -> dict[str, Any]:
     """``router``, ``robot``, ``multicast_scouting``, ``connect``, ``secure`` as Settings resolves them."""
     files = [PACKAGED_CONFIG]
     user_file = config or os.environ.get("SRL_CONFIG")
@@ -114,8 +121,7 @@ def client_config(transport: dict[str, Any], config_file: Path | None = None) ->
         from common.settings import Settings
         from common.transport import zenoh_config
 
-        settings = Settings.load(config_file, transport={"router": transport["router"],
-                                                         "robot": transport["robot"]})
+        settings = Settings.load(config_file, transport={"router": transport["router"], "robot": transport["robot"]})
         return zenoh_config(settings.transport)
 
     config = zenoh.Config()
@@ -128,15 +134,16 @@ def client_config(transport: dict[str, Any], config_file: Path | None = None) ->
 
 def robot_graph_pattern(config: Path | None) -> str:
     """The liveliness pattern of the robot's ROS 2 graph, from the full ``[bridge]`` settings."""
+    from common.ros_wire import RosGraph
     from common.settings import Settings
-    from services.robot_bridge.ros_wire import RosGraph
 
     bridge = Settings.load(config).bridge
     return str(RosGraph.from_settings(bridge).discovery_pattern(bridge.cmd_vel_topic))
 
 
-def check(transport: dict[str, Any], service: str, key: str | None, timeout: float,
-          config: Path | None = None) -> tuple[bool, str]:
+def check(
+    transport: dict[str, Any], service: str, key: str | None, timeout: float, config: Path | None = None
+) -> tuple[bool, str]:
     """(ready, what was found). An unreachable router or a missing token is an answer, not an error."""
     import zenoh
 
@@ -182,8 +189,8 @@ def cmd_health(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m services.health``: the same as ``srl health``, without the ``srl`` imports."""
-    parser = argparse.ArgumentParser(prog="python -m services.health", description=(__doc__ or "").split("\n", 1)[0])
+    """``python -m tools.health``: the same as ``srl health``, without the ``srl`` imports."""
+    parser = argparse.ArgumentParser(prog="python -m tools.health", description=(__doc__ or "").split("\n", 1)[0])
     add_health_arguments(parser)
     return cmd_health(parser.parse_args(argv))
 

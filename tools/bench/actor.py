@@ -52,9 +52,10 @@ import numpy as np
 from scipy.optimize import Bounds, OptimizeResult, minimize
 
 from common.actor import AGENTS, ActorProblem, StackedActor
+from common.assembly import build_actor
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.features import feature_count, feature_index_pairs
-from common.loop import ExactPlant, build_actor
+from common.loop import ExactPlant
 from common.settings import Settings
 from common.stats import summarize
 
@@ -80,7 +81,7 @@ NO_WEIGHTS = "n/a"  # the weights label of the mpc rows
 class BenchUsageError(ValueError):
     """Bad benchmark arguments: one line on stderr in the CLI's format, exit code 2.
 
-    (Not ``services.cli.UsageError``: under ``python -m services.cli`` that module is
+    (Not ``tools.cli.UsageError``: under ``python -m tools.cli`` that module is
     ``__main__`` and its class would not be the one ``main`` catches.)
     """
 
@@ -448,7 +449,7 @@ def machine_info(settings: Settings) -> dict[str, Any]:
         "python": platform.python_version(),
         "numpy": np.__version__,
         "scipy": scipy.__version__,
-        "casadi": casadi.__version__,
+        "casadi": casadi.__version__,  # type: ignore[attr-defined]  # not in casadi's stubs
         "solver": settings.actor.solver,
         "predictor": settings.actor.predictor,
         "jit": bool(settings.actor.jit and compiler),

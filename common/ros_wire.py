@@ -59,8 +59,6 @@ from typing import Any, Literal
 
 import numpy as np
 import xxhash
-import zenoh
-import zenoh.ext
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
@@ -92,8 +90,10 @@ AttachmentFormat = Literal["compact", "legacy"]
 ATTACHMENT_FORMATS: tuple[AttachmentFormat, ...] = ("compact", "legacy")
 LEGACY_FIELDS = ("sequence_number", "source_timestamp", "source_gid")
 # What the README and every refusal name: the rmw_zenoh_cpp releases whose wire srl speaks.
-SUPPORTED_RMW_ZENOH = ("rmw_zenoh_cpp Humble 0.1.0-0.1.1 and Jazzy 0.2.0-0.2.3 (legacy attachment), "
-                       "Humble >= 0.1.2, Jazzy >= 0.2.4, Kilted, Lyrical and Rolling >= 0.6.0 (compact attachment)")
+SUPPORTED_RMW_ZENOH = (
+    "rmw_zenoh_cpp Humble 0.1.0-0.1.1 and Jazzy 0.2.0-0.2.3 (legacy attachment), "
+    "Humble >= 0.1.2, Jazzy >= 0.2.4, Kilted, Lyrical and Rolling >= 0.6.0 (compact attachment)"
+)
 ADMIN = "@ros2_lv"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _STORES = {"humble": Stores.ROS2_HUMBLE, "jazzy": Stores.ROS2_JAZZY}
@@ -211,14 +211,25 @@ class RosGraph:
     def node_token(self, zid: str, nid: int, node: str) -> str:
         return f"{ADMIN}/{self.domain_id}/{zid}/{nid}/{nid}/NN/%/{mangle(self.node_namespace())}/{node}"
 
-    def endpoint_token(self, zid: str, nid: int, eid: int, kind: Literal["MP", "MS"], node: str,
-                       topic: str, ros_type: str, hash_chunk: str | None = None) -> str:
+    def endpoint_token(
+        self,
+        zid: str,
+        nid: int,
+        eid: int,
+        kind: Literal["MP", "MS"],
+        node: str,
+        topic: str,
+        ros_type: str,
+        hash_chunk: str | None = None,
+    ) -> str:
         """rmw_zenoh token of a publisher (MP) or subscription (MS) of ``node``."""
         if self.profile == "ros2dds":
             return self.ros2dds_token(zid, kind, topic, ros_type)
         chunk = type_hash(self.distro, ros_type) if hash_chunk is None else hash_chunk
-        return (f"{ADMIN}/{self.domain_id}/{zid}/{nid}/{eid}/{kind}/%/{mangle(self.node_namespace())}/{node}/"
-                f"{mangle(self.topic_name(topic))}/{dds_type_name(ros_type)}/{chunk}/{qos_chunk()}")
+        return (
+            f"{ADMIN}/{self.domain_id}/{zid}/{nid}/{eid}/{kind}/%/{mangle(self.node_namespace())}/{node}/"
+            f"{mangle(self.topic_name(topic))}/{dds_type_name(ros_type)}/{chunk}/{qos_chunk()}"
+        )
 
     def ros2dds_token(self, zid: str, kind: Literal["MP", "MS"], topic: str, ros_type: str) -> str:
         """What zenoh-bridge-ros2dds declares for a DDS endpoint it routes (keyless, reliable,
@@ -226,8 +237,7 @@ class RosGraph:
         qos = f":1:0:0,{QOS_DEPTH}"
         if self.distro != "humble":
             qos += f":typehash={type_hash(self.distro, ros_type)};"
-        return (f"@/{zid}/{ADMIN}/{kind}/{escape_ros2dds(self.topic_name(topic)[1:])}/"
-                f"{escape_ros2dds(ros_type)}/{qos}")
+        return f"@/{zid}/{ADMIN}/{kind}/{escape_ros2dds(self.topic_name(topic)[1:])}/{escape_ros2dds(ros_type)}/{qos}"
 
     def ros2dds_plugin_token(self, zid: str) -> str:
         return f"@/{zid}/{ADMIN}"
@@ -267,6 +277,23 @@ def gid_for(token: str) -> bytes:
 
 
 # -- the rmw_zenoh attachment -----------------------------------------------------------------
+# zenoh-ext serialization, written here (no zenoh import in common/ but common/transport.py):
+# an int64 is its 8 little-endian bytes; a string or a byte sequence is its length as LEB128
+# then its bytes; a tuple is its fields one after the other (tests/test_ros_wire.py holds these
+# bytes equal to zenoh.ext.z_serialize's and to golden attachments).
+def _int64(value: int) -> bytes:
+    return int(value).to_bytes(8, "little", signed=True)
+
+
+def _sequence(data: bytes) -> bytes:
+    length, prefix = len(data), bytearray()
+    while True:
+        byte, length = length & 0x7F, length >> 7
+        prefix.append(byte | (0x80 if length else 0))
+        if not length:
+            return bytes(prefix) + data
+
+
 @dataclass(frozen=True)
 class Attachment:
     seq: int
@@ -278,14 +305,15 @@ class Attachment:
         """zenoh-ext serialization, the same serializer rmw_zenoh uses (zenoh::ext::Serializer)."""
         if len(self.gid) != GID_SIZE:
             raise ValueError(f"a GID has {GID_SIZE} bytes, not {len(self.gid)}")
-        seq, stamp = zenoh.ext.Int64(self.seq), zenoh.ext.Int64(self.stamp_ns)
+        seq, stamp = _int64(self.seq), _int64(self.stamp_ns)
         if self.format == "legacy":
-            fields: tuple[Any, ...] = (LEGACY_FIELDS[0], seq, LEGACY_FIELDS[1], stamp, LEGACY_FIELDS[2], self.gid)
+            names = [_sequence(name.encode()) for name in LEGACY_FIELDS]
+            fields: tuple[bytes, ...] = (names[0], seq, names[1], stamp, names[2], _sequence(self.gid))
         elif self.format == "compact":
-            fields = (seq, stamp, self.gid)
+            fields = (seq, stamp, _sequence(self.gid))
         else:
             raise ValueError(f"unknown attachment format {self.format!r}")
-        return bytes(zenoh.ext.z_serialize(fields).to_bytes())
+        return b"".join(fields)
 
     @classmethod
     def decode(cls, raw: bytes) -> Attachment:
@@ -295,7 +323,10 @@ class Attachment:
         (``pyo3_runtime.PanicException``, not an Exception; measured: "capacity overflow", and
         an abort of the process under hypothesis) on a length prefix of 10 bytes."""
         reader = _Reader(raw)
-        if raw[:1] == bytes([len(LEGACY_FIELDS[0])]) and raw[1:1 + len(LEGACY_FIELDS[0])] == LEGACY_FIELDS[0].encode():
+        if (
+            raw[:1] == bytes([len(LEGACY_FIELDS[0])])
+            and raw[1 : 1 + len(LEGACY_FIELDS[0])] == LEGACY_FIELDS[0].encode()
+        ):
             names, values = [], []
             for _ in range(2):
                 names.append(reader.string())
@@ -306,8 +337,9 @@ class Attachment:
             attachment_format: AttachmentFormat = "legacy"
         else:
             if len(raw) != ATTACHMENT_SIZE:
-                raise WireError(f"attachment of {len(raw)} bytes, expected {ATTACHMENT_SIZE} (compact) or the "
-                                "legacy named fields")
+                raise WireError(
+                    f"attachment of {len(raw)} bytes, expected {ATTACHMENT_SIZE} (compact) or the legacy named fields"
+                )
             values = [reader.int64(), reader.int64()]
             attachment_format = "compact"
         gid = reader.sequence()
@@ -330,7 +362,7 @@ class _Reader:
     def take(self, n: int) -> bytes:
         if n < 0 or self.pos + n > len(self.raw):
             raise WireError(f"attachment truncated: {n} bytes wanted at offset {self.pos} of {len(self.raw)}")
-        chunk = self.raw[self.pos:self.pos + n]
+        chunk = self.raw[self.pos : self.pos + n]
         self.pos += n
         return bytes(chunk)
 
@@ -364,8 +396,9 @@ def _vector3(store: Any, x: float, y: float, z: float) -> Any:
     return store.types["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z))
 
 
-def encode_command(distro: str, ros_type: str, v: float, omega: float, *, stamp_ns: int = 0,
-                   frame_id: str = BASE_FRAME) -> bytes:
+def encode_command(
+    distro: str, ros_type: str, v: float, omega: float, *, stamp_ns: int = 0, frame_id: str = BASE_FRAME
+) -> bytes:
     """CDR (little endian) of a Twist or TwistStamped with ``linear.x = v``, ``angular.z = omega``."""
     if not (math.isfinite(v) and math.isfinite(omega)):
         raise ValueError(f"command ({v}, {omega}) is not finite")
@@ -411,13 +444,15 @@ def encode_odometry(distro: str, odom: Odometry) -> bytes:
     qx, qy, qz, qw = odom.orientation
     pose = t["geometry_msgs/msg/Pose"](
         position=t["geometry_msgs/msg/Point"](x=float(odom.x), y=float(odom.y), z=0.0),
-        orientation=t["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)))
+        orientation=t["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
+    )
     twist = t[TWIST](linear=_vector3(store, odom.v, 0.0, 0.0), angular=_vector3(store, 0.0, 0.0, odom.omega))
     message = t[ODOMETRY](
         header=t["std_msgs/msg/Header"](stamp=_stamp(store, odom.stamp_ns), frame_id=odom.frame_id),
         child_frame_id=odom.child_frame_id,
         pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-        twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))
+        twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
     return bytes(store.serialize_cdr(message, ODOMETRY, little_endian=True))
 
 
@@ -431,7 +466,11 @@ def decode_odometry(distro: str, payload: bytes) -> Odometry:
     q = message.pose.pose.orientation
     return Odometry(
         stamp_ns=int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec),
-        frame_id=str(message.header.frame_id), child_frame_id=str(message.child_frame_id),
-        x=float(message.pose.pose.position.x), y=float(message.pose.pose.position.y),
+        frame_id=str(message.header.frame_id),
+        child_frame_id=str(message.child_frame_id),
+        x=float(message.pose.pose.position.x),
+        y=float(message.pose.pose.position.y),
         orientation=(float(q.x), float(q.y), float(q.z), float(q.w)),
-        v=float(message.twist.twist.linear.x), omega=float(message.twist.twist.angular.z))
+        v=float(message.twist.twist.linear.x),
+        omega=float(message.twist.twist.angular.z),
+    )

@@ -21,7 +21,7 @@ import numpy as np
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.tri import Triangulation
 
-from services.experiment import TIE_PERCENT
+from tools.experiment.marks import TIE_PERCENT
 
 TITLES = {"rlq": "RL-Q", "rlqv": "RL-QV", "rlqv+": "RL-QV+ (complemented)"}
 
@@ -65,8 +65,9 @@ def plot_ratio_contours(ratios: Sequence[dict[str, Any]], horizon: int, extent: 
         scatter = ax.scatter(x, y, c=z, cmap="RdBu_r", norm=norm, s=36, edgecolors="k", linewidths=0.8, zorder=3)
         mappable = mappable or scatter
         for xi, yi, zi in zip(x, y, z, strict=True):
-            ax.annotate(f"{zi:.0f}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center",
-                        fontsize=7, zorder=4)
+            ax.annotate(
+                f"{zi:.0f}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=7, zorder=4
+            )
         ax.plot(0, 0, "*", ms=14, color="gold", markeredgecolor="k", zorder=5)
         ax.set_xlim(-extent * 1.08, extent * 1.08)
         ax.set_ylim(-extent * 1.08, extent * 1.08)
@@ -74,8 +75,11 @@ def plot_ratio_contours(ratios: Sequence[dict[str, Any]], horizon: int, extent: 
         ax.set_xlabel("x0 [m]")
         ax.set_ylabel("y0 [m]")
         beat = int(np.sum(z < 100.0 - TIE_PERCENT))
-        ax.set_title(f"J_{TITLES[agent]} / J_MPC x 100 %, N = {horizon}\n"
-                     f"median {np.median(z):.1f} %, better than MPC from {beat}/{z.size} starts", fontsize=10)
+        ax.set_title(
+            f"J_{TITLES[agent]} / J_MPC x 100 %, N = {horizon}\n"
+            f"median {np.median(z):.1f} %, better than MPC from {beat}/{z.size} starts",
+            fontsize=10,
+        )
     assert mappable is not None
     bar = fig.colorbar(mappable, ax=axes[0].tolist(), shrink=0.9)
     bar.set_label("J_agent / J_MPC [%]  (below 100: better than MPC)")
@@ -85,11 +89,23 @@ def plot_ratio_contours(ratios: Sequence[dict[str, Any]], horizon: int, extent: 
     return True
 
 
-def plot_trajectory_overview(rows: Sequence[dict[str, Any]], arrays: dict[str, dict[str, np.ndarray]],
-                             agents: Sequence[str], horizons: Sequence[int], extent: float, path: Path,
-                             tolerance: float = 0.25) -> None:
-    fig, axes = plt.subplots(len(horizons), len(agents), figsize=(4.2 * len(agents), 4.2 * len(horizons)),
-                             squeeze=False, sharex=True, sharey=True)
+def plot_trajectory_overview(
+    rows: Sequence[dict[str, Any]],
+    arrays: dict[str, dict[str, np.ndarray]],
+    agents: Sequence[str],
+    horizons: Sequence[int],
+    extent: float,
+    path: Path,
+    tolerance: float = 0.25,
+) -> None:
+    fig, axes = plt.subplots(
+        len(horizons),
+        len(agents),
+        figsize=(4.2 * len(agents), 4.2 * len(horizons)),
+        squeeze=False,
+        sharex=True,
+        sharey=True,
+    )
     limit = extent * 1.25
     for i, horizon in enumerate(horizons):
         for j, agent in enumerate(agents):
@@ -100,8 +116,15 @@ def plot_trajectory_overview(rows: Sequence[dict[str, Any]], arrays: dict[str, d
                 parked = r["final_distance"] <= tolerance
                 ax.plot(states[:, 0], states[:, 1], lw=0.9, alpha=0.8, color="tab:blue" if parked else "tab:red")
                 ax.plot(states[0, 0], states[0, 1], "o", ms=3, color="tab:green")
-                ax.arrow(states[0, 0], states[0, 1], 0.18 * np.cos(states[0, 2]), 0.18 * np.sin(states[0, 2]),
-                         width=0.01, color="tab:green", length_includes_head=True)
+                ax.arrow(
+                    states[0, 0],
+                    states[0, 1],
+                    0.18 * np.cos(states[0, 2]),
+                    0.18 * np.sin(states[0, 2]),
+                    width=0.01,
+                    color="tab:green",
+                    length_includes_head=True,
+                )
             ax.plot(0, 0, "*", ms=12, color="gold", markeredgecolor="k", zorder=5)
             ax.add_patch(plt.Rectangle((-extent, -extent), 2 * extent, 2 * extent, fill=False, ls=":", color="gray"))
             ax.set_xlim(-limit, limit)

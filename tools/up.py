@@ -1,6 +1,6 @@
 """``srl up``: the router and every service as separate child processes.
 
-Children are ``python -m services.cli <service> ...`` with the same configuration (each gets
+Children are ``python -m tools.cli <service> ...`` with the same configuration (each gets
 only the flags its subcommand takes). Their log lines are forwarded to stderr prefixed with
 ``[name]``; each prints one JSON summary as its last stdout line when it ends: those are kept,
 written to ``<summary_dir>/<name>.json``, never echoed. While the actor runs, its 1 Hz status
@@ -154,11 +154,14 @@ class Supervisor:
         self.children: dict[str, Child] = {}
 
     def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
-        from services.cli import child_argv
+        from common.arguments import child_argv
 
-        command = [sys.executable, "-m", "services.cli", *child_argv(argv)]
+        command = [sys.executable, "-m", "tools.cli", *child_argv(argv)]
         process = subprocess.Popen(
-            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            command,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
             # SRL_PARENT_PID: the child stops when this process dies, however it dies (common/lifeline.py)
             env={**self.env, **(env or {}), "SRL_PARENT_PID": str(os.getpid())},
             start_new_session=True,  # our Ctrl-C is forwarded by us, in order
@@ -166,8 +169,10 @@ class Supervisor:
         child = Child(name, process)
         echo = None if self.quiet else sys.stderr
         # stdout holds the JSON summary (kilobytes): kept, not echoed; stderr holds the logs
-        for stream, sink, keep, shown in ((process.stdout, child.stdout_lines, 1000, None),
-                                          (process.stderr, child.stderr_tail, 200, echo)):
+        for stream, sink, keep, shown in (
+            (process.stdout, child.stdout_lines, 1000, None),
+            (process.stderr, child.stderr_tail, 200, echo),
+        ):
             thread = threading.Thread(target=_pump, args=(stream, name, sink, shown, keep), daemon=True)
             thread.start()
             child.threads.append(thread)
@@ -273,7 +278,8 @@ def state_probe(settings: Settings) -> Any:
             except zenoh.ZError:
                 return False
             held["subscriber"] = held["session"].declare_subscriber(
-                STATE.key(settings.transport.robot), lambda _: seen.set())
+                STATE.key(settings.transport.robot), lambda _: seen.set()
+            )
         if seen.wait(0.1):
             held["subscriber"].undeclare()
             held["session"].close()
@@ -287,7 +293,7 @@ def _tls_endpoint(endpoint: str) -> str | None:
     """``tcp/H:P`` -> ``tls/H:P`` (``srl up --secure``); a tls/ endpoint as is; None for others."""
     if endpoint.startswith("tls/"):
         return endpoint
-    return "tls/" + endpoint[len("tcp/"):] if endpoint.startswith("tcp/") else None
+    return "tls/" + endpoint[len("tcp/") :] if endpoint.startswith("tcp/") else None
 
 
 class StatusMonitor:
@@ -310,7 +316,8 @@ class StatusMonitor:
             self.seen += 1
 
         self.subscriber = self.session.declare_subscriber(
-            STATUS.key(settings.transport.robot, service="actor"), on_sample)
+            STATUS.key(settings.transport.robot, service="actor"), on_sample
+        )
 
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):
@@ -328,9 +335,19 @@ def write_summaries(directory: Path, children: dict[str, Child], merged: dict[st
     (directory / "summary.json").write_text(json.dumps(merged, indent=1) + "\n")
 
 
-def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
-           duration: float, quiet: bool = False, bridge_args: list[str] | None = None,
-           secure: bool = False, on_status: Any = None, summary_dir: Path | None = None) -> dict[str, Any]:
+def run_up(
+    settings: Settings,
+    settings_args: list[str],
+    mode: str,
+    plant: str,
+    sync_critic: bool,
+    duration: float,
+    quiet: bool = False,
+    bridge_args: list[str] | None = None,
+    secure: bool = False,
+    on_status: Any = None,
+    summary_dir: Path | None = None,
+) -> dict[str, Any]:
     """Start everything, run one actor episode/duration, stop everything; the merged summary.
 
     ``plant="robot"``: the robot bridge in place of plant_sim, and the TurtleBot3 emulator as the
@@ -351,22 +368,49 @@ def run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, 
     if plant not in ("sim", "robot"):
         raise ValueError(f"unknown plant {plant!r} (sim or robot)")
     if plant == "robot" and mode != "realtime":
-        raise ValueError("--plant robot runs in real time only: lockstep steps plant_sim through its "
-                         "plant/step queryable, and a robot cannot be stepped; use --mode realtime")
+        raise ValueError(
+            "--plant robot runs in real time only: lockstep steps plant_sim through its "
+            "plant/step queryable, and a robot cannot be stepped; use --mode realtime"
+        )
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     supervisor = Supervisor(settings_args, env, quiet=quiet)
     robot_args = [*settings_args, *(bridge_args or [])]
     started = time.monotonic()
     with SignalGuard() as guard:
-        summary = _run_up(settings, settings_args, mode, plant, sync_critic, duration, supervisor, robot_args,
-                          secure, started, guard, on_status, summary_dir)
+        summary = _run_up(
+            settings,
+            settings_args,
+            mode,
+            plant,
+            sync_critic,
+            duration,
+            supervisor,
+            robot_args,
+            secure,
+            started,
+            guard,
+            on_status,
+            summary_dir,
+        )
     return summary
 
 
-def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str, sync_critic: bool,
-            duration: float, supervisor: Supervisor, robot_args: list[str], secure: bool, started: float,
-            guard: SignalGuard, on_status: Any, summary_dir: Path | None) -> dict[str, Any]:
+def _run_up(
+    settings: Settings,
+    settings_args: list[str],
+    mode: str,
+    plant: str,
+    sync_critic: bool,
+    duration: float,
+    supervisor: Supervisor,
+    robot_args: list[str],
+    secure: bool,
+    started: float,
+    guard: SignalGuard,
+    on_status: Any,
+    summary_dir: Path | None,
+) -> dict[str, Any]:
     common_args = [*settings_args]
     credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
     role: dict[str, dict[str, str]] = {}  # child -> its login environment
@@ -382,9 +426,14 @@ def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str,
                 role[name] = {**role[name], **tls.environment(user), "SRL_TRANSPORT__ROUTER": tls_router}
             common_args = [f"--router={tls_router}" if arg.startswith("--router=") else arg for arg in common_args]
             robot_args = [f"--router={tls_router}" if arg.startswith("--router=") else arg for arg in robot_args]
-            monitor = monitor.model_copy(update={"router": tls_router, "tls_ca": str(tls.ca),
-                                                 "tls_cert": str(tls.cert("monitor")),
-                                                 "tls_key": str(tls.key("monitor"))})
+            monitor = monitor.model_copy(
+                update={
+                    "router": tls_router,
+                    "tls_ca": str(tls.ca),
+                    "tls_cert": str(tls.cert("monitor")),
+                    "tls_key": str(tls.key("monitor")),
+                }
+            )
         # this supervisor's own probes log in as the read-only monitor
         settings = settings.model_copy(update={"transport": monitor})
     try:
@@ -398,18 +447,26 @@ def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str,
                 robot_endpoint = free_loopback_endpoint()
                 supervisor.spawn("tb3_emulator", ["tb3-emulator", *robot_args, "--listen", robot_endpoint])
                 log.info("the emulated robot's Zenoh router: %s", robot_endpoint)
-                supervisor.wait_for(f"the emulated robot's router ({robot_endpoint})",
-                                    lambda: router_reachable(settings, robot_endpoint), timeout=30)
-            supervisor.spawn("robot_bridge", ["robot-bridge", *robot_args, f"--robot-endpoint={robot_endpoint}"],
-                             role.get("robot_bridge"))
+                supervisor.wait_for(
+                    f"the emulated robot's router ({robot_endpoint})",
+                    lambda: router_reachable(settings, robot_endpoint),
+                    timeout=30,
+                )
+            supervisor.spawn(
+                "robot_bridge",
+                ["robot-bridge", *robot_args, f"--robot-endpoint={robot_endpoint}"],
+                role.get("robot_bridge"),
+            )
         supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
-        supervisor.wait_for("plant" if plant == "sim" else "robot_bridge", alive_probe(settings, "plant"),
-                            timeout=60)
+        supervisor.wait_for("plant" if plant == "sim" else "robot_bridge", alive_probe(settings, "plant"), timeout=60)
         if plant == "robot":
-            supervisor.wait_for(f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
-                                f"{settings.bridge.profile}, {settings.bridge.ros_distro}, domain "
-                                f"{settings.bridge.domain_id}, namespace '{settings.bridge.namespace}')",
-                                state_probe(settings), timeout=60)
+            supervisor.wait_for(
+                f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
+                f"{settings.bridge.profile}, {settings.bridge.ros_distro}, domain "
+                f"{settings.bridge.domain_id}, namespace '{settings.bridge.namespace}')",
+                state_probe(settings),
+                timeout=60,
+            )
         supervisor.wait_for("critic", alive_probe(settings, "critic"), timeout=60)
         actor_args = ["actor", "--mode", mode, *common_args]
         if mode == "realtime":
@@ -451,21 +508,25 @@ def _run_up(settings: Settings, settings_args: list[str], mode: str, plant: str,
         merged["bridge"] = supervisor.children["robot_bridge"].summary()
         if "tb3_emulator" in supervisor.children:
             merged["emulator"] = supervisor.children["tb3_emulator"].summary()
-    merged.update({
-        "services": {name: child.process.pid for name, child in supervisor.children.items()},
-        "exit_codes": {name: child.process.returncode for name, child in supervisor.children.items()},
-        "mode": mode,
-        "plant": plant,
-        "secure": secure,
-        "router": settings.transport.router,
-        "transitions_received": critic_summary.get("transitions_received"),
-        "critic_weights_published": critic_summary.get("weights_published"),
-        "critic_fit_ms": critic_summary.get("fit_ms"),
-        "critic_checkpoint": critic_summary.get("checkpoint"),
-        "critic_restored": critic_summary.get("restored"),
-        "wall_seconds": time.monotonic() - started,
-        "resources": {name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()},
-    })
+    merged.update(
+        {
+            "services": {name: child.process.pid for name, child in supervisor.children.items()},
+            "exit_codes": {name: child.process.returncode for name, child in supervisor.children.items()},
+            "mode": mode,
+            "plant": plant,
+            "secure": secure,
+            "router": settings.transport.router,
+            "transitions_received": critic_summary.get("transitions_received"),
+            "critic_weights_published": critic_summary.get("weights_published"),
+            "critic_fit_ms": critic_summary.get("fit_ms"),
+            "critic_checkpoint": critic_summary.get("checkpoint"),
+            "critic_restored": critic_summary.get("restored"),
+            "wall_seconds": time.monotonic() - started,
+            "resources": {
+                name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()
+            },
+        }
+    )
     if summary_dir is not None:
         merged["summary_dir"] = str(summary_dir)
         write_summaries(summary_dir, supervisor.children, merged)

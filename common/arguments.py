@@ -1,0 +1,261 @@
+"""Settings from the command line: which settings flags each command takes, their help with the
+packaged defaults, and the resolved :class:`~common.settings.Settings` (flags > environment >
+``--config`` > common/srl.toml). Shared by every service's ``__main__`` and the ``srl`` tools.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+from pydantic_settings import SettingsError
+
+from common.runtime import UsageError
+from common.settings import MAX_HORIZON, WORKSPACE_HALF_WIDTH, Settings, parse_start
+
+log = logging.getLogger(__name__)
+
+
+def _start_arg(text: str) -> tuple[float, ...]:
+    try:
+        return parse_start(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
+# The packaged defaults, shown in every option's help (the settings file is the one source).
+def _packaged_defaults() -> dict[str, dict[str, Any]]:
+    import tomllib
+
+    from common.settings import DEFAULT_CONFIG
+
+    with DEFAULT_CONFIG.open("rb") as file:
+        return tomllib.load(file)
+
+
+def _default(section: str, name: str) -> str:
+    value = _packaged_defaults().get(section, {}).get(name)
+    if isinstance(value, list):
+        value = ",".join(str(v) for v in value)
+    return (
+        f"(default: {value!r} from common/srl.toml)"
+        if isinstance(value, str) and not value
+        else f"(default: {value}, common/srl.toml)"
+    )
+
+
+# Which settings flags each subcommand takes: a flag a command would ignore is refused
+# (argparse: "unrecognized arguments"), so a typo'd intent never passes silently.
+TRANSPORT_FLAGS = ("config", "router", "robot")
+ACTOR_FLAGS = ("agent", "horizon", "solver", "predictor", "no_jit")
+EPISODE_FLAGS = ("start", "duration")
+ALL_FLAGS = (*TRANSPORT_FLAGS, *ACTOR_FLAGS, *EPISODE_FLAGS)
+COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
+    "run": ALL_FLAGS,
+    "up": (*ALL_FLAGS, "resume"),
+    "bench": ALL_FLAGS,
+    "actor": ALL_FLAGS,
+    "router": TRANSPORT_FLAGS,
+    "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts
+    "critic": (*TRANSPORT_FLAGS, "agent", "horizon", "resume"),  # the stack names its checkpoint
+    "robot-bridge": TRANSPORT_FLAGS,
+    "tb3-emulator": (*TRANSPORT_FLAGS, "start"),  # default initial pose
+    "status": TRANSPORT_FLAGS,
+}
+
+
+def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str] = ALL_FLAGS) -> None:
+    """Flags that override the config file (only those given take effect)."""
+    if "config" in flags:
+        parser.add_argument(
+            "--config",
+            type=Path,
+            metavar="FILE",
+            help="a TOML file overriding common/srl.toml (any subset; also SRL_CONFIG) (default: none)",
+        )
+    if "agent" in flags:
+        parser.add_argument(
+            "--agent",
+            choices=["mpc", "rlq", "rlqv", "rlqv+"],
+            help=f"the stacked actor's objective {_default('actor', 'agent')}",
+        )
+    if "horizon" in flags:
+        parser.add_argument(
+            "--horizon",
+            type=int,
+            metavar="N",
+            help=f"N (N - 1 held actions), 2..{MAX_HORIZON} {_default('actor', 'horizon')}",
+        )
+    if "start" in flags:
+        parser.add_argument(
+            "--start",
+            type=_start_arg,
+            metavar="X,Y[,ALPHA]",
+            help="start in the goal frame [m, m, rad]; X,Y heads away from the target, "
+            f"e.g. --start -1.2,0.7 {_default('episode', 'start')}",
+        )
+    if "duration" in flags:
+        parser.add_argument(
+            "--duration", type=float, metavar="SECONDS", help=f"episode length [s] {_default('episode', 'duration')}"
+        )
+    if "solver" in flags:
+        parser.add_argument(
+            "--solver", choices=["fatrop", "ipopt"], help=f"NLP solver of the actor {_default('actor', 'solver')}"
+        )
+    if "predictor" in flags:
+        parser.add_argument(
+            "--predictor",
+            choices=["euler", "rk4"],
+            help=f"the actor's state predictor {_default('actor', 'predictor')}",
+        )
+    if "no_jit" in flags:
+        parser.add_argument(
+            "--no-jit",
+            action="store_true",
+            help="do not JIT-compile the actor problem with the C compiler (default: compile)",
+        )
+    if "router" in flags:
+        parser.add_argument(
+            "--router", metavar="ENDPOINT", help=f"Zenoh router endpoint {_default('transport', 'router')}"
+        )
+    if "robot" in flags:
+        parser.add_argument(
+            "--robot", metavar="ID", help=f"robot id, the <robot> chunk of every key {_default('transport', 'robot')}"
+        )
+    if "resume" in flags:
+        parser.add_argument(
+            "--resume",
+            action="store_true",
+            help="start the critic from its checkpoint of an earlier run of this robot and stack "
+            "(default: a fresh critic per run; setting critic.resume)",
+        )
+
+
+SETTINGS_FLAGS = ("config", "agent", "horizon", "start", "duration", "solver", "predictor", "router", "robot")
+
+
+def settings_argv(args: argparse.Namespace) -> list[str]:
+    """The settings flags that were given, as argv, to hand the same settings to children.
+
+    A child gets only the flags its subcommand takes: :func:`child_argv` filters."""
+    argv: list[str] = []
+    for name in SETTINGS_FLAGS:
+        value = getattr(args, name, None)
+        if value is None:
+            continue
+        if name == "start":
+            value = ",".join(repr(float(c)) for c in value)
+        argv.append(f"--{name}={value}")
+    for name in ("no_jit", "resume"):
+        if getattr(args, name, False):
+            argv.append(f"--{name.replace('_', '-')}")
+    return argv
+
+
+def child_argv(argv: list[str]) -> list[str]:
+    """``[command, ...]`` without the settings flags ``command`` does not take (it would refuse them)."""
+    takes = COMMAND_SETTINGS.get(argv[0]) if argv else None
+    if takes is None:
+        return argv
+    known = {f"--{n.replace('_', '-')}" for n in (*ALL_FLAGS, "resume")}
+    return [a for a in argv if a.split("=", 1)[0] not in known or a.split("=", 1)[0][2:].replace("-", "_") in takes]
+
+
+BRIDGE_FLAGS = ("profile", "ros_distro", "domain_id", "namespace", "cmd_type", "robot_endpoint")
+
+
+def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags of the robot bridge's [bridge] settings (srl up, robot-bridge, tb3-emulator)."""
+    parser.add_argument(
+        "--profile",
+        choices=["rmw_zenoh", "ros2dds"],
+        help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds) "
+        f"{_default('bridge', 'profile')}",
+    )
+    parser.add_argument(
+        "--ros-distro",
+        choices=["humble", "jazzy"],
+        help=f"the robot's ROS 2 distribution {_default('bridge', 'ros_distro')}",
+    )
+    parser.add_argument("--domain-id", type=int, help=f"the robot's ROS_DOMAIN_ID {_default('bridge', 'domain_id')}")
+    parser.add_argument("--namespace", help=f"the robot's ROS namespace (e.g. tb3_1) {_default('bridge', 'namespace')}")
+    parser.add_argument(
+        "--cmd-type",
+        choices=["auto", "twist", "twist_stamped"],
+        help=f"cmd_vel message type (auto: read from the robot's liveliness tokens) {_default('bridge', 'cmd_type')}",
+    )
+    parser.add_argument(
+        "--robot-endpoint",
+        help="the robot's Zenoh router, e.g. tcp/192.168.1.20:7447 "
+        f"(srl up: no emulator is started) {_default('bridge', 'robot_endpoint')}",
+    )
+
+
+def bridge_argv(args: argparse.Namespace) -> list[str]:
+    """The bridge flags that were given, as argv, for the bridge and emulator children."""
+    return [
+        f"--{name.replace('_', '-')}={getattr(args, name)}"
+        for name in BRIDGE_FLAGS
+        if getattr(args, name, None) is not None
+    ]
+
+
+def settings_from_args(args: argparse.Namespace) -> Settings:
+    overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}, "transport": {}, "bridge": {}}
+    for name in BRIDGE_FLAGS:
+        if getattr(args, name, None) is not None:
+            overrides["bridge"][name] = getattr(args, name)
+    for name in ("router", "robot"):
+        if getattr(args, name, None) is not None:
+            overrides["transport"][name] = getattr(args, name)
+    for name in ("agent", "horizon", "solver", "predictor"):
+        if getattr(args, name, None) is not None:
+            overrides["actor"][name] = getattr(args, name)
+    if getattr(args, "no_jit", False):
+        overrides["actor"]["jit"] = False
+    if getattr(args, "resume", False):
+        overrides["critic"] = {"resume": True}
+    if getattr(args, "start", None) is not None:
+        overrides["episode"]["start"] = args.start
+    if getattr(args, "duration", None) is not None:
+        overrides["episode"]["duration"] = args.duration
+    try:
+        settings = Settings.load(getattr(args, "config", None), **{k: v for k, v in overrides.items() if v})
+    except ValidationError as error:
+        problems = "; ".join(_setting_problem(e, overrides) for e in error.errors())
+        raise UsageError(f"invalid settings: {problems}") from error
+    except SettingsError as error:  # an SRL_... variable that is not even JSON where a list is due
+        raise UsageError(f"invalid settings: {error} (check the SRL_* environment variables)") from error
+    except (FileNotFoundError, ValueError) as error:
+        raise UsageError(str(error)) from error
+    x, y = settings.episode.start[:2]
+    if max(abs(x), abs(y)) > WORKSPACE_HALF_WIDTH:
+        log.warning(
+            "start (%g, %g) m is more than %g m from the target: outside any workspace the robot "
+            "could park in (the paper's starts are within 2 m)",
+            x,
+            y,
+            WORKSPACE_HALF_WIDTH,
+        )
+    return settings
+
+
+def _setting_problem(error: Any, overrides: dict[str, dict[str, Any]]) -> str:
+    """One validation error, naming where the bad value came from (flag, variable or file)."""
+    loc = [str(p) for p in error["loc"]]
+    where = ".".join(loc)
+    message = f"{where}: {error['msg']}"
+    if len(loc) >= 2 and loc[1] not in overrides.get(loc[0], {}):
+        variable = f"SRL_{loc[0]}__{loc[1]}".upper()
+        for name, value in os.environ.items():
+            if name.upper() == variable:
+                return f"{message} (from the environment variable {name}={value!r})"
+    return message
+
+
+# -- srl run ---------------------------------------------------------------------------

@@ -1,0 +1,92 @@
+"""Settings -> the math objects: the one place where the settings tree meets the pure math.
+
+:mod:`common.loop` (Algorithm 1), :mod:`common.actor`, :mod:`common.critic` take numbers and
+arrays; this module reads them from :class:`~common.settings.Settings` (built once in a
+process's ``main``) and hands them over.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from common.actor import ActorProblem, StackedActor
+from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
+from common.settings import Settings
+from common.stats import summarize
+
+
+def build_actor(settings: Settings) -> StackedActor:
+    a, p = settings.actor, settings.plant
+    return StackedActor(
+        ActorProblem(
+            agent=a.agent,
+            horizon=a.horizon,
+            sampling_time=p.sampling_time,
+            cost_diag=tuple(settings.cost.r_diag),
+            v_max=p.v_max,
+            omega_max=p.omega_max,
+            predictor=a.predictor,
+            solver=a.solver,
+            jit=a.jit,
+            max_iter=a.max_iter,
+            tolerance=a.tolerance,
+            mu_init=a.mu_init,
+            bound_push=a.bound_push,
+        )
+    )
+
+
+def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:
+    """The in-process critic learner of the settings (initial weights, beta, lambda, box, M)."""
+    c = settings.critic
+    return LocalCritic(
+        settings.initial_q_weights(),
+        settings.initial_v_weights(),
+        settings.discount,
+        c.ridge,
+        c.bounds,
+        c.replay_size,
+        c.update_every,
+        learn=learn,
+    )
+
+
+def run_episode(
+    settings: Settings,
+    actor: StackedActor | None = None,
+    plant: Plant | None = None,
+    critic: CriticPort | None = None,
+    stop: threading.Event | None = None,
+) -> Episode:
+    """Algorithm 1 (:func:`common.loop.run_algorithm1`) for ``settings.steps`` sampling intervals
+    from ``settings.start_state()``; the exact plant and a local critic unless given."""
+    return run_algorithm1(
+        actor or build_actor(settings),
+        plant or ExactPlant(),
+        critic or local_critic(settings, learn=settings.actor.agent != "mpc"),
+        settings.start_state(),
+        settings.steps,
+        settings.plant.sampling_time,
+        tuple(settings.cost.r_diag),
+        stop,
+    )
+
+
+def episode_summary(episode: Episode, settings: Settings) -> dict[str, object]:
+    """The JSON-ready summary of a run (the contract of ``srl run --json``)."""
+    final = episode.final_state
+    return {
+        "agent": episode.agent,
+        "horizon": episode.horizon,
+        "steps": episode.steps,
+        "episode_seconds": episode.steps * settings.plant.sampling_time,
+        "accumulated_cost": episode.accumulated_cost,
+        "start_state": [float(c) for c in episode.states[0]],
+        "final_state": [float(c) for c in final],
+        "final_distance": float(np.hypot(final[0], final[1])),
+        "solve_ms": summarize(episode.solve_seconds, scale=1e3),
+        "solver_failures": episode.solver_failures,
+        "settings": settings.as_dict(),
+    }

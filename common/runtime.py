@@ -1,0 +1,296 @@
+"""The life cycle every srl process shares: signals, the parent watch, the Zenoh session with
+retry and readable errors, one JSON summary line, exit codes, and the exit that skips the
+interpreter's finalization once Zenoh ran.
+
+A service's ``__main__`` (and ``srl <service>``) parses its arguments with the helpers here and
+in :mod:`common.arguments`, resolves its settings and hands its ``run`` to :func:`serve`; the
+``srl`` command (tools/cli.py) and ``python -m services.<name>`` run the same code. Zenoh is
+imported only inside functions (through common.transport), so importing this module stays pure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import math
+import os
+import re
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, NoReturn
+
+from common.lifeline import die_with_parent
+from common.provenance import PlantConflictError
+from common.security import SecurityError
+from common.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+class UsageError(Exception):
+    """A problem with what the user asked for: printed as one clear line, exit code 2."""
+
+
+class SignalledError(Exception):
+    """Ended by a signal: one line, exit 128 + the signal's number (130 Ctrl-C, 143 SIGTERM)."""
+
+    def __init__(self, signum: int) -> None:
+        import signal
+
+        self.signum = signum
+        super().__init__(f"{signal.Signals(signum).name}")
+
+
+class SignalStop(threading.Event):
+    """A stop event that remembers the signal that set it."""
+
+    signum: int | None = None
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[SignalStop]:
+    """SIGINT and SIGTERM set an event (checked between steps) instead of raising inside native
+    code: a KeyboardInterrupt raised in a CasADi callback surfaces as ``SystemError ... returned a
+    result with an exception set``. The previous handlers are restored after."""
+    import signal
+
+    stop = SignalStop()
+
+    def handler(signum: int, _frame: object) -> None:
+        if stop.signum is None:
+            stop.signum = signum
+        stop.set()
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for signum, action in previous.items():
+            signal.signal(signum, action)
+
+
+def serve(settings: Settings, service: str, connect_timeout: float, body: Callable[..., dict[str, Any]]) -> int:
+    """The one life cycle of a service process: signals, parent watch, session (with retry),
+    ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line."""
+    import signal
+
+    from common.transport import Bus
+
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
+    bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
+    try:
+        result = body(settings, bus, stop)
+    finally:
+        bus.close()
+    result["resources"] = own_resources()
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+# A router that accepts TCP but refuses the session this long is refusing the login (a wrong
+# password does not become right); shorter, it may still be starting.
+LOGIN_REFUSED_AFTER = 2.0
+
+
+def connect_with_retry(
+    opener: Callable[[], Any], settings: Settings, service: str, timeout: float, stop: threading.Event
+) -> Any:
+    """Open the Zenoh session, retrying every 0.2 s for ``timeout`` s, and say why it failed.
+
+    "waiting for the router" is said at once; at the end a router that listens but refuses the
+    session (secure: the login) is told apart from one that is not there at all, without Zenoh's
+    Rust internals (those go to DEBUG)."""
+    import zenoh
+
+    transport = settings.transport
+    deadline = time.monotonic() + timeout
+    refused_since: float | None = None
+    said = False
+    while True:
+        try:
+            return opener()
+        except zenoh.ZError as error:
+            log.debug("%s: zenoh.open: %s", service, error)
+            now = time.monotonic()
+            listening = _endpoint_listening(transport.router)
+            refused_since = (refused_since or now) if listening else None
+            if transport.secure and refused_since is not None and now - refused_since >= LOGIN_REFUSED_AFTER:
+                raise UsageError(
+                    f"{service}: the router at {transport.router} refused the login of user "
+                    f"{transport.user!r}: wrong password or unknown user (check transport.password_file "
+                    "or SRL_TRANSPORT__PASSWORD against the router's users file)"
+                ) from None
+            if now > deadline or stop.is_set():
+                if listening:
+                    raise UsageError(
+                        f"{service}: something listens at {transport.router} but refused a Zenoh "
+                        "session (not a Zenoh router, or it requires a login: transport.secure)"
+                    ) from None
+                raise UsageError(
+                    f"{service}: cannot reach the Zenoh router at {transport.router} after "
+                    f"{timeout:.0f} s (is `srl router` running? see --router, --connect-timeout)"
+                ) from None
+            if not said:
+                log.warning("%s: waiting for the Zenoh router at %s (up to %.0f s)", service, transport.router, timeout)
+                said = True
+            time.sleep(0.2)
+
+
+def zenoh_reason(error: Exception) -> str:
+    """Zenoh's error text without its Rust source location (`` at /root/.cargo/...rs:447.``)."""
+    return re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(error)).strip()
+
+
+def _endpoint_listening(endpoint: str) -> bool:
+    """Whether a TCP-based endpoint (tcp/, tls/, ws/) accepts a plain connection."""
+    import socket
+
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in ("tcp", "tls", "ws"):
+        return False
+    host, _, port = address.split("?")[0].split("#")[0].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def own_resources() -> dict[str, float]:
+    """CPU seconds and peak resident memory of this process (for benchmarks)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return {"cpu_seconds": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024.0}
+
+
+_NUMBER = r"(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+_NEGATIVE_NUMBERS = re.compile(rf"^-{_NUMBER}(,[-+]?{_NUMBER})*$")
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse, but ``--start -1.2,0.7`` works: a token of negative numbers is a value.
+
+    argparse takes any token starting with ``-`` for an option unless it looks like ONE negative
+    number (its ``_negative_number_matcher``); lists such as ``-1.2,0.7`` and exponents such as
+    ``-1e9`` are widened into that class. No srl option looks like a number, so nothing is lost.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", argparse.RawDescriptionHelpFormatter)
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_NUMBERS
+
+    def error(self, message: str) -> NoReturn:
+        """One line (argparse adds its usage block first): what is wrong and where help is."""
+        self.exit(2, f"{self.prog}: error: {message} (see: {self.prog} --help)\n")
+
+
+def floats_arg(count: int) -> Callable[[str], tuple[float, ...]]:
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(part) for part in text.split(","))
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(f"expected {count} comma-separated numbers, got {text!r}") from error
+        if len(values) != count or not all(math.isfinite(v) for v in values):
+            raise argparse.ArgumentTypeError(f"expected {count} finite comma-separated numbers, got {text!r}")
+        return values
+
+    return parse
+
+
+def add_lifetime_arguments(
+    parser: argparse.ArgumentParser, run_help: str = "stop after this long (default: until signalled)"
+) -> None:
+    """--run-seconds and --connect-timeout, as every long-running service process takes them."""
+    parser.add_argument("--run-seconds", type=float, help=run_help)
+    parser.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
+
+
+def main(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
+    """Parse, configure logging once, run the chosen ``func``; errors as one line and an exit code."""
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper(), logging.WARNING),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except (UsageError, SecurityError, PlantConflictError) as error:
+        print(f"srl: error: {error}", file=sys.stderr)
+        return 2
+    except SignalledError as stopped:
+        print(f"srl: interrupted ({stopped}): stopped", file=sys.stderr)
+        return 128 + stopped.signum
+    except KeyboardInterrupt as error:  # also common.actor.BuildInterrupted (a signal during the JIT build)
+        import signal
+
+        signum = getattr(error, "signum", signal.SIGINT)
+        print(f"srl: interrupted ({signal.Signals(signum).name}): stopped", file=sys.stderr)
+        return 128 + signum
+    except BrokenPipeError:
+        # the reader went away (srl run | head): no traceback; as a shell reports SIGPIPE
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return 141
+
+
+def entry(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[str] | None = None) -> None:
+    """A process's whole life: :func:`main`, then, in a process that used Zenoh, an exit that
+    skips the interpreter's finalization.
+
+    Zenoh runs Python callbacks on its own native (Rust) threads. A thread that asks for the
+    GIL while the interpreter finalizes is ended by CPython with ``pthread_exit``, and that
+    forced unwinding through Rust frames aborts the whole process (SIGABRT, exit -6) after its
+    work is done and reported: seen once in the test suite, an actor that had printed its
+    summary. Such a process therefore runs its ``atexit`` handlers (logging, multiprocessing),
+    flushes its streams and leaves with ``os._exit``: nothing of
+    ours is left to finalize (every service has closed its Zenoh session by then).
+    """
+    import os
+
+    try:
+        code: int | str | None = main(build_parser(), argv)
+    except SystemExit as done:
+        code = done.code
+    if "zenoh" in sys.modules and (code is None or isinstance(code, int)):
+        import atexit
+        import contextlib
+
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):  # closed, or a broken pipe: nothing more to say
+                stream.flush()
+        os._exit(code or 0)
+    sys.exit(code)
+
+
+def add_log_level(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--log-level",
+        default="WARNING",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        type=str.upper,
+        help="console log level (default: WARNING: warnings and errors only)",
+    )
+
+
+def service_parser(command: Any) -> argparse.ArgumentParser:
+    """The parser of one service run as ``python -m services.<name>``: the same options as
+    ``srl <name>`` (the service's ``command`` module: ``NAME``, ``HELP``, ``add_arguments``)."""
+    parser = Parser(prog=f"srl {command.NAME}", description=command.HELP[:1].upper() + command.HELP[1:] + ".")
+    add_log_level(parser)
+    command.add_arguments(parser)
+    return parser

@@ -1,0 +1,39 @@
+"""``srl actor`` / ``python -m services.actor``: the delta-periodic actor loop."""
+
+from __future__ import annotations
+
+import argparse
+
+from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
+from common.runtime import add_lifetime_arguments, serve
+
+NAME = "actor"
+HELP = "the delta-periodic actor loop"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
+    parser.add_argument(
+        "--mode",
+        choices=["realtime", "lockstep"],
+        default="realtime",
+        help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)",
+    )
+    add_lifetime_arguments(
+        parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
+    )
+    parser.add_argument(
+        "--sync-critic", action="store_true", help="lockstep: wait for the weights trained on the previous step"
+    )
+    parser.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from services.actor.service import run
+
+    return serve(
+        settings_from_args(args),
+        "actor",
+        args.connect_timeout,
+        lambda settings, bus, stop: run(settings, bus, args.mode, stop, args.run_seconds, args.sync_critic),
+    )

@@ -1,0 +1,232 @@
+"""The actor's ports: what the loop talks to, over Zenoh.
+
+* :class:`WeightsInbox` -- the newest accepted critic weights (provenance, box, versions, trained
+  step: issue 13);
+* :class:`ZenohPlant` -- the plant behind its lockstep queryables (``plant/reset``, ``plant/step``);
+* :class:`ZenohCriticPort` -- transitions out to the off-board critic, weights back.
+
+The lockstep actor (services/actor/service.py) and the experiment's workers
+(tools/experiment/runner.py) run :func:`common.assembly.run_episode` over these ports.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from common.critic import Sample
+from common.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
+from common.messages import CriticWeights, Message, ResetRequest, StepRequest, Transition
+from common.provenance import SourceGate
+from common.settings import Settings
+from common.transport import Bus
+
+log = logging.getLogger(__name__)
+MAX_VERSION_AHEAD_US = 60_000_000  # clock skew allowed between the critic's host and ours
+# Weights beyond the critic's box are refused; without a box (critic.weight_bounds = []) this
+# is the bound: far above any fit of ours (README), far below where the objective overflows.
+MAX_ABS_WEIGHT_UNBOXED = 1e6
+
+
+@dataclass
+class HeldWeights:
+    q: np.ndarray
+    v: np.ndarray
+    version: int
+    trained_step: int
+    received_at: float
+
+
+class WeightsInbox:
+    """Newest accepted critic weights of the current episode (thread-safe).
+
+    Weights are accepted only (issue 13): from the live critic session when a ``gate`` is given
+    (its identity token, common.provenance), for the current episode, newer than the held
+    version of the same critic session (a new session -- a restarted critic -- resynchronizes),
+    within the configured weight box (else the last good weights are kept), and trained on a
+    step the actor has already published (``published_step``): a forged far-future version or
+    trained step can neither lock out the real critic nor falsify the staleness figures.
+    """
+
+    def __init__(self, settings: Settings, bus: Bus, gate: SourceGate | None = None) -> None:
+        self.settings = settings
+        self.bus = bus
+        self.gate = gate
+        self.cond = threading.Condition()
+        self.episode = -1
+        self.published_step = -1  # the newest transition step this actor published (this episode)
+        self.source: str | None = None  # the critic session whose versions are held
+        bounds = settings.critic.bounds
+        self.box = bounds if bounds is not None else (-MAX_ABS_WEIGHT_UNBOXED, MAX_ABS_WEIGHT_UNBOXED)
+        self.held = HeldWeights(settings.initial_q_weights(), settings.initial_v_weights(), 0, -1, time.monotonic())
+
+    def reset(self, episode: int) -> HeldWeights:
+        with self.cond:
+            self.episode = episode
+            self.published_step = -1
+            self.source = None
+            self.held = HeldWeights(
+                self.settings.initial_q_weights(), self.settings.initial_v_weights(), 0, -1, time.monotonic()
+            )
+            return self.held
+
+    def published(self, step: int) -> None:
+        with self.cond:
+            self.published_step = max(self.published_step, step)
+
+    def offer(self, message: CriticWeights, source: str | None = None) -> None:
+        if self.gate is not None:
+            verdict = self.gate.verdict(source)
+            if verdict != "accept":
+                self.bus.reject(
+                    "critic/weights", f"from session {source} ({verdict}: live critic {self.gate.sources() or 'none'})"
+                )
+                return
+        low, high = self.box
+        weights = (*message.q_weights, *message.v_weights)
+        if min(weights) < low or max(weights) > high:
+            self.bus.reject(
+                "critic/weights",
+                f"weights outside the box [{low:g}, {high:g}] "
+                f"(min {min(weights):g}, max {max(weights):g}); keeping version {self.held.version}",
+            )
+            return
+        with self.cond:
+            if message.episode != self.episode:
+                self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
+                return
+            if message.trained_step > self.published_step:
+                self.bus.reject(
+                    "critic/weights",
+                    f"trained on step {message.trained_step}, but the actor published only up to {self.published_step}",
+                )
+                return
+            if message.version > time.time_ns() // 1000 + MAX_VERSION_AHEAD_US:
+                # critic versions count from the wall clock in microseconds: one far ahead is
+                # forged or corrupt (a sanity bound; provenance is what keeps forgers out)
+                self.bus.reject("critic/weights", f"version {message.version} is from the future")
+                return
+            same_source = source == self.source
+            if same_source and message.version <= self.held.version:
+                self.bus.reject("critic/weights", f"version {message.version} <= held {self.held.version}")
+                return
+            if not same_source and self.source is not None:
+                log.info("critic session %s replaces %s: versions resynchronized", source, self.source)
+                self.bus.count("critic_resyncs")
+            self.source = source
+            self.held = HeldWeights(
+                np.array(message.q_weights),
+                np.array(message.v_weights),
+                message.version,
+                message.trained_step,
+                time.monotonic(),
+            )
+            self.bus.count("weights_accepted")
+            self.cond.notify_all()
+
+    def current(self) -> HeldWeights:
+        with self.cond:
+            return self.held
+
+    def wait_trained(self, step: int, timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: self.held.trained_step >= step, timeout)
+
+
+def new_episode_id() -> int:
+    """Episode ids increase across restarts (milliseconds since the epoch)."""
+    return time.time_ns() // 1_000_000
+
+
+class ZenohPlant:
+    """The plant behind its lockstep queryables; retries are safe (the plant is idempotent)."""
+
+    def __init__(self, settings: Settings, bus: Bus, episode: int) -> None:
+        self.settings, self.bus, self.episode = settings, bus, episode
+        self.robot = settings.transport.robot
+        self.step_index = 0
+
+    def _query(self, service: Service[Any, Any], request: Message) -> Any:
+        timeout = self.settings.transport.query_timeout
+        for attempt in range(3):
+            try:
+                return self.bus.query(service, self.robot, request, timeout)
+            except TimeoutError:
+                self.bus.count("plant_query_retries")
+                log.warning("plant query timed out (attempt %d)", attempt + 1)
+        raise TimeoutError(f"plant did not answer {service.pattern} three times")
+
+    def reset(self, state: np.ndarray) -> np.ndarray:
+        self.step_index = 0
+        reply = self._query(
+            PLANT_RESET,
+            ResetRequest(
+                robot=self.robot, episode=self.episode, state=(float(state[0]), float(state[1]), float(state[2]))
+            ),
+        )
+        return np.array(reply.state)
+
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
+        request = StepRequest(
+            robot=self.robot,
+            episode=self.episode,
+            step=self.step_index,
+            action=(float(action[0]), float(action[1])),
+            duration=duration,
+        )
+        reply = self._query(PLANT_STEP, request)
+        self.step_index += 1
+        return np.array(reply.state)
+
+
+class ZenohCriticPort:
+    """Transitions out to the off-board critic; weights back (optionally waited for)."""
+
+    def __init__(self, settings: Settings, bus: Bus, inbox: WeightsInbox, episode: int, sync: bool) -> None:
+        self.settings, self.bus, self.inbox, self.episode, self.sync = settings, bus, inbox, episode, sync
+        self.robot = settings.transport.robot
+        self.publish = bus.publisher(TRANSITION, self.robot, cache=settings.transport.transition_cache)
+        self.staleness: list[int] = []
+        self.timeouts = 0
+
+    def new_episode(self, settings: Settings, episode: int) -> None:
+        """The same port (one cached transition publisher for the process's life) for a new
+        episode: its settings and id, staleness and timeouts counted afresh."""
+        self.settings, self.episode = settings, episode
+        self.staleness, self.timeouts = [], 0
+
+    def reset(self) -> tuple[np.ndarray, np.ndarray]:
+        held = self.inbox.reset(self.episode)
+        return held.q, held.v
+
+    def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        self.inbox.published(sample.step)
+        self.publish(
+            Transition(
+                robot=self.robot,
+                episode=self.episode,
+                step=sample.step,
+                state=(float(sample.state[0]), float(sample.state[1]), float(sample.state[2])),
+                action=(float(sample.action[0]), float(sample.action[1])),
+                cost=float(sample.cost),
+            )
+        )
+        needs_fit = self.settings.actor.agent != "mpc" and sample.step % self.settings.critic.update_every == 0
+        if self.sync and needs_fit and not self.inbox.wait_trained(sample.step, self.settings.transport.critic_timeout):
+            self.timeouts += 1
+            self.bus.count("critic_timeouts")
+            log.warning(
+                "no weights trained on step %d within %.1f s; going on with version %d",
+                sample.step,
+                self.settings.transport.critic_timeout,
+                self.inbox.current().version,
+            )
+        held = self.inbox.current()
+        # staleness of the weights the NEXT step will use: ideally trained on this step
+        self.staleness.append(sample.step - held.trained_step)
+        return held.q, held.v

@@ -1,0 +1,344 @@
+"""The real-time actor: the ``delta``-periodic loop as a class with explicit state and ports.
+
+At tick ``k`` (absolute time ``t0 + k delta``, :class:`common.clock.Ticker`) it takes the newest
+accepted state, solves, publishes the action and one transition. It never waits for the critic:
+it uses the newest weights it holds and reports their staleness. It commands zero velocity and
+records no transition (the critic sees a gap, never a false pair) when the state is stale
+(older than ``(action_timeout_steps - 1) delta``), never came, when the plant's liveliness token
+vanished, or while two plant sessions are alive (issue 13).
+
+States are accepted only from the live plant session (its identity token, common.provenance),
+in order per session and never more than :data:`MAX_SEQ_JUMP` ahead; a new session (a
+restarted plant) resynchronizes.
+
+Memory is bounded whatever the run length: the loop's statistics are fixed windows
+(:class:`common.stats.Window`, the newest 4096 values; max over the whole run), the cost a
+running sum, the published steps the newest :data:`RUNS_KEPT` runs, the transitions' tail the
+newest ``M``. ``tests/test_realtime_actor.py`` runs it on a fake clock and fake ports.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+from common.actor import StackedActor
+from common.clock import Ticker
+from common.features import stage_cost
+from common.messages import Action, PlantState, Transition
+from common.provenance import SequenceGuard, SourceGate
+from common.settings import Settings
+from common.stats import Window
+from services.actor.ports import WeightsInbox
+
+log = logging.getLogger(__name__)
+# A state's seq may run at most this far ahead of the last accepted one of its plant session
+# (plant_sim publishes at transport.state_rate <= 1000 Hz, the bridge at the odometry rate):
+# one forged PlantState(seq=2**62) must not make every real state "old" for the rest of the run.
+MAX_SEQ_JUMP = 10_000
+PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
+RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
+
+
+class Counts(Protocol):
+    """What the loop reports to (common.transport.Bus has it): counters and refusals."""
+
+    @property
+    def counters(self) -> Any: ...
+
+    def count(self, name: str, amount: int = 1) -> None: ...
+
+    def reject(self, what: str, reason: str) -> None: ...
+
+
+class RealtimeActor:
+    """One robot's real-time actor. Feed it states (:meth:`on_state`), plant identities and
+    tokens; :meth:`run` ticks until ``stop`` or the end; :meth:`status` and :meth:`summary`
+    report. Everything it sends goes through ``publish_action`` and ``publish_transition``."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        actor: StackedActor,
+        inbox: WeightsInbox,
+        publish_action: Callable[[Action], None],
+        publish_transition: Callable[[Transition], None],
+        counts: Counts,
+        episode_id: int,
+        plant_gate: SourceGate | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.settings = settings
+        self.robot = settings.transport.robot
+        self.delta = settings.plant.sampling_time
+        # A state older than this at a tick means the plant is silent: command zero. The last
+        # state seen at t0 is then stale at the first tick after t0 + (n - 1) delta, i.e. the zero
+        # goes out within n delta of the state stopping (n = action_timeout_steps >= 2).
+        self.stale_after = (settings.transport.action_timeout_steps - 1) * self.delta
+        self.actor, self.inbox, self.counts = actor, inbox, counts
+        self.publish_action, self.publish_transition = publish_action, publish_transition
+        self.episode_id = episode_id
+        self.clock = clock
+        self.plant_gate = plant_gate or SourceGate("plant")
+        self.order = SequenceGuard(MAX_SEQ_JUMP)
+        self.lock = threading.Lock()
+        self.latest: tuple[PlantState, float] | None = None  # the newest accepted state, when it came
+        self.last_accepted: PlantState | None = None  # for the summary: never a refused one
+        self.episodes: dict[str, int] = {}
+        self.refused_at = 0.0  # when the live plant's last state was refused (a lockout shows in status)
+        # statistics, bounded
+        self.periods = Window()
+        self.jitter = Window()
+        self.latencies = Window()
+        self.staleness_steps = Window()
+        self.staleness_ms = Window()
+        self.accumulated_cost = 0.0
+        self.tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)  # what a replay must hold
+        self.publish_times: dict[int, float] = {}
+        self.published_steps: deque[list[int]] = deque(maxlen=RUNS_KEPT)
+        self.steps = 0
+        self.stale_state_stops = 0
+        self.plant_conflict_stops = 0
+        self.start_state: np.ndarray | None = None
+        self.ticker: Ticker | None = None
+        self.last_step = -1
+
+    # -- inputs (Zenoh's threads) ---------------------------------------------------------
+    def on_plant_identity(self, zid: str, alive: bool) -> None:
+        with self.lock:
+            self.order.forget(set(self.plant_gate.sources()))
+            if not alive:
+                self.episodes.pop(zid, None)
+            if self.plant_gate.conflict:
+                self.latest = None  # follow neither of two plants
+        if self.plant_gate.conflict:
+            self.counts.count("plant_conflicts")
+            log.error(
+                "two plants are alive for robot %s (sessions %s): commanding zero velocity until one is gone",
+                self.robot,
+                ", ".join(self.plant_gate.sources()),
+            )
+
+    def on_state(self, message: PlantState, source: str | None) -> None:
+        verdict = self.plant_gate.verdict(source)
+        if verdict != "accept":
+            self.counts.reject(
+                f"state.{verdict}", f"from session {source} (live plant: {self.plant_gate.sources() or 'none'})"
+            )
+            return
+        assert source is not None
+        with self.lock:
+            if self.episodes.get(source) != message.episode:  # a new stream of the live plant (or its reset)
+                self.episodes[source] = message.episode
+                self.order.last.pop(source, None)
+            refusal = self.order.check(source, message.seq)
+            now = self.clock()
+            if refusal is not None:
+                self.refused_at = now
+                self.counts.reject("state", f"seq {refusal}")
+                return
+            self.latest = (message, now)
+            self.last_accepted = message
+
+    def on_plant_token(self, alive: bool) -> None:
+        """The plant (simulator or robot bridge) vanished: its last state is no longer the robot's.
+        Forget it, so the next tick commands zero velocity instead of waiting for the state to go
+        stale; fresh states resume the loop."""
+        if not alive:
+            with self.lock:
+                self.latest = None
+            self.counts.count("plant_lost")
+            log.warning("plant liveliness lost: commanding zero velocity until its state returns")
+
+    # -- the loop ---------------------------------------------------------------------------
+    def tick(self, k: int, tick: float) -> None:
+        """The work of tick ``k`` (due at ``tick``): an action (zero when it must) and, after a
+        solve, one transition."""
+        with self.lock:
+            held = self.latest
+        if self.plant_gate.conflict:
+            self.plant_conflict_stops += 1
+            self.stop_robot(k)
+        elif held is None or tick - held[1] > self.stale_after:
+            self.stale_state_stops += 1
+            self.stop_robot(k)
+        else:
+            try:
+                self._step(k, tick, held)
+            except Exception:  # never let one bad tick end the loop that keeps the robot safe
+                self.counts.count("tick_errors")
+                log.exception("actor tick %d failed; commanding zero velocity", k)
+                self.stop_robot(k)
+        self.last_step = k
+
+    def stop_robot(self, k: int) -> None:
+        self.publish_action(
+            Action(
+                robot=self.robot,
+                episode=self.episode_id,
+                step=k,
+                stamp_ns=time.monotonic_ns(),
+                action=(0.0, 0.0),
+                state_seq=-1,
+            )
+        )
+        self.actor.reset()  # the plan no longer matches the robot
+
+    def _step(self, k: int, tick: float, held: tuple[PlantState, float]) -> None:
+        message, received = held
+        state = np.array(message.state)
+        if self.start_state is None:
+            self.start_state = state
+        weights = self.inbox.current()
+        step = self.actor.step(state, weights.q, weights.v)
+        action = (float(step.action[0]), float(step.action[1]))
+        self.publish_action(
+            Action(
+                robot=self.robot,
+                episode=self.episode_id,
+                step=k,
+                stamp_ns=time.monotonic_ns(),
+                action=action,
+                state_seq=message.seq,
+            )
+        )
+        done = self.clock()
+        # transport/loop latency: state arrival -> action out, minus the solve itself
+        self.latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
+        cost = self.delta * float(stage_cost(state, step.action, self.settings.cost.r_diag))
+        self.accumulated_cost += cost
+        self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
+        self.publish_transition(
+            Transition(
+                robot=self.robot,
+                episode=self.episode_id,
+                step=k,
+                state=(float(state[0]), float(state[1]), float(state[2])),
+                action=action,
+                cost=cost,
+            )
+        )
+        self.publish_times[k] = self.clock()
+        self.publish_times.pop(k - PUBLISH_TIMES_KEPT, None)
+        self.tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
+        if self.published_steps and self.published_steps[-1][1] == k - 1:
+            self.published_steps[-1][1] = k
+        else:
+            self.published_steps.append([k, k])
+        if self.settings.actor.agent != "mpc":
+            self.staleness_steps.append((k - 1) - weights.trained_step)
+            seen = self.publish_times.get(weights.trained_step)
+            if seen is not None:
+                self.staleness_ms.append((done - seen) * 1e3)
+        self.steps += 1
+
+    def run(self, ticker: Ticker, end: float | None, manual_gc: bool = True) -> None:
+        """Tick until ``ticker`` stops or its next tick is at or after ``end``.
+
+        ``manual_gc``: garbage collection off the critical path -- what exists now is frozen
+        out of the collector, automatic collection is off, and the loop collects in its slack
+        time after each tick's work is out (the young generation every tick, the middle one
+        every 10, all every 600). SRL_ACTOR_AUTOMATIC_GC=1 keeps Python's automatic collection."""
+        self.ticker = ticker
+        manual_gc = manual_gc and gc.isenabled() and os.environ.get("SRL_ACTOR_AUTOMATIC_GC") != "1"
+        if manual_gc:
+            gc.disable()
+        previous: float | None = None
+        try:
+            while (tick := ticker.wait()) is not None and (end is None or tick < end):
+                if previous is not None:
+                    self.periods.append(tick - previous)
+                    self.jitter.append(abs(tick - previous - self.delta))
+                previous = tick
+                k = ticker.index - 1
+                self.tick(k, tick)
+                if manual_gc:
+                    gc.collect(2 if k % 600 == 599 else 1 if k % 10 == 9 else 0)
+        finally:
+            if manual_gc:
+                gc.enable()
+        # on the way out: stop the robot
+        self.publish_action(
+            Action(
+                robot=self.robot,
+                episode=self.episode_id,
+                step=ticker.index,
+                stamp_ns=time.monotonic_ns(),
+                action=(0.0, 0.0),
+                state_seq=-1,
+            )
+        )
+
+    # -- reports ------------------------------------------------------------------------------
+    def lockout_suspect(self) -> bool:
+        """The live plant's states are being refused and none was accepted for over a second:
+        the pattern a forged far-ahead sequence number or episode leaves (status, issue 13)."""
+        with self.lock:
+            held = self.latest
+        now = self.clock()
+        return now - self.refused_at < 1.0 and (held is None or now - held[1] > 1.0)
+
+    def status(self) -> dict[str, float]:
+        """The 1 Hz status counters (``srl/<robot>/status/actor``; ``srl up``'s live line)."""
+        held_weights = self.inbox.current()
+        solves = self.actor.counters.solve_seconds
+        with self.lock:
+            shown = self.latest
+        pose = shown[0].state if shown is not None else (float("nan"),) * 3  # nan: left out
+        return {
+            "x": pose[0],
+            "y": pose[1],
+            "alpha": pose[2],
+            "accumulated_cost": self.accumulated_cost,
+            "steps": self.steps,
+            "missed_deadlines": self.ticker.missed if self.ticker is not None else 0,
+            "solver_failures": self.actor.counters.failures,
+            "weights_version": held_weights.version,
+            "staleness_steps": self.staleness_steps.last if self.staleness_steps.count else 0.0,
+            "solve_ms_last": solves.last * 1e3 if solves.count else 0.0,
+            "plant_sources": float(len(self.plant_gate.sources())),
+            "plant_conflict": float(self.plant_gate.conflict),
+            "lockout_suspect": float(self.lockout_suspect()),
+        }
+
+    def summary(self) -> dict[str, Any]:
+        with self.lock:
+            last = self.last_accepted
+        ticker = self.ticker
+        return {
+            "service": "actor",
+            "mode": "realtime",
+            "agent": self.settings.actor.agent,
+            "horizon": self.settings.actor.horizon,
+            "episode_id": self.episode_id,
+            "steps": self.steps,
+            "accumulated_cost": self.accumulated_cost,
+            "start_state": None if self.start_state is None else [float(c) for c in self.start_state],
+            "final_state": None if last is None else [float(c) for c in last.state],
+            "weights_version": self.inbox.current().version,
+            "loop": {
+                "period_ms": self.periods.summary(1e3),
+                "jitter_ms": self.jitter.summary(1e3),
+                "missed_deadlines": ticker.missed if ticker is not None else 0,
+                "late_ticks": ticker.late if ticker is not None else 0,
+            },
+            "solve_ms": self.actor.counters.solve_seconds.summary(1e3),
+            "solver_failures": self.actor.counters.failures,
+            "latency_ms": self.latencies.summary(1e3),
+            "staleness_steps": self.staleness_steps.summary(),
+            "staleness_ms": self.staleness_ms.summary(),
+            "stale_state_stops": self.stale_state_stops,
+            "plant_conflict_stops": self.plant_conflict_stops,
+            "plant_sources": self.plant_gate.sources(),
+            "transitions_tail": list(self.tail),
+            "transition_steps": [list(run) for run in self.published_steps],
+            "counters": dict(self.counts.counters),
+        }

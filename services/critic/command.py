@@ -1,0 +1,30 @@
+"""``srl critic`` / ``python -m services.critic``: the off-board critic learner (TD least squares)."""
+
+from __future__ import annotations
+
+import argparse
+
+from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
+from common.runtime import add_lifetime_arguments, serve
+
+NAME = "critic"
+HELP = "the off-board critic learner (TD least squares)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
+    add_lifetime_arguments(
+        parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
+    )
+    parser.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from services.critic.service import run
+
+    return serve(
+        settings_from_args(args),
+        "critic",
+        args.connect_timeout,
+        lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
+    )

@@ -1,0 +1,124 @@
+"""``srl tb3-emulator`` / ``python -m services.tb3_emulator``: an emulated TurtleBot3 Burger that
+speaks ROS 2 over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds wire), with its own main."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
+from common.lifeline import die_with_parent
+from common.runtime import add_lifetime_arguments, connect_with_retry, floats_arg, own_resources
+
+NAME = "tb3-emulator"
+HELP = "an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh"
+
+# The emulator's cmd_vel timeout. 0.5 s is the OpenCR firmware's own HEARTBEAT_TIMEOUT_MS (it
+# stops the wheels when turtlebot3_node falls silent for 500 ms) and twist_mux's customary topic
+# timeout: five missed 10 Hz commands. At 0.22 m/s a broken command path then costs <= 11 cm.
+CMD_TIMEOUT_DEFAULT = 0.5
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
+    add_bridge_arguments(parser)
+    parser.add_argument(
+        "--initial-pose",
+        type=floats_arg(3),
+        metavar="X,Y,THETA",
+        help="start pose in the odom frame (default: the episode start, through bridge.goal)",
+    )
+    parser.add_argument(
+        "--noise",
+        type=floats_arg(2),
+        default=(0.0, 0.0),
+        metavar="SIGMA_XY,SIGMA_THETA",
+        help="std. dev. of Gaussian noise on the reported pose [m, rad] (default 0,0)",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
+    parser.add_argument("--latency", type=float, default=0.0, help="[s] cmd_vel -> wheels delay (default: 0)")
+    parser.add_argument(
+        "--cmd-timeout",
+        type=float,
+        default=CMD_TIMEOUT_DEFAULT,
+        help="[s] stop when cmd_vel is older: a robot must stop when its command stream breaks; "
+        f"0: hold the last command forever, like a stock TurtleBot3 (default: {CMD_TIMEOUT_DEFAULT})",
+    )
+    parser.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
+    parser.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
+    parser.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate (default: 20)")
+    parser.add_argument(
+        "--attachment",
+        choices=("compact", "legacy"),
+        default="compact",
+        help="rmw_zenoh attachment format: compact (rmw_zenoh_cpp Humble >= 0.1.2, Jazzy >= 0.2.4) "
+        "or legacy (Humble 0.1.0-0.1.1, Jazzy 0.2.0-0.2.3) (default: compact)",
+    )
+    parser.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to --router)")
+    add_lifetime_arguments(parser)
+    parser.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    import zenoh
+
+    from common import ros_wire
+    from common.frames import Pose2D, from_goal_frame
+    from common.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph
+    from common.transport import zenoh_config
+    from services.tb3_emulator.service import Tb3Model, run
+
+    settings = settings_from_args(args)
+    bridge = settings.bridge
+    if args.initial_pose is not None:
+        pose = Pose2D(*args.initial_pose)
+    else:  # the episode's start (goal frame) where the bridge's goal puts it in the odom frame
+        pose = from_goal_frame(Pose2D(*(float(c) for c in settings.start_state())), Pose2D(*bridge.goal))
+    cmd_type = DEFAULT_CMD_TYPE[bridge.ros_distro] if bridge.cmd_type == "auto" else CMD_TYPES[bridge.cmd_type]
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
+    if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
+        config = zenoh_config(settings.transport, router=True, listen=[args.listen])
+        config.insert_json5("connect/endpoints", "[]")
+        session = zenoh.open(config)
+    else:
+        session = connect_with_retry(
+            lambda: zenoh.open(zenoh_config(settings.transport)), settings, "tb3-emulator", args.connect_timeout, stop
+        )
+    v_max = ros_wire.TB3_BURGER_V_MAX if args.v_max is None else args.v_max
+    omega_max = ros_wire.TB3_BURGER_OMEGA_MAX if args.omega_max is None else args.omega_max
+    model = Tb3Model(
+        pose,
+        v_max,
+        omega_max,
+        args.latency,
+        args.cmd_timeout,
+        (args.noise[0], args.noise[1]),
+        args.seed,
+        time.monotonic(),
+    )
+    try:
+        result = run(
+            session,
+            RosGraph.from_settings(bridge),
+            cmd_type,
+            model,
+            stop,
+            args.run_seconds,
+            bridge.odom_topic,
+            bridge.cmd_vel_topic,
+            args.odom_rate,
+            attachment=args.attachment,
+        )
+    finally:
+        session.close()
+    result["initial_pose"] = list(pose)
+    result["resources"] = own_resources()
+    print(json.dumps(result), flush=True)
+    return 0

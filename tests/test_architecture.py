@@ -1,0 +1,174 @@
+"""The architecture as rules over the imports, each with a negative control (as test_purity.py).
+
+Floors, from the ground up: ``common/`` (the math, the contracts, settings, transport, runtime)
+-> ``services/<name>/`` (one folder per process of the system) -> ``tools/`` (the ``srl``
+command, the launcher, benchmarks, the experiment, plots). Read from the source text (every
+import, also those inside functions), never by importing:
+
+* services never import tools; common never imports services or tools;
+* the math never imports the settings or the transport (numbers and arrays in, numbers out:
+  :mod:`common.assembly` is where settings meet the math);
+* no module reads or writes another module's underscore names.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("common", "services", "tools")
+MATH = (
+    "common.dynamics",
+    "common.features",
+    "common.critic",
+    "common.actor",
+    "common.loop",
+    "common.frames",
+    "common.stats",
+    "common.provenance",
+)
+NOT_FOR_MATH = ("common.settings", "common.transport", "common.assembly", "zenoh")
+# Private names of other libraries that our code uses on purpose, each with its reason.
+FOREIGN_PRIVATE = {
+    "_choices_actions": "argparse: the subcommands' help lines (tools/cli.py fills in descriptions)",
+    "_negative_number_matcher": "argparse: lists of negative numbers as values (common/runtime.py Parser)",
+    "_run_exitfuncs": "atexit: run the handlers before os._exit (common/runtime.py entry)",
+    "_exit": "os: leave without the interpreter's finalization once Zenoh ran (common/runtime.py, lifeline.py)",
+}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def sources() -> Iterator[tuple[str, str]]:
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            yield module_name(path), path.read_text()
+
+
+def imports(source: str, module: str) -> set[str]:
+    """Every module ``source`` imports (absolute names; ``from . import x`` resolved)."""
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parent = module.split(".")[: -node.level] if node.level else []
+                base = ".".join([*parent, base] if base else parent)
+            found.add(base)
+    return found
+
+
+def under(name: str, prefixes: tuple[str, ...]) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in prefixes)
+
+
+def floor_violations(module: str, source: str) -> list[str]:
+    found = imports(source, module)
+    problems = []
+    if under(module, ("services",)):
+        problems += [
+            f"{module} imports {name} (services never import tools)" for name in found if under(name, ("tools",))
+        ]
+    if under(module, ("common",)):
+        problems += [
+            f"{module} imports {name} (common never imports services or tools)"
+            for name in found
+            if under(name, ("services", "tools"))
+        ]
+    if module in MATH:
+        problems += [
+            f"{module} imports {name} (the math never imports settings or transport)"
+            for name in found
+            if under(name, NOT_FOR_MATH)
+        ]
+    return problems
+
+
+def private_violations(module: str, source: str) -> list[str]:
+    """``from ours import _x``, ``ours_module._x`` and ``obj._x`` on anything but self/cls."""
+    tree = ast.parse(source)
+    ours = {
+        alias.asname or alias.name
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Import)
+        for alias in node.names
+        if under(alias.name, PACKAGES)
+    }
+    problems = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and under(node.module or "", PACKAGES):
+            problems += [
+                f"{module} imports {node.module}.{a.name}"
+                for a in node.names
+                if a.name.startswith("_") and not a.name.startswith("__")
+            ]
+        elif isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__"):
+            owner = node.value
+            if isinstance(owner, ast.Name) and owner.id in ("self", "cls"):
+                continue
+            if node.attr in FOREIGN_PRIVATE and not (isinstance(owner, ast.Name) and owner.id in ours):
+                continue
+            problems.append(f"{module}:{node.lineno} uses .{node.attr} of {ast.unparse(owner)}")
+    return problems
+
+
+def test_every_package_is_read() -> None:
+    names = {name for name, _ in sources()}
+    assert {"common.loop", "common.runtime", "services.actor.service", "tools.cli"} <= names
+
+
+def test_no_import_runs_up_a_floor() -> None:
+    problems = [p for name, source in sources() for p in floor_violations(name, source)]
+    assert problems == []
+
+
+def test_no_module_uses_another_modules_underscore_names() -> None:
+    problems = [p for name, source in sources() for p in private_violations(name, source)]
+    assert problems == []
+
+
+@pytest.mark.parametrize(
+    ("module", "source", "expected"),
+    [
+        ("services.actor.service", "from tools.cli import main\n", "services never import tools"),
+        ("services.critic.command", "def f():\n    import tools.up\n", "services never import tools"),
+        ("common.runtime", "from services.actor import command\n", "common never imports services or tools"),
+        ("common.keys", "import tools.health\n", "common never imports services or tools"),
+        ("common.loop", "from common.settings import Settings\n", "the math never imports settings or transport"),
+        ("common.actor", "def f():\n    from common.transport import Bus\n", "the math never imports settings"),
+        ("common.critic", "import zenoh\n", "the math never imports settings or transport"),
+    ],
+)
+def test_the_floor_rules_catch_an_upward_import(module: str, source: str, expected: str) -> None:
+    problems = floor_violations(module, source)
+    assert len(problems) == 1 and expected in problems[0]
+
+
+@pytest.mark.parametrize(
+    "source",
+    [
+        "from services.actor.service import _run_lockstep\n",
+        "import common.transport\ncommon.transport._threads\n",
+        "def f(port):\n    port._settings = 1\n",
+        "def f(bus):\n    return bus._keep\n",
+    ],
+)
+def test_the_private_rule_catches_another_modules_underscore_name(source: str) -> None:
+    assert len(private_violations("tools.experiment.runner", source)) == 1
+
+
+def test_the_private_rule_allows_own_names() -> None:
+    source = (
+        "class A:\n    def f(self):\n        return self._x, type(self).__name__\n    @classmethod\n"
+        "    def g(cls):\n        return cls._y\n"
+    )
+    assert private_violations("common.x", source) == []

@@ -1,0 +1,1 @@
+"""Tools above the services: the srl command, the launcher, health checks, benchmarks, the experiment, plots."""

@@ -1,0 +1,517 @@
+"""The ``srl`` command: one subcommand per service or tool.
+
+``python -m tools.cli ...`` runs the same code. Logging is configured here, once.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from common.arguments import (
+    COMMAND_SETTINGS,
+    add_bridge_arguments,
+    add_settings_arguments,
+    bridge_argv,
+    settings_argv,
+    settings_from_args,
+)
+from common.lifeline import die_with_parent
+from common.runtime import (
+    Parser,
+    SignalledError,
+    UsageError,
+    add_log_level,
+    connect_with_retry,
+    own_resources,
+    stop_on_signals,
+    zenoh_reason,
+)
+from common.runtime import entry as runtime_entry
+from common.runtime import main as runtime_main
+
+log = logging.getLogger(__name__)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from common.assembly import episode_summary, run_episode
+
+    settings = settings_from_args(args)
+    started = time.perf_counter()
+    if args.transport == "zenoh":
+        # The same Algorithm 1 through the real services: lockstep, synchronous critic.
+        from common.loop import Episode
+        from tools.up import ServiceDiedError, run_up
+
+        try:
+            summary = run_up(
+                settings,
+                settings_argv(args),
+                mode="lockstep",
+                plant="sim",
+                sync_critic=True,
+                duration=settings.episode.duration,
+                quiet=not args.verbose,
+            )
+        except (ServiceDiedError, TimeoutError) as error:
+            raise UsageError(str(error)) from error
+        episode = Episode(
+            summary["agent"], summary["horizon"], states=[__import__("numpy").array(s) for s in summary["trajectory"]]
+        )
+    else:
+        with stop_on_signals() as stop:
+            episode = run_episode(settings, stop=stop)
+        if stop.signum is not None:
+            raise SignalledError(stop.signum)
+        summary = episode_summary(episode, settings)
+    summary["wall_seconds"] = time.perf_counter() - started
+    summary["transport"] = args.transport
+    if args.plot:
+        from tools.plots import plot_episode
+
+        plot_episode(episode, settings.plant.sampling_time, args.plot)
+        summary["plot"] = str(args.plot)
+    if not args.trajectory:
+        summary.pop("trajectory", None)
+    elif "trajectory" not in summary:
+        summary["trajectory"] = [[float(c) for c in s] for s in episode.states]
+    print(format_run_summary(summary))
+    if args.json:
+        print(json.dumps(summary))
+    return 0
+
+
+def format_run_summary(summary: dict[str, Any]) -> str:
+    s = summary["settings"]
+    solve = summary["solve_ms"]
+    lines = [
+        f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}",
+        f"  start          {_fmt_state(summary['start_state'])}",
+        f"  final state    {_fmt_state(summary['final_state'])}   distance to target {summary['final_distance']:.3f} m",
+        f"  steps          {summary['steps']} x delta = {s['plant']['sampling_time']} s "
+        f"({summary['episode_seconds']:.1f} s episode)",
+        f"  accumulated J  {summary['accumulated_cost']:.4f}",
+        f"  solve [ms]     median {solve['median']:.3f}  p99 {solve['p99']:.3f}  max {solve['max']:.3f}"
+        f"   failures {summary['solver_failures']}",
+        f"  wall time      {summary['wall_seconds']:.2f} s",
+        f"  settings       R = diag{tuple(s['cost']['r_diag'])}, gamma = {s['critic']['discount_rate']} "
+        f"(beta = {s['derived']['discount_beta']:.4f}), M = {s['critic']['replay_size']}, "
+        f"lambda = {s['critic']['ridge']}, bounds = {s['critic']['weight_bounds'] or 'none'}, "
+        f"solver {s['actor']['solver']}, predictor {s['actor']['predictor']}",
+    ]
+    if "plot" in summary:
+        lines.append(f"  plot           {summary['plot']}")
+    return "\n".join(lines)
+
+
+def _fmt_state(state: Sequence[float]) -> str:
+    return f"x = {state[0]:+.3f} m, y = {state[1]:+.3f} m, alpha = {state[2]:+.3f} rad"
+
+
+# -- services -------------------------------------------------------------------------
+def cmd_router(args: argparse.Namespace) -> int:
+    import signal
+
+    import zenoh
+
+    from common.transport import zenoh_config
+
+    settings = settings_from_args(args)
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
+    try:
+        session = zenoh.open(zenoh_config(settings.transport, router=True))
+    except zenoh.ZError as error:
+        raise UsageError(
+            f"router: cannot listen on {settings.transport.router}: {zenoh_reason(error)} "
+            "(another router on that port? choose one with --router)"
+        ) from error
+    # its one line of normal output, on stdout (not a warning): what it serves and how
+    transport = settings.transport
+    rules = f"; users and access rules of robot {transport.robot} enforced" if transport.secure else ""
+    print(
+        f"srl router: router listening on {settings.transport.router} (multicast scouting "
+        f"{'on' if settings.transport.multicast_scouting else 'off'}{rules})",
+        flush=True,
+    )
+    stop.wait()
+    session.close()
+    print(
+        json.dumps({"service": "router", "endpoint": settings.transport.router, "resources": own_resources()}),
+        flush=True,
+    )
+    return 0
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    """``srl certs --out DIR``: TLS material (common/certs.py) and, with --passwords, credentials."""
+    from common.certs import write_tls_material
+    from common.security import ROLES, write_credentials
+
+    out = Path(args.out).expanduser()
+    if (out / "ca.pem").exists():
+        if args.if_missing:
+            print(f"srl certs: {out} already holds a CA: kept", flush=True)
+            return 0
+        raise UsageError(f"{out} already holds a CA (ca.pem): choose a new directory (or --if-missing)")
+    files = write_tls_material(out, ROLES, args.hosts)
+    if args.passwords:
+        write_credentials(out)
+    print(
+        f"srl certs: CA, router ({', '.join(['localhost', '127.0.0.1', '::1', *args.hosts])}) and "
+        f"{', '.join(ROLES)} certificates{' and passwords' if args.passwords else ''} in {files.directory} "
+        "(0700, files 0600)",
+        flush=True,
+    )
+    return 0
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from tools.up import ServiceDiedError, Stopped, run_up
+
+    settings = settings_from_args(args)
+    run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
+    summary_dir = args.summary_dir or default_runs_dir() / run_name
+    started = time.monotonic()
+
+    first_version: list[float] = []
+
+    def show_status(counters: dict[str, float]) -> None:
+        line = format_status_line(counters, time.monotonic() - started, first_version)
+        print(f"srl up {line}", file=sys.stderr, flush=True)
+
+    try:
+        summary = run_up(
+            settings,
+            settings_argv(args),
+            mode=args.mode,
+            plant=args.plant,
+            sync_critic=args.mode == "lockstep",
+            duration=settings.episode.duration,
+            bridge_args=bridge_argv(args),
+            secure=args.secure,
+            on_status=show_status,
+            summary_dir=summary_dir,
+        )
+    except Stopped as stopped:  # SIGINT, SIGTERM, SIGHUP: everything was stopped, credentials removed
+        print(f"srl up: stopped by {stopped}: every service stopped", file=sys.stderr)
+        return stopped.exit_code
+    except ServiceDiedError as error:
+        print(f"srl up: error: {error}", file=sys.stderr)
+        for line in error.tail:
+            print(f"  [{error.name}] {line}", file=sys.stderr)
+        return 1
+    except (TimeoutError, ValueError) as error:
+        raise UsageError(str(error)) from error
+    summary.pop("trajectory", None)
+    print(format_up_summary(summary))
+    if args.json:
+        print(json.dumps(summary))
+    return 0
+
+
+def default_runs_dir() -> Path:
+    """Where ``srl up`` writes its runs' JSON summaries: ``SRL_RUNS_DIR`` or ~/.local/state/srl/runs."""
+    return Path(os.environ.get("SRL_RUNS_DIR") or Path.home() / ".local/state/srl/runs")
+
+
+def format_status_line(c: dict[str, float], elapsed: float, first_version: list[float]) -> str:
+    """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``).
+
+    Weight versions are microsecond clock values (they never go back across critic restarts);
+    shown is how many versions the actor moved on since this line first saw one, and how many
+    steps old the weights it used were (staleness)."""
+    pose = ""
+    if all(k in c for k in ("x", "y", "alpha")):
+        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {math.hypot(c['x'], c['y']):.2f} m"
+    version = c.get("weights_version", -1.0)
+    if not first_version and version > 0:
+        first_version.append(version)
+    weights = f"weights +{int(version - first_version[0])}" if first_version else "weights initial"
+    return (
+        f"{elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
+        f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
+        f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
+        f"  solver failures {int(c.get('solver_failures', 0))}"
+    )
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    """The actor's status line once a second, from a monitor session, until Ctrl-C or --seconds."""
+    from tools.up import StatusMonitor
+
+    settings = settings_from_args(args)
+    with stop_on_signals() as stop:
+        monitor = connect_with_retry(lambda: StatusMonitor(settings), settings, "status", args.connect_timeout, stop)
+        try:
+            started, shown, first_version = time.monotonic(), 0, []  # type: ignore[var-annotated]
+            end = None if args.seconds is None else started + args.seconds
+            while not stop.is_set() and (end is None or time.monotonic() < end):
+                if monitor.seen > shown and monitor.latest is not None:
+                    shown = monitor.seen
+                    line = format_status_line(monitor.latest, time.monotonic() - started, first_version)
+                    print(f"{settings.transport.robot} {line}", flush=True)
+                stop.wait(0.05)
+        finally:
+            monitor.close()
+    return 0
+
+
+def format_up_summary(summary: dict[str, Any]) -> str:
+    lines = [
+        f"srl up: {summary['mode']} run, plant {summary['plant']}, agent {summary.get('agent')}, "
+        f"N = {summary.get('horizon')}"
+    ]
+    lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
+    if summary.get("secure"):
+        lines.append(
+            "  security       user/password login per role + access rules at the router (common/security.py)"
+            + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else "")
+        )
+    lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
+    if summary.get("final_state"):
+        lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
+    lines.append(
+        f"  critic         {summary.get('transitions_received')} transitions received, "
+        f"actor used weights version {summary.get('weights_version')}"
+    )
+    if summary.get("critic_checkpoint"):
+        lines.append(
+            f"  checkpoint     {summary['critic_checkpoint']} "
+            f"({'restored' if summary.get('critic_restored') else 'fresh critic; --resume to restore'})"
+        )
+    if summary.get("summary_dir"):
+        lines.append(f"  summaries      {summary['summary_dir']}/<service>.json")
+    if "loop" in summary:
+        period = summary["loop"]["period_ms"]
+        lines.append(
+            f"  loop [ms]      period median {period['median']:.3f} p99 {period['p99']:.3f} "
+            f"max {period['max']:.3f}, missed deadlines {summary['loop']['missed_deadlines']}"
+        )
+    staleness = summary.get("staleness_steps")
+    if staleness:
+        lines.append(f"  staleness      median {staleness['median']} max {staleness['max']} steps")
+    return "\n".join(lines)
+
+
+# -- srl bench -------------------------------------------------------------------------
+def cmd_bench(args: argparse.Namespace) -> int:
+    if args.what == "loop":
+        from tools.bench.loop import run_loop_benchmark
+
+        return run_loop_benchmark(args, settings_from_args(args), settings_argv(args))
+    if args.what == "bridge":
+        from tools.bench.bridge import run_bridge_benchmark
+
+        return run_bridge_benchmark(args, settings_from_args(args), settings_argv(args), bridge_argv(args))
+    if args.what == "actor":
+        from tools.bench.actor import run_actor_benchmark
+
+        return run_actor_benchmark(args, settings_from_args(args))
+    raise UsageError(f"unknown benchmark {args.what!r}")
+
+
+# A value that is a number or a comma-separated list of numbers, negative first: "-1.2,0.7", "-1e9,0".
+DESCRIPTION = """srl: stacked RL-QV (actor, critic, plant) as Zenoh services, and the tools around them.
+
+Settings come from common/srl.toml, overridden by --config FILE (or SRL_CONFIG), by
+SRL_<SECTION>__<NAME> environment variables and by the flags of each subcommand.
+Start with:  srl run            (one episode in this process)
+             srl up             (router + every service as processes, a live status line)
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="srl", description=DESCRIPTION)
+    add_log_level(parser)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def command(name: str, helptext: str, description: str | None = None) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=helptext, description=description or helptext[0].upper() + helptext[1:] + ".")
+
+    run = command(
+        "run",
+        "one closed-loop episode of Algorithm 1 (actor, plant, critic)",
+        "One closed-loop episode of Algorithm 1 (actor step, plant, critic update) and a summary.\n"
+        "Ctrl-C: exit 130; SIGTERM: 143; a closed stdout pipe (srl run | head): 141.",
+    )
+    add_settings_arguments(run, COMMAND_SETTINGS["run"])
+    run.add_argument(
+        "--transport",
+        choices=["inproc", "zenoh"],
+        default="inproc",
+        help="inproc: one process; zenoh: router, plant_sim, critic, actor as processes (default: inproc)",
+    )
+    run.add_argument("--verbose", action="store_true", help="with --transport zenoh: show the services' logs")
+    run.add_argument("--trajectory", action="store_true", help="include the state trajectory in the JSON")
+    run.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
+    run.add_argument(
+        "--plot",
+        type=Path,
+        metavar="PNG",
+        help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals) "
+        "(default: no figure)",
+    )
+    run.set_defaults(func=cmd_run)
+
+    certs = command("certs", "a private CA, the router's and each role's TLS certificate (mTLS)")
+    certs.add_argument(
+        "--out",
+        required=True,
+        help="directory to create (0700; files 0600); never in the repository (default: none, required)",
+    )
+    certs.add_argument(
+        "--hosts",
+        nargs="*",
+        default=[],
+        metavar="HOST",
+        help="names/addresses clients use to reach the router, besides localhost, 127.0.0.1, ::1 (default: none)",
+    )
+    certs.add_argument(
+        "--passwords",
+        action="store_true",
+        help="also a random password per role: users.txt (router) and <role>.password",
+    )
+    certs.add_argument(
+        "--if-missing",
+        action="store_true",
+        help="exit 0 without writing if DIR already has a CA (default: write, and fail if it has one)",
+    )
+    certs.set_defaults(func=cmd_certs)
+
+    router = command("router", "a Zenoh router (Python, mode router)")
+    add_settings_arguments(router, COMMAND_SETTINGS["router"])
+    router.set_defaults(func=cmd_router)
+
+    from services.actor import command as actor_command
+    from services.critic import command as critic_command
+    from services.plant_sim import command as plant_sim_command
+    from services.robot_bridge import command as robot_bridge_command
+    from services.tb3_emulator import command as tb3_emulator_command
+
+    # the services: each one's own options and main (services/<name>/command.py)
+    for service in (plant_sim_command, critic_command, actor_command, robot_bridge_command, tb3_emulator_command):
+        service.add_arguments(command(service.NAME, service.HELP))
+
+    up = command(
+        "up",
+        "router + every service as separate processes, one run",
+        "The router and every service as separate processes, one run, a live status line once a second.\n"
+        "Each service's JSON summary is written to a file (--summary-dir); --json prints the merged one.",
+    )
+    add_settings_arguments(up, COMMAND_SETTINGS["up"])
+    add_bridge_arguments(up)
+    up.add_argument(
+        "--plant",
+        choices=["sim", "robot"],
+        default="sim",
+        help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint) (default: sim)",
+    )
+    up.add_argument(
+        "--mode",
+        choices=["realtime", "lockstep"],
+        default="realtime",
+        help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)",
+    )
+    up.add_argument(
+        "--secure",
+        action="store_true",
+        help="Zenoh user/password login with fresh random credentials per role, and access rules "
+        "at the router: only the actor publishes actions, the critic weights, the plant state; "
+        "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA)",
+    )
+    up.add_argument("--json", action="store_true", help="last stdout line: the merged summary as one JSON object")
+    up.add_argument(
+        "--summary-dir",
+        type=Path,
+        metavar="DIR",
+        help="write each service's JSON summary to DIR/<service>.json (default: a fresh directory "
+        "under the system's temporary directory, named in the summary)",
+    )
+    up.set_defaults(func=cmd_up)
+
+    bench = command("bench", "benchmarks that print a table (and JSON)")
+    bench.add_argument("what", choices=["actor", "loop", "bridge"])
+    bench.add_argument(
+        "--reference-horizons",
+        default="12",
+        help="actor: N values for the IPOPT reference rows ('' = none) (default: 12)",
+    )
+    bench.add_argument(
+        "--seconds",
+        type=float,
+        default=60.0,
+        help="loop: real-time run length [s]; bridge: both phases together (default: 60)",
+    )
+    bench.add_argument(
+        "--critic-load", action="store_true", help="loop: the critic fits a replay of M = 1000 every step"
+    )
+    add_settings_arguments(bench, COMMAND_SETTINGS["bench"])
+    add_bridge_arguments(bench)
+    bench.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
+    bench.add_argument(
+        "--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99) (default: 300)"
+    )
+    bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
+    bench.add_argument(
+        "--agents", default="mpc,rlq,rlqv,rlqv+", help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)"
+    )
+    bench.add_argument(
+        "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
+    )
+    bench.set_defaults(func=cmd_bench)
+
+    status = command(
+        "status",
+        "the actor's live status line once a second (step, pose, J, weights, deadlines)",
+        "The actor's live status line once a second, read from srl/<robot>/status/actor by a "
+        "monitor session\n(any running system: srl up, the containers); until Ctrl-C or --seconds.",
+    )
+    add_settings_arguments(status, COMMAND_SETTINGS["status"])
+    status.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    status.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
+    status.set_defaults(func=cmd_status)
+
+    # srl experiment paper (tools/experiment/runner.py): the paper's grid of runs, ratios and plots
+    from tools.experiment.runner import add_experiment_arguments, cmd_experiment
+
+    experiment = command("experiment", "the paper's experiment: grid of starts, cost ratios, plots")
+    add_experiment_arguments(experiment)
+    experiment.set_defaults(func=cmd_experiment)
+
+    # srl health (tools/health.py): readiness of a service, for container healthchecks
+    from tools.health import add_health_parser
+
+    add_health_parser(sub)
+    for action in sub._choices_actions:  # every subcommand's --help opens with what it does
+        subparser = sub.choices[action.dest]
+        if not subparser.description:
+            subparser.description = (action.help or "")[:1].upper() + (action.help or "")[1:] + "."
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``srl ARGS`` in this process (tests, benchmarks): the exit code."""
+    return runtime_main(build_parser(), argv)
+
+
+def entry(argv: Sequence[str] | None = None) -> None:
+    """The ``srl`` console command (common.runtime.entry: exit codes, the exit after Zenoh)."""
+    runtime_entry(build_parser, argv)
+
+
+if __name__ == "__main__":
+    entry()
