@@ -212,8 +212,18 @@ class Supervisor:
             child.process.wait()
 
     def stop_all(self) -> None:
-        """SIGINT every child still running (newest first), then SIGKILL after the grace."""
-        alive = [c for c in reversed(list(self.children.values())) if c.process.poll() is None]
+        """SIGINT every service still running (newest first) and wait for them, SIGKILL after the
+        grace; the router last, once nobody is left to say goodbye through it (a router closing
+        under its clients' last messages was seen to outlast the grace on a loaded CI machine)."""
+        services = [c for c in reversed(list(self.children.values())) if c.name != "router"]
+        self._stop_group(services)
+        self._stop_group([c for c in self.children.values() if c.name == "router"])
+        for child in self.children.values():
+            for thread in child.threads:
+                thread.join(timeout=2.0)
+
+    def _stop_group(self, children: list[Child]) -> None:
+        alive = [c for c in children if c.process.poll() is None]
         for child in alive:
             with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
                 os.killpg(child.process.pid, signal.SIGINT)
@@ -225,9 +235,6 @@ class Supervisor:
                 log.warning("%s did not stop within %.0f s: killing it", child.name, GRACE_SECONDS)
                 os.killpg(child.process.pid, signal.SIGKILL)
                 child.process.wait()
-        for child in self.children.values():
-            for thread in child.threads:
-                thread.join(timeout=2.0)
 
 
 def router_reachable(settings: Settings, endpoint: str | None = None) -> bool:
