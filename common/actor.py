@@ -29,19 +29,18 @@ import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import casadi as ca
 import numpy as np
 
+from common.agents import AGENTS, Agent, learns, uses_value_critic
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.features import feature_count, phi_q, phi_v, stage_cost
 from common.stats import Window
 
 log = logging.getLogger(__name__)
 
-Agent = Literal["mpc", "rlq", "rlqv", "rlqv+"]
-AGENTS: tuple[Agent, ...] = ("mpc", "rlq", "rlqv", "rlqv+")
 Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)
 STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
 V_FEATURES = feature_count(STATE_DIM)
@@ -311,14 +310,14 @@ class StackedActor:
         objective: Any = 0
         for i, (s_i, u_i) in enumerate(zip(states[:-1], actions, strict=True)):
             running = p.sampling_time * stage_cost(s_i, u_i, p.cost_diag)
-            if p.agent == "mpc":
+            if not learns(p.agent):
                 objective += running
             else:
                 objective += ca.dot(w, phi_q(s_i, u_i))
                 if p.agent == "rlqv+":
                     # Remark (complemented stack): (N - i) r with the paper's i = 1..N-1.
                     objective += (p.horizon - (i + 1)) * running
-        if p.agent in ("rlqv", "rlqv+"):
+        if uses_value_critic(p.agent):
             objective += ca.dot(v, phi_v(states[-1]))
         return objective
 

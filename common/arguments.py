@@ -10,7 +10,7 @@ import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from pydantic import ValidationError
 from pydantic_settings import SettingsError
@@ -29,6 +29,13 @@ def _start_arg(text: str) -> tuple[float, ...]:
 
 
 # The packaged defaults, shown in every option's help (the settings file is the one source).
+def _choices(section: str, name: str) -> tuple[str, ...]:
+    """The values a setting's ``Literal`` allows: the settings model is their one definition."""
+    section_model = Settings.model_fields[section].annotation
+    assert section_model is not None
+    return tuple(str(v) for v in get_args(section_model.model_fields[name].annotation))
+
+
 def _packaged_defaults() -> dict[str, dict[str, Any]]:
     import tomllib
 
@@ -81,7 +88,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
     if "agent" in flags:
         parser.add_argument(
             "--agent",
-            choices=["mpc", "rlq", "rlqv", "rlqv+"],
+            choices=_choices("actor", "agent"),
             help=f"the stacked actor's objective {_default('actor', 'agent')}",
         )
     if "horizon" in flags:
@@ -105,12 +112,14 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
         )
     if "solver" in flags:
         parser.add_argument(
-            "--solver", choices=["fatrop", "ipopt"], help=f"NLP solver of the actor {_default('actor', 'solver')}"
+            "--solver",
+            choices=_choices("actor", "solver"),
+            help=f"NLP solver of the actor {_default('actor', 'solver')}",
         )
     if "predictor" in flags:
         parser.add_argument(
             "--predictor",
-            choices=["euler", "rk4"],
+            choices=_choices("actor", "predictor"),
             help=f"the actor's state predictor {_default('actor', 'predictor')}",
         )
     if "no_jit" in flags:
@@ -173,20 +182,20 @@ def add_bridge_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of the robot bridge's [bridge] settings (srl up, robot-bridge, tb3-emulator)."""
     parser.add_argument(
         "--profile",
-        choices=["rmw_zenoh", "ros2dds"],
+        choices=_choices("bridge", "profile"),
         help="robot wire profile: rmw_zenoh (rmw_zenoh_cpp) or ros2dds (zenoh-bridge-ros2dds) "
         f"{_default('bridge', 'profile')}",
     )
     parser.add_argument(
         "--ros-distro",
-        choices=["humble", "jazzy"],
+        choices=_choices("bridge", "ros_distro"),
         help=f"the robot's ROS 2 distribution {_default('bridge', 'ros_distro')}",
     )
     parser.add_argument("--domain-id", type=int, help=f"the robot's ROS_DOMAIN_ID {_default('bridge', 'domain_id')}")
     parser.add_argument("--namespace", help=f"the robot's ROS namespace (e.g. tb3_1) {_default('bridge', 'namespace')}")
     parser.add_argument(
         "--cmd-type",
-        choices=["auto", "twist", "twist_stamped"],
+        choices=_choices("bridge", "cmd_type"),
         help=f"cmd_vel message type (auto: read from the robot's liveliness tokens) {_default('bridge', 'cmd_type')}",
     )
     parser.add_argument(

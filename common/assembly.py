@@ -12,6 +12,7 @@ import threading
 import numpy as np
 
 from common.actor import ActorProblem, StackedActor
+from common.agents import learns
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
 from common.settings import Settings
 from common.stats import summarize
@@ -65,7 +66,7 @@ def run_episode(
     return run_algorithm1(
         actor or build_actor(settings),
         plant or ExactPlant(),
-        critic or local_critic(settings, learn=settings.actor.agent != "mpc"),
+        critic or local_critic(settings, learn=learns(settings.actor.agent)),
         settings.start_state(),
         settings.steps,
         settings.plant.sampling_time,

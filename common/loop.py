@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from common.actor import StackedActor
+from common.agents import fit_due
 from common.critic import DoubleCritic, Replay, Sample
 from common.dynamics import exact_step
 from common.features import stage_cost
@@ -87,7 +88,7 @@ class LocalCritic:
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
         self.replay.add(sample)
         self.last_residuals = (float("nan"), float("nan"))
-        if self.learn and sample.step % self.update_every == 0:
+        if self.learn and fit_due(sample.step, self.update_every):
             update = self.critic.update(self.replay)
             self.last_residuals = (float(update.q.residual), float(update.v.residual))
             self.updates += 1

@@ -206,6 +206,19 @@ def floats_arg(count: int) -> Callable[[str], tuple[float, ...]]:
     return parse
 
 
+MODES = ("realtime", "lockstep")
+
+
+def add_mode_argument(parser: argparse.ArgumentParser) -> None:
+    """--mode, as the actor, the simulator and ``srl up`` take it (one definition of its meaning)."""
+    parser.add_argument(
+        "--mode",
+        choices=MODES,
+        default="realtime",
+        help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)",
+    )
+
+
 def add_lifetime_arguments(
     parser: argparse.ArgumentParser, run_help: str = "stop after this long (default: until signalled)"
 ) -> None:

@@ -24,6 +24,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from common.agents import Agent
 from common.dynamics import heading_away_from_target
 from common.features import quadratic_weights_for_diag
 
@@ -126,7 +127,7 @@ class CriticSettings(_Section):
 
 
 class ActorSettings(_Section):
-    agent: Literal["mpc", "rlq", "rlqv", "rlqv+"]
+    agent: Agent
     horizon: int = Field(description="N, 2 .. MAX_HORIZON")
     predictor: Literal["euler", "rk4"]
     solver: Literal["fatrop", "ipopt"]

@@ -68,6 +68,16 @@ def zenoh_config(
     return config
 
 
+def plain_config(transport: TransportSettings, endpoint: str, *, router: bool = False) -> zenoh.Config:
+    """A session on another Zenoh network than srl's own, e.g. the robot's (rmw_zenohd on the
+    robot): no srl login or access rules; a client connects to ``endpoint`` only, a router
+    listens on it only. Scouting and the message bound are srl's settings, as in :func:`zenoh_config`."""
+    plain = transport.model_copy(
+        update={"router": endpoint, "connect": [], "listen": [], "secure": False, "mode": "client"}
+    )
+    return zenoh_config(plain, router=router)
+
+
 class Bus:
     """One Zenoh session of one service, with counters shared by all its handlers."""
 

@@ -17,6 +17,9 @@ from typing import Any
 
 import zenoh
 
+from common.settings import Settings
+from common.transport import plain_config
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -56,14 +59,9 @@ def free_port() -> int:
 
 
 def client_config(endpoint: str) -> zenoh.Config:
-    config = zenoh.Config()
-    config.insert_json5("mode", '"client"')
-    config.insert_json5("scouting/multicast/enabled", "false")
-    # like every srl session: its samples carry its own id (common.provenance)
-    config.insert_json5("timestamping/enabled", "true")
-    config.insert_json5("listen/endpoints", "[]")
-    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return config
+    """A client of the srl router at ``endpoint`` as every srl session is configured (its samples
+    carry its own id: common.provenance), without a login."""
+    return plain_config(Settings.load().transport, endpoint)
 
 
 def declare_service_tokens(session: zenoh.Session, robot: str, service: str) -> list[Any]:

@@ -30,6 +30,7 @@ MATH = (
     "common.frames",
     "common.stats",
     "common.provenance",
+    "common.agents",
 )
 NOT_FOR_MATH = ("common.settings", "common.transport", "common.assembly", "zenoh")
 # Private names of other libraries that our code uses on purpose, each with its reason.

@@ -14,7 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from common.actor import AGENTS, ActorProblem
+from common.actor import ActorProblem
+from common.agents import AGENTS
 from common.assembly import build_actor
 from common.dynamics import euler_step
 from common.features import phi_q, phi_v, stage_cost

@@ -31,6 +31,7 @@ from common.runtime import (
     SignalledError,
     UsageError,
     add_log_level,
+    add_mode_argument,
     connect_with_retry,
     own_resources,
     stop_on_signals,
@@ -428,12 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
         default="sim",
         help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint) (default: sim)",
     )
-    up.add_argument(
-        "--mode",
-        choices=["realtime", "lockstep"],
-        default="realtime",
-        help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)",
-    )
+    add_mode_argument(up)
     up.add_argument(
         "--secure",
         action="store_true",

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from common.agents import fit_due, learns
 from common.critic import Sample
 from common.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
 from common.messages import CriticWeights, Message, ResetRequest, StepRequest, Transition
@@ -216,7 +217,7 @@ class ZenohCriticPort:
                 cost=float(sample.cost),
             )
         )
-        needs_fit = self.settings.actor.agent != "mpc" and sample.step % self.settings.critic.update_every == 0
+        needs_fit = learns(self.settings.actor.agent) and fit_due(sample.step, self.settings.critic.update_every)
         if self.sync and needs_fit and not self.inbox.wait_trained(sample.step, self.settings.transport.critic_timeout):
             self.timeouts += 1
             self.bus.count("critic_timeouts")

@@ -31,6 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from common.actor import StackedActor
+from common.agents import learns
 from common.clock import Ticker
 from common.features import stage_cost
 from common.messages import Action, PlantState, Transition
@@ -233,7 +234,7 @@ class RealtimeActor:
             self.published_steps[-1][1] = k
         else:
             self.published_steps.append([k, k])
-        if self.settings.actor.agent != "mpc":
+        if learns(self.settings.actor.agent):
             self.staleness_steps.append((k - 1) - weights.trained_step)
             seen = self.publish_times.get(weights.trained_step)
             if seen is not None:

@@ -24,6 +24,7 @@ import time
 from typing import Any
 
 from common.actor import StackedActor
+from common.agents import learns
 from common.assembly import build_actor, episode_summary, run_episode
 from common.clock import Ticker
 from common.keys import ACTION, STATE, TRANSITION, WEIGHTS
@@ -60,7 +61,7 @@ def _run_lockstep(
 ) -> dict[str, Any]:
     bus.declare_alive(settings.transport.robot)
     bus.wait_alive(settings.transport.robot, "plant", timeout=30.0)
-    if sync_critic and settings.actor.agent != "mpc":
+    if sync_critic and learns(settings.actor.agent):
         bus.wait_alive(settings.transport.robot, "critic", timeout=30.0)
     episode_id = new_episode_id()
     inbox.reset(episode_id)

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from common.agents import fit_due
 from common.checkpoint import (
     CheckpointError,
     atomic_write_json,
@@ -171,7 +172,7 @@ class CriticLearner:
                 floor = learner.newest - self.retention
                 learner.seen = {step for step in learner.seen if step > floor}
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
-        if message.step % self.settings.critic.update_every != 0:
+        if not fit_due(message.step, self.settings.critic.update_every):
             return None
         started = time.perf_counter()
         update = learner.critic.update(learner.replay)

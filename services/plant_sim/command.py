@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.runtime import add_lifetime_arguments, serve
+from common.runtime import add_lifetime_arguments, add_mode_argument, serve
 
 NAME = "plant-sim"
 HELP = "the simulated robot (real-time or lockstep queryable)"
@@ -13,12 +13,7 @@ HELP = "the simulated robot (real-time or lockstep queryable)"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
-    parser.add_argument(
-        "--mode",
-        choices=["realtime", "lockstep"],
-        default="realtime",
-        help="realtime: every delta by the clock; lockstep: the actor steps the plant (default: realtime)",
-    )
+    add_mode_argument(parser)
     add_lifetime_arguments(
         parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
     )

@@ -42,7 +42,6 @@ Decisions (README, "Robot bridge"):
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import threading
@@ -75,7 +74,7 @@ from common.ros_wire import (
 from common.security import SecurityError
 from common.settings import BridgeSettings, Settings
 from common.stats import summarize
-from common.transport import Bus, start_status_thread
+from common.transport import Bus, plain_config, start_status_thread
 
 log = logging.getLogger(__name__)
 CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a robot clock reset
@@ -615,12 +614,7 @@ class RosLink:
 
 def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
     """A client session to the robot's own Zenoh router (multicast scouting off)."""
-    config = zenoh.Config()
-    config.insert_json5("mode", json.dumps("client"))
-    config.insert_json5("scouting/multicast/enabled", json.dumps(transport.multicast_scouting))
-    config.insert_json5("listen/endpoints", "[]")
-    config.insert_json5("connect/endpoints", json.dumps([bridge.robot_endpoint]))
-    return zenoh.open(config)
+    return zenoh.open(plain_config(transport, bridge.robot_endpoint))
 
 
 def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:

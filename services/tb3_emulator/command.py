@@ -69,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
     from common import ros_wire
     from common.frames import Pose2D, from_goal_frame
     from common.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph
-    from common.transport import zenoh_config
+    from common.transport import plain_config, zenoh_config
     from services.tb3_emulator.service import Tb3Model, run
 
     settings = settings_from_args(args)
@@ -84,9 +84,7 @@ def main(args: argparse.Namespace) -> int:
         signal.signal(signum, lambda *_: stop.set())
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
-        config = zenoh_config(settings.transport, router=True, listen=[args.listen])
-        config.insert_json5("connect/endpoints", "[]")
-        session = zenoh.open(config)
+        session = zenoh.open(plain_config(settings.transport, args.listen, router=True))
     else:
         session = connect_with_retry(
             lambda: zenoh.open(zenoh_config(settings.transport)), settings, "tb3-emulator", args.connect_timeout, stop

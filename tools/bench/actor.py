@@ -51,7 +51,10 @@ from typing import Any
 import numpy as np
 from scipy.optimize import Bounds, OptimizeResult, minimize
 
-from common.actor import AGENTS, ActorProblem, StackedActor
+from common.actor import ActorProblem, StackedActor
+from common.agents import AGENTS
+from common.agents import parse_agents as parse_agent_names
+from common.agents import parse_horizons as parse_horizon_numbers
 from common.assembly import build_actor
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.features import feature_count, feature_index_pairs
@@ -386,34 +389,18 @@ def compare_objectives(ours: Sequence[float], reference: Sequence[float]) -> dic
 
 
 # -- the benchmark ----------------------------------------------------------------------------
-def _parse_list(text: str, what: str) -> list[str]:
-    items = [part.strip() for part in str(text).split(",") if part.strip()]
-    if not items:
-        raise BenchUsageError(f"--{what} needs at least one value")
-    return list(dict.fromkeys(items))
-
-
 def parse_agents(text: str) -> list[str]:
-    agents = _parse_list(text, "agents")
-    unknown = [a for a in agents if a not in AGENTS]
-    if unknown:
-        raise BenchUsageError(f"unknown agent(s) {', '.join(unknown)}; choose from {', '.join(AGENTS)}")
-    return agents
+    try:
+        return list(parse_agent_names(text))
+    except ValueError as error:
+        raise BenchUsageError(str(error)) from None
 
 
 def parse_horizons(text: str, what: str = "horizons", allow_empty: bool = False) -> list[int]:
-    if allow_empty and not str(text).strip():
-        return []
-    values = []
-    for item in _parse_list(text, what):
-        try:
-            n = int(item)
-        except ValueError as error:
-            raise BenchUsageError(f"--{what}: {item!r} is not an integer") from error
-        if n < 2:
-            raise BenchUsageError(f"--{what}: N must be >= 2, got {n}")
-        values.append(n)
-    return values
+    try:
+        return list(parse_horizon_numbers(text, f"--{what}", allow_empty))
+    except ValueError as error:
+        raise BenchUsageError(str(error)) from None
 
 
 def _settings_for(settings: Settings, agent: str, horizon: int, solver: str | None = None) -> Settings:

@@ -59,14 +59,13 @@ from typing import Any
 
 import numpy as np
 
+from common.agents import AGENTS, PAPER_AGENTS, learns, parse_agents, parse_horizons
 from common.dynamics import heading_away_from_target
 from common.settings import Settings
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
 log = logging.getLogger(__name__)
 
-AGENTS = ("mpc", "rlq", "rlqv", "rlqv+")
-DEFAULT_AGENTS = ("mpc", "rlq", "rlqv")
 DEFAULT_HORIZONS = (12, 6)
 STARTS = ("paper", "held-out")
 EXIT_INTERRUPTED = 130
@@ -184,7 +183,7 @@ class _InprocRunner:
         from common.assembly import local_critic, run_episode
         from common.loop import ExactPlant
 
-        critic = local_critic(settings, learn=settings.actor.agent != "mpc")
+        critic = local_critic(settings, learn=learns(settings.actor.agent))
         return run_episode(settings, actor=actor, plant=ExactPlant(), critic=critic), {}
 
     def close(self) -> None:
@@ -350,7 +349,7 @@ class ExperimentOptions:
     extent: float = 2.0
     starts: str = "paper"
     seed: int = 0
-    agents: tuple[str, ...] = DEFAULT_AGENTS
+    agents: tuple[str, ...] = PAPER_AGENTS
     horizons: tuple[int, ...] = DEFAULT_HORIZONS
     transport: str = "inproc"
     workers: int = 0  # 0 = every core this process may use
@@ -362,24 +361,6 @@ class ExperimentOptions:
     def worker_count(self, runs: int) -> int:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         return max(1, min(self.workers or cores, runs))
-
-
-def parse_agents(text: str) -> tuple[str, ...]:
-    agents = tuple(dict.fromkeys(a.strip() for a in text.split(",") if a.strip()))
-    unknown = [a for a in agents if a not in AGENTS]
-    if not agents or unknown:
-        raise ValueError(f"--agents: choose from {', '.join(AGENTS)} (comma-separated), got {text!r}")
-    return agents
-
-
-def parse_horizons(text: str) -> tuple[int, ...]:
-    try:
-        horizons = tuple(dict.fromkeys(int(h) for h in text.split(",") if h.strip()))
-    except ValueError as error:
-        raise ValueError(f"--horizons: comma-separated integers N >= 2, got {text!r}") from error
-    if not horizons or any(h < 2 for h in horizons):
-        raise ValueError(f"--horizons: comma-separated integers N >= 2, got {text!r}")
-    return horizons
 
 
 # -- the experiment ---------------------------------------------------------------------
@@ -1186,7 +1167,9 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
         "--seed", type=int, default=0, help="seed of everything random (the held-out starts) (default: 0)"
     )
     parser.add_argument(
-        "--agents", default=",".join(DEFAULT_AGENTS), help="comma-separated (default: mpc,rlq,rlqv,rlqv+)"
+        "--agents",
+        default=",".join(PAPER_AGENTS),
+        help=f"comma-separated, of {','.join(AGENTS)} (default: {','.join(PAPER_AGENTS)})",
     )
     parser.add_argument(
         "--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS), help="comma-separated N values (default 12,6)"
