@@ -8,6 +8,7 @@ process's ``main``) and hands them over.
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -16,6 +17,7 @@ from common.agents import learns
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
 from common.settings import Settings
 from common.stats import summarize
+from common.summaries import EpisodeSummary
 
 
 def build_actor(settings: Settings) -> StackedActor:
@@ -75,19 +77,21 @@ def run_episode(
     )
 
 
-def episode_summary(episode: Episode, settings: Settings) -> dict[str, object]:
-    """The JSON-ready summary of a run (the contract of ``srl run --json``)."""
+def episode_summary(episode: Episode, settings: Settings) -> dict[str, Any]:
+    """The JSON-ready summary of a run (the contract of ``srl run --json``: EpisodeSummary)."""
     final = episode.final_state
-    return {
-        "agent": episode.agent,
-        "horizon": episode.horizon,
-        "steps": episode.steps,
-        "episode_seconds": episode.steps * settings.plant.sampling_time,
-        "accumulated_cost": episode.accumulated_cost,
-        "start_state": [float(c) for c in episode.states[0]],
-        "final_state": [float(c) for c in final],
-        "final_distance": float(np.hypot(final[0], final[1])),
-        "solve_ms": summarize(episode.solve_seconds, scale=1e3),
-        "solver_failures": episode.solver_failures,
-        "settings": settings.as_dict(),
-    }
+    return EpisodeSummary.model_validate(
+        {
+            "agent": episode.agent,
+            "horizon": episode.horizon,
+            "steps": episode.steps,
+            "episode_seconds": episode.steps * settings.plant.sampling_time,
+            "accumulated_cost": episode.accumulated_cost,
+            "start_state": [float(c) for c in episode.states[0]],
+            "final_state": [float(c) for c in final],
+            "final_distance": float(np.hypot(final[0], final[1])),
+            "solve_ms": summarize(episode.solve_seconds, scale=1e3),
+            "solver_failures": episode.solver_failures,
+            "settings": settings.as_dict(),
+        }
+    ).to_json_dict()

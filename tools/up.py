@@ -35,17 +35,20 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import zenoh
+from pydantic import TypeAdapter, ValidationError
 
 from common.certs import write_tls_material
 from common.security import ROLES, write_credentials
 from common.settings import Settings
+from common.summaries import ACTOR_SUMMARY, CriticSummary
 from common.transport import zenoh_config
 
 log = logging.getLogger(__name__)
 GRACE_SECONDS = 5.0
+T = TypeVar("T")
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -99,6 +102,19 @@ class SignalGuard:
         """After the cleanup: a signal that came during it still ends the run as stopped."""
         if self.received is not None:
             raise Stopped(self.received)
+
+
+def _contract_summary(child: Child, contract: TypeAdapter[T]) -> T:
+    """A child's JSON summary read through its contract; one line if it has none or does not fit."""
+    raw = child.summary()
+    if raw is None:
+        raise ValueError(f"{child.name} ended without its JSON summary (its last stdout line)")
+    try:
+        return contract.validate_python(raw)
+    except ValidationError as error:
+        first = error.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ValueError(f"{child.name}'s summary does not fit common/summaries.py: {where}: {first['msg']}") from None
 
 
 def free_loopback_endpoint() -> str:
@@ -507,9 +523,11 @@ def _run_up(
         code = child.process.returncode
         if name != "actor" and code not in (0, -signal.SIGINT):
             raise ServiceDiedError(name, code, child.stderr_tail[-10:])
-    actor_summary = supervisor.children["actor"].summary() or {}
-    critic_summary = supervisor.children["critic"].summary() or {}
-    merged = dict(actor_summary)
+    # the children's summaries through their contracts (common/summaries.py): a service that
+    # printed none, or one that does not fit, is said here, not met later as a missing key
+    actor_summary = _contract_summary(supervisor.children["actor"], ACTOR_SUMMARY)
+    critic_summary = _contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
+    merged = actor_summary.to_json_dict()
     merged.pop("transitions_tail", None)  # kept in actor.json
     if plant == "robot":
         merged["bridge"] = supervisor.children["robot_bridge"].summary()
@@ -523,11 +541,11 @@ def _run_up(
             "plant": plant,
             "secure": secure,
             "router": settings.transport.router,
-            "transitions_received": critic_summary.get("transitions_received"),
-            "critic_weights_published": critic_summary.get("weights_published"),
-            "critic_fit_ms": critic_summary.get("fit_ms"),
-            "critic_checkpoint": critic_summary.get("checkpoint"),
-            "critic_restored": critic_summary.get("restored"),
+            "transitions_received": critic_summary.transitions_received,
+            "critic_weights_published": critic_summary.weights_published,
+            "critic_fit_ms": critic_summary.fit_ms.to_json_dict(),
+            "critic_checkpoint": critic_summary.checkpoint,
+            "critic_restored": critic_summary.restored,
             "wall_seconds": time.monotonic() - started,
             "resources": {
                 name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()

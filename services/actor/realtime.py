@@ -38,6 +38,7 @@ from common.messages import Action, PlantState, Transition
 from common.provenance import SequenceGuard, SourceGate
 from common.settings import Settings
 from common.stats import Window
+from common.summaries import RealtimeActorSummary
 from services.actor.ports import WeightsInbox
 
 log = logging.getLogger(__name__)
@@ -314,32 +315,32 @@ class RealtimeActor:
         with self.lock:
             last = self.last_accepted
         ticker = self.ticker
-        return {
-            "service": "actor",
-            "mode": "realtime",
-            "agent": self.settings.actor.agent,
-            "horizon": self.settings.actor.horizon,
-            "episode_id": self.episode_id,
-            "steps": self.steps,
-            "accumulated_cost": self.accumulated_cost,
-            "start_state": None if self.start_state is None else [float(c) for c in self.start_state],
-            "final_state": None if last is None else [float(c) for c in last.state],
-            "weights_version": self.inbox.current().version,
-            "loop": {
-                "period_ms": self.periods.summary(1e3),
-                "jitter_ms": self.jitter.summary(1e3),
-                "missed_deadlines": ticker.missed if ticker is not None else 0,
-                "late_ticks": ticker.late if ticker is not None else 0,
-            },
-            "solve_ms": self.actor.counters.solve_seconds.summary(1e3),
-            "solver_failures": self.actor.counters.failures,
-            "latency_ms": self.latencies.summary(1e3),
-            "staleness_steps": self.staleness_steps.summary(),
-            "staleness_ms": self.staleness_ms.summary(),
-            "stale_state_stops": self.stale_state_stops,
-            "plant_conflict_stops": self.plant_conflict_stops,
-            "plant_sources": self.plant_gate.sources(),
-            "transitions_tail": list(self.tail),
-            "transition_steps": [list(run) for run in self.published_steps],
-            "counters": dict(self.counts.counters),
-        }
+        return RealtimeActorSummary.model_validate(
+            {
+                "agent": self.settings.actor.agent,
+                "horizon": self.settings.actor.horizon,
+                "episode_id": self.episode_id,
+                "steps": self.steps,
+                "accumulated_cost": self.accumulated_cost,
+                "start_state": None if self.start_state is None else [float(c) for c in self.start_state],
+                "final_state": None if last is None else [float(c) for c in last.state],
+                "weights_version": self.inbox.current().version,
+                "loop": {
+                    "period_ms": self.periods.summary(1e3),
+                    "jitter_ms": self.jitter.summary(1e3),
+                    "missed_deadlines": ticker.missed if ticker is not None else 0,
+                    "late_ticks": ticker.late if ticker is not None else 0,
+                },
+                "solve_ms": self.actor.counters.solve_seconds.summary(1e3),
+                "solver_failures": self.actor.counters.failures,
+                "latency_ms": self.latencies.summary(1e3),
+                "staleness_steps": self.staleness_steps.summary(),
+                "staleness_ms": self.staleness_ms.summary(),
+                "stale_state_stops": self.stale_state_stops,
+                "plant_conflict_stops": self.plant_conflict_stops,
+                "plant_sources": self.plant_gate.sources(),
+                "transitions_tail": list(self.tail),
+                "transition_steps": [list(run) for run in self.published_steps],
+                "counters": dict(self.counts.counters),
+            }
+        ).to_json_dict()

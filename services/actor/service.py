@@ -34,6 +34,7 @@ from common.messages import (
 from common.provenance import SourceGate
 from common.settings import Settings
 from common.stats import summarize
+from common.summaries import LockstepActorSummary
 from common.transport import Bus, start_status_thread
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id
 from services.actor.realtime import RealtimeActor
@@ -78,8 +79,6 @@ def _run_lockstep(
     summary = episode_summary(episode, settings)
     summary.update(
         {
-            "service": "actor",
-            "mode": "lockstep",
             "episode_id": episode_id,
             "weights_version": inbox.current().version,
             "staleness_steps": summarize(port.staleness) | {"max": float(max(port.staleness, default=0))},
@@ -88,7 +87,7 @@ def _run_lockstep(
             "counters": dict(bus.counters),
         }
     )
-    return summary
+    return LockstepActorSummary.model_validate(summary).to_json_dict()
 
 
 def _run_realtime(

@@ -52,6 +52,8 @@ from common.critic import DoubleCritic, Replay, Sample
 from common.keys import TRANSITION, WEIGHTS
 from common.messages import CriticWeights, Transition
 from common.settings import Settings
+from common.stats import Window
+from common.summaries import CriticSummary
 from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
@@ -88,7 +90,7 @@ class CriticLearner:
         # Versions increase strictly over the process's life and across restarts: they start
         # from the wall clock in microseconds, so a restarted critic is never "older".
         self.version = time.time_ns() // 1000
-        self.fit_seconds: list[float] = []
+        self.fit_seconds = Window()  # bounded: a critic runs for days
         self.received = 0
         self.duplicates = 0
         self.stale_episode = 0
@@ -262,7 +264,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     learner = CriticLearner(settings)
     path = checkpoint_path(settings)
     restored = load_checkpoint(learner, path)
-    checkpoint_seconds: list[float] = []
+    checkpoint_seconds = Window()
     publishers: dict[str, object] = {}
     inbox: queue.Queue[Transition] = queue.Queue()
 
@@ -318,25 +320,25 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             checkpoint_seconds.append(time.perf_counter() - started)
         if fitted is not None:
             publish(fitted)
-    from common.stats import summarize
 
-    return {
-        "service": "critic",
-        "transitions_received": learner.received,
-        "duplicates": learner.duplicates,
-        "too_old": learner.too_old,
-        "stale_episode": learner.stale_episode,
-        "restored": learner.restored,
-        "resume": learner.resume,
-        "checkpoint": None if path is None else str(path),
-        "checkpoint_ms": summarize(checkpoint_seconds, 1e3),
-        "seen_steps": {robot: to_runs(x.seen) for robot, x in learner.learners.items()},
-        "replay": {
-            robot: [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in x.replay.samples]
-            for robot, x in learner.learners.items()
-        },
-        "weights_published": bus.counters["weights_published"],
-        "last_version": learner.version,
-        "fit_ms": summarize(learner.fit_seconds, 1e3),
-        "counters": dict(bus.counters),
-    }
+    return CriticSummary.model_validate(
+        {
+            "transitions_received": learner.received,
+            "duplicates": learner.duplicates,
+            "too_old": learner.too_old,
+            "stale_episode": learner.stale_episode,
+            "restored": learner.restored,
+            "resume": learner.resume,
+            "checkpoint": None if path is None else str(path),
+            "checkpoint_ms": checkpoint_seconds.summary(1e3),
+            "seen_steps": {robot: to_runs(x.seen) for robot, x in learner.learners.items()},
+            "replay": {
+                robot: [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in x.replay.samples]
+                for robot, x in learner.learners.items()
+            },
+            "weights_published": bus.counters["weights_published"],
+            "last_version": learner.version,
+            "fit_ms": learner.fit_seconds.summary(1e3),
+            "counters": dict(bus.counters),
+        }
+    ).to_json_dict()

@@ -73,7 +73,7 @@ from common.ros_wire import (
 )
 from common.security import SecurityError
 from common.settings import BridgeSettings, Settings
-from common.stats import summarize
+from common.stats import Window
 from common.transport import Bus, plain_config, start_status_thread
 
 log = logging.getLogger(__name__)
@@ -142,9 +142,10 @@ class RobotBridge:
         self.max_abs_command = [0.0, 0.0]
         # timing (seconds)
         self.state_sent_at: OrderedDict[int, float] = OrderedDict()
-        self.odom_to_state: list[float] = []
-        self.action_to_cmd: list[float] = []
-        self.state_to_cmd: list[float] = []
+        # latencies in fixed-size windows (common.stats.Window): a bridge runs for days
+        self.odom_to_state = Window()
+        self.action_to_cmd = Window()
+        self.state_to_cmd = Window()
 
     # -- odometry -------------------------------------------------------------------------
     def on_odometry(self, odom: Odometry, received: float) -> PlantState | None:
@@ -329,9 +330,9 @@ class RobotBridge:
 
     def timing(self) -> dict[str, Any]:
         return {
-            "odom_to_state_ms": summarize(self.odom_to_state, 1e3),
-            "action_to_cmd_ms": summarize(self.action_to_cmd, 1e3),
-            "state_to_cmd_ms": summarize(self.state_to_cmd, 1e3),
+            "odom_to_state_ms": self.odom_to_state.summary(1e3),
+            "action_to_cmd_ms": self.action_to_cmd.summary(1e3),
+            "state_to_cmd_ms": self.state_to_cmd.summary(1e3),
         }
 
 
