@@ -22,22 +22,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.agents import parse_agents, parse_horizons
 from common.settings import Settings
 from tests.harness import ROOT
-from tools.experiment.runner import (
-    RunSpec,
-    Scheduler,
-    grid_starts,
-    held_out_starts,
-    parse_agents,
-    parse_horizons,
-    plan_runs,
-    prepare_output,
-    ratio_table,
-    read_runs_csv,
-    run_settings,
-    toml_dumps,
-)
+from tools.experiment.grid import RunSpec, grid_starts, held_out_starts, plan_runs, run_settings
+from tools.experiment.report import ratio_table, read_runs_csv, toml_dumps
+from tools.experiment.runner import Scheduler, prepare_output
 
 REDUCED = ["--grid", "2", "--duration", "3", "--agents", "mpc,rlqv", "--horizons", "6", "--no-progress"]
 REDUCED_RUNS = 2 * 2 * 2 * 1  # starts x agents x horizons
