@@ -39,7 +39,7 @@ from common.security import (
     zenoh_entries,
 )
 from common.settings import Settings
-from common.transport import zenoh_config
+from common.transport import plain_config, zenoh_config
 from tests.harness import ROOT, Cluster, client_config, free_port, wait_until
 
 ROBOT = "t0"
@@ -255,16 +255,14 @@ def session_as(
     endpoint: str, user: str | None, password: str | None = None, tls: tuple[Path, Path, Path] | None = None
 ) -> zenoh.Session:
     """A client session logged in as ``user``; ``tls`` = (CA, certificate, key) for a mutual-TLS link."""
-    config = client_config(endpoint)
-    if tls is not None:
+    if tls is None:
+        config = client_config(endpoint)
+    else:  # the TLS material goes in through the settings, as every srl process gives it
         ca, cert, key = (str(path) for path in tls)
-        for path, value in (
-            ("root_ca_certificate", ca),
-            ("connect_certificate", cert),
-            ("connect_private_key", key),
-            ("enable_mtls", True),
-        ):
-            config.insert_json5(f"transport/link/tls/{path}", json.dumps(value))
+        transport = Settings.load().transport.model_copy(
+            update={"tls_ca": ca, "tls_cert": cert, "tls_key": key, "tls_mtls": True}
+        )
+        config = plain_config(transport, endpoint)
     if user is not None:
         config.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
     if password is not None:
