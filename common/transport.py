@@ -313,10 +313,16 @@ class Bus:
 
 
 def start_status_thread(
-    bus: Bus, robot: str, period: float, stop: threading.Event, extra: Callable[[], dict[str, float]]
+    bus: Bus,
+    robot: str,
+    period: float,
+    stop: threading.Event,
+    extra: Callable[[], dict[str, float]],
+    on_status: Callable[[dict[str, float]], None] | None = None,
 ) -> threading.Thread:
     """Publish this service's counters (and ``extra()``) every ``period`` seconds until stop
-    or until the bus closes (which joins the thread, so it is never left inside Zenoh)."""
+    or until the bus closes (which joins the thread, so it is never left inside Zenoh).
+    ``on_status`` also gets them (the actor logs its status line: compose shows it)."""
     from common.keys import STATUS
     from common.messages import ServiceStatus
 
@@ -326,6 +332,8 @@ def start_status_thread(
         while not bus.closing.wait(period) and not stop.is_set():
             counters = {k: float(v) for k, v in dict(bus.counters).items()}
             counters.update(extra())
+            if on_status is not None:
+                on_status(counters)
             try:
                 publish(
                     ServiceStatus(

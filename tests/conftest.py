@@ -2,7 +2,8 @@
 
 * Isolation: no test reads or writes the user's real critic checkpoint.
 * Machine requirements: a test that needs more than python3 (root, iproute2 and iptables for
-  network namespaces) carries a marker (``needs_root``); where the machine lacks it, the test is
+  network namespaces; a C compiler for the actor's JIT build) carries a marker (``needs_root``,
+  ``needs_compiler``); where the machine lacks it, the test is
   SKIPPED with one line saying what it needs and how to run it, so that ``./srl test`` passes on a
   fresh machine with only python3. ``SRL_TEST_REQUIRE_ALL=1`` (CI, ``.ci/run``) turns every such
   skip into a failure, and fails the session if any test at all was skipped.
@@ -11,6 +12,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -25,9 +27,16 @@ def _netns_missing() -> list[str]:
     return netns.missing_requirements()
 
 
+def _compiler_missing() -> list[str]:
+    # the actor builds without JIT when there is none (common/actor.py), so only the tests of the
+    # JIT build itself need one
+    return [] if shutil.which("gcc") or shutil.which("cc") else ["no C compiler (gcc or cc) on PATH"]
+
+
 # marker -> (what is missing on this machine (empty: nothing), how to run these tests)
 REQUIREMENTS: dict[str, tuple[Callable[[], list[str]], str]] = {
     "needs_root": (_netns_missing, "run as root on Debian with iproute2 and iptables: sudo ./srl test {path}"),
+    "needs_compiler": (_compiler_missing, "install a C compiler (Debian: apt-get install gcc), then ./srl test {path}"),
 }
 
 

@@ -309,6 +309,7 @@ def _build_processes(owner: int) -> list[int]:
 
 
 @pytest.mark.slow
+@pytest.mark.needs_compiler
 @pytest.mark.parametrize(
     ("signum", "group", "code"), [(signal.SIGTERM, False, 143), (signal.SIGINT, True, 130), (signal.SIGINT, False, 130)]
 )

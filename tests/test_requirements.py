@@ -83,3 +83,24 @@ def test_machine_with_everything_runs_the_test(pytester: pytest.Pytester, monkey
     result = _run(pytester, monkeypatch, [], "1")
     result.assert_outcomes(passed=2)
     assert result.ret == 0
+
+
+def test_missing_compiler_skips_the_jit_build_test_with_one_line(
+    pytester: pytest.Pytester, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import shutil
+
+    monkeypatch.setattr(shutil, "which", lambda name: None)  # no gcc, no cc on this "machine"
+    monkeypatch.delenv("SRL_TEST_REQUIRE_ALL", raising=False)
+    pytester.makeini(MARKERS + "    needs_compiler: test\n")
+    pytester.makeconftest(CONFTEST)
+    pytester.makepyfile(
+        test_probe=(
+            "import pytest\n\n@pytest.mark.needs_compiler\ndef test_jit():\n    pass\n\ndef test_plain():\n    pass\n"
+        )
+    )
+    result = pytester.runpytest("-ra", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=1, skipped=1)
+    lines = [line for line in result.outlines if line.startswith("SKIPPED")]
+    assert len(lines) == 1 and "needs_compiler: no C compiler (gcc or cc) on PATH" in lines[0], result.outlines
+    assert "apt-get install gcc" in lines[0]

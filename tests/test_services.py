@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ import zenoh
 from common.assembly import run_episode
 from common.messages import Action, CriticWeights, ServiceStatus
 from common.settings import Settings
-from tests.harness import ROOT, cluster, free_port, wait_until
+from tests.harness import ROOT, Proc, cluster, free_port, wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -300,3 +301,21 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
     assert summaries["actor"]["rejected.critic/weights"] >= sent["critic/weights"]
     assert summaries["critic"]["rejected.transition"] >= sent["transition"]
     assert summaries["lockstep"]["rejected.plant/step"] + summaries["lockstep"]["rejected.plant/reset"] >= 6
+
+
+def test_the_realtime_actor_logs_its_status_line_at_info() -> None:
+    """compose shows the live status (issue 14, point 2): the actor run at INFO, as compose runs
+    it, logs its status line once a second (step, pose, distance, J, weights, missed deadlines)."""
+    with cluster(robot="sl") as c:
+        c.start_plant_and_critic()
+        actor = Proc("actor", ["--log-level", "INFO", "actor", *c.common, "--mode", "realtime", "--run-seconds", "4"])
+        c.procs["actor"] = actor
+        assert actor.process.wait(timeout=90) == 0, actor.stderr[-10:]
+        time.sleep(0.1)  # the reader threads drain
+    lines = [line for line in actor.stderr if " status " in line]
+    assert len(lines) >= 2, actor.stderr[-20:]
+    pattern = re.compile(
+        r"status +\d+\.\d s: step \d+  x [-+]\d\.\d\d y [-+]\d\.\d\d .* distance \d+\.\d\d m  J \d+\.\d{3}"
+    )
+    assert all(pattern.search(line) for line in lines[1:]), lines
+    assert re.search(r"missed deadlines \d+  solver failures \d+$", lines[-1]), lines[-1]

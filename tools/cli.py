@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import os
 import sys
 import threading
@@ -39,6 +38,7 @@ from common.runtime import (
 )
 from common.runtime import entry as runtime_entry
 from common.runtime import main as runtime_main
+from common.summaries import format_status_line
 
 log = logging.getLogger(__name__)
 
@@ -235,27 +235,6 @@ def cmd_up(args: argparse.Namespace) -> int:
 def default_runs_dir() -> Path:
     """Where ``srl up`` writes its runs' JSON summaries: ``SRL_RUNS_DIR`` or ~/.local/state/srl/runs."""
     return Path(os.environ.get("SRL_RUNS_DIR") or Path.home() / ".local/state/srl/runs")
-
-
-def format_status_line(c: dict[str, float], elapsed: float, first_version: list[float]) -> str:
-    """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``).
-
-    Weight versions are microsecond clock values (they never go back across critic restarts);
-    shown is how many versions the actor moved on since this line first saw one, and how many
-    steps old the weights it used were (staleness)."""
-    pose = ""
-    if all(k in c for k in ("x", "y", "alpha")):
-        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {math.hypot(c['x'], c['y']):.2f} m"
-    version = c.get("weights_version", -1.0)
-    if not first_version and version > 0:
-        first_version.append(version)
-    weights = f"weights +{int(version - first_version[0])}" if first_version else "weights initial"
-    return (
-        f"{elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
-        f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
-        f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
-        f"  solver failures {int(c.get('solver_failures', 0))}"
-    )
 
 
 def cmd_status(args: argparse.Namespace) -> int:

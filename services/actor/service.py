@@ -34,7 +34,7 @@ from common.messages import (
 from common.provenance import SourceGate
 from common.settings import Settings
 from common.stats import summarize
-from common.summaries import LockstepActorSummary
+from common.summaries import LockstepActorSummary, format_status_line
 from common.transport import Bus, start_status_thread
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id
 from services.actor.realtime import RealtimeActor
@@ -127,7 +127,14 @@ def _run_realtime(
     try:
         ticker = Ticker(settings.plant.sampling_time, stop)
         loop.ticker = ticker
-        start_status_thread(bus, robot, settings.transport.status_period, stop, loop.status)
+        first_version: list[float] = []
+
+        def log_status(counters: dict[str, float]) -> None:
+            # the live status at INFO: `docker compose up` shows it (compose runs the actor at
+            # INFO); srl up prints the same line from the published status instead
+            log.info("status %s", format_status_line(counters, time.monotonic() - start_time, first_version))
+
+        start_status_thread(bus, robot, settings.transport.status_period, stop, loop.status, log_status)
         loop.run(ticker, end)
     finally:
         gc.unfreeze()
