@@ -508,6 +508,31 @@ def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
     assert path.stat().st_size > 20_000
 
 
+def test_the_path_plot_keeps_its_arrows_in_the_axes_and_the_end_above_the_target() -> None:
+    """Point 13: the end marker used to hide under the target star, and the heading arrows ran
+    out of the axes."""
+    import matplotlib.pyplot as plt
+
+    from tools.plots import plot_path
+
+    # a run that ends on the target, heading outward, with a long last arrow
+    t = np.linspace(0.0, 1.0, 60)
+    states = np.column_stack([2.0 * (1 - t), 2.0 * (1 - t) ** 2, np.full_like(t, np.pi / 4)])
+    fig, ax = plt.subplots()
+    try:
+        plot_path(ax, states)
+        (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+        arrows = ax.collections[0]  # the quiver
+        tips = arrows.get_offsets() + np.column_stack([arrows.U, arrows.V])
+        assert (tips[:, 0] >= x0).all() and (tips[:, 0] <= x1).all()
+        assert (tips[:, 1] >= y0).all() and (tips[:, 1] <= y1).all()
+        markers = {line.get_label().split(" ")[0]: line for line in ax.get_lines()}
+        assert markers["end"].get_zorder() > markers["target"].get_zorder()
+        assert markers["end"].get_markerfacecolor() == "none"  # hollow: the target shows through
+    finally:
+        plt.close(fig)
+
+
 # -- point 8: log levels that mean something; point 9: no Rust internals --------------------
 def test_the_router_says_it_listens_on_stdout_and_a_taken_port_in_one_line() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"

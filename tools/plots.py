@@ -21,7 +21,7 @@ def plot_episode(episode: Episode, sampling_time: float, path: Path) -> None:
     fig = plt.figure(figsize=(15, 8.5))
     grid = fig.add_gridspec(2, 3, width_ratios=(1.25, 1, 1))
     ax_xy = fig.add_subplot(grid[:, 0])
-    _plot_path(ax_xy, states)
+    plot_path(ax_xy, states)
     ax_xy.set_title(f"{episode.agent}, N = {episode.horizon}: path (goal frame)")
 
     ax_u = fig.add_subplot(grid[0, 1])
@@ -56,7 +56,7 @@ def plot_episode(episode: Episode, sampling_time: float, path: Path) -> None:
     plt.close(fig)
 
 
-def _plot_path(ax: plt.Axes, states: np.ndarray) -> None:
+def plot_path(ax: plt.Axes, states: np.ndarray) -> None:
     ax.plot(states[:, 0], states[:, 1], "-", lw=1.5, color="tab:blue", label="path", zorder=2)
     # heading arrows of a fixed length in data units, so that the axis limits below contain them
     span = float(max(np.ptp(states[:, 0]), np.ptp(states[:, 1]), 0.2))
