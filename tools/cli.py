@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from common.agents import AGENTS
 from common.arguments import (
     COMMAND_SETTINGS,
     add_bridge_arguments,
@@ -471,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
     bench.add_argument(
-        "--agents", default="mpc,rlq,rlqv,rlqv+", help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)"
+        "--agents", default=",".join(AGENTS), help=f"comma-separated agents (default: {','.join(AGENTS)})"
     )
     bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
