@@ -40,6 +40,7 @@ from common.runtime import (
 )
 from common.runtime import entry as runtime_entry
 from common.runtime import main as runtime_main
+from common.summaries import RouterSummary
 
 log = logging.getLogger(__name__)
 
@@ -156,9 +157,10 @@ def cmd_router(args: argparse.Namespace) -> int:
     closer = threading.Thread(target=session.close, name="router-close", daemon=True)
     closer.start()
     closer.join(ROUTER_CLOSE_SECONDS)
-    summary: dict[str, Any] = {"service": "router", "endpoint": settings.transport.router, "resources": own_resources()}
-    if closer.is_alive():
-        summary["close_timed_out"] = True
+    summary = RouterSummary(
+        endpoint=settings.transport.router, resources=own_resources(), close_timed_out=closer.is_alive()
+    ).to_json_dict()
+    if summary["close_timed_out"]:
         print(json.dumps(summary), flush=True)
         sys.stderr.flush()
         os._exit(0)  # the interpreter's exit would wait on the session's runtime
