@@ -24,7 +24,7 @@ from common.summaries import (
     RouterSummary,
 )
 from services.robot_bridge.service import RobotBridge
-from tools.up import CHILD_SUMMARIES, Child, _contract_summary
+from tools.up import CHILD_SUMMARIES, Child, _contract_summary, optional_summary
 
 
 def _episode() -> dict[str, object]:
@@ -167,3 +167,6 @@ def test_srl_up_reads_the_plant_and_the_bridge_through_their_contracts() -> None
     plant.stdout_lines.append(json.dumps({**PRODUCED["plant"][1], "final_sate": [0.0, 0.0, 0.0]}))
     with pytest.raises(ValueError, match=r"^plant's summary does not fit common/summaries.py: final_sate: "):
         _contract_summary(plant, TypeAdapter(CHILD_SUMMARIES["plant"]))
+    with pytest.raises(ValueError, match="final_sate"):  # printed but drifted: never read as missing
+        optional_summary(plant, TypeAdapter(PlantSummary))
+    assert optional_summary(Child("plant", process), TypeAdapter(PlantSummary)) is None  # printed none (killed)

@@ -134,6 +134,12 @@ def _contract_summary(child: Child, contract: TypeAdapter[T]) -> T:
         raise ValueError(f"{child.name}'s summary does not fit common/summaries.py: {where}: {first['msg']}") from None
 
 
+def optional_summary(child: Child, contract: TypeAdapter[T]) -> T | None:
+    """A child's summary through its contract, or None if it printed none (a child killed after
+    the grace); one that does not fit raises as :func:`_contract_summary` does."""
+    return None if child.summary() is None else _contract_summary(child, contract)
+
+
 def free_loopback_endpoint() -> str:
     """``tcp/127.0.0.1:<port>`` on a port that was free a moment ago (the OS picked it)."""
     import socket
@@ -546,9 +552,10 @@ def _run_up(
     critic_summary = _contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
     # the others as far as they printed one (the router's may be cut by its bounded close)
     others: dict[str, OtherSummary] = {
-        name: _contract_summary(child, TypeAdapter(CHILD_SUMMARIES[name]))
+        name: summary
         for name, child in supervisor.children.items()
-        if name in CHILD_SUMMARIES and child.summary() is not None
+        if name in CHILD_SUMMARIES
+        and (summary := optional_summary(child, TypeAdapter(CHILD_SUMMARIES[name]))) is not None
     }
     parsed: dict[str, OtherSummary | CriticSummary | RealtimeActorSummary | LockstepActorSummary] = {
         "actor": actor_summary,
