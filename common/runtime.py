@@ -107,8 +107,9 @@ def connect_with_retry(
     "waiting for the router" is said at once; at the end a router that listens but refuses the
     session (secure: the login) is told apart from one that is not there at all, without Zenoh's
     Rust internals (those go to DEBUG)."""
-    import zenoh
+    from common.transport import session_errors  # zenoh only through the transport, and only here
 
+    refused = session_errors()
     transport = settings.transport
     deadline = time.monotonic() + timeout
     refused_since: float | None = None
@@ -116,7 +117,7 @@ def connect_with_retry(
     while True:
         try:
             return opener()
-        except zenoh.ZError as error:
+        except refused as error:
             log.debug("%s: zenoh.open: %s", service, error)
             now = time.monotonic()
             listening = _endpoint_listening(transport.router)

@@ -142,3 +142,76 @@ def format_status_line(c: dict[str, float], elapsed: float, first_version: list[
         f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
         f"  solver failures {int(c.get('solver_failures', 0))}"
     )
+
+
+class PlantSummary(_Summary):
+    """The simulated plant (services/plant_sim/service.py)."""
+
+    service: Literal["plant"] = "plant"
+    mode: Literal["realtime", "lockstep"]
+    final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended")
+    counters: dict[str, int]
+    resources: dict[str, Any] | None = None
+
+
+class CmdVelTarget(_Summary):
+    """One cmd_vel subscription of the robot the bridge sent to."""
+
+    type: str = Field(description="the ROS 2 message type, e.g. geometry_msgs/msg/Twist")
+    key: str = Field(description="its Zenoh key expression")
+
+
+class BridgeTiming(_Summary):
+    odom_to_state_ms: Quantiles
+    action_to_cmd_ms: Quantiles
+    state_to_cmd_ms: Quantiles
+
+
+class BridgeSummary(_Summary):
+    """The ROS 2 robot bridge (services/robot_bridge/service.py)."""
+
+    service: Literal["robot_bridge"] = "robot_bridge"
+    # the wire names as plain strings: common.ros_wire's Literals would pull rosbags into every
+    # importer of the summaries (srl run); the settings already refused any other value
+    profile: str = Field(description="rmw_zenoh or ros2dds")
+    ros_distro: str = Field(description="humble or jazzy")
+    namespace: str
+    goal: list[float] = Field(description="the target pose in the odom frame [m, m, rad]")
+    cmd_vel: list[CmdVelTarget]
+    fallback: bool = Field(description="cmd_vel guessed from the distro, never announced by the robot")
+    discovered: list[str]
+    attachment_format: str | None = Field(description="rmw_zenoh: compact or legacy, None until seen")
+    final_state: list[float] | None
+    max_abs_command: list[float] = Field(description="[|v| m/s, |omega| rad/s], the largest sent")
+    timing: BridgeTiming
+    counters: dict[str, int]
+    resources: dict[str, Any] | None = None
+
+
+class EmulatorSummary(_Summary):
+    """The emulated TurtleBot3 (services/tb3_emulator)."""
+
+    service: Literal["tb3_emulator"] = "tb3_emulator"
+    profile: str = Field(description="rmw_zenoh or ros2dds")
+    ros_distro: str = Field(description="humble or jazzy")
+    cmd_type: str
+    attachment: str | None = Field(description="rmw_zenoh: compact or legacy; None with ros2dds")
+    cmd_key: str
+    odom_key: str
+    final_pose: list[float] = Field(description="[x m, y m, theta rad] in the odom frame")
+    applied: list[float] = Field(description="[v m/s, omega rad/s] applied when it ended")
+    max_abs_applied: list[float]
+    cmd_timeouts: int
+    counters: dict[str, int]
+    missed_ticks: int
+    initial_pose: list[float]
+    resources: dict[str, Any] | None = None
+
+
+class RouterSummary(_Summary):
+    """The Zenoh router (``srl router``, tools/cli.py)."""
+
+    service: Literal["router"] = "router"
+    endpoint: str
+    resources: dict[str, Any] | None = None
+    close_timed_out: bool = Field(False, description="its session's close outlasted the bound and was left")

@@ -78,6 +78,12 @@ def plain_config(transport: TransportSettings, endpoint: str, *, router: bool = 
     return zenoh_config(plain, router=router)
 
 
+def session_errors() -> tuple[type[Exception], ...]:
+    """What opening (or using) a Zenoh session raises when the network refuses it, for modules
+    that must catch it without importing zenoh themselves (common.runtime's connect retry)."""
+    return (zenoh.ZError,)
+
+
 class Bus:
     """One Zenoh session of one service, with counters shared by all its handlers."""
 

@@ -1,4 +1,21 @@
-"""Start real service processes on free loopback ports, wait on readiness, clean up by pid."""
+"""Start real service processes on free loopback ports, wait on readiness, clean up by pid.
+
+Why :class:`Proc` and :class:`Cluster` do not reuse ``tools.up.Supervisor`` (issue 15 counted
+them as a second supervisor; decided to keep them apart):
+
+* Tests do not set up with the code they test: the Supervisor is under test itself
+  (test_up_supervisor.py, and the ``srl up`` runs of test_services.py and test_security.py). A
+  harness built on it would carry its bugs (stop order, signal forwarding, grace) into every
+  integration test, as leaked or wrongly stopped processes, instead of failing the test that
+  checks that one thing.
+* Tests need other controls than a launcher meant to run for days: any signal to any one process
+  (SIGKILL, SIGTERM to provoke the failure paths) with a per-call timeout, where the Supervisor
+  sends SIGINT with one fixed grace; every stdout and stderr line kept for assertions, where the
+  Supervisor keeps the newest 1000/200 and echoes the logs; a missing summary as an
+  AssertionError carrying the stderr tail, where the Supervisor's is None.
+
+What the two share is the Popen call and two reader threads: kept twice, small, on purpose.
+"""
 
 from __future__ import annotations
 

@@ -8,6 +8,8 @@ import, also those inside functions), never by importing:
 * services never import tools; common never imports services or tools;
 * the math never imports the settings or the transport (numbers and arrays in, numbers out:
   :mod:`common.assembly` is where settings meet the math);
+* ``common/transport.py`` is the only module of common that imports zenoh, also inside a
+  function (test_purity.py checks what importing a module loads; a function's import runs later);
 * no module reads or writes another module's underscore names.
 """
 
@@ -33,6 +35,7 @@ MATH = (
     "common.agents",
 )
 NOT_FOR_MATH = ("common.settings", "common.transport", "common.assembly", "zenoh")
+ZENOH_GATE = "common.transport"  # the only module of common that imports zenoh (README, test_purity.py)
 # Private names of other libraries that our code uses on purpose, each with its reason.
 FOREIGN_PRIVATE = {
     "_choices_actions": "argparse: the subcommands' help lines (tools/cli.py fills in descriptions)",
@@ -84,6 +87,10 @@ def floor_violations(module: str, source: str) -> list[str]:
             f"{module} imports {name} (common never imports services or tools)"
             for name in found
             if under(name, ("services", "tools"))
+        ]
+    if under(module, ("common",)) and module != ZENOH_GATE and module not in MATH:  # the math: the rule below
+        problems += [
+            f"{module} imports {name} (only {ZENOH_GATE} imports zenoh)" for name in found if under(name, ("zenoh",))
         ]
     if module in MATH:
         problems += [
@@ -147,6 +154,8 @@ def test_no_module_uses_another_modules_underscore_names() -> None:
         ("common.loop", "from common.settings import Settings\n", "the math never imports settings or transport"),
         ("common.actor", "def f():\n    from common.transport import Bus\n", "the math never imports settings"),
         ("common.critic", "import zenoh\n", "the math never imports settings or transport"),
+        ("common.runtime", "def f():\n    import zenoh\n", "only common.transport imports zenoh"),
+        ("common.keys", "from zenoh.ext import z_serialize\n", "only common.transport imports zenoh"),
     ],
 )
 def test_the_floor_rules_catch_an_upward_import(module: str, source: str, expected: str) -> None:

@@ -3,6 +3,7 @@ consumers read it through the same models, and a drifted key is refused, not pas
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -12,8 +13,18 @@ from pydantic import TypeAdapter, ValidationError
 
 from common.assembly import episode_summary, run_episode
 from common.settings import Settings
-from common.summaries import ACTOR_SUMMARY, CriticSummary, EpisodeSummary, LockstepActorSummary
-from tools.up import Child, _contract_summary
+from common.summaries import (
+    ACTOR_SUMMARY,
+    BridgeSummary,
+    CriticSummary,
+    EmulatorSummary,
+    EpisodeSummary,
+    LockstepActorSummary,
+    PlantSummary,
+    RouterSummary,
+)
+from services.robot_bridge.service import RobotBridge
+from tools.up import CHILD_SUMMARIES, Child, _contract_summary, optional_summary
 
 
 def _episode() -> dict[str, object]:
@@ -66,3 +77,96 @@ def test_srl_up_says_in_one_line_which_child_summary_is_missing_or_wrong() -> No
     child.stdout_lines.append('{"service": "critic", "transitions_received": "many"}')
     with pytest.raises(ValueError, match=r"^critic's summary does not fit common/summaries.py: [^\n]*$"):
         _contract_summary(child, TypeAdapter(CriticSummary))
+
+
+def _bridge_summary() -> dict[str, object]:
+    """What services/robot_bridge/service.py prints (its timing from a real RobotBridge)."""
+    settings = Settings.load(transport={"robot": "u0"})
+    bridge = RobotBridge(settings, lambda s: None, lambda v, w: None, _NoCounts())
+    return {
+        "service": "robot_bridge",
+        "profile": "rmw_zenoh",
+        "ros_distro": "jazzy",
+        "namespace": "",
+        "goal": [0.0, 0.0, 0.0],
+        "cmd_vel": [
+            {"type": "geometry_msgs/msg/TwistStamped", "key": "0/cmd_vel/geometry_msgs::msg::dds_::TwistStamped_/x"}
+        ],
+        "fallback": False,
+        "discovered": ["0/cmd_vel/geometry_msgs::msg::dds_::TwistStamped_/x"],
+        "attachment_format": "compact",
+        "final_state": None,
+        "max_abs_command": bridge.max_abs_command,
+        "timing": bridge.timing(),
+        "counters": {"commands_sent": 3},
+        "resources": {"rss_mb": 50.0},
+    }
+
+
+class _NoCounts:
+    def __init__(self) -> None:
+        self.counters: dict[str, int] = {}
+
+    def count(self, name: str, amount: int = 1) -> None:
+        pass
+
+    def reject(self, what: str, reason: str) -> None:
+        pass
+
+
+PRODUCED = {
+    "plant": (PlantSummary, {"service": "plant", "mode": "realtime", "final_state": [0.1, 0.2, 0.3], "counters": {}}),
+    "robot_bridge": (BridgeSummary, _bridge_summary()),
+    "tb3_emulator": (
+        EmulatorSummary,
+        {
+            "service": "tb3_emulator",
+            "profile": "ros2dds",
+            "ros_distro": "humble",
+            "cmd_type": "geometry_msgs/msg/Twist",
+            "attachment": None,
+            "cmd_key": "cmd_vel",
+            "odom_key": "odom",
+            "final_pose": [0.0, 0.0, 0.0],
+            "applied": [0.0, 0.0],
+            "max_abs_applied": [0.2, 1.0],
+            "cmd_timeouts": 0,
+            "counters": {"odom_published": 10},
+            "missed_ticks": 0,
+            "initial_pose": [1.0, 1.0, 0.0],
+            "resources": None,
+        },
+    ),
+    "router": (RouterSummary, {"service": "router", "endpoint": "tcp/127.0.0.1:7447", "resources": None}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PRODUCED))
+def test_the_plant_bridge_emulator_and_router_summaries_fit_and_refuse_a_drifted_key(name: str) -> None:
+    model, summary = PRODUCED[name]
+    parsed = model.model_validate(summary)
+    assert {k: v for k, v in parsed.to_json_dict().items() if k in summary} == summary  # the keys printed stay
+    with pytest.raises(ValidationError, match="extra"):
+        model.model_validate({**summary, "final_sate": [0.0, 0.0, 0.0]})
+    required = next(k for k, f in model.model_fields.items() if f.is_required())
+    with pytest.raises(ValidationError, match=required):
+        model.model_validate({k: v for k, v in summary.items() if k != required})
+    with pytest.raises(ValidationError):  # a model is frozen: what was read is what was printed
+        parsed.service = "other"  # type: ignore[misc]
+
+
+def test_srl_up_reads_the_plant_and_the_bridge_through_their_contracts() -> None:
+    assert CHILD_SUMMARIES["plant"] is PlantSummary and CHILD_SUMMARIES["robot_bridge"] is BridgeSummary
+    process = subprocess.Popen([sys.executable, "-c", "pass"], text=True)
+    process.wait()
+    bridge = Child("robot_bridge", process)
+    bridge.stdout_lines.append(json.dumps(_bridge_summary()))
+    read = _contract_summary(bridge, TypeAdapter(BridgeSummary))
+    assert read.attachment_format == "compact" and math.isnan(read.timing.odom_to_state_ms.median)  # none measured
+    plant = Child("plant", process)
+    plant.stdout_lines.append(json.dumps({**PRODUCED["plant"][1], "final_sate": [0.0, 0.0, 0.0]}))
+    with pytest.raises(ValueError, match=r"^plant's summary does not fit common/summaries.py: final_sate: "):
+        _contract_summary(plant, TypeAdapter(CHILD_SUMMARIES["plant"]))
+    with pytest.raises(ValueError, match="final_sate"):  # printed but drifted: never read as missing
+        optional_summary(plant, TypeAdapter(PlantSummary))
+    assert optional_summary(Child("plant", process), TypeAdapter(PlantSummary)) is None  # printed none (killed)

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from common.agents import AGENTS
 from common.arguments import (
     COMMAND_SETTINGS,
     add_bridge_arguments,
@@ -38,7 +39,7 @@ from common.runtime import (
 )
 from common.runtime import entry as runtime_entry
 from common.runtime import main as runtime_main
-from common.summaries import format_status_line
+from common.summaries import RouterSummary, format_status_line
 
 log = logging.getLogger(__name__)
 
@@ -155,9 +156,10 @@ def cmd_router(args: argparse.Namespace) -> int:
     closer = threading.Thread(target=session.close, name="router-close", daemon=True)
     closer.start()
     closer.join(ROUTER_CLOSE_SECONDS)
-    summary: dict[str, Any] = {"service": "router", "endpoint": settings.transport.router, "resources": own_resources()}
-    if closer.is_alive():
-        summary["close_timed_out"] = True
+    summary = RouterSummary(
+        endpoint=settings.transport.router, resources=own_resources(), close_timed_out=closer.is_alive()
+    ).to_json_dict()
+    if summary["close_timed_out"]:
         print(json.dumps(summary), flush=True)
         sys.stderr.flush()
         os._exit(0)  # the interpreter's exit would wait on the session's runtime
@@ -450,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
     bench.add_argument(
-        "--agents", default="mpc,rlq,rlqv,rlqv+", help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)"
+        "--agents", default=",".join(AGENTS), help=f"comma-separated agents (default: {','.join(AGENTS)})"
     )
     bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"

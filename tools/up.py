@@ -43,12 +43,29 @@ from pydantic import TypeAdapter, ValidationError
 from common.certs import write_tls_material
 from common.security import ROLES, write_credentials
 from common.settings import Settings
-from common.summaries import ACTOR_SUMMARY, CriticSummary
+from common.summaries import (
+    ACTOR_SUMMARY,
+    BridgeSummary,
+    CriticSummary,
+    EmulatorSummary,
+    LockstepActorSummary,
+    PlantSummary,
+    RealtimeActorSummary,
+    RouterSummary,
+)
 from common.transport import zenoh_config
 
 log = logging.getLogger(__name__)
 GRACE_SECONDS = 5.0
 T = TypeVar("T")
+# the children's contracts besides the actor's and the critic's (common/summaries.py)
+OtherSummary = RouterSummary | PlantSummary | BridgeSummary | EmulatorSummary
+CHILD_SUMMARIES: dict[str, type[OtherSummary]] = {
+    "router": RouterSummary,
+    "plant": PlantSummary,
+    "robot_bridge": BridgeSummary,
+    "tb3_emulator": EmulatorSummary,
+}
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -115,6 +132,12 @@ def _contract_summary(child: Child, contract: TypeAdapter[T]) -> T:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         raise ValueError(f"{child.name}'s summary does not fit common/summaries.py: {where}: {first['msg']}") from None
+
+
+def optional_summary(child: Child, contract: TypeAdapter[T]) -> T | None:
+    """A child's summary through its contract, or None if it printed none (a child killed after
+    the grace); one that does not fit raises as :func:`_contract_summary` does."""
+    return None if child.summary() is None else _contract_summary(child, contract)
 
 
 def free_loopback_endpoint() -> str:
@@ -527,12 +550,26 @@ def _run_up(
     # printed none, or one that does not fit, is said here, not met later as a missing key
     actor_summary = _contract_summary(supervisor.children["actor"], ACTOR_SUMMARY)
     critic_summary = _contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
+    # the others as far as they printed one (the router's may be cut by its bounded close)
+    others: dict[str, OtherSummary] = {
+        name: summary
+        for name, child in supervisor.children.items()
+        if name in CHILD_SUMMARIES
+        and (summary := optional_summary(child, TypeAdapter(CHILD_SUMMARIES[name]))) is not None
+    }
+    parsed: dict[str, OtherSummary | CriticSummary | RealtimeActorSummary | LockstepActorSummary] = {
+        "actor": actor_summary,
+        "critic": critic_summary,
+        **others,
+    }
     merged = actor_summary.to_json_dict()
     merged.pop("transitions_tail", None)  # kept in actor.json
     if plant == "robot":
-        merged["bridge"] = supervisor.children["robot_bridge"].summary()
+        bridge = others.get("robot_bridge")
+        merged["bridge"] = None if bridge is None else bridge.to_json_dict()
         if "tb3_emulator" in supervisor.children:
-            merged["emulator"] = supervisor.children["tb3_emulator"].summary()
+            emulator = others.get("tb3_emulator")
+            merged["emulator"] = None if emulator is None else emulator.to_json_dict()
     merged.update(
         {
             "services": {name: child.process.pid for name, child in supervisor.children.items()},
@@ -547,9 +584,7 @@ def _run_up(
             "critic_checkpoint": critic_summary.checkpoint,
             "critic_restored": critic_summary.restored,
             "wall_seconds": time.monotonic() - started,
-            "resources": {
-                name: (child.summary() or {}).get("resources") for name, child in supervisor.children.items()
-            },
+            "resources": {name: parsed[name].resources if name in parsed else None for name in supervisor.children},
         }
     )
     if summary_dir is not None:

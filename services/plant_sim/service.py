@@ -26,6 +26,7 @@ from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.provenance import PlantConflictError
 from common.settings import Settings
+from common.summaries import PlantSummary
 from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
@@ -136,12 +137,9 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.count("missed_ticks", ticker.missed)
     else:
         stop.wait(duration)
-    return {
-        "service": "plant",
-        "mode": mode,
-        "final_state": [float(c) for c in plant.state],
-        "counters": dict(bus.counters),
-    }
+    return PlantSummary.model_validate(
+        {"mode": mode, "final_state": [float(c) for c in plant.state], "counters": dict(bus.counters)}
+    ).to_json_dict()
 
 
 def _publish(publish_state: Callable[[PlantState], None], message: PlantState) -> PlantState:

@@ -74,6 +74,7 @@ from common.ros_wire import (
 from common.security import SecurityError
 from common.settings import BridgeSettings, Settings
 from common.stats import Window
+from common.summaries import BridgeSummary
 from common.transport import Bus, plain_config, start_status_thread
 
 log = logging.getLogger(__name__)
@@ -682,15 +683,16 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         link.close()
         if own_session:
             session.close()
-    return {
-        "service": "robot_bridge",
-        "profile": graph.profile,
-        "ros_distro": graph.distro,
-        "namespace": graph.namespace,
-        "goal": list(settings.bridge.goal),
-        **wire,
-        "final_state": None if bridge.last_state is None else list(bridge.last_state),
-        "max_abs_command": bridge.max_abs_command,
-        "timing": bridge.timing(),
-        "counters": dict(bus.counters),
-    }
+    return BridgeSummary.model_validate(
+        {
+            "profile": graph.profile,
+            "ros_distro": graph.distro,
+            "namespace": graph.namespace,
+            "goal": list(settings.bridge.goal),
+            **wire,
+            "final_state": None if bridge.last_state is None else list(bridge.last_state),
+            "max_abs_command": bridge.max_abs_command,
+            "timing": bridge.timing(),
+            "counters": dict(bus.counters),
+        }
+    ).to_json_dict()

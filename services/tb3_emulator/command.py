@@ -10,6 +10,7 @@ import time
 from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
 from common.lifeline import die_with_parent
 from common.runtime import add_lifetime_arguments, connect_with_retry, floats_arg, own_resources
+from common.summaries import EmulatorSummary
 
 NAME = "tb3-emulator"
 HELP = "an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh"
@@ -116,7 +117,6 @@ def main(args: argparse.Namespace) -> int:
         )
     finally:
         session.close()
-    result["initial_pose"] = list(pose)
-    result["resources"] = own_resources()
-    print(json.dumps(result), flush=True)
+    summary = EmulatorSummary.model_validate({**result, "initial_pose": list(pose), "resources": own_resources()})
+    print(json.dumps(summary.to_json_dict()), flush=True)
     return 0

@@ -34,6 +34,7 @@ from bisect import bisect_right
 from typing import Any
 
 import zenoh
+from pydantic import TypeAdapter
 
 from common import ros_wire
 from common.keys import ACTION, STATE, identity_key, liveliness_key
@@ -41,9 +42,10 @@ from common.messages import Action
 from common.ros_wire import Attachment, RosGraph
 from common.settings import Settings
 from common.stats import summarize
+from common.summaries import BridgeSummary
 from common.transport import zenoh_config
 from services.tb3_emulator.service import firmware_velocity
-from tools.up import Supervisor, alive_probe, router_reachable, state_probe
+from tools.up import Supervisor, alive_probe, optional_summary, router_reachable, state_probe
 
 TARGET_P99_MS = 1.0
 SPEEDS = [round(0.02 + 0.01 * i, 2) for i in range(15)]  # 0.02 .. 0.16 m/s, all below the limits
@@ -233,7 +235,7 @@ def run_bridge_benchmark(
 
         # phase 2: the robot alone (bridge stopped, commands straight to the robot)
         supervisor.stop_one("robot_bridge")
-        bridge_summary = supervisor.children["robot_bridge"].summary() or {}
+        bridge_summary = optional_summary(supervisor.children["robot_bridge"], TypeAdapter(BridgeSummary))
         endpoint = graph.cmd_endpoint(settings.bridge.cmd_vel_topic, ros_type)
         cmd_pub = session.declare_publisher(endpoint.key, express=True)
         gid = ros_wire.gid_for(f"srl-bench-{robot}")
@@ -255,7 +257,7 @@ def run_bridge_benchmark(
             odom2 = [o for o in recorder.odom if o[0] >= start2]
         direct_to_odom = _latencies(direct, odom2, lambda v: firmware_velocity(v, v_max), 0.2)
         del keep
-        resources = bridge_summary.get("resources") or {}
+        resources = (bridge_summary.resources if bridge_summary is not None else None) or {}
         result = {
             "profile": graph.profile,
             "ros_distro": graph.distro,
@@ -275,7 +277,7 @@ def run_bridge_benchmark(
             "bridge_cpu_seconds": resources.get("cpu_seconds"),
             "bridge_peak_rss_mb": resources.get("peak_rss_mb"),
             "bridge_wall_seconds": start2 - start,
-            "bridge_internal": bridge_summary.get("timing"),
+            "bridge_internal": None if bridge_summary is None else bridge_summary.timing.to_json_dict(),
         }
     finally:
         if session is not None:
