@@ -215,3 +215,10 @@ class ActionOrder:
             self.run.accepted()
         self.last = order
         return None
+
+
+def yields_to(own: str, others: list[str]) -> list[str]:
+    """The live sessions a singleton service's session ``own`` must yield to: those that sort
+    before it. Two plants that both passed the start check (started at the same moment) compute
+    the same answer each, so exactly one of them keeps running."""
+    return sorted(other for other in others if other < own)

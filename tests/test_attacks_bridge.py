@@ -8,14 +8,18 @@ out, and a second plant for one robot refuses to start.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
 import zenoh
 
 from common import ros_wire
+from common.keys import identity_of, identity_pattern
 from common.messages import Action
+from common.provenance import PlantConflictError
 from common.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
+from common.transport import Bus
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
 from tests.test_robot_bridge import DELTA, RobotWatch
 
@@ -139,3 +143,68 @@ def test_a_second_plant_for_one_robot_refuses_to_start(second: str) -> None:
     print(f"\nfigures: a second plant ({second}) for robot {robot}: exit {code} after {took:.1f} s: {errors[:1]}")
     assert code == 2
     assert len(errors) == 1 and "one plant per robot" in errors[0]
+
+
+def test_two_plants_racing_past_the_start_check_leave_exactly_one() -> None:
+    """Issue 13 (audit): two plants that start at the same moment both pass the "another plant's
+    token exists" check before either declares. Reproduced exactly here: two plant sessions both
+    pass Bus.refuse_other_plant, then declare at once; the tie-break after declaring leaves one."""
+    robot = "atk_r"
+    with cluster(robot=robot) as c:
+        buses = [Bus(zenoh.open(client_config(c.endpoint)), "plant") for _ in range(2)]
+        try:
+            for bus in buses:
+                bus.refuse_other_plant(robot)  # neither sees the other yet: the race
+            errors: list[str | None] = [None, None]
+
+            def claim(i: int) -> None:
+                try:
+                    buses[i].declare_sole_plant(robot)
+                except PlantConflictError as error:
+                    errors[i] = str(error)
+
+            threads = [threading.Thread(target=claim, args=(i,)) for i in range(2)]
+            started = time.monotonic()
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join(timeout=10)
+            took = time.monotonic() - started
+            survivors = [i for i in range(2) if errors[i] is None]
+            assert len(survivors) == 1, errors
+            winner, loser = buses[survivors[0]], buses[1 - survivors[0]]
+            assert winner.zid < loser.zid  # the deterministic rule: the smaller session id stays
+            # the loser withdrew its identity: only the winner is alive for the robot
+            wait_until(lambda: c.session is not None and _identities(c.session, robot) == [winner.zid], 5, "one id")
+        finally:
+            for bus in buses:
+                bus.close()
+    print(f"\nfigures: two plants declared at once: one yielded after {took:.2f} s: {errors}")
+    message = next(e for e in errors if e is not None)
+    assert "one plant per robot" in message and took < 3.0
+
+
+def _identities(session: zenoh.Session, robot: str) -> list[str]:
+    replies = session.liveliness().get(identity_pattern(robot, "plant"), timeout=1.0)
+    return sorted(identity_of(str(r.ok.key_expr)) for r in replies if r.ok is not None)
+
+
+@pytest.mark.parametrize("second", ["plant-sim", "robot-bridge"])
+def test_two_plant_processes_started_at_once_leave_exactly_one(second: str) -> None:
+    """compose starts plant_sim and robot_bridge at the same moment: exactly one keeps running,
+    the other exits 2 with the one-line PlantConflictError (whichever check caught it)."""
+    robot = "atk_s"
+    with cluster(robot=robot) as c:
+        procs = [c.start("first", "plant-sim", "--mode", "realtime"), c.start("second", second)]
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not any(p.process.poll() is not None for p in procs):
+            time.sleep(0.05)
+        time.sleep(1.0)  # the survivor stays up
+        codes = [p.process.poll() for p in procs]
+        assert c.session is not None
+        alive = _identities(c.session, robot)
+        lines = [line for p in procs for line in p.stderr if "another plant" in line]
+    print(f"\nfigures: plant-sim and {second} started at once: exit codes {codes}, live plants {len(alive)}")
+    assert sorted(codes, key=lambda code: code is None) == [2, None]  # one exited 2, one runs
+    assert len(alive) == 1
+    assert len(lines) == 1 and "one plant per robot" in lines[0]

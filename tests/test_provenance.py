@@ -14,7 +14,7 @@ from collections import Counter
 import pytest
 
 from common.messages import CriticWeights
-from common.provenance import RESYNC_AFTER, ActionOrder, RefusalRun, SequenceGuard, SourceGate
+from common.provenance import RESYNC_AFTER, ActionOrder, RefusalRun, SequenceGuard, SourceGate, yields_to
 from common.settings import Settings
 from services.actor.ports import MAX_VERSION_AHEAD_US, WeightsInbox
 
@@ -185,6 +185,13 @@ def test_action_order_a_followed_forged_burst_costs_the_real_actor_a_bounded_run
     assert order.resyncs == 2 and order.last == (500, 2 * RESYNC_AFTER - 1)
     order.reset()  # a new actor session: anything first
     assert order.check(3, 7, 9.0) is None
+
+
+def test_yields_to_is_the_same_answer_on_both_sides() -> None:
+    a, b = "1f3a", "9c02"
+    assert yields_to(a, [b]) == [] and yields_to(b, [a]) == [a]  # exactly one of the two yields
+    assert yields_to(b, [a, "0001", "ffff"]) == ["0001", a]
+    assert yields_to(a, []) == []
 
 
 # -- WeightsInbox -------------------------------------------------------------------------

@@ -59,7 +59,7 @@ from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
-from common.provenance import RESYNC_AFTER, ActionOrder, PlantConflictError, SourceGate
+from common.provenance import RESYNC_AFTER, ActionOrder, SourceGate
 from common.ros_wire import (
     ODOMETRY,
     TWIST,
@@ -643,12 +643,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     entities: list[Any] = []
     try:
         # one plant per robot (issue 13): never a second plant beside a live one
-        others = bus.live_identities(robot, "plant")
-        if others:
-            raise PlantConflictError(
-                f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
-                "one plant per robot; stop it first"
-            )
+        bus.refuse_other_plant(robot)
         # the actor is alive while one of its sessions' identity tokens is (common.provenance)
         bus.watch_identities(robot, "actor", actor_gate, bridge.on_actor_identity)
         bus.subscribe(
@@ -658,7 +653,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             with_source=True,
         )
         link.start()
-        bus.declare_alive(robot)
+        bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
         entities.append(bus.session.liveliness().declare_token(liveliness_key(robot, "robot_bridge")))
         start_status_thread(
             bus,
