@@ -17,7 +17,7 @@ import zenoh
 from common import ros_wire
 from common.keys import identity_of, identity_pattern
 from common.messages import Action
-from common.provenance import PlantConflictError
+from common.provenance import RESYNC_AFTER, PlantConflictError
 from common.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
 from common.transport import Bus
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
@@ -84,6 +84,65 @@ def test_one_far_future_action_from_another_session_locks_nothing_out() -> None:
     assert counters.get("rejected.action.foreign", 0) == 1
     assert counters["actions_applied"] >= 38  # every real action (the first may race the token)
     assert moved > 0.4 and driving[0] > 0.1  # 0.15 m/s for 4 s, still driving at the end
+
+
+def test_a_far_future_episode_with_the_live_actor_id_locks_nothing_out() -> None:
+    """Audit of issue 13: a forger that copies the live actor's session id (Zenoh client ids can
+    be forged) sent Action(episode=2**62): before, every later real action was refused until the
+    actor restarted. Here the forged actions come from the actor's own session (what the bridge
+    sees of a perfect forgery): one is refused alone; a burst of RESYNC_AFTER that counts on is
+    followed, then the real actor is followed again after RESYNC_AFTER - 1 refused actions."""
+    robot = "atk_e"
+    with cluster(robot=robot) as c:
+        assert c.session is not None
+        watch = RobotWatch(c.session, GRAPH, robot)
+        c.start("emulator", "tb3-emulator", "--initial-pose=-1,0,0")
+        c.start("bridge", "robot-bridge")
+        c.wait_alive("plant")
+        wait_until(lambda: len(watch.states) >= 3, 30, "the robot's state")
+        tokens = declare_service_tokens(c.session, robot, "actor")
+        actions = c.session.declare_publisher(f"srl/{robot}/action")
+
+        def forged(step: int) -> bytes:
+            return Action(robot=robot, episode=2**62, step=step, stamp_ns=0, action=(-0.2, 0.0), state_seq=-1).encode()
+
+        try:
+            moved_from = watch.states[-1].state[0]
+            for step in range(40):
+                if step == 5:  # one forged action
+                    actions.put(forged(0))
+                if step == 20:  # a forged burst that counts on
+                    for k in range(RESYNC_AFTER):
+                        actions.put(forged(k))
+                actions.put(
+                    Action(
+                        robot=robot,
+                        episode=1_764_000_000_000,
+                        step=step,
+                        stamp_ns=time.monotonic_ns(),
+                        action=(0.15, 0.0),
+                        state_seq=-1,
+                    ).encode()
+                )
+                time.sleep(DELTA)
+            moved = watch.states[-1].state[0] - moved_from
+            driving = watch.applied()
+        finally:
+            for token in tokens:
+                token.undeclare()
+        assert c.procs["bridge"].stop() == 0
+        counters = c.procs["bridge"].summary()["counters"]
+    refused = counters.get("rejected.action", 0)
+    real_applied = counters["actions_applied"] - 1  # the burst's last forged action was followed
+    print(
+        f"\nfigures: forged episode 2**62 with the live actor's id (1, then a burst of {RESYNC_AFTER}): "
+        f"{real_applied} of 40 real actions applied, {refused} refused, {counters.get('action_resyncs', 0)} resyncs, "
+        f"robot moved {moved:.2f} m forward, still commanded {driving}"
+    )
+    assert refused == 1 + (RESYNC_AFTER - 1) + (RESYNC_AFTER - 1)  # 1 alone; burst 4; then 4 real ones
+    assert counters["action_resyncs"] == 2
+    assert real_applied >= 40 - (RESYNC_AFTER - 1) - 1  # (the first may race the token)
+    assert moved > 0.3 and driving[0] > 0.1
 
 
 def test_odometry_from_the_far_future_drops_no_real_sample() -> None:
