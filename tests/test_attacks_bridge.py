@@ -8,6 +8,7 @@ out, and a second plant for one robot refuses to start.
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 
@@ -15,13 +16,13 @@ import pytest
 import zenoh
 
 from common import ros_wire
-from common.keys import identity_of, identity_pattern
+from common.keys import identity_of, identity_pattern, liveliness_key
 from common.messages import Action
 from common.provenance import RESYNC_AFTER, PlantConflictError
 from common.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
 from common.transport import Bus
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
-from tests.test_robot_bridge import DELTA, RobotWatch
+from tests.test_robot_bridge import DELTA, TIMEOUT, RobotWatch
 
 pytestmark = pytest.mark.slow
 GRAPH = RosGraph("rmw_zenoh", "jazzy", 0, "")
@@ -267,3 +268,40 @@ def test_two_plant_processes_started_at_once_leave_exactly_one(second: str) -> N
     assert sorted(codes, key=lambda code: code is None) == [2, None]  # one exited 2, one runs
     assert len(alive) == 1
     assert len(lines) == 1 and "one plant per robot" in lines[0]
+
+
+def test_a_rogue_alive_actor_token_does_not_delay_the_stop() -> None:
+    """Issue 13 finding 10: a rogue ``alive/actor`` token hid the real actor's death: the bridge
+    stopped the robot only by its watchdog (308 ms after the kill). Now the bridge follows the
+    actor session's identity token: the robot stops when that session vanishes, whatever other
+    actor token lingers."""
+    robot = "atk_t"
+    with cluster(robot=robot) as c:
+        assert c.session is not None
+        watch = RobotWatch(c.session, GRAPH, robot)
+        rogue = _rogue(c.endpoint)
+        try:
+            token = rogue.liveliness().declare_token(liveliness_key(robot, "actor"))  # the rogue token, first
+            c.start("emulator", "tb3-emulator", "--start=2,1.5")
+            c.start("bridge", "robot-bridge")
+            c.wait_alive("plant")
+            actor = c.start("actor", "actor", "--mode", "realtime", "--agent", "mpc", "--run-seconds", "60")
+            wait_until(lambda: abs(watch.applied()[0]) > 0.05, 120, "the actor to drive the robot")
+            time.sleep(0.5)
+            actor.stop(signal.SIGKILL)
+            killed = time.monotonic()
+            wait_until(lambda: watch.first_stop_after(killed) is not None, 5, "the robot to stop")
+            stopped_after = watch.first_stop_after(killed) - killed  # type: ignore[operator]
+            assert c.alive("actor")  # the rogue token is still there
+            token.undeclare()
+        finally:
+            rogue.close()
+        assert c.procs["bridge"].stop() == 0
+        counters = c.procs["bridge"].summary()["counters"]
+    print(
+        f"\nfigures: actor kill -9 beside a rogue alive/actor token: robot stopped {stopped_after * 1e3:.0f} ms "
+        f"after the kill (watchdog {TIMEOUT * 1e3:.0f} ms); actor_lost_stops {counters.get('actor_lost_stops', 0)}, "
+        f"watchdog_stops {counters.get('watchdog_stops', 0)}"
+    )
+    assert counters["actor_lost_stops"] == 1 and counters.get("watchdog_stops", 0) == 0
+    assert stopped_after < TIMEOUT  # not by the watchdog
