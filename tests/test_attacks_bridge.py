@@ -140,9 +140,11 @@ def test_a_far_future_episode_with_the_live_actor_id_locks_nothing_out() -> None
         f"{real_applied} of 40 real actions applied, {refused} refused, {counters.get('action_resyncs', 0)} resyncs, "
         f"robot moved {moved:.2f} m forward, still commanded {driving}"
     )
-    assert refused == 1 + (RESYNC_AFTER - 1) + (RESYNC_AFTER - 1)  # 1 alone; burst 4; then 4 real ones
+    real_refused = 40 - real_applied
+    assert refused - real_refused == 1 + (RESYNC_AFTER - 1)  # forged: the single one, the burst's first 4
+    # real: the 4 before the resync back (and the first, if it raced the actor's token to the bridge)
+    assert real_refused in (RESYNC_AFTER - 1, RESYNC_AFTER)
     assert counters["action_resyncs"] == 2
-    assert real_applied >= 40 - (RESYNC_AFTER - 1) - 1  # (the first may race the token)
     assert moved > 0.3 and driving[0] > 0.1
 
 
