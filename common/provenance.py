@@ -70,35 +70,89 @@ class SourceGate:
             return sorted(self.live)
 
 
+# A followed source whose values the receiver refuses this many times in a row, the refused values
+# themselves forming an increasing stream, within RESYNC_WITHIN_S, is taken as having restarted
+# (or as continuing after a forged value moved the reference): the receiver follows it again.
+# At 10 Hz actions that is half a second of refused real actions at most per forged burst; a
+# forger that can spoof the live session's id is then followed too (README "Security": only the
+# access rules stop it), but it can no longer lock the real stream out.
+RESYNC_AFTER = 5
+RESYNC_WITHIN_S = 2.0
+
+
+@dataclass
+class RefusalRun:
+    """Consecutive refusals of one followed source, and when they amount to a stream to resync to.
+
+    A run grows only while each refused value is newer than the previous refused one (a live
+    stream counting on from its own numbers; replays and duplicates are not) and the run is
+    younger than ``within`` seconds (no clock given: no time limit)."""
+
+    after: int = RESYNC_AFTER
+    within: float = RESYNC_WITHIN_S
+    count: int = 0
+    newest: tuple[int, ...] | None = None
+    since: float = 0.0
+
+    def refused(self, value: tuple[int, ...], now: float | None = None) -> bool:
+        """Count one refusal; True when it completes a run (then take ``value`` as the reference)."""
+        coherent = (
+            self.count > 0
+            and self.newest is not None
+            and value > self.newest
+            and (now is None or now - self.since <= self.within)
+        )
+        if not coherent:
+            self.count, self.since = 0, 0.0 if now is None else now
+        self.count += 1
+        self.newest = value
+        if self.count >= self.after:
+            self.accepted()
+            return True
+        return False
+
+    def accepted(self) -> None:
+        self.count, self.newest = 0, None
+
+
 @dataclass
 class SequenceGuard:
-    """Per-source order of a stream (states' ``seq``, actions' ``(episode, step)``).
+    """Per-source order of a stream (a plant's state ``seq``).
 
     A value must be newer than the last accepted one of its source, and at most ``max_jump``
     ahead of it: one message from the far future must not lock out every real one after it.
-    ``restart_after`` consecutive refusals of an *old* value from the live source are taken as
-    that source having restarted its count (the reference is reset to the new stream)."""
+    ``restart_after`` consecutive refusals (old or too far ahead) of values that themselves
+    increase (:class:`RefusalRun`) are taken as that source having restarted its count, or as a
+    forged value having moved the reference: the reference is reset to the new stream."""
 
     max_jump: int
     restart_after: int = 20
+    within: float = RESYNC_WITHIN_S
     last: dict[str, int] = field(default_factory=dict)
-    old_run: dict[str, int] = field(default_factory=dict)
+    old_run: dict[str, RefusalRun] = field(default_factory=dict)
+    resyncs: int = 0
 
-    def check(self, source: str, value: int) -> str | None:
+    def check(self, source: str, value: int, now: float | None = None) -> str | None:
         """None if accepted (the reference moves); else the reason of the refusal."""
         last = self.last.get(source)
+        run = self.old_run.setdefault(source, RefusalRun(self.restart_after, self.within))
         if last is None:
-            self.last[source], self.old_run[source] = value, 0
+            self.last[source] = value
+            run.accepted()
             return None
         if value > last + self.max_jump:
-            return f"{value} jumps more than {self.max_jump} ahead of {last}"
-        if value <= last:
-            run = self.old_run.get(source, 0) + 1
-            self.old_run[source] = run
-            if run < self.restart_after:
-                return f"{value} not newer than {last}"
-            # the source counts from scratch again (its process restarted under the same identity)
-        self.last[source], self.old_run[source] = value, 0
+            reason: str | None = f"{value} jumps more than {self.max_jump} ahead of {last}"
+        elif value <= last:
+            reason = f"{value} not newer than {last}"
+        else:
+            reason = None
+        if reason is not None:
+            if not run.refused((value,), now):
+                return reason
+            self.resyncs += 1  # the source counts from new numbers (restarted, or a forgery moved us)
+        else:
+            run.accepted()
+        self.last[source] = value
         return None
 
     def forget(self, keep: set[str]) -> None:
@@ -106,3 +160,65 @@ class SequenceGuard:
         for source in [s for s in self.last if s not in keep]:
             self.last.pop(source, None)
             self.old_run.pop(source, None)
+
+
+@dataclass
+class ActionOrder:
+    """The order of one actor session's actions, ``(episode, step)`` (the robot bridge's gate).
+
+    Accepted: the first action; a newer step of the same episode at most ``max_step_jump`` ahead;
+    a newer episode at most ``max_episode_jump`` ahead whose step is at most ``max_step_jump``.
+    Anything else is refused, and a run of refused actions that increase among themselves
+    (:class:`RefusalRun`) resynchronizes to them: one forged ``Action(episode=2**62)`` with the
+    live actor's session id is refused alone, and a forged burst that was followed costs the real
+    actor at most ``resync_after`` refused actions."""
+
+    max_step_jump: int
+    max_episode_jump: int
+    resync_after: int = RESYNC_AFTER
+    within: float = RESYNC_WITHIN_S
+    last: tuple[int, int] | None = None
+    resyncs: int = 0
+    run: RefusalRun = field(default_factory=RefusalRun)
+
+    def __post_init__(self) -> None:
+        self.run = RefusalRun(self.resync_after, self.within)
+
+    def reset(self) -> None:
+        """A new actor session: its own episode and steps."""
+        self.last = None
+        self.run.accepted()
+
+    def _refusal(self, order: tuple[int, int]) -> str | None:
+        if self.last is None:
+            return None
+        (episode, step), (last_episode, last_step) = order, self.last
+        if order <= self.last:
+            return f"(episode, step) {order} not newer than {self.last}"
+        if episode > last_episode + self.max_episode_jump:
+            return f"episode {episode} jumps more than {self.max_episode_jump} ahead of {last_episode}"
+        if episode > last_episode and step > self.max_step_jump:
+            return f"step {step} of a new episode is beyond {self.max_step_jump}"
+        if episode == last_episode and step > last_step + self.max_step_jump:
+            return f"step {step} jumps more than {self.max_step_jump} ahead of {last_step}"
+        return None
+
+    def check(self, episode: int, step: int, now: float | None = None) -> str | None:
+        """None if accepted (the reference moves; :attr:`resyncs` grows when by a resync)."""
+        order = (episode, step)
+        reason = self._refusal(order)
+        if reason is not None:
+            if not self.run.refused(order, now):
+                return reason
+            self.resyncs += 1
+        else:
+            self.run.accepted()
+        self.last = order
+        return None
+
+
+def yields_to(own: str, others: list[str]) -> list[str]:
+    """The live sessions a singleton service's session ``own`` must yield to: those that sort
+    before it. Two plants that both passed the start check (started at the same moment) compute
+    the same answer each, so exactly one of them keeps running."""
+    return sorted(other for other in others if other < own)

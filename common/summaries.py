@@ -141,7 +141,23 @@ def format_status_line(c: dict[str, float], elapsed: float, first_version: list[
         f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
         f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
         f"  solver failures {int(c.get('solver_failures', 0))}"
+        f"{format_alarms(c)}"
     )
+
+
+def format_alarms(c: dict[str, float]) -> str:
+    """What the status line says only when it happens (issue 13): two plants alive, the live
+    plant's states refused with none accepted for a second (a lockout's pattern), and the
+    bridge's refused actions (``plant.*``, from the plant's status) and resyncs."""
+    alarms = []
+    if c.get("plant_conflict", 0.0):
+        alarms.append(f"PLANT CONFLICT ({int(c.get('plant_sources', 0))} plants alive)")
+    if c.get("lockout_suspect", 0.0):
+        alarms.append("LOCKOUT SUSPECT (the live plant's states refused)")
+    refused = int(sum(v for k, v in c.items() if k.startswith("plant.rejected.action")))
+    if refused:
+        alarms.append(f"bridge refused {refused} actions ({int(c.get('plant.action_resyncs', 0))} resyncs)")
+    return "".join(f"  {alarm}" for alarm in alarms)
 
 
 class PlantSummary(_Summary):

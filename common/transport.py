@@ -20,7 +20,7 @@ import zenoh.ext
 
 from common.keys import Service, Topic, identity_key, identity_of, identity_pattern, liveliness_key
 from common.messages import Message, MessageError, decode
-from common.provenance import SourceGate
+from common.provenance import PlantConflictError, SourceGate, yields_to
 from common.security import check_network_exposure, tls_entries, zenoh_entries
 from common.settings import TransportSettings
 
@@ -28,6 +28,11 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
 RECOVERY_HEARTBEAT_S = 0.5  # advanced publishers announce their last sequence number this often
+# After declaring its identity, a plant waits this long for the identity of a plant that started
+# at the same moment (both passed the check before declaring): a liveliness token reaches the
+# router's other subscribers in about 1.5 ms on loopback, and a few hundred ms on a loaded
+# host or a slow link; 0.3 s delays a plant's start only once.
+PLANT_SETTLE_S = 0.3
 
 
 def zenoh_config(
@@ -264,6 +269,28 @@ class Bus:
         self._keep.append(liveliness.declare_token(liveliness_key(robot, self.service)))
         self._keep.append(liveliness.declare_token(identity_key(robot, self.service, self.zid)))
 
+    def refuse_other_plant(self, robot: str) -> None:
+        """One plant per robot (issue 13), before declaring: a plant (simulator or robot bridge)
+        never starts beside a live plant of the same robot (:class:`PlantConflictError`)."""
+        others = self.live_identities(robot, self.service)
+        if others:
+            raise _plant_conflict(robot, others)
+
+    def declare_sole_plant(self, robot: str, settle: float = PLANT_SETTLE_S) -> None:
+        """Declare this plant alive (:meth:`declare_alive`), then break a tie with a plant that
+        started at the same moment: after ``settle`` seconds, the session that sorts after
+        another live plant identity (:func:`common.provenance.yields_to`) withdraws its tokens
+        and raises :class:`PlantConflictError`; the other one computes the same answer and stays."""
+        kept = len(self._keep)
+        self.declare_alive(robot)
+        time.sleep(settle)
+        ahead = yields_to(self.zid, self.live_identities(robot, self.service))
+        if ahead:
+            for token in self._keep[kept:]:
+                token.undeclare()
+            del self._keep[kept:]
+            raise _plant_conflict(robot, ahead)
+
     def live_identities(self, robot: str, service: str, timeout: float = 1.0) -> list[str]:
         """The session ids of every live identity token of ``service`` of ``robot`` (not ours)."""
         replies = self.session.liveliness().get(identity_pattern(robot, service), timeout=timeout)
@@ -316,6 +343,12 @@ class Bus:
                 return
             time.sleep(0.05)
         raise TimeoutError(f"service {service!r} of robot {robot!r} not alive after {timeout} s")
+
+
+def _plant_conflict(robot: str, others: list[str]) -> PlantConflictError:
+    return PlantConflictError(
+        f"another plant (session {', '.join(others)}) is alive for robot {robot}: one plant per robot; stop it first"
+    )
 
 
 def start_status_thread(

@@ -12,6 +12,8 @@ import json
 import math
 import random
 import time
+from collections import Counter
+from datetime import timedelta
 from typing import Any
 
 import pytest
@@ -32,8 +34,14 @@ from common.messages import (
     Transition,
     decode,
 )
+from common.provenance import RESYNC_AFTER, SequenceGuard, SourceGate
+from common.ros_wire import TB3_BURGER_OMEGA_MAX, TB3_BURGER_V_MAX
 from common.settings import Settings
+from services.actor.ports import WeightsInbox
+from services.actor.realtime import MAX_SEQ_JUMP
+from services.robot_bridge.service import RobotBridge
 from tests.harness import cluster, wait_until
+from tests.test_realtime_actor import PLANT, Loop
 
 SCHEMAS: list[type[Message]] = [PlantState, Action, Transition, CriticWeights, StepRequest, ResetRequest, ServiceStatus]
 
@@ -191,6 +199,176 @@ def _rogue_payload(rng: random.Random, key: str, now_us: int, episode: int) -> b
     if kind == 4:  # valid schema, an old version (or an old episode)
         return _dumps({**weights, "version": 1} if rng.random() < 0.5 else {**weights, "episode": max(0, episode - 1)})
     return _dumps({**weights, "q_weights": [bad] * 15})
+
+
+# -- valid but malicious: well-formed messages with extreme values, then the real stream -----
+# Each property feeds a receiver's gate an attack of well-formed messages with extreme but valid
+# numbers, as a forger that copies the live session's id would, then lets the real stream go on
+# from its own numbers: it must be followed again within a bounded number of messages (no
+# lockout), and nothing out of bounds may ever come out.
+
+BIG = 2**62
+EXTREME = st.one_of(
+    st.sampled_from([0, 1, BIG - 1, BIG, BIG + 1, 2**63 - 1]),
+    st.integers(0, 2**63 - 1),
+    st.integers(0, 20_000),
+)
+MALICIOUS = settings(max_examples=60, deadline=timedelta(seconds=2), suppress_health_check=[HealthCheck.too_slow])
+
+
+def _near(real: int) -> st.SearchStrategy[int]:
+    """Values around the real stream's own numbers: just behind, equal, just ahead, the jump bound."""
+    return st.integers(-3, 10_003).map(lambda d: max(0, real + d))
+
+
+@MALICIOUS
+@given(data=st.data(), real=st.integers(0, 10**9))
+def test_a_sequence_guard_is_never_locked_out(data: st.DataObject, real: int) -> None:
+    guard = SequenceGuard(MAX_SEQ_JUMP)
+    assert guard.check("plant", real) is None
+    attack = data.draw(st.lists(st.one_of(EXTREME, _near(real), st.integers(-(2**63), -1)), max_size=60))
+    now = 0.0
+    for value in attack:
+        now += 0.001
+        guard.check("plant", value, now)
+    accepted = []
+    for k in range(1, 3 * guard.restart_after):
+        now += 0.02  # 50 Hz states
+        accepted.append(guard.check("plant", real + k, now) is None)
+    first = accepted.index(True)
+    assert first < guard.restart_after and all(accepted[first:])
+
+
+@MALICIOUS
+@given(
+    data=st.data(),
+    episode=st.integers(0, BIG),
+    step=st.integers(0, 10**6),
+)
+def test_the_bridge_action_gate_is_never_locked_out_and_never_exceeds_the_limits(
+    data: st.DataObject, episode: int, step: int
+) -> None:
+    settings_ = Settings.load(transport={"robot": "fz"})
+    commands: list[tuple[float, float]] = []
+    counts = _Counts()
+    gate = SourceGate("actor")
+    bridge = RobotBridge(settings_, lambda s: None, lambda v, w: commands.append((v, w)), counts, gate)
+    gate.update("a1", True)
+    bridge.on_actor_identity("a1", True)
+    now = 0.0
+
+    def act(e: int, k: int, v: float, w: float, source: str = "a1") -> None:
+        bridge.on_action(Action(robot="fz", episode=e, step=k, stamp_ns=0, action=(v, w), state_seq=-1), now, source)
+
+    act(episode, step, 0.1, 0.0)
+    speeds = st.floats(-100, 100, allow_nan=False)
+    attack = data.draw(
+        st.lists(
+            st.tuples(st.one_of(EXTREME, _near(episode)), st.one_of(EXTREME, _near(step)), speeds, speeds),
+            max_size=40,
+        )
+    )
+    for e, k, v, w in attack:
+        now += 0.001
+        act(e, k, v, w, data.draw(st.sampled_from(["a1", "a1", "rogue"])))
+    applied = []
+    for n in range(1, 3 * RESYNC_AFTER):
+        now += 0.1  # the real actor at 10 Hz, from its own numbers
+        act(episode, step + n, 0.05, 0.5)
+        applied.append(commands[-1] == (0.05, 0.5))
+    first = applied.index(True)
+    assert first < RESYNC_AFTER and all(applied[first:])
+    v_max = min(settings_.plant.v_max, TB3_BURGER_V_MAX)
+    omega_max = min(settings_.plant.omega_max, TB3_BURGER_OMEGA_MAX)
+    assert all(abs(v) <= v_max and abs(w) <= omega_max for v, w in commands)
+
+
+class _Counts:
+    def __init__(self) -> None:
+        self.counters: Counter[str] = Counter()
+
+    def count(self, name: str, amount: int = 1) -> None:
+        self.counters[name] += amount
+
+    def reject(self, what: str, reason: str) -> None:
+        self.counters[f"rejected.{what}"] += 1
+
+
+@MALICIOUS
+@given(data=st.data())
+def test_the_weights_inbox_is_never_locked_out_and_holds_only_boxed_weights(data: st.DataObject) -> None:
+    settings_ = Settings.load()
+    low, high = settings_.critic.bounds or (-1e6, 1e6)
+    gate = SourceGate("critic")
+    gate.update("c1", True)
+    counts = _Counts()
+    inbox = WeightsInbox(settings_, counts, gate)  # type: ignore[arg-type]
+    inbox.reset(5)
+    inbox.published(100)
+    now_us = time.time_ns() // 1000
+    start = now_us - 3_600_000_000  # a critic that started an hour ago: versions far behind the clock
+
+    def offer(version: int, value: float, trained: int = 50, source: str = "c1") -> None:
+        inbox.offer(
+            CriticWeights(
+                robot="fz",
+                episode=5,
+                version=version,
+                trained_step=trained,
+                q_weights=(value,) * 15,
+                v_weights=(value,) * 6,
+                q_residual=0.0,
+                v_residual=0.0,
+                pairs=0,
+            ),
+            source,
+        )
+
+    offer(start, 1.0)
+    edges = st.sampled_from([low, high, high + 1e-9, low - 1e-9, high * 1.0000001, -high, 1e300, -1e300])
+    versions = st.one_of(
+        EXTREME.map(lambda v: max(1, v)),
+        st.integers(-10_000_000, 10_000_000).map(lambda d: max(1, now_us + d)),
+        st.integers(-3, 50).map(lambda d: max(1, start + d)),
+    )
+    attack = data.draw(
+        st.lists(st.tuples(versions, st.one_of(edges, st.floats(low, high)), st.integers(-1, 200)), max_size=40)
+    )
+    for version, value, trained in attack:
+        offer(version, value, trained, data.draw(st.sampled_from(["c1", "c1", "rogue"])))
+        held = inbox.current()
+        assert low <= float(min(held.q.min(), held.v.min())) and float(max(held.q.max(), held.v.max())) <= high
+        assert held.trained_step <= 100
+    accepted = []
+    for n in range(1, 3 * RESYNC_AFTER):
+        offer(start + 100 + n, 2.0)  # the real critic goes on counting from its own numbers
+        accepted.append(inbox.current().version == start + 100 + n)
+    first = accepted.index(True)
+    assert first < RESYNC_AFTER and all(accepted[first:])
+
+
+@MALICIOUS
+@given(data=st.data(), real_seq=st.integers(0, 10**9))
+def test_the_actor_state_acceptance_is_never_locked_out(data: st.DataObject, real_seq: int) -> None:
+    t = Loop()
+    t.run(2)
+    t.seq = real_seq
+    t.publish_state()
+    attack = data.draw(
+        st.lists(st.tuples(st.one_of(EXTREME, st.integers(0, 3)), st.one_of(EXTREME, _near(real_seq))), max_size=40)
+    )
+    for episode, seq in attack:
+        state = (data.draw(st.floats(-1e4, 1e4)), data.draw(st.floats(-1e4, 1e4)), 0.0)
+        t.loop.on_state(
+            PlantState(robot="fk", episode=episode, seq=seq, stamp_ns=BIG, state=state, source="sim"), PLANT
+        )
+    taken = []
+    for _ in range(1, 3 * t.loop.order.restart_after):
+        t.publish_state(x=0.25)  # the real plant: episode 0, seq on from its own
+        held = t.loop.latest
+        taken.append(held is not None and held[0].seq == t.seq and held[0].state[0] == 0.25)
+    first = taken.index(True)
+    assert first < t.loop.order.restart_after + RESYNC_AFTER and all(taken[first:])
 
 
 @pytest.mark.slow

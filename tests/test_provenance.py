@@ -14,7 +14,7 @@ from collections import Counter
 import pytest
 
 from common.messages import CriticWeights
-from common.provenance import SequenceGuard, SourceGate
+from common.provenance import RESYNC_AFTER, ActionOrder, RefusalRun, SequenceGuard, SourceGate, yields_to
 from common.settings import Settings
 from services.actor.ports import MAX_VERSION_AHEAD_US, WeightsInbox
 
@@ -128,6 +128,70 @@ def test_guard_forget_drops_vanished_sources() -> None:
     guard.forget(set())
     assert guard.last == {} and guard.old_run == {}
     assert guard.check(CRITIC, 0) is None  # a returning source starts fresh
+
+
+def test_guard_repeated_old_values_never_restart_and_a_forged_restart_is_undone() -> None:
+    """Before, any 20 old values restarted the count: 20 forged seq=1 states with the live plant's
+    id made the real seq (50,000 on) a jump "more than 10,000 ahead" for the rest of the run."""
+    guard = SequenceGuard(max_jump=10_000, restart_after=4)
+    assert guard.check(CRITIC, 50_000) is None
+    assert all(guard.check(CRITIC, 1) is not None for _ in range(50))  # a replay: no restart
+    assert guard.last[CRITIC] == 50_000 and guard.resyncs == 0
+    # a forged stream that counts on (1, 2, 3, 4) does take over...
+    assert [guard.check(CRITIC, seq) is None for seq in range(1, 5)] == [False, False, False, True]
+    assert guard.last[CRITIC] == 4 and guard.resyncs == 1
+    # ...and the real stream, now "too far ahead", is followed again after restart_after of its own
+    real = [guard.check(CRITIC, seq) is None for seq in range(50_001, 50_009)]
+    assert real == [False, False, False, True, True, True, True, True]
+    assert guard.resyncs == 2
+
+
+def test_refusal_run_counts_only_an_increasing_stream_within_its_time() -> None:
+    run = RefusalRun(after=3, within=1.0)
+    assert not run.refused((5,), 0.0) and not run.refused((6,), 0.1)
+    assert not run.refused((6,), 0.2)  # not newer: the run starts again from this one
+    assert not run.refused((7,), 0.3) and run.refused((8,), 0.4)  # 6, 7, 8
+    assert not run.refused((1,), 10.0) and not run.refused((2,), 10.5)
+    assert not run.refused((3,), 11.6)  # the run is older than 1 s: it starts again
+    assert not run.refused((4,), 11.7) and run.refused((5,), 11.8)
+    assert not run.refused((9,), 12.0)
+    run.accepted()  # an accepted value ends the run
+    assert not run.refused((10,), 12.1) and not run.refused((11,), 12.2) and run.refused((12,), 12.3)
+
+
+def test_action_order_refuses_a_far_future_episode_alone() -> None:
+    """Issue 13: one Action(episode=2**62) with the live actor's session id locked out every real
+    action until the actor restarted; now it is refused and the real stream goes on."""
+    order = ActionOrder(max_step_jump=100, max_episode_jump=1000)
+    assert order.check(500, 0, 0.0) is None
+    refusal = order.check(2**62, 0, 0.05)
+    assert refusal is not None and "episode" in refusal and "jumps more than 1000" in refusal
+    assert all(order.check(500, step, 0.1 * step) is None for step in range(1, 50))
+    assert order.check(500, 49 + 101, 5.0) is not None  # a step from the far future
+    assert order.check(501, 101, 5.0) is not None  # a new episode must start near step 0
+    assert order.check(499, 60, 5.0) is not None  # an older episode
+    assert order.check(500, 49, 5.0) is not None  # not newer
+    assert order.check(501, 0, 5.1) is None  # a newer episode, close ahead: the actor's next one
+    assert order.last == (501, 0) and order.resyncs == 0
+
+
+def test_action_order_a_followed_forged_burst_costs_the_real_actor_a_bounded_run() -> None:
+    order = ActionOrder(max_step_jump=100, max_episode_jump=1000)
+    assert order.check(500, 0, 0.0) is None
+    forged = [order.check(2**62, step, 0.01 * step) is None for step in range(RESYNC_AFTER)]
+    assert forged == [False] * (RESYNC_AFTER - 1) + [True]  # a forged burst that counts on: followed
+    real = [order.check(500, step, 1.0 + 0.1 * step) is None for step in range(1, 2 * RESYNC_AFTER)]
+    assert real == [False] * (RESYNC_AFTER - 1) + [True] * RESYNC_AFTER  # the real actor again
+    assert order.resyncs == 2 and order.last == (500, 2 * RESYNC_AFTER - 1)
+    order.reset()  # a new actor session: anything first
+    assert order.check(3, 7, 9.0) is None
+
+
+def test_yields_to_is_the_same_answer_on_both_sides() -> None:
+    a, b = "1f3a", "9c02"
+    assert yields_to(a, [b]) == [] and yields_to(b, [a]) == [a]  # exactly one of the two yields
+    assert yields_to(b, [a, "0001", "ffff"]) == ["0001", a]
+    assert yields_to(a, []) == []
 
 
 # -- WeightsInbox -------------------------------------------------------------------------
@@ -260,3 +324,36 @@ def test_a_version_ahead_of_the_clock_is_accepted_only_within_the_bound() -> Non
     # from a rogue session, even a version just ahead of the clock is refused (provenance first)
     inbox.offer(_weights(near + 1), ROGUE)
     assert inbox.current().version == near and bus.counters["rejected.critic/weights"] == 2
+
+
+def test_a_forged_version_with_the_live_critic_id_costs_a_bounded_run_of_updates() -> None:
+    """Issue 13: a version 59 s ahead with the live critic's id made the actor refuse every real
+    update (150 in 15 s). Now the window is 5 s, and a run of the real critic's versions refused
+    in a row is followed again: at most RESYNC_AFTER - 1 real updates are lost."""
+    inbox, bus, _ = _inbox()
+    start = _now_us() - 3_600_000_000  # a critic that started an hour ago counts from then
+    inbox.offer(_weights(start, value=2.0), CRITIC)
+    inbox.offer(_weights(_now_us() + MAX_VERSION_AHEAD_US - 1_000_000, value=50.0), CRITIC)  # the forgery
+    assert inbox.current().q[0] == 50.0
+    accepted = []
+    for n in range(1, 2 * RESYNC_AFTER):
+        inbox.offer(_weights(start + n, value=3.0), CRITIC)
+        accepted.append(inbox.current().version == start + n)
+    assert accepted == [False] * (RESYNC_AFTER - 1) + [True] * RESYNC_AFTER
+    assert bus.counters["critic_version_resyncs"] == 1 and float(inbox.current().q[0]) == 3.0
+    assert bus.counters["rejected.critic/weights"] == RESYNC_AFTER - 1
+    # one far-future version is refused alone; a replayed old one does not start a run
+    inbox.offer(_weights(_now_us() + MAX_VERSION_AHEAD_US + 1_000_000), CRITIC)
+    for _ in range(3 * RESYNC_AFTER):
+        inbox.offer(_weights(start + 1), CRITIC)
+    assert inbox.current().version == start + 2 * RESYNC_AFTER - 1
+    assert bus.counters["critic_version_resyncs"] == 1
+    inbox.offer(_weights(start + 2 * RESYNC_AFTER), CRITIC)
+    assert inbox.current().version == start + 2 * RESYNC_AFTER
+
+
+def test_a_version_ten_seconds_ahead_is_from_the_future() -> None:
+    """Before, 59 s ahead was accepted; the window is a few seconds of clock skew now."""
+    inbox, bus, _ = _inbox()
+    inbox.offer(_weights(_now_us() + 10_000_000), CRITIC)
+    assert inbox.current().version == 0 and "from the future" in bus.reasons[0]

@@ -18,7 +18,7 @@ import pytest
 from common.actor import ActorCounters
 from common.clock import Ticker
 from common.messages import Action, CriticWeights, PlantState, Transition
-from common.provenance import SourceGate
+from common.provenance import RESYNC_AFTER, SourceGate
 from common.settings import Settings
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import RealtimeActor
@@ -190,6 +190,31 @@ def test_a_far_future_sequence_number_locks_nothing_out() -> None:
     assert t.counts.counters["rejected.state"] == 1
     t.run(3)
     assert t.loop.summary()["final_state"] == [1.0, 0.5, 0.1] and len(t.transitions) == 6
+
+
+def test_a_forged_episode_from_the_live_plant_id_locks_nothing_out() -> None:
+    """Audit of issue 13: a state of another episode with the live plant's session id reset the
+    seq reference (and was followed); now it is refused alone, and the real stream goes on."""
+    t = Loop()
+    t.run(3)
+    for episode in (2**62, 7, 1):
+        t.loop.on_state(
+            PlantState(robot="fk", episode=episode, seq=t.seq + 1, stamp_ns=0, state=(5.0, 5.0, 0.0), source="sim"),
+            PLANT,
+        )
+    assert t.counts.counters["rejected.state"] == 3
+    t.run(3)
+    assert t.loop.summary()["final_state"] == [1.0, 0.5, 0.1] and len(t.transitions) == 6
+    # a plant that did move to a new episode (its states count on) is followed after a short run
+    taken = []
+    for _ in range(7):
+        t.seq += 1
+        t.loop.on_state(
+            PlantState(robot="fk", episode=3, seq=t.seq, stamp_ns=0, state=(2.0, 0.5, 0.1), source="sim"), PLANT
+        )
+        taken.append(t.loop.latest is not None and t.loop.latest[0].episode == 3)
+    assert taken == [False] * (RESYNC_AFTER - 1) + [True] * (8 - RESYNC_AFTER)
+    assert t.counts.counters["state_episode_resyncs"] == 1
 
 
 def test_weight_staleness_in_steps() -> None:

@@ -27,7 +27,7 @@ from common import ros_wire
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from common.messages import Action, PlantState
-from common.provenance import SourceGate
+from common.provenance import RESYNC_AFTER, SourceGate
 from common.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.settings import Settings
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
@@ -234,6 +234,39 @@ def test_actions_only_from_the_live_actor_session() -> None:
     # the new actor session (a restart) starts its own episode and steps: followed
     bridge.on_action(_action(0, 0.05, episode=3), time.monotonic(), "a2")
     assert commands[-1] == (0.05, 0.0)
+
+
+def test_a_forged_episode_with_the_live_actor_id_locks_nothing_out() -> None:
+    """Issue 13 (audit): a forger that copies the live actor's session id with episode=2**62
+    locked out every real action until the actor restarted. Now that action is refused alone, and
+    a forged burst that was followed costs the real actor RESYNC_AFTER - 1 actions at most."""
+    settings = Settings.load(transport={"robot": "u0"})
+    commands: list[tuple[float, float]] = []
+    counts = FakeCounts()
+    gate = SourceGate("actor")
+    bridge = RobotBridge(settings, lambda s: None, lambda v, w: commands.append((v, w)), counts, gate)
+    gate.update("a1", True)
+    bridge.on_actor_identity("a1", True)
+    episode = 1_764_000_000_000  # the actor's episode ids are milliseconds since the epoch
+    now = time.monotonic()
+    bridge.on_action(_action(0, 0.1, episode=episode), now, "a1")
+    bridge.on_action(_action(0, -0.2, episode=2**62), now + 0.01, "a1")  # forged, with the live id
+    assert counts.counters["rejected.action"] == 1 and commands[-1] == (0.1, 0.0)
+    for k in range(1, 10):
+        bridge.on_action(_action(k, 0.1 + 0.001 * k, episode=episode), now + 0.1 * k, "a1")
+    assert commands[-1][0] == pytest.approx(0.109) and counts.counters["actions_applied"] == 10
+    # a forged burst that counts on is followed (it has the live id: only --secure stops it)...
+    for k in range(RESYNC_AFTER):
+        bridge.on_action(_action(k, -0.2, episode=2**62), now + 1.0 + 0.001 * k, "a1")
+    assert commands[-1] == (-0.2, 0.0) and counts.counters["action_resyncs"] == 1
+    # ...and the real actor, continuing from its own numbers, is followed again within RESYNC_AFTER
+    applied = []
+    for k in range(10, 10 + 2 * RESYNC_AFTER):
+        bridge.on_action(_action(k, 0.15, episode=episode), now + 1.0 + 0.1 * (k - 9), "a1")
+        applied.append(commands[-1] == (0.15, 0.0))
+    assert applied == [False] * (RESYNC_AFTER - 1) + [True] * (RESYNC_AFTER + 1)
+    assert counts.counters["action_resyncs"] == 2
+    assert counts.counters["rejected.action"] == 1 + 2 * (RESYNC_AFTER - 1)
 
 
 # -- the emulated robot's model ------------------------------------------------------------------

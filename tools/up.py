@@ -343,13 +343,16 @@ def _tls_endpoint(endpoint: str) -> str | None:
 
 
 class StatusMonitor:
-    """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session."""
+    """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session,
+    with the plant's refusal counters (``srl/<robot>/status/plant``: the bridge's refused and
+    resynchronized actions, issue 13) merged in under ``plant.``."""
 
     def __init__(self, settings: Settings) -> None:
         from common.keys import STATUS
         from common.messages import ServiceStatus
 
-        self.latest: dict[str, float] | None = None
+        self.actor: dict[str, float] | None = None
+        self.plant: dict[str, float] = {}
         self.seen = 0
         self.session = zenoh.open(zenoh_config(settings.transport))
 
@@ -358,16 +361,30 @@ class StatusMonitor:
                 status = ServiceStatus.model_validate_json(sample.payload.to_bytes())
             except ValueError:
                 return  # the actor's own schema: a bad one is not ours to report
-            self.latest = dict(status.counters)
-            self.seen += 1
+            if status.service == "actor":
+                self.actor = dict(status.counters)
+                self.seen += 1
+            else:  # only what says whether actions are being refused: the line stays short
+                self.plant = {
+                    f"plant.{k}": v
+                    for k, v in status.counters.items()
+                    if k.startswith("rejected.action") or k == "action_resyncs"
+                }
 
-        self.subscriber = self.session.declare_subscriber(
-            STATUS.key(settings.transport.robot, service="actor"), on_sample
-        )
+        robot = settings.transport.robot
+        self.subscribers = [
+            self.session.declare_subscriber(STATUS.key(robot, service=service), on_sample)
+            for service in ("actor", "plant")
+        ]
+
+    @property
+    def latest(self) -> dict[str, float] | None:
+        return None if self.actor is None else {**self.actor, **self.plant}
 
     def close(self) -> None:
-        with contextlib.suppress(zenoh.ZError):
-            self.subscriber.undeclare()
+        for subscriber in self.subscribers:
+            with contextlib.suppress(zenoh.ZError):
+                subscriber.undeclare()
         self.session.close()
 
 

@@ -35,7 +35,7 @@ from common.agents import learns
 from common.clock import Ticker
 from common.features import stage_cost
 from common.messages import Action, PlantState, Transition
-from common.provenance import SequenceGuard, SourceGate
+from common.provenance import RefusalRun, SequenceGuard, SourceGate
 from common.settings import Settings
 from common.stats import Window
 from common.summaries import RealtimeActorSummary
@@ -94,7 +94,8 @@ class RealtimeActor:
         self.lock = threading.Lock()
         self.latest: tuple[PlantState, float] | None = None  # the newest accepted state, when it came
         self.last_accepted: PlantState | None = None  # for the summary: never a refused one
-        self.episodes: dict[str, int] = {}
+        self.episodes: dict[str, int] = {}  # the followed episode of each live plant session
+        self.episode_run = RefusalRun()  # states of another episode refused in a row
         self.refused_at = 0.0  # when the live plant's last state was refused (a lockout shows in status)
         # statistics, bounded
         self.periods = Window()
@@ -138,15 +139,33 @@ class RealtimeActor:
             return
         assert source is not None
         with self.lock:
-            if self.episodes.get(source) != message.episode:  # a new stream of the live plant (or its reset)
+            now = self.clock()
+            followed = self.episodes.get(source)
+            if followed is None:  # the live plant session's first state: its episode is followed
+                self.episodes[source] = followed = message.episode
+            if message.episode != followed:
+                # A real-time plant never changes its episode within a session (plant_sim serves
+                # reset in lockstep only, the bridge's is 0): a state of another episode is forged
+                # or stray and refused alone; a run of them that counts on is followed (a plant
+                # that did start a new stream), so no forged episode can lock the real one out.
+                if not self.episode_run.refused((message.episode, message.seq), now):
+                    self.refused_at = now
+                    self.counts.reject("state", f"episode {message.episode} is not the live plant's {followed}")
+                    return
+                log.warning("the live plant's states moved to episode %d: following them", message.episode)
+                self.counts.count("state_episode_resyncs")
                 self.episodes[source] = message.episode
                 self.order.last.pop(source, None)
-            refusal = self.order.check(source, message.seq)
-            now = self.clock()
+            resyncs = self.order.resyncs
+            refusal = self.order.check(source, message.seq, now)
             if refusal is not None:
                 self.refused_at = now
                 self.counts.reject("state", f"seq {refusal}")
                 return
+            if self.order.resyncs != resyncs:
+                log.warning("the live plant's seq refused %d times in a row: following it", self.order.restart_after)
+                self.counts.count("state_seq_resyncs")
+            self.episode_run.accepted()
             self.latest = (message, now)
             self.last_accepted = message
 

@@ -24,7 +24,6 @@ from common.clock import Ticker
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
-from common.provenance import PlantConflictError
 from common.settings import Settings
 from common.summaries import PlantSummary
 from common.transport import Bus, start_status_thread
@@ -94,12 +93,7 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     robot = settings.transport.robot
     # one plant per robot (issue 13): a second simulator (or a bridge) for the same robot would
     # make the actor follow one robot's states while commanding another
-    others = bus.live_identities(robot, "plant")
-    if others:
-        raise PlantConflictError(
-            f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
-            "one plant per robot; stop it first"
-        )
+    bus.refuse_other_plant(robot)
     publish_state = bus.publisher(STATE, robot)
     if mode == "lockstep":  # real time: nobody may teleport or step the robot (the queryables do not exist)
         bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
@@ -114,7 +108,7 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
 
     if mode == "realtime":
         bus.subscribe(ACTION, ACTION.key(robot), on_action)
-    bus.declare_alive(robot)
+    bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
     start_status_thread(bus, robot, settings.transport.status_period, stop, lambda: {"seq": plant.seq})
     log.info("plant_sim ready (%s mode, robot %s)", mode, robot)
 

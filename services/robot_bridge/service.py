@@ -59,7 +59,7 @@ from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
-from common.provenance import PlantConflictError, SourceGate
+from common.provenance import RESYNC_AFTER, ActionOrder, SourceGate
 from common.ros_wire import (
     ODOMETRY,
     TWIST,
@@ -86,6 +86,10 @@ CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a r
 FUTURE_STAMP_TOLERANCE_NS = 5_000_000_000
 # An action's step may run at most this far ahead of the last applied one of the same episode.
 MAX_STEP_JUMP = 10_000
+# An actor's episode ids are its wall clock in milliseconds when the episode starts
+# (services.actor.ports.new_episode_id): a session's next episode is at most a day ahead of its
+# last. One forged Action(episode=2**62) with the live actor's session id is refused alone.
+MAX_EPISODE_JUMP = 86_400_000
 SHUTDOWN_ZEROS = 3
 FALLBACK = "fallback"  # the source of a cmd_vel target guessed from the distro, not discovered
 
@@ -136,7 +140,9 @@ class RobotBridge:
         self.frames: tuple[str, str] | None = None
         # commands
         self.actor_alive = False
-        self.last_action: tuple[int, int] | None = None
+        # (episode, step) of the followed actor session, bounded both ways (common.provenance)
+        self.order = ActionOrder(MAX_STEP_JUMP, MAX_EPISODE_JUMP)
+        self.resyncs_seen = 0
         self.last_action_at: float | None = None
         self.driving = False
         self.last_command = (0.0, 0.0)
@@ -235,26 +241,26 @@ class RobotBridge:
                     )
                     return
                 if source != self.action_source:  # a new actor session: its own episode and steps
-                    self.action_source, self.last_action = source, None
-            order = (message.episode, message.step)
-            if self.last_action is not None and order <= self.last_action:
-                self.counts.reject("action", f"(episode, step) {order} not newer than {self.last_action}")
-                return
-            if (
-                self.last_action is not None
-                and order[0] == self.last_action[0]
-                and order[1] > self.last_action[1] + MAX_STEP_JUMP
-            ):
-                self.counts.reject(
-                    "action", f"step {order[1]} jumps more than {MAX_STEP_JUMP} ahead of {self.last_action[1]}"
-                )
-                return
-            try:
+                    self.action_source = source
+                    self.order.reset()
+            try:  # the value first: a refused one never moves the order
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
             except ValueError as error:
                 self.counts.reject("action", str(error))
                 return
-            self.last_action = order
+            refusal = self.order.check(message.episode, message.step, received)
+            if refusal is not None:
+                self.counts.reject("action", refusal)
+                return
+            if self.order.resyncs != self.resyncs_seen:
+                self.resyncs_seen = self.order.resyncs
+                self.counts.count("action_resyncs")
+                log.warning(
+                    "robot_bridge: %d actions of the followed session refused in a row: following its "
+                    "stream again from (episode, step) %s",
+                    RESYNC_AFTER,
+                    self.order.last,
+                )
             self.last_action_at = received
             self.driving = True
             self._command(v, omega)
@@ -638,12 +644,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     entities: list[Any] = []
     try:
         # one plant per robot (issue 13): never a second plant beside a live one
-        others = bus.live_identities(robot, "plant")
-        if others:
-            raise PlantConflictError(
-                f"another plant (session {', '.join(others)}) is alive for robot {robot}: "
-                "one plant per robot; stop it first"
-            )
+        bus.refuse_other_plant(robot)
         # the actor is alive while one of its sessions' identity tokens is (common.provenance)
         bus.watch_identities(robot, "actor", actor_gate, bridge.on_actor_identity)
         bus.subscribe(
@@ -653,7 +654,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             with_source=True,
         )
         link.start()
-        bus.declare_alive(robot)
+        bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
         entities.append(bus.session.liveliness().declare_token(liveliness_key(robot, "robot_bridge")))
         start_status_thread(
             bus,
