@@ -217,6 +217,45 @@ class ActionOrder:
         return None
 
 
+# An action's step may run at most this far ahead of the last applied one of the same episode.
+MAX_ACTION_STEP_JUMP = 10_000
+# An actor's episode ids are its wall clock in milliseconds when the episode starts
+# (services.actor.ports.new_episode_id): a session's next episode is at most a day ahead of its
+# last. One forged Action(episode=2**62) with the live actor's session id is refused alone.
+MAX_ACTION_EPISODE_JUMP = 86_400_000
+
+
+@dataclass
+class ActionGate:
+    """Whose actions a plant applies (the robot bridge and the real-time simulator alike): only
+    the live actor session's (:class:`SourceGate`), in that session's own order
+    (:class:`ActionOrder`, restarted when another live session takes over)."""
+
+    gate: SourceGate
+    order: ActionOrder = field(default_factory=lambda: ActionOrder(MAX_ACTION_STEP_JUMP, MAX_ACTION_EPISODE_JUMP))
+    source: str | None = None  # the session whose actions are followed
+
+    def admit(self, episode: int, step: int, source: str | None, now: float | None = None) -> tuple[str, str] | None:
+        """None if the action is to be applied; else (what, reason) of the refusal, ``what`` being
+        ``action.<verdict>`` for another session and ``action`` for one out of order."""
+        verdict = self.gate.verdict(source)
+        if verdict != "accept":
+            return f"action.{verdict}", f"from session {source} (live actor: {self.gate.sources() or 'none'})"
+        if source != self.source:  # a new actor session: its own episode and steps
+            self.source = source
+            self.order.reset()
+        refusal = self.order.check(episode, step, now)
+        return None if refusal is None else ("action", refusal)
+
+    def lost(self, zid: str) -> bool:
+        """The session ``zid`` vanished: True (and nobody followed any more) if it was the one
+        followed, whose last command must then be withdrawn at once."""
+        if zid != self.source:
+            return False
+        self.source = None
+        return True
+
+
 def yields_to(own: str, others: list[str]) -> list[str]:
     """The live sessions a singleton service's session ``own`` must yield to: those that sort
     before it. Two plants that both passed the start check (started at the same moment) compute

@@ -27,11 +27,11 @@ import zenoh
 from common import ros_wire
 from common.checkpoint import atomic_write_json, remove_stale_temporaries
 from common.clock import Ticker
-from common.messages import PlantState, ResetRequest, StepRequest
+from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.ros_wire import ODOMETRY, RosGraph
 from common.settings import Settings
 from services.tb3_emulator.command import CMD_TIMEOUT_DEFAULT
-from tests.harness import ROOT, client_config, cluster, free_port, wait_until
+from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, wait_until
 
 V_MAX = 0.22  # the TurtleBot3 Burger's limit (srl.toml plant.v_max)
 ODOM_PERIOD = 0.05  # the emulator's 20 Hz odometry
@@ -151,6 +151,66 @@ def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
     print(
         f"\nfigures: real-time plant_sim: 3 rogue steps + 1 reset -> {len(replies)} replies, moved "
         f"{math.dist(after[:2], start[:2]):.3f} m (before: 2.2 m per step, reset to (50, 50))"
+    )
+
+
+def test_realtime_plant_sim_applies_actions_of_the_live_actor_session_only() -> None:
+    """Provenance at the simulator (issue 13): like the robot bridge, a real-time plant_sim drives
+    only by the live actor session's actions; another session publishing on the same key (a stray
+    client, a second actor) is refused and counted, and the robot stops at once when the followed
+    actor session is gone."""
+    with cluster(robot="pv") as c:
+        c.start("plant", "plant-sim", "--mode", "realtime")
+        c.wait_alive("plant")
+        assert c.session is not None
+        states: list[PlantState] = []
+        c.session.declare_subscriber(
+            "srl/pv/state", lambda s: states.append(PlantState.model_validate_json(s.payload.to_bytes()))
+        )
+        wait_until(lambda: len(states) >= 5, 10, "real-time states")
+        rogue = zenoh.open(client_config(c.endpoint))  # a session without an actor identity
+        actor = zenoh.open(client_config(c.endpoint))
+        try:
+
+            def drive(session: zenoh.Session, episode: int, steps: range) -> None:
+                for step in steps:
+                    action = Action(robot="pv", episode=episode, step=step, stamp_ns=0, state_seq=0, action=(0.22, 0.0))
+                    session.put("srl/pv/action", action.encode())
+                    time.sleep(0.05)
+
+            start = states[-1].state
+            drive(rogue, 1, range(10))  # nobody is the actor: refused
+            time.sleep(0.2)
+            after_rogue = states[-1].state
+            tokens = declare_service_tokens(actor, "pv", "actor")
+            time.sleep(0.3)
+            drive(rogue, 2, range(10))  # the live actor is another session: refused
+            time.sleep(0.2)
+            after_foreign = states[-1].state
+            drive(actor, 3, range(10))  # the live actor: applied
+            moved = math.dist(states[-1].state[:2], after_foreign[:2])
+            for token in tokens:  # the actor session's tokens vanish: the robot stops at once
+                token.undeclare()
+            time.sleep(0.15)
+            stopped_at = states[-1].state
+            time.sleep(0.3)
+            coasted = math.dist(states[-1].state[:2], stopped_at[:2])
+        finally:
+            rogue.close()
+            actor.close()
+        assert c.procs["plant"].stop() == 0
+        counters = c.procs["plant"].summary()["counters"]
+    np.testing.assert_allclose(after_rogue, start, atol=1e-12)
+    np.testing.assert_allclose(after_foreign, start, atol=1e-12)
+    assert moved > 0.05, moved
+    assert coasted < 1e-9, coasted
+    assert counters.get("rejected.action.unknown", 0) >= 9, counters
+    assert counters.get("rejected.action.foreign", 0) >= 9, counters
+    assert counters.get("actor_lost_stops", 0) == 1, counters
+    print(
+        f"\nfigures: real-time plant_sim: {counters.get('rejected.action.unknown', 0)} actions without a live actor "
+        f"and {counters.get('rejected.action.foreign', 0)} from another session refused, moved 0.000 m; the live "
+        f"actor's moved it {moved:.3f} m; stopped at once when it vanished (before: any session drove it)"
     )
 
 

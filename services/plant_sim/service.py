@@ -24,6 +24,7 @@ from common.clock import Ticker
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
+from common.provenance import ActionGate, SourceGate
 from common.settings import Settings
 from common.summaries import PlantSummary
 from common.transport import Bus, start_status_thread
@@ -100,14 +101,31 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
 
     latest: dict[str, object] = {"action": np.zeros(2), "at": None}
+    # whose actions drive the robot: only the live actor session's, in its order (issue 13: the
+    # same gate as the robot bridge's; a stray or forged publisher on the key is refused, counted)
+    actions = ActionGate(SourceGate("actor"))
+    action_lock = threading.Lock()
 
-    def on_action(message: Action) -> None:
-        latest["action"] = plant.clamp(message.action)
-        latest["at"] = time.monotonic()
+    def on_action(message: Action, source: str | None) -> None:
+        now = time.monotonic()
+        with action_lock:
+            refusal = actions.admit(message.episode, message.step, source, now)
+            if refusal is not None:
+                bus.reject(*refusal)
+                return
+            latest["action"] = plant.clamp(message.action)
+            latest["at"] = now
         bus.count("actions_applied")
 
+    def on_actor_identity(zid: str, alive: bool) -> None:
+        with action_lock:
+            if not alive and actions.lost(zid):  # the followed actor is gone: stop at once
+                latest["action"], latest["at"] = np.zeros(2), None
+                bus.count("actor_lost_stops")
+
     if mode == "realtime":
-        bus.subscribe(ACTION, ACTION.key(robot), on_action)
+        bus.watch_identities(robot, "actor", actions.gate, on_actor_identity)
+        bus.subscribe(ACTION, ACTION.key(robot), on_action, with_source=True)
     bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
     start_status_thread(bus, robot, settings.transport.status_period, stop, lambda: {"seq": plant.seq})
     log.info("plant_sim ready (%s mode, robot %s)", mode, robot)

@@ -59,7 +59,14 @@ from common.dynamics import unwrap_heading
 from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.keys import ACTION, STATE, liveliness_key
 from common.messages import Action, PlantState
-from common.provenance import RESYNC_AFTER, ActionOrder, SourceGate
+from common.provenance import (
+    MAX_ACTION_EPISODE_JUMP,
+    MAX_ACTION_STEP_JUMP,
+    RESYNC_AFTER,
+    ActionGate,
+    ActionOrder,
+    SourceGate,
+)
 from common.ros_wire import (
     ODOMETRY,
     TWIST,
@@ -84,12 +91,6 @@ CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a r
 # hour ahead must not make the next real samples "old" (issue 13). CLOCK_RESET_AFTER such
 # samples in a row are taken as the robot's clock having jumped forward.
 FUTURE_STAMP_TOLERANCE_NS = 5_000_000_000
-# An action's step may run at most this far ahead of the last applied one of the same episode.
-MAX_STEP_JUMP = 10_000
-# An actor's episode ids are its wall clock in milliseconds when the episode starts
-# (services.actor.ports.new_episode_id): a session's next episode is at most a day ahead of its
-# last. One forged Action(episode=2**62) with the live actor's session id is refused alone.
-MAX_EPISODE_JUMP = 86_400_000
 SHUTDOWN_ZEROS = 3
 FALLBACK = "fallback"  # the source of a cmd_vel target guessed from the distro, not discovered
 
@@ -118,7 +119,6 @@ class RobotBridge:
         self.robot = settings.transport.robot
         # provenance (issue 13): with a gate, actions only from the live actor session
         self.actor_gate = actor_gate
-        self.action_source: str | None = None  # the session whose actions are being applied
         self.goal = Pose2D(*settings.bridge.goal)
         self.v_max = min(settings.plant.v_max, ros_wire.TB3_BURGER_V_MAX)
         self.omega_max = min(settings.plant.omega_max, ros_wire.TB3_BURGER_OMEGA_MAX)
@@ -141,7 +141,9 @@ class RobotBridge:
         # commands
         self.actor_alive = False
         # (episode, step) of the followed actor session, bounded both ways (common.provenance)
-        self.order = ActionOrder(MAX_STEP_JUMP, MAX_EPISODE_JUMP)
+        self.order = ActionOrder(MAX_ACTION_STEP_JUMP, MAX_ACTION_EPISODE_JUMP)
+        # whose actions are applied: the live actor session's, in its order (common.provenance)
+        self.actions = None if actor_gate is None else ActionGate(actor_gate, self.order)
         self.resyncs_seen = 0
         self.last_action_at: float | None = None
         self.driving = False
@@ -232,25 +234,18 @@ class RobotBridge:
             if not self.actor_alive:
                 self.counts.reject("action", "the actor's liveliness token is absent")
                 return
-            if self.actor_gate is not None:
-                verdict = self.actor_gate.verdict(source)
-                if verdict != "accept":
-                    self.counts.reject(
-                        f"action.{verdict}",
-                        f"from session {source} (live actor: {self.actor_gate.sources() or 'none'})",
-                    )
-                    return
-                if source != self.action_source:  # a new actor session: its own episode and steps
-                    self.action_source = source
-                    self.order.reset()
             try:  # the value first: a refused one never moves the order
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
             except ValueError as error:
                 self.counts.reject("action", str(error))
                 return
-            refusal = self.order.check(message.episode, message.step, received)
+            if self.actions is None:  # no provenance (unit tests of the order alone)
+                reason = self.order.check(message.episode, message.step, received)
+                refusal = None if reason is None else ("action", reason)
+            else:
+                refusal = self.actions.admit(message.episode, message.step, source, received)
             if refusal is not None:
-                self.counts.reject("action", refusal)
+                self.counts.reject(*refusal)
                 return
             if self.order.resyncs != self.resyncs_seen:
                 self.resyncs_seen = self.order.resyncs
@@ -279,12 +274,11 @@ class RobotBridge:
             return
         live = bool(self.actor_gate.sources())
         with self.lock:
-            if not alive and zid == self.action_source and self.actor_alive:
+            if not alive and self.actions is not None and self.actor_alive and self.actions.lost(zid):
                 log.warning("robot_bridge: the actor session %s is gone: stopping the robot", zid)
                 self.counts.count("actor_lost_stops")
                 self.driving = False
                 self.last_action_at = None
-                self.action_source = None
                 self._zero(time.monotonic())
                 self.actor_alive = live  # counted once: the stop above is the actor's loss
                 return
