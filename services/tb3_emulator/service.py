@@ -54,29 +54,9 @@ from common.clock import Ticker
 from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
+from common.turtlebot import firmware_velocity
 
 log = logging.getLogger(__name__)
-INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
-
-
-def firmware_velocity(value: float, limit: float) -> float:
-    """One velocity component as the TurtleBot3 applies it.
-
-    turtlebot3_node: ``static_cast<int32_t>(value * 100)`` (toward zero; ARM's conversion
-    saturates and maps NaN to 0); OpenCR firmware: ``data * 0.01f`` in float32, then
-    ``constrain(-limit, limit)``.
-    """
-    scaled = value * 100.0
-    if math.isnan(scaled):
-        ticks = 0
-    elif scaled >= INT32_MAX:
-        ticks = INT32_MAX
-    elif scaled <= INT32_MIN:
-        ticks = INT32_MIN
-    else:
-        ticks = math.trunc(scaled)
-    applied = float(np.float32(ticks) * np.float32(0.01))
-    return min(max(applied, -limit), limit)
 
 
 class Tb3Model:
