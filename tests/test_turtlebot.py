@@ -149,3 +149,24 @@ def test_the_slip_is_seeded() -> None:
 
     assert np.array_equal(final(1), final(1))
     assert not np.array_equal(final(1), final(2))
+
+
+def test_plant_sim_lockstep_reports_the_odometry_and_the_truth_of_the_model() -> None:
+    from common.messages import ResetRequest, StepRequest
+    from common.settings import Settings
+    from services.plant_sim.service import SimulatedPlant
+
+    settings = Settings.load(plant={"model": "actuator"}, actuator={"slip": 0.1, "imu_heading": False})
+    plant = SimulatedPlant(settings)
+    oracle = TurtleBot(settings.turtlebot_params(), np.array([1.0, -1.0, 0.2]))
+    reply = plant.reset(ResetRequest(robot="tb3_0", episode=3, state=(1.0, -1.0, 0.2)))
+    assert reply.state == reply.true_state == (1.0, -1.0, 0.2)
+    rng = np.random.default_rng(5)
+    for k in range(30):
+        action = rng.uniform([-0.22, -2.84], [0.22, 2.84])
+        reply = plant.step(StepRequest(robot="tb3_0", episode=3, step=k, action=tuple(action), duration=0.1))
+        oracle.step(action, 0.1)
+    assert reply.state == pytest.approx(tuple(oracle.odometry), abs=1e-12)
+    assert reply.true_state == pytest.approx(tuple(oracle.true_pose), abs=1e-12)
+    assert reply.saturated_commands == oracle.saturated_commands > 0
+    assert np.hypot(reply.state[0] - reply.true_state[0], reply.state[1] - reply.true_state[1]) > 1e-3

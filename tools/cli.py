@@ -98,6 +98,7 @@ def format_run_summary(summary: dict[str, Any]) -> str:
         f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}",
         f"  start          {_fmt_state(summary['start_state'])}",
         f"  final state    {_fmt_state(summary['final_state'])}   distance to target {summary['final_distance']:.3f} m",
+        *_truth_lines(summary),
         f"  steps          {summary['steps']} x delta = {s['plant']['sampling_time']} s "
         f"({summary['episode_seconds']:.1f} s episode)",
         f"  accumulated J  {summary['accumulated_cost']:.4f}",
@@ -112,6 +113,22 @@ def format_run_summary(summary: dict[str, Any]) -> str:
     if "plot" in summary:
         lines.append(f"  plot           {summary['plot']}")
     return "\n".join(lines)
+
+
+def _truth_lines(summary: dict[str, Any]) -> list[str]:
+    """The true view beside the robot's own (start, final state, J are what it reported)."""
+    if "truth" not in summary:
+        return []
+    truth = summary["truth"]
+    saturated = summary.get("saturated_commands")
+    wheels = "" if saturated is None else f"   commands beyond a wheel's limit {saturated}"
+    if truth is None:
+        return ["  truth          unknown: a real robot, only its odometry is known (the states above)" + wheels]
+    return [
+        f"  true final     {_fmt_state(truth['final_state'])}   distance to target {truth['final_distance']:.3f} m"
+        f"   (plant {summary.get('plant_model', 'sim')}: the states above are what the robot reported)",
+        f"  true J         {truth['accumulated_cost']:.4f} (on the true states; reported J below){wheels}",
+    ]
 
 
 def _fmt_state(state: Sequence[float]) -> str:
@@ -291,8 +308,11 @@ def format_up_summary(summary: dict[str, Any]) -> str:
             + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else "")
         )
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
+    if summary.get("start_state"):
+        lines.append(f"  start          {_fmt_state(summary['start_state'])} (the robot's first state)")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
+    lines.extend(_truth_lines(summary))
     lines.append(
         f"  critic         {summary.get('transitions_received')} transitions received, "
         f"actor used weights version {summary.get('weights_version')}"
