@@ -350,6 +350,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench.actor import run_actor_benchmark
 
         return run_actor_benchmark(args, settings_from_args(args))
+    if args.what == "parking":
+        from tools.bench.parking import run_parking_benchmark
+
+        return run_parking_benchmark(args, settings_from_args(args))
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
@@ -468,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.set_defaults(func=cmd_up)
 
     bench = command("bench", "benchmarks that print a table (and JSON)")
-    bench.add_argument("what", choices=["actor", "loop", "bridge"])
+    bench.add_argument("what", choices=["actor", "loop", "bridge", "parking"])
     bench.add_argument(
         "--reference-horizons",
         default="12",
@@ -489,9 +493,19 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99) (default: 300)"
     )
-    bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
+    bench.add_argument("--horizons", help="comma-separated N values (default: actor 6,12,30; parking one N, 12)")
     bench.add_argument(
-        "--agents", default="mpc,rlq,rlqv,rlqv+", help="comma-separated agents (default: mpc,rlq,rlqv,rlqv+)"
+        "--agents", help="comma-separated agents (default: actor mpc,rlq,rlqv,rlqv+; parking mpc,rlq,rlqv)"
+    )
+    bench.add_argument(
+        "--plants", help="parking: comma-separated plant models, ideal and/or actuator (default: ideal,actuator)"
+    )
+    bench.add_argument(
+        "--starts",
+        help="parking: X,Y starts separated by ';' (default: 2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
+    )
+    bench.add_argument(
+        "--parking-seconds", type=float, default=35.0, help="parking: episode length per run [s] (default: 35)"
     )
     bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
