@@ -312,7 +312,15 @@ def format_up_summary(summary: dict[str, Any]) -> str:
         lines.append(f"  start          {_fmt_state(summary['start_state'])} (the robot's first state)")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
-    lines.extend(_truth_lines(summary))
+    emulated = summary.get("emulator_truth")
+    if emulated:  # the bridge carries only odometry; the emulator behind it knows the truth
+        lines.append(
+            f"  true final     {_fmt_state(emulated['final_state'])}   distance to target "
+            f"{emulated['final_distance']:.3f} m   (the emulator's, {emulated['model']} model; "
+            f"commands beyond a wheel's limit {emulated['saturated_commands']})"
+        )
+    else:
+        lines.extend(_truth_lines(summary))
     lines.append(
         f"  critic         {summary.get('transitions_received')} transitions received, "
         f"actor used weights version {summary.get('weights_version')}"
