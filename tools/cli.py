@@ -127,7 +127,8 @@ def _truth_lines(summary: dict[str, Any]) -> list[str]:
     return [
         f"  true final     {_fmt_state(truth['final_state'])}   distance to target {truth['final_distance']:.3f} m"
         f"   (plant {summary.get('plant_model', 'sim')}: the states above are what the robot reported)",
-        f"  true J         {truth['accumulated_cost']:.4f} (on the true states; reported J below){wheels}",
+        f"  true J         {truth['accumulated_cost']:.4f} (on the true states; "
+        f"the accumulated J is on the reported ones){wheels}",
     ]
 
 
@@ -510,7 +511,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "--starts",
-        help="parking: X,Y starts separated by ';' (default: 2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
+        help="parking: X,Y starts separated by ';', e.g. --starts='-1,2;2,0' (default: "
+        "2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
     )
     bench.add_argument(
         "--parking-seconds", type=float, default=35.0, help="parking: episode length per run [s] (default: 35)"
