@@ -17,7 +17,8 @@ from common.agents import learns
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
 from common.settings import Settings
 from common.stats import summarize
-from common.summaries import EpisodeSummary
+from common.summaries import EpisodeSummary, TrueView
+from common.turtlebot import ActuatorPlant
 
 
 def build_actor(settings: Settings) -> StackedActor:
@@ -39,6 +40,13 @@ def build_actor(settings: Settings) -> StackedActor:
             bound_push=a.bound_push,
         )
     )
+
+
+def build_plant(settings: Settings) -> ExactPlant | ActuatorPlant:
+    """The in-process simulated robot of ``plant.model``: the exact unicycle or the TurtleBot3."""
+    if settings.plant.model == "actuator":
+        return ActuatorPlant(settings.turtlebot_params())
+    return ExactPlant()
 
 
 def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:
@@ -64,10 +72,10 @@ def run_episode(
     stop: threading.Event | None = None,
 ) -> Episode:
     """Algorithm 1 (:func:`common.loop.run_algorithm1`) for ``settings.steps`` sampling intervals
-    from ``settings.start_state()``; the exact plant and a local critic unless given."""
+    from ``settings.start_state()``; the plant of ``plant.model`` and a local critic unless given."""
     return run_algorithm1(
         actor or build_actor(settings),
-        plant or ExactPlant(),
+        plant or build_plant(settings),
         critic or local_critic(settings, learn=learns(settings.actor.agent)),
         settings.start_state(),
         settings.steps,
@@ -80,6 +88,7 @@ def run_episode(
 def episode_summary(episode: Episode, settings: Settings) -> dict[str, Any]:
     """The JSON-ready summary of a run (the contract of ``srl run --json``: EpisodeSummary)."""
     final = episode.final_state
+    truth = true_view(episode, settings)
     return EpisodeSummary.model_validate(
         {
             "agent": episode.agent,
@@ -92,6 +101,23 @@ def episode_summary(episode: Episode, settings: Settings) -> dict[str, Any]:
             "final_distance": float(np.hypot(final[0], final[1])),
             "solve_ms": summarize(episode.solve_seconds, scale=1e3),
             "solver_failures": episode.solver_failures,
+            "plant_model": settings.plant.model,
+            "truth": None if truth is None else truth.model_dump(),
+            "saturated_commands": episode.saturated_commands,
             "settings": settings.as_dict(),
         }
     ).to_json_dict()
+
+
+def true_view(episode: Episode, settings: Settings) -> TrueView | None:
+    """Where the robot really was (None: the plant does not know, a real robot's odometry only)."""
+    if not episode.truth_known:
+        return None
+    first, final = episode.true_states[0], episode.true_states[-1]
+    cost = episode.true_accumulated_cost(settings.plant.sampling_time, tuple(settings.cost.r_diag))
+    return TrueView(
+        start_state=[float(c) for c in first],
+        final_state=[float(c) for c in final],
+        final_distance=float(np.hypot(final[0], final[1])),
+        accumulated_cost=float(cost if cost is not None else np.nan),
+    )

@@ -25,8 +25,18 @@ log = logging.getLogger(__name__)
 
 
 class Plant(Protocol):
+    """``reset`` and ``apply`` return the state the robot reports (a real robot: its odometry).
+
+    ``true_state`` is where it really is, if the plant knows (a simulator does, a real robot
+    does not: None); ``saturated_commands`` counts commands a wheel could not follow (None:
+    not known)."""
+
     def reset(self, state: np.ndarray) -> np.ndarray: ...
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray: ...
+    @property
+    def true_state(self) -> np.ndarray | None: ...
+    @property
+    def saturated_commands(self) -> int | None: ...
 
 
 class CriticPort(Protocol):
@@ -37,7 +47,9 @@ class CriticPort(Protocol):
 
 
 class ExactPlant:
-    """The simulated robot in process: exact sample-and-hold integration."""
+    """The simulated robot in process: exact sample-and-hold integration (the paper's plant).
+
+    It reports the true state and has no wheels to saturate."""
 
     def __init__(self) -> None:
         self.state = np.zeros(3)
@@ -49,6 +61,14 @@ class ExactPlant:
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
         self.state = exact_step(self.state, action, duration)
         return self.state.copy()
+
+    @property
+    def true_state(self) -> np.ndarray:
+        return self.state.copy()
+
+    @property
+    def saturated_commands(self) -> int:
+        return 0
 
 
 class LocalCritic:
@@ -97,11 +117,16 @@ class LocalCritic:
 
 @dataclass
 class Episode:
-    """Everything one run produced; ``states`` has ``steps + 1`` rows (start included)."""
+    """Everything one run produced; ``states`` has ``steps + 1`` rows (start included).
+
+    ``states`` are what the robot reported (the actor's view); ``true_states`` where it really
+    was, as many rows, or empty when the plant does not know (a real robot: odometry only)."""
 
     agent: str
     horizon: int
     states: list[np.ndarray] = field(default_factory=list)
+    true_states: list[np.ndarray] = field(default_factory=list)
+    saturated_commands: int | None = None
     actions: list[np.ndarray] = field(default_factory=list)
     costs: list[float] = field(default_factory=list)
     solve_seconds: list[float] = field(default_factory=list)
@@ -124,6 +149,18 @@ class Episode:
     @property
     def final_state(self) -> np.ndarray:
         return self.states[-1]
+
+    @property
+    def truth_known(self) -> bool:
+        return len(self.true_states) == len(self.states) > 0
+
+    def true_accumulated_cost(self, sampling_time: float, r_diag: tuple[float, ...]) -> float | None:
+        """``J`` on the true states with the actions applied (None: the truth is not known)."""
+        if not self.truth_known:
+            return None
+        return float(
+            sum(sampling_time * stage_cost(s, u, r_diag) for s, u in zip(self.true_states, self.actions, strict=False))
+        )
 
 
 def run_algorithm1(
@@ -148,6 +185,7 @@ def run_algorithm1(
     q_weights, v_weights = critic.reset()
     state = plant.reset(start)
     episode = Episode(agent=agent, horizon=horizon, states=[state])
+    _record_truth(episode, plant)
     log.info("episode started: %s, N = %d, %d steps", agent, horizon, steps)
     for k in range(steps):
         if stop is not None and stop.is_set():
@@ -163,6 +201,17 @@ def run_algorithm1(
         episode.costs.append(cost)
         episode.solve_seconds.append(step.solve_seconds)
         episode.states.append(next_state)
+        _record_truth(episode, plant)
         state = next_state
     episode.solver_failures = actor.counters.failures - failures_before
+    episode.saturated_commands = getattr(plant, "saturated_commands", None)
     return episode
+
+
+def _record_truth(episode: Episode, plant: Plant) -> None:
+    """The true state beside the reported one, while the plant knows it (all or nothing)."""
+    truth = getattr(plant, "true_state", None)
+    if truth is None:
+        episode.true_states.clear()
+    elif len(episode.true_states) == len(episode.states) - 1:
+        episode.true_states.append(np.asarray(truth, dtype=float).copy())

@@ -58,14 +58,26 @@ def decode(schema: type[M], payload: bytes) -> M:
 
 
 class PlantState(Message):
-    """The robot's state, published by plant_sim or robot_bridge."""
+    """The robot's state, published by plant_sim or robot_bridge.
+
+    ``state`` is what the robot reports (a robot's odometry). ``true_state`` and
+    ``saturated_commands`` are optional (added in schema 1, issue 21): set only by a plant that
+    knows the truth (plant_sim), never by the robot bridge, and omitted from the payload when
+    absent, so a message without them is byte for byte what it was before."""
 
     robot: RobotId
     episode: int = Field(ge=0)
     seq: int = Field(ge=0, description="publisher's sequence number, strictly increasing")
     stamp_ns: int = Field(ge=0, description="sender's monotonic-epoch time [ns]")
-    state: Vec3 = Field(description="(x [m], y [m], alpha [rad]) in the goal frame")
+    state: Vec3 = Field(description="(x [m], y [m], alpha [rad]) in the goal frame, as the robot reports it")
     source: Literal["sim", "robot"]
+    true_state: Vec3 | None = Field(default=None, description="where the robot really is (a simulator only)")
+    saturated_commands: int | None = Field(
+        default=None, ge=0, description="commands of this episode a wheel could not follow (a simulator only)"
+    )
+
+    def encode(self) -> bytes:
+        return self.model_dump_json(exclude_none=True).encode()
 
 
 class Action(Message):

@@ -27,6 +27,7 @@ from pydantic_settings import (
 from common.agents import Agent
 from common.dynamics import heading_away_from_target
 from common.features import quadratic_weights_for_diag
+from common.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
 # The actor's horizon bound. The JIT build (code generation + gcc -O3) grows with N:
@@ -71,11 +72,31 @@ class PlantSettings(_Section):
     sampling_time: float = Field(gt=0, description="delta [s]")
     v_max: float = Field(gt=0, description="[m/s]")
     omega_max: float = Field(gt=0, description="[rad/s]")
+    model: Literal["ideal", "actuator"] = Field(
+        description="ideal: the exact unicycle; actuator: a TurtleBot3's wheels and odometry ([actuator])"
+    )
 
     @field_validator("sampling_time", "v_max", "omega_max")
     @classmethod
     def _is_finite(cls, v: float) -> float:
         return _finite(v, "plant constant")
+
+
+class ActuatorSettings(_Section):
+    """The TurtleBot3 Burger actuator and odometry model (common/turtlebot.py, docs/turtlebot.md)."""
+
+    wheel_radius: float = Field(gt=0, description="r [m]")
+    wheel_separation: float = Field(gt=0, description="b [m]")
+    wheel_speed_max: float = Field(ge=0, description="[rad/s] per wheel (0: no saturation)")
+    lag: float = Field(ge=0, le=10, description="[s] first-order time constant of each wheel")
+    gain: float = Field(gt=0, le=10, description="steady-state wheel speed / command")
+    deadband: float = Field(ge=0, description="[rad/s] a wheel at rest does not start below it")
+    slip: float = Field(ge=0, le=0.95, description="mean slip of each wheel's ground speed")
+    slip_std: float = Field(ge=0, le=1, description="its standard deviation, per command")
+    quantize: bool = Field(description="the OpenCR command path int32(v * 100) * 0.01f")
+    imu_heading: bool = Field(description="odometry heading from the IMU (ROBOTIS's use_imu)")
+    substep: float = Field(gt=0, le=0.05, description="[s] internal integration step")
+    seed: int = Field(ge=0)
 
 
 class CostSettings(_Section):
@@ -257,6 +278,7 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SRL_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
     plant: PlantSettings
+    actuator: ActuatorSettings
     cost: CostSettings
     critic: CriticSettings
     actor: ActorSettings
@@ -332,6 +354,26 @@ class Settings(BaseSettings):
         if isinstance(self.critic.v_init, str):
             return self._initial_scale(self.critic.v_init) * quadratic_weights_for_diag(self.cost.r_diag[:3])
         return np.array(self.critic.v_init, dtype=float)
+
+    def turtlebot_params(self) -> TurtleBotParams:
+        """The TurtleBot3 model's constants: ``[actuator]``, the firmware limits of ``[plant]``."""
+        a, p = self.actuator, self.plant
+        return TurtleBotParams(
+            v_max=p.v_max,
+            omega_max=p.omega_max,
+            wheel_radius=a.wheel_radius,
+            wheel_separation=a.wheel_separation,
+            wheel_speed_max=a.wheel_speed_max,
+            lag=a.lag,
+            gain=a.gain,
+            deadband=a.deadband,
+            slip=a.slip,
+            slip_std=a.slip_std,
+            quantize=a.quantize,
+            imu_heading=a.imu_heading,
+            substep=a.substep,
+            seed=a.seed,
+        )
 
     def as_dict(self) -> dict[str, Any]:
         """Every constant used, plus the derived discount, for printing with each result."""

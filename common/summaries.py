@@ -33,8 +33,22 @@ class Quantiles(_Summary):
     max: float
 
 
+class TrueView(_Summary):
+    """Where the robot really was, known only where the plant knows the truth (a simulator, the
+    emulator): J on the true states with the actions applied, the true start and final state."""
+
+    start_state: list[float]
+    final_state: list[float]
+    final_distance: float
+    accumulated_cost: float
+
+
 class EpisodeSummary(_Summary):
-    """One episode of Algorithm 1 (``srl run --json``; the base of the lockstep actor's)."""
+    """One episode of Algorithm 1 (``srl run --json``; the base of the lockstep actor's).
+
+    ``start_state``, ``final_state``, ``final_distance``, ``accumulated_cost``: the robot's own
+    view (what it reported: a robot's odometry); ``truth``: where it really was, or None when
+    only the odometry is known (a real robot)."""
 
     agent: Agent
     horizon: int
@@ -46,6 +60,13 @@ class EpisodeSummary(_Summary):
     final_distance: float
     solve_ms: Quantiles
     solver_failures: int
+    plant_model: Literal["ideal", "actuator", "robot"] = Field(
+        description="the simulated plant's model (settings plant.model); robot: a robot behind the bridge"
+    )
+    truth: TrueView | None = Field(description="None: the plant does not know the truth, only odometry is known")
+    saturated_commands: int | None = Field(
+        description="commands with a wheel beyond its speed limit (None: not known, a real robot)"
+    )
     settings: dict[str, Any]
 
 
@@ -66,8 +87,10 @@ class RealtimeActorSummary(_Summary):
     episode_id: int
     steps: int
     accumulated_cost: float
-    start_state: list[float] | None
-    final_state: list[float] | None
+    start_state: list[float] | None = Field(description="the first state the robot reported (its own start)")
+    final_state: list[float] | None = Field(description="the last state the robot reported (its odometry)")
+    truth: TrueView | None = Field(description="None: the plant sent no truth (a real robot): only odometry is known")
+    saturated_commands: int | None = Field(description="from the plant, if it knows (a simulator)")
     weights_version: int
     loop: LoopStats
     solve_ms: Quantiles
@@ -165,7 +188,10 @@ class PlantSummary(_Summary):
 
     service: Literal["plant"] = "plant"
     mode: Literal["realtime", "lockstep"]
-    final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended")
+    plant_model: Literal["ideal", "actuator"] = Field(description="plant.model: the unicycle or the TurtleBot3 model")
+    final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended, as the robot reported it")
+    true_final_state: list[float] = Field(description="[x m, y m, alpha rad]: where it truly was")
+    saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
     counters: dict[str, int]
     resources: dict[str, Any] | None = None
 
@@ -214,7 +240,10 @@ class EmulatorSummary(_Summary):
     attachment: str | None = Field(description="rmw_zenoh: compact or legacy; None with ros2dds")
     cmd_key: str
     odom_key: str
-    final_pose: list[float] = Field(description="[x m, y m, theta rad] in the odom frame")
+    model: Literal["ideal", "actuator"] = Field(description="the unicycle or the TurtleBot3 model")
+    final_pose: list[float] = Field(description="[x m, y m, theta rad] in the odom frame: the truth")
+    final_odometry: list[float] = Field(description="[x m, y m, theta rad]: what its odometry reported")
+    saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
     applied: list[float] = Field(description="[v m/s, omega rad/s] applied when it ended")
     max_abs_applied: list[float]
     cmd_timeouts: int

@@ -436,3 +436,25 @@ def _record_action(sample: zenoh.Sample, sink: list[tuple[float, float]], episod
     sink.append(message.action)
     if not episodes:
         episodes.append(message.episode)
+
+
+def test_the_true_state_is_optional_on_the_wire_and_absent_when_unknown() -> None:
+    """Schema 1 plus an optional true state (issue 21): a robot's message carries no such key,
+    byte for byte what it was; a simulator's round-trips."""
+    robot = PlantState(robot="r", episode=1, seq=2, stamp_ns=3, state=(0.1, 0.2, 0.3), source="robot")
+    assert json.loads(robot.encode()) == {
+        "schema_version": 1,
+        "robot": "r",
+        "episode": 1,
+        "seq": 2,
+        "stamp_ns": 3,
+        "state": [0.1, 0.2, 0.3],
+        "source": "robot",
+    }
+    sim = PlantState(
+        robot="r", episode=1, seq=2, stamp_ns=3, state=(0.1, 0.2, 0.3), source="sim", true_state=(0.0, 0.2, 0.3)
+    )
+    assert decode(PlantState, sim.encode()) == sim
+    for bad in (float("nan"), 1e300):
+        with pytest.raises(MessageError):
+            decode(PlantState, sim.encode().replace(b"[0.0,", f"[{bad},".encode()))

@@ -332,3 +332,45 @@ def test_memory_is_bounded_over_a_million_ticks() -> None:
     assert rss < 1024 * 1024
     assert blocks < 10_000
     assert grown < 1024 * 1024
+
+
+def test_the_summary_reports_the_truth_only_when_the_plant_sends_it() -> None:
+    # a real robot (the bridge) sends no true state: only its odometry is known
+    robot = Loop()
+    robot.run(5)
+    summary = robot.loop.summary()
+    assert summary["truth"] is None and summary["saturated_commands"] is None
+    assert summary["start_state"] == [1.0, 0.5, 0.1]  # the robot's own first state
+
+    # a simulator sends the truth beside the odometry: J on the true states, by hand
+    sim = Loop()
+    true_state = (0.9, 0.4, 0.1)
+
+    def publish_with_truth(source: str = PLANT, x: float = 1.0) -> None:
+        sim.seq += 1
+        sim.loop.on_state(
+            PlantState(
+                robot="fk",
+                episode=0,
+                seq=sim.seq,
+                stamp_ns=0,
+                state=(x, 0.5, 0.1),
+                source="sim",
+                true_state=true_state,
+                saturated_commands=3,
+            ),
+            source,
+        )
+
+    sim.publish_state = publish_with_truth  # type: ignore[method-assign]
+    sim.run(5)
+    summary = sim.loop.summary()
+    r = sim.settings.cost.r_diag
+    # FakeActor drives at v = -0.1 (x > 0), omega = 0: chi = (0.9, 0.4, 0.1, -0.1, 0)
+    stage = r[0] * 0.81 + r[1] * 0.16 + r[2] * 0.01 + r[3] * 0.01
+    assert summary["truth"]["accumulated_cost"] == pytest.approx(5 * DELTA * stage, rel=1e-12)
+    assert summary["truth"]["final_state"] == list(true_state)
+    assert summary["truth"]["start_state"] == list(true_state)
+    assert summary["truth"]["final_distance"] == pytest.approx(np.hypot(0.9, 0.4))
+    assert summary["final_state"] == [1.0, 0.5, 0.1]  # the robot's view stays beside it
+    assert summary["saturated_commands"] == 3

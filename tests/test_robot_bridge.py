@@ -303,6 +303,38 @@ def test_emulator_noise_is_seeded() -> None:
     assert 0.005 < np.std(poses(3)[:, 0]) < 0.02 and 0.01 < np.std(poses(3)[:, 2]) < 0.04
 
 
+def test_emulator_with_the_actuator_model_reports_odometry_and_keeps_the_truth() -> None:
+    """``--model actuator``: the TurtleBot3 model behind the firmware; the oracle is the model
+    itself driven by the same commands at the same times (common/turtlebot.py has its own)."""
+    import dataclasses
+
+    from common.settings import Settings
+    from common.turtlebot import TurtleBot
+    from tools.up import emulator_truth
+
+    settings = Settings.load(actuator={"slip": 0.1, "imu_heading": False})
+    params = settings.turtlebot_params()
+    model = Tb3Model(Pose2D(1.0, 2.0, 0.3), 0.22, 2.84, 0.0, 0.0, (0.0, 0.0), 0, now=0.0, params=params)
+    oracle = TurtleBot(dataclasses.replace(params, v_max=0.22, omega_max=2.84), np.array([1.0, 2.0, 0.3]))
+    for k, (v, omega) in enumerate([(0.2, 0.0), (0.22, 2.84), (-0.1, 0.5), (0.0, 0.0)]):
+        model.command(v, omega, 0.5 * k)
+        oracle.command(v, omega)
+        oracle.advance(0.5)
+    pose, velocity = model.sample(2.0)
+    np.testing.assert_allclose(pose, oracle.odometry, atol=1e-12)
+    np.testing.assert_allclose(model.state, oracle.true_pose, atol=1e-12)
+    assert velocity == pytest.approx(oracle.velocity)  # the encoders' twist, not the command
+    assert np.hypot(*(pose[:2] - model.state[:2])) > 0.01  # 10 % slip: odometry is not the truth
+    assert model.robot.saturated_commands == 1  # (0.22, 2.84): the right wheel asked for 13.6 rad/s
+    # srl up's view of it: the truth in the goal frame (goal at the odom origin here)
+    truth = emulator_truth(
+        {"model": "actuator", "final_pose": list(model.state), "final_odometry": list(pose), "saturated_commands": 1},
+        settings,
+    )
+    assert truth is not None and truth["final_state"] == pytest.approx(list(model.state))
+    assert truth["final_distance"] == pytest.approx(np.hypot(*model.state[:2]))
+
+
 # -- processes ------------------------------------------------------------------------------------
 class RobotWatch:
     """Subscribes, as a ROS tool would, to the robot's odometry; and to srl's state."""

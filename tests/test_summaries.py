@@ -8,6 +8,7 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from pydantic import TypeAdapter, ValidationError
 
@@ -115,7 +116,18 @@ class _NoCounts:
 
 
 PRODUCED = {
-    "plant": (PlantSummary, {"service": "plant", "mode": "realtime", "final_state": [0.1, 0.2, 0.3], "counters": {}}),
+    "plant": (
+        PlantSummary,
+        {
+            "service": "plant",
+            "mode": "realtime",
+            "plant_model": "actuator",
+            "final_state": [0.1, 0.2, 0.3],
+            "true_final_state": [0.12, 0.2, 0.3],
+            "saturated_commands": 4,
+            "counters": {},
+        },
+    ),
     "robot_bridge": (BridgeSummary, _bridge_summary()),
     "tb3_emulator": (
         EmulatorSummary,
@@ -127,7 +139,10 @@ PRODUCED = {
             "attachment": None,
             "cmd_key": "cmd_vel",
             "odom_key": "odom",
+            "model": "ideal",
             "final_pose": [0.0, 0.0, 0.0],
+            "final_odometry": [0.0, 0.0, 0.0],
+            "saturated_commands": 0,
             "applied": [0.0, 0.0],
             "max_abs_applied": [0.2, 1.0],
             "cmd_timeouts": 0,
@@ -170,3 +185,63 @@ def test_srl_up_reads_the_plant_and_the_bridge_through_their_contracts() -> None
     with pytest.raises(ValueError, match="final_sate"):  # printed but drifted: never read as missing
         optional_summary(plant, TypeAdapter(PlantSummary))
     assert optional_summary(Child("plant", process), TypeAdapter(PlantSummary)) is None  # printed none (killed)
+
+
+def _stage(state: np.ndarray, action: np.ndarray, r: tuple[float, ...]) -> float:
+    chi = np.concatenate([state, action])
+    return float(sum(r_i * c * c for r_i, c in zip(r, chi, strict=True)))
+
+
+def test_a_summary_on_the_actuator_plant_reports_the_truth_beside_the_odometry() -> None:
+    """Fails on the main of issue 21: the summary had no truth, and no plant saturated a wheel."""
+    settings = Settings.load(
+        plant={"model": "actuator"},
+        actuator={"slip": 0.1, "slip_std": 0.02, "imu_heading": False},
+        actor={"agent": "mpc"},
+        episode={"duration": 6.0, "start": [1.5, -1.0]},
+    )
+    episode = run_episode(settings)
+    summary = EpisodeSummary.model_validate(episode_summary(episode, settings))
+    assert summary.plant_model == "actuator" and summary.truth is not None
+    truth = np.array(episode.true_states)
+    assert truth.shape == (episode.steps + 1, 3)
+    assert summary.truth.start_state == summary.start_state  # the odometry starts where the robot is
+    assert summary.truth.final_state == [float(c) for c in truth[-1]]
+    # 10 % slip: the true pose is not what the robot reports
+    assert np.hypot(*(np.array(summary.truth.final_state[:2]) - np.array(summary.final_state[:2]))) > 0.01
+    r = settings.cost.r_diag
+    true_j = sum(0.1 * _stage(s, u, r) for s, u in zip(truth[:-1], episode.actions, strict=True))
+    assert summary.truth.accumulated_cost == pytest.approx(true_j, rel=1e-12)
+    assert summary.truth.accumulated_cost != pytest.approx(summary.accumulated_cost, rel=1e-6)
+    # v and omega are boxed separately: full speed with a turn asks a wheel for twice its limit
+    assert summary.saturated_commands is not None and summary.saturated_commands > 0
+
+
+def test_on_the_ideal_plant_the_truth_is_what_the_robot_reports() -> None:
+    settings = Settings.load(actor={"agent": "mpc"}, episode={"duration": 2.0})
+    summary = EpisodeSummary.model_validate(episode_summary(run_episode(settings), settings))
+    assert summary.plant_model == "ideal" and summary.truth is not None
+    assert summary.truth.final_state == summary.final_state
+    assert summary.truth.accumulated_cost == pytest.approx(summary.accumulated_cost, rel=1e-12)
+    assert summary.saturated_commands == 0
+
+
+def test_a_plant_without_the_truth_gives_a_summary_that_says_so() -> None:
+    from common.loop import ExactPlant
+
+    class OdometryOnly(ExactPlant):  # a real robot: it reports, it does not know the truth
+        @property
+        def true_state(self) -> None:  # type: ignore[override]
+            return None
+
+        @property
+        def saturated_commands(self) -> None:  # type: ignore[override]
+            return None
+
+    settings = Settings.load(actor={"agent": "mpc"}, episode={"duration": 1.0})
+    summary = episode_summary(run_episode(settings, plant=OdometryOnly()), settings)
+    assert summary["truth"] is None and summary["saturated_commands"] is None
+    from tools.cli import format_run_summary
+
+    text = format_run_summary({**summary, "wall_seconds": 0.0, "transport": "inproc"})
+    assert "only its odometry is known" in text

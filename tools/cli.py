@@ -99,6 +99,7 @@ def format_run_summary(summary: dict[str, Any]) -> str:
         f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}",
         f"  start          {_fmt_state(summary['start_state'])}",
         f"  final state    {_fmt_state(summary['final_state'])}   distance to target {summary['final_distance']:.3f} m",
+        *_truth_lines(summary),
         f"  steps          {summary['steps']} x delta = {s['plant']['sampling_time']} s "
         f"({summary['episode_seconds']:.1f} s episode)",
         f"  accumulated J  {summary['accumulated_cost']:.4f}",
@@ -113,6 +114,23 @@ def format_run_summary(summary: dict[str, Any]) -> str:
     if "plot" in summary:
         lines.append(f"  plot           {summary['plot']}")
     return "\n".join(lines)
+
+
+def _truth_lines(summary: dict[str, Any]) -> list[str]:
+    """The true view beside the robot's own (start, final state, J are what it reported)."""
+    if "truth" not in summary:
+        return []
+    truth = summary["truth"]
+    saturated = summary.get("saturated_commands")
+    wheels = "" if saturated is None else f"   commands beyond a wheel's limit {saturated}"
+    if truth is None:
+        return ["  truth          unknown: a real robot, only its odometry is known (the states above)" + wheels]
+    return [
+        f"  true final     {_fmt_state(truth['final_state'])}   distance to target {truth['final_distance']:.3f} m"
+        f"   (plant {summary.get('plant_model', 'sim')}: the states above are what the robot reported)",
+        f"  true J         {truth['accumulated_cost']:.4f} (on the true states; "
+        f"the accumulated J is on the reported ones){wheels}",
+    ]
 
 
 def _fmt_state(state: Sequence[float]) -> str:
@@ -272,8 +290,19 @@ def format_up_summary(summary: dict[str, Any]) -> str:
             + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else "")
         )
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
+    if summary.get("start_state"):
+        lines.append(f"  start          {_fmt_state(summary['start_state'])} (the robot's first state)")
     if summary.get("final_state"):
         lines.append(f"  final state    {_fmt_state(summary['final_state'])}")
+    emulated = summary.get("emulator_truth")
+    if emulated:  # the bridge carries only odometry; the emulator behind it knows the truth
+        lines.append(
+            f"  true final     {_fmt_state(emulated['final_state'])}   distance to target "
+            f"{emulated['final_distance']:.3f} m   (the emulator's, {emulated['model']} model; "
+            f"commands beyond a wheel's limit {emulated['saturated_commands']})"
+        )
+    else:
+        lines.extend(_truth_lines(summary))
     lines.append(
         f"  critic         {summary.get('transitions_received')} transitions received, "
         f"actor used weights version {summary.get('weights_version')}"
@@ -311,6 +340,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench.actor import run_actor_benchmark
 
         return run_actor_benchmark(args, settings_from_args(args))
+    if args.what == "parking":
+        from tools.bench.parking import run_parking_benchmark
+
+        return run_parking_benchmark(args, settings_from_args(args))
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
@@ -429,7 +462,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.set_defaults(func=cmd_up)
 
     bench = command("bench", "benchmarks that print a table (and JSON)")
-    bench.add_argument("what", choices=["actor", "loop", "bridge"])
+    bench.add_argument("what", choices=["actor", "loop", "bridge", "parking"])
     bench.add_argument(
         "--reference-horizons",
         default="12",
@@ -450,9 +483,20 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99) (default: 300)"
     )
-    bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
+    bench.add_argument("--horizons", help="comma-separated N values (default: actor 6,12,30; parking one N, 12)")
     bench.add_argument(
-        "--agents", default=",".join(AGENTS), help=f"comma-separated agents (default: {','.join(AGENTS)})"
+        "--agents", help=f"comma-separated agents (default: actor {','.join(AGENTS)}; parking mpc,rlq,rlqv)"
+    )
+    bench.add_argument(
+        "--plants", help="parking: comma-separated plant models, ideal and/or actuator (default: ideal,actuator)"
+    )
+    bench.add_argument(
+        "--starts",
+        help="parking: X,Y starts separated by ';', e.g. --starts='-1,2;2,0' (default: "
+        "2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
+    )
+    bench.add_argument(
+        "--parking-seconds", type=float, default=35.0, help="parking: episode length per run [s] (default: 35)"
     )
     bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import os
 import shutil
 import signal
@@ -41,6 +42,7 @@ import zenoh
 from pydantic import TypeAdapter, ValidationError
 
 from common.certs import write_tls_material
+from common.frames import Pose2D, to_goal_frame
 from common.security import ROLES, write_credentials
 from common.settings import Settings
 from common.summaries import (
@@ -388,6 +390,23 @@ class StatusMonitor:
         self.session.close()
 
 
+def emulator_truth(emulator: dict[str, Any] | None, settings: Settings) -> dict[str, Any] | None:
+    """The emulated robot's true final pose in the goal frame (the actor saw only its odometry,
+    so the actor's ``truth`` is null: the emulator is the one that knows)."""
+    if not emulator or "final_pose" not in emulator:
+        return None
+    goal = Pose2D(*settings.bridge.goal)
+    true = to_goal_frame(Pose2D(*emulator["final_pose"]), goal)
+    reported = to_goal_frame(Pose2D(*emulator.get("final_odometry", emulator["final_pose"])), goal)
+    return {
+        "model": emulator.get("model", "ideal"),
+        "final_state": [true.x, true.y, true.theta],
+        "final_distance": float(math.hypot(true.x, true.y)),
+        "odometry_final_state": [reported.x, reported.y, reported.theta],
+        "saturated_commands": emulator.get("saturated_commands"),
+    }
+
+
 def write_summaries(directory: Path, children: dict[str, Child], merged: dict[str, Any]) -> None:
     """Each child's JSON summary line to ``<name>.json`` and the merged one to ``summary.json``."""
     directory.mkdir(parents=True, exist_ok=True)
@@ -587,6 +606,7 @@ def _run_up(
         if "tb3_emulator" in supervisor.children:
             emulator = others.get("tb3_emulator")
             merged["emulator"] = None if emulator is None else emulator.to_json_dict()
+            merged["emulator_truth"] = None if emulator is None else emulator_truth(merged["emulator"], settings)
     merged.update(
         {
             "services": {name: child.process.pid for name, child in supervisor.children.items()},

@@ -22,7 +22,7 @@ import numpy as np
 from common.agents import fit_due, learns
 from common.critic import Sample
 from common.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
-from common.messages import CriticWeights, Message, ResetRequest, StepRequest, Transition
+from common.messages import CriticWeights, Message, PlantState, ResetRequest, StepRequest, Transition
 from common.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
 from common.settings import Settings
 from common.transport import Bus
@@ -175,6 +175,13 @@ class ZenohPlant:
         self.settings, self.bus, self.episode = settings, bus, episode
         self.robot = settings.transport.robot
         self.step_index = 0
+        self.true_state: np.ndarray | None = None  # the plant's truth, if it sends it
+        self.saturated_commands: int | None = None
+
+    def _keep_truth(self, reply: PlantState) -> np.ndarray:
+        self.true_state = None if reply.true_state is None else np.array(reply.true_state)
+        self.saturated_commands = reply.saturated_commands
+        return np.array(reply.state)
 
     def _query(self, service: Service[Any, Any], request: Message) -> Any:
         timeout = self.settings.transport.query_timeout
@@ -194,7 +201,7 @@ class ZenohPlant:
                 robot=self.robot, episode=self.episode, state=(float(state[0]), float(state[1]), float(state[2]))
             ),
         )
-        return np.array(reply.state)
+        return self._keep_truth(reply)
 
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
         request = StepRequest(
@@ -206,7 +213,7 @@ class ZenohPlant:
         )
         reply = self._query(PLANT_STEP, request)
         self.step_index += 1
-        return np.array(reply.state)
+        return self._keep_truth(reply)
 
 
 class ZenohCriticPort:

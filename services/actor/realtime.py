@@ -38,7 +38,7 @@ from common.messages import Action, PlantState, Transition
 from common.provenance import RefusalRun, SequenceGuard, SourceGate
 from common.settings import Settings
 from common.stats import Window
-from common.summaries import RealtimeActorSummary
+from common.summaries import RealtimeActorSummary, TrueView
 from services.actor.ports import WeightsInbox
 
 log = logging.getLogger(__name__)
@@ -111,6 +111,10 @@ class RealtimeActor:
         self.stale_state_stops = 0
         self.plant_conflict_stops = 0
         self.start_state: np.ndarray | None = None
+        # the truth, when the plant sends it with every state (a simulator; never a real robot)
+        self.truth_known = True
+        self.true_start: tuple[float, float, float] | None = None
+        self.true_accumulated_cost = 0.0
         self.ticker: Ticker | None = None
         self.last_step = -1
 
@@ -217,7 +221,11 @@ class RealtimeActor:
         message, received = held
         state = np.array(message.state)
         if self.start_state is None:
-            self.start_state = state
+            self.start_state = state  # the robot's own start, whatever was requested
+        if message.true_state is None:
+            self.truth_known = False
+        elif self.true_start is None:
+            self.true_start = message.true_state
         weights = self.inbox.current()
         step = self.actor.step(state, weights.q, weights.v)
         action = (float(step.action[0]), float(step.action[1]))
@@ -236,6 +244,11 @@ class RealtimeActor:
         self.latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
         cost = self.delta * float(stage_cost(state, step.action, self.settings.cost.r_diag))
         self.accumulated_cost += cost
+        if message.true_state is not None:
+            true_state = np.array(message.true_state)
+            self.true_accumulated_cost += self.delta * float(
+                stage_cost(true_state, step.action, self.settings.cost.r_diag)
+            )
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         self.publish_transition(
             Transition(
@@ -330,10 +343,23 @@ class RealtimeActor:
             "lockout_suspect": float(self.lockout_suspect()),
         }
 
+    def truth(self, last: PlantState | None) -> TrueView | None:
+        """The true view, if every state the loop used carried the truth (None: odometry only)."""
+        if not self.truth_known or self.true_start is None or last is None or last.true_state is None:
+            return None
+        final = last.true_state
+        return TrueView(
+            start_state=list(self.true_start),
+            final_state=list(final),
+            final_distance=float(np.hypot(final[0], final[1])),
+            accumulated_cost=self.true_accumulated_cost,
+        )
+
     def summary(self) -> dict[str, Any]:
         with self.lock:
             last = self.last_accepted
         ticker = self.ticker
+        truth = self.truth(last)
         return RealtimeActorSummary.model_validate(
             {
                 "agent": self.settings.actor.agent,
@@ -343,6 +369,8 @@ class RealtimeActor:
                 "accumulated_cost": self.accumulated_cost,
                 "start_state": None if self.start_state is None else [float(c) for c in self.start_state],
                 "final_state": None if last is None else [float(c) for c in last.state],
+                "truth": None if truth is None else truth.model_dump(),
+                "saturated_commands": None if last is None else last.saturated_commands,
                 "weights_version": self.inbox.current().version,
                 "loop": {
                     "period_ms": self.periods.summary(1e3),

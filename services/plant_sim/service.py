@@ -1,4 +1,6 @@
-"""plant_sim: the simulated robot (exact sample-and-hold unicycle).
+"""plant_sim: the simulated robot, ``plant.model``: the exact sample-and-hold unicycle (ideal)
+or a TurtleBot3's actuators and odometry (actuator, common/turtlebot.py). Its states carry the
+reported pose (the odometry) and, since a simulator knows it, the true pose beside it.
 
 * lockstep: queryables ``plant/reset`` and ``plant/step`` (declared in this mode only: apply
   this action for ``duration``, return the next state). A repeated request for the step just
@@ -28,6 +30,7 @@ from common.provenance import ActionGate, SourceGate
 from common.settings import Settings
 from common.summaries import PlantSummary
 from common.transport import Bus, start_status_thread
+from common.turtlebot import TurtleBot
 
 log = logging.getLogger(__name__)
 
@@ -37,25 +40,49 @@ class SimulatedPlant:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.robot = settings.transport.robot
+        self.robot_id = settings.transport.robot
         self.bounds = np.array([settings.plant.v_max, settings.plant.omega_max])
         self.lock = threading.Lock()
         self.episode = 0
-        self.state = settings.start_state()
+        self.state = settings.start_state()  # the true state (ideal: also the reported one)
+        # the actuator model: the TurtleBot3 whose odometry is reported (None: ideal)
+        self.robot = TurtleBot(settings.turtlebot_params(), self.state) if settings.plant.model == "actuator" else None
+        self.held = np.zeros(2)
         self.seq = 0
         self.next_step = 0
         self._last_reply: tuple[tuple[int, int], PlantState] | None = None
 
+    @property
+    def reported(self) -> np.ndarray:
+        """What the robot reports: its odometry (ideal: the true state)."""
+        return self.state if self.robot is None else self.robot.odometry
+
     def _message(self) -> PlantState:
         self.seq += 1
+        reported, true = self.reported, self.state
         return PlantState(
-            robot=self.robot,
+            robot=self.robot_id,
             episode=self.episode,
             seq=self.seq,
             stamp_ns=time.monotonic_ns(),
-            state=(float(self.state[0]), float(self.state[1]), float(self.state[2])),
+            state=(float(reported[0]), float(reported[1]), float(reported[2])),
             source="sim",
+            true_state=(float(true[0]), float(true[1]), float(true[2])),
+            saturated_commands=0 if self.robot is None else self.robot.saturated_commands,
         )
+
+    def _hold(self, action: np.ndarray) -> None:
+        """A new command (the TurtleBot converts it as its firmware does, once per command)."""
+        self.held = np.asarray(action, dtype=float)
+        if self.robot is not None:
+            self.robot.command(float(self.held[0]), float(self.held[1]))
+
+    def _integrate(self, duration: float) -> None:
+        if self.robot is None:
+            self.state = exact_step(self.state, self.held, duration)
+        else:
+            self.robot.advance(duration)
+            self.state = self.robot.true_pose.copy()
 
     def clamp(self, action: tuple[float, float]) -> np.ndarray:
         return np.clip(np.asarray(action, dtype=float), -self.bounds, self.bounds)
@@ -64,6 +91,9 @@ class SimulatedPlant:
         with self.lock:
             self.episode = request.episode
             self.state = np.asarray(request.state, dtype=float)
+            if self.robot is not None:  # at rest at the start, odometry from there, slip re-seeded
+                self.robot = TurtleBot(self.robot.params, self.state)
+            self.held = np.zeros(2)
             self.next_step = 0
             self._last_reply = None
             return self._message()
@@ -77,15 +107,21 @@ class SimulatedPlant:
                 return self._last_reply[1]  # a retried request: never apply an action twice
             if request.step != self.next_step:
                 raise ValueError(f"step {request.step} out of order, expected {self.next_step}")
-            self.state = exact_step(self.state, self.clamp(request.action), request.duration)
+            self._hold(self.clamp(request.action))
+            self._integrate(request.duration)
             self.next_step += 1
             reply = self._message()
             self._last_reply = (key, reply)
             return reply
 
-    def advance(self, action: np.ndarray, duration: float) -> PlantState:
+    def hold(self, action: np.ndarray) -> None:
+        """Real time: the newest action (or zero after the watchdog), held until the next."""
         with self.lock:
-            self.state = exact_step(self.state, action, duration)
+            self._hold(action)
+
+    def advance(self, duration: float) -> PlantState:
+        with self.lock:
+            self._integrate(duration)
             return self._message()
 
 
@@ -100,7 +136,7 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
         bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
 
-    latest: dict[str, object] = {"action": np.zeros(2), "at": None}
+    latest: dict[str, object] = {"at": None}
     # whose actions drive the robot: only the live actor session's, in its order (issue 13: the
     # same gate as the robot bridge's; a stray or forged publisher on the key is refused, counted)
     actions = ActionGate(SourceGate("actor"))
@@ -113,14 +149,15 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
             if refusal is not None:
                 bus.reject(*refusal)
                 return
-            latest["action"] = plant.clamp(message.action)
+            plant.hold(plant.clamp(message.action))
             latest["at"] = now
         bus.count("actions_applied")
 
     def on_actor_identity(zid: str, alive: bool) -> None:
         with action_lock:
             if not alive and actions.lost(zid):  # the followed actor is gone: stop at once
-                latest["action"], latest["at"] = np.zeros(2), None
+                latest["at"] = None
+                plant.hold(np.zeros(2))
                 bus.count("actor_lost_stops")
 
     if mode == "realtime":
@@ -142,15 +179,21 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
             if not fresh and at is not None:
                 bus.count("watchdog_stops")
                 latest["at"] = None  # stopped: zero until the next fresh action
-                latest["action"] = np.zeros(2)
-            action = latest["action"] if fresh else np.zeros(2)
-            publish_state(plant.advance(action, now - last))  # type: ignore[arg-type]
+                plant.hold(np.zeros(2))
+            publish_state(plant.advance(now - last))
             last = now
         bus.count("missed_ticks", ticker.missed)
     else:
         stop.wait(duration)
     return PlantSummary.model_validate(
-        {"mode": mode, "final_state": [float(c) for c in plant.state], "counters": dict(bus.counters)}
+        {
+            "mode": mode,
+            "plant_model": settings.plant.model,
+            "final_state": [float(c) for c in plant.reported],
+            "true_final_state": [float(c) for c in plant.state],
+            "saturated_commands": 0 if plant.robot is None else plant.robot.saturated_commands,
+            "counters": dict(bus.counters),
+        }
     ).to_json_dict()
 
 

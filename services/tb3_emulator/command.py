@@ -48,6 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--v-max", type=float, help="firmware limit [m/s] (default: the Burger's 0.22)")
     parser.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
+    parser.add_argument(
+        "--model",
+        choices=["ideal", "actuator"],
+        help="ideal: wheels reach the command at once, odometry = truth; actuator: a TurtleBot3's wheels "
+        "and encoder odometry ([actuator] settings, docs/turtlebot.md) (default: the settings' plant.model)",
+    )
     parser.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate (default: 20)")
     parser.add_argument(
         "--attachment",
@@ -101,6 +107,7 @@ def main(args: argparse.Namespace) -> int:
         (args.noise[0], args.noise[1]),
         args.seed,
         time.monotonic(),
+        params=settings.turtlebot_params() if (args.model or settings.plant.model) == "actuator" else None,
     )
     try:
         result = run(

@@ -39,6 +39,7 @@ the OpenCR's own heartbeat bound); ``--cmd-timeout 0`` emulates the stock robot 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -51,36 +52,19 @@ import zenoh
 
 from common import ros_wire
 from common.clock import Ticker
-from common.dynamics import exact_step
 from common.frames import Pose2D, quaternion_from_yaw
 from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
+from common.turtlebot import TurtleBot, TurtleBotParams, firmware_velocity
 
 log = logging.getLogger(__name__)
-INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
-
-
-def firmware_velocity(value: float, limit: float) -> float:
-    """One velocity component as the TurtleBot3 applies it.
-
-    turtlebot3_node: ``static_cast<int32_t>(value * 100)`` (toward zero; ARM's conversion
-    saturates and maps NaN to 0); OpenCR firmware: ``data * 0.01f`` in float32, then
-    ``constrain(-limit, limit)``.
-    """
-    scaled = value * 100.0
-    if math.isnan(scaled):
-        ticks = 0
-    elif scaled >= INT32_MAX:
-        ticks = INT32_MAX
-    elif scaled <= INT32_MIN:
-        ticks = INT32_MIN
-    else:
-        ticks = math.trunc(scaled)
-    applied = float(np.float32(ticks) * np.float32(0.01))
-    return min(max(applied, -limit), limit)
 
 
 class Tb3Model:
-    """The emulated robot: applied velocity, exact unicycle pose in the odom frame."""
+    """The emulated robot (:class:`common.turtlebot.TurtleBot`) in the odom frame, on a clock.
+
+    ``params`` None: the ideal robot (the OpenCR command path, then the exact unicycle, its
+    odometry the truth); else the actuator model (``--model actuator``: saturation, deadband,
+    lag, slip, encoder odometry). Commands reach the wheels after ``latency``."""
 
     def __init__(
         self,
@@ -92,25 +76,43 @@ class Tb3Model:
         noise: tuple[float, float],
         seed: int,
         now: float,
+        params: TurtleBotParams | None = None,
     ) -> None:
-        self.state = np.array([pose.x, pose.y, pose.theta], dtype=float)
-        self.v_max, self.omega_max = v_max, omega_max
+        self.ideal = params is None
+        if params is None:  # the firmware's conversion and limits, the wheels ideal
+            params = dataclasses.replace(TurtleBotParams.ideal(v_max, omega_max), quantize=True)
+        else:
+            params = dataclasses.replace(params, v_max=v_max, omega_max=omega_max)
+        self.robot = TurtleBot(params, np.array([pose.x, pose.y, pose.theta], dtype=float))
         self.latency, self.cmd_timeout = latency, cmd_timeout
         self.noise = noise
         self.rng = np.random.default_rng(seed)
-        self.applied = (0.0, 0.0)
         self.applied_at = now
         self.t = now
-        self.pending: deque[tuple[float, float, float]] = deque()
+        self.pending: deque[tuple[float, float, float]] = deque()  # (due, v, omega) as received
         self.lock = threading.Lock()
         self.max_abs = [0.0, 0.0]
         self.timeouts = 0
 
+    @property
+    def state(self) -> np.ndarray:
+        """The true pose (odom frame): where the emulated robot really is."""
+        return self.robot.true_pose
+
+    @property
+    def odometry(self) -> np.ndarray:
+        """The pose it reports (ideal: the true pose)."""
+        return self.robot.odometry
+
+    @property
+    def applied(self) -> tuple[float, float]:
+        return self.robot.applied
+
     def command(self, v: float, omega: float, now: float) -> tuple[float, float]:
         """A cmd_vel arrives: convert as the firmware does; apply now or after the latency."""
-        target = (firmware_velocity(v, self.v_max), firmware_velocity(omega, self.omega_max))
+        target = (firmware_velocity(v, self.robot.params.v_max), firmware_velocity(omega, self.robot.params.omega_max))
         with self.lock:
-            self.pending.append((now + self.latency, *target))
+            self.pending.append((now + self.latency, v, omega))
             self._advance(now)
         return target
 
@@ -118,29 +120,31 @@ class Tb3Model:
         while self.pending and self.pending[0][0] <= now:
             due, v, omega = self.pending.popleft()
             self._integrate(max(due, self.t))
-            self.applied, self.applied_at = (v, omega), due
-            self.max_abs = [max(self.max_abs[0], abs(v)), max(self.max_abs[1], abs(omega))]
+            applied = self.robot.command(v, omega)
+            self.applied_at = due
+            self.max_abs = [max(self.max_abs[0], abs(applied[0])), max(self.max_abs[1], abs(applied[1]))]
         if self.cmd_timeout > 0 and self.applied != (0.0, 0.0) and now - self.applied_at > self.cmd_timeout:
             self._integrate(self.applied_at + self.cmd_timeout)
-            self.applied = (0.0, 0.0)
+            self.robot.command(0.0, 0.0)
             self.timeouts += 1
         self._integrate(now)
 
     def _integrate(self, until: float) -> None:
         if until > self.t:
-            self.state = exact_step(self.state, np.array(self.applied), until - self.t)
+            self.robot.advance(until - self.t)
             self.t = until
 
     def sample(self, now: float) -> tuple[np.ndarray, tuple[float, float]]:
-        """Advance to ``now``; the reported pose (with noise) and the applied velocity."""
+        """Advance to ``now``; the reported pose (odometry, with noise) and velocity (ideal: the
+        applied command; actuator: the encoders' velocity, as turtlebot3_node reports it)."""
         with self.lock:
             self._advance(now)
-            pose = self.state.copy()
-            applied = self.applied
+            pose = self.robot.odometry.copy()
+            velocity = self.robot.applied if self.ideal else self.robot.velocity
         sigma_xy, sigma_theta = self.noise
         if sigma_xy > 0 or sigma_theta > 0:
             pose = pose + self.rng.normal(0.0, 1.0, 3) * np.array([sigma_xy, sigma_xy, sigma_theta])
-        return pose, applied
+        return pose, velocity
 
 
 def run(
@@ -269,7 +273,10 @@ def run(
         "attachment": attachment if graph.profile == "rmw_zenoh" else None,
         "cmd_key": cmd_key,
         "odom_key": odom_key,
-        "final_pose": [float(c) for c in model.state],
+        "model": "ideal" if model.ideal else "actuator",
+        "final_pose": [float(c) for c in model.state],  # the truth (odom frame)
+        "final_odometry": [float(c) for c in model.odometry],  # what it reported
+        "saturated_commands": model.robot.saturated_commands,
         "applied": list(applied),
         "max_abs_applied": model.max_abs,
         "cmd_timeouts": model.timeouts,

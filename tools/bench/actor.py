@@ -631,8 +631,8 @@ def _jsonable(value: Any) -> Any:
 def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
     """``srl bench actor``: print the table (and with ``--json`` one JSON line last); return 0."""
     try:
-        agents = parse_agents(getattr(args, "agents", ",".join(AGENTS)))
-        horizons = parse_horizons(getattr(args, "horizons", "6,12,30"))
+        agents = parse_agents(getattr(args, "agents", None) or ",".join(AGENTS))
+        horizons = parse_horizons(getattr(args, "horizons", None) or "6,12,30")
         reference = parse_horizons(
             getattr(args, "reference_horizons", DEFAULT_REFERENCE_HORIZONS) or "",
             "reference-horizons",

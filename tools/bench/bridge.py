@@ -44,7 +44,7 @@ from common.settings import Settings
 from common.stats import summarize
 from common.summaries import BridgeSummary
 from common.transport import zenoh_config
-from services.tb3_emulator.service import firmware_velocity
+from common.turtlebot import firmware_velocity
 from tools.up import Supervisor, alive_probe, optional_summary, router_reachable, state_probe
 
 TARGET_P99_MS = 1.0

@@ -104,11 +104,10 @@ class WorkerConfig:
 
 class _InprocRunner:
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.assembly import local_critic, run_episode
-        from common.loop import ExactPlant
+        from common.assembly import build_plant, local_critic, run_episode
 
         critic = local_critic(settings, learn=learns(settings.actor.agent))
-        return run_episode(settings, actor=actor, plant=ExactPlant(), critic=critic), {}
+        return run_episode(settings, actor=actor, plant=build_plant(settings), critic=critic), {}
 
     def close(self) -> None:
         pass
