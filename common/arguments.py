@@ -65,7 +65,11 @@ ALL_FLAGS = (*TRANSPORT_FLAGS, *ACTOR_FLAGS, *EPISODE_FLAGS)
 COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "run": ALL_FLAGS,
     "up": (*ALL_FLAGS, "resume"),
-    "bench": ALL_FLAGS,
+    # the in-process benchmarks set their agents and N themselves (--agents, --horizons)
+    "bench actor": ("config", "solver", "predictor", "no_jit"),
+    "bench parking": ("config", "solver", "predictor", "no_jit"),
+    "bench loop": ALL_FLAGS,
+    "bench bridge": ALL_FLAGS,
     "actor": ALL_FLAGS,
     "router": TRANSPORT_FLAGS,
     "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts

@@ -461,47 +461,61 @@ def build_parser() -> argparse.ArgumentParser:
     )
     up.set_defaults(func=cmd_up)
 
-    bench = command("bench", "benchmarks that print a table (and JSON)")
-    bench.add_argument("what", choices=["actor", "loop", "bridge", "parking"])
-    bench.add_argument(
-        "--reference-horizons",
-        default="12",
-        help="actor: N values for the IPOPT reference rows ('' = none) (default: 12)",
+    # srl bench KIND: each benchmark takes only its own options (an option it would ignore is refused)
+    bench = command(
+        "bench",
+        "benchmarks that print a table (and JSON)",
+        "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
+        "as the last stdout line): srl bench actor | loop | bridge | parking --help for each one's options.",
     )
-    bench.add_argument(
-        "--seconds",
-        type=float,
-        default=60.0,
-        help="loop: real-time run length [s]; bridge: both phases together (default: 60)",
+    kinds = bench.add_subparsers(dest="what", required=True, metavar="KIND")
+
+    def kind(name: str, helptext: str) -> argparse.ArgumentParser:
+        parser = kinds.add_parser(name, help=helptext, description=helptext[0].upper() + helptext[1:] + ".")
+        add_settings_arguments(parser, COMMAND_SETTINGS[f"bench {name}"])
+        parser.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
+        parser.set_defaults(func=cmd_bench)
+        return parser
+
+    actor_bench = kind("actor", "the actor's solve time and argmin against the slow SLSQP baseline, per agent and N")
+    actor_bench.add_argument(
+        "--agents", default=",".join(AGENTS), help=f"comma-separated agents (default: {','.join(AGENTS)})"
     )
-    bench.add_argument(
-        "--critic-load", action="store_true", help="loop: the critic fits a replay of M = 1000 every step"
-    )
-    add_settings_arguments(bench, COMMAND_SETTINGS["bench"])
-    add_bridge_arguments(bench)
-    bench.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
-    bench.add_argument(
+    actor_bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
+    actor_bench.add_argument(
         "--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99) (default: 300)"
     )
-    bench.add_argument("--horizons", help="comma-separated N values (default: actor 6,12,30; parking one N, 12)")
-    bench.add_argument(
-        "--agents", help=f"comma-separated agents (default: actor {','.join(AGENTS)}; parking mpc,rlq,rlqv)"
-    )
-    bench.add_argument(
-        "--plants", help="parking: comma-separated plant models, ideal and/or actuator (default: ideal,actuator)"
-    )
-    bench.add_argument(
-        "--starts",
-        help="parking: X,Y starts separated by ';', e.g. --starts='-1,2;2,0' (default: "
-        "2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
-    )
-    bench.add_argument(
-        "--parking-seconds", type=float, default=35.0, help="parking: episode length per run [s] (default: 35)"
-    )
-    bench.add_argument(
+    actor_bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
     )
-    bench.set_defaults(func=cmd_bench)
+    actor_bench.add_argument(
+        "--reference-horizons",
+        default="12",
+        help="N values for the IPOPT reference rows ('' = none) (default: 12)",
+    )
+
+    loop_bench = kind("loop", "the real-time loop through the services: tick jitter, latency, staleness")
+    loop_bench.add_argument("--seconds", type=float, default=60.0, help="real-time run length [s] (default: 60)")
+    loop_bench.add_argument(
+        "--critic-load", action="store_true", help="the critic fits a replay of M = 1000 every step"
+    )
+
+    bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
+    add_bridge_arguments(bridge_bench)
+    bridge_bench.add_argument("--seconds", type=float, default=60.0, help="both phases together [s] (default: 60)")
+
+    parking = kind("parking", "parking on the ideal and the TurtleBot3 plants: truth vs odometry, chatter")
+    parking.add_argument("--agents", default="mpc,rlq,rlqv", help="comma-separated agents (default: mpc,rlq,rlqv)")
+    parking.add_argument("--horizons", default="12", help="N of every run, one value (default: 12)")
+    parking.add_argument(
+        "--plants", help="comma-separated plant models, ideal and/or actuator (default: ideal,actuator)"
+    )
+    parking.add_argument(
+        "--starts",
+        help="X,Y starts separated by ';', e.g. --starts='-1,2;2,0' (default: "
+        "2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
+    )
+    parking.add_argument("--parking-seconds", type=float, default=35.0, help="episode length per run [s] (default: 35)")
 
     status = command(
         "status",
