@@ -161,7 +161,8 @@ def run_algorithm1(
         episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
         episode.actions.append(step.action)
         episode.costs.append(cost)
-        episode.solve_seconds.append(step.solve_seconds)
+        if step.status != "arrived":  # held by the arrival rule: no solve to time
+            episode.solve_seconds.append(step.solve_seconds)
         episode.states.append(next_state)
         state = next_state
     episode.solver_failures = actor.counters.failures - failures_before

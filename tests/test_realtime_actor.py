@@ -59,6 +59,7 @@ class FakeCounts:
 class FakeStep:
     action: np.ndarray
     solve_seconds: float = 0.0005
+    status: str = "success"  # common.actor.ActorStep's: "arrived" when its arrival rule holds the robot
 
 
 @dataclass

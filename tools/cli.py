@@ -39,6 +39,7 @@ from common.runtime import (
 )
 from common.runtime import entry as runtime_entry
 from common.runtime import main as runtime_main
+from common.settings import METHODS
 
 log = logging.getLogger(__name__)
 
@@ -475,6 +476,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
+    )
+    bench.add_argument(
+        "--method",
+        choices=METHODS,
+        default="paper",
+        help="actor: paper = the paper's problem; robot = with the wheel box and convex critics as configured "
+        "(the arrival rule is off in both: it skips solves) (default: paper)",
     )
     bench.set_defaults(func=cmd_bench)
 
