@@ -22,6 +22,7 @@ action of the previous plan, else zero velocity, and counts the failure.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import shutil
@@ -134,25 +135,32 @@ class ActorProblem:
         return np.array([[0.5, 0.5], [1.0 / self.wheel_separation, -1.0 / self.wheel_separation]])
 
 
+@functools.cache
+def _pair_indices(dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns (common.features' order) and 1 / 2 (diagonal / off) of the quadratic's weights."""
+    rows, cols = np.array(feature_index_pairs(dim)).T
+    return rows, cols, np.where(rows == cols, 1.0, 2.0)
+
+
 def _quadratic_matrix(weights: np.ndarray, dim: int) -> np.ndarray:
     """The symmetric ``M`` with ``<weights, phi(z)> = z^T M z`` (features: common.features)."""
-    rows, cols = np.array(feature_index_pairs(dim)).T
+    rows, cols, scale = _pair_indices(dim)
     matrix = np.zeros((dim, dim))
-    matrix[rows, cols] = weights
-    return 0.5 * (matrix + matrix.T)  # diagonal: w_ii; off-diagonal: w_ij / 2 on both sides
+    matrix[rows, cols] = weights / scale
+    matrix[cols, rows] = weights / scale  # diagonal: w_ii; off-diagonal: w_ij / 2 on both sides
+    return matrix
 
 
 def nearest_psd_weights(weights: np.ndarray, dim: int) -> np.ndarray:
     """The weights of the nearest (Frobenius) positive semi-definite quadratic to
     ``<weights, phi(z)>``: its matrix with the negative eigenvalues set to zero. A PSD quadratic
-    is never negative, as a cost-to-go of a non-negative stage cost never is."""
-    matrix = _quadratic_matrix(weights, dim)
-    eigenvalues, vectors = np.linalg.eigh(matrix)
+    is never negative, as a cost-to-go of a non-negative stage cost never is. ~10-20 us."""
+    eigenvalues, vectors = np.linalg.eigh(_quadratic_matrix(weights, dim))
     if eigenvalues[0] >= 0.0:
-        return np.asarray(weights, dtype=float).copy()
+        return np.array(weights, dtype=float)
     projected = (vectors * np.maximum(eigenvalues, 0.0)) @ vectors.T
-    rows, cols = np.array(feature_index_pairs(dim)).T
-    out: np.ndarray = np.where(rows == cols, 1.0, 2.0) * projected[rows, cols]
+    rows, cols, scale = _pair_indices(dim)
+    out: np.ndarray = scale * projected[rows, cols]
     return out
 
 
