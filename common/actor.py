@@ -22,6 +22,7 @@ action of the previous plan, else zero velocity, and counts the failure.
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import shutil
@@ -35,8 +36,9 @@ import casadi as ca
 import numpy as np
 
 from common.agents import AGENTS, Agent, learns, uses_value_critic
+from common.arrival import ArrivalRule
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
-from common.features import feature_count, phi_q, phi_v, stage_cost
+from common.features import feature_count, feature_index_pairs, phi_q, phi_v, stage_cost
 from common.stats import Window
 
 log = logging.getLogger(__name__)
@@ -66,6 +68,17 @@ class ActorProblem:
     # bound_push and bound_frac). The defaults (0.01) move a saturated warm start inward and
     # cost iterations to walk it back; 1e-4 keeps it (measured, README "Actor benchmark").
     bound_push: float = 1e-4
+    # The wheel-speed box (issue 21): a differential drive limits each wheel, not v and omega
+    # apart: |v +/- omega * wheel_separation / 2| <= wheel_speed_max * wheel_radius. 0 = off
+    # (the paper's method boxes v and omega only). See :attr:`wheel_rim_speed`.
+    wheel_speed_max: float = 0.0  # [rad/s] at the wheel
+    wheel_radius: float = 0.033  # [m] TurtleBot3 Burger
+    wheel_separation: float = 0.160  # [m] TurtleBot3 Burger
+    # The actor uses the nearest positive semi-definite quadratic to each learned critic
+    # (:func:`nearest_psd_weights`) instead of the critic as fitted (the paper's). Issue 21: a
+    # fitted Qhat indefinite in (s, u) predicts negative costs near the target that only motion
+    # reaches, and the actor chases them at full speed (README "Chatter"). Not a shape change.
+    convex_critics: bool = False
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -88,6 +101,67 @@ class ActorProblem:
             raise ValueError(f"mu_init must be a positive number, got {self.mu_init}")
         if not (np.isfinite(self.bound_push) and 0 < self.bound_push <= 0.5):
             raise ValueError(f"bound_push must be in (0, 0.5], got {self.bound_push}")
+        if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
+            raise ValueError(f"wheel_speed_max must be >= 0 (0 = no wheel box), got {self.wheel_speed_max}")
+        for name in ("wheel_radius", "wheel_separation"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value}")
+
+    @property
+    def wheel_box(self) -> bool:
+        return self.wheel_speed_max > 0
+
+    @property
+    def wheel_rim_speed(self) -> float:
+        """The bound on each wheel's rim speed ``v +/- omega * separation / 2`` [m/s].
+
+        ``wheel_speed_max * wheel_radius``, but no more than ``v_max`` and
+        ``omega_max * separation / 2``: then the wheel box (a diamond in (v, omega)) lies inside
+        the (v, omega) box and is the only bound the problem needs, as simple bounds on the
+        wheels' rim speeds (the decision variables when the box is on). TurtleBot3 Burger:
+        6.7 rad/s x 0.033 m = 0.2211 m/s, held to v_max = 0.22 m/s (the wheel limit 0.5 %
+        tighter, 6.67 rad/s); the largest omega is then 0.22 / 0.08 = 2.75 rad/s < 2.84."""
+        half_track = 0.5 * self.wheel_separation
+        return min(self.wheel_speed_max * self.wheel_radius, self.v_max, self.omega_max * half_track)
+
+    @property
+    def action_matrix(self) -> np.ndarray:
+        """``T`` with (v, omega) = ``T`` d for one stage's decision variables d: the identity,
+        or with the wheel box on, d = the wheels' rim speeds (right, left), v = (r + l) / 2,
+        omega = (r - l) / separation. Linear, so the problem keeps its stage-wise structure."""
+        if not self.wheel_box:
+            return np.eye(ACTION_DIM)
+        return np.array([[0.5, 0.5], [1.0 / self.wheel_separation, -1.0 / self.wheel_separation]])
+
+
+@functools.cache
+def _pair_indices(dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, columns (common.features' order) and 1 / 2 (diagonal / off) of the quadratic's weights."""
+    rows, cols = np.array(feature_index_pairs(dim)).T
+    return rows, cols, np.where(rows == cols, 1.0, 2.0)
+
+
+def _quadratic_matrix(weights: np.ndarray, dim: int) -> np.ndarray:
+    """The symmetric ``M`` with ``<weights, phi(z)> = z^T M z`` (features: common.features)."""
+    rows, cols, scale = _pair_indices(dim)
+    matrix = np.zeros((dim, dim))
+    matrix[rows, cols] = weights / scale
+    matrix[cols, rows] = weights / scale  # diagonal: w_ii; off-diagonal: w_ij / 2 on both sides
+    return matrix
+
+
+def nearest_psd_weights(weights: np.ndarray, dim: int) -> np.ndarray:
+    """The weights of the nearest (Frobenius) positive semi-definite quadratic to
+    ``<weights, phi(z)>``: its matrix with the negative eigenvalues set to zero. A PSD quadratic
+    is never negative, as a cost-to-go of a non-negative stage cost never is. ~10-20 us."""
+    eigenvalues, vectors = np.linalg.eigh(_quadratic_matrix(weights, dim))
+    if eigenvalues[0] >= 0.0:
+        return np.array(weights, dtype=float)
+    projected = (vectors * np.maximum(eigenvalues, 0.0)) @ vectors.T
+    rows, cols, scale = _pair_indices(dim)
+    out: np.ndarray = scale * projected[rows, cols]
+    return out
 
 
 @dataclass
@@ -96,7 +170,7 @@ class ActorStep:
 
     action: np.ndarray
     plan: np.ndarray  # (N-1, 2) held actions, u_1 first
-    objective: float
+    objective: float  # nan: no solution (a failed solve, or "arrived": no solve)
     success: bool
     solve_seconds: float
     status: str
@@ -108,6 +182,7 @@ class ActorCounters:
 
     solves: int = 0
     failures: int = 0
+    arrived_steps: int = 0  # steps at which the arrival rule held the robot (no solve)
     solve_seconds: Window = field(default_factory=Window)
 
 
@@ -258,8 +333,11 @@ def _compiler_available() -> bool:
 class StackedActor:
     """One agent at one horizon, built once, stepped every sampling interval."""
 
-    def __init__(self, problem: ActorProblem) -> None:
+    def __init__(self, problem: ActorProblem, arrival: ArrivalRule | None = None) -> None:
         self.problem = problem
+        # The goal checker (common.arrival): inside its tolerances step() commands exactly
+        # zero, status "arrived", without solving. None = the paper's method (never stops).
+        self.arrival = arrival
         self.counters = ActorCounters()
         self._previous_x: np.ndarray | None = None
         self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
@@ -294,6 +372,7 @@ class StackedActor:
         self._buffer.set_res(0, memoryview(self._x_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
         self._buffer.set_res(1, memoryview(self._f_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
         self._action_bounds = np.array([problem.v_max, problem.omega_max])
+        self._decision_bounds = self._ubx_np[STATE_DIM:STAGE].copy()
         # The warm-start merit, called the same zero-copy way: (s_1, actions, weights) -> cost.
         self._merit_state = np.zeros(STATE_DIM)
         self._merit_actions = np.zeros((problem.horizon - 1, ACTION_DIM))  # row-major = u_1, u_2, ...
@@ -328,7 +407,11 @@ class StackedActor:
         w = ca.SX.sym("w", Q_FEATURES)
         v = ca.SX.sym("v", V_FEATURES)
         states = [ca.SX.sym(f"s{i + 1}", STATE_DIM) for i in range(p.horizon)]
-        actions = [ca.SX.sym(f"u{i + 1}", ACTION_DIM) for i in range(n_act)]
+        # The decision variables of each stage: the held action u_i itself, or with the wheel
+        # box on, the wheels' rim speeds d_i, boxed by simple bounds, and u_i = T d_i.
+        decisions = [ca.SX.sym(f"u{i + 1}", ACTION_DIM) for i in range(n_act)]
+        to_action = ca.DM(p.action_matrix)
+        actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
 
         objective = self._objective(states, actions, w, v)
         constraints = [states[i + 1] - step(states[i], actions[i], p.sampling_time) for i in range(n_act)]
@@ -337,12 +420,12 @@ class StackedActor:
         rollout = [states[0]]
         for u_i in actions:
             rollout.append(step(rollout[-1], u_i, p.sampling_time))
-        merit_args = ([states[0], ca.vertcat(*actions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
+        merit_args = ([states[0], ca.vertcat(*decisions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
 
         # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
         variables = []
         for i in range(n_act):
-            variables += [states[i], actions[i]]
+            variables += [states[i], decisions[i]]
         variables.append(states[-1])
         nlp = {
             "x": ca.vertcat(*variables),
@@ -353,9 +436,10 @@ class StackedActor:
 
         inf = float("inf")
         lbx, ubx = [], []
+        bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
         for _ in range(n_act):
-            lbx += [-inf] * STATE_DIM + [-p.v_max, -p.omega_max]
-            ubx += [inf] * STATE_DIM + [p.v_max, p.omega_max]
+            lbx += [-inf] * STATE_DIM + [-b for b in bounds]
+            ubx += [inf] * STATE_DIM + bounds
         lbx += [-inf] * STATE_DIM
         ubx += [inf] * STATE_DIM
         n_g = STATE_DIM * n_act
@@ -415,9 +499,16 @@ class StackedActor:
 
     # -- stepping -----------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the previous plans (new episode)."""
+        """Forget the previous plans and arrival (new episode, or the plan no longer matches the robot)."""
         self._previous_x = None
         self._earlier_x = None
+        if self.arrival is not None:
+            self.arrival.reset()
+
+    @property
+    def arrived(self) -> bool:
+        """The arrival rule holds the robot at the target (False without a rule)."""
+        return self.arrival is not None and self.arrival.arrived
 
     def _initial_guess(self, state: np.ndarray) -> None:
         """Warm start, written in place into the solver's input ``self._x0`` (the weights
@@ -455,13 +546,26 @@ class StackedActor:
 
     def _merit_of(self, x: np.ndarray) -> float:
         """The objective of ``x``'s actions along a rollout from ``self._merit_state``."""
-        self._merit_actions[:] = self._plan_of(x)
+        self._merit_actions[:] = self._decisions_of(x)
         self._evaluate_merit()
         return float(self._merit_out[0])
 
-    def _plan_of(self, x: np.ndarray) -> np.ndarray:
-        """The held actions of a decision vector, one row per stage (a view)."""
+    def _decisions_of(self, x: np.ndarray) -> np.ndarray:
+        """The per-stage decision variables of a decision vector, one row per stage (a view):
+        the held actions, or with the wheel box on the wheels' rim speeds."""
         return x[:-STATE_DIM].reshape(-1, STAGE)[:, STATE_DIM:]
+
+    def _plan_of(self, x: np.ndarray) -> np.ndarray:
+        """The held actions (v, omega) of a decision vector, one row per stage, inside the
+        action box and the wheel box: the solver meets its bounds only to its tolerance, so the
+        decisions are clipped to their bounds first (a clipped pair of rim speeds gives an
+        action inside both boxes, see ActorProblem.wheel_rim_speed)."""
+        decisions = np.clip(self._decisions_of(x), -self._decision_bounds, self._decision_bounds)
+        if self.problem.wheel_box:  # (r + l) / 2, (r - l) / separation: exactly 0 when r = -l or r = l
+            right, left = decisions[:, 0], decisions[:, 1]
+            decisions = np.stack([0.5 * (right + left), (right - left) / self.problem.wheel_separation], axis=1)
+        bounded: np.ndarray = np.clip(decisions, -self._action_bounds, self._action_bounds)
+        return bounded
 
     def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep:
         """Minimize the agent's objective from ``state``; return the first held action.
@@ -477,6 +581,21 @@ class StackedActor:
         for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
             if weights.shape != (size,) or not np.all(np.isfinite(weights)):
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
+        if self.arrival is not None and self.arrival.update(state):
+            # Arrived: exactly zero, no solve. The plan is void: resuming starts cold.
+            self._previous_x = self._earlier_x = None
+            self.counters.arrived_steps += 1
+            return ActorStep(
+                action=np.zeros(ACTION_DIM),
+                plan=np.zeros((self.problem.horizon - 1, ACTION_DIM)),
+                objective=float("nan"),
+                success=True,
+                solve_seconds=time.perf_counter() - started,
+                status="arrived",
+            )
+        if self.problem.convex_critics and learns(self.problem.agent):
+            q_weights = nearest_psd_weights(q_weights, STATE_DIM + ACTION_DIM)
+            v_weights = nearest_psd_weights(v_weights, STATE_DIM)
         self._params[:Q_FEATURES] = q_weights
         self._params[Q_FEATURES:] = v_weights
         self._initial_guess(state)
@@ -495,7 +614,7 @@ class StackedActor:
             success, x_opt, objective = False, self._x0, float("nan")
 
         if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
-            plan = np.clip(self._plan_of(x_opt), -self._action_bounds, self._action_bounds)
+            plan = self._plan_of(x_opt)
             self._earlier_x, self._previous_x = self._previous_x, x_opt
         else:
             success = False
@@ -508,7 +627,7 @@ class StackedActor:
                 fallback = np.empty(self._n_x)
                 self._shift_into(fallback, self._previous_x)
                 fallback[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
-                plan = np.clip(self._plan_of(fallback), -self._action_bounds, self._action_bounds)
+                plan = self._plan_of(fallback)
                 self._earlier_x, self._previous_x = self._previous_x, fallback
             else:
                 plan = np.zeros((self.problem.horizon - 1, ACTION_DIM))

@@ -14,11 +14,22 @@ import numpy as np
 
 from common.actor import ActorProblem, StackedActor
 from common.agents import learns
+from common.arrival import ArrivalRule, ArrivalTolerances
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
 from common.settings import Settings
 from common.stats import summarize
 from common.summaries import EpisodeSummary, TrueView
 from common.turtlebot import ActuatorPlant
+
+
+def arrival_rule(settings: Settings) -> ArrivalRule | None:
+    """The actor's goal checker of the settings, or None (``actor.arrival = false``, the paper's)."""
+    a = settings.actor
+    if not a.arrival:
+        return None
+    return ArrivalRule(
+        ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
+    )
 
 
 def build_actor(settings: Settings) -> StackedActor:
@@ -38,7 +49,12 @@ def build_actor(settings: Settings) -> StackedActor:
             tolerance=a.tolerance,
             mu_init=a.mu_init,
             bound_push=a.bound_push,
-        )
+            wheel_speed_max=a.wheel_speed_max,
+            wheel_radius=a.wheel_radius,
+            wheel_separation=a.wheel_separation,
+            convex_critics=a.convex_critics,
+        ),
+        arrival=arrival_rule(settings),
     )
 
 

@@ -199,7 +199,8 @@ def run_algorithm1(
         episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
         episode.actions.append(step.action)
         episode.costs.append(cost)
-        episode.solve_seconds.append(step.solve_seconds)
+        if step.status != "arrived":  # held by the arrival rule: no solve to time
+            episode.solve_seconds.append(step.solve_seconds)
         episode.states.append(next_state)
         _record_truth(episode, plant)
         state = next_state

@@ -38,6 +38,11 @@ MAX_HORIZON = 100
 # robot could park in: warned. Beyond the state schema's bound (common/messages.py) refused.
 WORKSPACE_HALF_WIDTH = 10.0
 MAX_START = 1e4
+# The paper's method exactly as the paper states it (issue 21): the [actor] settings a running
+# robot adds (the arrival rule, the wheel-speed box, the convexified critics) switched off.
+# `srl experiment --method paper` (its default) and `srl bench actor --method paper` apply it.
+METHODS = ("paper", "robot")
+PAPER_METHOD: dict[str, dict[str, Any]] = {"actor": {"arrival": False, "wheel_speed_max": 0.0, "convex_critics": False}}
 # Endpoints as Zenoh spells them: <protocol>/<address>, e.g. tcp/127.0.0.1:7447, tls/host:7447.
 _ENDPOINT = re.compile(
     r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):[0-9]{1,5}([?#].*)?$"
@@ -157,6 +162,15 @@ class ActorSettings(_Section):
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)
     bound_push: float = Field(gt=0, le=0.5)
+    # issue 21: what a running robot needs (the paper's method: arrival off, wheel_speed_max 0)
+    arrival: bool = Field(description="the arrival rule: command zero inside the tolerances")
+    arrival_position_tolerance: float = Field(gt=0, le=1.0, allow_inf_nan=False, description="[m]")
+    arrival_heading_tolerance: float = Field(gt=0, le=math.pi, allow_inf_nan=False, description="[rad]")
+    arrival_hysteresis: float = Field(ge=1.0, le=10.0, allow_inf_nan=False, description="outer = this x inner")
+    wheel_speed_max: float = Field(ge=0, allow_inf_nan=False, description="[rad/s] wheel box; 0 = off")
+    wheel_radius: float = Field(gt=0, allow_inf_nan=False, description="[m]")
+    wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")
+    convex_critics: bool = Field(description="the actor uses the nearest PSD quadratic to each learned critic")
 
     @field_validator("horizon")
     @classmethod

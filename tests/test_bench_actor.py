@@ -19,7 +19,7 @@ from common.agents import AGENTS
 from common.assembly import build_actor
 from common.dynamics import euler_step
 from common.features import phi_q, phi_v, stage_cost
-from common.settings import Settings
+from common.settings import PAPER_METHOD, Settings
 from tools.bench import actor as bench_actor
 from tools.bench.actor import (
     NumpyObjective,
@@ -51,12 +51,11 @@ ROW_KEYS = {
 
 
 def _settings(agent: str, horizon: int, jit: bool = False, solver: str = "fatrop") -> Settings:
+    """The bench's default problem: the paper's (``srl bench actor --method paper``: no arrival
+    rule, no wheel box, the critics as fitted), which NumpyObjective implements."""
     base = Settings.load()
-    return base.model_copy(
-        update={
-            "actor": base.actor.model_copy(update={"agent": agent, "horizon": horizon, "jit": jit, "solver": solver})
-        }
-    )
+    update = {"agent": agent, "horizon": horizon, "jit": jit, "solver": solver, **PAPER_METHOD["actor"]}
+    return base.model_copy(update={"actor": base.actor.model_copy(update=update)})
 
 
 def _loop_objective(agent: str, horizon: int, settings: Settings, q, v, state, plan) -> float:

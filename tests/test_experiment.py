@@ -250,6 +250,30 @@ def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> 
 
 
 @pytest.mark.slow
+def test_the_papers_method_by_default_and_the_robots_on_request(reduced_inproc: Path, tmp_path: Path) -> None:
+    """srl experiment runs the paper's method exactly (issue 21's actor settings off, though the
+    packaged srl.toml turns them on); --method robot keeps them, and its actions keep each
+    TurtleBot3 wheel within 6.7 rad/s, which the paper's box (0.22 m/s, 2.84 rad/s) does not."""
+    paper = Settings.load(reduced_inproc / "config.toml").actor
+    assert (paper.arrival, paper.wheel_speed_max, paper.convex_critics) == (False, 0.0, False)
+    assert Settings.load().actor.arrival  # on in the packaged file: the experiment turned it off
+    done = _experiment(tmp_path, "--method", "robot")
+    assert done.returncode == 0, done.stderr[-3000:]
+    robot = Settings.load(tmp_path / "config.toml").actor
+    assert robot.arrival and robot.wheel_speed_max == 6.7 and robot.convex_critics
+
+    def wheel_speeds(out: Path) -> np.ndarray:  # [rad/s], as turtlebot3_node turns cmd_vel into wheel speeds
+        with np.load(out / "trajectories.npz") as data:
+            v, omega = data["actions"][..., 0], data["actions"][..., 1]
+        return np.maximum(np.abs(v - 0.08 * omega), np.abs(v + 0.08 * omega)) / 0.033
+
+    assert wheel_speeds(tmp_path).max() <= 6.7 + 1e-9
+    assert wheel_speeds(reduced_inproc).max() > 6.7
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert "--method=robot" in summary["experiment"]["command"]
+
+
+@pytest.mark.slow
 def test_zenoh_transport_gives_the_inproc_numbers(reduced_inproc: Path, tmp_path: Path) -> None:
     # A checkpoint named in the environment (it outranks --config) is still switched off:
     # every episode starts from the initial weights, and nothing is written per step.

@@ -62,6 +62,7 @@ class FakeCounts:
 class FakeStep:
     action: np.ndarray
     solve_seconds: float = 0.0005
+    status: str = "success"  # common.actor.ActorStep's: "arrived" when its arrival rule holds the robot
 
 
 @dataclass
@@ -374,3 +375,35 @@ def test_the_summary_reports_the_truth_only_when_the_plant_sends_it() -> None:
     assert summary["truth"]["final_distance"] == pytest.approx(np.hypot(0.9, 0.4))
     assert summary["final_state"] == [1.0, 0.5, 0.1]  # the robot's view stays beside it
     assert summary["saturated_commands"] == 3
+
+
+def test_the_arrival_rule_holds_the_robot_with_zero_and_the_loop_says_so() -> None:
+    """A real actor with its arrival rule (issue 21): inside the tolerance every tick commands
+    exactly zero and still publishes its transition (the critic sees no gap); the status says
+    "arrived"; leaving the outer tolerance resumes the solves."""
+    from common.actor import ActorProblem, StackedActor
+    from common.arrival import ArrivalRule, ArrivalTolerances
+
+    t = Loop(agent="mpc")
+    actor = StackedActor(
+        ActorProblem("mpc", 4, DELTA, (1.0, 10.0, 1.0, 0.01, 0.01), 0.22, 2.84, jit=False),
+        arrival=ArrivalRule(ArrivalTolerances(0.03, 0.1, 1.5)),
+    )
+    t.loop.actor = actor
+    poses = iter([(0.5, 0.0, 0.0)] + [(0.01, 0.005, 0.02)] * 5 + [(0.2, 0.0, 0.0)] * 3)
+
+    def on_sleep(fake: FakeClock) -> None:
+        pose = next(poses, (0.2, 0.0, 0.0))
+        t.seq += 1
+        t.loop.on_state(PlantState(robot="fk", episode=0, seq=t.seq, stamp_ns=0, state=pose, source="sim"), PLANT)
+
+    t.fake.on_sleep = on_sleep
+    ticker = Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep)
+    t.loop.run(ticker, end=ticker.start + 4.5 * DELTA, manual_gc=False)
+    sent = [a.action for a in t.actions[:-1]]
+    assert sent[0] != (0.0, 0.0) and all(a == (0.0, 0.0) for a in sent[1:])
+    assert [tr.step for tr in t.transitions] == [0, 1, 2, 3]  # one per tick, arrived or not
+    assert t.loop.status()["arrived"] == 1.0 and t.loop.status()["arrived_steps"] == 3.0
+    ticker = Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep)
+    t.loop.run(ticker, end=ticker.start + 5.5 * DELTA, manual_gc=False)
+    assert t.loop.status()["arrived"] == 0.0 and t.actions[-2].action[0] < 0  # 0.2 m out: driving again

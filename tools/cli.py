@@ -39,6 +39,7 @@ from common.runtime import (
 )
 from common.runtime import entry as runtime_entry
 from common.runtime import main as runtime_main
+from common.settings import METHODS
 from common.summaries import RouterSummary, format_status_line
 
 log = logging.getLogger(__name__)
@@ -487,6 +488,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     actor_bench.add_argument(
         "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
+    )
+    actor_bench.add_argument(
+        "--method",
+        choices=METHODS,
+        default="paper",
+        help="paper = the paper's problem; robot = with the wheel box and convex critics as configured "
+        "(the arrival rule is off in both: it skips solves) (default: paper)",
     )
     actor_bench.add_argument(
         "--reference-horizons",

@@ -108,6 +108,8 @@ class RealtimeActor:
         self.publish_times: dict[int, float] = {}
         self.published_steps: deque[list[int]] = deque(maxlen=RUNS_KEPT)
         self.steps = 0
+        self.arrived = False  # the actor's arrival rule holds the robot (its last step said "arrived")
+        self.arrived_steps = 0
         self.stale_state_stops = 0
         self.plant_conflict_stops = 0
         self.start_state: np.ndarray | None = None
@@ -227,7 +229,17 @@ class RealtimeActor:
         elif self.true_start is None:
             self.true_start = message.true_state
         weights = self.inbox.current()
-        step = self.actor.step(state, weights.q, weights.v)
+        step = self.actor.step(state, weights.q, weights.v)  # the arrival rule acts inside (exactly zero)
+        arrived = step.status == "arrived"
+        if arrived != self.arrived:
+            log.info(
+                "%s at (%.3f m, %.3f m, %.3f rad): %s",
+                "arrived" if arrived else "left the arrival tolerance",
+                *state,
+                "commanding zero velocity" if arrived else "resuming",
+            )
+        self.arrived = arrived
+        self.arrived_steps += arrived
         action = (float(step.action[0]), float(step.action[1]))
         self.publish_action(
             Action(
@@ -341,6 +353,8 @@ class RealtimeActor:
             "plant_sources": float(len(self.plant_gate.sources())),
             "plant_conflict": float(self.plant_gate.conflict),
             "lockout_suspect": float(self.lockout_suspect()),
+            "arrived": float(self.arrived),  # the arrival rule holds the robot (issue 21)
+            "arrived_steps": float(self.arrived_steps),
         }
 
     def truth(self, last: PlantState | None) -> TrueView | None:

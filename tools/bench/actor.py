@@ -59,7 +59,7 @@ from common.assembly import build_actor
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.features import feature_count, feature_index_pairs
 from common.loop import ExactPlant
-from common.settings import Settings
+from common.settings import PAPER_METHOD, Settings
 from common.stats import summarize
 
 # -- constants of the benchmark -------------------------------------------------------------
@@ -403,8 +403,16 @@ def parse_horizons(text: str, what: str = "horizons", allow_empty: bool = False)
         raise BenchUsageError(str(error)) from None
 
 
-def _settings_for(settings: Settings, agent: str, horizon: int, solver: str | None = None) -> Settings:
-    update: dict[str, Any] = {"agent": agent, "horizon": horizon}
+def _settings_for(
+    settings: Settings, agent: str, horizon: int, solver: str | None = None, method: str = "paper"
+) -> Settings:
+    """One row's settings. The arrival rule is always off (it skips the solves this times);
+    ``method`` paper: the paper's problem (PAPER_METHOD), which NumpyObjective and the SLSQP
+    baseline implement; robot: the wheel box and convex critics as configured (the baseline and
+    its objective gap then still describe the paper's problem, not the actor's)."""
+    update: dict[str, Any] = {"agent": agent, "horizon": horizon, "arrival": False}
+    if method == "paper":
+        update |= PAPER_METHOD["actor"]
     if solver is not None:
         update["solver"] = solver
     return settings.model_copy(update={"actor": settings.actor.model_copy(update=update)})
@@ -639,6 +647,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
             allow_empty=True,
         )
         steps = int(getattr(args, "steps", 300))
+        method = str(getattr(args, "method", "paper"))
         baseline_steps = int(getattr(args, "baseline_steps", 30))
         if steps < 1 or baseline_steps < 1:
             raise BenchUsageError(f"--steps and --baseline-steps must be >= 1, got {steps}, {baseline_steps}")
@@ -667,7 +676,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
             for agent in agents:
                 note(f"building {agent} N={horizon} ({main_solver})")
                 t0 = time.perf_counter()
-                actor = build_actor(_settings_for(settings, agent, horizon))
+                actor = build_actor(_settings_for(settings, agent, horizon, method=method))
                 build_seconds = time.perf_counter() - t0
                 sets = weight_sets[:1] if agent == "mpc" else weight_sets
                 main_loops: dict[str, Loop] = {}
@@ -691,7 +700,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
                     continue
                 note(f"building {agent} N={horizon} ({reference_solver}, reference)")
                 t0 = time.perf_counter()
-                ref_actor = build_actor(_settings_for(settings, agent, horizon, reference_solver))
+                ref_actor = build_actor(_settings_for(settings, agent, horizon, reference_solver, method))
                 ref_build = time.perf_counter() - t0
                 for weights in sets:
                     label = NO_WEIGHTS if agent == "mpc" else weights.name

@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from common.agents import AGENTS, PAPER_AGENTS, learns, parse_agents, parse_horizons
-from common.settings import Settings
+from common.settings import METHODS, PAPER_METHOD, Settings
 from tools.experiment.grid import STARTS, RunSpec, make_starts, plan_runs, run_settings
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 from tools.experiment.report import (
@@ -712,6 +712,13 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--duration", type=float, help="episode length [s] (default from the config: 30)")
     parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="paper",
+        help="paper: the paper's method exactly (no arrival rule, no wheel-speed box, the critics as fitted, "
+        "whatever the config says); robot: with them as configured ([actor] in srl.toml: on) (default: paper)",
+    )
+    parser.add_argument(
         "--config", type=Path, help="a TOML file overriding common/srl.toml (any subset) (default: none)"
     )
     parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
@@ -730,7 +737,7 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
 def _load_settings(args: argparse.Namespace) -> Settings:
     from pydantic import ValidationError
 
-    overrides: dict[str, Any] = {}
+    overrides: dict[str, Any] = json.loads(json.dumps(PAPER_METHOD)) if args.method == "paper" else {}
     if args.duration is not None:
         overrides["episode"] = {"duration": args.duration}
     try:
@@ -793,6 +800,7 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         f"--agents={args.agents}",
         f"--horizons={args.horizons}",
         f"--transport={args.transport}",
+        f"--method={args.method}",
     ]
     if args.duration is not None:
         argv.append(f"--duration={args.duration:g}")
