@@ -120,8 +120,8 @@ class ActorProblem:
         ``omega_max * separation / 2``: then the wheel box (a diamond in (v, omega)) lies inside
         the (v, omega) box and is the only bound the problem needs, as simple bounds on the
         wheels' rim speeds (the decision variables when the box is on). TurtleBot3 Burger:
-        6.7 rad/s x 0.033 m = 0.2211 m/s, held to v_max = 0.22 m/s (the wheel limit 0.5 %
-        tighter, 6.67 rad/s); the largest omega is then 0.22 / 0.08 = 2.75 rad/s < 2.84."""
+        6.67 rad/s x 0.033 m = 0.2201 m/s, held to v_max = 0.22 m/s; the largest omega is then
+        0.22 / 0.08 = 2.75 rad/s < 2.84."""
         half_track = 0.5 * self.wheel_separation
         return min(self.wheel_speed_max * self.wheel_radius, self.v_max, self.omega_max * half_track)
 

@@ -260,7 +260,7 @@ def test_the_papers_method_by_default_and_the_robots_on_request(reduced_inproc: 
     done = _experiment(tmp_path, "--method", "robot")
     assert done.returncode == 0, done.stderr[-3000:]
     robot = Settings.load(tmp_path / "config.toml").actor
-    assert robot.arrival and robot.wheel_speed_max == 6.7 and robot.convex_critics
+    assert robot.arrival and robot.wheel_speed_max == 6.67 and robot.convex_critics
 
     def wheel_speeds(out: Path) -> np.ndarray:  # [rad/s], as turtlebot3_node turns cmd_vel into wheel speeds
         with np.load(out / "trajectories.npz") as data:

@@ -60,13 +60,18 @@ def test_bench_parking_runs_one_row_and_prints_the_typed_row(capsys: pytest.Capt
     assert code == 0
     out = capsys.readouterr().out.strip().splitlines()
     result = ParkingResult.model_validate(json.loads(out[-1]))
-    assert result.total == 1 and len(result.rows) == 1
-    row = result.rows[0]
-    assert (row.plant, row.agent, row.horizon, row.steps) == ("actuator", "mpc", 12, 120)
-    assert row.start == pytest.approx((1.0, -1.0, math.atan2(-1.0, 1.0)))
-    assert row.passed == (row.final_ok and row.span_ok and row.sign_changes_ok)
-    assert row.final_ok == (row.true_final_distance <= 0.05)
-    # the current controller boxes v and omega separately: a wheel is asked beyond its limit
-    assert row.saturated_commands > 0
-    assert any(line.lstrip().startswith("actuator mpc") for line in out)
+    assert result.total == 2 and len(result.rows) == 2  # the paper's method and the robot's, side by side
+    paper, robot = result.rows
+    for row in (paper, robot):
+        assert (row.plant, row.agent, row.horizon, row.steps) == ("actuator", "mpc", 12, 120)
+        assert row.start == pytest.approx((1.0, -1.0, math.atan2(-1.0, 1.0)))
+        assert row.passed == (row.final_ok and row.span_ok and row.sign_changes_ok)
+        assert row.final_ok == (row.true_final_distance <= 0.05)
+    assert (paper.method, robot.method) == ("paper", "robot")
+    # the paper's actor boxes v and omega separately: a wheel is asked beyond its limit; the wheel
+    # box of the robot's settings never does
+    assert paper.saturated_commands > 0
+    assert robot.saturated_commands == 0
+    assert any(line.lstrip().startswith("paper  actuator mpc") for line in out)
+    assert any(line.lstrip().startswith("robot  actuator mpc") for line in out)
     assert main(["bench", "parking", "--plants", "physics"]) == 2

@@ -13,7 +13,7 @@ import pytest
 from pydantic import TypeAdapter, ValidationError
 
 from common.assembly import episode_summary, run_episode
-from common.settings import Settings
+from common.settings import PAPER_METHOD, Settings
 from common.summaries import (
     ACTOR_SUMMARY,
     BridgeSummary,
@@ -197,7 +197,7 @@ def test_a_summary_on_the_actuator_plant_reports_the_truth_beside_the_odometry()
     settings = Settings.load(
         plant={"model": "actuator"},
         actuator={"slip": 0.1, "slip_std": 0.02, "imu_heading": False},
-        actor={"agent": "mpc"},
+        actor={"agent": "mpc", **PAPER_METHOD["actor"]},  # the paper's actor: v and omega boxed apart
         episode={"duration": 6.0, "start": [1.5, -1.0]},
     )
     episode = run_episode(settings)
@@ -215,6 +215,11 @@ def test_a_summary_on_the_actuator_plant_reports_the_truth_beside_the_odometry()
     assert summary.truth.accumulated_cost != pytest.approx(summary.accumulated_cost, rel=1e-6)
     # v and omega are boxed separately: full speed with a turn asks a wheel for twice its limit
     assert summary.saturated_commands is not None and summary.saturated_commands > 0
+    # the robot's settings (srl.toml: the wheel-speed box) never ask a wheel beyond its limit
+    boxed = settings.model_copy(update={"actor": Settings.load().actor.model_copy(update={"agent": "mpc"})})
+    assert boxed.actor.wheel_speed_max > 0
+    boxed_summary = EpisodeSummary.model_validate(episode_summary(run_episode(boxed), boxed))
+    assert boxed_summary.saturated_commands == 0
 
 
 def test_on_the_ideal_plant_the_truth_is_what_the_robot_reports() -> None:

@@ -519,6 +519,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--plants", help="comma-separated plant models, ideal and/or actuator (default: ideal,actuator)"
     )
     parking.add_argument(
+        "--methods",
+        help="paper (the paper's actor) and/or robot (with srl.toml's arrival rule, wheel box and convex "
+        f"critics), side by side (default: {','.join(METHODS)})",
+    )
+    parking.add_argument(
         "--starts",
         help="X,Y starts separated by ';', e.g. --starts='-1,2;2,0' (default: "
         "2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",

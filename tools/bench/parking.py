@@ -26,7 +26,7 @@ from common.agents import Agent, learns, parse_agents, parse_horizons
 from common.assembly import build_actor, build_plant, local_critic, run_episode
 from common.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
 from common.runtime import UsageError
-from common.settings import Settings
+from common.settings import METHODS, PAPER_METHOD, Settings
 
 # Five nodes of the paper's 5 x 5 grid over [-2, 2]^2 (DESIGN.md section 2), one per quadrant
 # and one on an axis; each start turned away from the target, as the paper's.
@@ -34,8 +34,10 @@ STARTS: tuple[tuple[float, float], ...] = ((2.0, 2.0), (-2.0, 2.0), (-1.0, -2.0)
 AGENTS = "mpc,rlq,rlqv"
 HORIZON = 12
 PLANTS = "ideal,actuator"
+METHOD_NAMES = ",".join(METHODS)  # paper (issue 21's robot settings off) and robot (srl.toml's)
 SECONDS = 35.0
 PlantModel = Literal["ideal", "actuator"]
+Method = Literal["paper", "robot"]
 
 
 class _Model(BaseModel):
@@ -43,6 +45,7 @@ class _Model(BaseModel):
 
 
 class ParkingRow(_Model):
+    method: Method  # paper: the paper's actor; robot: with the arrival rule, wheel box, convex critics
     plant: PlantModel
     agent: Agent
     horizon: int
@@ -92,17 +95,34 @@ def parse_plants(text: str) -> list[PlantModel]:
     return plants
 
 
+def parse_methods(text: str) -> list[Method]:
+    methods: list[Method] = []
+    for name in text.split(","):
+        if name not in METHODS:
+            raise ValueError(f"a method is {' or '.join(METHODS)}, got {name!r}")
+        methods.append(name)  # type: ignore[arg-type]
+    return methods
+
+
 def run_settings(
-    base: Settings, plant: str, agent: str, horizon: int, start: tuple[float, float], seconds: float
+    base: Settings,
+    plant: str,
+    agent: str,
+    horizon: int,
+    start: tuple[float, float],
+    seconds: float,
+    method: Method = "robot",
 ) -> Settings:
     data = base.model_dump(mode="json")
+    if method == "paper":
+        data["actor"].update(PAPER_METHOD["actor"])
     data["plant"]["model"] = plant
     data["actor"].update(agent=agent, horizon=horizon)
     data["episode"].update(start=list(start), duration=seconds)
     return Settings.model_validate(data)
 
 
-def parking_row(settings: Settings, actor: StackedActor) -> ParkingRow:
+def parking_row(settings: Settings, actor: StackedActor, method: Method = "robot") -> ParkingRow:
     """One run in process and its parking metrics."""
     started = time.perf_counter()
     critic = local_critic(settings, learn=learns(settings.actor.agent))
@@ -114,6 +134,7 @@ def parking_row(settings: Settings, actor: StackedActor) -> ParkingRow:
     final_ok = metrics.final_distance <= FINAL_DISTANCE_M
     span_ok, flips_ok = metrics.span <= SPAN_M, metrics.sign_changes <= MAX_SIGN_CHANGES
     return ParkingRow(
+        method=method,
         plant=settings.plant.model,
         agent=settings.actor.agent,
         horizon=settings.actor.horizon,
@@ -142,16 +163,18 @@ def run_parking(
     horizon: int,
     starts: list[tuple[float, float]],
     seconds: float = SECONDS,
+    methods: Sequence[Method] = ("robot",),
 ) -> ParkingResult:
-    actors: dict[str, StackedActor] = {}  # one problem per agent, built once, reset per run
+    actors: dict[tuple[Method, str], StackedActor] = {}  # one problem per method and agent, reset per run
     rows = []
-    for plant in plants:
-        for agent in agents:
-            for start in starts:
-                settings = run_settings(base, plant, agent, horizon, start, seconds)
-                if agent not in actors:
-                    actors[agent] = build_actor(settings)
-                rows.append(parking_row(settings, actors[agent]))
+    for method in methods:
+        for plant in plants:
+            for agent in agents:
+                for start in starts:
+                    settings = run_settings(base, plant, agent, horizon, start, seconds, method)
+                    if (method, agent) not in actors:
+                        actors[method, agent] = build_actor(settings)
+                    rows.append(parking_row(settings, actors[method, agent], method))
     return ParkingResult(
         seconds=seconds,
         window_seconds=WINDOW_S,
@@ -166,13 +189,13 @@ def format_table(result: ParkingResult) -> str:
     lines = [
         f"srl bench parking: {result.seconds:.0f} s per run, in process; last {result.window_seconds:.0f} s window; "
         f"targets: true final <= {FINAL_DISTANCE_M} m, span <= {SPAN_M} m, v sign changes <= {MAX_SIGN_CHANGES}",
-        f"  {'plant':<8} {'agent':<5} {'N':>3} {'start':>13} {'true d':>7} {'saw d':>7} {'span':>6} "
+        f"  {'method':<6} {'plant':<8} {'agent':<5} {'N':>3} {'start':>13} {'true d':>7} {'saw d':>7} {'span':>6} "
         f"{'flips':>5} {'|v|med':>6} {'J true':>8} {'J rep':>8} {'sat':>4}  result",
     ]
     for r in result.rows:
         fails = [name for name, ok in (("d", r.final_ok), ("span", r.span_ok), ("flips", r.sign_changes_ok)) if not ok]
         lines.append(
-            f"  {r.plant:<8} {r.agent:<5} {r.horizon:>3} {f'({r.start[0]:+.1f},{r.start[1]:+.1f})':>13} "
+            f"  {r.method:<6} {r.plant:<8} {r.agent:<5} {r.horizon:>3} {f'({r.start[0]:+.1f},{r.start[1]:+.1f})':>13} "
             f"{r.true_final_distance:>7.3f} {r.reported_final_distance:>7.3f} {r.span_m:>6.3f} {r.sign_changes:>5d} "
             f"{r.median_speed:>6.3f} {r.true_cost:>8.3f} {r.reported_cost:>8.3f} {r.saturated_commands:>4d}  "
             + ("PASS" if r.passed else "FAIL (" + ", ".join(fails) + ")")
@@ -187,13 +210,14 @@ def run_parking_benchmark(args: argparse.Namespace, settings: Settings) -> int:
         if len(horizons) != 1:
             raise ValueError(f"parking runs one horizon at a time (--horizons N), got {list(horizons)}")
         plants = parse_plants(args.plants or PLANTS)
+        methods = parse_methods(args.methods or METHOD_NAMES)
         agents = list(parse_agents(args.agents or AGENTS))
         starts = parse_starts(args.starts) if args.starts else list(STARTS)
         if not (args.parking_seconds > 0 and math.isfinite(args.parking_seconds)):
             raise ValueError(f"--parking-seconds must be > 0, got {args.parking_seconds}")
     except ValueError as error:
         raise UsageError(f"srl bench parking: {error}") from None
-    result = run_parking(settings, plants, agents, horizons[0], starts, args.parking_seconds)
+    result = run_parking(settings, plants, agents, horizons[0], starts, args.parking_seconds, methods)
     print(format_table(result))
     if args.json:
         print(json.dumps(result.model_dump()))
