@@ -206,17 +206,21 @@ class RealtimeActor:
                 self.stop_robot(k)
         self.last_step = k
 
-    def stop_robot(self, k: int) -> None:
+    def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:
+        """Publish the action held over interval ``k`` (answering state ``state_seq``, -1: none)."""
         self.publish_action(
             Action(
                 robot=self.robot,
                 episode=self.episode_id,
                 step=k,
                 stamp_ns=time.monotonic_ns(),
-                action=(0.0, 0.0),
-                state_seq=-1,
+                action=action,
+                state_seq=state_seq,
             )
         )
+
+    def stop_robot(self, k: int) -> None:
+        self.send(k, (0.0, 0.0), -1)
         self.actor.reset()  # the plan no longer matches the robot
 
     def _step(self, k: int, tick: float, held: tuple[PlantState, float]) -> None:
@@ -241,16 +245,7 @@ class RealtimeActor:
         self.arrived = arrived
         self.arrived_steps += arrived
         action = (float(step.action[0]), float(step.action[1]))
-        self.publish_action(
-            Action(
-                robot=self.robot,
-                episode=self.episode_id,
-                step=k,
-                stamp_ns=time.monotonic_ns(),
-                action=action,
-                state_seq=message.seq,
-            )
-        )
+        self.send(k, action, message.seq)
         done = self.clock()
         # transport/loop latency: state arrival -> action out, minus the solve itself
         self.latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
