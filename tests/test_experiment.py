@@ -247,6 +247,17 @@ def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> 
             assert data["costs"][i].sum() == pytest.approx(r["accumulated_cost"], rel=1e-12)
             np.testing.assert_allclose(data["states"][i, 0], [r["start_x"], r["start_y"], r["start_alpha"]])
             np.testing.assert_allclose(data["states"][i, -1], [r["final_x"], r["final_y"], r["final_alpha"]])
+            # "at rest" (issue 21) by hand, with plain loops: the last 10 s (here the whole 3 s run)
+            # of positions span <= 0.05 m and v (|v| >= 0.01) changes sign at most 5 times
+            xy = [tuple(p[:2]) for p in data["states"][i, -101:]]
+            span = max(math.dist(a, b) for a in xy for b in xy)
+            signs = [1 if v > 0 else -1 for v in data["actions"][i, -100:, 0] if abs(v) >= 0.01]
+            flips = sum(1 for a, b in itertools.pairwise(signs) if a != b)
+            assert r["last_span_m"] == pytest.approx(span, rel=1e-12, abs=1e-15)
+            assert r["sign_changes"] == flips
+            assert r["at_rest"] == int(span <= 0.05 and flips <= 5)
+    assert group["at_rest"] == sum(r["at_rest"] for r in rows if r["agent"] == "rlqv")
+    assert f"| {group['parked']}/4 | {group['at_rest']}/4 |" in markdown and "at rest = over the last 10 s" in markdown
 
 
 @pytest.mark.slow

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from common.parking import MAX_SIGN_CHANGES, SPAN_M, WINDOW_S
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
 
@@ -55,6 +56,7 @@ def group_summary(
             marks = np.array([t["ratio_percent"] for t in ratios if t["agent"] == agent and t["horizon"] == horizon])
             marks = marks[np.isfinite(marks)]
             parked = sum(r["final_distance"] <= PARK_TOLERANCE_M for r in runs)
+            at_rest = sum(int(r.get("at_rest", 0)) for r in runs)
             entry: dict[str, Any] = {
                 "agent": agent,
                 "horizon": horizon,
@@ -62,6 +64,7 @@ def group_summary(
                 "median_cost": float(np.median(costs)),
                 "mean_cost": float(np.mean(costs)),
                 "parked": int(parked),
+                "at_rest": int(at_rest),
                 "median_final_distance": float(np.median([r["final_distance"] for r in runs])),
                 "solver_failures": int(sum(r["solver_failures"] for r in runs)),
                 "solve_ms_median": float(np.median([r["solve_ms_median"] for r in runs])),
@@ -179,6 +182,9 @@ CSV_COLUMNS = (
     "final_alpha",
     "final_distance",
     "parked",
+    "at_rest",
+    "last_span_m",
+    "sign_changes",
     "steps",
     "solver_failures",
     "solve_ms_median",
@@ -222,6 +228,7 @@ def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[
                             "final_y",
                             "final_alpha",
                             "final_distance",
+                            "last_span_m",
                         )
                     },
                 }
@@ -238,6 +245,8 @@ def read_runs_csv(path: Path | str) -> list[dict[str, Any]]:
         "solver_failures",
         "worker",
         "parked",
+        "at_rest",
+        "sign_changes",
         "critic_timeouts",
         "max_staleness_steps",
     }
@@ -367,11 +376,13 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         f"solver {s['actor']['solver']}, predictor {s['actor']['predictor']} (all in config.toml)",
         f"* parked = final distance to the target <= {summary['park_tolerance_m']} m; better than MPC = "
         f"J/J_mpc < {100 - summary['tie_percent']:g} % (within {summary['tie_percent']:g} % of 100 % is a tie: "
-        "the solver tolerance alone moves J that much)",
+        f"the solver tolerance alone moves J that much); at rest = over the last {WINDOW_S:g} s the position "
+        f"spans <= {SPAN_M:g} m and v (|v| >= 0.01 m/s) changes sign at most {MAX_SIGN_CHANGES} times "
+        "(no chatter; issue 21)",
         "",
         "| agent | N | runs | median J | median J/J_mpc | better than MPC | ties | min J/J_mpc | max J/J_mpc "
-        "| parked | solver failures |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| parked | at rest | solver failures |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for g in summary["groups"]:
         beat = f"{g['beat_mpc']}/{g['ratios']} ({100 * g['beat_mpc_share']:.0f} %)" if "beat_mpc" in g else "—"
@@ -379,7 +390,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             f"| {g['agent']} | {g['horizon']} | {g['runs']} | {g['median_cost']:.2f} | "
             f"{_fmt_ratio(g.get('median_ratio_percent'))} | {beat} | {g.get('ties', '—')} | "
             f"{_fmt_ratio(g.get('min_ratio_percent'))} | {_fmt_ratio(g.get('max_ratio_percent'))} | "
-            f"{g['parked']}/{g['runs']} | {g['solver_failures']} |"
+            f"{g['parked']}/{g['runs']} | {g.get('at_rest', 0)}/{g['runs']} | {g['solver_failures']} |"
         )
     if summary.get("head_to_head"):
         lines += ["", "RL-QV vs RL-Q, start by start:", ""]

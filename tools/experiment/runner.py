@@ -165,6 +165,7 @@ def _run_one(
     runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec, slot: int
 ) -> dict[str, Any]:
     from common.assembly import build_actor
+    from common.parking import parking
     from common.stats import summarize
 
     settings = run_settings(base, spec)
@@ -176,6 +177,11 @@ def _run_one(
     wall = time.perf_counter() - started
     final = episode.final_state
     solve = summarize(episode.solve_seconds, scale=1e3)
+    # "at rest" beside "parked" (issue 21): no chatter over the last 10 s, on the true states where
+    # the plant knows them
+    rest = parking(
+        episode.true_states if episode.truth_known else episode.states, episode.actions, settings.plant.sampling_time
+    )
     row = {
         "run_id": spec.run_id,
         "agent": spec.agent,
@@ -189,6 +195,9 @@ def _run_one(
         "final_y": float(final[1]),
         "final_alpha": float(final[2]),
         "final_distance": float(np.hypot(final[0], final[1])),
+        "at_rest": int(rest.at_rest),
+        "last_span_m": rest.span,
+        "sign_changes": rest.sign_changes,
         "steps": episode.steps,
         "solver_failures": episode.solver_failures,
         "solve_ms_median": solve["median"],
