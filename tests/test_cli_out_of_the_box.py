@@ -322,6 +322,15 @@ def _build_processes(owner: int) -> list[int]:
     return found
 
 
+def _cmdline(pid: int) -> bytes:
+    """A process's command line; empty once it has ended (it may end between listing and reading:
+    a short-lived gcc child raised ProcessLookupError here once)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
+
+
 @pytest.mark.slow
 @pytest.mark.needs_compiler
 @pytest.mark.parametrize(
@@ -343,10 +352,7 @@ def test_a_signal_during_the_jit_build_kills_the_compiler_and_removes_its_direct
     try:
         _wait_for_line(process.stderr, "building the actor problem (N = 60", 60)
         deadline = time.monotonic() + 120
-        while not any(
-            Path(f"/proc/{p}/cmdline").exists() and b"cc1" in Path(f"/proc/{p}/cmdline").read_bytes()
-            for p in _build_processes(process.pid)
-        ):
+        while not any(b"cc1" in _cmdline(p) for p in _build_processes(process.pid)):
             assert time.monotonic() < deadline and process.poll() is None, "gcc never started"
             time.sleep(0.1)
         compilers = _build_processes(process.pid)
