@@ -27,6 +27,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -67,6 +68,20 @@ def run_bench(kind: str, robot: str, seconds: float = 4) -> dict[str, Any]:
     )
     assert done.returncode == 0, done.stderr[-2000:]
     return {**json.loads(done.stdout.strip().splitlines()[-1]), "stdout": done.stdout}
+
+
+class FakeCounts:
+    """The counters a service keeps (common.transport.Bus.count / reject), in memory, for the
+    transport-free logic under test (the robot bridge, the real-time actor, the order gates)."""
+
+    def __init__(self) -> None:
+        self.counters: Counter[str] = Counter()
+
+    def count(self, name: str, amount: int = 1) -> None:
+        self.counters[name] += amount
+
+    def reject(self, what: str, reason: str) -> None:
+        self.counters[f"rejected.{what}"] += 1
 
 
 def free_port() -> int:

@@ -12,7 +12,6 @@ import json
 import math
 import random
 import time
-from collections import Counter
 from datetime import timedelta
 from typing import Any
 
@@ -40,7 +39,7 @@ from common.settings import Settings
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import MAX_SEQ_JUMP
 from services.robot_bridge.service import RobotBridge
-from tests.harness import cluster, wait_until
+from tests.harness import FakeCounts, cluster, wait_until
 from tests.test_realtime_actor import PLANT, Loop
 
 SCHEMAS: list[type[Message]] = [PlantState, Action, Transition, CriticWeights, StepRequest, ResetRequest, ServiceStatus]
@@ -250,7 +249,7 @@ def test_the_bridge_action_gate_is_never_locked_out_and_never_exceeds_the_limits
 ) -> None:
     settings_ = Settings.load(transport={"robot": "fz"})
     commands: list[tuple[float, float]] = []
-    counts = _Counts()
+    counts = FakeCounts()
     gate = SourceGate("actor")
     bridge = RobotBridge(settings_, lambda s: None, lambda v, w: commands.append((v, w)), counts, gate)
     gate.update("a1", True)
@@ -283,17 +282,6 @@ def test_the_bridge_action_gate_is_never_locked_out_and_never_exceeds_the_limits
     assert all(abs(v) <= v_max and abs(w) <= omega_max for v, w in commands)
 
 
-class _Counts:
-    def __init__(self) -> None:
-        self.counters: Counter[str] = Counter()
-
-    def count(self, name: str, amount: int = 1) -> None:
-        self.counters[name] += amount
-
-    def reject(self, what: str, reason: str) -> None:
-        self.counters[f"rejected.{what}"] += 1
-
-
 @MALICIOUS
 @given(data=st.data())
 def test_the_weights_inbox_is_never_locked_out_and_holds_only_boxed_weights(data: st.DataObject) -> None:
@@ -301,7 +289,7 @@ def test_the_weights_inbox_is_never_locked_out_and_holds_only_boxed_weights(data
     low, high = settings_.critic.bounds or (-1e6, 1e6)
     gate = SourceGate("critic")
     gate.update("c1", True)
-    counts = _Counts()
+    counts = FakeCounts()
     inbox = WeightsInbox(settings_, counts, gate)  # type: ignore[arg-type]
     inbox.reset(5)
     inbox.published(100)

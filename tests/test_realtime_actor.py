@@ -8,7 +8,7 @@ import gc
 import os
 import sys
 import tracemalloc
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,6 +22,7 @@ from common.provenance import RESYNC_AFTER, SourceGate
 from common.settings import Settings
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import RealtimeActor
+from tests.harness import FakeCounts
 
 DELTA = 0.1
 PLANT = "p1"
@@ -45,17 +46,6 @@ class FakeClock:
         if self.on_sleep is not None:
             self.on_sleep(self)
         return False
-
-
-class FakeCounts:
-    def __init__(self) -> None:
-        self.counters: Counter[str] = Counter()
-
-    def count(self, name: str, amount: int = 1) -> None:
-        self.counters[name] += amount
-
-    def reject(self, what: str, reason: str) -> None:
-        self.counters[f"rejected.{what}"] += 1
 
 
 @dataclass

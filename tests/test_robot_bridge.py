@@ -15,7 +15,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections import Counter
 from typing import Any
 
 import numpy as np
@@ -32,7 +31,7 @@ from common.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry
 from common.settings import Settings
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
-from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, wait_until
+from tests.harness import ROOT, FakeCounts, client_config, cluster, declare_service_tokens, free_port, wait_until
 
 DELTA = 0.1
 TIMEOUT = 3 * DELTA  # bridge.watchdog_timeout_steps x delta (srl.toml)
@@ -46,15 +45,6 @@ def firmware(value: float) -> float:
 
 
 # -- the logic, against fakes -----------------------------------------------------------------
-class FakeCounts:
-    def __init__(self) -> None:
-        self.counters: Counter[str] = Counter()
-
-    def count(self, name: str, amount: int = 1) -> None:
-        self.counters[name] += amount
-
-    def reject(self, what: str, reason: str) -> None:
-        self.counters[f"rejected.{what}"] += 1
 
 
 def _bridge(**bridge: Any) -> tuple[RobotBridge, list[PlantState], list[tuple[float, float]], FakeCounts]:

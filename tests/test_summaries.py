@@ -25,6 +25,7 @@ from common.summaries import (
     RouterSummary,
 )
 from services.robot_bridge.service import RobotBridge
+from tests.harness import FakeCounts
 from tools.up import CHILD_SUMMARIES, Child, _contract_summary, optional_summary
 
 
@@ -83,7 +84,7 @@ def test_srl_up_says_in_one_line_which_child_summary_is_missing_or_wrong() -> No
 def _bridge_summary() -> dict[str, object]:
     """What services/robot_bridge/service.py prints (its timing from a real RobotBridge)."""
     settings = Settings.load(transport={"robot": "u0"})
-    bridge = RobotBridge(settings, lambda s: None, lambda v, w: None, _NoCounts())
+    bridge = RobotBridge(settings, lambda s: None, lambda v, w: None, FakeCounts())
     return {
         "service": "robot_bridge",
         "profile": "rmw_zenoh",
@@ -102,17 +103,6 @@ def _bridge_summary() -> dict[str, object]:
         "counters": {"commands_sent": 3},
         "resources": {"rss_mb": 50.0},
     }
-
-
-class _NoCounts:
-    def __init__(self) -> None:
-        self.counters: dict[str, int] = {}
-
-    def count(self, name: str, amount: int = 1) -> None:
-        pass
-
-    def reject(self, what: str, reason: str) -> None:
-        pass
 
 
 PRODUCED = {
