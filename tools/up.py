@@ -12,7 +12,8 @@ way (children by pid, credentials removed) and ``srl up`` exits with 128 + the s
 (130, 143, 129). Every child gets ``SRL_PARENT_PID``: it dies with this process even when this
 process is killed with SIGKILL (common/lifeline.py).
 
-``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
+``--plant physics`` is ``plant-sim`` with ``plant.model = "physics"`` (the MuJoCo TurtleBot3,
+common/physics.py) for every child. ``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
 configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
 before everything else. The emulator runs as the robot's own Zenoh router on a free loopback port
 (as a real robot runs ``rmw_zenohd``) and the bridge talks to it there: when srl's router dies,
@@ -447,8 +448,8 @@ def run_up(
 
     SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
     """
-    if plant not in ("sim", "robot"):
-        raise ValueError(f"unknown plant {plant!r} (sim or robot)")
+    if plant not in ("sim", "robot", "physics"):
+        raise ValueError(f"unknown plant {plant!r} (sim, robot or physics)")
     if plant == "robot" and mode != "realtime":
         raise ValueError(
             "--plant robot runs in real time only: lockstep steps plant_sim through its "
@@ -456,6 +457,9 @@ def run_up(
         )
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
+    if plant == "physics":  # plant_sim with the MuJoCo TurtleBot3 (every child sees the same settings)
+        env["SRL_PLANT__MODEL"] = "physics"
+        settings = settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
     supervisor = Supervisor(settings_args, env, quiet=quiet)
     robot_args = [*settings_args, *(bridge_args or [])]
     started = time.monotonic()
@@ -521,7 +525,7 @@ def _run_up(
     try:
         supervisor.spawn("router", ["router", *common_args], role.get("router"))
         supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
-        if plant == "sim":
+        if plant in ("sim", "physics"):
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
             robot_endpoint = settings.bridge.robot_endpoint
@@ -540,7 +544,7 @@ def _run_up(
                 role.get("robot_bridge"),
             )
         supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
-        supervisor.wait_for("plant" if plant == "sim" else "robot_bridge", alive_probe(settings, "plant"), timeout=60)
+        supervisor.wait_for("plant" if plant != "robot" else "robot_bridge", alive_probe(settings, "plant"), timeout=60)
         if plant == "robot":
             supervisor.wait_for(
                 f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
