@@ -16,10 +16,10 @@ from common.actor import ActorProblem, StackedActor
 from common.agents import learns
 from common.arrival import ArrivalRule, ArrivalTolerances
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
+from common.physics import PhysicsPlant
 from common.settings import Settings
 from common.stats import summarize
 from common.summaries import EpisodeSummary, TrueView
-from common.physics import PhysicsPlant
 from common.turtlebot import ActuatorPlant
 
 

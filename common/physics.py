@@ -98,6 +98,7 @@ def burger_mjcf(params: TurtleBotParams, physics: PhysicsParams) -> str:
     friction = physics.motor_friction  # the joints' dry friction torque [N m]
     w_max = params.wheel_speed_max if math.isfinite(params.wheel_speed_max) and params.wheel_speed_max > 0 else 0.0
     ctrl = f'ctrllimited="true" ctrlrange="{-w_max} {w_max}"' if w_max > 0 else 'ctrllimited="false"'
+    torque = f'forcelimited="true" forcerange="{-physics.torque_max} {physics.torque_max}"'
     ix, iy, iz = BASE_INERTIA
     wx, wy, wz = WHEEL_INERTIA
     sx, sy, sz = SCAN_POSITION
@@ -127,8 +128,8 @@ def burger_mjcf(params: TurtleBotParams, physics: PhysicsParams) -> str:
     </body>
   </worldbody>
   <actuator>
-    <velocity name="left" joint="wheel_left" kv="{kv}" {ctrl} forcelimited="true" forcerange="{-physics.torque_max} {physics.torque_max}"/>
-    <velocity name="right" joint="wheel_right" kv="{kv}" {ctrl} forcelimited="true" forcerange="{-physics.torque_max} {physics.torque_max}"/>
+    <velocity name="left" joint="wheel_left" kv="{kv}" {ctrl} {torque}/>
+    <velocity name="right" joint="wheel_right" kv="{kv}" {ctrl} {torque}/>
   </actuator>
 </mujoco>
 """

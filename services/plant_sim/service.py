@@ -27,11 +27,11 @@ from common.clock import Ticker
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
+from common.physics import PhysicsBot, simulated_robot
 from common.provenance import ActionGate, SourceGate
 from common.settings import Settings
 from common.summaries import PlantSummary
 from common.transport import Bus, start_status_thread
-from common.physics import PhysicsBot, simulated_robot
 from common.turtlebot import TurtleBot
 
 log = logging.getLogger(__name__)

@@ -53,8 +53,8 @@ import zenoh
 from common import ros_wire
 from common.clock import Ticker
 from common.frames import Pose2D, quaternion_from_yaw
-from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 from common.physics import PhysicsBot, PhysicsParams
+from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 from common.turtlebot import TurtleBot, TurtleBotParams, firmware_velocity
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,8 @@ class Tb3Model:
 
     ``params`` None: the ideal robot (the OpenCR command path, then the exact unicycle, its
     odometry the truth); else the actuator model (``--model actuator``: saturation, deadband,
-    lag, slip, encoder odometry), or with ``physics`` the MuJoCo Burger (``--model physics``). Commands reach the wheels after ``latency``."""
+    lag, slip, encoder odometry), or with ``physics`` the MuJoCo Burger (``--model physics``).
+    Commands reach the wheels after ``latency``."""
 
     def __init__(
         self,
