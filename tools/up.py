@@ -14,10 +14,11 @@ process is killed with SIGKILL (common/lifeline.py).
 
 ``--plant physics`` is ``plant-sim`` with ``plant.model = "physics"`` (the MuJoCo TurtleBot3,
 common/physics.py) for every child. ``--plant robot`` starts ``robot-bridge`` (and
-``tb3-emulator``, of ``plant.model``, unless a robot endpoint is configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
-before everything else. The emulator runs as the robot's own Zenoh router on a free loopback port
-(as a real robot runs ``rmw_zenohd``) and the bridge talks to it there: when srl's router dies,
-the bridge still reaches the robot and stops it (the actor's liveliness token vanishes from the
+``tb3-emulator``, of ``plant.model``, unless a robot endpoint is configured) instead of
+``plant-sim``; the bridge is stopped (and has commanded zero velocity) before everything else. The
+emulator runs as the robot's own Zenoh router on a free loopback port (as a real robot runs
+``rmw_zenohd``) and the bridge talks to it there: when srl's router dies, the
+bridge still reaches the robot and stops it (the actor's liveliness token vanishes from the
 bridge's srl session within milliseconds).
 """
 
