@@ -312,6 +312,10 @@ class Recorder:
             self.tracks[robot] = track = _Track(episode=episode)
         return track
 
+    def begin(self, robot: str, episode: int, origin_ns: int) -> None:
+        """Place step 0 of the robot's episode at ``origin_ns`` (an episode that ran in process)."""
+        self._track(robot, episode).origin_ns = origin_ns
+
     def step_time(self, robot: str, episode: int, step: int, now_ns: int) -> int:
         """``origin + step delta`` of the robot's episode; the origin fixed by its first message."""
         track = self._track(robot, episode)
@@ -449,8 +453,7 @@ def record_episode(recorder: Recorder, episode: Episode, robot: str, origin_ns: 
     weights whenever they changed (version counted from 1; the residuals of the fit after step k
     travel with the weights it produced), the solve time of every step."""
     delta = recorder.delta_ns
-    track = recorder._track(robot, episode_id)
-    track.origin_ns = origin_ns
+    recorder.begin(robot, episode_id, origin_ns)
     recorder.target(origin_ns)
     version, previous = 0, None
     solves = list(episode.solve_seconds) if len(episode.solve_seconds) == episode.steps else []
@@ -571,7 +574,13 @@ class Feed:
 def add_record_arguments(parser: Any) -> None:
     from common.arguments import COMMAND_SETTINGS, add_settings_arguments
 
-    parser.add_argument("file", type=Path, metavar="FILE.mcap", help="the recording to write (replaced if it exists)")
+    parser.add_argument(
+        "file",
+        type=Path,
+        nargs="?",
+        metavar="FILE.mcap",
+        help="the recording to write, replaced if it exists (default: srl-<UTC time>.mcap here)",
+    )
     add_settings_arguments(parser, COMMAND_SETTINGS["record"])
     parser.add_argument(
         "--clock",
@@ -597,6 +606,8 @@ def cmd_record(args: Any) -> int:
     settings = settings_from_args(args)
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise UsageError(f"--seconds must be a positive number, got {args.seconds}")
+    if args.file is None:
+        args.file = Path(time.strftime("srl-%Y%m%d-%H%M%S.mcap", time.gmtime()))
     try:
         sink = McapSink(args.file, {"sampling_time": json.dumps(settings.plant.sampling_time), "source": '"zenoh"'})
     except RecordingError as error:
