@@ -38,6 +38,7 @@ import json
 import logging
 import math
 import os
+import re
 import time
 from collections import deque
 from collections.abc import Sequence
@@ -167,6 +168,12 @@ class Sink(Protocol):
 
     def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None: ...
     def close(self) -> None: ...
+
+
+def ros_name(robot: str) -> str:
+    """A robot id as a ROS 2 name chunk (letters, digits, underscores): ``rlqv+-N12-s000`` ->
+    ``rlqvplus_N12_s000``; srl's usual ids (``tb3_0``) stay as they are."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", robot.replace("+", "plus"))
 
 
 def open_for_writing(path: Path) -> IO[bytes]:
@@ -342,7 +349,7 @@ class Recorder:
             twist=ros.twist(*track.action), covariance=np.zeros(36)
         )
         odometry = ros.types[ODOMETRY](header=ros.header(t_ns), child_frame_id=BASE_FRAME, pose=pose, twist=twist)
-        self._write(f"/{robot}/odom", ODOMETRY, odometry, t_ns)
+        self._write(f"/{ros_name(robot)}/odom", ODOMETRY, odometry, t_ns)
 
     def transition(
         self,
@@ -368,7 +375,7 @@ class Recorder:
         ros = self.ros
         header = ros.header(t_ns, BASE_FRAME)
         command = ros.types[TWIST_STAMPED](header=header, twist=ros.twist(*action))
-        self._write(f"/{robot}/cmd_vel", TWIST_STAMPED, command, t_ns)
+        self._write(f"/{ros_name(robot)}/cmd_vel", TWIST_STAMPED, command, t_ns)
         sample = ros.types[TRANSITION](
             header=ros.header(t_ns),
             episode=episode,
@@ -381,7 +388,7 @@ class Recorder:
             stage_cost=float(cost),
             accumulated_cost=track.accumulated_cost,
         )
-        self._write(f"/{robot}/srl/transition", TRANSITION, sample, t_ns)
+        self._write(f"/{ros_name(robot)}/srl/transition", TRANSITION, sample, t_ns)
         track.path.append(ros.types[POSE_STAMPED](header=ros.header(t_ns), pose=ros.pose(state)))
         if step % PATH_EVERY == 0:
             self.path(robot, t_ns)
@@ -391,7 +398,7 @@ class Recorder:
         track = self.tracks.get(robot)
         if track is not None and track.path:
             message = self.ros.types[PATH](header=self.ros.header(t_ns), poses=list(track.path))
-            self._write(f"/{robot}/path", PATH, message, t_ns)
+            self._write(f"/{ros_name(robot)}/path", PATH, message, t_ns)
 
     def weights(
         self,
@@ -419,7 +426,7 @@ class Recorder:
             v_residual=float(residuals[1]),
             pairs=pairs,
         )
-        self._write(f"/{robot}/srl/critic_weights", WEIGHTS, message, t_ns)
+        self._write(f"/{ros_name(robot)}/srl/critic_weights", WEIGHTS, message, t_ns)
 
     def status(self, robot: str, counters: dict[str, float], now_ns: int) -> None:
         """``/<robot>/srl/actor_status`` from the actor's status counters (NaN where absent)."""
@@ -441,7 +448,7 @@ class Recorder:
             solver_failures=value("solver_failures"),
             weights_version=value("weights_version"),
         )
-        self._write(f"/{robot}/srl/actor_status", STATUS, message, t_ns)
+        self._write(f"/{ros_name(robot)}/srl/actor_status", STATUS, message, t_ns)
 
     def close(self) -> None:
         self.sink.close()
