@@ -597,9 +597,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="compare: runs without and with a recorder (srl record), interleaved, --rounds pairs of "
         "--seconds each; PASS if the jitter p99 with it is within 0.5 ms of without (default: no recorder)",
     )
-    loop_bench.add_argument(
-        "--rounds", type=int, default=2, help="with --record: pairs of runs (without, with) (default: 2)"
-    )
+    loop_bench.add_argument("--rounds", type=int, help="with --record: pairs of runs (without, with) (default: 2)")
 
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
