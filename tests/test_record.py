@@ -271,3 +271,15 @@ def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_pr
     finally:
         for proc in reversed(procs):
             proc.stop()
+
+
+def test_the_shipped_foxglove_layout_is_the_generated_one_and_names_recorded_topics(tmp_path: Path) -> None:
+    from tools.view import foxglove_layout
+
+    shipped = (ROOT / "docs" / "foxglove-layout.json").read_text()
+    assert shipped == foxglove_layout(["tb3_0"]), "regenerate: python -c 'from tools.view import foxglove_layout; ...'"
+    run = srl("run", "--duration", "1", "--no-jit", "--record", str(tmp_path / "r.mcap"), timeout=120)
+    assert run.returncode == 0, run.stderr
+    recorded = set(read(tmp_path / "r.mcap"))
+    named = set(re.findall(r'"(/[A-Za-z0-9_/]+)', shipped))
+    assert named <= recorded, named - recorded

@@ -16,13 +16,14 @@ import json
 import logging
 import math
 import sys
+from typing import Any
 
 import foxglove
 
 from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
 from common.lifeline import die_with_parent
 from common.runtime import UsageError, connect_with_retry, stop_on_signals
-from tools.record import Feed, Recorder
+from tools.record import Feed, Recorder, yield_cpu_to_the_loop
 
 log = logging.getLogger(__name__)
 DEFAULT_PORT = 8765
@@ -79,6 +80,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise UsageError(f"--port must be 0..65535, got {args.port}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise UsageError(f"--seconds must be a positive number, got {args.seconds}")
+    yield_cpu_to_the_loop()
     try:
         sink = FoxgloveSink(args.host, args.port)
     except RuntimeError as error:  # foxglove-sdk: the port is taken, the address is not ours
@@ -102,3 +104,75 @@ def cmd_view(args: argparse.Namespace) -> int:
         feed.close()
     print(json.dumps({"view": f"ws://{args.host}:{sink.port}", "messages": sink.messages}), flush=True)
     return 0
+
+
+def foxglove_layout(robots: list[str]) -> str:
+    """The Foxglove layout of docs/foxglove-layout.json (``foxglove.layouts``): the 3D scene in the
+    ``odom`` (goal) frame seen from above with every robot's odometry and path and the target,
+    beside plots of the costs, the critic weights, the solve time, staleness and tick jitter
+    (the first robot's; add series for more, the topics are ``/<robot>/...``)."""
+    import foxglove.layouts as fl
+
+    scene_topics: dict[str, Any] = {
+        "/target": fl.BaseRendererPoseTopicSettings(visible=True, type="axis", axis_scale=0.3)
+    }
+    for robot in robots:
+        scene_topics[f"/{robot}/odom"] = fl.BaseRendererPoseTopicSettings(visible=True, type="arrow")
+        scene_topics[f"/{robot}/path"] = fl.BaseRendererPosesTopicSettings(visible=True, type="line", line_width=0.02)
+    first = robots[0]
+
+    def plot(title: str, *series: tuple[str, str]) -> Any:
+        return fl.PlotPanel(
+            title=title,
+            config=fl.PlotConfig(paths=[fl.PlotSeries(value=value, label=label) for value, label in series]),
+        )
+
+    scene = fl.ThreeDeePanel(
+        title="robots (goal frame)",
+        config=fl.ThreeDeeConfig(
+            follow_tf="odom",
+            topics=scene_topics,
+            camera_state=fl.ThreeDeeCameraState(distance=8.0, perspective=False, phi=0.0, target=(0.0, 0.0, 0.0)),
+        ),
+    )
+    plots = fl.SplitContainer(
+        direction="column",
+        items=[
+            fl.SplitItem(
+                content=plot(
+                    "costs",
+                    (f"/{first}/srl/transition.stage_cost", "stage cost c_k"),
+                    (f"/{first}/srl/transition.accumulated_cost", "J"),
+                )
+            ),
+            fl.SplitItem(
+                content=plot(
+                    "critic weights (version in the raw message)",
+                    *((f"/{first}/srl/critic_weights.q_weights[{i}]", f"w{i}") for i in range(15)),
+                    *((f"/{first}/srl/critic_weights.v_weights[{i}]", f"v{i}") for i in range(6)),
+                )
+            ),
+            fl.SplitItem(
+                content=plot(
+                    "actor [ms, steps]",
+                    (f"/{first}/srl/actor_status.solve_ms", "solve ms"),
+                    (f"/{first}/srl/actor_status.jitter_ms", "tick jitter ms"),
+                    (f"/{first}/srl/actor_status.staleness_steps", "staleness steps"),
+                )
+            ),
+            fl.SplitItem(
+                content=plot(
+                    "action",
+                    (f"/{first}/cmd_vel.twist.linear.x", "v [m/s]"),
+                    (f"/{first}/cmd_vel.twist.angular.z", "omega [rad/s]"),
+                )
+            ),
+        ],
+    )
+    layout = fl.Layout(
+        content=fl.SplitContainer(
+            direction="row",
+            items=[fl.SplitItem(proportion=3, content=scene), fl.SplitItem(proportion=2, content=plots)],
+        )
+    )
+    return json.dumps(json.loads(layout.to_json()), indent=1) + "\n"
