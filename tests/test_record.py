@@ -149,14 +149,11 @@ def test_the_experiment_records_every_run_as_trajectories_npz_holds_it(tmp_path:
     topics = read(path)
     settings = json.loads((out / "settings.json").read_text())
     with np.load(out / "trajectories.npz") as npz:
-        arrays = {key: npz[key] for key in npz.files}
-    runs = [line.split(",")[0] for line in (out / "runs.csv").read_text().splitlines()[1:]]
+        runs, all_states, all_costs = list(npz["run_id"]), npz["states"], npz["costs"]
     assert len(runs) == 8
     origins = set()
-    for run_id in runs:
-        robot = re.sub(r"[^A-Za-z0-9_]", "_", run_id.replace("+", "plus"))  # a ROS name: rlqvplus_N6_s000
-        states = next(v for k, v in arrays.items() if run_id in k and "states" in k)
-        costs = next(v for k, v in arrays.items() if run_id in k and "costs" in k)
+    for run_id, states, costs in zip(runs, all_states, all_costs, strict=True):
+        robot = re.sub(r"[^A-Za-z0-9_]", "_", str(run_id).replace("+", "plus"))  # a ROS name: rlqvplus_N6_s000
         check_steps(topics, robot, states, settings["cost"]["r_diag"], float(np.sum(costs)))
         origins.add(topics[f"/{robot}/srl/transition"][0][0])
     assert len(origins) == 1, "every run starts at the same moment"
@@ -218,8 +215,8 @@ async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tup
     subscribe, decode ``want`` messages with mcap-ros2-support from the advertised schema."""
     import websockets
 
-    async with websockets.connect(url, subprotocols=["foxglove.websocket.v1"], open_timeout=10) as socket:
-        assert socket.subprotocol == "foxglove.websocket.v1"
+    async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as socket:
+        assert socket.subprotocol == "foxglove.sdk.v1"
         channel: dict[str, Any] | None = None
         decoded: list[Any] = []
         decoder = None
@@ -232,7 +229,8 @@ async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tup
                     channel = next((c for c in message["channels"] if c["topic"] == topic), None)
                     if channel is not None:
                         assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
-                        schema = Schema(1, channel["schemaName"], "ros2msg", channel["schema"].encode())
+                        text = channel["schema"].encode()
+                        schema = Schema(id=1, name=channel["schemaName"], encoding="ros2msg", data=text)
                         decoder = DecoderFactory().decoder_for("cdr", schema)
                         subscribe = {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}
                         await socket.send(json.dumps(subscribe))
@@ -283,3 +281,44 @@ def test_the_shipped_foxglove_layout_is_the_generated_one_and_names_recorded_top
     recorded = set(read(tmp_path / "r.mcap"))
     named = set(re.findall(r'"(/[A-Za-z0-9_/]+)', shipped))
     assert named <= recorded, named - recorded
+
+
+@pytest.mark.slow
+def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_path: Path) -> None:
+    """--plant robot: the emulated TurtleBot3's odometry, through the bridge, in real time."""
+    path = tmp_path / "robot.mcap"
+    up = srl(
+        "up", "--plant", "robot", "--duration", "6", "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "tb",
+        "--json", "--summary-dir", str(tmp_path / "up"), "--record", str(path),
+    )  # fmt: skip
+    assert up.returncode == 0, up.stderr[-3000:]
+    summary = json.loads(up.stdout.splitlines()[-1])
+    check_rosbag2_layout(path)
+    topics = read(path)
+    transitions, odometry = topics["/tb/srl/transition"], topics["/tb/odom"]
+    assert len(transitions) == len(topics["/tb/cmd_vel"]) == summary["steps"]
+    assert np.all(np.diff([t for t, _ in transitions]) == DELTA_NS)
+    assert len(odometry) > len(transitions)  # the robot's odometry rate (20 Hz) over the 10 Hz loop
+    times = [t for t, _ in odometry]
+    assert times == sorted(times)
+    last = odometry[-1][1].pose.pose.position
+    np.testing.assert_allclose([last.x, last.y], summary["final_state"][:2], atol=0.02)  # the same odometry
+    plotted = srl("plot", str(path), "--out", str(tmp_path / "robot.png"))
+    assert plotted.returncode == 0 and (tmp_path / "robot.png").exists(), plotted.stderr
+
+
+@pytest.mark.slow
+def test_srl_bench_loop_record_compares_the_loop_without_and_with_a_recorder() -> None:
+    done = srl(
+        "bench", "loop", "--record", "--seconds", "4", "--rounds", "1", "--json",
+        "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "benchrec",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.splitlines()[-1])
+    assert [r["record"] for r in result["runs"]] == [False, True]
+    assert result["runs"][0]["recording_bytes"] is None and result["runs"][1]["recording_bytes"] > 1000
+    assert "srl record: recorded" in result["runs"][1]["recorder"]
+    assert set(result["jitter_p99_ms"]) == {"without", "with", "difference"}
+    assert "jitter p99 with recorder" in done.stdout
+    refused = srl("bench", "loop", "--rounds", "2", "--seconds", "1", timeout=60)
+    assert refused.returncode == 2 and "--rounds is for --record" in refused.stderr

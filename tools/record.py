@@ -285,16 +285,22 @@ class McapSink:
 
 @dataclass
 class _Track:
-    """What the mapping remembers of one robot: bounded (the path's last poses, one episode)."""
+    """What the mapping remembers of one robot: bounded (the path's last poses, one episode).
 
-    episode: int = -1
-    origin_ns: int | None = None  # where step 0 of the episode lies (set by its first step)
+    The actor's episode (transitions) and the plant's (states) are counted apart: a robot bridge
+    numbers its states in its own episodes, whatever the actor's are."""
+
+    episode: int = -1  # of the newest transition
     last_step: int = -1
-    states_seen: int = 0  # states of the episode (clock "steps": state n at origin + n delta)
     accumulated_cost: float = 0.0
     action: tuple[float, float] = (0.0, 0.0)
     path: deque[Any] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
     late: int = 0  # transitions that came after a later step (dropped: one per step, in order)
+    state_episode: int = -1  # of the newest state
+    states_seen: int = 0  # states of that episode (clock "steps": state n at origin + n delta)
+
+
+ORIGINS_KEPT = 64  # (robot, episode) origins remembered: bounded however many episodes pass
 
 
 class Recorder:
@@ -308,27 +314,33 @@ class Recorder:
         self.delta_ns = round(sampling_time * 1e9)
         self.clock = clock
         self.tracks: dict[str, _Track] = {}
+        self.origins: dict[tuple[str, int], int] = {}
         self.target_sent = False
 
     def _write(self, topic: str, ros_type: str, message: Any, t_ns: int) -> None:
         self.sink.write(topic, ros_type, self.ros.definition(ros_type), self.ros.cdr(message, ros_type), t_ns)
 
     def _track(self, robot: str, episode: int) -> _Track:
+        """The robot's step stream, reset by a new episode of its transitions."""
         track = self.tracks.setdefault(robot, _Track())
-        if episode != track.episode:  # a new episode: its own origin, cost and path
-            self.tracks[robot] = track = _Track(episode=episode)
+        if episode != track.episode:  # a new episode: its own cost and path
+            self.tracks[robot] = track = _Track(
+                episode=episode, state_episode=track.state_episode, states_seen=track.states_seen
+            )
         return track
 
     def begin(self, robot: str, episode: int, origin_ns: int) -> None:
         """Place step 0 of the robot's episode at ``origin_ns`` (an episode that ran in process)."""
-        self._track(robot, episode).origin_ns = origin_ns
+        self.origins[(robot, episode)] = origin_ns
 
     def step_time(self, robot: str, episode: int, step: int, now_ns: int) -> int:
         """``origin + step delta`` of the robot's episode; the origin fixed by its first message."""
-        track = self._track(robot, episode)
-        if track.origin_ns is None:
-            track.origin_ns = now_ns - step * self.delta_ns
-        return track.origin_ns + step * self.delta_ns
+        key = (robot, episode)
+        if key not in self.origins:
+            if len(self.origins) >= ORIGINS_KEPT:
+                del self.origins[next(iter(self.origins))]
+            self.origins[key] = now_ns - step * self.delta_ns
+        return self.origins[key] + step * self.delta_ns
 
     def target(self, t_ns: int) -> None:
         """The target pose: the origin of the goal frame (once)."""
@@ -339,7 +351,9 @@ class Recorder:
 
     def state(self, robot: str, episode: int, state: Vector, now_ns: int) -> None:
         """A state the robot reported: ``/<robot>/odom`` (twist: the action it holds)."""
-        track = self._track(robot, episode)
+        track = self.tracks.setdefault(robot, _Track())
+        if episode != track.state_episode:
+            track.state_episode, track.states_seen = episode, 0
         t_ns = self.step_time(robot, episode, track.states_seen, now_ns) if self.clock == "steps" else now_ns
         track.states_seen += 1
         self.target(t_ns)
@@ -432,8 +446,8 @@ class Recorder:
         """``/<robot>/srl/actor_status`` from the actor's status counters (NaN where absent)."""
         track = self.tracks.get(robot)
         t_ns = now_ns
-        if self.clock == "steps" and track is not None and track.origin_ns is not None and track.last_step >= 0:
-            t_ns = track.origin_ns + track.last_step * self.delta_ns
+        if self.clock == "steps" and track is not None and track.last_step >= 0:
+            t_ns = self.step_time(robot, track.episode, track.last_step, now_ns)
 
         def value(name: str) -> float:
             return float(counters.get(name, math.nan))
