@@ -389,6 +389,63 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- recordings and the live view (tools/record.py, tools/view.py: imported when they run) ----
+VIEW_PORT = 8765
+
+
+def add_record_arguments(parser: argparse.ArgumentParser) -> None:
+    """``srl record``'s options (here: building the parser never imports the recorder's libraries)."""
+    parser.add_argument(
+        "file",
+        type=Path,
+        nargs="?",
+        metavar="FILE.mcap",
+        help="the recording to write, replaced if it exists (default: srl-<UTC time>.mcap here)",
+    )
+    add_settings_arguments(parser, COMMAND_SETTINGS["record"])
+    parser.add_argument(
+        "--clock",
+        choices=["wall", "steps"],
+        default="wall",
+        help="wall: states stamped on arrival (a real-time system); steps: one state per step "
+        "at origin + k delta (a lockstep system) (default: wall)",
+    )
+    parser.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    parser.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
+
+
+def add_view_arguments(parser: argparse.ArgumentParser) -> None:
+    """``srl view``'s options (here: building the parser never imports foxglove)."""
+    add_settings_arguments(parser, COMMAND_SETTINGS["view"])
+    parser.add_argument(
+        "--port", type=int, default=VIEW_PORT, help=f"WebSocket port (0: any free one) (default: {VIEW_PORT})"
+    )
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind; keep loopback and reach it from elsewhere by an SSH tunnel (README) "
+        "(default: 127.0.0.1)",
+    )
+    parser.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    parser.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from tools.record import cmd_record as record
+
+    return record(args)
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from tools.view import cmd_view as view
+
+    return view(args)
+
+
 # -- srl bench -------------------------------------------------------------------------
 def cmd_bench(args: argparse.Namespace) -> int:
     if args.what == "loop":
@@ -539,7 +596,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--view",
         type=int,
         nargs="?",
-        const=8765,
+        const=VIEW_PORT,
         metavar="PORT",
         help="serve the run live to Foxglove (srl view) on ws://127.0.0.1:PORT; PORT defaults to 8765 "
         "(default: no live view)",
@@ -635,8 +692,6 @@ def build_parser() -> argparse.ArgumentParser:
     status.set_defaults(func=cmd_status)
 
     # recordings and the live view (tools/record.py, tools/view.py)
-    from tools.record import add_record_arguments, cmd_record
-
     record = command(
         "record",
         "join a running system over Zenoh and record every robot to an MCAP file until Ctrl-C",
@@ -662,8 +717,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     plot.add_argument("--robot", metavar="ID", help="only this robot (default: every robot in the file)")
     plot.set_defaults(func=cmd_plot)
-
-    from tools.view import add_view_arguments, cmd_view
 
     view = command(
         "view",

@@ -617,30 +617,6 @@ class Feed:
         self.recorder.close()
 
 
-def add_record_arguments(parser: Any) -> None:
-    from common.arguments import COMMAND_SETTINGS, add_settings_arguments
-
-    parser.add_argument(
-        "file",
-        type=Path,
-        nargs="?",
-        metavar="FILE.mcap",
-        help="the recording to write, replaced if it exists (default: srl-<UTC time>.mcap here)",
-    )
-    add_settings_arguments(parser, COMMAND_SETTINGS["record"])
-    parser.add_argument(
-        "--clock",
-        choices=["wall", "steps"],
-        default="wall",
-        help="wall: states stamped on arrival (a real-time system); steps: one state per step "
-        "at origin + k delta (a lockstep system) (default: wall)",
-    )
-    parser.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
-    parser.add_argument(
-        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
-    )
-
-
 def cmd_record(args: Any) -> int:
     """``srl record FILE.mcap``: join a running system and record every robot until Ctrl-C."""
     import sys

@@ -20,13 +20,12 @@ from typing import Any
 
 import foxglove
 
-from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
+from common.arguments import settings_from_args
 from common.lifeline import die_with_parent
 from common.runtime import UsageError, connect_with_retry, stop_on_signals
 from tools.record import Feed, Recorder, yield_cpu_to_the_loop
 
 log = logging.getLogger(__name__)
-DEFAULT_PORT = 8765
 
 
 class FoxgloveSink:
@@ -57,23 +56,6 @@ class FoxgloveSink:
         self.server.stop()
 
 
-def add_view_arguments(parser: argparse.ArgumentParser) -> None:
-    add_settings_arguments(parser, COMMAND_SETTINGS["view"])
-    parser.add_argument(
-        "--port", type=int, default=DEFAULT_PORT, help=f"WebSocket port (0: any free one) (default: {DEFAULT_PORT})"
-    )
-    parser.add_argument(
-        "--host",
-        default="127.0.0.1",
-        help="address to bind; keep loopback and reach it from elsewhere by an SSH tunnel (README) "
-        "(default: 127.0.0.1)",
-    )
-    parser.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
-    parser.add_argument(
-        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
-    )
-
-
 def cmd_view(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     if not 0 <= args.port <= 65535:
@@ -93,16 +75,17 @@ def cmd_view(args: argparse.Namespace) -> int:
         except BaseException:
             sink.close()
             raise
+        url = f"ws://{args.host}:{sink.port}"  # the bound port (--port 0: the one the OS chose)
         # the readiness line (srl up and the tests wait for it): where to point Foxglove
         print(
-            f"srl view: serving every robot of {settings.transport.router} on ws://{args.host}:{sink.port} "
+            f"srl view: serving every robot of {settings.transport.router} on {url} "
             "(Foxglove: Open connection -> Foxglove WebSocket; layout docs/foxglove-layout.json); Ctrl-C ends it",
             file=sys.stderr,
             flush=True,
         )
         stop.wait(args.seconds)
         feed.close()
-    print(json.dumps({"view": f"ws://{args.host}:{sink.port}", "messages": sink.messages}), flush=True)
+    print(json.dumps({"view": url, "messages": sink.messages}), flush=True)
     return 0
 
 
