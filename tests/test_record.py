@@ -166,6 +166,8 @@ def test_a_bad_recording_path_is_one_line_before_anything_runs(tmp_path: Path) -
         ["up", "--duration", "1", "--router", f"tcp/127.0.0.1:{free_port()}", "--record", str(tmp_path)],
         ["record", str(tmp_path / "missing" / "x.mcap"), "--router", f"tcp/127.0.0.1:{free_port()}"],
         ["plot", str(tmp_path / "none.mcap")],
+        # the monitor role may not read transitions and weights: refused before anything starts
+        ["up", "--secure", "--duration", "1", "--router", f"tcp/127.0.0.1:{free_port()}", "--view"],
     ):
         done = srl(*argv, timeout=60)
         assert done.returncode == 2, (argv, done.stderr)
