@@ -24,13 +24,29 @@ from typing import Any
 
 import numpy as np
 import pytest
+import zenoh
 from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
-from tests.harness import ROOT, Proc, free_port, wait_until
+from tests.harness import ROOT, Proc, client_config, free_port, wait_until
 
 DELTA_NS = 100_000_000  # delta = 0.1 s
+
+
+def open_session(router: str) -> zenoh.Session:
+    """A client session of the router, once it accepts one (it was just started)."""
+    held: list[zenoh.Session] = []
+
+    def opened() -> bool:
+        try:
+            held.append(zenoh.open(client_config(router)))
+        except zenoh.ZError:
+            return False
+        return True
+
+    wait_until(opened, 60, f"the router at {router}")
+    return held[0]
 
 
 def srl(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
@@ -179,18 +195,25 @@ def test_a_bad_recording_path_is_one_line_before_anything_runs(tmp_path: Path) -
 @pytest.mark.slow
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
 def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_path: Path, stop: int) -> None:
-    """A real-time plant (no actor: it holds its start) publishes states at 50 Hz; srl record joins,
-    is stopped by SIGINT or SIGTERM, and leaves a complete file and one summary line."""
+    """Two real-time plants (no actor: each holds its start) publish states at 50 Hz; srl record
+    joins, is stopped by SIGINT or SIGTERM, and leaves one complete file of both and one summary line."""
     router = f"tcp/127.0.0.1:{free_port()}"
     path = tmp_path / "live.mcap"
     procs = [Proc("router", ["router", "--router", router])]
     try:
-        procs.append(
-            Proc(
-                "plant",
-                ["plant-sim", "--mode", "realtime", "--router", router, "--robot", "r7", "--start", "1,-0.5,0.3"],
-            )
-        )
+        for robot, start in (("r7", "1,-0.5,0.3"), ("r8", "-1,2,0")):  # a fleet: one file carries both
+            plant = ["plant-sim", "--mode", "realtime", "--router", router, "--robot", robot, "--start", start]
+            procs.append(Proc(robot, plant))
+        session = open_session(router)
+        try:  # both plants up before the recorder joins: then both are in the file from its start
+            for robot in ("r7", "r8"):
+                wait_until(
+                    lambda r=robot: any(x.ok for x in session.liveliness().get(f"srl/{r}/alive/plant", timeout=0.5)),
+                    60,
+                    f"plant {robot}",
+                )
+        finally:
+            session.close()
         recorder = Proc("record", ["record", str(path), "--router", router])
         procs.append(recorder)
         wait_until(lambda: any("srl record: recording" in line for line in recorder.stderr), 60, "the recorder")
@@ -198,18 +221,21 @@ def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_p
         time.sleep(1.5)  # ~75 states at 50 Hz
         assert recorder.stop(stop, timeout=20) == 0, recorder.stderr
         summary = [line for line in recorder.stdout if line.startswith("srl record: recorded")]
-        assert len(summary) == 1 and "r7" in summary[0], recorder.stdout
+        assert len(summary) == 1 and "2 robots: r7, r8" in summary[0], recorder.stdout
     finally:
         for proc in reversed(procs):
             proc.stop()
     check_rosbag2_layout(path)
-    odometry = read(path)["/r7/odom"]
-    assert len(odometry) >= 20
-    times = [t for t, _ in odometry]
-    assert times == sorted(times)
-    for _, m in odometry:
-        assert (m.pose.pose.position.x, m.pose.pose.position.y) == (1.0, -0.5)
-        assert math.isclose(2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w), 0.3, abs_tol=1e-12)
+    topics = read(path)
+    for robot, pose in (("r7", (1.0, -0.5, 0.3)), ("r8", (-1.0, 2.0, 0.0))):
+        odometry = topics[f"/{robot}/odom"]
+        assert len(odometry) >= 20
+        times = [t for t, _ in odometry]
+        assert times == sorted(times)
+        for _, m in odometry:
+            assert (m.pose.pose.position.x, m.pose.pose.position.y) == pose[:2]
+            yaw = 2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w)
+            assert math.isclose(yaw, pose[2], abs_tol=1e-12)
 
 
 async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tuple[list[Any], dict[str, Any]]:
@@ -324,3 +350,27 @@ def test_srl_bench_loop_record_compares_the_loop_without_and_with_a_recorder() -
     assert "jitter p99 with recorder" in done.stdout
     refused = srl("bench", "loop", "--rounds", "2", "--seconds", "1", timeout=60)
     assert refused.returncode == 2 and "--rounds is for --record" in refused.stderr
+
+
+@pytest.mark.slow
+def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path) -> None:
+    """What srl plot draws from a recording is what --plot draws from the run: the same states,
+    actions, costs, the weights the actor used at every step and each fit's TD residuals (all but
+    the last fit's: its weights were never used, so the recording has no message for it)."""
+    from common.assembly import run_episode
+    from common.settings import Settings
+    from tools.record import episode_recorder, read_episodes, record_episode
+
+    settings = Settings.load(actor={"agent": "rlqv", "jit": False}, episode={"start": [1.0, -1.5], "duration": 4.0})
+    episode = run_episode(settings)
+    recorder = episode_recorder(tmp_path / "e.mcap", 0.1, {"agent": "rlqv", "horizon": settings.actor.horizon})
+    record_episode(recorder, episode, "tb3_0", origin_ns=1_700_000_000_000_000_000)
+    recorder.close()
+    episodes, sampling_time = read_episodes(tmp_path / "e.mcap")
+    replayed = episodes["tb3_0"]
+    assert sampling_time == 0.1 and (replayed.agent, replayed.horizon) == ("rlqv", settings.actor.horizon)
+    for name in ("states", "actions", "q_weights", "v_weights"):
+        np.testing.assert_array_equal(np.array(getattr(replayed, name)), np.array(getattr(episode, name)), name)
+    np.testing.assert_array_equal(replayed.costs, episode.costs)
+    np.testing.assert_array_equal(np.array(replayed.td_residuals)[:-1], np.array(episode.td_residuals)[:-1])
+    assert replayed.accumulated_cost == episode.accumulated_cost

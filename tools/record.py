@@ -471,8 +471,8 @@ class Recorder:
 # -- an episode that ran in this process (srl run, the experiment) ----------------------
 def record_episode(recorder: Recorder, episode: Episode, robot: str, origin_ns: int, episode_id: int = 0) -> None:
     """Everything of one in-process episode: state s_k and step k at ``origin + k delta``, the
-    weights whenever they changed (version counted from 1; the residuals of the fit after step k
-    travel with the weights it produced), the solve time of every step."""
+    initial weights and those of every fit (version counted from 1; the residuals of the fit after
+    step k travel with the weights it produced, at step k + 1), the solve time of every step."""
     delta = recorder.delta_ns
     recorder.begin(robot, episode_id, origin_ns)
     recorder.target(origin_ns)
@@ -483,10 +483,10 @@ def record_episode(recorder: Recorder, episode: Episode, robot: str, origin_ns: 
         recorder.state(robot, episode_id, episode.states[k], t_ns)  # clock "steps": state k at origin + k delta
         if k < len(episode.q_weights):
             weights = (tuple(episode.q_weights[k]), tuple(episode.v_weights[k]))
-            if weights != previous:
+            residuals = episode.td_residuals[k - 1] if 0 < k <= len(episode.td_residuals) else (math.nan, math.nan)
+            if weights != previous or not math.isnan(residuals[0]):  # the initial weights, then every fit
                 version += 1
                 previous = weights
-                residuals = episode.td_residuals[k - 1] if 0 < k <= len(episode.td_residuals) else (math.nan, math.nan)
                 recorder.weights(robot, episode_id, version, k - 1, *weights, residuals, 0, t_ns)
         recorder.transition(robot, episode_id, k, episode.states[k], episode.actions[k], episode.costs[k], t_ns)
         counters = {"steps": float(k), "weights_version": float(version)}
