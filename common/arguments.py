@@ -77,6 +77,9 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "robot-bridge": TRANSPORT_FLAGS,
     "tb3-emulator": (*TRANSPORT_FLAGS, "start"),  # default initial pose
     "status": TRANSPORT_FLAGS,
+    # every robot is recorded / shown: no --robot
+    "record": ("config", "router"),
+    "view": ("config", "router"),
 }
 
 

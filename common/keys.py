@@ -74,6 +74,13 @@ ALL_KEYS = "srl/**"  # every key of srl (but the verbatim @adv chunks: see advan
 SERVICES = ("actor", "critic", "plant", "router")
 
 
+def every_robot(topic: Topic[M], **chunks: str) -> str:
+    """``topic`` of every robot (the robot chunk a wildcard): what a recorder or viewer subscribes to."""
+    for name, value in chunks.items():
+        check_chunk(value, name)
+    return topic.pattern.format(robot="*", **chunks)
+
+
 def liveliness_key(robot: str, service: str) -> str:
     """Liveliness token of one service of one robot: ``srl/<robot>/alive/<service>``."""
     return ALIVE.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"))

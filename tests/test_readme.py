@@ -52,6 +52,13 @@ COVERAGE: dict[str, str] = {
     "./srl experiment paper": "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out": "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",
     "./srl experiment paper --transport zenoh": "tests/test_experiment.py::test_zenoh_transport_gives_the_inproc_numbers (a reduced grid)",
+    "./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30 --record run.mcap": "tests/test_record.py::test_srl_run_and_srl_up_record_the_runs_trajectory_and_srl_plot_draws_it (--start 1.5,1 --duration 3, a temporary file)",
+    "./srl plot run.mcap": "tests/test_record.py::test_srl_run_and_srl_up_record_the_runs_trajectory_and_srl_plot_draws_it (the srl up recording, --out in a temporary directory)",
+    "./srl up --plant robot --duration 20 --record /tmp/robot.mcap": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6); tests/test_record.py::test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it",
+    "./srl record /tmp/fleet.mcap": "tests/test_record.py::test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal (a free router port, a temporary file)",
+    "./srl experiment paper --record paper.mcap": "tests/test_record.py::test_the_experiment_records_every_run_as_trajectories_npz_holds_it (a 2 x 2 grid, 2 s)",
+    "./srl view": "tests/test_record.py::test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_protocol (--port 0, a free router port)",
+    "./srl bench loop --record --seconds 30 --rounds 3": "tests/test_record.py::test_srl_bench_loop_record_compares_the_loop_without_and_with_a_recorder (--seconds 4 --rounds 1)",
 }
 
 

@@ -49,7 +49,27 @@ def cmd_run(args: argparse.Namespace) -> int:
     from common.assembly import episode_summary, run_episode
 
     settings = settings_from_args(args)
+    recorder = None
+    if args.record is not None and args.transport == "inproc":  # opened now: a bad path fails before the run
+        from tools.record import RecordingError, episode_recorder
+
+        try:
+            recorder = episode_recorder(
+                args.record,
+                settings.plant.sampling_time,
+                {"agent": settings.actor.agent, "horizon": settings.actor.horizon, "source": "srl run"},
+            )
+        except RecordingError as error:
+            raise UsageError(str(error)) from None
+    elif args.record is not None:
+        from tools.record import RecordingError, open_for_writing
+
+        try:
+            open_for_writing(args.record).close()
+        except RecordingError as error:
+            raise UsageError(str(error)) from None
     started = time.perf_counter()
+    origin_ns = time.time_ns()
     if args.transport == "zenoh":
         # The same Algorithm 1 through the real services: lockstep, synchronous critic.
         from common.loop import Episode
@@ -64,6 +84,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 sync_critic=True,
                 duration=settings.episode.duration,
                 quiet=not args.verbose,
+                record=args.record,
             )
         except (ServiceDiedError, TimeoutError) as error:
             raise UsageError(str(error)) from error
@@ -72,7 +93,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         )
     else:
         with stop_on_signals() as stop:
-            episode = run_episode(settings, stop=stop)
+            try:
+                episode = run_episode(settings, stop=stop)
+            except BaseException:
+                if recorder is not None:
+                    recorder.close()  # a valid (empty) file, never a torn one
+                raise
+        if recorder is not None:  # after the loop, from its trajectory: the loop never waits on the disk
+            from tools.record import record_episode
+
+            record_episode(recorder, episode, settings.transport.robot, origin_ns)
+            recorder.close()
         if stop.signum is not None:
             raise SignalledError(stop.signum)
         summary = episode_summary(episode, settings)
@@ -83,6 +114,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         plot_episode(episode, settings.plant.sampling_time, args.plot)
         summary["plot"] = str(args.plot)
+    if args.record is not None:
+        summary["recording"] = str(args.record)
     if not args.trajectory:
         summary.pop("trajectory", None)
     elif "trajectory" not in summary:
@@ -114,6 +147,8 @@ def format_run_summary(summary: dict[str, Any]) -> str:
     ]
     if "plot" in summary:
         lines.append(f"  plot           {summary['plot']}")
+    if summary.get("recording"):
+        lines.append(f"  recording      {summary['recording']} (MCAP, rosbag2 layout: srl plot FILE, Foxglove)")
     return "\n".join(lines)
 
 
@@ -235,6 +270,8 @@ def cmd_up(args: argparse.Namespace) -> int:
             secure=args.secure,
             on_status=show_status,
             summary_dir=summary_dir,
+            record=args.record,
+            view_port=args.view,
         )
     except Stopped as stopped:  # SIGINT, SIGTERM, SIGHUP: everything was stopped, credentials removed
         print(f"srl up: stopped by {stopped}: every service stopped", file=sys.stderr)
@@ -315,6 +352,8 @@ def format_up_summary(summary: dict[str, Any]) -> str:
         )
     if summary.get("summary_dir"):
         lines.append(f"  summaries      {summary['summary_dir']}/<service>.json")
+    if summary.get("recording"):
+        lines.append(f"  recording      {summary['recording']}")
     if "loop" in summary:
         period = summary["loop"]["period_ms"]
         lines.append(
@@ -325,6 +364,86 @@ def format_up_summary(summary: dict[str, Any]) -> str:
     if staleness:
         lines.append(f"  staleness      median {staleness['median']} max {staleness['max']} steps")
     return "\n".join(lines)
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """``srl plot FILE.mcap``: the figures of ``--plot``, from a recording."""
+    from tools.plots import plot_episode
+    from tools.record import RecordingError, read_episodes
+
+    try:
+        episodes, sampling_time = read_episodes(args.file)
+    except RecordingError as error:
+        raise UsageError(str(error)) from None
+    if args.robot is not None:
+        if args.robot not in episodes:
+            raise UsageError(f"{args.file}: no robot {args.robot!r} (robots: {', '.join(sorted(episodes)) or 'none'})")
+        episodes = {args.robot: episodes[args.robot]}
+    if not episodes:
+        raise UsageError(f"{args.file}: no robot's steps in this recording (no /<robot>/srl/transition messages)")
+    out = args.out or Path(args.file).with_suffix(".png")
+    for robot, episode in sorted(episodes.items()):
+        path = out if len(episodes) == 1 else out.with_name(f"{out.stem}-{robot}{out.suffix or '.png'}")
+        plot_episode(episode, sampling_time, path)
+        print(f"srl plot: {robot}: {episode.steps} steps, J = {episode.accumulated_cost:.4f} -> {path}", flush=True)
+    return 0
+
+
+# -- recordings and the live view (tools/record.py, tools/view.py: imported when they run) ----
+VIEW_PORT = 8765
+
+
+def add_record_arguments(parser: argparse.ArgumentParser) -> None:
+    """``srl record``'s options (here: building the parser never imports the recorder's libraries)."""
+    parser.add_argument(
+        "file",
+        type=Path,
+        nargs="?",
+        metavar="FILE.mcap",
+        help="the recording to write, replaced if it exists (default: srl-<UTC time>.mcap here)",
+    )
+    add_settings_arguments(parser, COMMAND_SETTINGS["record"])
+    parser.add_argument(
+        "--clock",
+        choices=["wall", "steps"],
+        default="wall",
+        help="wall: states stamped on arrival (a real-time system); steps: one state per step "
+        "at origin + k delta (a lockstep system) (default: wall)",
+    )
+    parser.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    parser.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
+
+
+def add_view_arguments(parser: argparse.ArgumentParser) -> None:
+    """``srl view``'s options (here: building the parser never imports foxglove)."""
+    add_settings_arguments(parser, COMMAND_SETTINGS["view"])
+    parser.add_argument(
+        "--port", type=int, default=VIEW_PORT, help=f"WebSocket port (0: any free one) (default: {VIEW_PORT})"
+    )
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind; keep loopback and reach it from elsewhere by an SSH tunnel (README) "
+        "(default: 127.0.0.1)",
+    )
+    parser.add_argument("--seconds", type=float, help="stop after this long (default: until Ctrl-C)")
+    parser.add_argument(
+        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+    )
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from tools.record import cmd_record as record
+
+    return record(args)
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from tools.view import cmd_view as view
+
+    return view(args)
 
 
 # -- srl bench -------------------------------------------------------------------------
@@ -388,6 +507,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PNG",
         help="write a figure: path, controls, costs and the critic's learning (weights, TD residuals) "
         "(default: no figure)",
+    )
+    run.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="write the episode to an MCAP file (rosbag2 layout, ROS 2 messages; srl plot FILE, Foxglove) "
+        "(default: no recording)",
     )
     run.set_defaults(func=cmd_run)
 
@@ -461,6 +587,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="write each service's JSON summary to DIR/<service>.json (default: a fresh directory "
         "under the system's temporary directory, named in the summary)",
     )
+    up.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="record every robot to an MCAP file (rosbag2 layout) with an srl record process (default: none)",
+    )
+    up.add_argument(
+        "--view",
+        type=int,
+        nargs="?",
+        const=VIEW_PORT,
+        metavar="PORT",
+        help="serve the run live to Foxglove (srl view) on ws://127.0.0.1:PORT; PORT defaults to 8765 "
+        "(default: no live view)",
+    )
     up.set_defaults(func=cmd_up)
 
     # srl bench KIND: each benchmark takes only its own options (an option it would ignore is refused)
@@ -508,6 +649,13 @@ def build_parser() -> argparse.ArgumentParser:
     loop_bench.add_argument(
         "--critic-load", action="store_true", help="the critic fits a replay of M = 1000 every step"
     )
+    loop_bench.add_argument(
+        "--record",
+        action="store_true",
+        help="compare: runs without and with a recorder (srl record), interleaved, --rounds pairs of "
+        "--seconds each; PASS if the jitter p99 with it is within 0.5 ms of without (default: no recorder)",
+    )
+    loop_bench.add_argument("--rounds", type=int, help="with --record: pairs of runs (without, with) (default: 2)")
 
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
@@ -543,6 +691,43 @@ def build_parser() -> argparse.ArgumentParser:
         "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
     )
     status.set_defaults(func=cmd_status)
+
+    # recordings and the live view (tools/record.py, tools/view.py)
+    record = command(
+        "record",
+        "join a running system over Zenoh and record every robot to an MCAP file until Ctrl-C",
+        "Join a running system (srl up, the containers) over Zenoh and record every robot to an MCAP\n"
+        "file in the rosbag2 layout (ROS 2 messages: /<robot>/odom, cmd_vel, path, srl/*) until Ctrl-C\n"
+        "or --seconds; SIGINT and SIGTERM close the file properly and print one summary line.",
+    )
+    add_record_arguments(record)
+    record.set_defaults(func=cmd_record)
+
+    plot = command(
+        "plot",
+        "draw the figures of --plot from a recording (one PNG per robot)",
+        "Draw the figures of srl run --plot (path, controls, costs, critic weights, TD residuals)\n"
+        "from an MCAP recording of srl run, srl up, srl record or the experiment: one PNG per robot.",
+    )
+    plot.add_argument("file", type=Path, metavar="FILE.mcap", help="a recording")
+    plot.add_argument(
+        "--out",
+        type=Path,
+        metavar="PNG",
+        help="the figure (one robot) or the stem of one figure per robot, <stem>-<robot>.png (default: FILE with .png)",
+    )
+    plot.add_argument("--robot", metavar="ID", help="only this robot (default: every robot in the file)")
+    plot.set_defaults(func=cmd_plot)
+
+    view = command(
+        "view",
+        "serve a running system live to Foxglove (WebSocket) until Ctrl-C",
+        "Serve a running system live to Foxglove through the Foxglove WebSocket protocol: every\n"
+        "robot's odometry, path, commands, costs, critic weights, solve time and tick jitter, as ROS 2\n"
+        "messages (the topics of srl record). Loopback only by default; open docs/foxglove-layout.json.",
+    )
+    add_view_arguments(view)
+    view.set_defaults(func=cmd_view)
 
     # srl experiment paper (tools/experiment/runner.py): the paper's grid of runs, ratios and plots
     from tools.experiment.runner import add_experiment_arguments, cmd_experiment

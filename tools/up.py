@@ -431,6 +431,8 @@ def run_up(
     secure: bool = False,
     on_status: Any = None,
     summary_dir: Path | None = None,
+    record: Path | None = None,
+    view_port: int | None = None,
 ) -> dict[str, Any]:
     """Start everything, run one actor episode/duration, stop everything; the merged summary.
 
@@ -447,8 +449,24 @@ def run_up(
     A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
     fresh private CA and one certificate per role in the same directory (common/certs.py).
 
+    ``record``: an ``srl record`` child writes every robot to this MCAP file (``--clock steps`` in
+    lockstep); ``view_port``: an ``srl view`` child serves the run to Foxglove on that loopback port.
+    Both start before the plant and stop after everything but the router, so they see it all.
+
     SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
     """
+    if secure and (record is not None or view_port is not None):
+        raise ValueError(
+            "--record and --view do not run with --secure yet: the read-only monitor role may read "
+            "only states and status, not the transitions and weights a recording carries"
+        )
+    if record is not None:  # a bad path is one line now, before anything starts
+        from tools.record import RecordingError, open_for_writing
+
+        try:
+            open_for_writing(record).close()
+        except RecordingError as error:
+            raise ValueError(str(error)) from None
     if plant not in ("sim", "robot", "physics"):
         raise ValueError(f"unknown plant {plant!r} (sim, robot or physics)")
     if plant == "robot" and mode != "realtime":
@@ -479,6 +497,8 @@ def run_up(
             guard,
             on_status,
             summary_dir,
+            record,
+            view_port,
         )
     return summary
 
@@ -497,6 +517,8 @@ def _run_up(
     guard: SignalGuard,
     on_status: Any,
     summary_dir: Path | None,
+    record: Path | None = None,
+    view_port: int | None = None,
 ) -> dict[str, Any]:
     common_args = [*settings_args]
     credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
@@ -526,6 +548,16 @@ def _run_up(
     try:
         supervisor.spawn("router", ["router", *common_args], role.get("router"))
         supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
+        observers = []  # srl record / srl view: subscribed before the first state is published
+        if record is not None:
+            clock = "steps" if mode == "lockstep" else "wall"
+            argv = ["record", str(record), "--clock", clock, *common_args]
+            observers.append(("recorder", argv, "srl record: recording"))
+        if view_port is not None:
+            observers.append(("view", ["view", "--port", str(view_port), *common_args], "srl view: serving"))
+        for name, argv, ready in observers:
+            child = supervisor.spawn(name, argv)
+            supervisor.wait_for(name, lambda c=child, r=ready: any(r in line for line in c.stderr_tail), timeout=30)
         if plant in ("sim", "physics"):
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
@@ -629,6 +661,13 @@ def _run_up(
             "resources": {name: parsed[name].resources if name in parsed else None for name in supervisor.children},
         }
     )
+    if record is not None:
+        merged["recording"] = str(record)
+        merged["recorder"] = next(
+            (line for line in supervisor.children["recorder"].stdout_lines if line.startswith("srl record:")), None
+        )
+    if view_port is not None:
+        merged["view"] = supervisor.children["view"].summary()
     if summary_dir is not None:
         merged["summary_dir"] = str(summary_dir)
         write_summaries(summary_dir, supervisor.children, merged)

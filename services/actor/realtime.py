@@ -345,6 +345,8 @@ class RealtimeActor:
             "weights_version": held_weights.version,
             "staleness_steps": self.staleness_steps.last if self.staleness_steps.count else 0.0,
             "solve_ms_last": solves.last * 1e3 if solves.count else 0.0,
+            # the newest tick's distance from its deadline (srl view and srl record plot it)
+            "jitter_ms_last": self.jitter.last * 1e3 if self.jitter.count else 0.0,
             "plant_sources": float(len(self.plant_gate.sources())),
             "plant_conflict": float(self.plant_gate.conflict),
             "lockout_suspect": float(self.lockout_suspect()),

@@ -12,9 +12,11 @@ import json
 import os
 from typing import Any
 
+from common.runtime import UsageError
 from common.settings import Settings
 from tools.up import run_up
 
+RECORD_JITTER_MARGIN_MS = 0.5  # a recorder may cost the loop's jitter p99 at most this much
 TARGETS = {"missed_deadlines": 0, "jitter_p99_ms": 2.0, "latency_p99_ms": 1.0, "staleness_median_steps": 1.0}
 
 
@@ -23,6 +25,10 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         # The children read settings from flags and environment: M goes by environment.
         os.environ["SRL_CRITIC__REPLAY_SIZE"] = "1000"
         settings = Settings.load(getattr(args, "config", None), **_overrides(settings))
+    if args.rounds is not None and not args.record:
+        raise UsageError("--rounds is for --record (pairs of runs without and with a recorder)")
+    if args.record:
+        return compare_recording(args, settings, settings_argv)
     load_before = os.getloadavg()
     summary = run_up(
         settings, settings_argv, mode="realtime", plant="sim", sync_critic=False, duration=args.seconds, quiet=True
@@ -107,3 +113,91 @@ def format_table(r: dict[str, Any]) -> str:
         )
     lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in r["targets"].items()))
     return "\n".join(lines)
+
+
+def compare_recording(args: argparse.Namespace, settings: Settings, settings_argv: list[str]) -> int:
+    """``--record``: runs without and with an ``srl record`` process, interleaved (without, with,
+    without, with, ...: the machine's load drifts alike over both), ``--seconds`` each; the loop's
+    tick jitter and period side by side, PASS if the mean jitter p99 with the recorder is within
+    :data:`RECORD_JITTER_MARGIN_MS` of the mean without."""
+    import tempfile
+    from pathlib import Path
+
+    rounds = 2 if args.rounds is None else args.rounds
+    if rounds < 1:
+        raise UsageError(f"--rounds must be >= 1, got {rounds}")
+    runs: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="srl-bench-record-") as directory:
+        for index in range(rounds):
+            for recording in (False, True):
+                path = Path(directory) / f"round{index}.mcap" if recording else None
+                load_before = os.getloadavg()[0]
+                summary = run_up(
+                    settings,
+                    settings_argv,
+                    mode="realtime",
+                    plant="sim",
+                    sync_critic=False,
+                    duration=args.seconds,
+                    quiet=True,
+                    record=path,
+                )
+                loop = summary["loop"]
+                runs.append(
+                    {
+                        "round": index,
+                        "record": recording,
+                        "steps": summary.get("steps"),
+                        "jitter_ms": loop["jitter_ms"],
+                        "period_ms": loop["period_ms"],
+                        "missed_deadlines": loop["missed_deadlines"],
+                        "solve_ms": summary.get("solve_ms"),
+                        "load": [load_before, os.getloadavg()[0]],
+                        "recorder": summary.get("recorder"),
+                        "recording_bytes": path.stat().st_size if path is not None and path.exists() else None,
+                    }
+                )
+
+    def mean_p99(recording: bool) -> float:
+        values = [r["jitter_ms"]["p99"] for r in runs if r["record"] is recording]
+        return sum(values) / len(values)
+
+    without, with_recorder = mean_p99(False), mean_p99(True)
+    result: dict[str, Any] = {
+        "seconds": args.seconds,
+        "rounds": rounds,
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+        "runs": runs,
+        "jitter_p99_ms": {"without": without, "with": with_recorder, "difference": with_recorder - without},
+        "machine": {"cpus": os.cpu_count()},
+        "targets": {
+            f"jitter p99 with recorder <= without + {RECORD_JITTER_MARGIN_MS} ms": (
+                "PASS" if with_recorder - without <= RECORD_JITTER_MARGIN_MS else "FAIL"
+            ),
+            "missed_deadlines == 0": "PASS" if all(r["missed_deadlines"] == 0 for r in runs) else "FAIL",
+        },
+    }
+    lines = [
+        f"srl bench loop --record: {rounds} x (without, with srl record), {args.seconds:.0f} s each, "
+        f"agent {result['agent']}, N = {result['horizon']}",
+        f"  {'round':<6} {'recorder':<9} {'steps':>6} {'jitter median':>14} {'p99':>8} {'max':>8} "
+        f"{'period p99':>11} {'missed':>7} {'load 1 min':>12}  recording",
+    ]
+    for r in runs:
+        j, p = r["jitter_ms"], r["period_ms"]
+        size = "" if r["recording_bytes"] is None else f"{r['recording_bytes'] / 1024:.0f} KiB"
+        lines.append(
+            f"  {r['round']:<6} {'with' if r['record'] else 'without':<9} {r['steps']:>6} {j['median']:>14.3f} "
+            f"{j['p99']:>8.3f} {j['max']:>8.3f} {p['p99']:>11.3f} {r['missed_deadlines']:>7} "
+            f"{r['load'][0]:>5.2f}->{r['load'][1]:<5.2f}  {size}"
+        )
+    lines.append(
+        f"  jitter p99 [ms], mean over rounds: without {without:.3f}, with {with_recorder:.3f} "
+        f"(difference {with_recorder - without:+.3f})"
+    )
+    lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in result["targets"].items()))
+    print("\n".join(lines))
+    if args.json:
+        print(json.dumps(result))
+    return 0

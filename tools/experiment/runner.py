@@ -289,6 +289,7 @@ class ExperimentOptions:
     plots: bool = True
     progress: bool = True
     command: str = ""
+    record: Path | None = None  # one MCAP file of every run (tools/record.py)
 
     def worker_count(self, runs: int) -> int:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -648,6 +649,30 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
     return summary
 
 
+def record_experiment(recorder: Any, rows: list[dict[str, Any]], arrays: dict[str, dict[str, np.ndarray]]) -> None:
+    """Every run that finished into one recording: run ``<run_id>`` is the robot ``/<run_id>/...``
+    (ROS-named: ``rlqv_N12_s000``), and every run starts at the same moment, so a player shows the
+    whole grid parking at once. States, actions and costs as trajectories.npz holds them (the
+    experiment keeps no per-step weights or solve times: those topics are absent)."""
+    from common.loop import Episode
+    from tools.record import record_episode
+
+    origin_ns = time.time_ns()
+    try:
+        for row in rows:
+            run = arrays[row["run_id"]]
+            episode = Episode(
+                agent=row["agent"],
+                horizon=row["horizon"],
+                states=list(run["states"]),
+                actions=list(run["actions"]),
+                costs=[float(c) for c in run["costs"]],
+            )
+            record_episode(recorder, episode, row["run_id"], origin_ns)
+    finally:
+        recorder.close()
+
+
 def prepare_output(out: Path, base: Settings) -> Path:
     """Create ``out``, remove our own stale files, write the resolved config; return its path."""
     out.mkdir(parents=True, exist_ok=True)
@@ -689,9 +714,26 @@ def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dic
     base = experiment_settings(base)
     starts = make_starts(options.starts, options.grid, options.extent, options.seed)
     specs = plan_runs(starts, options.agents, options.horizons)
+    recorder = None
+    if options.record is not None:  # created now: a bad path fails before the first run
+        from tools.record import episode_recorder
+
+        recorder = episode_recorder(
+            options.record,
+            base.plant.sampling_time,
+            {"source": "srl experiment", "command": options.command, "horizons": list(options.horizons)},
+        )
     config_path = prepare_output(options.out, base)
-    outcome = run_grid(options, base, specs, config_path)
+    try:
+        outcome = run_grid(options, base, specs, config_path)
+    except BaseException:
+        if recorder is not None:
+            recorder.close()  # a valid, empty recording: never a torn file
+        raise
     summary = write_outputs(options.out, options, base, outcome)
+    if recorder is not None:
+        record_experiment(recorder, sorted_rows(outcome.rows, options.agents, options.horizons), outcome.arrays)
+        summary["recording"] = str(options.record)
     if outcome.interrupted:
         return EXIT_INTERRUPTED, summary
     return (1 if outcome.error else 0), summary
@@ -748,6 +790,13 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="one MCAP recording (rosbag2 layout) of every run, each run a robot /<run_id>/..., all "
+        "starting together (default: none)",
+    )
 
 
 def _load_settings(args: argparse.Namespace) -> Settings:
@@ -786,13 +835,20 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             out=args.out or Path("out") / f"paper-{datetime.now(UTC):%Y%m%d-%H%M%S}",
             plots=not args.no_plots,
             progress=not args.no_progress,
+            record=args.record,
         )
         options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
         base = _load_settings(args)
     except ValueError as error:
         print(f"srl experiment: error: {error}", file=sys.stderr)
         return 2
-    code, summary = run_experiment(options, base)
+    from tools.record import RecordingError
+
+    try:
+        code, summary = run_experiment(options, base)
+    except RecordingError as error:
+        print(f"srl experiment: error: {error}", file=sys.stderr)
+        return 2
     print(summary_markdown(summary), end="")
     print(f"\nresults in {options.out}/", file=sys.stderr)
     if summary.get("error"):
@@ -826,4 +882,6 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         argv.append(f"--config={args.config}")
     if args.workers:
         argv.append(f"--workers={args.workers}")
+    if args.record is not None:
+        argv.append(f"--record={args.record}")
     return argv

@@ -1,0 +1,376 @@
+"""Recordings (issue 17), read back by readers that did not write them.
+
+srl writes CDR with ``rosbags`` into the ``mcap`` library's writer; these tests read with the
+``mcap`` reader and decode with ``mcap-ros2-support`` (its own CDR decoder, from the schema text in
+the file), and compare with what the run itself reported (``--json --trajectory``,
+``trajectories.npz``). The live view's test speaks the Foxglove WebSocket protocol with a plain
+``websockets`` client. Every process on a free loopback port, multicast scouting off (srl's
+default), stopped by pid.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import re
+import signal
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+from mcap.reader import make_reader
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+
+from tests.harness import ROOT, Proc, client_config, free_port, wait_until
+
+DELTA_NS = 100_000_000  # delta = 0.1 s
+
+
+def open_session(router: str) -> zenoh.Session:
+    """A client session of the router, once it accepts one (it was just started)."""
+    held: list[zenoh.Session] = []
+
+    def opened() -> bool:
+        try:
+            held.append(zenoh.open(client_config(router)))
+        except zenoh.ZError:
+            return False
+        return True
+
+    wait_until(opened, 60, f"the router at {router}")
+    return held[0]
+
+
+def srl(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", *argv], capture_output=True, text=True, cwd=ROOT, timeout=timeout
+    )
+
+
+def read(path: Path) -> dict[str, list[tuple[int, Any]]]:
+    """Every message of a recording, decoded by mcap-ros2-support, per topic: (log time, message)."""
+    topics: dict[str, list[tuple[int, Any]]] = {}
+    with path.open("rb") as file:
+        reader = make_reader(file, decoder_factories=[DecoderFactory()])
+        for _schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
+            topics.setdefault(channel.topic, []).append((message.log_time, decoded))
+    return topics
+
+
+def check_rosbag2_layout(path: Path) -> dict[str, Any]:
+    """Profile ros2, every schema a ros2msg definition, every channel cdr, the rosbag2 metadata
+    record whose counts are the file's; returns the metadata."""
+    with path.open("rb") as file:
+        reader = make_reader(file)
+        header = reader.get_header()
+        summary = reader.get_summary()
+        metadata = {record.name: record.metadata for record in reader.iter_metadata()}
+    assert header.profile == "ros2"
+    assert summary is not None and summary.statistics is not None
+    assert summary.schemas and all(s.encoding == "ros2msg" for s in summary.schemas.values())
+    assert all(c.message_encoding == "cdr" for c in summary.channels.values())
+    assert all("offered_qos_profiles" in c.metadata for c in summary.channels.values())
+    info = json.loads(metadata["rosbag2"]["serialized_metadata"])["rosbag2_bagfile_information"]
+    assert info["storage_identifier"] == "mcap"
+    counts = {summary.channels[i].topic: n for i, n in summary.statistics.channel_message_counts.items()}
+    assert {t["topic_metadata"]["name"]: t["message_count"] for t in info["topics_with_message_count"]} == counts
+    assert info["message_count"] == summary.statistics.message_count
+    return info
+
+
+def stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def check_steps(
+    topics: dict[str, list[tuple[int, Any]]], robot: str, states: np.ndarray, r_diag: list[float], total: float
+) -> None:
+    """One action and one transition per step, delta apart in sim time, the values of the run
+    (its states; its costs recomputed as delta r(s_k, u_k) from them and the recorded actions)."""
+    steps = len(states) - 1
+    transitions = topics[f"/{robot}/srl/transition"]
+    commands = topics[f"/{robot}/cmd_vel"]
+    assert len(transitions) == len(commands) == steps
+    actions = np.array([[m.twist.linear.x, m.twist.angular.z] for _, m in commands])
+    chi = np.hstack([states[:-1], actions])
+    costs = 0.1 * (chi**2) @ np.array(r_diag)
+    times = [t for t, _ in transitions]
+    assert np.all(np.diff(times) == DELTA_NS), "transitions are delta = 0.1 s apart"
+    assert [t for t, _ in commands] == times
+    assert all(stamp_ns(m.header) == t for t, m in transitions)
+    assert [m.step for _, m in transitions] == list(range(steps))
+    recorded = np.array([[m.x, m.y, m.alpha] for _, m in transitions])
+    np.testing.assert_allclose(recorded, states[:-1], rtol=0, atol=1e-9)
+    np.testing.assert_allclose([m.stage_cost for _, m in transitions], costs, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(transitions[-1][1].accumulated_cost, total, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(actions, [[m.v, m.omega] for _, m in transitions])
+    odometry = topics[f"/{robot}/odom"]
+    assert len(odometry) == steps + 1  # s_0 .. s_steps, one per step (clock "steps")
+    assert np.all(np.diff([t for t, _ in odometry]) == DELTA_NS)
+    assert all(m.header.frame_id == "odom" and m.child_frame_id == "base_footprint" for _, m in odometry)
+    positions = np.array([[m.pose.pose.position.x, m.pose.pose.position.y] for _, m in odometry])
+    np.testing.assert_allclose(positions, states[:, :2], rtol=0, atol=1e-9)
+    yaw = np.array([2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w) for _, m in odometry])
+    np.testing.assert_allclose(np.remainder(yaw - states[:, 2] + math.pi, 2 * math.pi) - math.pi, 0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_srl_run_and_srl_up_record_the_runs_trajectory_and_srl_plot_draws_it(tmp_path: Path) -> None:
+    args = ["--agent", "rlqv", "--horizon", "12", "--start", "1.5,1", "--duration", "3", "--no-jit"]
+    run = srl("run", *args, "--json", "--trajectory", "--record", str(tmp_path / "run.mcap"))
+    assert run.returncode == 0, run.stderr
+    summary = json.loads(run.stdout.splitlines()[-1])
+    states = np.array(summary["trajectory"])
+    up = srl(
+        "up", "--mode", "lockstep", *args, "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "rec1",
+        "--json", "--summary-dir", str(tmp_path / "up"), "--record", str(tmp_path / "up.mcap"),
+    )  # fmt: skip
+    assert up.returncode == 0, up.stderr
+    up_summary = json.loads(up.stdout.splitlines()[-1])
+    assert up_summary["recording"] == str(tmp_path / "up.mcap") and "srl record: recorded" in up_summary["recorder"]
+    for name, robot in (("run.mcap", "tb3_0"), ("up.mcap", "rec1")):
+        path = tmp_path / name
+        info = check_rosbag2_layout(path)
+        topics = read(path)
+        # the lockstep services reproduce the in-process run bit for bit: both match its --json
+        check_steps(topics, robot, states, summary["settings"]["cost"]["r_diag"], summary["accumulated_cost"])
+        assert info["message_count"] > 0 and topics["/target"][0][1].pose.position.x == 0.0
+        weights = topics[f"/{robot}/srl/critic_weights"]
+        assert [m.version for _, m in weights] == sorted({m.version for _, m in weights}), "versions increase"
+        assert all(len(m.q_weights) == 15 and len(m.v_weights) == 6 for _, m in weights)
+        assert topics[f"/{robot}/path"][-1][1].poses, "the path"
+    plotted = srl("plot", str(tmp_path / "up.mcap"), "--out", str(tmp_path / "up.png"))
+    assert plotted.returncode == 0, plotted.stderr
+    assert (tmp_path / "up.png").stat().st_size > 10_000
+    assert f"J = {summary['accumulated_cost']:.4f}" in plotted.stdout
+
+
+@pytest.mark.slow
+def test_the_experiment_records_every_run_as_trajectories_npz_holds_it(tmp_path: Path) -> None:
+    out, path = tmp_path / "exp", tmp_path / "exp.mcap"
+    done = srl(
+        "experiment", "paper", "--grid", "2", "--duration", "2", "--agents", "mpc,rlqv+", "--horizons", "6",
+        "--workers", "1", "--no-plots", "--no-progress", "--out", str(out), "--record", str(path),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    check_rosbag2_layout(path)
+    topics = read(path)
+    settings = json.loads((out / "settings.json").read_text())
+    with np.load(out / "trajectories.npz") as npz:
+        runs, all_states, all_costs = list(npz["run_id"]), npz["states"], npz["costs"]
+    assert len(runs) == 8
+    origins = set()
+    for run_id, states, costs in zip(runs, all_states, all_costs, strict=True):
+        robot = re.sub(r"[^A-Za-z0-9_]", "_", str(run_id).replace("+", "plus"))  # a ROS name: rlqvplus_N6_s000
+        check_steps(topics, robot, states, settings["cost"]["r_diag"], float(np.sum(costs)))
+        origins.add(topics[f"/{robot}/srl/transition"][0][0])
+    assert len(origins) == 1, "every run starts at the same moment"
+
+
+def test_a_bad_recording_path_is_one_line_before_anything_runs(tmp_path: Path) -> None:
+    for argv in (
+        ["run", "--duration", "1", "--record", str(tmp_path / "missing" / "x.mcap")],
+        ["run", "--duration", "1", "--record", str(tmp_path / "x.bag")],
+        ["up", "--duration", "1", "--router", f"tcp/127.0.0.1:{free_port()}", "--record", str(tmp_path)],
+        ["record", str(tmp_path / "missing" / "x.mcap"), "--router", f"tcp/127.0.0.1:{free_port()}"],
+        ["plot", str(tmp_path / "none.mcap")],
+        # the monitor role may not read transitions and weights: refused before anything starts
+        ["up", "--secure", "--duration", "1", "--router", f"tcp/127.0.0.1:{free_port()}", "--view"],
+    ):
+        done = srl(*argv, timeout=60)
+        assert done.returncode == 2, (argv, done.stderr)
+        errors = [line for line in done.stderr.splitlines() if "error" in line.lower()]
+        assert len(errors) == 1 and ("record" in errors[0] or "recording" in errors[0]), done.stderr
+        assert "Traceback" not in done.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_path: Path, stop: int) -> None:
+    """Two real-time plants (no actor: each holds its start) publish states at 50 Hz; srl record
+    joins, is stopped by SIGINT or SIGTERM, and leaves one complete file of both and one summary line."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    path = tmp_path / "live.mcap"
+    procs = [Proc("router", ["router", "--router", router])]
+    try:
+        for robot, start in (("r7", "1,-0.5,0.3"), ("r8", "-1,2,0")):  # a fleet: one file carries both
+            plant = ["plant-sim", "--mode", "realtime", "--router", router, "--robot", robot, "--start", start]
+            procs.append(Proc(robot, plant))
+        session = open_session(router)
+        try:  # both plants up before the recorder joins: then both are in the file from its start
+            for robot in ("r7", "r8"):
+                wait_until(
+                    lambda r=robot: any(x.ok for x in session.liveliness().get(f"srl/{r}/alive/plant", timeout=0.5)),
+                    60,
+                    f"plant {robot}",
+                )
+        finally:
+            session.close()
+        recorder = Proc("record", ["record", str(path), "--router", router])
+        procs.append(recorder)
+        wait_until(lambda: any("srl record: recording" in line for line in recorder.stderr), 60, "the recorder")
+        wait_until(lambda: path.stat().st_size > 0, 10, "the file")
+        time.sleep(1.5)  # ~75 states at 50 Hz
+        assert recorder.stop(stop, timeout=20) == 0, recorder.stderr
+        summary = [line for line in recorder.stdout if line.startswith("srl record: recorded")]
+        assert len(summary) == 1 and "2 robots: r7, r8" in summary[0], recorder.stdout
+    finally:
+        for proc in reversed(procs):
+            proc.stop()
+    check_rosbag2_layout(path)
+    topics = read(path)
+    for robot, pose in (("r7", (1.0, -0.5, 0.3)), ("r8", (-1.0, 2.0, 0.0))):
+        odometry = topics[f"/{robot}/odom"]
+        assert len(odometry) >= 20
+        times = [t for t, _ in odometry]
+        assert times == sorted(times)
+        for _, m in odometry:
+            assert (m.pose.pose.position.x, m.pose.pose.position.y) == pose[:2]
+            yaw = 2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w)
+            assert math.isclose(yaw, pose[2], abs_tol=1e-12)
+
+
+async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tuple[list[Any], dict[str, Any]]:
+    """A plain WebSocket client speaking the Foxglove protocol: wait for ``topic``'s advertisement,
+    subscribe, decode ``want`` messages with mcap-ros2-support from the advertised schema."""
+    import websockets
+
+    async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], open_timeout=10) as socket:
+        assert socket.subprotocol == "foxglove.sdk.v1"
+        channel: dict[str, Any] | None = None
+        decoded: list[Any] = []
+        decoder = None
+        deadline = time.monotonic() + timeout
+        while len(decoded) < want:
+            frame = await asyncio.wait_for(socket.recv(), max(0.1, deadline - time.monotonic()))
+            if isinstance(frame, str):
+                message = json.loads(frame)
+                if message["op"] == "advertise" and channel is None:
+                    channel = next((c for c in message["channels"] if c["topic"] == topic), None)
+                    if channel is not None:
+                        assert channel["encoding"] == "cdr" and channel["schemaEncoding"] == "ros2msg"
+                        text = channel["schema"].encode()
+                        schema = Schema(id=1, name=channel["schemaName"], encoding="ros2msg", data=text)
+                        decoder = DecoderFactory().decoder_for("cdr", schema)
+                        subscribe = {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}
+                        await socket.send(json.dumps(subscribe))
+            elif frame[0] == 0x01:  # MessageData: subscription id, log time, payload
+                subscription, _log_time = struct.unpack_from("<IQ", frame, 1)
+                assert subscription == 7 and decoder is not None
+                decoded.append(decoder(bytes(frame[13:])))
+        assert channel is not None
+        return decoded, channel
+
+
+@pytest.mark.slow
+def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_protocol() -> None:
+    router = f"tcp/127.0.0.1:{free_port()}"
+    procs = [Proc("router", ["router", "--router", router])]
+    try:
+        for robot, start in (("v1", "1,-0.5,0.3"), ("v2", "-1.5,2,0")):  # one view carries every robot
+            procs.append(
+                Proc(robot, ["plant-sim", "--mode", "realtime", "--router", router, "--robot", robot, "--start", start])
+            )
+        view = Proc("view", ["view", "--router", router, "--port", "0", "--seconds", "60"])
+        procs.append(view)
+        wait_until(lambda: any("srl view: serving" in line for line in view.stderr), 60, "the view")
+        line = next(line for line in view.stderr if "srl view: serving" in line)
+        url = re.search(r"ws://127\.0\.0\.1:\d+", line)
+        assert url is not None, line  # bound to loopback by default
+        for robot, expected in (("v1", (1.0, -0.5, 0.3)), ("v2", (-1.5, 2.0, 0.0))):
+            poses, channel = asyncio.run(foxglove_poses(url.group(0), f"/{robot}/odom", 5, timeout=30))
+            assert channel["schemaName"] == "nav_msgs/msg/Odometry"
+            for odom in poses:
+                assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_footprint"
+                position, q = odom.pose.pose.position, odom.pose.pose.orientation
+                assert (position.x, position.y) == expected[:2]
+                assert math.isclose(2 * math.atan2(q.z, q.w), expected[2], abs_tol=1e-12)
+        assert view.stop(signal.SIGINT, timeout=20) == 0, view.stderr
+    finally:
+        for proc in reversed(procs):
+            proc.stop()
+
+
+def test_the_shipped_foxglove_layout_is_the_generated_one_and_names_recorded_topics(tmp_path: Path) -> None:
+    from tools.view import foxglove_layout
+
+    shipped = (ROOT / "docs" / "foxglove-layout.json").read_text()
+    assert shipped == foxglove_layout(["tb3_0"]), "regenerate: python -c 'from tools.view import foxglove_layout; ...'"
+    run = srl("run", "--duration", "1", "--no-jit", "--record", str(tmp_path / "r.mcap"), timeout=120)
+    assert run.returncode == 0, run.stderr
+    recorded = set(read(tmp_path / "r.mcap"))
+    named = set(re.findall(r'"(/[A-Za-z0-9_/]+)', shipped))
+    assert named <= recorded, named - recorded
+
+
+@pytest.mark.slow
+def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_path: Path) -> None:
+    """--plant robot: the emulated TurtleBot3's odometry, through the bridge, in real time."""
+    path = tmp_path / "robot.mcap"
+    up = srl(
+        "up", "--plant", "robot", "--duration", "6", "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "tb",
+        "--json", "--summary-dir", str(tmp_path / "up"), "--record", str(path),
+    )  # fmt: skip
+    assert up.returncode == 0, up.stderr[-3000:]
+    summary = json.loads(up.stdout.splitlines()[-1])
+    check_rosbag2_layout(path)
+    topics = read(path)
+    transitions, odometry = topics["/tb/srl/transition"], topics["/tb/odom"]
+    assert len(transitions) == len(topics["/tb/cmd_vel"]) == summary["steps"]
+    assert np.all(np.diff([t for t, _ in transitions]) == DELTA_NS)
+    assert len(odometry) > len(transitions)  # the robot's odometry rate (20 Hz) over the 10 Hz loop
+    times = [t for t, _ in odometry]
+    assert times == sorted(times)
+    last = odometry[-1][1].pose.pose.position
+    np.testing.assert_allclose([last.x, last.y], summary["final_state"][:2], atol=0.02)  # the same odometry
+    plotted = srl("plot", str(path), "--out", str(tmp_path / "robot.png"))
+    assert plotted.returncode == 0 and (tmp_path / "robot.png").exists(), plotted.stderr
+
+
+@pytest.mark.slow
+def test_srl_bench_loop_record_compares_the_loop_without_and_with_a_recorder() -> None:
+    done = srl(
+        "bench", "loop", "--record", "--seconds", "4", "--rounds", "1", "--json",
+        "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "benchrec",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout.splitlines()[-1])
+    assert [r["record"] for r in result["runs"]] == [False, True]
+    assert result["runs"][0]["recording_bytes"] is None and result["runs"][1]["recording_bytes"] > 1000
+    assert "srl record: recorded" in result["runs"][1]["recorder"]
+    assert set(result["jitter_p99_ms"]) == {"without", "with", "difference"}
+    assert "jitter p99 with recorder" in done.stdout
+    refused = srl("bench", "loop", "--rounds", "2", "--seconds", "1", timeout=60)
+    assert refused.returncode == 2 and "--rounds is for --record" in refused.stderr
+
+
+@pytest.mark.slow
+def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path) -> None:
+    """What srl plot draws from a recording is what --plot draws from the run: the same states,
+    actions, costs, the weights the actor used at every step and each fit's TD residuals (all but
+    the last fit's: its weights were never used, so the recording has no message for it)."""
+    from common.assembly import run_episode
+    from common.settings import Settings
+    from tools.record import episode_recorder, read_episodes, record_episode
+
+    settings = Settings.load(actor={"agent": "rlqv", "jit": False}, episode={"start": [1.0, -1.5], "duration": 4.0})
+    episode = run_episode(settings)
+    recorder = episode_recorder(tmp_path / "e.mcap", 0.1, {"agent": "rlqv", "horizon": settings.actor.horizon})
+    record_episode(recorder, episode, "tb3_0", origin_ns=1_700_000_000_000_000_000)
+    recorder.close()
+    episodes, sampling_time = read_episodes(tmp_path / "e.mcap")
+    replayed = episodes["tb3_0"]
+    assert sampling_time == 0.1 and (replayed.agent, replayed.horizon) == ("rlqv", settings.actor.horizon)
+    for name in ("states", "actions", "q_weights", "v_weights"):
+        np.testing.assert_array_equal(np.array(getattr(replayed, name)), np.array(getattr(episode, name)), name)
+    np.testing.assert_array_equal(replayed.costs, episode.costs)
+    np.testing.assert_array_equal(np.array(replayed.td_residuals)[:-1], np.array(episode.td_residuals)[:-1])
+    assert replayed.accumulated_cost == episode.accumulated_cost
