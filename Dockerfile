@@ -36,10 +36,10 @@ COPY . /src
 RUN python3 -m venv /opt/srl \
  && if ls /src/dist/wheels/srl-*.whl >/dev/null 2>&1; then \
       echo "srl image: installing from dist/wheels (offline, --no-index)"; \
-      /opt/srl/bin/python -m pip install --no-index --find-links /src/dist/wheels srl; \
+      /opt/srl/bin/python -m pip install --no-index --find-links /src/dist/wheels 'srl[physics]'; \
     else \
       echo "srl image: no dist/wheels: building srl and fetching its dependencies from PyPI"; \
-      /opt/srl/bin/python -m pip install --prefer-binary /src \
+      /opt/srl/bin/python -m pip install --prefer-binary '/src[physics]' \
       || { echo "srl image: the install from PyPI failed; without network, run docker/build-wheels first (README, Containers)" >&2; exit 1; }; \
     fi \
  && /opt/srl/bin/python -m pip uninstall --yes --quiet pip \

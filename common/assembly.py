@@ -16,6 +16,7 @@ from common.actor import ActorProblem, StackedActor
 from common.agents import learns
 from common.arrival import ArrivalRule, ArrivalTolerances
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
+from common.physics import PhysicsPlant
 from common.settings import Settings
 from common.stats import summarize
 from common.summaries import EpisodeSummary, TrueView
@@ -58,10 +59,12 @@ def build_actor(settings: Settings) -> StackedActor:
     )
 
 
-def build_plant(settings: Settings) -> ExactPlant | ActuatorPlant:
+def build_plant(settings: Settings) -> ExactPlant | ActuatorPlant | PhysicsPlant:
     """The in-process simulated robot of ``plant.model``: the exact unicycle or the TurtleBot3."""
     if settings.plant.model == "actuator":
         return ActuatorPlant(settings.turtlebot_params())
+    if settings.plant.model == "physics":
+        return PhysicsPlant(settings.turtlebot_params(), settings.physics_params())
     return ExactPlant()
 
 

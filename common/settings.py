@@ -27,6 +27,7 @@ from pydantic_settings import (
 from common.agents import Agent
 from common.dynamics import heading_away_from_target
 from common.features import quadratic_weights_for_diag
+from common.physics import PhysicsParams
 from common.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
@@ -77,8 +78,9 @@ class PlantSettings(_Section):
     sampling_time: float = Field(gt=0, description="delta [s]")
     v_max: float = Field(gt=0, description="[m/s]")
     omega_max: float = Field(gt=0, description="[rad/s]")
-    model: Literal["ideal", "actuator"] = Field(
-        description="ideal: the exact unicycle; actuator: a TurtleBot3's wheels and odometry ([actuator])"
+    model: Literal["ideal", "actuator", "physics"] = Field(
+        description="ideal: the exact unicycle; actuator: a TurtleBot3's wheels and odometry ([actuator]); "
+        "physics: a rigid-body TurtleBot3 in MuJoCo ([physics], the extra srl[physics])"
     )
 
     @field_validator("sampling_time", "v_max", "omega_max")
@@ -102,6 +104,18 @@ class ActuatorSettings(_Section):
     imu_heading: bool = Field(description="odometry heading from the IMU (ROBOTIS's use_imu)")
     substep: float = Field(gt=0, le=0.05, description="[s] internal integration step")
     seed: int = Field(ge=0)
+
+
+class PhysicsSettings(_Section):
+    """The MuJoCo TurtleBot3 Burger of plant.model = "physics" (common/physics.py, docs/turtlebot.md)."""
+
+    timestep: float = Field(gt=0, le=0.01, description="[s] MuJoCo's integration step")
+    tire_friction: float = Field(gt=0, le=10, description="sliding friction of the tyres on the floor")
+    caster_friction: float = Field(gt=0, le=10, description="sliding friction of the caster on the floor")
+    torque_max: float = Field(gt=0, le=100, description="[N m] each wheel motor's torque limit")
+    motor_friction: float = Field(ge=0, le=10, description="[N m] each wheel joint's dry friction")
+    odometry_period: float = Field(gt=0, le=0.1, description="[s] how often the encoders are integrated")
+    encoder_ticks: int = Field(ge=0, description="encoder ticks per wheel revolution (0: exact)")
 
 
 class CostSettings(_Section):
@@ -293,6 +307,7 @@ class Settings(BaseSettings):
 
     plant: PlantSettings
     actuator: ActuatorSettings
+    physics: PhysicsSettings
     cost: CostSettings
     critic: CriticSettings
     actor: ActorSettings
@@ -388,6 +403,10 @@ class Settings(BaseSettings):
             substep=a.substep,
             seed=a.seed,
         )
+
+    def physics_params(self) -> PhysicsParams:
+        """The MuJoCo plant's own constants: ``[physics]``."""
+        return PhysicsParams(**self.physics.model_dump())
 
     def as_dict(self) -> dict[str, Any]:
         """Every constant used, plus the derived discount, for printing with each result."""

@@ -60,7 +60,7 @@ class EpisodeSummary(_Summary):
     final_distance: float
     solve_ms: Quantiles
     solver_failures: int
-    plant_model: Literal["ideal", "actuator", "robot"] = Field(
+    plant_model: Literal["ideal", "actuator", "physics", "robot"] = Field(
         description="the simulated plant's model (settings plant.model); robot: a robot behind the bridge"
     )
     truth: TrueView | None = Field(description="None: the plant does not know the truth, only odometry is known")
@@ -188,7 +188,9 @@ class PlantSummary(_Summary):
 
     service: Literal["plant"] = "plant"
     mode: Literal["realtime", "lockstep"]
-    plant_model: Literal["ideal", "actuator"] = Field(description="plant.model: the unicycle or the TurtleBot3 model")
+    plant_model: Literal["ideal", "actuator", "physics"] = Field(
+        description="plant.model: the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3"
+    )
     final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended, as the robot reported it")
     true_final_state: list[float] = Field(description="[x m, y m, alpha rad]: where it truly was")
     saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
@@ -240,7 +242,9 @@ class EmulatorSummary(_Summary):
     attachment: str | None = Field(description="rmw_zenoh: compact or legacy; None with ros2dds")
     cmd_key: str
     odom_key: str
-    model: Literal["ideal", "actuator"] = Field(description="the unicycle or the TurtleBot3 model")
+    model: Literal["ideal", "actuator", "physics"] = Field(
+        description="the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3"
+    )
     final_pose: list[float] = Field(description="[x m, y m, theta rad] in the odom frame: the truth")
     final_odometry: list[float] = Field(description="[x m, y m, theta rad]: what its odometry reported")
     saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")

@@ -74,4 +74,4 @@ def test_bench_parking_runs_one_row_and_prints_the_typed_row(capsys: pytest.Capt
     assert robot.saturated_commands == 0
     assert any(line.lstrip().startswith("paper  actuator mpc") for line in out)
     assert any(line.lstrip().startswith("robot  actuator mpc") for line in out)
-    assert main(["bench", "parking", "--plants", "physics"]) == 2
+    assert main(["bench", "parking", "--plants", "gazebo"]) == 2

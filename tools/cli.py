@@ -566,9 +566,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_bridge_arguments(up)
     up.add_argument(
         "--plant",
-        choices=["sim", "robot"],
+        choices=["sim", "robot", "physics"],
         default="sim",
-        help="sim: plant_sim; robot: robot_bridge + tb3-emulator (or the robot at --robot-endpoint) (default: sim)",
+        help="sim: plant_sim (plant.model); physics: plant_sim with the MuJoCo TurtleBot3 (plant.model = physics); "
+        "robot: robot_bridge + tb3-emulator of plant.model (or the robot at --robot-endpoint) (default: sim)",
     )
     add_mode_argument(up)
     up.add_argument(
@@ -664,7 +665,7 @@ def build_parser() -> argparse.ArgumentParser:
     parking.add_argument("--agents", default="mpc,rlq,rlqv", help="comma-separated agents (default: mpc,rlq,rlqv)")
     parking.add_argument("--horizons", default="12", help="N of every run, one value (default: 12)")
     parking.add_argument(
-        "--plants", help="comma-separated plant models, ideal and/or actuator (default: ideal,actuator)"
+        "--plants", help="comma-separated plant models: ideal, actuator, physics (default: ideal,actuator,physics)"
     )
     parking.add_argument(
         "--methods",

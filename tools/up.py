@@ -12,11 +12,13 @@ way (children by pid, credentials removed) and ``srl up`` exits with 128 + the s
 (130, 143, 129). Every child gets ``SRL_PARENT_PID``: it dies with this process even when this
 process is killed with SIGKILL (common/lifeline.py).
 
-``--plant robot`` starts ``robot-bridge`` (and ``tb3-emulator`` unless a robot endpoint is
-configured) instead of ``plant-sim``; the bridge is stopped (and has commanded zero velocity)
-before everything else. The emulator runs as the robot's own Zenoh router on a free loopback port
-(as a real robot runs ``rmw_zenohd``) and the bridge talks to it there: when srl's router dies,
-the bridge still reaches the robot and stops it (the actor's liveliness token vanishes from the
+``--plant physics`` is ``plant-sim`` with ``plant.model = "physics"`` (the MuJoCo TurtleBot3,
+common/physics.py) for every child. ``--plant robot`` starts ``robot-bridge`` (and
+``tb3-emulator``, of ``plant.model``, unless a robot endpoint is configured) instead of
+``plant-sim``; the bridge is stopped (and has commanded zero velocity) before everything else. The
+emulator runs as the robot's own Zenoh router on a free loopback port (as a real robot runs
+``rmw_zenohd``) and the bridge talks to it there: when srl's router dies, the
+bridge still reaches the robot and stops it (the actor's liveliness token vanishes from the
 bridge's srl session within milliseconds).
 """
 
@@ -465,8 +467,8 @@ def run_up(
             open_for_writing(record).close()
         except RecordingError as error:
             raise ValueError(str(error)) from None
-    if plant not in ("sim", "robot"):
-        raise ValueError(f"unknown plant {plant!r} (sim or robot)")
+    if plant not in ("sim", "robot", "physics"):
+        raise ValueError(f"unknown plant {plant!r} (sim, robot or physics)")
     if plant == "robot" and mode != "realtime":
         raise ValueError(
             "--plant robot runs in real time only: lockstep steps plant_sim through its "
@@ -474,6 +476,9 @@ def run_up(
         )
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
+    if plant == "physics":  # plant_sim with the MuJoCo TurtleBot3 (every child sees the same settings)
+        env["SRL_PLANT__MODEL"] = "physics"
+        settings = settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
     supervisor = Supervisor(settings_args, env, quiet=quiet)
     robot_args = [*settings_args, *(bridge_args or [])]
     started = time.monotonic()
@@ -553,7 +558,7 @@ def _run_up(
         for name, argv, ready in observers:
             child = supervisor.spawn(name, argv)
             supervisor.wait_for(name, lambda c=child, r=ready: any(r in line for line in c.stderr_tail), timeout=30)
-        if plant == "sim":
+        if plant in ("sim", "physics"):
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
             robot_endpoint = settings.bridge.robot_endpoint
@@ -572,7 +577,7 @@ def _run_up(
                 role.get("robot_bridge"),
             )
         supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
-        supervisor.wait_for("plant" if plant == "sim" else "robot_bridge", alive_probe(settings, "plant"), timeout=60)
+        supervisor.wait_for("plant" if plant != "robot" else "robot_bridge", alive_probe(settings, "plant"), timeout=60)
         if plant == "robot":
             supervisor.wait_for(
                 f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "

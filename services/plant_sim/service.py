@@ -1,5 +1,6 @@
 """plant_sim: the simulated robot, ``plant.model``: the exact sample-and-hold unicycle (ideal)
-or a TurtleBot3's actuators and odometry (actuator, common/turtlebot.py). Its states carry the
+or a TurtleBot3's actuators and odometry (actuator, common/turtlebot.py; physics, the MuJoCo
+Burger of common/physics.py). Its states carry the
 reported pose (the odometry) and, since a simulator knows it, the true pose beside it.
 
 * lockstep: queryables ``plant/reset`` and ``plant/step`` (declared in this mode only: apply
@@ -26,6 +27,7 @@ from common.clock import Ticker
 from common.dynamics import exact_step
 from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
 from common.messages import Action, PlantState, ResetRequest, StepRequest
+from common.physics import PhysicsBot, simulated_robot
 from common.provenance import ActionGate, SourceGate
 from common.settings import Settings
 from common.summaries import PlantSummary
@@ -45,12 +47,16 @@ class SimulatedPlant:
         self.lock = threading.Lock()
         self.episode = 0
         self.state = settings.start_state()  # the true state (ideal: also the reported one)
-        # the actuator model: the TurtleBot3 whose odometry is reported (None: ideal)
-        self.robot = TurtleBot(settings.turtlebot_params(), self.state) if settings.plant.model == "actuator" else None
+        # the TurtleBot3 (actuator or physics model) whose odometry is reported (None: ideal)
+        self.robot = self._new_robot()
         self.held = np.zeros(2)
         self.seq = 0
         self.next_step = 0
         self._last_reply: tuple[tuple[int, int], PlantState] | None = None
+
+    def _new_robot(self) -> TurtleBot | PhysicsBot | None:
+        s = self.settings
+        return simulated_robot(s.plant.model, s.turtlebot_params(), s.physics_params(), self.state)
 
     @property
     def reported(self) -> np.ndarray:
@@ -92,7 +98,7 @@ class SimulatedPlant:
             self.episode = request.episode
             self.state = np.asarray(request.state, dtype=float)
             if self.robot is not None:  # at rest at the start, odometry from there, slip re-seeded
-                self.robot = TurtleBot(self.robot.params, self.state)
+                self.robot = self._new_robot()
             self.held = np.zeros(2)
             self.next_step = 0
             self._last_reply = None

@@ -50,9 +50,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
     parser.add_argument(
         "--model",
-        choices=["ideal", "actuator"],
+        choices=["ideal", "actuator", "physics"],
         help="ideal: wheels reach the command at once, odometry = truth; actuator: a TurtleBot3's wheels "
-        "and encoder odometry ([actuator] settings, docs/turtlebot.md) (default: the settings' plant.model)",
+        "and encoder odometry ([actuator] settings, docs/turtlebot.md); physics: a rigid-body TurtleBot3 "
+        "in MuJoCo ([physics] settings) (default: the settings' plant.model)",
     )
     parser.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate (default: 20)")
     parser.add_argument(
@@ -96,6 +97,7 @@ def main(args: argparse.Namespace) -> int:
         session = connect_with_retry(
             lambda: zenoh.open(zenoh_config(settings.transport)), settings, "tb3-emulator", args.connect_timeout, stop
         )
+    robot_model = args.model or settings.plant.model
     v_max = ros_wire.TB3_BURGER_V_MAX if args.v_max is None else args.v_max
     omega_max = ros_wire.TB3_BURGER_OMEGA_MAX if args.omega_max is None else args.omega_max
     model = Tb3Model(
@@ -107,7 +109,8 @@ def main(args: argparse.Namespace) -> int:
         (args.noise[0], args.noise[1]),
         args.seed,
         time.monotonic(),
-        params=settings.turtlebot_params() if (args.model or settings.plant.model) == "actuator" else None,
+        params=None if robot_model == "ideal" else settings.turtlebot_params(),
+        physics=settings.physics_params() if robot_model == "physics" else None,
     )
     try:
         result = run(

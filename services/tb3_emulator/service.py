@@ -53,6 +53,7 @@ import zenoh
 from common import ros_wire
 from common.clock import Ticker
 from common.frames import Pose2D, quaternion_from_yaw
+from common.physics import PhysicsBot, PhysicsParams
 from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 from common.turtlebot import TurtleBot, TurtleBotParams, firmware_velocity
 
@@ -64,7 +65,8 @@ class Tb3Model:
 
     ``params`` None: the ideal robot (the OpenCR command path, then the exact unicycle, its
     odometry the truth); else the actuator model (``--model actuator``: saturation, deadband,
-    lag, slip, encoder odometry). Commands reach the wheels after ``latency``."""
+    lag, slip, encoder odometry), or with ``physics`` the MuJoCo Burger (``--model physics``).
+    Commands reach the wheels after ``latency``."""
 
     def __init__(
         self,
@@ -77,13 +79,18 @@ class Tb3Model:
         seed: int,
         now: float,
         params: TurtleBotParams | None = None,
+        physics: PhysicsParams | None = None,
     ) -> None:
         self.ideal = params is None
+        self.kind = "ideal" if params is None else "physics" if physics is not None else "actuator"
         if params is None:  # the firmware's conversion and limits, the wheels ideal
             params = dataclasses.replace(TurtleBotParams.ideal(v_max, omega_max), quantize=True)
         else:
             params = dataclasses.replace(params, v_max=v_max, omega_max=omega_max)
-        self.robot = TurtleBot(params, np.array([pose.x, pose.y, pose.theta], dtype=float))
+        start = np.array([pose.x, pose.y, pose.theta], dtype=float)
+        self.robot: TurtleBot | PhysicsBot = (
+            TurtleBot(params, start) if physics is None else PhysicsBot(params, physics, start)
+        )
         self.latency, self.cmd_timeout = latency, cmd_timeout
         self.noise = noise
         self.rng = np.random.default_rng(seed)
@@ -273,7 +280,7 @@ def run(
         "attachment": attachment if graph.profile == "rmw_zenoh" else None,
         "cmd_key": cmd_key,
         "odom_key": odom_key,
-        "model": "ideal" if model.ideal else "actuator",
+        "model": model.kind,
         "final_pose": [float(c) for c in model.state],  # the truth (odom frame)
         "final_odometry": [float(c) for c in model.odometry],  # what it reported
         "saturated_commands": model.robot.saturated_commands,

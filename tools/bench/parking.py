@@ -2,7 +2,7 @@
 
 In process and as fast as the CPU allows (Algorithm 1 with the in-process plant and critic,
 the lockstep semantics), five starts of the paper's 5 x 5 grid x the agents at one horizon x
-the plants (``plant.model``: ideal, actuator), 35 s each. One row per run: the TRUE final
+the plants (``plant.model``: ideal, actuator, physics), 35 s each. One row per run: the TRUE final
 distance, the one the robot reported (what srl saw), the span of the true position and the
 sign changes of ``v`` over the last 10 s (common/parking.py), J on the true and on the
 reported states, and the commands a wheel could not follow. Targets (issue 21): true final
@@ -33,10 +33,10 @@ from common.settings import METHODS, PAPER_METHOD, Settings
 STARTS: tuple[tuple[float, float], ...] = ((2.0, 2.0), (-2.0, 2.0), (-1.0, -2.0), (2.0, -1.0), (-2.0, 0.0))
 AGENTS = "mpc,rlq,rlqv"
 HORIZON = 12
-PLANTS = "ideal,actuator"
+PLANTS = "ideal,actuator,physics"
 METHOD_NAMES = ",".join(METHODS)  # paper (issue 21's robot settings off) and robot (srl.toml's)
 SECONDS = 35.0
-PlantModel = Literal["ideal", "actuator"]
+PlantModel = Literal["ideal", "actuator", "physics"]
 Method = Literal["paper", "robot"]
 
 
@@ -89,8 +89,8 @@ def parse_starts(text: str) -> list[tuple[float, float]]:
 def parse_plants(text: str) -> list[PlantModel]:
     plants: list[PlantModel] = []
     for name in text.split(","):
-        if name not in ("ideal", "actuator"):
-            raise ValueError(f"a plant is ideal or actuator, got {name!r}")
+        if name not in ("ideal", "actuator", "physics"):
+            raise ValueError(f"a plant is ideal, actuator or physics, got {name!r}")
         plants.append(name)  # type: ignore[arg-type]
     return plants
 

@@ -344,7 +344,10 @@ def _fmt_ratio(v: float | None) -> str:
 
 def summary_markdown(summary: dict[str, Any]) -> str:
     e, s = summary["experiment"], summary["settings"]
-    lines = [f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}", ""]
+    lines = [
+        f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}, plant {s['plant']['model']}",
+        "",
+    ]
     status = (
         "INTERRUPTED: partial results"
         if summary["interrupted"]

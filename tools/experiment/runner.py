@@ -770,6 +770,13 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
         "whatever the config says); robot: with them as configured ([actor] in srl.toml: on) (default: paper)",
     )
     parser.add_argument(
+        "--plant",
+        choices=["ideal", "actuator", "physics"],
+        default="ideal",
+        help="the simulated robot (plant.model): ideal, the paper's exact unicycle; actuator, the TurtleBot3 "
+        "model; physics, the MuJoCo TurtleBot3; J is on what the robot reported, true J beside it (default: ideal)",
+    )
+    parser.add_argument(
         "--config", type=Path, help="a TOML file overriding common/srl.toml (any subset) (default: none)"
     )
     parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
@@ -798,6 +805,7 @@ def _load_settings(args: argparse.Namespace) -> Settings:
     overrides: dict[str, Any] = json.loads(json.dumps(PAPER_METHOD)) if args.method == "paper" else {}
     if args.duration is not None:
         overrides["episode"] = {"duration": args.duration}
+    overrides["plant"] = {"model": args.plant}
     try:
         return Settings.load(args.config, **overrides)
     except ValidationError as error:
@@ -866,6 +874,7 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         f"--horizons={args.horizons}",
         f"--transport={args.transport}",
         f"--method={args.method}",
+        f"--plant={args.plant}",
     ]
     if args.duration is not None:
         argv.append(f"--duration={args.duration:g}")
