@@ -62,6 +62,12 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise UsageError(f"--port must be 0..65535, got {args.port}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise UsageError(f"--seconds must be a positive number, got {args.seconds}")
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        log.warning(
+            "view: serving on %s without authentication: whoever reaches the port sees every robot "
+            "(prefer the loopback default and an SSH tunnel, README)",
+            args.host,
+        )
     yield_cpu_to_the_loop()
     try:
         sink = FoxgloveSink(args.host, args.port)
