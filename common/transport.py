@@ -291,6 +291,21 @@ class Bus:
             del self._keep[kept:]
             raise _plant_conflict(robot, ahead)
 
+    def declare_sole_plants(self, robots: list[str], settle: float = PLANT_SETTLE_S) -> None:
+        """:meth:`declare_sole_plant` for every robot of a plant host (issue 16), with one settle
+        for all of them: a fleet of 100 starts in 0.3 s, not 30 s."""
+        kept = len(self._keep)
+        for robot in robots:
+            self.declare_alive(robot)
+        time.sleep(settle)
+        for robot in robots:
+            ahead = yields_to(self.zid, self.live_identities(robot, self.service))
+            if ahead:
+                for token in self._keep[kept:]:
+                    token.undeclare()
+                del self._keep[kept:]
+                raise _plant_conflict(robot, ahead)
+
     def live_identities(self, robot: str, service: str, timeout: float = 1.0) -> list[str]:
         """The session ids of every live identity token of ``service`` of ``robot`` (not ours)."""
         replies = self.session.liveliness().get(identity_pattern(robot, service), timeout=timeout)

@@ -30,7 +30,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from common.actor import StackedActor
+from common.actor import ActorCounters, ActorStep, StackedActor
 from common.agents import learns
 from common.clock import Ticker
 from common.features import stage_cost
@@ -61,6 +61,18 @@ class Counts(Protocol):
     def reject(self, what: str, reason: str) -> None: ...
 
 
+class Steps(Protocol):
+    """The actor a loop steps: a :class:`StackedActor`, or one robot's share of one
+    (services/actor/host.py's RobotActor)."""
+
+    @property
+    def counters(self) -> ActorCounters: ...
+
+    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep: ...
+
+    def reset(self) -> None: ...
+
+
 class RealtimeActor:
     """One robot's real-time actor. Feed it states (:meth:`on_state`), plant identities and
     tokens; :meth:`run` ticks until ``stop`` or the end; :meth:`status` and :meth:`summary`
@@ -69,7 +81,7 @@ class RealtimeActor:
     def __init__(
         self,
         settings: Settings,
-        actor: StackedActor,
+        actor: StackedActor | Steps,
         inbox: WeightsInbox,
         publish_action: Callable[[Action], None],
         publish_transition: Callable[[Transition], None],

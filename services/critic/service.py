@@ -58,6 +58,7 @@ from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
 CHECKPOINT_SCHEMA = 1
+MAX_BATCH = 1000  # transitions taken from the inbox at once (then one checkpoint for all of them)
 
 
 @dataclass
@@ -260,11 +261,14 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
     return True
 
 
-def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
+def run(
+    settings: Settings, bus: Bus, stop: threading.Event, duration: float | None, robots: list[str] | None = None
+) -> dict:
     learner = CriticLearner(settings)
     path = checkpoint_path(settings)
     restored = load_checkpoint(learner, path)
     checkpoint_seconds = Window()
+    batches = Window()  # transitions taken per batch
     publishers: dict[str, object] = {}
     inbox: queue.Queue[Transition] = queue.Queue()
 
@@ -282,7 +286,10 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     # srl/<id>/transition, with the history the actors' publishers cache (recovery after a
     # restart or a partition).
     bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot=settings.critic.robots), inbox.put, recover=True)
-    bus.declare_alive(settings.transport.robot)
+    # the critic of every robot it serves (a fleet's actors accept weights only from a live critic
+    # of their own robot: srl/<robot>/alive/critic/<zid>)
+    for robot in robots or [settings.transport.robot]:
+        bus.declare_alive(robot)
     start_status_thread(
         bus,
         settings.transport.robot,
@@ -307,18 +314,32 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             message = inbox.get(timeout=0.05)
         except queue.Empty:
             continue
-        continued = learner.confirm(message)
-        if continued is not None:
-            log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
-            publish(continued)
+        # Every transition waiting is taken in one batch (a fleet sends one per robot per step,
+        # issue 16): each is fitted, then ONE checkpoint holds them all, then the batch's weights
+        # go out. One robot alone gives batches of one: as before.
+        batch = [message]
+        while len(batch) < MAX_BATCH:
+            try:
+                batch.append(inbox.get_nowait())
+            except queue.Empty:
+                break
         before = learner.accepted
-        fitted = learner.on_transition(message)
+        outgoing: list[CriticWeights] = []
+        for message in batch:
+            continued = learner.confirm(message)
+            if continued is not None:
+                log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
+                publish(continued)
+            fitted = learner.on_transition(message)
+            if fitted is not None:
+                outgoing.append(fitted)
+        batches.append(len(batch))
         if learner.accepted > before and path is not None:
             # checkpoint first: a crash after it re-publishes these weights at restart
             started = time.perf_counter()
             atomic_write_json(path, learner.state())
             checkpoint_seconds.append(time.perf_counter() - started)
-        if fitted is not None:
+        for fitted in outgoing:
             publish(fitted)
 
     return CriticSummary.model_validate(
@@ -339,6 +360,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             "weights_published": bus.counters["weights_published"],
             "last_version": learner.version,
             "fit_ms": learner.fit_seconds.summary(1e3),
+            "batch_transitions": batches.summary(),
             "counters": dict(bus.counters),
         }
     ).to_json_dict()
