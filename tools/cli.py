@@ -215,6 +215,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
+    if args.robots is not None:  # a fleet (issue 16): tools/fleet.py
+        from tools.fleet_cli import cmd_up_fleet
+
+        return cmd_up_fleet(args, settings, settings_argv(args), summary_dir)
     started = time.monotonic()
 
     first_version: list[float] = []
@@ -461,6 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="write each service's JSON summary to DIR/<service>.json (default: a fresh directory "
         "under the system's temporary directory, named in the summary)",
     )
+    from tools.fleet_cli import add_fleet_arguments
+
+    add_fleet_arguments(up)
     up.set_defaults(func=cmd_up)
 
     # srl bench KIND: each benchmark takes only its own options (an option it would ignore is refused)
