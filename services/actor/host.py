@@ -41,6 +41,7 @@ from common.keys import ACTION, STATE, STATUS, TRANSITION, WEIGHTS
 from common.messages import ServiceStatus
 from common.provenance import SourceGate
 from common.settings import Settings
+from common.stats import Window
 from common.summaries import RealtimeActorSummary
 from common.transport import Bus
 from services.actor.ports import WeightsInbox, new_episode_id
@@ -156,6 +157,9 @@ class HostScheduler:
         for loop, ticker in zip(loops, self.tickers, strict=True):
             loop.ticker = ticker
         self.served = 0
+        self.started = start
+        self.lateness = Window()  # of every served tick, all robots: how long after its due time
+        self.warned = -1e9
 
     def run(self, end: float | None, manual_gc: bool = True) -> None:
         """Serve ticks until ``stop`` or until every robot's next tick is at or after ``end``;
@@ -185,7 +189,19 @@ class HostScheduler:
                 loop, ticker = self.loops[i], self.tickers[i]
                 previous = ticker.last_tick if ticker.index else None
                 now = self.clock()
+                missed = ticker.missed
                 k = ticker.serve(now)
+                self.lateness.append(now - due)
+                if ticker.missed != missed and now - self.warned >= 1.0:
+                    self.warned = now
+                    log.warning(
+                        "robot %s: tick %d served %.1f ms late (%.1f s into the run; missed deadlines %d)",
+                        loop.robot,
+                        k,
+                        1e3 * (now - due),
+                        now - self.started,
+                        ticker.missed,
+                    )
                 if previous is not None:
                     loop.periods.append(now - previous)
                     loop.jitter.append(abs(now - previous - self.period))
