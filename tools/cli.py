@@ -349,6 +349,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench.parking import run_parking_benchmark
 
         return run_parking_benchmark(args, settings_from_args(args))
+    if args.what == "fleet":
+        from tools.bench.fleet import run_fleet_benchmark
+
+        return run_fleet_benchmark(args, settings_from_args(args), settings_argv(args))
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
@@ -475,7 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
         "bench",
         "benchmarks that print a table (and JSON)",
         "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
-        "as the last stdout line): srl bench actor | loop | bridge | parking --help for each one's options.",
+        "as the last stdout line): srl bench actor | loop | bridge | parking | fleet --help for each one's options.",
     )
     kinds = bench.add_subparsers(dest="what", required=True, metavar="KIND")
 
@@ -516,6 +520,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--critic-load", action="store_true", help="the critic fits a replay of M = 1000 every step"
     )
 
+    fleet_bench = kind("fleet", "a fleet on one machine: host layout vs one process per robot, per fleet size")
+    fleet_bench.add_argument(
+        "--robots", default="1,8,16,32,50,100", help="fleet sizes of the host layout (default: 1,8,16,32,50,100)"
+    )
+    fleet_bench.add_argument(
+        "--baseline", default="8,16", help="fleet sizes of one process per robot, '' for none (default: 8,16)"
+    )
+    fleet_bench.add_argument("--seconds", type=float, default=30.0, help="real-time run per row [s] (default: 30)")
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
     bridge_bench.add_argument("--seconds", type=float, default=60.0, help="both phases together [s] (default: 60)")

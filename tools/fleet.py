@@ -171,6 +171,8 @@ def run_fleet(
     env.setdefault("PYTHONUNBUFFERED", "1")
     # the critic's checkpoint is written as in any run (its cost is part of the fleet's), but here
     env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
+    # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
+    env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     common = fleet_args(settings_args, router)
     supervisor = Supervisor(common, env, quiet=quiet)
     ids = ",".join(robots)
@@ -203,24 +205,26 @@ def run_fleet(
             ready = time.monotonic()
             cpu_before = cpu_of(pids)
             monitor = FleetMonitor(settings) if on_status is not None else None
-            memory = (0.0, 0.0)
+            # CPU and memory sampled while every actor still runs (a reaped process has no /proc entry)
+            memory, cpu_seconds, sampled = (0.0, 0.0), 0.0, ready
             try:
                 shown = 0
                 actor_names = {a.name for a in actors}
                 while any(a.process.poll() is None for a in actors):
                     supervisor.check(allowed_to_exit=actor_names)
-                    elapsed = time.monotonic() - ready
-                    if elapsed < duration - 1.0:
-                        memory = memory_of(pids)  # near the end, while every process still runs
-                    if monitor is not None and on_status is not None and int(elapsed) > shown:
-                        shown = int(elapsed)
-                        on_status(monitor.line(elapsed, len(robots)))
+                    now = time.monotonic()
+                    if all(a.process.poll() is None for a in actors):
+                        cpu_seconds, sampled = cpu_of(pids) - cpu_before, now
+                        if now - ready < duration - 1.0:
+                            memory = memory_of(pids)  # near the end, while every process still runs
+                    if monitor is not None and on_status is not None and int(now - ready) > shown:
+                        shown = int(now - ready)
+                        on_status(monitor.line(now - ready, len(robots)))
                     time.sleep(0.2)
             finally:
                 if monitor is not None:
                     monitor.close()
-            cpu_after = cpu_of(pids)
-            ran = time.monotonic() - ready
+            ran = sampled - ready
             for actor in actors:
                 if actor.process.returncode != 0:
                     supervisor.check()
@@ -240,12 +244,12 @@ def run_fleet(
             for robot in robots
         }
         view = fleet_view(per_robot)
-    use = ProcessUse(cpu_after - cpu_before, memory[0], memory[1], len(supervisor.children))
+    use = ProcessUse(cpu_seconds, memory[0], memory[1], len(supervisor.children))
     summary = {
         "layout": layout,
         "robots": robots,
         "seconds": duration,
-        "run_seconds": ran,
+        "run_seconds": ran,  # the span over which CPU was measured
         "circle_radius_m": circle,
         "agent": settings.actor.agent,
         "horizon": settings.actor.horizon,

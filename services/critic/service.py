@@ -28,6 +28,7 @@ Steps more than ``retention`` behind the newest step of the episode are refused 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
@@ -309,6 +310,7 @@ def run(
         path or "off",
     )
     end = None if duration is None else time.monotonic() + duration
+    written, dirty = -math.inf, False  # the last checkpoint write; accepted transitions since
     while not stop.is_set() and (end is None or time.monotonic() < end):
         try:
             message = inbox.get(timeout=0.05)
@@ -334,14 +336,18 @@ def run(
             if fitted is not None:
                 outgoing.append(fitted)
         batches.append(len(batch))
-        if learner.accepted > before and path is not None:
+        dirty = dirty or learner.accepted > before
+        if dirty and path is not None and time.monotonic() - written >= settings.critic.checkpoint_period:
             # checkpoint first: a crash after it re-publishes these weights at restart
             started = time.perf_counter()
             atomic_write_json(path, learner.state())
             checkpoint_seconds.append(time.perf_counter() - started)
+            written, dirty = time.monotonic(), False
         for fitted in outgoing:
             publish(fitted)
 
+    if dirty and path is not None:  # what came after the last periodic write
+        atomic_write_json(path, learner.state())
     return CriticSummary.model_validate(
         {
             "transitions_received": learner.received,
