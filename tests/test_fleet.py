@@ -234,3 +234,26 @@ def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: 
     assert summary["critic"]["transitions_received"] >= fleet["steps"] - 3
     assert summary["processes"] == (4 if layout == "host" else 2 + 2 * 3)
     assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
+
+
+# -- the critic behind a fleet --------------------------------------------------------------------
+
+
+def _transition(robot: str, step: int, episode: int = 1) -> Any:
+    from common.messages import Transition
+
+    return Transition(robot=robot, episode=episode, step=step, state=(1.0, 0.0, 0.0), action=(0.0, 0.0), cost=0.1)
+
+
+def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition() -> None:
+    from services.critic.service import CriticLearner, coalesced_fits
+
+    batch = [_transition("a", 0), _transition("b", 0), _transition("a", 1), _transition("b", 1), _transition("a", 2)]
+    assert coalesced_fits(batch, 1) == {0, 1, 2}
+    assert coalesced_fits([_transition("a", 0), _transition("a", 1, episode=2)], 1) == set()  # another episode
+    learner = CriticLearner(Settings.load())
+    superseded = coalesced_fits(batch, 1)
+    fitted = [learner.on_transition(m, fit=i not in superseded) for i, m in enumerate(batch)]
+    assert [f is not None for f in fitted] == [False, False, False, True, True]
+    assert [f.trained_step for f in fitted if f is not None] == [1, 2]
+    assert learner.fits_coalesced == 3 and learner.accepted == 5

@@ -145,6 +145,20 @@ def wait_fleet_alive(supervisor: Supervisor, settings: Settings, robots: list[st
         session.close()
 
 
+def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
+    """The robots of each actor host, in contiguous shares as even as can be: ``actor`` alone,
+    else ``actor-1`` .. ``actor-H`` (one per core: one host's solves run in one thread)."""
+    if hosts == 1:
+        return {"actor": list(robots)}
+    size, extra = divmod(len(robots), hosts)
+    shares, start = {}, 0
+    for h in range(hosts):
+        end = start + size + (h < extra)
+        shares[f"actor-{h + 1}"] = list(robots[start:end])
+        start = end
+    return shares
+
+
 def fleet_args(settings_args: list[str], router: str) -> list[str]:
     """The user's settings flags, without those the fleet sets per child, and the fleet's router."""
     return [a for a in settings_args if a.split("=", 1)[0] not in OWN_FLAGS] + [f"--router={router}"]
@@ -160,10 +174,13 @@ def run_fleet(
     quiet: bool = False,
     on_status: Callable[[str], None] | None = None,
     summary_dir: Path | None = None,
+    actor_hosts: int = 1,
 ) -> dict[str, Any]:
     """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
+    if not 1 <= actor_hosts <= len(robots):
+        raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
     router = free_loopback_endpoint()
     settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
     scratch = Path(tempfile.mkdtemp(prefix="srl-fleet-"))
@@ -195,7 +212,10 @@ def run_fleet(
             wait_fleet_alive(supervisor, settings, robots, "critic")
             run = ["--run-seconds", repr(duration)]
             if layout == "host":
-                actors = [supervisor.spawn("actor", ["actor", *common, f"--robots={ids}", *run])]
+                actors = [
+                    supervisor.spawn(name, ["actor", *common, f"--robots={','.join(share)}", *run])
+                    for name, share in host_shares(robots, actor_hosts).items()
+                ]
             else:
                 actors = [
                     supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run]) for robot in robots
@@ -235,9 +255,10 @@ def run_fleet(
         guard.raise_if_received()
     critic = TypeAdapter(CriticSummary).validate_python(supervisor.children["critic"].summary())
     if layout == "host":
-        host = FleetActorSummary.model_validate(supervisor.children["actor"].summary())
-        per_robot = host.per_robot
-        view = host.fleet
+        per_robot = {}
+        for name in host_shares(robots, actor_hosts):
+            per_robot.update(FleetActorSummary.model_validate(supervisor.children[name].summary()).per_robot)
+        view = fleet_view(per_robot)
     else:
         per_robot = {
             robot: RealtimeActorSummary.model_validate(supervisor.children[f"actor-{robot}"].summary())
@@ -251,6 +272,7 @@ def run_fleet(
         "seconds": duration,
         "run_seconds": ran,  # the span over which CPU was measured
         "circle_radius_m": circle,
+        "actor_hosts": actor_hosts if layout == "host" else len(robots),
         "agent": settings.actor.agent,
         "horizon": settings.actor.horizon,
         "fleet": view.to_json_dict(),
@@ -260,6 +282,7 @@ def run_fleet(
             "fit_ms": critic.fit_ms.to_json_dict(),
             "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
             "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
+            "fits_coalesced": critic.fits_coalesced,
         },
         "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
         "rss_mb": use.rss_mb,

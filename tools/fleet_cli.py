@@ -32,6 +32,13 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="R",
         help="with --robots: starts evenly on a circle of R metres around the target (default: 1.5)",
     )
+    parser.add_argument(
+        "--actor-hosts",
+        type=int,
+        default=1,
+        metavar="H",
+        help="with --robots (host layout): split the robots over H actor hosts, e.g. one per core (default: 1)",
+    )
 
 
 def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: list[str], summary_dir: Path) -> int:
@@ -40,6 +47,8 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
     assert robots is not None
     if args.plant != "sim" or args.secure:
         raise UsageError("--robots runs simulated robots without --secure (--plant sim) for now")
+    if not 1 <= args.actor_hosts <= len(robots):
+        raise UsageError(f"--actor-hosts {args.actor_hosts}: 1 to one per robot ({len(robots)})")
     if not (math.isfinite(args.circle) and args.circle > 0):
         raise UsageError(f"--circle {args.circle}: the start circle's radius must be a positive number of metres")
 
@@ -56,6 +65,7 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
         layout=args.layout,
         circle=args.circle,
         on_status=show,
+        actor_hosts=args.actor_hosts,
         summary_dir=summary_dir,
     )
     print(format_fleet_summary(summary))

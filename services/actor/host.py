@@ -38,12 +38,12 @@ from common.assembly import arrival_rule, build_actor
 from common.clock import LATE_FRACTION, Ticker
 from common.fleet_summary import FleetActorSummary, fleet_view
 from common.keys import ACTION, STATE, STATUS, TRANSITION, WEIGHTS
-from common.messages import ServiceStatus
+from common.messages import PlantState, ServiceStatus
 from common.provenance import SourceGate
 from common.settings import Settings
 from common.stats import Window
 from common.summaries import RealtimeActorSummary
-from common.transport import Bus
+from common.transport import Bus, Newest
 from services.actor.ports import WeightsInbox, new_episode_id
 from services.actor.realtime import RealtimeActor
 
@@ -147,8 +147,10 @@ class HostScheduler:
         *,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], bool] | None = None,
+        states: list[Newest[PlantState]] | None = None,
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
+        self.states = states  # each robot's newest state, taken at its tick (None: fed by on_state)
         self.clock = clock
         self.sleep = sleep or stop.wait
         start = clock()
@@ -191,6 +193,8 @@ class HostScheduler:
                 now = self.clock()
                 missed = ticker.missed
                 k = ticker.serve(now)
+                if self.states is not None and (newest := self.states[i].take()) is not None:
+                    loop.on_state(*newest)  # the newest state, judged and timed as it arrived
                 self.lateness.append(now - due)
                 if ticker.missed != missed and now - self.warned >= 1.0:
                     self.warned = now
@@ -258,6 +262,7 @@ def run_host(
     loops: list[RealtimeActor] = []
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
+    states: list[Newest[PlantState]] = []
     for robot in robots:
         own = robot_settings(settings, robot)
         count = RobotCounts(bus, robot)
@@ -276,7 +281,7 @@ def run_host(
             new_episode_id(),
         )
         bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
-        bus.subscribe(STATE, STATE.key(robot), loop.on_state, with_source=True)
+        states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
         bus.watch_alive(robot, "plant", loop.on_plant_token)
         loops.append(loop)
         counts.append(count)
@@ -296,7 +301,7 @@ def run_host(
     gc.collect()
     gc.freeze()
     try:
-        scheduler = HostScheduler(loops, settings.plant.sampling_time, stop)
+        scheduler = HostScheduler(loops, settings.plant.sampling_time, stop, states=states)
         end = None if duration is None else time.monotonic() + duration
         scheduler.run(end)
     finally:

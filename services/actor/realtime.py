@@ -148,7 +148,8 @@ class RealtimeActor:
                 ", ".join(self.plant_gate.sources()),
             )
 
-    def on_state(self, message: PlantState, source: str | None) -> None:
+    def on_state(self, message: PlantState, source: str | None, received: float | None = None) -> None:
+        """A state from session ``source``, which arrived at ``received`` (default: now)."""
         verdict = self.plant_gate.verdict(source)
         if verdict != "accept":
             self.counts.reject(
@@ -157,7 +158,7 @@ class RealtimeActor:
             return
         assert source is not None
         with self.lock:
-            now = self.clock()
+            now = self.clock() if received is None else received
             followed = self.episodes.get(source)
             if followed is None:  # the live plant session's first state: its episode is followed
                 self.episodes[source] = followed = message.episode

@@ -98,6 +98,7 @@ class CriticLearner:
         self.stale_episode = 0
         self.too_old = 0
         self.accepted = 0  # transitions that entered a replay
+        self.fits_coalesced = 0  # due fits left to a newer transition of the same robot in the batch
         self.resume = settings.critic.resume
         self.pending: set[str] = set()  # robots read from a checkpoint, their run not yet confirmed
         self.continued: set[str] = set()  # robots whose checkpointed learner continued (same run)
@@ -150,7 +151,9 @@ class CriticLearner:
         """A checkpoint's learner is in use: resumed on request, or continued within its run."""
         return bool(self.continued) or (self.resume and self.loaded)
 
-    def on_transition(self, message: Transition) -> CriticWeights | None:
+    def on_transition(self, message: Transition, fit: bool = True) -> CriticWeights | None:
+        """Into the robot's replay; fitted and the weights returned when a fit is due (and
+        ``fit``: False when a newer transition of the robot, due a fit too, is already waiting)."""
         self.received += 1
         learner = self.learners.get(message.robot)
         if learner is None or message.episode > learner.episode:
@@ -177,6 +180,9 @@ class CriticLearner:
                 learner.seen = {step for step in learner.seen if step > floor}
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
         if not fit_due(message.step, self.settings.critic.update_every):
+            return None
+        if not fit:
+            self.fits_coalesced += 1
             return None
         started = time.perf_counter()
         update = learner.critic.update(learner.replay)
@@ -237,6 +243,20 @@ class CriticLearner:
             trained = learner.replay.samples[-1].step if len(learner.replay) else -1
             messages.append(self._message(robot, learner, trained, 0.0, 0.0, 0))
         return messages
+
+
+def coalesced_fits(batch: list[Transition], update_every: int) -> set[int]:
+    """Indices of the batch's transitions whose due fit a later transition of the same robot and
+    episode, also due a fit, makes redundant."""
+    later: set[tuple[str, int]] = set()
+    superseded: set[int] = set()
+    for index in range(len(batch) - 1, -1, -1):
+        message = batch[index]
+        if fit_due(message.step, update_every):
+            if (message.robot, message.episode) in later:
+                superseded.add(index)
+            later.add((message.robot, message.episode))
+    return superseded
 
 
 def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
@@ -327,12 +347,15 @@ def run(
                 break
         before = learner.accepted
         outgoing: list[CriticWeights] = []
-        for message in batch:
+        # A critic that fell behind (a batch holds several transitions of a robot) fits each robot
+        # once, on its newest: its actor uses only the newest weights anyway.
+        superseded = coalesced_fits(batch, settings.critic.update_every)
+        for index, message in enumerate(batch):
             continued = learner.confirm(message)
             if continued is not None:
                 log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
                 publish(continued)
-            fitted = learner.on_transition(message)
+            fitted = learner.on_transition(message, fit=index not in superseded)
             if fitted is not None:
                 outgoing.append(fitted)
         batches.append(len(batch))
@@ -367,6 +390,7 @@ def run(
             "last_version": learner.version,
             "fit_ms": learner.fit_seconds.summary(1e3),
             "batch_transitions": batches.summary(),
+            "fits_coalesced": learner.fits_coalesced,
             "counters": dict(bus.counters),
         }
     ).to_json_dict()
