@@ -527,6 +527,13 @@ def build_parser() -> argparse.ArgumentParser:
     fleet_bench.add_argument(
         "--baseline", default="8,16", help="fleet sizes of one process per robot, '' for none (default: 8,16)"
     )
+    fleet_bench.add_argument(
+        "--actor-hosts",
+        default="auto",
+        metavar="H|auto",
+        help="actor processes of the host layout: a number, or auto = 1 below 50 robots, else one per core "
+        "(default: auto)",
+    )
     fleet_bench.add_argument("--seconds", type=float, default=30.0, help="real-time run per row [s] (default: 30)")
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)

@@ -45,6 +45,22 @@ def _sizes(text: str, option: str) -> list[int]:
     return sizes
 
 
+AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
+
+
+def actor_hosts(option: str, size: int) -> int:
+    """``--actor-hosts``: a number, or ``auto`` (one host below 50 robots, else one per core)."""
+    if option == "auto":
+        return 1 if size < AUTO_SPLIT_FROM else max(1, min(os.cpu_count() or 1, size))
+    try:
+        hosts = int(option)
+    except ValueError:
+        raise UsageError(f"--actor-hosts {option!r}: a number of actor processes, or auto") from None
+    if not 1 <= hosts <= size:
+        raise UsageError(f"--actor-hosts {hosts}: 1 to one per robot ({size})")
+    return hosts
+
+
 def checks(row: dict[str, Any]) -> dict[str, bool]:
     """The targets of a row's fleet size (none for other sizes)."""
     target = TARGETS.get(row["robots"])
@@ -68,14 +84,23 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
     baseline = _sizes(args.baseline, "--baseline") if args.baseline else []
     if not (math.isfinite(args.seconds) and 5 <= args.seconds <= 600):
         raise UsageError(f"--seconds {args.seconds}: a run is 5 to 600 s")
+    for size in hosts:
+        actor_hosts(args.actor_hosts, size)  # a bad value is refused before the first run
     plan = sorted([(n, "host") for n in hosts] + [(n, "process") for n in baseline])
     rows: list[dict[str, Any]] = []
     for size, layout in plan:
         load_before = os.getloadavg()
         started = time.monotonic()
         try:
+            split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
             summary = run_fleet(
-                settings, settings_argv, parse_robots(str(size)), args.seconds, layout=layout, quiet=True
+                settings,
+                settings_argv,
+                parse_robots(str(size)),
+                args.seconds,
+                layout=layout,
+                quiet=True,
+                actor_hosts=split,
             )
         except (ServiceDiedError, TimeoutError, ValueError) as error:
             summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
@@ -98,7 +123,7 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 
 HEADER = (
-    f"{'robots':>6} {'layout':<8} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
+    f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
     f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'procs':>5}  load before -> after  targets"
 )
 
@@ -106,11 +131,12 @@ HEADER = (
 def format_row(row: dict[str, Any]) -> str:
     load = f"{row['load_before'][0]:.2f} -> {row['load_after'][0]:.2f}"
     if "error" in row:
-        return f"{row['robots']:>6} {row['layout']:<8} failed: {row['error']}  (load {load})"
+        return f"{row['robots']:>6} {row['layout']:<10} failed: {row['error']}  (load {load})"
     f = row["fleet"]
+    layout = row["layout"] if row["layout"] == "process" else f"host x{row['actor_hosts']}"
     targets = ", ".join(f"{name}: {verdict}" for name, verdict in row["targets"].items()) or "-"
     return (
-        f"{row['robots']:>6} {row['layout']:<8} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
+        f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
         f"{f['parked']:>3}/{row['robots']:<3} {row['cpu_percent']:>6.0f} {row['rss_mb']:>7.0f} "
         f"{row['processes']:>5}  {load:<20} {targets}"
