@@ -5,6 +5,7 @@ bit), the host's earliest-deadline-first scheduler on a fake clock, the one-line
 
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
@@ -257,3 +258,38 @@ def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition
     assert [f is not None for f in fitted] == [False, False, False, True, True]
     assert [f.trained_step for f in fitted if f is not None] == [1, 2]
     assert learner.fits_coalesced == 3 and learner.accepted == 5
+
+
+@pytest.mark.slow
+def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up() -> None:
+    """``srl bench fleet`` in miniature: one host row and one baseline row, bounded, and no srl
+    process of it left behind (its children are in its own session: none may outlive it)."""
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "bench",
+            "fleet",
+            "--robots",
+            "2",
+            "--baseline",
+            "2",
+            "--seconds",
+            "5",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.strip().splitlines()
+    assert any(line.split()[:3] == ["2", "host", "x1"] for line in lines), done.stdout
+    assert any(line.split()[:2] == ["2", "process"] for line in lines), done.stdout
+    result = json.loads(lines[-1])
+    assert [(r["robots"], r["layout"]) for r in result["rows"]] == [(2, "host"), (2, "process")]
+    for row in result["rows"]:
+        assert row["fleet"]["robots"] == 2 and len(row["load_before"]) == 3 and row["rss_mb"] > 0
+        assert row["processes"] == (4 if row["layout"] == "host" else 2 + 2 * 2)
