@@ -190,6 +190,7 @@ def run_fleet(
     env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
     # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
     env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
+    env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
     common = fleet_args(settings_args, router)
     supervisor = Supervisor(common, env, quiet=quiet)
     ids = ",".join(robots)

@@ -347,9 +347,9 @@ def run(
                 break
         before = learner.accepted
         outgoing: list[CriticWeights] = []
-        # A critic that fell behind (a batch holds several transitions of a robot) fits each robot
-        # once, on its newest: its actor uses only the newest weights anyway.
-        superseded = coalesced_fits(batch, settings.critic.update_every)
+        # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
+        # robot) fits each robot once, on its newest: its actor uses only the newest weights anyway.
+        superseded = coalesced_fits(batch, settings.critic.update_every) if settings.critic.coalesce_fits else set()
         for index, message in enumerate(batch):
             continued = learner.confirm(message)
             if continued is not None:
