@@ -159,5 +159,10 @@ def test_srl_up_examples_run(command: str) -> None:
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    if "--robots" in argv:  # a fleet (README "Fleet"): every robot acted and came closer than its 1.5 m start
+        assert summary["fleet"]["robots"] == len(summary["robots"]) and summary["fleet"]["missed_deadlines"] >= 0
+        for row in summary["fleet"]["rows"]:
+            assert row["steps"] > 0 and row["final_distance_m"] < summary["circle_radius_m"], row
+        return
     start, final = summary["start_state"], summary["final_state"]
     assert math.hypot(*final[:2]) < math.hypot(*start[:2]), (start, final)

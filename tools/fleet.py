@@ -20,6 +20,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import tempfile
 import threading
 import time
@@ -38,7 +39,7 @@ from common.messages import ServiceStatus
 from common.settings import Settings
 from common.summaries import CriticSummary, RealtimeActorSummary
 from common.transport import zenoh_config
-from tools.up import SignalGuard, Supervisor, free_loopback_endpoint, router_reachable
+from tools.up import ServiceDiedError, SignalGuard, Supervisor, free_loopback_endpoint, router_reachable
 
 LAYOUTS = ("host", "process")
 # settings flags a fleet sets per child itself (the router is fresh, robots and starts its own)
@@ -143,6 +144,11 @@ def wait_fleet_alive(supervisor: Supervisor, settings: Settings, robots: list[st
         )
     finally:
         session.close()
+
+
+def exit_code(code: int | None) -> int | None:
+    """A child's exit code, its stop by our SIGINT counted as a clean end (0), as srl up does."""
+    return 0 if code == -signal.SIGINT else code
 
 
 def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
@@ -254,6 +260,9 @@ def run_fleet(
             supervisor.stop_all()
             shutil.rmtree(scratch, ignore_errors=True)
         guard.raise_if_received()
+    for name, child in supervisor.children.items():  # every service ended cleanly (as srl up checks)
+        if exit_code(child.process.returncode) != 0:
+            raise ServiceDiedError(name, child.process.returncode, child.stderr_tail[-10:])
     critic = TypeAdapter(CriticSummary).validate_python(supervisor.children["critic"].summary())
     if layout == "host":
         per_robot = {}
@@ -290,6 +299,8 @@ def run_fleet(
         "peak_rss_mb": use.peak_rss_mb,
         "processes": use.processes,
         "wall_seconds": time.monotonic() - started,
+        "services": {name: child.process.pid for name, child in supervisor.children.items()},
+        "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
     }
     if summary_dir is not None:
         summary_dir.mkdir(parents=True, exist_ok=True)
