@@ -186,6 +186,20 @@ class ActorCounters:
     solve_seconds: Window = field(default_factory=Window)
 
 
+@dataclass
+class ActorMemory:
+    """What one robot's actor carries from one step to the next: its last two plans (the warm
+    starts), its arrival rule and its counters. Everything else of a :class:`StackedActor` (the
+    compiled problem and its buffers, which every step rewrites completely before solving) holds
+    nothing between steps, so one built actor serves many robots, one step at a time, each with
+    its own memory (:meth:`StackedActor.swap_memory`; services/actor/host.py, issue 16)."""
+
+    previous_x: np.ndarray | None = None
+    earlier_x: np.ndarray | None = None
+    arrival: ArrivalRule | None = None
+    counters: ActorCounters = field(default_factory=ActorCounters)
+
+
 # The C compiler runs through this wrapper (CasADi's shell compiler calls system(), which
 # ignores SIGINT in the caller and holds the GIL until gcc ends: minutes at a large N). gcc gets
 # its own process group; the wrapper kills that group and removes the build directory when
@@ -504,6 +518,14 @@ class StackedActor:
         self._earlier_x = None
         if self.arrival is not None:
             self.arrival.reset()
+
+    def swap_memory(self, memory: ActorMemory) -> ActorMemory:
+        """Step on with ``memory`` (another robot's plans, arrival rule and counters); returns
+        the memory held until now. Not thread-safe: one step at a time per built actor."""
+        held = ActorMemory(self._previous_x, self._earlier_x, self.arrival, self.counters)
+        self._previous_x, self._earlier_x = memory.previous_x, memory.earlier_x
+        self.arrival, self.counters = memory.arrival, memory.counters
+        return held
 
     @property
     def arrived(self) -> bool:

@@ -70,6 +70,7 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "bench parking": ("config", "solver", "predictor", "no_jit"),
     "bench loop": ALL_FLAGS,
     "bench bridge": ALL_FLAGS,
+    "bench fleet": ("config", *ACTOR_FLAGS),  # robots, routers and starts are the fleet's own
     "actor": ALL_FLAGS,
     "router": TRANSPORT_FLAGS,
     "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts

@@ -73,6 +73,24 @@ def exact_step(state: FloatArray, action: FloatArray, duration: float) -> FloatA
     return np.array([x + chord * np.cos(mid_heading), y + chord * np.sin(mid_heading), alpha + omega * duration])
 
 
+def exact_steps(states: FloatArray, actions: FloatArray, duration: float) -> FloatArray:
+    """:func:`exact_step` of many robots at once: ``states`` (K, 3), ``actions`` (K, 2) -> (K, 3)
+    (the plant host steps a whole fleet per period, issue 16). The same formula, element-wise."""
+    states = np.asarray(states, dtype=float)
+    actions = np.asarray(actions, dtype=float)
+    half_turn = actions[:, 1] * duration / 2.0
+    chord = actions[:, 0] * duration * np.sinc(half_turn / np.pi)
+    mid_heading = states[:, 2] + half_turn
+    return np.stack(
+        [
+            states[:, 0] + chord * np.cos(mid_heading),
+            states[:, 1] + chord * np.sin(mid_heading),
+            states[:, 2] + actions[:, 1] * duration,
+        ],
+        axis=1,
+    )
+
+
 def heading_away_from_target(x: float, y: float) -> float:
     """The paper's start heading: turned away from the target at the origin.
 

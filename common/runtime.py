@@ -230,6 +230,32 @@ def add_lifetime_arguments(
     )
 
 
+def add_robots_argument(parser: argparse.ArgumentParser, what: str) -> None:
+    """--robots, as the actor host, the plant host, the critic and ``srl up`` take it (issue 16)."""
+    parser.add_argument(
+        "--robots",
+        metavar="IDS|K",
+        help=what + "comma-separated robot ids, or a count K for robot1..robotK (default: one robot, --robot)",
+    )
+
+
+def fleet_robots(args: argparse.Namespace) -> list[str] | None:
+    """The robots of ``--robots`` (None: not given); a bad list is a :class:`UsageError` (one line).
+    A fleet runs in real time: ``--mode lockstep`` with ``--robots`` is refused."""
+    from common.fleet import FleetError, parse_robots
+
+    text = getattr(args, "robots", None)
+    if text is None:
+        return None
+    try:
+        robots = parse_robots(text)
+    except FleetError as error:
+        raise UsageError(str(error)) from None
+    if getattr(args, "mode", "realtime") != "realtime":
+        raise UsageError("--robots runs in real time only (a fleet is not stepped in lockstep); use --mode realtime")
+    return robots
+
+
 def main(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
     """Parse, configure logging once, run the chosen ``func``; errors as one line and an exit code."""
     args = parser.parse_args(argv)

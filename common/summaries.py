@@ -142,6 +142,10 @@ class CriticSummary(_Summary):
     weights_published: int
     last_version: int
     fit_ms: Quantiles
+    batch_transitions: Quantiles | None = Field(
+        default=None, description="transitions taken per batch (one checkpoint each; a fleet's come together)"
+    )
+    fits_coalesced: int = Field(default=0, description="due fits left to a newer transition of the robot in the batch")
     counters: dict[str, float]
     resources: dict[str, Any] | None = None
 

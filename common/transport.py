@@ -13,7 +13,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Generic, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -224,6 +224,20 @@ class Bus:
         else:
             self._keep.append(self.session.declare_subscriber(key, on_sample))
 
+    def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
+        """Keep only the newest sample on ``key``, undecoded, with its source and arrival time
+        (monotonic); :meth:`Newest.take` decodes it when asked. For a host that serves many
+        robots at ``delta`` from states that come faster (issue 16): the callback on Zenoh's
+        thread only stores the bytes, and only the sample the loop uses is parsed."""
+        newest: Newest[M] = Newest(self, topic, what or topic.pattern.split("/", 2)[-1])
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            stamp = sample.timestamp
+            newest.put(sample.payload.to_bytes(), None if stamp is None else str(stamp.get_id()), time.monotonic())
+
+        self._keep.append(self.session.declare_subscriber(key, on_sample))
+        return newest
+
     # -- queries ------------------------------------------------------------------------
     def serve(self, service: Service[M, R], robot: str, handler: Callable[[M], R]) -> None:
         """A queryable: each valid request gets the handler's reply; bad ones an error reply."""
@@ -291,6 +305,21 @@ class Bus:
             del self._keep[kept:]
             raise _plant_conflict(robot, ahead)
 
+    def declare_sole_plants(self, robots: list[str], settle: float = PLANT_SETTLE_S) -> None:
+        """:meth:`declare_sole_plant` for every robot of a plant host (issue 16), with one settle
+        for all of them: a fleet of 100 starts in 0.3 s, not 30 s."""
+        kept = len(self._keep)
+        for robot in robots:
+            self.declare_alive(robot)
+        time.sleep(settle)
+        for robot in robots:
+            ahead = yields_to(self.zid, self.live_identities(robot, self.service))
+            if ahead:
+                for token in self._keep[kept:]:
+                    token.undeclare()
+                del self._keep[kept:]
+                raise _plant_conflict(robot, ahead)
+
     def live_identities(self, robot: str, service: str, timeout: float = 1.0) -> list[str]:
         """The session ids of every live identity token of ``service`` of ``robot`` (not ours)."""
         replies = self.session.liveliness().get(identity_pattern(robot, service), timeout=timeout)
@@ -343,6 +372,36 @@ class Bus:
                 return
             time.sleep(0.05)
         raise TimeoutError(f"service {service!r} of robot {robot!r} not alive after {timeout} s")
+
+
+class Newest(Generic[M]):
+    """The newest sample of a :meth:`Bus.subscribe_newest` subscription (thread-safe)."""
+
+    def __init__(self, bus: Bus, topic: Topic[M], name: str) -> None:
+        self.bus, self.topic, self.name = bus, topic, name
+        self.lock = threading.Lock()
+        self.held: tuple[bytes, str | None, float] | None = None
+        self.replaced = 0  # samples overwritten before anyone took them
+
+    def put(self, payload: bytes, source: str | None, arrived: float) -> None:
+        with self.lock:
+            self.replaced += self.held is not None
+            self.held = (payload, source, arrived)
+
+    def take(self) -> tuple[M, str | None, float] | None:
+        """The newest sample since the last take, decoded (message, source, arrival), or None.
+        A payload that does not decode is counted and logged as :meth:`Bus.subscribe` does."""
+        with self.lock:
+            held, self.held = self.held, None
+        if held is None:
+            return None
+        try:
+            message = decode(self.topic.schema, held[0])
+        except MessageError as error:
+            self.bus.reject(self.name, str(error))
+            return None
+        self.bus.count(f"received.{self.name}")
+        return message, held[1], held[2]
 
 
 def _plant_conflict(robot: str, others: list[str]) -> PlantConflictError:

@@ -49,6 +49,8 @@ COVERAGE: dict[str, str] = {
     "export SRL_TRANSPORT__PASSWORD_FILE=~/srl-secrets/critic.password SRL_TRANSPORT__TLS_CA=~/srl-secrets/ca.pem": ADD_A_HOST,
     "export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key": ADD_A_HOST,
     "srl critic": ADD_A_HOST,
+    "./srl up --robots 50 --duration 30": "tests/test_fleet.py::test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot (3 robots, 8 s, run_fleet as srl up --robots runs it)",
+    "./srl bench fleet": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5)",
     "./srl experiment paper": "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out": "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",
     "./srl experiment paper --transport zenoh": "tests/test_experiment.py::test_zenoh_transport_gives_the_inproc_numbers (a reduced grid)",
@@ -164,5 +166,10 @@ def test_srl_up_examples_run(command: str) -> None:
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
+    if "--robots" in argv:  # a fleet (README "Fleet"): every robot acted and came closer than its 1.5 m start
+        assert summary["fleet"]["robots"] == len(summary["robots"]) and summary["fleet"]["missed_deadlines"] >= 0
+        for row in summary["fleet"]["rows"]:
+            assert row["steps"] > 0 and row["final_distance_m"] < summary["circle_radius_m"], row
+        return
     start, final = summary["start_state"], summary["final_state"]
     assert math.hypot(*final[:2]) < math.hypot(*start[:2]), (start, final)

@@ -250,6 +250,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
+    if args.robots is not None:  # a fleet (issue 16): tools/fleet.py
+        from tools.fleet_cli import cmd_up_fleet
+
+        return cmd_up_fleet(args, settings, settings_argv(args), summary_dir)
     started = time.monotonic()
 
     first_version: list[float] = []
@@ -464,6 +468,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench.parking import run_parking_benchmark
 
         return run_parking_benchmark(args, settings_from_args(args))
+    if args.what == "fleet":
+        from tools.bench.fleet import run_fleet_benchmark
+
+        return run_fleet_benchmark(args, settings_from_args(args), settings_argv(args))
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
@@ -602,6 +610,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the run live to Foxglove (srl view) on ws://127.0.0.1:PORT; PORT defaults to 8765 "
         "(default: no live view)",
     )
+    from tools.fleet_cli import add_fleet_arguments
+
+    add_fleet_arguments(up)
     up.set_defaults(func=cmd_up)
 
     # srl bench KIND: each benchmark takes only its own options (an option it would ignore is refused)
@@ -609,7 +620,7 @@ def build_parser() -> argparse.ArgumentParser:
         "bench",
         "benchmarks that print a table (and JSON)",
         "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
-        "as the last stdout line): srl bench actor | loop | bridge | parking --help for each one's options.",
+        "as the last stdout line): srl bench actor | loop | bridge | parking | fleet --help for each one's options.",
     )
     kinds = bench.add_subparsers(dest="what", required=True, metavar="KIND")
 
@@ -657,6 +668,21 @@ def build_parser() -> argparse.ArgumentParser:
     )
     loop_bench.add_argument("--rounds", type=int, help="with --record: pairs of runs (without, with) (default: 2)")
 
+    fleet_bench = kind("fleet", "a fleet on one machine: host layout vs one process per robot, per fleet size")
+    fleet_bench.add_argument(
+        "--robots", default="1,8,16,32,50,100", help="fleet sizes of the host layout (default: 1,8,16,32,50,100)"
+    )
+    fleet_bench.add_argument(
+        "--baseline", default="8,16", help="fleet sizes of one process per robot, '' for none (default: 8,16)"
+    )
+    fleet_bench.add_argument(
+        "--actor-hosts",
+        default="auto",
+        metavar="H|auto",
+        help="actor processes of the host layout: a number, or auto = 1 below 50 robots, else one per core "
+        "(default: auto)",
+    )
+    fleet_bench.add_argument("--seconds", type=float, default=30.0, help="real-time run per row [s] (default: 30)")
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
     bridge_bench.add_argument("--seconds", type=float, default=60.0, help="both phases together [s] (default: 60)")

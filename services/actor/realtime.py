@@ -30,7 +30,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from common.actor import StackedActor
+from common.actor import ActorCounters, ActorStep, StackedActor
 from common.agents import learns
 from common.clock import Ticker
 from common.features import stage_cost
@@ -61,6 +61,18 @@ class Counts(Protocol):
     def reject(self, what: str, reason: str) -> None: ...
 
 
+class Steps(Protocol):
+    """The actor a loop steps: a :class:`StackedActor`, or one robot's share of one
+    (services/actor/host.py's RobotActor)."""
+
+    @property
+    def counters(self) -> ActorCounters: ...
+
+    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep: ...
+
+    def reset(self) -> None: ...
+
+
 class RealtimeActor:
     """One robot's real-time actor. Feed it states (:meth:`on_state`), plant identities and
     tokens; :meth:`run` ticks until ``stop`` or the end; :meth:`status` and :meth:`summary`
@@ -69,7 +81,7 @@ class RealtimeActor:
     def __init__(
         self,
         settings: Settings,
-        actor: StackedActor,
+        actor: StackedActor | Steps,
         inbox: WeightsInbox,
         publish_action: Callable[[Action], None],
         publish_transition: Callable[[Transition], None],
@@ -136,7 +148,8 @@ class RealtimeActor:
                 ", ".join(self.plant_gate.sources()),
             )
 
-    def on_state(self, message: PlantState, source: str | None) -> None:
+    def on_state(self, message: PlantState, source: str | None, received: float | None = None) -> None:
+        """A state from session ``source``, which arrived at ``received`` (default: now)."""
         verdict = self.plant_gate.verdict(source)
         if verdict != "accept":
             self.counts.reject(
@@ -145,7 +158,7 @@ class RealtimeActor:
             return
         assert source is not None
         with self.lock:
-            now = self.clock()
+            now = self.clock() if received is None else received
             followed = self.episodes.get(source)
             if followed is None:  # the live plant session's first state: its episode is followed
                 self.episodes[source] = followed = message.episode

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.runtime import add_lifetime_arguments, serve
+from common.runtime import add_lifetime_arguments, add_robots_argument, fleet_robots, serve
 
 NAME = "critic"
 HELP = "the off-board critic learner (TD least squares)"
@@ -16,15 +16,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_lifetime_arguments(
         parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
     )
+    add_robots_argument(parser, "also declare this critic alive for every robot of the list (a fleet): ")
     parser.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     from services.critic.service import run
 
+    robots = fleet_robots(args)
+
     return serve(
         settings_from_args(args),
         "critic",
         args.connect_timeout,
-        lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
+        lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds, robots),
     )

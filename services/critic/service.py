@@ -28,6 +28,7 @@ Steps more than ``retention`` behind the newest step of the episode are refused 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
@@ -58,6 +59,7 @@ from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
 CHECKPOINT_SCHEMA = 1
+MAX_BATCH = 1000  # transitions taken from the inbox at once (then one checkpoint for all of them)
 
 
 @dataclass
@@ -96,6 +98,7 @@ class CriticLearner:
         self.stale_episode = 0
         self.too_old = 0
         self.accepted = 0  # transitions that entered a replay
+        self.fits_coalesced = 0  # due fits left to a newer transition of the same robot in the batch
         self.resume = settings.critic.resume
         self.pending: set[str] = set()  # robots read from a checkpoint, their run not yet confirmed
         self.continued: set[str] = set()  # robots whose checkpointed learner continued (same run)
@@ -148,7 +151,9 @@ class CriticLearner:
         """A checkpoint's learner is in use: resumed on request, or continued within its run."""
         return bool(self.continued) or (self.resume and self.loaded)
 
-    def on_transition(self, message: Transition) -> CriticWeights | None:
+    def on_transition(self, message: Transition, fit: bool = True) -> CriticWeights | None:
+        """Into the robot's replay; fitted and the weights returned when a fit is due (and
+        ``fit``: False when a newer transition of the robot, due a fit too, is already waiting)."""
         self.received += 1
         learner = self.learners.get(message.robot)
         if learner is None or message.episode > learner.episode:
@@ -175,6 +180,9 @@ class CriticLearner:
                 learner.seen = {step for step in learner.seen if step > floor}
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
         if not fit_due(message.step, self.settings.critic.update_every):
+            return None
+        if not fit:
+            self.fits_coalesced += 1
             return None
         started = time.perf_counter()
         update = learner.critic.update(learner.replay)
@@ -237,6 +245,20 @@ class CriticLearner:
         return messages
 
 
+def coalesced_fits(batch: list[Transition], update_every: int) -> set[int]:
+    """Indices of the batch's transitions whose due fit a later transition of the same robot and
+    episode, also due a fit, makes redundant."""
+    later: set[tuple[str, int]] = set()
+    superseded: set[int] = set()
+    for index in range(len(batch) - 1, -1, -1):
+        message = batch[index]
+        if fit_due(message.step, update_every):
+            if (message.robot, message.episode) in later:
+                superseded.add(index)
+            later.add((message.robot, message.episode))
+    return superseded
+
+
 def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
     """Restore from ``path`` if it holds a usable checkpoint; an unusable one is set aside."""
     if path is None:
@@ -260,11 +282,14 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
     return True
 
 
-def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
+def run(
+    settings: Settings, bus: Bus, stop: threading.Event, duration: float | None, robots: list[str] | None = None
+) -> dict:
     learner = CriticLearner(settings)
     path = checkpoint_path(settings)
     restored = load_checkpoint(learner, path)
     checkpoint_seconds = Window()
+    batches = Window()  # transitions taken per batch
     publishers: dict[str, object] = {}
     inbox: queue.Queue[Transition] = queue.Queue()
 
@@ -282,7 +307,10 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     # srl/<id>/transition, with the history the actors' publishers cache (recovery after a
     # restart or a partition).
     bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot=settings.critic.robots), inbox.put, recover=True)
-    bus.declare_alive(settings.transport.robot)
+    # the critic of every robot it serves (a fleet's actors accept weights only from a live critic
+    # of their own robot: srl/<robot>/alive/critic/<zid>)
+    for robot in robots or [settings.transport.robot]:
+        bus.declare_alive(robot)
     start_status_thread(
         bus,
         settings.transport.robot,
@@ -302,25 +330,47 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         path or "off",
     )
     end = None if duration is None else time.monotonic() + duration
+    written, dirty = -math.inf, False  # the last checkpoint write; accepted transitions since
     while not stop.is_set() and (end is None or time.monotonic() < end):
         try:
             message = inbox.get(timeout=0.05)
         except queue.Empty:
             continue
-        continued = learner.confirm(message)
-        if continued is not None:
-            log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
-            publish(continued)
+        # Every transition waiting is taken in one batch (a fleet sends one per robot per step,
+        # issue 16): each is fitted, then ONE checkpoint holds them all, then the batch's weights
+        # go out. One robot alone gives batches of one: as before.
+        batch = [message]
+        while len(batch) < MAX_BATCH:
+            try:
+                batch.append(inbox.get_nowait())
+            except queue.Empty:
+                break
         before = learner.accepted
-        fitted = learner.on_transition(message)
-        if learner.accepted > before and path is not None:
+        outgoing: list[CriticWeights] = []
+        # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
+        # robot) fits each robot once, on its newest: its actor uses only the newest weights anyway.
+        superseded = coalesced_fits(batch, settings.critic.update_every) if settings.critic.coalesce_fits else set()
+        for index, message in enumerate(batch):
+            continued = learner.confirm(message)
+            if continued is not None:
+                log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
+                publish(continued)
+            fitted = learner.on_transition(message, fit=index not in superseded)
+            if fitted is not None:
+                outgoing.append(fitted)
+        batches.append(len(batch))
+        dirty = dirty or learner.accepted > before
+        if dirty and path is not None and time.monotonic() - written >= settings.critic.checkpoint_period:
             # checkpoint first: a crash after it re-publishes these weights at restart
             started = time.perf_counter()
             atomic_write_json(path, learner.state())
             checkpoint_seconds.append(time.perf_counter() - started)
-        if fitted is not None:
+            written, dirty = time.monotonic(), False
+        for fitted in outgoing:
             publish(fitted)
 
+    if dirty and path is not None:  # what came after the last periodic write
+        atomic_write_json(path, learner.state())
     return CriticSummary.model_validate(
         {
             "transitions_received": learner.received,
@@ -339,6 +389,8 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             "weights_published": bus.counters["weights_published"],
             "last_version": learner.version,
             "fit_ms": learner.fit_seconds.summary(1e3),
+            "batch_transitions": batches.summary(),
+            "fits_coalesced": learner.fits_coalesced,
             "counters": dict(bus.counters),
         }
     ).to_json_dict()

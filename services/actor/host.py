@@ -1,0 +1,321 @@
+"""The actor host (issue 16): one process serves many robots at ``delta``.
+
+Each robot has what a single actor has -- its own :class:`~services.actor.realtime.RealtimeActor`
+(state intake with provenance, weights inbox, statistics, transitions, staleness), its own plans
+and warm starts, arrival rule and counters (:class:`~common.actor.ActorMemory`), its own tick
+accounting (:class:`RobotTicker`) and its own keys (``srl/<robot>/action``, ``.../transition``,
+``.../status/actor``, liveliness ``.../alive/actor``). What they share is ONE built problem per
+(agent, N): :class:`RobotActor` swaps a robot's memory into the shared
+:class:`~common.actor.StackedActor` for its step. Every solve runs in one thread, the
+scheduler's, so the CasADi function and its buffers are never used by two robots at once (its
+buffers are the actor's own, rewritten before every solve: nothing leaks from one robot to the
+next, ``tests/test_fleet.py`` checks the actions against one actor per robot, bit for bit).
+
+Scheduling: robot ``i`` of ``K`` ticks at ``t0 + i delta / K + k delta`` (phases spread over the
+period, so the work is too), and :class:`HostScheduler` serves the robot whose tick is due first
+(earliest deadline first; ties by robot order): no robot waits for more than the others' work due
+before its own. A tick served more than a quarter period late is a missed deadline, as for one
+actor (common/clock.py); a tick more than a period late is skipped, counted as missed, and the
+robot's schedule moves on (no burst of catch-up ticks).
+"""
+
+from __future__ import annotations
+
+import gc
+import heapq
+import logging
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from common.actor import ActorCounters, ActorMemory, ActorProblem, ActorStep, StackedActor
+from common.assembly import arrival_rule, build_actor
+from common.clock import LATE_FRACTION, Ticker
+from common.fleet_summary import FleetActorSummary, fleet_view
+from common.keys import ACTION, STATE, STATUS, TRANSITION, WEIGHTS
+from common.messages import PlantState, ServiceStatus
+from common.provenance import SourceGate
+from common.settings import Settings
+from common.stats import Window
+from common.summaries import RealtimeActorSummary
+from common.transport import Bus, Newest
+from services.actor.ports import WeightsInbox, new_episode_id
+from services.actor.realtime import RealtimeActor
+
+log = logging.getLogger(__name__)
+
+
+def robot_settings(settings: Settings, robot: str) -> Settings:
+    """The settings of one robot of the fleet: the same, but its own id (its keys)."""
+    return settings.model_copy(update={"transport": settings.transport.model_copy(update={"robot": robot})})
+
+
+class RobotActor:
+    """One robot's share of a built actor: its own memory, the shared problem (one step at a time)."""
+
+    def __init__(self, shared: StackedActor, memory: ActorMemory) -> None:
+        self.shared = shared
+        self.memory = memory
+
+    @property
+    def problem(self) -> ActorProblem:
+        return self.shared.problem
+
+    @property
+    def counters(self) -> ActorCounters:
+        return self.memory.counters
+
+    @property
+    def arrived(self) -> bool:
+        return self.memory.arrival is not None and self.memory.arrival.arrived
+
+    def reset(self) -> None:
+        self.memory.previous_x = self.memory.earlier_x = None
+        if self.memory.arrival is not None:
+            self.memory.arrival.reset()
+
+    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep:
+        held = self.shared.swap_memory(self.memory)
+        try:
+            return self.shared.step(state, q_weights, v_weights)
+        finally:
+            self.memory = self.shared.swap_memory(held)
+
+
+class RobotCounts:
+    """One robot's counters (its status and summary); refusals are also logged through the bus."""
+
+    def __init__(self, bus: Bus, robot: str) -> None:
+        self.bus, self.robot = bus, robot
+        self.counters: Counter[str] = Counter()
+        self.lock = threading.Lock()
+
+    def count(self, name: str, amount: int = 1) -> None:
+        with self.lock:
+            self.counters[name] += amount
+
+    def reject(self, what: str, reason: str) -> None:
+        self.count(f"rejected.{what}")
+        self.bus.reject(what, f"robot {self.robot}: {reason}")
+
+
+class RobotTicker(Ticker):
+    """One robot's ticks in a host: tick ``k`` due at ``start + (k + 1) period`` (as
+    :class:`~common.clock.Ticker`), served by :class:`HostScheduler` instead of slept to."""
+
+    def __init__(self, period: float, start: float, late_fraction: float = LATE_FRACTION) -> None:
+        super().__init__(period, clock=lambda: start, late_fraction=late_fraction)
+
+    @property
+    def next_due(self) -> float:
+        return self.start + (self.index + 1) * self.period
+
+    def serve(self, now: float) -> int:
+        """The next tick is served at ``now``: its index ``k`` (missed and late ticks counted)."""
+        self.index += 1
+        due = self.start + self.index * self.period
+        if now - due >= self.period:  # whole periods passed: skip them, no catch-up burst
+            skipped = int((now - due) // self.period)
+            self.missed += skipped
+            self.index += skipped
+            due += skipped * self.period
+        if now - due > self.late_threshold:
+            self.missed += 1
+            self.late += 1
+        self.last_tick = now
+        return self.index - 1
+
+    def wait(self) -> float | None:
+        raise NotImplementedError("a host's robot ticks are served by HostScheduler")
+
+
+class HostScheduler:
+    """Serves many robots' ticks from one thread, earliest deadline first.
+
+    ``clock`` and ``sleep`` (``sleep(seconds) -> True`` to stop) are injectable, as for Ticker."""
+
+    def __init__(
+        self,
+        loops: list[RealtimeActor],
+        period: float,
+        stop: threading.Event,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], bool] | None = None,
+        states: list[Newest[PlantState]] | None = None,
+    ) -> None:
+        self.loops, self.period, self.stop = loops, period, stop
+        self.states = states  # each robot's newest state, taken at its tick (None: fed by on_state)
+        self.clock = clock
+        self.sleep = sleep or stop.wait
+        start = clock()
+        count = len(loops)
+        self.tickers = [RobotTicker(period, start + i * period / count) for i in range(count)]
+        for loop, ticker in zip(loops, self.tickers, strict=True):
+            loop.ticker = ticker
+        self.served = 0
+        self.started = start
+        self.lateness = Window()  # of every served tick, all robots: how long after its due time
+        self.warned = -1e9
+
+    def run(self, end: float | None, manual_gc: bool = True) -> None:
+        """Serve ticks until ``stop`` or until every robot's next tick is at or after ``end``;
+        then each robot's last action is zero. ``manual_gc``: as RealtimeActor.run, the young
+        generation collected once per round of all robots (the middle every 10, all every 600),
+        only when the next tick is not due within 2 ms."""
+        manual_gc = manual_gc and gc.isenabled() and os.environ.get("SRL_ACTOR_AUTOMATIC_GC") != "1"
+        if manual_gc:
+            gc.disable()
+        heap = [(ticker.next_due, i) for i, ticker in enumerate(self.tickers)]
+        heapq.heapify(heap)
+        rounds, pending_gc = 0, -1
+        try:
+            while not self.stop.is_set():
+                due, i = heap[0]
+                if end is not None and due >= end:
+                    break
+                wait = due - self.clock()
+                if wait > 0:
+                    if pending_gc >= 0 and wait > 0.002:
+                        gc.collect(pending_gc)
+                        pending_gc = -1
+                        continue
+                    if self.sleep(wait):
+                        break
+                heapq.heappop(heap)
+                loop, ticker = self.loops[i], self.tickers[i]
+                previous = ticker.last_tick if ticker.index else None
+                now = self.clock()
+                missed = ticker.missed
+                k = ticker.serve(now)
+                if self.states is not None and (newest := self.states[i].take()) is not None:
+                    loop.on_state(*newest)  # the newest state, judged and timed as it arrived
+                self.lateness.append(now - due)
+                if ticker.missed != missed and now - self.warned >= 1.0:
+                    self.warned = now
+                    log.warning(
+                        "robot %s: tick %d served %.1f ms late (%.1f s into the run; missed deadlines %d)",
+                        loop.robot,
+                        k,
+                        1e3 * (now - due),
+                        now - self.started,
+                        ticker.missed,
+                    )
+                if previous is not None:
+                    loop.periods.append(now - previous)
+                    loop.jitter.append(abs(now - previous - self.period))
+                loop.tick(k, now)
+                heapq.heappush(heap, (ticker.next_due, i))
+                self.served += 1
+                if manual_gc and self.served % len(self.loops) == 0:
+                    pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
+                    rounds += 1
+        finally:
+            if manual_gc:
+                gc.enable()
+        for loop, ticker in zip(self.loops, self.tickers, strict=True):  # on the way out: stop every robot
+            loop.send(ticker.index, (0.0, 0.0), -1)
+
+
+def _status_loop(
+    bus: Bus,
+    robots: list[str],
+    loops: list[RealtimeActor],
+    counts: list[RobotCounts],
+    period: float,
+    stop: threading.Event,
+) -> None:
+    publishers = [bus.publisher(STATUS, robot, service="actor") for robot in robots]
+    while not bus.closing.wait(period) and not stop.is_set():
+        for robot, loop, count, publish in zip(robots, loops, counts, publishers, strict=True):
+            with count.lock:
+                counters = {k: float(v) for k, v in count.counters.items()}
+            counters.update(loop.status())
+            publish(
+                ServiceStatus(
+                    robot=robot,
+                    service="actor",
+                    stamp_ns=time.monotonic_ns(),
+                    counters={k: v for k, v in counters.items() if v == v and abs(v) != float("inf")},
+                )
+            )
+
+
+def run_host(
+    settings: Settings, bus: Bus, robots: list[str], stop: threading.Event, duration: float | None
+) -> dict[str, Any]:
+    """The real-time loops of ``robots`` in this process, over one Zenoh session."""
+    started = time.monotonic()
+    shared = build_actor(settings)  # built once for every robot (one compiled problem per agent, N)
+    log.info(
+        "actor host: %d robots, %s N = %d, built in %.1f s",
+        len(robots),
+        settings.actor.agent,
+        settings.actor.horizon,
+        time.monotonic() - started,
+    )
+    loops: list[RealtimeActor] = []
+    counts: list[RobotCounts] = []
+    inboxes: list[WeightsInbox] = []
+    states: list[Newest[PlantState]] = []
+    for robot in robots:
+        own = robot_settings(settings, robot)
+        count = RobotCounts(bus, robot)
+        critic_gate = SourceGate("critic")
+        bus.watch_identities(robot, "critic", critic_gate)
+        inbox = WeightsInbox(own, bus, critic_gate)
+        bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
+        actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
+        loop = RealtimeActor(
+            own,
+            actor,
+            inbox,
+            bus.publisher(ACTION, robot),
+            bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
+            count,
+            new_episode_id(),
+        )
+        bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
+        states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
+        bus.watch_alive(robot, "plant", loop.on_plant_token)
+        loops.append(loop)
+        counts.append(count)
+        inboxes.append(inbox)
+    for robot, loop, inbox in zip(robots, loops, inboxes, strict=True):
+        bus.declare_alive(robot)
+        inbox.reset(loop.episode_id)
+    log.info("actor host ready: %d robots in %.1f s", len(robots), time.monotonic() - started)
+    status = threading.Thread(
+        target=_status_loop,
+        args=(bus, robots, loops, counts, settings.transport.status_period, stop),
+        name="actor-host-status",
+        daemon=True,
+    )
+    status.start()
+    bus.adopt(status)
+    gc.collect()
+    gc.freeze()
+    try:
+        scheduler = HostScheduler(loops, settings.plant.sampling_time, stop, states=states)
+        end = None if duration is None else time.monotonic() + duration
+        scheduler.run(end)
+    finally:
+        gc.unfreeze()
+    return host_summary(robots, loops, bus)
+
+
+def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus) -> dict[str, Any]:
+    per_robot = {
+        robot: RealtimeActorSummary.model_validate(loop.summary()) for robot, loop in zip(robots, loops, strict=True)
+    }
+    return FleetActorSummary(
+        robots=robots,
+        per_robot=per_robot,
+        fleet=fleet_view(per_robot),
+        counters={k: float(v) for k, v in bus.counters.items()},
+    ).to_json_dict()

@@ -1,0 +1,210 @@
+"""The plant host (issue 16): one ``srl plant-sim --robots ...`` process simulates many robots.
+
+Real time only. One timer at ``transport.state_rate``; each period every robot is advanced with
+its newest action held and its state published on ``srl/<robot>/state``. The ideal unicycle of
+the whole fleet is one numpy step (:func:`common.dynamics.exact_steps`); the TurtleBot3 models
+(``plant.model = actuator | physics``) step one :class:`SimulatedPlant` per robot. Each robot
+keeps what one plant_sim keeps: only its live actor session's actions, in order
+(:class:`~common.provenance.ActionGate`), the watchdog (zero velocity after
+``action_timeout_steps * delta`` without a fresh action, and at once when its actor vanishes),
+one plant per robot (a second plant of any robot of the list refuses to start), and the truth
+beside the reported state. Robots start on a circle around the target (common/fleet.py).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from common.clock import Ticker
+from common.dynamics import exact_steps
+from common.fleet import circle_starts
+from common.fleet_summary import FleetPlantSummary, PlantRow
+from common.keys import ACTION, STATE, STATUS
+from common.messages import Action, PlantState, ServiceStatus
+from common.provenance import ActionGate, SourceGate
+from common.settings import Settings
+from common.transport import Bus
+from services.plant_sim.service import SimulatedPlant
+
+log = logging.getLogger(__name__)
+
+
+class FleetPlant:
+    """K robots' states (transport-free). ``plant.model = ideal``: one (K, 3) array stepped at
+    once; otherwise one :class:`SimulatedPlant` (a TurtleBot3 model) per robot."""
+
+    def __init__(self, settings: Settings, robots: list[str], starts: np.ndarray) -> None:
+        self.robots = robots
+        self.bounds = np.array([settings.plant.v_max, settings.plant.omega_max])
+        self.lock = threading.Lock()
+        self.ideal = settings.plant.model == "ideal"
+        self.states = np.array(starts, dtype=float).reshape(len(robots), 3)
+        self.held = np.zeros((len(robots), 2))
+        self.seq = np.zeros(len(robots), dtype=np.int64)
+        self.plants: list[SimulatedPlant] = []
+        if not self.ideal:
+            for robot, start in zip(robots, self.states, strict=True):
+                own = settings.model_copy(
+                    update={
+                        "transport": settings.transport.model_copy(update={"robot": robot}),
+                        "episode": settings.episode.model_copy(update={"start": [float(c) for c in start]}),
+                    }
+                )
+                self.plants.append(SimulatedPlant(own))
+
+    def hold(self, index: int, action: tuple[float, float] | np.ndarray) -> None:
+        """The newest action of robot ``index`` (clamped to the robot's limits), held until the next."""
+        clamped = np.clip(np.asarray(action, dtype=float), -self.bounds, self.bounds)
+        with self.lock:
+            self.held[index] = clamped
+            if not self.ideal:
+                self.plants[index].hold(clamped)
+
+    def advance(self, duration: float) -> list[PlantState]:
+        """Every robot ``duration`` seconds on; their new state messages, in robot order."""
+        stamp = time.monotonic_ns()
+        with self.lock:
+            if not self.ideal:
+                return [plant.advance(duration) for plant in self.plants]
+            self.states = exact_steps(self.states, self.held, duration)
+            self.seq += 1
+            states, seqs = self.states.tolist(), self.seq.tolist()
+        return [
+            PlantState(
+                robot=robot,
+                episode=0,
+                seq=seq,
+                stamp_ns=stamp,
+                state=(s[0], s[1], s[2]),
+                source="sim",
+                true_state=(s[0], s[1], s[2]),
+                saturated_commands=0,
+            )
+            for robot, s, seq in zip(self.robots, states, seqs, strict=True)
+        ]
+
+    def reported(self, index: int) -> list[float]:
+        if self.ideal:
+            return [float(c) for c in self.states[index]]
+        return [float(c) for c in self.plants[index].reported]
+
+    def truth(self, index: int) -> list[float]:
+        if self.ideal:
+            return [float(c) for c in self.states[index]]
+        return [float(c) for c in self.plants[index].state]
+
+
+class RobotIntake:
+    """One robot's actions into the fleet plant: its gate, its watchdog clock, its counters."""
+
+    def __init__(self, plant: FleetPlant, index: int, bus: Bus) -> None:
+        self.plant, self.index, self.bus = plant, index, bus
+        self.robot = plant.robots[index]
+        self.gate = ActionGate(SourceGate("actor"))
+        self.lock = threading.Lock()
+        self.at: float | None = None
+        self.applied = 0
+        self.watchdog_stops = 0
+        self.actor_lost_stops = 0
+        self.refused = 0
+
+    def on_action(self, message: Action, source: str | None) -> None:
+        now = time.monotonic()
+        with self.lock:
+            refusal = self.gate.admit(message.episode, message.step, source, now)
+            if refusal is not None:
+                self.refused += 1
+                self.bus.reject(refusal[0], f"robot {self.robot}: {refusal[1]}")
+                return
+            self.plant.hold(self.index, message.action)
+            self.at = now
+            self.applied += 1
+
+    def on_actor_identity(self, zid: str, alive: bool) -> None:
+        with self.lock:
+            if not alive and self.gate.lost(zid):  # the followed actor is gone: stop at once
+                self.at = None
+                self.plant.hold(self.index, (0.0, 0.0))
+                self.actor_lost_stops += 1
+
+    def watchdog(self, now: float, timeout: float) -> None:
+        with self.lock:
+            if self.at is not None and now - self.at > timeout:
+                self.watchdog_stops += 1
+                self.at = None  # stopped: zero until the next fresh action
+                self.plant.hold(self.index, (0.0, 0.0))
+
+
+def run_plant_host(
+    settings: Settings, bus: Bus, robots: list[str], radius: float, stop: threading.Event, duration: float | None
+) -> dict[str, Any]:
+    starts = np.array(circle_starts(len(robots), radius))
+    plant = FleetPlant(settings, robots, starts)
+    for robot in robots:  # one plant per robot (issue 13), before declaring
+        bus.refuse_other_plant(robot)
+    publishers = [bus.publisher(STATE, robot) for robot in robots]
+    intakes = [RobotIntake(plant, i, bus) for i in range(len(robots))]
+    for robot, intake in zip(robots, intakes, strict=True):
+        bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
+        bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
+    bus.declare_sole_plants(robots)
+    status = threading.Thread(
+        target=_status_loop, args=(bus, plant, intakes, settings.transport.status_period, stop), daemon=True
+    )
+    status.start()
+    bus.adopt(status)
+    log.info("plant host ready: %d robots (%s), circle %.2f m", len(robots), settings.plant.model, radius)
+    period = 1.0 / settings.transport.state_rate
+    timeout = settings.transport.action_timeout_steps * settings.plant.sampling_time
+    ticker = Ticker(period, stop)
+    end = None if duration is None else time.monotonic() + duration
+    last = time.monotonic()
+    while (now := ticker.wait()) is not None and (end is None or now < end):
+        for intake in intakes:
+            intake.watchdog(now, timeout)
+        for publish, message in zip(publishers, plant.advance(now - last), strict=True):
+            publish(message)
+        last = now
+    bus.count("missed_ticks", ticker.missed)
+    return FleetPlantSummary(
+        robots=robots,
+        plant_model=settings.plant.model,
+        circle_radius_m=radius,
+        per_robot={
+            robot: PlantRow(
+                start_state=[float(c) for c in starts[i]],
+                final_state=plant.reported(i),
+                true_final_state=plant.truth(i),
+                actions_applied=intakes[i].applied,
+                actions_refused=intakes[i].refused,
+                watchdog_stops=intakes[i].watchdog_stops,
+                actor_lost_stops=intakes[i].actor_lost_stops,
+            )
+            for i, robot in enumerate(robots)
+        },
+        missed_ticks=ticker.missed,
+        counters={k: float(v) for k, v in bus.counters.items()},
+    ).to_json_dict()
+
+
+def _status_loop(bus: Bus, plant: FleetPlant, intakes: list[RobotIntake], period: float, stop: threading.Event) -> None:
+    publishers = [bus.publisher(STATUS, robot, service="plant") for robot in plant.robots]
+    while not bus.closing.wait(period) and not stop.is_set():
+        for i, (publish, intake) in enumerate(zip(publishers, intakes, strict=True)):
+            publish(
+                ServiceStatus(
+                    robot=plant.robots[i],
+                    service="plant",
+                    stamp_ns=time.monotonic_ns(),
+                    counters={
+                        "seq": float(plant.seq[i]) if plant.ideal else float(plant.plants[i].seq),
+                        "actions_applied": float(intake.applied),
+                        "watchdog_stops": float(intake.watchdog_stops),
+                    },
+                )
+            )

@@ -1,0 +1,295 @@
+"""A fleet on one machine (issue 16): robot lists, starts on a circle, the vectorized plant against
+the single-robot plant, one built actor shared by robots against one actor per robot (bit for
+bit), the host's earliest-deadline-first scheduler on a fake clock, the one-line refusals, and
+(slow) a 3-robot fleet of real processes: actor host, plant host, critic."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.actor import ActorCounters, ActorMemory
+from common.assembly import arrival_rule, build_actor
+from common.dynamics import exact_step, exact_steps
+from common.fleet import FleetError, circle_starts, parse_robots
+from common.fleet_summary import PARKED_WITHIN_M
+from common.settings import Settings
+from common.stats import Window
+from services.actor.host import HostScheduler, RobotActor, RobotTicker
+from services.plant_sim.host import FleetPlant
+
+# -- robot lists and starts -----------------------------------------------------------------
+
+
+def test_a_count_names_robot1_to_robot_k_and_a_list_keeps_its_order() -> None:
+    assert parse_robots("3") == ["robot1", "robot2", "robot3"]
+    assert parse_robots("b, a,c_2") == ["b", "a", "c_2"]
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("r1,r2,r1", "'r1' is given twice"),
+        ("r1,r/2", "'r/2' must be 1-64 characters"),
+        ("r1,,r2", "'' must be 1-64 characters"),
+        ("0", "1 to 1000 robots"),
+        ("1001", "1 to 1000 robots"),
+    ],
+)
+def test_a_bad_robot_list_is_refused_in_one_line(text: str, says: str) -> None:
+    with pytest.raises(FleetError) as error:
+        parse_robots(text)
+    assert says in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["actor", "--robots", "a,b,a"], "robot id 'a' is given twice"),
+        (["plant-sim", "--robots", "a,b*"], "robot id 'b*' must be"),
+        (["critic", "--robots", "x,x"], "robot id 'x' is given twice"),
+        (["actor", "--robots", "2", "--mode", "lockstep"], "real time only"),
+        (["up", "--robots", "a,a"], "robot id 'a' is given twice"),
+    ],
+)
+def test_the_commands_refuse_a_bad_fleet_in_one_line(argv: list[str], says: str) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "tools.cli", *argv], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and says in lines[0], done.stderr
+
+
+def test_starts_are_distinct_on_the_circle_and_head_away_from_the_target() -> None:
+    starts = np.array(circle_starts(7, 1.5))
+    assert np.allclose(np.hypot(starts[:, 0], starts[:, 1]), 1.5)
+    assert len({(round(x, 9), round(y, 9)) for x, y, _ in starts}) == 7
+    for x, y, alpha in starts:  # heading along the outward radius
+        assert math.cos(alpha) == pytest.approx(x / 1.5) and math.sin(alpha) == pytest.approx(y / 1.5)
+    with pytest.raises(FleetError):
+        circle_starts(3, 0.0)
+
+
+# -- the plant host ---------------------------------------------------------------------------
+
+
+def test_the_vectorized_unicycle_is_the_single_robot_exact_step() -> None:
+    rng = np.random.default_rng(16)
+    states = rng.uniform(-3, 3, (200, 3))
+    actions = np.column_stack([rng.uniform(-0.22, 0.22, 200), rng.uniform(-2.84, 2.84, 200)])
+    actions[:20, 1] = 0.0  # straight lines
+    actions[20:40, 1] = 1e-12  # and nearly straight ones
+    many = exact_steps(states, actions, 0.1)
+    one = np.array([exact_step(s, u, 0.1) for s, u in zip(states, actions, strict=True)])
+    assert np.allclose(many, one, rtol=0, atol=1e-14)
+
+
+def test_the_fleet_plant_holds_each_robots_action_clamped_and_reports_every_robot() -> None:
+    settings = Settings.load()
+    robots = ["a", "b", "c"]
+    starts = np.array(circle_starts(3, 1.5))
+    plant = FleetPlant(settings, robots, starts)
+    plant.hold(1, (5.0, -9.0))  # beyond the limits: clamped
+    messages = plant.advance(0.1)
+    assert [m.robot for m in messages] == robots and [m.seq for m in messages] == [1, 1, 1]
+    assert messages[0].state == tuple(starts[0]) and messages[2].state == tuple(starts[2])  # held at zero
+    expected = exact_step(starts[1], np.array([0.22, -2.84]), 0.1)
+    assert np.allclose(messages[1].state, expected, atol=1e-14)
+    assert messages[1].true_state == messages[1].state
+
+
+# -- one built actor, many robots -------------------------------------------------------------
+
+
+def test_robots_sharing_one_built_actor_act_as_one_actor_each_bit_for_bit() -> None:
+    settings = Settings.load(actor={"jit": False})
+    shared = build_actor(settings)
+    robots = [RobotActor(shared, ActorMemory(arrival=arrival_rule(settings))) for _ in range(2)]
+    alone = [build_actor(settings) for _ in range(2)]
+    q, v = settings.initial_q_weights(), settings.initial_v_weights()
+    states = [np.array(s) for s in circle_starts(2, 1.5)]
+    truth = [s.copy() for s in states]
+    for _ in range(25):  # interleaved: robot 0, robot 1, robot 0, ... on the shared problem
+        for i in range(2):
+            mine, theirs = robots[i].step(states[i], q, v), alone[i].step(truth[i], q, v)
+            assert np.array_equal(mine.action, theirs.action) and np.array_equal(mine.plan, theirs.plan)
+            states[i] = exact_step(states[i], mine.action, 0.1)
+            truth[i] = exact_step(truth[i], theirs.action, 0.1)
+    for i in range(2):
+        assert robots[i].counters.solves == alone[i].counters.solves == 25
+    robots[0].reset()
+    assert robots[0].memory.previous_x is None and robots[1].memory.previous_x is not None
+
+
+# -- the host's scheduler on a fake clock -------------------------------------------------------
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 50.0
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> bool:
+        self.now += seconds
+        return False
+
+
+@dataclass
+class FakeLoop:
+    """What HostScheduler uses of a RealtimeActor; each tick takes ``work`` seconds of the clock."""
+
+    robot: str
+    fake: FakeClock
+    served: list[tuple[str, int, float]]
+    work: float = 0.001
+    periods: Window = field(default_factory=Window)
+    jitter: Window = field(default_factory=Window)
+    ticker: Any = None
+    sent: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
+    counters: ActorCounters = field(default_factory=ActorCounters)
+
+    def tick(self, k: int, tick: float) -> None:
+        self.served.append((self.robot, k, tick))
+        self.fake.now += self.work
+
+    def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:
+        self.sent.append((k, action))
+
+
+def host(
+    count: int, work: float = 0.001
+) -> tuple[HostScheduler, list[FakeLoop], list[tuple[str, int, float]], FakeClock]:
+    fake = FakeClock()
+    served: list[tuple[str, int, float]] = []
+    loops = [FakeLoop(f"r{i}", fake, served, work) for i in range(count)]
+    scheduler = HostScheduler(loops, 0.1, threading.Event(), clock=fake.clock, sleep=fake.sleep)  # type: ignore[arg-type]
+    return scheduler, loops, served, fake
+
+
+def test_the_host_serves_every_robot_each_period_in_deadline_order_with_spread_phases() -> None:
+    scheduler, loops, served, fake = host(4)
+    start = fake.now
+    scheduler.run(end=start + 10 * 0.1 + 0.01, manual_gc=False)
+    assert [(r, k) for r, k, _ in served[:8]] == [
+        ("r0", 0),
+        ("r1", 0),
+        ("r2", 0),
+        ("r3", 0),
+        ("r0", 1),
+        ("r1", 1),
+        ("r2", 1),
+        ("r3", 1),
+    ]
+    for i, loop in enumerate(loops):
+        ticks = [t for r, _, t in served if r == loop.robot]
+        assert len(ticks) >= 9
+        assert ticks[0] == pytest.approx(start + 0.1 + i * 0.025)  # phase i delta / K
+        assert np.allclose(np.diff(ticks), 0.1)
+        assert loop.ticker.missed == 0 and loop.jitter.maximum == pytest.approx(0.0, abs=1e-9)
+        assert loop.sent[-1][1] == (0.0, 0.0)  # every robot stopped on the way out
+
+
+def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole_periods_are_skipped() -> None:
+    scheduler, loops, _, fake = host(2)
+    loops[0].work = 0.02  # r1 is due 0.05 after r0: served on time
+    scheduler.run(end=fake.now + 0.35, manual_gc=False)
+    assert loops[1].ticker.missed == 0
+    scheduler, loops, _, fake = host(2)
+    loops[0].work = 0.09  # r1 is served 0.04 late: more than a quarter period, missed
+    scheduler.run(end=fake.now + 0.35, manual_gc=False)
+    assert loops[1].ticker.missed >= 1 and loops[1].ticker.late >= 1 and loops[0].ticker.missed == 0
+    ticker = RobotTicker(0.1, 0.0)
+    # 0.35 s after tick 0's due time: ticks 0, 1, 2 skipped (missed), tick 3 served 0.05 s late (missed too)
+    assert ticker.serve(0.1 + 0.35) == 3
+    assert ticker.missed == 4 and ticker.late == 1 and ticker.next_due == pytest.approx(0.5)
+
+
+# -- a fleet of real processes ------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("layout", ["host", "process"])
+def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: str) -> None:
+    from tools.fleet import run_fleet
+
+    settings = Settings.load()
+    summary = run_fleet(settings, [], ["fa", "fb", "fc"], 8.0, layout=layout, quiet=True)
+    fleet = summary["fleet"]
+    assert fleet["robots"] == 3 and [row["robot"] for row in fleet["rows"]] == ["fa", "fb", "fc"]
+    for row in fleet["rows"]:
+        assert row["steps"] >= 40, row  # actions at delta for most of the 8 s
+        assert row["final_distance_m"] < 1.5 - 0.5, row  # from 1.5 m: approached (parks within ~15 s)
+        assert row["staleness_max_steps"] <= 5
+    assert fleet["parked"] == sum(row["final_distance_m"] <= PARKED_WITHIN_M for row in fleet["rows"])
+    assert summary["critic"]["transitions_received"] >= fleet["steps"] - 3
+    assert summary["processes"] == (4 if layout == "host" else 2 + 2 * 3)
+    assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
+
+
+# -- the critic behind a fleet --------------------------------------------------------------------
+
+
+def _transition(robot: str, step: int, episode: int = 1) -> Any:
+    from common.messages import Transition
+
+    return Transition(robot=robot, episode=episode, step=step, state=(1.0, 0.0, 0.0), action=(0.0, 0.0), cost=0.1)
+
+
+def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition() -> None:
+    from services.critic.service import CriticLearner, coalesced_fits
+
+    batch = [_transition("a", 0), _transition("b", 0), _transition("a", 1), _transition("b", 1), _transition("a", 2)]
+    assert coalesced_fits(batch, 1) == {0, 1, 2}
+    assert coalesced_fits([_transition("a", 0), _transition("a", 1, episode=2)], 1) == set()  # another episode
+    learner = CriticLearner(Settings.load())
+    superseded = coalesced_fits(batch, 1)
+    fitted = [learner.on_transition(m, fit=i not in superseded) for i, m in enumerate(batch)]
+    assert [f is not None for f in fitted] == [False, False, False, True, True]
+    assert [f.trained_step for f in fitted if f is not None] == [1, 2]
+    assert learner.fits_coalesced == 3 and learner.accepted == 5
+
+
+@pytest.mark.slow
+def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up() -> None:
+    """``srl bench fleet`` in miniature: one host row and one baseline row, bounded, and no srl
+    process of it left behind (its children are in its own session: none may outlive it)."""
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tools.cli",
+            "bench",
+            "fleet",
+            "--robots",
+            "2",
+            "--baseline",
+            "2",
+            "--seconds",
+            "5",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = done.stdout.strip().splitlines()
+    assert any(line.split()[:3] == ["2", "host", "x1"] for line in lines), done.stdout
+    assert any(line.split()[:2] == ["2", "process"] for line in lines), done.stdout
+    result = json.loads(lines[-1])
+    assert [(r["robots"], r["layout"]) for r in result["rows"]] == [(2, "host"), (2, "process")]
+    for row in result["rows"]:
+        assert row["fleet"]["robots"] == 2 and len(row["load_before"]) == 3 and row["rss_mb"] > 0
+        assert row["processes"] == (4 if row["layout"] == "host" else 2 + 2 * 2)

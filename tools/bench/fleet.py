@@ -1,0 +1,154 @@
+"""``srl bench fleet``: how many robots one 2-core machine serves at ``delta`` (issue 16).
+
+For each fleet size, one real-time run of ``--seconds`` with the host layout (one actor host,
+one plant host, the critic: ``srl up --robots K``), and for the baseline sizes one run with
+today's layout (one plant_sim and one actor process per robot), in the same invocation and
+interleaved by size, so both see the same machine. Each row: missed deadlines (all robots), tick
+jitter and state -> action latency p99 (worst robot), weight staleness p99 / max (worst robot),
+robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle), CPU % of all
+srl processes over the run (100 % = one core), their total resident memory, and the machine's
+load average before and after. Targets (PASS/FAIL) at 50 and 100 robots. Every run is bounded
+(start-up timeouts, then ``--seconds``) and every process is stopped after it (tools/fleet.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+from typing import Any
+
+from common.fleet import FleetError, parse_robots
+from common.runtime import UsageError
+from common.settings import Settings
+from tools.fleet import run_fleet
+from tools.up import ServiceDiedError
+
+TARGETS: dict[int, dict[str, float]] = {
+    50: {"missed_deadlines": 0, "latency_p99_ms": 20.0, "staleness_p99_steps": 1.0},
+    100: {"missed_deadlines": 0, "latency_p99_ms": 50.0, "staleness_p99_steps": 1.0, "rss_mb": 1536.0},
+}
+
+
+def _sizes(text: str, option: str) -> list[int]:
+    try:
+        sizes = [int(part) for part in text.split(",") if part.strip()]
+    except ValueError:
+        raise UsageError(f"{option} {text!r}: comma-separated robot counts, e.g. 1,8,16") from None
+    for size in sizes:
+        try:
+            parse_robots(str(size))
+        except FleetError as error:
+            raise UsageError(f"{option}: {error}") from None
+    return sizes
+
+
+AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
+
+
+def actor_hosts(option: str, size: int) -> int:
+    """``--actor-hosts``: a number, or ``auto`` (one host below 50 robots, else one per core)."""
+    if option == "auto":
+        return 1 if size < AUTO_SPLIT_FROM else max(1, min(os.cpu_count() or 1, size))
+    try:
+        hosts = int(option)
+    except ValueError:
+        raise UsageError(f"--actor-hosts {option!r}: a number of actor processes, or auto") from None
+    if not 1 <= hosts <= size:
+        raise UsageError(f"--actor-hosts {hosts}: 1 to one per robot ({size})")
+    return hosts
+
+
+def checks(row: dict[str, Any]) -> dict[str, bool]:
+    """The targets of a row's fleet size (none for other sizes)."""
+    target = TARGETS.get(row["robots"])
+    if target is None or "error" in row:
+        return {} if "error" not in row else {"ran": False}
+    fleet = row["fleet"]
+    result = {
+        "missed deadlines == 0": fleet["missed_deadlines"] == target["missed_deadlines"],
+        f"latency p99 <= {target['latency_p99_ms']:.0f} ms": fleet["latency_p99_ms"] <= target["latency_p99_ms"],
+        "staleness p99 <= 1 step": fleet["staleness_p99_steps"] <= target["staleness_p99_steps"],
+    }
+    if row["robots"] == 50:
+        result["every robot parked"] = fleet["parked"] == row["robots"]
+    if "rss_mb" in target:
+        result[f"RSS <= {target['rss_mb'] / 1024:.1f} GB"] = row["rss_mb"] <= target["rss_mb"]
+    return result
+
+
+def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_argv: list[str]) -> int:
+    hosts = _sizes(args.robots, "--robots")
+    baseline = _sizes(args.baseline, "--baseline") if args.baseline else []
+    if not (math.isfinite(args.seconds) and 5 <= args.seconds <= 600):
+        raise UsageError(f"--seconds {args.seconds}: a run is 5 to 600 s")
+    for size in hosts:
+        actor_hosts(args.actor_hosts, size)  # a bad value is refused before the first run
+    plan = sorted([(n, "host") for n in hosts] + [(n, "process") for n in baseline])
+    rows: list[dict[str, Any]] = []
+    for size, layout in plan:
+        load_before = os.getloadavg()
+        started = time.monotonic()
+        try:
+            split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
+            summary = run_fleet(
+                settings,
+                settings_argv,
+                parse_robots(str(size)),
+                args.seconds,
+                layout=layout,
+                quiet=True,
+                actor_hosts=split,
+            )
+        except (ServiceDiedError, TimeoutError, ValueError) as error:
+            summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
+        row = {"layout": layout, **summary, "robots": size}
+        row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
+        row["targets"] = {name: "PASS" if ok else "FAIL" for name, ok in checks(row).items()}
+        rows.append(row)
+        print(format_row(row), flush=True)
+    result = {
+        "seconds": args.seconds,
+        "cpus": os.cpu_count(),
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+        "rows": rows,
+    }
+    print(format_table(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+HEADER = (
+    f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
+    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'procs':>5}  load before -> after  targets"
+)
+
+
+def format_row(row: dict[str, Any]) -> str:
+    load = f"{row['load_before'][0]:.2f} -> {row['load_after'][0]:.2f}"
+    if "error" in row:
+        return f"{row['robots']:>6} {row['layout']:<10} failed: {row['error']}  (load {load})"
+    f = row["fleet"]
+    layout = row["layout"] if row["layout"] == "process" else f"host x{row['actor_hosts']}"
+    targets = ", ".join(f"{name}: {verdict}" for name, verdict in row["targets"].items()) or "-"
+    return (
+        f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
+        f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
+        f"{f['parked']:>3}/{row['robots']:<3} {row['cpu_percent']:>6.0f} {row['rss_mb']:>7.0f} "
+        f"{row['processes']:>5}  {load:<20} {targets}"
+    )
+
+
+def format_table(result: dict[str, Any]) -> str:
+    lines = [
+        f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
+        f"starts on a 1.5 m circle, {result['cpus']} CPUs; jitter, latency, staleness: worst robot; "
+        "CPU: all srl processes (100 % = one core); load: 1-min average",
+        HEADER,
+        *(format_row(row) for row in result["rows"]),
+    ]
+    return "\n".join(lines)

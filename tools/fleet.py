@@ -1,0 +1,336 @@
+"""``srl up --robots K``: a simulated fleet, every robot on one router, one run of ``duration`` s.
+
+Two layouts, the same robots, keys and critic:
+
+* ``host`` (the default): ONE actor host (``srl actor --robots``), ONE plant host
+  (``srl plant-sim --robots``) and the critic: four processes, whatever the fleet's size;
+* ``process`` (today's layout, the baseline of ``srl bench fleet``): one ``srl plant-sim`` and one
+  ``srl actor`` per robot, and the critic.
+
+Robots start evenly on a circle around the target (common/fleet.py), heading away from it. The
+run is bounded: readiness waits time out, the actors stop after ``duration`` seconds, and every
+child is stopped (SIGINT, SIGKILL after a grace) whatever happens (tools/up.py's Supervisor). CPU
+and memory of every srl process are read from /proc over the run itself (after start-up).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import shutil
+import signal
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import zenoh
+from pydantic import TypeAdapter
+
+from common.fleet import circle_starts
+from common.fleet_summary import FleetActorSummary, FleetView, fleet_view
+from common.keys import STATUS
+from common.messages import ServiceStatus
+from common.settings import Settings
+from common.summaries import CriticSummary, RealtimeActorSummary
+from common.transport import zenoh_config
+from tools.up import ServiceDiedError, SignalGuard, Supervisor, free_loopback_endpoint, router_reachable
+
+LAYOUTS = ("host", "process")
+# settings flags a fleet sets per child itself (the router is fresh, robots and starts its own)
+OWN_FLAGS = ("--router", "--robot", "--start", "--duration")
+# [s] the slowest start seen here: 100 robots' subscriptions and tokens on a loaded 2-core machine
+READY_TIMEOUT = 120.0
+
+
+@dataclass
+class ProcessUse:
+    """CPU and memory of the srl processes over a run, read from /proc."""
+
+    cpu_seconds: float  # over the run (from when every robot was ready to the end)
+    rss_mb: float  # sum of every process's resident memory near the end of the run
+    peak_rss_mb: float  # sum of every process's peak resident memory (VmHWM)
+    processes: int
+
+
+def _proc_cpu(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as stat:
+        fields = stat.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+
+def _proc_memory(pid: int) -> tuple[float, float]:
+    rss = peak = 0.0
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                rss = float(line.split()[1]) / 1024.0
+            elif line.startswith("VmHWM:"):
+                peak = float(line.split()[1]) / 1024.0
+    return rss, peak
+
+
+def cpu_of(pids: list[int]) -> float:
+    total = 0.0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            total += _proc_cpu(pid)
+    return total
+
+
+def memory_of(pids: list[int]) -> tuple[float, float]:
+    rss = peak = 0.0
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            one, top = _proc_memory(pid)
+            rss, peak = rss + one, peak + top
+    return rss, peak
+
+
+class FleetMonitor:
+    """Every robot's newest actor status (``srl/*/status/actor``), from a monitor session."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.latest: dict[str, dict[str, float]] = {}
+        self.lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(settings.transport))
+
+        def on_sample(sample: Any) -> None:
+            try:
+                status = ServiceStatus.model_validate_json(sample.payload.to_bytes())
+            except ValueError:
+                return
+            with self.lock:
+                self.latest[status.robot] = dict(status.counters)
+
+        self.subscriber = self.session.declare_subscriber(STATUS.pattern.format(robot="*", service="actor"), on_sample)
+
+    def line(self, elapsed: float, robots: int) -> str:
+        with self.lock:
+            seen = list(self.latest.values())
+        distances = [math.hypot(c["x"], c["y"]) for c in seen if "x" in c and "y" in c]
+        return (
+            f"{elapsed:5.1f} s: {len(seen)}/{robots} robots reporting, "
+            f"arrived {sum(c.get('arrived', 0.0) > 0 for c in seen)}, "
+            f"distance max {max(distances, default=math.nan):.2f} m, "
+            f"missed deadlines {sum(c.get('missed_deadlines', 0.0) for c in seen):.0f}, "
+            f"staleness max {max((c.get('staleness_steps', 0.0) for c in seen), default=0.0):.0f}, "
+            f"solver failures {sum(c.get('solver_failures', 0.0) for c in seen):.0f}"
+        )
+
+    def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            self.subscriber.undeclare()
+        self.session.close()
+
+
+def _alive_robots(session: Any, service: str) -> set[str]:
+    replies = session.liveliness().get(f"srl/*/alive/{service}", timeout=2.0)
+    return {str(reply.ok.key_expr).split("/")[1] for reply in replies if reply.ok is not None}
+
+
+def wait_fleet_alive(supervisor: Supervisor, settings: Settings, robots: list[str], service: str) -> None:
+    """Until every robot's ``service`` token is live (bounded by READY_TIMEOUT)."""
+    session = zenoh.open(zenoh_config(settings.transport))
+    try:
+        wanted = set(robots)
+        supervisor.wait_for(
+            f"{service} of {len(robots)} robots", lambda: wanted <= _alive_robots(session, service), READY_TIMEOUT
+        )
+    finally:
+        session.close()
+
+
+def exit_code(code: int | None) -> int | None:
+    """A child's exit code, its stop by our SIGINT counted as a clean end (0), as srl up does."""
+    return 0 if code == -signal.SIGINT else code
+
+
+def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
+    """The robots of each actor host, in contiguous shares as even as can be: ``actor`` alone,
+    else ``actor-1`` .. ``actor-H`` (one per core: one host's solves run in one thread)."""
+    if hosts == 1:
+        return {"actor": list(robots)}
+    size, extra = divmod(len(robots), hosts)
+    shares, start = {}, 0
+    for h in range(hosts):
+        end = start + size + (h < extra)
+        shares[f"actor-{h + 1}"] = list(robots[start:end])
+        start = end
+    return shares
+
+
+def fleet_args(settings_args: list[str], router: str) -> list[str]:
+    """The user's settings flags, without those the fleet sets per child, and the fleet's router."""
+    return [a for a in settings_args if a.split("=", 1)[0] not in OWN_FLAGS] + [f"--router={router}"]
+
+
+def run_fleet(
+    settings: Settings,
+    settings_args: list[str],
+    robots: list[str],
+    duration: float,
+    layout: str = "host",
+    circle: float = 1.5,
+    quiet: bool = False,
+    on_status: Callable[[str], None] | None = None,
+    summary_dir: Path | None = None,
+    actor_hosts: int = 1,
+) -> dict[str, Any]:
+    """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
+    if not 1 <= actor_hosts <= len(robots):
+        raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
+    router = free_loopback_endpoint()
+    settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
+    scratch = Path(tempfile.mkdtemp(prefix="srl-fleet-"))
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    # the critic's checkpoint is written as in any run (its cost is part of the fleet's), but here
+    env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
+    # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
+    env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
+    env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
+    common = fleet_args(settings_args, router)
+    supervisor = Supervisor(common, env, quiet=quiet)
+    ids = ",".join(robots)
+    started = time.monotonic()
+    with SignalGuard() as guard:
+        try:
+            supervisor.spawn("router", ["router", *common])
+            supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
+            starts = circle_starts(len(robots), circle)
+            if layout == "host":
+                supervisor.spawn("plant", ["plant-sim", *common, f"--robots={ids}", f"--circle={circle!r}"])
+            else:
+                for robot, start in zip(robots, starts, strict=True):
+                    supervisor.spawn(
+                        f"plant-{robot}",
+                        ["plant-sim", *common, f"--robot={robot}", "--start=" + ",".join(repr(c) for c in start)],
+                    )
+            supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"])
+            wait_fleet_alive(supervisor, settings, robots, "plant")
+            wait_fleet_alive(supervisor, settings, robots, "critic")
+            run = ["--run-seconds", repr(duration)]
+            if layout == "host":
+                actors = [
+                    supervisor.spawn(name, ["actor", *common, f"--robots={','.join(share)}", *run])
+                    for name, share in host_shares(robots, actor_hosts).items()
+                ]
+            else:
+                actors = [
+                    supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run]) for robot in robots
+                ]
+            wait_fleet_alive(supervisor, settings, robots, "actor")
+            pids = [child.process.pid for child in supervisor.children.values()]
+            ready = time.monotonic()
+            cpu_before = cpu_of(pids)
+            monitor = FleetMonitor(settings) if on_status is not None else None
+            # CPU and memory sampled while every actor still runs (a reaped process has no /proc entry)
+            memory, cpu_seconds, sampled = (0.0, 0.0), 0.0, ready
+            try:
+                shown = 0
+                actor_names = {a.name for a in actors}
+                while any(a.process.poll() is None for a in actors):
+                    supervisor.check(allowed_to_exit=actor_names)
+                    now = time.monotonic()
+                    if all(a.process.poll() is None for a in actors):
+                        cpu_seconds, sampled = cpu_of(pids) - cpu_before, now
+                        if now - ready < duration - 1.0:
+                            memory = memory_of(pids)  # near the end, while every process still runs
+                    if monitor is not None and on_status is not None and int(now - ready) > shown:
+                        shown = int(now - ready)
+                        on_status(monitor.line(now - ready, len(robots)))
+                    time.sleep(0.2)
+            finally:
+                if monitor is not None:
+                    monitor.close()
+            ran = sampled - ready
+            for actor in actors:
+                if actor.process.returncode != 0:
+                    supervisor.check()
+        finally:
+            guard.cleaning = True
+            supervisor.stop_all()
+            shutil.rmtree(scratch, ignore_errors=True)
+        guard.raise_if_received()
+    for name, child in supervisor.children.items():  # every service ended cleanly (as srl up checks)
+        if exit_code(child.process.returncode) != 0:
+            raise ServiceDiedError(name, child.process.returncode, child.stderr_tail[-10:])
+    critic = TypeAdapter(CriticSummary).validate_python(supervisor.children["critic"].summary())
+    if layout == "host":
+        per_robot = {}
+        for name in host_shares(robots, actor_hosts):
+            per_robot.update(FleetActorSummary.model_validate(supervisor.children[name].summary()).per_robot)
+        view = fleet_view(per_robot)
+    else:
+        per_robot = {
+            robot: RealtimeActorSummary.model_validate(supervisor.children[f"actor-{robot}"].summary())
+            for robot in robots
+        }
+        view = fleet_view(per_robot)
+    use = ProcessUse(cpu_seconds, memory[0], memory[1], len(supervisor.children))
+    summary = {
+        "layout": layout,
+        "robots": robots,
+        "seconds": duration,
+        "run_seconds": ran,  # the span over which CPU was measured
+        "circle_radius_m": circle,
+        "actor_hosts": actor_hosts if layout == "host" else len(robots),
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+        "fleet": view.to_json_dict(),
+        "critic": {
+            "transitions_received": critic.transitions_received,
+            "weights_published": critic.weights_published,
+            "fit_ms": critic.fit_ms.to_json_dict(),
+            "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
+            "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
+            "fits_coalesced": critic.fits_coalesced,
+        },
+        "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
+        "rss_mb": use.rss_mb,
+        "peak_rss_mb": use.peak_rss_mb,
+        "processes": use.processes,
+        "wall_seconds": time.monotonic() - started,
+        "services": {name: child.process.pid for name, child in supervisor.children.items()},
+        "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
+    }
+    if summary_dir is not None:
+        summary_dir.mkdir(parents=True, exist_ok=True)
+        for name, child in supervisor.children.items():
+            raw = child.summary()
+            if raw is not None:
+                (summary_dir / f"{name}.json").write_text(json.dumps(raw, indent=1) + "\n")
+        summary["summary_dir"] = str(summary_dir)
+        summary["per_robot_final"] = {r: s.final_state for r, s in per_robot.items()}
+    return summary
+
+
+def format_fleet_summary(summary: dict[str, Any]) -> str:
+    view = FleetView.model_validate(summary["fleet"])
+    lines = [
+        f"srl up --robots {len(summary['robots'])} ({summary['layout']} layout): {summary['seconds']:.0f} s, "
+        f"{summary['agent']} N = {summary['horizon']}, starts on a {summary['circle_radius_m']} m circle",
+        f"  {'robot':<12} {'steps':>5} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'staleness p99/max':>17} "
+        f"{'final m':>8} parked",
+    ]
+    for row in view.rows:
+        lines.append(
+            f"  {row.robot:<12} {row.steps:>5} {row.missed_deadlines:>6} {row.jitter_p99_ms:>8.2f}ms "
+            f"{row.latency_p99_ms:>9.2f}ms {row.staleness_p99_steps:>8.0f}/{row.staleness_max_steps:<8.0f} "
+            f"{row.final_distance_m:>8.3f} {'yes' if row.parked else 'no'}"
+        )
+    lines.append(
+        f"  fleet: {view.robots} robots, parked {view.parked}, missed deadlines {view.missed_deadlines}, "
+        f"jitter p99 {view.jitter_p99_ms:.2f} ms, latency p99 {view.latency_p99_ms:.2f} ms (worst robot), "
+        f"staleness p99/max {view.staleness_p99_steps:.0f}/{view.staleness_max_steps:.0f} steps, "
+        f"CPU {summary['cpu_percent']:.0f} %, RSS {summary['rss_mb']:.0f} MB in {summary['processes']} processes"
+    )
+    return "\n".join(lines)
