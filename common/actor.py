@@ -46,6 +46,9 @@ log = logging.getLogger(__name__)
 Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)
 STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
 V_FEATURES = feature_count(STATE_DIM)
+# The global phase's starts (ActorProblem.multistart): the shifted and the earlier plan (or, with
+# no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
+GLOBAL_STARTS = 5
 
 
 @dataclass(frozen=True)
@@ -79,6 +82,14 @@ class ActorProblem:
     # fitted Qhat indefinite in (s, u) predicts negative costs near the target that only motion
     # reaches, and the actor chases them at full speed (README "Chatter"). Not a shape change.
     convex_critics: bool = False
+    # The argmin (issue 18): before the solver, a cheap global phase -- projected-gradient
+    # descent on the objective along a rollout, from several starts at once (the shifted and the
+    # earlier plan, standing still, full speed ahead, full speed back; :meth:`StackedActor.
+    # _global_guess`) -- and the solver polishes the start whose descent ended lowest. False:
+    # the solver starts from the cheaper of the shifted and the earlier plan (merit only), which
+    # often stays in a worse local minimum with non-convex critics (README "The argmin").
+    multistart: bool = False
+    multistart_iterations: int = 50  # projected-gradient iterations per start (compiled, ~1-3 us each at N = 12)
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -101,6 +112,8 @@ class ActorProblem:
             raise ValueError(f"mu_init must be a positive number, got {self.mu_init}")
         if not (np.isfinite(self.bound_push) and 0 < self.bound_push <= 0.5):
             raise ValueError(f"bound_push must be in (0, 0.5], got {self.bound_push}")
+        if self.multistart_iterations < 1:
+            raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
             raise ValueError(f"wheel_speed_max must be >= 0 (0 = no wheel box), got {self.wheel_speed_max}")
         for name in ("wheel_radius", "wheel_separation"):
@@ -381,6 +394,41 @@ class StackedActor:
         for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
             self._merit_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
         self._merit_buffer.set_res(0, memoryview(self._merit_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        if problem.multistart:
+            self._setup_global_phase()
+
+    def _setup_global_phase(self) -> None:
+        """The global phase's zero-copy buffers and its fixed starts (see _global_phase).
+
+        ``_starts`` has one row per start (CasADi reads the (n_z, starts) matrix column by
+        column, so the rows of a C-ordered array are its columns): rows 0-1 the warm starts,
+        rows 2-4 standing still, full speed ahead and full speed back, written once."""
+        p = self.problem
+        n_act = p.horizon - 1
+        self._starts = np.zeros((GLOBAL_STARTS, ACTION_DIM * n_act))
+        self._ends = np.zeros_like(self._starts)
+        self._end_values = np.zeros(GLOBAL_STARTS)
+        self._end_vectors = np.zeros((GLOBAL_STARTS, self._n_x))
+        self._global_state = np.zeros(STATE_DIM)
+        self._shifted = np.zeros(self._n_x)
+        if p.wheel_box:  # both wheels at the rim speed: straight; opposite: turning in place
+            speed, turn = p.wheel_rim_speed, 2.0 * p.wheel_rim_speed / p.wheel_separation
+        else:
+            speed, turn = p.v_max, p.omega_max
+        to_decision = np.linalg.inv(p.action_matrix)
+
+        def scaled(action: tuple[float, float]) -> np.ndarray:
+            row: np.ndarray = np.clip(to_decision @ np.array(action) / self._decision_bounds, -1.0, 1.0)
+            return np.tile(row, n_act)
+
+        self._turning = (scaled((0.0, turn)), scaled((0.0, -turn)))
+        for row, action in zip(range(2, GLOBAL_STARTS), ((0.0, 0.0), (speed, 0.0), (-speed, 0.0)), strict=True):
+            self._starts[row] = scaled(action)
+        self._global_buffer, self._evaluate_global = self._global.buffer()
+        for index, array in enumerate((self._starts, self._global_state, self._params)):
+            self._global_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        for index, array in enumerate((self._ends, self._end_values, self._end_vectors)):
+            self._global_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
 
     # -- construction -------------------------------------------------------------------
     def _objective(self, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:
@@ -399,6 +447,61 @@ class StackedActor:
         if uses_value_critic(p.agent):
             objective += ca.dot(v, phi_v(states[-1]))
         return objective
+
+    def _global_phase(self, state: Any, params: Any, bounds: list[float]) -> tuple[list[Any], list[Any]]:
+        """The global phase's function: (starts, s_1, weights) -> (ends, their objective, their
+        decision vectors), every start descended on its own (ActorProblem.multistart).
+
+        A start is the stage decisions scaled to the box [-1, 1] (z = d / bound), flattened
+        u_1 first; the objective is the agent's along the predictor's rollout from s_1 (single
+        shooting, as the merit). Each start takes ``multistart_iterations`` projected-gradient
+        iterations with an adaptive step: a trial z - t grad, clipped to the box, is taken if it
+        lowers the objective (then t doubles), else t halves. Descent from a start ends in (or
+        near) the local minimum whose basin holds it, as a cold SLSQP solve from standing still
+        does, at a fraction of the cost of an interior-point solve from there (README "The
+        argmin"); the solver then polishes the lowest end. The iterations are a mapaccum and
+        the starts a map: compiled once, no Python per iteration.
+        """
+        p = self.problem
+        n_act, step = p.horizon - 1, PREDICTORS[p.predictor]
+        n_z = ACTION_DIM * n_act
+        z = ca.SX.sym("z", n_z)
+        scale = ca.DM(bounds)
+        decisions = [z[ACTION_DIM * i : ACTION_DIM * (i + 1)] * scale for i in range(n_act)]
+        to_action = ca.DM(p.action_matrix)
+        actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
+        rollout = [state]
+        for u_i in actions:
+            rollout.append(step(rollout[-1], u_i, p.sampling_time))
+        weights = ca.SX.sym("p", params.numel())
+        w, v = weights[:Q_FEATURES], weights[Q_FEATURES:]
+        objective = self._objective(rollout, actions, w, v)
+        value = ca.Function("descent_value", [z, state, weights], [objective])
+        gradient = ca.Function("descent_gradient", [z, state, weights], [ca.gradient(objective, z)])
+        stages: list[Any] = []
+        for s_i, d_i in zip(rollout[:-1], decisions, strict=True):
+            stages += [s_i, d_i]
+        decision_vector = ca.Function("descent_rollout", [z, state], [ca.vertcat(*stages, rollout[-1])])
+
+        z_mx, t, f_z = ca.MX.sym("z", n_z), ca.MX.sym("t"), ca.MX.sym("f")
+        s_mx, p_mx = ca.MX.sym("s", STATE_DIM), ca.MX.sym("p", params.numel())
+        trial = ca.fmin(ca.fmax(z_mx - t * gradient(z_mx, s_mx, p_mx), -1.0), 1.0)
+        f_trial = value(trial, s_mx, p_mx)
+        lower = f_trial < f_z  # false for NaN: the trial is refused
+        iteration = ca.Function(
+            "descent_iteration",
+            [z_mx, t, f_z, s_mx, p_mx],
+            [ca.if_else(lower, trial, z_mx), ca.if_else(lower, 2.0 * t, 0.5 * t), ca.if_else(lower, f_trial, f_z)],
+        )
+        k = p.multistart_iterations
+        descent = iteration.mapaccum("descent", k, 3)
+        start = ca.MX.sym("start", n_z)
+        path, _, values = descent(start, 1.0, value(start, s_mx, p_mx), ca.repmat(s_mx, 1, k), ca.repmat(p_mx, 1, k))
+        end = path[:, -1]
+        one = ca.Function("descend", [start, s_mx, p_mx], [end, values[-1], decision_vector(end, s_mx)])
+        starts = ca.MX.sym("starts", n_z, GLOBAL_STARTS)
+        ends = one.map(GLOBAL_STARTS)(starts, ca.repmat(s_mx, 1, GLOBAL_STARTS), ca.repmat(p_mx, 1, GLOBAL_STARTS))
+        return [starts, s_mx, p_mx], list(ends)
 
     def _build(self) -> tuple[ca.Function, np.ndarray, np.ndarray, int]:
         p = self.problem
@@ -421,6 +524,8 @@ class StackedActor:
         for u_i in actions:
             rollout.append(step(rollout[-1], u_i, p.sampling_time))
         merit_args = ([states[0], ca.vertcat(*decisions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
+        bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
+        global_args = self._global_phase(states[0], ca.vertcat(w, v), bounds) if p.multistart else None
 
         # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
         variables = []
@@ -436,7 +541,6 @@ class StackedActor:
 
         inf = float("inf")
         lbx, ubx = [], []
-        bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
         for _ in range(n_act):
             lbx += [-inf] * STATE_DIM + [-b for b in bounds]
             ubx += [inf] * STATE_DIM + bounds
@@ -486,6 +590,8 @@ class StackedActor:
         with _in_jit_directory() if jit else contextlib.nullcontext() as compiler:
             solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
             self._merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
+            if global_args is not None:
+                self._global = ca.Function("global_phase", *global_args, compiled("srl_global", compiler))
         elapsed = time.perf_counter() - started
         # a long build is worth a line at the default level; a usual one (N = 12: ~1 s) is not
         log.log(
@@ -525,7 +631,9 @@ class StackedActor:
         and costs 2-4 times the iterations). A merit evaluation (JIT) costs ~2 us.
         """
         x0 = self._x0
-        if self._previous_x is None:
+        if self.problem.multistart:
+            self._global_guess(state)
+        elif self._previous_x is None:
             x0[:] = 0.0
             for k in range(STATE_DIM):
                 x0[k::STAGE] = state[k]
@@ -536,6 +644,27 @@ class StackedActor:
                 if self._merit_of(self._earlier_x) < self._merit_of(x0):
                     x0[:] = self._earlier_x
         x0[:STATE_DIM] = state
+
+    def _global_guess(self, state: np.ndarray) -> None:
+        """The multistart guess (ActorProblem.multistart), written into ``self._x0``: every
+        start descended by the global phase (_global_phase) from ``state``, and the rollout of
+        the end with the lowest objective. The warm starts are the shifted previous plan and the
+        plan of two steps ago (the candidates of the merit-only guess, see _initial_guess)."""
+        starts, bounds = self._starts, self._decision_bounds
+        if self._previous_x is None:
+            starts[0], starts[1] = self._turning
+        else:
+            self._shift_into(self._shifted, self._previous_x)
+            np.clip((self._decisions_of(self._shifted) / bounds).ravel(), -1.0, 1.0, out=starts[0])
+            if self._earlier_x is None:
+                starts[1] = self._turning[0]
+            else:
+                np.clip((self._decisions_of(self._earlier_x) / bounds).ravel(), -1.0, 1.0, out=starts[1])
+        self._global_state[:] = state
+        self._evaluate_global()
+        values = self._end_values
+        best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
+        self._x0[:] = self._end_vectors[best]
 
     @staticmethod
     def _shift_into(out: np.ndarray, x: np.ndarray) -> None:

@@ -53,6 +53,8 @@ def build_actor(settings: Settings) -> StackedActor:
             wheel_radius=a.wheel_radius,
             wheel_separation=a.wheel_separation,
             convex_critics=a.convex_critics,
+            multistart=a.multistart,
+            multistart_iterations=a.multistart_iterations,
         ),
         arrival=arrival_rule(settings),
     )

@@ -171,6 +171,10 @@ class ActorSettings(_Section):
     wheel_radius: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     convex_critics: bool = Field(description="the actor uses the nearest PSD quadratic to each learned critic")
+    multistart: bool = Field(
+        description="the actor's global phase: descend from several starts, the solver polishes the lowest end"
+    )
+    multistart_iterations: int = Field(ge=1, le=1000, description="projected-gradient iterations per start")
 
     @field_validator("horizon")
     @classmethod

@@ -374,7 +374,8 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
     from common.settings import Settings
     from tools.bench.actor import learned_weights
 
-    settings = Settings.load(actor={"agent": agent, "horizon": 12, "jit": False})
+    # the merit-only warm start (multistart off); the global phase takes both plans as starts
+    settings = Settings.load(actor={"agent": agent, "horizon": 12, "jit": False, "multistart": False})
     weights = learned_weights(settings)
     iterations = {}
     for use_earlier in (True, False):
