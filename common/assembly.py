@@ -55,6 +55,7 @@ def build_actor(settings: Settings) -> StackedActor:
             convex_critics=a.convex_critics,
             multistart=a.multistart,
             multistart_iterations=a.multistart_iterations,
+            multistart_margin=a.multistart_margin,
         ),
         arrival=arrival_rule(settings),
     )

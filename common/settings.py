@@ -175,6 +175,9 @@ class ActorSettings(_Section):
         description="the actor's global phase: descend from several starts, the solver polishes the lowest end"
     )
     multistart_iterations: int = Field(ge=1, le=1000, description="projected-gradient iterations per start")
+    multistart_margin: float = Field(
+        ge=0, allow_inf_nan=False, description="also polish the second-lowest end within this share of the lowest"
+    )
 
     @field_validator("horizon")
     @classmethod

@@ -391,3 +391,76 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
             iterations[use_earlier] += int(actor._buffer.stats()["iter_count"])
             state = plant.apply(result.action, settings.plant.sampling_time)
     assert iterations[True] < 0.9 * iterations[False], iterations
+
+
+# -- the argmin (issue 18) ------------------------------------------------------------------------
+def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
+    # Oracle: hand_objective along the Euler rollout. Each start descends monotonically inside
+    # the box; the reported end value is the objective of the end's actions, and the decision
+    # vector handed to the solver is that end's rollout from the state.
+    rng = np.random.default_rng(18)
+    actor = make_actor("rlqv+", 5, multistart=True, multistart_iterations=20)
+    bounds = np.array([V_MAX, OMEGA_MAX])
+    for _ in range(4):
+        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+        state = rng.uniform(-2, 2, size=3)
+        actor._params[:15], actor._params[15:] = w, v_w
+        actor.reset()
+        actor._global_guess(state)
+        for row in range(actor._starts.shape[0]):
+            start = [(np.float64(a), np.float64(b)) for a, b in actor._starts[row].reshape(-1, 2) * bounds]
+            end_plan = actor._ends[row].reshape(-1, 2) * bounds
+            end = [(np.float64(a), np.float64(b)) for a, b in end_plan]
+            assert np.all(np.abs(actor._ends[row]) <= 1.0)
+            assert actor._end_values[row] == pytest.approx(float(hand_objective("rlqv+", state, end, w, v_w)), rel=1e-9)
+            assert actor._end_values[row] <= float(hand_objective("rlqv+", state, start, w, v_w)) + 1e-12
+            x = actor._end_vectors[row]
+            np.testing.assert_allclose(_actions_of(x), end_plan, atol=1e-12)
+            s = state
+            for k, u in enumerate(end_plan):  # the states are the Euler rollout of the actions
+                np.testing.assert_allclose(x[5 * k : 5 * k + 3], s, atol=1e-12)
+                s = s + DELTA * np.array([u[0] * np.cos(s[2]), u[0] * np.sin(s[2]), u[1]])
+            np.testing.assert_allclose(x[-3:], s, atol=1e-12)
+        best = int(np.argmin(actor._end_values))
+        np.testing.assert_array_equal(actor._x0, actor._end_vectors[best])
+
+
+@pytest.mark.parametrize("changes", [{"multistart_iterations": 0}, {"multistart_margin": -0.1}])
+def test_bad_multistart_settings_raise(changes: dict) -> None:
+    with pytest.raises(ValueError):
+        ActorProblem("rlqv", 4, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, **changes)
+
+
+@pytest.mark.parametrize(("agent", "horizon"), [("rlq", 6), ("rlqv+", 6), ("rlqv+", 12)])
+def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, horizon: int) -> None:
+    # Issue 18: the minimizer the actor takes in the closed loop (warm-started from its own
+    # plans, the benchmark's non-convex "learned" weights) against the paper framework's way, a
+    # cold SLSQP solve from standing still at the same state (tools/bench/actor.py). Before the
+    # global phase the actor was worse at 19 of 20 such states (rlq, N = 6, +8.8 % median).
+    # Generous bounds: not worse (to 1e-6 relative) at >= 75 % of the states, median gap <= 1e-6.
+    from common.assembly import build_actor
+    from common.loop import ExactPlant
+    from common.settings import PAPER_METHOD, Settings
+    from tools.bench.actor import NumpyObjective, learned_weights, slsqp_solve
+
+    settings = Settings.load(actor={"agent": agent, "horizon": horizon, "jit": False, **PAPER_METHOD["actor"]})
+    weights = learned_weights(settings)
+    actor = build_actor(settings)
+    objective = NumpyObjective(actor.problem, weights.q, weights.v)
+    plant = ExactPlant()
+    state = plant.reset(settings.start_state())
+    ours, cold, seconds = [], [], []
+    for k in range(80):
+        result = actor.step(state, weights.q, weights.v)
+        assert result.success, result.status
+        seconds.append(result.solve_seconds)
+        if k % 8 == 0:
+            ours.append(objective(result.plan, state))
+            cold.append(slsqp_solve(objective, state).value)
+        state = plant.apply(result.action, settings.plant.sampling_time)
+    ours_a, cold_a = np.array(ours), np.array(cold)
+    not_worse = ours_a <= cold_a + 1e-6 * np.abs(cold_a) + 1e-7
+    gaps = (ours_a - cold_a) / np.maximum(np.abs(cold_a), 1e-6)
+    assert np.mean(not_worse) >= 0.75, list(zip(ours, cold, strict=True))
+    assert np.median(gaps) <= 1e-6, gaps
+    assert np.median(seconds) < 0.05  # generous: ~1 ms without JIT on 2 shared cores

@@ -181,8 +181,8 @@ def trained_weights(snapshots: dict[str, Any], agent: str, horizon: int) -> list
                 q,
                 v,
                 {
-                    "source": f"{SNAPSHOT_FILE.name}: the critic of {agent} N={horizon} in Algorithm 1 (paper's method) "
-                    f"from {snapshots['start']}, at step {step}",
+                    "source": f"{SNAPSHOT_FILE.name}: the critic of {agent} N={horizon} in Algorithm 1 "
+                    f"(paper's method) from {snapshots['start']}, at step {step}",
                     "step": step,
                     "q_eigenvalues": _eigenvalues(q, STATE_DIM + ACTION_DIM),
                     "v_eigenvalues": _eigenvalues(v, STATE_DIM),
