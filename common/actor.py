@@ -90,9 +90,15 @@ class ActorProblem:
     # often stays in a worse local minimum with non-convex critics (README "The argmin").
     multistart: bool = False
     multistart_iterations: int = 50  # projected-gradient iterations per start (compiled, ~1-3 us each at N = 12)
-    # Polish the second-lowest end too when its objective is within this share of the lowest's
-    # (the merit cannot tell them apart), and keep the lower solution. 0: the lowest end only.
-    multistart_margin: float = 0.0
+    # The merit cannot tell: also polish the lowest end of the other kind of start (warm: the
+    # shifted and earlier plans; fresh: the other three) when its objective is within this share
+    # of the lowest's, and keep the lower solution (StackedActor._runner_up). 0: the lowest only.
+    multistart_margin: float = 0.1
+    # Every this many solves, polish the other kind of start's lowest end whatever the merit says
+    # (a fresh descent may stop far short of a lower minimum: near the target its end often
+    # looks worse than a converged warm plan whose basin is worse); the warm start then keeps a
+    # lower minimum once found. 0: never (the margin alone decides).
+    multistart_refresh: int = 3
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -117,6 +123,8 @@ class ActorProblem:
             raise ValueError(f"bound_push must be in (0, 0.5], got {self.bound_push}")
         if not (np.isfinite(self.multistart_margin) and self.multistart_margin >= 0):
             raise ValueError(f"multistart_margin must be a number >= 0, got {self.multistart_margin}")
+        if self.multistart_refresh < 0:
+            raise ValueError(f"multistart_refresh must be >= 0 (0 = never), got {self.multistart_refresh}")
         if self.multistart_iterations < 1:
             raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
@@ -201,6 +209,7 @@ class ActorCounters:
     solves: int = 0
     failures: int = 0
     arrived_steps: int = 0  # steps at which the arrival rule held the robot (no solve)
+    second_solves: int = 0  # steps that also polished the runner-up end (multistart_margin)
     solve_seconds: Window = field(default_factory=Window)
 
 
@@ -710,18 +719,27 @@ class StackedActor:
                 status += f" (error: {str(error).strip().splitlines()[-1]})"
             return False, status, self._x0.copy(), float("nan")
 
-    def _runner_up(self, state: np.ndarray) -> np.ndarray | None:
-        """The global phase's second-lowest end, when the merit cannot tell it from the lowest:
-        its objective within ``multistart_margin`` (relative) of the lowest and the two ends
-        apart (else None). Read right after :meth:`_global_guess` for the same state."""
+    def _runner_up(self) -> np.ndarray | None:
+        """The lowest end of the other kind of start, when the merit cannot tell it from the
+        lowest end: the warm starts (rows 0-1: plans the solver converged, their ends at their
+        minima) against the fresh ones (rows 2-4, whose descent may stop short of a lower
+        minimum, in the flat valleys near the target above all). Returned when the two ends are
+        apart and its objective is within ``multistart_margin`` (relative) of the lowest or the
+        solve is a ``multistart_refresh``-th one, else None. Read right after
+        :meth:`_global_guess` for the same state."""
+        refresh = self.problem.multistart_refresh
         values = np.where(np.isfinite(self._end_values), self._end_values, np.inf)
-        order = np.argsort(values)
-        best, second = values[order[0]], values[order[1]]
-        if not np.isfinite(second) or second > best + self.problem.multistart_margin * abs(best) + 1e-12:
+        best = int(np.argmin(values))
+        group = range(2, GLOBAL_STARTS) if best < 2 else range(2)
+        other = min(group, key=lambda row: values[row])
+        if not np.isfinite(values[other]):
             return None
-        if np.max(np.abs(self._ends[order[0]] - self._ends[order[1]])) < 1e-3:  # the same end
+        due = refresh > 0 and self.counters.solves % refresh == 0
+        if not due and values[other] > values[best] + self.problem.multistart_margin * abs(values[best]) + 1e-12:
             return None
-        vector: np.ndarray = self._end_vectors[order[1]]
+        if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
+            return None
+        vector: np.ndarray = self._end_vectors[other]
         return vector
 
     @staticmethod
@@ -789,12 +807,14 @@ class StackedActor:
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
         success, status, x_opt, objective = self._solve()
-        runner_up = self._runner_up(state) if self.problem.multistart else None
+        runner_up = self._runner_up() if self.problem.multistart else None
         if runner_up is not None:
-            # The merit cannot tell the two lowest ends apart (the descent stops short of its
-            # minima, in the flat valleys near the target above all): polish both, keep the lower.
+            # The merit cannot tell a warm end (at its minimum) from a fresh one (whose descent
+            # may stop short of a lower minimum, near the target above all): polish both, keep
+            # the lower.
             self._x0[:] = runner_up
             self._x0[:STATE_DIM] = state
+            self.counters.second_solves += 1
             second = self._solve()
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second

@@ -56,6 +56,7 @@ def build_actor(settings: Settings) -> StackedActor:
             multistart=a.multistart,
             multistart_iterations=a.multistart_iterations,
             multistart_margin=a.multistart_margin,
+            multistart_refresh=a.multistart_refresh,
         ),
         arrival=arrival_rule(settings),
     )

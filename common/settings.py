@@ -176,8 +176,9 @@ class ActorSettings(_Section):
     )
     multistart_iterations: int = Field(ge=1, le=1000, description="projected-gradient iterations per start")
     multistart_margin: float = Field(
-        ge=0, allow_inf_nan=False, description="also polish the second-lowest end within this share of the lowest"
+        ge=0, allow_inf_nan=False, description="also polish the other kind of start's lowest end within this share"
     )
+    multistart_refresh: int = Field(ge=0, description="and every this many solves whatever the merit says (0 = never)")
 
     @field_validator("horizon")
     @classmethod

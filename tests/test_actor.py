@@ -425,7 +425,9 @@ def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
         np.testing.assert_array_equal(actor._x0, actor._end_vectors[best])
 
 
-@pytest.mark.parametrize("changes", [{"multistart_iterations": 0}, {"multistart_margin": -0.1}])
+@pytest.mark.parametrize(
+    "changes", [{"multistart_iterations": 0}, {"multistart_margin": -0.1}, {"multistart_refresh": -1}]
+)
 def test_bad_multistart_settings_raise(changes: dict) -> None:
     with pytest.raises(ValueError):
         ActorProblem("rlqv", 4, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, **changes)
@@ -464,3 +466,23 @@ def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, hori
     assert np.mean(not_worse) >= 0.75, list(zip(ours, cold, strict=True))
     assert np.median(gaps) <= 1e-6, gaps
     assert np.median(seconds) < 0.05  # generous: ~1 ms without JIT on 2 shared cores
+
+
+@pytest.mark.parametrize(("margin", "refresh"), [(10.0, 0), (0.0, 1)])
+def test_runner_up_polish_keeps_the_lower_solution(margin: float, refresh: int) -> None:
+    # With a wide margin, or a refresh at every solve, the actor also polishes the other kind of
+    # start's lowest end and keeps the lower of the two solutions: never above the single polish.
+    rng = np.random.default_rng(7)
+    single = make_actor("rlqv+", 6, multistart=True, multistart_margin=0.0, multistart_refresh=0)
+    double = make_actor("rlqv+", 6, multistart=True, multistart_margin=margin, multistart_refresh=refresh)
+    for _ in range(6):
+        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+        state = rng.uniform(-1, 1, size=3)
+        single.reset()
+        double.reset()
+        one, two = single.step(state, w, v_w), double.step(state, w, v_w)
+        assert one.success and two.success
+        assert two.objective <= one.objective + 1e-9 * (1 + abs(one.objective))
+        plan = [(np.float64(a), np.float64(b)) for a, b in two.plan]
+        assert two.objective == pytest.approx(float(hand_objective("rlqv+", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
+    assert single.counters.second_solves == 0 and double.counters.second_solves >= 1
