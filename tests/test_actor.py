@@ -486,3 +486,18 @@ def test_runner_up_polish_keeps_the_lower_solution(margin: float, refresh: int) 
         plan = [(np.float64(a), np.float64(b)) for a, b in two.plan]
         assert two.objective == pytest.approx(float(hand_objective("rlqv+", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
     assert single.counters.second_solves == 0 and double.counters.second_solves >= 1
+
+
+def test_same_basin_follows_the_merit_along_the_segment() -> None:
+    # The second polish is skipped when the objective falls monotonically from the runner-up's
+    # end to the first solution (one basin), taken when it rises on the way (a ridge).
+    actor = make_actor("mpc", 4, multistart=True)
+    state = np.array([1.0, 0.5, 0.3])
+    result = actor.step(state, np.zeros(15), np.zeros(6))
+    solution = actor._previous_x.copy()
+    start = np.zeros_like(solution)  # standing still: the convex MPC objective falls towards its minimum
+    assert actor._same_basin(state, start, solution)
+    values = iter([1.0, 0.9, 1.2, 0.8, 0.7])  # a ridge between start (1.0) and solution (0.7)
+    actor._merit_of = lambda x: next(values)  # type: ignore[method-assign]
+    assert not actor._same_basin(state, start, solution)
+    assert result.success
