@@ -368,6 +368,7 @@ class StackedActor:
         self.counters = ActorCounters()
         self._previous_x: np.ndarray | None = None
         self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
+        self._episode_solves = 0  # solves since the last reset (the refresh's phase)
         self._solver, lbx, ubx, n_g = self._build()
         self._n_x = lbx.size
         # Zero-copy calls: CasADi's buffer API reads the inputs from, and writes the outputs
@@ -650,6 +651,9 @@ class StackedActor:
         """Forget the previous plans and arrival (new episode, or the plan no longer matches the robot)."""
         self._previous_x = None
         self._earlier_x = None
+        # the refresh's phase (multistart_refresh) counts from here: a run never depends on
+        # what the same actor solved before (the experiment's workers reuse their actors)
+        self._episode_solves = 0
         if self.arrival is not None:
             self.arrival.reset()
 
@@ -735,7 +739,7 @@ class StackedActor:
         other = min(group, key=lambda row: values[row])
         if not np.isfinite(values[other]):
             return None
-        due = refresh > 0 and self.counters.solves % refresh == 0
+        due = refresh > 0 and self._episode_solves % refresh == 0
         if not due and values[other] > values[best] + self.problem.multistart_margin * abs(values[best]) + 1e-12:
             return None
         if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
@@ -861,6 +865,7 @@ class StackedActor:
             objective = float("nan")
         elapsed = time.perf_counter() - started
         self.counters.solves += 1
+        self._episode_solves += 1
         self.counters.solve_seconds.append(elapsed)
         return ActorStep(
             action=plan[0].copy(),

@@ -501,3 +501,27 @@ def test_same_basin_follows_the_merit_along_the_segment() -> None:
     actor._merit_of = lambda x: next(values)  # type: ignore[method-assign]
     assert not actor._same_basin(state, start, solution)
     assert result.success
+
+
+def test_an_episode_does_not_depend_on_what_the_actor_solved_before() -> None:
+    # The experiment's workers reuse one actor for many runs: after reset() the global phase
+    # (its refresh's phase included) must act as on a fresh actor, step for step.
+    rng = np.random.default_rng(3)  # weights whose starts end apart: refreshes polish twice
+    w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+    used = make_actor("rlqv", 5, multistart=True, multistart_margin=0.0, multistart_refresh=3)
+    for _ in range(7):  # an earlier episode of 7 solves: not a multiple of the refresh period
+        used.step(rng.uniform(-1, 1, size=3), w, v_w)
+    used.reset()
+    fresh = make_actor("rlqv", 5, multistart=True, multistart_margin=0.0, multistart_refresh=3)
+    for actor in (used, fresh):  # every refresh then polishes twice: its phase shows
+        actor._same_basin = lambda *args: False  # type: ignore[method-assign]
+    state_used = state_fresh = np.array([1.2, -0.8, 2.0])
+    polished_twice: dict[str, list[int]] = {"used": [], "fresh": []}
+    for _ in range(12):
+        counts = (used.counters.second_solves, fresh.counters.second_solves)
+        a, b = used.step(state_used, w, v_w), fresh.step(state_fresh, w, v_w)
+        polished_twice["used"].append(used.counters.second_solves - counts[0])
+        polished_twice["fresh"].append(fresh.counters.second_solves - counts[1])
+        np.testing.assert_array_equal(a.plan, b.plan)
+        state_used, state_fresh = exact_step(state_used, a.action, DELTA), exact_step(state_fresh, b.action, DELTA)
+    assert polished_twice["used"] == polished_twice["fresh"] and sum(polished_twice["fresh"]) >= 1, polished_twice
