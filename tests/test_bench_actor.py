@@ -239,6 +239,8 @@ def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
         ("mpc", 6, "n/a", "fatrop"),
         ("rlqv", 6, "initial", "fatrop"),
         ("rlqv", 6, "learned", "fatrop"),
+        ("rlqv", 6, "trained@50", "fatrop"),  # the critic snapshots of rlqv at N = 6
+        ("rlqv", 6, "trained@150", "fatrop"),
     ]
     _check_rows(rows)
     for r in rows:
@@ -249,6 +251,10 @@ def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
     # N = 12 was not benchmarked: its targets are not applicable; the speedup ones are judged
     assert payload["targets"]["median_n12"]["pass"] is None
     assert isinstance(payload["targets"]["speedup_all"]["pass"], bool)
+    # the argmin targets judge the learned and trained rows (3 of them here)
+    assert payload["targets"]["argmin_share"]["rows"] == 3 and isinstance(
+        payload["targets"]["argmin_gap"]["pass"], bool
+    )
     assert "baseline_median_ms" in out and ("PASS" in out or "FAIL" in out)
 
 
@@ -258,14 +264,12 @@ def test_bench_actor_reference_rows(capsys: pytest.CaptureFixture[str]) -> None:
     args = argparse.Namespace(agents="rlq", horizons="6", steps=15, baseline_steps=2, json=True, reference_horizons="6")
     assert bench_actor.run_actor_benchmark(args, Settings.load()) == 0
     rows = _last_json(capsys.readouterr().out)["rows"]
-    assert [(r["weights"], r["solver"]) for r in rows] == [
-        ("initial", "fatrop"),
-        ("learned", "fatrop"),
-        ("initial", "ipopt"),
-        ("learned", "ipopt"),
+    weights = ["initial", "learned", "trained@50", "trained@150"]
+    assert [(r["weights"], r["solver"]) for r in rows] == [(w, "fatrop") for w in weights] + [
+        (w, "ipopt") for w in weights
     ]
     _check_rows(rows)
-    for ref in rows[2:]:
+    for ref in rows[4:]:
         assert ref["objective_reference"] == "fatrop" and ref["objective"]["states"] == 15
         # same warm-started problem along the same states: IPOPT finds fatrop's minima
         assert ref["objective"]["share_agree"] >= 0.8
