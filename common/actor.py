@@ -46,6 +46,9 @@ log = logging.getLogger(__name__)
 Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)
 STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
 V_FEATURES = feature_count(STATE_DIM)
+# The global phase's starts (ActorProblem.multistart): the shifted and the earlier plan (or, with
+# no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
+GLOBAL_STARTS = 5
 
 
 @dataclass(frozen=True)
@@ -79,6 +82,23 @@ class ActorProblem:
     # fitted Qhat indefinite in (s, u) predicts negative costs near the target that only motion
     # reaches, and the actor chases them at full speed (README "Chatter"). Not a shape change.
     convex_critics: bool = False
+    # The argmin (issue 18): before the solver, a cheap global phase -- projected-gradient
+    # descent on the objective along a rollout, from several starts at once (the shifted and the
+    # earlier plan, standing still, full speed ahead, full speed back; :meth:`StackedActor.
+    # _global_guess`) -- and the solver polishes the start whose descent ended lowest. False:
+    # the solver starts from the cheaper of the shifted and the earlier plan (merit only), which
+    # often stays in a worse local minimum with non-convex critics (README "The argmin").
+    multistart: bool = False
+    multistart_iterations: int = 50  # projected-gradient iterations per start (compiled, ~1-3 us each at N = 12)
+    # The merit cannot tell: also polish the lowest end of the other kind of start (warm: the
+    # shifted and earlier plans; fresh: the other three) when its objective is within this share
+    # of the lowest's, and keep the lower solution (StackedActor._runner_up). 0: the lowest only.
+    multistart_margin: float = 0.1
+    # Every this many solves, polish the other kind of start's lowest end whatever the merit says
+    # (a fresh descent may stop far short of a lower minimum: near the target its end often
+    # looks worse than a converged warm plan whose basin is worse); the warm start then keeps a
+    # lower minimum once found. 0: never (the margin alone decides).
+    multistart_refresh: int = 3
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -101,6 +121,12 @@ class ActorProblem:
             raise ValueError(f"mu_init must be a positive number, got {self.mu_init}")
         if not (np.isfinite(self.bound_push) and 0 < self.bound_push <= 0.5):
             raise ValueError(f"bound_push must be in (0, 0.5], got {self.bound_push}")
+        if not (np.isfinite(self.multistart_margin) and self.multistart_margin >= 0):
+            raise ValueError(f"multistart_margin must be a number >= 0, got {self.multistart_margin}")
+        if self.multistart_refresh < 0:
+            raise ValueError(f"multistart_refresh must be >= 0 (0 = never), got {self.multistart_refresh}")
+        if self.multistart_iterations < 1:
+            raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
             raise ValueError(f"wheel_speed_max must be >= 0 (0 = no wheel box), got {self.wheel_speed_max}")
         for name in ("wheel_radius", "wheel_separation"):
@@ -183,6 +209,7 @@ class ActorCounters:
     solves: int = 0
     failures: int = 0
     arrived_steps: int = 0  # steps at which the arrival rule held the robot (no solve)
+    second_solves: int = 0  # steps that also polished the runner-up end (multistart_margin)
     solve_seconds: Window = field(default_factory=Window)
 
 
@@ -355,6 +382,7 @@ class StackedActor:
         self.counters = ActorCounters()
         self._previous_x: np.ndarray | None = None
         self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
+        self._episode_solves = 0  # solves since the last reset (the refresh's phase)
         self._solver, lbx, ubx, n_g = self._build()
         self._n_x = lbx.size
         # Zero-copy calls: CasADi's buffer API reads the inputs from, and writes the outputs
@@ -395,6 +423,42 @@ class StackedActor:
         for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
             self._merit_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
         self._merit_buffer.set_res(0, memoryview(self._merit_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        if problem.multistart:
+            self._setup_global_phase()
+
+    def _setup_global_phase(self) -> None:
+        """The global phase's zero-copy buffers and its fixed starts (see _global_phase).
+
+        ``_starts`` has one row per start (CasADi reads the (n_z, starts) matrix column by
+        column, so the rows of a C-ordered array are its columns): rows 0-1 the warm starts,
+        rows 2-4 standing still, full speed ahead and full speed back, written once."""
+        p = self.problem
+        n_act = p.horizon - 1
+        self._starts = np.zeros((GLOBAL_STARTS, ACTION_DIM * n_act))
+        self._ends = np.zeros_like(self._starts)
+        self._end_values = np.zeros(GLOBAL_STARTS)
+        self._end_vectors = np.zeros((GLOBAL_STARTS, self._n_x))
+        self._global_state = np.zeros(STATE_DIM)
+        self._shifted = np.zeros(self._n_x)
+        self._segment = np.zeros(self._n_x)
+        if p.wheel_box:  # both wheels at the rim speed: straight; opposite: turning in place
+            speed, turn = p.wheel_rim_speed, 2.0 * p.wheel_rim_speed / p.wheel_separation
+        else:
+            speed, turn = p.v_max, p.omega_max
+        to_decision = np.linalg.inv(p.action_matrix)
+
+        def scaled(action: tuple[float, float]) -> np.ndarray:
+            row: np.ndarray = np.clip(to_decision @ np.array(action) / self._decision_bounds, -1.0, 1.0)
+            return np.tile(row, n_act)
+
+        self._turning = (scaled((0.0, turn)), scaled((0.0, -turn)))
+        for row, action in zip(range(2, GLOBAL_STARTS), ((0.0, 0.0), (speed, 0.0), (-speed, 0.0)), strict=True):
+            self._starts[row] = scaled(action)
+        self._global_buffer, self._evaluate_global = self._global.buffer()
+        for index, array in enumerate((self._starts, self._global_state, self._params)):
+            self._global_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        for index, array in enumerate((self._ends, self._end_values, self._end_vectors)):
+            self._global_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
 
     # -- construction -------------------------------------------------------------------
     def _objective(self, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:
@@ -413,6 +477,88 @@ class StackedActor:
         if uses_value_critic(p.agent):
             objective += ca.dot(v, phi_v(states[-1]))
         return objective
+
+    def _global_phase(self, state: Any, params: Any, bounds: list[float]) -> tuple[list[Any], list[Any]]:
+        """The global phase's function: (starts, s_1, weights) -> (ends, their objective, their
+        decision vectors), every start descended on its own (ActorProblem.multistart).
+
+        A start is the stage decisions scaled to the box [-1, 1] (z = d / bound), flattened
+        u_1 first; the objective is the agent's along the predictor's rollout from s_1 (single
+        shooting, as the merit). Each start takes ``multistart_iterations`` projected-gradient
+        iterations with an adaptive step: a trial z - t grad, clipped to the box, is taken if it
+        lowers the objective (then t doubles), else t halves. Descent from a start ends in (or
+        near) the local minimum whose basin holds it, as a cold SLSQP solve from standing still
+        does, at a fraction of the cost of an interior-point solve from there (README "The
+        argmin"); the solver then polishes the lowest end. The iterations are a mapaccum and
+        the starts a map: compiled once, no Python per iteration.
+        """
+        p = self.problem
+        n_act, step = p.horizon - 1, PREDICTORS[p.predictor]
+        n_z = ACTION_DIM * n_act
+        z = ca.SX.sym("z", n_z)
+        scale = ca.DM(bounds)
+        decisions = [z[ACTION_DIM * i : ACTION_DIM * (i + 1)] * scale for i in range(n_act)]
+        to_action = ca.DM(p.action_matrix)
+        actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
+        rollout = [state]
+        for u_i in actions:
+            rollout.append(step(rollout[-1], u_i, p.sampling_time))
+        weights = ca.SX.sym("p", params.numel())
+        w, v = weights[:Q_FEATURES], weights[Q_FEATURES:]
+        objective = self._objective(rollout, actions, w, v)
+        value = ca.Function("descent_value", [z, state, weights], [objective])
+        gradient = ca.Function("descent_gradient", [z, state, weights], [ca.gradient(objective, z)])
+        # A diagonal preconditioner, the Hessian's diagonal at the start (its magnitude, floored):
+        # a held v moves the robot 0.022 m per step, a held omega turns it 0.28 rad, so the
+        # scaled problem is badly conditioned and plain gradient steps crawl along v.
+        curvature = ca.fabs(ca.diag(ca.hessian(objective, z)[0]))
+        curvature = ca.fmax(curvature, 1e-6 * ca.mmax(curvature) + 1e-12)
+        diagonal = ca.Function("descent_diagonal", [z, state, weights], [1.0 / curvature])
+        stages: list[Any] = []
+        for s_i, d_i in zip(rollout[:-1], decisions, strict=True):
+            stages += [s_i, d_i]
+        decision_vector = ca.Function("descent_rollout", [z, state], [ca.vertcat(*stages, rollout[-1])])
+
+        z_mx, z_last, t, f_z, k = (
+            ca.MX.sym(n, size) for n, size in (("z", n_z), ("z_last", n_z), ("t", 1), ("f", 1), ("k", 1))
+        )
+        s_mx, p_mx, scaling = ca.MX.sym("s", STATE_DIM), ca.MX.sym("p", params.numel()), ca.MX.sym("d", n_z)
+        # Nesterov's momentum (k / (k + 3)), restarted when a trial fails (then the step halves
+        # only if it was a plain gradient step): monotone, and fast along the flat, ill-conditioned
+        # valleys near the target where plain projected gradient crawls.
+        ahead = ca.fmin(ca.fmax(z_mx + k / (k + 3.0) * (z_mx - z_last), -1.0), 1.0)
+        trial = ca.fmin(ca.fmax(ahead - t * scaling * gradient(ahead, s_mx, p_mx), -1.0), 1.0)
+        f_trial = value(trial, s_mx, p_mx)
+        lower = f_trial < f_z  # false for NaN: the trial is refused
+        iteration = ca.Function(
+            "descent_iteration",
+            [z_mx, z_last, t, f_z, k, s_mx, p_mx, scaling],
+            [
+                ca.if_else(lower, trial, z_mx),
+                z_mx,
+                ca.if_else(lower, 1.5 * t, ca.if_else(k > 0, t, 0.5 * t)),
+                ca.if_else(lower, f_trial, f_z),
+                ca.if_else(lower, k + 1.0, 0.0),
+            ],
+        )
+        iterations = p.multistart_iterations
+        descent = iteration.mapaccum("descent", iterations, 5)
+        start = ca.MX.sym("start", n_z)
+        path, _, _, values, _ = descent(
+            start,
+            start,
+            1.0,
+            value(start, s_mx, p_mx),
+            0.0,
+            ca.repmat(s_mx, 1, iterations),
+            ca.repmat(p_mx, 1, iterations),
+            ca.repmat(diagonal(start, s_mx, p_mx), 1, iterations),
+        )
+        end = path[:, -1]
+        one = ca.Function("descend", [start, s_mx, p_mx], [end, values[-1], decision_vector(end, s_mx)])
+        starts = ca.MX.sym("starts", n_z, GLOBAL_STARTS)
+        ends = one.map(GLOBAL_STARTS)(starts, ca.repmat(s_mx, 1, GLOBAL_STARTS), ca.repmat(p_mx, 1, GLOBAL_STARTS))
+        return [starts, s_mx, p_mx], list(ends)
 
     def _build(self) -> tuple[ca.Function, np.ndarray, np.ndarray, int]:
         p = self.problem
@@ -435,6 +581,8 @@ class StackedActor:
         for u_i in actions:
             rollout.append(step(rollout[-1], u_i, p.sampling_time))
         merit_args = ([states[0], ca.vertcat(*decisions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
+        bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
+        global_args = self._global_phase(states[0], ca.vertcat(w, v), bounds) if p.multistart else None
 
         # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
         variables = []
@@ -450,7 +598,6 @@ class StackedActor:
 
         inf = float("inf")
         lbx, ubx = [], []
-        bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
         for _ in range(n_act):
             lbx += [-inf] * STATE_DIM + [-b for b in bounds]
             ubx += [inf] * STATE_DIM + bounds
@@ -500,6 +647,8 @@ class StackedActor:
         with _in_jit_directory() if jit else contextlib.nullcontext() as compiler:
             solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
             self._merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
+            if global_args is not None:
+                self._global = ca.Function("global_phase", *global_args, compiled("srl_global", compiler))
         elapsed = time.perf_counter() - started
         # a long build is worth a line at the default level; a usual one (N = 12: ~1 s) is not
         log.log(
@@ -516,6 +665,9 @@ class StackedActor:
         """Forget the previous plans and arrival (new episode, or the plan no longer matches the robot)."""
         self._previous_x = None
         self._earlier_x = None
+        # the refresh's phase (multistart_refresh) counts from here: a run never depends on
+        # what the same actor solved before (the experiment's workers reuse their actors)
+        self._episode_solves = 0
         if self.arrival is not None:
             self.arrival.reset()
 
@@ -547,7 +699,9 @@ class StackedActor:
         and costs 2-4 times the iterations). A merit evaluation (JIT) costs ~2 us.
         """
         x0 = self._x0
-        if self._previous_x is None:
+        if self.problem.multistart:
+            self._global_guess(state)
+        elif self._previous_x is None:
             x0[:] = 0.0
             for k in range(STATE_DIM):
                 x0[k::STAGE] = state[k]
@@ -558,6 +712,80 @@ class StackedActor:
                 if self._merit_of(self._earlier_x) < self._merit_of(x0):
                     x0[:] = self._earlier_x
         x0[:STATE_DIM] = state
+
+    def _global_guess(self, state: np.ndarray) -> None:
+        """The multistart guess (ActorProblem.multistart), written into ``self._x0``: every
+        start descended by the global phase (_global_phase) from ``state``, and the rollout of
+        the end with the lowest objective. The warm starts are the shifted previous plan and the
+        plan of two steps ago (the candidates of the merit-only guess, see _initial_guess)."""
+        starts, bounds = self._starts, self._decision_bounds
+        if self._previous_x is None:
+            starts[0], starts[1] = self._turning
+        else:
+            self._shift_into(self._shifted, self._previous_x)
+            np.clip((self._decisions_of(self._shifted) / bounds).ravel(), -1.0, 1.0, out=starts[0])
+            if self._earlier_x is None:
+                starts[1] = self._turning[0]
+            else:
+                np.clip((self._decisions_of(self._earlier_x) / bounds).ravel(), -1.0, 1.0, out=starts[1])
+        self._global_state[:] = state
+        self._evaluate_global()
+        values = self._end_values
+        best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
+        self._x0[:] = self._end_vectors[best]
+
+    def _solve(self) -> tuple[bool, str, np.ndarray, float]:
+        """One solve from ``self._x0``: (success, status, solution, objective)."""
+        try:
+            self._evaluate()
+            return True, "success", self._x_out.copy(), float(self._f_out[0])
+        except RuntimeError as error:  # a failed solve (error_on_fail) or an evaluation error
+            stats = self._buffer.stats()
+            status = str(stats.get("return_status", "unknown"))
+            if "process failed" not in str(error):  # an evaluation error, not a failed solve
+                status += f" (error: {str(error).strip().splitlines()[-1]})"
+            return False, status, self._x0.copy(), float("nan")
+
+    def _runner_up(self) -> np.ndarray | None:
+        """The lowest end of the other kind of start, when the merit cannot tell it from the
+        lowest end: the warm starts (rows 0-1: plans the solver converged, their ends at their
+        minima) against the fresh ones (rows 2-4, whose descent may stop short of a lower
+        minimum, in the flat valleys near the target above all). Returned when the two ends are
+        apart and its objective is within ``multistart_margin`` (relative) of the lowest or the
+        solve is a ``multistart_refresh``-th one, else None. Read right after
+        :meth:`_global_guess` for the same state."""
+        refresh = self.problem.multistart_refresh
+        values = np.where(np.isfinite(self._end_values), self._end_values, np.inf)
+        best = int(np.argmin(values))
+        group = range(2, GLOBAL_STARTS) if best < 2 else range(2)
+        other = min(group, key=lambda row: values[row])
+        if not np.isfinite(values[other]):
+            return None
+        due = refresh > 0 and self._episode_solves % refresh == 0
+        if not due and values[other] > values[best] + self.problem.multistart_margin * abs(values[best]) + 1e-12:
+            return None
+        if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
+            return None
+        vector: np.ndarray = self._end_vectors[other]
+        return vector
+
+    def _same_basin(self, state: np.ndarray, start: np.ndarray, solution: np.ndarray) -> bool:
+        """Does the objective fall all the way from ``start``'s actions to the ``solution``'s along
+        the straight line between them (the merit at 1/4, 1/2, 3/4)? Then both likely lie in one
+        basin and polishing ``start`` would find ``solution`` again; a rise on the way is a ridge
+        between two basins. ~10 us against a solve's 0.1-0.3 ms: with convex critics the fresh
+        ends are near the polished minimum's basin at most steps."""
+        self._merit_state[:] = state
+        segment = self._segment
+        previous = self._merit_of(start)
+        for fraction in (0.25, 0.5, 0.75, 1.0):
+            np.multiply(start, 1.0 - fraction, out=segment)
+            segment += fraction * solution
+            value = self._merit_of(segment)
+            if value > previous + 1e-12 * (1.0 + abs(previous)):
+                return False
+            previous = value
+        return True
 
     @staticmethod
     def _shift_into(out: np.ndarray, x: np.ndarray) -> None:
@@ -623,17 +851,20 @@ class StackedActor:
         self._initial_guess(state)
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
-        try:
-            self._evaluate()
-            success, status = True, "success"
-            x_opt = self._x_out.copy()
-            objective = float(self._f_out[0])
-        except RuntimeError as error:  # a failed solve (error_on_fail) or an evaluation error
-            stats = self._buffer.stats()
-            status = str(stats.get("return_status", "unknown"))
-            if "process failed" not in str(error):  # an evaluation error, not a failed solve
-                status += f" (error: {str(error).strip().splitlines()[-1]})"
-            success, x_opt, objective = False, self._x0, float("nan")
+        success, status, x_opt, objective = self._solve()
+        runner_up = self._runner_up() if self.problem.multistart else None
+        if runner_up is not None and success and self._same_basin(state, runner_up, x_opt):
+            runner_up = None
+        if runner_up is not None:
+            # The merit cannot tell a warm end (at its minimum) from a fresh one (whose descent
+            # may stop short of a lower minimum, near the target above all): polish both, keep
+            # the lower.
+            self._x0[:] = runner_up
+            self._x0[:STATE_DIM] = state
+            self.counters.second_solves += 1
+            second = self._solve()
+            if second[0] and (not success or second[3] < objective):
+                success, status, x_opt, objective = second
 
         if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
             plan = self._plan_of(x_opt)
@@ -656,6 +887,7 @@ class StackedActor:
             objective = float("nan")
         elapsed = time.perf_counter() - started
         self.counters.solves += 1
+        self._episode_solves += 1
         self.counters.solve_seconds.append(elapsed)
         return ActorStep(
             action=plan[0].copy(),

@@ -54,6 +54,10 @@ def build_actor(settings: Settings) -> StackedActor:
             wheel_radius=a.wheel_radius,
             wheel_separation=a.wheel_separation,
             convex_critics=a.convex_critics,
+            multistart=a.multistart,
+            multistart_iterations=a.multistart_iterations,
+            multistart_margin=a.multistart_margin,
+            multistart_refresh=a.multistart_refresh,
         ),
         arrival=arrival_rule(settings),
     )

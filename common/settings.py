@@ -191,6 +191,14 @@ class ActorSettings(_Section):
     wheel_radius: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     convex_critics: bool = Field(description="the actor uses the nearest PSD quadratic to each learned critic")
+    multistart: bool = Field(
+        description="the actor's global phase: descend from several starts, the solver polishes the lowest end"
+    )
+    multistart_iterations: int = Field(ge=1, le=1000, description="projected-gradient iterations per start")
+    multistart_margin: float = Field(
+        ge=0, allow_inf_nan=False, description="also polish the other kind of start's lowest end within this share"
+    )
+    multistart_refresh: int = Field(ge=0, description="and every this many solves whatever the merit says (0 = never)")
 
     @field_validator("horizon")
     @classmethod
