@@ -216,7 +216,7 @@ class ActorCounters:
 @dataclass
 class ActorMemory:
     """What one robot's actor carries from one step to the next: its last two plans (the warm
-    starts), its arrival rule and its counters. Everything else of a :class:`StackedActor` (the
+    starts), its arrival rule, its counters and the refresh's phase. Everything else of a :class:`StackedActor` (the
     compiled problem and its buffers, which every step rewrites completely before solving) holds
     nothing between steps, so one built actor serves many robots, one step at a time, each with
     its own memory (:meth:`StackedActor.swap_memory`; services/actor/host.py, issue 16)."""
@@ -225,6 +225,7 @@ class ActorMemory:
     earlier_x: np.ndarray | None = None
     arrival: ArrivalRule | None = None
     counters: ActorCounters = field(default_factory=ActorCounters)
+    episode_solves: int = 0  # solves since the last reset: the phase of multistart_refresh
 
 
 # The C compiler runs through this wrapper (CasADi's shell compiler calls system(), which
@@ -674,9 +675,10 @@ class StackedActor:
     def swap_memory(self, memory: ActorMemory) -> ActorMemory:
         """Step on with ``memory`` (another robot's plans, arrival rule and counters); returns
         the memory held until now. Not thread-safe: one step at a time per built actor."""
-        held = ActorMemory(self._previous_x, self._earlier_x, self.arrival, self.counters)
+        held = ActorMemory(self._previous_x, self._earlier_x, self.arrival, self.counters, self._episode_solves)
         self._previous_x, self._earlier_x = memory.previous_x, memory.earlier_x
         self.arrival, self.counters = memory.arrival, memory.counters
+        self._episode_solves = memory.episode_solves
         return held
 
     @property
