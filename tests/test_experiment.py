@@ -367,7 +367,15 @@ def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, tra
         str(tmp_path),
     ]
     process = subprocess.Popen(
-        argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+        argv,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        # as from a terminal: Ctrl-C's default action, even when this test runs with SIGINT ignored
+        # (a background job of a non-interactive shell, `nohup ... &`, which children inherit)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     first_run = threading.Event()
     stderr: list[str] = []
