@@ -756,7 +756,12 @@ def test_swap_sim_and_robot_agree() -> None:
     Tolerances: the firmware truncates each command to 0.01 m/s and 0.01 rad/s (at most 0.1 m
     over 10 s), the robot's state comes at 20 Hz instead of 50 Hz (up to 50 ms old at a tick:
     11 mm at 0.22 m/s), and both runs are real time (tick jitter). So the end points must agree
-    within 0.1 m and the accumulated costs within 5 % (measured here: 0.02 m and 1 %).
+    within 0.1 m and the accumulated costs within 5 %.
+
+    The episode is 20 s so that both runs have parked: at 10 s the MPC is still shuffling back
+    and forth to remove the last 9 cm of lateral offset, and where along that shuffle a run is
+    at one instant depends on the small differences above (measured at 10 s: x -0.042 in the sim,
+    +0.066 on the robot; at 20 s: 0.003 and 0.002 +- 0.011, costs 1 % apart).
     """
     runs = {}
     for plant in ("sim", "robot"):
@@ -767,7 +772,7 @@ def test_swap_sim_and_robot_agree() -> None:
             "mpc",
             "--start=1.5,1",
             "--duration",
-            "10",
+            "20",
             "--json",
             "--router",
             f"tcp/127.0.0.1:{free_port()}",
