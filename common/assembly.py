@@ -8,14 +8,16 @@ process's ``main``) and hands them over.
 from __future__ import annotations
 
 import threading
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Literal
 
 import numpy as np
 
-from common.actor import ActorProblem, StackedActor
+from common.actor import ActorMemory, ActorProblem, StackedActor
 from common.agents import learns
 from common.arrival import ArrivalRule, ArrivalTolerances
-from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1
+from common.critic import DoubleCritic, PooledLearner
+from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1, run_fleet_lockstep
 from common.physics import PhysicsPlant
 from common.settings import Settings
 from common.stats import summarize
@@ -105,6 +107,55 @@ def run_episode(
         settings.plant.sampling_time,
         tuple(settings.cost.r_diag),
         stop,
+    )
+
+
+CriticLayout = Literal["per-robot", "pooled"]
+CRITIC_LAYOUTS: tuple[CriticLayout, ...] = ("per-robot", "pooled")
+
+
+def fleet_learners(settings: Settings, robots: int, critic: CriticLayout) -> list[PooledLearner]:
+    """Robot ``i``'s learner for a fleet of ``robots``: its own pool of one (per-robot), or the one
+    pool of every robot (pooled); fresh initial weights either way."""
+
+    def pool(size: int) -> PooledLearner:
+        c = settings.critic
+        double = DoubleCritic(
+            settings.initial_q_weights(), settings.initial_v_weights(), settings.discount, c.ridge, c.bounds
+        )
+        return PooledLearner(double, c.replay_size, c.update_every, robots=size)
+
+    if critic == "pooled":
+        shared = pool(robots)
+        return [shared] * robots
+    if critic == "per-robot":
+        return [pool(1) for _ in range(robots)]
+    raise ValueError(f"unknown critic layout {critic!r}; choose one of {', '.join(CRITIC_LAYOUTS)}")
+
+
+def run_fleet_episode(
+    settings: Settings,
+    starts: Sequence[np.ndarray],
+    critic: CriticLayout,
+    actor: StackedActor | None = None,
+    stop: threading.Event | None = None,
+) -> list[Episode]:
+    """A fleet from ``starts`` stepping together for ``settings.steps`` intervals, in process
+    (:func:`common.loop.run_fleet_lockstep`): one built actor, one plant of ``plant.model`` per
+    robot, per-robot or pooled critics."""
+    actor = actor or build_actor(settings)
+    memories = [ActorMemory(arrival=arrival_rule(settings)) for _ in starts]
+    return run_fleet_lockstep(
+        actor,
+        memories,
+        [build_plant(settings) for _ in starts],
+        fleet_learners(settings, len(starts), critic),
+        [np.asarray(start, dtype=float) for start in starts],
+        settings.steps,
+        settings.plant.sampling_time,
+        tuple(settings.cost.r_diag),
+        learn=learns(settings.actor.agent),
+        stop=stop,
     )
 
 

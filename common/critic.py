@@ -15,18 +15,27 @@ Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M 
 solve for the change ``dw = w - w_prev`` and take the minimum-norm ``dw``, i.e. the weights
 closest to the previous ones that fit the TDs best. That is the limit of the ridge as
 ``lambda -> 0`` and it leaves weights untouched in directions the data does not see.
+
+A fleet may pool its learning (issue 16): :class:`PooledReplay` keeps the last ``M`` samples of
+each robot's episode, and ONE :class:`DoubleCritic` is fitted on the TD pairs of all of them
+together. A pair is formed only within one robot's stream of consecutive steps, never across two
+robots or across a gap. A pool of one robot is the per-robot learner, bit for bit (the same
+design, built by the same code: :func:`stream_design`).
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import lsq_linear
 
+from common.agents import fit_due
 from common.features import phi_q, phi_q_rows, phi_v, phi_v_rows
+
+Features = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -126,22 +135,72 @@ class Replay:
             return
         self._samples.append(sample)
 
-    def design(
-        self, features: Callable[[np.ndarray, np.ndarray], np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def design(self, features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(features_now, features_next, costs)`` over the consecutive pairs.
 
         ``features(states, actions)`` maps the replay's stacked states ``(n, 3)`` and actions
         ``(n, 2)`` to one feature row per sample (vectorized: one call per fit, not per sample).
         """
-        samples = self._samples
-        pairs = consecutive_pairs([s.step for s in samples])
-        if not pairs:
-            return np.empty((0, 0)), np.empty((0, 0)), np.empty(0)
-        phis = features(np.array([s.state for s in samples]), np.array([s.action for s in samples]))
-        now_index = np.array([a for a, _ in pairs], dtype=np.intp)
-        costs = np.array([samples[a].cost for a, _ in pairs])
-        return phis[now_index], phis[now_index + 1], costs
+        return stream_design([self._samples], features)
+
+
+def stream_design(streams: Iterable[Sequence[Sample]], features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The TD design of several sample streams, each in step order: ``(features_now,
+    features_next, costs)`` over every stream's consecutive pairs, stream after stream.
+
+    A pair joins two neighbours of ONE stream whose steps differ by one; the streams are laid end
+    to end only after pairing, so no pair ever joins the last sample of one stream to the first of
+    the next. The features are computed in one call over all samples.
+    """
+    samples: list[Sample] = []
+    now: list[int] = []
+    for stream in streams:
+        items = list(stream)
+        offset = len(samples)
+        now.extend(offset + a for a, _ in consecutive_pairs([s.step for s in items]))
+        samples.extend(items)
+    if not now:
+        return np.empty((0, 0)), np.empty((0, 0)), np.empty(0)
+    phis = features(np.array([s.state for s in samples]), np.array([s.action for s in samples]))
+    now_index = np.array(now, dtype=np.intp)
+    costs = np.array([samples[a].cost for a in now])
+    return phis[now_index], phis[now_index + 1], costs
+
+
+class PooledReplay:
+    """The last ``capacity`` samples of each robot's episode: one :class:`Replay` per robot (its
+    stream), one design over all of them (pairs only within a stream). Memory: at most
+    ``capacity`` samples per robot held."""
+
+    def __init__(self, capacity: int) -> None:
+        Replay(capacity)  # the same check of M
+        self.capacity = capacity
+        self.streams: dict[str, Replay] = {}
+
+    def __len__(self) -> int:
+        return sum(len(replay) for replay in self.streams.values())
+
+    def stream(self, robot: str) -> Replay:
+        """The robot's replay (created empty on first use)."""
+        replay = self.streams.get(robot)
+        if replay is None:
+            replay = self.streams[robot] = Replay(self.capacity)
+        return replay
+
+    def restart(self, robot: str) -> Replay:
+        """The robot starts a new episode: its stream starts empty (the others keep theirs)."""
+        replay = self.streams[robot] = Replay(self.capacity)
+        return replay
+
+    def add(self, robot: str, sample: Sample) -> None:
+        self.stream(robot).add(sample)
+
+    def clear(self) -> None:
+        self.streams.clear()
+
+    def design(self, features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every stream's consecutive pairs, stacked (robots in the order they joined)."""
+        return stream_design([replay.samples for replay in self.streams.values()], features)
 
 
 @dataclass
@@ -182,7 +241,7 @@ class DoubleCritic:
     def value(self, state: np.ndarray) -> float:
         return float(self.v_weights @ phi_v(state))
 
-    def update(self, replay: Replay) -> CriticUpdate:
+    def update(self, replay: Replay | PooledReplay) -> CriticUpdate:
         """One TD least-squares fit of both critics on the replay (Algorithm 1, line 6)."""
         args = (self.discount, self.ridge, self.bounds)
         q_now, q_next, costs = replay.design(phi_q_rows)
@@ -195,3 +254,45 @@ class DoubleCritic:
         if np.all(np.isfinite(v_fit.weights)):
             self.v_weights = v_fit.weights
         return CriticUpdate(q_fit, v_fit)
+
+
+class PooledLearner:
+    """ONE :class:`DoubleCritic` learning from a fleet's transitions (issue 16's pooled critic).
+
+    :meth:`record` puts a robot's sample into its stream of the :class:`PooledReplay`; the pool is
+    fitted once per ``size`` transitions due a fit (``fit_due``) since its last fit, where ``size``
+    is the fleet's robot count (given, or else the robots heard from so far): once per step of a
+    fleet stepping together, never once per robot and step (a fleet of K would fit K times as
+    often on K times the data). A pool of one fits exactly when the per-robot learner does.
+    """
+
+    def __init__(self, critic: DoubleCritic, capacity: int, update_every: int, robots: int | None = None) -> None:
+        if update_every < 1:
+            raise ValueError(f"update_every must be >= 1, got {update_every}")
+        if robots is not None and robots < 1:
+            raise ValueError(f"a pool needs at least one robot, got {robots}")
+        self.critic = critic
+        self.replay = PooledReplay(capacity)
+        self.update_every = update_every
+        self.robots = robots
+        self.due = 0  # transitions due a fit since the last fit
+
+    @property
+    def size(self) -> int:
+        return self.robots if self.robots is not None else max(1, len(self.replay.streams))
+
+    def record(self, robot: str, sample: Sample) -> bool:
+        """Into the robot's stream; True when the pool's fit is now due (:meth:`fit` it)."""
+        self.replay.add(robot, sample)
+        return self.count(sample.step)
+
+    def count(self, step: int) -> bool:
+        """A transition of ``step`` entered a stream: True when the pool's fit is due."""
+        if fit_due(step, self.update_every):
+            self.due += 1
+        return self.due >= self.size
+
+    def fit(self) -> CriticUpdate:
+        """One TD least-squares fit of both critics on every robot's pairs."""
+        self.due = 0
+        return self.critic.update(self.replay)

@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
 
-from common.actor import StackedActor
-from common.agents import fit_due
-from common.critic import DoubleCritic, Replay, Sample
+from common.actor import ActorMemory, StackedActor
+from common.critic import DoubleCritic, PooledLearner, Sample
 from common.dynamics import exact_step
 from common.features import stage_cost
 
@@ -74,7 +74,11 @@ class ExactPlant:
 class LocalCritic:
     """The critic learner in process: replay of size M and a TD fit every ``update_every``.
 
-    Built from settings by :func:`common.assembly.local_critic`; here only numbers and arrays."""
+    One robot's learner is a pool of one (:class:`~common.critic.PooledLearner`): the per-robot
+    and the pooled fleet critic are one code. Built from settings by
+    :func:`common.assembly.local_critic`; here only numbers and arrays."""
+
+    ROBOT = "robot"  # the pool's one stream
 
     def __init__(
         self,
@@ -89,27 +93,30 @@ class LocalCritic:
     ) -> None:
         self.q_init, self.v_init = q_init, v_init
         self.discount, self.ridge, self.bounds = discount, ridge, bounds
-        self.update_every = update_every
+        self.replay_size, self.update_every = replay_size, update_every
         self.learn = learn
-        self.critic = self._fresh_critic()
-        self.replay = Replay(replay_size)
+        self.pool = self._fresh_pool()
         self.updates = 0
         self.last_residuals = (float("nan"), float("nan"))  # of the newest fit (Q, V)
 
-    def _fresh_critic(self) -> DoubleCritic:
-        return DoubleCritic(self.q_init, self.v_init, self.discount, self.ridge, self.bounds)
+    def _fresh_pool(self) -> PooledLearner:
+        critic = DoubleCritic(self.q_init, self.v_init, self.discount, self.ridge, self.bounds)
+        return PooledLearner(critic, self.replay_size, self.update_every, robots=1)
+
+    @property
+    def critic(self) -> DoubleCritic:
+        return self.pool.critic
 
     def reset(self) -> tuple[np.ndarray, np.ndarray]:
-        self.critic = self._fresh_critic()
-        self.replay.clear()
+        self.pool = self._fresh_pool()
         self.updates = 0
         return self.critic.q_weights, self.critic.v_weights
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
-        self.replay.add(sample)
+        due = self.pool.record(self.ROBOT, sample)
         self.last_residuals = (float("nan"), float("nan"))
-        if self.learn and fit_due(sample.step, self.update_every):
-            update = self.critic.update(self.replay)
+        if self.learn and due:
+            update = self.pool.fit()
             self.last_residuals = (float(update.q.residual), float(update.v.residual))
             self.updates += 1
         return self.critic.q_weights, self.critic.v_weights
@@ -216,3 +223,72 @@ def _record_truth(episode: Episode, plant: Plant) -> None:
         episode.true_states.clear()
     elif len(episode.true_states) == len(episode.states) - 1:
         episode.true_states.append(np.asarray(truth, dtype=float).copy())
+
+
+def run_fleet_lockstep(
+    actor: StackedActor,
+    memories: Sequence[ActorMemory],
+    plants: Sequence[Plant],
+    learners: Sequence[PooledLearner],
+    starts: Sequence[np.ndarray],
+    steps: int,
+    sampling_time: float,
+    r_diag: tuple[float, ...],
+    learn: bool = True,
+    stop: threading.Event | None = None,
+) -> list[Episode]:
+    """Algorithm 1 for a fleet stepping together (issue 16), in one process: at every step each
+    robot in turn acts with the weights its learner holds, is moved and records its transition.
+
+    ``learners[i]`` is robot ``i``'s: per-robot critics are K pools of one, a pooled critic is the
+    SAME :class:`~common.critic.PooledLearner` for every robot (it fits once the fleet's step is
+    in, and every robot acts on that fit at the next step). ``memories[i]`` is robot ``i``'s
+    share of the one built ``actor`` (:meth:`~common.actor.StackedActor.swap_memory`: the fleet
+    acts bit for bit as one actor per robot). With per-robot learners each robot's episode is
+    exactly :func:`run_algorithm1`'s from its start."""
+    count = len(starts)
+    if not (len(memories) == len(plants) == len(learners) == count):
+        raise ValueError(
+            f"a fleet of {count} starts needs as many memories, plants and learners "
+            f"(got {len(memories)}, {len(plants)}, {len(learners)})"
+        )
+    delta = sampling_time
+    agent, horizon = actor.problem.agent, actor.problem.horizon
+    robots = [f"robot{i + 1}" for i in range(count)]
+    held = list(memories)
+    states = [plant.reset(start) for plant, start in zip(plants, starts, strict=True)]
+    episodes = [Episode(agent=agent, horizon=horizon, states=[state]) for state in states]
+    failures = [memory.counters.failures for memory in held]
+    for episode, plant in zip(episodes, plants, strict=True):
+        _record_truth(episode, plant)
+    for k in range(steps):
+        if stop is not None and stop.is_set():
+            break
+        for i in range(count):
+            learner, episode, state = learners[i], episodes[i], states[i]
+            q_weights, v_weights = learner.critic.q_weights, learner.critic.v_weights
+            episode.q_weights.append(np.array(q_weights, dtype=float))
+            episode.v_weights.append(np.array(v_weights, dtype=float))
+            own = actor.swap_memory(held[i])
+            try:
+                step = actor.step(state, q_weights, v_weights)
+            finally:
+                held[i] = actor.swap_memory(own)
+            cost = delta * float(stage_cost(state, step.action, r_diag))
+            next_state = plants[i].apply(step.action, delta)
+            residuals = (float("nan"), float("nan"))
+            if learner.record(robots[i], Sample(k, state, step.action, cost)) and learn:
+                update = learner.fit()
+                residuals = (float(update.q.residual), float(update.v.residual))
+            episode.td_residuals.append(residuals)
+            episode.actions.append(step.action)
+            episode.costs.append(cost)
+            if step.status != "arrived":
+                episode.solve_seconds.append(step.solve_seconds)
+            episode.states.append(next_state)
+            _record_truth(episode, plants[i])
+            states[i] = next_state
+    for i, episode in enumerate(episodes):
+        episode.solver_failures = held[i].counters.failures - failures[i]
+        episode.saturated_commands = getattr(plants[i], "saturated_commands", None)
+    return episodes

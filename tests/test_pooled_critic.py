@@ -1,0 +1,221 @@
+"""The pooled fleet critic (issue 16): one learner on every robot's transitions, TD pairs only
+within one robot's consecutive steps; a pool of one is the per-robot learner bit for bit."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from common.assembly import build_actor, fleet_learners, run_episode, run_fleet_episode
+from common.critic import DoubleCritic, PooledLearner, PooledReplay, Replay, Sample
+from common.features import phi_q_rows
+from common.loop import Episode
+from common.settings import Settings
+
+ROBOTS = ("a", "b", "c")
+
+
+def tagged(robot: int, step: int) -> Sample:
+    """A sample whose state says whose and which step it is (robot id, step, 0)."""
+    return Sample(step, np.array([float(robot), float(step), 0.0]), np.zeros(2), cost=float(100 * robot + step))
+
+
+def identity(states: np.ndarray, _: np.ndarray) -> np.ndarray:
+    return states
+
+
+def cross_robot_or_gap_pairs(now: np.ndarray, nxt: np.ndarray) -> int:
+    """Rows of a design (states as features) that join two robots or skip a step."""
+    return int(np.sum((now[:, 0] != nxt[:, 0]) | (nxt[:, 1] != now[:, 1] + 1)))
+
+
+def interleaved_fleet() -> list[tuple[int, Sample]]:
+    """Three robots stepping together, robot 1 started 3 steps later, robot 2 lost step 4."""
+    stream = []
+    for k in range(8):
+        for robot in range(3):
+            step = k - 3 if robot == 1 else k
+            if step < 0 or (robot == 2 and step == 4):
+                continue
+            stream.append((robot, tagged(robot, step)))
+    return stream
+
+
+def test_pooled_pairs_never_cross_robots_or_gaps() -> None:
+    pool = PooledReplay(capacity=100)
+    for robot, sample in interleaved_fleet():
+        pool.add(ROBOTS[robot], sample)
+    now, nxt, costs = pool.design(identity)
+    assert cross_robot_or_gap_pairs(now, nxt) == 0
+    # the oracle: a plain loop over each robot's own steps
+    expected = []
+    for robot, steps in ((0, range(8)), (1, range(5)), (2, [0, 1, 2, 3, 5, 6, 7])):
+        steps = list(steps)
+        expected += [(robot, s) for s, t in itertools.pairwise(steps) if t == s + 1]
+    got = [(int(r), int(s)) for r, s, _ in now]
+    assert sorted(got) == expected  # stream after stream, in the order the robots joined
+    assert costs.tolist() == [100.0 * r + s for r, s in got]
+
+
+def test_negative_control_one_stream_for_the_fleet_pairs_across_robots() -> None:
+    """The check above can fail: the same stream kept as ONE robot's replay (keyed by arrival)
+    joins robots, and the checker sees it."""
+    replay = Replay(capacity=100)
+    for index, (_, sample) in enumerate(interleaved_fleet()):
+        replay.add(Sample(index, sample.state, sample.action, sample.cost))
+    now, nxt, _ = replay.design(identity)
+    assert cross_robot_or_gap_pairs(now, nxt) == len(now) > 0
+
+
+def test_a_new_episode_restarts_only_that_robots_stream() -> None:
+    pool = PooledReplay(capacity=10)
+    for step in range(5):
+        pool.add("a", tagged(0, step))
+        pool.add("b", tagged(1, step))
+    pool.restart("a")
+    pool.add("a", tagged(0, 0))  # the new episode's step 0 is no duplicate
+    now, nxt, _ = pool.design(identity)
+    assert cross_robot_or_gap_pairs(now, nxt) == 0
+    assert set(now[:, 0].tolist()) == {1.0} and len(now) == 4
+
+
+def random_stream(rng: np.random.Generator, length: int, gap_every: int) -> list[Sample]:
+    steps = [k for k in range(length) if k % gap_every != gap_every - 1]
+    return [Sample(k, rng.normal(size=3), rng.normal(size=2) * 0.2, float(rng.uniform(0.0, 2.0))) for k in steps]
+
+
+@pytest.mark.parametrize("bounds", [None, (0.0, 100.0)])
+def test_a_pool_of_one_is_the_per_robot_learner_bit_for_bit(bounds: tuple[float, float] | None) -> None:
+    rng = np.random.default_rng(3)
+    q0, v0 = rng.uniform(0.5, 2.0, 15), rng.uniform(0.5, 2.0, 6)
+    per_robot, replay = DoubleCritic(q0, v0, 0.9, 1.0, bounds), Replay(30)
+    pool = PooledLearner(DoubleCritic(q0, v0, 0.9, 1.0, bounds), 30, update_every=2)
+    fits = 0
+    for sample in random_stream(rng, 120, gap_every=17):
+        replay.add(sample)
+        due = sample.step % 2 == 0
+        assert pool.record("only", sample) == due
+        if due:
+            expected = per_robot.update(replay)
+            got = pool.fit()
+            fits += 1
+            assert got.q.residual == expected.q.residual and got.v.residual == expected.v.residual
+            assert np.array_equal(pool.critic.q_weights, per_robot.q_weights)
+            assert np.array_equal(pool.critic.v_weights, per_robot.v_weights)
+    assert fits > 40 and not np.array_equal(pool.critic.q_weights, q0)  # it learned
+
+
+def test_pooled_fit_is_the_least_squares_fit_of_every_robots_pairs() -> None:
+    """Oracle: the ridge's normal equations over the union of the robots' own pairs, built by hand."""
+    rng = np.random.default_rng(5)
+    q0, v0 = rng.uniform(0.5, 2.0, 15), rng.uniform(0.5, 2.0, 6)
+    beta, ridge = 0.95, 0.5
+    pool = PooledLearner(DoubleCritic(q0, v0, beta, ridge), 30, update_every=1, robots=3)
+    streams = {robot: random_stream(rng, 40, gap_every=9) for robot in ROBOTS}
+    for robot, samples in streams.items():
+        for sample in samples:
+            pool.replay.add(robot, sample)
+    rows_now, rows_next, costs = [], [], []
+    for samples in streams.values():
+        kept = samples[-30:]
+        for s, t in itertools.pairwise(kept):
+            if t.step == s.step + 1:
+                rows_now.append(phi_q_rows(s.state[None], s.action[None])[0])
+                rows_next.append(phi_q_rows(t.state[None], t.action[None])[0])
+                costs.append(s.cost)
+    a, b, c = np.array(rows_now), np.array(rows_next), np.array(costs)
+    rhs = c + beta * b @ q0 - a @ q0
+    expected = q0 + np.linalg.solve(a.T @ a + ridge * np.eye(15), a.T @ rhs)
+    update = pool.fit()
+    assert update.q.pairs == len(c) > 3 * 20
+    np.testing.assert_allclose(pool.critic.q_weights, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_the_pool_fits_once_per_fleet_step() -> None:
+    fresh = PooledLearner(DoubleCritic(np.ones(15), np.ones(6), 0.9), 10, update_every=2, robots=3)
+    fits = []
+    for k in range(6):
+        for i, robot in enumerate(ROBOTS):
+            if fresh.record(robot, tagged(i, k)):
+                fresh.fit()
+                fits.append((k, robot))
+    assert fits == [(0, "c"), (2, "c"), (4, "c")]  # after the last robot of every due step
+    # unknown fleet size: the robots heard from so far
+    growing = PooledLearner(DoubleCritic(np.ones(15), np.ones(6), 0.9), 10, update_every=1)
+    assert growing.record("a", tagged(0, 0)) is True
+    growing.fit()
+    assert growing.record("b", tagged(1, 0)) is False and growing.record("a", tagged(0, 1)) is True
+
+
+def test_pooled_memory_is_bounded_per_robot() -> None:
+    pool = PooledLearner(DoubleCritic(np.ones(15), np.ones(6), 0.9), 12, update_every=50, robots=3)
+    for k in range(2000):
+        for i, robot in enumerate(ROBOTS):
+            if pool.record(robot, tagged(i, k)):
+                pool.fit()
+    assert len(pool.replay) == 3 * 12
+    assert all(len(replay) == 12 for replay in pool.replay.streams.values())
+    now, _, _ = pool.replay.design(identity)
+    assert len(now) == 3 * 11
+
+
+@pytest.mark.parametrize("kwargs", [{"update_every": 0}, {"robots": 0}])
+def test_pooled_learner_rejects_bad_arguments(kwargs: dict) -> None:
+    args = {"update_every": 1, "robots": 2, **kwargs}
+    with pytest.raises(ValueError):
+        PooledLearner(DoubleCritic(np.ones(15), np.ones(6), 0.9), 10, **args)
+    with pytest.raises(ValueError):
+        PooledReplay(1)
+
+
+# -- the fleet in lockstep (common.loop.run_fleet_lockstep) ----------------------------------
+STARTS = [np.array([1.0, -0.5, 0.3]), np.array([-0.8, 0.6, 2.5])]
+
+
+def short_settings(agent: str = "rlqv") -> Settings:
+    return Settings.load(actor={"agent": agent, "horizon": 6, "jit": False}, episode={"duration": 2.0})
+
+
+def assert_same_episode(got: Episode, expected: Episode) -> None:
+    assert got.steps == expected.steps > 0
+    for name in ("states", "actions", "costs", "q_weights", "v_weights"):
+        assert np.array_equal(np.array(getattr(got, name)), np.array(getattr(expected, name))), name
+
+
+def test_a_per_robot_fleet_is_one_run_per_robot_bit_for_bit() -> None:
+    settings = short_settings()
+    actor = build_actor(settings)
+    fleet = run_fleet_episode(settings, STARTS, "per-robot", actor=actor)
+    for start, got in zip(STARTS, fleet, strict=True):
+        alone = run_episode(
+            settings.model_copy(update={"episode": settings.episode.model_copy(update={"start": list(start)})}),
+            actor=actor,
+        )
+        assert_same_episode(got, alone)
+
+
+def test_a_pooled_fleet_of_one_is_the_per_robot_run_bit_for_bit() -> None:
+    settings = short_settings()
+    actor = build_actor(settings)
+    (pooled,) = run_fleet_episode(settings, STARTS[:1], "pooled", actor=actor)
+    (per_robot,) = run_fleet_episode(settings, STARTS[:1], "per-robot", actor=actor)
+    assert_same_episode(pooled, per_robot)
+
+
+def test_a_pooled_fleet_shares_one_critic_fitted_once_per_step() -> None:
+    settings = short_settings()
+    learners = fleet_learners(settings, 2, "pooled")
+    assert learners[0] is learners[1]
+    fleet = run_fleet_episode(settings, STARTS, "pooled")
+    # every robot acts on the same weights at every step; they change (it learns)
+    assert np.array_equal(np.array(fleet[0].q_weights), np.array(fleet[1].q_weights))
+    assert not np.array_equal(fleet[0].q_weights[0], fleet[0].q_weights[-1])
+    # one fit per step, after the fleet's last robot: robot 1's rows carry the residuals
+    assert all(np.isnan(r[0]) for r in fleet[0].td_residuals)
+    assert not any(np.isnan(r[0]) for r in fleet[1].td_residuals[1:])
+    per_robot = run_fleet_episode(settings, STARTS, "per-robot")
+    assert not np.array_equal(np.array(per_robot[0].q_weights), np.array(fleet[0].q_weights))
+    with pytest.raises(ValueError, match="critic layout"):
+        fleet_learners(settings, 2, "shared")  # type: ignore[arg-type]
