@@ -287,12 +287,15 @@ class PooledLearner:
         return self.count(sample.step)
 
     def count(self, step: int) -> bool:
-        """A transition of ``step`` entered a stream: True when the pool's fit is due."""
+        """A transition of ``step`` entered a stream: True when the pool's fit is due (the count
+        starts again; the caller fits now, or later on more, e.g. at the end of a batch)."""
         if fit_due(step, self.update_every):
             self.due += 1
-        return self.due >= self.size
+        if self.due < self.size:
+            return False
+        self.due = 0
+        return True
 
     def fit(self) -> CriticUpdate:
         """One TD least-squares fit of both critics on every robot's pairs."""
-        self.due = 0
         return self.critic.update(self.replay)

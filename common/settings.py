@@ -146,6 +146,7 @@ class CriticSettings(_Section):
         default=False, description="fit each robot once per batch, on its newest transition (a fleet's critic)"
     )
     robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
+    pooled: bool = Field(default=False, description="one learner trained on every robot's transitions (a fleet's)")
 
     @field_validator("robots")
     @classmethod

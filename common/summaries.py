@@ -146,6 +146,7 @@ class CriticSummary(_Summary):
         default=None, description="transitions taken per batch (one checkpoint each; a fleet's come together)"
     )
     fits_coalesced: int = Field(default=0, description="due fits left to a newer transition of the robot in the batch")
+    pooled: bool = Field(default=False, description="one learner for every robot (critic.pooled)")
     counters: dict[str, float]
     resources: dict[str, Any] | None = None
 

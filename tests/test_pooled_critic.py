@@ -4,15 +4,20 @@ within one robot's consecutive steps; a pool of one is the per-robot learner bit
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from common.assembly import build_actor, fleet_learners, run_episode, run_fleet_episode
+from common.checkpoint import atomic_write_json
 from common.critic import DoubleCritic, PooledLearner, PooledReplay, Replay, Sample
 from common.features import phi_q_rows
 from common.loop import Episode
+from common.messages import Transition
 from common.settings import Settings
+from services.critic.service import CriticLearner, load_checkpoint
 
 ROBOTS = ("a", "b", "c")
 
@@ -219,3 +224,131 @@ def test_a_pooled_fleet_shares_one_critic_fitted_once_per_step() -> None:
     assert not np.array_equal(np.array(per_robot[0].q_weights), np.array(fleet[0].q_weights))
     with pytest.raises(ValueError, match="critic layout"):
         fleet_learners(settings, 2, "shared")  # type: ignore[arg-type]
+
+
+# -- the critic service (services/critic/service.py) ------------------------------------------
+def pooled_settings(**critic: object) -> Settings:
+    return Settings.load(critic={"pooled": True, "checkpoint": "", **critic})
+
+
+def fleet_stream(steps: int, robots: Sequence[str] = ROBOTS, episode: int = 7, seed: int = 3) -> list[Transition]:
+    """A fleet stepping together: every robot's step k, then step k + 1, ..."""
+    rng = np.random.default_rng(seed)
+    return [
+        Transition(
+            robot=robot,
+            episode=episode,
+            step=k,
+            state=tuple(rng.uniform(-2, 2, 3)),
+            action=tuple(rng.uniform(-0.2, 0.2, 2)),
+            cost=float(rng.uniform(0, 1)),
+        )
+        for k in range(steps)
+        for robot in robots
+    ]
+
+
+def pool_oracle(settings: Settings, stream: Sequence[Transition], robots: int) -> PooledLearner:
+    c = settings.critic
+    double = DoubleCritic(
+        settings.initial_q_weights(), settings.initial_v_weights(), settings.discount, c.ridge, c.bounds
+    )
+    pool = PooledLearner(double, c.replay_size, c.update_every, robots=robots)
+    for t in stream:
+        if pool.record(t.robot, Sample(t.step, np.array(t.state), np.array(t.action), t.cost)):
+            pool.fit()
+    return pool
+
+
+def test_the_pooled_service_fits_once_per_fleet_step_and_sends_every_robot_the_same_version() -> None:
+    settings = pooled_settings()
+    learner = CriticLearner(settings, fleet_size=3)
+    stream = fleet_stream(40)
+    sent = [learner.take(t) for t in stream]
+    fits = [weights for weights in sent if weights]
+    assert len(fits) == 40 and all(len(sent[3 * k + 2]) == 3 for k in range(40))  # after the fleet's last robot
+    for k, weights in enumerate(fits):
+        assert [w.robot for w in weights] == list(ROBOTS)
+        assert len({w.version for w in weights}) == 1 and len({w.q_weights for w in weights}) == 1
+        assert all(w.trained_step == k and w.episode == 7 for w in weights)
+    assert [w[0].version for w in fits] == sorted({w[0].version for w in fits})
+    oracle = pool_oracle(settings, stream, robots=3)
+    assert np.array_equal(np.array(fits[-1][0].q_weights), oracle.critic.q_weights)
+    assert np.array_equal(np.array(fits[-1][0].v_weights), oracle.critic.v_weights)
+    assert learner.learners["a"].critic is learner.learners["c"].critic  # one learner
+    assert len(learner.pool.replay) == 3 * settings.critic.replay_size  # type: ignore[union-attr]
+
+
+def test_a_pooled_service_behind_fits_once_at_the_end_of_the_batch() -> None:
+    learner = CriticLearner(pooled_settings(), fleet_size=3)
+    batch = fleet_stream(4)  # four fleet steps waiting at once
+    assert all(learner.take(t, fit=False) == [] for t in batch)
+    weights = learner.flush()
+    assert len(weights) == 3 and all(w.trained_step == 3 for w in weights)
+    assert learner.fits_coalesced == 3 and learner.flush() == []
+    assert learner.learners["a"].critic.update(learner.pool.replay).q.pairs == 3 * 3  # type: ignore[union-attr]
+
+
+def test_a_pooled_checkpoint_restores_the_pool_and_it_continues_as_if_never_stopped(tmp_path: Path) -> None:
+    settings = pooled_settings()
+    stream = fleet_stream(30)
+    oracle = CriticLearner(settings, fleet_size=3)
+    for t in stream:
+        oracle.take(t)
+    first = CriticLearner(settings, fleet_size=3)
+    for t in stream[:50]:  # mid-step: the pool's count of due transitions is part of the state
+        first.take(t)
+    path = tmp_path / "critic.json"
+    atomic_write_json(path, first.state())
+    second = CriticLearner(settings, fleet_size=3)
+    assert load_checkpoint(second, path)
+    sent = [second.confirm(t) for t in stream[30:33]]  # the robots come back: the same episode
+    assert [w.robot for w in sent if w is not None] == ["a", "b", "c"] and second.restored
+    for t in stream[30:]:  # the publishers' caches re-deliver 30..49: duplicates
+        second.take(t)
+    assert second.duplicates == 20
+    np.testing.assert_array_equal(second.pool.critic.q_weights, oracle.pool.critic.q_weights)  # type: ignore[union-attr]
+    np.testing.assert_array_equal(second.pool.critic.v_weights, oracle.pool.critic.v_weights)  # type: ignore[union-attr]
+
+
+def test_a_pooled_checkpoint_of_an_earlier_run_starts_the_pool_fresh(tmp_path: Path) -> None:
+    settings = pooled_settings()
+    first = CriticLearner(settings, fleet_size=3)
+    for t in fleet_stream(20):
+        first.take(t)
+    path = tmp_path / "critic.json"
+    atomic_write_json(path, first.state())
+    second = CriticLearner(settings, fleet_size=3)
+    assert load_checkpoint(second, path)
+    new_run = fleet_stream(1, episode=8, seed=4)
+    for t in new_run:
+        assert second.confirm(t) is None
+        second.take(t)
+    assert sorted(second.learners) == list(ROBOTS) and all(x.episode == 8 for x in second.learners.values())
+    assert len(second.pool.replay) == 3  # type: ignore[union-attr]  # no old stream left
+    fresh = CriticLearner(settings, fleet_size=3)
+    for t in new_run:
+        fresh.take(t)
+    np.testing.assert_array_equal(second.pool.critic.q_weights, fresh.pool.critic.q_weights)  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize("pooled_first", [True, False])
+def test_a_checkpoint_of_the_other_kind_of_critic_is_set_aside(tmp_path: Path, pooled_first: bool) -> None:
+    kinds = {True: pooled_settings(), False: Settings.load(critic={"checkpoint": ""})}
+    first = CriticLearner(kinds[pooled_first])
+    for t in fleet_stream(3):
+        first.take(t)
+    path = tmp_path / "critic.json"
+    atomic_write_json(path, first.state())
+    second = CriticLearner(kinds[not pooled_first])
+    assert not load_checkpoint(second, path)
+    assert not path.exists() and second.learners == {}
+
+
+def test_the_critic_command_takes_pooled_and_srl_up_a_critic_layout() -> None:
+    from tools.cli import build_parser
+
+    args = build_parser().parse_args(["critic", "--robots", "3", "--pooled"])
+    assert args.pooled is True
+    args = build_parser().parse_args(["up", "--robots", "3", "--critic", "pooled"])
+    assert args.critic == "pooled"

@@ -250,6 +250,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
+    if args.robots is None and args.critic is not None:
+        raise UsageError("--critic per-robot|pooled chooses a fleet's critic: give --robots K too")
     if args.robots is not None:  # a fleet (issue 16): tools/fleet.py
         from tools.fleet_cli import cmd_up_fleet
 

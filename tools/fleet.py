@@ -181,8 +181,10 @@ def run_fleet(
     on_status: Callable[[str], None] | None = None,
     summary_dir: Path | None = None,
     actor_hosts: int = 1,
+    pooled: bool = False,
 ) -> dict[str, Any]:
-    """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary."""
+    """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary.
+    ``pooled``: one critic learner for every robot (critic.pooled), else one per robot."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
     if not 1 <= actor_hosts <= len(robots):
@@ -197,6 +199,7 @@ def run_fleet(
     # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
     env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
+    env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
     common = fleet_args(settings_args, router)
     supervisor = Supervisor(common, env, quiet=quiet)
     ids = ",".join(robots)
@@ -293,6 +296,7 @@ def run_fleet(
             "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
             "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
             "fits_coalesced": critic.fits_coalesced,
+            "pooled": critic.pooled,
         },
         "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
         "rss_mb": use.rss_mb,

@@ -39,6 +39,12 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="H",
         help="with --robots (host layout): split the robots over H actor hosts, e.g. one per core (default: 1)",
     )
+    parser.add_argument(
+        "--critic",
+        choices=("per-robot", "pooled"),
+        help="with --robots: a learner per robot, or one pooled learner trained on every robot's transitions "
+        "(default: setting critic.pooled, false: per-robot)",
+    )
 
 
 def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: list[str], summary_dir: Path) -> int:
@@ -72,6 +78,7 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
         on_status=show,
         actor_hosts=args.actor_hosts,
         summary_dir=summary_dir,
+        pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
     )
     print(format_fleet_summary(summary))
     if args.json:

@@ -17,6 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
     )
     add_robots_argument(parser, "also declare this critic alive for every robot of the list (a fleet): ")
+    parser.add_argument(
+        "--pooled",
+        action="store_true",
+        help="one learner for every robot (a fleet's pooled critic; setting critic.pooled) "
+        "(default: a learner per robot)",
+    )
     parser.set_defaults(func=main)
 
 
@@ -24,9 +30,12 @@ def main(args: argparse.Namespace) -> int:
     from services.critic.service import run
 
     robots = fleet_robots(args)
+    settings = settings_from_args(args)
+    if args.pooled:
+        settings = settings.model_copy(update={"critic": settings.critic.model_copy(update={"pooled": True})})
 
     return serve(
-        settings_from_args(args),
+        settings,
         "critic",
         args.connect_timeout,
         lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds, robots),

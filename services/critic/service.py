@@ -23,6 +23,15 @@ Nothing is lost across a crash:
 
 Steps more than ``retention`` behind the newest step of the episode are refused as too old
 (counted): this bounds the memory of seen steps and the checkpoint's size.
+
+``critic.pooled`` (``srl critic --pooled``; issue 16): ONE learner for every robot
+(:class:`~common.critic.PooledLearner`). Each robot keeps its stream (episode, replay of M, steps
+seen) and TD pairs never leave a stream; the one critic is fitted once per fleet step (as many
+transitions due a fit as the fleet has robots since the last fit) and its weights go to every
+robot's weights key, one version for all. A robot that starts a new episode restarts its stream
+and joins the pool's weights where they are. From a checkpoint, the first robot heard decides:
+its episode goes on, so does the pool; a new episode means a new run, and the pool starts from the
+initial weights (``critic.resume``: from the checkpoint's) with no robot's old stream.
 """
 
 from __future__ import annotations
@@ -49,7 +58,7 @@ from common.checkpoint import (
     set_aside,
     to_runs,
 )
-from common.critic import DoubleCritic, Replay, Sample
+from common.critic import DoubleCritic, PooledLearner, Replay, Sample
 from common.keys import TRANSITION, WEIGHTS
 from common.messages import CriticWeights, Transition
 from common.settings import Settings
@@ -84,11 +93,18 @@ def checkpoint_path(settings: Settings) -> Path | None:
 
 
 class CriticLearner:
-    """Transport-free core: feed transitions, get the weight messages to publish."""
+    """Transport-free core: feed transitions, get the weight messages to publish.
 
-    def __init__(self, settings: Settings) -> None:
+    ``fleet_size``: the robots a pooled critic serves (its fit is due once per step of all of
+    them; None: the robots heard from so far)."""
+
+    def __init__(self, settings: Settings, fleet_size: int | None = None) -> None:
         self.settings = settings
         self.learners: dict[str, Learner] = {}
+        self.fleet_size = fleet_size
+        self.pool = self._fresh_pool() if settings.critic.pooled else None
+        self.fit_pending = False  # a pooled fit came due in this batch, left to its end (coalesce_fits)
+        self.pool_run_decided = False  # pooled, from a checkpoint: the first robot heard said whether its run goes on
         # Versions increase strictly over the process's life and across restarts: they start
         # from the wall clock in microseconds, so a restarted critic is never "older".
         self.version = time.time_ns() // 1000
@@ -107,24 +123,43 @@ class CriticLearner:
         # still deliver again.
         self.retention = 2 * max(settings.transport.transition_cache, settings.critic.replay_size)
 
-    def _fresh(self, episode: int) -> Learner:
+    def _fresh_critic(self) -> DoubleCritic:
         s = self.settings
-        critic = DoubleCritic(s.initial_q_weights(), s.initial_v_weights(), s.discount, s.critic.ridge, s.critic.bounds)
-        return Learner(episode, Replay(s.critic.replay_size), critic, set())
+        return DoubleCritic(s.initial_q_weights(), s.initial_v_weights(), s.discount, s.critic.ridge, s.critic.bounds)
+
+    def _fresh_pool(self) -> PooledLearner:
+        c = self.settings.critic
+        return PooledLearner(self._fresh_critic(), c.replay_size, c.update_every, robots=self.fleet_size)
+
+    def _fresh(self, robot: str, episode: int, pool: PooledLearner | None = None) -> Learner:
+        """A robot's new learner: its own critic, or (pooled) a new stream of ``pool`` and its critic."""
+        pool = pool or self.pool
+        if pool is not None:
+            return Learner(episode, pool.replay.restart(robot), pool.critic, set())
+        return Learner(episode, Replay(self.settings.critic.replay_size), self._fresh_critic(), set())
 
     def initial_weights(self, robot: str, episode: int) -> CriticWeights:
-        learner = self._fresh(episode)
+        learner = self._fresh(robot, episode)
         self.learners[robot] = learner
         return self._message(robot, learner, trained_step=-1, q_res=0.0, v_res=0.0, pairs=0)
 
     def _message(
-        self, robot: str, learner: Learner, trained_step: int, q_res: float, v_res: float, pairs: int
+        self,
+        robot: str,
+        learner: Learner,
+        trained_step: int,
+        q_res: float,
+        v_res: float,
+        pairs: int,
+        version: int | None = None,
     ) -> CriticWeights:
-        self.version += 1
+        """``version``: the pool's one version for all its robots (None: a new one)."""
+        if version is None:
+            self.version += 1
         return CriticWeights(
             robot=robot,
             episode=learner.episode,
-            version=self.version,
+            version=self.version if version is None else version,
             trained_step=trained_step,
             q_weights=tuple(float(w) for w in learner.critic.q_weights),
             v_weights=tuple(float(w) for w in learner.critic.v_weights),
@@ -140,11 +175,26 @@ class CriticLearner:
             return None
         self.pending.discard(message.robot)
         learner = self.learners[message.robot]
+        decides = self.pool is not None and not self.pool_run_decided
+        self.pool_run_decided = True
         if message.episode != learner.episode:
+            if decides:
+                self._new_pooled_run()
             return None  # on_transition starts the new run (fresh, or resumed weights)
         self.continued.add(message.robot)
         trained = learner.replay.samples[-1].step if len(learner.replay) else -1
         return self._message(message.robot, learner, trained, 0.0, 0.0, 0)
+
+    def _new_pooled_run(self) -> None:
+        """The first robot back from a checkpoint is on a new episode: the pool's run is over.
+        No robot's old stream is kept; the weights are the initial ones unless resumed."""
+        assert self.pool is not None
+        previous, self.pool = self.pool, self._fresh_pool()
+        if self.resume:
+            self.pool.critic.q_weights = previous.critic.q_weights.copy()
+            self.pool.critic.v_weights = previous.critic.v_weights.copy()
+        self.learners.clear()
+        self.pending.clear()
 
     @property
     def restored(self) -> bool:
@@ -152,25 +202,31 @@ class CriticLearner:
         return bool(self.continued) or (self.resume and self.loaded)
 
     def on_transition(self, message: Transition, fit: bool = True) -> CriticWeights | None:
+        """:meth:`take`, and of what it returns the weights for the message's robot."""
+        return next((w for w in self.take(message, fit) if w.robot == message.robot), None)
+
+    def take(self, message: Transition, fit: bool = True) -> list[CriticWeights]:
         """Into the robot's replay; fitted and the weights returned when a fit is due (and
-        ``fit``: False when a newer transition of the robot, due a fit too, is already waiting)."""
+        ``fit``: False when a newer transition of the robot, due a fit too, is already waiting;
+        pooled: when the batch's end will fit, :meth:`flush`). Per robot: its weights; pooled:
+        every robot's."""
         self.received += 1
         learner = self.learners.get(message.robot)
         if learner is None or message.episode > learner.episode:
-            previous, learner = learner, self._fresh(message.episode)
-            if previous is not None and self.resume:  # learning carried across runs, on request
+            previous, learner = learner, self._fresh(message.robot, message.episode)
+            if previous is not None and self.resume and self.pool is None:  # learning carried across runs
                 learner.critic.q_weights = previous.critic.q_weights.copy()
                 learner.critic.v_weights = previous.critic.v_weights.copy()
             self.learners[message.robot] = learner
         elif message.episode < learner.episode:
             self.stale_episode += 1
-            return None
+            return []
         if message.step in learner.seen:
             self.duplicates += 1  # a re-delivered transition: already in the replay
-            return None
+            return []
         if message.step <= learner.newest - self.retention:
             self.too_old += 1
-            return None
+            return []
         learner.seen.add(message.step)
         self.accepted += 1
         if message.step > learner.newest:
@@ -179,17 +235,49 @@ class CriticLearner:
                 floor = learner.newest - self.retention
                 learner.seen = {step for step in learner.seen if step > floor}
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
+        if self.pool is not None:
+            if not self.pool.count(message.step):
+                return []
+            if not fit:
+                self.fit_pending = True
+                self.fits_coalesced += 1
+                return []
+            return self._pooled_fit()
         if not fit_due(message.step, self.settings.critic.update_every):
-            return None
+            return []
         if not fit:
             self.fits_coalesced += 1
-            return None
+            return []
         started = time.perf_counter()
         update = learner.critic.update(learner.replay)
         self.fit_seconds.append(time.perf_counter() - started)
         if not (np.isfinite(update.q.residual) and np.isfinite(update.v.residual)):
-            return None
-        return self._message(message.robot, learner, message.step, update.q.residual, update.v.residual, update.q.pairs)
+            return []
+        return [
+            self._message(message.robot, learner, message.step, update.q.residual, update.v.residual, update.q.pairs)
+        ]
+
+    def flush(self) -> list[CriticWeights]:
+        """The end of a batch: the pooled fit left to it, if one came due (else nothing)."""
+        if not self.fit_pending:
+            return []
+        self.fits_coalesced -= 1  # the last of the batch's due fits is made
+        return self._pooled_fit()
+
+    def _pooled_fit(self) -> list[CriticWeights]:
+        """One fit of the pool; its weights for every robot, under one version."""
+        assert self.pool is not None
+        self.fit_pending = False
+        started = time.perf_counter()
+        update = self.pool.fit()
+        self.fit_seconds.append(time.perf_counter() - started)
+        if not (np.isfinite(update.q.residual) and np.isfinite(update.v.residual)):
+            return []
+        self.version += 1
+        return [
+            self._message(robot, x, x.newest, update.q.residual, update.v.residual, update.q.pairs, self.version)
+            for robot, x in self.learners.items()
+        ]
 
     # -- checkpoint ---------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
@@ -203,16 +291,29 @@ class CriticLearner:
                 "replay": [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in learner.replay.samples],
                 "seen": to_runs(learner.seen),
             }
-        return {"schema": CHECKPOINT_SCHEMA, "version": self.version, "learners": learners}
+        payload: dict[str, Any] = {"schema": CHECKPOINT_SCHEMA, "version": self.version, "learners": learners}
+        if self.pool is not None:
+            payload["pool"] = {
+                "q_weights": self.pool.critic.q_weights.tolist(),
+                "v_weights": self.pool.critic.v_weights.tolist(),
+                "due": self.pool.due,
+            }
+        return payload
 
     def restore(self, payload: dict[str, Any]) -> None:
         """Load :meth:`state` output; raises :class:`CheckpointError` and changes nothing if bad."""
         if payload.get("schema") != CHECKPOINT_SCHEMA:
             raise CheckpointError(f"checkpoint schema {payload.get('schema')!r} is not {CHECKPOINT_SCHEMA}")
+        if ("pool" in payload) != (self.pool is not None):
+            kinds = ("per-robot", "pooled")
+            raise CheckpointError(
+                f"the checkpoint is of a {kinds['pool' in payload]} critic, this one is {kinds[self.pool is not None]}"
+            )
         learners: dict[str, Learner] = {}
+        pool = self._fresh_pool() if self.pool is not None else None
         try:
             for robot, entry in payload["learners"].items():
-                learner = self._fresh(int(entry["episode"]))
+                learner = self._fresh(robot, int(entry["episode"]), pool)
                 q, v = np.array(entry["q_weights"], dtype=float), np.array(entry["v_weights"], dtype=float)
                 if q.shape != learner.critic.q_weights.shape or v.shape != learner.critic.v_weights.shape:
                     raise CheckpointError(f"{robot}: weights of shapes {q.shape}, {v.shape}")
@@ -227,11 +328,21 @@ class CriticLearner:
                 learner.newest = int(entry["newest"])
                 learners[robot] = learner
             version = int(payload["version"])
+            if pool is not None:
+                q, v = np.array(payload["pool"]["q_weights"], float), np.array(payload["pool"]["v_weights"], float)
+                if q.shape != pool.critic.q_weights.shape or v.shape != pool.critic.v_weights.shape:
+                    raise CheckpointError(f"pool: weights of shapes {q.shape}, {v.shape}")
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+                    raise CheckpointError("pool: non-finite weights")
+                pool.critic.q_weights, pool.critic.v_weights = q, v
+                pool.due = int(payload["pool"]["due"])
         except (KeyError, TypeError, ValueError) as error:
             if isinstance(error, CheckpointError):
                 raise
             raise CheckpointError(f"malformed checkpoint: {error!r}") from error
         self.learners = learners
+        if pool is not None:
+            self.pool = pool
         self.version = max(self.version, version)
         self.pending = set(learners)
         self.loaded = True
@@ -285,7 +396,7 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
 def run(
     settings: Settings, bus: Bus, stop: threading.Event, duration: float | None, robots: list[str] | None = None
 ) -> dict:
-    learner = CriticLearner(settings)
+    learner = CriticLearner(settings, fleet_size=len(robots) if robots else None)
     path = checkpoint_path(settings)
     restored = load_checkpoint(learner, path)
     checkpoint_seconds = Window()
@@ -323,8 +434,9 @@ def run(
         },
     )
     log.info(
-        "critic ready (robots %s, M = %d, beta = %.4f, checkpoint %s)",
+        "critic ready (robots %s, %s, M = %d, beta = %.4f, checkpoint %s)",
         settings.critic.robots,
+        "one pooled learner" if learner.pool is not None else "a learner per robot",
         settings.critic.replay_size,
         settings.discount,
         path or "off",
@@ -349,15 +461,16 @@ def run(
         outgoing: list[CriticWeights] = []
         # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
         # robot) fits each robot once, on its newest: its actor uses only the newest weights anyway.
+        # Pooled, the fit due in the batch is made once, at its end, on all of it.
         superseded = coalesced_fits(batch, settings.critic.update_every) if settings.critic.coalesce_fits else set()
+        defer = settings.critic.coalesce_fits and learner.pool is not None
         for index, message in enumerate(batch):
             continued = learner.confirm(message)
             if continued is not None:
                 log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
                 publish(continued)
-            fitted = learner.on_transition(message, fit=index not in superseded)
-            if fitted is not None:
-                outgoing.append(fitted)
+            outgoing += learner.take(message, fit=not defer and index not in superseded)
+        outgoing += learner.flush()
         batches.append(len(batch))
         dirty = dirty or learner.accepted > before
         if dirty and path is not None and time.monotonic() - written >= settings.critic.checkpoint_period:
@@ -391,6 +504,7 @@ def run(
             "fit_ms": learner.fit_seconds.summary(1e3),
             "batch_transitions": batches.summary(),
             "fits_coalesced": learner.fits_coalesced,
+            "pooled": learner.pool is not None,
             "counters": dict(bus.counters),
         }
     ).to_json_dict()

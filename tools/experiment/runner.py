@@ -741,7 +741,12 @@ def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dic
 
 # -- command line -----------------------------------------------------------------------
 def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("which", choices=["paper"], help="paper: section IV, the grid of starts and cost ratios")
+    parser.add_argument(
+        "which",
+        choices=["paper", "fleet"],
+        help="paper: section IV, the grid of starts and cost ratios; fleet: the same starts as ONE fleet in "
+        "lockstep, per-robot vs pooled critics (issue 16)",
+    )
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
     parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
     parser.add_argument(
@@ -788,6 +793,11 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
         "and critic service processes (lockstep, synchronous critic) (default: inproc)",
     )
     parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
+    parser.add_argument(
+        "--critic",
+        default="per-robot,pooled",
+        help="fleet: the critic layouts compared, of per-robot,pooled (default: both)",
+    )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
@@ -839,6 +849,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         )
         options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
         base = _load_settings(args)
+        if args.which == "fleet":
+            return _cmd_fleet(args, base)
     except ValueError as error:
         print(f"srl experiment: error: {error}", file=sys.stderr)
         return 2
@@ -860,6 +872,18 @@ def cmd_experiment(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return code
+
+
+def _cmd_fleet(args: argparse.Namespace, base: Settings) -> int:
+    """``srl experiment fleet`` (tools/experiment/fleet.py): in process, one fleet per (agent, N, critic)."""
+    from tools.experiment.fleet import cmd_fleet
+
+    if args.transport != "inproc" or args.record is not None:
+        raise ValueError("experiment fleet runs in process: --transport zenoh and --record are for `experiment paper`")
+    starts = make_starts(args.starts, args.grid, args.extent, args.seed)
+    argv = [a for a in _argv_of(args) if not a.startswith("--transport=")]
+    command = "srl experiment " + " ".join(shlex.quote(a) for a in [*argv, f"--critic={args.critic}"])
+    return cmd_fleet(args, experiment_settings(base), starts, command)
 
 
 def _argv_of(args: argparse.Namespace) -> list[str]:
