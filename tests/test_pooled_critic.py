@@ -4,6 +4,7 @@ within one robot's consecutive steps; a pool of one is the per-robot learner bit
 from __future__ import annotations
 
 import itertools
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -352,3 +353,61 @@ def test_the_critic_command_takes_pooled_and_srl_up_a_critic_layout() -> None:
     assert args.pooled is True
     args = build_parser().parse_args(["up", "--robots", "3", "--critic", "pooled"])
     assert args.critic == "pooled"
+
+
+@pytest.mark.slow
+def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() -> None:
+    """The real services (srl up --robots 3 --critic pooled): one learner, every robot served."""
+    from tools.fleet import run_fleet
+
+    summary = run_fleet(Settings.load(), [], ["pa", "pb", "pc"], 8.0, quiet=True, pooled=True)
+    critic, fleet = summary["critic"], summary["fleet"]
+    assert critic["pooled"] is True
+    # one fit per fleet step (~80 in 8 s), its weights to each of the 3 robots
+    assert critic["weights_published"] >= 3 * 60
+    for row in fleet["rows"]:
+        assert row["steps"] >= 40 and row["staleness_max_steps"] <= 5, row
+        assert row["final_distance_m"] < 1.5 - 0.5, row  # from 1.5 m: approached
+
+
+@pytest.mark.slow
+def test_experiment_fleet_per_robot_gives_the_paper_experiments_j_and_pooled_beside_it(tmp_path: Path) -> None:
+    """``srl experiment fleet`` on a reduced grid: its per-robot fleet is ``srl experiment paper``
+    run for run (the same J), the pooled fleet is reported beside it, and bad input is refused."""
+    import csv
+    import subprocess
+    import sys
+
+    grid = ["--grid", "2", "--duration", "2", "--horizons", "6", "--agents", "mpc,rlqv", "--workers", "1"]
+    cli = [sys.executable, "-m", "tools.cli", "experiment"]
+    paper = subprocess.run(
+        [*cli, "paper", *grid, "--no-plots", "--no-progress", "--out", str(tmp_path / "paper")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert paper.returncode == 0, paper.stderr[-2000:]
+    fleet = subprocess.run(
+        [*cli, "fleet", *grid, "--out", str(tmp_path / "fleet")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert fleet.returncode == 0, fleet.stderr[-2000:]
+    assert "| RL-QV | 6 | per-robot |" in fleet.stdout and "| RL-QV | 6 | pooled |" in fleet.stdout
+    marks = json.loads((tmp_path / "fleet" / "fleet.json").read_text())
+    runs = list(csv.DictReader((tmp_path / "paper" / "runs.csv").open()))
+    j = {(r["agent"], int(r["start_index"])): float(r["accumulated_cost"]) for r in runs}
+    assert marks["mpc_costs"]["6"] == [j[("mpc", i)] for i in range(4)]
+    groups = {g["critic"]: g for g in marks["groups"]}
+    per_robot = [
+        r / 100 * jm for r, jm in zip(groups["per-robot"]["ratio_percent"], marks["mpc_costs"]["6"], strict=True)
+    ]
+    np.testing.assert_allclose(per_robot, [j[("rlqv", i)] for i in range(4)], rtol=1e-12)
+    assert groups["pooled"]["ratio_percent"] != groups["per-robot"]["ratio_percent"]  # it learned otherwise
+    refused = subprocess.run(
+        [*cli, "fleet", "--critic", "shared"], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0 and "--critic" in refused.stderr

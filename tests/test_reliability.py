@@ -132,7 +132,12 @@ def test_seen_steps_are_bounded_and_too_old_ones_refused() -> None:
 
 
 @pytest.mark.slow
-def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(critic_checkpoint: Path) -> None:
+@pytest.mark.parametrize("critic", ["per-robot", "pooled"])
+def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(
+    critic_checkpoint: Path, critic: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # pooled (issue 16): the pool of this one robot, from its checkpoint, recovers the same way
+    monkeypatch.setenv("SRL_CRITIC__POOLED", "true" if critic == "pooled" else "false")
     checkpoint = Path(str(critic_checkpoint).format(robot="kr"))
     with cluster(robot="kr") as c:
         c.start_plant_and_critic()

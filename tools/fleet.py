@@ -200,6 +200,10 @@ def run_fleet(
     env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
     env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
+    # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
+    # start threads, which spin on a busy machine (measured: fit median 5 -> 1.5 ms, p99 29 -> 2.5 ms)
+    for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(variable, "1")
     common = fleet_args(settings_args, router)
     supervisor = Supervisor(common, env, quiet=quiet)
     ids = ",".join(robots)

@@ -131,20 +131,21 @@ def fleet_markdown(marks: dict[str, Any], command: str) -> str:
     robots = len(marks["starts"])
     parked = ", ".join(f"{n}/{robots} at N = {h}" for h, n in marks["mpc_parked"].items())
     lines += ["", f"MPC (J_mpc, the same fleet without learning) parked: {parked}."]
-    for horizon in dict.fromkeys(g["horizon"] for g in groups):
-        columns = [g for g in groups if g["horizon"] == horizon]
-        lines += [
-            "",
-            f"N = {horizon}, J / J_mpc per start (%):",
-            "",
-            "| start (x, y) | J_mpc | "
-            + " | ".join(f"{names.get(g['agent'], g['agent'])} {g['critic']}" for g in columns)
-            + " |",
-            "|---|---|" + "---|" * len(columns),
-        ]
-        for i, (x, y, _) in enumerate(marks["starts"]):
-            cells = " | ".join(f"{g['ratio_percent'][i]:.1f}" for g in columns)
-            lines.append(f"| ({x:g}, {y:g}) | {marks['mpc_costs'][str(horizon)][i]:.1f} | {cells} |")
+    # per start, every horizon side by side: J_mpc, then J / J_mpc of each (agent, critic)
+    horizons = list(dict.fromkeys(g["horizon"] for g in groups))
+    columns = {h: [g for g in groups if g["horizon"] == h] for h in horizons}
+    header = "".join(
+        f" N = {h}: J_mpc |" + "".join(f" {names.get(g['agent'], g['agent'])} {g['critic']} |" for g in columns[h])
+        for h in horizons
+    )
+    lines += ["", "J / J_mpc per start (%):", "", "| start (x, y) |" + header]
+    lines.append("|---|" + "---|" * sum(1 + len(columns[h]) for h in horizons))
+    for i, (x, y, _) in enumerate(marks["starts"]):
+        cells = []
+        for h in horizons:
+            cells.append(f"{marks['mpc_costs'][str(h)][i]:.1f}")
+            cells += [f"{g['ratio_percent'][i]:.1f}" for g in columns[h]]
+        lines.append(f"| ({x:g}, {y:g}) | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
