@@ -28,13 +28,15 @@ import sys
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zenoh
 
+from common.messages import Transition
 from common.settings import Settings
 from common.transport import plain_config
 
@@ -217,3 +219,22 @@ def cluster(robot: str = "t0", extra: list[str] | None = None) -> Iterator[Clust
         yield c
     finally:
         c.close()
+
+
+def random_transitions(
+    steps: int, robots: Sequence[str] = ("r1",), episode: int = 7, seed: int = 3
+) -> list[Transition]:
+    """Random transitions of robots stepping together: every robot's step k, then step k + 1, ..."""
+    rng = np.random.default_rng(seed)
+    return [
+        Transition(
+            robot=robot,
+            episode=episode,
+            step=k,
+            state=tuple(rng.uniform(-2, 2, 3)),
+            action=tuple(rng.uniform(-0.2, 0.2, 2)),
+            cost=float(rng.uniform(0, 1)),
+        )
+        for k in range(steps)
+        for robot in robots
+    ]

@@ -19,6 +19,7 @@ from common.loop import Episode
 from common.messages import Transition
 from common.settings import Settings
 from services.critic.service import CriticLearner, load_checkpoint
+from tests.harness import random_transitions
 
 ROBOTS = ("a", "b", "c")
 
@@ -233,20 +234,7 @@ def pooled_settings(**critic: object) -> Settings:
 
 
 def fleet_stream(steps: int, robots: Sequence[str] = ROBOTS, episode: int = 7, seed: int = 3) -> list[Transition]:
-    """A fleet stepping together: every robot's step k, then step k + 1, ..."""
-    rng = np.random.default_rng(seed)
-    return [
-        Transition(
-            robot=robot,
-            episode=episode,
-            step=k,
-            state=tuple(rng.uniform(-2, 2, 3)),
-            action=tuple(rng.uniform(-0.2, 0.2, 2)),
-            cost=float(rng.uniform(0, 1)),
-        )
-        for k in range(steps)
-        for robot in robots
-    ]
+    return random_transitions(steps, robots, episode, seed)
 
 
 def pool_oracle(settings: Settings, stream: Sequence[Transition], robots: int) -> PooledLearner:

@@ -50,6 +50,8 @@ COVERAGE: dict[str, str] = {
     "export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key": ADD_A_HOST,
     "srl critic": ADD_A_HOST,
     "./srl up --robots 50 --duration 30": "tests/test_fleet.py::test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot (3 robots, 8 s, run_fleet as srl up --robots runs it)",
+    "./srl up --robots 25 --critic pooled --duration 30": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6); tests/test_pooled_critic.py::test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches (3 robots, 8 s)",
+    "./srl experiment fleet": "tests/test_pooled_critic.py::test_experiment_fleet_per_robot_gives_the_paper_experiments_j_and_pooled_beside_it (a 2 x 2 grid, 2 s, N = 6)",
     "./srl bench fleet": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5)",
     "./srl experiment paper": "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out": "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",

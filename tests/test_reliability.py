@@ -19,22 +19,11 @@ from common.checkpoint import CheckpointError, atomic_write_json, from_runs, to_
 from common.messages import Action, CriticWeights, Transition
 from common.settings import Settings
 from services.critic.service import CriticLearner, load_checkpoint
-from tests.harness import cluster, wait_until
+from tests.harness import cluster, random_transitions, wait_until
 
 
 def _transitions(count: int, episode: int = 7, seed: int = 3) -> list[Transition]:
-    rng = np.random.default_rng(seed)
-    return [
-        Transition(
-            robot="r1",
-            episode=episode,
-            step=k,
-            state=tuple(rng.uniform(-2, 2, 3)),
-            action=tuple(rng.uniform(-0.2, 0.2, 2)),
-            cost=float(rng.uniform(0, 1)),
-        )
-        for k in range(count)
-    ]
+    return random_transitions(count, ("r1",), episode, seed)
 
 
 def _replay(learner: CriticLearner, robot: str = "r1") -> list[list[float]]:
