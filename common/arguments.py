@@ -71,6 +71,7 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "bench loop": ALL_FLAGS,
     "bench bridge": ALL_FLAGS,
     "bench fleet": ("config", *ACTOR_FLAGS),  # robots, routers and starts are the fleet's own
+    "bench capacity": ("config", *ACTOR_FLAGS),  # the same fleets as bench fleet
     "actor": ALL_FLAGS,
     "router": TRANSPORT_FLAGS,
     "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts

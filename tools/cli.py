@@ -472,6 +472,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench.fleet import run_fleet_benchmark
 
         return run_fleet_benchmark(args, settings_from_args(args), settings_argv(args))
+    if args.what == "capacity":
+        from tools.bench.capacity import run_capacity_benchmark
+
+        return run_capacity_benchmark(args, settings_from_args(args), settings_argv(args))
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
@@ -620,7 +624,8 @@ def build_parser() -> argparse.ArgumentParser:
         "bench",
         "benchmarks that print a table (and JSON)",
         "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
-        "as the last stdout line): srl bench actor | loop | bridge | parking | fleet --help for each one's options.",
+        "as the last stdout line): srl bench actor | loop | bridge | parking | fleet | capacity --help for each "
+        "one's options.",
     )
     kinds = bench.add_subparsers(dest="what", required=True, metavar="KIND")
 
@@ -683,6 +688,15 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: auto)",
     )
     fleet_bench.add_argument("--seconds", type=float, default=30.0, help="real-time run per row [s] (default: 30)")
+    capacity = kind(
+        "capacity", "a fleet's cost per robot and component (CPU, messages), and what 1,000 and 10,000 need"
+    )
+    capacity.add_argument("--robots", default="10,25,50", help="fleet sizes to fit the costs on (default: 10,25,50)")
+    capacity.add_argument("--seconds", type=float, default=30.0, help="real-time run per size [s] (default: 30)")
+    capacity.add_argument(
+        "--utilisation", type=float, default=0.5, help="the share of each core the model plans to use (default: 0.5)"
+    )
+    capacity.add_argument("--host-cores", type=int, default=8, help="cores of each host in the model (default: 8)")
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
     bridge_bench.add_argument("--seconds", type=float, default=60.0, help="both phases together [s] (default: 60)")

@@ -75,12 +75,48 @@ def _proc_memory(pid: int) -> tuple[float, float]:
     return rss, peak
 
 
-def cpu_of(pids: list[int]) -> float:
-    total = 0.0
-    for pid in pids:
+def cpu_of(pids: dict[str, int]) -> dict[str, float]:
+    """CPU seconds so far of each named process (0 for one that is gone)."""
+    seconds = dict.fromkeys(pids, 0.0)
+    for name, pid in pids.items():
         with contextlib.suppress(OSError):
-            total += _proc_cpu(pid)
-    return total
+            seconds[name] = _proc_cpu(pid)
+    return seconds
+
+
+def message_kind(key: str) -> str:
+    """``srl/<robot>/state`` -> ``state``; ``srl/<robot>/status/actor`` -> ``status/actor``."""
+    return "/".join(key.split("/")[2:]) or key
+
+
+class MessageCounter:
+    """Every ``srl/**`` sample routed during a run, counted (and its bytes) by kind: what
+    ``srl bench capacity`` reports per robot and second. It is one more subscriber of everything:
+    the router delivers each message once more to it (said wherever its figures are shown)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.counts: dict[str, list[int]] = {}
+        self.lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(settings.transport))
+
+        def on_sample(sample: Any) -> None:
+            kind = message_kind(str(sample.key_expr))
+            size = len(sample.payload.to_bytes())
+            with self.lock:
+                count = self.counts.setdefault(kind, [0, 0])
+                count[0] += 1
+                count[1] += size
+
+        self.subscriber = self.session.declare_subscriber("srl/**", on_sample)
+
+    def snapshot(self) -> dict[str, list[int]]:
+        with self.lock:
+            return {kind: list(count) for kind, count in self.counts.items()}
+
+    def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            self.subscriber.undeclare()
+        self.session.close()
 
 
 def memory_of(pids: list[int]) -> tuple[float, float]:
@@ -181,6 +217,7 @@ def run_fleet(
     on_status: Callable[[str], None] | None = None,
     summary_dir: Path | None = None,
     actor_hosts: int = 1,
+    count_messages: bool = False,
 ) -> dict[str, Any]:
     """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary."""
     if layout not in LAYOUTS:
@@ -228,12 +265,15 @@ def run_fleet(
                     supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run]) for robot in robots
                 ]
             wait_fleet_alive(supervisor, settings, robots, "actor")
-            pids = [child.process.pid for child in supervisor.children.values()]
+            pids = {name: child.process.pid for name, child in supervisor.children.items()}
+            counter = MessageCounter(settings) if count_messages else None
             ready = time.monotonic()
             cpu_before = cpu_of(pids)
             monitor = FleetMonitor(settings) if on_status is not None else None
             # CPU and memory sampled while every actor still runs (a reaped process has no /proc entry)
-            memory, cpu_seconds, sampled = (0.0, 0.0), 0.0, ready
+            memory, sampled = (0.0, 0.0), ready
+            cpu_seconds = dict.fromkeys(pids, 0.0)
+            messages: dict[str, list[int]] = {}
             try:
                 shown = 0
                 actor_names = {a.name for a in actors}
@@ -241,9 +281,12 @@ def run_fleet(
                     supervisor.check(allowed_to_exit=actor_names)
                     now = time.monotonic()
                     if all(a.process.poll() is None for a in actors):
-                        cpu_seconds, sampled = cpu_of(pids) - cpu_before, now
+                        cpu_now, sampled = cpu_of(pids), now
+                        cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
+                        if counter is not None:
+                            messages = counter.snapshot()
                         if now - ready < duration - 1.0:
-                            memory = memory_of(pids)  # near the end, while every process still runs
+                            memory = memory_of(list(pids.values()))  # near the end, while every process still runs
                     if monitor is not None and on_status is not None and int(now - ready) > shown:
                         shown = int(now - ready)
                         on_status(monitor.line(now - ready, len(robots)))
@@ -251,6 +294,8 @@ def run_fleet(
             finally:
                 if monitor is not None:
                     monitor.close()
+                if counter is not None:
+                    counter.close()
             ran = sampled - ready
             for actor in actors:
                 if actor.process.returncode != 0:
@@ -275,7 +320,7 @@ def run_fleet(
             for robot in robots
         }
         view = fleet_view(per_robot)
-    use = ProcessUse(cpu_seconds, memory[0], memory[1], len(supervisor.children))
+    use = ProcessUse(sum(cpu_seconds.values()), memory[0], memory[1], len(supervisor.children))
     summary = {
         "layout": layout,
         "robots": robots,
@@ -295,6 +340,9 @@ def run_fleet(
             "fits_coalesced": critic.fits_coalesced,
         },
         "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
+        "cpu_percent_by_service": {
+            name: 100.0 * cpu / ran if ran > 0 else math.nan for name, cpu in cpu_seconds.items()
+        },
         "rss_mb": use.rss_mb,
         "peak_rss_mb": use.peak_rss_mb,
         "processes": use.processes,
@@ -302,6 +350,8 @@ def run_fleet(
         "services": {name: child.process.pid for name, child in supervisor.children.items()},
         "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
     }
+    if counter is not None:  # over the same span as the CPU: [count, bytes] of each kind
+        summary["messages"] = messages
     if summary_dir is not None:
         summary_dir.mkdir(parents=True, exist_ok=True)
         for name, child in supervisor.children.items():

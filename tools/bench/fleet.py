@@ -32,7 +32,7 @@ TARGETS: dict[int, dict[str, float]] = {
 }
 
 
-def _sizes(text: str, option: str) -> list[int]:
+def robot_counts(text: str, option: str) -> list[int]:
     try:
         sizes = [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
@@ -80,8 +80,8 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
 
 
 def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_argv: list[str]) -> int:
-    hosts = _sizes(args.robots, "--robots")
-    baseline = _sizes(args.baseline, "--baseline") if args.baseline else []
+    hosts = robot_counts(args.robots, "--robots")
+    baseline = robot_counts(args.baseline, "--baseline") if args.baseline else []
     if not (math.isfinite(args.seconds) and 5 <= args.seconds <= 600):
         raise UsageError(f"--seconds {args.seconds}: a run is 5 to 600 s")
     for size in hosts:
