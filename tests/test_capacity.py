@@ -102,3 +102,17 @@ def test_bad_options_are_refused_in_one_line() -> None:
         )
         assert done.returncode == 2, (argv, done.stderr)
         assert says in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_the_rss_series_is_bounded_and_its_growth_starts_after_warm_up() -> None:
+    from tools.fleet import RSS_POINTS, RssSeries
+
+    series = RssSeries()
+    for second in range(0, 3600):  # an hour, one call a second: the series stays bounded
+        series.add(float(second), 400.0 + (50.0 if second < 300 else 0.0) + second / 3600.0)
+    assert len(series.points) <= RSS_POINTS
+    # warm-up (the first tenth: 360 s) is left out: 400.1 .. 401.0 MB, not the 450 MB of start-up
+    assert series.growth_percent() == pytest.approx(100 * (401.0 / 400.1 - 1), abs=0.05)
+    short = RssSeries()
+    short.add(0.0, 400.0)
+    assert math.isnan(short.growth_percent())

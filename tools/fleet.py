@@ -128,6 +128,38 @@ def memory_of(pids: list[int]) -> tuple[float, float]:
     return rss, peak
 
 
+RSS_SAMPLE_S = 5.0  # [s] between the points of a run's RSS series
+RSS_POINTS = 240  # at most (a longer run keeps every other point: bounded whatever the length)
+WARM_UP_SHARE = 0.1  # the first tenth of a run (at least one RSS sample period) is its warm-up
+
+
+class RssSeries:
+    """The srl processes' summed RSS every :data:`RSS_SAMPLE_S` of a run, bounded in length, and its
+    growth from the end of warm-up to the end (what a soak is judged on)."""
+
+    def __init__(self) -> None:
+        self.points: list[tuple[float, float]] = []  # (seconds into the run, MB)
+        self.every = RSS_SAMPLE_S
+
+    def add(self, elapsed: float, rss_mb: float) -> None:
+        if self.points and elapsed - self.points[-1][0] < self.every:
+            return
+        self.points.append((round(elapsed, 1), round(rss_mb, 1)))
+        if len(self.points) > RSS_POINTS:
+            self.points = self.points[::2]
+            self.every *= 2
+
+    def growth_percent(self) -> float:
+        """``100 (last / first after warm-up - 1)``; NaN when the run was too short to tell."""
+        if len(self.points) < 2:
+            return math.nan
+        warm = max(WARM_UP_SHARE * self.points[-1][0], RSS_SAMPLE_S)
+        after = [mb for t, mb in self.points if t >= warm]
+        if len(after) < 2 or after[0] <= 0:
+            return math.nan
+        return 100.0 * (after[-1] / after[0] - 1.0)
+
+
 class FleetMonitor:
     """Every robot's newest actor status (``srl/*/status/actor``), from a monitor session."""
 
@@ -272,6 +304,7 @@ def run_fleet(
             monitor = FleetMonitor(settings) if on_status is not None else None
             # CPU and memory sampled while every actor still runs (a reaped process has no /proc entry)
             memory, sampled = (0.0, 0.0), ready
+            rss_series = RssSeries()
             cpu_seconds = dict.fromkeys(pids, 0.0)
             messages: dict[str, list[int]] = {}
             try:
@@ -287,6 +320,7 @@ def run_fleet(
                             messages = counter.snapshot()
                         if now - ready < duration - 1.0:
                             memory = memory_of(list(pids.values()))  # near the end, while every process still runs
+                            rss_series.add(now - ready, memory[0])
                     if monitor is not None and on_status is not None and int(now - ready) > shown:
                         shown = int(now - ready)
                         on_status(monitor.line(now - ready, len(robots)))
@@ -344,6 +378,8 @@ def run_fleet(
             name: 100.0 * cpu / ran if ran > 0 else math.nan for name, cpu in cpu_seconds.items()
         },
         "rss_mb": use.rss_mb,
+        "rss_growth_percent": rss_series.growth_percent(),  # from the end of warm-up to the end (soak)
+        "rss_series_mb": rss_series.points,
         "peak_rss_mb": use.peak_rss_mb,
         "processes": use.processes,
         "wall_seconds": time.monotonic() - started,

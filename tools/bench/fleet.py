@@ -7,8 +7,9 @@ interleaved by size, so both see the same machine. Each row: missed deadlines (a
 jitter and state -> action latency p99 (worst robot), weight staleness p99 / max (worst robot),
 robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle), CPU % of all
 srl processes over the run (100 % = one core), their total resident memory, and the machine's
-load average before and after. Targets (PASS/FAIL) at 50 and 100 robots. Every run is bounded
-(start-up timeouts, then ``--seconds``) and every process is stopped after it (tools/fleet.py).
+load average before and after. Targets (PASS/FAIL) at 50 and 100 robots, and the soak's (RSS
+growth <= 2 % at 50 robots over 600 s and more). Every run is bounded (start-up timeouts, then
+``--seconds``) and every process is stopped after it (tools/fleet.py).
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ def robot_counts(text: str, option: str) -> list[int]:
     return sizes
 
 
+# the soak of issue 16: ``--robots 50 --baseline '' --seconds 600`` (RSS from the end of warm-up to the end)
+SOAK_ROBOTS, SOAK_SECONDS, SOAK_GROWTH_PERCENT = 50, 600.0, 2.0
 AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
 
 
@@ -76,6 +79,8 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
         result["every robot parked"] = fleet["parked"] == row["robots"]
     if "rss_mb" in target:
         result[f"RSS <= {target['rss_mb'] / 1024:.1f} GB"] = row["rss_mb"] <= target["rss_mb"]
+    if row["robots"] == SOAK_ROBOTS and row["seconds"] >= SOAK_SECONDS:  # the soak: memory stays put
+        result[f"soak: RSS growth <= {SOAK_GROWTH_PERCENT:.0f} %"] = row["rss_growth_percent"] <= SOAK_GROWTH_PERCENT
     return result
 
 
@@ -124,7 +129,7 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
-    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'procs':>5}  load before -> after  targets"
+    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'growth':>7} {'procs':>5}  load before -> after  targets"
 )
 
 
@@ -139,7 +144,7 @@ def format_row(row: dict[str, Any]) -> str:
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
         f"{f['parked']:>3}/{row['robots']:<3} {row['cpu_percent']:>6.0f} {row['rss_mb']:>7.0f} "
-        f"{row['processes']:>5}  {load:<20} {targets}"
+        f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5}  {load:<20} {targets}"
     )
 
 
@@ -147,7 +152,8 @@ def format_table(result: dict[str, Any]) -> str:
     lines = [
         f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
         f"starts on a 1.5 m circle, {result['cpus']} CPUs; jitter, latency, staleness: worst robot; "
-        "CPU: all srl processes (100 % = one core); load: 1-min average",
+        "CPU: all srl processes (100 % = one core); growth: their RSS from the end of warm-up (the first "
+        "tenth) to the end; load: 1-min average",
         HEADER,
         *(format_row(row) for row in result["rows"]),
     ]
