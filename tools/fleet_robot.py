@@ -155,7 +155,9 @@ def robot_fleet_summary(supervisor: Supervisor, settings: Settings, robots: list
             "endpoint": endpoints.get(robot),
             "cmd_vel": [target.key for target in bridge.cmd_vel],
             "actions_applied": bridge.counters.get("actions_applied", 0),
-            "actions_refused": bridge.counters.get("rejected.action", 0),
+            # refused for whatever reason (rejected.action, rejected.action.unknown, ...)
+            "actions_refused": sum(n for k, n in bridge.counters.items() if k.split(".")[:2] == ["rejected", "action"]),
+            "commands_sent": bridge.counters.get("commands_sent", 0),  # every cmd_vel put: actions and zeros
             "states_published": bridge.counters.get("states_published", 0),
             "emulator": None,
         }
@@ -167,6 +169,7 @@ def robot_fleet_summary(supervisor: Supervisor, settings: Settings, robots: list
             row["emulator"] = {
                 "cmd_key": emulator.cmd_key,
                 "odom_key": emulator.odom_key,
+                "cmd_received": emulator.counters.get("cmd_received", 0),
                 "cmd_applied": emulator.counters.get("cmd_applied", 0),
                 "initial_pose": emulator.initial_pose,
                 "true_final_state": [true.x, true.y, true.theta],
