@@ -330,9 +330,10 @@ def test_up_three_emulated_turtlebots(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> None:
-    """Robots reached through ONE router (``--robot-endpoint``): only the namespaces keep them apart.
-    A fourth TurtleBot3 (tb3_9) on that router is not in the fleet: it must hear no command at all."""
-    shared = f"tcp/127.0.0.1:{free_port()}"
+    """Two robots reached through ONE router (``--robot-endpoint``): only the namespaces keep them
+    apart; a third on its own router (``--robot-endpoints tb9=...``, as a robot running rmw_zenohd).
+    A fourth TurtleBot3 (tb3_9) on the shared router is not in the fleet: it must hear no command."""
+    shared, own = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
     robots = ["tb3_1", "tb3_2", "tb9"]  # any ROS namespaces will do
     starts = {"tb3_1": "1.2,0.3,0.2", "tb3_2": "-0.9,-0.9,-2.3", "tb9": "0.2,-1.3,-1.4", "tb3_9": "0.8,0.8,0.8"}
     procs: dict[str, subprocess.Popen[str]] = {}
@@ -346,23 +347,25 @@ def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> 
             start_new_session=True,
         )
 
-        def reachable() -> bool:
+        def reachable(endpoint: str) -> bool:
             try:
-                zenoh.open(client_config(shared)).close()
+                zenoh.open(client_config(endpoint)).close()
             except zenoh.ZError:
                 return False
             return True
 
-        wait_until(reachable, 30, "the shared robot router")
+        wait_until(lambda: reachable(shared), 30, "the shared robot router")
         for namespace, start in starts.items():
+            where = ["--listen", own] if namespace == "tb9" else ["--router", shared]
             procs[namespace] = subprocess.Popen(
-                [*EMULATOR, "--router", shared, "--namespace", namespace, f"--initial-pose={start}"],
+                [*EMULATOR, *where, "--namespace", namespace, f"--initial-pose={start}"],
                 cwd=ROOT,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 text=True,
                 start_new_session=True,
             )
+        wait_until(lambda: reachable(own), 30, "tb9's own router")
         summary = _up(
             tmp_path,
             "--robots",
@@ -371,6 +374,8 @@ def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> 
             "robot",
             "--robot-endpoint",
             shared,
+            "--robot-endpoints",
+            f"tb9={own}",
             "--agent",
             "mpc",
             "--duration",
@@ -384,6 +389,7 @@ def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> 
             if name != "router":
                 results[name] = json.loads(out.strip().splitlines()[-1])
     assert "tb3_emulator-tb3_1" not in summary["services"]  # real robots: none started
+    assert {r: summary["robot_plant"][r]["endpoint"] for r in robots} == {"tb3_1": shared, "tb3_2": shared, "tb9": own}
     actors = _actor_summaries(summary)
     for robot in robots:
         x, y, _ = (float(c) for c in starts[robot].split(","))
