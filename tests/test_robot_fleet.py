@@ -284,26 +284,32 @@ def _up(summary_dir: Path, *argv: str, timeout: float = 240) -> dict[str, Any]:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def _actor_summaries(summary: dict[str, Any]) -> dict[str, Any]:
-    with open(f"{summary['summary_dir']}/actor.json") as actor:
-        return json.load(actor)["per_robot"]
+def _actor_summaries(summary: dict[str, Any], layout: str = "host") -> dict[str, Any]:
+    """Each robot's actor summary, from the actor host's or from each robot's actor."""
+    directory = Path(summary["summary_dir"])
+    if layout == "host":
+        return json.loads((directory / "actor.json").read_text())["per_robot"]
+    return {robot: json.loads((directory / f"actor-{robot}.json").read_text()) for robot in summary["robots"]}
 
 
 @pytest.mark.slow
-def test_up_three_emulated_turtlebots(tmp_path: Path) -> None:
-    """Three emulated TurtleBot3s (tb3_1..tb3_3, each its own router), one bridge host, one actor
-    host, the critic: each robot's odometry drives its own actor, every robot approaches the target."""
-    summary = _up(tmp_path, "--robots", "3", "--plant", "robot", "--agent", "mpc", "--duration", "12")
+@pytest.mark.parametrize("layout", ["host", "process"])
+def test_up_three_emulated_turtlebots(tmp_path: Path, layout: str) -> None:
+    """Three emulated TurtleBot3s (tb3_1..tb3_3, each its own router), one bridge host and one actor
+    host (or one bridge and one actor per robot), the critic: each robot's odometry drives its own
+    actor, every robot approaches the target."""
+    summary = _up(
+        tmp_path, "--robots", "3", "--plant", "robot", "--layout", layout, "--agent", "mpc", "--duration", "12"
+    )
     assert summary["robots"] == ROBOTS and summary["plant"] == "robot"
-    assert set(summary["services"]) == {
-        "router",
-        "critic",
-        "actor",
-        "robot_bridge",
-        *(f"tb3_emulator-{r}" for r in ROBOTS),
-    }
+    per_robot = (
+        ["robot_bridge", "actor"]
+        if layout == "host"
+        else [f"{s}-{r}" for s in ("robot_bridge", "actor") for r in ROBOTS]
+    )
+    assert set(summary["services"]) == {"router", "critic", *per_robot, *(f"tb3_emulator-{r}" for r in ROBOTS)}
     assert all(code == 0 for code in summary["exit_codes"].values()), summary["exit_codes"]
-    actors = _actor_summaries(summary)
+    actors = _actor_summaries(summary, layout)
     rows = {row["robot"]: row for row in summary["fleet"]["rows"]}
     for robot, start in zip(ROBOTS, circle_starts(3, 1.5), strict=True):
         plant = summary["robot_plant"][robot]

@@ -87,21 +87,30 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
         print(f"srl up {line}", file=sys.stderr, flush=True)
 
     from tools.fleet import format_fleet_summary, run_fleet
+    from tools.up import ServiceDiedError
 
-    summary = run_fleet(
-        settings,
-        settings_args,
-        robots,
-        settings.episode.duration,
-        layout=args.layout,
-        circle=args.circle,
-        on_status=show,
-        actor_hosts=args.actor_hosts,
-        summary_dir=summary_dir,
-        plant=args.plant,
-        robot_endpoints=endpoints,
-        bridge_args=bridge_args,
-    )
+    try:
+        summary = run_fleet(
+            settings,
+            settings_args,
+            robots,
+            settings.episode.duration,
+            layout=args.layout,
+            circle=args.circle,
+            on_status=show,
+            actor_hosts=args.actor_hosts,
+            summary_dir=summary_dir,
+            plant=args.plant,
+            robot_endpoints=endpoints,
+            bridge_args=bridge_args,
+        )
+    except ServiceDiedError as error:  # as srl up says it: one line and the service's last words
+        print(f"srl up: error: {error}", file=sys.stderr)
+        for line in error.tail:
+            print(f"  [{error.name}] {line}", file=sys.stderr)
+        return 1
+    except TimeoutError as error:
+        raise UsageError(str(error)) from error
     print(format_fleet_summary(summary))
     if args.json:
         print(json.dumps(summary))

@@ -14,7 +14,8 @@ the robot, ``--robot-endpoints``) get one session each, robots reached through o
 its link builds every key from its namespace, and its bridge applies only actions for its id.
 
 Why a host and not one bridge per robot: a bridge process is a Python interpreter with Zenoh and
-the ROS type store (~100 MB); one host for 2-5 robots costs one. One bridge per robot
+the ROS type store (~73 MB peak RSS here); one host for 3 robots costs the same 73 MB, three
+bridges 220 MB (README "Several TurtleBot3s"). One bridge per robot
 (``srl up --robots K --plant robot --layout process``) isolates a crash to one robot; either way a
 real robot still needs its own command timeout (README "Robot bridge").
 """
@@ -36,6 +37,7 @@ from common.keys import ACTION, STATE, STATUS, liveliness_key
 from common.messages import Action, ServiceStatus
 from common.provenance import SourceGate
 from common.ros_wire import RosGraph
+from common.runtime import UsageError
 from common.security import SecurityError
 from common.settings import Settings
 from common.transport import Bus, plain_config
@@ -137,7 +139,13 @@ def run_bridge_host(
         for robot in robots:  # one plant per robot (issue 13), before declaring anything
             bus.refuse_other_plant(robot)
         for endpoint in sorted({e for e in fleet.values() if e}):
-            sessions[endpoint] = zenoh.open(plain_config(settings.transport, endpoint))
+            try:
+                sessions[endpoint] = zenoh.open(plain_config(settings.transport, endpoint))
+            except zenoh.ZError:
+                on_it = ", ".join(r for r, e in fleet.items() if e == endpoint)
+                raise UsageError(
+                    f"robot_bridge: no Zenoh router at {endpoint} (robot {on_it}): is rmw_zenohd running there?"
+                ) from None
         for index, robot in enumerate(robots):
             endpoint = fleet[robot]
             session = sessions[endpoint] if endpoint else bus.session
