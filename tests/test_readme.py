@@ -50,6 +50,8 @@ COVERAGE: dict[str, str] = {
     "export SRL_TRANSPORT__TLS_CERT=~/srl-secrets/critic.pem SRL_TRANSPORT__TLS_KEY=~/srl-secrets/critic.key": ADD_A_HOST,
     "srl critic": ADD_A_HOST,
     "./srl up --robots 50 --duration 30": "tests/test_fleet.py::test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot (3 robots, 8 s, run_fleet as srl up --robots runs it)",
+    "./srl up --robots 3 --plant robot --duration 20": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6); tests/test_robot_fleet.py::test_up_three_emulated_turtlebots",
+    "./srl up --robots tb3_1,tb3_2 --plant robot --robot-endpoints tb3_1=tcp/<robot-1-ip>:7447,tb3_2=tcp/<robot-2-ip>:7447 --ros-distro jazzy": "tests/test_robot_fleet.py::test_fleet_on_one_shared_robot_router_keeps_robots_apart (emulators as the robots, one on its own router, two through --robot-endpoint)",
     "./srl bench fleet": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5)",
     "./srl experiment paper": "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out": "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",

@@ -250,8 +250,14 @@ def run_fleet(
     summary_dir: Path | None = None,
     actor_hosts: int = 1,
     count_messages: bool = False,
+    plant: str = "sim",
+    robot_endpoints: dict[str, str] | None = None,
+    bridge_args: list[str] | None = None,
 ) -> dict[str, Any]:
-    """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary."""
+    """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary.
+
+    ``plant="robot"``: ROS 2 robots behind robot bridges (tools/fleet_robot.py), each robot's id
+    its namespace; emulated TurtleBot3s for the robots without an entry in ``robot_endpoints``."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
     if not 1 <= actor_hosts <= len(robots):
@@ -275,7 +281,13 @@ def run_fleet(
             supervisor.spawn("router", ["router", *common])
             supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
             starts = circle_starts(len(robots), circle)
-            if layout == "host":
+            if plant == "robot":  # emulated or real TurtleBot3s behind bridges
+                from tools.fleet_robot import spawn_robot_plants
+
+                ros = spawn_robot_plants(
+                    supervisor, settings, common, robots, starts, robot_endpoints or {}, bridge_args or [], layout
+                )
+            elif layout == "host":
                 supervisor.spawn("plant", ["plant-sim", *common, f"--robots={ids}", f"--circle={circle!r}"])
             else:
                 for robot, start in zip(robots, starts, strict=True):
@@ -285,6 +297,10 @@ def run_fleet(
                     )
             supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"])
             wait_fleet_alive(supervisor, settings, robots, "plant")
+            if plant == "robot":
+                from tools.fleet_robot import wait_fleet_odometry
+
+                wait_fleet_odometry(supervisor, settings, ros)
             wait_fleet_alive(supervisor, settings, robots, "critic")
             run = ["--run-seconds", repr(duration)]
             if layout == "host":
@@ -336,6 +352,10 @@ def run_fleet(
                     supervisor.check()
         finally:
             guard.cleaning = True
+            if plant == "robot":
+                from tools.fleet_robot import stop_bridges
+
+                stop_bridges(supervisor, robots, layout)
             supervisor.stop_all()
             shutil.rmtree(scratch, ignore_errors=True)
         guard.raise_if_received()
@@ -356,6 +376,7 @@ def run_fleet(
         view = fleet_view(per_robot)
     use = ProcessUse(sum(cpu_seconds.values()), memory[0], memory[1], len(supervisor.children))
     summary = {
+        "plant": plant,
         "layout": layout,
         "robots": robots,
         "seconds": duration,
@@ -388,6 +409,10 @@ def run_fleet(
     }
     if counter is not None:  # over the same span as the CPU: [count, bytes] of each kind
         summary["messages"] = messages
+    if plant == "robot":
+        from tools.fleet_robot import robot_fleet_summary
+
+        summary["robot_plant"] = robot_fleet_summary(supervisor, settings, robots, layout)
     if summary_dir is not None:
         summary_dir.mkdir(parents=True, exist_ok=True)
         for name, child in supervisor.children.items():
@@ -419,4 +444,8 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
         f"staleness p99/max {view.staleness_p99_steps:.0f}/{view.staleness_max_steps:.0f} steps, "
         f"CPU {summary['cpu_percent']:.0f} %, RSS {summary['rss_mb']:.0f} MB in {summary['processes']} processes"
     )
+    if summary.get("robot_plant"):
+        from tools.fleet_robot import format_robot_lines
+
+        lines += format_robot_lines(summary["robot_plant"])
     return "\n".join(lines)
