@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import sys
 import time
 from typing import Any
@@ -42,12 +43,13 @@ from tests.netns import NsProc, Topology, wait_for
 PORT = 7447  # each host's router (the namespaces are private: a fixed port cannot collide)
 HOSTS = {"a": ["a1", "a2", "a3"], "d": ["d1", "d2", "d3"]}  # robot hosts and their robots
 ROBOTS = [robot for robots in HOSTS.values() for robot in robots]
-CIRCLE_M = 1.5
+CIRCLE_M = 1.5  # where the plant hosts start their robots (srl plant-sim's default --circle)
 RUN_S = 30.0  # each actor host's run
 PARTITION_S = 4.0
 START_TIMEOUT_S = 120.0  # two actor hosts JIT-compile at once on a loaded 2-core machine
 CATCH_UP_S = 20.0
 STALENESS_BOUND_STEPS = 10  # a robot that is not cut off: weights never older than 1 s
+MISSED_ALLOWED = int(0.01 * RUN_S / 0.1)  # ticks per robot (see the assertion)
 APPROACHED_M = 0.5  # from 1.5 m: every robot ends at most this far from the target
 
 pytestmark = [pytest.mark.slow, pytest.mark.needs_root]
@@ -69,9 +71,7 @@ class Fleet:
         no_checkpoint = {"SRL_CRITIC__CHECKPOINT": ""}
         self.critic = topo.spawn("c", "critic", srl("critic", f"--robots={','.join(ROBOTS)}"), env=no_checkpoint)
         self.plants = {
-            host: topo.spawn(
-                host, f"plant-{host}", srl("plant-sim", f"--robots={','.join(robots)}", f"--circle={CIRCLE_M}")
-            )
+            host: topo.spawn(host, f"plant-{host}", srl("plant-sim", f"--robots={','.join(robots)}"))
             for host, robots in HOSTS.items()
         }
         self.actors: dict[str, NsProc] = {}
@@ -149,6 +149,7 @@ def strictly_increasing(values: list[int]) -> bool:
 
 
 def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> None:
+    load_before = "/".join(f"{x:.1f}" for x in os.getloadavg())
     with Topology(roles=("a", "d", "c")) as topo:
         fleet = Fleet(topo)
         fleet.start_actors()
@@ -223,7 +224,8 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
         f"\n**Fleet across 3 hosts, host a partitioned {restored - cut:.1f} s ({dropped.dropped} packets dropped)**; "
         f"weights back on a's live edge after "
         + ", ".join(f"{r} {back[r]['t'] - restored:.2f} s" for r in HOSTS["a"])
-        + f"; all {total} transitions at the critic {caught_up:.1f} s after the actors' end; {ran:.0f} s run\n\n"
+        + f"; all {total} transitions at the critic {caught_up:.1f} s after the actors' end; {ran:.0f} s run; "
+        f"load average before {load_before}\n\n"
         "| robot | steps | missed | staleness p99/max | weights during cut | weights | final distance m |\n"
         "|---|---|---|---|---|---|---|\n" + "\n".join(rows)
     )
@@ -246,8 +248,10 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
     assert all(accepted[host] >= len(robots) for host, robots in HOSTS.items()), accepted
     for r in ROBOTS:
         s = summaries[r]
-        # deadlines kept by every robot, the cut one included (its plant and actor are local)
-        assert s["loop"]["missed_deadlines"] == 0, (r, s["loop"])
+        # deadlines kept by every robot, the cut ones included (their plant and actor are local):
+        # an actor that waited on the cut link would miss 40 ticks; up to 1 % is the machine's own
+        # hiccups (seen once: 1 tick 18 ms late at load average 11.7 on 2 cores)
+        assert s["loop"]["missed_deadlines"] <= MISSED_ALLOWED, (r, s["loop"])
         assert s["steps"] >= 0.8 * RUN_S / 0.1, (r, s["steps"])
         # weights came across the router link, versions only grew
         versions = [w["version"] for w in weights_all[r]]
@@ -257,6 +261,7 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
         assert critic["seen_steps"][r] == s["transition_steps"], r
         assert critic["replay"][r] == s["transitions_tail"], r
         # every robot approached the target from the 1.5 m circle
+        assert s["truth"] is not None and abs(math.hypot(*s["truth"]["start_state"][:2]) - CIRCLE_M) < 0.05, r
         distance = s["truth"]["final_distance"] if s["truth"] else math.hypot(*s["final_state"][:2])
         assert distance <= APPROACHED_M, (r, distance)
     for r in HOSTS["d"]:  # not cut off: fresh weights all along

@@ -78,25 +78,15 @@ def test_a_router_links_to_another_that_comes_up_later_and_samples_cross_both_wa
     assert linking.returncode == 0 and other is not None and other.returncode == 0
 
 
-def test_a_bad_connect_endpoint_and_connect_with_secure_are_refused_in_one_line() -> None:
-    port = free_port()
-    for argv, env, expected in (
-        (["--connect", "192.168.1.20:7447"], {}, "transport.connect"),
-        (
-            ["--connect", f"tcp/127.0.0.1:{free_port()}"],
-            {"SRL_TRANSPORT__SECURE": "true"},
-            "does not work with transport.secure",
-        ),
-    ):
-        result = subprocess.run(
-            [*CLI, "router", "--router", f"tcp/127.0.0.1:{port}", *argv],
-            cwd=ROOT,
-            text=True,
-            capture_output=True,
-            env={**os.environ, **env},
-            timeout=60,
-        )
-        assert result.returncode == 2, result
-        assert result.stdout == ""  # never listened
-        assert result.stderr.strip().splitlines() == [result.stderr.strip()], result.stderr
-        assert expected in result.stderr, result.stderr
+def test_a_bad_connect_endpoint_is_refused_in_one_line() -> None:
+    result = subprocess.run(
+        [*CLI, "router", "--router", f"tcp/127.0.0.1:{free_port()}", "--connect", "192.168.1.20:7447"],
+        cwd=ROOT,
+        text=True,
+        capture_output=True,
+        timeout=60,
+    )
+    assert result.returncode == 2, result
+    assert result.stdout == ""  # never listened
+    assert result.stderr.strip().splitlines() == [result.stderr.strip()], result.stderr
+    assert "transport.connect" in result.stderr and "192.168.1.20:7447" in result.stderr, result.stderr

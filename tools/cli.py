@@ -189,9 +189,6 @@ def cmd_router(args: argparse.Namespace) -> int:
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
-    if settings.transport.secure and settings.transport.connect:
-        # a secure router would have to log in to the other one, and the role rules know no router
-        raise UsageError("--connect (linked routers, README 'Across hosts') does not work with transport.secure yet")
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:
