@@ -228,7 +228,7 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     for name in BRIDGE_FLAGS:
         if getattr(args, name, None) is not None:
             overrides["bridge"][name] = getattr(args, name)
-    for name in ("router", "robot"):
+    for name in ("router", "robot", "connect"):  # connect: srl router's links to other routers
         if getattr(args, name, None) is not None:
             overrides["transport"][name] = getattr(args, name)
     for name in ("agent", "horizon", "solver", "predictor"):

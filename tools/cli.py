@@ -199,9 +199,11 @@ def cmd_router(args: argparse.Namespace) -> int:
     # its one line of normal output, on stdout (not a warning): what it serves and how
     transport = settings.transport
     rules = f"; users and access rules of robot {transport.robot} enforced" if transport.secure else ""
+    # Zenoh keeps trying an unreachable router (a router's connect never gives up): it links when that one comes up
+    links = f"; connecting to {', '.join(transport.connect)}" if transport.connect else ""
     print(
         f"srl router: router listening on {settings.transport.router} (multicast scouting "
-        f"{'on' if settings.transport.multicast_scouting else 'off'}{rules})",
+        f"{'on' if settings.transport.multicast_scouting else 'off'}{rules}{links})",
         flush=True,
     )
     stop.wait()
@@ -556,6 +558,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     router = command("router", "a Zenoh router (Python, mode router)")
     add_settings_arguments(router, COMMAND_SETTINGS["router"])
+    router.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="also connect to this endpoint, e.g. another host's router tcp/192.168.1.20:7447; repeat for "
+        "several (one router per host, README 'Across hosts') (default: transport.connect, none in common/srl.toml)",
+    )
     router.set_defaults(func=cmd_router)
 
     from services.actor import command as actor_command
