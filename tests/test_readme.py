@@ -58,6 +58,8 @@ COVERAGE: dict[str, str] = {
     "./srl up --robots 3 --plant robot --duration 20": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6); tests/test_robot_fleet.py::test_up_three_emulated_turtlebots",
     "./srl up --robots tb3_1,tb3_2 --plant robot --robot-endpoints tb3_1=tcp/<robot-1-ip>:7447,tb3_2=tcp/<robot-2-ip>:7447 --ros-distro jazzy": "tests/test_robot_fleet.py::test_fleet_on_one_shared_robot_router_keeps_robots_apart (emulators as the robots, one on its own router, two through --robot-endpoint)",
     "./srl bench fleet": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5)",
+    "./srl bench fleet --robots 50 --baseline '' --seconds 600": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5); tests/test_capacity.py::test_the_rss_series_is_bounded_and_its_growth_starts_after_warm_up (the soak's growth)",
+    "./srl bench capacity": "tests/test_capacity.py::test_the_capacity_bench_measures_every_component_and_the_messages (--robots 1,3 --seconds 6)",
     "SRL_TRANSPORT__ALLOW_INSECURE_NETWORK=true srl router --router tcp/0.0.0.0:7447": ACROSS_HOSTS,
     "srl critic --robots a1,a2,a3,d1,d2,d3": ACROSS_HOSTS,
     "SRL_TRANSPORT__ALLOW_INSECURE_NETWORK=true srl router --router tcp/0.0.0.0:7447 --connect tcp/192.168.1.13:7447": ACROSS_HOSTS,
