@@ -22,18 +22,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import time
 from typing import Any
 
 import numpy as np
 
-from common.fleet import parse_robots
 from common.runtime import UsageError
 from common.settings import Settings
-from tools.bench.fleet import robot_counts
-from tools.fleet import run_fleet
-from tools.up import ServiceDiedError
+from tools.bench.fleet import actor_hosts, measured_run, robot_counts, run_header
 
 COMPONENTS = ("router", "plant", "critic", "actor")
 FLEETS = (1_000, 10_000)
@@ -119,31 +114,15 @@ def run_capacity_benchmark(args: argparse.Namespace, settings: Settings, setting
         raise UsageError(f"--host-cores {args.host_cores}: at least 1")
     rows: list[dict[str, Any]] = []
     for size in sizes:
-        load_before = os.getloadavg()
-        started = time.monotonic()
-        hosts = 1 if size < 50 else max(1, min(os.cpu_count() or 1, size))
-        try:
-            summary = run_fleet(
-                settings,
-                settings_argv,
-                parse_robots(str(size)),
-                args.seconds,
-                quiet=True,
-                actor_hosts=hosts,
-                count_messages=True,
-            )
-        except (ServiceDiedError, TimeoutError, ValueError) as error:
-            summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
-        row = {**summary, "robots": size, "load_before": list(load_before), "load_after": list(os.getloadavg())}
+        row = measured_run(
+            settings, settings_argv, size, args.seconds, actor_hosts=actor_hosts("auto", size), count_messages=True
+        )
         rows.append(row)
         print(format_row(row), flush=True)
     if not any("error" not in row for row in rows):
         raise UsageError("srl bench capacity: no run finished (see the rows above)")
     result = {
-        "seconds": args.seconds,
-        "cpus": os.cpu_count(),
-        "agent": settings.actor.agent,
-        "horizon": settings.actor.horizon,
+        **run_header(settings, args.seconds),
         "rows": rows,
         "model": model(rows, args.utilisation, args.host_cores),
     }

@@ -84,6 +84,32 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
     return result
 
 
+def measured_run(
+    settings: Settings, settings_argv: list[str], size: int, seconds: float, **options: Any
+) -> dict[str, Any]:
+    """One bench row: ``run_fleet`` of ``size`` robots for ``seconds`` (``options``: its keyword
+    arguments), the machine's load before and after; a run that fails is a row with its error."""
+    load_before = os.getloadavg()
+    started = time.monotonic()
+    try:
+        summary = run_fleet(settings, settings_argv, parse_robots(str(size)), seconds, quiet=True, **options)
+    except (ServiceDiedError, TimeoutError, ValueError) as error:
+        summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
+    row = {"layout": options.get("layout", "host"), **summary, "robots": size}
+    row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
+    return row
+
+
+def run_header(settings: Settings, seconds: float) -> dict[str, Any]:
+    """What every row of a fleet benchmark shares: run length, CPUs, agent and horizon."""
+    return {
+        "seconds": seconds,
+        "cpus": os.cpu_count(),
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+    }
+
+
 def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_argv: list[str]) -> int:
     hosts = robot_counts(args.robots, "--robots")
     baseline = robot_counts(args.baseline, "--baseline") if args.baseline else []
@@ -94,33 +120,12 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
     plan = sorted([(n, "host") for n in hosts] + [(n, "process") for n in baseline])
     rows: list[dict[str, Any]] = []
     for size, layout in plan:
-        load_before = os.getloadavg()
-        started = time.monotonic()
-        try:
-            split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
-            summary = run_fleet(
-                settings,
-                settings_argv,
-                parse_robots(str(size)),
-                args.seconds,
-                layout=layout,
-                quiet=True,
-                actor_hosts=split,
-            )
-        except (ServiceDiedError, TimeoutError, ValueError) as error:
-            summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
-        row = {"layout": layout, **summary, "robots": size}
-        row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
+        split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
+        row = measured_run(settings, settings_argv, size, args.seconds, layout=layout, actor_hosts=split)
         row["targets"] = {name: "PASS" if ok else "FAIL" for name, ok in checks(row).items()}
         rows.append(row)
         print(format_row(row), flush=True)
-    result = {
-        "seconds": args.seconds,
-        "cpus": os.cpu_count(),
-        "agent": settings.actor.agent,
-        "horizon": settings.actor.horizon,
-        "rows": rows,
-    }
+    result = {**run_header(settings, args.seconds), "rows": rows}
     print(format_table(result))
     if args.json:
         print(json.dumps(result))
