@@ -35,6 +35,24 @@ CHUNK = 65536
 HELD_KEPT = 100_000  # hold times kept for the summary's percentiles
 
 
+def _open_until(router: str, connect_timeout: float, stop: threading.Event, who: str) -> Any:
+    """A client session to ``router``, retried until ``connect_timeout`` or ``stop`` (None: said
+    why on stderr)."""
+    import zenoh
+
+    from tests.harness import client_config
+
+    deadline = time.monotonic() + connect_timeout
+    while True:
+        try:
+            return zenoh.open(client_config(router))
+        except zenoh.ZError as error:
+            if time.monotonic() > deadline or stop.is_set():
+                print(f"{who}: cannot reach the router at {router}: {error}", file=sys.stderr)
+                return None
+            time.sleep(0.1)
+
+
 def emit(kind: str, **fields: Any) -> None:
     print(json.dumps({"kind": kind, "t": time.monotonic(), **fields}), flush=True)
 
@@ -218,7 +236,6 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
 
     from common.keys import STATUS, TRANSITION, WEIGHTS, liveliness_pattern
     from common.messages import CriticWeights, MessageError, ServiceStatus, Transition, decode
-    from tests.harness import client_config
 
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -251,16 +268,9 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
     def on_token(sample: zenoh.Sample) -> None:
         record("alive", service=str(sample.key_expr).rsplit("/", 1)[-1], alive=sample.kind == zenoh.SampleKind.PUT)
 
-    deadline = time.monotonic() + connect_timeout
-    while True:
-        try:
-            session = zenoh.open(client_config(router))
-            break
-        except zenoh.ZError as error:
-            if time.monotonic() > deadline or stop.is_set():
-                print(f"observe: cannot reach the router at {router}: {error}", file=sys.stderr)
-                return 1
-            time.sleep(0.1)
+    session = _open_until(router, connect_timeout, stop, "observe")
+    if session is None:
+        return 1
     keep = [
         session.declare_subscriber(WEIGHTS.key(robot), on_weights),
         session.declare_subscriber(TRANSITION.key(robot), on_transition),
@@ -284,7 +294,6 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
 
     from common.keys import ACTION, STATUS, TRANSITION, WEIGHTS, every_robot
     from common.messages import Action, CriticWeights, MessageError, ServiceStatus, Transition, decode
-    from tests.harness import client_config
 
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -338,16 +347,9 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
             alive=sample.kind == zenoh.SampleKind.PUT,
         )
 
-    deadline = time.monotonic() + connect_timeout
-    while True:
-        try:
-            session = zenoh.open(client_config(router))
-            break
-        except zenoh.ZError as error:
-            if time.monotonic() > deadline or stop.is_set():
-                print(f"observe-fleet: cannot reach the router at {router}: {error}", file=sys.stderr)
-                return 1
-            time.sleep(0.1)
+    session = _open_until(router, connect_timeout, stop, "observe-fleet")
+    if session is None:
+        return 1
     keep = [
         session.declare_subscriber(every_robot(WEIGHTS), on_weights),
         session.declare_subscriber(every_robot(TRANSITION), on_transition),
