@@ -71,6 +71,7 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "bench loop": ALL_FLAGS,
     "bench bridge": ALL_FLAGS,
     "bench fleet": ("config", *ACTOR_FLAGS),  # robots, routers and starts are the fleet's own
+    "bench capacity": ("config", *ACTOR_FLAGS),  # the same fleets as bench fleet
     "actor": ALL_FLAGS,
     "router": TRANSPORT_FLAGS,
     "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts
@@ -227,7 +228,7 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     for name in BRIDGE_FLAGS:
         if getattr(args, name, None) is not None:
             overrides["bridge"][name] = getattr(args, name)
-    for name in ("router", "robot"):
+    for name in ("router", "robot", "connect"):  # connect: srl router's links to other routers
         if getattr(args, name, None) is not None:
             overrides["transport"][name] = getattr(args, name)
     for name in ("agent", "horizon", "solver", "predictor"):

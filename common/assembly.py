@@ -18,11 +18,11 @@ from common.agents import learns
 from common.arrival import ArrivalRule, ArrivalTolerances
 from common.critic import DoubleCritic, PooledLearner
 from common.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1, run_fleet_lockstep
-from common.physics import PhysicsPlant
+from common.physics import simulated_robot
 from common.settings import Settings
 from common.stats import summarize
 from common.summaries import EpisodeSummary, TrueView
-from common.turtlebot import ActuatorPlant
+from common.turtlebot import RobotPlant
 
 
 def arrival_rule(settings: Settings) -> ArrivalRule | None:
@@ -65,13 +65,11 @@ def build_actor(settings: Settings) -> StackedActor:
     )
 
 
-def build_plant(settings: Settings) -> ExactPlant | ActuatorPlant | PhysicsPlant:
+def build_plant(settings: Settings) -> ExactPlant | RobotPlant:
     """The in-process simulated robot of ``plant.model``: the exact unicycle or the TurtleBot3."""
-    if settings.plant.model == "actuator":
-        return ActuatorPlant(settings.turtlebot_params())
-    if settings.plant.model == "physics":
-        return PhysicsPlant(settings.turtlebot_params(), settings.physics_params())
-    return ExactPlant()
+    p = settings.plant
+    robot = simulated_robot(p.model, settings.turtlebot_params(), settings.physics_params(), np.zeros(3))
+    return ExactPlant() if robot is None else RobotPlant(robot)
 
 
 def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:

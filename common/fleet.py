@@ -6,6 +6,11 @@ Pure: strings and numbers in, ids and states out (no settings, no transport).
   ``robotK``); a repeated or malformed id is refused with one line (:class:`FleetError`).
 * :func:`circle_starts` -- distinct starts on a circle around the target, each turned away from
   it (the paper's ``alpha_0 = atan2(y_0, x_0)``), so every robot has the same parking task.
+* :func:`ros_fleet` -- several ROS 2 robots (``--plant robot``): each srl robot id IS its robot's
+  ROS namespace (``tb3_1`` <-> ``/tb3_1/odom``, ``/tb3_1/cmd_vel``), and each robot's Zenoh
+  endpoint (its own router, or one shared by all). A robot id that is no ROS namespace, an
+  endpoint for a robot the fleet does not have, or a robot left without an endpoint is refused
+  with one line.
 """
 
 from __future__ import annotations
@@ -15,6 +20,11 @@ import re
 
 MAX_ROBOTS = 1000  # one host; far beyond what 2 cores serve at delta = 0.1 s (README "Fleet")
 _ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # one key chunk, as common/keys.py requires
+# one ROS name segment (a robot's namespace, ``tb3_1``): a letter, then letters, digits, _
+_ROS_SEGMENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+# a Zenoh endpoint (locator): ``<protocol>/<address>``, e.g. ``tcp/192.168.1.21:7447``
+_ENDPOINT = re.compile(r"^[a-z][a-z0-9]*/\S+$")
+ROS_FLEET_PREFIX = "tb3_"  # ``--robots K --plant robot``: tb3_1 .. tb3_K, as TurtleBot3 multi-robot launches name them
 
 
 class FleetError(ValueError):
@@ -56,3 +66,45 @@ def circle_starts(count: int, radius: float) -> list[tuple[float, float, float]]
             (radius * math.cos(theta), radius * math.sin(theta), math.atan2(math.sin(theta), math.cos(theta)))
         )
     return starts
+
+
+def ros_fleet(robots: list[str], endpoints: str | None, shared_endpoint: str) -> dict[str, str]:
+    """Each robot of a ROS 2 fleet -> its robot's Zenoh endpoint ('' = none given: emulate it).
+
+    The robot id is the robot's ROS namespace (its topics ``/<id>/odom``, ``/<id>/cmd_vel``), so
+    it must be one ROS name segment. ``endpoints``: ``id=endpoint,...`` (each robot on its own
+    router, as a robot running ``rmw_zenohd``); robots not named there use ``shared_endpoint``
+    (robots reached through one router). Either every robot has an endpoint, or none has one.
+    """
+    for robot in robots:
+        if not _ROS_SEGMENT.match(robot):
+            raise FleetError(
+                f"robot id {robot!r} is not a ROS namespace (a letter, then letters, digits, _): "
+                "with --plant robot a robot's id is its ROS namespace"
+            )
+    given: dict[str, str] = {}
+    for part in (endpoints or "").split(","):
+        if not part.strip():
+            continue
+        robot, sep, endpoint = (c.strip() for c in part.partition("="))
+        if not sep or not _ENDPOINT.match(endpoint):
+            raise FleetError(
+                f"--robot-endpoints: {part.strip()!r} is not NAMESPACE=ENDPOINT (e.g. tb3_1=tcp/10.0.0.11:7447)"
+            )
+        if robot not in robots:
+            raise FleetError(
+                f"--robot-endpoints: namespace {robot!r} is not mapped to a robot of the fleet ({', '.join(robots)})"
+            )
+        if robot in given:
+            raise FleetError(f"--robot-endpoints: namespace {robot!r} is given twice")
+        given[robot] = endpoint
+    if shared_endpoint and not _ENDPOINT.match(shared_endpoint):
+        raise FleetError(f"--robot-endpoint {shared_endpoint!r} is not a Zenoh endpoint (e.g. tcp/10.0.0.10:7447)")
+    fleet = {robot: given.get(robot, shared_endpoint) for robot in robots}
+    missing = [robot for robot, endpoint in fleet.items() if not endpoint]
+    if given and missing:
+        raise FleetError(
+            f"--robot-endpoints: no endpoint for {', '.join(missing)}: "
+            "name every robot, or give --robot-endpoint for the rest"
+        )
+    return fleet

@@ -12,7 +12,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from common.summaries import RealtimeActorSummary
+from common.summaries import BridgeSummary, RealtimeActorSummary
 
 PARKED_WITHIN_M = 0.25  # [m] a robot that ends this close to the target parked (issue 16's bench)
 
@@ -136,5 +136,18 @@ class FleetPlantSummary(FleetModel):
     circle_radius_m: float
     per_robot: dict[str, PlantRow]
     missed_ticks: int
+    counters: dict[str, float]
+    resources: dict[str, Any] | None = None
+
+
+class FleetBridgeSummary(FleetModel):
+    """What ``srl robot-bridge --robots`` prints: every robot's own bridge summary, its namespace
+    (= its id) and the endpoint of its robot ('' = srl's router)."""
+
+    service: str = "robot_bridge"
+    layout: str = "host"
+    robots: list[str]
+    endpoints: dict[str, str]
+    per_robot: dict[str, BridgeSummary]
     counters: dict[str, float]
     resources: dict[str, Any] | None = None

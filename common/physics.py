@@ -275,29 +275,6 @@ class PhysicsBot:
         return self.odometry.copy()
 
 
-class PhysicsPlant:
-    """The MuJoCo Burger in process, a ``common.loop.Plant`` like
-    :class:`common.turtlebot.ActuatorPlant`: it reports its odometry, the true pose beside it."""
-
-    def __init__(self, params: TurtleBotParams, physics: PhysicsParams) -> None:
-        self.robot = PhysicsBot(params, physics, np.zeros(3))
-
-    def reset(self, state: np.ndarray) -> np.ndarray:
-        self.robot.reset(np.asarray(state, dtype=float))
-        return self.robot.odometry.copy()
-
-    def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
-        return self.robot.step(action, duration)
-
-    @property
-    def true_state(self) -> np.ndarray:
-        return self.robot.true_pose.copy()
-
-    @property
-    def saturated_commands(self) -> int:
-        return self.robot.saturated_commands
-
-
 def simulated_robot(
     model: str, params: TurtleBotParams, physics: PhysicsParams, pose: FloatArray
 ) -> TurtleBot | PhysicsBot | None:
@@ -312,4 +289,4 @@ def simulated_robot(
     return None
 
 
-__all__ = ["PhysicsBot", "PhysicsParams", "PhysicsPlant", "burger_mjcf", "servo_gain", "simulated_robot"]
+__all__ = ["PhysicsBot", "PhysicsParams", "burger_mjcf", "servo_gain", "simulated_robot"]

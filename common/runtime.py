@@ -239,16 +239,40 @@ def add_robots_argument(parser: argparse.ArgumentParser, what: str) -> None:
     )
 
 
-def fleet_robots(args: argparse.Namespace) -> list[str] | None:
-    """The robots of ``--robots`` (None: not given); a bad list is a :class:`UsageError` (one line).
-    A fleet runs in real time: ``--mode lockstep`` with ``--robots`` is refused."""
+def add_robot_endpoints_argument(parser: argparse.ArgumentParser) -> None:
+    """--robot-endpoints, for several ROS 2 robots (robot-bridge --robots, srl up --robots --plant robot)."""
+    parser.add_argument(
+        "--robot-endpoints",
+        metavar="NS=ENDPOINT,...",
+        help="with --robots: each robot's own Zenoh router, by its ROS namespace (= its robot id), e.g. "
+        "tb3_1=tcp/10.0.0.11:7447,tb3_2=tcp/10.0.0.12:7447; robots not named use --robot-endpoint",
+    )
+
+
+def ros_fleet_endpoints(args: argparse.Namespace, robots: list[str], shared_endpoint: str) -> dict[str, str]:
+    """Robot id (= ROS namespace) -> its robot's endpoint (common.fleet.ros_fleet); one line if wrong.
+    ``--namespace`` is refused beside ``--robots``: there each robot's namespace is its id."""
+    from common.fleet import FleetError, ros_fleet
+
+    if getattr(args, "namespace", None):
+        raise UsageError("--namespace with --robots: each robot's ROS namespace is its robot id (--robots tb3_1,tb3_2)")
+    try:
+        return ros_fleet(robots, getattr(args, "robot_endpoints", None), shared_endpoint)
+    except FleetError as error:
+        raise UsageError(str(error)) from None
+
+
+def fleet_robots(args: argparse.Namespace, prefix: str = "robot") -> list[str] | None:
+    """The robots of ``--robots`` (None: not given; a count K: ``<prefix>1`` .. ``<prefix>K``); a
+    bad list is a :class:`UsageError` (one line). A fleet runs in real time: ``--mode lockstep``
+    with ``--robots`` is refused."""
     from common.fleet import FleetError, parse_robots
 
     text = getattr(args, "robots", None)
     if text is None:
         return None
     try:
-        robots = parse_robots(text)
+        robots = parse_robots(text, prefix)
     except FleetError as error:
         raise UsageError(str(error)) from None
     if getattr(args, "mode", "realtime") != "realtime":

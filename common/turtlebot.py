@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -113,11 +114,12 @@ class TurtleBot:
 
     def __init__(self, params: TurtleBotParams, pose: FloatArray) -> None:
         self.params = params
-        self.rng = np.random.default_rng(params.seed)
         self.reset(pose)
 
     def reset(self, pose: FloatArray) -> None:
-        """At rest at ``pose``; the odometry starts at the same pose (its frame is the goal's)."""
+        """At rest at ``pose``; the odometry starts at the same pose (its frame is the goal's). The
+        slip is re-seeded: a reset robot is a new robot, and every episode sees the same slip."""
+        self.rng = np.random.default_rng(self.params.seed)
         self.true_pose = np.asarray(pose, dtype=float).copy()
         self.odometry = self.true_pose.copy()
         self.wheels = np.zeros(2)  # [rad/s] left, right
@@ -190,16 +192,34 @@ class TurtleBot:
         return float(v), float(omega)
 
 
-class ActuatorPlant:
-    """The simulated TurtleBot3 in process (:class:`TurtleBot`), a ``common.loop.Plant``: it reports its
-    encoder odometry and keeps the true pose beside it. A reset re-seeds the slip, so every
-    episode of the same settings sees the same slip."""
+class SimulatedRobot(Protocol):
+    """A simulated TurtleBot3: :class:`TurtleBot` (the actuator model) or
+    :class:`common.physics.PhysicsBot` (the MuJoCo one)."""
 
-    def __init__(self, params: TurtleBotParams) -> None:
-        self.robot = TurtleBot(params, np.zeros(3))
+    @property
+    def odometry(self) -> FloatArray: ...
+
+    @property
+    def true_pose(self) -> FloatArray: ...
+
+    @property
+    def saturated_commands(self) -> int: ...
+
+    def reset(self, pose: FloatArray) -> None: ...
+
+    def step(self, action: FloatArray, duration: float) -> FloatArray: ...
+
+
+class RobotPlant:
+    """A simulated TurtleBot3 in process, a ``common.loop.Plant``: it reports the robot's
+    odometry and keeps the true pose beside it. A reset puts the robot at rest at the start (the
+    actuator model's slip re-seeded: every episode of the same settings sees the same slip)."""
+
+    def __init__(self, robot: SimulatedRobot) -> None:
+        self.robot = robot
 
     def reset(self, state: np.ndarray) -> np.ndarray:
-        self.robot = TurtleBot(self.robot.params, np.asarray(state, dtype=float))
+        self.robot.reset(np.asarray(state, dtype=float))
         return self.robot.odometry.copy()
 
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:

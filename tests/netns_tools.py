@@ -10,6 +10,8 @@
 * ``observe``: a Zenoh client that prints, as JSON lines stamped with ``time.monotonic()`` (one
   clock for every namespace of the machine), the services' liveliness, their status counters
   every critic weight message and every transition's step: the test watches the run through it.
+  ``observe-fleet``: the same for every robot of a fleet, and who (which Zenoh session) sent each
+  robot's actions.
 
 Every program prints ``{"kind": "ready", ...}`` once it serves, and a ``{"kind": "summary", ...}``
 line when stopped by SIGINT or SIGTERM.
@@ -31,6 +33,24 @@ from typing import Any
 
 CHUNK = 65536
 HELD_KEPT = 100_000  # hold times kept for the summary's percentiles
+
+
+def _open_until(router: str, connect_timeout: float, stop: threading.Event, who: str) -> Any:
+    """A client session to ``router``, retried until ``connect_timeout`` or ``stop`` (None: said
+    why on stderr)."""
+    import zenoh
+
+    from tests.harness import client_config
+
+    deadline = time.monotonic() + connect_timeout
+    while True:
+        try:
+            return zenoh.open(client_config(router))
+        except zenoh.ZError as error:
+            if time.monotonic() > deadline or stop.is_set():
+                print(f"{who}: cannot reach the router at {router}: {error}", file=sys.stderr)
+                return None
+            time.sleep(0.1)
 
 
 def emit(kind: str, **fields: Any) -> None:
@@ -216,7 +236,6 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
 
     from common.keys import STATUS, TRANSITION, WEIGHTS, liveliness_pattern
     from common.messages import CriticWeights, MessageError, ServiceStatus, Transition, decode
-    from tests.harness import client_config
 
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -249,16 +268,9 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
     def on_token(sample: zenoh.Sample) -> None:
         record("alive", service=str(sample.key_expr).rsplit("/", 1)[-1], alive=sample.kind == zenoh.SampleKind.PUT)
 
-    deadline = time.monotonic() + connect_timeout
-    while True:
-        try:
-            session = zenoh.open(client_config(router))
-            break
-        except zenoh.ZError as error:
-            if time.monotonic() > deadline or stop.is_set():
-                print(f"observe: cannot reach the router at {router}: {error}", file=sys.stderr)
-                return 1
-            time.sleep(0.1)
+    session = _open_until(router, connect_timeout, stop, "observe")
+    if session is None:
+        return 1
     keep = [
         session.declare_subscriber(WEIGHTS.key(robot), on_weights),
         session.declare_subscriber(TRANSITION.key(robot), on_transition),
@@ -272,6 +284,86 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
     session.close()
     with lock:
         emit("summary", counts=counts)
+    return 0
+
+
+def observe_fleet(router: str, connect_timeout: float) -> int:
+    """Every robot at once: weights, transitions and liveliness (with the holder's Zenoh id) as
+    JSON lines; each robot's actions counted by the id of the session that sent them (in the summary)."""
+    import zenoh
+
+    from common.keys import ACTION, STATUS, TRANSITION, WEIGHTS, every_robot
+    from common.messages import Action, CriticWeights, MessageError, ServiceStatus, Transition, decode
+
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    lock = threading.Lock()
+    counts = {"weights": 0, "status": 0, "alive": 0, "transition": 0, "action": 0, "undecodable": 0}
+    action_sources: dict[str, dict[str, int]] = {}  # robot -> sender's zid -> actions
+
+    def decoded(schema: Any, sample: zenoh.Sample) -> Any:
+        try:
+            return decode(schema, sample.payload.to_bytes())
+        except MessageError:
+            with lock:
+                counts["undecodable"] += 1
+            return None
+
+    def record(kind: str, **fields: Any) -> None:
+        with lock:
+            counts[kind] += 1
+            emit(kind, **fields)
+
+    def on_weights(sample: zenoh.Sample) -> None:
+        if (w := decoded(CriticWeights, sample)) is not None:
+            record("weights", robot=w.robot, version=w.version, trained_step=w.trained_step)
+
+    def on_transition(sample: zenoh.Sample) -> None:
+        if (t := decoded(Transition, sample)) is not None:
+            record("transition", robot=t.robot, step=t.step)
+
+    def on_status(sample: zenoh.Sample) -> None:
+        if (s := decoded(ServiceStatus, sample)) is not None:
+            record("status", robot=s.robot, service=s.service, counters=s.counters)
+
+    def on_action(sample: zenoh.Sample) -> None:
+        if decoded(Action, sample) is None:
+            return
+        robot = str(sample.key_expr).split("/")[1]
+        source = "unstamped" if sample.timestamp is None else str(sample.timestamp.get_id())
+        with lock:
+            counts["action"] += 1
+            per_robot = action_sources.setdefault(robot, {})
+            per_robot[source] = per_robot.get(source, 0) + 1
+
+    def on_token(sample: zenoh.Sample) -> None:
+        chunks = str(sample.key_expr).split("/")  # srl/<robot>/alive/<service>[/<zid>]
+        record(
+            "alive",
+            robot=chunks[1],
+            service=chunks[3],
+            zid=chunks[4] if len(chunks) > 4 else None,
+            alive=sample.kind == zenoh.SampleKind.PUT,
+        )
+
+    session = _open_until(router, connect_timeout, stop, "observe-fleet")
+    if session is None:
+        return 1
+    keep = [
+        session.declare_subscriber(every_robot(WEIGHTS), on_weights),
+        session.declare_subscriber(every_robot(TRANSITION), on_transition),
+        session.declare_subscriber(every_robot(ACTION), on_action),
+        session.declare_subscriber(STATUS.pattern.format(robot="*", service="*"), on_status),
+        session.liveliness().declare_subscriber("srl/*/alive/**", on_token, history=True),
+    ]
+    emit("ready", router=router, zid=str(session.info.zid()))
+    stop.wait()
+    for entity in keep:
+        entity.undeclare()
+    session.close()
+    with lock:
+        emit("summary", counts=counts, action_sources=action_sources)
     return 0
 
 
@@ -294,6 +386,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     obs.add_argument("--router", required=True)
     obs.add_argument("--robot", required=True)
     obs.add_argument("--connect-timeout", type=float, default=30.0)
+    fleet = sub.add_parser("observe-fleet", help="the same for every robot, and who sent each robot's actions")
+    fleet.add_argument("--router", required=True)
+    fleet.add_argument("--connect-timeout", type=float, default=30.0)
     args = parser.parse_args(argv)
     if args.command == "relay":
         asyncio.run(_serve_relay(args))
@@ -301,6 +396,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "probe":
         emit("rtt", **probe(args.target, args.count, args.size, args.interval, args.timeout))
         return 0
+    if args.command == "observe-fleet":
+        return observe_fleet(args.router, args.connect_timeout)
     return observe(args.router, args.robot, args.connect_timeout)
 
 

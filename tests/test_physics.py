@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from common import physics
-from common.physics import PhysicsBot, PhysicsPlant, burger_mjcf, servo_gain, simulated_robot
+from common.physics import PhysicsBot, burger_mjcf, servo_gain, simulated_robot
 from common.settings import Settings
-from common.turtlebot import TurtleBot
+from common.turtlebot import RobotPlant, TurtleBot
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 mujoco = physics.load_mujoco()  # the extra srl[physics]: ./srl and CI install it, so it is never skipped
@@ -108,7 +108,7 @@ def test_odometry_dead_reckons_the_encoders_and_the_imu_gives_the_heading(settin
 
 
 def test_the_plant_reports_odometry_and_keeps_the_truth_beside_it(settings: Settings) -> None:
-    plant = PhysicsPlant(settings.turtlebot_params(), settings.physics_params())
+    plant = RobotPlant(PhysicsBot(settings.turtlebot_params(), settings.physics_params(), np.zeros(3)))
     reported = plant.reset(np.array([1.0, 1.0, 0.0]))
     assert reported == pytest.approx([1.0, 1.0, 0.0], abs=1e-9)
     for _ in range(20):

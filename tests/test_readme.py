@@ -34,6 +34,11 @@ ADD_A_HOST = (
     "hosts, loopback and a free port for the addresses, `srl` = this checkout's)"
 )
 
+ACROSS_HOSTS = (
+    "tests/test_netns_fleet.py::test_fleet_across_three_hosts_with_linked_routers_survives_a_partition "
+    "(as written, each host a network namespace: C's address on their bridge; the actors with --run-seconds)"
+)
+
 # README command -> who runs it ("CI: ..." or a test as path::name, plus how it differs)
 COVERAGE: dict[str, str] = {
     "./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30": "tests/test_readme.py::test_first_command_prints_the_j_the_readme_quotes (as written)",
@@ -52,7 +57,16 @@ COVERAGE: dict[str, str] = {
     "./srl up --robots 50 --duration 30": "tests/test_fleet.py::test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot (3 robots, 8 s, run_fleet as srl up --robots runs it)",
     "./srl up --robots 25 --critic pooled --duration 30": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6); tests/test_pooled_critic.py::test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches (3 robots, 8 s)",
     "./srl experiment fleet": "tests/test_pooled_critic.py::test_experiment_fleet_per_robot_gives_the_paper_experiments_j_and_pooled_beside_it (a 2 x 2 grid, 2 s, N = 6)",
+    "./srl up --robots 3 --plant robot --duration 20": "tests/test_readme.py::test_srl_up_examples_run (a free router port, --duration 6); tests/test_robot_fleet.py::test_up_three_emulated_turtlebots",
+    "./srl up --robots tb3_1,tb3_2 --plant robot --robot-endpoints tb3_1=tcp/<robot-1-ip>:7447,tb3_2=tcp/<robot-2-ip>:7447 --ros-distro jazzy": "tests/test_robot_fleet.py::test_fleet_on_one_shared_robot_router_keeps_robots_apart (emulators as the robots, one on its own router, two through --robot-endpoint)",
     "./srl bench fleet": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5)",
+    "./srl bench fleet --robots 50 --baseline '' --seconds 600": "tests/test_fleet.py::test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up (--robots 2 --baseline 2 --seconds 5); tests/test_capacity.py::test_the_rss_series_is_bounded_and_its_growth_starts_after_warm_up (the soak's growth)",
+    "./srl bench capacity": "tests/test_capacity.py::test_the_capacity_bench_measures_every_component_and_the_messages (--robots 1,3 --seconds 6)",
+    "SRL_TRANSPORT__ALLOW_INSECURE_NETWORK=true srl router --router tcp/0.0.0.0:7447": ACROSS_HOSTS,
+    "srl critic --robots a1,a2,a3,d1,d2,d3": ACROSS_HOSTS,
+    "SRL_TRANSPORT__ALLOW_INSECURE_NETWORK=true srl router --router tcp/0.0.0.0:7447 --connect tcp/192.168.1.13:7447": ACROSS_HOSTS,
+    "srl plant-sim --robots a1,a2,a3": ACROSS_HOSTS,
+    "srl actor --robots a1,a2,a3": ACROSS_HOSTS,
     "./srl experiment paper": "tests/test_experiment.py::test_reduced_grid_writes_every_output_consistently (a reduced grid)",
     "./srl experiment paper --starts held-out": "tests/test_experiment.py::test_held_out_grid_one_seeded_start_per_cell_never_on_the_lattice (the grid)",
     "./srl experiment paper --transport zenoh": "tests/test_experiment.py::test_zenoh_transport_gives_the_inproc_numbers (a reduced grid)",

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from common.dynamics import exact_step
-from common.turtlebot import TurtleBot, TurtleBotParams, body_velocity, firmware_velocity, wheel_speeds
+from common.turtlebot import RobotPlant, TurtleBot, TurtleBotParams, body_velocity, firmware_velocity, wheel_speeds
 
 R, B = 0.033, 0.160
 
@@ -149,6 +149,21 @@ def test_the_slip_is_seeded() -> None:
 
     assert np.array_equal(final(1), final(1))
     assert not np.array_equal(final(1), final(2))
+
+
+def test_a_reset_robot_is_a_new_robot() -> None:
+    """The in-process plant's episodes (``RobotPlant.reset``) each see the slip a new robot would."""
+    plant = RobotPlant(TurtleBot(params(slip=0.02, slip_std=0.01, seed=5), np.zeros(3)))
+
+    def episode() -> tuple[np.ndarray, np.ndarray]:
+        reported = plant.reset(np.array([1.0, -0.5, 0.3]))
+        for _ in range(20):
+            reported = plant.apply(np.array([0.2, 0.3]), 0.1)
+        return reported, plant.true_state
+
+    first, second = episode(), episode()
+    assert np.array_equal(first[0], second[0]) and np.array_equal(first[1], second[1])
+    assert not np.allclose(first[0], first[1], atol=1e-6)  # the slip is there: odometry is not the truth
 
 
 def test_plant_sim_lockstep_reports_the_odometry_and_the_truth_of_the_model() -> None:

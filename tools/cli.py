@@ -199,9 +199,11 @@ def cmd_router(args: argparse.Namespace) -> int:
     # its one line of normal output, on stdout (not a warning): what it serves and how
     transport = settings.transport
     rules = f"; users and access rules of robot {transport.robot} enforced" if transport.secure else ""
+    # Zenoh keeps trying an unreachable router (a router's connect never gives up): it links when that one comes up
+    links = f"; connecting to {', '.join(transport.connect)}" if transport.connect else ""
     print(
         f"srl router: router listening on {settings.transport.router} (multicast scouting "
-        f"{'on' if settings.transport.multicast_scouting else 'off'}{rules})",
+        f"{'on' if settings.transport.multicast_scouting else 'off'}{rules}{links})",
         flush=True,
     )
     stop.wait()
@@ -474,6 +476,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from tools.bench.fleet import run_fleet_benchmark
 
         return run_fleet_benchmark(args, settings_from_args(args), settings_argv(args))
+    if args.what == "capacity":
+        from tools.bench.capacity import run_capacity_benchmark
+
+        return run_capacity_benchmark(args, settings_from_args(args), settings_argv(args))
     raise UsageError(f"unknown benchmark {args.what!r}")
 
 
@@ -554,6 +560,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     router = command("router", "a Zenoh router (Python, mode router)")
     add_settings_arguments(router, COMMAND_SETTINGS["router"])
+    router.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="also connect to this endpoint, e.g. another host's router tcp/192.168.1.20:7447; repeat for "
+        "several (one router per host, README 'Across hosts') (default: transport.connect, none in common/srl.toml)",
+    )
     router.set_defaults(func=cmd_router)
 
     from services.actor import command as actor_command
@@ -622,7 +635,8 @@ def build_parser() -> argparse.ArgumentParser:
         "bench",
         "benchmarks that print a table (and JSON)",
         "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
-        "as the last stdout line): srl bench actor | loop | bridge | parking | fleet --help for each one's options.",
+        "as the last stdout line): srl bench actor | loop | bridge | parking | fleet | capacity --help for each "
+        "one's options.",
     )
     kinds = bench.add_subparsers(dest="what", required=True, metavar="KIND")
 
@@ -685,6 +699,15 @@ def build_parser() -> argparse.ArgumentParser:
         "(default: auto)",
     )
     fleet_bench.add_argument("--seconds", type=float, default=30.0, help="real-time run per row [s] (default: 30)")
+    capacity = kind(
+        "capacity", "a fleet's cost per robot and component (CPU, messages), and what 1,000 and 10,000 need"
+    )
+    capacity.add_argument("--robots", default="10,25,50", help="fleet sizes to fit the costs on (default: 10,25,50)")
+    capacity.add_argument("--seconds", type=float, default=30.0, help="real-time run per size [s] (default: 30)")
+    capacity.add_argument(
+        "--utilisation", type=float, default=0.5, help="the share of each core the model plans to use (default: 0.5)"
+    )
+    capacity.add_argument("--host-cores", type=int, default=8, help="cores of each host in the model (default: 8)")
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
     bridge_bench.add_argument("--seconds", type=float, default=60.0, help="both phases together [s] (default: 60)")

@@ -75,12 +75,48 @@ def _proc_memory(pid: int) -> tuple[float, float]:
     return rss, peak
 
 
-def cpu_of(pids: list[int]) -> float:
-    total = 0.0
-    for pid in pids:
+def cpu_of(pids: dict[str, int]) -> dict[str, float]:
+    """CPU seconds so far of each named process (0 for one that is gone)."""
+    seconds = dict.fromkeys(pids, 0.0)
+    for name, pid in pids.items():
         with contextlib.suppress(OSError):
-            total += _proc_cpu(pid)
-    return total
+            seconds[name] = _proc_cpu(pid)
+    return seconds
+
+
+def message_kind(key: str) -> str:
+    """``srl/<robot>/state`` -> ``state``; ``srl/<robot>/status/actor`` -> ``status/actor``."""
+    return "/".join(key.split("/")[2:]) or key
+
+
+class MessageCounter:
+    """Every ``srl/**`` sample routed during a run, counted (and its bytes) by kind: what
+    ``srl bench capacity`` reports per robot and second. It is one more subscriber of everything:
+    the router delivers each message once more to it (said wherever its figures are shown)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.counts: dict[str, list[int]] = {}
+        self.lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(settings.transport))
+
+        def on_sample(sample: Any) -> None:
+            kind = message_kind(str(sample.key_expr))
+            size = len(sample.payload.to_bytes())
+            with self.lock:
+                count = self.counts.setdefault(kind, [0, 0])
+                count[0] += 1
+                count[1] += size
+
+        self.subscriber = self.session.declare_subscriber("srl/**", on_sample)
+
+    def snapshot(self) -> dict[str, list[int]]:
+        with self.lock:
+            return {kind: list(count) for kind, count in self.counts.items()}
+
+    def close(self) -> None:
+        with contextlib.suppress(zenoh.ZError):
+            self.subscriber.undeclare()
+        self.session.close()
 
 
 def memory_of(pids: list[int]) -> tuple[float, float]:
@@ -90,6 +126,38 @@ def memory_of(pids: list[int]) -> tuple[float, float]:
             one, top = _proc_memory(pid)
             rss, peak = rss + one, peak + top
     return rss, peak
+
+
+RSS_SAMPLE_S = 5.0  # [s] between the points of a run's RSS series
+RSS_POINTS = 240  # at most (a longer run keeps every other point: bounded whatever the length)
+WARM_UP_SHARE = 0.1  # the first tenth of a run (at least one RSS sample period) is its warm-up
+
+
+class RssSeries:
+    """The srl processes' summed RSS every :data:`RSS_SAMPLE_S` of a run, bounded in length, and its
+    growth from the end of warm-up to the end (what a soak is judged on)."""
+
+    def __init__(self) -> None:
+        self.points: list[tuple[float, float]] = []  # (seconds into the run, MB)
+        self.every = RSS_SAMPLE_S
+
+    def add(self, elapsed: float, rss_mb: float) -> None:
+        if self.points and elapsed - self.points[-1][0] < self.every:
+            return
+        self.points.append((round(elapsed, 1), round(rss_mb, 1)))
+        if len(self.points) > RSS_POINTS:
+            self.points = self.points[::2]
+            self.every *= 2
+
+    def growth_percent(self) -> float:
+        """``100 (last / first after warm-up - 1)``; NaN when the run was too short to tell."""
+        if len(self.points) < 2:
+            return math.nan
+        warm = max(WARM_UP_SHARE * self.points[-1][0], RSS_SAMPLE_S)
+        after = [mb for t, mb in self.points if t >= warm]
+        if len(after) < 2 or after[0] <= 0:
+            return math.nan
+        return 100.0 * (after[-1] / after[0] - 1.0)
 
 
 class FleetMonitor:
@@ -181,9 +249,16 @@ def run_fleet(
     on_status: Callable[[str], None] | None = None,
     summary_dir: Path | None = None,
     actor_hosts: int = 1,
+    count_messages: bool = False,
+    plant: str = "sim",
+    robot_endpoints: dict[str, str] | None = None,
+    bridge_args: list[str] | None = None,
     pooled: bool = False,
 ) -> dict[str, Any]:
     """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary.
+
+    ``plant="robot"``: ROS 2 robots behind robot bridges (tools/fleet_robot.py), each robot's id
+    its namespace; emulated TurtleBot3s for the robots without an entry in ``robot_endpoints``.
     ``pooled``: one critic learner for every robot (critic.pooled), else one per robot."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
@@ -213,7 +288,13 @@ def run_fleet(
             supervisor.spawn("router", ["router", *common])
             supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
             starts = circle_starts(len(robots), circle)
-            if layout == "host":
+            if plant == "robot":  # emulated or real TurtleBot3s behind bridges
+                from tools.fleet_robot import spawn_robot_plants
+
+                ros = spawn_robot_plants(
+                    supervisor, settings, common, robots, starts, robot_endpoints or {}, bridge_args or [], layout
+                )
+            elif layout == "host":
                 supervisor.spawn("plant", ["plant-sim", *common, f"--robots={ids}", f"--circle={circle!r}"])
             else:
                 for robot, start in zip(robots, starts, strict=True):
@@ -223,6 +304,10 @@ def run_fleet(
                     )
             supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"])
             wait_fleet_alive(supervisor, settings, robots, "plant")
+            if plant == "robot":
+                from tools.fleet_robot import wait_fleet_odometry
+
+                wait_fleet_odometry(supervisor, settings, ros)
             wait_fleet_alive(supervisor, settings, robots, "critic")
             run = ["--run-seconds", repr(duration)]
             if layout == "host":
@@ -235,12 +320,16 @@ def run_fleet(
                     supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run]) for robot in robots
                 ]
             wait_fleet_alive(supervisor, settings, robots, "actor")
-            pids = [child.process.pid for child in supervisor.children.values()]
+            pids = {name: child.process.pid for name, child in supervisor.children.items()}
+            counter = MessageCounter(settings) if count_messages else None
             ready = time.monotonic()
             cpu_before = cpu_of(pids)
             monitor = FleetMonitor(settings) if on_status is not None else None
             # CPU and memory sampled while every actor still runs (a reaped process has no /proc entry)
-            memory, cpu_seconds, sampled = (0.0, 0.0), 0.0, ready
+            memory, sampled = (0.0, 0.0), ready
+            rss_series = RssSeries()
+            cpu_seconds = dict.fromkeys(pids, 0.0)
+            messages: dict[str, list[int]] = {}
             try:
                 shown = 0
                 actor_names = {a.name for a in actors}
@@ -248,9 +337,13 @@ def run_fleet(
                     supervisor.check(allowed_to_exit=actor_names)
                     now = time.monotonic()
                     if all(a.process.poll() is None for a in actors):
-                        cpu_seconds, sampled = cpu_of(pids) - cpu_before, now
+                        cpu_now, sampled = cpu_of(pids), now
+                        cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
+                        if counter is not None:
+                            messages = counter.snapshot()
                         if now - ready < duration - 1.0:
-                            memory = memory_of(pids)  # near the end, while every process still runs
+                            memory = memory_of(list(pids.values()))  # near the end, while every process still runs
+                            rss_series.add(now - ready, memory[0])
                     if monitor is not None and on_status is not None and int(now - ready) > shown:
                         shown = int(now - ready)
                         on_status(monitor.line(now - ready, len(robots)))
@@ -258,12 +351,18 @@ def run_fleet(
             finally:
                 if monitor is not None:
                     monitor.close()
+                if counter is not None:
+                    counter.close()
             ran = sampled - ready
             for actor in actors:
                 if actor.process.returncode != 0:
                     supervisor.check()
         finally:
             guard.cleaning = True
+            if plant == "robot":
+                from tools.fleet_robot import stop_bridges
+
+                stop_bridges(supervisor, robots, layout)
             supervisor.stop_all()
             shutil.rmtree(scratch, ignore_errors=True)
         guard.raise_if_received()
@@ -282,8 +381,9 @@ def run_fleet(
             for robot in robots
         }
         view = fleet_view(per_robot)
-    use = ProcessUse(cpu_seconds, memory[0], memory[1], len(supervisor.children))
+    use = ProcessUse(sum(cpu_seconds.values()), memory[0], memory[1], len(supervisor.children))
     summary = {
+        "plant": plant,
         "layout": layout,
         "robots": robots,
         "seconds": duration,
@@ -303,13 +403,24 @@ def run_fleet(
             "pooled": critic.pooled,
         },
         "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
+        "cpu_percent_by_service": {
+            name: 100.0 * cpu / ran if ran > 0 else math.nan for name, cpu in cpu_seconds.items()
+        },
         "rss_mb": use.rss_mb,
+        "rss_growth_percent": rss_series.growth_percent(),  # from the end of warm-up to the end (soak)
+        "rss_series_mb": rss_series.points,
         "peak_rss_mb": use.peak_rss_mb,
         "processes": use.processes,
         "wall_seconds": time.monotonic() - started,
         "services": {name: child.process.pid for name, child in supervisor.children.items()},
         "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
     }
+    if counter is not None:  # over the same span as the CPU: [count, bytes] of each kind
+        summary["messages"] = messages
+    if plant == "robot":
+        from tools.fleet_robot import robot_fleet_summary
+
+        summary["robot_plant"] = robot_fleet_summary(supervisor, settings, robots, layout)
     if summary_dir is not None:
         summary_dir.mkdir(parents=True, exist_ok=True)
         for name, child in supervisor.children.items():
@@ -341,4 +452,8 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
         f"staleness p99/max {view.staleness_p99_steps:.0f}/{view.staleness_max_steps:.0f} steps, "
         f"CPU {summary['cpu_percent']:.0f} %, RSS {summary['rss_mb']:.0f} MB in {summary['processes']} processes"
     )
+    if summary.get("robot_plant"):
+        from tools.fleet_robot import format_robot_lines
+
+        lines += format_robot_lines(summary["robot_plant"])
     return "\n".join(lines)

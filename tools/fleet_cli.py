@@ -9,7 +9,14 @@ import math
 import sys
 from pathlib import Path
 
-from common.runtime import UsageError, add_robots_argument, fleet_robots
+from common.fleet import ROS_FLEET_PREFIX
+from common.runtime import (
+    UsageError,
+    add_robot_endpoints_argument,
+    add_robots_argument,
+    fleet_robots,
+    ros_fleet_endpoints,
+)
 from common.settings import Settings
 
 LAYOUTS = ("host", "process")
@@ -17,7 +24,12 @@ LAYOUTS = ("host", "process")
 
 def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
     """``srl up``'s fleet options (issue 16)."""
-    add_robots_argument(parser, "a simulated fleet (real time): ")
+    add_robots_argument(
+        parser,
+        f"a fleet (real time; with --plant robot each robot's id is its ROS namespace, K: {ROS_FLEET_PREFIX}1.."
+        f"{ROS_FLEET_PREFIX}K): ",
+    )
+    add_robot_endpoints_argument(parser)
     parser.add_argument(
         "--layout",
         choices=LAYOUTS,
@@ -49,10 +61,24 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
 
 def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: list[str], summary_dir: Path) -> int:
     """``srl up --robots``: the fleet's run, a status line a second, the per-robot table, ``--json``."""
-    robots = fleet_robots(args)
+    robots = fleet_robots(args, ROS_FLEET_PREFIX if args.plant == "robot" else "robot")
     assert robots is not None
-    if args.plant != "sim" or args.secure:
-        raise UsageError("--robots runs simulated robots without --secure (--plant sim) for now")
+    if args.plant not in ("sim", "robot") or args.secure:
+        raise UsageError("--robots runs --plant sim or --plant robot, without --secure, for now")
+    endpoints: dict[str, str] = {}
+    bridge_args: list[str] = []
+    if args.plant == "robot":
+        from common.arguments import bridge_argv
+
+        if settings.bridge.namespace:
+            raise UsageError(
+                f"bridge.namespace {settings.bridge.namespace!r} with --robots: each robot's namespace is its id"
+            )
+        endpoints = ros_fleet_endpoints(args, robots, settings.bridge.robot_endpoint)
+        # each robot's namespace and endpoint are the fleet's own (tools/fleet_robot.py)
+        bridge_args = [a for a in bridge_argv(args) if a.split("=", 1)[0] not in ("--namespace", "--robot-endpoint")]
+    elif getattr(args, "robot_endpoints", None):
+        raise UsageError("--robot-endpoints is for --plant robot")
     if getattr(args, "record", None) is not None or getattr(args, "view", None) is not None:
         raise UsageError(
             "--record and --view do not start with --robots yet: run `srl record FILE.mcap` or `srl view` "
@@ -67,19 +93,31 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
         print(f"srl up {line}", file=sys.stderr, flush=True)
 
     from tools.fleet import format_fleet_summary, run_fleet
+    from tools.up import ServiceDiedError
 
-    summary = run_fleet(
-        settings,
-        settings_args,
-        robots,
-        settings.episode.duration,
-        layout=args.layout,
-        circle=args.circle,
-        on_status=show,
-        actor_hosts=args.actor_hosts,
-        summary_dir=summary_dir,
-        pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
-    )
+    try:
+        summary = run_fleet(
+            settings,
+            settings_args,
+            robots,
+            settings.episode.duration,
+            layout=args.layout,
+            circle=args.circle,
+            on_status=show,
+            actor_hosts=args.actor_hosts,
+            summary_dir=summary_dir,
+            plant=args.plant,
+            robot_endpoints=endpoints,
+            bridge_args=bridge_args,
+            pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
+        )
+    except ServiceDiedError as error:  # as srl up says it: one line and the service's last words
+        print(f"srl up: error: {error}", file=sys.stderr)
+        for line in error.tail:
+            print(f"  [{error.name}] {line}", file=sys.stderr)
+        return 1
+    except TimeoutError as error:
+        raise UsageError(str(error)) from error
     print(format_fleet_summary(summary))
     if args.json:
         print(json.dumps(summary))

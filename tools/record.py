@@ -41,7 +41,7 @@ import os
 import re
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Literal, Protocol
@@ -616,18 +616,47 @@ class Feed:
         self.writer.join()
         self.recorder.close()
 
+    @classmethod
+    def run(cls, settings: Any, recorder: Recorder, who: str, args: Any, ready: Callable[[], str]) -> Feed:
+        """What ``srl record`` and ``srl view`` do once their sink is open: join the system (retried
+        for ``args.connect_timeout``), print the ``ready()`` line, feed the recorder until Ctrl-C,
+        SIGTERM, the parent's death (started by srl up) or ``args.seconds``; closed on the way
+        out whatever happens (a recording is complete after this)."""
+        import sys
+
+        from common.lifeline import die_with_parent
+        from common.runtime import connect_with_retry, stop_on_signals
+
+        with stop_on_signals() as stop:
+            die_with_parent(stop)
+            try:
+                feed = connect_with_retry(lambda: cls(settings, recorder), settings, who, args.connect_timeout, stop)
+            except BaseException:
+                recorder.close()
+                raise
+            print(ready(), file=sys.stderr, flush=True)
+            try:
+                stop.wait(args.seconds)
+            finally:
+                feed.close()
+        return feed
+
+
+def positive_seconds(seconds: float | None) -> None:
+    """``--seconds`` of srl record / srl view: None (until Ctrl-C) or a positive number."""
+    from common.runtime import UsageError
+
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise UsageError(f"--seconds must be a positive number, got {seconds}")
+
 
 def cmd_record(args: Any) -> int:
     """``srl record FILE.mcap``: join a running system and record every robot until Ctrl-C."""
-    import sys
-
     from common.arguments import settings_from_args
-    from common.lifeline import die_with_parent
-    from common.runtime import UsageError, connect_with_retry, stop_on_signals
+    from common.runtime import UsageError
 
     settings = settings_from_args(args)
-    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
-        raise UsageError(f"--seconds must be a positive number, got {args.seconds}")
+    positive_seconds(args.seconds)
     yield_cpu_to_the_loop()
     if args.file is None:
         args.file = Path(time.strftime("srl-%Y%m%d-%H%M%S.mcap", time.gmtime()))
@@ -636,21 +665,8 @@ def cmd_record(args: Any) -> int:
     except RecordingError as error:
         raise UsageError(str(error)) from None
     recorder = Recorder(sink, settings.plant.sampling_time, clock=args.clock)
-    with stop_on_signals() as stop:
-        die_with_parent(stop)  # started by srl up: stop (and close the file) when it dies
-        try:
-            feed = connect_with_retry(lambda: Feed(settings, recorder), settings, "record", args.connect_timeout, stop)
-        except BaseException:
-            sink.close()
-            raise
-        print(
-            f"srl record: recording srl/* (every robot) from {settings.transport.router} to {sink.path}; "
-            "Ctrl-C ends it",
-            file=sys.stderr,
-            flush=True,
-        )
-        stop.wait(args.seconds)
-        feed.close()
+    ready = f"srl record: recording srl/* (every robot) from {settings.transport.router} to {sink.path}; Ctrl-C ends it"
+    feed = Feed.run(settings, recorder, "record", args, lambda: ready)
     late = sum(t.late for t in recorder.tracks.values())
     extra = f"; {feed.dropped} dropped (writer behind)" if feed.dropped else ""
     extra += f"; {late} late transitions skipped" if late else ""

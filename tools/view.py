@@ -14,16 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
-import sys
 from typing import Any
 
 import foxglove
 
 from common.arguments import settings_from_args
-from common.lifeline import die_with_parent
-from common.runtime import UsageError, connect_with_retry, stop_on_signals
-from tools.record import Feed, Recorder, yield_cpu_to_the_loop
+from common.runtime import UsageError
+from tools.record import Feed, Recorder, positive_seconds, yield_cpu_to_the_loop
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +57,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be 0..65535, got {args.port}")
-    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
-        raise UsageError(f"--seconds must be a positive number, got {args.seconds}")
+    positive_seconds(args.seconds)
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning(
             "view: serving on %s without authentication: whoever reaches the port sees every robot "
@@ -74,23 +70,13 @@ def cmd_view(args: argparse.Namespace) -> int:
     except RuntimeError as error:  # foxglove-sdk: the port is taken, the address is not ours
         raise UsageError(f"view: cannot serve on {args.host}:{args.port}: {error}") from None
     recorder = Recorder(sink, settings.plant.sampling_time, clock="wall")
-    with stop_on_signals() as stop:
-        die_with_parent(stop)
-        try:
-            feed = connect_with_retry(lambda: Feed(settings, recorder), settings, "view", args.connect_timeout, stop)
-        except BaseException:
-            sink.close()
-            raise
-        url = f"ws://{args.host}:{sink.port}"  # the bound port (--port 0: the one the OS chose)
-        # the readiness line (srl up and the tests wait for it): where to point Foxglove
-        print(
-            f"srl view: serving every robot of {settings.transport.router} on {url} "
-            "(Foxglove: Open connection -> Foxglove WebSocket; layout docs/foxglove-layout.json); Ctrl-C ends it",
-            file=sys.stderr,
-            flush=True,
-        )
-        stop.wait(args.seconds)
-        feed.close()
+    url = f"ws://{args.host}:{sink.port}"  # the bound port (--port 0: the one the OS chose)
+    # the readiness line (srl up and the tests wait for it): where to point Foxglove
+    ready = (
+        f"srl view: serving every robot of {settings.transport.router} on {url} "
+        "(Foxglove: Open connection -> Foxglove WebSocket; layout docs/foxglove-layout.json); Ctrl-C ends it"
+    )
+    Feed.run(settings, recorder, "view", args, lambda: ready)
     print(json.dumps({"view": url, "messages": sink.messages}), flush=True)
     return 0
 

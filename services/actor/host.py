@@ -37,7 +37,7 @@ from common.actor import ActorCounters, ActorMemory, ActorProblem, ActorStep, St
 from common.assembly import arrival_rule, build_actor
 from common.clock import LATE_FRACTION, Ticker
 from common.fleet_summary import FleetActorSummary, fleet_view
-from common.keys import ACTION, STATE, STATUS, TRANSITION, WEIGHTS
+from common.keys import STATE, STATUS, WEIGHTS
 from common.messages import PlantState, ServiceStatus
 from common.provenance import SourceGate
 from common.settings import Settings
@@ -46,6 +46,7 @@ from common.summaries import RealtimeActorSummary
 from common.transport import Bus, Newest
 from services.actor.ports import WeightsInbox, new_episode_id
 from services.actor.realtime import RealtimeActor
+from services.actor.service import wire_realtime
 
 log = logging.getLogger(__name__)
 
@@ -271,18 +272,8 @@ def run_host(
         inbox = WeightsInbox(own, bus, critic_gate)
         bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
-        loop = RealtimeActor(
-            own,
-            actor,
-            inbox,
-            bus.publisher(ACTION, robot),
-            bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
-            count,
-            new_episode_id(),
-        )
-        bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
+        loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id())
         states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
-        bus.watch_alive(robot, "plant", loop.on_plant_token)
         loops.append(loop)
         counts.append(count)
         inboxes.append(inbox)

@@ -37,7 +37,7 @@ from common.stats import summarize
 from common.summaries import LockstepActorSummary, format_status_line
 from common.transport import Bus, start_status_thread
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id
-from services.actor.realtime import RealtimeActor
+from services.actor.realtime import Counts, RealtimeActor, Steps
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +90,29 @@ def _run_lockstep(
     return LockstepActorSummary.model_validate(summary).to_json_dict()
 
 
+def wire_realtime(
+    settings: Settings, bus: Bus, actor: StackedActor | Steps, inbox: WeightsInbox, counters: Counts, episode_id: int
+) -> RealtimeActor:
+    """One robot's real-time loop on the bus (``settings.transport.robot``'s keys): its action and
+    transition publishers, the plant's session identities and liveliness watched. Provenance
+    first: the caller subscribes the states after this, so the live plant sessions are known
+    before the first state is judged (one actor: a callback per state; the actor host: the
+    newest, judged at the robot's tick)."""
+    robot = settings.transport.robot
+    loop = RealtimeActor(
+        settings,
+        actor,
+        inbox,
+        bus.publisher(ACTION, robot),
+        bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
+        counters,
+        episode_id,
+    )
+    bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
+    bus.watch_alive(robot, "plant", loop.on_plant_token)
+    return loop
+
+
 def _run_realtime(
     settings: Settings,
     bus: Bus,
@@ -101,19 +124,8 @@ def _run_realtime(
     """The real-time loop (services/actor/realtime.py) wired to the Zenoh bus."""
     robot = settings.transport.robot
     episode_id = new_episode_id()
-    loop = RealtimeActor(
-        settings,
-        actor,
-        inbox,
-        bus.publisher(ACTION, robot),
-        bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
-        bus,
-        episode_id,
-    )
-    # provenance first: the live plant sessions are known before the first state is judged
-    bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
+    loop = wire_realtime(settings, bus, actor, inbox, bus, episode_id)
     bus.subscribe(STATE, STATE.key(robot), loop.on_state, with_source=True)
-    bus.watch_alive(robot, "plant", loop.on_plant_token)
     bus.declare_alive(robot)
     inbox.reset(episode_id)
     actor.reset()

@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from common.clock import Ticker
 from common.dynamics import exact_steps
 from common.fleet import circle_starts
 from common.fleet_summary import FleetPlantSummary, PlantRow
@@ -29,7 +28,7 @@ from common.messages import Action, PlantState, ServiceStatus
 from common.provenance import ActionGate, SourceGate
 from common.settings import Settings
 from common.transport import Bus
-from services.plant_sim.service import SimulatedPlant
+from services.plant_sim.service import SimulatedPlant, action_timeout, state_ticks
 
 log = logging.getLogger(__name__)
 
@@ -159,18 +158,12 @@ def run_plant_host(
     status.start()
     bus.adopt(status)
     log.info("plant host ready: %d robots (%s), circle %.2f m", len(robots), settings.plant.model, radius)
-    period = 1.0 / settings.transport.state_rate
-    timeout = settings.transport.action_timeout_steps * settings.plant.sampling_time
-    ticker = Ticker(period, stop)
-    end = None if duration is None else time.monotonic() + duration
-    last = time.monotonic()
-    while (now := ticker.wait()) is not None and (end is None or now < end):
+    timeout = action_timeout(settings)
+    for now, elapsed in state_ticks(settings, bus, stop, duration):
         for intake in intakes:
             intake.watchdog(now, timeout)
-        for publish, message in zip(publishers, plant.advance(now - last), strict=True):
+        for publish, message in zip(publishers, plant.advance(elapsed), strict=True):
             publish(message)
-        last = now
-    bus.count("missed_ticks", ticker.missed)
     return FleetPlantSummary(
         robots=robots,
         plant_model=settings.plant.model,
@@ -187,7 +180,7 @@ def run_plant_host(
             )
             for i, robot in enumerate(robots)
         },
-        missed_ticks=ticker.missed,
+        missed_ticks=int(bus.counters.get("missed_ticks", 0)),
         counters={k: float(v) for k, v in bus.counters.items()},
     ).to_json_dict()
 

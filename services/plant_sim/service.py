@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -35,6 +35,28 @@ from common.transport import Bus, start_status_thread
 from common.turtlebot import TurtleBot
 
 log = logging.getLogger(__name__)
+
+
+def action_timeout(settings: Settings) -> float:
+    """[s] how old the newest action may be before the watchdog stops the robot."""
+    return settings.transport.action_timeout_steps * settings.plant.sampling_time
+
+
+def state_ticks(
+    settings: Settings, bus: Bus, stop: threading.Event, duration: float | None
+) -> Iterator[tuple[float, float]]:
+    """The real-time plant's clock: ``(now, seconds since the previous tick)`` at
+    ``transport.state_rate`` until ``stop`` or ``duration``; the missed ticks counted on ``bus``
+    at the end (one robot's plant_sim and the plant host alike)."""
+    ticker = Ticker(1.0 / settings.transport.state_rate, stop)
+    end = None if duration is None else time.monotonic() + duration
+    last = time.monotonic()
+    try:
+        while (now := ticker.wait()) is not None and (end is None or now < end):
+            yield now, now - last
+            last = now
+    finally:
+        bus.count("missed_ticks", ticker.missed)
 
 
 class SimulatedPlant:
@@ -174,21 +196,15 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     log.info("plant_sim ready (%s mode, robot %s)", mode, robot)
 
     if mode == "realtime":
-        period = 1.0 / settings.transport.state_rate
-        timeout = settings.transport.action_timeout_steps * settings.plant.sampling_time
-        ticker = Ticker(period, stop)
-        end = None if duration is None else time.monotonic() + duration
-        last = time.monotonic()
-        while (now := ticker.wait()) is not None and (end is None or now < end):
+        timeout = action_timeout(settings)
+        for now, elapsed in state_ticks(settings, bus, stop, duration):
             at = latest["at"]
             fresh = at is not None and now - float(at) <= timeout  # type: ignore[arg-type]
             if not fresh and at is not None:
                 bus.count("watchdog_stops")
                 latest["at"] = None  # stopped: zero until the next fresh action
                 plant.hold(np.zeros(2))
-            publish_state(plant.advance(now - last))
-            last = now
-        bus.count("missed_ticks", ticker.missed)
+            publish_state(plant.advance(elapsed))
     else:
         stop.wait(duration)
     return PlantSummary.model_validate(

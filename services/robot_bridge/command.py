@@ -5,7 +5,16 @@ from __future__ import annotations
 import argparse
 
 from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
-from common.runtime import add_lifetime_arguments, serve
+from common.fleet import ROS_FLEET_PREFIX
+from common.runtime import (
+    UsageError,
+    add_lifetime_arguments,
+    add_robot_endpoints_argument,
+    add_robots_argument,
+    fleet_robots,
+    ros_fleet_endpoints,
+    serve,
+)
 
 NAME = "robot-bridge"
 HELP = "a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh"
@@ -15,12 +24,37 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
     add_bridge_arguments(parser)
     add_lifetime_arguments(parser)
+    add_robots_argument(
+        parser,
+        "serve several ROS 2 robots in this one process, each robot's id its ROS namespace "
+        f"(K: {ROS_FLEET_PREFIX}1..{ROS_FLEET_PREFIX}K): ",
+    )
+    add_robot_endpoints_argument(parser)
     parser.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     from services.robot_bridge.service import run
 
+    robots = fleet_robots(args, ROS_FLEET_PREFIX)
+    if robots is not None:
+        from services.robot_bridge.host import run_bridge_host
+
+        settings = settings_from_args(args)
+        if settings.bridge.namespace:
+            raise UsageError(
+                f"bridge.namespace {settings.bridge.namespace!r} with --robots: "
+                "each robot's ROS namespace is its robot id"
+            )
+        fleet = ros_fleet_endpoints(args, robots, settings.bridge.robot_endpoint)
+        return serve(
+            settings,
+            "plant",
+            args.connect_timeout,
+            lambda settings, bus, stop: run_bridge_host(settings, bus, fleet, stop, args.run_seconds),
+        )
+    if getattr(args, "robot_endpoints", None):
+        raise UsageError("--robot-endpoints needs --robots (one bridge for several robots)")
     return serve(
         settings_from_args(args),
         "plant",

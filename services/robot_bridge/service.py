@@ -349,8 +349,13 @@ class _Target:
 class RosLink:
     """The robot's side of the bridge: Zenoh keys, tokens and CDR of one wire profile."""
 
-    def __init__(self, session: zenoh.Session, graph: RosGraph, bridge: BridgeSettings, counts: Counts) -> None:
+    def __init__(
+        self, session: zenoh.Session, graph: RosGraph, bridge: BridgeSettings, counts: Counts, entity_base: int = 0
+    ) -> None:
         self.session, self.graph, self.bridge, self.counts = session, graph, bridge, counts
+        # rmw_zenoh numbers the nodes and entities of one session uniquely: a bridge host's links
+        # that share a session to one router take disjoint ranges (services/robot_bridge/host.py)
+        self.entity_base = entity_base
         self.on_odometry: Callable[[Odometry, float], object] = lambda odom, received: None
         self.lock = threading.Lock()
         self.targets: dict[str, _Target] = {}
@@ -371,11 +376,12 @@ class RosLink:
         self.entities.append(self.session.declare_subscriber(odom_key, self._on_odom_sample))
         if self.graph.profile == "rmw_zenoh":
             liveliness = self.session.liveliness()
-            self.entities.append(liveliness.declare_token(self.graph.node_token(self.zid, 0, ros_wire.BRIDGE_NODE)))
+            nid = self.entity_base
+            self.entities.append(liveliness.declare_token(self.graph.node_token(self.zid, nid, ros_wire.BRIDGE_NODE)))
             self.entities.append(
                 liveliness.declare_token(
                     self.graph.endpoint_token(
-                        self.zid, 0, 1, "MS", ros_wire.BRIDGE_NODE, self.bridge.odom_topic, ODOMETRY
+                        self.zid, nid, nid + 1, "MS", ros_wire.BRIDGE_NODE, self.bridge.odom_topic, ODOMETRY
                     )
                 )
             )
@@ -510,8 +516,8 @@ class RosLink:
                 if self.graph.profile == "rmw_zenoh":
                     gid_token = self.graph.endpoint_token(
                         self.zid,
-                        0,
-                        2 + len(self.targets),
+                        self.entity_base,
+                        self.entity_base + 2 + len(self.targets),
                         "MP",
                         ros_wire.BRIDGE_NODE,
                         self.bridge.cmd_vel_topic,
@@ -678,6 +684,13 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         link.close()
         if own_session:
             session.close()
+    return bridge_summary(graph, settings, wire, bridge, dict(bus.counters)).to_json_dict()
+
+
+def bridge_summary(
+    graph: RosGraph, settings: Settings, wire: dict[str, Any], bridge: RobotBridge, counters: dict[str, int]
+) -> BridgeSummary:
+    """One robot's bridge summary (a bridge process, or one robot of a bridge host)."""
     return BridgeSummary.model_validate(
         {
             "profile": graph.profile,
@@ -688,6 +701,6 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
             "final_state": None if bridge.last_state is None else list(bridge.last_state),
             "max_abs_command": bridge.max_abs_command,
             "timing": bridge.timing(),
-            "counters": dict(bus.counters),
+            "counters": counters,
         }
-    ).to_json_dict()
+    )

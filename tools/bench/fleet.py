@@ -7,8 +7,9 @@ interleaved by size, so both see the same machine. Each row: missed deadlines (a
 jitter and state -> action latency p99 (worst robot), weight staleness p99 / max (worst robot),
 robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle), CPU % of all
 srl processes over the run (100 % = one core), their total resident memory, and the machine's
-load average before and after. Targets (PASS/FAIL) at 50 and 100 robots. Every run is bounded
-(start-up timeouts, then ``--seconds``) and every process is stopped after it (tools/fleet.py).
+load average before and after. Targets (PASS/FAIL) at 50 and 100 robots, and the soak's (RSS
+growth <= 2 % at 50 robots over 600 s and more). Every run is bounded (start-up timeouts, then
+``--seconds``) and every process is stopped after it (tools/fleet.py).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ TARGETS: dict[int, dict[str, float]] = {
 }
 
 
-def _sizes(text: str, option: str) -> list[int]:
+def robot_counts(text: str, option: str) -> list[int]:
     try:
         sizes = [int(part) for part in text.split(",") if part.strip()]
     except ValueError:
@@ -45,6 +46,8 @@ def _sizes(text: str, option: str) -> list[int]:
     return sizes
 
 
+# the soak of issue 16: ``--robots 50 --baseline '' --seconds 600`` (RSS from the end of warm-up to the end)
+SOAK_ROBOTS, SOAK_SECONDS, SOAK_GROWTH_PERCENT = 50, 600.0, 2.0
 AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
 
 
@@ -76,12 +79,40 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
         result["every robot parked"] = fleet["parked"] == row["robots"]
     if "rss_mb" in target:
         result[f"RSS <= {target['rss_mb'] / 1024:.1f} GB"] = row["rss_mb"] <= target["rss_mb"]
+    if row["robots"] == SOAK_ROBOTS and row["seconds"] >= SOAK_SECONDS:  # the soak: memory stays put
+        result[f"soak: RSS growth <= {SOAK_GROWTH_PERCENT:.0f} %"] = row["rss_growth_percent"] <= SOAK_GROWTH_PERCENT
     return result
 
 
+def measured_run(
+    settings: Settings, settings_argv: list[str], size: int, seconds: float, **options: Any
+) -> dict[str, Any]:
+    """One bench row: ``run_fleet`` of ``size`` robots for ``seconds`` (``options``: its keyword
+    arguments), the machine's load before and after; a run that fails is a row with its error."""
+    load_before = os.getloadavg()
+    started = time.monotonic()
+    try:
+        summary = run_fleet(settings, settings_argv, parse_robots(str(size)), seconds, quiet=True, **options)
+    except (ServiceDiedError, TimeoutError, ValueError) as error:
+        summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
+    row = {"layout": options.get("layout", "host"), **summary, "robots": size}
+    row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
+    return row
+
+
+def run_header(settings: Settings, seconds: float) -> dict[str, Any]:
+    """What every row of a fleet benchmark shares: run length, CPUs, agent and horizon."""
+    return {
+        "seconds": seconds,
+        "cpus": os.cpu_count(),
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+    }
+
+
 def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_argv: list[str]) -> int:
-    hosts = _sizes(args.robots, "--robots")
-    baseline = _sizes(args.baseline, "--baseline") if args.baseline else []
+    hosts = robot_counts(args.robots, "--robots")
+    baseline = robot_counts(args.baseline, "--baseline") if args.baseline else []
     if not (math.isfinite(args.seconds) and 5 <= args.seconds <= 600):
         raise UsageError(f"--seconds {args.seconds}: a run is 5 to 600 s")
     for size in hosts:
@@ -89,33 +120,12 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
     plan = sorted([(n, "host") for n in hosts] + [(n, "process") for n in baseline])
     rows: list[dict[str, Any]] = []
     for size, layout in plan:
-        load_before = os.getloadavg()
-        started = time.monotonic()
-        try:
-            split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
-            summary = run_fleet(
-                settings,
-                settings_argv,
-                parse_robots(str(size)),
-                args.seconds,
-                layout=layout,
-                quiet=True,
-                actor_hosts=split,
-            )
-        except (ServiceDiedError, TimeoutError, ValueError) as error:
-            summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
-        row = {"layout": layout, **summary, "robots": size}
-        row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
+        split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
+        row = measured_run(settings, settings_argv, size, args.seconds, layout=layout, actor_hosts=split)
         row["targets"] = {name: "PASS" if ok else "FAIL" for name, ok in checks(row).items()}
         rows.append(row)
         print(format_row(row), flush=True)
-    result = {
-        "seconds": args.seconds,
-        "cpus": os.cpu_count(),
-        "agent": settings.actor.agent,
-        "horizon": settings.actor.horizon,
-        "rows": rows,
-    }
+    result = {**run_header(settings, args.seconds), "rows": rows}
     print(format_table(result))
     if args.json:
         print(json.dumps(result))
@@ -124,7 +134,7 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
-    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'procs':>5}  load before -> after  targets"
+    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'growth':>7} {'procs':>5}  load before -> after  targets"
 )
 
 
@@ -139,7 +149,7 @@ def format_row(row: dict[str, Any]) -> str:
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
         f"{f['parked']:>3}/{row['robots']:<3} {row['cpu_percent']:>6.0f} {row['rss_mb']:>7.0f} "
-        f"{row['processes']:>5}  {load:<20} {targets}"
+        f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5}  {load:<20} {targets}"
     )
 
 
@@ -147,7 +157,8 @@ def format_table(result: dict[str, Any]) -> str:
     lines = [
         f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
         f"starts on a 1.5 m circle, {result['cpus']} CPUs; jitter, latency, staleness: worst robot; "
-        "CPU: all srl processes (100 % = one core); load: 1-min average",
+        "CPU: all srl processes (100 % = one core); growth: their RSS from the end of warm-up (the first "
+        "tenth) to the end; load: 1-min average",
         HEADER,
         *(format_row(row) for row in result["rows"]),
     ]

@@ -1,0 +1,223 @@
+"""The bridge host (issue 16): one ``srl robot-bridge --robots ...`` process for several ROS 2 robots.
+
+Each srl robot id is its robot's ROS namespace (common/fleet.py ``ros_fleet``): robot ``tb3_1``
+reads ``/tb3_1/odom`` and commands ``/tb3_1/cmd_vel`` (rmw_zenoh keys ``<domain>/tb3_1/odom/...``,
+ros2dds keys ``tb3_1/odom``), and its frames are ``tb3_1/odom``, ``tb3_1/base_footprint``.
+Every robot keeps what one bridge keeps -- its own :class:`RobotBridge` (goal frame, heading,
+odometry checks, the live actor session's actions in order, the watchdog) and its own
+:class:`RosLink` (cmd_vel discovery, attachment format, publishers), its own counters and
+summary -- on srl's keys of its own id (``srl/<id>/state``, ``action``, ``alive/plant``,
+``alive/robot_bridge``, ``status/plant``). One srl session serves them all, and one client
+session per distinct robot endpoint: robots that each run their own router (``rmw_zenohd`` on
+the robot, ``--robot-endpoints``) get one session each, robots reached through one router
+(``--robot-endpoint``) share one. A robot's commands can only go to its own namespace's keys:
+its link builds every key from its namespace, and its bridge applies only actions for its id.
+
+Why a host and not one bridge per robot: a bridge process is a Python interpreter with Zenoh and
+the ROS type store (~73 MB peak RSS here); one host for 3 robots costs the same 73 MB, three
+bridges 220 MB (README "Several TurtleBot3s"). One bridge per robot
+(``srl up --robots K --plant robot --layout process``) isolates a crash to one robot; either way a
+real robot still needs its own command timeout (README "Robot bridge").
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from common.clock import Ticker
+from common.fleet_summary import FleetBridgeSummary
+from common.keys import ACTION, STATE, STATUS, liveliness_key
+from common.messages import Action, ServiceStatus
+from common.provenance import SourceGate
+from common.ros_wire import RosGraph
+from common.runtime import UsageError
+from common.security import SecurityError
+from common.settings import Settings
+from common.transport import Bus, plain_config
+from services.robot_bridge.service import SHUTDOWN_ZEROS, RobotBridge, RosLink, bridge_summary
+
+log = logging.getLogger(__name__)
+# node and entity ids per robot in a shared session: robot i uses i * ENTITY_IDS ... (rmw_zenoh
+# wants them unique per session; a link needs 2 + one per cmd_vel target)
+ENTITY_IDS = 100
+
+
+class RobotCounts:
+    """One robot's counters (the Counts a RobotBridge and its RosLink keep), logged with its id."""
+
+    def __init__(self, robot: str) -> None:
+        self.robot = robot
+        self.counters: Counter[str] = Counter()
+        self.lock = threading.Lock()
+        self.warned: dict[str, float] = {}
+
+    def count(self, name: str, amount: int = 1) -> None:
+        with self.lock:
+            self.counters[name] += amount
+
+    def reject(self, what: str, reason: str) -> None:
+        """Count a refused input and log it, at most once a second per kind (as Bus.reject)."""
+        self.count(f"rejected.{what}")
+        now = time.monotonic()
+        if now - self.warned.get(what, 0.0) >= 1.0:
+            self.warned[what] = now
+            log.warning("robot_bridge %s: rejected %s: %s", self.robot, what, reason)
+
+    def snapshot(self) -> dict[str, int]:
+        with self.lock:
+            return dict(self.counters)
+
+
+@dataclass
+class BridgeUnit:
+    """One robot of the host: its id (= namespace), endpoint, settings, bridge and link."""
+
+    robot: str
+    endpoint: str
+    settings: Settings
+    graph: RosGraph
+    counts: RobotCounts
+    link: RosLink
+    bridge: RobotBridge
+    actor_gate: SourceGate
+
+    def on_action(self, message: Action, source: str | None) -> None:
+        self.bridge.on_action(message, time.monotonic(), source)
+
+
+def robot_settings(settings: Settings, robot: str, endpoint: str) -> Settings:
+    """The settings of one robot of the host: its id, its namespace (the id), its endpoint."""
+    return settings.model_copy(
+        update={
+            "transport": settings.transport.model_copy(update={"robot": robot}),
+            "bridge": settings.bridge.model_copy(update={"namespace": robot, "robot_endpoint": endpoint}),
+        }
+    )
+
+
+def open_unit(
+    settings: Settings,
+    robot: str,
+    endpoint: str,
+    index: int,
+    session: Any,
+    publish_state: Any,
+) -> BridgeUnit:
+    """Robot ``index`` of the host on ``session`` (its robot's router, or srl's): transport-free
+    but for the session, so a test can hand it a fake one."""
+    own = robot_settings(settings, robot, endpoint)
+    graph = RosGraph.from_settings(own.bridge)
+    counts = RobotCounts(robot)
+    link = RosLink(session, graph, own.bridge, counts, entity_base=index * ENTITY_IDS)
+    gate = SourceGate("actor")
+    bridge = RobotBridge(own, publish_state, link.send, counts, gate)
+    link.on_odometry = bridge.on_odometry
+    return BridgeUnit(robot, endpoint, own, graph, counts, link, bridge, gate)
+
+
+def run_bridge_host(
+    settings: Settings, bus: Bus, fleet: dict[str, str], stop: threading.Event, duration: float | None
+) -> dict[str, Any]:
+    """Serve every robot of ``fleet`` (robot id = namespace -> its endpoint, '' = srl's router)."""
+    if settings.transport.secure and not all(fleet.values()):
+        raise SecurityError(
+            "robot_bridge: with transport.secure every robot must be on its own Zenoh router: "
+            "give every robot an endpoint (--robot-endpoints, --robot-endpoint)"
+        )
+    robots = list(fleet)
+    sessions: dict[str, Any] = {}
+    units: list[BridgeUnit] = []
+    tokens: list[Any] = []
+    try:
+        for robot in robots:  # one plant per robot (issue 13), before declaring anything
+            bus.refuse_other_plant(robot)
+        for endpoint in sorted({e for e in fleet.values() if e}):
+            try:
+                sessions[endpoint] = zenoh.open(plain_config(settings.transport, endpoint))
+            except zenoh.ZError:
+                on_it = ", ".join(r for r, e in fleet.items() if e == endpoint)
+                raise UsageError(
+                    f"robot_bridge: no Zenoh router at {endpoint} (robot {on_it}): is rmw_zenohd running there?"
+                ) from None
+        for index, robot in enumerate(robots):
+            endpoint = fleet[robot]
+            session = sessions[endpoint] if endpoint else bus.session
+            units.append(open_unit(settings, robot, endpoint, index, session, bus.publisher(STATE, robot)))
+        for unit in units:
+            bus.watch_identities(unit.robot, "actor", unit.actor_gate, unit.bridge.on_actor_identity)
+            bus.subscribe(ACTION, ACTION.key(unit.robot), unit.on_action, with_source=True)
+            unit.link.start()
+        bus.declare_sole_plants(robots)
+        tokens = [bus.session.liveliness().declare_token(liveliness_key(r, "robot_bridge")) for r in robots]
+        status = threading.Thread(
+            target=_status_loop, args=(bus, units, settings.transport.status_period, stop), daemon=True
+        )
+        status.start()
+        bus.adopt(status)
+        log.info(
+            "bridge host ready: %d robots (%s), %s",
+            len(robots),
+            settings.bridge.profile,
+            ", ".join(f"{u.robot} on {u.endpoint or 'srl router'}" for u in units),
+        )
+        ticker = Ticker(settings.plant.sampling_time / 10.0, stop)
+        end = None if duration is None else time.monotonic() + duration
+        while (now := ticker.wait()) is not None and (end is None or now < end):
+            for unit in units:
+                unit.link.tick(now)
+                unit.bridge.tick(now)
+    finally:
+        wires = {unit.robot: unit.link.describe() for unit in units}
+        for _ in range(SHUTDOWN_ZEROS):  # on the way out: stop every robot
+            for unit in units:
+                unit.bridge.stop()
+            time.sleep(0.02)
+        for token in tokens:
+            try:
+                token.undeclare()
+            except zenoh.ZError as error:
+                log.debug("undeclare: %s", error)
+        for unit in units:
+            unit.link.close()
+        for session in sessions.values():
+            session.close()
+    return FleetBridgeSummary(
+        robots=robots,
+        endpoints=dict(fleet),
+        per_robot={
+            unit.robot: bridge_summary(
+                unit.graph, unit.settings, wires[unit.robot], unit.bridge, unit.counts.snapshot()
+            )
+            for unit in units
+        },
+        counters={k: float(v) for k, v in bus.counters.items()},
+    ).to_json_dict()
+
+
+def _status_loop(bus: Bus, units: list[BridgeUnit], period: float, stop: threading.Event) -> None:
+    """Every robot's ``srl/<id>/status/plant``: its own counters, as one bridge publishes them."""
+    publishers = [bus.publisher(STATUS, unit.robot, service="plant") for unit in units]
+    while not bus.closing.wait(period) and not stop.is_set():
+        for publish, unit in zip(publishers, units, strict=True):
+            counters = {k: float(v) for k, v in unit.counts.snapshot().items()}
+            counters.update(
+                {
+                    "seq": float(unit.bridge.seq),
+                    "cmd_v": unit.bridge.last_command[0],
+                    "cmd_omega": unit.bridge.last_command[1],
+                }
+            )
+            try:
+                publish(
+                    ServiceStatus(robot=unit.robot, service="plant", stamp_ns=time.monotonic_ns(), counters=counters)
+                )
+            except zenoh.ZError as error:  # the session closed under us at shutdown
+                log.debug("bridge host status: %s", error)
+                return
