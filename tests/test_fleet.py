@@ -293,3 +293,64 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
     for row in result["rows"]:
         assert row["fleet"]["robots"] == 2 and len(row["load_before"]) == 3 and row["rss_mb"] > 0
         assert row["processes"] == (4 if row["layout"] == "host" else 2 + 2 * 2)
+
+
+@pytest.mark.slow
+def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
+    """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
+    split a fleet (issue 16: critics sharded by robot across processes or hosts); each robot's
+    weights come from its own shard, and a robot of neither shard is learned by none."""
+    from common.keys import TRANSITION, WEIGHTS
+    from common.messages import CriticWeights
+    from tests.harness import Proc, client_config, free_port, random_transitions, wait_until
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("router", ["router", "--router", endpoint])
+    shards = {
+        "a": Proc("critic-a", ["critic", "--router", endpoint, "--robots", "s1,s2"]),
+        "b": Proc("critic-b", ["critic", "--router", endpoint, "--robots", "s3"]),
+    }
+    import zenoh
+
+    session = None
+    try:
+
+        def opened() -> bool:
+            nonlocal session
+            try:
+                session = zenoh.open(client_config(endpoint))
+            except zenoh.ZError:
+                return False
+            return True
+
+        wait_until(opened, 30, "the router")
+        assert session is not None
+
+        def alive() -> set[str]:
+            replies = session.liveliness().get("srl/*/alive/critic/**", timeout=0.5)
+            return {str(r.ok.key_expr).split("/")[1] for r in replies if r.ok is not None}
+
+        wait_until(lambda: alive() >= {"s1", "s2", "s3"}, 60, "both shards alive")
+        fits: dict[str, list[int]] = {}
+        lock = threading.Lock()
+
+        def on_weights(sample: Any) -> None:
+            w = CriticWeights.model_validate_json(sample.payload.to_bytes())
+            with lock:
+                fits.setdefault(w.robot, []).append(w.version)
+
+        subscriber = session.declare_subscriber(WEIGHTS.pattern.format(robot="*"), on_weights)
+        sent = random_transitions(20, robots=("s1", "s2", "s3", "s4"))
+        for transition in sent:
+            session.put(TRANSITION.key(transition.robot), transition.encode())
+        wait_until(lambda: {"s1", "s2", "s3"} <= set(fits), 30, "weights of every served robot")
+        subscriber.undeclare()
+        assert "s4" not in fits  # in no shard: learned by none
+        assert shards["a"].stop() == 0 and shards["b"].stop() == 0
+        received = {name: proc.summary()["transitions_received"] for name, proc in shards.items()}
+        assert received == {"a": 40, "b": 20}, received  # each its own robots' 20 steps, nothing of the others
+    finally:
+        if session is not None:
+            session.close()
+        for proc in (*shards.values(), router):
+            proc.stop()

@@ -16,7 +16,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_lifetime_arguments(
         parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
     )
-    add_robots_argument(parser, "also declare this critic alive for every robot of the list (a fleet): ")
+    add_robots_argument(
+        parser, "learn from these robots only and declare this critic alive for each (a fleet, or its shard): "
+    )
     parser.add_argument(
         "--pooled",
         action="store_true",

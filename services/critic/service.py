@@ -414,10 +414,18 @@ def run(
     if restored and learner.resume:  # asked to start from them: the actor may use them from step 0
         for weights in learner.current_weights():
             publish(weights)
-    # critic.robots' transitions: srl/*/transition (every robot; the key chunk names it) or
-    # srl/<id>/transition, with the history the actors' publishers cache (recovery after a
-    # restart or a partition).
-    bus.subscribe(TRANSITION, TRANSITION.pattern.format(robot=settings.critic.robots), inbox.put, recover=True)
+    # the transitions of the robots it serves: srl/<id>/transition of each robot of --robots (a
+    # critic shard learns only its own robots: critics split a fleet by robot, across processes
+    # or hosts), else critic.robots' (srl/*/transition: every robot, the key chunk names it; or
+    # one id), with the history the actors' publishers cache (recovery after a restart or a
+    # partition).
+    keys = (
+        [TRANSITION.key(robot) for robot in robots]
+        if robots
+        else [TRANSITION.pattern.format(robot=settings.critic.robots)]
+    )
+    for key in keys:
+        bus.subscribe(TRANSITION, key, inbox.put, recover=True)
     # the critic of every robot it serves (a fleet's actors accept weights only from a live critic
     # of their own robot: srl/<robot>/alive/critic/<zid>)
     for robot in robots or [settings.transport.robot]:
