@@ -33,7 +33,9 @@ class Window:
     def __init__(self, size: int = WINDOW) -> None:
         if size < 1:
             raise ValueError("a window holds at least one value")
-        self._data = np.empty(size)
+        # written through at once: the window's memory is resident from the start, so a long
+        # run's RSS does not creep up as windows fill (a soak would read that as a leak)
+        self._data = np.full(size, math.nan)
         self._next = 0
         self.count = 0
         self.maximum = -math.inf

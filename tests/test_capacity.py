@@ -109,8 +109,11 @@ def test_the_rss_series_is_bounded_and_its_growth_starts_after_warm_up() -> None
 
     series = RssSeries()
     for second in range(0, 3600):  # an hour, one call a second: the series stays bounded
-        series.add(float(second), 400.0 + (50.0 if second < 300 else 0.0) + second / 3600.0)
-    assert len(series.points) <= RSS_POINTS
+        total = 400.0 + (50.0 if second < 300 else 0.0) + second / 3600.0
+        series.add(float(second), total, {"actor": total - 100.0, "critic": 100.0})
+    assert len(series.points) <= RSS_POINTS and len(series.by_service) == len(series.points)
+    grown = series.growth_by_service()
+    assert grown["critic"] == [100.0, 100.0] and grown["actor"][1] - grown["actor"][0] == pytest.approx(0.9, abs=0.1)
     # warm-up (the first tenth: 360 s) is left out: 400.1 .. 401.0 MB, not the 450 MB of start-up
     assert series.growth_percent() == pytest.approx(100 * (401.0 / 400.1 - 1), abs=0.05)
     short = RssSeries()

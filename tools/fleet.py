@@ -44,6 +44,7 @@ from tools.up import ServiceDiedError, SignalGuard, Supervisor, free_loopback_en
 LAYOUTS = ("host", "process")
 # settings flags a fleet sets per child itself (the router is fresh, robots and starts its own)
 OWN_FLAGS = ("--router", "--robot", "--start", "--duration")
+FLEET_TRANSITION_CACHE = 600  # transitions per robot kept for a late critic (60 s at delta = 0.1 s)
 # [s] the slowest start seen here: 100 robots' subscriptions and tokens on a loaded 2-core machine
 READY_TIMEOUT = 120.0
 
@@ -119,13 +120,13 @@ class MessageCounter:
         self.session.close()
 
 
-def memory_of(pids: list[int]) -> tuple[float, float]:
-    rss = peak = 0.0
-    for pid in pids:
+def memory_of(pids: dict[str, int]) -> dict[str, tuple[float, float]]:
+    """Resident and peak memory [MB] of each named process (0 for one that is gone)."""
+    memory = dict.fromkeys(pids, (0.0, 0.0))
+    for name, pid in pids.items():
         with contextlib.suppress(OSError):
-            one, top = _proc_memory(pid)
-            rss, peak = rss + one, peak + top
-    return rss, peak
+            memory[name] = _proc_memory(pid)
+    return memory
 
 
 RSS_SAMPLE_S = 5.0  # [s] between the points of a run's RSS series
@@ -138,26 +139,39 @@ class RssSeries:
     growth from the end of warm-up to the end (what a soak is judged on)."""
 
     def __init__(self) -> None:
-        self.points: list[tuple[float, float]] = []  # (seconds into the run, MB)
+        self.points: list[tuple[float, float]] = []  # (seconds into the run, MB of all)
+        self.by_service: list[dict[str, float]] = []  # each point's MB per process
         self.every = RSS_SAMPLE_S
 
-    def add(self, elapsed: float, rss_mb: float) -> None:
+    def add(self, elapsed: float, rss_mb: float, by_service: dict[str, float] | None = None) -> None:
         if self.points and elapsed - self.points[-1][0] < self.every:
             return
         self.points.append((round(elapsed, 1), round(rss_mb, 1)))
+        self.by_service.append({name: round(mb, 1) for name, mb in (by_service or {}).items()})
         if len(self.points) > RSS_POINTS:
-            self.points = self.points[::2]
+            self.points, self.by_service = self.points[::2], self.by_service[::2]
             self.every *= 2
+
+    def _after_warm_up(self) -> list[int]:
+        if len(self.points) < 2:
+            return []
+        warm = max(WARM_UP_SHARE * self.points[-1][0], RSS_SAMPLE_S)
+        return [i for i, (t, _) in enumerate(self.points) if t >= warm]
 
     def growth_percent(self) -> float:
         """``100 (last / first after warm-up - 1)``; NaN when the run was too short to tell."""
-        if len(self.points) < 2:
+        after = self._after_warm_up()
+        if len(after) < 2 or self.points[after[0]][1] <= 0:
             return math.nan
-        warm = max(WARM_UP_SHARE * self.points[-1][0], RSS_SAMPLE_S)
-        after = [mb for t, mb in self.points if t >= warm]
-        if len(after) < 2 or after[0] <= 0:
-            return math.nan
-        return 100.0 * (after[-1] / after[0] - 1.0)
+        return 100.0 * (self.points[after[-1]][1] / self.points[after[0]][1] - 1.0)
+
+    def growth_by_service(self) -> dict[str, list[float]]:
+        """Each process's [MB after warm-up, MB at the end]: which one grew."""
+        after = self._after_warm_up()
+        if len(after) < 2:
+            return {}
+        first, last = self.by_service[after[0]], self.by_service[after[-1]]
+        return {name: [first[name], last.get(name, math.nan)] for name in first}
 
 
 class FleetMonitor:
@@ -274,6 +288,11 @@ def run_fleet(
     # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
     env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
+    # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
+    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second here) and
+    # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
+    # over the first 5 minutes (measured: most of a 50-robot soak's RSS growth)
+    env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
     env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
     # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
     # start threads, which spin on a busy machine (measured: fit median 5 -> 1.5 ms, p99 29 -> 2.5 ms)
@@ -342,8 +361,9 @@ def run_fleet(
                         if counter is not None:
                             messages = counter.snapshot()
                         if now - ready < duration - 1.0:
-                            memory = memory_of(list(pids.values()))  # near the end, while every process still runs
-                            rss_series.add(now - ready, memory[0])
+                            each = memory_of(pids)  # near the end, while every process still runs
+                            memory = (sum(m[0] for m in each.values()), sum(m[1] for m in each.values()))
+                            rss_series.add(now - ready, memory[0], {name: m[0] for name, m in each.items()})
                     if monitor is not None and on_status is not None and int(now - ready) > shown:
                         shown = int(now - ready)
                         on_status(monitor.line(now - ready, len(robots)))
@@ -409,6 +429,7 @@ def run_fleet(
         "rss_mb": use.rss_mb,
         "rss_growth_percent": rss_series.growth_percent(),  # from the end of warm-up to the end (soak)
         "rss_series_mb": rss_series.points,
+        "rss_growth_by_service_mb": rss_series.growth_by_service(),
         "peak_rss_mb": use.peak_rss_mb,
         "processes": use.processes,
         "wall_seconds": time.monotonic() - started,
