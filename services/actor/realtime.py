@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import os
 import threading
 import time
@@ -117,7 +118,10 @@ class RealtimeActor:
         self.staleness_ms = Window()
         self.accumulated_cost = 0.0
         self.tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)  # what a replay must hold
-        self.publish_times: dict[int, float] = {}
+        # when each of the last PUBLISH_TIMES_KEPT steps was published (slot k % KEPT holds step k):
+        # fixed arrays, resident from the start (a dict grew over the first 100 s of a soak)
+        self.published_step = np.full(PUBLISH_TIMES_KEPT, -1, dtype=np.int64)
+        self.published_at = np.full(PUBLISH_TIMES_KEPT, math.nan)
         self.published_steps: deque[list[int]] = deque(maxlen=RUNS_KEPT)
         self.steps = 0
         self.arrived = False  # the actor's arrival rule holds the robot (its last step said "arrived")
@@ -280,8 +284,8 @@ class RealtimeActor:
                 cost=cost,
             )
         )
-        self.publish_times[k] = self.clock()
-        self.publish_times.pop(k - PUBLISH_TIMES_KEPT, None)
+        slot = k % PUBLISH_TIMES_KEPT
+        self.published_step[slot], self.published_at[slot] = k, self.clock()
         self.tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
         if self.published_steps and self.published_steps[-1][1] == k - 1:
             self.published_steps[-1][1] = k
@@ -289,9 +293,9 @@ class RealtimeActor:
             self.published_steps.append([k, k])
         if learns(self.settings.actor.agent):
             self.staleness_steps.append((k - 1) - weights.trained_step)
-            seen = self.publish_times.get(weights.trained_step)
-            if seen is not None:
-                self.staleness_ms.append((done - seen) * 1e3)
+            slot = weights.trained_step % PUBLISH_TIMES_KEPT
+            if weights.trained_step >= 0 and self.published_step[slot] == weights.trained_step:
+                self.staleness_ms.append((done - float(self.published_at[slot])) * 1e3)
         self.steps += 1
 
     def run(self, ticker: Ticker, end: float | None, manual_gc: bool = True) -> None:

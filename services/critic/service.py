@@ -67,6 +67,7 @@ from common.summaries import CriticSummary
 from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
+SEEN_SLACK = 100  # steps seen beyond the retention (at most as many again) before the set is pruned to it
 CHECKPOINT_SCHEMA = 1
 MAX_BATCH = 1000  # transitions taken from the inbox at once (then one checkpoint for all of them)
 
@@ -231,7 +232,7 @@ class CriticLearner:
         self.accepted += 1
         if message.step > learner.newest:
             learner.newest = message.step
-            if len(learner.seen) > 2 * self.retention:
+            if len(learner.seen) > self.retention + min(SEEN_SLACK, self.retention):  # pruned often: flat memory
                 floor = learner.newest - self.retention
                 learner.seen = {step for step in learner.seen if step > floor}
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
