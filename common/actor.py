@@ -631,7 +631,8 @@ class StackedActor:
         for u_i in actions:
             rollout.append(step(rollout[-1], u_i, p.sampling_time))
         merit_args = ([states[0], ca.vertcat(*decisions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
-        flip_args = self._flip_functions(merit_args, rollout, decisions) if p.multistart and p.multistart_flips else None
+        searches = p.multistart and p.multistart_flips > 0
+        flip_args = self._flip_functions(merit_args, rollout, decisions) if searches else None
         bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
         global_args = self._global_phase(states[0], ca.vertcat(w, v), bounds) if p.multistart else None
 

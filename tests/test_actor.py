@@ -426,7 +426,8 @@ def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
 
 
 @pytest.mark.parametrize(
-    "changes", [{"multistart_iterations": 0}, {"multistart_margin": -0.1}, {"multistart_refresh": -1}]
+    "changes",
+    [{"multistart_iterations": 0}, {"multistart_margin": -0.1}, {"multistart_refresh": -1}, {"multistart_flips": -1}],
 )
 def test_bad_multistart_settings_raise(changes: dict) -> None:
     with pytest.raises(ValueError):
