@@ -99,6 +99,13 @@ class ActorProblem:
     # looks worse than a converged warm plan whose basin is worse); the warm start then keeps a
     # lower minimum once found. 0: never (the margin alone decides).
     multistart_refresh: int = 3
+    # After the polish, a vertex search (StackedActor._flip_search): every single held-action
+    # entry set to either bound, the lowest of these 2 (N - 1) x 2 neighbours along the rollout
+    # taken while it lowers the objective, up to this many sweeps, and the solver polishes the
+    # result (kept when lower). An indefinite critic is concave along some action directions:
+    # along them a local minimum sits on one bound while the other may be lower, which neither
+    # the descent nor the interior point can see. 0: off.
+    multistart_flips: int = 0
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -127,6 +134,8 @@ class ActorProblem:
             raise ValueError(f"multistart_refresh must be >= 0 (0 = never), got {self.multistart_refresh}")
         if self.multistart_iterations < 1:
             raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
+        if self.multistart_flips < 0:
+            raise ValueError(f"multistart_flips must be >= 0 (0 = off), got {self.multistart_flips}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
             raise ValueError(f"wheel_speed_max must be >= 0 (0 = no wheel box), got {self.wheel_speed_max}")
         for name in ("wheel_radius", "wheel_separation"):
@@ -210,6 +219,7 @@ class ActorCounters:
     failures: int = 0
     arrived_steps: int = 0  # steps at which the arrival rule held the robot (no solve)
     second_solves: int = 0  # steps that also polished the runner-up end (multistart_margin)
+    flip_solves: int = 0  # steps whose vertex search found a lower neighbour and polished it (multistart_flips)
     solve_seconds: Window = field(default_factory=Window)
 
 
@@ -426,6 +436,8 @@ class StackedActor:
         self._merit_buffer.set_res(0, memoryview(self._merit_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
         if problem.multistart:
             self._setup_global_phase()
+        if problem.multistart and problem.multistart_flips:
+            self._setup_flip_search()
 
     def _setup_global_phase(self) -> None:
         """The global phase's zero-copy buffers and its fixed starts (see _global_phase).
@@ -460,6 +472,25 @@ class StackedActor:
             self._global_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
         for index, array in enumerate((self._ends, self._end_values, self._end_vectors)):
             self._global_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+
+    def _setup_flip_search(self) -> None:
+        """The vertex search's zero-copy buffers (see _flip_search). ``_candidates`` has one row
+        per neighbour (CasADi reads the (n_z, 2 n_z) matrix column by column)."""
+        n_z = ACTION_DIM * (self.problem.horizon - 1)
+        self._flat_bounds = np.tile(self._decision_bounds, self.problem.horizon - 1)
+        self._candidates = np.zeros((2 * n_z, n_z))
+        self._candidate_values = np.zeros(2 * n_z)
+        self._flip_state = np.zeros(STATE_DIM)
+        self._flip_buffer, self._evaluate_flips = self._flips.buffer()
+        for index, array in enumerate((self._flip_state, self._candidates, self._params)):
+            self._flip_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._flip_buffer.set_res(0, memoryview(self._candidate_values))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._rollout_decisions = np.zeros(n_z)
+        self._rollout_out = np.zeros(self._n_x)
+        self._rollout_buffer, self._evaluate_rollout = self._rollout.buffer()
+        for index, array in enumerate((self._flip_state, self._rollout_decisions)):
+            self._rollout_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        self._rollout_buffer.set_res(0, memoryview(self._rollout_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
 
     # -- construction -------------------------------------------------------------------
     def _objective(self, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:
@@ -561,6 +592,24 @@ class StackedActor:
         ends = one.map(GLOBAL_STARTS)(starts, ca.repmat(s_mx, 1, GLOBAL_STARTS), ca.repmat(p_mx, 1, GLOBAL_STARTS))
         return [starts, s_mx, p_mx], list(ends)
 
+    def _flip_functions(
+        self, merit_args: tuple[list[Any], list[Any]], rollout: list[Any], decisions: list[Any]
+    ) -> tuple[tuple[list[Any], list[Any]], tuple[list[Any], list[Any]]]:
+        """The vertex search's functions (ActorProblem.multistart_flips): (s_1, candidates,
+        weights) -> the objective of each candidate's actions along the rollout (the merit,
+        mapped over the 2 n_z columns of the candidates matrix), and (s_1, decisions) -> the
+        decision vector of their rollout (the solver's start)."""
+        n_z = ACTION_DIM * (self.problem.horizon - 1)
+        merit = ca.Function("merit_of_candidate", *merit_args)
+        state, candidates = ca.MX.sym("s", STATE_DIM), ca.MX.sym("candidates", n_z, 2 * n_z)
+        params = ca.MX.sym("p", merit.size1_in(2))
+        values = merit.map(2 * n_z)(ca.repmat(state, 1, 2 * n_z), candidates, ca.repmat(params, 1, 2 * n_z))
+        stages: list[Any] = []
+        for s_i, d_i in zip(rollout[:-1], decisions, strict=True):
+            stages += [s_i, d_i]
+        vector = ([rollout[0], ca.vertcat(*decisions)], [ca.vertcat(*stages, rollout[-1])])
+        return ([state, candidates, params], [values]), vector
+
     def _build(self) -> tuple[ca.Function, np.ndarray, np.ndarray, int]:
         p = self.problem
         n_act = p.horizon - 1
@@ -582,6 +631,8 @@ class StackedActor:
         for u_i in actions:
             rollout.append(step(rollout[-1], u_i, p.sampling_time))
         merit_args = ([states[0], ca.vertcat(*decisions), ca.vertcat(w, v)], [self._objective(rollout, actions, w, v)])
+        searches = p.multistart and p.multistart_flips > 0
+        flip_args = self._flip_functions(merit_args, rollout, decisions) if searches else None
         bounds = [p.wheel_rim_speed] * ACTION_DIM if p.wheel_box else [p.v_max, p.omega_max]
         global_args = self._global_phase(states[0], ca.vertcat(w, v), bounds) if p.multistart else None
 
@@ -650,6 +701,9 @@ class StackedActor:
             self._merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
             if global_args is not None:
                 self._global = ca.Function("global_phase", *global_args, compiled("srl_global", compiler))
+            if flip_args is not None:
+                self._flips = ca.Function("vertex_neighbours", *flip_args[0], compiled("srl_flips", compiler))
+                self._rollout = ca.Function("rollout", *flip_args[1], compiled("srl_rollout", compiler))
         elapsed = time.perf_counter() - started
         # a long build is worth a line at the default level; a usual one (N = 12: ~1 s) is not
         log.log(
@@ -789,6 +843,43 @@ class StackedActor:
             previous = value
         return True
 
+    def _flip_search(self, state: np.ndarray, x: np.ndarray) -> np.ndarray | None:
+        """The vertex search (ActorProblem.multistart_flips) from the solution ``x``: the
+        decision vector of the rollout of a lower vertex neighbour's actions, or None.
+
+        A sweep evaluates the 2 n_z neighbours -- one decision entry set to its lower or its
+        upper bound, the others as they are -- along the rollout from ``state`` (one compiled
+        call) and moves to the lowest while it is lower by more than 1e-6 relative (rounding and
+        flat entries never move it). Where a learned critic is concave along an entry the
+        objective along it is lowest at one of its two bounds: the polished solution sits on one
+        and cannot see the other."""
+        bounds, candidates, values = self._flat_bounds, self._candidates, self._candidate_values
+        decisions = np.clip(self._decisions_of(x).ravel(), -bounds, bounds)
+        self._merit_state[:] = state
+        self._merit_actions[:] = decisions.reshape(-1, ACTION_DIM)
+        self._evaluate_merit()
+        current = float(self._merit_out[0])
+        self._flip_state[:] = state
+        n_z = decisions.size
+        diagonal = np.arange(n_z)
+        moved = False
+        for _ in range(self.problem.multistart_flips):
+            candidates[:] = decisions
+            candidates[diagonal, diagonal] = bounds
+            candidates[n_z + diagonal, diagonal] = -bounds
+            self._evaluate_flips()
+            best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
+            if not values[best] < current - 1e-6 * abs(current) - 1e-12:
+                break
+            decisions[:] = candidates[best]
+            current = float(values[best])
+            moved = True
+        if not moved:
+            return None
+        self._rollout_decisions[:] = decisions
+        self._evaluate_rollout()
+        return self._rollout_out.copy()
+
     @staticmethod
     def _shift_into(out: np.ndarray, x: np.ndarray) -> None:
         """``out`` = ``x`` shifted by one stage, its last held action and state repeated."""
@@ -867,6 +958,15 @@ class StackedActor:
             second = self._solve()
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
+        flips = self.problem.multistart and self.problem.multistart_flips > 0
+        neighbour = self._flip_search(state, x_opt) if success and flips else None
+        if neighbour is not None:
+            # A lower vertex neighbour of the solution: polish it, keep the lower.
+            self._x0[:] = neighbour
+            self.counters.flip_solves += 1
+            flipped = self._solve()
+            if flipped[0] and flipped[3] < objective:
+                success, status, x_opt, objective = flipped
 
         if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
             plan = self._plan_of(x_opt)

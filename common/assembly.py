@@ -60,6 +60,7 @@ def build_actor(settings: Settings) -> StackedActor:
             multistart_iterations=a.multistart_iterations,
             multistart_margin=a.multistart_margin,
             multistart_refresh=a.multistart_refresh,
+            multistart_flips=a.multistart_flips,
         ),
         arrival=arrival_rule(settings),
     )

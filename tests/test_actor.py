@@ -426,7 +426,8 @@ def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
 
 
 @pytest.mark.parametrize(
-    "changes", [{"multistart_iterations": 0}, {"multistart_margin": -0.1}, {"multistart_refresh": -1}]
+    "changes",
+    [{"multistart_iterations": 0}, {"multistart_margin": -0.1}, {"multistart_refresh": -1}, {"multistart_flips": -1}],
 )
 def test_bad_multistart_settings_raise(changes: dict) -> None:
     with pytest.raises(ValueError):
@@ -525,3 +526,39 @@ def test_an_episode_does_not_depend_on_what_the_actor_solved_before() -> None:
         np.testing.assert_array_equal(a.plan, b.plan)
         state_used, state_fresh = exact_step(state_used, a.action, DELTA), exact_step(state_fresh, b.action, DELTA)
     assert polished_twice["used"] == polished_twice["fresh"] and sum(polished_twice["fresh"]) >= 1, polished_twice
+
+
+def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> None:
+    # Random indefinite critics make the objective concave along some action entries: the
+    # polished minimum then sits on one bound of such an entry while the other bound may be
+    # lower. The vertex search (multistart_flips) moves entries to either bound while that lowers
+    # the objective and polishes the result. Oracle: brute force over the 2^6 vertices of the
+    # action box (N = 4). Negative control: the same actor without the search, on the same
+    # problems, stays above the lowest vertex where the search reaches it.
+    import itertools
+
+    horizon = 4
+    plain = make_actor("rlq", horizon, multistart=True)
+    search = make_actor("rlq", horizon, multistart=True, multistart_flips=3)
+    vertices = [
+        [(np.float64(p[2 * i]), np.float64(p[2 * i + 1])) for i in range(horizon - 1)]
+        for p in itertools.product((-V_MAX, V_MAX), (-OMEGA_MAX, OMEGA_MAX), repeat=horizon - 1)
+    ]
+    rng = np.random.default_rng(0)
+    found = []
+    for _ in range(30):
+        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+        state = rng.uniform(-2, 2, size=3)
+        plain.reset()
+        search.reset()
+        before, after = plain.step(state, w, v_w), search.step(state, w, v_w)
+        assert before.success and after.success
+        assert after.objective <= before.objective + 1e-9 * (1 + abs(before.objective))  # never worse
+        plan = [(np.float64(a), np.float64(b)) for a, b in after.plan]
+        assert after.objective == pytest.approx(float(hand_objective("rlq", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
+        lowest_vertex = min(float(hand_objective("rlq", state, p, w, v_w)) for p in vertices)
+        tolerance = 1e-6 * (1 + abs(lowest_vertex))
+        if after.objective <= lowest_vertex + tolerance < before.objective - 1e-3 * (1 + abs(lowest_vertex)):
+            found.append((before.objective, after.objective, lowest_vertex))
+    assert found, "no problem where the search reached a lower vertex than the polish alone"
+    assert search.counters.flip_solves >= len(found) and plain.counters.flip_solves == 0

@@ -67,7 +67,14 @@ def generate(base: Settings) -> dict[str, Any]:
         "generator": "python -m tools.bench.snapshots",
         "start": list(SNAPSHOT_START),
         "steps": list(SNAPSHOT_STEPS),
-        "actor": {"multistart": actor.multistart, "multistart_iterations": actor.multistart_iterations, "jit": False},
+        "actor": {
+            "multistart": actor.multistart,
+            "multistart_iterations": actor.multistart_iterations,
+            "multistart_margin": actor.multistart_margin,
+            "multistart_refresh": actor.multistart_refresh,
+            "multistart_flips": actor.multistart_flips,
+            "jit": False,
+        },
         "critic": base.critic.model_dump(mode="json", exclude={"checkpoint", "resume", "robots"}),
         "snapshots": snapshots,
     }
