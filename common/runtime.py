@@ -245,7 +245,8 @@ def add_robot_endpoints_argument(parser: argparse.ArgumentParser) -> None:
         "--robot-endpoints",
         metavar="NS=ENDPOINT,...",
         help="with --robots: each robot's own Zenoh router, by its ROS namespace (= its robot id), e.g. "
-        "tb3_1=tcp/10.0.0.11:7447,tb3_2=tcp/10.0.0.12:7447; robots not named use --robot-endpoint",
+        "tb3_1=tcp/10.0.0.11:7447,tb3_2=tcp/10.0.0.12:7447; robots not named use --robot-endpoint "
+        "(default: none; srl up with neither starts an emulated TurtleBot3 per robot)",
     )
 
 
