@@ -291,7 +291,11 @@ def main(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> 
     )
     func: Callable[[argparse.Namespace], int] = args.func
     try:
-        return func(args)
+        code = func(args)
+        # what is still buffered goes now, so a reader that went away (srl run | head) shows as
+        # the BrokenPipeError below, not as "Exception ignored" and exit 120 at the interpreter's exit
+        sys.stdout.flush()
+        return code
     except (UsageError, SecurityError, PlantConflictError) as error:
         print(f"srl: error: {error}", file=sys.stderr)
         return 2

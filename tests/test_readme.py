@@ -17,6 +17,7 @@ import re
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -172,11 +173,15 @@ def test_every_readme_command_is_run_by_a_test_or_ci() -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("command", [c for c, _ in bash_commands(README) if c.startswith("./srl up ") and "<" not in c])
-def test_srl_up_examples_run(command: str) -> None:
-    """Each `./srl up` example of the README, on a free loopback port and for 6 s instead of 20."""
+def test_srl_up_examples_run(command: str, tmp_path: Path) -> None:
+    """Each `./srl up` example of the README, on a free loopback port and for 6 s instead of 20;
+    a recording goes to the test's own directory (not the README's /tmp path: nothing left behind,
+    and no clash with another user's file there)."""
     argv = command.split()[1:]
     assert "--duration" in argv
     argv[argv.index("--duration") + 1] = "6"
+    if "--record" in argv:
+        argv[argv.index("--record") + 1] = str(tmp_path / Path(argv[argv.index("--record") + 1]).name)
     argv += ["--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "readme", "--json"]
     done = run([sys.executable, "-m", "tools.cli", *argv], timeout=240)
     assert done.returncode == 0, done.stderr[-3000:]
