@@ -300,17 +300,18 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
     split a fleet (issue 16: critics sharded by robot across processes or hosts); each robot's
     weights come from its own shard, and a robot of neither shard is learned by none."""
-    from common.keys import TRANSITION, WEIGHTS
-    from common.messages import CriticWeights
+    from common.keys import STATUS, TRANSITION, WEIGHTS
+    from common.messages import CriticWeights, ServiceStatus
     from tests.harness import Proc, client_config, free_port, random_transitions, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = Proc("router", ["router", "--router", endpoint])
     shards = {
-        "a": Proc("critic-a", ["critic", "--router", endpoint, "--robots", "s1,s2"]),
-        "b": Proc("critic-b", ["critic", "--router", endpoint, "--robots", "s3"]),
+        "a": Proc("critic-a", ["critic", "--router", endpoint, "--robot", "a", "--robots", "s1,s2"]),
+        "b": Proc("critic-b", ["critic", "--router", endpoint, "--robot", "b", "--robots", "s3"]),
     }
     import zenoh
+    import zenoh.ext
 
     session = None
     try:
@@ -339,16 +340,41 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
             with lock:
                 fits.setdefault(w.robot, []).append(w.version)
 
+        received: dict[str, float] = {}
+
+        def on_status(sample: Any) -> None:
+            status = ServiceStatus.model_validate_json(sample.payload.to_bytes())
+            with lock:
+                counters = status.counters
+                received[status.robot] = counters.get("transitions_received", 0) - counters.get("duplicates", 0)
+
         subscriber = session.declare_subscriber(WEIGHTS.pattern.format(robot="*"), on_weights)
+        statuses = session.declare_subscriber(STATUS.pattern.format(robot="*", service="critic"), on_status)
         sent = random_transitions(20, robots=("s1", "s2", "s3", "s4"))
+        # as the actors publish them: a cached advanced publisher per robot, so a shard recovers
+        # what a loaded machine's router dropped (a plain put of 80 samples in a burst lost 27 of
+        # shard a's 40 in one CI run, 2026-11-25)
+        publishers = {
+            robot: zenoh.ext.declare_advanced_publisher(
+                session,
+                TRANSITION.key(robot),
+                cache=zenoh.ext.CacheConfig(64),
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
+                publisher_detection=True,
+            )
+            for robot in ("s1", "s2", "s3", "s4")
+        }
         for transition in sent:
-            session.put(TRANSITION.key(transition.robot), transition.encode())
+            publishers[transition.robot].put(transition.encode())
         wait_until(lambda: {"s1", "s2", "s3"} <= set(fits), 30, "weights of every served robot")
+        wait_until(lambda: received.get("a", 0) >= 40 and received.get("b", 0) >= 20, 30, "every transition at its shard")
         subscriber.undeclare()
+        statuses.undeclare()
         assert "s4" not in fits  # in no shard: learned by none
         assert shards["a"].stop() == 0 and shards["b"].stop() == 0
-        received = {name: proc.summary()["transitions_received"] for name, proc in shards.items()}
-        assert received == {"a": 40, "b": 20}, received  # each its own robots' 20 steps, nothing of the others
+        summaries = {name: proc.summary() for name, proc in shards.items()}
+        unique = {name: s["transitions_received"] - s["duplicates"] for name, s in summaries.items()}
+        assert unique == {"a": 40, "b": 20}, summaries  # each its own robots' 20 steps, nothing of the others
     finally:
         if session is not None:
             session.close()
