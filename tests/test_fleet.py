@@ -367,7 +367,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
         for transition in sent:
             publishers[transition.robot].put(transition.encode())
         wait_until(lambda: {"s1", "s2", "s3"} <= set(fits), 30, "weights of every served robot")
-        wait_until(lambda: received.get("a", 0) >= 40 and received.get("b", 0) >= 20, 30, "every transition at its shard")
+        wait_until(lambda: received.get("a", 0) >= 40 and received.get("b", 0) >= 20, 30, "all at their shards")
         subscriber.undeclare()
         statuses.undeclare()
         assert "s4" not in fits  # in no shard: learned by none
