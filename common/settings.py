@@ -259,6 +259,7 @@ class TransportSettings(_Section):
     critic_timeout: float = Field(gt=0)
     status_period: float = Field(gt=0)
     state_rate: float = Field(gt=0, le=1000)
+    express: bool = Field(description="every put sent at once (true) or batched by Zenoh with others due")
     action_timeout_steps: int = Field(ge=2)
     transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
     max_message_bytes: int = Field(ge=65_536, le=2**30, description="Zenoh drops bigger messages on arrival")
