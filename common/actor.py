@@ -220,6 +220,7 @@ class ActorCounters:
     arrived_steps: int = 0  # steps at which the arrival rule held the robot (no solve)
     second_solves: int = 0  # steps that also polished the runner-up end (multistart_margin)
     flip_solves: int = 0  # steps whose vertex search found a lower neighbour and polished it (multistart_flips)
+    hurried_solves: int = 0  # steps solved in a hurry: the runner-up polish and vertex search skipped
     solve_seconds: Window = field(default_factory=Window)
 
 
@@ -910,10 +911,14 @@ class StackedActor:
         bounded: np.ndarray = np.clip(decisions, -self._action_bounds, self._action_bounds)
         return bounded
 
-    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep:
+    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray, hurry: bool = False) -> ActorStep:
         """Minimize the agent's objective from ``state``; return the first held action.
 
         ``solve_seconds`` is the whole step (guess, solve, checks), not the solver alone.
+        ``hurry``: the caller is behind its schedule (an actor host serving its robots' ticks
+        late, services/actor/host.py): the global phase's starts and the one polish of the best
+        are kept, the runner-up polish and the vertex search are skipped (counted in
+        ``hurried_solves``), so a host that fell behind catches up instead of missing deadlines.
         """
         started = time.perf_counter()
         state = np.asarray(state, dtype=float)
@@ -945,7 +950,9 @@ class StackedActor:
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
         success, status, x_opt, objective = self._solve()
-        runner_up = self._runner_up() if self.problem.multistart else None
+        if hurry and self.problem.multistart:
+            self.counters.hurried_solves += 1
+        runner_up = self._runner_up() if self.problem.multistart and not hurry else None
         if runner_up is not None and success and self._same_basin(state, runner_up, x_opt):
             runner_up = None
         if runner_up is not None:
@@ -958,7 +965,7 @@ class StackedActor:
             second = self._solve()
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
-        flips = self.problem.multistart and self.problem.multistart_flips > 0
+        flips = self.problem.multistart and self.problem.multistart_flips > 0 and not hurry
         neighbour = self._flip_search(state, x_opt) if success and flips else None
         if neighbour is not None:
             # A lower vertex neighbour of the solution: polish it, keep the lower.

@@ -562,3 +562,27 @@ def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> No
             found.append((before.objective, after.objective, lowest_vertex))
     assert found, "no problem where the search reached a lower vertex than the polish alone"
     assert search.counters.flip_solves >= len(found) and plain.counters.flip_solves == 0
+
+
+def test_a_hurried_step_keeps_the_global_phase_and_one_polish_and_skips_the_extras() -> None:
+    # services/actor/host.py hurries a tick served late (issue 16): the runner-up polish and the
+    # vertex search are skipped, the global phase's best start is still polished. Oracle: an
+    # actor built without those extras (margin and refresh off, flips off) on the same problems
+    # gives the same actions; and the unhurried actor does use its extras on them.
+    hurried = make_actor("rlq", 6, multistart=True, multistart_flips=3)
+    bare = make_actor("rlq", 6, multistart=True, multistart_flips=0, multistart_margin=0.0, multistart_refresh=0)
+    full = make_actor("rlq", 6, multistart=True, multistart_flips=3)
+    rng = np.random.default_rng(4)
+    for _ in range(12):
+        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+        state = rng.uniform(-2, 2, size=3)
+        for actor in (hurried, bare, full):
+            actor.reset()
+        fast = hurried.step(state, w, v_w, hurry=True)
+        assert fast.success
+        np.testing.assert_allclose(fast.plan, bare.step(state, w, v_w).plan, atol=1e-9)
+        full.step(state, w, v_w)
+    assert hurried.counters.hurried_solves == 12
+    assert hurried.counters.second_solves == 0 and hurried.counters.flip_solves == 0
+    assert full.counters.hurried_solves == 0
+    assert full.counters.second_solves + full.counters.flip_solves > 0  # the extras a hurry skips

@@ -158,9 +158,12 @@ class FakeLoop:
     ticker: Any = None
     sent: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
     counters: ActorCounters = field(default_factory=ActorCounters)
+    hurry: bool = False
+    hurried: list[bool] = field(default_factory=list)  # the scheduler's hurry at each tick
 
     def tick(self, k: int, tick: float) -> None:
         self.served.append((self.robot, k, tick))
+        self.hurried.append(self.hurry)
         self.fake.now += self.work
 
     def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:
@@ -198,6 +201,20 @@ def test_the_host_serves_every_robot_each_period_in_deadline_order_with_spread_p
         assert np.allclose(np.diff(ticks), 0.1)
         assert loop.ticker.missed == 0 and loop.jitter.maximum == pytest.approx(0.0, abs=1e-9)
         assert loop.sent[-1][1] == (0.0, 0.0)  # every robot stopped on the way out
+
+
+def test_a_tick_served_late_is_solved_in_a_hurry_and_one_on_time_is_not() -> None:
+    # HURRY_FRACTION: more than 5 ms behind its due time, a robot's tick gets the lighter solve
+    # (StackedActor.step hurry: no runner-up polish, no vertex search) so the host catches up.
+    scheduler, loops, _, fake = host(2)
+    loops[0].work = 0.02  # r1, due 0.05 after r0, is served on time
+    scheduler.run(end=fake.now + 0.35, manual_gc=False)
+    assert not any(loops[0].hurried) and not any(loops[1].hurried)
+    scheduler, loops, _, fake = host(2)
+    loops[0].work = 0.06  # r1 is served 0.01 late every period: hurried, not yet a missed deadline
+    scheduler.run(end=fake.now + 0.35, manual_gc=False)
+    assert loops[1].hurried and all(loops[1].hurried) and loops[1].ticker.missed == 0
+    assert not any(loops[0].hurried)
 
 
 def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole_periods_are_skipped() -> None:

@@ -62,7 +62,7 @@ class FakeActor:
     counters: ActorCounters = field(default_factory=ActorCounters)
     resets: int = 0
 
-    def step(self, state: np.ndarray, q: np.ndarray, v: np.ndarray) -> FakeStep:
+    def step(self, state: np.ndarray, q: np.ndarray, v: np.ndarray, hurry: bool = False) -> FakeStep:
         self.counters.solves += 1
         self.counters.solve_seconds.append(0.0005)
         return FakeStep(np.array([-0.1 if state[0] > 0 else 0.1, 0.0]))

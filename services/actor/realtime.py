@@ -69,7 +69,9 @@ class Steps(Protocol):
     @property
     def counters(self) -> ActorCounters: ...
 
-    def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray) -> ActorStep: ...
+    def step(
+        self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray, hurry: bool = False
+    ) -> ActorStep: ...
 
     def reset(self) -> None: ...
 
@@ -108,6 +110,7 @@ class RealtimeActor:
         self.latest: tuple[PlantState, float] | None = None  # the newest accepted state, when it came
         self.last_accepted: PlantState | None = None  # for the summary: never a refused one
         self.episodes: dict[str, int] = {}  # the followed episode of each live plant session
+        self.hurry = False  # this tick is served late (an actor host behind): the lighter solve
         self.episode_run = RefusalRun()  # states of another episode refused in a row
         self.refused_at = 0.0  # when the live plant's last state was refused (a lockout shows in status)
         # statistics, bounded
@@ -250,7 +253,8 @@ class RealtimeActor:
         elif self.true_start is None:
             self.true_start = message.true_state
         weights = self.inbox.current()
-        step = self.actor.step(state, weights.q, weights.v)  # the arrival rule acts inside (exactly zero)
+        # the arrival rule acts inside (exactly zero); hurry: set by a host serving this tick late
+        step = self.actor.step(state, weights.q, weights.v, hurry=self.hurry)
         arrived = step.status == "arrived"
         if arrived != self.arrived:
             log.info(
@@ -359,6 +363,7 @@ class RealtimeActor:
             "steps": self.steps,
             "missed_deadlines": self.ticker.missed if self.ticker is not None else 0,
             "solver_failures": self.actor.counters.failures,
+            "hurried_solves": self.actor.counters.hurried_solves,  # served late: the lighter solve
             "weights_version": held_weights.version,
             "staleness_steps": self.staleness_steps.last if self.staleness_steps.count else 0.0,
             "solve_ms_last": solves.last * 1e3 if solves.count else 0.0,
@@ -416,6 +421,6 @@ class RealtimeActor:
                 "plant_sources": self.plant_gate.sources(),
                 "transitions_tail": list(self.tail),
                 "transition_steps": [list(run) for run in self.published_steps],
-                "counters": dict(self.counts.counters),
+                "counters": {**self.counts.counters, "hurried_solves": self.actor.counters.hurried_solves},
             }
         ).to_json_dict()
