@@ -397,3 +397,19 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
             session.close()
         for proc in (*shards.values(), router):
             proc.stop()
+
+
+def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_values_are_refused() -> None:
+    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one parser, tools/fleet.py)."""
+    import os
+
+    from common.runtime import UsageError
+    from tools.fleet import actor_hosts
+
+    cores = os.cpu_count() or 1
+    assert actor_hosts("auto", 8) == 1 and actor_hosts("auto", 49) == 1
+    assert actor_hosts("auto", 100) == min(cores, 100) and actor_hosts("auto", 50) == min(cores, 50)
+    assert actor_hosts("3", 8) == 3
+    for bad, size in (("0", 8), ("9", 8), ("two", 8), ("", 8)):
+        with pytest.raises(UsageError, match="--actor-hosts"):
+            actor_hosts(bad, size)

@@ -36,6 +36,7 @@ from common.fleet import circle_starts
 from common.fleet_summary import FleetActorSummary, FleetView, fleet_view
 from common.keys import STATUS
 from common.messages import ServiceStatus
+from common.runtime import UsageError
 from common.settings import Settings
 from common.summaries import CriticSummary, RealtimeActorSummary
 from common.transport import zenoh_config
@@ -47,6 +48,22 @@ OWN_FLAGS = ("--router", "--robot", "--start", "--duration")
 FLEET_TRANSITION_CACHE = 600  # transitions per robot kept for a late critic (60 s at delta = 0.1 s)
 # [s] the slowest start seen here: 100 robots' subscriptions and tokens on a loaded 2-core machine
 READY_TIMEOUT = 120.0
+
+
+AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
+
+
+def actor_hosts(option: str, size: int) -> int:
+    """``--actor-hosts``: a number, or ``auto`` (one host below 50 robots, else one per core)."""
+    if option == "auto":
+        return 1 if size < AUTO_SPLIT_FROM else max(1, min(os.cpu_count() or 1, size))
+    try:
+        hosts = int(option)
+    except ValueError:
+        raise UsageError(f"--actor-hosts {option!r}: a number of actor processes, or auto") from None
+    if not 1 <= hosts <= size:
+        raise UsageError(f"--actor-hosts {hosts}: 1 to one per robot ({size})")
+    return hosts
 
 
 @dataclass

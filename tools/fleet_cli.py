@@ -46,10 +46,10 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--actor-hosts",
-        type=int,
-        default=1,
-        metavar="H",
-        help="with --robots (host layout): split the robots over H actor hosts, e.g. one per core (default: 1)",
+        default="auto",
+        metavar="H|auto",
+        help="with --robots (host layout): split the robots over H actor hosts; auto = 1 below 50 robots, "
+        "else one per core (default: auto)",
     )
     parser.add_argument(
         "--critic",
@@ -84,8 +84,9 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
             "--record and --view do not start with --robots yet: run `srl record FILE.mcap` or `srl view` "
             "beside the fleet (both carry every robot)"
         )
-    if not 1 <= args.actor_hosts <= len(robots):
-        raise UsageError(f"--actor-hosts {args.actor_hosts}: 1 to one per robot ({len(robots)})")
+    from tools.fleet import actor_hosts
+
+    args.actor_hosts = actor_hosts(str(args.actor_hosts), len(robots))
     if not (math.isfinite(args.circle) and args.circle > 0):
         raise UsageError(f"--circle {args.circle}: the start circle's radius must be a positive number of metres")
 

@@ -24,7 +24,7 @@ from typing import Any
 from common.fleet import FleetError, parse_robots
 from common.runtime import UsageError
 from common.settings import Settings
-from tools.fleet import run_fleet
+from tools.fleet import actor_hosts, run_fleet
 from tools.up import ServiceDiedError
 
 TARGETS: dict[int, dict[str, float]] = {
@@ -48,20 +48,6 @@ def robot_counts(text: str, option: str) -> list[int]:
 
 # the soak of issue 16: ``--robots 50 --baseline '' --seconds 600`` (RSS from the end of warm-up to the end)
 SOAK_ROBOTS, SOAK_SECONDS, SOAK_GROWTH_PERCENT = 50, 600.0, 2.0
-AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
-
-
-def actor_hosts(option: str, size: int) -> int:
-    """``--actor-hosts``: a number, or ``auto`` (one host below 50 robots, else one per core)."""
-    if option == "auto":
-        return 1 if size < AUTO_SPLIT_FROM else max(1, min(os.cpu_count() or 1, size))
-    try:
-        hosts = int(option)
-    except ValueError:
-        raise UsageError(f"--actor-hosts {option!r}: a number of actor processes, or auto") from None
-    if not 1 <= hosts <= size:
-        raise UsageError(f"--actor-hosts {hosts}: 1 to one per robot ({size})")
-    return hosts
 
 
 def checks(row: dict[str, Any]) -> dict[str, bool]:
