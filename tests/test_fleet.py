@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -252,6 +253,33 @@ def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: 
     assert summary["critic"]["transitions_received"] >= fleet["steps"] - 3
     assert summary["processes"] == (4 if layout == "host" else 2 + 2 * 3)
     assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
+
+
+@pytest.mark.slow
+def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside_the_truth(tmp_path: Path) -> None:
+    """``srl up --robots K --plant physics``: the plant host steps one MuJoCo TurtleBot3 per robot
+    (lag, deadband, slip, odometry); the actors see odometry, the summary keeps the truth beside
+    it. Negative control: the ideal unicycle's odometry IS the truth."""
+    from tools.fleet import format_fleet_summary, run_fleet
+
+    settings = Settings.load()
+    finals: dict[str, dict[str, Any]] = {}
+    for plant in ("physics", "sim"):
+        summary = run_fleet(settings, [], ["pa", "pb"], 8.0, quiet=True, plant=plant, summary_dir=tmp_path / plant)
+        assert summary["plant"] == plant
+        rows = summary["fleet"]["rows"]
+        assert [row["robot"] for row in rows] == ["pa", "pb"]
+        for row in rows:
+            assert row["steps"] >= 40 and row["final_distance_m"] < 1.5 - 0.5, row  # approached
+        plant_summary = json.loads((tmp_path / plant / "plant.json").read_text())
+        assert plant_summary["plant_model"] == ("physics" if plant == "physics" else "ideal")
+        finals[plant] = plant_summary["per_robot"]
+        assert ("MuJoCo" in format_fleet_summary(summary)) == (plant == "physics")
+    for robot in ("pa", "pb"):
+        sim, physics = finals["sim"][robot], finals["physics"][robot]
+        assert sim["final_state"] == sim["true_final_state"]
+        drift = np.hypot(*np.subtract(physics["final_state"][:2], physics["true_final_state"][:2]))
+        assert drift > 1e-4, physics  # odometry is not the truth on the physics robot
 
 
 # -- the critic behind a fleet --------------------------------------------------------------------

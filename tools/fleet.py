@@ -290,9 +290,13 @@ def run_fleet(
 
     ``plant="robot"``: ROS 2 robots behind robot bridges (tools/fleet_robot.py), each robot's id
     its namespace; emulated TurtleBot3s for the robots without an entry in ``robot_endpoints``.
+    ``plant="physics"``: simulated robots as for ``sim``, each the MuJoCo TurtleBot3
+    (``plant.model = physics``: lag, deadband, slip, odometry) instead of the ideal unicycle.
     ``pooled``: one critic learner for every robot (critic.pooled), else one per robot."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
+    if plant not in ("sim", "physics", "robot"):
+        raise ValueError(f"unknown plant {plant!r} (sim, physics or robot)")
     if not 1 <= actor_hosts <= len(robots):
         raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
     router = free_loopback_endpoint()
@@ -311,6 +315,9 @@ def run_fleet(
     # over the first 5 minutes (measured: most of a 50-robot soak's RSS growth)
     env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
     env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
+    if plant == "physics":  # the plant host (or each plant_sim) steps one MuJoCo TurtleBot3 per robot
+        env["SRL_PLANT__MODEL"] = "physics"
+        settings = settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
     # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
     # start threads, which spin on a busy machine (measured: fit median 5 -> 1.5 ms, p99 29 -> 2.5 ms)
     for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -474,7 +481,8 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
     view = FleetView.model_validate(summary["fleet"])
     lines = [
         f"srl up --robots {len(summary['robots'])} ({summary['layout']} layout): {summary['seconds']:.0f} s, "
-        f"{summary['agent']} N = {summary['horizon']}, starts on a {summary['circle_radius_m']} m circle",
+        f"{summary['agent']} N = {summary['horizon']}, starts on a {summary['circle_radius_m']} m circle"
+        + (", MuJoCo TurtleBot3s (final m: their true pose)" if summary.get("plant") == "physics" else ""),
         f"  {'robot':<12} {'steps':>5} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'staleness p99/max':>17} "
         f"{'final m':>8} parked",
     ]

@@ -63,8 +63,8 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
     """``srl up --robots``: the fleet's run, a status line a second, the per-robot table, ``--json``."""
     robots = fleet_robots(args, ROS_FLEET_PREFIX if args.plant == "robot" else "robot")
     assert robots is not None
-    if args.plant not in ("sim", "robot") or args.secure:
-        raise UsageError("--robots runs --plant sim or --plant robot, without --secure, for now")
+    if args.plant not in ("sim", "physics", "robot") or args.secure:
+        raise UsageError("--robots runs --plant sim, physics or robot, without --secure, for now")
     endpoints: dict[str, str] = {}
     bridge_args: list[str] = []
     if args.plant == "robot":
