@@ -441,3 +441,23 @@ def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_va
     for bad, size in (("0", 8), ("9", 8), ("two", 8), ("", 8)):
         with pytest.raises(UsageError, match="--actor-hosts"):
             actor_hosts(bad, size)
+
+
+def test_a_robots_counts_count_its_refusals_and_forward_or_log_them_with_its_id(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """common.counts.RobotCounts: the one per-robot counter of the actor host and the bridge host."""
+    from common.counts import RobotCounts
+
+    forwarded: list[tuple[str, str]] = []
+    actor = RobotCounts("r7", "actor", forward=lambda what, reason: forwarded.append((what, reason)))
+    actor.count("steps", 3)
+    actor.reject("state", "NaN")
+    assert actor.snapshot() == {"steps": 3, "rejected.state": 1}
+    assert forwarded == [("state", "robot r7: NaN")]
+    bridge = RobotCounts("tb3_1", "robot_bridge")
+    with caplog.at_level("WARNING", logger="common.counts"):
+        for _ in range(5):
+            bridge.reject("odom", "stale")
+    assert bridge.snapshot() == {"rejected.odom": 5}
+    assert [r.getMessage() for r in caplog.records] == ["robot_bridge tb3_1: rejected odom: stale"]  # once a second

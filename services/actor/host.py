@@ -27,7 +27,6 @@ import logging
 import os
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
@@ -36,6 +35,7 @@ import numpy as np
 from common.actor import ActorCounters, ActorMemory, ActorProblem, ActorStep, StackedActor
 from common.assembly import arrival_rule, build_actor
 from common.clock import LATE_FRACTION, Ticker
+from common.counts import RobotCounts
 from common.fleet_summary import FleetActorSummary, fleet_view
 from common.keys import STATE, STATUS, WEIGHTS
 from common.messages import PlantState, ServiceStatus
@@ -91,23 +91,6 @@ class RobotActor:
             return self.shared.step(state, q_weights, v_weights, hurry)
         finally:
             self.memory = self.shared.swap_memory(held)
-
-
-class RobotCounts:
-    """One robot's counters (its status and summary); refusals are also logged through the bus."""
-
-    def __init__(self, bus: Bus, robot: str) -> None:
-        self.bus, self.robot = bus, robot
-        self.counters: Counter[str] = Counter()
-        self.lock = threading.Lock()
-
-    def count(self, name: str, amount: int = 1) -> None:
-        with self.lock:
-            self.counters[name] += amount
-
-    def reject(self, what: str, reason: str) -> None:
-        self.count(f"rejected.{what}")
-        self.bus.reject(what, f"robot {self.robot}: {reason}")
 
 
 class RobotTicker(Ticker):
@@ -272,7 +255,7 @@ def run_host(
     states: list[Newest[PlantState]] = []
     for robot in robots:
         own = robot_settings(settings, robot)
-        count = RobotCounts(bus, robot)
+        count = RobotCounts(robot, "actor", forward=bus.reject)
         critic_gate = SourceGate("critic")
         bus.watch_identities(robot, "critic", critic_gate)
         inbox = WeightsInbox(own, bus, critic_gate)

@@ -25,13 +25,13 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
 import zenoh
 
 from common.clock import Ticker
+from common.counts import RobotCounts
 from common.fleet_summary import FleetBridgeSummary
 from common.keys import ACTION, STATE, STATUS, liveliness_key
 from common.messages import Action, ServiceStatus
@@ -47,32 +47,6 @@ log = logging.getLogger(__name__)
 # node and entity ids per robot in a shared session: robot i uses i * ENTITY_IDS ... (rmw_zenoh
 # wants them unique per session; a link needs 2 + one per cmd_vel target)
 ENTITY_IDS = 100
-
-
-class RobotCounts:
-    """One robot's counters (the Counts a RobotBridge and its RosLink keep), logged with its id."""
-
-    def __init__(self, robot: str) -> None:
-        self.robot = robot
-        self.counters: Counter[str] = Counter()
-        self.lock = threading.Lock()
-        self.warned: dict[str, float] = {}
-
-    def count(self, name: str, amount: int = 1) -> None:
-        with self.lock:
-            self.counters[name] += amount
-
-    def reject(self, what: str, reason: str) -> None:
-        """Count a refused input and log it, at most once a second per kind (as Bus.reject)."""
-        self.count(f"rejected.{what}")
-        now = time.monotonic()
-        if now - self.warned.get(what, 0.0) >= 1.0:
-            self.warned[what] = now
-            log.warning("robot_bridge %s: rejected %s: %s", self.robot, what, reason)
-
-    def snapshot(self) -> dict[str, int]:
-        with self.lock:
-            return dict(self.counters)
 
 
 @dataclass
@@ -114,7 +88,7 @@ def open_unit(
     but for the session, so a test can hand it a fake one."""
     own = robot_settings(settings, robot, endpoint)
     graph = RosGraph.from_settings(own.bridge)
-    counts = RobotCounts(robot)
+    counts = RobotCounts(robot, "robot_bridge")
     link = RosLink(session, graph, own.bridge, counts, entity_base=index * ENTITY_IDS)
     gate = SourceGate("actor")
     bridge = RobotBridge(own, publish_state, link.send, counts, gate)
