@@ -145,6 +145,21 @@ class Proc:
         raise AssertionError(f"{self.name} printed no JSON summary; stderr: {self.stderr[-10:]}")
 
 
+def open_session(endpoint: str, timeout: float = 60, what: str | None = None) -> zenoh.Session:
+    """A client session to ``endpoint``, once its router accepts one (it was just started)."""
+    held: list[zenoh.Session] = []
+
+    def opened() -> bool:
+        try:
+            held.append(zenoh.open(client_config(endpoint)))
+        except zenoh.ZError:
+            return False
+        return True
+
+    wait_until(opened, timeout, what or f"the router at {endpoint}")
+    return held[0]
+
+
 def wait_until(predicate: Callable[[], bool], timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -177,15 +192,7 @@ class Cluster:
         self.wait_alive("critic")
 
     def connect(self) -> zenoh.Session:
-        def opened() -> bool:
-            try:
-                self.session = zenoh.open(client_config(self.endpoint))
-            except zenoh.ZError:
-                return False
-            return True
-
-        wait_until(opened, 30, "the router")
-        assert self.session is not None
+        self.session = open_session(self.endpoint, 30, "the router")
         return self.session
 
     def alive(self, service: str) -> bool:

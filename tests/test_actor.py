@@ -7,6 +7,7 @@ features from a hand-written pair list), evaluated on a grid of held actions.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -34,6 +35,17 @@ def make_actor(agent: str, horizon: int, **kwargs) -> StackedActor:
         **kwargs,
     )
     return StackedActor(problem)
+
+
+def indefinite_problems(
+    seed: int, count: int, spread: float = 2.0
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``count`` random indefinite critics and states: ``(q_weights, v_weights, state)``, the state
+    uniform in ``[-spread, spread]^3``."""
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+        yield w, v_w, rng.uniform(-spread, spread, size=3)
 
 
 def _quad(weights: np.ndarray, pairs, z: list[np.ndarray]) -> np.ndarray:
@@ -398,12 +410,9 @@ def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
     # Oracle: hand_objective along the Euler rollout. Each start descends monotonically inside
     # the box; the reported end value is the objective of the end's actions, and the decision
     # vector handed to the solver is that end's rollout from the state.
-    rng = np.random.default_rng(18)
     actor = make_actor("rlqv+", 5, multistart=True, multistart_iterations=20)
     bounds = np.array([V_MAX, OMEGA_MAX])
-    for _ in range(4):
-        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
-        state = rng.uniform(-2, 2, size=3)
+    for w, v_w, state in indefinite_problems(18, 4):
         actor._params[:15], actor._params[15:] = w, v_w
         actor.reset()
         actor._global_guess(state)
@@ -473,12 +482,9 @@ def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, hori
 def test_runner_up_polish_keeps_the_lower_solution(margin: float, refresh: int) -> None:
     # With a wide margin, or a refresh at every solve, the actor also polishes the other kind of
     # start's lowest end and keeps the lower of the two solutions: never above the single polish.
-    rng = np.random.default_rng(7)
     single = make_actor("rlqv+", 6, multistart=True, multistart_margin=0.0, multistart_refresh=0)
     double = make_actor("rlqv+", 6, multistart=True, multistart_margin=margin, multistart_refresh=refresh)
-    for _ in range(6):
-        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
-        state = rng.uniform(-1, 1, size=3)
+    for w, v_w, state in indefinite_problems(7, 6, spread=1):
         single.reset()
         double.reset()
         one, two = single.step(state, w, v_w), double.step(state, w, v_w)
@@ -544,11 +550,8 @@ def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> No
         [(np.float64(p[2 * i]), np.float64(p[2 * i + 1])) for i in range(horizon - 1)]
         for p in itertools.product((-V_MAX, V_MAX), (-OMEGA_MAX, OMEGA_MAX), repeat=horizon - 1)
     ]
-    rng = np.random.default_rng(0)
     found = []
-    for _ in range(30):
-        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
-        state = rng.uniform(-2, 2, size=3)
+    for w, v_w, state in indefinite_problems(0, 30):
         plain.reset()
         search.reset()
         before, after = plain.step(state, w, v_w), search.step(state, w, v_w)
@@ -572,10 +575,7 @@ def test_a_hurried_step_keeps_the_global_phase_and_one_polish_and_skips_the_extr
     hurried = make_actor("rlq", 6, multistart=True, multistart_flips=3)
     bare = make_actor("rlq", 6, multistart=True, multistart_flips=0, multistart_margin=0.0, multistart_refresh=0)
     full = make_actor("rlq", 6, multistart=True, multistart_flips=3)
-    rng = np.random.default_rng(4)
-    for _ in range(12):
-        w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
-        state = rng.uniform(-2, 2, size=3)
+    for w, v_w, state in indefinite_problems(4, 12):
         for actor in (hurried, bare, full):
             actor.reset()
         fast = hurried.step(state, w, v_w, hurry=True)

@@ -347,7 +347,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     weights come from its own shard, and a robot of neither shard is learned by none."""
     from common.keys import STATUS, TRANSITION, WEIGHTS
     from common.messages import CriticWeights, ServiceStatus
-    from tests.harness import Proc, client_config, free_port, random_transitions, wait_until
+    from tests.harness import Proc, free_port, open_session, random_transitions, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = Proc("router", ["router", "--router", endpoint])
@@ -360,17 +360,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
 
     session = None
     try:
-
-        def opened() -> bool:
-            nonlocal session
-            try:
-                session = zenoh.open(client_config(endpoint))
-            except zenoh.ZError:
-                return False
-            return True
-
-        wait_until(opened, 30, "the router")
-        assert session is not None
+        session = open_session(endpoint, 30, "the router")
 
         def alive() -> set[str]:
             replies = session.liveliness().get("srl/*/alive/critic/**", timeout=0.5)

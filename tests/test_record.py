@@ -24,29 +24,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-import zenoh
 from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
-from tests.harness import ROOT, Proc, client_config, free_port, wait_until
+from tests.harness import ROOT, Proc, free_port, open_session, wait_until
 
 DELTA_NS = 100_000_000  # delta = 0.1 s
-
-
-def open_session(router: str) -> zenoh.Session:
-    """A client session of the router, once it accepts one (it was just started)."""
-    held: list[zenoh.Session] = []
-
-    def opened() -> bool:
-        try:
-            held.append(zenoh.open(client_config(router)))
-        except zenoh.ZError:
-            return False
-        return True
-
-    wait_until(opened, 60, f"the router at {router}")
-    return held[0]
 
 
 def srl(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:

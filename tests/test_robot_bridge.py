@@ -31,7 +31,15 @@ from common.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry
 from common.settings import Settings
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
-from tests.harness import ROOT, FakeCounts, client_config, cluster, declare_service_tokens, free_port, wait_until
+from tests.harness import (
+    ROOT,
+    FakeCounts,
+    cluster,
+    declare_service_tokens,
+    free_port,
+    open_session,
+    wait_until,
+)
 
 DELTA = 0.1
 TIMEOUT = 3 * DELTA  # bridge.watchdog_timeout_steps x delta (srl.toml)
@@ -811,19 +819,7 @@ def test_up_with_a_robot_endpoint_starts_no_emulator() -> None:
         start_new_session=True,
     )
     try:
-        session = None
-
-        def reachable() -> bool:
-            nonlocal session
-            try:
-                session = zenoh.open(client_config(robot_endpoint))
-            except zenoh.ZError:
-                return False
-            return True
-
-        wait_until(reachable, 30, "the robot's router")
-        assert session is not None
-        session.close()
+        open_session(robot_endpoint, 30, "the robot's router").close()
         done = _run_up(
             "--plant",
             "robot",

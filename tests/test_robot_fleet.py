@@ -29,7 +29,7 @@ from common.messages import Action, PlantState
 from common.ros_wire import ODOMETRY, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.settings import Settings
 from services.robot_bridge.host import BridgeUnit, open_unit
-from tests.harness import ROOT, client_config, free_port, wait_until
+from tests.harness import ROOT, free_port, open_session
 
 ROBOTS = ["tb3_1", "tb3_2", "tb3_3"]
 EMULATOR = [sys.executable, "-m", "tools.cli", "tb3-emulator"]
@@ -352,15 +352,7 @@ def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> 
             text=True,
             start_new_session=True,
         )
-
-        def reachable(endpoint: str) -> bool:
-            try:
-                zenoh.open(client_config(endpoint)).close()
-            except zenoh.ZError:
-                return False
-            return True
-
-        wait_until(lambda: reachable(shared), 30, "the shared robot router")
+        open_session(shared, 30, "the shared robot router").close()
         for namespace, start in starts.items():
             where = ["--listen", own] if namespace == "tb9" else ["--router", shared]
             procs[namespace] = subprocess.Popen(
@@ -371,7 +363,7 @@ def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> 
                 text=True,
                 start_new_session=True,
             )
-        wait_until(lambda: reachable(own), 30, "tb9's own router")
+        open_session(own, 30, "tb9's own router").close()
         summary = _up(
             tmp_path,
             "--robots",

@@ -31,7 +31,7 @@ from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.ros_wire import ODOMETRY, RosGraph
 from common.settings import Settings
 from services.tb3_emulator.command import CMD_TIMEOUT_DEFAULT
-from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, wait_until
+from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, open_session, wait_until
 
 V_MAX = 0.22  # the TurtleBot3 Burger's limit (srl.toml plant.v_max)
 ODOM_PERIOD = 0.05  # the emulator's 20 Hz odometry
@@ -92,17 +92,7 @@ class Odometry:
 
 
 def _open(endpoint: str) -> zenoh.Session:
-    held: dict[str, zenoh.Session] = {}
-
-    def opened() -> bool:
-        try:
-            held["s"] = zenoh.open(client_config(endpoint))
-        except zenoh.ZError:
-            return False
-        return True
-
-    wait_until(opened, 60, f"a session to {endpoint}")
-    return held["s"]
+    return open_session(endpoint, 60, f"a session to {endpoint}")
 
 
 # -- finding 3: a real-time plant serves no step and no reset -------------------------------------
