@@ -950,9 +950,10 @@ class StackedActor:
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
         success, status, x_opt, objective = self._solve()
+        extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
             self.counters.hurried_solves += 1
-        runner_up = self._runner_up() if self.problem.multistart and not hurry else None
+        runner_up = self._runner_up() if extras else None
         if runner_up is not None and success and self._same_basin(state, runner_up, x_opt):
             runner_up = None
         if runner_up is not None:
@@ -965,7 +966,7 @@ class StackedActor:
             second = self._solve()
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
-        flips = self.problem.multistart and self.problem.multistart_flips > 0 and not hurry
+        flips = extras and self.problem.multistart_flips > 0
         neighbour = self._flip_search(state, x_opt) if success and flips else None
         if neighbour is not None:
             # A lower vertex neighbour of the solution: polish it, keep the lower.

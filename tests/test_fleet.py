@@ -159,12 +159,11 @@ class FakeLoop:
     ticker: Any = None
     sent: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
     counters: ActorCounters = field(default_factory=ActorCounters)
-    hurry: bool = False
     hurried: list[bool] = field(default_factory=list)  # the scheduler's hurry at each tick
 
-    def tick(self, k: int, tick: float) -> None:
+    def tick(self, k: int, tick: float, hurry: bool = False) -> None:
         self.served.append((self.robot, k, tick))
-        self.hurried.append(self.hurry)
+        self.hurried.append(hurry)
         self.fake.now += self.work
 
     def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:

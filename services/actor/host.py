@@ -185,7 +185,6 @@ class HostScheduler:
                 if self.states is not None and (newest := self.states[i].take()) is not None:
                     loop.on_state(*newest)  # the newest state, judged and timed as it arrived
                 self.lateness.append(now - due)
-                loop.hurry = now - due > HURRY_FRACTION * self.period  # behind: the lighter solve
                 if ticker.missed != missed and now - self.warned >= 1.0:
                     self.warned = now
                     log.warning(
@@ -199,7 +198,7 @@ class HostScheduler:
                 if previous is not None:
                     loop.periods.append(now - previous)
                     loop.jitter.append(abs(now - previous - self.period))
-                loop.tick(k, now)
+                loop.tick(k, now, hurry=now - due > HURRY_FRACTION * self.period)  # behind: the lighter solve
                 heapq.heappush(heap, (ticker.next_due, i))
                 self.served += 1
                 if manual_gc and self.served % len(self.loops) == 0:

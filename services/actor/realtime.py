@@ -110,7 +110,6 @@ class RealtimeActor:
         self.latest: tuple[PlantState, float] | None = None  # the newest accepted state, when it came
         self.last_accepted: PlantState | None = None  # for the summary: never a refused one
         self.episodes: dict[str, int] = {}  # the followed episode of each live plant session
-        self.hurry = False  # this tick is served late (an actor host behind): the lighter solve
         self.episode_run = RefusalRun()  # states of another episode refused in a row
         self.refused_at = 0.0  # when the live plant's last state was refused (a lockout shows in status)
         # statistics, bounded
@@ -206,9 +205,10 @@ class RealtimeActor:
             log.warning("plant liveliness lost: commanding zero velocity until its state returns")
 
     # -- the loop ---------------------------------------------------------------------------
-    def tick(self, k: int, tick: float) -> None:
+    def tick(self, k: int, tick: float, hurry: bool = False) -> None:
         """The work of tick ``k`` (due at ``tick``): an action (zero when it must) and, after a
-        solve, one transition."""
+        solve, one transition. ``hurry``: an actor host serves this tick late (the lighter solve,
+        StackedActor.step)."""
         with self.lock:
             held = self.latest
         if self.plant_gate.conflict:
@@ -219,7 +219,7 @@ class RealtimeActor:
             self.stop_robot(k)
         else:
             try:
-                self._step(k, tick, held)
+                self._step(k, tick, held, hurry)
             except Exception:  # never let one bad tick end the loop that keeps the robot safe
                 self.counts.count("tick_errors")
                 log.exception("actor tick %d failed; commanding zero velocity", k)
@@ -243,7 +243,7 @@ class RealtimeActor:
         self.send(k, (0.0, 0.0), -1)
         self.actor.reset()  # the plan no longer matches the robot
 
-    def _step(self, k: int, tick: float, held: tuple[PlantState, float]) -> None:
+    def _step(self, k: int, tick: float, held: tuple[PlantState, float], hurry: bool) -> None:
         message, received = held
         state = np.array(message.state)
         if self.start_state is None:
@@ -253,8 +253,7 @@ class RealtimeActor:
         elif self.true_start is None:
             self.true_start = message.true_state
         weights = self.inbox.current()
-        # the arrival rule acts inside (exactly zero); hurry: set by a host serving this tick late
-        step = self.actor.step(state, weights.q, weights.v, hurry=self.hurry)
+        step = self.actor.step(state, weights.q, weights.v, hurry)  # the arrival rule acts inside (exactly zero)
         arrived = step.status == "arrived"
         if arrived != self.arrived:
             log.info(
