@@ -40,7 +40,14 @@ from common.runtime import UsageError
 from common.settings import Settings
 from common.summaries import CriticSummary, RealtimeActorSummary
 from common.transport import zenoh_config
-from tools.up import ServiceDiedError, SignalGuard, Supervisor, free_loopback_endpoint, router_reachable
+from tools.up import (
+    ServiceDiedError,
+    SignalGuard,
+    Supervisor,
+    free_loopback_endpoint,
+    physics_plant,
+    router_reachable,
+)
 
 LAYOUTS = ("host", "process")
 # settings flags a fleet sets per child itself (the router is fresh, robots and starts its own)
@@ -316,8 +323,7 @@ def run_fleet(
     env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
     env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
     if plant == "physics":  # the plant host (or each plant_sim) steps one MuJoCo TurtleBot3 per robot
-        env["SRL_PLANT__MODEL"] = "physics"
-        settings = settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
+        settings = physics_plant(settings, env)
     # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
     # start threads, which spin on a busy machine (measured: fit median 5 -> 1.5 ms, p99 29 -> 2.5 ms)
     for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):

@@ -125,6 +125,13 @@ class SignalGuard:
             raise Stopped(self.received)
 
 
+def physics_plant(settings: Settings, env: dict[str, str]) -> Settings:
+    """``--plant physics``: plant_sim (or the plant host) with the MuJoCo TurtleBot3; every child
+    sees it through ``env``, and the settings returned say it to this process."""
+    env["SRL_PLANT__MODEL"] = "physics"
+    return settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
+
+
 def _contract_summary(child: Child, contract: TypeAdapter[T]) -> T:
     """A child's JSON summary read through its contract; one line if it has none or does not fit."""
     raw = child.summary()
@@ -476,9 +483,8 @@ def run_up(
         )
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
-    if plant == "physics":  # plant_sim with the MuJoCo TurtleBot3 (every child sees the same settings)
-        env["SRL_PLANT__MODEL"] = "physics"
-        settings = settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
+    if plant == "physics":
+        settings = physics_plant(settings, env)
     supervisor = Supervisor(settings_args, env, quiet=quiet)
     robot_args = [*settings_args, *(bridge_args or [])]
     started = time.monotonic()
