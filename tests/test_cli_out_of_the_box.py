@@ -506,6 +506,7 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
     assert json.loads((second[1] / "critic.json").read_text())["restored"] is False
     merged = json.loads(resumed[0].stdout.splitlines()[-1])
     assert merged["critic_restored"] is True
+    assert merged["plant_model"] == "ideal" and "(plant ideal: the states above" in first[0].stdout  # the model's name
     assert merged["critic_checkpoint"].endswith("critic-h5up.json") or "h5up" in merged["critic_checkpoint"]
     print(
         f"\nfigures: srl up --duration 4: {len(status)} status lines, stdout {len(first[0].stdout)} B, "

@@ -656,6 +656,7 @@ def _run_up(
             "exit_codes": {name: child.process.returncode for name, child in supervisor.children.items()},
             "mode": mode,
             "plant": plant,
+            "plant_model": settings.plant.model,  # the simulated robot's model (the truth line names it)
             "secure": secure,
             "router": settings.transport.router,
             "transitions_received": critic_summary.transitions_received,
