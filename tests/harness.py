@@ -145,6 +145,20 @@ class Proc:
         raise AssertionError(f"{self.name} printed no JSON summary; stderr: {self.stderr[-10:]}")
 
 
+def srl(*argv: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    """``srl ARGV`` as a user types it (from the checkout, its output captured; never raises on
+    the exit code: the test reads it)."""
+    return subprocess.run(
+        [sys.executable, "-m", "tools.cli", *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
+        env={**os.environ, **(env or {})},
+    )
+
+
 def open_session(endpoint: str, timeout: float = 60, what: str | None = None) -> zenoh.Session:
     """A client session to ``endpoint``, once its router accepts one (it was just started)."""
     held: list[zenoh.Session] = []

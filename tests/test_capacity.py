@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 
+from tests.harness import srl
 from tools.bench.capacity import component, fit_line, model
 from tools.fleet import message_kind
 
@@ -65,13 +66,7 @@ def test_the_model_scales_the_measured_costs_to_large_fleets() -> None:
 def test_the_capacity_bench_measures_every_component_and_the_messages() -> None:
     """A miniature run: two sizes, every component's CPU, each robot's 50 Hz states and 10 Hz
     actions counted, the model printed and in the JSON."""
-    done = subprocess.run(
-        [sys.executable, "-m", "tools.cli", "bench", "capacity", "--robots", "1,3", "--seconds", "6", "--json"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
+    done = srl("bench", "capacity", "--robots", "1,3", "--seconds", "6", "--json", timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "what a fleet needs" in done.stdout and "10000 robots:" in done.stdout
     result = json.loads(done.stdout.strip().splitlines()[-1])

@@ -27,22 +27,10 @@ from common.messages import Transition
 from common.security import write_credentials
 from common.settings import Settings
 from services.critic.service import CriticLearner, checkpoint_path, load_checkpoint
-from tests.harness import ROOT, free_port
+from tests.harness import ROOT, free_port, srl
 from tools.cli import build_parser
 
 CLI = [sys.executable, "-m", "tools.cli"]
-
-
-def srl(*argv: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*CLI, *argv],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-        env={**os.environ, **(env or {})},
-    )
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:

@@ -363,26 +363,15 @@ def test_experiment_fleet_per_robot_gives_the_paper_experiments_j_and_pooled_bes
     """``srl experiment fleet`` on a reduced grid: its per-robot fleet is ``srl experiment paper``
     run for run (the same J), the pooled fleet is reported beside it, and bad input is refused."""
     import csv
-    import subprocess
-    import sys
+
+    from tests.harness import srl
 
     grid = ["--grid", "2", "--duration", "2", "--horizons", "6", "--agents", "mpc,rlqv", "--workers", "1"]
-    cli = [sys.executable, "-m", "tools.cli", "experiment"]
-    paper = subprocess.run(
-        [*cli, "paper", *grid, "--no-plots", "--no-progress", "--out", str(tmp_path / "paper")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
+    paper = srl(
+        "experiment", "paper", *grid, "--no-plots", "--no-progress", "--out", str(tmp_path / "paper"), timeout=300
     )
     assert paper.returncode == 0, paper.stderr[-2000:]
-    fleet = subprocess.run(
-        [*cli, "fleet", *grid, "--out", str(tmp_path / "fleet")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
+    fleet = srl("experiment", "fleet", *grid, "--out", str(tmp_path / "fleet"), timeout=300)
     assert fleet.returncode == 0, fleet.stderr[-2000:]
     assert "| RL-QV | 6 | per-robot |" in fleet.stdout and "| RL-QV | 6 | pooled |" in fleet.stdout
     marks = json.loads((tmp_path / "fleet" / "fleet.json").read_text())
@@ -395,7 +384,5 @@ def test_experiment_fleet_per_robot_gives_the_paper_experiments_j_and_pooled_bes
     ]
     np.testing.assert_allclose(per_robot, [j[("rlqv", i)] for i in range(4)], rtol=1e-12)
     assert groups["pooled"]["ratio_percent"] != groups["per-robot"]["ratio_percent"]  # it learned otherwise
-    refused = subprocess.run(
-        [*cli, "fleet", "--critic", "shared"], capture_output=True, text=True, timeout=60, check=False
-    )
+    refused = srl("experiment", "fleet", "--critic", "shared", timeout=60)
     assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0 and "--critic" in refused.stderr

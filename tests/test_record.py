@@ -17,7 +17,6 @@ import re
 import signal
 import struct
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -28,15 +27,14 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
+from tests import harness
 from tests.harness import ROOT, Proc, free_port, open_session, wait_until
 
 DELTA_NS = 100_000_000  # delta = 0.1 s
 
 
 def srl(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *argv], capture_output=True, text=True, cwd=ROOT, timeout=timeout
-    )
+    return harness.srl(*argv, timeout=timeout)
 
 
 def read(path: Path) -> dict[str, list[tuple[int, Any]]]:

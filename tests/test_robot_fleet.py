@@ -29,7 +29,7 @@ from common.messages import Action, PlantState
 from common.ros_wire import ODOMETRY, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.settings import Settings
 from services.robot_bridge.host import BridgeUnit, open_unit
-from tests.harness import ROOT, free_port, open_session
+from tests.harness import ROOT, free_port, open_session, srl
 
 ROBOTS = ["tb3_1", "tb3_2", "tb3_3"]
 EMULATOR = [sys.executable, "-m", "tools.cli", "tb3-emulator"]
@@ -246,14 +246,7 @@ def test_robots_on_one_session_have_distinct_rmw_zenoh_entities() -> None:
 
 
 def _srl(*argv: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *argv],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-    )
+    return srl(*argv, timeout=timeout)
 
 
 @pytest.mark.parametrize(

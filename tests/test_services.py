@@ -18,20 +18,13 @@ import zenoh
 from common.assembly import run_episode
 from common.messages import Action, CriticWeights, ServiceStatus
 from common.settings import Settings
-from tests.harness import ROOT, Proc, cluster, free_port, wait_until
+from tests.harness import ROOT, Proc, cluster, free_port, srl, wait_until
 
 pytestmark = pytest.mark.slow
 
 
 def _run_cli(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "tools.cli", *argv],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        check=False,
-    )
+    return srl(*argv, timeout=timeout)
 
 
 @pytest.mark.parametrize("agent", ["rlqv", "rlq"])
