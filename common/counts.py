@@ -8,6 +8,8 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
+from common.provenance import QUIET_REFUSALS
+
 log = logging.getLogger(__name__)
 
 
@@ -35,7 +37,8 @@ class RobotCounts:
         now = time.monotonic()
         if now - self.warned.get(what, 0.0) >= 1.0:
             self.warned[what] = now
-            log.warning("%s %s: rejected %s: %s", self.service, self.robot, what, reason)
+            level = logging.INFO if what in QUIET_REFUSALS else logging.WARNING
+            log.log(level, "%s %s: rejected %s: %s", self.service, self.robot, what, reason)
 
     def snapshot(self) -> dict[str, int]:
         with self.lock:

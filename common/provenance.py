@@ -223,6 +223,13 @@ MAX_ACTION_STEP_JUMP = 10_000
 # (services.actor.ports.new_episode_id): a session's next episode is at most a day ahead of its
 # last. One forged Action(episode=2**62) with the live actor's session id is refused alone.
 MAX_ACTION_EPISODE_JUMP = 86_400_000
+# Actions of the followed actor session that arrive this soon after its identity token vanished
+# are late, not foreign: a stopping actor's last puts can still be queued (Zenoh batches them)
+# when its token's undeclaration overtakes them. They are refused and counted like any other
+# refusal (``rejected.action.late``) but logged at INFO: a clean shutdown is no alarm.
+LATE_WITHIN_S = 0.25
+# Refusals that are part of normal operation: counted, logged at INFO instead of WARNING.
+QUIET_REFUSALS = frozenset({"action.late"})
 
 
 @dataclass
@@ -234,12 +241,17 @@ class ActionGate:
     gate: SourceGate
     order: ActionOrder = field(default_factory=lambda: ActionOrder(MAX_ACTION_STEP_JUMP, MAX_ACTION_EPISODE_JUMP))
     source: str | None = None  # the session whose actions are followed
+    left: str | None = None  # the followed session that vanished last, and when (monotonic s)
+    left_at: float | None = None
 
     def admit(self, episode: int, step: int, source: str | None, now: float | None = None) -> tuple[str, str] | None:
         """None if the action is to be applied; else (what, reason) of the refusal, ``what`` being
-        ``action.<verdict>`` for another session and ``action`` for one out of order."""
+        ``action.<verdict>`` for another session, ``action.late`` for the followed session's
+        actions within ``LATE_WITHIN_S`` after it vanished, and ``action`` for one out of order."""
         verdict = self.gate.verdict(source)
         if verdict != "accept":
+            if verdict != "conflict" and self.late(source, now):
+                return "action.late", f"from session {source}, which left {self._since(now)}"
             return f"action.{verdict}", f"from session {source} (live actor: {self.gate.sources() or 'none'})"
         if source != self.source:  # a new actor session: its own episode and steps
             self.source = source
@@ -247,13 +259,24 @@ class ActionGate:
         refusal = self.order.check(episode, step, now)
         return None if refusal is None else ("action", refusal)
 
-    def lost(self, zid: str) -> bool:
+    def lost(self, zid: str, now: float | None = None) -> bool:
         """The session ``zid`` vanished: True (and nobody followed any more) if it was the one
         followed, whose last command must then be withdrawn at once."""
         if zid != self.source:
             return False
-        self.source = None
+        self.source, self.left, self.left_at = None, zid, now
         return True
+
+    def late(self, source: str | None, now: float | None) -> bool:
+        """``source`` is the followed session that vanished, at most ``LATE_WITHIN_S`` ago."""
+        if source is None or source != self.left:
+            return False
+        return now is None or self.left_at is None or now - self.left_at <= LATE_WITHIN_S
+
+    def _since(self, now: float | None) -> str:
+        if now is None or self.left_at is None:
+            return "just now"
+        return f"{1000 * (now - self.left_at):.0f} ms ago"
 
 
 def yields_to(own: str, others: list[str]) -> list[str]:

@@ -20,7 +20,7 @@ import zenoh.ext
 
 from common.keys import Service, Topic, identity_key, identity_of, identity_pattern, liveliness_key
 from common.messages import Message, MessageError, decode
-from common.provenance import PlantConflictError, SourceGate, yields_to
+from common.provenance import QUIET_REFUSALS, PlantConflictError, SourceGate, yields_to
 from common.security import check_network_exposure, tls_entries, zenoh_entries
 from common.settings import TransportSettings
 
@@ -131,12 +131,20 @@ class Bus:
             self.counters[name] += amount
 
     def reject(self, what: str, reason: str) -> None:
-        """Count a refused input and log it, at most once a second per kind."""
+        """Count a refused input and log it, at most once a second per kind (at INFO for the
+        refusals of normal operation, :data:`common.provenance.QUIET_REFUSALS`)."""
         self.count(f"rejected.{what}")
         now = time.monotonic()
         if now - self._last_warning.get(what, 0.0) >= 1.0:
             self._last_warning[what] = now
-            log.warning("%s: rejected %s: %s (total %d)", self.service, what, reason, self.counters[f"rejected.{what}"])
+            log.log(
+                logging.INFO if what in QUIET_REFUSALS else logging.WARNING,
+                "%s: rejected %s: %s (total %d)",
+                self.service,
+                what,
+                reason,
+                self.counters[f"rejected.{what}"],
+            )
 
     # -- pub/sub ------------------------------------------------------------------------
     def publisher(self, topic: Topic[M], robot: str, *, cache: int = 0, **chunks: str) -> Callable[[M], None]:

@@ -13,8 +13,19 @@ from collections import Counter
 
 import pytest
 
+from common.counts import RobotCounts
 from common.messages import CriticWeights
-from common.provenance import RESYNC_AFTER, ActionOrder, RefusalRun, SequenceGuard, SourceGate, yields_to
+from common.provenance import (
+    LATE_WITHIN_S,
+    QUIET_REFUSALS,
+    RESYNC_AFTER,
+    ActionGate,
+    ActionOrder,
+    RefusalRun,
+    SequenceGuard,
+    SourceGate,
+    yields_to,
+)
 from common.settings import Settings
 from services.actor.ports import MAX_VERSION_AHEAD_US, WeightsInbox
 
@@ -185,6 +196,35 @@ def test_action_order_a_followed_forged_burst_costs_the_real_actor_a_bounded_run
     assert order.resyncs == 2 and order.last == (500, 2 * RESYNC_AFTER - 1)
     order.reset()  # a new actor session: anything first
     assert order.check(3, 7, 9.0) is None
+
+
+def test_action_gate_calls_the_left_actors_in_flight_actions_late_only_briefly() -> None:
+    """A stopping actor's last queued action may arrive after its token vanished (the CI run of
+    81f1fd2 logged one as a WARNING at the end of a clean `srl up`): refused, counted as
+    ``action.late``; any other source, or the same one later, is refused as before."""
+    gate = ActionGate(SourceGate("actor"))
+    gate.gate.update("a", True)
+    assert gate.admit(1, 0, "a", now=10.0) is None
+    gate.gate.update("a", False)
+    assert gate.lost("a", now=10.0)
+    late = gate.admit(1, 1, "a", now=10.0 + LATE_WITHIN_S / 2)
+    assert late is not None and late[0] == "action.late" and late[0] in QUIET_REFUSALS
+    assert gate.admit(1, 2, "a", now=10.0 + 2 * LATE_WITHIN_S)[0] == "action.unknown"  # type: ignore[index]
+    assert gate.admit(1, 1, "b", now=10.0)[0] == "action.unknown"  # type: ignore[index]  # never followed
+    gate.gate.update("c", True)
+    assert gate.admit(1, 1, "a", now=10.0)[0] == "action.late"  # type: ignore[index]  # c is live, a just left
+    assert gate.admit(1, 1, "b", now=10.0)[0] == "action.foreign"  # type: ignore[index]
+    assert not gate.lost("b", now=11.0) and gate.left == "a"  # a session never followed leaves no trace
+
+
+def test_a_quiet_refusal_is_counted_and_logged_at_info(caplog: pytest.LogCaptureFixture) -> None:
+    counts = RobotCounts("r1", "plant")
+    with caplog.at_level("INFO", logger="common.counts"):
+        counts.reject("action.late", "from session a")
+        counts.reject("action.foreign", "from session b")
+    assert counts.counters["rejected.action.late"] == counts.counters["rejected.action.foreign"] == 1
+    levels = {record.getMessage().split("rejected ")[1].split(":")[0]: record.levelname for record in caplog.records}
+    assert levels == {"action.late": "INFO", "action.foreign": "WARNING"}
 
 
 def test_yields_to_is_the_same_answer_on_both_sides() -> None:

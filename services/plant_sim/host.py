@@ -126,7 +126,7 @@ class RobotIntake:
 
     def on_actor_identity(self, zid: str, alive: bool) -> None:
         with self.lock:
-            if not alive and self.gate.lost(zid):  # the followed actor is gone: stop at once
+            if not alive and self.gate.lost(zid, time.monotonic()):  # the followed actor is gone: stop at once
                 self.at = None
                 self.plant.hold(self.index, (0.0, 0.0))
                 self.actor_lost_stops += 1

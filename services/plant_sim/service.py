@@ -183,7 +183,7 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
 
     def on_actor_identity(zid: str, alive: bool) -> None:
         with action_lock:
-            if not alive and actions.lost(zid):  # the followed actor is gone: stop at once
+            if not alive and actions.lost(zid, time.monotonic()):  # the followed actor is gone: stop at once
                 latest["at"] = None
                 plant.hold(np.zeros(2))
                 bus.count("actor_lost_stops")

@@ -232,7 +232,10 @@ class RobotBridge:
                 self.counts.reject("action", f"for robot {message.robot!r}, this is {self.robot!r}")
                 return
             if not self.actor_alive:
-                self.counts.reject("action", "the actor's liveliness token is absent")
+                if self.actions is not None and self.actions.late(source, received):  # in flight when it left
+                    self.counts.reject("action.late", f"from session {source}, the actor that just left")
+                else:
+                    self.counts.reject("action", "the actor's liveliness token is absent")
                 return
             try:  # the value first: a refused one never moves the order
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
@@ -274,7 +277,7 @@ class RobotBridge:
             return
         live = bool(self.actor_gate.sources())
         with self.lock:
-            if not alive and self.actions is not None and self.actor_alive and self.actions.lost(zid):
+            if not alive and self.actions is not None and self.actor_alive and self.actions.lost(zid, time.monotonic()):
                 log.warning("robot_bridge: the actor session %s is gone: stopping the robot", zid)
                 self.counts.count("actor_lost_stops")
                 self.driving = False
