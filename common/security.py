@@ -39,7 +39,7 @@ import logging
 import os
 import secrets
 import stat
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -136,12 +136,43 @@ DISCOVERY = Rule(
 )
 
 
-def role_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
-    """Every role's rules for robot ``robot`` (besides :data:`DISCOVERY`, which all roles get).
+def role_rules(robots: str | Sequence[str], *, lockstep: bool) -> dict[str, list[Rule]]:
+    """Every role's rules for ``robots`` (one id, or a fleet's ids; besides :data:`DISCOVERY`,
+    which all roles get).
 
     ``lockstep`` (``transport.plant_queries``): the actor may query ``plant/step`` and
     ``plant/reset`` and the plant may serve them. In real time nobody may: a real-time plant
-    declares no queryable, and a step or reset would move the robot behind the actor's back."""
+    declares no queryable, and a step or reset would move the robot behind the actor's back.
+
+    A fleet (several ids): each rule grants its keys for every robot of the fleet (one host
+    process serves many robots under one login), and the monitor -- the read-only observer whose
+    readiness probes and status lines cover the whole fleet (tools/fleet.py) -- may also watch
+    every robot's liveliness and read every robot's status and state (``srl/*/alive/...``,
+    ``srl/*/status/*``, ``srl/*/state``)."""
+    ids = [robots] if isinstance(robots, str) else list(robots)
+    if not ids:
+        raise ValueError("role rules for no robot")
+    each = [_robot_rules(robot, lockstep=lockstep) for robot in ids]
+    if len(each) == 1:
+        return each[0]
+    merged: dict[str, list[Rule]] = {}
+    for role, rules in each[0].items():  # every robot's list has the same rules in the same order
+        merged[role] = [
+            Rule(
+                rule.what, rule.flow, rule.messages, tuple(dict.fromkeys(k for one in each for k in one[role][i].keys))
+            )
+            for i, rule in enumerate(rules)
+        ]
+    everyone = "*"
+    merged["monitor"] += [
+        *read(STATUS.pattern.format(robot=everyone, service="*"), STATE.pattern.format(robot=everyone)),
+        *watch(ALIVE.format(robot=everyone, service="*"), ALIVE.format(robot=everyone, service="*") + "/*"),
+    ]
+    return merged
+
+
+def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
+    """Every role's rules for the one robot ``robot`` (:func:`role_rules`)."""
     check_chunk(robot, "robot id")
 
     def key(pattern: str, service: str = "*", robot: str = robot) -> str:
@@ -185,12 +216,13 @@ def role_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
     }
 
 
-def acl_config(robot: str, *, lockstep: bool) -> dict[str, Any]:
-    """The router's ``access_control`` section: default deny, one subject and policy per role
-    (``lockstep``: the plant queries are allowed, see :func:`role_rules`)."""
+def acl_config(robots: str | Sequence[str], *, lockstep: bool) -> dict[str, Any]:
+    """The router's ``access_control`` section for ``robots`` (one id or a fleet's): default deny,
+    one subject and policy per role (``lockstep``: the plant queries are allowed, see
+    :func:`role_rules`)."""
     rules: list[dict[str, Any]] = [DISCOVERY.as_zenoh("discover")]
     policies: list[dict[str, Any]] = []
-    for role, granted in role_rules(robot, lockstep=lockstep).items():
+    for role, granted in role_rules(robots, lockstep=lockstep).items():
         ids = []
         for i, rule in enumerate(granted):
             rule_id = f"{role}-{i}-{rule.what.replace(' ', '-')}-{rule.flow}"
@@ -308,7 +340,7 @@ def zenoh_entries(transport: TransportSettings, *, router: bool) -> dict[str, An
         _read_secret_file(str(users_file), "users file")  # fail here with a clear message
         return {
             "transport/auth/usrpwd/dictionary_file": str(users_file),
-            "access_control": acl_config(transport.robot, lockstep=transport.plant_queries),
+            "access_control": acl_config(transport.rule_robots, lockstep=transport.plant_queries),
         }
     user, password = client_credentials(transport)
     return {"transport/auth/usrpwd/user": user, "transport/auth/usrpwd/password": password}

@@ -278,6 +278,15 @@ class TransportSettings(_Section):
         description="let a router listen off loopback without secure + TLS: only inside a private container network"
     )
     plant_queries: bool = Field(description="secure router: allow plant/step and plant/reset (lockstep runs only)")
+    acl_robots: str = Field(
+        pattern=r"^([A-Za-z0-9_\-]{1,64}(,[A-Za-z0-9_\-]{1,64})*)?$",
+        description="secure router: the robots the role rules grant, comma-separated ('' = transport.robot)",
+    )
+
+    @property
+    def rule_robots(self) -> list[str]:
+        """The robots a secure router's role rules grant (:attr:`acl_robots`, else :attr:`robot`)."""
+        return self.acl_robots.split(",") if self.acl_robots else [self.robot]
 
     @model_validator(mode="after")
     def _secure_needs_client_mode(self) -> TransportSettings:

@@ -281,6 +281,32 @@ def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside
         assert drift > 1e-4, physics  # odometry is not the truth on the physics robot
 
 
+@pytest.mark.slow
+def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(tmp_path: Path) -> None:
+    """``srl up --robots 2 --secure``: fresh logins per role, mutual TLS, and a router whose rules
+    grant each role the keys of BOTH robots (transport.acl_robots). Were the rules one robot's
+    (the single-robot ACL), the second robot's actions, states and weights would be refused by
+    the router: here both drive on learned weights, nothing is refused, and no secret is left."""
+    import tempfile
+
+    from tools.fleet import format_fleet_summary, run_fleet
+
+    before = {p.name for p in Path(tempfile.gettempdir()).glob("srl-secure-*")}
+    summary = run_fleet(Settings.load(), [], ["sa", "sb"], 8.0, quiet=True, secure=True, summary_dir=tmp_path)
+    assert summary["secure"] is True and summary["router"].startswith("tls/")
+    assert "mutual TLS" in format_fleet_summary(summary)
+    actors = json.loads((tmp_path / "actor.json").read_text())["per_robot"]
+    plant = json.loads((tmp_path / "plant.json").read_text())
+    for row in summary["fleet"]["rows"]:
+        robot = row["robot"]
+        assert row["steps"] >= 40 and row["final_distance_m"] < 1.5 - 0.5, row  # it drove, on its own actions
+        assert actors[robot]["weights_version"] > 0, actors[robot]  # the critic's weights reached its actor
+    assert summary["critic"]["transitions_received"] == summary["fleet"]["steps"]
+    refused = {k: v for k, v in plant["counters"].items() if k.startswith("rejected.") and k != "rejected.action.late"}
+    assert refused == {}, refused
+    assert {p.name for p in Path(tempfile.gettempdir()).glob("srl-secure-*")} == before  # secrets removed
+
+
 # -- the critic behind a fleet --------------------------------------------------------------------
 
 

@@ -177,6 +177,45 @@ def test_acl_config_is_well_formed(acl: dict[str, Any]) -> None:
         acl_config("a/b", lockstep=False)
 
 
+def test_a_fleet_acl_grants_each_role_its_keys_of_every_robot_of_the_fleet_only() -> None:
+    """``srl up --robots K --secure`` (transport.acl_robots): one login per role serves many
+    robots, so each rule carries every robot's key; a robot outside the fleet gets nothing, and the
+    monitor (the fleet's probes and status lines) may watch and read status across robots.
+    Negative control: the one-robot ACL grants neither another robot nor the monitor's wildcards."""
+    fleet = acl_config(["t0", "t1"], lockstep=False)
+    for robot in ("t0", "t1"):
+        assert who(fleet, "put", "ingress", f"srl/{robot}/action") == {"actor"}
+        assert who(fleet, "put", "egress", f"srl/{robot}/action") == {"plant"}
+        assert who(fleet, "put", "ingress", f"srl/{robot}/critic/weights") == {"critic"}
+        assert who(fleet, "put", "ingress", f"srl/{robot}/state") == {"plant"}
+        assert who(fleet, "liveliness_token", "ingress", f"srl/{robot}/alive/actor") == {"actor"}
+        assert who(fleet, "declare_queryable", "ingress", f"srl/{robot}/transition/@adv/pub/1234abcd/1/uhlc") == {
+            "actor"
+        }
+    for key in ("srl/t2/action", "srl/t2/critic/weights", "srl/t2/state"):
+        assert who(fleet, "put", "ingress", key) == set()  # not a robot of the fleet
+    assert who(fleet, "liveliness_query", "ingress", "srl/*/alive/actor") == {"monitor"}
+    assert who(fleet, "declare_subscriber", "ingress", "srl/*/status/actor") == {"monitor"}
+    assert who(fleet, "declare_subscriber", "ingress", "srl/*/state") == {"monitor"}
+    assert who(fleet, "declare_subscriber", "ingress", "srl/**") == set()
+    assert who(fleet, "put", "ingress", "srl/t2/status/actor") == set()  # reading all is not writing any
+    assert who(ACL, "put", "ingress", "srl/t1/action") == set()
+    assert who(ACL, "liveliness_query", "ingress", "srl/*/alive/actor") == set()
+    assert who(ACL, "declare_subscriber", "ingress", "srl/*/status/actor") == set()
+    assert len(fleet["rules"]) == len(acl_config(["t0", "t1", "t2", "t3"], lockstep=False)["rules"])  # not per robot
+    with pytest.raises(ValueError, match="no robot"):
+        acl_config([], lockstep=False)
+
+
+def test_the_router_takes_its_fleet_from_acl_robots() -> None:
+    base = Settings.load().transport
+    assert base.rule_robots == [base.robot]
+    fleet = base.model_copy(update={"acl_robots": "t0,t1"})
+    assert fleet.rule_robots == ["t0", "t1"]
+    with pytest.raises(ValueError, match="acl_robots"):
+        Settings.load(transport={"acl_robots": "t0,,t1"})
+
+
 # -- credentials and settings -------------------------------------------------------------------
 def test_credentials_are_random_private_and_read_back(tmp_path: Path) -> None:
     first = write_credentials(tmp_path / "one")

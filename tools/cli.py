@@ -198,7 +198,9 @@ def cmd_router(args: argparse.Namespace) -> int:
         ) from error
     # its one line of normal output, on stdout (not a warning): what it serves and how
     transport = settings.transport
-    rules = f"; users and access rules of robot {transport.robot} enforced" if transport.secure else ""
+    robots = transport.rule_robots
+    whose = f"robot {robots[0]}" if len(robots) == 1 else f"{len(robots)} robots ({robots[0]}..{robots[-1]})"
+    rules = f"; users and access rules of {whose} enforced" if transport.secure else ""
     # Zenoh keeps trying an unreachable router (a router's connect never gives up): it links when that one comes up
     links = f"; connecting to {', '.join(transport.connect)}" if transport.connect else ""
     print(

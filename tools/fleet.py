@@ -43,6 +43,7 @@ from common.transport import zenoh_config
 from tools.up import (
     ServiceDiedError,
     SignalGuard,
+    Logins,
     Supervisor,
     free_loopback_endpoint,
     physics_plant,
@@ -292,6 +293,7 @@ def run_fleet(
     robot_endpoints: dict[str, str] | None = None,
     bridge_args: list[str] | None = None,
     pooled: bool = False,
+    secure: bool = False,
 ) -> dict[str, Any]:
     """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary.
 
@@ -299,20 +301,21 @@ def run_fleet(
     its namespace; emulated TurtleBot3s for the robots without an entry in ``robot_endpoints``.
     ``plant="physics"``: simulated robots as for ``sim``, each the MuJoCo TurtleBot3
     (``plant.model = physics``: lag, deadband, slip, odometry) instead of the ideal unicycle.
-    ``pooled``: one critic learner for every robot (critic.pooled), else one per robot."""
+    ``pooled``: one critic learner for every robot (critic.pooled), else one per robot.
+    ``secure``: as ``srl up --secure`` (tools.up.Logins): every child logs in as its role over
+    mutual TLS, and the router's rules grant the roles the keys of every robot of the fleet."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
     if plant not in ("sim", "physics", "robot"):
         raise ValueError(f"unknown plant {plant!r} (sim, physics or robot)")
     if not 1 <= actor_hosts <= len(robots):
         raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
+    if secure and count_messages:
+        raise ValueError("counting every message needs to read srl/**, which no role may do with secure")
     router = free_loopback_endpoint()
     settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
-    scratch = Path(tempfile.mkdtemp(prefix="srl-fleet-"))
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
-    # the critic's checkpoint is written as in any run (its cost is part of the fleet's), but here
-    env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
     # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
     env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
@@ -332,26 +335,50 @@ def run_fleet(
     supervisor = Supervisor(common, env, quiet=quiet)
     ids = ",".join(robots)
     started = time.monotonic()
+    logins: Logins | None = None
+    scratch: Path | None = None
     with SignalGuard() as guard:
         try:
-            supervisor.spawn("router", ["router", *common])
+            # made under the guard: a signal from here on still removes them (the finally below)
+            scratch = Path(tempfile.mkdtemp(prefix="srl-fleet-"))
+            # the critic's checkpoint is written as in any run (its cost is part of the fleet's), but here
+            env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
+            login: dict[str, dict[str, str]] = {}
+            if secure:
+                logins = Logins.create(settings.transport, lockstep=False, robots=robots)
+                login = logins.environment
+                common = logins.argv(common)
+                # this process's probes and status lines log in as the read-only monitor
+                settings = settings.model_copy(update={"transport": logins.monitor})
+            supervisor.spawn("router", ["router", *common], login.get("router"))
             supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
             starts = circle_starts(len(robots), circle)
             if plant == "robot":  # emulated or real TurtleBot3s behind bridges
                 from tools.fleet_robot import spawn_robot_plants
 
                 ros = spawn_robot_plants(
-                    supervisor, settings, common, robots, starts, robot_endpoints or {}, bridge_args or [], layout
+                    supervisor,
+                    settings,
+                    common,
+                    robots,
+                    starts,
+                    robot_endpoints or {},
+                    bridge_args or [],
+                    layout,
+                    login.get("plant"),
                 )
             elif layout == "host":
-                supervisor.spawn("plant", ["plant-sim", *common, f"--robots={ids}", f"--circle={circle!r}"])
+                supervisor.spawn(
+                    "plant", ["plant-sim", *common, f"--robots={ids}", f"--circle={circle!r}"], login.get("plant")
+                )
             else:
                 for robot, start in zip(robots, starts, strict=True):
                     supervisor.spawn(
                         f"plant-{robot}",
                         ["plant-sim", *common, f"--robot={robot}", "--start=" + ",".join(repr(c) for c in start)],
+                        login.get("plant"),
                     )
-            supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"])
+            supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"], login.get("critic"))
             wait_fleet_alive(supervisor, settings, robots, "plant")
             if plant == "robot":
                 from tools.fleet_robot import wait_fleet_odometry
@@ -361,12 +388,13 @@ def run_fleet(
             run = ["--run-seconds", repr(duration)]
             if layout == "host":
                 actors = [
-                    supervisor.spawn(name, ["actor", *common, f"--robots={','.join(share)}", *run])
+                    supervisor.spawn(name, ["actor", *common, f"--robots={','.join(share)}", *run], login.get("actor"))
                     for name, share in host_shares(robots, actor_hosts).items()
                 ]
             else:
                 actors = [
-                    supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run]) for robot in robots
+                    supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run], login.get("actor"))
+                    for robot in robots
                 ]
             wait_fleet_alive(supervisor, settings, robots, "actor")
             pids = {name: child.process.pid for name, child in supervisor.children.items()}
@@ -414,7 +442,10 @@ def run_fleet(
 
                 stop_bridges(supervisor, robots, layout)
             supervisor.stop_all()
-            shutil.rmtree(scratch, ignore_errors=True)
+            if scratch is not None:
+                shutil.rmtree(scratch, ignore_errors=True)
+            if logins is not None:
+                logins.remove()
         guard.raise_if_received()
     for name, child in supervisor.children.items():  # every service ended cleanly (as srl up checks)
         if exit_code(child.process.returncode) != 0:
@@ -440,6 +471,8 @@ def run_fleet(
         "run_seconds": ran,  # the span over which CPU was measured
         "circle_radius_m": circle,
         "actor_hosts": actor_hosts if layout == "host" else len(robots),
+        "secure": secure,
+        "router": router if logins is None or logins.tls_router is None else logins.tls_router,
         "agent": settings.actor.agent,
         "horizon": settings.actor.horizon,
         "fleet": view.to_json_dict(),
@@ -492,6 +525,12 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
         f"  {'robot':<12} {'steps':>5} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'staleness p99/max':>17} "
         f"{'final m':>8} parked",
     ]
+    if summary.get("secure"):
+        lines.insert(
+            1,
+            "  security       user/password login per role + access rules at the router for every robot"
+            + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""),
+        )
     for row in view.rows:
         lines.append(
             f"  {row.robot:<12} {row.steps:>5} {row.missed_deadlines:>6} {row.jitter_p99_ms:>8.2f}ms "

@@ -63,8 +63,8 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
     """``srl up --robots``: the fleet's run, a status line a second, the per-robot table, ``--json``."""
     robots = fleet_robots(args, ROS_FLEET_PREFIX if args.plant == "robot" else "robot")
     assert robots is not None
-    if args.plant not in ("sim", "physics", "robot") or args.secure:
-        raise UsageError("--robots runs --plant sim, physics or robot, without --secure, for now")
+    if args.plant not in ("sim", "physics", "robot"):
+        raise UsageError("--robots runs --plant sim, physics or robot")
     endpoints: dict[str, str] = {}
     bridge_args: list[str] = []
     if args.plant == "robot":
@@ -111,6 +111,7 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
             robot_endpoints=endpoints,
             bridge_args=bridge_args,
             pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
+            secure=args.secure,
         )
     except ServiceDiedError as error:  # as srl up says it: one line and the service's last words
         print(f"srl up: error: {error}", file=sys.stderr)

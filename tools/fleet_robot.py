@@ -46,8 +46,10 @@ def spawn_robot_plants(
     endpoints: dict[str, str],
     bridge_args: list[str],
     layout: str,
+    login: dict[str, str] | None = None,
 ) -> dict[str, str]:
-    """The emulated robots (for robots without an endpoint) and the bridge(s); robot -> endpoint."""
+    """The emulated robots (for robots without an endpoint) and the bridge(s); robot -> endpoint.
+    ``login``: the bridges' login environment (the plant role's, ``--secure``)."""
     fleet = dict(endpoints)
     for robot, start in zip(robots, starts, strict=True):
         if fleet.get(robot):
@@ -77,6 +79,7 @@ def spawn_robot_plants(
         supervisor.spawn(
             "robot_bridge",
             ["robot-bridge", *common, *bridge_args, f"--robots={','.join(robots)}", f"--robot-endpoints={spec}"],
+            login,
         )
     else:
         for robot in robots:
@@ -90,6 +93,7 @@ def spawn_robot_plants(
                     f"--namespace={robot}",
                     f"--robot-endpoint={fleet[robot]}",
                 ],
+                login,
             )
     return fleet
 

@@ -46,7 +46,7 @@ from pydantic import TypeAdapter, ValidationError
 from common.certs import write_tls_material
 from common.frames import Pose2D, to_goal_frame
 from common.security import ROLES, write_credentials
-from common.settings import Settings
+from common.settings import Settings, TransportSettings
 from common.summaries import (
     ACTOR_SUMMARY,
     BridgeSummary,
@@ -353,6 +353,61 @@ def _tls_endpoint(endpoint: str) -> str | None:
     return "tls/" + endpoint[len("tcp/") :] if endpoint.startswith("tcp/") else None
 
 
+@dataclass
+class Logins:
+    """One secure run's logins (``srl up --secure``, also with ``--robots``): fresh random
+    credentials for every role in a private temporary directory, and mutual TLS on the same
+    address when the router's endpoint is tcp/. ``environment`` is the login environment of each
+    role's children and of the router (``"router"``); ``monitor`` is the transport this process's
+    own probes log in with; :meth:`argv` moves the children's ``--router`` to the TLS endpoint;
+    :meth:`remove` deletes every secret (the caller's ``finally``)."""
+
+    directory: Path
+    environment: dict[str, dict[str, str]]
+    monitor: TransportSettings
+    tls_router: str | None
+
+    @classmethod
+    def create(cls, transport: TransportSettings, *, lockstep: bool, robots: list[str] | None = None) -> Logins:
+        """``robots``: the fleet whose keys the router's rules grant (default: transport.robot)."""
+        credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-")))
+        try:
+            environment = {user: credentials.role_environment(user) for user in ("actor", "critic", "plant")}
+            environment["router"] = credentials.router_environment(lockstep=lockstep)
+            if robots is not None:
+                environment["router"]["SRL_TRANSPORT__ACL_ROBOTS"] = ",".join(robots)
+            monitor = credentials.transport(transport, "monitor")
+            tls_router = _tls_endpoint(transport.router)
+            if tls_router is not None:  # the same address over mutual TLS (certificates next to the passwords)
+                tls = write_tls_material(credentials.directory / "tls", ROLES)
+                for user in environment:
+                    environment[user] = {
+                        **environment[user],
+                        **tls.environment(user),
+                        "SRL_TRANSPORT__ROUTER": tls_router,
+                    }
+                monitor = monitor.model_copy(
+                    update={
+                        "router": tls_router,
+                        "tls_ca": str(tls.ca),
+                        "tls_cert": str(tls.cert("monitor")),
+                        "tls_key": str(tls.key("monitor")),
+                    }
+                )
+        except BaseException:
+            shutil.rmtree(credentials.directory, ignore_errors=True)
+            raise
+        return cls(credentials.directory, environment, monitor, tls_router)
+
+    def argv(self, args: list[str]) -> list[str]:
+        if self.tls_router is None:
+            return list(args)
+        return [f"--router={self.tls_router}" if arg.startswith("--router=") else arg for arg in args]
+
+    def remove(self) -> None:
+        shutil.rmtree(self.directory, ignore_errors=True)
+
+
 class StatusMonitor:
     """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session,
     with the plant's refusal counters (``srl/<robot>/status/plant``: the bridge's refused and
@@ -527,30 +582,14 @@ def _run_up(
     view_port: int | None = None,
 ) -> dict[str, Any]:
     common_args = [*settings_args]
-    credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-"))) if secure else None
+    logins = Logins.create(settings.transport, lockstep=mode == "lockstep") if secure else None
     role: dict[str, dict[str, str]] = {}  # child -> its login environment
-    if credentials is not None:
-        users = {"plant": "plant", "robot_bridge": "plant", "critic": "critic", "actor": "actor"}
-        role = {name: credentials.role_environment(user) for name, user in users.items()}
-        role["router"] = credentials.router_environment(lockstep=mode == "lockstep")
-        monitor = credentials.transport(settings.transport, "monitor")
-        tls_router = _tls_endpoint(settings.transport.router)
-        if tls_router is not None:  # the same address over mutual TLS (certificates next to the passwords)
-            tls = write_tls_material(credentials.directory / "tls", ROLES)
-            for name, user in [*users.items(), ("router", "router")]:
-                role[name] = {**role[name], **tls.environment(user), "SRL_TRANSPORT__ROUTER": tls_router}
-            common_args = [f"--router={tls_router}" if arg.startswith("--router=") else arg for arg in common_args]
-            robot_args = [f"--router={tls_router}" if arg.startswith("--router=") else arg for arg in robot_args]
-            monitor = monitor.model_copy(
-                update={
-                    "router": tls_router,
-                    "tls_ca": str(tls.ca),
-                    "tls_cert": str(tls.cert("monitor")),
-                    "tls_key": str(tls.key("monitor")),
-                }
-            )
+    if logins is not None:
+        users = {"plant": "plant", "robot_bridge": "plant", "critic": "critic", "actor": "actor", "router": "router"}
+        role = {name: logins.environment[user] for name, user in users.items()}
+        common_args, robot_args = logins.argv(common_args), logins.argv(robot_args)
         # this supervisor's own probes log in as the read-only monitor
-        settings = settings.model_copy(update={"transport": monitor})
+        settings = settings.model_copy(update={"transport": logins.monitor})
     try:
         supervisor.spawn("router", ["router", *common_args], role.get("router"))
         supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
@@ -618,8 +657,8 @@ def _run_up(
         if "robot_bridge" in supervisor.children:  # first, so that its last zero reaches the robot
             supervisor.stop_one("robot_bridge")
         supervisor.stop_all()
-        if credentials is not None:
-            shutil.rmtree(credentials.directory, ignore_errors=True)
+        if logins is not None:
+            logins.remove()
     guard.raise_if_received()
     for name, child in supervisor.children.items():
         code = child.process.returncode
