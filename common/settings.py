@@ -260,6 +260,9 @@ class TransportSettings(_Section):
     status_period: float = Field(gt=0)
     state_rate: float = Field(gt=0, le=1000)
     express: bool = Field(description="every put sent at once (true) or batched by Zenoh with others due")
+    callback_threads: bool = Field(
+        description="each subscription's handler in a Python thread of its own (true) or on Zenoh's network thread"
+    )
     action_timeout_steps: int = Field(ge=2)
     transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
     max_message_bytes: int = Field(ge=65_536, le=2**30, description="Zenoh drops bigger messages on arrival")

@@ -92,10 +92,13 @@ def session_errors() -> tuple[type[Exception], ...]:
 class Bus:
     """One Zenoh session of one service, with counters shared by all its handlers."""
 
-    def __init__(self, session: zenoh.Session, service: str, express: bool = True) -> None:
+    def __init__(
+        self, session: zenoh.Session, service: str, express: bool = True, callback_threads: bool = False
+    ) -> None:
         self.session = session
         self.service = service
         self.express = express  # transport.express: every put sent at once, or batched by Zenoh
+        self.callback_threads = callback_threads  # transport.callback_threads (see _callback)
         self.counters: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._last_warning: dict[str, float] = {}
@@ -108,7 +111,16 @@ class Bus:
 
     @classmethod
     def open(cls, transport: TransportSettings, service: str) -> Bus:
-        return cls(zenoh.open(zenoh_config(transport)), service, transport.express)
+        return cls(zenoh.open(zenoh_config(transport)), service, transport.express, transport.callback_threads)
+
+    def _callback(self, handler: Callable[[Any], None]) -> Any:
+        """A subscription's handler as Zenoh runs it (transport.callback_threads): in a Python
+        thread of its own, fed by a channel (Zenoh's default), or directly in Zenoh's network
+        thread. Direct saves a thread per subscription -- an actor host of 50 robots had ~250 --
+        and the hand-over of every sample to it: ~15 % of a 100-robot fleet's CPU (README
+        "Capacity"). Handlers here only decode, check and store (none waits on the network), so
+        they may run on the network thread."""
+        return zenoh.handlers.Callback(handler, indirect=self.callback_threads)
 
     def close(self) -> None:
         self.closing.set()
@@ -224,13 +236,13 @@ class Bus:
                 zenoh.ext.declare_advanced_subscriber(
                     self.session,
                     key,
-                    on_sample,
+                    self._callback(on_sample),
                     history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
                     recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
                 )
             )
         else:
-            self._keep.append(self.session.declare_subscriber(key, on_sample))
+            self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample)))
 
     def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
         """Keep only the newest sample on ``key``, undecoded, with its source and arrival time
@@ -243,7 +255,7 @@ class Bus:
             stamp = sample.timestamp
             newest.put(sample.payload.to_bytes(), None if stamp is None else str(stamp.get_id()), time.monotonic())
 
-        self._keep.append(self.session.declare_subscriber(key, on_sample))
+        self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample)))
         return newest
 
     # -- queries ------------------------------------------------------------------------
@@ -350,7 +362,9 @@ class Bus:
                 on_change(zid, alive)
 
         self._keep.append(
-            self.session.liveliness().declare_subscriber(identity_pattern(robot, service), on_token, history=True)
+            self.session.liveliness().declare_subscriber(
+                identity_pattern(robot, service), self._callback(on_token), history=True
+            )
         )
         for zid in self.live_identities(robot, service, timeout=1.0):
             if zid not in gate.sources():
@@ -366,7 +380,9 @@ class Bus:
             handler(sample.kind == zenoh.SampleKind.PUT)
 
         self._keep.append(
-            self.session.liveliness().declare_subscriber(liveliness_key(robot, service), on_token, history=True)
+            self.session.liveliness().declare_subscriber(
+                liveliness_key(robot, service), self._callback(on_token), history=True
+            )
         )
 
     def is_alive(self, robot: str, service: str, timeout: float = 1.0) -> bool:

@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from common.actor import ActorProblem, StackedActor
+from common.actor import ActorMemory, ActorProblem, StackedActor
 from common.dynamics import exact_step
 
 DELTA = 0.1
@@ -567,22 +567,36 @@ def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> No
     assert search.counters.flip_solves >= len(found) and plain.counters.flip_solves == 0
 
 
-def test_a_hurried_step_keeps_the_global_phase_and_one_polish_and_skips_the_extras() -> None:
+def test_a_hurried_step_is_one_warm_polish_and_skips_the_extras() -> None:
     # services/actor/host.py hurries a tick served late (issue 16): the runner-up polish and the
-    # vertex search are skipped, the global phase's best start is still polished. Oracle: an
-    # actor built without those extras (margin and refresh off, flips off) on the same problems
-    # gives the same actions; and the unhurried actor does use its extras on them.
+    # vertex search are skipped and, once the robot has a plan, the global phase too: one fatrop
+    # polish of the warm start. Oracles: with no plan yet (a cold step) an actor built without
+    # the extras (margin and refresh off, flips off) gives the same actions; with a plan, an
+    # actor built without the global phase (multistart off) given the same plans does. Negative
+    # controls: the unhurried actor uses its extras, and its global phase moves some plans.
     hurried = make_actor("rlq", 6, multistart=True, multistart_flips=3)
     bare = make_actor("rlq", 6, multistart=True, multistart_flips=0, multistart_margin=0.0, multistart_refresh=0)
     full = make_actor("rlq", 6, multistart=True, multistart_flips=3)
+    warm_only = make_actor("rlq", 6, multistart=False)
+    moved = 0
     for w, v_w, state in indefinite_problems(4, 12):
-        for actor in (hurried, bare, full):
+        for actor in (hurried, bare, full, warm_only):
             actor.reset()
         fast = hurried.step(state, w, v_w, hurry=True)
         assert fast.success
         np.testing.assert_allclose(fast.plan, bare.step(state, w, v_w).plan, atol=1e-9)
         full.step(state, w, v_w)
-    assert hurried.counters.hurried_solves == 12
+        plans = hurried.swap_memory(ActorMemory())
+        hurried.swap_memory(plans)
+        warm_only.swap_memory(ActorMemory(plans.previous_x.copy(), None))  # type: ignore[union-attr]
+        after = exact_step(state, fast.action, 0.1)
+        second = hurried.step(after, w, v_w, hurry=True)
+        assert second.success
+        np.testing.assert_allclose(second.plan, warm_only.step(after, w, v_w).plan, atol=1e-9)
+        bare.swap_memory(ActorMemory(plans.previous_x.copy(), None))  # type: ignore[union-attr]
+        moved += not np.allclose(bare.step(after, w, v_w).plan, second.plan, atol=1e-6)
+    assert hurried.counters.hurried_solves == 24
     assert hurried.counters.second_solves == 0 and hurried.counters.flip_solves == 0
     assert full.counters.hurried_solves == 0
     assert full.counters.second_solves + full.counters.flip_solves > 0  # the extras a hurry skips
+    assert moved > 0  # the global phase a hurry skips does change plans here

@@ -51,8 +51,9 @@ from services.actor.service import wire_realtime
 log = logging.getLogger(__name__)
 
 # A tick served more than this fraction of a period after its due time is solved in a hurry
-# (StackedActor.step: no runner-up polish, no vertex search): a host behind its schedule sheds
-# the optional work until it is on time again, instead of missing deadlines (issue 16).
+# (StackedActor.step: one polish of the warm start, no global phase, runner-up polish or vertex
+# search): a host behind its schedule sheds the optional work until it is on time again,
+# instead of missing deadlines (issue 16).
 HURRY_FRACTION = 0.05
 
 
