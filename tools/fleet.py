@@ -41,9 +41,9 @@ from common.settings import Settings
 from common.summaries import CriticSummary, RealtimeActorSummary
 from common.transport import zenoh_config
 from tools.up import (
+    Logins,
     ServiceDiedError,
     SignalGuard,
-    Logins,
     Supervisor,
     free_loopback_endpoint,
     physics_plant,
