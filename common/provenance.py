@@ -250,8 +250,9 @@ class ActionGate:
         actions within ``LATE_WITHIN_S`` after it vanished, and ``action`` for one out of order."""
         verdict = self.gate.verdict(source)
         if verdict != "accept":
-            if verdict != "conflict" and self.late(source, now):
-                return "action.late", f"from session {source}, which left {self._since(now)}"
+            late = self.late_refusal(source, now) if verdict != "conflict" else None
+            if late is not None:
+                return late
             return f"action.{verdict}", f"from session {source} (live actor: {self.gate.sources() or 'none'})"
         if source != self.source:  # a new actor session: its own episode and steps
             self.source = source
@@ -267,16 +268,16 @@ class ActionGate:
         self.source, self.left, self.left_at = None, zid, now
         return True
 
-    def late(self, source: str | None, now: float | None) -> bool:
-        """``source`` is the followed session that vanished, at most ``LATE_WITHIN_S`` ago."""
+    def late_refusal(self, source: str | None, now: float | None) -> tuple[str, str] | None:
+        """``("action.late", reason)`` if ``source`` is the followed session that vanished at most
+        ``LATE_WITHIN_S`` ago (its actions still in flight when it left), else None."""
         if source is None or source != self.left:
-            return False
-        return now is None or self.left_at is None or now - self.left_at <= LATE_WITHIN_S
-
-    def _since(self, now: float | None) -> str:
+            return None
         if now is None or self.left_at is None:
-            return "just now"
-        return f"{1000 * (now - self.left_at):.0f} ms ago"
+            return "action.late", f"from session {source}, which just left"
+        if now - self.left_at > LATE_WITHIN_S:
+            return None
+        return "action.late", f"from session {source}, which left {1000 * (now - self.left_at):.0f} ms ago"
 
 
 def yields_to(own: str, others: list[str]) -> list[str]:

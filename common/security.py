@@ -163,10 +163,10 @@ def role_rules(robots: str | Sequence[str], *, lockstep: bool) -> dict[str, list
             )
             for i, rule in enumerate(rules)
         ]
-    everyone = "*"
+    alive = ALIVE.format(robot="*", service="*")
     merged["monitor"] += [
-        *read(STATUS.pattern.format(robot=everyone, service="*"), STATE.pattern.format(robot=everyone)),
-        *watch(ALIVE.format(robot=everyone, service="*"), ALIVE.format(robot=everyone, service="*") + "/*"),
+        *read(STATUS.pattern.format(robot="*", service="*"), STATE.pattern.format(robot="*")),
+        *watch(alive, alive + "/*"),
     ]
     return merged
 

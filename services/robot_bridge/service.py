@@ -231,11 +231,9 @@ class RobotBridge:
             if message.robot != self.robot:
                 self.counts.reject("action", f"for robot {message.robot!r}, this is {self.robot!r}")
                 return
-            if not self.actor_alive:
-                if self.actions is not None and self.actions.late(source, received):  # in flight when it left
-                    self.counts.reject("action.late", f"from session {source}, the actor that just left")
-                else:
-                    self.counts.reject("action", "the actor's liveliness token is absent")
+            if not self.actor_alive:  # an action in flight when its actor left is late (ActionGate)
+                late = self.actions.late_refusal(source, received) if self.actions is not None else None
+                self.counts.reject(*(late or ("action", "the actor's liveliness token is absent")))
                 return
             try:  # the value first: a refused one never moves the order
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
