@@ -38,14 +38,12 @@ import numpy as np
 from common.agents import AGENTS, Agent, learns, uses_value_critic
 from common.arrival import ArrivalRule
 from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
-from common.features import feature_count, feature_index_pairs, phi_q, phi_v, stage_cost
+from common.features import Q_FEATURES, V_FEATURES, feature_index_pairs, phi_q, phi_v, stage_cost
 from common.stats import Window
 
 log = logging.getLogger(__name__)
 
-Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)
 STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
-V_FEATURES = feature_count(STATE_DIM)
 # The global phase's starts (ActorProblem.multistart): the shifted and the earlier plan (or, with
 # no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
 GLOBAL_STARTS = 5

@@ -9,7 +9,8 @@ step index ``j`` breaks the pair) the TD errors are
 
 and the fit minimizes ``1/2 sum e_j^2 + lambda/2 |w - w_prev|^2`` (optionally within box
 bounds). With ``w_prev`` frozen that is LINEAR least squares, solved as such: ``numpy.lstsq``
-without bounds, ``scipy.optimize.lsq_linear`` with them.
+without bounds, ``scipy.optimize.lsq_linear`` (BVLS) with them -- or, when the last fit's set of
+weights on a bound is still optimal, one ``lstsq`` on the others (:func:`bounded_lstsq`).
 
 Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M < 16``): we
 solve for the change ``dw = w - w_prev`` and take the minimum-norm ``dw``, i.e. the weights
@@ -33,7 +34,7 @@ import numpy as np
 from scipy.optimize import lsq_linear
 
 from common.agents import fit_due
-from common.features import phi_q, phi_q_rows, phi_v, phi_v_rows
+from common.features import Q_FEATURES, phi_q, phi_q_rows, phi_v, phi_v_rows
 
 Features = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
@@ -53,6 +54,8 @@ class FitResult:
     weights: np.ndarray
     residual: float  # 1/2 sum e_j^2 at the new weights (the TD part, ridge excluded)
     pairs: int
+    # Bounded fits: which weights ended on a bound (-1 low, +1 high, 0 free); the next fit's guess.
+    on_bound: np.ndarray | None = None
 
 
 def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
@@ -64,6 +67,37 @@ def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
     return [(a, a + 1) for a in range(len(steps) - 1) if steps[a + 1] == steps[a] + 1]
 
 
+KKT_TOLERANCE = 1e-10  # scipy's lsq_linear default ``tol``: the largest KKT violation accepted
+
+
+def bounded_lstsq(
+    a: np.ndarray, b: np.ndarray, low: np.ndarray, high: np.ndarray, guess: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``min |a x - b|`` subject to ``low <= x <= high``: ``(x, on_bound)``.
+
+    ``guess``: the ``on_bound`` of a previous, similar problem (the critic's last fit). If the
+    least squares on its free columns, with the others held at their bounds, is within the bounds
+    and meets the KKT conditions (scipy's test and tolerance), that is the minimum: ONE ``lstsq``.
+    Otherwise scipy's BVLS (``lsq_linear``) solves it, as it always did. Use a guess only for a
+    strictly convex problem (full column rank, e.g. with a ridge): its minimum is unique, so both
+    ways reach the same ``x`` (to rounding) and the guess changes the cost, never the answer.
+    """
+    n = a.shape[1]
+    if guess is not None and guess.shape == (n,):
+        free = guess == 0
+        x = np.where(guess < 0, low, np.where(guess > 0, high, 0.0))
+        z = np.linalg.lstsq(a[:, free], b - a @ (x * ~free), rcond=None)[0]
+        if np.all(z >= low[free]) and np.all(z <= high[free]):
+            x[free] = z
+            gradient = a.T @ (a @ x - b)
+            violation = gradient * guess  # > 0: moving off its bound would lower the cost
+            violation[free] = np.abs(gradient[free])
+            if n == 0 or float(np.max(violation)) < KKT_TOLERANCE:
+                return x, guess.copy()
+    solution = lsq_linear(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
+    return solution.x, np.asarray(solution.active_mask, dtype=float)
+
+
 def td_fit(
     features_now: np.ndarray,
     features_next: np.ndarray,
@@ -72,17 +106,20 @@ def td_fit(
     discount: float,
     ridge: float = 0.0,
     bounds: tuple[float, float] | None = None,
+    on_bound: np.ndarray | None = None,
 ) -> FitResult:
     """Least-squares TD fit of linear weights, dimension-generic.
 
     ``features_now[j] = phi(z_j)``, ``features_next[j] = phi(z_{j+1})``, ``costs[j] = c_j``;
-    targets are ``c_j + discount * <previous_weights, phi(z_{j+1})>``.
+    targets are ``c_j + discount * <previous_weights, phi(z_{j+1})>``. ``on_bound``: the last
+    bounded fit's (:attr:`FitResult.on_bound`), a guess that makes this one cheaper when the
+    ridge makes the problem strictly convex (:func:`bounded_lstsq`); the result is the same.
     """
     previous = np.asarray(previous_weights, dtype=float)
     a = np.atleast_2d(np.asarray(features_now, dtype=float))
     pairs = a.shape[0] if np.size(costs) else 0
     if pairs == 0:
-        return FitResult(previous.copy(), 0.0, 0)
+        return FitResult(previous.copy(), 0.0, 0, on_bound)
     targets = np.asarray(costs, float) + discount * (np.asarray(features_next, float) @ previous)
     # Solve for dw = w - w_prev: A dw ~ targets - A w_prev, with the ridge as extra rows.
     rhs = targets - a @ previous
@@ -91,6 +128,7 @@ def td_fit(
         rhs_aug = np.concatenate([rhs, np.zeros(previous.size)])
     else:
         a_aug, rhs_aug = a, rhs
+    active = None
     if bounds is None:
         delta_w = np.linalg.lstsq(a_aug, rhs_aug, rcond=None)[0]
         weights = previous + delta_w
@@ -99,10 +137,10 @@ def td_fit(
         # The previous weights may sit outside new bounds: clip before measuring the change.
         base = np.clip(previous, low, high)
         rhs_b = rhs_aug - a_aug @ (base - previous)
-        solution = lsq_linear(a_aug, rhs_b, bounds=(low - base, high - base), method="bvls")
-        weights = np.clip(base + solution.x, low, high)
+        step, active = bounded_lstsq(a_aug, rhs_b, low - base, high - base, on_bound if ridge > 0 else None)
+        weights = np.clip(base + step, low, high)
     errors = a @ weights - targets
-    return FitResult(weights, 0.5 * float(errors @ errors), pairs)
+    return FitResult(weights, 0.5 * float(errors @ errors), pairs, active)
 
 
 class Replay:
@@ -234,6 +272,9 @@ class DoubleCritic:
         self.discount = discount
         self.ridge = ridge
         self.bounds = bounds
+        # Each critic's last bounded fit: which weights ended on a bound (the next fit's guess).
+        self.q_on_bound: np.ndarray | None = None
+        self.v_on_bound: np.ndarray | None = None
 
     def q_value(self, state: np.ndarray, action: np.ndarray) -> float:
         return float(self.q_weights @ phi_q(state, action))
@@ -242,18 +283,32 @@ class DoubleCritic:
         return float(self.v_weights @ phi_v(state))
 
     def update(self, replay: Replay | PooledReplay) -> CriticUpdate:
-        """One TD least-squares fit of both critics on the replay (Algorithm 1, line 6)."""
+        """One TD least-squares fit of both critics on the replay (Algorithm 1, line 6).
+
+        One design for both: the replay's pairs and arrays are built once, phi_Q and phi_V
+        computed side by side (each column as :func:`phi_q_rows` / :func:`phi_v_rows` alone)."""
         args = (self.discount, self.ridge, self.bounds)
-        q_now, q_next, costs = replay.design(phi_q_rows)
-        q_fit = td_fit(q_now, q_next, costs, self.q_weights, *args)
-        v_now, v_next, costs = replay.design(lambda states, _: phi_v_rows(states))
-        v_fit = td_fit(v_now, v_next, costs, self.v_weights, *args)
+        now, following, costs = replay.design(_phi_qv_rows)
+        q = Q_FEATURES
+        q_fit = td_fit(_columns(now, 0, q), _columns(following, 0, q), costs, self.q_weights, *args, self.q_on_bound)
+        v_fit = td_fit(_columns(now, q), _columns(following, q), costs, self.v_weights, *args, self.v_on_bound)
         # Never accept a non-finite fit (ill-conditioned data): keep the previous weights.
         if np.all(np.isfinite(q_fit.weights)):
-            self.q_weights = q_fit.weights
+            self.q_weights, self.q_on_bound = q_fit.weights, q_fit.on_bound
         if np.all(np.isfinite(v_fit.weights)):
-            self.v_weights = v_fit.weights
+            self.v_weights, self.v_on_bound = v_fit.weights, v_fit.on_bound
         return CriticUpdate(q_fit, v_fit)
+
+
+def _phi_qv_rows(states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """phi_Q's Q_FEATURES columns, then phi_V's."""
+    return np.hstack([phi_q_rows(states, actions), phi_v_rows(states)])
+
+
+def _columns(rows: np.ndarray, start: int, stop: int | None = None) -> np.ndarray:
+    """Columns ``start:stop`` as their own contiguous array (the fit's products then run as on a
+    design built alone); an empty design stays empty."""
+    return np.ascontiguousarray(rows[:, start:stop]) if rows.size else rows
 
 
 class PooledLearner:

@@ -13,12 +13,16 @@ from typing import Any
 
 import numpy as np
 
-from common.dynamics import is_symbolic
+from common.dynamics import ACTION_DIM, STATE_DIM, is_symbolic
 
 
 def feature_count(dim: int) -> int:
     """Number of products ``z_i z_j`` with ``i >= j`` of a vector of length ``dim``."""
     return dim * (dim + 1) // 2
+
+
+Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)  # phi_Q(s, u): 15 for the unicycle
+V_FEATURES = feature_count(STATE_DIM)  # phi_V(s): 6
 
 
 def feature_index_pairs(dim: int) -> list[tuple[int, int]]:

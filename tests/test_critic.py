@@ -9,9 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.optimize
 from scipy.optimize import minimize
 
-from common.critic import DoubleCritic, Replay, Sample, consecutive_pairs, td_fit
+import common.critic
+from common.critic import DoubleCritic, Replay, Sample, bounded_lstsq, consecutive_pairs, td_fit
 from common.features import quadratic_features
 
 
@@ -121,6 +123,60 @@ def test_td_fit_wide_bounds_equal_unbounded() -> None:
     free = td_fit(a, f_next, costs, w_prev, 0.9, ridge=0.01)
     boxed = td_fit(a, f_next, costs, w_prev, 0.9, ridge=0.01, bounds=(-1e6, 1e6))
     np.testing.assert_allclose(boxed.weights, free.weights, rtol=1e-8, atol=1e-10)
+
+
+def _boxed_problem(seed: int, dim: int = 15):
+    """A strictly convex bounded least squares (ridge rows) whose unbounded minimum leaves the box."""
+    rng = np.random.default_rng(seed)
+    a = np.vstack([rng.normal(size=(29, dim)), np.eye(dim)])
+    b = np.concatenate([rng.normal(scale=3.0, size=29), np.zeros(dim)])
+    return a, b, np.full(dim, -0.5), np.full(dim, 0.5)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bounded_lstsq_with_the_right_guess_is_one_lstsq_and_the_same_minimum(seed: int, monkeypatch) -> None:
+    a, b, low, high = _boxed_problem(seed)
+    reference = scipy.optimize.lsq_linear(a, b, bounds=(low, high), method="bvls")
+    x, on_bound = bounded_lstsq(a, b, low, high)  # no guess: BVLS, as before
+    np.testing.assert_array_equal(x, reference.x)
+    assert np.any(on_bound != 0), "the bounds should be active in this problem"
+
+    calls = []
+    monkeypatch.setattr(common.critic, "lsq_linear", lambda *args, **kw: calls.append(args) or reference)
+    warm, warm_bound = bounded_lstsq(a, b, low, high, on_bound)
+    assert calls == []  # the guess was optimal: no BVLS
+    np.testing.assert_allclose(warm, reference.x, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(warm_bound, on_bound)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_bounded_lstsq_refuses_a_wrong_guess_and_still_finds_the_minimum(seed: int) -> None:
+    a, b, low, high = _boxed_problem(seed)
+    reference = scipy.optimize.lsq_linear(a, b, bounds=(low, high), method="bvls")
+    for guess in (np.zeros(15), -np.asarray(reference.active_mask, float), np.ones(15)):
+        x, on_bound = bounded_lstsq(a, b, low, high, guess)
+        np.testing.assert_allclose(x, reference.x, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(on_bound, reference.active_mask)
+
+
+def test_a_critic_fitted_with_its_last_active_set_fits_as_one_fitted_afresh() -> None:
+    """The warm guess changes what a fit costs, never its weights: a critic that keeps its last
+    fit's active set and one that forgets it before every fit publish the same weights."""
+    rng = np.random.default_rng(3)
+    kept = DoubleCritic(np.full(15, 2.0), np.full(6, 2.0), 0.9, ridge=1.0, bounds=(0.0, 100.0))
+    forgot = DoubleCritic(np.full(15, 2.0), np.full(6, 2.0), 0.9, ridge=1.0, bounds=(0.0, 100.0))
+    replay = Replay(30)
+    warm = 0
+    for step in range(80):
+        state = rng.normal(size=3) * np.exp(-step / 40)
+        replay.add(Sample(step, state, rng.uniform(-0.2, 0.2, 2), 0.1 * float(state @ state)))
+        warm += kept.q_on_bound is not None
+        kept.update(replay)
+        forgot.q_on_bound = forgot.v_on_bound = None
+        forgot.update(replay)
+        np.testing.assert_allclose(kept.q_weights, forgot.q_weights, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(kept.v_weights, forgot.v_weights, rtol=0, atol=1e-12)
+    assert warm >= 70 and kept.q_on_bound is not None and np.any(kept.q_on_bound != 0)
 
 
 # -- pairs and replay -------------------------------------------------------------------
