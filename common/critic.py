@@ -92,7 +92,7 @@ def bounded_lstsq(
             gradient = a.T @ (a @ x - b)
             violation = gradient * guess  # > 0: moving off its bound would lower the cost
             violation[free] = np.abs(gradient[free])
-            if n == 0 or float(np.max(violation)) < KKT_TOLERANCE:
+            if float(np.max(violation)) < KKT_TOLERANCE:
                 return x, guess.copy()
     solution = lsq_linear(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
     return solution.x, np.asarray(solution.active_mask, dtype=float)
