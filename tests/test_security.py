@@ -28,6 +28,7 @@ import zenoh
 from pydantic import ValidationError
 
 from common.messages import CriticWeights
+from common.provenance import QUIET_REFUSALS
 from common.security import (
     ROLES,
     Credentials,
@@ -482,11 +483,17 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
     assert actor_replies == []
     assert not impersonated, "a critic announced the robot bridge"
     actor_summary, critic_summary, plant_summary = summaries["actor"], summaries["critic"], summaries["plant"]
-    # the services never saw a rogue payload or query: nothing was rejected
+    # the services never saw a rogue payload or query: nothing was rejected, except what normal
+    # operation refuses (QUIET_REFUSALS: the stopping actor's last action, still in flight when its
+    # token vanished, is ``action.late``; a CI run saw one), of which a stop leaves at most a few
+    quiet = {f"rejected.{what}" for what in QUIET_REFUSALS}
     rejected = {
-        name: {k: v for k, v in s["counters"].items() if k.startswith("rejected.")} for name, s in summaries.items()
+        name: {k: v for k, v in s["counters"].items() if k.startswith("rejected.") and k not in quiet}
+        for name, s in summaries.items()
     }
     assert rejected == {"actor": {}, "critic": {}, "plant": {}}, rejected
+    late = {name: s["counters"].get("rejected.action.late", 0) for name, s in summaries.items()}
+    assert late["actor"] == late["critic"] == 0 and late["plant"] <= 3, late
     # the system ran normally through the secured router
     steps = actor_summary["steps"]
     assert steps >= 70 and actor_summary["loop"]["missed_deadlines"] == 0
