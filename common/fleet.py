@@ -6,6 +6,9 @@ Pure: strings and numbers in, ids and states out (no settings, no transport).
   ``robotK``); a repeated or malformed id is refused with one line (:class:`FleetError`).
 * :func:`circle_starts` -- distinct starts on a circle around the target, each turned away from
   it (the paper's ``alpha_0 = atan2(y_0, x_0)``), so every robot has the same parking task.
+* :func:`host_count` and :func:`split_evenly` -- over how many actor host processes a fleet's
+  robots go (a number, or ``auto``: one below :data:`AUTO_SPLIT_FROM` robots, else one per core:
+  one host's solves run in one thread) and which robots each serves (contiguous, even shares).
 * :func:`ros_fleet` -- several ROS 2 robots (``--plant robot``): each srl robot id IS its robot's
   ROS namespace (``tb3_1`` <-> ``/tb3_1/odom``, ``/tb3_1/cmd_vel``), and each robot's Zenoh
   endpoint (its own router, or one shared by all). A robot id that is no ROS namespace, an
@@ -25,6 +28,9 @@ _ROS_SEGMENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 # a Zenoh endpoint (locator): ``<protocol>/<address>``, e.g. ``tcp/192.168.1.21:7447``
 _ENDPOINT = re.compile(r"^[a-z][a-z0-9]*/\S+$")
 ROS_FLEET_PREFIX = "tb3_"  # ``--robots K --plant robot``: tb3_1 .. tb3_K, as TurtleBot3 multi-robot launches name them
+
+
+AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
 
 
 class FleetError(ValueError):
@@ -66,6 +72,34 @@ def circle_starts(count: int, radius: float) -> list[tuple[float, float, float]]
             (radius * math.cos(theta), radius * math.sin(theta), math.atan2(math.sin(theta), math.cos(theta)))
         )
     return starts
+
+
+def host_count(option: str, size: int, cores: int, flag: str = "--actor-hosts") -> int:
+    """How many actor host processes serve ``size`` robots: ``option`` is a number (1 to one per
+    robot) or ``auto`` (one below :data:`AUTO_SPLIT_FROM` robots, else one per core of ``cores``).
+    ``flag`` names the option in the one-line refusal."""
+    if option == "auto":
+        return 1 if size < AUTO_SPLIT_FROM else max(1, min(cores, size))
+    try:
+        hosts = int(option)
+    except ValueError:
+        raise FleetError(f"{flag} {option!r}: a number of actor processes, or auto") from None
+    if not 1 <= hosts <= size:
+        raise FleetError(f"{flag} {hosts}: 1 to one per robot ({size})")
+    return hosts
+
+
+def split_evenly(robots: list[str], hosts: int) -> list[list[str]]:
+    """``robots`` in ``hosts`` contiguous shares, as even as can be (the first ones one larger)."""
+    if not 1 <= hosts <= max(len(robots), 1):
+        raise FleetError(f"{hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
+    size, extra = divmod(len(robots), hosts)
+    shares, start = [], 0
+    for h in range(hosts):
+        end = start + size + (h < extra)
+        shares.append(list(robots[start:end]))
+        start = end
+    return shares
 
 
 def ros_fleet(robots: list[str], endpoints: str | None, shared_endpoint: str) -> dict[str, str]:

@@ -164,6 +164,14 @@ def _endpoint_listening(endpoint: str) -> bool:
         return False
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity, e.g. a container's cpuset), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def own_resources() -> dict[str, float]:
     """CPU seconds and peak resident memory of this process (for benchmarks)."""
     import resource

@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -443,13 +446,12 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
 
 
 def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_values_are_refused() -> None:
-    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one parser, tools/fleet.py)."""
-    import os
-
-    from common.runtime import UsageError
+    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one rule, common.fleet.host_count,
+    which ``srl actor --hosts`` shares)."""
+    from common.runtime import UsageError, usable_cores
     from tools.fleet import actor_hosts
 
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     assert actor_hosts("auto", 8) == 1 and actor_hosts("auto", 49) == 1
     assert actor_hosts("auto", 100) == min(cores, 100) and actor_hosts("auto", 50) == min(cores, 50)
     assert actor_hosts("3", 8) == 3
@@ -476,3 +478,107 @@ def test_a_robots_counts_count_its_refusals_and_forward_or_log_them_with_its_id(
             bridge.reject("odom", "stale")
     assert bridge.snapshot() == {"rejected.odom": 5}
     assert [r.getMessage() for r in caplog.records] == ["robot_bridge tb3_1: rejected odom: stale"]  # once a second
+
+
+def _children_of(pid: int) -> list[int]:
+    """The live child processes of ``pid`` (from /proc: their parent pid field)."""
+    children = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                children.append(int(entry.name))
+    return children
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+def test_one_actor_command_splits_its_robots_over_host_processes_that_live_and_die_together() -> None:
+    """``srl actor --robots K --hosts 2`` (compose's fleet profile, a hand-started fleet): two host
+    processes, each serving its half under its own session; a SIGTERM stops both cleanly (two
+    summaries); a child killed stops the command with a non-zero code; the parent killed by
+    SIGKILL takes its child with it."""
+    from tests.harness import Proc, free_port, open_session, wait_until
+
+    robots = ["h1", "h2", "h3", "h4"]
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("router", ["router", "--router", endpoint])
+    plant = Proc("plant", ["plant-sim", "--router", endpoint, "--robots", ",".join(robots)])
+    actors: list[Proc] = []
+    session = None
+    try:
+        session = open_session(endpoint, 30, "the router")
+
+        def serving() -> dict[str, set[str]]:
+            """zid of each live actor -> the robots it serves (liveliness srl/<robot>/alive/actor/<zid>)."""
+            hosts: dict[str, set[str]] = {}
+            for reply in session.liveliness().get("srl/*/alive/actor/**", timeout=0.5):
+                parts = str(reply.ok.key_expr).split("/") if reply.ok is not None else []
+                if len(parts) == 5:  # the identity token (the other one, .../alive/actor, names no session)
+                    hosts.setdefault(parts[4], set()).add(parts[1])
+            return hosts
+
+        def start() -> Proc:
+            actor = Proc("actor", ["actor", "--router", endpoint, "--robots", ",".join(robots), "--hosts", "2"])
+            actors.append(actor)
+            wait_until(lambda: len(serving()) == 2, 90, "two actor hosts alive")
+            return actor
+
+        # 1. two processes, the robots in contiguous halves; SIGTERM to the command stops both
+        actor = start()
+        assert sorted(map(sorted, serving().values())) == [["h1", "h2"], ["h3", "h4"]]
+        children = _children_of(actor.process.pid)
+        assert len(children) == 1, children
+        time.sleep(2.0)  # every robot acts for a while
+        os.kill(actor.process.pid, signal.SIGTERM)
+        assert actor.process.wait(timeout=30) == 0, actor.stderr[-10:]
+        wait_until(lambda: not _alive(children[0]), 15, "the child host stopped with the command")
+        time.sleep(0.1)
+        summaries = [json.loads(line) for line in actor.stdout if line.startswith("{")]
+        assert sorted(sorted(s["per_robot"]) for s in summaries) == [["h1", "h2"], ["h3", "h4"]], actor.stdout[-4:]
+        for s in summaries:
+            assert all(row["steps"] >= 10 for row in s["per_robot"].values()), s["per_robot"]
+        wait_until(lambda: serving() == {}, 15, "no actor left alive")
+
+        # 2. a child host killed: the command stops the other and ends non-zero (its supervisor restarts it)
+        actor = start()
+        (child,) = _children_of(actor.process.pid)
+        os.kill(child, signal.SIGKILL)
+        assert actor.process.wait(timeout=30) == 128 + signal.SIGKILL
+        assert any("was killed by SIGKILL: stopping the others" in line for line in actor.stderr), actor.stderr[-10:]
+        wait_until(lambda: serving() == {}, 15, "no actor left alive")
+
+        # 3. the command killed outright: its child host dies with it
+        actor = start()
+        (child,) = _children_of(actor.process.pid)
+        os.kill(actor.process.pid, signal.SIGKILL)
+        actor.process.wait(timeout=10)
+        wait_until(lambda: not _alive(child), 15, "the orphaned child host ended")
+        wait_until(lambda: serving() == {}, 15, "no actor left alive")
+    finally:
+        if session is not None:
+            session.close()
+        for proc in (*actors, plant, router):
+            proc.stop()
+
+
+def test_hosts_without_robots_or_beyond_one_per_robot_is_refused_in_one_line() -> None:
+    from tests.harness import srl
+
+    for argv, says in (
+        (["actor", "--hosts", "2"], "--hosts splits the robots of --robots over processes: give --robots too"),
+        (["actor", "--robots", "2", "--hosts", "3"], "--hosts 3: 1 to one per robot (2)"),
+        (["actor", "--robots", "2", "--hosts", "many"], "--hosts 'many': a number of actor processes, or auto"),
+    ):
+        result = srl(*argv, "--connect-timeout", "1")
+        assert result.returncode == 2 and result.stderr.strip().splitlines() == [f"srl: error: {says}"], result.stderr

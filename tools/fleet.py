@@ -32,11 +32,11 @@ from typing import Any
 import zenoh
 from pydantic import TypeAdapter
 
-from common.fleet import circle_starts
+from common.fleet import FleetError, circle_starts, host_count, split_evenly
 from common.fleet_summary import FleetActorSummary, FleetView, fleet_view
 from common.keys import STATUS
 from common.messages import ServiceStatus
-from common.runtime import UsageError
+from common.runtime import UsageError, usable_cores
 from common.settings import Settings
 from common.summaries import CriticSummary, RealtimeActorSummary
 from common.transport import zenoh_config
@@ -58,20 +58,12 @@ FLEET_TRANSITION_CACHE = 600  # transitions per robot kept for a late critic (60
 READY_TIMEOUT = 120.0
 
 
-AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
-
-
 def actor_hosts(option: str, size: int) -> int:
-    """``--actor-hosts``: a number, or ``auto`` (one host below 50 robots, else one per core)."""
-    if option == "auto":
-        return 1 if size < AUTO_SPLIT_FROM else max(1, min(os.cpu_count() or 1, size))
+    """``--actor-hosts``: a number, or ``auto`` (common.fleet.host_count over this machine's cores)."""
     try:
-        hosts = int(option)
-    except ValueError:
-        raise UsageError(f"--actor-hosts {option!r}: a number of actor processes, or auto") from None
-    if not 1 <= hosts <= size:
-        raise UsageError(f"--actor-hosts {hosts}: 1 to one per robot ({size})")
-    return hosts
+        return host_count(option, size, usable_cores())
+    except FleetError as error:
+        raise UsageError(str(error)) from None
 
 
 @dataclass
@@ -259,17 +251,10 @@ def exit_code(code: int | None) -> int | None:
 
 
 def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
-    """The robots of each actor host, in contiguous shares as even as can be: ``actor`` alone,
-    else ``actor-1`` .. ``actor-H`` (one per core: one host's solves run in one thread)."""
-    if hosts == 1:
-        return {"actor": list(robots)}
-    size, extra = divmod(len(robots), hosts)
-    shares, start = {}, 0
-    for h in range(hosts):
-        end = start + size + (h < extra)
-        shares[f"actor-{h + 1}"] = list(robots[start:end])
-        start = end
-    return shares
+    """The robots of each actor host (common.fleet.split_evenly): ``actor`` alone, else
+    ``actor-1`` .. ``actor-H`` (one per core: one host's solves run in one thread)."""
+    shares = split_evenly(robots, hosts)
+    return {"actor": shares[0]} if hosts == 1 else {f"actor-{h + 1}": share for h, share in enumerate(shares)}
 
 
 def fleet_args(settings_args: list[str], router: str) -> list[str]:

@@ -5,7 +5,17 @@ from __future__ import annotations
 import argparse
 
 from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.runtime import add_lifetime_arguments, add_mode_argument, add_robots_argument, fleet_robots, serve
+from common.fleet import FleetError, host_count, split_evenly
+from common.runtime import (
+    UsageError,
+    add_lifetime_arguments,
+    add_mode_argument,
+    add_robots_argument,
+    fleet_robots,
+    serve,
+    usable_cores,
+)
+from services.actor.split import fork_shares
 
 NAME = "actor"
 HELP = "the delta-periodic actor loop"
@@ -20,8 +30,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sync-critic", action="store_true", help="lockstep: wait for the weights trained on the previous step"
     )
-    add_robots_argument(parser, "serve every robot of the list in this one process (real time): ")
+    add_robots_argument(parser, "serve every robot of the list (real time): ")
+    parser.add_argument(
+        "--hosts",
+        metavar="H|auto",
+        default="1",
+        help="with --robots: split the robots over H actor host processes started by this command, "
+        "auto = one per core from 50 robots (a host's solves use one core; default: 1)",
+    )
     parser.set_defaults(func=main)
+
+
+def hosts_of(option: str, size: int) -> int:
+    """``--hosts``: a number of actor host processes, or auto (common.fleet.host_count)."""
+    try:
+        return host_count(option, size, usable_cores(), "--hosts")
+    except FleetError as error:
+        raise UsageError(str(error)) from None
 
 
 def main(args: argparse.Namespace) -> int:
@@ -29,14 +54,22 @@ def main(args: argparse.Namespace) -> int:
 
     robots = fleet_robots(args)
     if robots is not None:
+        share, children = fork_shares(split_evenly(robots, hosts_of(args.hosts, len(robots))))
+        # below here: one host per process, of its own share (a child returns from here too)
         from services.actor.host import run_host
 
-        return serve(
-            settings_from_args(args),
-            "actor",
-            args.connect_timeout,
-            lambda settings, bus, stop: run_host(settings, bus, robots, stop, args.run_seconds),
-        )
+        try:
+            code = serve(
+                settings_from_args(args),
+                "actor",
+                args.connect_timeout,
+                lambda settings, bus, stop: run_host(settings, bus, share, stop, args.run_seconds),
+            )
+        finally:
+            worst = children.stop() if children is not None else 0
+        return code or worst
+    if args.hosts != "1":
+        raise UsageError("--hosts splits the robots of --robots over processes: give --robots too")
     return serve(
         settings_from_args(args),
         "actor",
