@@ -582,3 +582,81 @@ def test_hosts_without_robots_or_beyond_one_per_robot_is_refused_in_one_line() -
     ):
         result = srl(*argv, "--connect-timeout", "1")
         assert result.returncode == 2 and result.stderr.strip().splitlines() == [f"srl: error: {says}"], result.stderr
+
+
+@pytest.mark.slow
+def test_the_newest_state_is_kept_by_zenoh_and_taken_with_its_source_and_a_bounded_arrival_time() -> None:
+    """``Bus.subscribe_newest`` (the actor host's states): Zenoh keeps only the newest sample (no
+    Python per sample); ``take`` gives it once, decoded, with its publisher's session id, and an
+    arrival time between the last take and now whatever the publisher's clock says; a payload
+    that does not decode is refused and counted."""
+    import datetime
+
+    import zenoh
+
+    from common.keys import STATE
+    from common.messages import PlantState
+    from common.transport import Bus
+    from tests.harness import Proc, client_config, free_port, open_session, wait_until
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("router", ["router", "--router", endpoint])
+    sessions = []
+    try:
+        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
+        writer = zenoh.open(client_config(endpoint))
+        sessions += [reader, writer]
+        newest = reader.subscribe_newest(STATE, STATE.key("n1"))
+        publisher = writer.declare_publisher(STATE.key("n1"))
+        time.sleep(0.5)
+        assert newest.take() is None  # nothing yet
+
+        def state(seq: int) -> bytes:
+            return PlantState(robot="n1", episode=0, seq=seq, stamp_ns=seq, state=(0.1 * seq, 0.0, 0.0), source="sim").encode()
+
+        def stamped(seconds_ago: float) -> zenoh.Timestamp:
+            now = datetime.datetime.now(datetime.timezone.utc)
+            when = now - datetime.timedelta(seconds=seconds_ago)
+            return zenoh.Timestamp(when, writer.new_timestamp().get_id())
+
+        def take_when_there() -> tuple[Any, str | None, float]:
+            held: list[Any] = []
+            wait_until(lambda: bool(held.append(newest.take()) or held[-1] is not None), 5, "a state to take")
+            return held[-1]
+
+        for seq in (1, 2, 3):
+            publisher.put(state(seq))
+        time.sleep(0.3)
+        before = newest.taken_at
+        message, source, arrived = take_when_there()
+        assert message.seq == 3  # only the newest was kept
+        assert source == str(writer.info.zid())  # its publisher, for the provenance check
+        assert before <= arrived <= time.monotonic()
+        assert newest.take() is None  # taken once
+
+        # a publisher clock 10 s behind: the state arrived after the last take, not 10 s ago
+        time.sleep(0.2)
+        publisher.put(state(4), timestamp=stamped(10.0))
+        last = newest.taken_at
+        message, _, arrived = take_when_there()
+        assert message.seq == 4 and last <= arrived <= newest.taken_at
+        assert arrived >= newest.taken_at - 0.5, "clamped to the interval since the last take"
+        # a publisher clock 10 s ahead: never later than now
+        publisher.put(state(5), timestamp=stamped(-10.0))
+        message, _, arrived = take_when_there()
+        assert message.seq == 5 and arrived <= newest.taken_at
+        # a publisher clock right: its publication time, ~0.3 s before this take
+        publisher.put(state(6), timestamp=stamped(0.0))
+        time.sleep(0.3)
+        message, _, arrived = take_when_there()
+        assert message.seq == 6 and 0.2 <= newest.taken_at - arrived <= 1.0
+
+        rejected = reader.counters.get("rejected.state", 0)
+        publisher.put(b"{not a state")
+        time.sleep(0.3)
+        assert newest.take() is None
+        assert reader.counters["rejected.state"] == rejected + 1
+    finally:
+        for session in sessions:
+            session.close()
+        router.stop()
