@@ -612,10 +612,12 @@ def test_the_newest_state_is_kept_by_zenoh_and_taken_with_its_source_and_a_bound
         assert newest.take() is None  # nothing yet
 
         def state(seq: int) -> bytes:
-            return PlantState(robot="n1", episode=0, seq=seq, stamp_ns=seq, state=(0.1 * seq, 0.0, 0.0), source="sim").encode()
+            return PlantState(
+                robot="n1", episode=0, seq=seq, stamp_ns=seq, state=(0.1 * seq, 0.0, 0.0), source="sim"
+            ).encode()
 
         def stamped(seconds_ago: float) -> zenoh.Timestamp:
-            now = datetime.datetime.now(datetime.timezone.utc)
+            now = datetime.datetime.now(datetime.UTC)
             when = now - datetime.timedelta(seconds=seconds_ago)
             return zenoh.Timestamp(when, writer.new_timestamp().get_id())
 
