@@ -7,6 +7,8 @@ from __future__ import annotations
 import gc
 import os
 import sys
+import threading
+import time
 import tracemalloc
 from collections import deque
 from dataclasses import dataclass, field
@@ -397,3 +399,48 @@ def test_the_arrival_rule_holds_the_robot_with_zero_and_the_loop_says_so() -> No
     ticker = Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep)
     t.loop.run(ticker, end=ticker.start + 5.5 * DELTA, manual_gc=False)
     assert t.loop.status()["arrived"] == 0.0 and t.actions[-2].action[0] < 0  # 0.2 m out: driving again
+
+
+def test_priming_solves_once_from_the_held_state_and_acts_on_nothing() -> None:
+    """RealtimeActor.prime (an actor host before its first tick): one solve from the held state,
+    no action, no transition; without a state, nothing at all."""
+    t = Loop()
+    assert t.loop.prime() is False and t.actor.counters.solves == 0
+    t.publish_state(x=1.0)
+    assert t.loop.prime() is True
+    assert t.actor.counters.solves == 1 and t.counts.counters["primed_solves"] == 1
+    assert t.actions == [] and t.transitions == []
+
+
+def test_a_host_primes_every_robot_whose_state_comes_in_time_and_starts_without_the_others() -> None:
+    from services.actor.host import prime_plans
+
+    class Arriving:
+        """A robot's newest-state holder whose first state comes after ``after`` takes."""
+
+        def __init__(self, after: int | None) -> None:
+            self.after, self.takes = after, 0
+
+        def take(self) -> tuple[PlantState, str, float] | None:
+            self.takes += 1
+            if self.after is None or self.takes <= self.after:
+                return None
+            state = PlantState(robot="fk", episode=0, seq=self.takes, stamp_ns=0, state=(1.0, 0.5, 0.1), source="sim")
+            return state, PLANT, time.monotonic()
+
+    robots = [Loop() for _ in range(3)]
+    states = [Arriving(0), Arriving(3), Arriving(None)]  # at once, after 3 rounds, never
+    stop = threading.Event()
+    started = time.monotonic()
+    primed = prime_plans([r.loop for r in robots], states, stop, wait=0.3)  # type: ignore[arg-type]
+    waited = time.monotonic() - started
+    assert primed == 2
+    assert [r.actor.counters.solves for r in robots] == [1, 1, 0]  # each primed robot once, no more
+    assert all(r.actions == [] and r.transitions == [] for r in robots)
+    assert 0.3 <= waited < 2.0  # waited for the third, bounded
+    assert states[0].takes == 1  # a primed robot is not asked again
+
+    stop.set()  # a stop ends the wait at once
+    started = time.monotonic()
+    assert prime_plans([Loop().loop], [Arriving(None)], stop, wait=10.0) == 0  # type: ignore[list-item]
+    assert time.monotonic() - started < 1.0

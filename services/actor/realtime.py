@@ -226,6 +226,21 @@ class RealtimeActor:
                 self.stop_robot(k)
         self.last_step = k
 
+    def prime(self) -> bool:
+        """One solve from the held state, acting on nothing (no action, no transition): an actor
+        host before its first tick, so that tick polishes a plan instead of solving cold (a cold
+        solve, with issue 18's global phase from scratch, costs several warm ones, and 50 of them
+        in the first period put a host 60 ms behind: services/actor/host.py). The solve and its
+        time are counted as any other. False: no state held yet."""
+        with self.lock:
+            held = self.latest
+        if held is None:
+            return False
+        weights = self.inbox.current()
+        self.actor.step(np.array(held[0].state), weights.q, weights.v)
+        self.counts.count("primed_solves")
+        return True
+
     def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:
         """Publish the action held over interval ``k`` (answering state ``state_seq``, -1: none)."""
         self.publish_action(
