@@ -10,7 +10,7 @@ step index ``j`` breaks the pair) the TD errors are
 and the fit minimizes ``1/2 sum e_j^2 + lambda/2 |w - w_prev|^2`` (optionally within box
 bounds). With ``w_prev`` frozen that is LINEAR least squares, solved as such: ``numpy.lstsq``
 without bounds, ``scipy.optimize.lsq_linear`` (BVLS) with them -- or, when the last fit's set of
-weights on a bound is still optimal, one solve of the others' normal equations (:func:`bounded_lstsq`).
+weights on a bound is still optimal, one ``lstsq`` on the others (:func:`bounded_lstsq`).
 
 Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M < 16``): we
 solve for the change ``dw = w - w_prev`` and take the minimum-norm ``dw``, i.e. the weights
@@ -77,29 +77,19 @@ def bounded_lstsq(
 
     ``guess``: the ``on_bound`` of a previous, similar problem (the critic's last fit). If the
     least squares on its free columns, with the others held at their bounds, is within the bounds
-    and meets the KKT conditions (scipy's test and tolerance), that is the minimum: ONE solve of
-    the normal equations of the free weights.
+    and meets the KKT conditions (scipy's test and tolerance), that is the minimum: ONE ``lstsq``.
     Otherwise scipy's BVLS (``lsq_linear``) solves it, as it always did. Use a guess only for a
     strictly convex problem (full column rank, e.g. with a ridge): its minimum is unique, so both
     ways reach the same ``x`` (to rounding) and the guess changes the cost, never the answer.
     """
     n = a.shape[1]
     if guess is not None and guess.shape == (n,):
-        # In the normal form: the free weights solve gram_ff z = g_f - gram_fB x_B, the gradient
-        # is gram x - g. gram = a^T a is small (n x n) and, the problem being strictly convex,
-        # positive definite: one LU solve of at most n x n (~5 us at n = 15) where a ``lstsq``
-        # of ``a`` costs ~30 us; the same minimum to rounding (cond(a)^2 eps, ~1e-13 here).
-        gram, g = a.T @ a, a.T @ b
         free = guess == 0
         x = np.where(guess < 0, low, np.where(guess > 0, high, 0.0))
-        rows = np.flatnonzero(free)[:, None]
-        try:
-            z = np.linalg.solve(gram[rows, free], g[free] - gram[rows, ~free] @ x[~free])
-        except np.linalg.LinAlgError:  # not strictly convex after all: BVLS decides
-            z = None
-        if z is not None and np.all(z >= low[free]) and np.all(z <= high[free]):
+        z = np.linalg.lstsq(a[:, free], b - a @ (x * ~free), rcond=None)[0]
+        if np.all(z >= low[free]) and np.all(z <= high[free]):
             x[free] = z
-            gradient = gram @ x - g
+            gradient = a.T @ (a @ x - b)
             violation = gradient * guess  # > 0: moving off its bound would lower the cost
             violation[free] = np.abs(gradient[free])
             if float(np.max(violation)) < KKT_TOLERANCE:
