@@ -289,6 +289,18 @@ def fleet_robots(args: argparse.Namespace, prefix: str = "robot") -> list[str] |
     return robots
 
 
+def fleet_hosts(option: str, size: int, flag: str) -> int:
+    """How many actor host processes serve ``size`` robots (common.fleet.host_count over this
+    process's cores), from the option ``flag`` (``srl up --actor-hosts``, ``srl actor --hosts``);
+    a bad value is a :class:`UsageError` (one line)."""
+    from common.fleet import FleetError, host_count
+
+    try:
+        return host_count(option, size, usable_cores(), flag)
+    except FleetError as error:
+        raise UsageError(str(error)) from None
+
+
 def main(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
     """Parse, configure logging once, run the chosen ``func``; errors as one line and an exit code."""
     args = parser.parse_args(argv)

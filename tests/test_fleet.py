@@ -446,7 +446,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
 
 
 def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_values_are_refused() -> None:
-    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one rule, common.fleet.host_count,
+    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one rule, common.runtime.fleet_hosts,
     which ``srl actor --hosts`` shares)."""
     from common.runtime import UsageError, usable_cores
     from tools.fleet import actor_hosts

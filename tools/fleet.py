@@ -32,11 +32,11 @@ from typing import Any
 import zenoh
 from pydantic import TypeAdapter
 
-from common.fleet import FleetError, circle_starts, host_count, split_evenly
+from common.fleet import circle_starts, split_evenly
 from common.fleet_summary import FleetActorSummary, FleetView, fleet_view
 from common.keys import STATUS
 from common.messages import ServiceStatus
-from common.runtime import UsageError, usable_cores
+from common.runtime import fleet_hosts
 from common.settings import Settings
 from common.summaries import CriticSummary, RealtimeActorSummary
 from common.transport import zenoh_config
@@ -59,11 +59,8 @@ READY_TIMEOUT = 120.0
 
 
 def actor_hosts(option: str, size: int) -> int:
-    """``--actor-hosts``: a number, or ``auto`` (common.fleet.host_count over this machine's cores)."""
-    try:
-        return host_count(option, size, usable_cores())
-    except FleetError as error:
-        raise UsageError(str(error)) from None
+    """``--actor-hosts``: a number, or ``auto`` (common.runtime.fleet_hosts)."""
+    return fleet_hosts(option, size, "--actor-hosts")
 
 
 @dataclass

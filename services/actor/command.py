@@ -5,15 +5,15 @@ from __future__ import annotations
 import argparse
 
 from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.fleet import FleetError, host_count, split_evenly
+from common.fleet import split_evenly
 from common.runtime import (
     UsageError,
     add_lifetime_arguments,
     add_mode_argument,
     add_robots_argument,
+    fleet_hosts,
     fleet_robots,
     serve,
-    usable_cores,
 )
 from services.actor.split import fork_shares
 
@@ -41,20 +41,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(func=main)
 
 
-def hosts_of(option: str, size: int) -> int:
-    """``--hosts``: a number of actor host processes, or auto (common.fleet.host_count)."""
-    try:
-        return host_count(option, size, usable_cores(), "--hosts")
-    except FleetError as error:
-        raise UsageError(str(error)) from None
-
-
 def main(args: argparse.Namespace) -> int:
     from services.actor.service import run
 
     robots = fleet_robots(args)
     if robots is not None:
-        share, children = fork_shares(split_evenly(robots, hosts_of(args.hosts, len(robots))))
+        share, children = fork_shares(split_evenly(robots, fleet_hosts(args.hosts, len(robots), "--hosts")))
         # below here: one host per process, of its own share (a child returns from here too)
         from services.actor.host import run_host
 

@@ -41,9 +41,8 @@ class Children:
 
     def __init__(self, shares: dict[int, list[str]]) -> None:
         self.shares = shares  # pid -> the robots it serves
-        self.codes: dict[int, int] = {}
+        self.codes: dict[int, int] = {}  # pid -> exit code (negative: the signal), once it ended
         self.stopping = threading.Event()
-        self.lock = threading.Lock()
         for pid in shares:
             threading.Thread(target=self._watch, args=(pid,), name=f"actor-child-{pid}", daemon=True).start()
 
@@ -52,9 +51,7 @@ class Children:
             _, status = os.waitpid(pid, 0)
         except ChildProcessError:
             return
-        code = os.waitstatus_to_exitcode(status)
-        with self.lock:
-            self.codes[pid] = code
+        code = self.codes[pid] = os.waitstatus_to_exitcode(status)
         if not self.stopping.is_set():
             first, last = self.shares[pid][0], self.shares[pid][-1]
             how = f"was killed by {signal.Signals(-code).name}" if code < 0 else f"ended with exit code {code}"
@@ -65,21 +62,16 @@ class Children:
         """SIGTERM to every child still running, SIGKILL after the grace; the worst exit code
         (0 if all ended cleanly; a child that had to be killed counts as -SIGKILL's 137)."""
         self.stopping.set()
-        for pid in self.shares:
-            if pid not in self.codes:
-                _signal(pid, signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_SECONDS
-        while time.monotonic() < deadline and len(self.codes) < len(self.shares):
-            time.sleep(0.05)
-        for pid in self.shares:
-            if pid not in self.codes:
-                log.warning("actor host process %d did not stop in %.0f s: killed", pid, STOP_GRACE_SECONDS)
-                _signal(pid, signal.SIGKILL)
-        deadline = time.monotonic() + STOP_GRACE_SECONDS
-        while time.monotonic() < deadline and len(self.codes) < len(self.shares):
-            time.sleep(0.05)
-        codes = [abs(code) + (128 if code < 0 else 0) for code in self.codes.values()]
-        return max(codes, default=0)
+        for signum in (signal.SIGTERM, signal.SIGKILL):
+            for pid in self.shares:
+                if pid not in self.codes:
+                    if signum == signal.SIGKILL:
+                        log.warning("actor host process %d did not stop in %.0f s: killed", pid, STOP_GRACE_SECONDS)
+                    _signal(pid, signum)
+            deadline = time.monotonic() + STOP_GRACE_SECONDS
+            while time.monotonic() < deadline and len(self.codes) < len(self.shares):
+                time.sleep(0.05)
+        return max((128 - code if code < 0 else code for code in self.codes.values()), default=0)
 
 
 def _signal(pid: int, signum: int) -> None:
