@@ -259,6 +259,9 @@ class TransportSettings(_Section):
     critic_timeout: float = Field(gt=0)
     status_period: float = Field(gt=0)
     state_rate: float = Field(gt=0, le=1000)
+    state_sync: bool = Field(
+        description="a plant host publishes a driven robot's state only at the state ticks just before its actor's tick"
+    )
     express: bool = Field(description="every put sent at once (true) or batched by Zenoh with others due")
     callback_threads: bool = Field(
         description="each subscription's handler in a Python thread of its own (true) or on Zenoh's network thread"
