@@ -64,8 +64,9 @@ def test_the_model_scales_the_measured_costs_to_large_fleets() -> None:
 
 @pytest.mark.slow
 def test_the_capacity_bench_measures_every_component_and_the_messages() -> None:
-    """A miniature run: two sizes, every component's CPU, each robot's 50 Hz states and 10 Hz
-    actions counted, the model printed and in the JSON."""
+    """A miniature run: two sizes, every component's CPU, each robot's states (synced to its
+    actor's ticks: transport.state_sync) and 10 Hz actions counted, the model printed and in the
+    JSON."""
     done = srl("bench", "capacity", "--robots", "1,3", "--seconds", "6", "--json", timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "what a fleet needs" in done.stdout and "10000 robots:" in done.stdout
@@ -75,7 +76,9 @@ def test_the_capacity_bench_measures_every_component_and_the_messages() -> None:
         assert {"router", "plant", "critic", "actor"} <= set(row["cpu_percent_by_service"])
         assert all(p >= 0 for p in row["cpu_percent_by_service"].values())
     rates = result["model"]["messages"]
-    assert rates["state"]["per_robot_per_s"] == pytest.approx(50.0, rel=0.15)
+    # state sync: at least one state per delta reaches each actor, far fewer than the plant's 50 Hz
+    # (all 50 while the robots start, 1-2 per delta once their actors act)
+    assert 10.0 * 0.85 <= rates["state"]["per_robot_per_s"] <= 30.0
     assert rates["action"]["per_robot_per_s"] == pytest.approx(10.0, rel=0.15)
     assert rates["transition"]["per_robot_per_s"] == pytest.approx(10.0, rel=0.15)
     assert result["model"]["cpu"]["actor"]["per_robot_cores"] > 0
