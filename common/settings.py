@@ -145,6 +145,13 @@ class CriticSettings(_Section):
     coalesce_fits: bool = Field(
         default=False, description="fit each robot once per batch, on its newest transition (a fleet's critic)"
     )
+    batch_window: float = Field(
+        default=0.0,
+        ge=0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="[s] a batch collects transitions this long after its first (a fleet's critic); 0 = what waits",
+    )
     robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
     pooled: bool = Field(default=False, description="one learner trained on every robot's transitions (a fleet's)")
 

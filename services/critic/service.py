@@ -58,7 +58,7 @@ from common.checkpoint import (
     set_aside,
     to_runs,
 )
-from common.critic import DoubleCritic, PooledLearner, Replay, Sample
+from common.critic import DoubleCritic, PooledLearner, Replay, Sample, update_many
 from common.keys import TRANSITION, WEIGHTS
 from common.messages import CriticWeights, Transition
 from common.settings import Settings
@@ -116,6 +116,8 @@ class CriticLearner:
         self.too_old = 0
         self.accepted = 0  # transitions that entered a replay
         self.fits_coalesced = 0  # due fits left to a newer transition of the same robot in the batch
+        self.due: dict[str, tuple[Learner, int]] = {}  # per-robot fits left to flush(): learner, step
+        self.outgoing: list[CriticWeights] = []  # weights of fits made early in a batch, for flush()
         self.resume = settings.critic.resume
         self.pending: set[str] = set()  # robots read from a checkpoint, their run not yet confirmed
         self.continued: set[str] = set()  # robots whose checkpointed learner continued (same run)
@@ -206,11 +208,12 @@ class CriticLearner:
         """:meth:`take`, and of what it returns the weights for the message's robot."""
         return next((w for w in self.take(message, fit) if w.robot == message.robot), None)
 
-    def take(self, message: Transition, fit: bool = True) -> list[CriticWeights]:
+    def take(self, message: Transition, fit: bool = True, defer: bool = False) -> list[CriticWeights]:
         """Into the robot's replay; fitted and the weights returned when a fit is due (and
         ``fit``: False when a newer transition of the robot, due a fit too, is already waiting;
         pooled: when the batch's end will fit, :meth:`flush`). Per robot: its weights; pooled:
-        every robot's."""
+        every robot's. ``defer``: a per-robot fit due is left to :meth:`flush`, which fits every
+        robot due in the batch at once (a robot due again first has its earlier fit made)."""
         self.received += 1
         learner = self.learners.get(message.robot)
         if learner is None or message.episode > learner.episode:
@@ -235,6 +238,8 @@ class CriticLearner:
             if len(learner.seen) > self.retention + min(SEEN_SLACK, self.retention):  # pruned often: flat memory
                 floor = learner.newest - self.retention
                 learner.seen = {step for step in learner.seen if step > floor}
+        if message.robot in self.due:  # its fit left to the batch's end is made first, on the replay as it was
+            self.outgoing += self._fit_due()
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
         if self.pool is not None:
             if not self.pool.count(message.step):
@@ -249,21 +254,39 @@ class CriticLearner:
         if not fit:
             self.fits_coalesced += 1
             return []
-        started = time.perf_counter()
-        update = learner.critic.update(learner.replay)
-        self.fit_seconds.append(time.perf_counter() - started)
-        if not (np.isfinite(update.q.residual) and np.isfinite(update.v.residual)):
+        self.due[message.robot] = (learner, message.step)
+        if defer:
             return []
-        return [
-            self._message(message.robot, learner, message.step, update.q.residual, update.v.residual, update.q.pairs)
-        ]
+        outgoing, self.outgoing = self.outgoing, []
+        return outgoing + self._fit_due()
+
+    def _fit_due(self) -> list[CriticWeights]:
+        """The per-robot fits due, all in one stacked solve (:func:`~common.critic.update_many`:
+        each robot's weights are those of its fit alone, bit for bit); a fit's time is its share."""
+        due, self.due = self.due, {}
+        if not due:
+            return []
+        started = time.perf_counter()
+        updates = update_many([x.critic for x, _ in due.values()], [x.replay for x, _ in due.values()])
+        share = (time.perf_counter() - started) / len(due)
+        outgoing = []
+        for (robot, (learner, step)), update in zip(due.items(), updates, strict=True):
+            self.fit_seconds.append(share)
+            if np.isfinite(update.q.residual) and np.isfinite(update.v.residual):
+                outgoing.append(
+                    self._message(robot, learner, step, update.q.residual, update.v.residual, update.q.pairs)
+                )
+        return outgoing
 
     def flush(self) -> list[CriticWeights]:
-        """The end of a batch: the pooled fit left to it, if one came due (else nothing)."""
+        """The end of a batch: the fits left to it (``take(..., defer=True)``), per robot in one
+        stacked solve, or the pooled fit if one came due; their weights in the order taken."""
+        outgoing, self.outgoing = self.outgoing, []
+        outgoing += self._fit_due()
         if not self.fit_pending:
-            return []
+            return outgoing
         self.fits_coalesced -= 1  # the last of the batch's due fits is made
-        return self._pooled_fit()
+        return outgoing + self._pooled_fit()
 
     def _pooled_fit(self) -> list[CriticWeights]:
         """One fit of the pool; its weights for every robot, under one version."""
@@ -289,6 +312,7 @@ class CriticLearner:
                 "newest": learner.newest,
                 "q_weights": learner.critic.q_weights.tolist(),
                 "v_weights": learner.critic.v_weights.tolist(),
+                **active_sets(learner.critic),
                 "replay": [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in learner.replay.samples],
                 "seen": to_runs(learner.seen),
             }
@@ -297,6 +321,7 @@ class CriticLearner:
             payload["pool"] = {
                 "q_weights": self.pool.critic.q_weights.tolist(),
                 "v_weights": self.pool.critic.v_weights.tolist(),
+                **active_sets(self.pool.critic),
                 "due": self.pool.due,
             }
         return payload
@@ -321,6 +346,7 @@ class CriticLearner:
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
                     raise CheckpointError(f"{robot}: non-finite weights")
                 learner.critic.q_weights, learner.critic.v_weights = q, v
+                restore_active_sets(learner.critic, entry, robot)
                 for row in entry["replay"]:
                     if len(row) != 7 or not all(np.isfinite(row)):
                         raise CheckpointError(f"{robot}: bad replay row {row}")
@@ -336,6 +362,7 @@ class CriticLearner:
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
                     raise CheckpointError("pool: non-finite weights")
                 pool.critic.q_weights, pool.critic.v_weights = q, v
+                restore_active_sets(pool.critic, payload["pool"], "pool")
                 pool.due = int(payload["pool"]["due"])
         except (KeyError, TypeError, ValueError) as error:
             if isinstance(error, CheckpointError):
@@ -355,6 +382,50 @@ class CriticLearner:
             trained = learner.replay.samples[-1].step if len(learner.replay) else -1
             messages.append(self._message(robot, learner, trained, 0.0, 0.0, 0))
         return messages
+
+
+def take_batch(first: Transition, inbox: queue.Queue[Transition], window: float, robots: int) -> list[Transition]:
+    """``first`` and what waits in ``inbox`` (at most MAX_BATCH); with a ``window`` [s], also what
+    comes within it after ``first``, until a transition of each of the ``robots`` heard from is in."""
+    batch, heard = [first], {first.robot}
+    end = time.monotonic() + window
+    while len(batch) < MAX_BATCH:
+        try:
+            message = inbox.get_nowait()
+        except queue.Empty:
+            wait = end - time.monotonic()
+            if wait <= 0 or len(heard) >= robots:
+                break
+            try:
+                message = inbox.get(timeout=wait)
+            except queue.Empty:
+                break
+        batch.append(message)
+        heard.add(message.robot)
+    return batch
+
+
+def active_sets(critic: DoubleCritic) -> dict[str, list[float] | None]:
+    """Each critic's last fit's weights on a bound (its next fit's guess, common.critic.fit_gram)
+    for the checkpoint: a critic restored with them fits on exactly as one that never stopped."""
+    return {
+        "q_on_bound": None if critic.q_on_bound is None else critic.q_on_bound.tolist(),
+        "v_on_bound": None if critic.v_on_bound is None else critic.v_on_bound.tolist(),
+    }
+
+
+def restore_active_sets(critic: DoubleCritic, entry: dict[str, Any], owner: str) -> None:
+    """:func:`active_sets` back into ``critic``; absent (an older checkpoint): none, the next
+    fit finds them (the same weights to rounding)."""
+    for name, weights in (("q_on_bound", critic.q_weights), ("v_on_bound", critic.v_weights)):
+        value = entry.get(name)
+        if value is None:
+            setattr(critic, name, None)
+            continue
+        on_bound = np.array(value, dtype=float)
+        if on_bound.shape != weights.shape or not np.all(np.isin(on_bound, (-1.0, 0.0, 1.0))):
+            raise CheckpointError(f"{owner}: {name} must be {weights.size} values of -1, 0 or 1")
+        setattr(critic, name, on_bound)
 
 
 def coalesced_fits(batch: list[Transition], update_every: int) -> set[int]:
@@ -458,14 +529,10 @@ def run(
         except queue.Empty:
             continue
         # Every transition waiting is taken in one batch (a fleet sends one per robot per step,
-        # issue 16): each is fitted, then ONE checkpoint holds them all, then the batch's weights
-        # go out. One robot alone gives batches of one: as before.
-        batch = [message]
-        while len(batch) < MAX_BATCH:
-            try:
-                batch.append(inbox.get_nowait())
-            except queue.Empty:
-                break
+        # issue 16): every robot due a fit is fitted at the batch's end, all in one stacked solve,
+        # then ONE checkpoint holds them all, then the batch's weights go out. One robot alone
+        # gives batches of one: as before.
+        batch = take_batch(message, inbox, settings.critic.batch_window, len(learner.learners))
         before = learner.accepted
         outgoing: list[CriticWeights] = []
         # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
@@ -478,7 +545,7 @@ def run(
             if continued is not None:
                 log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
                 publish(continued)
-            outgoing += learner.take(message, fit=not defer and index not in superseded)
+            outgoing += learner.take(message, fit=not defer and index not in superseded, defer=True)
         outgoing += learner.flush()
         batches.append(len(batch))
         dirty = dirty or learner.accepted > before
