@@ -11,6 +11,13 @@ independent guards in the service:
   or sandboxes where the signal does not come. If the service has still not ended
   :data:`EXIT_GRACE_SECONDS` later, the watchdog ends the process (exit code 3).
 
+Both need the interpreter: a stop that hangs in native code holding the GIL (a session close
+waiting for a callback that waits for the GIL: a known kind of Zenoh binding deadlock) would
+outlive them. So every stop also arms :func:`end_if_stuck` (the orphan's, and any service's stop
+on a signal: ``common.runtime.serve``): faulthandler's C watchdog thread, which needs no GIL,
+writes every thread's traceback to stderr and ends the process (exit code 1) if it still runs
+:data:`HARD_EXIT_SECONDS` later.
+
 Without ``SRL_PARENT_PID`` (a service started by hand, by a test, by a container runtime)
 nothing is armed.
 """
@@ -19,6 +26,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import faulthandler
 import logging
 import os
 import signal
@@ -33,6 +41,22 @@ PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 POLL_SECONDS = 0.2
 EXIT_GRACE_SECONDS = 10.0  # longer than srl up's own stop grace (5 s): a clean stop normally wins
 ORPHAN_EXIT_CODE = 3
+HARD_EXIT_SECONDS = 12.0  # a stop's last resort, GIL-free (end_if_stuck); a clean stop takes ~1 s
+
+
+def end_if_stuck(seconds: float | None = None) -> None:
+    """The last resort of a stop: if this process still runs ``seconds`` (default
+    :data:`HARD_EXIT_SECONDS`) from now, faulthandler's watchdog thread (C, no GIL needed) writes
+    every thread's traceback to stderr -- what hung, for its report -- and ends it with exit code
+    1. Armed once: a later call does not move it."""
+    global _stuck_armed
+    if _stuck_armed:
+        return
+    _stuck_armed = True
+    faulthandler.dump_traceback_later(HARD_EXIT_SECONDS if seconds is None else seconds, exit=True)
+
+
+_stuck_armed = False
 
 
 def parent_pid() -> int | None:
@@ -82,6 +106,7 @@ def die_with_parent(stop: threading.Event) -> int | None:
                 break
         if os.getppid() == parent:
             return  # an ordinary stop: the parent is alive and waits for us
+        end_if_stuck()  # if the interpreter hangs too, the exit below never runs: this one does
         deadline = time.monotonic() + EXIT_GRACE_SECONDS
         while time.monotonic() < deadline:
             time.sleep(POLL_SECONDS)

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
-from common.lifeline import die_with_parent
+from common.lifeline import die_with_parent, end_if_stuck
 from common.provenance import PlantConflictError
 from common.security import SecurityError
 from common.settings import Settings
@@ -82,7 +82,7 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
 
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+        signal.signal(signum, lambda *_: stop_within_bounds(stop))
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:
@@ -92,6 +92,13 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
     result["resources"] = own_resources()
     print(json.dumps(result), flush=True)
     return 0
+
+
+def stop_within_bounds(stop: threading.Event) -> None:
+    """A service's stop on a signal: ``stop`` set, and the stop bounded even if the process then
+    hangs holding the GIL (common.lifeline.end_if_stuck: ended after HARD_EXIT_SECONDS)."""
+    end_if_stuck()
+    stop.set()
 
 
 # A router that accepts TCP but refuses the session this long is refusing the login (a wrong

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -447,6 +448,49 @@ def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None
     took = time.monotonic() - started
     assert done.stdout.strip() == "armed", done.stderr[-2000:]
     assert done.returncode == 3 and took < 8.0, (done.returncode, took, done.stderr[-2000:])
+
+
+@pytest.mark.parametrize("bounded", [True, False])
+def test_a_stop_that_hangs_holding_the_gil_still_ends(bounded: bool) -> None:
+    """A service's stop on a signal (common.runtime.stop_within_bounds) that then hangs in native
+    code holding the GIL -- where no Python thread, signal handler or lifeline can run -- ends
+    HARD_EXIT_SECONDS later by faulthandler's C watchdog, with every thread's traceback on stderr.
+    The negative control (the handler before: only ``stop.set()``) is still running."""
+    script = (
+        "import ctypes, signal, sys, threading\n"
+        "import common.lifeline as lifeline\n"
+        "from common.runtime import stop_within_bounds\n"
+        "lifeline.HARD_EXIT_SECONDS = 1.0\n"
+        "stop = threading.Event()\n"
+        f"handler = (lambda *_: stop_within_bounds(stop)) if {bounded} else (lambda *_: stop.set())\n"
+        "signal.signal(signal.SIGTERM, handler)\n"
+        "print('ready', flush=True)\n"
+        "stop.wait()\n"
+        "ctypes.PyDLL(None).sleep(30)  # hangs_holding_the_gil\n"
+    )
+    process = subprocess.Popen(
+        [sys.executable, "-c", script], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert process.stdout is not None and process.stdout.readline().strip() == "ready"
+        os.kill(process.pid, signal.SIGTERM)
+        signalled = time.monotonic()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=6.0)
+        took = time.monotonic() - signalled
+        if bounded:
+            stderr = process.stderr.read() if process.stderr is not None else ""
+            assert process.returncode == 1 and 0.9 <= took < 6.0, (process.returncode, took, stderr[-2000:])
+            assert "hangs_holding_the_gil" in stderr or '<string>", line 10' in stderr, stderr[-2000:]
+        else:
+            assert process.poll() is None, "the control should still hang"
+    finally:
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+        for stream in (process.stdout, process.stderr):
+            if stream is not None:
+                stream.close()
 
 
 # -- finding 10: smaller points ----------------------------------------------------------------------
