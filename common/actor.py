@@ -317,14 +317,21 @@ def _in_jit_directory() -> Iterator[str]:
         shutil.rmtree(path, ignore_errors=True)
 
 
+KEEPER_POLL_SECONDS = 0.001  # _SigintKeeper: how soon SIGINT is heard again after system() ignores it
+
+
 class _SigintKeeper:
     """Keep SIGINT heard while CasADi runs gcc through ``system()``.
 
     ``system()`` sets SIGINT to "ignore" in the whole process until gcc ends (POSIX), so a
     SIGINT sent to srl alone (``kill -INT``, not a terminal's Ctrl-C to the whole group) would
     be lost for the minutes of a large build. CasADi releases the GIL meanwhile, so this thread
-    puts Python's own C-level handler back (read with ``sigaction`` before the build) every
-    10 ms: the signal then reaches the wakeup file, and the wrapper stops gcc. ``system()``
+    puts Python's own C-level handler back (read with ``sigaction`` before the build) within
+    :data:`KEEPER_POLL_SECONDS`: the signal then reaches the wakeup file, and the wrapper stops
+    gcc. A SIGINT inside that window, right as a ``system()`` starts, is still lost (the kernel
+    drops an ignored signal): the window was 10 ms, and one CI run lost the signal a test sent
+    as gcc's ``cc1`` appeared, on a loaded machine; it is 1 ms now (~1,000 ``sigaction`` reads a
+    second during a build, a few us each). ``system()``
     restores the same handler when it returns. Linux/glibc only; elsewhere it does nothing.
     """
 
@@ -351,7 +358,7 @@ class _SigintKeeper:
 
         def keep() -> None:
             current = ctypes.create_string_buffer(256)
-            while not self._done.wait(0.01):
+            while not self._done.wait(KEEPER_POLL_SECONDS):
                 if (
                     libc.sigaction(signal.SIGINT, None, current) == 0
                     and ctypes.c_void_p.from_buffer(current).value == 1
