@@ -48,6 +48,22 @@ def process_alive(pid: int) -> bool:
     return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
+def survivors(pids: list[int]) -> str:
+    """The processes of ``pids`` still running, each with its state, kernel wait and command (for
+    a failure's message: which service did not end, and where it sleeps)."""
+    found = []
+    for pid in pids:
+        if process_alive(pid):
+            try:
+                state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+                wchan = Path(f"/proc/{pid}/wchan").read_text()
+                argv = Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ")[:120]
+            except OSError:
+                continue
+            found.append(f"{pid} {state} {wchan}: {argv}")
+    return "; ".join(found) or "none left"
+
+
 def children_of(pid: int) -> list[int]:
     found = []
     for entry in Path("/proc").iterdir():
@@ -406,7 +422,10 @@ def test_kill_9_of_srl_up_takes_every_service_with_it(tmp_path: Path) -> None:
         os.kill(up.pid, signal.SIGKILL)
         killed = time.monotonic()
         up.wait()
-        wait_until(lambda: not any(process_alive(pid) for pid in children), 15, "every child to end")
+        try:
+            wait_until(lambda: not any(process_alive(pid) for pid in children), 15, "every child to end")
+        except AssertionError as error:
+            raise AssertionError(f"{error}; still running: {survivors(children)}") from error
         took = time.monotonic() - killed
     finally:
         if up.poll() is None:

@@ -35,6 +35,7 @@ from common.runtime import (
     connect_with_retry,
     own_resources,
     stop_on_signals,
+    stop_within_bounds,
     zenoh_reason,
 )
 from common.runtime import entry as runtime_entry
@@ -187,7 +188,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+        signal.signal(signum, lambda *_: stop_within_bounds(stop))  # a stop that hangs still ends
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))

@@ -9,7 +9,13 @@ import time
 
 from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
 from common.lifeline import die_with_parent
-from common.runtime import add_lifetime_arguments, connect_with_retry, floats_arg, own_resources
+from common.runtime import (
+    add_lifetime_arguments,
+    connect_with_retry,
+    floats_arg,
+    own_resources,
+    stop_within_bounds,
+)
 from common.summaries import EmulatorSummary
 
 NAME = "tb3-emulator"
@@ -89,7 +95,7 @@ def main(args: argparse.Namespace) -> int:
     cmd_type = DEFAULT_CMD_TYPE[bridge.ros_distro] if bridge.cmd_type == "auto" else CMD_TYPES[bridge.cmd_type]
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+        signal.signal(signum, lambda *_: stop_within_bounds(stop))  # a stop that hangs still ends
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
         session = zenoh.open(plain_config(settings.transport, args.listen, router=True))
