@@ -16,7 +16,7 @@ KKT conditions (scipy's test and tolerance) -- and scipy's BVLS (``lsq_linear``)
 factor only when that set is no longer optimal. Both critics of a robot, and the critics of many
 robots (a fleet's critic fits every robot due in one batch), are ONE stacked solve: numpy loops
 LAPACK over the stack, so each robot's weights are the same bits whatever the batch
-(:func:`update_many`; ``tests/test_critic.py``). Without a ridge (underdetermined early on) it is
+(:func:`update_many`; ``tests/test_critic_batch.py``). Without a ridge (underdetermined early on) it is
 ``numpy.lstsq`` as before (:func:`td_fit`).
 
 Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M < 16``): we
