@@ -17,6 +17,7 @@ import logging
 import math
 import os
 import re
+import signal
 import sys
 import threading
 import time
@@ -39,8 +40,6 @@ class SignalledError(Exception):
     """Ended by a signal: one line, exit 128 + the signal's number (130 Ctrl-C, 143 SIGTERM)."""
 
     def __init__(self, signum: int) -> None:
-        import signal
-
         self.signum = signum
         super().__init__(f"{signal.Signals(signum).name}")
 
@@ -50,39 +49,106 @@ class SignalStop(threading.Event):
 
     signum: int | None = None
 
+    def stop_by(self, signum: int) -> None:
+        if self.signum is None:
+            self.signum = signum
+        self.set()
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class SignalWatch:
+    """Signals handed to ``callback(signum)`` on a thread of their own, never inside the handler.
+
+    A Python signal handler runs in the main thread between two bytecodes, possibly inside
+    ``threading.Event.wait`` while that thread holds the event's (non-reentrant) lock: a handler
+    that calls ``stop.set()`` then waits for a lock its own thread holds, forever. That hung
+    services on their stop (a SIGTERM, or the parent-death signal) in CI, with ``Event.set``
+    nested in ``Condition.wait`` in the stuck main thread's stack. Here the handler only writes
+    the signal's number to a pipe (``os.write``, no lock), and so does Python's C-level handler
+    (``signal.set_wakeup_fd``) the moment the signal arrives, even while the main thread is
+    blocked in native code; a daemon thread reads the pipe and calls ``callback``. ``callback``
+    may see one signal twice (both writes) and must be idempotent (``Event.set``,
+    :meth:`SignalStop.stop_by`, :func:`stop_within_bounds` are).
+
+    Use it as a context manager (the handlers and wakeup fd before it are restored after), or
+    :meth:`start` it for the rest of the process. Main thread only, like ``signal.signal``.
+    """
+
+    def __init__(self, callback: Callable[[int], None], signals: Sequence[int] = STOP_SIGNALS) -> None:
+        self.callback = callback
+        self.signals = tuple(signals)
+        self._read = self._write = -1
+        self._previous: dict[int, Any] = {}
+        self._old_wakeup = -1
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> SignalWatch:
+        self._read, self._write = os.pipe()  # not inherited by children (PEP 446)
+        os.set_blocking(self._write, False)  # a full pipe drops a byte, never blocks a handler
+        self._thread = threading.Thread(target=self._watch, name="signals", daemon=True)
+        self._thread.start()
+        self._old_wakeup = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        self._previous = {signum: signal.signal(signum, self._handle) for signum in self.signals}
+        return self
+
+    def _handle(self, signum: int, _frame: object) -> None:
+        with contextlib.suppress(OSError):  # full pipe: a byte for this signal is already there
+            os.write(self._write, bytes([signum]))
+
+    def _watch(self) -> None:
+        while True:
+            try:
+                received = os.read(self._read, 64)
+            except OSError:
+                return
+            if not received:  # the write end closed: the watch is over
+                return
+            for signum in received:
+                if signum in self.signals:  # the wakeup fd hears every signal with a Python handler
+                    self.callback(signum)
+
+    def close(self) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous)
+        self._previous = {}
+        if self._write >= 0:
+            signal.set_wakeup_fd(self._old_wakeup)
+            os.close(self._write)
+            self._write = -1
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+            self._thread = None
+        if self._read >= 0:
+            os.close(self._read)
+            self._read = -1
+
+    def __enter__(self) -> SignalWatch:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
 
 @contextlib.contextmanager
 def stop_on_signals() -> Iterator[SignalStop]:
     """SIGINT and SIGTERM set an event (checked between steps) instead of raising inside native
     code: a KeyboardInterrupt raised in a CasADi callback surfaces as ``SystemError ... returned a
-    result with an exception set``. The previous handlers are restored after."""
-    import signal
-
+    result with an exception set``. Set from :class:`SignalWatch`'s thread, never inside the
+    handler. The previous handlers are restored after."""
     stop = SignalStop()
-
-    def handler(signum: int, _frame: object) -> None:
-        if stop.signum is None:
-            stop.signum = signum
-        stop.set()
-
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with SignalWatch(stop.stop_by):
         yield stop
-    finally:
-        for signum, action in previous.items():
-            signal.signal(signum, action)
 
 
 def serve(settings: Settings, service: str, connect_timeout: float, body: Callable[..., dict[str, Any]]) -> int:
     """The one life cycle of a service process: signals, parent watch, session (with retry),
     ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line."""
-    import signal
-
     from common.transport import Bus
 
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop_within_bounds(stop))
+    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # for the process's life
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:
@@ -330,8 +396,6 @@ def main(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> 
         print(f"srl: interrupted ({stopped}): stopped", file=sys.stderr)
         return 128 + stopped.signum
     except KeyboardInterrupt as error:  # also common.actor.BuildInterrupted (a signal during the JIT build)
-        import signal
-
         signum = getattr(error, "signum", signal.SIGINT)
         print(f"srl: interrupted ({signal.Signals(signum).name}): stopped", file=sys.stderr)
         return 128 + signum

@@ -236,10 +236,10 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
 
     from common.keys import STATUS, TRANSITION, WEIGHTS, liveliness_pattern
     from common.messages import CriticWeights, MessageError, ServiceStatus, Transition, decode
+    from common.runtime import SignalWatch
 
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    SignalWatch(lambda _signum: stop.set()).start()  # never stop.set() inside a handler
     lock = threading.Lock()
     counts = {"weights": 0, "status": 0, "alive": 0, "transition": 0, "undecodable": 0}
 
@@ -294,10 +294,10 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
 
     from common.keys import ACTION, STATUS, TRANSITION, WEIGHTS, every_robot
     from common.messages import Action, CriticWeights, MessageError, ServiceStatus, Transition, decode
+    from common.runtime import SignalWatch
 
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    SignalWatch(lambda _signum: stop.set()).start()  # never stop.set() inside a handler
     lock = threading.Lock()
     counts = {"weights": 0, "status": 0, "alive": 0, "transition": 0, "action": 0, "undecodable": 0}
     action_sources: dict[str, dict[str, int]] = {}  # robot -> sender's zid -> actions

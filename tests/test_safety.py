@@ -30,6 +30,7 @@ from common.checkpoint import atomic_write_json, remove_stale_temporaries
 from common.clock import Ticker
 from common.messages import Action, PlantState, ResetRequest, StepRequest
 from common.ros_wire import ODOMETRY, RosGraph
+from common.runtime import SignalWatch
 from common.settings import Settings
 from services.tb3_emulator.command import CMD_TIMEOUT_DEFAULT
 from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, open_session, wait_until
@@ -478,11 +479,11 @@ def test_a_stop_that_hangs_holding_the_gil_still_ends(bounded: bool) -> None:
     script = (
         "import ctypes, signal, sys, threading\n"
         "import common.lifeline as lifeline\n"
-        "from common.runtime import stop_within_bounds\n"
+        "from common.runtime import SignalWatch, stop_within_bounds\n"
         "lifeline.HARD_EXIT_SECONDS = 1.0\n"
         "stop = threading.Event()\n"
-        f"handler = (lambda *_: stop_within_bounds(stop)) if {bounded} else (lambda *_: stop.set())\n"
-        "signal.signal(signal.SIGTERM, handler)\n"
+        f"if {bounded}: SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # as serve()\n"
+        "else: signal.signal(signal.SIGTERM, lambda *_: stop.set())\n"
         "print('ready', flush=True)\n"
         "stop.wait()\n"
         "ctypes.PyDLL(None).sleep(30)  # hangs_holding_the_gil\n"
@@ -510,6 +511,63 @@ def test_a_stop_that_hangs_holding_the_gil_still_ends(bounded: bool) -> None:
         for stream in (process.stdout, process.stderr):
             if stream is not None:
                 stream.close()
+
+
+SIGNAL_STORM = (
+    "import signal, sys, threading, time\n"
+    "from common.runtime import SignalWatch\n"
+    "stop = threading.Event()\n"
+    "if sys.argv[1] == 'watch': SignalWatch(lambda _signum: stop.set(), signals=(signal.SIGALRM,)).start()\n"
+    "else: signal.signal(signal.SIGALRM, lambda *_: stop.set())  # the handler before\n"
+    "signal.setitimer(signal.ITIMER_REAL, 0.0005, 0.0005)\n"
+    "count, end = 0, time.monotonic() + 8.0\n"
+    "while count < 1000 and time.monotonic() < end:\n"
+    "    if stop.wait(0.00001):  # the main thread holds the event's lock most of the time\n"
+    "        stop.clear()\n"
+    "        count += 1\n"
+    "signal.setitimer(signal.ITIMER_REAL, 0)\n"
+    "print('stops', count, flush=True)\n"
+)
+
+
+@pytest.mark.parametrize("watch", [True, False])
+def test_a_signal_while_the_main_thread_waits_on_the_stop_never_deadlocks(watch: bool) -> None:
+    """A signal handler runs in the main thread, possibly inside ``stop.wait()`` while that thread
+    holds the event's non-reentrant lock; a handler calling ``stop.set()`` then waits on its own
+    thread forever (CI: services that "did not stop", their main thread stuck in ``Event.set``
+    inside ``Condition.wait``). common.runtime.SignalWatch sets the stop from a thread of its own:
+    1,000 signals, each heard, while the main thread waits on the stop. The control, the
+    handler before, deadlocks on one of them (here it hangs, or dies of nested handlers)."""
+    mode = "watch" if watch else "handler"
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", SIGNAL_STORM, mode], cwd=ROOT, capture_output=True, text=True, timeout=20.0
+        )
+        output, code = done.stdout.strip(), done.returncode
+    except subprocess.TimeoutExpired:  # subprocess.run kills and reaps the child
+        output, code = "hung", None
+    if watch:
+        assert (output, code) == ("stops 1000", 0), (output, code)
+    else:
+        assert output != "stops 1000", "the control should deadlock"
+
+
+def test_a_signal_watch_restores_the_handlers_and_wakeup_fd_it_replaced() -> None:
+    heard: list[int] = []
+    got = threading.Event()
+    previous = signal.getsignal(signal.SIGUSR1)
+    wakeup = signal.set_wakeup_fd(-1)
+    signal.set_wakeup_fd(wakeup)
+    with SignalWatch(lambda signum: (heard.append(signum), got.set()), signals=(signal.SIGUSR1,)) as watch:
+        assert signal.getsignal(signal.SIGUSR1) == watch._handle
+        os.kill(os.getpid(), signal.SIGUSR1)
+        assert got.wait(5.0)
+    assert heard[0] == signal.SIGUSR1 and set(heard) == {signal.SIGUSR1}
+    assert signal.getsignal(signal.SIGUSR1) == previous
+    old = signal.set_wakeup_fd(-1)
+    signal.set_wakeup_fd(old)
+    assert old == wakeup  # the watch's pipe is no longer the wakeup fd
+    assert watch._thread is None and watch._read == -1 and watch._write == -1
 
 
 # -- finding 10: smaller points ----------------------------------------------------------------------

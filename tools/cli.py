@@ -29,6 +29,7 @@ from common.lifeline import die_with_parent
 from common.runtime import (
     Parser,
     SignalledError,
+    SignalWatch,
     UsageError,
     add_log_level,
     add_mode_argument,
@@ -179,7 +180,6 @@ ROUTER_CLOSE_SECONDS = 3.0
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    import signal
 
     import zenoh
 
@@ -187,8 +187,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args)
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop_within_bounds(stop))  # a stop that hangs still ends
+    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # for its life; a hung stop still ends
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))

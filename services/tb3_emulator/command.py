@@ -10,6 +10,7 @@ import time
 from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
 from common.lifeline import die_with_parent
 from common.runtime import (
+    SignalWatch,
     add_lifetime_arguments,
     connect_with_retry,
     floats_arg,
@@ -75,7 +76,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    import signal
     import threading
 
     import zenoh
@@ -94,8 +94,7 @@ def main(args: argparse.Namespace) -> int:
         pose = from_goal_frame(Pose2D(*(float(c) for c in settings.start_state())), Pose2D(*bridge.goal))
     cmd_type = DEFAULT_CMD_TYPE[bridge.ros_distro] if bridge.cmd_type == "auto" else CMD_TYPES[bridge.cmd_type]
     stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop_within_bounds(stop))  # a stop that hangs still ends
+    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # for its life; a hung stop still ends
     die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
     if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
         session = zenoh.open(plain_config(settings.transport, args.listen, router=True))
