@@ -167,6 +167,27 @@ def stop_within_bounds(stop: threading.Event) -> None:
     stop.set()
 
 
+def lower_priority(niceness: int, who: str) -> None:
+    """Lower this process's CPU priority by ``niceness`` (nice, capped at 19): on a busy machine
+    the processes that keep a deadline (the actors' ticks) run first. Linux keeps a niceness per
+    thread, and a thread inherits its creator's: every thread already running (BLAS's pool) is
+    lowered as well as the calling one, so Zenoh's threads, started later, inherit it. Needs no
+    root (only raising a priority does); where it is refused, a warning and the normal priority."""
+    if niceness <= 0:
+        return
+    try:
+        tasks = [int(tid) for tid in os.listdir("/proc/self/task")]
+    except OSError:  # no /proc: the calling thread only
+        tasks = [0]
+    try:
+        for tid in tasks:
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + niceness))
+    except ProcessLookupError:  # a thread that ended meanwhile
+        pass
+    except OSError as error:
+        log.warning("%s: cannot lower its CPU priority (nice +%d): %s", who, niceness, error)
+
+
 # A router that accepts TCP but refuses the session this long is refusing the login (a wrong
 # password does not become right); shorter, it may still be starting.
 LOGIN_REFUSED_AFTER = 2.0

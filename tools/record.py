@@ -529,13 +529,12 @@ OBSERVER_NICENESS = 10  # srl record / srl view yield the CPU to the loop they w
 
 
 def yield_cpu_to_the_loop() -> None:
-    """Lower this process's CPU priority (nice +10) before any thread starts: on Linux a thread
-    inherits its creator's niceness, so Zenoh's runtime threads and the writer run niced too, and
-    on a busy machine the actor's tick comes first (measured: srl bench loop --record)."""
-    try:
-        os.nice(OBSERVER_NICENESS)
-    except OSError as error:  # not allowed here: record anyway, at the normal priority
-        log.warning("cannot lower the recorder's priority: %s", error)
+    """Lower this process's CPU priority (nice +10, common.runtime.lower_priority) before Zenoh's
+    threads start, so they and the writer run niced too, and on a busy machine the actor's tick
+    comes first (measured: srl bench loop --record). Refused: a warning, and it records anyway."""
+    from common.runtime import lower_priority
+
+    lower_priority(OBSERVER_NICENESS, "the recorder")
 
 
 class Feed:
