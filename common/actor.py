@@ -62,6 +62,7 @@ class ActorProblem:
     predictor: str = "euler"
     solver: str = "fatrop"
     jit: bool = True
+    jit_cache: str = ""  # a directory of compiled objects kept across builds ("" = none): _JIT_WRAPPER
     max_iter: int = 100
     tolerance: float = 1e-8
     mu_init: float = 0.01  # interior-point barrier start; small suits the warm start (measured)
@@ -243,10 +244,31 @@ class ActorMemory:
 # srl dies (SIGTERM/SIGKILL), when srl received SIGTERM/SIGINT (Python's C-level handler writes
 # the signal number to SIGNALS, see _in_jit_directory), or when the terminal's Ctrl-C reaches
 # the wrapper itself; it leaves the signal number in SIGNALS for Python to report.
+# gcc runs niced (+10): on a machine where actors already tick (a fleet's second host, a test
+# beside a run), their deadlines come first; alone, it runs as fast as before.
+# With SRL_JIT_CACHE (a private directory, see _jit_cache_directory), a compile (CasADi's
+# ``cc FLAGS -c SOURCE -o OBJECT``) is looked up by the SHA-256 of the compiler's version, the
+# flags and the source: the same problem compiles once per machine (CasADi's generated source
+# is the same bits every build), and a compiled object is stored by an atomic rename.
 _JIT_WRAPPER = r"""#!/bin/sh
-owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"
+owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"; cache=${SRL_JIT_CACHE:-}
 TMPDIR="$dir"; export TMPDIR  # gcc's own temporaries (cc*.s) go with the build directory, even on SIGKILL
-setsid "$@" &
+key=; src=; out=; previous=
+for arg in "$@"; do
+    case "$arg" in *.c) src=$arg;; esac
+    [ "$previous" = "-o" ] && out=$arg
+    previous=$arg
+done
+if [ -n "$cache" ] && [ -n "$src" ] && [ -n "$out" ]; then
+    key=$({ "$1" --version 2>&1; for arg in "$@"; do
+        case "$arg" in "$src") echo SOURCE;; "$out") echo OBJECT;; *) printf '%s\n' "$arg";; esac
+    done; cat "$src"; } | sha256sum | cut -c1-64)
+    if [ -z "${SRL_JIT_CACHE_REFRESH:-}" ] && [ -f "$cache/$key.o" ] && cp "$cache/$key.o" "$out"; then
+        touch "$cache/$key.o"; exit 0
+    fi
+fi
+niced=; command -v nice >/dev/null 2>&1 && niced="nice -n 10"
+setsid $niced "$@" &
 child=$!
 stop() { kill -KILL -"$child" 2>/dev/null; kill -KILL "$child" 2>/dev/null; }  # dash: no "--"
 trap 'stop; printf "\002" >> "$signals"; exit 130' INT
@@ -258,7 +280,53 @@ do
     sleep 0.1
 done
 wait "$child"
+status=$?
+if [ "$status" -eq 0 ] && [ -n "$key" ] && cp "$out" "$cache/.$key.$$"; then
+    mv -f "$cache/.$key.$$" "$cache/$key.o" || rm -f "$cache/.$key.$$"
+fi
+exit "$status"
 """
+JIT_CACHE_ENTRIES = 200  # compiled objects kept (~0.1-2 MB each); the least recently used go first
+
+
+def default_jit_cache() -> str:
+    """Where compiled actor problems are kept: ``$XDG_CACHE_HOME/srl/jit`` (``~/.cache/srl/jit``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "srl", "jit")
+
+
+def _jit_cache_directory(path: str) -> str | None:
+    """``path`` made (mode 0700) if needed, or None, with a warning, if it cannot be made or
+    another user could write to it: a compiled object from there is loaded into the process."""
+    if not path:
+        return None
+    try:
+        os.makedirs(path, mode=0o700, exist_ok=True)
+        info = os.stat(path)
+    except OSError as error:
+        log.warning("JIT cache %s: %s: compiling without it", path, error.strerror or error)
+        return None
+    if info.st_uid != os.getuid() or info.st_mode & 0o022:
+        log.warning("JIT cache %s is not private to this user (owner or mode): compiling without it", path)
+        return None
+    return path
+
+
+def _prune_jit_cache(path: str, keep: int = JIT_CACHE_ENTRIES) -> None:
+    """The ``keep`` most recently used objects stay; leftovers of a killed store (``.KEY.PID``,
+    over an hour old) go."""
+    try:
+        entries = list(os.scandir(path))
+        now = time.time()
+        objects = sorted((e for e in entries if e.name.endswith(".o") and not e.name.startswith(".")),
+                         key=lambda e: e.stat().st_mtime)  # fmt: skip
+        for entry in objects[: max(0, len(objects) - keep)]:
+            os.remove(entry.path)
+        for entry in entries:
+            if entry.name.startswith(".") and now - entry.stat().st_mtime > 3600:
+                os.remove(entry.path)
+    except OSError as error:  # another build pruning too, or the directory gone: next time
+        log.debug("JIT cache %s: pruning: %s", path, error)
 
 
 class BuildInterrupted(KeyboardInterrupt):
@@ -270,7 +338,7 @@ class BuildInterrupted(KeyboardInterrupt):
 
 
 @contextlib.contextmanager
-def _in_jit_directory() -> Iterator[str]:
+def _in_jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
     """Run a JIT build inside a fresh private temporary directory, removed right after.
 
     CasADi writes its C files and shared objects into the CURRENT directory whatever its
@@ -279,7 +347,9 @@ def _in_jit_directory() -> Iterator[str]:
     nothing is left in /tmp even when the process is later killed with SIGKILL.
     ``os.chdir`` is process-wide: actors are built before a service starts its threads, and
     the previous directory is restored even if the build fails. Yields the compiler command
-    (the wrapper above around gcc or cc).
+    (the wrapper above around gcc or cc). ``cache``: the directory of compiled objects kept
+    across builds (see the wrapper; "" = none); ``refresh``: every object compiled and stored,
+    none taken from it.
     """
     import signal
     import threading
@@ -296,6 +366,12 @@ def _in_jit_directory() -> Iterator[str]:
     old_fd = signal.set_wakeup_fd(fd, warn_on_full_buffer=False) if main else -1
     owner = os.environ.get("SRL_JIT_OWNER")
     os.environ["SRL_JIT_OWNER"] = str(os.getpid())
+    cache_directory = _jit_cache_directory(cache)
+    cache_before = os.environ.pop("SRL_JIT_CACHE", None)
+    if cache_directory is not None:
+        os.environ["SRL_JIT_CACHE"] = cache_directory
+        if refresh:
+            os.environ["SRL_JIT_CACHE_REFRESH"] = "1"
     os.chdir(path)
     compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
     keeper = _SigintKeeper() if main else None
@@ -314,7 +390,13 @@ def _in_jit_directory() -> Iterator[str]:
             os.environ.pop("SRL_JIT_OWNER", None)
         else:
             os.environ["SRL_JIT_OWNER"] = owner
+        os.environ.pop("SRL_JIT_CACHE", None)
+        os.environ.pop("SRL_JIT_CACHE_REFRESH", None)
+        if cache_before is not None:
+            os.environ["SRL_JIT_CACHE"] = cache_before
         shutil.rmtree(path, ignore_errors=True)
+        if cache_directory is not None:
+            _prune_jit_cache(cache_directory)
 
 
 KEEPER_POLL_SECONDS = 0.001  # _SigintKeeper: how soon SIGINT is heard again after system() ignores it
@@ -688,9 +770,12 @@ class StackedActor:
             # code is loaded (see _in_jit_directory); CasADi's own cleanup is off.
             if compiler is None:
                 return {}
+            # jit_temp_suffix off: the generated source (and its symbols) named jit_name, not
+            # jit_name plus a random suffix, so the same problem is the same bits every build and
+            # the wrapper's cache finds it; the private directory already keeps builds apart.
             jit_options = {"flags": ["-O3"], "verbose": False, "cleanup": False, "compiler": compiler}
             return {"jit": True, "compiler": "shell", "jit_name": jit_name, "jit_cleanup": False,
-                    "jit_options": jit_options}  # fmt: skip
+                    "jit_temp_suffix": False, "jit_options": jit_options}  # fmt: skip
 
         name = f"actor_{p.agent.replace('+', 'plus')}_N{p.horizon}"
         started = time.perf_counter()
@@ -702,7 +787,8 @@ class StackedActor:
             p.solver,
             ", JIT-compiled with the C compiler" if jit else "",
         )
-        with _in_jit_directory() if jit else contextlib.nullcontext() as compiler:
+
+        def functions(compiler: str | None) -> Any:
             solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
             self._merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
             if global_args is not None:
@@ -710,6 +796,26 @@ class StackedActor:
             if flip_args is not None:
                 self._flips = ca.Function("vertex_neighbours", *flip_args[0], compiled("srl_flips", compiler))
                 self._rollout = ca.Function("rollout", *flip_args[1], compiled("srl_rollout", compiler))
+            return solver
+
+        if not jit:
+            solver = functions(None)
+        else:
+            try:
+                with _in_jit_directory(p.jit_cache) as compiler:
+                    solver = functions(compiler)
+            except Exception as error:  # a signal (BuildInterrupted) is no Exception: it ends the build
+                if not (p.jit_cache and os.path.isdir(p.jit_cache)):
+                    raise
+                # a damaged cached object (a disk error, a file written by hand) must not stop
+                # the actor for good: compiled again, and the cache's objects replaced
+                log.warning(
+                    "the JIT build with cached objects failed (%s): compiling it again and replacing them in %s",
+                    str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__,
+                    p.jit_cache,
+                )
+                with _in_jit_directory(p.jit_cache, refresh=True) as compiler:
+                    solver = functions(compiler)
         elapsed = time.perf_counter() - started
         # a long build is worth a line at the default level; a usual one (N = 12: ~1 s) is not
         log.log(

@@ -7,13 +7,14 @@ process's ``main``) and hands them over.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
 
-from common.actor import ActorMemory, ActorProblem, StackedActor
+from common.actor import ActorMemory, ActorProblem, StackedActor, default_jit_cache
 from common.agents import learns
 from common.arrival import ArrivalRule, ArrivalTolerances
 from common.critic import DoubleCritic, PooledLearner
@@ -35,6 +36,13 @@ def arrival_rule(settings: Settings) -> ArrivalRule | None:
     )
 
 
+def jit_cache_path(setting: str) -> str:
+    """``actor.jit_cache``: "auto" -> ~/.cache/srl/jit (XDG), "off" -> "" (none), else the path."""
+    if setting == "auto":
+        return default_jit_cache()
+    return "" if setting == "off" else os.path.expanduser(setting)
+
+
 def build_actor(settings: Settings) -> StackedActor:
     a, p = settings.actor, settings.plant
     return StackedActor(
@@ -48,6 +56,7 @@ def build_actor(settings: Settings) -> StackedActor:
             predictor=a.predictor,
             solver=a.solver,
             jit=a.jit,
+            jit_cache=jit_cache_path(a.jit_cache),
             max_iter=a.max_iter,
             tolerance=a.tolerance,
             mu_init=a.mu_init,

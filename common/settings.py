@@ -189,6 +189,9 @@ class ActorSettings(_Section):
     predictor: Literal["euler", "rk4"]
     solver: Literal["fatrop", "ipopt"]
     jit: bool
+    jit_cache: str = Field(
+        default="auto", min_length=1, description="compiled problems kept: auto (~/.cache/srl/jit), off, or a directory"
+    )
     max_iter: int = Field(ge=1)
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)

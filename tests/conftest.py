@@ -1,6 +1,7 @@
 """Test-wide rules.
 
-* Isolation: no test reads or writes the user's real critic checkpoint.
+* Isolation: no test reads or writes the user's real critic checkpoint, nor the user's JIT cache
+  (``actor.jit_cache``: one private directory for the session, so a problem compiles once per run).
 * Machine requirements: a test that needs more than python3 (root, iproute2 and iptables for
   network namespaces; a C compiler for the actor's JIT build) carries a marker (``needs_root``,
   ``needs_compiler``); where the machine lacks it, the test is
@@ -80,6 +81,20 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         if reporter is not None:
             reporter.write_line(f"{REQUIRE_ALL} is set: {skipped} test(s) skipped, failing the run", red=True)
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+@pytest.fixture(autouse=True, scope="session")
+def jit_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The session's JIT cache (service processes started by a test inherit it)."""
+    path = tmp_path_factory.mktemp("jit-cache")
+    path.chmod(0o700)
+    before = os.environ.get("SRL_ACTOR__JIT_CACHE")
+    os.environ["SRL_ACTOR__JIT_CACHE"] = str(path)
+    yield path
+    if before is None:
+        os.environ.pop("SRL_ACTOR__JIT_CACHE", None)
+    else:
+        os.environ["SRL_ACTOR__JIT_CACHE"] = before
 
 
 @pytest.fixture(autouse=True)

@@ -7,6 +7,7 @@ features from a hand-written pair list), evaluated on a grid of held actions.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator
 
 import numpy as np
@@ -181,6 +182,86 @@ def test_jit_build_solves_the_same_problem_and_leaves_no_files(tmp_path, monkeyp
         np.testing.assert_allclose(got.plan, expected.plan, atol=1e-7)
         assert got.objective == pytest.approx(expected.objective, rel=1e-9)
         state = exact_step(state, got.action, DELTA)
+
+
+def _cached_objects(cache) -> dict[str, float]:
+    return {path.name: path.stat().st_mtime for path in cache.glob("*.o")}
+
+
+def _same_steps(one: StackedActor, other: StackedActor, steps: int = 3) -> None:
+    """Bit for bit: the same plans and objectives from the same states and weights."""
+    one.reset()
+    other.reset()
+    rng = np.random.default_rng(5)
+    w, v_w = psd_weights(rng, 5, PAIRS5), psd_weights(rng, 3, PAIRS3)
+    state = np.array([0.8, -0.6, 1.0])
+    for _ in range(steps):
+        a, b = one.step(state, w, v_w), other.step(state, w, v_w)
+        np.testing.assert_array_equal(a.plan, b.plan)
+        assert a.objective == b.objective
+        state = exact_step(state, a.action, DELTA)
+
+
+@pytest.mark.needs_compiler
+def test_the_jit_cache_compiles_a_problem_once_and_the_cached_build_solves_bit_for_bit(tmp_path) -> None:
+    """actor.jit_cache: the first build stores each compiled object (private directory); the next
+    build of the same problem takes every one from there (each touched, none added) and solves
+    exactly as a build without the cache. The control, a build without the cache, stores nothing."""
+    cache = tmp_path / "jit"
+    uncached = make_actor("rlqv+", 3, jit=True)
+    assert not cache.exists()
+    first = make_actor("rlqv+", 3, jit=True, jit_cache=str(cache))
+    stored = _cached_objects(cache)
+    assert len(stored) >= 2 and cache.stat().st_mode & 0o777 == 0o700
+    for name in stored:
+        os.utime(cache / name, (1e9, 1e9))  # 2001: a hit touches it
+    second = make_actor("rlqv+", 3, jit=True, jit_cache=str(cache))
+    again = _cached_objects(cache)
+    assert set(again) == set(stored) and min(again.values()) > 1e9, again
+    _same_steps(second, uncached)
+    _same_steps(first, uncached)
+
+
+@pytest.mark.needs_compiler
+def test_a_damaged_cached_object_is_compiled_again_and_replaced(tmp_path, caplog) -> None:
+    cache = tmp_path / "jit"
+    make_actor("rlqv", 3, jit=True, jit_cache=str(cache))
+    stored = _cached_objects(cache)
+    for name in stored:
+        (cache / name).write_bytes(b"not an object file")
+    with caplog.at_level("WARNING", logger="common.actor"):
+        rebuilt = make_actor("rlqv", 3, jit=True, jit_cache=str(cache))
+    assert "the JIT build with cached objects failed" in caplog.text
+    assert set(_cached_objects(cache)) == set(stored)
+    assert all((cache / name).read_bytes()[:4] == b"\x7fELF" for name in stored)  # replaced by real objects
+    _same_steps(rebuilt, make_actor("rlqv", 3, jit=True))
+
+
+@pytest.mark.needs_compiler
+def test_a_jit_cache_another_user_could_write_is_not_used(tmp_path, caplog) -> None:
+    cache = tmp_path / "shared"
+    cache.mkdir()
+    cache.chmod(0o777)
+    with caplog.at_level("WARNING", logger="common.actor"):
+        make_actor("mpc", 3, jit=True, jit_cache=str(cache))
+    assert "is not private to this user" in caplog.text
+    assert list(cache.iterdir()) == []
+
+
+def test_the_jit_cache_keeps_the_most_recently_used_objects_and_drops_old_leftovers(tmp_path) -> None:
+    from common.actor import _prune_jit_cache
+
+    for i in range(6):
+        path = tmp_path / f"{i:064x}.o"
+        path.write_bytes(b"x")
+        os.utime(path, (1e9 + i, 1e9 + i))
+    stale, fresh = tmp_path / ".abc.123", tmp_path / ".def.456"  # stores of killed builds, and one running
+    stale.write_bytes(b"x")
+    fresh.write_bytes(b"x")
+    os.utime(stale, (1e9, 1e9))
+    _prune_jit_cache(str(tmp_path), keep=4)
+    assert sorted(p.name for p in tmp_path.glob("*.o")) == [f"{i:064x}.o" for i in range(2, 6)]
+    assert not stale.exists() and fresh.exists()
 
 
 @pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
