@@ -302,7 +302,6 @@ def run_fleet(
     env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
     env.setdefault("SRL_CRITIC__BATCH_WINDOW", "0.02")  # ~20 robots' fits in one stacked solve at 100 robots
-    env.setdefault("SRL_CRITIC__NICENESS", "10")  # the actors' ticks first; the critic learns on what they leave
     # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
     # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second here) and
     # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
