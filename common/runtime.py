@@ -168,11 +168,13 @@ def stop_within_bounds(stop: threading.Event) -> None:
 
 
 def lower_priority(niceness: int, who: str) -> None:
-    """Lower this process's CPU priority by ``niceness`` (nice, capped at 19): on a busy machine
-    the processes that keep a deadline (the actors' ticks) run first. Linux keeps a niceness per
-    thread, and a thread inherits its creator's: every thread already running (BLAS's pool) is
-    lowered as well as the calling one, so Zenoh's threads, started later, inherit it. Needs no
-    root (only raising a priority does); where it is refused, a warning and the normal priority."""
+    """Lower this process's CPU priority by ``niceness`` (nice, capped at 19). Linux keeps a
+    niceness per thread, and a thread inherits its creator's: every thread already running
+    (BLAS's pool) is lowered as well as the calling one, so Zenoh's threads, started later,
+    inherit it. Needs no root (only raising a priority does); where it is refused, a warning and
+    the normal priority. With the kernel's autogroups on (``/proc/sys/kernel/sched_autogroup_enabled``)
+    it orders threads within one session only: ``srl up`` starts each service in a session of
+    its own, so a niced service does not yield to another service (README, Fleet)."""
     if niceness <= 0:
         return
     try:

@@ -152,9 +152,6 @@ class CriticSettings(_Section):
         allow_inf_nan=False,
         description="[s] a batch collects transitions this long after its first (a fleet's critic); 0 = what waits",
     )
-    niceness: int = Field(
-        default=0, ge=0, le=19, description="the critic process's nice increment: its CPU yields to the actors' ticks"
-    )
     robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
     pooled: bool = Field(default=False, description="one learner trained on every robot's transitions (a fleet's)")
 

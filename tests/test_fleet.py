@@ -333,46 +333,6 @@ def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition
     assert learner.fits_coalesced == 3 and learner.accepted == 5
 
 
-def _nice_of_every_thread(pid: int) -> set[int]:
-    """The niceness of each thread of ``pid`` (/proc/<pid>/task/<tid>/stat, field 19)."""
-    values = set()
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{tid}/stat") as file:
-                values.add(int(file.read().rsplit(")", 1)[1].split()[16]))
-        except (OSError, IndexError):  # a thread that ended meanwhile
-            continue
-    return values
-
-
-@pytest.mark.parametrize("niceness", [7, 0])
-def test_the_critic_runs_every_thread_at_its_niceness_so_the_actors_ticks_come_first(niceness: int) -> None:
-    """critic.niceness: every thread of ``srl critic`` (Zenoh's, started after, and BLAS's, before)
-    runs at that nice increment, here while it waits for a router that is not there. The control
-    (0, the default) runs at the test's own niceness."""
-    from tests.harness import ROOT, free_port
-
-    own = os.getpriority(os.PRIO_PROCESS, 0)
-    env = {**os.environ, "SRL_CRITIC__NICENESS": str(niceness)}
-    argv = [sys.executable, "-m", "tools.cli", "critic", "--router", f"tcp/127.0.0.1:{free_port()}"]
-    process = subprocess.Popen(
-        [*argv, "--connect-timeout", "20"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
-    )
-    try:
-        deadline, seen = time.monotonic() + 15.0, set()
-        while time.monotonic() < deadline and process.poll() is None:
-            seen = _nice_of_every_thread(process.pid)
-            if len(os.listdir(f"/proc/{process.pid}/task")) > 3 and seen == {min(19, own + niceness)}:
-                break
-            time.sleep(0.1)
-        assert seen == {min(19, own + niceness)}, (seen, own)
-    finally:
-        process.kill()
-        process.wait()
-        assert process.stderr is not None
-        process.stderr.close()
-
-
 @pytest.mark.slow
 def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up() -> None:
     """``srl bench fleet`` in miniature: one host row and one baseline row, bounded, and no srl

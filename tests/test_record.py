@@ -13,10 +13,12 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import re
 import signal
 import struct
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -356,3 +358,28 @@ def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path)
     np.testing.assert_array_equal(replayed.costs, episode.costs)
     np.testing.assert_array_equal(np.array(replayed.td_residuals)[:-1], np.array(episode.td_residuals)[:-1])
     assert replayed.accumulated_cost == episode.accumulated_cost
+
+
+def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> None:
+    """common.runtime.lower_priority (the recorder's nice +10): the threads already running (a
+    BLAS pool) and those started after it (Zenoh's) run at the lowered niceness; 0 changes none."""
+    script = (
+        "import os, threading, time\n"
+        "from common.runtime import lower_priority\n"
+        "def nice(tid): return os.getpriority(os.PRIO_PROCESS, tid)\n"
+        "tids, go = [], threading.Event()\n"
+        "def worker(): tids.append(threading.get_native_id()); go.wait(10)\n"
+        "before = threading.Thread(target=worker); before.start()\n"
+        "lower_priority(0, 'test'); unchanged = nice(0)\n"
+        "lower_priority(5, 'test')\n"
+        "after = threading.Thread(target=worker); after.start()\n"
+        "while len(tids) < 2: time.sleep(0.01)\n"
+        "print(unchanged, nice(0), *(nice(t) for t in tids))\n"
+        "go.set()\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=30, check=True
+    )
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    lowered = min(19, own + 5)
+    assert done.stdout.split() == [str(own), str(lowered), str(lowered), str(lowered)], done.stderr

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.runtime import add_lifetime_arguments, add_robots_argument, fleet_robots, lower_priority, serve
+from common.runtime import add_lifetime_arguments, add_robots_argument, fleet_robots, serve
 
 NAME = "critic"
 HELP = "the off-board critic learner (TD least squares)"
@@ -35,7 +35,6 @@ def main(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     if args.pooled:
         settings = settings.model_copy(update={"critic": settings.critic.model_copy(update={"pooled": True})})
-    lower_priority(settings.critic.niceness, "critic")  # before Zenoh's threads start: they inherit it
 
     return serve(
         settings,
