@@ -108,10 +108,13 @@ def critic_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterat
 
 
 @pytest.fixture
-def no_srl_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    """No ``SRL_*`` variable set (tests of how settings are resolved, from files and flags only)."""
+def no_srl_environment(monkeypatch: pytest.MonkeyPatch, jit_cache: Path) -> None:
+    """No ``SRL_*`` variable set (tests of how settings are resolved, from files and flags only).
+    ``actor.jit_cache`` is then ``auto``: ``$XDG_CACHE_HOME`` points into the session's cache, so
+    these tests do not write the user's ``~/.cache/srl/jit`` either."""
     import os
 
     for name in list(os.environ):
         if name.upper().startswith("SRL_"):
             monkeypatch.delenv(name)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(jit_cache / "xdg"))
