@@ -147,9 +147,7 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
     ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line."""
     from common.transport import Bus
 
-    stop = threading.Event()
-    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # for the process's life
-    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
+    stop = service_stop()
     bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:
         result = body(settings, bus, stop)
@@ -158,6 +156,16 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
     result["resources"] = own_resources()
     print(json.dumps(result), flush=True)
     return 0
+
+
+def service_stop() -> threading.Event:
+    """A service process's stop, for its life: set by SIGINT and SIGTERM (through
+    :class:`SignalWatch`, the stop bounded by :func:`stop_within_bounds`) and by the death of the
+    ``srl up`` that started it, even by SIGKILL (common.lifeline)."""
+    stop = threading.Event()
+    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()
+    die_with_parent(stop)
+    return stop
 
 
 def stop_within_bounds(stop: threading.Event) -> None:

@@ -25,18 +25,16 @@ from common.arguments import (
     settings_argv,
     settings_from_args,
 )
-from common.lifeline import die_with_parent
 from common.runtime import (
     Parser,
     SignalledError,
-    SignalWatch,
     UsageError,
     add_log_level,
     add_mode_argument,
     connect_with_retry,
     own_resources,
+    service_stop,
     stop_on_signals,
-    stop_within_bounds,
     zenoh_reason,
 )
 from common.runtime import entry as runtime_entry
@@ -186,9 +184,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     from common.transport import zenoh_config
 
     settings = settings_from_args(args)
-    stop = threading.Event()
-    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # for its life; a hung stop still ends
-    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
+    stop = service_stop()  # signals (bounded) and srl up's death
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))
     except zenoh.ZError as error:

@@ -8,14 +8,12 @@ import json
 import time
 
 from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
-from common.lifeline import die_with_parent
 from common.runtime import (
-    SignalWatch,
     add_lifetime_arguments,
     connect_with_retry,
     floats_arg,
     own_resources,
-    stop_within_bounds,
+    service_stop,
 )
 from common.summaries import EmulatorSummary
 
@@ -76,7 +74,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    import threading
 
     import zenoh
 
@@ -93,9 +90,7 @@ def main(args: argparse.Namespace) -> int:
     else:  # the episode's start (goal frame) where the bridge's goal puts it in the odom frame
         pose = from_goal_frame(Pose2D(*(float(c) for c in settings.start_state())), Pose2D(*bridge.goal))
     cmd_type = DEFAULT_CMD_TYPE[bridge.ros_distro] if bridge.cmd_type == "auto" else CMD_TYPES[bridge.cmd_type]
-    stop = threading.Event()
-    SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # for its life; a hung stop still ends
-    die_with_parent(stop)  # started by srl up: stop when it dies, even by SIGKILL
+    stop = service_stop()  # signals (bounded) and srl up's death
     if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
         session = zenoh.open(plain_config(settings.transport, args.listen, router=True))
     else:
