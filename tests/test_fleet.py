@@ -531,7 +531,12 @@ def test_one_actor_command_splits_its_robots_over_host_processes_that_live_and_d
         def start() -> Proc:
             actor = Proc("actor", ["actor", "--router", endpoint, "--robots", ",".join(robots), "--hosts", "2"])
             actors.append(actor)
-            wait_until(lambda: len(serving()) == 2, 90, "two actor hosts alive")
+            # a host declares its robots' tokens one by one: wait for every robot, not for the first of each host
+            wait_until(
+                lambda: sorted(len(served) for served in serving().values()) == [2, 2],
+                90,
+                "two actor hosts alive, serving every robot",
+            )
             return actor
 
         # 1. two processes, the robots in contiguous halves; SIGTERM to the command stops both
