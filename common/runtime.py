@@ -198,6 +198,43 @@ def lower_priority(niceness: int, who: str) -> None:
         log.warning("%s: cannot lower its CPU priority (nice +%d): %s", who, niceness, error)
 
 
+@contextlib.contextmanager
+def realtime_priority(priority: int, who: str) -> Iterator[int]:
+    """Run the calling thread under ``SCHED_FIFO`` at ``priority`` (1-99; 0: leave it as it is)
+    until the block ends, then give it back its policy. Yields the priority granted, 0 if none.
+
+    A real-time thread is given a core before any thread of the normal class, whatever their
+    sessions and autogroups: an actor's tick thread is not made to wait behind a critic's fit
+    or another service's burst (issue 16, README "Real-time priority"). It needs ``CAP_SYS_NICE``
+    (root, or ``cap_add: [SYS_NICE]`` in compose) or a ``rtprio`` limit (``ulimit -r``, e.g.
+    ``@realtime - rtprio 20`` in /etc/security/limits.conf); where refused, one INFO line and
+    the normal class. ``SCHED_RESET_ON_FORK``: threads and processes it starts are normal. The
+    kernel's RT throttling (``/proc/sys/kernel/sched_rt_runtime_us``, 95 % by default) keeps a
+    runaway from taking a whole core."""
+    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
+        yield 0
+        return
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+    except OSError as error:
+        log.info(
+            "%s: ticks at normal priority (SCHED_FIFO %d refused: %s; it needs CAP_SYS_NICE or "
+            "an rtprio limit, README Real-time priority)",
+            who,
+            priority,
+            error.strerror or error,
+        )
+        yield 0
+        return
+    log.info("%s: ticks under SCHED_FIFO %d", who, priority)
+    try:
+        yield priority
+    finally:
+        with contextlib.suppress(OSError):  # giving a priority back is always allowed
+            os.sched_setscheduler(0, policy, param)
+
+
 # A router that accepts TCP but refuses the session this long is refusing the login (a wrong
 # password does not become right); shorter, it may still be starting.
 LOGIN_REFUSED_AFTER = 2.0

@@ -189,6 +189,16 @@ class ActorSettings(_Section):
     jit_cache: str = Field(
         default="auto", min_length=1, description="compiled problems kept: auto (~/.cache/srl/jit), off, or a directory"
     )
+    realtime_priority: int = Field(
+        default=10, ge=0, le=99, description="the tick thread under SCHED_FIFO at this priority, if allowed (0 = off)"
+    )
+    host_cpu_budget: float = Field(
+        default=0.3,
+        gt=0,
+        le=1,
+        allow_inf_nan=False,
+        description="share of each period an actor host's full solves may take; beyond, it hurries",
+    )
     max_iter: int = Field(ge=1)
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)

@@ -163,23 +163,31 @@ class FakeLoop:
     sent: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
     counters: ActorCounters = field(default_factory=ActorCounters)
     hurried: list[bool] = field(default_factory=list)  # the scheduler's hurry at each tick
+    hurried_work: float | None = None  # a hurried tick's time (None: as any other)
 
     def tick(self, k: int, tick: float, hurry: bool = False) -> None:
         self.served.append((self.robot, k, tick))
         self.hurried.append(hurry)
-        self.fake.now += self.work
+        self.fake.now += self.hurried_work if hurry and self.hurried_work is not None else self.work
 
     def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:
         self.sent.append((k, action))
 
 
 def host(
-    count: int, work: float = 0.001
+    count: int, work: float = 0.001, budget: float = 1.0
 ) -> tuple[HostScheduler, list[FakeLoop], list[tuple[str, int, float]], FakeClock]:
     fake = FakeClock()
     served: list[tuple[str, int, float]] = []
     loops = [FakeLoop(f"r{i}", fake, served, work) for i in range(count)]
-    scheduler = HostScheduler(loops, 0.1, threading.Event(), clock=fake.clock, sleep=fake.sleep)  # type: ignore[arg-type]
+    scheduler = HostScheduler(
+        loops,  # type: ignore[arg-type]
+        0.1,
+        threading.Event(),
+        clock=fake.clock,
+        sleep=fake.sleep,
+        budget=budget,
+    )
     return scheduler, loops, served, fake
 
 
@@ -218,6 +226,79 @@ def test_a_tick_served_late_is_solved_in_a_hurry_and_one_on_time_is_not() -> Non
     scheduler.run(end=fake.now + 0.35, manual_gc=False)
     assert loops[1].hurried and all(loops[1].hurried) and loops[1].ticker.missed == 0
     assert not any(loops[0].hurried)
+
+
+def test_a_host_over_its_cpu_budget_hurries_until_its_last_round_is_back_under() -> None:
+    # actor.host_cpu_budget: 4 robots of 10 ms each (on time: one every 25 ms) spend 40 ms of each
+    # 100 ms period. Under a budget of 0.5 no tick is hurried; under 0.3 the first round is full
+    # (nothing spent yet), then a tick is hurried whenever the last round's ticks took over 30 ms,
+    # and a hurried tick (4 ms) brings the round back under: full and hurried ticks alternate.
+    scheduler, loops, _, fake = host(4, work=0.01, budget=0.5)
+    scheduler.run(end=fake.now + 2.0, manual_gc=False)
+    assert scheduler.over_budget == 0 and not any(h for loop in loops for h in loop.hurried)
+    scheduler, loops, _, fake = host(4, work=0.01, budget=0.3)
+    for loop in loops:
+        loop.hurried_work = 0.004
+    scheduler.run(end=fake.now + 2.0, manual_gc=False)
+    hurried = [h for loop in loops for h in loop.hurried]
+    assert not any(loop.hurried[0] for loop in loops)  # the first round: nothing spent before it
+    assert scheduler.over_budget == sum(hurried)  # on time throughout: every hurry is the budget's
+    assert 0.2 * len(hurried) < sum(hurried) < 0.8 * len(hurried), sum(hurried)
+    assert all(loop.ticker.missed == 0 for loop in loops)
+    # the spent ring holds one round: its sum is the last 4 ticks' time, under budget + one tick
+    assert scheduler.spent_sum == pytest.approx(sum(scheduler.spent)) and scheduler.spent_sum <= 0.3 * 0.1 + 0.01
+
+
+_PRIORITY_PROBE = """
+import logging, os, sys, threading
+from common.runtime import realtime_priority
+logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
+if len(sys.argv) > 1:  # an unprivileged user: no rtprio limit, no CAP_SYS_NICE
+    import resource
+    resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+    os.setgid(65534)
+    os.setuid(65534)
+seen = {}
+with realtime_priority(10, "probe") as granted:
+    seen["inside"] = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(0).sched_priority
+    started = threading.Thread(target=lambda: seen.update(thread=os.sched_getscheduler(0)))
+    started.start()
+    started.join()
+print("granted", granted, "inside", *seen["inside"], "thread", seen["thread"])
+print("after", os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+"""
+
+
+def _rtprio_allowed() -> bool:
+    import resource
+
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10
+
+
+@pytest.mark.parametrize("user", ["allowed", "refused"])
+def test_the_tick_thread_is_real_time_where_allowed_and_normal_with_one_line_where_not(user: str) -> None:
+    """common.runtime.realtime_priority (actor.realtime_priority): where the user may (root here,
+    CAP_SYS_NICE or an rtprio limit), the block runs under SCHED_FIFO at the priority, a thread it
+    starts is normal (SCHED_RESET_ON_FORK), and the thread gets its policy back after; where it
+    may not, one INFO line says so and nothing changes."""
+    if user == "allowed" and not _rtprio_allowed():
+        pytest.skip("this user may not ask for SCHED_FIFO 10 (no rtprio limit): the refused case runs")
+    if user == "refused" and os.geteuid() != 0 and _rtprio_allowed():
+        pytest.skip("this user may ask for SCHED_FIFO: the allowed case runs")
+    argv = [sys.executable, "-c", _PRIORITY_PROBE] + (["drop"] if user == "refused" and os.geteuid() == 0 else [])
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=60, cwd=Path(__file__).parents[1])
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert lines[-1] == f"after {os.SCHED_OTHER} 0", lines
+    if user == "allowed":
+        assert lines[-2] == f"granted 10 inside {os.SCHED_FIFO} 10 thread {os.SCHED_OTHER}", lines
+        assert lines[0] == "probe: ticks under SCHED_FIFO 10"
+    else:
+        assert lines[-2] == f"granted 0 inside {os.SCHED_OTHER} 0 thread {os.SCHED_OTHER}", lines
+        assert len(lines) == 3 and lines[0].startswith("probe: ticks at normal priority (SCHED_FIFO 10 refused: "), (
+            lines
+        )
+        assert "CAP_SYS_NICE or an rtprio limit" in lines[0]
 
 
 def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole_periods_are_skipped() -> None:

@@ -436,15 +436,21 @@ def run_fleet(
     critic = TypeAdapter(CriticSummary).validate_python(supervisor.children["critic"].summary())
     if layout == "host":
         per_robot = {}
+        process_counters = []  # each actor process's own (the host's: its tick thread's priority)
         for name in host_shares(robots, actor_hosts):
-            per_robot.update(FleetActorSummary.model_validate(supervisor.children[name].summary()).per_robot)
+            host_summary = FleetActorSummary.model_validate(supervisor.children[name].summary())
+            per_robot.update(host_summary.per_robot)
+            process_counters.append(host_summary.counters)
         view = fleet_view(per_robot)
     else:
         per_robot = {
             robot: RealtimeActorSummary.model_validate(supervisor.children[f"actor-{robot}"].summary())
             for robot in robots
         }
+        process_counters = [summary.counters for summary in per_robot.values()]
         view = fleet_view(per_robot)
+    ticks = sum(summary.steps for summary in per_robot.values())
+    hurried = sum(summary.counters.get("hurried_solves", 0.0) for summary in per_robot.values())
     use = ProcessUse(sum(cpu_seconds.values()), memory[0], memory[1], len(supervisor.children))
     summary = {
         "plant": plant,
@@ -459,6 +465,13 @@ def run_fleet(
         "agent": settings.actor.agent,
         "horizon": settings.actor.horizon,
         "fleet": view.to_json_dict(),
+        # how the actor processes ticked: how many had their tick thread real-time
+        # (actor.realtime_priority), and the share of ticks solved in a hurry (late or over budget)
+        "actor_ticks": {
+            "processes": len(process_counters),
+            "realtime": sum(counters.get("realtime_priority", 0.0) > 0 for counters in process_counters),
+            "hurried_percent": 100.0 * hurried / ticks if ticks else 0.0,
+        },
         "critic": {
             "transitions_received": critic.transitions_received,
             "weights_published": critic.weights_published,
@@ -526,6 +539,12 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
         f"staleness p99/max {view.staleness_p99_steps:.0f}/{view.staleness_max_steps:.0f} steps, "
         f"CPU {summary['cpu_percent']:.0f} %, RSS {summary['rss_mb']:.0f} MB in {summary['processes']} processes"
     )
+    if summary.get("actor_ticks"):
+        ticks = summary["actor_ticks"]
+        lines.append(
+            f"  actor ticks: real-time (SCHED_FIFO) in {ticks['realtime']} of {ticks['processes']} actor processes, "
+            f"{ticks['hurried_percent']:.1f} % solved in a hurry (served late or over the host's CPU budget)"
+        )
     if summary.get("robot_plant"):
         from tools.fleet_robot import format_robot_lines
 

@@ -32,6 +32,7 @@ from common.messages import (
     MessageError,
 )
 from common.provenance import SourceGate
+from common.runtime import realtime_priority
 from common.settings import Settings
 from common.stats import summarize
 from common.summaries import LockstepActorSummary, format_status_line
@@ -147,10 +148,13 @@ def _run_realtime(
             log.info("status %s", format_status_line(counters, time.monotonic() - start_time, first_version))
 
         start_status_thread(bus, robot, settings.transport.status_period, stop, loop.status, log_status)
-        loop.run(ticker, end)
+        with realtime_priority(settings.actor.realtime_priority, "actor") as priority:
+            loop.run(ticker, end)
     finally:
         gc.unfreeze()
-    return loop.summary()
+    summary = loop.summary()
+    summary["counters"]["realtime_priority"] = float(priority)
+    return summary
 
 
 __all__ = ["MessageError", "run"]

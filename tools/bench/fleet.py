@@ -120,7 +120,8 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
-    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'growth':>7} {'procs':>5}  load before -> after  targets"
+    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'growth':>7} {'procs':>5} {'RT':>5} {'hurried':>7}  "
+    "load before -> after  targets"
 )
 
 
@@ -131,11 +132,14 @@ def format_row(row: dict[str, Any]) -> str:
     f = row["fleet"]
     layout = row["layout"] if row["layout"] == "process" else f"host x{row['actor_hosts']}"
     targets = ", ".join(f"{name}: {verdict}" for name, verdict in row["targets"].items()) or "-"
+    ticks = row.get("actor_ticks")  # RT: actor processes whose tick thread was real-time, of all
+    realtime = f"{ticks['realtime']}/{ticks['processes']}" if ticks else "-"
+    hurried = f"{ticks['hurried_percent']:.1f}%" if ticks else "-"
     return (
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
         f"{f['parked']:>3}/{row['robots']:<3} {row['cpu_percent']:>6.0f} {row['rss_mb']:>7.0f} "
-        f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5}  {load:<20} {targets}"
+        f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5} {realtime:>5} {hurried:>7}  {load:<20} {targets}"
     )
 
 
@@ -144,7 +148,8 @@ def format_table(result: dict[str, Any]) -> str:
         f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
         f"starts on a 1.5 m circle, {result['cpus']} CPUs; jitter, latency, staleness: worst robot; "
         "CPU: all srl processes (100 % = one core); growth: their RSS from the end of warm-up (the first "
-        "tenth) to the end; load: 1-min average",
+        "tenth) to the end; RT: actor processes whose tick thread ran under SCHED_FIFO (actor.realtime_priority); "
+        "hurried: ticks solved in a hurry (served late or over actor.host_cpu_budget); load: 1-min average",
         HEADER,
         *(format_row(row) for row in result["rows"]),
     ]
