@@ -282,7 +282,9 @@ def test_the_tick_thread_is_real_time_where_allowed_and_normal_with_one_line_whe
     starts is normal (SCHED_RESET_ON_FORK), and the thread gets its policy back after; where it
     may not, one INFO line says so and nothing changes."""
     if user == "allowed" and not _rtprio_allowed():
-        pytest.skip("this user may not ask for SCHED_FIFO 10 (no rtprio limit): the refused case runs")
+        pytest.skip(
+            "SCHED_FIFO 10 not allowed to this user: run as root or with `ulimit -r` >= 10 (the refused case ran)"
+        )
     if user == "refused" and os.geteuid() != 0 and _rtprio_allowed():
         pytest.skip("this user may ask for SCHED_FIFO: the allowed case runs")
     argv = [sys.executable, "-c", _PRIORITY_PROBE] + (["drop"] if user == "refused" and os.geteuid() == 0 else [])
