@@ -14,7 +14,9 @@ import json
 import logging
 import os
 import tempfile
-from collections.abc import Iterable
+import threading
+import time
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +42,68 @@ def atomic_write_json(path: Path, payload: dict[str, Any]) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+class CheckpointWriter:
+    """Writes a checkpoint's newest payload to ``path`` (:func:`atomic_write_json`) in a thread
+    of its own, so the caller's loop does not wait for the encoding, the write and the fsync
+    (the critic's: at 100 robots a 0.4 MB write took 38 ms median, 117 ms p99, once a second,
+    and the fits of that time waited: issue 16). A payload given while one is being written
+    waits; a newer one replaces it (each holds everything: the newest is the checkpoint).
+
+    A write that fails is raised again by the next :meth:`submit` or by :meth:`close` (the
+    caller fails as if it had written itself); :meth:`close` writes what is still pending and
+    ends the thread. ``seconds`` is called with each write's duration."""
+
+    def __init__(self, path: Path, seconds: Callable[[float], None] | None = None) -> None:
+        self.path = path
+        self.seconds = seconds
+        self._pending: dict[str, Any] | None = None
+        self._error: BaseException | None = None
+        self._closing = False
+        self._changed = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="checkpoint-writer", daemon=True)
+        self._thread.start()
+
+    def submit(self, payload: dict[str, Any]) -> None:
+        """Write ``payload`` (a fresh object the caller no longer changes) as soon as the writer is free."""
+        with self._changed:
+            self._raise_error()
+            self._pending = payload
+            self._changed.notify_all()
+
+    def close(self) -> None:
+        """Write what is pending, end the thread; raise a failed write's error."""
+        with self._changed:
+            self._closing = True
+            self._changed.notify_all()
+        self._thread.join()
+        with self._changed:
+            self._raise_error()
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def _run(self) -> None:
+        while True:
+            with self._changed:
+                while self._pending is None and not self._closing:
+                    self._changed.wait()
+                payload, self._pending = self._pending, None
+                if payload is None:  # closing, nothing left
+                    return
+            started = time.perf_counter()
+            try:
+                atomic_write_json(self.path, payload)
+            except BaseException as error:  # handed to the caller's next submit or close
+                log.error("checkpoint %s not written: %s", self.path, error)
+                with self._changed:
+                    self._error = error
+                continue
+            if self.seconds is not None:
+                self.seconds(time.perf_counter() - started)
 
 
 def _pid_alive(pid: int) -> bool:

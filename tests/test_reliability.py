@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.checkpoint import CheckpointError, atomic_write_json, from_runs, to_runs
+from common.checkpoint import CheckpointError, CheckpointWriter, atomic_write_json, from_runs, to_runs
 from common.messages import Action, CriticWeights, Transition
 from common.settings import Settings
 from services.critic.service import CriticLearner, load_checkpoint
@@ -47,6 +47,50 @@ def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path: Path) -> None:
     with pytest.raises(ValueError):  # NaN is not JSON: refused, the old file stays
         atomic_write_json(path, {"a": float("nan")})
     assert json.loads(path.read_text()) == {"a": 2}
+
+
+def test_the_checkpoint_writer_writes_off_the_callers_thread_newest_last_and_fails_loudly(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """CheckpointWriter (the critic's): ``submit`` returns while a slow write runs; of the payloads
+    given meanwhile only the newest is written next; ``close`` writes what is pending; a write
+    that fails is raised by the next submit or close, with the file as it was."""
+    import common.checkpoint as checkpoint
+
+    real_write = checkpoint.atomic_write_json
+    written: list[int] = []
+
+    def slow_write(path: Path, payload: dict[str, int]) -> None:
+        time.sleep(0.2)
+        real_write(path, payload)
+        written.append(payload["n"])
+
+    monkeypatch.setattr(checkpoint, "atomic_write_json", slow_write)
+    path = tmp_path / "critic.json"
+    durations: list[float] = []
+    writer = CheckpointWriter(path, durations.append)
+    started = time.monotonic()
+    for n in range(5):  # 1 is written while 2, 3 and 4 come: 4 replaces 2 and 3
+        writer.submit({"n": n})
+        time.sleep(0.01)
+    assert time.monotonic() - started < 0.15  # five submits never waited for a 0.2 s write
+    writer.close()
+    assert written == [0, 4] and json.loads(path.read_text()) == {"n": 4}
+    assert len(durations) == 2 and all(d >= 0.2 for d in durations)
+
+    monkeypatch.setattr(checkpoint, "atomic_write_json", real_write)
+    (tmp_path / "blocked").write_text("a file where the directory would be\n")
+    failing = CheckpointWriter(tmp_path / "blocked" / "critic.json")
+    failing.submit({"n": 1})
+    time.sleep(0.5)  # the write fails at once (its directory is a file)
+    with pytest.raises(OSError):
+        failing.submit({"n": 2})  # raised to the caller, and nothing more is queued
+    failing.close()  # nothing pending: no error left
+    failing = CheckpointWriter(tmp_path / "blocked" / "critic.json")
+    failing.submit({"n": 3})
+    with pytest.raises(OSError):
+        failing.close()  # or raised by close
+    assert (tmp_path / "blocked").read_text() == "a file where the directory would be\n"
 
 
 def test_restored_critic_with_overlapping_history_equals_one_that_never_stopped(tmp_path: Path) -> None:

@@ -51,6 +51,7 @@ import numpy as np
 from common.agents import fit_due
 from common.checkpoint import (
     CheckpointError,
+    CheckpointWriter,
     atomic_write_json,
     from_runs,
     read_json,
@@ -472,6 +473,7 @@ def run(
     path = checkpoint_path(settings)
     restored = load_checkpoint(learner, path)
     checkpoint_seconds = Window()
+    writer = None if path is None else CheckpointWriter(path, checkpoint_seconds.append)
     batches = Window()  # transitions taken per batch
     publishers: dict[str, object] = {}
     inbox: queue.Queue[Transition] = queue.Queue()
@@ -549,17 +551,19 @@ def run(
         outgoing += learner.flush()
         batches.append(len(batch))
         dirty = dirty or learner.accepted > before
-        if dirty and path is not None and time.monotonic() - written >= settings.critic.checkpoint_period:
-            # checkpoint first: a crash after it re-publishes these weights at restart
-            started = time.perf_counter()
-            atomic_write_json(path, learner.state())
-            checkpoint_seconds.append(time.perf_counter() - started)
+        if dirty and writer is not None and time.monotonic() - written >= settings.critic.checkpoint_period:
+            # the state as of this batch, encoded and written by the writer's thread while the
+            # next batches are fitted (a restart continues from it; what came after it comes
+            # again from the actors' publisher caches)
+            writer.submit(learner.state())
             written, dirty = time.monotonic(), False
         for fitted in outgoing:
             publish(fitted)
 
-    if dirty and path is not None:  # what came after the last periodic write
-        atomic_write_json(path, learner.state())
+    if writer is not None:
+        if dirty:  # what came after the last periodic write
+            writer.submit(learner.state())
+        writer.close()
     return CriticSummary.model_validate(
         {
             "transitions_received": learner.received,
