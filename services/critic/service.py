@@ -52,7 +52,6 @@ from common.agents import fit_due
 from common.checkpoint import (
     CheckpointError,
     CheckpointWriter,
-    atomic_write_json,
     from_runs,
     read_json,
     remove_stale_temporaries,
