@@ -167,7 +167,7 @@ class HostScheduler:
         self.lateness = Window()  # of every served tick, all robots: how long after its due time
         self.warned = -1e9
         self.budget = budget * period
-        self.spent = np.zeros(count)  # each robot's last tick time: a ring over one round
+        self.spent = np.zeros(count)  # the last round's tick times: a ring of one slot per robot
         self.spent_sum = 0.0
         self.over_budget = 0
 
