@@ -3,8 +3,9 @@
 * Isolation: no test reads or writes the user's real critic checkpoint, nor the user's JIT cache
   (``actor.jit_cache``: one private directory for the session, so a problem compiles once per run).
 * Machine requirements: a test that needs more than python3 (root, iproute2 and iptables for
-  network namespaces; a C compiler for the actor's JIT build) carries a marker (``needs_root``,
-  ``needs_compiler``); where the machine lacks it, the test is
+  network namespaces; a C compiler for the actor's JIT build; the right to real-time scheduling)
+  carries a marker (``needs_root``, ``needs_compiler``, ``needs_rtprio``); where the machine lacks
+  it, the test is
   SKIPPED with one line saying what it needs and how to run it, so that ``./srl test`` passes on a
   fresh machine with only python3. ``SRL_TEST_REQUIRE_ALL=1`` (CI, ``.ci/run``) turns every such
   skip into a failure, and fails the session if any test at all was skipped.
@@ -34,10 +35,22 @@ def _compiler_missing() -> list[str]:
     return [] if shutil.which("gcc") or shutil.which("cc") else ["no C compiler (gcc or cc) on PATH"]
 
 
+def _rtprio_missing() -> list[str]:
+    import resource
+
+    if os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= 10:
+        return []
+    return ["this user may not ask for SCHED_FIFO 10 (not root, `ulimit -r` below 10)"]
+
+
 # marker -> (what is missing on this machine (empty: nothing), how to run these tests)
 REQUIREMENTS: dict[str, tuple[Callable[[], list[str]], str]] = {
     "needs_root": (_netns_missing, "run as root on Debian with iproute2 and iptables: sudo ./srl test {path}"),
     "needs_compiler": (_compiler_missing, "install a C compiler (Debian: apt-get install gcc), then ./srl test {path}"),
+    "needs_rtprio": (
+        _rtprio_missing,
+        "run as root (sudo ./srl test {path}) or with an rtprio limit of 10 or more (README, Real-time priority)",
+    ),
 }
 
 
