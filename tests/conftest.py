@@ -30,7 +30,7 @@ def _netns_missing() -> list[str]:
 
 
 def _compiler_missing() -> list[str]:
-    # the actor builds without JIT when there is none (common/actor.py), so only the tests of the
+    # the actor builds without JIT when there is none (common/math/actor.py), so only the tests of the
     # JIT build itself need one
     return [] if shutil.which("gcc") or shutil.which("cc") else ["no C compiler (gcc or cc) on PATH"]
 

@@ -1,6 +1,6 @@
 """Start real service processes on free loopback ports, wait on readiness, clean up by pid.
 
-Why :class:`Proc` and :class:`Cluster` do not reuse ``tools.up.Supervisor`` (issue 15 counted
+Why :class:`Proc` and :class:`Cluster` do not reuse ``tools.launch.up.Supervisor`` (issue 15 counted
 them as a second supervisor; decided to keep them apart):
 
 * Tests do not set up with the code they test: the Supervisor is under test itself
@@ -36,9 +36,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from common.messages import Transition
-from common.settings import Settings
-from common.transport import plain_config
+from common.config.settings import Settings
+from common.contracts.messages import Transition
+from common.net.transport import plain_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -73,7 +73,7 @@ def run_bench(kind: str, robot: str, seconds: float = 4) -> dict[str, Any]:
 
 
 class FakeCounts:
-    """The counters a service keeps (common.transport.Bus.count / reject), in memory, for the
+    """The counters a service keeps (common.net.transport.Bus.count / reject), in memory, for the
     transport-free logic under test (the robot bridge, the real-time actor, the order gates)."""
 
     def __init__(self) -> None:
@@ -94,14 +94,14 @@ def free_port() -> int:
 
 def client_config(endpoint: str) -> zenoh.Config:
     """A client of the srl router at ``endpoint`` as every srl session is configured (its samples
-    carry its own id: common.provenance), without a login."""
+    carry its own id: common.net.provenance), without a login."""
     return plain_config(Settings.load().transport, endpoint)
 
 
 def declare_service_tokens(session: zenoh.Session, robot: str, service: str) -> list[Any]:
     """Make ``session`` look alive as ``service`` of ``robot``: its liveliness token and its
-    identity token (common.keys.identity_key), as common.transport.Bus.declare_alive does."""
-    from common.keys import identity_key, liveliness_key
+    identity token (common.contracts.keys.identity_key), as common.net.transport.Bus.declare_alive does."""
+    from common.contracts.keys import identity_key, liveliness_key
 
     liveliness = session.liveliness()
     return [

@@ -234,9 +234,9 @@ def probe(target: tuple[str, int], count: int, size: int, interval: float, timeo
 def observe(router: str, robot: str, connect_timeout: float) -> int:
     import zenoh
 
-    from common.keys import STATUS, TRANSITION, WEIGHTS, liveliness_pattern
-    from common.messages import CriticWeights, MessageError, ServiceStatus, Transition, decode
-    from common.runtime import SignalWatch
+    from common.contracts.keys import STATUS, TRANSITION, WEIGHTS, liveliness_pattern
+    from common.contracts.messages import CriticWeights, MessageError, ServiceStatus, Transition, decode
+    from common.process.runtime import SignalWatch
 
     stop = threading.Event()
     SignalWatch(lambda _signum: stop.set()).start()  # never stop.set() inside a handler
@@ -292,9 +292,9 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
     JSON lines; each robot's actions counted by the id of the session that sent them (in the summary)."""
     import zenoh
 
-    from common.keys import ACTION, STATUS, TRANSITION, WEIGHTS, every_robot
-    from common.messages import Action, CriticWeights, MessageError, ServiceStatus, Transition, decode
-    from common.runtime import SignalWatch
+    from common.contracts.keys import ACTION, STATUS, TRANSITION, WEIGHTS, every_robot
+    from common.contracts.messages import Action, CriticWeights, MessageError, ServiceStatus, Transition, decode
+    from common.process.runtime import SignalWatch
 
     stop = threading.Event()
     SignalWatch(lambda _signum: stop.set()).start()  # never stop.set() inside a handler

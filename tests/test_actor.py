@@ -13,8 +13,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from common.actor import ActorMemory, ActorProblem, StackedActor
-from common.dynamics import exact_step
+from common.math.actor import ActorMemory, ActorProblem, StackedActor
+from common.math.dynamics import exact_step
 
 DELTA = 0.1
 R_DIAG = np.array([1.0, 10.0, 1.0, 0.01, 0.01])
@@ -229,7 +229,7 @@ def test_a_damaged_cached_object_is_compiled_again_and_replaced(tmp_path, caplog
     stored = _cached_objects(cache)
     for name in stored:
         (cache / name).write_bytes(b"not an object file")
-    with caplog.at_level("WARNING", logger="common.actor"):
+    with caplog.at_level("WARNING", logger="common.system.jit"):
         rebuilt = make_actor("rlqv", 3, jit=True, jit_cache=str(cache))
     assert "the JIT build with cached objects failed" in caplog.text
     assert set(_cached_objects(cache)) == set(stored)
@@ -242,14 +242,14 @@ def test_a_jit_cache_another_user_could_write_is_not_used(tmp_path, caplog) -> N
     cache = tmp_path / "shared"
     cache.mkdir()
     cache.chmod(0o777)
-    with caplog.at_level("WARNING", logger="common.actor"):
+    with caplog.at_level("WARNING", logger="common.system.jit"):
         make_actor("mpc", 3, jit=True, jit_cache=str(cache))
     assert "is not private to this user" in caplog.text
     assert list(cache.iterdir()) == []
 
 
 def test_the_jit_cache_keeps_the_most_recently_used_objects_and_drops_old_leftovers(tmp_path) -> None:
-    from common.actor import _prune_jit_cache
+    from common.system.jit import prune_jit_cache
 
     for i in range(6):
         path = tmp_path / f"{i:064x}.o"
@@ -259,7 +259,7 @@ def test_the_jit_cache_keeps_the_most_recently_used_objects_and_drops_old_leftov
     stale.write_bytes(b"x")
     fresh.write_bytes(b"x")
     os.utime(stale, (1e9, 1e9))
-    _prune_jit_cache(str(tmp_path), keep=4)
+    prune_jit_cache(str(tmp_path), keep=4)
     assert sorted(p.name for p in tmp_path.glob("*.o")) == [f"{i:064x}.o" for i in range(2, 6)]
     assert not stale.exists() and fresh.exists()
 
@@ -462,9 +462,9 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
     # The benchmark's non-convex "learned" weights make the closed loop alternate between two
     # local minima; starting from the solution of two steps ago when it is cheaper must save
     # solver iterations there (measured: 25-51 % fewer over 150 steps at N = 12).
-    from common.assembly import build_actor
-    from common.loop import ExactPlant
-    from common.settings import Settings
+    from common.config.assembly import build_actor
+    from common.config.settings import Settings
+    from common.math.loop import ExactPlant
     from tools.bench.actor import learned_weights
 
     # the merit-only warm start (multistart off); the global phase takes both plans as starts
@@ -531,9 +531,9 @@ def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, hori
     # cold SLSQP solve from standing still at the same state (tools/bench/actor.py). Before the
     # global phase the actor was worse at 19 of 20 such states (rlq, N = 6, +8.8 % median).
     # Generous bounds: not worse (to 1e-6 relative) at >= 75 % of the states, median gap <= 1e-6.
-    from common.assembly import build_actor
-    from common.loop import ExactPlant
-    from common.settings import PAPER_METHOD, Settings
+    from common.config.assembly import build_actor
+    from common.config.settings import PAPER_METHOD, Settings
+    from common.math.loop import ExactPlant
     from tools.bench.actor import NumpyObjective, learned_weights, slsqp_solve
 
     settings = Settings.load(actor={"agent": agent, "horizon": horizon, "jit": False, **PAPER_METHOD["actor"]})

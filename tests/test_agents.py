@@ -1,4 +1,4 @@
-"""The agents' vocabulary is defined once (common/agents.py) and every reader agrees with it."""
+"""The agents' vocabulary is defined once (common/math/agents.py) and every reader agrees with it."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from typing import get_args
 
 import pytest
 
-from common.agents import AGENTS, PAPER_AGENTS, fit_due, learns, parse_agents, parse_horizons, uses_value_critic
-from common.arguments import add_settings_arguments
-from common.settings import ActorSettings
+from common.config.arguments import add_settings_arguments
+from common.config.settings import ActorSettings
+from common.math.agents import AGENTS, PAPER_AGENTS, fit_due, learns, parse_agents, parse_horizons, uses_value_critic
 
 
 def test_settings_and_command_line_take_the_agents_from_one_place() -> None:

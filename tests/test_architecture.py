@@ -1,16 +1,25 @@
 """The architecture as rules over the imports, each with a negative control (as test_purity.py).
 
-Floors, from the ground up: ``common/`` (the math, the contracts, settings, transport, runtime)
--> ``services/<name>/`` (one folder per process of the system) -> ``tools/`` (the ``srl``
-command, the launcher, benchmarks, the experiment, plots). Read from the source text (every
-import, also those inside functions), never by importing:
+Floors, from the ground up: ``common/`` -> ``services/<name>/`` (one folder per process of the
+system) -> ``tools/`` (the ``srl`` command, the launcher, benchmarks, the experiment, recordings).
+``common/`` has floors of its own, one folder each, from the ground up (docs/architecture.md):
+
+    math/       numbers and arrays: dynamics, features, critics, the actor, Algorithm 1, models
+    contracts/  what crosses a process boundary: keys, wire messages, run summaries, ROS 2 wire
+    config/     settings (the one srl.toml), their command-line flags, Settings -> math objects
+    net/        the Zenoh transport (the only module of common that imports zenoh), security
+    process/    a process's life: signals, the session, the JIT build, clocks, checkpoints
+
+Read from the source text (every import, also those inside functions), never by importing:
 
 * services never import tools; common never imports services or tools;
-* the math never imports the settings or the transport (numbers and arrays in, numbers out:
-  :mod:`common.assembly` is where settings meet the math);
-* ``common/transport.py`` is the only module of common that imports zenoh, also inside a
+* a module of a floor of ``common`` imports ``common`` only from its own floor or one below;
+* ``common/net/transport.py`` is the only module of common that imports zenoh, also inside a
   function (test_purity.py checks what importing a module loads; a function's import runs later);
 * no module reads or writes another module's underscore names.
+
+The floors are the folders: a new module is ruled by where it is put, and a folder of
+``common`` that is not a floor fails :func:`test_every_folder_of_common_is_a_floor`.
 """
 
 from __future__ import annotations
@@ -23,25 +32,14 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("common", "services", "tools")
-MATH = (
-    "common.dynamics",
-    "common.features",
-    "common.critic",
-    "common.actor",
-    "common.loop",
-    "common.frames",
-    "common.stats",
-    "common.provenance",
-    "common.agents",
-)
-NOT_FOR_MATH = ("common.settings", "common.transport", "common.assembly", "zenoh")
-ZENOH_GATE = "common.transport"  # the only module of common that imports zenoh (README, test_purity.py)
+COMMON_FLOORS = ("math", "contracts", "config", "net", "process")  # from the ground up
+ZENOH_GATE = "common.net.transport"  # the only module of common that imports zenoh (test_purity.py)
 # Private names of other libraries that our code uses on purpose, each with its reason.
 FOREIGN_PRIVATE = {
     "_choices_actions": "argparse: the subcommands' help lines (tools/cli.py fills in descriptions)",
-    "_negative_number_matcher": "argparse: lists of negative numbers as values (common/runtime.py Parser)",
-    "_run_exitfuncs": "atexit: run the handlers before os._exit (common/runtime.py entry)",
-    "_exit": "os: leave without the interpreter's finalization once Zenoh ran (common/runtime.py, lifeline.py)",
+    "_negative_number_matcher": "argparse: lists of negative numbers as values (common/process/runtime.py Parser)",
+    "_run_exitfuncs": "atexit: run the handlers before os._exit (common/process/runtime.py entry)",
+    "_exit": "os: leave without the interpreter's finalization once Zenoh ran (common/process/runtime.py, lifeline.py)",
 }
 
 
@@ -75,6 +73,14 @@ def under(name: str, prefixes: tuple[str, ...]) -> bool:
     return any(name == p or name.startswith(p + ".") for p in prefixes)
 
 
+def common_floor(module: str) -> int | None:
+    """The height of ``module``'s floor in ``common`` (0 = math), None outside the floors."""
+    parts = module.split(".")
+    if parts[0] != "common" or len(parts) < 2 or parts[1] not in COMMON_FLOORS:
+        return None
+    return COMMON_FLOORS.index(parts[1])
+
+
 def floor_violations(module: str, source: str) -> list[str]:
     found = imports(source, module)
     problems = []
@@ -88,16 +94,20 @@ def floor_violations(module: str, source: str) -> list[str]:
             for name in found
             if under(name, ("services", "tools"))
         ]
-    if under(module, ("common",)) and module != ZENOH_GATE and module not in MATH:  # the math: the rule below
-        problems += [
-            f"{module} imports {name} (only {ZENOH_GATE} imports zenoh)" for name in found if under(name, ("zenoh",))
-        ]
-    if module in MATH:
-        problems += [
-            f"{module} imports {name} (the math never imports settings or transport)"
-            for name in found
-            if under(name, NOT_FOR_MATH)
-        ]
+        height = common_floor(module)
+        for name in found:
+            theirs = common_floor(name)
+            if height is not None and theirs is not None and theirs > height:
+                problems.append(
+                    f"{module} imports {name} (common/{COMMON_FLOORS[height]}/ never imports the floor "
+                    f"above it, common/{COMMON_FLOORS[theirs]}/)"
+                )
+        if module != ZENOH_GATE:
+            problems += [
+                f"{module} imports {name} (only {ZENOH_GATE} imports zenoh)"
+                for name in found
+                if under(name, ("zenoh",))
+            ]
     return problems
 
 
@@ -131,7 +141,7 @@ def private_violations(module: str, source: str) -> list[str]:
 
 def test_every_package_is_read() -> None:
     names = {name for name, _ in sources()}
-    assert {"common.loop", "common.runtime", "services.actor.service", "tools.cli"} <= names
+    assert {"common.math.loop", "common.process.runtime", "services.actor.service", "tools.cli"} <= names
 
 
 def test_no_import_runs_up_a_floor() -> None:
@@ -148,14 +158,16 @@ def test_no_module_uses_another_modules_underscore_names() -> None:
     ("module", "source", "expected"),
     [
         ("services.actor.service", "from tools.cli import main\n", "services never import tools"),
-        ("services.critic.command", "def f():\n    import tools.up\n", "services never import tools"),
-        ("common.runtime", "from services.actor import command\n", "common never imports services or tools"),
-        ("common.keys", "import tools.health\n", "common never imports services or tools"),
-        ("common.loop", "from common.settings import Settings\n", "the math never imports settings or transport"),
-        ("common.actor", "def f():\n    from common.transport import Bus\n", "the math never imports settings"),
-        ("common.critic", "import zenoh\n", "the math never imports settings or transport"),
-        ("common.runtime", "def f():\n    import zenoh\n", "only common.transport imports zenoh"),
-        ("common.keys", "from zenoh.ext import z_serialize\n", "only common.transport imports zenoh"),
+        ("services.critic.command", "def f():\n    import tools.launch.up\n", "services never import tools"),
+        ("common.process.runtime", "from services.actor import command\n", "common never imports services or tools"),
+        ("common.contracts.keys", "import tools.launch.health\n", "common never imports services or tools"),
+        ("common.math.loop", "from common.config.settings import Settings\n", "never imports the floor above it"),
+        ("common.math.actor", "def f():\n    from common.net.transport import Bus\n", "never imports the floor above"),
+        ("common.contracts.keys", "from common.config import settings\n", "common/contracts/ never imports"),
+        ("common.config.arguments", "from common.process.runtime import serve\n", "common/config/ never imports"),
+        ("common.math.critic", "import zenoh\n", "only common.net.transport imports zenoh"),
+        ("common.process.runtime", "def f():\n    import zenoh\n", "only common.net.transport imports zenoh"),
+        ("common.contracts.keys", "from zenoh.ext import z_serialize\n", "only common.net.transport imports zenoh"),
     ],
 )
 def test_the_floor_rules_catch_an_upward_import(module: str, source: str, expected: str) -> None:
@@ -167,7 +179,7 @@ def test_the_floor_rules_catch_an_upward_import(module: str, source: str, expect
     "source",
     [
         "from services.actor.service import _run_lockstep\n",
-        "import common.transport\ncommon.transport._threads\n",
+        "import common.net.transport\ncommon.net.transport._threads\n",
         "def f(port):\n    port._settings = 1\n",
         "def f(bus):\n    return bus._keep\n",
     ],

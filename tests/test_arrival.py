@@ -1,4 +1,4 @@
-"""The arrival rule (common/arrival.py) against its definition, written out here by hand:
+"""The arrival rule (common/math/arrival.py) against its definition, written out here by hand:
 inside both inner tolerances -> arrived; arrived stays until outside either outer tolerance."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from common.arrival import ArrivalRule, ArrivalTolerances, arrival_update, heading_error
+from common.math.arrival import ArrivalRule, ArrivalTolerances, arrival_update, heading_error
 
 TOL = ArrivalTolerances(position=0.03, heading=0.1, hysteresis=1.5)
 

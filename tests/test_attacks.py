@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 import pytest
 import zenoh
 
-from common.keys import identity_key
-from common.messages import Action, CriticWeights, MessageError, PlantState, ServiceStatus, Transition, decode
-from common.settings import Settings
+from common.config.settings import Settings
+from common.contracts.keys import identity_key
+from common.contracts.messages import Action, CriticWeights, MessageError, PlantState, ServiceStatus, Transition, decode
 from tests.harness import Cluster, client_config, cluster, wait_until
 
 pytestmark = pytest.mark.slow

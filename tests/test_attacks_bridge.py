@@ -15,12 +15,12 @@ import time
 import pytest
 import zenoh
 
-from common import ros_wire
-from common.keys import identity_of, identity_pattern, liveliness_key
-from common.messages import Action
-from common.provenance import RESYNC_AFTER, PlantConflictError
-from common.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
-from common.transport import Bus
+from common.contracts import ros_wire
+from common.contracts.keys import identity_of, identity_pattern, liveliness_key
+from common.contracts.messages import Action
+from common.contracts.ros_wire import ODOMETRY, Attachment, Odometry, RosGraph
+from common.net.provenance import RESYNC_AFTER, PlantConflictError
+from common.net.transport import Bus
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
 from tests.test_robot_bridge import DELTA, TIMEOUT, RobotWatch
 

@@ -1,7 +1,7 @@
 """``srl bench actor``: the JSON contract, the baseline's numpy objective, the weight sets.
 
 Oracles: the CasADi actor's own NLP objective (its ``nlpsol`` oracle) evaluated at the actor's
-solution plan, a plain loop over :mod:`common.features` and :func:`common.dynamics.euler_step`,
+solution plan, a plain loop over :mod:`common.math.features` and :func:`common.math.dynamics.euler_step`,
 and hand-made rows for the target evaluation.
 """
 
@@ -14,12 +14,12 @@ import math
 import numpy as np
 import pytest
 
-from common.actor import ActorProblem
-from common.agents import AGENTS
-from common.assembly import build_actor
-from common.dynamics import euler_step
-from common.features import phi_q, phi_v, stage_cost
-from common.settings import PAPER_METHOD, Settings
+from common.config.assembly import build_actor
+from common.config.settings import PAPER_METHOD, Settings
+from common.math.actor import ActorProblem
+from common.math.agents import AGENTS
+from common.math.dynamics import euler_step
+from common.math.features import phi_q, phi_v, stage_cost
 from tools.bench import actor as bench_actor
 from tools.bench.actor import (
     NumpyObjective,

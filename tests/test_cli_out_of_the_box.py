@@ -22,10 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.arguments import COMMAND_SETTINGS, child_argv
-from common.messages import Transition
-from common.security import write_credentials
-from common.settings import Settings
+from common.config.arguments import COMMAND_SETTINGS, child_argv
+from common.config.settings import Settings
+from common.contracts.messages import Transition
+from common.net.security import write_credentials
 from services.critic.service import CriticLearner, checkpoint_path, load_checkpoint
 from tests.harness import ROOT, free_port, srl
 from tools.cli import build_parser
@@ -164,13 +164,13 @@ def test_a_start_far_outside_the_workspace_warns_once() -> None:
 
 
 def test_a_readable_password_file_warns_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    from common.security import client_credentials
+    from common.net.security import client_credentials
 
     password = tmp_path / "pw"
     password.write_text("secret\n")
     password.chmod(0o644)
     transport = Settings.load(transport={"user": "critic", "password_file": str(password)}).transport
-    with caplog.at_level(logging.WARNING, logger="common.security"):
+    with caplog.at_level(logging.WARNING, logger="common.net.security"):
         for _ in range(150):  # as a client retrying its login every 200 ms for 30 s
             assert client_credentials(transport) == ("critic", "secret")
     warnings = [r for r in caplog.records if "readable by others" in r.getMessage()]
@@ -390,7 +390,7 @@ def _transitions(episode: int, steps: range, robot: str = "r1") -> list[Transiti
 def test_checkpoint_path_is_per_robot_and_stack() -> None:
     import tomllib
 
-    from common.settings import DEFAULT_CONFIG
+    from common.config.settings import DEFAULT_CONFIG
 
     default = tomllib.loads(DEFAULT_CONFIG.read_text())["critic"]["checkpoint"]  # not the test's own
     settings = Settings.load(
@@ -406,7 +406,7 @@ def test_a_new_run_starts_fresh_and_a_crash_in_the_same_run_continues(tmp_path: 
     first = CriticLearner(settings)
     for t in _transitions(1, range(20)):
         first.on_transition(t)
-    from common.checkpoint import atomic_write_json
+    from common.system.checkpoint import atomic_write_json
 
     atomic_write_json(path, first.state())
 
@@ -505,8 +505,8 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
 
 # -- point 13: the plot ---------------------------------------------------------------------
 def test_the_plot_records_and_shows_the_learning(tmp_path: Path) -> None:
-    from common.assembly import run_episode
-    from tools.plots import plot_episode
+    from common.config.assembly import run_episode
+    from tools.recording.plots import plot_episode
 
     settings = Settings.load(actor={"horizon": 4, "jit": False}, episode={"duration": 2.0, "start": (-1.2, 0.7)})
     episode = run_episode(settings)
@@ -522,7 +522,7 @@ def test_the_path_plot_keeps_its_arrows_in_the_axes_and_the_end_above_the_target
     out of the axes."""
     import matplotlib.pyplot as plt
 
-    from tools.plots import plot_path
+    from tools.recording.plots import plot_path
 
     # a run that ends on the target, heading outward, with a long last arrow
     t = np.linspace(0.0, 1.0, 60)

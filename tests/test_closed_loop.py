@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.assembly import run_episode
-from common.dynamics import exact_step
-from common.settings import Settings
+from common.config.assembly import run_episode
+from common.config.settings import Settings
+from common.math.dynamics import exact_step
 
 pytestmark = pytest.mark.slow
 

@@ -12,9 +12,9 @@ import scipy.linalg
 import scipy.optimize
 from scipy.optimize import minimize
 
-import common.critic
-from common.critic import DoubleCritic, Replay, Sample, bounded_lstsq, consecutive_pairs, td_fit
-from common.features import quadratic_features
+import common.math.critic
+from common.math.critic import DoubleCritic, Replay, Sample, bounded_lstsq, consecutive_pairs, td_fit
+from common.math.features import quadratic_features
 
 
 def _random_problem(rng: np.random.Generator, pairs: int, dim: int = 15):
@@ -142,7 +142,7 @@ def test_bounded_lstsq_with_the_right_guess_is_one_lstsq_and_the_same_minimum(se
     assert np.any(on_bound != 0), "the bounds should be active in this problem"
 
     calls = []
-    monkeypatch.setattr(common.critic, "lsq_linear", lambda *args, **kw: calls.append(args) or reference)
+    monkeypatch.setattr(common.math.critic, "lsq_linear", lambda *args, **kw: calls.append(args) or reference)
     warm, warm_bound = bounded_lstsq(a, b, low, high, on_bound)
     assert calls == []  # the guess was optimal: no BVLS
     np.testing.assert_allclose(warm, reference.x, rtol=0, atol=1e-12)

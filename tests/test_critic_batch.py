@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-import common.critic
-from common.checkpoint import atomic_write_json
-from common.critic import (
+import common.math.critic
+from common.config.settings import Settings
+from common.contracts.messages import Transition
+from common.math.critic import (
     DoubleCritic,
     Replay,
     Sample,
@@ -28,8 +29,7 @@ from common.critic import (
     fit_gram,
     update_many,
 )
-from common.messages import Transition
-from common.settings import Settings
+from common.system.checkpoint import atomic_write_json
 from services.critic.service import CriticLearner, load_checkpoint, take_batch
 from tests.harness import random_transitions
 
@@ -135,15 +135,17 @@ def test_a_wrong_guess_is_mended_by_active_set_steps_without_bvls(seed: int, mon
     flip = int(np.flatnonzero(right != 0)[0])
     wrong[flip] = 0.0  # one bound weight guessed free
     calls: list[object] = []
-    original = common.critic.lsq_linear
-    monkeypatch.setattr(common.critic, "lsq_linear", lambda *args, **kw: calls.append(args) or original(*args, **kw))
+    original = common.math.critic.lsq_linear
+    monkeypatch.setattr(
+        common.math.critic, "lsq_linear", lambda *args, **kw: calls.append(args) or original(*args, **kw)
+    )
     gram, linear = a.T @ a, a.T @ b
     fits = fit_gram_one(gram, linear, low, high, wrong)
     assert calls == []  # mended by the active-set steps
     np.testing.assert_allclose(fits[0], reference.x, rtol=0, atol=1e-12)
     np.testing.assert_array_equal(fits[1], right)
     # negative control: with no active-set step the same wrong guess needs BVLS
-    monkeypatch.setattr(common.critic, "ACTIVE_SET_STEPS", 0)
+    monkeypatch.setattr(common.math.critic, "ACTIVE_SET_STEPS", 0)
     fits = fit_gram_one(gram, linear, low, high, wrong)
     assert len(calls) == 1
     np.testing.assert_allclose(fits[0], reference.x, rtol=0, atol=1e-12)

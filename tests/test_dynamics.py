@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from common.dynamics import (
+from common.math.dynamics import (
     euler_step,
     exact_step,
     heading_away_from_target,
@@ -24,7 +24,7 @@ from common.dynamics import (
 
 
 def _rhs(_t: float, s: np.ndarray, v: float, omega: float) -> list[float]:
-    # The paper's eq. (3w-robot), written independently of common.dynamics.
+    # The paper's eq. (3w-robot), written independently of common.math.dynamics.
     return [v * math.cos(s[2]), v * math.sin(s[2]), omega]
 
 

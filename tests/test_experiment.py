@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.agents import parse_agents, parse_horizons
-from common.settings import Settings
+from common.config.settings import Settings
+from common.math.agents import parse_agents, parse_horizons
 from tests.harness import ROOT
 from tools.experiment.grid import RunSpec, grid_starts, held_out_starts, plan_runs, run_settings
 from tools.experiment.report import ratio_table, read_runs_csv, toml_dumps

@@ -10,7 +10,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from common.features import (
+from common.math.features import (
     feature_count,
     feature_index_pairs,
     phi_q,

@@ -20,13 +20,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.actor import ActorCounters, ActorMemory
-from common.assembly import arrival_rule, build_actor
-from common.dynamics import exact_step, exact_steps
-from common.fleet import FleetError, circle_starts, parse_robots
-from common.fleet_summary import PARKED_WITHIN_M
-from common.settings import Settings
-from common.stats import Window
+from common.config.assembly import arrival_rule, build_actor
+from common.config.settings import Settings
+from common.contracts.fleet_summary import PARKED_WITHIN_M
+from common.math.actor import ActorCounters, ActorMemory
+from common.math.dynamics import exact_step, exact_steps
+from common.math.fleet import FleetError, circle_starts, parse_robots
+from common.math.stats import Window
 from services.actor.host import HostScheduler, RobotActor, RobotTicker
 from services.plant_sim.host import FleetPlant
 
@@ -251,7 +251,7 @@ def test_a_host_over_its_cpu_budget_hurries_until_its_last_round_is_back_under()
 
 _PRIORITY_PROBE = """
 import logging, os, resource, sys, threading
-from common.runtime import realtime_priority
+from common.process.runtime import realtime_priority
 logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stdout)
 if len(sys.argv) > 1:  # an unprivileged user: no rtprio limit (lowering it is always allowed), no root
     resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
@@ -271,7 +271,7 @@ print("after", os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
 
 @pytest.mark.parametrize("user", [pytest.param("allowed", marks=pytest.mark.needs_rtprio), "refused"])
 def test_the_tick_thread_is_real_time_where_allowed_and_normal_with_one_line_where_not(user: str) -> None:
-    """common.runtime.realtime_priority (actor.realtime_priority): where the user may (root,
+    """common.process.runtime.realtime_priority (actor.realtime_priority): where the user may (root,
     CAP_SYS_NICE or an rtprio limit), the block runs under SCHED_FIFO at the priority, a thread it
     starts is normal (SCHED_RESET_ON_FORK), and the thread gets its policy back after; where it
     may not (the rtprio limit lowered to 0 and, as root, the user switched to nobody), one INFO
@@ -313,7 +313,7 @@ def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole
 @pytest.mark.slow
 @pytest.mark.parametrize("layout", ["host", "process"])
 def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: str) -> None:
-    from tools.fleet import run_fleet
+    from tools.launch.fleet import run_fleet
 
     settings = Settings.load()
     summary = run_fleet(settings, [], ["fa", "fb", "fc"], 8.0, layout=layout, quiet=True)
@@ -334,7 +334,7 @@ def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside
     """``srl up --robots K --plant physics``: the plant host steps one MuJoCo TurtleBot3 per robot
     (lag, deadband, slip, odometry); the actors see odometry, the summary keeps the truth beside
     it. Negative control: the ideal unicycle's odometry IS the truth."""
-    from tools.fleet import format_fleet_summary, run_fleet
+    from tools.launch.fleet import format_fleet_summary, run_fleet
 
     settings = Settings.load()
     finals: dict[str, dict[str, Any]] = {}
@@ -364,7 +364,7 @@ def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(tmp_path: P
     the router: here both drive on learned weights, nothing is refused, and no secret is left."""
     import tempfile
 
-    from tools.fleet import format_fleet_summary, run_fleet
+    from tools.launch.fleet import format_fleet_summary, run_fleet
 
     before = {p.name for p in Path(tempfile.gettempdir()).glob("srl-secure-*")}
     summary = run_fleet(Settings.load(), [], ["sa", "sb"], 8.0, quiet=True, secure=True, summary_dir=tmp_path)
@@ -386,7 +386,7 @@ def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(tmp_path: P
 
 
 def _transition(robot: str, step: int, episode: int = 1) -> Any:
-    from common.messages import Transition
+    from common.contracts.messages import Transition
 
     return Transition(robot=robot, episode=episode, step=step, state=(1.0, 0.0, 0.0), action=(0.0, 0.0), cost=0.1)
 
@@ -445,8 +445,8 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
     split a fleet (issue 16: critics sharded by robot across processes or hosts); each robot's
     weights come from its own shard, and a robot of neither shard is learned by none."""
-    from common.keys import STATUS, TRANSITION, WEIGHTS
-    from common.messages import CriticWeights, ServiceStatus
+    from common.contracts.keys import STATUS, TRANSITION, WEIGHTS
+    from common.contracts.messages import CriticWeights, ServiceStatus
     from tests.harness import Proc, free_port, open_session, random_transitions, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -518,10 +518,11 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
 
 
 def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_values_are_refused() -> None:
-    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one rule, common.runtime.fleet_hosts,
+    """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one rule, common.process.runtime.fleet_hosts,
     which ``srl actor --hosts`` shares)."""
-    from common.runtime import UsageError, usable_cores
-    from tools.fleet import actor_hosts
+    from common.config.arguments import UsageError
+    from common.process.runtime import usable_cores
+    from tools.launch.fleet import actor_hosts
 
     cores = usable_cores()
     assert actor_hosts("auto", 8) == 1 and actor_hosts("auto", 49) == 1
@@ -535,8 +536,8 @@ def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_va
 def test_a_robots_counts_count_its_refusals_and_forward_or_log_them_with_its_id(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    """common.counts.RobotCounts: the one per-robot counter of the actor host and the bridge host."""
-    from common.counts import RobotCounts
+    """common.process.counts.RobotCounts: the one per-robot counter of the actor host and the bridge host."""
+    from common.process.counts import RobotCounts
 
     forwarded: list[tuple[str, str]] = []
     actor = RobotCounts("r7", "actor", forward=lambda what, reason: forwarded.append((what, reason)))
@@ -545,7 +546,7 @@ def test_a_robots_counts_count_its_refusals_and_forward_or_log_them_with_its_id(
     assert actor.snapshot() == {"steps": 3, "rejected.state": 1}
     assert forwarded == [("state", "robot r7: NaN")]
     bridge = RobotCounts("tb3_1", "robot_bridge")
-    with caplog.at_level("WARNING", logger="common.counts"):
+    with caplog.at_level("WARNING", logger="common.process.counts"):
         for _ in range(5):
             bridge.reject("odom", "stale")
     assert bridge.snapshot() == {"rejected.odom": 5}
@@ -671,9 +672,9 @@ def test_the_newest_state_is_kept_by_zenoh_and_taken_with_its_source_and_a_bound
 
     import zenoh
 
-    from common.keys import STATE
-    from common.messages import PlantState
-    from common.transport import Bus
+    from common.contracts.keys import STATE
+    from common.contracts.messages import PlantState
+    from common.net.transport import Bus
     from tests.harness import Proc, client_config, free_port, open_session, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

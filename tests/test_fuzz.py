@@ -20,7 +20,8 @@ import zenoh
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.messages import (
+from common.config.settings import Settings
+from common.contracts.messages import (
     MAX_PAYLOAD_BYTES,
     Action,
     CriticWeights,
@@ -33,9 +34,8 @@ from common.messages import (
     Transition,
     decode,
 )
-from common.provenance import RESYNC_AFTER, SequenceGuard, SourceGate
-from common.ros_wire import TB3_BURGER_OMEGA_MAX, TB3_BURGER_V_MAX
-from common.settings import Settings
+from common.contracts.ros_wire import TB3_BURGER_OMEGA_MAX, TB3_BURGER_V_MAX
+from common.net.provenance import RESYNC_AFTER, SequenceGuard, SourceGate
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import MAX_SEQ_JUMP
 from services.robot_bridge.service import RobotBridge

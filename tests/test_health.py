@@ -1,7 +1,7 @@
-"""``srl health`` / ``python -m tools.health``: the containers' readiness checks.
+"""``srl health`` / ``python -m tools.launch.health``: the containers' readiness checks.
 
-Its fast path reads three transport settings itself (see tools/health.py for why): the
-oracle is :class:`common.settings.Settings` and :func:`common.keys.liveliness_key`.
+Its fast path reads three transport settings itself (see tools/launch/health.py for why): the
+oracle is :class:`common.config.settings.Settings` and :func:`common.contracts.keys.liveliness_key`.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from common.keys import liveliness_key
-from common.settings import Settings
+from common.config.settings import Settings
+from common.contracts.keys import liveliness_key
 from tests.harness import ROOT, cluster, free_port
-from tools.health import ALIVE_KEY, transport_settings
+from tools.launch.health import ALIVE_KEY, transport_settings
 
 
 @pytest.fixture(autouse=True)
@@ -77,8 +77,8 @@ def test_bad_robot_id_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_client_config_is_zenoh_config_for_a_client(monkeypatch: pytest.MonkeyPatch) -> None:
-    from common.transport import zenoh_config
-    from tools.health import client_config
+    from common.net.transport import zenoh_config
+    from tools.launch.health import client_config
 
     monkeypatch.setenv("SRL_TRANSPORT__CONNECT", '["tcp/127.0.0.1:7448"]')
     ours, theirs = client_config(transport_settings()), zenoh_config(Settings.load().transport)
@@ -87,8 +87,8 @@ def test_client_config_is_zenoh_config_for_a_client(monkeypatch: pytest.MonkeyPa
 
 
 def test_secure_sessions_are_made_by_zenoh_config(monkeypatch: pytest.MonkeyPatch) -> None:
-    from common.security import SecurityError
-    from tools.health import client_config
+    from common.net.security import SecurityError
+    from tools.launch.health import client_config
 
     monkeypatch.setenv("SRL_TRANSPORT__SECURE", "true")  # and no user: zenoh_config refuses
     with pytest.raises(SecurityError):
@@ -102,7 +102,12 @@ def test_alive_key_is_the_liveliness_key(robot: str, service: str) -> None:
 
 def _health(*argv: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "tools.health", *argv], cwd=ROOT, capture_output=True, text=True, timeout=60, check=False
+        [sys.executable, "-m", "tools.launch.health", *argv],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
 
 

@@ -33,7 +33,7 @@ from typing import Any
 
 import pytest
 
-from common.settings import Settings
+from common.config.settings import Settings
 from tests.netns import NsProc, Topology, wait_for
 
 # the namespaces are private to the test: fixed ports cannot collide with anything

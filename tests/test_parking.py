@@ -1,4 +1,4 @@
-"""Parking metrics (common/parking.py) against hand-computed examples, and ``srl bench parking``."""
+"""Parking metrics (common/math/parking.py) against hand-computed examples, and ``srl bench parking``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from common.parking import last_window, parking, position_span, sign_changes
+from common.math.parking import last_window, parking, position_span, sign_changes
 from tools.bench.parking import ParkingResult
 from tools.cli import main
 

@@ -1,4 +1,4 @@
-"""The MuJoCo TurtleBot3 (common/physics.py, plant.model = "physics"): the model is the URDF's,
+"""The MuJoCo TurtleBot3 (common/math/physics.py, plant.model = "physics"): the model is the URDF's,
 its wheels behave as a real Burger's (lag, shortfall, deadband, saturation), its odometry is
 dead reckoning with the IMU's heading, and it is the plant of srl run, plant_sim and the emulator.
 Bounds are physical, measured once and kept generous (MuJoCo's contact solver decides the slip)."""
@@ -13,10 +13,10 @@ import sys
 import numpy as np
 import pytest
 
-from common import physics
-from common.physics import PhysicsBot, burger_mjcf, servo_gain, simulated_robot
-from common.settings import Settings
-from common.turtlebot import RobotPlant, TurtleBot
+from common.config.settings import Settings
+from common.math import physics
+from common.math.physics import PhysicsBot, burger_mjcf, servo_gain, simulated_robot
+from common.math.turtlebot import RobotPlant, TurtleBot
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
 mujoco = physics.load_mujoco()  # the extra srl[physics]: ./srl and CI install it, so it is never skipped
@@ -137,7 +137,7 @@ def test_without_mujoco_it_says_how_to_install_it(monkeypatch: pytest.MonkeyPatc
 
 
 def test_plant_sim_runs_the_physics_robot_in_lockstep() -> None:
-    from common.messages import ResetRequest, StepRequest
+    from common.contracts.messages import ResetRequest, StepRequest
     from services.plant_sim.service import SimulatedPlant
 
     plant = SimulatedPlant(Settings.load(plant={"model": "physics"}))
@@ -167,7 +167,7 @@ def test_srl_run_parks_the_physics_robot_and_reports_the_truth() -> None:
 
 
 def test_the_emulated_turtlebot3_can_be_the_physics_robot(settings: Settings) -> None:
-    from common.frames import Pose2D
+    from common.math.frames import Pose2D
     from services.tb3_emulator.service import Tb3Model
 
     model = Tb3Model(

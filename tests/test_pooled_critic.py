@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.assembly import build_actor, fleet_learners, run_episode, run_fleet_episode
-from common.checkpoint import atomic_write_json
-from common.critic import DoubleCritic, PooledLearner, PooledReplay, Replay, Sample
-from common.features import phi_q_rows
-from common.loop import Episode
-from common.messages import Transition
-from common.settings import Settings
+from common.config.assembly import build_actor, fleet_learners, run_episode, run_fleet_episode
+from common.config.settings import Settings
+from common.contracts.messages import Transition
+from common.math.critic import DoubleCritic, PooledLearner, PooledReplay, Replay, Sample
+from common.math.features import phi_q_rows
+from common.math.loop import Episode
+from common.system.checkpoint import atomic_write_json
 from services.critic.service import CriticLearner, load_checkpoint
 from tests.harness import random_transitions
 
@@ -177,7 +177,7 @@ def test_pooled_learner_rejects_bad_arguments(kwargs: dict) -> None:
         PooledReplay(1)
 
 
-# -- the fleet in lockstep (common.loop.run_fleet_lockstep) ----------------------------------
+# -- the fleet in lockstep (common.math.loop.run_fleet_lockstep) ----------------------------------
 STARTS = [np.array([1.0, -0.5, 0.3]), np.array([-0.8, 0.6, 2.5])]
 
 
@@ -346,7 +346,7 @@ def test_the_critic_command_takes_pooled_and_srl_up_a_critic_layout() -> None:
 @pytest.mark.slow
 def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() -> None:
     """The real services (srl up --robots 3 --critic pooled): one learner, every robot served."""
-    from tools.fleet import run_fleet
+    from tools.launch.fleet import run_fleet
 
     summary = run_fleet(Settings.load(), [], ["pa", "pb", "pc"], 8.0, quiet=True, pooled=True)
     critic, fleet = summary["critic"], summary["fleet"]

@@ -13,9 +13,9 @@ from collections import Counter
 
 import pytest
 
-from common.counts import RobotCounts
-from common.messages import CriticWeights
-from common.provenance import (
+from common.config.settings import Settings
+from common.contracts.messages import CriticWeights
+from common.net.provenance import (
     LATE_WITHIN_S,
     QUIET_REFUSALS,
     RESYNC_AFTER,
@@ -26,7 +26,7 @@ from common.provenance import (
     SourceGate,
     yields_to,
 )
-from common.settings import Settings
+from common.process.counts import RobotCounts
 from services.actor.ports import MAX_VERSION_AHEAD_US, WeightsInbox
 
 CRITIC, ROGUE, RESTARTED = "aa01", "bb02", "cc03"
@@ -219,7 +219,7 @@ def test_action_gate_calls_the_left_actors_in_flight_actions_late_only_briefly()
 
 def test_a_quiet_refusal_is_counted_and_logged_at_info(caplog: pytest.LogCaptureFixture) -> None:
     counts = RobotCounts("r1", "plant")
-    with caplog.at_level("INFO", logger="common.counts"):
+    with caplog.at_level("INFO", logger="common.process.counts"):
         counts.reject("action.late", "from session a")
         counts.reject("action.foreign", "from session b")
     assert counts.counters["rejected.action.late"] == counts.counters["rejected.action.foreign"] == 1
@@ -255,7 +255,7 @@ def _inbox() -> tuple[WeightsInbox, FakeBus, SourceGate]:
     bus, gate = FakeBus(), SourceGate("critic")
     gate.update(CRITIC, True)
     settings = Settings.load()
-    assert settings.critic.bounds == (0.0, 100.0)  # the box these tests expect (common/srl.toml)
+    assert settings.critic.bounds == (0.0, 100.0)  # the box these tests expect (common/config/srl.toml)
     inbox = WeightsInbox(settings, bus, gate)  # type: ignore[arg-type]
     inbox.reset(EPISODE)
     inbox.published(50)

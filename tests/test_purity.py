@@ -51,19 +51,28 @@ def _probe(extra: str = "", skip: tuple[str, ...] = ()) -> dict:
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
-# DESIGN.md section 3 and the README put the transport helpers in common/ and name
-# common/transport.py as the ONLY module of common that imports zenoh. Everything else --
-# the math, the messages, the keys, the settings, the loop -- must stay free of it.
-ALLOWED_TO_IMPORT_ZENOH = ("common.transport",)
+# common/net/transport.py is the ONLY module of common that imports zenoh (docs/architecture.md).
+# Everything else -- the math, the messages, the keys, the settings, the loop -- stays free of it.
+ALLOWED_TO_IMPORT_ZENOH = ("common.net.transport",)
 
 
 def test_common_modules_are_free_of_zenoh_and_ros() -> None:
     report = _probe(skip=ALLOWED_TO_IMPORT_ZENOH)
     # every module of the package was imported (the probe did its job)
-    expected = {f"common.{p.stem}" for p in (ROOT / "common").glob("*.py") if p.stem != "__init__"}
+    expected = {
+        ".".join(p.relative_to(ROOT).with_suffix("").parts)
+        for p in (ROOT / "common").rglob("*.py")
+        if p.stem != "__init__"
+    }
     assert expected - set(ALLOWED_TO_IMPORT_ZENOH) <= set(report["modules"])
-    assert {"common.dynamics", "common.features", "common.critic", "common.actor", "common.settings",
-            "common.loop"} <= set(report["modules"])  # fmt: skip
+    assert {
+        "common.math.dynamics",
+        "common.math.features",
+        "common.math.critic",
+        "common.math.actor",
+        "common.config.settings",
+        "common.math.loop",
+    } <= set(report["modules"])
     assert report["blame"] == {}, f"modules of common that import zenoh/rclpy: {report['blame']}"
     assert report["loaded"] == []
 
@@ -77,5 +86,5 @@ def test_only_the_transport_module_imports_zenoh_and_nothing_imports_ros() -> No
 def test_probe_detects_a_forbidden_import() -> None:
     # the same probe flags zenoh when something does import it (the check can fail)
     pytest.importorskip("zenoh")
-    report = _probe(extra="import zenoh", skip=("common.transport",))
+    report = _probe(extra="import zenoh", skip=("common.net.transport",))
     assert "zenoh" in report["loaded"]

@@ -284,10 +284,12 @@ def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_pr
 
 
 def test_the_shipped_foxglove_layout_is_the_generated_one_and_names_recorded_topics(tmp_path: Path) -> None:
-    from tools.view import foxglove_layout
+    from tools.recording.view import foxglove_layout
 
     shipped = (ROOT / "docs" / "foxglove-layout.json").read_text()
-    assert shipped == foxglove_layout(["tb3_0"]), "regenerate: python -c 'from tools.view import foxglove_layout; ...'"
+    assert shipped == foxglove_layout(["tb3_0"]), (
+        "regenerate: python -c 'from tools.recording.view import foxglove_layout; ...'"
+    )
     run = srl("run", "--duration", "1", "--no-jit", "--record", str(tmp_path / "r.mcap"), timeout=120)
     assert run.returncode == 0, run.stderr
     recorded = set(read(tmp_path / "r.mcap"))
@@ -341,9 +343,9 @@ def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path)
     """What srl plot draws from a recording is what --plot draws from the run: the same states,
     actions, costs, the weights the actor used at every step and each fit's TD residuals (all but
     the last fit's: its weights were never used, so the recording has no message for it)."""
-    from common.assembly import run_episode
-    from common.settings import Settings
-    from tools.record import episode_recorder, read_episodes, record_episode
+    from common.config.assembly import run_episode
+    from common.config.settings import Settings
+    from tools.recording.record import episode_recorder, read_episodes, record_episode
 
     settings = Settings.load(actor={"agent": "rlqv", "jit": False}, episode={"start": [1.0, -1.5], "duration": 4.0})
     episode = run_episode(settings)
@@ -361,11 +363,11 @@ def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path)
 
 
 def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> None:
-    """common.runtime.lower_priority (the recorder's nice +10): the threads already running (a
+    """common.process.runtime.lower_priority (the recorder's nice +10): the threads already running (a
     BLAS pool) and those started after it (Zenoh's) run at the lowered niceness; 0 changes none."""
     script = (
         "import os, threading, time\n"
-        "from common.runtime import lower_priority\n"
+        "from common.process.runtime import lower_priority\n"
         "def nice(tid): return os.getpriority(os.PRIO_PROCESS, tid)\n"
         "tids, go = [], threading.Event()\n"
         "def worker(): tids.append(threading.get_native_id()); go.wait(10)\n"

@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.checkpoint import CheckpointError, CheckpointWriter, atomic_write_json, from_runs, to_runs
-from common.messages import Action, CriticWeights, Transition
-from common.settings import Settings
+from common.config.settings import Settings
+from common.contracts.messages import Action, CriticWeights, Transition
+from common.system.checkpoint import CheckpointError, CheckpointWriter, atomic_write_json, from_runs, to_runs
 from services.critic.service import CriticLearner, load_checkpoint
 from tests.harness import cluster, random_transitions, wait_until
 
@@ -55,7 +55,7 @@ def test_the_checkpoint_writer_writes_off_the_callers_thread_newest_last_and_fai
     """CheckpointWriter (the critic's): ``submit`` returns while a slow write runs; of the payloads
     given meanwhile only the newest is written next; ``close`` writes what is pending; a write
     that fails is raised by the next submit or close, with the file as it was."""
-    import common.checkpoint as checkpoint
+    import common.system.checkpoint as checkpoint
 
     real_write = checkpoint.atomic_write_json
     written: list[int] = []

@@ -22,13 +22,13 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from common import ros_wire
-from common.dynamics import exact_step
-from common.frames import Pose2D, quaternion_from_yaw
-from common.messages import Action, PlantState
-from common.provenance import RESYNC_AFTER, SourceGate
-from common.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
-from common.settings import Settings
+from common.config.settings import Settings
+from common.contracts import ros_wire
+from common.contracts.messages import Action, PlantState
+from common.contracts.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
+from common.math.dynamics import exact_step
+from common.math.frames import Pose2D, quaternion_from_yaw
+from common.net.provenance import RESYNC_AFTER, SourceGate
 from services.robot_bridge.service import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
 from tests.harness import (
@@ -303,12 +303,12 @@ def test_emulator_noise_is_seeded() -> None:
 
 def test_emulator_with_the_actuator_model_reports_odometry_and_keeps_the_truth() -> None:
     """``--model actuator``: the TurtleBot3 model behind the firmware; the oracle is the model
-    itself driven by the same commands at the same times (common/turtlebot.py has its own)."""
+    itself driven by the same commands at the same times (common/math/turtlebot.py has its own)."""
     import dataclasses
 
-    from common.settings import Settings
-    from common.turtlebot import TurtleBot
-    from tools.up import emulator_truth
+    from common.config.settings import Settings
+    from common.math.turtlebot import TurtleBot
+    from tools.launch.up import emulator_truth
 
     settings = Settings.load(actuator={"slip": 0.1, "imu_heading": False})
     params = settings.turtlebot_params()

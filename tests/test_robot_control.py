@@ -10,10 +10,10 @@ import math
 import numpy as np
 import pytest
 
-from common.actor import ActorProblem, StackedActor, nearest_psd_weights
-from common.arrival import ArrivalRule, ArrivalTolerances
-from common.assembly import run_episode
-from common.settings import PAPER_METHOD, Settings
+from common.config.assembly import run_episode
+from common.config.settings import PAPER_METHOD, Settings
+from common.math.actor import ActorProblem, StackedActor, nearest_psd_weights
+from common.math.arrival import ArrivalRule, ArrivalTolerances
 from tests.test_actor import DELTA, OMEGA_MAX, PAIRS3, PAIRS5, R_DIAG, STATES, V_MAX, hand_objective, psd_weights
 
 HALF_TRACK, RADIUS, WHEEL_MAX = 0.08, 0.033, 6.7  # TurtleBot3 Burger

@@ -1,6 +1,6 @@
 """Several ROS 2 robots (issue 16): each srl robot id is its robot's ROS namespace.
 
-First the mapping (common/fleet.py ``ros_fleet``) and the bridge host's per-robot units against an
+First the mapping (common/math/fleet.py ``ros_fleet``) and the bridge host's per-robot units against an
 in-memory Zenoh (every unit on ONE session, as robots reached through one router: only the
 namespaces keep them apart); then ``srl up --robots 3 --plant robot`` with three emulated
 TurtleBot3s, and a fleet on one shared robot router beside a robot the fleet does not map.
@@ -22,12 +22,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from common import ros_wire
-from common.fleet import FleetError, circle_starts, ros_fleet
-from common.frames import quaternion_from_yaw
-from common.messages import Action, PlantState
-from common.ros_wire import ODOMETRY, TWIST_STAMPED, Attachment, Odometry, RosGraph
-from common.settings import Settings
+from common.config.settings import Settings
+from common.contracts import ros_wire
+from common.contracts.messages import Action, PlantState
+from common.contracts.ros_wire import ODOMETRY, TWIST_STAMPED, Attachment, Odometry, RosGraph
+from common.math.fleet import FleetError, circle_starts, ros_fleet
+from common.math.frames import quaternion_from_yaw
 from services.robot_bridge.host import BridgeUnit, open_unit
 from tests.harness import ROOT, free_port, open_session, srl
 
@@ -320,7 +320,7 @@ def test_up_three_emulated_turtlebots(tmp_path: Path, layout: str) -> None:
         steps = rows[robot]["steps"]
         assert steps >= 80
         # at most the actor's first action before its identity token was seen and its last one
-        # after the token went (the provenance gate, common/provenance.py)
+        # after the token went (the provenance gate, common/net/provenance.py)
         assert plant["actions_applied"] >= steps - 2 and plant["actions_refused"] <= 2
         # its commands came from its own bridge only: it received no more than that bridge sent
         assert 0 < emulator["cmd_received"] <= plant["commands_sent"]

@@ -32,8 +32,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from common import ros_wire
-from common.frames import (
+from common.contracts import ros_wire
+from common.contracts.ros_wire import (
+    ODOMETRY,
+    TWIST,
+    TWIST_STAMPED,
+    Attachment,
+    RosGraph,
+    WireError,
+)
+from common.math.frames import (
     Pose2D,
     clamp_command,
     from_goal_frame,
@@ -42,15 +50,7 @@ from common.frames import (
     wrap_angle,
     yaw_from_quaternion,
 )
-from common.ros_wire import (
-    ODOMETRY,
-    TWIST,
-    TWIST_STAMPED,
-    Attachment,
-    RosGraph,
-    WireError,
-)
-from common.turtlebot import firmware_velocity
+from common.math.turtlebot import firmware_velocity
 
 TWIST_HASH = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
 TWIST_STAMPED_HASH = "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64"
@@ -428,13 +428,13 @@ def test_firmware_truncation(command: float, limit: float, applied: float) -> No
 
 @pytest.mark.parametrize("fmt", ["compact", "legacy"])
 def test_attachment_encoding_is_zenoh_exts_serialization(fmt: str) -> None:
-    """common/ros_wire.py writes the zenoh-ext serialization itself (common never imports zenoh
-    outside common/transport.py): byte for byte what zenoh.ext.z_serialize writes."""
+    """common/contracts/ros_wire.py writes the zenoh-ext serialization itself (common never imports zenoh
+    outside common/net/transport.py): byte for byte what zenoh.ext.z_serialize writes."""
     import random
 
     import zenoh.ext
 
-    from common.ros_wire import LEGACY_FIELDS
+    from common.contracts.ros_wire import LEGACY_FIELDS
 
     rng = random.Random(7)
     for _ in range(100):

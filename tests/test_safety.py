@@ -25,13 +25,13 @@ import numpy as np
 import pytest
 import zenoh
 
-from common import ros_wire
-from common.checkpoint import atomic_write_json, remove_stale_temporaries
-from common.clock import Ticker
-from common.messages import Action, PlantState, ResetRequest, StepRequest
-from common.ros_wire import ODOMETRY, RosGraph
-from common.runtime import SignalWatch
-from common.settings import Settings
+from common.config.settings import Settings
+from common.contracts import ros_wire
+from common.contracts.messages import Action, PlantState, ResetRequest, StepRequest
+from common.contracts.ros_wire import ODOMETRY, RosGraph
+from common.process.runtime import SignalWatch
+from common.system.checkpoint import atomic_write_json, remove_stale_temporaries
+from common.system.clock import Ticker
 from services.tb3_emulator.command import CMD_TIMEOUT_DEFAULT
 from tests.harness import ROOT, client_config, cluster, declare_service_tokens, free_port, open_session, wait_until
 
@@ -307,7 +307,7 @@ def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     assert odometry.last()[3] == 0.0  # type: ignore[index]
     # the bridge stopped the robot itself: its srl session lost the actor's liveliness token with
     # the router (before srl up's own cleanup reached it)
-    # the bridge saw the actor go (its session's identity token, common.provenance) and stopped the robot
+    # the bridge saw the actor go (its session's identity token, common.net.provenance) and stopped the robot
     stopped = ("liveliness token vanished", "is gone: stopping the robot")
     assert any("[robot_bridge]" in line and any(s in line for s in stopped) for line in lines), lines[-20:]
     print(
@@ -449,7 +449,7 @@ def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None
     the variable nothing is armed."""
     script = (
         "import os, sys, threading, time\n"
-        "import common.lifeline as lifeline\n"
+        "import common.system.lifeline as lifeline\n"
         "lifeline.EXIT_GRACE_SECONDS = 0.5\n"
         "os.environ['SRL_PARENT_PID'] = str(os.getppid() + 10**6)\n"
         "stop = threading.Event()\n"
@@ -472,14 +472,14 @@ def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None
 
 @pytest.mark.parametrize("bounded", [True, False])
 def test_a_stop_that_hangs_holding_the_gil_still_ends(bounded: bool) -> None:
-    """A service's stop on a signal (common.runtime.stop_within_bounds) that then hangs in native
+    """A service's stop on a signal (common.process.runtime.stop_within_bounds) that then hangs in native
     code holding the GIL -- where no Python thread, signal handler or lifeline can run -- ends
     HARD_EXIT_SECONDS later by faulthandler's C watchdog, with every thread's traceback on stderr.
     The negative control (the handler before: only ``stop.set()``) is still running."""
     script = (
         "import ctypes, signal, sys, threading\n"
-        "import common.lifeline as lifeline\n"
-        "from common.runtime import SignalWatch, stop_within_bounds\n"
+        "import common.system.lifeline as lifeline\n"
+        "from common.process.runtime import SignalWatch, stop_within_bounds\n"
         "lifeline.HARD_EXIT_SECONDS = 1.0\n"
         "stop = threading.Event()\n"
         f"if {bounded}: SignalWatch(lambda _signum: stop_within_bounds(stop)).start()  # as serve()\n"
@@ -515,7 +515,7 @@ def test_a_stop_that_hangs_holding_the_gil_still_ends(bounded: bool) -> None:
 
 SIGNAL_STORM = (
     "import signal, sys, threading, time\n"
-    "from common.runtime import SignalWatch\n"
+    "from common.process.runtime import SignalWatch\n"
     "stop = threading.Event()\n"
     "if sys.argv[1] == 'watch': SignalWatch(lambda _signum: stop.set(), signals=(signal.SIGALRM,)).start()\n"
     "else: signal.signal(signal.SIGALRM, lambda *_: stop.set())  # the handler before\n"
@@ -535,7 +535,7 @@ def test_a_signal_while_the_main_thread_waits_on_the_stop_never_deadlocks(watch:
     """A signal handler runs in the main thread, possibly inside ``stop.wait()`` while that thread
     holds the event's non-reentrant lock; a handler calling ``stop.set()`` then waits on its own
     thread forever (CI: services that "did not stop", their main thread stuck in ``Event.set``
-    inside ``Condition.wait``). common.runtime.SignalWatch sets the stop from a thread of its own:
+    inside ``Condition.wait``). common.process.runtime.SignalWatch sets the stop from a thread of its own:
     1,000 signals, each heard, while the main thread waits on the stop. The control, the
     handler before, deadlocks on one of them (here it hangs, or dies of nested handlers)."""
     mode = "watch" if watch else "handler"
@@ -668,7 +668,7 @@ def test_a_10_mb_payload_does_not_grow_the_receiving_service() -> None:
 
 def test_zenoh_config_bounds_the_message_size() -> None:
     settings = Settings.load()
-    from common.transport import zenoh_config
+    from common.net.transport import zenoh_config
 
     config = zenoh_config(settings.transport)
     assert json.loads(config.get_json("transport/link/rx/max_message_size")) == settings.transport.max_message_bytes

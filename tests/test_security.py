@@ -1,6 +1,6 @@
 """Access control: only the actor commands, only the critic trains, only the plant reports.
 
-Unit tests check every role's Zenoh access rules (common/security.py) against an independent
+Unit tests check every role's Zenoh access rules (common/net/security.py) against an independent
 oracle: a decision function over the generated ``access_control`` dict that uses Zenoh's own
 key-expression inclusion (``zenoh.KeyExpr.includes``), as the router does. Process tests run
 the real services through a secured router with credentials generated at test time, and show
@@ -27,9 +27,10 @@ import pytest
 import zenoh
 from pydantic import ValidationError
 
-from common.messages import CriticWeights
-from common.provenance import QUIET_REFUSALS
-from common.security import (
+from common.config.settings import Settings
+from common.contracts.messages import CriticWeights
+from common.net.provenance import QUIET_REFUSALS
+from common.net.security import (
     ROLES,
     Credentials,
     SecurityError,
@@ -39,8 +40,7 @@ from common.security import (
     write_credentials,
     zenoh_entries,
 )
-from common.settings import Settings
-from common.transport import plain_config, zenoh_config
+from common.net.transport import plain_config, zenoh_config
 from tests.harness import ROOT, Cluster, client_config, free_port, wait_until
 
 ROBOT = "t0"
@@ -148,7 +148,7 @@ def test_queries_queryables_and_liveliness_per_role() -> None:
         assert who(ACL, "liveliness_token", "egress", f"srl/t0/alive/{service}") == set(ROLES)
     assert who(ACL, "liveliness_token", "ingress", "srl/t0/alive/monitor") == set()
     assert who(ACL, "liveliness_query", "ingress", "srl/t0/alive/*") == set(ROLES)
-    # identity tokens (common.provenance): a role announces the sessions of its own services only
+    # identity tokens (common.net.provenance): a role announces the sessions of its own services only
     zid = "0123456789abcdef0123456789abcdef"
     for service, owner in (("actor", "actor"), ("critic", "critic"), ("plant", "plant")):
         assert who(ACL, "liveliness_token", "ingress", f"srl/t0/alive/{service}/{zid}") == {owner}

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.assembly import run_episode
-from common.messages import Action, CriticWeights, ServiceStatus
-from common.settings import Settings
+from common.config.assembly import run_episode
+from common.config.settings import Settings
+from common.contracts.messages import Action, CriticWeights, ServiceStatus
 from tests.harness import ROOT, Proc, cluster, free_port, srl, wait_until
 
 pytestmark = pytest.mark.slow

@@ -15,7 +15,7 @@ import pytest
 from pydantic import ValidationError
 
 import common
-from common.settings import Settings, parse_start, start_state
+from common.config.settings import Settings, parse_start, start_state
 
 TOML_PATH = Path(common.__file__).with_name("srl.toml")
 RAW = tomllib.loads(TOML_PATH.read_text())
@@ -200,7 +200,7 @@ def test_cli_rejects_horizon_one(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_cli_config_file_and_flags(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from common.arguments import settings_from_args
+    from common.config.arguments import settings_from_args
     from tools.cli import build_parser
 
     user = tmp_path / "mine.toml"
@@ -232,18 +232,18 @@ def test_cli_rejects_bad_start(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_cli_run_json_contract(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
-    import common.assembly
+    import common.config.assembly
     from tools.cli import main
 
     captured = []
-    original = common.assembly.run_episode
+    original = common.config.assembly.run_episode
 
     def spy(*args, **kwargs):
         episode = original(*args, **kwargs)
         captured.append(episode)
         return episode
 
-    monkeypatch.setattr(common.assembly, "run_episode", spy)
+    monkeypatch.setattr(common.config.assembly, "run_episode", spy)
     assert main(["run", "--agent", "mpc", "--duration", "1", "--json", "--no-jit"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
     summary = json.loads(out[-1])

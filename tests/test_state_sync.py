@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.fleet import circle_starts
-from common.settings import Settings
+from common.config.settings import Settings
+from common.math.fleet import circle_starts
 from services.plant_sim.host import SYNC_MIN_ACTIONS, SYNC_WINDOW, FleetPlant, StateSync
 
 DELTA, PERIOD = 0.1, 0.02  # the actor's delta, the state period (50 Hz)

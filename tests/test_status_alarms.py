@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import time
 
-from common.keys import STATUS
-from common.messages import ServiceStatus
-from common.settings import Settings
-from common.summaries import format_status_line
+from common.config.settings import Settings
+from common.contracts.keys import STATUS
+from common.contracts.messages import ServiceStatus
+from common.contracts.summaries import format_status_line
 from tests.harness import cluster, wait_until
-from tools.up import StatusMonitor
+from tools.launch.up import StatusMonitor
 
 QUIET = {"x": 0.5, "y": 0.0, "alpha": 0.0, "steps": 10.0, "plant_sources": 1.0}
 

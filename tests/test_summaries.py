@@ -1,4 +1,4 @@
-"""Run summaries are typed contracts (common/summaries.py): producers validate what they print,
+"""Run summaries are typed contracts (common/contracts/summaries.py): producers validate what they print,
 consumers read it through the same models, and a drifted key is refused, not passed on."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from pydantic import TypeAdapter, ValidationError
 
-from common.assembly import episode_summary, run_episode
-from common.settings import PAPER_METHOD, Settings
-from common.summaries import (
+from common.config.assembly import episode_summary, run_episode
+from common.config.settings import PAPER_METHOD, Settings
+from common.contracts.summaries import (
     ACTOR_SUMMARY,
     BridgeSummary,
     CriticSummary,
@@ -26,7 +26,7 @@ from common.summaries import (
 )
 from services.robot_bridge.service import RobotBridge
 from tests.harness import FakeCounts
-from tools.up import CHILD_SUMMARIES, Child, _contract_summary, optional_summary
+from tools.launch.up import CHILD_SUMMARIES, Child, _contract_summary, optional_summary
 
 
 def _episode() -> dict[str, object]:
@@ -77,7 +77,7 @@ def test_srl_up_says_in_one_line_which_child_summary_is_missing_or_wrong() -> No
     with pytest.raises(ValueError, match="critic ended without its JSON summary"):
         _contract_summary(child, TypeAdapter(CriticSummary))
     child.stdout_lines.append('{"service": "critic", "transitions_received": "many"}')
-    with pytest.raises(ValueError, match=r"^critic's summary does not fit common/summaries.py: [^\n]*$"):
+    with pytest.raises(ValueError, match=r"^critic's summary does not fit common/contracts/summaries.py: [^\n]*$"):
         _contract_summary(child, TypeAdapter(CriticSummary))
 
 
@@ -170,7 +170,7 @@ def test_srl_up_reads_the_plant_and_the_bridge_through_their_contracts() -> None
     assert read.attachment_format == "compact" and math.isnan(read.timing.odom_to_state_ms.median)  # none measured
     plant = Child("plant", process)
     plant.stdout_lines.append(json.dumps({**PRODUCED["plant"][1], "final_sate": [0.0, 0.0, 0.0]}))
-    with pytest.raises(ValueError, match=r"^plant's summary does not fit common/summaries.py: final_sate: "):
+    with pytest.raises(ValueError, match=r"^plant's summary does not fit common/contracts/summaries.py: final_sate: "):
         _contract_summary(plant, TypeAdapter(CHILD_SUMMARIES["plant"]))
     with pytest.raises(ValueError, match="final_sate"):  # printed but drifted: never read as missing
         optional_summary(plant, TypeAdapter(PlantSummary))
@@ -222,7 +222,7 @@ def test_on_the_ideal_plant_the_truth_is_what_the_robot_reports() -> None:
 
 
 def test_a_plant_without_the_truth_gives_a_summary_that_says_so() -> None:
-    from common.loop import ExactPlant
+    from common.math.loop import ExactPlant
 
     class OdometryOnly(ExactPlant):  # a real robot: it reports, it does not know the truth
         @property

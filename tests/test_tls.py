@@ -27,10 +27,10 @@ import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
-from common.certs import write_tls_material
-from common.security import ROLES, SecurityError, check_network_exposure, is_loopback, write_credentials
-from common.settings import Settings, TransportSettings
-from common.transport import zenoh_config
+from common.config.settings import Settings, TransportSettings
+from common.net.certs import write_tls_material
+from common.net.security import ROLES, SecurityError, check_network_exposure, is_loopback, write_credentials
+from common.net.transport import zenoh_config
 from tests.harness import ROOT, Proc, free_port, wait_until
 
 ROBOT = "tls"

@@ -1,4 +1,4 @@
-"""The TurtleBot3 actuator and odometry model (common/turtlebot.py) against independent oracles:
+"""The TurtleBot3 actuator and odometry model (common/math/turtlebot.py) against independent oracles:
 the exact unicycle, the first-order step response, hand-computed wheel speeds and slip."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from common.dynamics import exact_step
-from common.turtlebot import RobotPlant, TurtleBot, TurtleBotParams, body_velocity, firmware_velocity, wheel_speeds
+from common.math.dynamics import exact_step
+from common.math.turtlebot import RobotPlant, TurtleBot, TurtleBotParams, body_velocity, firmware_velocity, wheel_speeds
 
 R, B = 0.033, 0.160
 
@@ -167,8 +167,8 @@ def test_a_reset_robot_is_a_new_robot() -> None:
 
 
 def test_plant_sim_lockstep_reports_the_odometry_and_the_truth_of_the_model() -> None:
-    from common.messages import ResetRequest, StepRequest
-    from common.settings import Settings
+    from common.config.settings import Settings
+    from common.contracts.messages import ResetRequest, StepRequest
     from services.plant_sim.service import SimulatedPlant
 
     settings = Settings.load(plant={"model": "actuator"}, actuator={"slip": 0.1, "imu_heading": False})

@@ -1,4 +1,4 @@
-"""srl up's supervisor stops the services first and the router last (tools/up.py)."""
+"""srl up's supervisor stops the services first and the router last (tools/launch/up.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from tools.up import Child, Supervisor
+from tools.launch.up import Child, Supervisor
 
 # Each fake service writes when it got SIGINT, takes 0.3 s to say goodbye, writes when it
 # ended and exits 0.

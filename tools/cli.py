@@ -16,42 +16,42 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from common.agents import AGENTS
-from common.arguments import (
+from common.config.arguments import (
     COMMAND_SETTINGS,
+    Parser,
+    UsageError,
     add_bridge_arguments,
+    add_log_level,
+    add_mode_argument,
     add_settings_arguments,
     bridge_argv,
     settings_argv,
     settings_from_args,
 )
-from common.runtime import (
-    Parser,
+from common.config.settings import METHODS
+from common.contracts.summaries import RouterSummary, format_status_line
+from common.math.agents import AGENTS
+from common.process.runtime import (
     SignalledError,
-    UsageError,
-    add_log_level,
-    add_mode_argument,
     connect_with_retry,
     own_resources,
     service_stop,
     stop_on_signals,
     zenoh_reason,
 )
-from common.runtime import entry as runtime_entry
-from common.runtime import main as runtime_main
-from common.settings import METHODS
-from common.summaries import RouterSummary, format_status_line
+from common.process.runtime import entry as runtime_entry
+from common.process.runtime import main as runtime_main
 
 log = logging.getLogger(__name__)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from common.assembly import episode_summary, run_episode
+    from common.config.assembly import episode_summary, run_episode
 
     settings = settings_from_args(args)
     recorder = None
     if args.record is not None and args.transport == "inproc":  # opened now: a bad path fails before the run
-        from tools.record import RecordingError, episode_recorder
+        from tools.recording.record import RecordingError, episode_recorder
 
         try:
             recorder = episode_recorder(
@@ -62,7 +62,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         except RecordingError as error:
             raise UsageError(str(error)) from None
     elif args.record is not None:
-        from tools.record import RecordingError, open_for_writing
+        from tools.recording.record import RecordingError, open_for_writing
 
         try:
             open_for_writing(args.record).close()
@@ -72,8 +72,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     origin_ns = time.time_ns()
     if args.transport == "zenoh":
         # The same Algorithm 1 through the real services: lockstep, synchronous critic.
-        from common.loop import Episode
-        from tools.up import ServiceDiedError, run_up
+        from common.math.loop import Episode
+        from tools.launch.up import ServiceDiedError, run_up
 
         try:
             summary = run_up(
@@ -100,7 +100,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                     recorder.close()  # a valid (empty) file, never a torn one
                 raise
         if recorder is not None:  # after the loop, from its trajectory: the loop never waits on the disk
-            from tools.record import record_episode
+            from tools.recording.record import record_episode
 
             record_episode(recorder, episode, settings.transport.robot, origin_ns)
             recorder.close()
@@ -110,7 +110,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     summary["wall_seconds"] = time.perf_counter() - started
     summary["transport"] = args.transport
     if args.plot:
-        from tools.plots import plot_episode
+        from tools.recording.plots import plot_episode
 
         plot_episode(episode, settings.plant.sampling_time, args.plot)
         summary["plot"] = str(args.plot)
@@ -181,7 +181,7 @@ def cmd_router(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from common.transport import zenoh_config
+    from common.net.transport import zenoh_config
 
     settings = settings_from_args(args)
     stop = service_stop()  # signals (bounded) and srl up's death
@@ -222,9 +222,9 @@ def cmd_router(args: argparse.Namespace) -> int:
 
 
 def cmd_certs(args: argparse.Namespace) -> int:
-    """``srl certs --out DIR``: TLS material (common/certs.py) and, with --passwords, credentials."""
-    from common.certs import write_tls_material
-    from common.security import ROLES, write_credentials
+    """``srl certs --out DIR``: TLS material (common/net/certs.py) and, with --passwords, credentials."""
+    from common.net.certs import write_tls_material
+    from common.net.security import ROLES, write_credentials
 
     out = Path(args.out).expanduser()
     if (out / "ca.pem").exists():
@@ -245,15 +245,15 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from tools.up import ServiceDiedError, Stopped, run_up
+    from tools.launch.up import ServiceDiedError, Stopped, run_up
 
     settings = settings_from_args(args)
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
     if args.robots is None and args.critic is not None:
         raise UsageError("--critic per-robot|pooled chooses a fleet's critic: give --robots K too")
-    if args.robots is not None:  # a fleet (issue 16): tools/fleet.py
-        from tools.fleet_cli import cmd_up_fleet
+    if args.robots is not None:  # a fleet (issue 16): tools/launch/fleet.py
+        from tools.launch.fleet_cli import cmd_up_fleet
 
         return cmd_up_fleet(args, settings, settings_argv(args), summary_dir)
     started = time.monotonic()
@@ -303,7 +303,7 @@ def default_runs_dir() -> Path:
 
 def cmd_status(args: argparse.Namespace) -> int:
     """The actor's status line once a second, from a monitor session, until Ctrl-C or --seconds."""
-    from tools.up import StatusMonitor
+    from tools.launch.up import StatusMonitor
 
     settings = settings_from_args(args)
     with stop_on_signals() as stop:
@@ -330,7 +330,7 @@ def format_up_summary(summary: dict[str, Any]) -> str:
     lines.append("  services       " + ", ".join(f"{k} (pid {v})" for k, v in summary["services"].items()))
     if summary.get("secure"):
         lines.append(
-            "  security       user/password login per role + access rules at the router (common/security.py)"
+            "  security       user/password login per role + access rules at the router (common/net/security.py)"
             + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else "")
         )
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
@@ -374,8 +374,8 @@ def format_up_summary(summary: dict[str, Any]) -> str:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """``srl plot FILE.mcap``: the figures of ``--plot``, from a recording."""
-    from tools.plots import plot_episode
-    from tools.record import RecordingError, read_episodes
+    from tools.recording.plots import plot_episode
+    from tools.recording.record import RecordingError, read_episodes
 
     try:
         episodes, sampling_time = read_episodes(args.file)
@@ -395,7 +395,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-# -- recordings and the live view (tools/record.py, tools/view.py: imported when they run) ----
+# -- recordings and the live view (tools/recording/record.py, tools/recording/view.py: imported when they run) ----
 VIEW_PORT = 8765
 
 
@@ -441,13 +441,13 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from tools.record import cmd_record as record
+    from tools.recording.record import cmd_record as record
 
     return record(args)
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from tools.view import cmd_view as view
+    from tools.recording.view import cmd_view as view
 
     return view(args)
 
@@ -484,7 +484,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 # A value that is a number or a comma-separated list of numbers, negative first: "-1.2,0.7", "-1e9,0".
 DESCRIPTION = """srl: stacked RL-QV (actor, critic, plant) as Zenoh services, and the tools around them.
 
-Settings come from common/srl.toml, overridden by --config FILE (or SRL_CONFIG), by
+Settings come from common/config/srl.toml, overridden by --config FILE (or SRL_CONFIG), by
 SRL_<SECTION>__<NAME> environment variables and by the flags of each subcommand.
 Start with:  srl run            (one episode in this process)
              srl up             (router + every service as processes, a live status line)
@@ -563,7 +563,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         metavar="ENDPOINT",
         help="also connect to this endpoint, e.g. another host's router tcp/192.168.1.20:7447; repeat for "
-        "several (one router per host, README 'Across hosts') (default: transport.connect, none in common/srl.toml)",
+        "several (one router per host) (default: transport.connect, none in common/config/srl.toml)",
     )
     router.set_defaults(func=cmd_router)
 
@@ -623,7 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the run live to Foxglove (srl view) on ws://127.0.0.1:PORT; PORT defaults to 8765 "
         "(default: no live view)",
     )
-    from tools.fleet_cli import add_fleet_arguments
+    from tools.launch.fleet_cli import add_fleet_arguments
 
     add_fleet_arguments(up)
     up.set_defaults(func=cmd_up)
@@ -741,7 +741,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     status.set_defaults(func=cmd_status)
 
-    # recordings and the live view (tools/record.py, tools/view.py)
+    # recordings and the live view (tools/recording/record.py, tools/recording/view.py)
     record = command(
         "record",
         "join a running system over Zenoh and record every robot to an MCAP file until Ctrl-C",
@@ -785,8 +785,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_experiment_arguments(experiment)
     experiment.set_defaults(func=cmd_experiment)
 
-    # srl health (tools/health.py): readiness of a service, for container healthchecks
-    from tools.health import add_health_parser
+    # srl health (tools/launch/health.py): readiness of a service, for container healthchecks
+    from tools.launch.health import add_health_parser
 
     add_health_parser(sub)
     for action in sub._choices_actions:  # every subcommand's --help opens with what it does
@@ -802,7 +802,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def entry(argv: Sequence[str] | None = None) -> None:
-    """The ``srl`` console command (common.runtime.entry: exit codes, the exit after Zenoh)."""
+    """The ``srl`` console command (common.process.runtime.entry: exit codes, the exit after Zenoh)."""
     runtime_entry(build_parser, argv)
 
 

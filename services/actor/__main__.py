@@ -1,6 +1,6 @@
 """`python -m services.actor` = `srl actor`: the service's own command, no tools."""
 
-from common.runtime import entry, service_parser
+from common.process.runtime import entry, service_parser
 from services.actor import command
 
 entry(lambda: service_parser(command))

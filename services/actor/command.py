@@ -4,17 +4,18 @@ from __future__ import annotations
 
 import argparse
 
-from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.fleet import split_evenly
-from common.runtime import (
+from common.config.arguments import (
+    COMMAND_SETTINGS,
     UsageError,
     add_lifetime_arguments,
     add_mode_argument,
     add_robots_argument,
-    fleet_hosts,
+    add_settings_arguments,
     fleet_robots,
-    serve,
+    settings_from_args,
 )
+from common.math.fleet import split_evenly
+from common.process.runtime import fleet_hosts, serve
 from services.actor.split import fork_shares
 
 NAME = "actor"

@@ -2,11 +2,11 @@
 
 Each robot has what a single actor has -- its own :class:`~services.actor.realtime.RealtimeActor`
 (state intake with provenance, weights inbox, statistics, transitions, staleness), its own plans
-and warm starts, arrival rule and counters (:class:`~common.actor.ActorMemory`), its own tick
+and warm starts, arrival rule and counters (:class:`~common.math.actor.ActorMemory`), its own tick
 accounting (:class:`RobotTicker`) and its own keys (``srl/<robot>/action``, ``.../transition``,
 ``.../status/actor``, liveliness ``.../alive/actor``). What they share is ONE built problem per
 (agent, N): :class:`RobotActor` swaps a robot's memory into the shared
-:class:`~common.actor.StackedActor` for its step. Every solve runs in one thread, the
+:class:`~common.math.actor.StackedActor` for its step. Every solve runs in one thread, the
 scheduler's, so the CasADi function and its buffers are never used by two robots at once (its
 buffers are the actor's own, rewritten before every solve: nothing leaks from one robot to the
 next, ``tests/test_fleet.py`` checks the actions against one actor per robot, bit for bit).
@@ -15,7 +15,7 @@ Scheduling: robot ``i`` of ``K`` ticks at ``t0 + i delta / K + k delta`` (phases
 period, so the work is too), and :class:`HostScheduler` serves the robot whose tick is due first
 (earliest deadline first; ties by robot order): no robot waits for more than the others' work due
 before its own. A tick served more than a quarter period late is a missed deadline, as for one
-actor (common/clock.py); a tick more than a period late is skipped, counted as missed, and the
+actor (common/system/clock.py); a tick more than a period late is skipped, counted as missed, and the
 robot's schedule moves on (no burst of catch-up ticks).
 
 Before the first tick, every robot whose state has come is solved once off the schedule
@@ -36,19 +36,19 @@ from typing import Any
 
 import numpy as np
 
-from common.actor import ActorCounters, ActorMemory, ActorProblem, ActorStep, StackedActor
-from common.assembly import arrival_rule, build_actor
-from common.clock import LATE_FRACTION, Ticker
-from common.counts import RobotCounts
-from common.fleet_summary import FleetActorSummary, fleet_view
-from common.keys import STATE, STATUS, WEIGHTS
-from common.messages import PlantState, ServiceStatus
-from common.provenance import SourceGate
-from common.runtime import realtime_priority
-from common.settings import Settings
-from common.stats import Window
-from common.summaries import RealtimeActorSummary
-from common.transport import Bus, Newest
+from common.config.assembly import arrival_rule, build_actor
+from common.config.settings import Settings
+from common.contracts.fleet_summary import FleetActorSummary, fleet_view
+from common.contracts.keys import STATE, STATUS, WEIGHTS
+from common.contracts.messages import PlantState, ServiceStatus
+from common.contracts.summaries import RealtimeActorSummary
+from common.math.actor import ActorCounters, ActorMemory, ActorProblem, ActorStep, StackedActor
+from common.math.stats import Window
+from common.net.provenance import SourceGate
+from common.net.transport import Bus, Newest
+from common.process.counts import RobotCounts
+from common.process.runtime import realtime_priority
+from common.system.clock import LATE_FRACTION, Ticker
 from services.actor.ports import WeightsInbox, new_episode_id
 from services.actor.realtime import RealtimeActor
 from services.actor.service import wire_realtime
@@ -104,7 +104,7 @@ class RobotActor:
 
 class RobotTicker(Ticker):
     """One robot's ticks in a host: tick ``k`` due at ``start + (k + 1) period`` (as
-    :class:`~common.clock.Ticker`), served by :class:`HostScheduler` instead of slept to."""
+    :class:`~common.system.clock.Ticker`), served by :class:`HostScheduler` instead of slept to."""
 
     def __init__(self, period: float, start: float, late_fraction: float = LATE_FRACTION) -> None:
         super().__init__(period, clock=lambda: start, late_fraction=late_fraction)

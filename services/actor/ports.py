@@ -6,7 +6,7 @@
 * :class:`ZenohCriticPort` -- transitions out to the off-board critic, weights back.
 
 The lockstep actor (services/actor/service.py) and the experiment's workers
-(tools/experiment/runner.py) run :func:`common.assembly.run_episode` over these ports.
+(tools/experiment/runner.py) run :func:`common.config.assembly.run_episode` over these ports.
 """
 
 from __future__ import annotations
@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from common.agents import fit_due, learns
-from common.critic import Sample
-from common.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
-from common.messages import CriticWeights, Message, PlantState, ResetRequest, StepRequest, Transition
-from common.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
-from common.settings import Settings
-from common.transport import Bus
+from common.config.settings import Settings
+from common.contracts.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
+from common.contracts.messages import CriticWeights, Message, PlantState, ResetRequest, StepRequest, Transition
+from common.math.agents import fit_due, learns
+from common.math.critic import Sample
+from common.net.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
+from common.net.transport import Bus
 
 log = logging.getLogger(__name__)
 # A critic's versions start at its host's wall clock in microseconds when it starts and then
@@ -54,7 +54,7 @@ class WeightsInbox:
     """Newest accepted critic weights of the current episode (thread-safe).
 
     Weights are accepted only (issue 13): from the live critic session when a ``gate`` is given
-    (its identity token, common.provenance), for the current episode, newer than the held
+    (its identity token, common.net.provenance), for the current episode, newer than the held
     version of the same critic session (a new session -- a restarted critic -- resynchronizes),
     within the configured weight box (else the last good weights are kept), and trained on a
     step the actor has already published (``published_step``): a forged far-future version or
@@ -128,7 +128,7 @@ class WeightsInbox:
             if reason is not None:
                 # a run of refused versions of the followed critic that count on among themselves
                 # is the real critic after a forged version (with its session id) moved ours, or a
-                # critic host whose clock is ahead: follow it (common.provenance.RefusalRun)
+                # critic host whose clock is ahead: follow it (common.net.provenance.RefusalRun)
                 if not (same_source and self.refusals.refused((message.version,), time.monotonic())):
                     self.bus.reject("critic/weights", reason)
                     return

@@ -1,18 +1,18 @@
 """The real-time actor: the ``delta``-periodic loop as a class with explicit state and ports.
 
-At tick ``k`` (absolute time ``t0 + k delta``, :class:`common.clock.Ticker`) it takes the newest
+At tick ``k`` (absolute time ``t0 + k delta``, :class:`common.system.clock.Ticker`) it takes the newest
 accepted state, solves, publishes the action and one transition. It never waits for the critic:
 it uses the newest weights it holds and reports their staleness. It commands zero velocity and
 records no transition (the critic sees a gap, never a false pair) when the state is stale
 (older than ``(action_timeout_steps - 1) delta``), never came, when the plant's liveliness token
 vanished, or while two plant sessions are alive (issue 13).
 
-States are accepted only from the live plant session (its identity token, common.provenance),
+States are accepted only from the live plant session (its identity token, common.net.provenance),
 in order per session and never more than :data:`MAX_SEQ_JUMP` ahead; a new session (a
 restarted plant) resynchronizes.
 
 Memory is bounded whatever the run length: the loop's statistics are fixed windows
-(:class:`common.stats.Window`, the newest 4096 values; max over the whole run), the cost a
+(:class:`common.math.stats.Window`, the newest 4096 values; max over the whole run), the cost a
 running sum, the published steps the newest :data:`RUNS_KEPT` runs, the transitions' tail the
 newest ``M``. ``tests/test_realtime_actor.py`` runs it on a fake clock and fake ports.
 """
@@ -31,15 +31,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from common.actor import ActorCounters, ActorStep, StackedActor
-from common.agents import learns
-from common.clock import Ticker
-from common.features import stage_cost
-from common.messages import Action, PlantState, Transition
-from common.provenance import RefusalRun, SequenceGuard, SourceGate
-from common.settings import Settings
-from common.stats import Window
-from common.summaries import RealtimeActorSummary, TrueView
+from common.config.settings import Settings
+from common.contracts.messages import Action, PlantState, Transition
+from common.contracts.summaries import RealtimeActorSummary, TrueView
+from common.math.actor import ActorCounters, ActorStep, StackedActor
+from common.math.agents import learns
+from common.math.features import stage_cost
+from common.math.stats import Window
+from common.net.provenance import RefusalRun, SequenceGuard, SourceGate
+from common.system.clock import Ticker
 from services.actor.ports import WeightsInbox
 
 log = logging.getLogger(__name__)
@@ -52,7 +52,7 @@ RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (
 
 
 class Counts(Protocol):
-    """What the loop reports to (common.transport.Bus has it): counters and refusals."""
+    """What the loop reports to (common.net.transport.Bus has it): counters and refusals."""
 
     @property
     def counters(self) -> Any: ...

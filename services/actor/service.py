@@ -7,7 +7,7 @@
   never came, or the plant's liveliness token vanished (zero at the next tick), it commands
   zero velocity at every tick and records no transition (so the critic sees a gap, never a
   false pair); fresh states resume the loop.
-* lockstep: runs Algorithm 1 (:func:`common.assembly.run_episode`) with the plant behind its Zenoh
+* lockstep: runs Algorithm 1 (:func:`common.config.assembly.run_episode`) with the plant behind its Zenoh
   queryable and the off-board critic; with ``sync_critic`` it waits (bounded) for the weights
   trained on the previous step, which makes the distributed run the paper's algorithm exactly.
 
@@ -23,20 +23,20 @@ import threading
 import time
 from typing import Any
 
-from common.actor import StackedActor
-from common.agents import learns
-from common.assembly import build_actor, episode_summary, run_episode
-from common.clock import Ticker
-from common.keys import ACTION, STATE, TRANSITION, WEIGHTS
-from common.messages import (
+from common.config.assembly import build_actor, episode_summary, run_episode
+from common.config.settings import Settings
+from common.contracts.keys import ACTION, STATE, TRANSITION, WEIGHTS
+from common.contracts.messages import (
     MessageError,
 )
-from common.provenance import SourceGate
-from common.runtime import realtime_priority
-from common.settings import Settings
-from common.stats import summarize
-from common.summaries import LockstepActorSummary, format_status_line
-from common.transport import Bus, start_status_thread
+from common.contracts.summaries import LockstepActorSummary, format_status_line
+from common.math.actor import StackedActor
+from common.math.agents import learns
+from common.math.stats import summarize
+from common.net.provenance import SourceGate
+from common.net.transport import Bus, start_status_thread
+from common.process.runtime import realtime_priority
+from common.system.clock import Ticker
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id
 from services.actor.realtime import Counts, RealtimeActor, Steps
 

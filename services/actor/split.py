@@ -15,7 +15,7 @@ the parent serves the first share and supervises the others (:class:`Children`):
 * when the parent stops (signal, ``--run-seconds``, an error), every child gets SIGTERM, then
   SIGKILL after :data:`STOP_GRACE_SECONDS`;
 * when the parent is killed outright (SIGKILL), each child dies with it: ``SRL_PARENT_PID`` arms
-  common/lifeline.py in the child (the kernel's parent-death signal and a watchdog).
+  common/system/lifeline.py in the child (the kernel's parent-death signal and a watchdog).
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ import sys
 import threading
 import time
 
-from common.lifeline import PARENT_ENV
-from common.runtime import UsageError
+from common.config.arguments import UsageError
+from common.system.lifeline import PARENT_ENV
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ class Children:
             first, last = self.shares[pid][0], self.shares[pid][-1]
             how = f"was killed by {signal.Signals(-code).name}" if code < 0 else f"ended with exit code {code}"
             log.error("actor host process %d (robots %s .. %s) %s: stopping the others", pid, first, last, how)
-            os.kill(os.getpid(), signal.SIGTERM)  # the parent's clean stop (common.runtime.serve)
+            os.kill(os.getpid(), signal.SIGTERM)  # the parent's clean stop (common.process.runtime.serve)
 
     def stop(self) -> int:
         """SIGTERM to every child still running, SIGKILL after the grace; the worst exit code

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import argparse
 
-from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.runtime import add_lifetime_arguments, add_robots_argument, fleet_robots, serve
+from common.config.arguments import (
+    COMMAND_SETTINGS,
+    add_lifetime_arguments,
+    add_robots_argument,
+    add_settings_arguments,
+    fleet_robots,
+    settings_from_args,
+)
+from common.process.runtime import serve
 
 NAME = "critic"
 HELP = "the off-board critic learner (TD least squares)"

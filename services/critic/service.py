@@ -1,6 +1,6 @@
 """critic: the off-board learner. Transitions in, versioned critic weights out.
 
-One replay of size M and one :class:`~common.critic.DoubleCritic` per (robot, episode); a
+One replay of size M and one :class:`~common.math.critic.DoubleCritic` per (robot, episode); a
 transition of a new episode starts afresh from the initial weights. After every
 ``update_every``-th transition both critics are fitted (TD least squares) and published with a
 version that increases strictly over the life of the process (so across episodes too), the
@@ -25,7 +25,7 @@ Steps more than ``retention`` behind the newest step of the episode are refused 
 (counted): this bounds the memory of seen steps and the checkpoint's size.
 
 ``critic.pooled`` (``srl critic --pooled``; issue 16): ONE learner for every robot
-(:class:`~common.critic.PooledLearner`). Each robot keeps its stream (episode, replay of M, steps
+(:class:`~common.math.critic.PooledLearner`). Each robot keeps its stream (episode, replay of M, steps
 seen) and TD pairs never leave a stream; the one critic is fitted once per fleet step (as many
 transitions due a fit as the fleet has robots since the last fit) and its weights go to every
 robot's weights key, one version for all. A robot that starts a new episode restarts its stream
@@ -48,8 +48,15 @@ from typing import Any
 
 import numpy as np
 
-from common.agents import fit_due
-from common.checkpoint import (
+from common.config.settings import Settings
+from common.contracts.keys import TRANSITION, WEIGHTS
+from common.contracts.messages import CriticWeights, Transition
+from common.contracts.summaries import CriticSummary
+from common.math.agents import fit_due
+from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, update_many
+from common.math.stats import Window
+from common.net.transport import Bus, start_status_thread
+from common.system.checkpoint import (
     CheckpointError,
     CheckpointWriter,
     from_runs,
@@ -58,13 +65,6 @@ from common.checkpoint import (
     set_aside,
     to_runs,
 )
-from common.critic import DoubleCritic, PooledLearner, Replay, Sample, update_many
-from common.keys import TRANSITION, WEIGHTS
-from common.messages import CriticWeights, Transition
-from common.settings import Settings
-from common.stats import Window
-from common.summaries import CriticSummary
-from common.transport import Bus, start_status_thread
 
 log = logging.getLogger(__name__)
 SEEN_SLACK = 100  # steps seen beyond the retention (at most as many again) before the set is pruned to it
@@ -261,7 +261,7 @@ class CriticLearner:
         return outgoing + self._fit_due()
 
     def _fit_due(self) -> list[CriticWeights]:
-        """The per-robot fits due, all in one stacked solve (:func:`~common.critic.update_many`:
+        """The per-robot fits due, all in one stacked solve (:func:`~common.math.critic.update_many`:
         each robot's weights are those of its fit alone, bit for bit); a fit's time is its share."""
         due, self.due = self.due, {}
         if not due:
@@ -406,7 +406,7 @@ def take_batch(first: Transition, inbox: queue.Queue[Transition], window: float,
 
 
 def active_sets(critic: DoubleCritic) -> dict[str, list[float] | None]:
-    """Each critic's last fit's weights on a bound (its next fit's guess, common.critic.fit_gram)
+    """Each critic's last fit's weights on a bound (its next fit's guess, common.math.critic.fit_gram)
     for the checkpoint: a critic restored with them fits on exactly as one that never stopped."""
     return {
         "q_on_bound": None if critic.q_on_bound is None else critic.q_on_bound.tolist(),

@@ -5,15 +5,17 @@ from __future__ import annotations
 import argparse
 import math
 
-from common.arguments import COMMAND_SETTINGS, add_settings_arguments, settings_from_args
-from common.runtime import (
+from common.config.arguments import (
+    COMMAND_SETTINGS,
     UsageError,
     add_lifetime_arguments,
     add_mode_argument,
     add_robots_argument,
+    add_settings_arguments,
     fleet_robots,
-    serve,
+    settings_from_args,
 )
+from common.process.runtime import serve
 
 NAME = "plant-sim"
 HELP = "the simulated robot (real-time or lockstep queryable)"

@@ -2,13 +2,13 @@
 
 Real time only. One timer at ``transport.state_rate``; each period every robot is advanced with
 its newest action held and its state published on ``srl/<robot>/state``. The ideal unicycle of
-the whole fleet is one numpy step (:func:`common.dynamics.exact_steps`); the TurtleBot3 models
+the whole fleet is one numpy step (:func:`common.math.dynamics.exact_steps`); the TurtleBot3 models
 (``plant.model = actuator | physics``) step one :class:`SimulatedPlant` per robot. Each robot
 keeps what one plant_sim keeps: only its live actor session's actions, in order
-(:class:`~common.provenance.ActionGate`), the watchdog (zero velocity after
+(:class:`~common.net.provenance.ActionGate`), the watchdog (zero velocity after
 ``action_timeout_steps * delta`` without a fresh action, and at once when its actor vanishes),
 one plant per robot (a second plant of any robot of the list refuses to start), and the truth
-beside the reported state. Robots start on a circle around the target (common/fleet.py).
+beside the reported state. Robots start on a circle around the target (common/math/fleet.py).
 
 A robot whose actor drives it has its state published only at the state ticks just before its
 actor's next tick (``transport.state_sync``, :class:`StateSync`): its actor reads one state per
@@ -25,14 +25,14 @@ from typing import Any
 
 import numpy as np
 
-from common.dynamics import exact_steps
-from common.fleet import circle_starts
-from common.fleet_summary import FleetPlantSummary, PlantRow
-from common.keys import ACTION, STATE, STATUS
-from common.messages import Action, PlantState, ServiceStatus
-from common.provenance import ActionGate, SourceGate
-from common.settings import Settings
-from common.transport import Bus
+from common.config.settings import Settings
+from common.contracts.fleet_summary import FleetPlantSummary, PlantRow
+from common.contracts.keys import ACTION, STATE, STATUS
+from common.contracts.messages import Action, PlantState, ServiceStatus
+from common.math.dynamics import exact_steps
+from common.math.fleet import circle_starts
+from common.net.provenance import ActionGate, SourceGate
+from common.net.transport import Bus
 from services.plant_sim.service import SimulatedPlant, action_timeout, state_ticks
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """plant_sim: the simulated robot, ``plant.model``: the exact sample-and-hold unicycle (ideal)
-or a TurtleBot3's actuators and odometry (actuator, common/turtlebot.py; physics, the MuJoCo
-Burger of common/physics.py). Its states carry the
+or a TurtleBot3's actuators and odometry (actuator, common/math/turtlebot.py; physics, the MuJoCo
+Burger of common/math/physics.py). Its states carry the
 reported pose (the odometry) and, since a simulator knows it, the true pose beside it.
 
 * lockstep: queryables ``plant/reset`` and ``plant/step`` (declared in this mode only: apply
@@ -23,16 +23,16 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from common.clock import Ticker
-from common.dynamics import exact_step
-from common.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
-from common.messages import Action, PlantState, ResetRequest, StepRequest
-from common.physics import PhysicsBot, simulated_robot
-from common.provenance import ActionGate, SourceGate
-from common.settings import Settings
-from common.summaries import PlantSummary
-from common.transport import Bus, start_status_thread
-from common.turtlebot import TurtleBot
+from common.config.settings import Settings
+from common.contracts.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
+from common.contracts.messages import Action, PlantState, ResetRequest, StepRequest
+from common.contracts.summaries import PlantSummary
+from common.math.dynamics import exact_step
+from common.math.physics import PhysicsBot, simulated_robot
+from common.math.turtlebot import TurtleBot
+from common.net.provenance import ActionGate, SourceGate
+from common.net.transport import Bus, start_status_thread
+from common.system.clock import Ticker
 
 log = logging.getLogger(__name__)
 

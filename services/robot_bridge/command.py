@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import argparse
 
-from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
-from common.fleet import ROS_FLEET_PREFIX
-from common.runtime import (
+from common.config.arguments import (
+    COMMAND_SETTINGS,
     UsageError,
+    add_bridge_arguments,
     add_lifetime_arguments,
     add_robot_endpoints_argument,
     add_robots_argument,
+    add_settings_arguments,
     fleet_robots,
     ros_fleet_endpoints,
-    serve,
+    settings_from_args,
 )
+from common.math.fleet import ROS_FLEET_PREFIX
+from common.process.runtime import serve
 
 NAME = "robot-bridge"
 HELP = "a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh"

@@ -1,6 +1,6 @@
 """The bridge host (issue 16): one ``srl robot-bridge --robots ...`` process for several ROS 2 robots.
 
-Each srl robot id is its robot's ROS namespace (common/fleet.py ``ros_fleet``): robot ``tb3_1``
+Each srl robot id is its robot's ROS namespace (common/math/fleet.py ``ros_fleet``): robot ``tb3_1``
 reads ``/tb3_1/odom`` and commands ``/tb3_1/cmd_vel`` (rmw_zenoh keys ``<domain>/tb3_1/odom/...``,
 ros2dds keys ``tb3_1/odom``), and its frames are ``tb3_1/odom``, ``tb3_1/base_footprint``.
 Every robot keeps what one bridge keeps -- its own :class:`RobotBridge` (goal frame, heading,
@@ -30,17 +30,17 @@ from typing import Any
 
 import zenoh
 
-from common.clock import Ticker
-from common.counts import RobotCounts
-from common.fleet_summary import FleetBridgeSummary
-from common.keys import ACTION, STATE, STATUS, liveliness_key
-from common.messages import Action, ServiceStatus
-from common.provenance import SourceGate
-from common.ros_wire import RosGraph
-from common.runtime import UsageError
-from common.security import SecurityError
-from common.settings import Settings
-from common.transport import Bus, plain_config
+from common.config.arguments import UsageError
+from common.config.settings import Settings
+from common.contracts.fleet_summary import FleetBridgeSummary
+from common.contracts.keys import ACTION, STATE, STATUS, liveliness_key
+from common.contracts.messages import Action, ServiceStatus
+from common.contracts.ros_wire import RosGraph
+from common.net.provenance import SourceGate
+from common.net.security import SecurityError
+from common.net.transport import Bus, plain_config
+from common.process.counts import RobotCounts
+from common.system.clock import Ticker
 from services.robot_bridge.service import SHUTDOWN_ZEROS, RobotBridge, RosLink, bridge_summary
 
 log = logging.getLogger(__name__)

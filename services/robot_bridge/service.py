@@ -9,7 +9,7 @@ Decisions (README, "Robot bridge"):
 * **Goal frame.** The goal is a configured pose ``bridge.goal`` in the robot's odom frame, default
   ``(0, 0, 0)``: the odom origin, where the robot's odometry started (TurtleBot3: at bringup or
   after ``reset_odometry``). Not "the pose at bridge start-up": a bridge restart would then move
-  the target to wherever the robot stands, silently. The state is ``common.frames.to_goal_frame``
+  the target to wherever the robot stands, silently. The state is ``common.math.frames.to_goal_frame``
   of the odometry pose, its heading unwrapped (continuous) from sample to sample.
 * **Odometry** is refused (counted, never published) when it does not decode as
   nav_msgs/msg/Odometry, carries a foreign type hash, has no rmw_zenoh attachment (the profile
@@ -53,21 +53,11 @@ from typing import Any, Protocol
 import zenoh
 from pydantic import ValidationError
 
-from common import ros_wire
-from common.clock import Ticker
-from common.dynamics import unwrap_heading
-from common.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
-from common.keys import ACTION, STATE, liveliness_key
-from common.messages import Action, PlantState
-from common.provenance import (
-    MAX_ACTION_EPISODE_JUMP,
-    MAX_ACTION_STEP_JUMP,
-    RESYNC_AFTER,
-    ActionGate,
-    ActionOrder,
-    SourceGate,
-)
-from common.ros_wire import (
+from common.config.settings import BridgeSettings, Settings
+from common.contracts import ros_wire
+from common.contracts.keys import ACTION, STATE, liveliness_key
+from common.contracts.messages import Action, PlantState
+from common.contracts.ros_wire import (
     ODOMETRY,
     TWIST,
     TWIST_STAMPED,
@@ -78,11 +68,21 @@ from common.ros_wire import (
     RosGraph,
     WireError,
 )
-from common.security import SecurityError
-from common.settings import BridgeSettings, Settings
-from common.stats import Window
-from common.summaries import BridgeSummary
-from common.transport import Bus, plain_config, start_status_thread
+from common.contracts.summaries import BridgeSummary
+from common.math.dynamics import unwrap_heading
+from common.math.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
+from common.math.stats import Window
+from common.net.provenance import (
+    MAX_ACTION_EPISODE_JUMP,
+    MAX_ACTION_STEP_JUMP,
+    RESYNC_AFTER,
+    ActionGate,
+    ActionOrder,
+    SourceGate,
+)
+from common.net.security import SecurityError
+from common.net.transport import Bus, plain_config, start_status_thread
+from common.system.clock import Ticker
 
 log = logging.getLogger(__name__)
 CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a robot clock reset
@@ -140,9 +140,9 @@ class RobotBridge:
         self.frames: tuple[str, str] | None = None
         # commands
         self.actor_alive = False
-        # (episode, step) of the followed actor session, bounded both ways (common.provenance)
+        # (episode, step) of the followed actor session, bounded both ways (common.net.provenance)
         self.order = ActionOrder(MAX_ACTION_STEP_JUMP, MAX_ACTION_EPISODE_JUMP)
-        # whose actions are applied: the live actor session's, in its order (common.provenance)
+        # whose actions are applied: the live actor session's, in its order (common.net.provenance)
         self.actions = None if actor_gate is None else ActionGate(actor_gate, self.order)
         self.resyncs_seen = 0
         self.last_action_at: float | None = None
@@ -151,7 +151,7 @@ class RobotBridge:
         self.max_abs_command = [0.0, 0.0]
         # timing (seconds)
         self.state_sent_at: OrderedDict[int, float] = OrderedDict()
-        # latencies in fixed-size windows (common.stats.Window): a bridge runs for days
+        # latencies in fixed-size windows (common.math.stats.Window): a bridge runs for days
         self.odom_to_state = Window()
         self.action_to_cmd = Window()
         self.state_to_cmd = Window()
@@ -646,7 +646,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     try:
         # one plant per robot (issue 13): never a second plant beside a live one
         bus.refuse_other_plant(robot)
-        # the actor is alive while one of its sessions' identity tokens is (common.provenance)
+        # the actor is alive while one of its sessions' identity tokens is (common.net.provenance)
         bus.watch_identities(robot, "actor", actor_gate, bridge.on_actor_identity)
         bus.subscribe(
             ACTION,

@@ -7,15 +7,16 @@ import argparse
 import json
 import time
 
-from common.arguments import COMMAND_SETTINGS, add_bridge_arguments, add_settings_arguments, settings_from_args
-from common.runtime import (
+from common.config.arguments import (
+    COMMAND_SETTINGS,
+    add_bridge_arguments,
     add_lifetime_arguments,
-    connect_with_retry,
+    add_settings_arguments,
     floats_arg,
-    own_resources,
-    service_stop,
+    settings_from_args,
 )
-from common.summaries import EmulatorSummary
+from common.contracts.summaries import EmulatorSummary
+from common.process.runtime import connect_with_retry, own_resources, service_stop
 
 NAME = "tb3-emulator"
 HELP = "an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh"
@@ -77,10 +78,10 @@ def main(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from common import ros_wire
-    from common.frames import Pose2D, from_goal_frame
-    from common.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph
-    from common.transport import plain_config, zenoh_config
+    from common.contracts import ros_wire
+    from common.contracts.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph
+    from common.math.frames import Pose2D, from_goal_frame
+    from common.net.transport import plain_config, zenoh_config
     from services.tb3_emulator.service import Tb3Model, run
 
     settings = settings_from_args(args)

@@ -1,6 +1,6 @@
 """tb3_emulator: a TurtleBot3 Burger that speaks ROS 2 over Zenoh as the real robot does.
 
-What it emulates, per wire profile (common/ros_wire.py has the formats):
+What it emulates, per wire profile (common/contracts/ros_wire.py has the formats):
 
 * ``rmw_zenoh`` -- the robot's ``turtlebot3_node`` subscribes ``cmd_vel`` (Twist on Humble,
   TwistStamped on Jazzy: turtlebot3_bringup's ``enable_stamped_cmd_vel``; ``--cmd-type``
@@ -22,7 +22,7 @@ saturates and NaN becomes 0) to the OpenCR control table, whose firmware multipl
 0.01 rad/s, and ``|v| < 0.01`` is zero. The limits default to the Burger's published 0.22 m/s
 and 2.84 rad/s (the OpenCR ROS 2 firmware computes 0.2108 m/s and 2.635 rad/s from its 61 rpm
 motors; pass ``--v-max``/``--omega-max`` to emulate that). Wheels reach the command at once (no
-motor dynamics); the pose integrates the unicycle exactly (``common.dynamics.exact_step``),
+motor dynamics); the pose integrates the unicycle exactly (``common.math.dynamics.exact_step``),
 piecewise at every command change. Odometry is published at 20 Hz (turtlebot3_node's 50 ms
 sensor timer), frame ``odom``, child ``base_footprint`` (namespace-prefixed when namespaced),
 with the applied velocity in its twist; optional seeded Gaussian noise on the reported pose and
@@ -50,18 +50,18 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from common import ros_wire
-from common.clock import Ticker
-from common.frames import Pose2D, quaternion_from_yaw
-from common.physics import PhysicsBot, PhysicsParams
-from common.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
-from common.turtlebot import TurtleBot, TurtleBotParams, firmware_velocity
+from common.contracts import ros_wire
+from common.contracts.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
+from common.math.frames import Pose2D, quaternion_from_yaw
+from common.math.physics import PhysicsBot, PhysicsParams
+from common.math.turtlebot import TurtleBot, TurtleBotParams, firmware_velocity
+from common.system.clock import Ticker
 
 log = logging.getLogger(__name__)
 
 
 class Tb3Model:
-    """The emulated robot (:class:`common.turtlebot.TurtleBot`) in the odom frame, on a clock.
+    """The emulated robot (:class:`common.math.turtlebot.TurtleBot`) in the odom frame, on a clock.
 
     ``params`` None: the ideal robot (the OpenCR command path, then the exact unicycle, its
     odometry the truth); else the actuator model (``--model actuator``: saturation, deadband,

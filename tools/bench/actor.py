@@ -1,6 +1,6 @@
 """``srl bench actor``: the actor's step time, against the rcognita-style SLSQP baseline.
 
-For every agent and horizon ``N`` the CasADi actor (:class:`common.actor.StackedActor`, the
+For every agent and horizon ``N`` the CasADi actor (:class:`common.math.actor.StackedActor`, the
 solver of the settings, fatrop by default) is built ONCE (its build time is reported apart)
 and stepped over a closed loop of ``--steps`` sampling intervals on the exact plant from the
 settings' start, warm-started exactly as in ``srl run`` (its shifted previous plan, or the plan of
@@ -51,16 +51,16 @@ from typing import Any
 import numpy as np
 from scipy.optimize import Bounds, OptimizeResult, minimize
 
-from common.actor import ActorProblem, StackedActor
-from common.agents import AGENTS
-from common.agents import parse_agents as parse_agent_names
-from common.agents import parse_horizons as parse_horizon_numbers
-from common.assembly import build_actor
-from common.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
-from common.features import feature_count, feature_index_pairs
-from common.loop import ExactPlant
-from common.settings import PAPER_METHOD, Settings
-from common.stats import summarize
+from common.config.assembly import build_actor
+from common.config.settings import PAPER_METHOD, Settings
+from common.math.actor import ActorProblem, StackedActor
+from common.math.agents import AGENTS
+from common.math.agents import parse_agents as parse_agent_names
+from common.math.agents import parse_horizons as parse_horizon_numbers
+from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
+from common.math.features import feature_count, feature_index_pairs
+from common.math.loop import ExactPlant
+from common.math.stats import summarize
 from tools.bench.snapshots import SNAPSHOT_FILE, load_snapshots, snapshot_weights
 
 # -- constants of the benchmark -------------------------------------------------------------
@@ -106,7 +106,7 @@ class WeightSet:
 
 
 def quadratic_form_matrix(weights: np.ndarray, dim: int) -> np.ndarray:
-    """Symmetric ``M`` with ``z^T M z = <weights, phi(z)>`` (features of :mod:`common.features`)."""
+    """Symmetric ``M`` with ``z^T M z = <weights, phi(z)>`` (features of :mod:`common.math.features`)."""
     weights = np.asarray(weights, dtype=float)
     if weights.shape != (feature_count(dim),):
         raise ValueError(f"expected {feature_count(dim)} weights for dim {dim}, got {weights.shape}")

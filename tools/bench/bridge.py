@@ -36,16 +36,16 @@ from typing import Any
 import zenoh
 from pydantic import TypeAdapter
 
-from common import ros_wire
-from common.keys import ACTION, STATE, identity_key, liveliness_key
-from common.messages import Action
-from common.ros_wire import Attachment, RosGraph
-from common.settings import Settings
-from common.stats import summarize
-from common.summaries import BridgeSummary
-from common.transport import zenoh_config
-from common.turtlebot import firmware_velocity
-from tools.up import Supervisor, alive_probe, optional_summary, router_reachable, state_probe
+from common.config.settings import Settings
+from common.contracts import ros_wire
+from common.contracts.keys import ACTION, STATE, identity_key, liveliness_key
+from common.contracts.messages import Action
+from common.contracts.ros_wire import Attachment, RosGraph
+from common.contracts.summaries import BridgeSummary
+from common.math.stats import summarize
+from common.math.turtlebot import firmware_velocity
+from common.net.transport import zenoh_config
+from tools.launch.up import Supervisor, alive_probe, optional_summary, router_reachable, state_probe
 
 TARGET_P99_MS = 1.0
 SPEEDS = [round(0.02 + 0.01 * i, 2) for i in range(15)]  # 0.02 .. 0.16 m/s, all below the limits
@@ -189,7 +189,7 @@ def run_bridge_benchmark(
                 f"srl/{robot}/bench/echo_out", lambda _s: recorder.echoes.append(time.monotonic())
             ),
             session.liveliness().declare_token(liveliness_key(robot, "actor")),
-            # the bridge follows only the live actor session's actions (common.provenance)
+            # the bridge follows only the live actor session's actions (common.net.provenance)
             session.liveliness().declare_token(identity_key(robot, "actor", str(session.info.zid()))),
         ]
         ping = session.declare_publisher(f"srl/{robot}/bench/ping", express=True)

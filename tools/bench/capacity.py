@@ -1,8 +1,8 @@
 """``srl bench capacity``: what one robot costs each component, and what a large fleet needs.
 
 Runs the simulated fleet (``srl up --robots K``, host layout: router, plant host, critic, actor
-hosts) at a few sizes, real time, with a counter subscribed to ``srl/**`` (tools/fleet.py's
-:class:`~tools.fleet.MessageCounter`). From each run: every process's CPU over the run (from
+hosts) at a few sizes, real time, with a counter subscribed to ``srl/**`` (tools/launch/fleet.py's
+:class:`~tools.launch.fleet.MessageCounter`). From each run: every process's CPU over the run (from
 /proc) and every message kind's count and bytes. A straight line through the sizes (least
 squares) splits each component's CPU into a fixed part and a part per robot; messages per robot
 and second are the counts over robots and seconds (their spread over the sizes is printed too).
@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from common.runtime import UsageError
-from common.settings import Settings
+from common.config.arguments import UsageError
+from common.config.settings import Settings
 from tools.bench.fleet import actor_hosts, measured_run, robot_counts, run_header
 
 COMPONENTS = ("router", "plant", "critic", "actor")

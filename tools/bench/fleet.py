@@ -9,7 +9,7 @@ robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle)
 srl processes over the run (100 % = one core), their total resident memory, and the machine's
 load average before and after. Targets (PASS/FAIL) at 50 and 100 robots, and the soak's (RSS
 growth <= 2 % at 50 robots over 600 s and more). Every run is bounded (start-up timeouts, then
-``--seconds``) and every process is stopped after it (tools/fleet.py).
+``--seconds``) and every process is stopped after it (tools/launch/fleet.py).
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import os
 import time
 from typing import Any
 
-from common.fleet import FleetError, parse_robots
-from common.runtime import UsageError
-from common.settings import Settings
-from tools.fleet import actor_hosts, run_fleet
-from tools.up import ServiceDiedError
+from common.config.arguments import UsageError
+from common.config.settings import Settings
+from common.math.fleet import FleetError, parse_robots
+from tools.launch.fleet import actor_hosts, run_fleet
+from tools.launch.up import ServiceDiedError
 
 TARGETS: dict[int, dict[str, float]] = {
     50: {"missed_deadlines": 0, "latency_p99_ms": 20.0, "staleness_p99_steps": 1.0},

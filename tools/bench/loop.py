@@ -12,9 +12,9 @@ import json
 import os
 from typing import Any
 
-from common.runtime import UsageError
-from common.settings import Settings
-from tools.up import run_up
+from common.config.arguments import UsageError
+from common.config.settings import Settings
+from tools.launch.up import run_up
 
 RECORD_JITTER_MARGIN_MS = 0.5  # a recorder may cost the loop's jitter p99 at most this much
 TARGETS = {"missed_deadlines": 0, "jitter_p99_ms": 2.0, "latency_p99_ms": 1.0, "staleness_median_steps": 1.0}

@@ -4,7 +4,7 @@ In process and as fast as the CPU allows (Algorithm 1 with the in-process plant 
 the lockstep semantics), five starts of the paper's 5 x 5 grid x the agents at one horizon x
 the plants (``plant.model``: ideal, actuator, physics), 35 s each. One row per run: the TRUE final
 distance, the one the robot reported (what srl saw), the span of the true position and the
-sign changes of ``v`` over the last 10 s (common/parking.py), J on the true and on the
+sign changes of ``v`` over the last 10 s (common/math/parking.py), J on the true and on the
 reported states, and the commands a wheel could not follow. Targets (issue 21): true final
 distance <= 0.05 m, span <= 0.05 m, <= 5 sign changes; PASS/FAIL per row and a count.
 With ``--json`` the last stdout line is one JSON object (:class:`ParkingResult`).
@@ -21,12 +21,12 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict
 
-from common.actor import StackedActor
-from common.agents import Agent, learns, parse_agents, parse_horizons
-from common.assembly import build_actor, build_plant, local_critic, run_episode
-from common.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
-from common.runtime import UsageError
-from common.settings import METHODS, PAPER_METHOD, Settings
+from common.config.arguments import UsageError
+from common.config.assembly import build_actor, build_plant, local_critic, run_episode
+from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.math.actor import StackedActor
+from common.math.agents import Agent, learns, parse_agents, parse_horizons
+from common.math.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
 
 # Five nodes of the paper's 5 x 5 grid over [-2, 2]^2 (DESIGN.md section 2), one per quadrant
 # and one on an axis; each start turned away from the target, as the paper's.

@@ -1,7 +1,7 @@
 """Critic weights the paper's loop really learned, for ``srl bench actor`` (issue 18).
 
 The bench's ``learned`` weights are seeded noise on the initial ones; these are snapshots of
-what the critic fitted in the paper's Algorithm 1 (:func:`common.assembly.run_episode`, in
+what the critic fitted in the paper's Algorithm 1 (:func:`common.config.assembly.run_episode`, in
 process, the paper's method, the packaged settings otherwise) for each agent and horizon, from
 one start of the paper's grid, at a few steps. They are stored in ``critic_snapshots.json``
 beside this module so that the benchmark's problem does not move with the actor under test;
@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from common.agents import learns
-from common.assembly import run_episode
-from common.settings import PAPER_METHOD, Settings
+from common.config.assembly import run_episode
+from common.config.settings import PAPER_METHOD, Settings
+from common.math.agents import learns
 
 SNAPSHOT_FILE = Path(__file__).with_name("critic_snapshots.json")
 SNAPSHOT_AGENTS = ("rlq", "rlqv", "rlqv+")

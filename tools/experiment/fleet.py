@@ -1,7 +1,7 @@
 """``srl experiment fleet``: the paper's starts as ONE fleet, per-robot vs pooled critics (issue 16).
 
 Every start of the grid is a robot of one fleet; the fleet runs Algorithm 1 in lockstep in one
-process (:func:`common.assembly.run_fleet_episode`: one built actor, every robot stepping
+process (:func:`common.config.assembly.run_fleet_episode`: one built actor, every robot stepping
 together). ``per-robot``: each robot learns its own critic, exactly as in ``srl experiment
 paper`` (the same J, bit for bit); ``pooled``: one critic learns from every robot's transitions
 (TD pairs only within one robot's consecutive steps) and every robot acts on it. MPC runs once
@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from common.assembly import CRITIC_LAYOUTS, CriticLayout
-from common.settings import Settings
+from common.config.assembly import CRITIC_LAYOUTS, CriticLayout
+from common.config.settings import Settings
 from tools.experiment.grid import Start
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
@@ -62,7 +62,7 @@ def plan_fleets(agents: Sequence[str], horizons: Sequence[int], critics: Sequenc
 
 def run_fleet_task(base: dict[str, Any], task: FleetTask, starts: list[list[float]]) -> dict[str, Any]:
     """A worker: one fleet from every start; J and the final distance per robot."""
-    from common.assembly import run_fleet_episode
+    from common.config.assembly import run_fleet_episode
 
     data = json.loads(json.dumps(base))
     data["actor"].update(agent=task.agent, horizon=task.horizon)
@@ -174,7 +174,7 @@ def run_fleet_experiment(
 
 def cmd_fleet(args: Any, base: Settings, starts: Sequence[Start], command: str) -> int:
     """``srl experiment fleet`` after the shared parsing: run, print the tables, write ``--out``."""
-    from common.agents import parse_agents, parse_horizons
+    from common.math.agents import parse_agents, parse_horizons
 
     agents, horizons = parse_agents(args.agents), parse_horizons(args.horizons)
     critics = parse_critics(args.critic)

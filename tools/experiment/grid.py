@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from common.dynamics import heading_away_from_target
-from common.settings import Settings
+from common.config.settings import Settings
+from common.math.dynamics import heading_away_from_target
 
 STARTS = ("paper", "held-out")  # the paper's grid, or random starts it never saw
 

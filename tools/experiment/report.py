@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from common.parking import MAX_SIGN_CHANGES, SPAN_M, WINDOW_S
+from common.math.parking import MAX_SIGN_CHANGES, SPAN_M, WINDOW_S
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
 

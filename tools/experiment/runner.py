@@ -16,7 +16,7 @@ once per pair and worker.
 
 Transports:
 
-* ``inproc``: each worker runs :func:`common.assembly.run_episode` with the exact plant and the
+* ``inproc``: each worker runs :func:`common.config.assembly.run_episode` with the exact plant and the
   local critic, as ``srl run`` does.
 * ``zenoh``: a router and, per worker, one ``srl plant-sim --mode lockstep`` and one
   ``srl critic`` process (robot id ``exp<worker>``), all on a free loopback port with
@@ -57,8 +57,8 @@ from typing import Any
 
 import numpy as np
 
-from common.agents import AGENTS, PAPER_AGENTS, learns, parse_agents, parse_horizons
-from common.settings import METHODS, PAPER_METHOD, Settings
+from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.math.agents import AGENTS, PAPER_AGENTS, learns, parse_agents, parse_horizons
 from tools.experiment.grid import STARTS, RunSpec, make_starts, plan_runs, run_settings
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 from tools.experiment.report import (
@@ -104,7 +104,7 @@ class WorkerConfig:
 
 class _InprocRunner:
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.assembly import build_plant, local_critic, run_episode
+        from common.config.assembly import build_plant, local_critic, run_episode
 
         critic = local_critic(settings, learn=learns(settings.actor.agent))
         return run_episode(settings, actor=actor, plant=build_plant(settings), critic=critic), {}
@@ -117,8 +117,8 @@ class _ZenohRunner:
     """This worker as the actor of robot ``config.robot``, the actor service's lockstep code."""
 
     def __init__(self, base: Settings) -> None:
-        from common.keys import WEIGHTS
-        from common.transport import Bus
+        from common.contracts.keys import WEIGHTS
+        from common.net.transport import Bus
         from services.actor.ports import WeightsInbox
 
         self.robot = base.transport.robot
@@ -143,7 +143,7 @@ class _ZenohRunner:
         return self.port
 
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.assembly import local_critic, run_episode
+        from common.config.assembly import local_critic, run_episode
         from services.actor.ports import ZenohPlant, new_episode_id
 
         # Episode ids must increase (the critic starts a fresh learner on a newer one).
@@ -164,9 +164,9 @@ class _ZenohRunner:
 def _run_one(
     runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec, slot: int
 ) -> dict[str, Any]:
-    from common.assembly import build_actor
-    from common.parking import parking
-    from common.stats import summarize
+    from common.config.assembly import build_actor
+    from common.math.parking import parking
+    from common.math.stats import summarize
 
     settings = run_settings(base, spec)
     actor = actors.get(spec.group)
@@ -229,7 +229,7 @@ def _worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
     )
     # A late weight message of a finished episode is refused by design (its episode id), which
     # is expected between episodes here and not worth a warning.
-    logging.getLogger("common.transport").setLevel(logging.ERROR)
+    logging.getLogger("common.net.transport").setLevel(logging.ERROR)
     runner: Any = None
     try:
         base = Settings.model_validate(config.base)
@@ -289,7 +289,7 @@ class ExperimentOptions:
     plots: bool = True
     progress: bool = True
     command: str = ""
-    record: Path | None = None  # one MCAP file of every run (tools/record.py)
+    record: Path | None = None  # one MCAP file of every run (tools/recording/record.py)
 
     def worker_count(self, runs: int) -> int:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
@@ -307,7 +307,7 @@ class _Services:
     """Router + one plant_sim (lockstep) and one critic per worker, kept up across runs."""
 
     def __init__(self, config_path: Path, base: Settings, workers: int) -> None:
-        from tools.up import Supervisor
+        from tools.launch.up import Supervisor
 
         self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
         self.robots = [f"exp{slot}" for slot in range(workers)]
@@ -339,7 +339,7 @@ class _Services:
         }
 
     def start(self) -> None:
-        from tools.up import ServiceDiedError
+        from tools.launch.up import ServiceDiedError
 
         try:
             self._start()
@@ -349,7 +349,7 @@ class _Services:
             raise ExperimentError(str(error)) from error
 
     def _start(self) -> None:
-        from tools.up import alive_probe, router_reachable
+        from tools.launch.up import alive_probe, router_reachable
 
         sup = self.supervisor
         sup.spawn("router", ["router", *self.common, "--robot", self.robots[0]])
@@ -371,7 +371,7 @@ class _Services:
         return Settings.model_validate(data)
 
     def check(self) -> None:
-        from tools.up import ServiceDiedError
+        from tools.launch.up import ServiceDiedError
 
         try:
             self.supervisor.check()
@@ -654,8 +654,8 @@ def record_experiment(recorder: Any, rows: list[dict[str, Any]], arrays: dict[st
     (ROS-named: ``rlqv_N12_s000``), and every run starts at the same moment, so a player shows the
     whole grid parking at once. States, actions and costs as trajectories.npz holds them (the
     experiment keeps no per-step weights or solve times: those topics are absent)."""
-    from common.loop import Episode
-    from tools.record import record_episode
+    from common.math.loop import Episode
+    from tools.recording.record import record_episode
 
     origin_ns = time.time_ns()
     try:
@@ -716,7 +716,7 @@ def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dic
     specs = plan_runs(starts, options.agents, options.horizons)
     recorder = None
     if options.record is not None:  # created now: a bad path fails before the first run
-        from tools.record import episode_recorder
+        from tools.recording.record import episode_recorder
 
         recorder = episode_recorder(
             options.record,
@@ -782,7 +782,7 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
         "model; physics, the MuJoCo TurtleBot3; J is on what the robot reported, true J beside it (default: ideal)",
     )
     parser.add_argument(
-        "--config", type=Path, help="a TOML file overriding common/srl.toml (any subset) (default: none)"
+        "--config", type=Path, help="a TOML file overriding common/config/srl.toml (any subset) (default: none)"
     )
     parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
     parser.add_argument(
@@ -854,7 +854,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     except ValueError as error:
         print(f"srl experiment: error: {error}", file=sys.stderr)
         return 2
-    from tools.record import RecordingError
+    from tools.recording.record import RecordingError
 
     try:
         code, summary = run_experiment(options, base)

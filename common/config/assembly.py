@@ -1,0 +1,206 @@
+"""Settings -> the math objects: the one place where the settings tree meets the pure math.
+
+:mod:`common.math.loop` (Algorithm 1), :mod:`common.math.actor`, :mod:`common.math.critic` take numbers and
+arrays; this module reads them from :class:`~common.config.settings.Settings` (built once in a
+process's ``main``) and hands them over.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Sequence
+from typing import Any, Literal
+
+import numpy as np
+
+from common.config.settings import Settings
+from common.contracts.summaries import EpisodeSummary, TrueView
+from common.math.actor import ActorMemory, ActorProblem, StackedActor
+from common.math.agents import learns
+from common.math.arrival import ArrivalRule, ArrivalTolerances
+from common.math.critic import DoubleCritic, PooledLearner
+from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1, run_fleet_lockstep
+from common.math.physics import simulated_robot
+from common.math.stats import summarize
+from common.math.turtlebot import RobotPlant
+from common.system.jit import default_jit_cache
+
+
+def arrival_rule(settings: Settings) -> ArrivalRule | None:
+    """The actor's goal checker of the settings, or None (``actor.arrival = false``, the paper's)."""
+    a = settings.actor
+    if not a.arrival:
+        return None
+    return ArrivalRule(
+        ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
+    )
+
+
+def jit_cache_path(setting: str) -> str:
+    """``actor.jit_cache``: "auto" -> ~/.cache/srl/jit (XDG), "off" -> "" (none), else the path."""
+    if setting == "auto":
+        return default_jit_cache()
+    return "" if setting == "off" else os.path.expanduser(setting)
+
+
+def build_actor(settings: Settings) -> StackedActor:
+    a, p = settings.actor, settings.plant
+    return StackedActor(
+        ActorProblem(
+            agent=a.agent,
+            horizon=a.horizon,
+            sampling_time=p.sampling_time,
+            cost_diag=tuple(settings.cost.r_diag),
+            v_max=p.v_max,
+            omega_max=p.omega_max,
+            predictor=a.predictor,
+            solver=a.solver,
+            jit=a.jit,
+            jit_cache=jit_cache_path(a.jit_cache),
+            max_iter=a.max_iter,
+            tolerance=a.tolerance,
+            mu_init=a.mu_init,
+            bound_push=a.bound_push,
+            wheel_speed_max=a.wheel_speed_max,
+            wheel_radius=a.wheel_radius,
+            wheel_separation=a.wheel_separation,
+            convex_critics=a.convex_critics,
+            multistart=a.multistart,
+            multistart_iterations=a.multistart_iterations,
+            multistart_margin=a.multistart_margin,
+            multistart_refresh=a.multistart_refresh,
+            multistart_flips=a.multistart_flips,
+        ),
+        arrival=arrival_rule(settings),
+    )
+
+
+def build_plant(settings: Settings) -> ExactPlant | RobotPlant:
+    """The in-process simulated robot of ``plant.model``: the exact unicycle or the TurtleBot3."""
+    p = settings.plant
+    robot = simulated_robot(p.model, settings.turtlebot_params(), settings.physics_params(), np.zeros(3))
+    return ExactPlant() if robot is None else RobotPlant(robot)
+
+
+def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:
+    """The in-process critic learner of the settings (initial weights, beta, lambda, box, M)."""
+    c = settings.critic
+    return LocalCritic(
+        settings.initial_q_weights(),
+        settings.initial_v_weights(),
+        settings.discount,
+        c.ridge,
+        c.bounds,
+        c.replay_size,
+        c.update_every,
+        learn=learn,
+    )
+
+
+def run_episode(
+    settings: Settings,
+    actor: StackedActor | None = None,
+    plant: Plant | None = None,
+    critic: CriticPort | None = None,
+    stop: threading.Event | None = None,
+) -> Episode:
+    """Algorithm 1 (:func:`common.math.loop.run_algorithm1`) for ``settings.steps`` sampling intervals
+    from ``settings.start_state()``; the plant of ``plant.model`` and a local critic unless given."""
+    return run_algorithm1(
+        actor or build_actor(settings),
+        plant or build_plant(settings),
+        critic or local_critic(settings, learn=learns(settings.actor.agent)),
+        settings.start_state(),
+        settings.steps,
+        settings.plant.sampling_time,
+        tuple(settings.cost.r_diag),
+        stop,
+    )
+
+
+CriticLayout = Literal["per-robot", "pooled"]
+CRITIC_LAYOUTS: tuple[CriticLayout, ...] = ("per-robot", "pooled")
+
+
+def fleet_learners(settings: Settings, robots: int, critic: CriticLayout) -> list[PooledLearner]:
+    """Robot ``i``'s learner for a fleet of ``robots``: its own pool of one (per-robot), or the one
+    pool of every robot (pooled); fresh initial weights either way."""
+
+    def pool(size: int) -> PooledLearner:
+        c = settings.critic
+        double = DoubleCritic(
+            settings.initial_q_weights(), settings.initial_v_weights(), settings.discount, c.ridge, c.bounds
+        )
+        return PooledLearner(double, c.replay_size, c.update_every, robots=size)
+
+    if critic == "pooled":
+        shared = pool(robots)
+        return [shared] * robots
+    if critic == "per-robot":
+        return [pool(1) for _ in range(robots)]
+    raise ValueError(f"unknown critic layout {critic!r}; choose one of {', '.join(CRITIC_LAYOUTS)}")
+
+
+def run_fleet_episode(
+    settings: Settings,
+    starts: Sequence[np.ndarray],
+    critic: CriticLayout,
+    actor: StackedActor | None = None,
+    stop: threading.Event | None = None,
+) -> list[Episode]:
+    """A fleet from ``starts`` stepping together for ``settings.steps`` intervals, in process
+    (:func:`common.math.loop.run_fleet_lockstep`): one built actor, one plant of ``plant.model`` per
+    robot, per-robot or pooled critics."""
+    actor = actor or build_actor(settings)
+    memories = [ActorMemory(arrival=arrival_rule(settings)) for _ in starts]
+    return run_fleet_lockstep(
+        actor,
+        memories,
+        [build_plant(settings) for _ in starts],
+        fleet_learners(settings, len(starts), critic),
+        [np.asarray(start, dtype=float) for start in starts],
+        settings.steps,
+        settings.plant.sampling_time,
+        tuple(settings.cost.r_diag),
+        learn=learns(settings.actor.agent),
+        stop=stop,
+    )
+
+
+def episode_summary(episode: Episode, settings: Settings) -> dict[str, Any]:
+    """The JSON-ready summary of a run (the contract of ``srl run --json``: EpisodeSummary)."""
+    final = episode.final_state
+    truth = true_view(episode, settings)
+    return EpisodeSummary.model_validate(
+        {
+            "agent": episode.agent,
+            "horizon": episode.horizon,
+            "steps": episode.steps,
+            "episode_seconds": episode.steps * settings.plant.sampling_time,
+            "accumulated_cost": episode.accumulated_cost,
+            "start_state": [float(c) for c in episode.states[0]],
+            "final_state": [float(c) for c in final],
+            "final_distance": float(np.hypot(final[0], final[1])),
+            "solve_ms": summarize(episode.solve_seconds, scale=1e3),
+            "solver_failures": episode.solver_failures,
+            "plant_model": settings.plant.model,
+            "truth": None if truth is None else truth.model_dump(),
+            "saturated_commands": episode.saturated_commands,
+            "settings": settings.as_dict(),
+        }
+    ).to_json_dict()
+
+
+def true_view(episode: Episode, settings: Settings) -> TrueView | None:
+    """Where the robot really was (None: the plant does not know, a real robot's odometry only)."""
+    if not episode.truth_known:
+        return None
+    first, final = episode.true_states[0], episode.true_states[-1]
+    cost = episode.true_accumulated_cost(settings.plant.sampling_time, tuple(settings.cost.r_diag))
+    return TrueView(
+        start_state=[float(c) for c in first],
+        final_state=[float(c) for c in final],
+        final_distance=float(np.hypot(final[0], final[1])),
+        accumulated_cost=float(cost if cost is not None else np.nan),
+    )

@@ -1,0 +1,489 @@
+"""Settings: every constant in ONE TOML file (``common/config/srl.toml``), overridable.
+
+Precedence, highest first: explicit overrides (CLI flags) > ``SRL_<SECTION>__<NAME>``
+environment variables > a user TOML file (``--config`` or ``SRL_CONFIG``) > the packaged
+``srl.toml``. The models declare no defaults of their own, so the packaged file is the single
+source of truth. Settings are built in ``main()`` and passed down; nothing is created at import.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+from common.math.agents import Agent
+from common.math.dynamics import heading_away_from_target
+from common.math.features import quadratic_weights_for_diag
+from common.math.physics import PhysicsParams
+from common.math.turtlebot import TurtleBotParams
+
+DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
+# The actor's horizon bound. The JIT build (code generation + gcc -O3) grows with N:
+# measured (README "Bounds"): N = 100 builds in 35 s with 0.6 GB peak (gcc included; 2 shared cores), N = 10000 had
+# reached 8.9 GB of gcc memory after 8.5 min. The paper uses N = 6 and 12.
+MAX_HORIZON = 100
+# Starts beyond this distance [m] from the target (per coordinate) are outside any room the
+# robot could park in: warned. Beyond the state schema's bound (common/contracts/messages.py) refused.
+WORKSPACE_HALF_WIDTH = 10.0
+MAX_START = 1e4
+# The paper's method exactly as the paper states it (issue 21): the [actor] settings a running
+# robot adds (the arrival rule, the wheel-speed box, the convexified critics) switched off.
+# `srl experiment --method paper` (its default) and `srl bench actor --method paper` apply it.
+METHODS = ("paper", "robot")
+PAPER_METHOD: dict[str, dict[str, Any]] = {"actor": {"arrival": False, "wheel_speed_max": 0.0, "convex_critics": False}}
+# Endpoints as Zenoh spells them: <protocol>/<address>, e.g. tcp/127.0.0.1:7447, tls/host:7447.
+_ENDPOINT = re.compile(
+    r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):[0-9]{1,5}([?#].*)?$"
+    r"|^unixsock-stream/\S+$"
+)
+
+
+def check_endpoint(value: str, name: str, listen: bool = False) -> str:
+    """A Zenoh endpoint, refused here with a readable message (Zenoh's own is a Rust ``Json5Err``).
+    ``listen``: port 0 (any free port, as the experiment's peers listen) is allowed."""
+    match = _ENDPOINT.match(value)
+    lowest = 0 if listen else 1
+    if not match or (match.group(1) and not lowest <= int(value.rsplit(":", 1)[1].split("?")[0].split("#")[0]) < 65536):
+        raise ValueError(
+            f"{name} must be a Zenoh endpoint <protocol>/<host>:<port>, e.g. tcp/127.0.0.1:7447 "
+            f"(protocols tcp, udp, tls, quic, ws; or unixsock-stream/<path>), got {value!r}"
+        )
+    return value
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _finite(value: float, name: str) -> float:
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value}")
+    return value
+
+
+class PlantSettings(_Section):
+    sampling_time: float = Field(gt=0, description="delta [s]")
+    v_max: float = Field(gt=0, description="[m/s]")
+    omega_max: float = Field(gt=0, description="[rad/s]")
+    model: Literal["ideal", "actuator", "physics"] = Field(
+        description="ideal: the exact unicycle; actuator: a TurtleBot3's wheels and odometry ([actuator]); "
+        "physics: a rigid-body TurtleBot3 in MuJoCo ([physics], the extra srl[physics])"
+    )
+
+    @field_validator("sampling_time", "v_max", "omega_max")
+    @classmethod
+    def _is_finite(cls, v: float) -> float:
+        return _finite(v, "plant constant")
+
+
+class ActuatorSettings(_Section):
+    """The TurtleBot3 Burger actuator and odometry model (common/math/turtlebot.py, docs/turtlebot.md)."""
+
+    wheel_radius: float = Field(gt=0, description="r [m]")
+    wheel_separation: float = Field(gt=0, description="b [m]")
+    wheel_speed_max: float = Field(ge=0, description="[rad/s] per wheel (0: no saturation)")
+    lag: float = Field(ge=0, le=10, description="[s] first-order time constant of each wheel")
+    gain: float = Field(gt=0, le=10, description="steady-state wheel speed / command")
+    deadband: float = Field(ge=0, description="[rad/s] a wheel at rest does not start below it")
+    slip: float = Field(ge=0, le=0.95, description="mean slip of each wheel's ground speed")
+    slip_std: float = Field(ge=0, le=1, description="its standard deviation, per command")
+    quantize: bool = Field(description="the OpenCR command path int32(v * 100) * 0.01f")
+    imu_heading: bool = Field(description="odometry heading from the IMU (ROBOTIS's use_imu)")
+    substep: float = Field(gt=0, le=0.05, description="[s] internal integration step")
+    seed: int = Field(ge=0)
+
+
+class PhysicsSettings(_Section):
+    """The MuJoCo TurtleBot3 Burger of plant.model = "physics" (common/math/physics.py, docs/turtlebot.md)."""
+
+    timestep: float = Field(gt=0, le=0.01, description="[s] MuJoCo's integration step")
+    tire_friction: float = Field(gt=0, le=10, description="sliding friction of the tyres on the floor")
+    caster_friction: float = Field(gt=0, le=10, description="sliding friction of the caster on the floor")
+    torque_max: float = Field(gt=0, le=100, description="[N m] each wheel motor's torque limit")
+    motor_friction: float = Field(ge=0, le=10, description="[N m] each wheel joint's dry friction")
+    odometry_period: float = Field(gt=0, le=0.1, description="[s] how often the encoders are integrated")
+    encoder_ticks: int = Field(ge=0, description="encoder ticks per wheel revolution (0: exact)")
+
+
+class CostSettings(_Section):
+    r_diag: tuple[float, float, float, float, float] = Field(description="diag(R) over (x,y,alpha,v,omega)")
+
+    @field_validator("r_diag")
+    @classmethod
+    def _psd(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(math.isfinite(c) and c >= 0 for c in v):
+            raise ValueError(f"r_diag must be finite and >= 0 (R positive semi-definite), got {v}")
+        return v
+
+
+class CriticSettings(_Section):
+    discount_rate: float = Field(ge=0, description="gamma [1/s]")
+    replay_size: int = Field(ge=2, description="M")
+    ridge: float = Field(ge=0, description="lambda")
+    weight_bounds: tuple[()] | tuple[float, float] = Field(description="[] or [low, high]")
+    q_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
+    v_init: Literal["stage_cost", "discounted_stage_cost"] | list[float]
+    update_every: int = Field(ge=1)
+    checkpoint: str = Field(description="checkpoint file ({robot}, {agent}, {horizon}); empty = none")
+    resume: bool = Field(default=False, description="restore the checkpoint of an earlier run at start")
+    checkpoint_period: float = Field(
+        default=0.0, ge=0, le=3600, description="[s] at most one checkpoint write this often; 0 = after every batch"
+    )
+    coalesce_fits: bool = Field(
+        default=False, description="fit each robot once per batch, on its newest transition (a fleet's critic)"
+    )
+    batch_window: float = Field(
+        default=0.0,
+        ge=0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="[s] a batch collects transitions this long after its first (a fleet's critic); 0 = what waits",
+    )
+    robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
+    pooled: bool = Field(default=False, description="one learner trained on every robot's transitions (a fleet's)")
+
+    @field_validator("robots")
+    @classmethod
+    def _robots(cls, v: str) -> str:
+        if v != "*" and not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", v):
+            raise ValueError(
+                f"critic.robots must be '*' (every robot) or one robot id "
+                f"(1-64 characters of A-Z a-z 0-9 _ -), got {v!r}"
+            )
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> CriticSettings:
+        if self.weight_bounds and not self.weight_bounds[0] < self.weight_bounds[1]:
+            raise ValueError(f"weight_bounds must be [low, high] with low < high, got {self.weight_bounds}")
+        for name, n in (("q_init", 15), ("v_init", 6)):
+            value = getattr(self, name)
+            if isinstance(value, list) and (len(value) != n or not all(math.isfinite(x) for x in value)):
+                raise ValueError(f"{name} must be 'stage_cost' or {n} finite numbers, got {value}")
+        return self
+
+    @property
+    def bounds(self) -> tuple[float, float] | None:
+        return (self.weight_bounds[0], self.weight_bounds[1]) if self.weight_bounds else None
+
+
+class ActorSettings(_Section):
+    agent: Agent
+    horizon: int = Field(description="N, 2 .. MAX_HORIZON")
+    predictor: Literal["euler", "rk4"]
+    solver: Literal["fatrop", "ipopt"]
+    jit: bool
+    jit_cache: str = Field(
+        default="auto", min_length=1, description="compiled problems kept: auto (~/.cache/srl/jit), off, or a directory"
+    )
+    realtime_priority: int = Field(
+        default=10, ge=0, le=99, description="the tick thread under SCHED_FIFO at this priority, if allowed (0 = off)"
+    )
+    host_cpu_budget: float = Field(
+        default=0.3,
+        gt=0,
+        le=1,
+        allow_inf_nan=False,
+        description="share of each period an actor host's full solves may take; beyond, it hurries",
+    )
+    max_iter: int = Field(ge=1)
+    tolerance: float = Field(gt=0)
+    mu_init: float = Field(gt=0)
+    bound_push: float = Field(gt=0, le=0.5)
+    # issue 21: what a running robot needs (the paper's method: arrival off, wheel_speed_max 0)
+    arrival: bool = Field(description="the arrival rule: command zero inside the tolerances")
+    arrival_position_tolerance: float = Field(gt=0, le=1.0, allow_inf_nan=False, description="[m]")
+    arrival_heading_tolerance: float = Field(gt=0, le=math.pi, allow_inf_nan=False, description="[rad]")
+    arrival_hysteresis: float = Field(ge=1.0, le=10.0, allow_inf_nan=False, description="outer = this x inner")
+    wheel_speed_max: float = Field(ge=0, allow_inf_nan=False, description="[rad/s] wheel box; 0 = off")
+    wheel_radius: float = Field(gt=0, allow_inf_nan=False, description="[m]")
+    wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")
+    convex_critics: bool = Field(description="the actor uses the nearest PSD quadratic to each learned critic")
+    multistart: bool = Field(
+        description="the actor's global phase: descend from several starts, the solver polishes the lowest end"
+    )
+    multistart_iterations: int = Field(ge=1, le=1000, description="projected-gradient iterations per start")
+    multistart_margin: float = Field(
+        ge=0, allow_inf_nan=False, description="also polish the other kind of start's lowest end within this share"
+    )
+    multistart_refresh: int = Field(ge=0, description="and every this many solves whatever the merit says (0 = never)")
+    multistart_flips: int = Field(
+        ge=0, le=1000, description="vertex-search sweeps after the polish: each action entry to either bound (0 = off)"
+    )
+
+    @field_validator("horizon")
+    @classmethod
+    def _bounded_horizon(cls, v: int) -> int:
+        if not 2 <= v <= MAX_HORIZON:
+            raise ValueError(
+                f"the horizon N must be 2 .. {MAX_HORIZON} (N - 1 >= 1 actions; above {MAX_HORIZON} "
+                f"the compiled problem outgrows the machine: gcc needs gigabytes), got {v}"
+            )
+        return v
+
+
+class EpisodeSettings(_Section):
+    duration: float = Field(gt=0, description="[s]")
+    start: tuple[float, float] | tuple[float, float, float]
+
+    @field_validator("start")
+    @classmethod
+    def _finite_start(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(math.isfinite(c) for c in v):
+            raise ValueError(f"start must be finite numbers, got {v}")
+        if max(abs(v[0]), abs(v[1])) > MAX_START:
+            raise ValueError(
+                f"start ({v[0]:g}, {v[1]:g}) m is beyond the {MAX_START:g} m every state message "
+                "allows (common/contracts/messages.py): the paper's starts are within 2 m of the target"
+            )
+        return v
+
+
+class TransportSettings(_Section):
+    robot: str = Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")
+    mode: Literal["client", "peer"]
+    router: str = Field(description="endpoint of the Zenoh router, e.g. tcp/127.0.0.1:7447")
+
+    @field_validator("router")
+    @classmethod
+    def _router_endpoint(cls, v: str) -> str:
+        return check_endpoint(v, "transport.router")
+
+    @field_validator("connect")
+    @classmethod
+    def _connect_endpoints(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e, "every transport.connect entry") for e in v]
+
+    @field_validator("listen")
+    @classmethod
+    def _listen_endpoints(cls, v: list[str]) -> list[str]:
+        return [check_endpoint(e, "every transport.listen entry", listen=True) for e in v]
+
+    connect: list[str]
+    listen: list[str] = Field(description="endpoints a client/peer session listens on")
+    multicast_scouting: bool
+    query_timeout: float = Field(gt=0)
+    critic_timeout: float = Field(gt=0)
+    status_period: float = Field(gt=0)
+    state_rate: float = Field(gt=0, le=1000)
+    state_sync: bool = Field(
+        description="a plant host publishes a driven robot's state only at the state ticks just before its actor's tick"
+    )
+    express: bool = Field(description="every put sent at once (true) or batched by Zenoh with others due")
+    callback_threads: bool = Field(
+        description="each subscription's handler in a Python thread of its own (true) or on Zenoh's network thread"
+    )
+    action_timeout_steps: int = Field(ge=2)
+    transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
+    max_message_bytes: int = Field(ge=65_536, le=2**30, description="Zenoh drops bigger messages on arrival")
+    # Zenoh authentication and access control (common/net/security.py, README "Security")
+    secure: bool = Field(description="router: require user/password, enforce role rules; others: log in")
+    user: str = Field(description="this process's Zenoh user = its role (actor, critic, plant, monitor)")
+    password: SecretStr = Field(description="usually from SRL_TRANSPORT__PASSWORD; never commit one")
+    password_file: str = Field(description="file whose first line is the user's password")
+    users_file: str = Field(description="router: the 'user:password' dictionary file")
+    # TLS on tls/ endpoints (common/net/security.py tls_entries, common/net/certs.py, README "Security")
+    tls_ca: str = Field(description="PEM file of the CA that signs the router's and the clients' certificates")
+    tls_cert: str = Field(description="PEM certificate of this process (router: its server certificate)")
+    tls_key: str = Field(description="PEM private key of tls_cert (mode 600)")
+    tls_mtls: bool = Field(description="mutual TLS: the router accepts only clients with a certificate from tls_ca")
+    allow_insecure_network: bool = Field(
+        description="let a router listen off loopback without secure + TLS: only inside a private container network"
+    )
+    plant_queries: bool = Field(description="secure router: allow plant/step and plant/reset (lockstep runs only)")
+    acl_robots: str = Field(
+        pattern=r"^([A-Za-z0-9_\-]{1,64}(,[A-Za-z0-9_\-]{1,64})*)?$",
+        description="secure router: the robots the role rules grant, comma-separated ('' = transport.robot)",
+    )
+
+    @property
+    def rule_robots(self) -> list[str]:
+        """The robots a secure router's role rules grant (:attr:`acl_robots`, else :attr:`robot`)."""
+        return self.acl_robots.split(",") if self.acl_robots else [self.robot]
+
+    @model_validator(mode="after")
+    def _secure_needs_client_mode(self) -> TransportSettings:
+        # the router enforces the rules; peers could also talk to each other directly, unchecked
+        if self.secure and self.mode != "client":
+            raise ValueError("transport.secure needs transport.mode = 'client' (the router enforces the rules)")
+        return self
+
+
+_ROS_NAME = r"[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*"
+
+
+class BridgeSettings(_Section):
+    """The robot bridge's view of the ROS 2 robot (see services/robot_bridge)."""
+
+    profile: Literal["rmw_zenoh", "ros2dds"] = Field(description="wire profile of the robot's Zenoh side")
+    ros_distro: Literal["humble", "jazzy"]
+    domain_id: int = Field(ge=0, le=232, description="ROS_DOMAIN_ID of the robot (rmw_zenoh keys)")
+    namespace: str = Field(pattern=rf"^(|{_ROS_NAME})$", description="ROS namespace, no leading slash")
+    cmd_type: Literal["auto", "twist", "twist_stamped"]
+    odom_topic: str = Field(pattern=rf"^{_ROS_NAME}$")
+    cmd_vel_topic: str = Field(pattern=rf"^{_ROS_NAME}$")
+    goal: tuple[float, float, float] = Field(description="goal pose (x [m], y [m], theta [rad]) in the odom frame")
+    watchdog_timeout_steps: int = Field(ge=1, description="zero velocity after this many delta without action")
+    robot_endpoint: str = Field(description="'' = the robot is on srl's router; else its Zenoh endpoint")
+    discovery_timeout: float = Field(gt=0, description="[s] auto cmd_type: wait this long for the robot's tokens")
+
+    @field_validator("namespace", mode="before")
+    @classmethod
+    def _strip_slashes(cls, v: object) -> object:
+        return v.strip("/") if isinstance(v, str) else v
+
+    @field_validator("goal", "discovery_timeout")
+    @classmethod
+    def _finite_values(cls, v: object) -> object:
+        values = v if isinstance(v, tuple) else (v,)
+        if not all(math.isfinite(c) for c in values):
+            raise ValueError(f"must be finite, got {v}")
+        return v
+
+
+class Settings(BaseSettings):
+    """All constants of a run. Build with :meth:`load`."""
+
+    model_config = SettingsConfigDict(env_prefix="SRL_", env_nested_delimiter="__", extra="forbid", frozen=True)
+
+    plant: PlantSettings
+    actuator: ActuatorSettings
+    physics: PhysicsSettings
+    cost: CostSettings
+    critic: CriticSettings
+    actor: ActorSettings
+    episode: EpisodeSettings
+    transport: TransportSettings
+    bridge: BridgeSettings
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # First wins, and pydantic-settings deep-merges the layers: flags > env > TOML files.
+        toml = TomlConfigSettingsSource(settings_cls, deep_merge=True)
+        return (init_settings, env_settings, toml)
+
+    @classmethod
+    def load(cls, config_file: str | Path | None = None, **overrides: Any) -> Settings:
+        """Packaged ``srl.toml`` <- user file <- ``SRL_...`` environment <- ``overrides``.
+
+        ``overrides`` are nested dicts by section, e.g. ``actor={"horizon": 6}``.
+        """
+        files = [DEFAULT_CONFIG]
+        user_file = config_file or os.environ.get("SRL_CONFIG")
+        if user_file:
+            path = Path(user_file)
+            if not path.is_file():
+                raise FileNotFoundError(f"config file {path} does not exist")
+            files.append(path)
+        for path in files:  # a syntax error names its file (tomllib alone does not)
+            try:
+                tomllib.loads(path.read_text())
+            except tomllib.TOMLDecodeError as error:
+                raise ValueError(f"config file {path}: TOML syntax error: {error}") from error
+
+        class _FromFiles(cls):  # type: ignore[valid-type,misc]
+            model_config = SettingsConfigDict(toml_file=files)
+
+        return cls.model_validate(_FromFiles(**overrides).model_dump())
+
+    # -- derived quantities, in the paper's terms ------------------------------------
+    @property
+    def discount(self) -> float:
+        """beta = exp(-gamma delta)."""
+        return math.exp(-self.critic.discount_rate * self.plant.sampling_time)
+
+    @property
+    def steps(self) -> int:
+        return max(1, round(self.episode.duration / self.plant.sampling_time))
+
+    def start_state(self) -> np.ndarray:
+        return start_state(self.episode.start)
+
+    def _initial_scale(self, kind: str) -> float:
+        """``stage_cost``: delta (one interval's cost); ``discounted_stage_cost``: delta / (1 - beta),
+        the discounted cost of holding (s, u) for ever, the scale of the TD targets."""
+        if kind == "discounted_stage_cost":
+            if self.discount >= 1.0:
+                raise ValueError("critic init 'discounted_stage_cost' needs discount_rate > 0 (beta < 1)")
+            return self.plant.sampling_time / (1.0 - self.discount)
+        return self.plant.sampling_time
+
+    def initial_q_weights(self) -> np.ndarray:
+        if isinstance(self.critic.q_init, str):
+            return self._initial_scale(self.critic.q_init) * quadratic_weights_for_diag(self.cost.r_diag)
+        return np.array(self.critic.q_init, dtype=float)
+
+    def initial_v_weights(self) -> np.ndarray:
+        if isinstance(self.critic.v_init, str):
+            return self._initial_scale(self.critic.v_init) * quadratic_weights_for_diag(self.cost.r_diag[:3])
+        return np.array(self.critic.v_init, dtype=float)
+
+    def turtlebot_params(self) -> TurtleBotParams:
+        """The TurtleBot3 model's constants: ``[actuator]``, the firmware limits of ``[plant]``."""
+        a, p = self.actuator, self.plant
+        return TurtleBotParams(
+            v_max=p.v_max,
+            omega_max=p.omega_max,
+            wheel_radius=a.wheel_radius,
+            wheel_separation=a.wheel_separation,
+            wheel_speed_max=a.wheel_speed_max,
+            lag=a.lag,
+            gain=a.gain,
+            deadband=a.deadband,
+            slip=a.slip,
+            slip_std=a.slip_std,
+            quantize=a.quantize,
+            imu_heading=a.imu_heading,
+            substep=a.substep,
+            seed=a.seed,
+        )
+
+    def physics_params(self) -> PhysicsParams:
+        """The MuJoCo plant's own constants: ``[physics]``."""
+        return PhysicsParams(**self.physics.model_dump())
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every constant used, plus the derived discount, for printing with each result."""
+        data = self.model_dump(mode="json")
+        data["derived"] = {"discount_beta": self.discount, "steps": self.steps}
+        return data
+
+
+def start_state(start: tuple[float, ...] | list[float]) -> np.ndarray:
+    """``(x, y)`` -> heading turned away from the target, as in the paper; ``(x, y, alpha)`` as is."""
+    values = [float(c) for c in start]
+    if len(values) not in (2, 3) or not all(math.isfinite(c) for c in values):
+        raise ValueError(f"a start is X,Y or X,Y,ALPHA with finite numbers, got {start}")
+    if len(values) == 2:
+        values.append(heading_away_from_target(values[0], values[1]))
+    return np.array(values)
+
+
+def parse_start(text: str) -> tuple[float, ...]:
+    """Parse the CLI form ``X,Y`` or ``X,Y,ALPHA``."""
+    try:
+        values = tuple(float(part) for part in text.split(","))
+    except ValueError as error:
+        raise ValueError(f"a start is X,Y or X,Y,ALPHA in numbers, got {text!r}") from error
+    start_state(values)  # validates count and finiteness
+    return values

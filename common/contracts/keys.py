@@ -1,0 +1,123 @@
+"""Every Zenoh key expression of srl, and the only place one is written.
+
+Keys are namespaced by robot id: ``srl/<robot>/...``. A :class:`Topic` pairs a key pattern
+with the message schema that travels on it, so publishers and subscribers cannot disagree.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from common.contracts.messages import (
+    Action,
+    CriticWeights,
+    Message,
+    PlantState,
+    ResetRequest,
+    ServiceStatus,
+    StepRequest,
+    Transition,
+)
+
+M = TypeVar("M", bound=Message)
+R = TypeVar("R", bound=Message)
+_CHUNK = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def check_chunk(value: str, what: str) -> str:
+    """A robot or service id must be one plain key chunk (no ``/``, ``*``, ``$``, ``?``, ``#``)."""
+    if not _CHUNK.match(value):
+        raise ValueError(f"{what} {value!r} must be 1-64 characters of A-Z a-z 0-9 _ -")
+    return value
+
+
+@dataclass(frozen=True)
+class Topic(Generic[M]):
+    pattern: str
+    schema: type[M]
+
+    def key(self, robot: str, **chunks: str) -> str:
+        check_chunk(robot, "robot id")
+        for name, value in chunks.items():
+            check_chunk(value, name)
+        return self.pattern.format(robot=robot, **chunks)
+
+
+@dataclass(frozen=True)
+class Service(Generic[M, R]):
+    """A queryable: requests of ``request`` schema, replies of ``reply`` schema."""
+
+    pattern: str
+    request: type[M]
+    reply: type[R]
+
+    def key(self, robot: str) -> str:
+        return self.pattern.format(robot=check_chunk(robot, "robot id"))
+
+
+STATE = Topic("srl/{robot}/state", PlantState)
+ACTION = Topic("srl/{robot}/action", Action)
+TRANSITION = Topic("srl/{robot}/transition", Transition)
+WEIGHTS = Topic("srl/{robot}/critic/weights", CriticWeights)
+STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
+PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
+PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
+
+ALIVE = "srl/{robot}/alive/{service}"  # liveliness tokens (see liveliness_key)
+# Identity tokens: one per live session of a service, naming the session's Zenoh id, so a
+# receiver knows WHICH session is the live plant / actor / critic (see identity_key).
+IDENTITY = "srl/{robot}/alive/{service}/{zid}"
+ALL_KEYS = "srl/**"  # every key of srl (but the verbatim @adv chunks: see advanced_pattern)
+
+SERVICES = ("actor", "critic", "plant", "router")
+
+
+def every_robot(topic: Topic[M], **chunks: str) -> str:
+    """``topic`` of every robot (the robot chunk a wildcard): what a recorder or viewer subscribes to."""
+    for name, value in chunks.items():
+        check_chunk(value, name)
+    return topic.pattern.format(robot="*", **chunks)
+
+
+def liveliness_key(robot: str, service: str) -> str:
+    """Liveliness token of one service of one robot: ``srl/<robot>/alive/<service>``."""
+    return ALIVE.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"))
+
+
+def identity_key(robot: str, service: str, zid: str) -> str:
+    """Identity token of one session of a service: ``srl/<robot>/alive/<service>/<zid>``.
+
+    Declared beside :func:`liveliness_key` by every service (common.net.transport.Bus.declare_alive);
+    a receiver accepts a plant's states, an actor's actions or a critic's weights only from a
+    session whose identity token is live (common.net.provenance.SourceGate)."""
+    return IDENTITY.format(
+        robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"), zid=check_chunk(zid, "zid")
+    )
+
+
+def identity_pattern(robot: str, service: str) -> str:
+    """Every identity token of ``service`` of ``robot``: ``srl/<robot>/alive/<service>/*``."""
+    return f"{liveliness_key(robot, service)}/*"
+
+
+def identity_of(key: str) -> str:
+    """The zid chunk of an identity token key (the last chunk)."""
+    return key.rsplit("/", 1)[-1]
+
+
+def liveliness_pattern(robot: str) -> str:
+    return f"srl/{check_chunk(robot, 'robot id')}/alive/*"
+
+
+def status_pattern(robot: str) -> str:
+    return f"srl/{check_chunk(robot, 'robot id')}/status/*"
+
+
+def advanced_pattern(key: str) -> str:
+    """The keys zenoh-ext's advanced publisher/subscriber on ``key`` use for themselves: the
+    publisher's cache queryable, heartbeats and liveliness token live at ``<key>/@adv/pub/<zid>/...``
+    (and a subscriber's token at ``<key>/@adv/sub/...``). ``@adv`` is a verbatim chunk: no ``*``
+    or ``**`` matches it, so access rules name it explicitly."""
+    return f"{key}/@adv/**"

@@ -1,0 +1,271 @@
+"""Typed run summaries: what each service prints as its last stdout line (one JSON object) and
+what ``srl run --json`` prints, shared by their producers (the services, :mod:`common.config.assembly`)
+and their consumers (``srl up``, the experiment, the tests).
+
+Every model forbids unknown fields, so a producer that adds or renames a key without saying it
+here fails its own tests instead of surprising a consumer. Statistics are :class:`Quantiles`
+(NaN where nothing was measured, kept as NaN in the JSON as Python's ``json`` writes it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+from common.math.agents import Agent
+
+
+class _Summary(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The JSON-ready dict (floats stay floats, NaN included; None fields are kept)."""
+        return self.model_dump()
+
+
+class Quantiles(_Summary):
+    """``common.math.stats.summarize`` / ``Window.summary``: median and p99 (of the window), max."""
+
+    median: float
+    p99: float
+    max: float
+
+
+class TrueView(_Summary):
+    """Where the robot really was, known only where the plant knows the truth (a simulator, the
+    emulator): J on the true states with the actions applied, the true start and final state."""
+
+    start_state: list[float]
+    final_state: list[float]
+    final_distance: float
+    accumulated_cost: float
+
+
+class EpisodeSummary(_Summary):
+    """One episode of Algorithm 1 (``srl run --json``; the base of the lockstep actor's).
+
+    ``start_state``, ``final_state``, ``final_distance``, ``accumulated_cost``: the robot's own
+    view (what it reported: a robot's odometry); ``truth``: where it really was, or None when
+    only the odometry is known (a real robot)."""
+
+    agent: Agent
+    horizon: int
+    steps: int
+    episode_seconds: float
+    accumulated_cost: float
+    start_state: list[float]
+    final_state: list[float]
+    final_distance: float
+    solve_ms: Quantiles
+    solver_failures: int
+    plant_model: Literal["ideal", "actuator", "physics", "robot"] = Field(
+        description="the simulated plant's model (settings plant.model); robot: a robot behind the bridge"
+    )
+    truth: TrueView | None = Field(description="None: the plant does not know the truth, only odometry is known")
+    saturated_commands: int | None = Field(
+        description="commands with a wheel beyond its speed limit (None: not known, a real robot)"
+    )
+    settings: dict[str, Any]
+
+
+class LoopStats(_Summary):
+    period_ms: Quantiles
+    jitter_ms: Quantiles
+    missed_deadlines: int
+    late_ticks: int
+
+
+class RealtimeActorSummary(_Summary):
+    """The real-time actor (services/actor/realtime.py)."""
+
+    service: Literal["actor"] = "actor"
+    mode: Literal["realtime"] = "realtime"
+    agent: Agent
+    horizon: int
+    episode_id: int
+    steps: int
+    accumulated_cost: float
+    start_state: list[float] | None = Field(description="the first state the robot reported (its own start)")
+    final_state: list[float] | None = Field(description="the last state the robot reported (its odometry)")
+    truth: TrueView | None = Field(description="None: the plant sent no truth (a real robot): only odometry is known")
+    saturated_commands: int | None = Field(description="from the plant, if it knows (a simulator)")
+    weights_version: int
+    loop: LoopStats
+    solve_ms: Quantiles
+    solver_failures: int
+    latency_ms: Quantiles
+    staleness_steps: Quantiles
+    staleness_ms: Quantiles
+    stale_state_stops: int
+    plant_conflict_stops: int
+    plant_sources: list[str]
+    transitions_tail: list[list[float]] = Field(description="the newest transitions (k, x, y, alpha, v, omega, r)")
+    transition_steps: list[list[int]] = Field(description="the steps published, as [first, last] runs")
+    counters: dict[str, float]
+    resources: dict[str, Any] | None = None
+
+
+class LockstepActorSummary(EpisodeSummary):
+    """The lockstep actor (services/actor/service.py): the episode plus what crossed the bus."""
+
+    service: Literal["actor"] = "actor"
+    mode: Literal["lockstep"] = "lockstep"
+    episode_id: int
+    weights_version: int
+    staleness_steps: Quantiles
+    critic_timeouts: int
+    trajectory: list[list[float]]
+    counters: dict[str, float]
+    resources: dict[str, Any] | None = None
+
+
+ActorSummary = Annotated[RealtimeActorSummary | LockstepActorSummary, Field(discriminator="mode")]
+ACTOR_SUMMARY: TypeAdapter[RealtimeActorSummary | LockstepActorSummary] = TypeAdapter(ActorSummary)
+
+
+class CriticSummary(_Summary):
+    """The critic learner (services/critic/service.py)."""
+
+    service: Literal["critic"] = "critic"
+    transitions_received: int
+    duplicates: int
+    too_old: int
+    stale_episode: int
+    restored: bool
+    resume: bool
+    checkpoint: str | None
+    checkpoint_ms: Quantiles
+    seen_steps: dict[str, list[list[int]]]
+    replay: dict[str, list[list[float]]]
+    weights_published: int
+    last_version: int
+    fit_ms: Quantiles
+    batch_transitions: Quantiles | None = Field(
+        default=None, description="transitions taken per batch (one checkpoint each; a fleet's come together)"
+    )
+    fits_coalesced: int = Field(default=0, description="due fits left to a newer transition of the robot in the batch")
+    pooled: bool = Field(default=False, description="one learner for every robot (critic.pooled)")
+    counters: dict[str, float]
+    resources: dict[str, Any] | None = None
+
+
+def format_status_line(c: dict[str, float], elapsed: float, first_version: list[float]) -> str:
+    """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``).
+
+    Weight versions are microsecond clock values (they never go back across critic restarts);
+    shown is how many versions the actor moved on since this line first saw one, and how many
+    steps old the weights it used were (staleness)."""
+    pose = ""
+    if all(k in c for k in ("x", "y", "alpha")):
+        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {math.hypot(c['x'], c['y']):.2f} m"
+    version = c.get("weights_version", -1.0)
+    if not first_version and version > 0:
+        first_version.append(version)
+    weights = f"weights +{int(version - first_version[0])}" if first_version else "weights initial"
+    return (
+        f"{elapsed:5.1f} s: step {int(c.get('steps', 0))}{pose}  J {c.get('accumulated_cost', 0.0):.3f}"
+        f"  {weights} (staleness {int(c.get('staleness_steps', 0))})"
+        f"  missed deadlines {int(c.get('missed_deadlines', 0))}"
+        f"  solver failures {int(c.get('solver_failures', 0))}"
+        f"{format_alarms(c)}"
+    )
+
+
+def format_alarms(c: dict[str, float]) -> str:
+    """What the status line says only when it happens (issue 13): two plants alive, the live
+    plant's states refused with none accepted for a second (a lockout's pattern), and the
+    bridge's refused actions (``plant.*``, from the plant's status) and resyncs."""
+    alarms = []
+    if c.get("plant_conflict", 0.0):
+        alarms.append(f"PLANT CONFLICT ({int(c.get('plant_sources', 0))} plants alive)")
+    if c.get("lockout_suspect", 0.0):
+        alarms.append("LOCKOUT SUSPECT (the live plant's states refused)")
+    refused = int(sum(v for k, v in c.items() if k.startswith("plant.rejected.action")))
+    if refused:
+        alarms.append(f"bridge refused {refused} actions ({int(c.get('plant.action_resyncs', 0))} resyncs)")
+    return "".join(f"  {alarm}" for alarm in alarms)
+
+
+class PlantSummary(_Summary):
+    """The simulated plant (services/plant_sim/service.py)."""
+
+    service: Literal["plant"] = "plant"
+    mode: Literal["realtime", "lockstep"]
+    plant_model: Literal["ideal", "actuator", "physics"] = Field(
+        description="plant.model: the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3"
+    )
+    final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended, as the robot reported it")
+    true_final_state: list[float] = Field(description="[x m, y m, alpha rad]: where it truly was")
+    saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
+    counters: dict[str, int]
+    resources: dict[str, Any] | None = None
+
+
+class CmdVelTarget(_Summary):
+    """One cmd_vel subscription of the robot the bridge sent to."""
+
+    type: str = Field(description="the ROS 2 message type, e.g. geometry_msgs/msg/Twist")
+    key: str = Field(description="its Zenoh key expression")
+
+
+class BridgeTiming(_Summary):
+    odom_to_state_ms: Quantiles
+    action_to_cmd_ms: Quantiles
+    state_to_cmd_ms: Quantiles
+
+
+class BridgeSummary(_Summary):
+    """The ROS 2 robot bridge (services/robot_bridge/service.py)."""
+
+    service: Literal["robot_bridge"] = "robot_bridge"
+    # the wire names as plain strings: common.contracts.ros_wire's Literals would pull rosbags into every
+    # importer of the summaries (srl run); the settings already refused any other value
+    profile: str = Field(description="rmw_zenoh or ros2dds")
+    ros_distro: str = Field(description="humble or jazzy")
+    namespace: str
+    goal: list[float] = Field(description="the target pose in the odom frame [m, m, rad]")
+    cmd_vel: list[CmdVelTarget]
+    fallback: bool = Field(description="cmd_vel guessed from the distro, never announced by the robot")
+    discovered: list[str]
+    attachment_format: str | None = Field(description="rmw_zenoh: compact or legacy, None until seen")
+    final_state: list[float] | None
+    max_abs_command: list[float] = Field(description="[|v| m/s, |omega| rad/s], the largest sent")
+    timing: BridgeTiming
+    counters: dict[str, int]
+    resources: dict[str, Any] | None = None
+
+
+class EmulatorSummary(_Summary):
+    """The emulated TurtleBot3 (services/tb3_emulator)."""
+
+    service: Literal["tb3_emulator"] = "tb3_emulator"
+    profile: str = Field(description="rmw_zenoh or ros2dds")
+    ros_distro: str = Field(description="humble or jazzy")
+    cmd_type: str
+    attachment: str | None = Field(description="rmw_zenoh: compact or legacy; None with ros2dds")
+    cmd_key: str
+    odom_key: str
+    model: Literal["ideal", "actuator", "physics"] = Field(
+        description="the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3"
+    )
+    final_pose: list[float] = Field(description="[x m, y m, theta rad] in the odom frame: the truth")
+    final_odometry: list[float] = Field(description="[x m, y m, theta rad]: what its odometry reported")
+    saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
+    applied: list[float] = Field(description="[v m/s, omega rad/s] applied when it ended")
+    max_abs_applied: list[float]
+    cmd_timeouts: int
+    counters: dict[str, int]
+    missed_ticks: int
+    initial_pose: list[float]
+    resources: dict[str, Any] | None = None
+
+
+class RouterSummary(_Summary):
+    """The Zenoh router (``srl router``, tools/cli.py)."""
+
+    service: Literal["router"] = "router"
+    endpoint: str
+    resources: dict[str, Any] | None = None
+    close_timed_out: bool = Field(False, description="its session's close outlasted the bound and was left")

@@ -1,0 +1,610 @@
+"""The double critic and its temporal-difference least-squares fit (section III, eq. critic-cost).
+
+``Qhat(s, u; w) = <w, phi_Q(s, u)>`` and ``Jhat(s; v) = <v, phi_V(s)>``. Over a replay of the
+last ``M`` samples ``(s_j, u_j, c_j)`` of one episode (``M - 1`` consecutive pairs; a gap in the
+step index ``j`` breaks the pair) the TD errors are
+
+    e_j(w) = <w, phi_Q(s_j, u_j)> - beta <w_prev, phi_Q(s_{j+1}, u_{j+1})> - c_j
+    e_j(v) = <v, phi_V(s_j)>      - beta <v_prev, phi_V(s_{j+1})>       - c_j
+
+and the fit minimizes ``1/2 sum e_j^2 + lambda/2 |w - w_prev|^2`` (optionally within box
+bounds). With ``w_prev`` frozen that is LINEAR least squares. With a ridge (``lambda > 0``, the
+default) it is strictly convex and is solved in the weights' space (:func:`fit_gram`, issue 16):
+the Gram matrix ``A^T A + lambda I`` and ``A^T rhs`` of each critic, then one linear solve on the
+weights that are not on a bound -- the last fit's set of weights on a bound, checked against the
+KKT conditions (scipy's test and tolerance) -- and scipy's BVLS (``lsq_linear``) on the Cholesky
+factor only when that set is no longer optimal. Both critics of a robot, and the critics of many
+robots (a fleet's critic fits every robot due in one batch), are ONE stacked solve: numpy loops
+LAPACK over the stack, so each robot's weights are the same bits whatever the batch
+(:func:`update_many`; ``tests/test_critic_batch.py``). Without a ridge (underdetermined early on) it is
+``numpy.lstsq`` as before (:func:`td_fit`).
+
+Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M < 16``): we
+solve for the change ``dw = w - w_prev`` and take the minimum-norm ``dw``, i.e. the weights
+closest to the previous ones that fit the TDs best. That is the limit of the ridge as
+``lambda -> 0`` and it leaves weights untouched in directions the data does not see.
+
+A fleet may pool its learning (issue 16): :class:`PooledReplay` keeps the last ``M`` samples of
+each robot's episode, and ONE :class:`DoubleCritic` is fitted on the TD pairs of all of them
+together. A pair is formed only within one robot's stream of consecutive steps, never across two
+robots or across a gap. A pool of one robot is the per-robot learner, bit for bit (the same
+design, built by the same code: :func:`stream_design`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from common.math.agents import fit_due
+from common.math.features import Q_FEATURES, phi_q, phi_q_rows, phi_v, phi_v_rows
+
+Features = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One replay entry: the step index, the state, the held action and its interval cost."""
+
+    step: int
+    state: np.ndarray
+    action: np.ndarray
+    cost: float  # c_j = delta * r(s_j, u_j)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    weights: np.ndarray
+    residual: float  # 1/2 sum e_j^2 at the new weights (the TD part, ridge excluded)
+    pairs: int
+    # Bounded fits: which weights ended on a bound (-1 low, +1 high, 0 free); the next fit's guess.
+    on_bound: np.ndarray | None = None
+
+
+def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
+    """Indices ``(a, b)`` into ``steps`` with ``steps[b] == steps[a] + 1`` and ``b == a + 1``.
+
+    Only neighbours in the replay can pair, and only if no step is missing between them:
+    a gap (lost or not yet received sample) is never bridged.
+    """
+    return [(a, a + 1) for a in range(len(steps) - 1) if steps[a + 1] == steps[a] + 1]
+
+
+KKT_TOLERANCE = 1e-10  # scipy's lsq_linear default ``tol``: the largest KKT violation accepted
+ACTIVE_SET_STEPS = 3  # primal-dual active-set steps tried on a rejected guess before BVLS (fit_gram)
+
+
+def bounded_lstsq(
+    a: np.ndarray, b: np.ndarray, low: np.ndarray, high: np.ndarray, guess: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``min |a x - b|`` subject to ``low <= x <= high``: ``(x, on_bound)``.
+
+    ``guess``: the ``on_bound`` of a previous, similar problem. If the minimum with that active
+    set (:func:`solve_on_guess` on ``a^T a``, ``a^T b``) meets the KKT conditions (scipy's test and
+    tolerance), that is the minimum: one linear solve. Otherwise scipy's BVLS (``lsq_linear``)
+    solves it. Use a guess only for a strictly convex problem (full column rank, e.g. with a
+    ridge): its minimum is unique, so both ways reach the same ``x`` (to rounding) and the guess
+    changes the cost, never the answer.
+    """
+    n = a.shape[1]
+    if guess is not None and guess.shape == (n,):
+        blocks = [slice(0, n)]
+        x, accepted, _ = solve_on_guess((a.T @ a)[None], (a.T @ b)[None], low[None], high[None], guess[None], blocks)
+        if accepted[0, 0]:
+            return x[0], guess.copy()
+    solution = lsq_linear(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
+    return solution.x, np.asarray(solution.active_mask, dtype=float)
+
+
+def solve_on_guess(
+    gram: np.ndarray, linear: np.ndarray, low: np.ndarray, high: np.ndarray, guess: np.ndarray, blocks: Sequence[slice]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A stack of strictly convex box QPs ``min 1/2 x^T G x - g^T x``, ``low <= x <= high``, each
+    solved on the assumption that ``guess`` (-1 on the low bound, +1 on the high, 0 free) is its
+    active set: ``(x, accepted)``, ``accepted[i, j]`` when block ``blocks[j]`` of problem ``i``
+    meets the KKT conditions (free weights within the bounds, gradient zero on them and pointing
+    into the box on the bound ones, within :data:`KKT_TOLERANCE`), i.e. that block's ``x`` IS its
+    minimum; and the gradient ``G x - g``. Blocks are independent problems (``G`` block-diagonal).
+    Shapes: ``gram`` (B, n, n), the rest (B, n). One batched solve: the bound weights' rows and
+    columns of ``G`` become the identity's, so the free weights solve their own system."""
+    free = guess == 0
+    fixed = np.where(guess < 0, low, np.where(guess > 0, high, 0.0))
+    bound = ~free
+    reduced = np.where(bound[:, :, None] | bound[:, None, :], 0.0, gram)
+    diagonal = np.arange(gram.shape[-1])
+    reduced[:, diagonal, diagonal] = np.where(bound, 1.0, gram[:, diagonal, diagonal])
+    rhs = np.where(free, linear - (gram @ fixed[..., None])[..., 0], fixed)
+    x = np.where(free, _solve_each(reduced, rhs), fixed)
+    gradient = (gram @ x[..., None])[..., 0] - linear
+    violation = np.where(free, np.abs(gradient), gradient * guess)  # > 0 on a bound: leaving it would lower the cost
+    inside = bound | ((x >= low) & (x <= high))
+    accepted = np.stack(
+        [np.all(inside[:, b], axis=1) & (np.max(violation[:, b], axis=1) < KKT_TOLERANCE) for b in blocks], axis=1
+    )
+    return x, accepted, gradient
+
+
+def _solve_each(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``matrices[i]^-1 rhs[i]`` for the stack in one call (numpy loops LAPACK over it: each the
+    same bits as alone); a singular one (data too large for the ridge to matter) gives NaN and
+    leaves the others be (its critic keeps its weights: DoubleCritic.accept)."""
+    try:
+        solution: np.ndarray = np.linalg.solve(matrices, rhs[..., None])[..., 0]
+        return solution
+    except np.linalg.LinAlgError:
+        out = np.full(rhs.shape, np.nan)
+        for i in range(len(matrices)):
+            with contextlib.suppress(np.linalg.LinAlgError):
+                out[i] = np.linalg.solve(matrices[i], rhs[i])
+        return out
+
+
+def next_guess(x: np.ndarray, gradient: np.ndarray, low: np.ndarray, high: np.ndarray, guess: np.ndarray) -> np.ndarray:
+    """One primal-dual active-set step from :func:`solve_on_guess`'s answer: a free weight beyond
+    a bound goes onto it, a bound weight whose gradient points out of the box is freed."""
+    free = guess == 0
+    leaving = ~free & (gradient * guess > KKT_TOLERANCE)
+    return np.where(free, np.where(x < low, -1.0, np.where(x > high, 1.0, 0.0)), np.where(leaving, 0.0, guess))
+
+
+def bvls_gram(gram: np.ndarray, linear: np.ndarray, low: np.ndarray, high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One strictly convex box QP ``min 1/2 x^T G x - g^T x`` by scipy's BVLS: ``(x, on_bound)``.
+    With ``G = R^T R`` (Cholesky), ``|R x - R^-T g|^2`` is the same objective up to a constant,
+    an (n, n) least squares however many rows the data had."""
+    upper = np.linalg.cholesky(gram).T
+    solution = lsq_linear(upper, np.linalg.solve(upper.T, linear), bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
+    return solution.x, np.asarray(solution.active_mask, dtype=float)
+
+
+def fit_gram(
+    now: np.ndarray,
+    following: np.ndarray,
+    costs: np.ndarray,
+    previous: np.ndarray,
+    blocks: Sequence[slice],
+    discount: float,
+    ridge: float,
+    bounds: tuple[float, float] | None,
+    guesses: Sequence[Sequence[np.ndarray | None]],
+    pairs: Sequence[int],
+) -> list[list[FitResult]]:
+    """The TD fits of a stack of robots, each of one or more critics (``blocks``: each critic's
+    columns), for a ridge ``> 0``: ``result[i][j]`` is robot ``i``'s critic ``j``.
+
+    ``now``/``following`` (B, P, n): the designs, robots with fewer pairs padded with zero rows
+    (zero ``costs`` too), which add nothing; ``previous`` (B, n): the weights; ``guesses[i][j]``:
+    the last fit's ``on_bound`` of that critic (None: none yet, all weights are tried free). The
+    same problem as :func:`td_fit` (``dw = w - w_prev`` with the ridge; with bounds, the step
+    from the previous weights clipped into them), solved in the weights' space."""
+    count, _, size = now.shape
+    targets = costs[..., None] + discount * np.stack(
+        [(following[:, :, b] @ previous[:, b, None])[..., 0] for b in blocks], axis=-1
+    )  # (B, P, critics)
+    if bounds is None:
+        low, high = np.full((count, size), -np.inf), np.full((count, size), np.inf)
+        base = previous
+    else:
+        low, high = np.full((count, size), float(bounds[0])), np.full((count, size), float(bounds[1]))
+        base = np.clip(previous, low, high)  # previous weights outside new bounds: clipped first
+    gram = np.zeros((count, size, size))
+    linear = np.empty((count, size))
+    for j, b in enumerate(blocks):
+        design = now[:, :, b]
+        gram[:, b, b] = np.swapaxes(design, 1, 2) @ design
+        rhs = targets[..., j] - (design @ base[:, b, None])[..., 0]
+        linear[:, b] = (np.swapaxes(design, 1, 2) @ rhs[..., None])[..., 0] - ridge * (base[:, b] - previous[:, b])
+    diagonal = np.arange(size)
+    gram[:, diagonal, diagonal] += ridge
+    step_low, step_high = low - base, high - base
+    guess = np.zeros((count, size))
+    for i, row in enumerate(guesses):
+        for b, g in zip(blocks, row, strict=True):
+            if g is not None and bounds is not None and g.shape == (b.stop - b.start,):
+                guess[i, b] = g
+    step, accepted, gradient = solve_on_guess(gram, linear, step_low, step_high, guess, blocks)
+    for _ in range(ACTIVE_SET_STEPS):  # the rejected guesses improved, all of them in one solve
+        rejected = np.flatnonzero(~np.all(accepted, axis=1))
+        if not rejected.size:
+            break
+        better = next_guess(
+            step[rejected], gradient[rejected], step_low[rejected], step_high[rejected], guess[rejected]
+        )
+        changed = rejected[np.any(better != guess[rejected], axis=1)]
+        if not changed.size:
+            break
+        guess[changed] = better[np.any(better != guess[rejected], axis=1)]
+        step[changed], accepted[changed], gradient[changed] = solve_on_guess(
+            gram[changed], linear[changed], step_low[changed], step_high[changed], guess[changed], blocks
+        )
+    on_bound = guess.copy()
+    for i, j in zip(*np.nonzero(~accepted), strict=True):  # still not optimal: BVLS decides it
+        b = blocks[j]
+        try:
+            step[i, b], on_bound[i, b] = bvls_gram(gram[i, b, b], linear[i, b], step_low[i, b], step_high[i, b])
+        except (np.linalg.LinAlgError, ValueError):  # non-finite data: no fit (the caller keeps its weights)
+            step[i, b] = np.nan
+    weights = np.clip(base + step, low, high)
+    residuals = np.stack(
+        [
+            np.sum(((now[:, :, b] @ weights[:, b, None])[..., 0] - targets[..., j]) ** 2, axis=1) / 2
+            for j, b in enumerate(blocks)
+        ],
+        axis=1,
+    )
+    return [
+        [
+            FitResult(weights[i, b], float(residuals[i, j]), pairs[i], on_bound[i, b] if bounds is not None else None)
+            for j, b in enumerate(blocks)
+        ]
+        for i in range(count)
+    ]
+
+
+def td_fit(
+    features_now: np.ndarray,
+    features_next: np.ndarray,
+    costs: np.ndarray,
+    previous_weights: np.ndarray,
+    discount: float,
+    ridge: float = 0.0,
+    bounds: tuple[float, float] | None = None,
+    on_bound: np.ndarray | None = None,
+) -> FitResult:
+    """Least-squares TD fit of linear weights, dimension-generic.
+
+    ``features_now[j] = phi(z_j)``, ``features_next[j] = phi(z_{j+1})``, ``costs[j] = c_j``;
+    targets are ``c_j + discount * <previous_weights, phi(z_{j+1})>``. With a ridge: :func:`fit_gram`
+    (``on_bound``: the last bounded fit's :attr:`FitResult.on_bound`, the guess of its active set,
+    which makes this one cheaper and never changes the minimum). Without: the minimum-norm change
+    by ``lstsq``, BVLS with bounds.
+    """
+    previous = np.asarray(previous_weights, dtype=float)
+    a = np.atleast_2d(np.asarray(features_now, dtype=float))
+    pairs = a.shape[0] if np.size(costs) else 0
+    if pairs == 0:
+        return FitResult(previous.copy(), 0.0, 0, on_bound)
+    if ridge > 0:  # strictly convex: in the weights' space (fit_gram), as a stack of one
+        size = previous.size
+        return fit_gram(
+            a[None],
+            np.atleast_2d(np.asarray(features_next, dtype=float))[None],
+            np.asarray(costs, dtype=float)[None],
+            previous[None],
+            [slice(0, size)],
+            discount,
+            ridge,
+            bounds,
+            [[on_bound]],
+            [pairs],
+        )[0][0]
+    targets = np.asarray(costs, float) + discount * (np.asarray(features_next, float) @ previous)
+    # Without a ridge: solve for dw = w - w_prev, A dw ~ targets - A w_prev (minimum norm dw).
+    rhs = targets - a @ previous
+    active = None
+    if bounds is None:
+        delta_w = np.linalg.lstsq(a, rhs, rcond=None)[0]
+        weights = previous + delta_w
+    else:
+        low, high = bounds
+        # The previous weights may sit outside new bounds: clip before measuring the change.
+        base = np.clip(previous, low, high)
+        step, active = bounded_lstsq(a, rhs - a @ (base - previous), low - base, high - base)
+        weights = np.clip(base + step, low, high)
+    errors = a @ weights - targets
+    return FitResult(weights, 0.5 * float(errors @ errors), pairs, active)
+
+
+class Replay:
+    """The last ``capacity`` samples of ONE episode, kept in step order."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 2:
+            raise ValueError(f"replay size M must be >= 2 (one TD pair), got {capacity}")
+        self.capacity = capacity
+        self._samples: deque[Sample] = deque(maxlen=capacity)
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    @property
+    def max_pairs(self) -> int:
+        """The most TD pairs its design can have: ``capacity - 1``."""
+        return self.capacity - 1
+
+    @property
+    def samples(self) -> list[Sample]:
+        return list(self._samples)
+
+    def clear(self) -> None:
+        self._samples.clear()
+
+    def add(self, sample: Sample) -> None:
+        """Insert in step order; a duplicate step replaces nothing and raises."""
+        if self._samples and sample.step <= self._samples[-1].step:
+            if any(s.step == sample.step for s in self._samples):
+                raise ValueError(f"step {sample.step} is already in the replay")
+            # Late arrival (out of order): insert where it belongs, then trim the oldest.
+            items = sorted([*self._samples, sample], key=lambda s: s.step)[-self.capacity :]
+            self._samples = deque(items, maxlen=self.capacity)
+            return
+        self._samples.append(sample)
+
+    def design(self, features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(features_now, features_next, costs)`` over the consecutive pairs.
+
+        ``features(states, actions)`` maps the replay's stacked states ``(n, 3)`` and actions
+        ``(n, 2)`` to one feature row per sample (vectorized: one call per fit, not per sample).
+        """
+        return stream_design(self.sample_streams(), features)
+
+    def sample_streams(self) -> list[Sequence[Sample]]:
+        """Its samples as the streams of :func:`padded_designs`: one."""
+        return [self._samples]
+
+
+def stream_design(streams: Iterable[Sequence[Sample]], features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The TD design of several sample streams, each in step order: ``(features_now,
+    features_next, costs)`` over every stream's consecutive pairs, stream after stream.
+
+    A pair joins two neighbours of ONE stream whose steps differ by one; the streams are laid end
+    to end only after pairing, so no pair ever joins the last sample of one stream to the first of
+    the next. The features are computed in one call over all samples.
+    """
+    now, following, costs, pairs = padded_designs([list(streams)], None, features)
+    if not pairs[0]:
+        return np.empty((0, 0)), np.empty((0, 0)), np.empty(0)
+    return now[0], following[0], costs[0]
+
+
+def padded_designs(
+    designs: Sequence[Sequence[Sequence[Sample]]], rows: int | None, features: Features
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    """Several designs at once, each of its streams (as :func:`stream_design`), stacked:
+    ``(now (B, rows, n), following, costs (B, rows), pairs)``, design ``i``'s ``pairs[i]`` rows
+    first and zero rows after them (``rows``: None, the most pairs of any). The features of
+    every sample of every design are computed in one call."""
+    samples: list[Sample] = []
+    now_index: list[int] = []
+    pairs: list[int] = []
+    for streams in designs:
+        count = 0
+        for stream in streams:
+            items = list(stream)
+            offset = len(samples)
+            found = [offset + a for a, _ in consecutive_pairs([s.step for s in items])]
+            now_index.extend(found)
+            count += len(found)
+            samples.extend(items)
+        pairs.append(count)
+    rows = max(pairs, default=0) if rows is None else rows
+    if not now_index:
+        return (
+            np.zeros((len(designs), rows, 0)),
+            np.zeros((len(designs), rows, 0)),
+            np.zeros((len(designs), rows)),
+            pairs,
+        )
+    phis = features(np.array([s.state for s in samples]), np.array([s.action for s in samples]))
+    slots = np.concatenate([i * rows + np.arange(count) for i, count in enumerate(pairs)])
+    index = np.array(now_index, dtype=np.intp)
+    size = len(designs) * rows
+    now, following, costs = np.zeros((size, phis.shape[1])), np.zeros((size, phis.shape[1])), np.zeros(size)
+    now[slots], following[slots] = phis[index], phis[index + 1]
+    costs[slots] = [samples[a].cost for a in now_index]
+    shape = (len(designs), rows)
+    return now.reshape(*shape, -1), following.reshape(*shape, -1), costs.reshape(shape), pairs
+
+
+class PooledReplay:
+    """The last ``capacity`` samples of each robot's episode: one :class:`Replay` per robot (its
+    stream), one design over all of them (pairs only within a stream). Memory: at most
+    ``capacity`` samples per robot held."""
+
+    def __init__(self, capacity: int) -> None:
+        Replay(capacity)  # the same check of M
+        self.capacity = capacity
+        self.streams: dict[str, Replay] = {}
+
+    def __len__(self) -> int:
+        return sum(len(replay) for replay in self.streams.values())
+
+    @property
+    def max_pairs(self) -> int:
+        """The most TD pairs its design can have: ``capacity - 1`` per stream."""
+        return len(self.streams) * (self.capacity - 1)
+
+    def stream(self, robot: str) -> Replay:
+        """The robot's replay (created empty on first use)."""
+        replay = self.streams.get(robot)
+        if replay is None:
+            replay = self.streams[robot] = Replay(self.capacity)
+        return replay
+
+    def restart(self, robot: str) -> Replay:
+        """The robot starts a new episode: its stream starts empty (the others keep theirs)."""
+        replay = self.streams[robot] = Replay(self.capacity)
+        return replay
+
+    def add(self, robot: str, sample: Sample) -> None:
+        self.stream(robot).add(sample)
+
+    def clear(self) -> None:
+        self.streams.clear()
+
+    def design(self, features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every stream's consecutive pairs, stacked (robots in the order they joined)."""
+        return stream_design(self.sample_streams(), features)
+
+    def sample_streams(self) -> list[Sequence[Sample]]:
+        """Its samples as the streams of :func:`padded_designs`: one per robot."""
+        return [replay.samples for replay in self.streams.values()]
+
+
+@dataclass
+class CriticUpdate:
+    q: FitResult
+    v: FitResult
+
+
+class DoubleCritic:
+    """``Qhat`` and ``Jhat`` with their weights; :meth:`update` runs one TD fit of both."""
+
+    def __init__(
+        self,
+        q_weights: np.ndarray,
+        v_weights: np.ndarray,
+        discount: float,
+        ridge: float = 0.0,
+        bounds: tuple[float, float] | None = None,
+    ) -> None:
+        if not 0.0 <= discount <= 1.0:
+            raise ValueError(f"discount beta must lie in [0, 1], got {discount}")
+        if ridge < 0:
+            raise ValueError(f"ridge lambda must be >= 0, got {ridge}")
+        if bounds is not None and not bounds[0] < bounds[1]:
+            raise ValueError(f"weight bounds must satisfy low < high, got {bounds}")
+        self.q_weights = np.asarray(q_weights, dtype=float).copy()
+        self.v_weights = np.asarray(v_weights, dtype=float).copy()
+        for name, w in (("q", self.q_weights), ("v", self.v_weights)):
+            if not np.all(np.isfinite(w)):
+                raise ValueError(f"initial {name} weights must be finite")
+        self.discount = discount
+        self.ridge = ridge
+        self.bounds = bounds
+        # Each critic's last bounded fit: which weights ended on a bound (the next fit's guess).
+        self.q_on_bound: np.ndarray | None = None
+        self.v_on_bound: np.ndarray | None = None
+
+    def q_value(self, state: np.ndarray, action: np.ndarray) -> float:
+        return float(self.q_weights @ phi_q(state, action))
+
+    def value(self, state: np.ndarray) -> float:
+        return float(self.v_weights @ phi_v(state))
+
+    def update(self, replay: Replay | PooledReplay) -> CriticUpdate:
+        """One TD least-squares fit of both critics on the replay (Algorithm 1, line 6): a batch of
+        one of :func:`update_many` (the same bits as in any batch)."""
+        return update_many([self], [replay])[0]
+
+    def fit_separately(self, now: np.ndarray, following: np.ndarray, costs: np.ndarray) -> CriticUpdate:
+        """Both critics by :func:`td_fit`, one after the other (no ridge: the minimum-norm change)."""
+        args = (self.discount, self.ridge, self.bounds)
+        q = Q_FEATURES
+        q_fit = td_fit(_columns(now, 0, q), _columns(following, 0, q), costs, self.q_weights, *args, self.q_on_bound)
+        v_fit = td_fit(_columns(now, q), _columns(following, q), costs, self.v_weights, *args, self.v_on_bound)
+        return self.accept(q_fit, v_fit)
+
+    def accept(self, q_fit: FitResult, v_fit: FitResult) -> CriticUpdate:
+        """Take the fits' weights and active sets -- never a non-finite fit (ill-conditioned
+        data): then the previous weights stay."""
+        if np.all(np.isfinite(q_fit.weights)):
+            self.q_weights, self.q_on_bound = q_fit.weights, q_fit.on_bound
+        if np.all(np.isfinite(v_fit.weights)):
+            self.v_weights, self.v_on_bound = v_fit.weights, v_fit.on_bound
+        return CriticUpdate(q_fit, v_fit)
+
+
+def update_many(critics: Sequence[DoubleCritic], replays: Sequence[Replay | PooledReplay]) -> list[CriticUpdate]:
+    """One TD fit of both critics of each ``(critic, replay)``: ``critics[i].update(replays[i])``
+    for every ``i``, in one stacked solve (:func:`fit_gram`) for all with a ridge (issue 16: a
+    fleet's critic fits every robot due in one batch; ~5x less CPU per fit than one at a time).
+
+    One design per replay for both critics (phi_Q and phi_V side by side), padded with zero rows
+    to the replay's :attr:`~Replay.max_pairs` whatever its own count: a robot's problem has the
+    same shape, and its weights the same bits, in a batch of any size, and a pool of one robot
+    is its per-robot learner bit for bit."""
+    results: list[CriticUpdate | None] = [None] * len(critics)
+    groups: dict[tuple[float, float, tuple[float, float] | None, int], list[int]] = {}
+    for i, (critic, replay) in enumerate(zip(critics, replays, strict=True)):
+        if critic.ridge > 0:
+            groups.setdefault((critic.discount, critic.ridge, critic.bounds, replay.max_pairs), []).append(i)
+        else:
+            results[i] = critic.fit_separately(*replay.design(_phi_qv_rows))
+    for (discount, ridge, bounds, rows), group in groups.items():
+        now, following, costs, pairs = padded_designs([replays[i].sample_streams() for i in group], rows, _phi_qv_rows)
+        members = [k for k, count in enumerate(pairs) if count]
+        for k in (k for k, count in enumerate(pairs) if not count):  # nothing to fit: the weights stay
+            critic = critics[group[k]]
+            results[group[k]] = critic.accept(
+                FitResult(critic.q_weights.copy(), 0.0, 0, critic.q_on_bound),
+                FitResult(critic.v_weights.copy(), 0.0, 0, critic.v_on_bound),
+            )
+        if not members:
+            continue
+        fitted = [critics[group[k]] for k in members]
+        fits = fit_gram(
+            now[members],
+            following[members],
+            costs[members],
+            np.array([np.concatenate([c.q_weights, c.v_weights]) for c in fitted]),
+            [slice(0, Q_FEATURES), slice(Q_FEATURES, now.shape[2])],
+            discount,
+            ridge,
+            bounds,
+            [[c.q_on_bound, c.v_on_bound] for c in fitted],
+            [pairs[k] for k in members],
+        )
+        for k, critic, (q_fit, v_fit) in zip(members, fitted, fits, strict=True):
+            results[group[k]] = critic.accept(q_fit, v_fit)
+    return [result for result in results if result is not None]
+
+
+def _phi_qv_rows(states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """phi_Q's Q_FEATURES columns, then phi_V's."""
+    return np.hstack([phi_q_rows(states, actions), phi_v_rows(states)])
+
+
+def _columns(rows: np.ndarray, start: int, stop: int | None = None) -> np.ndarray:
+    """Columns ``start:stop`` as their own contiguous array (the fit's products then run as on a
+    design built alone); an empty design stays empty."""
+    return np.ascontiguousarray(rows[:, start:stop]) if rows.size else rows
+
+
+class PooledLearner:
+    """ONE :class:`DoubleCritic` learning from a fleet's transitions (issue 16's pooled critic).
+
+    :meth:`record` puts a robot's sample into its stream of the :class:`PooledReplay`; the pool is
+    fitted once per ``size`` transitions due a fit (``fit_due``) since its last fit, where ``size``
+    is the fleet's robot count (given, or else the robots heard from so far): once per step of a
+    fleet stepping together, never once per robot and step (a fleet of K would fit K times as
+    often on K times the data). A pool of one fits exactly when the per-robot learner does.
+    """
+
+    def __init__(self, critic: DoubleCritic, capacity: int, update_every: int, robots: int | None = None) -> None:
+        if update_every < 1:
+            raise ValueError(f"update_every must be >= 1, got {update_every}")
+        if robots is not None and robots < 1:
+            raise ValueError(f"a pool needs at least one robot, got {robots}")
+        self.critic = critic
+        self.replay = PooledReplay(capacity)
+        self.update_every = update_every
+        self.robots = robots
+        self.due = 0  # transitions due a fit since the last fit
+
+    @property
+    def size(self) -> int:
+        return self.robots if self.robots is not None else max(1, len(self.replay.streams))
+
+    def record(self, robot: str, sample: Sample) -> bool:
+        """Into the robot's stream; True when the pool's fit is now due (:meth:`fit` it)."""
+        self.replay.add(robot, sample)
+        return self.count(sample.step)
+
+    def count(self, step: int) -> bool:
+        """A transition of ``step`` entered a stream: True when the pool's fit is due (the count
+        starts again; the caller fits now, or later on more, e.g. at the end of a batch)."""
+        if fit_due(step, self.update_every):
+            self.due += 1
+        if self.due < self.size:
+            return False
+        self.due = 0
+        return True
+
+    def fit(self) -> CriticUpdate:
+        """One TD least-squares fit of both critics on every robot's pairs."""
+        return self.critic.update(self.replay)

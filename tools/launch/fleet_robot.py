@@ -1,0 +1,196 @@
+"""``srl up --robots K --plant robot``: a fleet of ROS 2 robots behind robot bridges (issue 16).
+
+Each robot's srl id is its ROS namespace (common/math/fleet.py ``ros_fleet``; ``--robots K`` names
+them ``tb3_1`` .. ``tb3_K``). Without endpoints, K emulated TurtleBot3s are started, each under
+its namespace and as its own Zenoh router on a free loopback port (as a real robot runs
+``rmw_zenohd``), from distinct starts on the fleet's circle. With ``--robot-endpoints`` /
+``--robot-endpoint`` no emulator is started: the bridges talk to the real robots there.
+Layout ``host``: one bridge host for every robot (services/robot_bridge/host.py); ``process``:
+one ``srl robot-bridge`` per robot. tools/launch/fleet.py starts the rest (router, critic, actors)
+exactly as for a simulated fleet.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any
+
+import zenoh
+from pydantic import TypeAdapter
+
+from common.config.settings import Settings
+from common.contracts.fleet_summary import FleetBridgeSummary
+from common.contracts.keys import STATE
+from common.contracts.messages import PlantState
+from common.contracts.summaries import BridgeSummary, EmulatorSummary
+from common.math.frames import Pose2D, to_goal_frame
+from common.net.transport import zenoh_config
+from tools.launch.up import Supervisor, free_loopback_endpoint, router_reachable
+
+EMULATOR_READY_S = 30.0  # [s] an emulator's router answers (as srl up --plant robot waits)
+ODOMETRY_READY_S = 60.0  # [s] every robot's first state through its bridge
+
+
+def bridge_names(robots: list[str], layout: str) -> list[str]:
+    return ["robot_bridge"] if layout == "host" else [f"robot_bridge-{robot}" for robot in robots]
+
+
+def spawn_robot_plants(
+    supervisor: Supervisor,
+    settings: Settings,
+    common: list[str],
+    robots: list[str],
+    starts: list[tuple[float, float, float]],
+    endpoints: dict[str, str],
+    bridge_args: list[str],
+    layout: str,
+    login: dict[str, str] | None = None,
+) -> dict[str, str]:
+    """The emulated robots (for robots without an endpoint) and the bridge(s); robot -> endpoint.
+    ``login``: the bridges' login environment (the plant role's, ``--secure``)."""
+    fleet = dict(endpoints)
+    for robot, start in zip(robots, starts, strict=True):
+        if fleet.get(robot):
+            continue  # a real robot: it is where it is
+        fleet[robot] = endpoint = free_loopback_endpoint()
+        supervisor.spawn(
+            f"tb3_emulator-{robot}",
+            [
+                "tb3-emulator",
+                *common,
+                *bridge_args,
+                f"--namespace={robot}",
+                f"--listen={endpoint}",
+                "--start=" + ",".join(repr(c) for c in start),
+            ],
+        )
+    for robot in robots:
+        if endpoints.get(robot):
+            continue
+        supervisor.wait_for(
+            f"the emulated robot {robot}'s router ({fleet[robot]})",
+            lambda e=fleet[robot]: router_reachable(settings, e),
+            timeout=EMULATOR_READY_S,
+        )
+    if layout == "host":
+        spec = ",".join(f"{robot}={fleet[robot]}" for robot in robots)
+        supervisor.spawn(
+            "robot_bridge",
+            ["robot-bridge", *common, *bridge_args, f"--robots={','.join(robots)}", f"--robot-endpoints={spec}"],
+            login,
+        )
+    else:
+        for robot in robots:
+            supervisor.spawn(
+                f"robot_bridge-{robot}",
+                [
+                    "robot-bridge",
+                    *common,
+                    *bridge_args,
+                    f"--robot={robot}",
+                    f"--namespace={robot}",
+                    f"--robot-endpoint={fleet[robot]}",
+                ],
+                login,
+            )
+    return fleet
+
+
+def wait_fleet_odometry(supervisor: Supervisor, settings: Settings, fleet: dict[str, str]) -> None:
+    """Until every robot's state came through its bridge; the robots still silent are named."""
+    seen: set[str] = set()
+    lock = threading.Lock()
+
+    def on_state(sample: Any) -> None:
+        try:
+            robot = PlantState.model_validate_json(sample.payload.to_bytes()).robot
+        except ValueError:
+            return
+        with lock:
+            seen.add(robot)
+
+    session = zenoh.open(zenoh_config(settings.transport))
+    subscriber = session.declare_subscriber(STATE.pattern.format(robot="*"), on_state)
+    try:
+        deadline = time.monotonic() + ODOMETRY_READY_S
+        while time.monotonic() < deadline:
+            supervisor.check()
+            with lock:
+                if set(fleet) <= seen:
+                    return
+            time.sleep(0.05)
+        silent = [f"{r} (namespace /{r}, {fleet[r]})" for r in fleet if r not in seen]
+        raise TimeoutError(
+            f"no odometry after {ODOMETRY_READY_S:.0f} s from {', '.join(silent)} "
+            f"({settings.bridge.profile}, {settings.bridge.ros_distro}, domain {settings.bridge.domain_id})"
+        )
+    finally:
+        subscriber.undeclare()
+        session.close()
+
+
+def stop_bridges(supervisor: Supervisor, robots: list[str], layout: str) -> None:
+    """The bridges first, so that their last zero reaches the robots (as srl up --plant robot)."""
+    for name in bridge_names(robots, layout):
+        if name in supervisor.children:
+            supervisor.stop_one(name)
+
+
+def robot_fleet_summary(supervisor: Supervisor, settings: Settings, robots: list[str], layout: str) -> dict[str, Any]:
+    """Per robot: its namespace, endpoint, what its bridge applied and sent, and (emulated) where
+    the robot truly ended and which cmd_vel key it listened on."""
+    if layout == "host":
+        host = FleetBridgeSummary.model_validate(supervisor.children["robot_bridge"].summary())
+        bridges, endpoints = host.per_robot, host.endpoints
+    else:
+        bridges = {
+            r: TypeAdapter(BridgeSummary).validate_python(supervisor.children[f"robot_bridge-{r}"].summary())
+            for r in robots
+        }
+        endpoints = {}
+    goal = Pose2D(*settings.bridge.goal)
+    rows: dict[str, Any] = {}
+    for robot in robots:
+        bridge = bridges[robot]
+        row: dict[str, Any] = {
+            "namespace": bridge.namespace,
+            "endpoint": endpoints.get(robot),
+            "cmd_vel": [target.key for target in bridge.cmd_vel],
+            "actions_applied": bridge.counters.get("actions_applied", 0),
+            # refused for whatever reason (rejected.action, rejected.action.unknown, ...)
+            "actions_refused": sum(n for k, n in bridge.counters.items() if k.split(".")[:2] == ["rejected", "action"]),
+            "commands_sent": bridge.counters.get("commands_sent", 0),  # every cmd_vel put: actions and zeros
+            "states_published": bridge.counters.get("states_published", 0),
+            "emulator": None,
+        }
+        child = supervisor.children.get(f"tb3_emulator-{robot}")
+        raw = None if child is None else child.summary()
+        if raw is not None:
+            emulator = EmulatorSummary.model_validate(raw)
+            true = to_goal_frame(Pose2D(*emulator.final_pose), goal)
+            row["emulator"] = {
+                "cmd_key": emulator.cmd_key,
+                "odom_key": emulator.odom_key,
+                "cmd_received": emulator.counters.get("cmd_received", 0),
+                "cmd_applied": emulator.counters.get("cmd_applied", 0),
+                "initial_pose": emulator.initial_pose,
+                "true_final_state": [true.x, true.y, true.theta],
+                "true_final_distance_m": math.hypot(true.x, true.y),
+                "applied_at_end": emulator.applied,
+            }
+        rows[robot] = row
+    return rows
+
+
+def format_robot_lines(rows: dict[str, Any]) -> list[str]:
+    lines = []
+    for robot, row in rows.items():
+        emulator = row["emulator"]
+        where = "real robot" if emulator is None else f"emulated, true final {emulator['true_final_distance_m']:.3f} m"
+        lines.append(
+            f"  {robot:<12} namespace /{row['namespace']}: actions applied {row['actions_applied']}, "
+            f"refused {row['actions_refused']}, {where}"
+        )
+    return lines

@@ -1,0 +1,742 @@
+"""Recordings and the live view: srl's messages as ROS 2 messages, into an MCAP file or to Foxglove.
+
+One mapping (:class:`RosMapping`, :class:`Recorder`) from srl's messages to ROS 2 topics, and two
+sinks that take its CDR samples: :class:`McapSink` (an MCAP file in the rosbag2 layout: profile
+``ros2``, ``ros2msg`` schemas, ``cdr`` messages, the ``rosbag2`` metadata record that
+``ros2 bag info`` reads) and, in :mod:`tools.recording.view`, the Foxglove WebSocket server. Per robot:
+
+==========================  ==============================  =========================================
+topic                       type                            what
+==========================  ==============================  =========================================
+``/<robot>/odom``           ``nav_msgs/msg/Odometry``       the state the robot reports (goal frame =
+                                                            ``odom``, child ``base_footprint``)
+``/<robot>/path``           ``nav_msgs/msg/Path``           the last :data:`PATH_POSES` step poses,
+                                                            every :data:`PATH_EVERY` steps
+``/<robot>/cmd_vel``        ``geometry_msgs/msg/TwistStamped``  the action u_k, one per step
+``/<robot>/srl/transition`` ``srl_msgs/msg/Transition``     s_k, u_k, c_k and J, one per step
+``/<robot>/srl/critic_weights`` ``srl_msgs/msg/CriticWeights``  version, trained step, w, v, residuals
+``/<robot>/srl/actor_status``   ``srl_msgs/msg/ActorStatus``    solve time, staleness, tick jitter (1 Hz)
+``/target``                 ``geometry_msgs/msg/PoseStamped``  the target: the origin of the goal frame
+==========================  ==============================  =========================================
+
+srl's own types are ROS 2 message definitions too (``srl_msgs/msg/*``, :data:`SRL_MSGS`), so every
+channel of a recording is CDR with its full ``ros2msg`` definition in the schema: Foxglove decodes
+and plots them, ``ros2 bag info`` lists them. The CDR and the definitions come from ``rosbags``
+(its Humble typestore, srl's types registered in a private copy); the MCAP container from the
+``mcap`` library. Nothing is hand-packed.
+
+Time: a step ``k`` of a robot's episode is placed at ``origin + k delta`` (``origin``: the
+recording's start for ``srl run`` and the experiment; for a recorder over Zenoh, the arrival of the
+episode's first transition minus its steps), so actions and transitions are exactly ``delta``
+apart. States arrive at their own rate: stamped on arrival (``clock = "wall"``, real time) or, in
+lockstep, one step each (``clock = "steps"``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, Literal, Protocol
+
+import numpy as np
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from common.math.loop import Episode
+
+log = logging.getLogger(__name__)
+
+Clock = Literal["wall", "steps"]
+Vector = Sequence[float] | np.ndarray  # a state (x, y, alpha) or an action (v, omega)
+DISTRO = "humble"  # the message definitions of the recording (the same in Jazzy for these types)
+ODOM_FRAME = "odom"  # the goal frame: the target is its origin
+BASE_FRAME = "base_footprint"
+PATH_POSES = 600  # the path keeps the last 60 s of steps: bounded, however long the recording
+PATH_EVERY = 10  # a path message every 10 steps (1 Hz): a path is re-sent whole each time
+TARGET_TOPIC = "/target"
+ODOMETRY, PATH, TWIST_STAMPED = "nav_msgs/msg/Odometry", "nav_msgs/msg/Path", "geometry_msgs/msg/TwistStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TRANSITION, WEIGHTS, STATUS = "srl_msgs/msg/Transition", "srl_msgs/msg/CriticWeights", "srl_msgs/msg/ActorStatus"
+# srl's own message types, ROS 2 message definitions (units in the comments, as in common/contracts/messages.py)
+SRL_MSGS = {
+    TRANSITION: """\
+# One replay sample (s_k, u_k, c_k) of the paper's Algorithm 1; header.stamp = origin + k delta.
+std_msgs/Header header
+uint64 episode
+uint32 step            # k
+float64 x              # s_k [m], goal frame
+float64 y              # [m]
+float64 alpha          # [rad], unwrapped
+float64 v              # u_k [m/s]
+float64 omega          # [rad/s]
+float64 stage_cost     # c_k = delta r(s_k, u_k)
+float64 accumulated_cost  # J up to and including c_k
+""",
+    WEIGHTS: """\
+# The critic's weights (common/contracts/messages.py CriticWeights).
+std_msgs/Header header
+uint64 episode
+uint64 version        # strictly increasing (the critic service: a time-based base)
+int32 trained_step     # the last transition step the fit used (-1: initial weights)
+float64[15] q_weights  # w of Qhat(s, u; w) = <w, phi_Q(s, u)>
+float64[6] v_weights   # v of Jhat(s; v) = <v, phi_V(s)>
+float64 q_residual     # TD residual of the fit (NaN: no fit)
+float64 v_residual
+uint32 pairs           # TD pairs in the fit
+""",
+    STATUS: """\
+# The actor's health (its 1 Hz status; per step in srl run's recordings).
+std_msgs/Header header
+uint32 step
+float64 solve_ms           # the newest solve [ms] (NaN: no solve, e.g. held by the arrival rule)
+float64 staleness_steps    # how many steps old the weights the actor used were
+float64 jitter_ms          # the newest tick's distance from its deadline [ms] (NaN: not real time)
+float64 missed_deadlines
+float64 solver_failures
+float64 weights_version
+""",
+}
+# rosbag2's QoS of a recorded topic (reliable, volatile, keep last 10), as rosbag2_storage_mcap
+# writes it into each channel's metadata
+QOS_YAML = (
+    "- history: 1\n  depth: 10\n  reliability: 1\n  durability: 2\n"
+    "  deadline:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  lifespan:\n    sec: 2147483647\n    nsec: 4294967295\n  liveliness: 1\n"
+    "  liveliness_lease_duration:\n    sec: 2147483647\n    nsec: 4294967295\n"
+    "  avoid_ros_namespace_conventions: false\n"
+)
+
+
+class RecordingError(RuntimeError):
+    """The recording cannot be written (a bad path, a full disk): one line that says why."""
+
+
+class RosMapping:
+    """ROS 2 types: their CDR (``rosbags``) and their ``ros2msg`` definitions, srl's own included."""
+
+    def __init__(self) -> None:
+        self.store: Any = get_typestore(Stores.ROS2_HUMBLE)
+        for name, text in SRL_MSGS.items():
+            self.store.register(get_types_from_msg(text, name))
+        self.types: dict[str, Any] = self.store.types
+        self._definitions: dict[str, str] = {}
+
+    def definition(self, ros_type: str) -> str:
+        if ros_type not in self._definitions:
+            self._definitions[ros_type] = self.store.generate_msgdef(ros_type, ros_version=2)[0]
+        return self._definitions[ros_type]
+
+    def cdr(self, message: Any, ros_type: str) -> bytes:
+        return bytes(self.store.serialize_cdr(message, ros_type, little_endian=True))
+
+    def deserialize(self, data: bytes, ros_type: str) -> Any:
+        return self.store.deserialize_cdr(data, ros_type)
+
+    # -- builders ---------------------------------------------------------------------
+    def header(self, t_ns: int, frame: str = ODOM_FRAME) -> Any:
+        sec, nanosec = divmod(int(t_ns), 1_000_000_000)
+        return self.types["std_msgs/msg/Header"](
+            stamp=self.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame
+        )
+
+    def pose(self, state: Vector) -> Any:
+        t = self.types
+        x, y, alpha = (float(c) for c in state[:3])
+        return t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(alpha / 2), w=math.cos(alpha / 2)),
+        )
+
+    def twist(self, v: float, omega: float) -> Any:
+        vector = self.types["geometry_msgs/msg/Vector3"]
+        return self.types["geometry_msgs/msg/Twist"](
+            linear=vector(x=float(v), y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=float(omega))
+        )
+
+
+class Sink(Protocol):
+    """Where CDR samples go: an MCAP file (:class:`McapSink`) or a live server (tools/recording/view.py)."""
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None: ...
+    def close(self) -> None: ...
+
+
+def ros_name(robot: str) -> str:
+    """A robot id as a ROS 2 name chunk (letters, digits, underscores): ``rlqv+-N12-s000`` ->
+    ``rlqvplus_N12_s000``; srl's usual ids (``tb3_0``) stay as they are."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", robot.replace("+", "plus"))
+
+
+def open_for_writing(path: Path) -> IO[bytes]:
+    """The file, created (or truncated) now: a bad or unwritable path fails before any run starts."""
+    path = Path(path).expanduser()
+    if path.suffix != ".mcap":
+        raise RecordingError(f"a recording is an MCAP file: {path} does not end in .mcap")
+    if path.is_dir():
+        raise RecordingError(f"cannot record to {path}: it is a directory")
+    if not path.parent.is_dir():
+        raise RecordingError(f"cannot record to {path}: no directory {path.parent}")
+    try:
+        return path.open("wb")
+    except OSError as error:
+        raise RecordingError(f"cannot record to {path}: {error.strerror}") from None
+
+
+class McapSink:
+    """An MCAP file in the rosbag2 layout, streamed: chunks of :data:`CHUNK_BYTES` go to the disk as
+    they fill (memory stays bounded); :meth:`close` adds the ``rosbag2`` metadata and the summary."""
+
+    CHUNK_BYTES = 256 * 1024
+
+    def __init__(self, path: Path, extra_metadata: dict[str, str] | None = None) -> None:
+        self.path = Path(path).expanduser()
+        self.file = open_for_writing(self.path)
+        self.writer = McapWriter(self.file, chunk_size=self.CHUNK_BYTES, compression=CompressionType.ZSTD)
+        self.writer.start(profile="ros2", library="srl (mcap + rosbags)")
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[str, int] = {}
+        self.counts: dict[str, int] = {}
+        self.types: dict[str, str] = {}
+        self.first_ns: int | None = None
+        self.last_ns = 0
+        self.extra_metadata = extra_metadata or {}
+        self.closed = False
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        channel = self.channels.get(topic)
+        if channel is None:
+            schema = self.schemas.get(ros_type)
+            if schema is None:
+                schema = self.schemas[ros_type] = self.writer.register_schema(ros_type, "ros2msg", definition.encode())
+            channel = self.channels[topic] = self.writer.register_channel(
+                topic, "cdr", schema, {"offered_qos_profiles": QOS_YAML}
+            )
+            self.counts[topic], self.types[topic] = 0, ros_type
+        self.counts[topic] += 1
+        self.first_ns = t_ns if self.first_ns is None else min(self.first_ns, t_ns)
+        self.last_ns = max(self.last_ns, t_ns)
+        self.writer.add_message(channel, log_time=t_ns, data=data, publish_time=t_ns, sequence=self.counts[topic])
+
+    @property
+    def messages(self) -> int:
+        return sum(self.counts.values())
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            self.writer.add_metadata("rosbag2", {"serialized_metadata": self.rosbag2_metadata()})
+            if self.extra_metadata:
+                self.writer.add_metadata("srl", self.extra_metadata)
+            self.writer.finish()
+        finally:
+            self.file.close()
+
+    def rosbag2_metadata(self) -> str:
+        """What rosbag2_storage_mcap stores in the ``rosbag2`` metadata record (YAML; this is its
+        JSON subset): the bag's topics, counts and time range."""
+        start = self.first_ns or 0
+        duration = max(0, self.last_ns - start)
+        topics = [
+            {
+                "topic_metadata": {
+                    "name": topic,
+                    "type": self.types[topic],
+                    "serialization_format": "cdr",
+                    "offered_qos_profiles": QOS_YAML,
+                },
+                "message_count": count,
+            }
+            for topic, count in self.counts.items()
+        ]
+        info = {
+            "version": 5,
+            "storage_identifier": "mcap",
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": self.messages,
+            "topics_with_message_count": topics,
+            "compression_format": "",
+            "compression_mode": "",
+            "relative_file_paths": [self.path.name],
+            "files": [
+                {
+                    "path": self.path.name,
+                    "starting_time": {"nanoseconds_since_epoch": start},
+                    "duration": {"nanoseconds": duration},
+                    "message_count": self.messages,
+                }
+            ],
+            "custom_data": {},
+            "ros_distro": DISTRO,
+        }
+        return json.dumps({"rosbag2_bagfile_information": info}, indent=1)
+
+
+@dataclass
+class _Track:
+    """What the mapping remembers of one robot: bounded (the path's last poses, one episode).
+
+    The actor's episode (transitions) and the plant's (states) are counted apart: a robot bridge
+    numbers its states in its own episodes, whatever the actor's are."""
+
+    episode: int = -1  # of the newest transition
+    last_step: int = -1
+    accumulated_cost: float = 0.0
+    action: tuple[float, float] = (0.0, 0.0)
+    path: deque[Any] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
+    late: int = 0  # transitions that came after a later step (dropped: one per step, in order)
+    state_episode: int = -1  # of the newest state
+    states_seen: int = 0  # states of that episode (clock "steps": state n at origin + n delta)
+
+
+ORIGINS_KEPT = 64  # (robot, episode) origins remembered: bounded however many episodes pass
+
+
+class Recorder:
+    """srl's messages -> ROS 2 messages on a :class:`Sink`; one :class:`_Track` per robot.
+
+    Not thread-safe: one thread calls it (:class:`tools.recording.record.Feed`'s writer, or ``srl run``)."""
+
+    def __init__(self, sink: Sink, sampling_time: float, clock: Clock = "wall") -> None:
+        self.sink = sink
+        self.ros = RosMapping()
+        self.delta_ns = round(sampling_time * 1e9)
+        self.clock = clock
+        self.tracks: dict[str, _Track] = {}
+        self.origins: dict[tuple[str, int], int] = {}
+        self.target_sent = False
+
+    def _write(self, topic: str, ros_type: str, message: Any, t_ns: int) -> None:
+        self.sink.write(topic, ros_type, self.ros.definition(ros_type), self.ros.cdr(message, ros_type), t_ns)
+
+    def _track(self, robot: str, episode: int) -> _Track:
+        """The robot's step stream, reset by a new episode of its transitions."""
+        track = self.tracks.setdefault(robot, _Track())
+        if episode != track.episode:  # a new episode: its own cost and path
+            self.tracks[robot] = track = _Track(
+                episode=episode, state_episode=track.state_episode, states_seen=track.states_seen
+            )
+        return track
+
+    def begin(self, robot: str, episode: int, origin_ns: int) -> None:
+        """Place step 0 of the robot's episode at ``origin_ns`` (an episode that ran in process)."""
+        self.origins[(robot, episode)] = origin_ns
+
+    def step_time(self, robot: str, episode: int, step: int, now_ns: int) -> int:
+        """``origin + step delta`` of the robot's episode; the origin fixed by its first message."""
+        key = (robot, episode)
+        if key not in self.origins:
+            if len(self.origins) >= ORIGINS_KEPT:
+                del self.origins[next(iter(self.origins))]
+            self.origins[key] = now_ns - step * self.delta_ns
+        return self.origins[key] + step * self.delta_ns
+
+    def target(self, t_ns: int) -> None:
+        """The target pose: the origin of the goal frame (once)."""
+        if not self.target_sent:
+            self.target_sent = True
+            message = self.ros.types[POSE_STAMPED](header=self.ros.header(t_ns), pose=self.ros.pose((0.0, 0.0, 0.0)))
+            self._write(TARGET_TOPIC, POSE_STAMPED, message, t_ns)
+
+    def state(self, robot: str, episode: int, state: Vector, now_ns: int) -> None:
+        """A state the robot reported: ``/<robot>/odom`` (twist: the action it holds)."""
+        track = self.tracks.setdefault(robot, _Track())
+        if episode != track.state_episode:
+            track.state_episode, track.states_seen = episode, 0
+        t_ns = self.step_time(robot, episode, track.states_seen, now_ns) if self.clock == "steps" else now_ns
+        track.states_seen += 1
+        self.target(t_ns)
+        ros = self.ros
+        pose = ros.types["geometry_msgs/msg/PoseWithCovariance"](pose=ros.pose(state), covariance=np.zeros(36))
+        twist = ros.types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=ros.twist(*track.action), covariance=np.zeros(36)
+        )
+        odometry = ros.types[ODOMETRY](header=ros.header(t_ns), child_frame_id=BASE_FRAME, pose=pose, twist=twist)
+        self._write(f"/{ros_name(robot)}/odom", ODOMETRY, odometry, t_ns)
+
+    def transition(
+        self,
+        robot: str,
+        episode: int,
+        step: int,
+        state: Vector,
+        action: Vector,
+        cost: float,
+        now_ns: int,
+    ) -> bool:
+        """One step: ``/<robot>/cmd_vel`` and ``/<robot>/srl/transition``; the path every
+        :data:`PATH_EVERY` steps. False (nothing written) for a step at or before one written."""
+        t_ns = self.step_time(robot, episode, step, now_ns)
+        track = self._track(robot, episode)
+        if step <= track.last_step:
+            track.late += 1
+            return False
+        track.last_step = step
+        track.accumulated_cost += float(cost)
+        track.action = (float(action[0]), float(action[1]))
+        self.target(t_ns)
+        ros = self.ros
+        header = ros.header(t_ns, BASE_FRAME)
+        command = ros.types[TWIST_STAMPED](header=header, twist=ros.twist(*action))
+        self._write(f"/{ros_name(robot)}/cmd_vel", TWIST_STAMPED, command, t_ns)
+        sample = ros.types[TRANSITION](
+            header=ros.header(t_ns),
+            episode=episode,
+            step=step,
+            x=float(state[0]),
+            y=float(state[1]),
+            alpha=float(state[2]),
+            v=float(action[0]),
+            omega=float(action[1]),
+            stage_cost=float(cost),
+            accumulated_cost=track.accumulated_cost,
+        )
+        self._write(f"/{ros_name(robot)}/srl/transition", TRANSITION, sample, t_ns)
+        track.path.append(ros.types[POSE_STAMPED](header=ros.header(t_ns), pose=ros.pose(state)))
+        if step % PATH_EVERY == 0:
+            self.path(robot, t_ns)
+        return True
+
+    def path(self, robot: str, t_ns: int) -> None:
+        track = self.tracks.get(robot)
+        if track is not None and track.path:
+            message = self.ros.types[PATH](header=self.ros.header(t_ns), poses=list(track.path))
+            self._write(f"/{ros_name(robot)}/path", PATH, message, t_ns)
+
+    def weights(
+        self,
+        robot: str,
+        episode: int,
+        version: int,
+        trained_step: int,
+        q_weights: Sequence[float],
+        v_weights: Sequence[float],
+        residuals: tuple[float, float],
+        pairs: int,
+        now_ns: int,
+    ) -> None:
+        """``/<robot>/srl/critic_weights``: at arrival, or (clock "steps") at the step after the
+        last one the fit used, where the actor can use them first."""
+        t_ns = self.step_time(robot, episode, trained_step + 1, now_ns) if self.clock == "steps" else now_ns
+        message = self.ros.types[WEIGHTS](
+            header=self.ros.header(t_ns),
+            episode=episode,
+            version=version,
+            trained_step=trained_step,
+            q_weights=np.asarray(q_weights, dtype=float),
+            v_weights=np.asarray(v_weights, dtype=float),
+            q_residual=float(residuals[0]),
+            v_residual=float(residuals[1]),
+            pairs=pairs,
+        )
+        self._write(f"/{ros_name(robot)}/srl/critic_weights", WEIGHTS, message, t_ns)
+
+    def status(self, robot: str, counters: dict[str, float], now_ns: int) -> None:
+        """``/<robot>/srl/actor_status`` from the actor's status counters (NaN where absent)."""
+        track = self.tracks.get(robot)
+        t_ns = now_ns
+        if self.clock == "steps" and track is not None and track.last_step >= 0:
+            t_ns = self.step_time(robot, track.episode, track.last_step, now_ns)
+
+        def value(name: str) -> float:
+            return float(counters.get(name, math.nan))
+
+        message = self.ros.types[STATUS](
+            header=self.ros.header(t_ns),
+            step=max(0, int(counters.get("steps", 0))),
+            solve_ms=value("solve_ms_last"),
+            staleness_steps=value("staleness_steps"),
+            jitter_ms=value("jitter_ms_last"),
+            missed_deadlines=value("missed_deadlines"),
+            solver_failures=value("solver_failures"),
+            weights_version=value("weights_version"),
+        )
+        self._write(f"/{ros_name(robot)}/srl/actor_status", STATUS, message, t_ns)
+
+    def close(self) -> None:
+        self.sink.close()
+
+
+# -- an episode that ran in this process (srl run, the experiment) ----------------------
+def record_episode(recorder: Recorder, episode: Episode, robot: str, origin_ns: int, episode_id: int = 0) -> None:
+    """Everything of one in-process episode: state s_k and step k at ``origin + k delta``, the
+    initial weights and those of every fit (version counted from 1; the residuals of the fit after
+    step k travel with the weights it produced, at step k + 1), the solve time of every step."""
+    delta = recorder.delta_ns
+    recorder.begin(robot, episode_id, origin_ns)
+    recorder.target(origin_ns)
+    version, previous = 0, None
+    solves = list(episode.solve_seconds) if len(episode.solve_seconds) == episode.steps else []
+    for k in range(episode.steps):
+        t_ns = origin_ns + k * delta
+        recorder.state(robot, episode_id, episode.states[k], t_ns)  # clock "steps": state k at origin + k delta
+        if k < len(episode.q_weights):
+            weights = (tuple(episode.q_weights[k]), tuple(episode.v_weights[k]))
+            residuals = episode.td_residuals[k - 1] if 0 < k <= len(episode.td_residuals) else (math.nan, math.nan)
+            if weights != previous or not math.isnan(residuals[0]):  # the initial weights, then every fit
+                version += 1
+                previous = weights
+                recorder.weights(robot, episode_id, version, k - 1, *weights, residuals, 0, t_ns)
+        recorder.transition(robot, episode_id, k, episode.states[k], episode.actions[k], episode.costs[k], t_ns)
+        counters = {"steps": float(k), "weights_version": float(version)}
+        if solves:
+            counters["solve_ms_last"] = solves[k] * 1e3
+        if version:
+            counters["staleness_steps"] = 0.0  # in process the critic is synchronous
+        recorder.status(robot, counters, t_ns)
+    end_ns = origin_ns + episode.steps * delta
+    recorder.state(robot, episode_id, episode.final_state, end_ns)
+    recorder.path(robot, end_ns)
+
+
+def episode_recorder(path: Path, sampling_time: float, metadata: dict[str, Any]) -> Recorder:
+    """A recorder onto a new MCAP file (created now: a bad path fails before the run) whose
+    ``srl`` metadata record holds ``metadata`` (agent, horizon, delta: what ``srl plot`` needs)."""
+    sink = McapSink(path, {k: json.dumps(v) for k, v in {"sampling_time": sampling_time, **metadata}.items()})
+    return Recorder(sink, sampling_time, clock="steps")
+
+
+def wall_ns() -> int:
+    return time.time_ns()
+
+
+def describe(sink: McapSink) -> str:
+    """The one summary line of a closed recording."""
+    robots = sorted({t.split("/")[1] for t in sink.counts if t.count("/") >= 2})
+    size = os.path.getsize(sink.path) if sink.path.exists() else 0
+    return (
+        f"recorded {sink.messages} messages on {len(sink.counts)} topics "
+        f"({len(robots)} robot{'s' if len(robots) != 1 else ''}: {', '.join(robots) or 'none'}) "
+        f"to {sink.path} ({size / 1024:.1f} KiB)"
+    )
+
+
+# -- a running system, over Zenoh (srl record, srl view, srl up --record / --view) -------------
+QUEUE_LIMIT = 10_000  # samples waiting for the writer; beyond it they are dropped and counted
+BATCH_SECONDS = 0.2  # the writer's pause between batches (a real-time system: ~10 states + 2 steps each)
+OBSERVER_NICENESS = 10  # srl record / srl view yield the CPU to the loop they watch
+
+
+def yield_cpu_to_the_loop() -> None:
+    """Lower this process's CPU priority (nice +10, common.process.runtime.lower_priority) before Zenoh's
+    threads start, so they and the writer run niced too, and on a busy machine the actor's tick
+    comes first (measured: srl bench loop --record). Refused: a warning, and it records anyway."""
+    from common.process.runtime import lower_priority
+
+    lower_priority(OBSERVER_NICENESS, "the recorder")
+
+
+class Feed:
+    """Subscribes to every robot's state, transitions, critic weights and actor status
+    (``srl/*/...``) and hands them, in arrival order, to a :class:`Recorder` on its own writer
+    thread: Zenoh's callbacks only enqueue, so a slow disk never holds up the system."""
+
+    def __init__(self, settings: Any, recorder: Recorder) -> None:
+        import queue
+        import threading
+
+        from common.contracts.keys import STATE, STATUS, TRANSITION, WEIGHTS, every_robot
+        from common.net.transport import Bus
+
+        self.recorder = recorder
+        self.queue: queue.Queue[tuple[str, Any, int] | None] = queue.Queue(QUEUE_LIMIT)
+        self.dropped = 0
+        self.received = 0
+        self.errors = 0
+        self.bus = Bus.open(settings.transport, "recorder")
+        self.writer = threading.Thread(target=self._drain, name="recorder-writer", daemon=True)
+        self.writer.start()
+        self.bus.subscribe(STATE, every_robot(STATE), lambda m: self._put("state", m))
+        # transitions from the actor's advanced publisher: a recorder that joins late still gets
+        # its cached history (duplicates are dropped by step, Recorder.transition)
+        self.bus.subscribe(TRANSITION, every_robot(TRANSITION), lambda m: self._put("transition", m), recover=True)
+        self.bus.subscribe(WEIGHTS, every_robot(WEIGHTS), lambda m: self._put("weights", m))
+        self.bus.subscribe(STATUS, every_robot(STATUS, service="actor"), lambda m: self._put("status", m))
+
+    def _put(self, kind: str, message: Any) -> None:
+        import queue
+
+        try:
+            self.queue.put_nowait((kind, message, time.time_ns()))
+        except queue.Full:
+            self.dropped += 1
+
+    def _drain(self) -> None:
+        """Write in batches: everything queued, then a pause of :data:`BATCH_SECONDS`, so the writer
+        wakes a few times a second rather than once per sample beside the actor's tick."""
+        import queue
+
+        while True:
+            item = self.queue.get()
+            while item is not None:
+                kind, message, now_ns = item
+                try:
+                    self._apply(kind, message, now_ns)
+                    self.received += 1
+                except Exception:  # one bad sample must not end the recording
+                    self.errors += 1
+                    log.exception("recorder: cannot record a %s sample", kind)
+                try:
+                    item = self.queue.get_nowait()
+                except queue.Empty:
+                    break
+            if item is None:
+                return
+            time.sleep(BATCH_SECONDS)
+
+    def _apply(self, kind: str, m: Any, now_ns: int) -> None:
+        r = self.recorder
+        if kind == "state":
+            r.state(m.robot, m.episode, m.state, now_ns)
+        elif kind == "transition":
+            r.transition(m.robot, m.episode, m.step, m.state, m.action, m.cost, now_ns)
+        elif kind == "weights":
+            residuals = (m.q_residual, m.v_residual)
+            fit = (m.version, m.trained_step, m.q_weights, m.v_weights, residuals, m.pairs)
+            r.weights(m.robot, m.episode, *fit, now_ns)
+        elif kind == "status":
+            r.status(m.robot, dict(m.counters), now_ns)
+
+    def close(self) -> None:
+        """Stop receiving, write what is queued, close the sink (the file is complete after this)."""
+        self.bus.close()
+        self.queue.put(None)
+        self.writer.join()
+        self.recorder.close()
+
+    @classmethod
+    def run(cls, settings: Any, recorder: Recorder, who: str, args: Any, ready: Callable[[], str]) -> Feed:
+        """What ``srl record`` and ``srl view`` do once their sink is open: join the system (retried
+        for ``args.connect_timeout``), print the ``ready()`` line, feed the recorder until Ctrl-C,
+        SIGTERM, the parent's death (started by srl up) or ``args.seconds``; closed on the way
+        out whatever happens (a recording is complete after this)."""
+        import sys
+
+        from common.process.runtime import connect_with_retry, stop_on_signals
+        from common.system.lifeline import die_with_parent
+
+        with stop_on_signals() as stop:
+            die_with_parent(stop)
+            try:
+                feed = connect_with_retry(lambda: cls(settings, recorder), settings, who, args.connect_timeout, stop)
+            except BaseException:
+                recorder.close()
+                raise
+            print(ready(), file=sys.stderr, flush=True)
+            try:
+                stop.wait(args.seconds)
+            finally:
+                feed.close()
+        return feed
+
+
+def positive_seconds(seconds: float | None) -> None:
+    """``--seconds`` of srl record / srl view: None (until Ctrl-C) or a positive number."""
+    from common.config.arguments import UsageError
+
+    if seconds is not None and not (math.isfinite(seconds) and seconds > 0):
+        raise UsageError(f"--seconds must be a positive number, got {seconds}")
+
+
+def cmd_record(args: Any) -> int:
+    """``srl record FILE.mcap``: join a running system and record every robot until Ctrl-C."""
+    from common.config.arguments import UsageError, settings_from_args
+
+    settings = settings_from_args(args)
+    positive_seconds(args.seconds)
+    yield_cpu_to_the_loop()
+    if args.file is None:
+        args.file = Path(time.strftime("srl-%Y%m%d-%H%M%S.mcap", time.gmtime()))
+    try:
+        sink = McapSink(args.file, {"sampling_time": json.dumps(settings.plant.sampling_time), "source": '"zenoh"'})
+    except RecordingError as error:
+        raise UsageError(str(error)) from None
+    recorder = Recorder(sink, settings.plant.sampling_time, clock=args.clock)
+    ready = f"srl record: recording srl/* (every robot) from {settings.transport.router} to {sink.path}; Ctrl-C ends it"
+    feed = Feed.run(settings, recorder, "record", args, lambda: ready)
+    late = sum(t.late for t in recorder.tracks.values())
+    extra = f"; {feed.dropped} dropped (writer behind)" if feed.dropped else ""
+    extra += f"; {late} late transitions skipped" if late else ""
+    print(f"srl record: {describe(sink)}{extra}", flush=True)
+    return 0
+
+
+# -- reading a recording back (srl plot) ----------------------------------------------
+def read_episodes(path: Path) -> tuple[dict[str, Episode], float]:
+    """Every robot's (last) episode in a recording, as :class:`Episode` (what ``--plot`` draws),
+    and the sampling time. States, actions and costs from ``/<robot>/srl/transition`` (the final
+    state from the robot's last odometry), the weights the actor could use at step k (the newest
+    at or before it) and each fit's residuals from ``/<robot>/srl/critic_weights``."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise RecordingError(f"no recording at {path}")
+    ros = RosMapping()
+    transitions: dict[str, list[tuple[int, Any]]] = {}
+    weights: dict[str, list[tuple[int, Any]]] = {}
+    odometry: dict[str, tuple[int, Any]] = {}
+    meta: dict[str, Any] = {}
+    try:
+        with path.open("rb") as file:
+            reader = make_reader(file)
+            for record in reader.iter_metadata():
+                if record.name == "srl":
+                    meta = {k: json.loads(v) for k, v in record.metadata.items()}
+            for schema, channel, message in reader.iter_messages(log_time_order=True):
+                parts = channel.topic.split("/")
+                if schema is None or len(parts) < 3:
+                    continue
+                robot, kind = parts[1], "/".join(parts[2:])
+                if kind == "srl/transition":
+                    decoded = ros.deserialize(message.data, TRANSITION)
+                    transitions.setdefault(robot, []).append((message.log_time, decoded))
+                elif kind == "srl/critic_weights":
+                    weights.setdefault(robot, []).append((message.log_time, ros.deserialize(message.data, WEIGHTS)))
+                elif kind == "odom":
+                    odometry[robot] = (message.log_time, ros.deserialize(message.data, ODOMETRY))
+    except (McapError, OSError, ValueError, KeyError, EOFError) as error:
+        raise RecordingError(f"cannot read {path} as an MCAP recording of srl: {error}") from None
+    sampling_time = float(meta.get("sampling_time", 0.1))
+    episodes = {}
+    for robot, samples in transitions.items():
+        last_episode = samples[-1][1].episode
+        steps = sorted((m for _, m in samples if m.episode == last_episode), key=lambda m: m.step)
+        times = [t for t, m in samples if m.episode == last_episode]
+        states = [np.array([m.x, m.y, m.alpha]) for m in steps]
+        final = states[-1]
+        if robot in odometry and odometry[robot][0] >= max(times):
+            o = odometry[robot][1].pose.pose
+            yaw = 2 * math.atan2(o.orientation.z, o.orientation.w)
+            alpha = final[2] + math.remainder(yaw - final[2], 2 * math.pi)  # unwrapped, near the last step's
+            final = np.array([o.position.x, o.position.y, alpha])
+        episode = Episode(
+            agent=str(meta.get("agent", robot)),
+            horizon=int(meta.get("horizon", 0)),
+            states=[*states, final],
+            actions=[np.array([m.v, m.omega]) for m in steps],
+            costs=[float(m.stage_cost) for m in steps],
+        )
+        fits = [(t, m) for t, m in weights.get(robot, []) if m.episode == last_episode]
+        if fits:
+            residual_of = {m.trained_step: (float(m.q_residual), float(m.v_residual)) for _, m in fits}
+            for t_k, m in zip(sorted(times), steps, strict=True):
+                used = [w for t, w in fits if t <= t_k]
+                current = used[-1] if used else fits[0][1]
+                episode.q_weights.append(np.asarray(current.q_weights, dtype=float))
+                episode.v_weights.append(np.asarray(current.v_weights, dtype=float))
+                episode.td_residuals.append(residual_of.get(m.step, (math.nan, math.nan)))
+        episodes[robot] = episode
+    return episodes, sampling_time
