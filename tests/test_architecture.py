@@ -4,11 +4,13 @@ Floors, from the ground up: ``common/`` -> ``services/<name>/`` (one folder per 
 system) -> ``tools/`` (the ``srl`` command, the launcher, benchmarks, the experiment, recordings).
 ``common/`` has floors of its own, one folder each, from the ground up (docs/architecture.md):
 
+    system/     the operating system, no srl concept: die with the parent, absolute-time ticks,
+                atomic files, the JIT build of compiled code
     math/       numbers and arrays: dynamics, features, critics, the actor, Algorithm 1, models
     contracts/  what crosses a process boundary: keys, wire messages, run summaries, ROS 2 wire
     config/     settings (the one srl.toml), their command-line flags, Settings -> math objects
     net/        the Zenoh transport (the only module of common that imports zenoh), security
-    process/    a process's life: signals, the session, the JIT build, clocks, checkpoints
+    process/    a service process's life: signals, the session, its summary, its exit
 
 Read from the source text (every import, also those inside functions), never by importing:
 
@@ -32,11 +34,12 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("common", "services", "tools")
-COMMON_FLOORS = ("math", "contracts", "config", "net", "process")  # from the ground up
+COMMON_FLOORS = ("system", "math", "contracts", "config", "net", "process")  # from the ground up
 ZENOH_GATE = "common.net.transport"  # the only module of common that imports zenoh (test_purity.py)
 # Private names of other libraries that our code uses on purpose, each with its reason.
 FOREIGN_PRIVATE = {
     "_choices_actions": "argparse: the subcommands' help lines (tools/cli.py fills in descriptions)",
+    "_actions": "argparse: every argument of a parser, for the generated CLI reference (tools/docs/reference.py)",
     "_negative_number_matcher": "argparse: lists of negative numbers as values (common/process/runtime.py Parser)",
     "_run_exitfuncs": "atexit: run the handlers before os._exit (common/process/runtime.py entry)",
     "_exit": "os: leave without the interpreter's finalization once Zenoh ran (common/process/runtime.py, lifeline.py)",
@@ -144,6 +147,19 @@ def test_every_package_is_read() -> None:
     assert {"common.math.loop", "common.process.runtime", "services.actor.service", "tools.cli"} <= names
 
 
+def test_every_folder_of_common_is_a_floor() -> None:
+    folders = {p.name for p in (ROOT / "common").iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert folders == set(COMMON_FLOORS)
+    loose = sorted(p.name for p in (ROOT / "common").glob("*.py") if p.name != "__init__.py")
+    assert loose == [], f"modules of common outside a floor: {loose}"
+
+
+def test_the_folder_rule_catches_a_module_outside_the_floors() -> None:
+    assert common_floor("common.loose") is None
+    assert common_floor("common.system.jit") == 0
+    assert common_floor("common.process.runtime") == len(COMMON_FLOORS) - 1
+
+
 def test_no_import_runs_up_a_floor() -> None:
     problems = [p for name, source in sources() for p in floor_violations(name, source)]
     assert problems == []
@@ -166,6 +182,7 @@ def test_no_module_uses_another_modules_underscore_names() -> None:
         ("common.contracts.keys", "from common.config import settings\n", "common/contracts/ never imports"),
         ("common.config.arguments", "from common.process.runtime import serve\n", "common/config/ never imports"),
         ("common.math.critic", "import zenoh\n", "only common.net.transport imports zenoh"),
+        ("common.system.jit", "from common.math.actor import StackedActor\n", "common/system/ never imports"),
         ("common.process.runtime", "def f():\n    import zenoh\n", "only common.net.transport imports zenoh"),
         ("common.contracts.keys", "from zenoh.ext import z_serialize\n", "only common.net.transport imports zenoh"),
     ],

@@ -16,7 +16,7 @@ import pytest
 
 from common.config.assembly import build_actor
 from common.config.settings import PAPER_METHOD, Settings
-from common.math.actor import ActorProblem
+from common.math.actor_problem import ActorProblem
 from common.math.agents import AGENTS
 from common.math.dynamics import euler_step
 from common.math.features import phi_q, phi_v, stage_cost
@@ -140,7 +140,7 @@ def test_numpy_objective_matches_casadi_actor_at_its_solution(agent: str) -> Non
     settings = _settings(agent, horizon)  # no JIT: the same problem, quicker to build
     actor = build_actor(settings)
     # The actor's NLP (x = s_1 u_1 s_2 ... s_N, p = (w, v)) -> (f, g), the problem it solves.
-    nlp = actor._solver.oracle()
+    nlp = actor._functions.solver.oracle()
     for weights in (initial_weights(settings), learned_weights(settings)):
         objective = NumpyObjective(actor.problem, weights.q, weights.v)
         params = np.concatenate([weights.q, weights.v])

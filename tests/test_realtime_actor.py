@@ -19,7 +19,7 @@ import pytest
 
 from common.config.settings import Settings
 from common.contracts.messages import Action, CriticWeights, PlantState, Transition
-from common.math.actor import ActorCounters
+from common.math.actor_problem import ActorCounters
 from common.net.provenance import RESYNC_AFTER, SourceGate
 from common.system.clock import Ticker
 from services.actor.ports import WeightsInbox
@@ -54,7 +54,7 @@ class FakeClock:
 class FakeStep:
     action: np.ndarray
     solve_seconds: float = 0.0005
-    status: str = "success"  # common.math.actor.ActorStep's: "arrived" when its arrival rule holds the robot
+    status: str = "success"  # common.math.actor_problem.ActorStep's: "arrived" when its arrival rule holds the robot
 
 
 @dataclass
@@ -373,7 +373,8 @@ def test_the_arrival_rule_holds_the_robot_with_zero_and_the_loop_says_so() -> No
     """A real actor with its arrival rule (issue 21): inside the tolerance every tick commands
     exactly zero and still publishes its transition (the critic sees no gap); the status says
     "arrived"; leaving the outer tolerance resumes the solves."""
-    from common.math.actor import ActorProblem, StackedActor
+    from common.math.actor import StackedActor
+    from common.math.actor_problem import ActorProblem
     from common.math.arrival import ArrivalRule, ArrivalTolerances
 
     t = Loop(agent="mpc")

@@ -12,7 +12,8 @@ import pytest
 
 from common.config.assembly import run_episode
 from common.config.settings import PAPER_METHOD, Settings
-from common.math.actor import ActorProblem, StackedActor, nearest_psd_weights
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorProblem, nearest_psd_weights
 from common.math.arrival import ArrivalRule, ArrivalTolerances
 from tests.test_actor import DELTA, OMEGA_MAX, PAIRS3, PAIRS5, R_DIAG, STATES, V_MAX, hand_objective, psd_weights
 

@@ -17,7 +17,7 @@ from pydantic import ValidationError
 import common
 from common.config.settings import Settings, parse_start, start_state
 
-TOML_PATH = Path(common.__file__).with_name("srl.toml")
+TOML_PATH = Path(common.__file__).parent / "config" / "srl.toml"
 RAW = tomllib.loads(TOML_PATH.read_text())
 
 

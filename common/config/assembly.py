@@ -16,7 +16,8 @@ import numpy as np
 
 from common.config.settings import Settings
 from common.contracts.summaries import EpisodeSummary, TrueView
-from common.math.actor import ActorMemory, ActorProblem, StackedActor
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorMemory, ActorProblem
 from common.math.agents import learns
 from common.math.arrival import ArrivalRule, ArrivalTolerances
 from common.math.critic import DoubleCritic, PooledLearner

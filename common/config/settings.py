@@ -31,15 +31,15 @@ from common.math.physics import PhysicsParams
 from common.math.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
-# The actor's horizon bound. The JIT build (code generation + gcc -O3) grows with N:
-# measured (README "Bounds"): N = 100 builds in 35 s with 0.6 GB peak (gcc included; 2 shared cores), N = 10000 had
-# reached 8.9 GB of gcc memory after 8.5 min. The paper uses N = 6 and 12.
+# The actor's horizon bound. The JIT build (code generation + gcc -O3) grows with N: N = 100
+# builds in ~35 s with a 0.6 GB peak (gcc included, 2 cores); N = 10000 runs gcc past 8.9 GB of
+# memory (docs/benchmarks/). The paper uses N = 6 and 12.
 MAX_HORIZON = 100
 # Starts beyond this distance [m] from the target (per coordinate) are outside any room the
 # robot could park in: warned. Beyond the state schema's bound (common/contracts/messages.py) refused.
 WORKSPACE_HALF_WIDTH = 10.0
 MAX_START = 1e4
-# The paper's method exactly as the paper states it (issue 21): the [actor] settings a running
+# The paper's method exactly as the paper states it: the [actor] settings a running
 # robot adds (the arrival rule, the wheel-speed box, the convexified critics) switched off.
 # `srl experiment --method paper` (its default) and `srl bench actor --method paper` apply it.
 METHODS = ("paper", "robot")
@@ -203,7 +203,7 @@ class ActorSettings(_Section):
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)
     bound_push: float = Field(gt=0, le=0.5)
-    # issue 21: what a running robot needs (the paper's method: arrival off, wheel_speed_max 0)
+    # what a running robot needs (the paper's method: arrival off, wheel_speed_max 0, PAPER_METHOD)
     arrival: bool = Field(description="the arrival rule: command zero inside the tolerances")
     arrival_position_tolerance: float = Field(gt=0, le=1.0, allow_inf_nan=False, description="[m]")
     arrival_heading_tolerance: float = Field(gt=0, le=math.pi, allow_inf_nan=False, description="[rad]")
@@ -289,13 +289,13 @@ class TransportSettings(_Section):
     action_timeout_steps: int = Field(ge=2)
     transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
     max_message_bytes: int = Field(ge=65_536, le=2**30, description="Zenoh drops bigger messages on arrival")
-    # Zenoh authentication and access control (common/net/security.py, README "Security")
+    # Zenoh authentication and access control (common/net/security.py, docs/security.md)
     secure: bool = Field(description="router: require user/password, enforce role rules; others: log in")
     user: str = Field(description="this process's Zenoh user = its role (actor, critic, plant, monitor)")
     password: SecretStr = Field(description="usually from SRL_TRANSPORT__PASSWORD; never commit one")
     password_file: str = Field(description="file whose first line is the user's password")
     users_file: str = Field(description="router: the 'user:password' dictionary file")
-    # TLS on tls/ endpoints (common/net/security.py tls_entries, common/net/certs.py, README "Security")
+    # TLS on tls/ endpoints (common/net/security.py tls_entries, common/net/certs.py, docs/security.md)
     tls_ca: str = Field(description="PEM file of the CA that signs the router's and the clients' certificates")
     tls_cert: str = Field(description="PEM certificate of this process (router: its server certificate)")
     tls_key: str = Field(description="PEM private key of tls_cert (mode 600)")

@@ -1,4 +1,4 @@
-"""Typed summaries of a fleet (issue 16): one row per robot and the fleet's worst cases.
+"""Typed summaries of a fleet (docs/fleets.md): one row per robot and the fleet's worst cases.
 
 The actor host (services/actor/host.py) prints a :class:`FleetActorSummary`; ``srl up --robots``
 and ``srl bench fleet`` read it, and build the same :class:`FleetView` from one actor process
@@ -14,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from common.contracts.summaries import BridgeSummary, RealtimeActorSummary
 
-PARKED_WITHIN_M = 0.25  # [m] a robot that ends this close to the target parked (issue 16's bench)
+PARKED_WITHIN_M = 0.25  # [m] a robot that ends this close to the target parked (the fleet bench's bound)
 
 
 class FleetModel(BaseModel):

@@ -61,9 +61,9 @@ class PlantState(Message):
     """The robot's state, published by plant_sim or robot_bridge.
 
     ``state`` is what the robot reports (a robot's odometry). ``true_state`` and
-    ``saturated_commands`` are optional (added in schema 1, issue 21): set only by a plant that
-    knows the truth (plant_sim), never by the robot bridge, and omitted from the payload when
-    absent, so a message without them is byte for byte what it was before."""
+    ``saturated_commands`` are optional: set only by a plant that knows the truth (plant_sim),
+    never by the robot bridge, and omitted from the payload when absent (:meth:`encode` drops
+    None fields)."""
 
     robot: RobotId
     episode: int = Field(ge=0)

@@ -1,7 +1,7 @@
 """The ROS 2 wire over Zenoh: every ROS key expression and token of srl, and the only place one is written.
 
 srl's own keys live in ``common/contracts/keys.py``; this module holds what a ROS 2 robot sees. Two wire
-profiles (DESIGN.md section 3):
+profiles (docs/turtlebot.md):
 
 ``rmw_zenoh`` -- a robot running ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` (read from the
 rmw_zenoh_cpp sources, 0.1.x for Humble and 0.2.x for Jazzy, ``src/detail/liveliness_utils.cpp``,
@@ -26,7 +26,7 @@ rmw_zenoh_cpp sources, 0.1.x for Humble and 0.2.x for Jazzy, ``src/detail/liveli
     release throws ``std::runtime_error`` when a name does not match, inside the Zenoh callback
     and uncaught: a compact attachment can abort a legacy robot's process, and a legacy one
     is garbage to a compact reader. So the bridge speaks the format the robot's own odometry
-    carries and sends nothing on ``cmd_vel`` before it knows it (services/robot_bridge/service.py).
+    carries and sends nothing on ``cmd_vel`` before it knows it (services/robot_bridge/ros_link.py).
 
   A subscriber drops samples without an attachment ("Unable to obtain attachment").
 * the GID of an entity (``Entity::Entity`` in ``liveliness_utils.cpp``) is XXH3-128 (seed 0,
@@ -89,7 +89,7 @@ GID_SIZE = 16
 AttachmentFormat = Literal["compact", "legacy"]
 ATTACHMENT_FORMATS: tuple[AttachmentFormat, ...] = ("compact", "legacy")
 LEGACY_FIELDS = ("sequence_number", "source_timestamp", "source_gid")
-# What the README and every refusal name: the rmw_zenoh_cpp releases whose wire srl speaks.
+# What the docs (docs/turtlebot.md) and every refusal name: the rmw_zenoh_cpp releases whose wire srl speaks.
 SUPPORTED_RMW_ZENOH = (
     "rmw_zenoh_cpp Humble 0.1.0-0.1.1 and Jazzy 0.2.0-0.2.3 (legacy attachment), "
     "Humble >= 0.1.2, Jazzy >= 0.2.4, Kilted, Lyrical and Rolling >= 0.6.0 (compact attachment)"
@@ -320,8 +320,8 @@ class Attachment:
         """Either format (recorded in ``format``); WireError for anything else.
 
         Parsed here, by the zenoh-ext rules, not by ``zenoh.ext.z_deserialize``: that one panics
-        (``pyo3_runtime.PanicException``, not an Exception; measured: "capacity overflow", and
-        an abort of the process under hypothesis) on a length prefix of 10 bytes."""
+        (``pyo3_runtime.PanicException``, not an Exception: "capacity overflow", and it can
+        abort the process) on a length prefix of 10 bytes."""
         reader = _Reader(raw)
         if (
             raw[:1] == bytes([len(LEGACY_FIELDS[0])])

@@ -174,7 +174,7 @@ def format_status_line(c: dict[str, float], elapsed: float, first_version: list[
 
 
 def format_alarms(c: dict[str, float]) -> str:
-    """What the status line says only when it happens (issue 13): two plants alive, the live
+    """What the status line says only when it happens: two plants alive, the live
     plant's states refused with none accepted for a second (a lockout's pattern), and the
     bridge's refused actions (``plant.*``, from the plant's status) and resyncs."""
     alarms = []

@@ -2,7 +2,7 @@
 
 The paper's actors never stop: near the target a short-horizon optimum can be a parking
 shuffle (no smooth time-invariant feedback brings a unicycle to rest at a point, Brockett),
-and the learned critics make it a full-speed period-2 limit cycle (README "Chatter"). A
+and the learned critics make it a full-speed period-2 limit cycle (docs/experiment.md). A
 running robot stops instead once it is close enough: inside the inner tolerances (distance to
 the target <= ``position`` AND wrapped heading error <= ``heading``) the actor commands exactly
 zero and says "arrived"; it resumes only when the robot leaves the outer tolerances

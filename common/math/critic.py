@@ -9,7 +9,7 @@ step index ``j`` breaks the pair) the TD errors are
 
 and the fit minimizes ``1/2 sum e_j^2 + lambda/2 |w - w_prev|^2`` (optionally within box
 bounds). With ``w_prev`` frozen that is LINEAR least squares. With a ridge (``lambda > 0``, the
-default) it is strictly convex and is solved in the weights' space (:func:`fit_gram`, issue 16):
+default) it is strictly convex and is solved in the weights' space (:func:`fit_gram`):
 the Gram matrix ``A^T A + lambda I`` and ``A^T rhs`` of each critic, then one linear solve on the
 weights that are not on a bound -- the last fit's set of weights on a bound, checked against the
 KKT conditions (scipy's test and tolerance) -- and scipy's BVLS (``lsq_linear``) on the Cholesky
@@ -17,14 +17,14 @@ factor only when that set is no longer optimal. Both critics of a robot, and the
 robots (a fleet's critic fits every robot due in one batch), are ONE stacked solve: numpy loops
 LAPACK over the stack, so each robot's weights are the same bits whatever the batch
 (:func:`update_many`; ``tests/test_critic_batch.py``). Without a ridge (underdetermined early on) it is
-``numpy.lstsq`` as before (:func:`td_fit`).
+``numpy.lstsq`` (:func:`td_fit`).
 
 Underdetermined fits (fewer pairs than weights, e.g. early in an episode or ``M < 16``): we
 solve for the change ``dw = w - w_prev`` and take the minimum-norm ``dw``, i.e. the weights
 closest to the previous ones that fit the TDs best. That is the limit of the ridge as
 ``lambda -> 0`` and it leaves weights untouched in directions the data does not see.
 
-A fleet may pool its learning (issue 16): :class:`PooledReplay` keeps the last ``M`` samples of
+A fleet may pool its learning (docs/fleets.md): :class:`PooledReplay` keeps the last ``M`` samples of
 each robot's episode, and ONE :class:`DoubleCritic` is fitted on the TD pairs of all of them
 together. A pair is formed only within one robot's stream of consecutive steps, never across two
 robots or across a gap. A pool of one robot is the per-robot learner, bit for bit (the same
@@ -511,8 +511,8 @@ class DoubleCritic:
 
 def update_many(critics: Sequence[DoubleCritic], replays: Sequence[Replay | PooledReplay]) -> list[CriticUpdate]:
     """One TD fit of both critics of each ``(critic, replay)``: ``critics[i].update(replays[i])``
-    for every ``i``, in one stacked solve (:func:`fit_gram`) for all with a ridge (issue 16: a
-    fleet's critic fits every robot due in one batch; ~5x less CPU per fit than one at a time).
+    for every ``i``, in one stacked solve (:func:`fit_gram`) for all with a ridge (a fleet's
+    critic fits every robot due in one batch: ~5x less CPU per fit than one at a time).
 
     One design per replay for both critics (phi_Q and phi_V side by side), padded with zero rows
     to the replay's :attr:`~Replay.max_pairs` whatever its own count: a robot's problem has the
@@ -566,7 +566,7 @@ def _columns(rows: np.ndarray, start: int, stop: int | None = None) -> np.ndarra
 
 
 class PooledLearner:
-    """ONE :class:`DoubleCritic` learning from a fleet's transitions (issue 16's pooled critic).
+    """ONE :class:`DoubleCritic` learning from a fleet's transitions (the pooled critic, docs/fleets.md).
 
     :meth:`record` puts a robot's sample into its stream of the :class:`PooledReplay`; the pool is
     fitted once per ``size`` transitions due a fit (``fit_due``) since its last fit, where ``size``

@@ -75,7 +75,7 @@ def exact_step(state: FloatArray, action: FloatArray, duration: float) -> FloatA
 
 def exact_steps(states: FloatArray, actions: FloatArray, duration: float) -> FloatArray:
     """:func:`exact_step` of many robots at once: ``states`` (K, 3), ``actions`` (K, 2) -> (K, 3)
-    (the plant host steps a whole fleet per period, issue 16). The same formula, element-wise."""
+    (the plant host steps a whole fleet per period). The same formula, element-wise."""
     states = np.asarray(states, dtype=float)
     actions = np.asarray(actions, dtype=float)
     half_turn = actions[:, 1] * duration / 2.0
@@ -94,7 +94,7 @@ def exact_steps(states: FloatArray, actions: FloatArray, duration: float) -> Flo
 def heading_away_from_target(x: float, y: float) -> float:
     """The paper's start heading: turned away from the target at the origin.
 
-    ``atan2(y, x)``; at the origin itself (no direction) ``pi``, as DESIGN.md fixes.
+    ``atan2(y, x)``; at the origin itself (no direction) ``pi`` (docs/concepts.md).
     """
     if x == 0.0 and y == 0.0:
         return float(np.pi)

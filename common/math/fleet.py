@@ -1,4 +1,4 @@
-"""A fleet (issue 16): which robots one host serves, and where a simulated fleet starts.
+"""A fleet (docs/fleets.md): which robots one host serves, and where a simulated fleet starts.
 
 Pure: strings and numbers in, ids and states out (no settings, no transport).
 
@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import re
 
-MAX_ROBOTS = 1000  # one host; far beyond what 2 cores serve at delta = 0.1 s (README "Fleet")
+MAX_ROBOTS = 1000  # one host; far beyond what 2 cores serve at delta = 0.1 s (docs/fleets.md)
 _ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # one key chunk, as common/contracts/keys.py requires
 # one ROS name segment (a robot's namespace, ``tb3_1``): a letter, then letters, digits, _
 _ROS_SEGMENT = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")

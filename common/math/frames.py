@@ -1,7 +1,7 @@
 """Planar frames and command limits for a real robot (pure math, no I/O).
 
 The robot reports its pose in its own odometry frame (``odom``); the actor works in the goal
-frame (DESIGN.md section 1: the goal pose is the origin with heading 0). A goal pose
+frame (docs/concepts.md: the goal pose is the origin with heading 0). A goal pose
 ``g = (g_x, g_y, g_theta)`` given in the odom frame fixes the transform:
 
     x     =  cos(g_theta) (p_x - g_x) + sin(g_theta) (p_y - g_y)

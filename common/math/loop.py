@@ -16,7 +16,8 @@ from typing import Protocol
 
 import numpy as np
 
-from common.math.actor import ActorMemory, StackedActor
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorMemory
 from common.math.critic import DoubleCritic, PooledLearner, Sample
 from common.math.dynamics import exact_step
 from common.math.features import stage_cost
@@ -237,7 +238,7 @@ def run_fleet_lockstep(
     learn: bool = True,
     stop: threading.Event | None = None,
 ) -> list[Episode]:
-    """Algorithm 1 for a fleet stepping together (issue 16), in one process: at every step each
+    """Algorithm 1 for a fleet stepping together, in one process: at every step each
     robot in turn acts with the weights its learner holds, is moved and records its transition.
 
     ``learners[i]`` is robot ``i``'s: per-robot critics are K pools of one, a pooled critic is the

@@ -1,4 +1,4 @@
-"""Did the robot park, and does it rest there? (issue 21) Pure functions over a run's states
+"""Did the robot park, and does it rest there? Pure functions over a run's states
 and actions, shared by ``srl bench parking`` and the experiment.
 
 "Parked" (within a distance of the target) is not enough: near the target a short-horizon
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-# issue 21's targets
+# what a parked robot must meet (docs/experiment.md)
 FINAL_DISTANCE_M = 0.05  # true final distance to the target [m]
 SPAN_M = 0.05  # span of the true position over the last window [m]
 MAX_SIGN_CHANGES = 5  # sign changes of v over the last window
@@ -69,7 +69,7 @@ class Parking:
 
     @property
     def parked(self) -> bool:
-        """Issue 21's target: within 0.05 m and at rest."""
+        """Within ``FINAL_DISTANCE_M`` of the target and at rest."""
         return self.final_distance <= FINAL_DISTANCE_M and self.at_rest
 
 

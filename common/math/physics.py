@@ -1,4 +1,4 @@
-"""A rigid-body TurtleBot3 Burger in MuJoCo (issue 21, deliverable 2): ``plant.model = "physics"``.
+"""A rigid-body TurtleBot3 Burger in MuJoCo: ``plant.model = "physics"`` (docs/turtlebot.md).
 
 The actuator model (:mod:`common.math.turtlebot`) writes lag, deadband and slip down as formulas.
 Here they arise from physics, as on a real Burger: a rigid body of ROBOTIS's published masses and
@@ -10,7 +10,7 @@ limited to the motor's stall torque) against the joint's dry friction. So
 * **lag**: the servo accelerates the wheel and the robot's share of its mass; its time constant
   is ``J_eff / kv``, and ``kv`` is chosen so that it equals ``[actuator] lag``;
 * **deadband and shortfall**: the tyres' rolling resistance on the floor (MuJoCo's soft
-  contact: ~0.008 N m per wheel, measured) and the joints' dry friction (``motor_friction``)
+  contact: ~0.008 N m per wheel) and the joints' dry friction (``motor_friction``)
   hold a wheel whose servo torque is below them, and leave a running wheel short of its
   command by ``resistance / kv`` (~1.5 rad/s, ~0.05 m/s, at ``lag = 0.1``) at any speed;
 * **slip**: the tyres slide on the floor when the caster drags or the robot turns in place;
@@ -18,11 +18,12 @@ limited to the motor's stall torque) against the joint's dry friction. So
 * **saturation**: each wheel's command is clamped to ``wheel_speed_max`` (the actuator's
   control range).
 
-Before the wheels: the OpenCR command path of :func:`common.math.turtlebot.firmware_velocity`. After
-them: the encoders (the wheel joints' angles, quantized to the XL430's 4096 ticks per turn)
-integrated by dead reckoning every ``odometry_period`` as turtlebot3_node's ``odometry.cpp``
-does, the heading from the IMU (the body's true yaw) with ``imu_heading``. The true pose is the
-body's ``base_footprint`` frame. Headings are continuous (never wrapped).
+Before the wheels: the OpenCR command path and the clamp of
+:func:`common.math.turtlebot.cmd_vel_to_wheels`. After them: the encoders (the wheel joints'
+angles, quantized to the XL430's 4096 ticks per turn) integrated by dead reckoning every
+``odometry_period`` as turtlebot3_node's ``odometry.cpp`` does, the heading from the IMU (the
+body's true yaw) with ``imu_heading``. The true pose is the body's ``base_footprint`` frame.
+Headings are continuous (never wrapped).
 
 MuJoCo is an optional extra (``pip install 'srl[physics]'``, installed by ``./srl`` and CI);
 it is imported when a :class:`PhysicsBot` is made, with a one-line error when missing.
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from common.math.dynamics import FloatArray
-from common.math.turtlebot import TurtleBot, TurtleBotParams, body_velocity, firmware_velocity, wheel_speeds
+from common.math.turtlebot import Burger, TurtleBot, TurtleBotParams
 
 # turtlebot3_description/urdf/turtlebot3_burger.urdf (ROBOTIS), in base_footprint's frame
 BASE_HEIGHT = 0.010  # base_joint: base_link 0.010 m above base_footprint
@@ -150,10 +151,9 @@ def _yaw(quaternion: FloatArray) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-class PhysicsBot:
-    """The MuJoCo Burger with the interface of :class:`common.math.turtlebot.TurtleBot`: ``command``
-    (the firmware's conversion, the wheels' commands), ``advance`` (hold it), ``true_pose``,
-    ``odometry``, ``velocity``, ``applied`` and the saturated-command count."""
+class PhysicsBot(Burger):
+    """The MuJoCo Burger, a :class:`common.math.turtlebot.Burger` as the actuator model is: the
+    wheels' commands go to their velocity servos; ``true_pose`` is the body's pose."""
 
     SETTLE = 0.1  # [s] on the floor before a start: the contacts settle, then the pose is set again
 
@@ -182,11 +182,7 @@ class PhysicsBot:
         self.odometry = pose.copy()
         self.encoders = self._encoders()
         self.imu_heading = self.heading
-        self.wheel_command = np.zeros(2)
-        self.applied = (0.0, 0.0)
-        self.commands = 0
-        self.saturated_commands = 0
-        self.slip = np.zeros(2)  # not drawn: physics decides (kept for the TurtleBot interface)
+        self._forget_commands()  # slip stays zero: not drawn, physics decides
 
     def _place(self, pose: FloatArray) -> None:
         qpos = self.data.qpos
@@ -213,30 +209,13 @@ class PhysicsBot:
         """The wheels' speeds [rad/s] (left, right)."""
         return np.array([float(self.data.qvel[i]) for i in self.wheel_dof])
 
-    @property
-    def velocity(self) -> tuple[float, float]:
-        """The encoders' (v, omega) now: what turtlebot3_node reports in odometry's twist."""
-        v, omega = body_velocity(self.wheels, self.params.wheel_radius, self.params.wheel_separation)
-        return float(v), float(omega)
-
     # -- transition -------------------------------------------------------------------------
-    def command(self, v: float, omega: float) -> tuple[float, float]:
-        """A new cmd_vel: the firmware's conversion, then each wheel's servo command (clamped)."""
-        p = self.params
-        v, omega = (c if math.isfinite(c) else 0.0 for c in (v, omega))  # never NaN to a wheel
-        if p.quantize:
-            applied = (firmware_velocity(v, p.v_max), firmware_velocity(omega, p.omega_max))
-        else:
-            applied = (min(max(v, -p.v_max), p.v_max), min(max(omega, -p.omega_max), p.omega_max))
-        self.applied = applied
-        wheels = p.gain * wheel_speeds(applied[0], applied[1], p.wheel_radius, p.wheel_separation)
-        self.commands += 1
-        if p.wheel_speed_max > 0 and float(np.max(np.abs(wheels))) > p.wheel_speed_max:
-            self.saturated_commands += 1
-            wheels = np.clip(wheels, -p.wheel_speed_max, p.wheel_speed_max)
-        self.wheel_command = wheels
-        self.data.ctrl[:] = wheels
-        return applied
+    def _command_gain(self) -> float:
+        """The servos take ``gain`` times the wheel speed as their target, clamped to their range."""
+        return self.params.gain
+
+    def _drive(self) -> None:
+        self.data.ctrl[:] = self.wheel_command
 
     def advance(self, duration: float) -> None:
         """Hold the current command for ``duration`` seconds, reading the encoders every
@@ -267,12 +246,6 @@ class PhysicsBot:
         x, y, theta = (float(c) for c in self.odometry)
         mid = theta + delta_theta / 2.0
         self.odometry = np.array([x + delta_s * math.cos(mid), y + delta_s * math.sin(mid), theta + delta_theta])
-
-    def step(self, action: FloatArray, duration: float) -> FloatArray:
-        """Command ``action`` and hold it for ``duration``; the odometry pose (what the robot reports)."""
-        self.command(float(action[0]), float(action[1]))
-        self.advance(duration)
-        return self.odometry.copy()
 
 
 def simulated_robot(

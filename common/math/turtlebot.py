@@ -1,4 +1,4 @@
-"""A TurtleBot3 Burger's actuators and odometry, as pure math (issue 21).
+"""A TurtleBot3 Burger's actuators and odometry, as pure math.
 
 The ideal unicycle (:func:`common.math.dynamics.exact_step`) turns a command into that motion at
 once and reports the true pose. A real Burger does neither. :class:`TurtleBot` models, from the
@@ -9,7 +9,9 @@ command to the two poses (docs/turtlebot.md cites the source of every default):
    to their limits (0.01 m/s and 0.01 rad/s resolution).
 2. **Wheel kinematics**: wheel speeds ``(v -/+ omega * b/2) / r`` (left, right) [rad/s].
 3. **Per-wheel saturation**: each wheel's command is clamped to ``wheel_speed_max`` on its own
-   (the motor's velocity limit), which bends the path when one wheel saturates.
+   (the motor's velocity limit), which bends the path when one wheel saturates. Steps 1-3 are
+   :func:`cmd_vel_to_wheels`, the command of every :class:`Burger` (this one and the MuJoCo
+   one, common/math/physics.py).
 4. **Deadband** (static friction): a wheel slower than ``deadband`` whose command is below
    ``deadband`` is driven to rest: a wheel at rest does not start below it.
 5. **First-order lag and gain**: each wheel speed follows ``gain * command`` with time
@@ -29,8 +31,9 @@ Headings are continuous (never wrapped).
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
@@ -94,6 +97,33 @@ class TurtleBotParams:
             raise ValueError(f"slip must be in [0, {MAX_SLIP}], got {self.slip}")
 
 
+class WheelCommand(NamedTuple):
+    """A cmd_vel after the robot's conversion: see :func:`cmd_vel_to_wheels`."""
+
+    applied: tuple[float, float]  # (v, omega) after the firmware
+    wheels: FloatArray  # [rad/s] each wheel's command (left, right), clamped to wheel_speed_max
+    saturated: bool  # a wheel's command was beyond wheel_speed_max
+
+
+def cmd_vel_to_wheels(params: TurtleBotParams, v: float, omega: float, gain: float = 1.0) -> WheelCommand:
+    """What a Burger makes of a cmd_vel, up to the wheels' commands: a non-finite component is
+    0 (never NaN to a wheel); the OpenCR command path (:func:`firmware_velocity`, ``quantize``)
+    or the limits only; the wheels' speeds (:func:`wheel_speeds`) times ``gain``, each clamped
+    to ``wheel_speed_max`` (0: no clamp). The actuator model applies its gain as the wheels
+    follow (``gain`` 1 here), the physics plant's servos take ``gain`` times the speed."""
+    p = params
+    v, omega = (c if math.isfinite(c) else 0.0 for c in (v, omega))
+    if p.quantize:
+        applied = (firmware_velocity(v, p.v_max), firmware_velocity(omega, p.omega_max))
+    else:
+        applied = (min(max(v, -p.v_max), p.v_max), min(max(omega, -p.omega_max), p.omega_max))
+    wheels = gain * wheel_speeds(applied[0], applied[1], p.wheel_radius, p.wheel_separation)
+    saturated = p.wheel_speed_max > 0 and float(np.max(np.abs(wheels))) > p.wheel_speed_max
+    if saturated:
+        wheels = np.clip(wheels, -p.wheel_speed_max, p.wheel_speed_max)
+    return WheelCommand(applied, wheels, saturated)
+
+
 def wheel_speeds(v: float, omega: float, radius: float, separation: float) -> FloatArray:
     """Differential drive: ``(v - omega b/2) / r, (v + omega b/2) / r`` (left, right) [rad/s]."""
     return np.array([(v - omega * separation / 2.0) / radius, (v + omega * separation / 2.0) / radius])
@@ -105,12 +135,72 @@ def body_velocity(wheels: FloatArray, radius: float, separation: float) -> Float
     return np.array([radius * (left + right) / 2.0, radius * (right - left) / separation])
 
 
-class TurtleBot:
-    """A Burger's state (true pose, wheel speeds, odometry pose) and its transition.
+class Burger(ABC):
+    """What every simulated Burger shares: :meth:`command` takes a cmd_vel as the robot converts
+    it (:func:`cmd_vel_to_wheels`) and hands the wheels' commands to :meth:`_drive`;
+    :meth:`advance` integrates the held command for a duration; :meth:`step` is both, and
+    :attr:`velocity` the encoders' twist. ``odometry`` is what the robot reports."""
 
-    ``command`` takes a cmd_vel (as the firmware converts it), ``advance`` integrates the held
-    command for a duration. ``true_pose`` is where the robot is, ``odometry`` what it reports.
-    """
+    params: TurtleBotParams
+    odometry: FloatArray
+    applied: tuple[float, float]  # (v, omega) after the firmware
+    wheel_command: FloatArray  # [rad/s] each wheel's command (left, right), after saturation
+    commands: int
+    saturated_commands: int  # commands with at least one wheel beyond wheel_speed_max
+    slip: FloatArray  # each wheel's slip under the current command
+
+    @property
+    @abstractmethod
+    def wheels(self) -> FloatArray:
+        """The wheels' speeds now [rad/s] (left, right)."""
+
+    @abstractmethod
+    def advance(self, duration: float) -> None:
+        """Hold the current command for ``duration`` seconds."""
+
+    @abstractmethod
+    def _drive(self) -> None:
+        """Hand :attr:`wheel_command` (just set by :meth:`command`) to the wheels."""
+
+    def _command_gain(self) -> float:
+        """The factor on the wheels' commands before their clamp: 1, the gain applied as the
+        wheels follow (the actuator model)."""
+        return 1.0
+
+    def _forget_commands(self) -> None:
+        """No command yet (a reset)."""
+        self.wheel_command = np.zeros(2)
+        self.slip = np.zeros(2)
+        self.applied = (0.0, 0.0)
+        self.commands = 0
+        self.saturated_commands = 0
+
+    def command(self, v: float, omega: float) -> tuple[float, float]:
+        """A new cmd_vel: the firmware's conversion and the wheels' commands, then driven."""
+        converted = cmd_vel_to_wheels(self.params, v, omega, gain=self._command_gain())
+        self.applied = converted.applied
+        self.commands += 1
+        self.saturated_commands += int(converted.saturated)
+        self.wheel_command = converted.wheels
+        self._drive()
+        return converted.applied
+
+    def step(self, action: FloatArray, duration: float) -> FloatArray:
+        """Command ``action`` and hold it for ``duration``; the odometry pose (what the robot reports)."""
+        self.command(float(action[0]), float(action[1]))
+        self.advance(duration)
+        return self.odometry.copy()
+
+    @property
+    def velocity(self) -> tuple[float, float]:
+        """The encoders' (v, omega) now: what turtlebot3_node reports in odometry's twist."""
+        v, omega = body_velocity(self.wheels, self.params.wheel_radius, self.params.wheel_separation)
+        return float(v), float(omega)
+
+
+class TurtleBot(Burger):
+    """The actuator model: a Burger's state (true pose, wheel speeds, odometry pose) and its
+    transition, as formulas (module docstring). ``true_pose`` is where the robot is."""
 
     def __init__(self, params: TurtleBotParams, pose: FloatArray) -> None:
         self.params = params
@@ -122,38 +212,25 @@ class TurtleBot:
         self.rng = np.random.default_rng(self.params.seed)
         self.true_pose = np.asarray(pose, dtype=float).copy()
         self.odometry = self.true_pose.copy()
-        self.wheels = np.zeros(2)  # [rad/s] left, right
-        self.wheel_command = np.zeros(2)  # [rad/s] after saturation
-        self.slip = np.zeros(2)
-        self.applied = (0.0, 0.0)  # (v, omega) after the firmware
-        self.commands = 0
-        self.saturated_commands = 0  # commands with at least one wheel beyond wheel_speed_max
+        self._wheels = np.zeros(2)  # [rad/s] left, right
+        self._forget_commands()
 
-    def command(self, v: float, omega: float) -> tuple[float, float]:
-        """A new cmd_vel: the firmware's conversion, the wheels' commands, this command's slip."""
+    @property
+    def wheels(self) -> FloatArray:
+        return self._wheels
+
+    def _drive(self) -> None:
+        """This command's slip (the wheels follow the command as :meth:`advance` integrates)."""
         p = self.params
-        v, omega = (c if math.isfinite(c) else 0.0 for c in (v, omega))  # never NaN to a wheel
-        if p.quantize:
-            applied = (firmware_velocity(v, p.v_max), firmware_velocity(omega, p.omega_max))
-        else:
-            applied = (min(max(v, -p.v_max), p.v_max), min(max(omega, -p.omega_max), p.omega_max))
-        self.applied = applied
-        wheels = wheel_speeds(applied[0], applied[1], p.wheel_radius, p.wheel_separation)
-        self.commands += 1
-        if p.wheel_speed_max > 0 and float(np.max(np.abs(wheels))) > p.wheel_speed_max:
-            self.saturated_commands += 1
-            wheels = np.clip(wheels, -p.wheel_speed_max, p.wheel_speed_max)
-        self.wheel_command = wheels
         if p.slip > 0 or p.slip_std > 0:
             self.slip = np.clip(p.slip + p.slip_std * self.rng.standard_normal(2), 0.0, MAX_SLIP)
-        return applied
 
     def _targets(self) -> FloatArray:
         """What each wheel's speed tends to: ``gain * command``, zero for a wheel held by static friction."""
         p = self.params
         targets = p.gain * self.wheel_command
         if p.deadband > 0:
-            held = (np.abs(self.wheel_command) < p.deadband) & (np.abs(self.wheels) < p.deadband)
+            held = (np.abs(self.wheel_command) < p.deadband) & (np.abs(self._wheels) < p.deadband)
             targets = np.where(held, 0.0, targets)
         return targets
 
@@ -169,8 +246,8 @@ class TurtleBot:
         mean_kept = p.lag / h * (1.0 - decay) if p.lag > 0 else 0.0
         for _ in range(n):
             targets = self._targets()
-            mean_wheels = targets + (self.wheels - targets) * mean_kept
-            self.wheels = targets + (self.wheels - targets) * decay
+            mean_wheels = targets + (self._wheels - targets) * mean_kept
+            self._wheels = targets + (self._wheels - targets) * decay
             ground = body_velocity((1.0 - self.slip) * mean_wheels, p.wheel_radius, p.wheel_separation)
             encoders = body_velocity(mean_wheels, p.wheel_radius, p.wheel_separation)
             heading_before = float(self.true_pose[2])
@@ -178,18 +255,6 @@ class TurtleBot:
             if p.imu_heading:  # the IMU's yaw increment replaces the encoders'
                 encoders[1] = (float(self.true_pose[2]) - heading_before) / h
             self.odometry = exact_step(self.odometry, encoders, h)
-
-    def step(self, action: FloatArray, duration: float) -> FloatArray:
-        """Command ``action`` and hold it for ``duration``; the odometry pose (what the robot reports)."""
-        self.command(float(action[0]), float(action[1]))
-        self.advance(duration)
-        return self.odometry.copy()
-
-    @property
-    def velocity(self) -> tuple[float, float]:
-        """The encoders' (v, omega) now: what turtlebot3_node reports in odometry's twist."""
-        v, omega = body_velocity(self.wheels, self.params.wheel_radius, self.params.wheel_separation)
-        return float(v), float(omega)
 
 
 class SimulatedRobot(Protocol):

@@ -22,7 +22,6 @@ from __future__ import annotations
 import datetime
 import ipaddress
 import logging
-import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,8 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from common.system.checkpoint import write_private
 
 log = logging.getLogger(__name__)
 
@@ -63,13 +64,6 @@ class TlsFiles:
             "SRL_TRANSPORT__TLS_CERT": str(self.cert(name)),
             "SRL_TRANSPORT__TLS_KEY": str(self.key(name)),
         }
-
-
-def _write_private(path: Path, data: bytes) -> None:
-    """Create ``path`` readable by its owner only (0600); never overwrite."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "wb") as file:
-        file.write(data)
 
 
 def _key() -> ec.EllipticCurvePrivateKey:
@@ -168,12 +162,12 @@ def write_tls_material(directory: Path, roles: Iterable[str], hosts: Iterable[st
     directory.chmod(0o700)
     files = TlsFiles(directory)
     ca_key, ca_cert = make_ca()
-    _write_private(directory / "ca.key", _key_pem(ca_key))
-    _write_private(files.ca, _pem(ca_cert))
+    write_private(directory / "ca.key", _key_pem(ca_key))
+    write_private(files.ca, _pem(ca_cert))
     leaves = {ROUTER: [*DEFAULT_HOSTS, *hosts], **{role: [role] for role in roles}}
     for name, sans in leaves.items():
         key, cert = make_leaf(ca_key, ca_cert, name, sans)
-        _write_private(files.key(name), _key_pem(key))
-        _write_private(files.cert(name), _pem(cert))
+        write_private(files.key(name), _key_pem(key))
+        write_private(files.cert(name), _pem(cert))
     log.info("TLS material in %s: CA, %s", directory, ", ".join(leaves))
     return files

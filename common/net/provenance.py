@@ -13,7 +13,7 @@ sample's timestamp id with the live identities:
 * a new identity after the old one vanished is a restart: the receiver resynchronizes its
   sequence numbers and versions per source instead of refusing the new stream forever.
 
-Limits (README "Security"): a Zenoh client can forge a timestamp id, so this does not stop a
+Limits (docs/security.md): a Zenoh client can forge a timestamp id, so this does not stop a
 determined attacker who already reaches the router; the access rules (``--secure``: login, role
 rules, TLS) do. This class is pure (no zenoh): the transport feeds it tokens and sample sources.
 """
@@ -74,7 +74,7 @@ class SourceGate:
 # themselves forming an increasing stream, within RESYNC_WITHIN_S, is taken as having restarted
 # (or as continuing after a forged value moved the reference): the receiver follows it again.
 # At 10 Hz actions that is half a second of refused real actions at most per forged burst; a
-# forger that can spoof the live session's id is then followed too (README "Security": only the
+# forger that can spoof the live session's id is then followed too (docs/security.md: only the
 # access rules stop it), but it can no longer lock the real stream out.
 RESYNC_AFTER = 5
 RESYNC_WITHIN_S = 2.0

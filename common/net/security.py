@@ -21,7 +21,7 @@ expression must INCLUDE the message's key expression. In srl's terms:
 * token K: ingress ``liveliness_token`` on K. watch K: ingress ``liveliness_query`` and
   ``declare_liveliness_subscriber`` on K, egress ``liveliness_token`` on K.
 * discovery: a client's publisher sends only once the router has told it of a matching
-  subscriber (write-side filtering, measured: without it nothing is delivered), and the same
+  subscriber (write-side filtering: without it nothing is delivered), and the same
   holds for queriers and queryables. So every role receives subscriber and queryable
   declarations and queries anywhere in srl's key space (:data:`DISCOVERY`). They carry no data
   it may not see: a query reaches a session only through a queryable it was allowed to declare.
@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import ipaddress
 import logging
-import os
 import secrets
 import stat
 from collections.abc import Iterable, Sequence
@@ -58,11 +57,12 @@ from common.contracts.keys import (
     advanced_pattern,
     check_chunk,
 )
+from common.system.checkpoint import write_private
 
 log = logging.getLogger(__name__)
 
 ROLES = ("actor", "critic", "plant", "monitor")
-"""Zenoh users. plant_sim and robot_bridge share ``plant`` (same keys, DESIGN.md section 3);
+"""Zenoh users. plant_sim and robot_bridge share ``plant`` (same keys, docs/architecture.md);
 ``monitor`` is the read-only observer: ``srl up``'s readiness probes, ``srl health``, dashboards."""
 
 PASSWORD_BYTES = 32  # secrets.token_urlsafe(32): 256 random bits, 43 URL-safe characters
@@ -271,13 +271,6 @@ class Credentials:
         )
 
 
-def _write_private(path: Path, text: str) -> None:
-    """Create ``path`` readable by its owner only (0600), failing if it exists."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as file:
-        file.write(text)
-
-
 def write_credentials(directory: Path, roles: Iterable[str] = ROLES) -> Credentials:
     """A random password per role (``secrets.token_urlsafe``), written into ``directory``
     (created 0700): ``users.txt`` (``user:password`` lines, Zenoh's usrpwd dictionary) and
@@ -286,11 +279,11 @@ def write_credentials(directory: Path, roles: Iterable[str] = ROLES) -> Credenti
     directory.chmod(0o700)
     passwords = {role: secrets.token_urlsafe(PASSWORD_BYTES) for role in roles}
     users_file = directory / "users.txt"
-    _write_private(users_file, "".join(f"{role}:{password}\n" for role, password in passwords.items()))
+    write_private(users_file, "".join(f"{role}:{password}\n" for role, password in passwords.items()).encode())
     files = {}
     for role, password in passwords.items():
         files[role] = directory / f"{role}.password"
-        _write_private(files[role], password + "\n")
+        write_private(files[role], (password + "\n").encode())
     return Credentials(directory, users_file, files)
 
 
@@ -397,7 +390,7 @@ def check_network_exposure(transport: TransportSettings, listen: list[str]) -> N
             f"refusing to run a router on {', '.join(exposed)}, reachable from the network: "
             + "; ".join(problems)
             + ". Use a loopback endpoint, or secure = true with a tls/ endpoint and "
-            "certificates (README, Security), or allow_insecure_network = true ONLY inside a private "
+            "certificates (docs/security.md), or allow_insecure_network = true ONLY inside a private "
             "container network"
         )
 

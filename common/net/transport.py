@@ -52,10 +52,10 @@ def zenoh_config(
     # Advanced publishers (the transition cache) stamp their samples: timestamps must be on.
     config.insert_json5("timestamping/enabled", "true")
     # Zenoh's own bound on a (defragmented) message: a bigger one is dropped on arrival, before
-    # it is reassembled in memory and handed to us (measured: a 10 MB put grew each receiving
-    # service by ~50 MB, retained). srl's messages are a few kB. Measured on zenoh 1.10.2: only the
-    # FIRST oversized message of a session is dropped, later ones are delivered (RELIABILITY.md):
-    # this bounds one message, not a flood, until Zenoh enforces it on every message.
+    # it is reassembled in memory and handed to us (an unbounded put grows every receiving
+    # service by its size, retained). srl's messages are a few kB. Zenoh 1.10 drops only the
+    # FIRST oversized message of a link, later ones are delivered (docs/security.md): this
+    # bounds one message, not a flood.
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(transport.max_message_bytes))
     if router:
         listening, connecting = listen or [transport.router], transport.connect
@@ -116,10 +116,10 @@ class Bus:
     def _callback(self, handler: Callable[[Any], None]) -> Any:
         """A subscription's handler as Zenoh runs it (transport.callback_threads): in a Python
         thread of its own, fed by a channel (Zenoh's default), or directly in Zenoh's network
-        thread. Direct saves a thread per subscription -- an actor host of 50 robots had ~250 --
-        and the hand-over of every sample to it: 100 robots' two actor hosts 45+42 -> 38+35 % of
-        a core (README "Fleet"). Handlers here only decode, check and store (none waits on the
-        network), so they may run on the network thread."""
+        thread. Direct saves a thread per subscription (an actor host of 50 robots has ~250) and
+        the hand-over of every sample to it: ~7 % of a core for such a host (docs/fleets.md).
+        Handlers here only decode, check and store (none waits on the network), so they may run
+        on the network thread."""
         return zenoh.handlers.Callback(handler, indirect=self.callback_threads)
 
     def close(self) -> None:
@@ -247,8 +247,8 @@ class Bus:
     def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
         """Keep only the newest sample on ``key``, undecoded, in Zenoh (a ring channel of one);
         :meth:`Newest.take` decodes it when asked, with its source and arrival time. For a host
-        that serves many robots at ``delta`` from states that come faster (issue 16): no Python
-        runs per sample, and only the sample the loop uses is parsed."""
+        that serves many robots at ``delta`` from states that come faster (docs/fleets.md): no
+        Python runs per sample, and only the sample the loop uses is parsed."""
         subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
         self._keep.append(subscriber)
         return Newest(self, topic, what or topic.pattern.split("/", 2)[-1], subscriber)
@@ -275,7 +275,7 @@ class Bus:
     def query(self, service: Service[M, R], robot: str, request: M, timeout: float) -> R:
         """One request, one validated reply; raises ``TimeoutError`` or ``MessageError``.
 
-        Through a Zenoh querier declared once per key and timeout: measured on loopback, a
+        Through a Zenoh querier declared once per key and timeout: on loopback it costs a
         quarter less CPU and a fifth less round-trip time than a fresh ``session.get``."""
         key = service.key(robot)
         querier = self._queriers.get((key, timeout))
@@ -299,30 +299,23 @@ class Bus:
         self._keep.append(liveliness.declare_token(identity_key(robot, self.service, self.zid)))
 
     def refuse_other_plant(self, robot: str) -> None:
-        """One plant per robot (issue 13), before declaring: a plant (simulator or robot bridge)
+        """One plant per robot, checked before declaring: a plant (simulator or robot bridge)
         never starts beside a live plant of the same robot (:class:`PlantConflictError`)."""
         others = self.live_identities(robot, self.service)
         if others:
             raise _plant_conflict(robot, others)
 
     def declare_sole_plant(self, robot: str, settle: float = PLANT_SETTLE_S) -> None:
-        """Declare this plant alive (:meth:`declare_alive`), then break a tie with a plant that
-        started at the same moment: after ``settle`` seconds, the session that sorts after
-        another live plant identity (:func:`common.net.provenance.yields_to`) withdraws its tokens
-        and raises :class:`PlantConflictError`; the other one computes the same answer and stays."""
-        kept = len(self._keep)
-        self.declare_alive(robot)
-        time.sleep(settle)
-        ahead = yields_to(self.zid, self.live_identities(robot, self.service))
-        if ahead:
-            for token in self._keep[kept:]:
-                token.undeclare()
-            del self._keep[kept:]
-            raise _plant_conflict(robot, ahead)
+        """:meth:`declare_sole_plants` for one robot."""
+        self.declare_sole_plants([robot], settle)
 
     def declare_sole_plants(self, robots: list[str], settle: float = PLANT_SETTLE_S) -> None:
-        """:meth:`declare_sole_plant` for every robot of a plant host (issue 16), with one settle
-        for all of them: a fleet of 100 starts in 0.3 s, not 30 s."""
+        """Declare this plant alive for every robot (:meth:`declare_alive`), then break a tie
+        with a plant that started at the same moment: after ``settle`` seconds, the session that
+        sorts after another live plant identity (:func:`common.net.provenance.yields_to`)
+        withdraws all the tokens it declared here and raises :class:`PlantConflictError`; the
+        other one computes the same answer and stays. One settle for all the robots of a plant
+        host: a fleet of 100 starts in 0.3 s, not 30 s."""
         kept = len(self._keep)
         for robot in robots:
             self.declare_alive(robot)
@@ -398,7 +391,7 @@ class Newest(Generic[M]):
 
     Zenoh keeps it (a ring channel of one sample): no Python runs, and the GIL is not taken, per
     arriving sample. A 50-robot actor host gets 2,500 states a second; handing each to a Python
-    callback cost ~6 % of a core more than this (measured, README "Fleet")."""
+    callback costs ~6 % of a core more than this (docs/fleets.md)."""
 
     def __init__(self, bus: Bus, topic: Topic[M], name: str, subscriber: Any) -> None:
         self.bus, self.topic, self.name = bus, topic, name

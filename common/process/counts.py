@@ -1,4 +1,4 @@
-"""One robot's counters in a process that serves many (an actor host, a bridge host; issue 16)."""
+"""One robot's counters in a process that serves many (an actor host, a bridge host)."""
 
 from __future__ import annotations
 

@@ -1,1 +1,5 @@
-"""system"""
+"""OS-level helpers with no srl concept: die with the parent (lifeline), absolute-time ticks
+(clock), atomic and private files (checkpoint), the JIT build of CasADi functions (jit).
+
+The ground floor: imports nothing of ``common``.
+"""

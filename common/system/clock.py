@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 LATE_FRACTION = 0.25
 """A tick that wakes up more than this fraction of the period after its due time is a missed
-deadline (25 ms at delta = 0.1 s; issue 13 saw a 54 ms late tick pass uncounted): its action then
+deadline (25 ms at delta = 0.1 s): its action then
 holds for less than three quarters of the interval the plan assumed, although the previous
 iteration did not overrun (a preempted or oversleeping thread). Smaller delays are jitter (the
 loop's jitter statistics show them): on a loaded 2-vCPU machine 10-20 ms wake-ups happen."""

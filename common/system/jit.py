@@ -7,7 +7,7 @@
 * Compiled objects are cached per user (:func:`default_jit_cache`), keyed by the SHA-256 of the
   compiler's version, the flags and the source; the least recently used are pruned.
 
-No srl concept lives here: the actor (common/math/actor.py) hands its functions to
+No srl concept lives here: the actor (common/math/actor_nlp.py) hands its functions to
 :func:`build_with_jit` and gets them back compiled.
 """
 
@@ -33,8 +33,13 @@ T = TypeVar("T")
 # srl dies (SIGTERM/SIGKILL), when srl received SIGTERM/SIGINT (Python's C-level handler writes
 # the signal number to SIGNALS, see jit_directory), or when the terminal's Ctrl-C reaches
 # the wrapper itself; it leaves the signal number in SIGNALS for Python to report.
+# With SRL_JIT_KEEPER set (a _SigintKeeper runs), gcc starts only once srl's SIGINT is no longer
+# ignored (its /proc status, SigIgn): system() ignores it from its start until the keeper puts
+# Python's handler back, and that takes as long as the keeper waits for a CPU; so for as long as
+# the compiler runs, a SIGINT sent to srl alone is heard. The wait is bounded (~2 s): a build
+# never hangs on the keeper.
 # gcc runs niced (+10): on a machine where actors already tick (a fleet's second host, a test
-# beside a run), their deadlines come first; alone, it runs as fast as before.
+# beside a run), their deadlines come first; alone, the niceness costs it nothing.
 # With SRL_JIT_CACHE (a private directory, see jit_cache_directory), a compile (CasADi's
 # ``cc FLAGS -c SOURCE -o OBJECT``) is looked up by the SHA-256 of the compiler's version, the
 # flags and the source: the same problem compiles once per machine (CasADi's generated source
@@ -55,6 +60,14 @@ if [ -n "$cache" ] && [ -n "$src" ] && [ -n "$out" ]; then
     if [ -z "${SRL_JIT_CACHE_REFRESH:-}" ] && [ -f "$cache/$key.o" ] && cp "$cache/$key.o" "$out"; then
         touch "$cache/$key.o"; exit 0
     fi
+fi
+if [ -n "${SRL_JIT_KEEPER:-}" ]; then  # srl hears SIGINT again before the compiler starts (_SigintKeeper)
+    looks=0
+    while [ "$looks" -lt 400 ] && kill -0 "$owner" 2>/dev/null && [ ! -s "$signals" ]; do
+        ignored=$(sed -n "s/^SigIgn:[[:space:]]*//p" "/proc/$owner/status" 2>/dev/null)
+        case "$ignored" in *[2367abef]) ;; *) break;; esac  # bit 1 of the mask: SIGINT ignored
+        sleep 0.005; looks=$((looks + 1))
+    done
 fi
 niced=; command -v nice >/dev/null 2>&1 && niced="nice -n 10"
 setsid $niced "$@" &
@@ -164,6 +177,8 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
     os.chdir(path)
     compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
     keeper = _SigintKeeper() if main else None
+    if keeper is not None and keeper.running:
+        os.environ["SRL_JIT_KEEPER"] = "1"  # the wrapper waits for the keeper before gcc starts
     try:
         yield compiler
     except Exception as error:
@@ -181,6 +196,7 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
             os.environ["SRL_JIT_OWNER"] = owner
         os.environ.pop("SRL_JIT_CACHE", None)
         os.environ.pop("SRL_JIT_CACHE_REFRESH", None)
+        os.environ.pop("SRL_JIT_KEEPER", None)
         if cache_before is not None:
             os.environ["SRL_JIT_CACHE"] = cache_before
         shutil.rmtree(path, ignore_errors=True)
@@ -199,11 +215,13 @@ class _SigintKeeper:
     be lost for the minutes of a large build. CasADi releases the GIL meanwhile, so this thread
     puts Python's own C-level handler back (read with ``sigaction`` before the build) within
     :data:`KEEPER_POLL_SECONDS`: the signal then reaches the wakeup file, and the wrapper stops
-    gcc. A SIGINT inside that window, right as a ``system()`` starts, is still lost (the kernel
-    drops an ignored signal): the window was 10 ms, and one CI run lost the signal a test sent
-    as gcc's ``cc1`` appeared, on a loaded machine; it is 1 ms now (~1,000 ``sigaction`` reads a
-    second during a build, a few us each). ``system()``
-    restores the same handler when it returns. Linux/glibc only; elsewhere it does nothing.
+    gcc. A SIGINT inside that window, right as a ``system()`` starts, is lost (the kernel drops
+    an ignored signal). The poll keeps the window short (1 ms, ~1,000 ``sigaction`` reads a
+    second during a build, a few us each), but its real length is how long this thread waits for
+    a CPU, unbounded on a loaded machine; so the wrapper starts gcc only once the handler is
+    back (``SRL_JIT_KEEPER``, see _JIT_WRAPPER), and the window never overlaps the compiler's
+    run, only the shell's start before it. ``system()`` restores the same handler when it
+    returns. Linux/glibc only; elsewhere it does nothing (:attr:`running` false).
     """
 
     def __init__(self) -> None:
@@ -238,6 +256,10 @@ class _SigintKeeper:
 
         self._thread = threading.Thread(target=keep, name="jit-sigint", daemon=True)
         self._thread.start()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None
 
     def stop(self) -> None:
         self._done.set()

@@ -1,8 +1,8 @@
-"""The actor host (issue 16): one process serves many robots at ``delta``.
+"""The actor host: one process serves many robots at ``delta``.
 
 Each robot has what a single actor has -- its own :class:`~services.actor.realtime.RealtimeActor`
 (state intake with provenance, weights inbox, statistics, transitions, staleness), its own plans
-and warm starts, arrival rule and counters (:class:`~common.math.actor.ActorMemory`), its own tick
+and warm starts, arrival rule and counters (:class:`~common.math.actor_problem.ActorMemory`), its own tick
 accounting (:class:`RobotTicker`) and its own keys (``srl/<robot>/action``, ``.../transition``,
 ``.../status/actor``, liveliness ``.../alive/actor``). What they share is ONE built problem per
 (agent, N): :class:`RobotActor` swaps a robot's memory into the shared
@@ -19,8 +19,9 @@ actor (common/system/clock.py); a tick more than a period late is skipped, count
 robot's schedule moves on (no burst of catch-up ticks).
 
 Before the first tick, every robot whose state has come is solved once off the schedule
-(:func:`prime_plans`), so its first tick polishes a plan: 50 cold first solves in the first
-period put a host ~60 ms behind (at 100 robots most missed deadlines came from that burst).
+(:func:`prime_plans`), so its first tick polishes a plan: a cold solve costs several warm ones,
+and every robot's cold first solve within the first period would put the host behind its
+schedule from its first round.
 """
 
 from __future__ import annotations
@@ -39,26 +40,26 @@ import numpy as np
 from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
-from common.contracts.keys import STATE, STATUS, WEIGHTS
+from common.contracts.keys import STATE, STATUS
 from common.contracts.messages import PlantState, ServiceStatus
 from common.contracts.summaries import RealtimeActorSummary
-from common.math.actor import ActorCounters, ActorMemory, ActorProblem, ActorStep, StackedActor
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.stats import Window
-from common.net.provenance import SourceGate
 from common.net.transport import Bus, Newest
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker
 from services.actor.ports import WeightsInbox, new_episode_id
 from services.actor.realtime import RealtimeActor
-from services.actor.service import wire_realtime
+from services.actor.service import wire_realtime, wire_weights
 
 log = logging.getLogger(__name__)
 
 # A tick served more than this fraction of a period after its due time is solved in a hurry
 # (StackedActor.step: one polish of the warm start, no global phase, runner-up polish or vertex
 # search): a host behind its schedule sheds the optional work until it is on time again,
-# instead of missing deadlines (issue 16).
+# instead of missing deadlines.
 HURRY_FRACTION = 0.05
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.
@@ -138,8 +139,8 @@ class HostScheduler:
     ``budget``: the share of a period this thread may spend on ticks (the sum of its last round's
     tick times, one per robot); over it, the next tick is solved in a hurry (counted in
     ``over_budget``), as a tick served late is. With the thread real-time (``realtime_priority``)
-    nothing else makes it shed work, and at its peak a 100-robot fleet's hosts took the cores the
-    critic needed (README "Real-time priority").
+    nothing else makes it shed work, and a real-time host that never sheds can take the cores the
+    critic needs (docs/fleets.md).
     ``clock`` and ``sleep`` (``sleep(seconds) -> True`` to stop) are injectable, as for Ticker."""
 
     def __init__(
@@ -245,8 +246,8 @@ def _status_loop(
     stop: threading.Event,
 ) -> None:
     """Each robot's status once a ``period``, one robot at a time spread over it: the whole
-    host's in one burst held the GIL from the scheduler thread for 1-11 ms (measured at 50
-    robots, issue 16), a few tens of microseconds each this way."""
+    host's in one burst would hold the GIL from the scheduler thread for the sum of them, one at
+    a time holds it for one robot's (tens of microseconds)."""
     publishers = [bus.publisher(STATUS, robot, service="actor") for robot in robots]
     gap = period / max(1, len(robots))
     while not stop.is_set():
@@ -286,10 +287,7 @@ def run_host(
     for robot in robots:
         own = robot_settings(settings, robot)
         count = RobotCounts(robot, "actor", forward=bus.reject)
-        critic_gate = SourceGate("critic")
-        bus.watch_identities(robot, "critic", critic_gate)
-        inbox = WeightsInbox(own, bus, critic_gate)
-        bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
+        inbox = wire_weights(own, bus)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
         loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id())
         states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
@@ -337,7 +335,7 @@ def prime_plans(
 ) -> int:
     """Before the first tick, each robot's first solve (:meth:`RealtimeActor.prime`) from its first
     state, off the schedule; robots whose state has not come within ``wait`` seconds start
-    without (they solve cold at their first state, as before). The number primed."""
+    without (they solve cold at their first state). The number primed."""
     deadline = time.monotonic() + wait
     pending = list(range(len(loops)))
     while pending and not stop.is_set():

@@ -5,7 +5,7 @@ accepted state, solves, publishes the action and one transition. It never waits 
 it uses the newest weights it holds and reports their staleness. It commands zero velocity and
 records no transition (the critic sees a gap, never a false pair) when the state is stale
 (older than ``(action_timeout_steps - 1) delta``), never came, when the plant's liveliness token
-vanished, or while two plant sessions are alive (issue 13).
+vanished, or while two plant sessions are alive (common.net.provenance).
 
 States are accepted only from the live plant session (its identity token, common.net.provenance),
 in order per session and never more than :data:`MAX_SEQ_JUMP` ahead; a new session (a
@@ -34,7 +34,8 @@ import numpy as np
 from common.config.settings import Settings
 from common.contracts.messages import Action, PlantState, Transition
 from common.contracts.summaries import RealtimeActorSummary, TrueView
-from common.math.actor import ActorCounters, ActorStep, StackedActor
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorCounters, ActorStep
 from common.math.agents import learns
 from common.math.features import stage_cost
 from common.math.stats import Window
@@ -121,7 +122,7 @@ class RealtimeActor:
         self.accumulated_cost = 0.0
         self.tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)  # what a replay must hold
         # when each of the last PUBLISH_TIMES_KEPT steps was published (slot k % KEPT holds step k):
-        # fixed arrays, resident from the start (a dict grew over the first 100 s of a soak)
+        # fixed arrays, resident from the start: the loop's memory never grows while it runs
         self.published_step = np.full(PUBLISH_TIMES_KEPT, -1, dtype=np.int64)
         self.published_at = np.full(PUBLISH_TIMES_KEPT, math.nan)
         self.published_steps: deque[list[int]] = deque(maxlen=RUNS_KEPT)
@@ -229,8 +230,8 @@ class RealtimeActor:
     def prime(self) -> bool:
         """One solve from the held state, acting on nothing (no action, no transition): an actor
         host before its first tick, so that tick polishes a plan instead of solving cold (a cold
-        solve, with issue 18's global phase from scratch, costs several warm ones, and 50 of them
-        in the first period put a host 60 ms behind: services/actor/host.py). The solve and its
+        solve, with the global phase from scratch, costs several warm ones: services/actor/host.py
+        ``prime_plans``). The solve and its
         time are counted as any other. False: no state held yet."""
         with self.lock:
             held = self.latest
@@ -341,22 +342,12 @@ class RealtimeActor:
         finally:
             if manual_gc:
                 gc.enable()
-        # on the way out: stop the robot
-        self.publish_action(
-            Action(
-                robot=self.robot,
-                episode=self.episode_id,
-                step=ticker.index,
-                stamp_ns=time.monotonic_ns(),
-                action=(0.0, 0.0),
-                state_seq=-1,
-            )
-        )
+        self.send(ticker.index, (0.0, 0.0), -1)  # on the way out: stop the robot
 
     # -- reports ------------------------------------------------------------------------------
     def lockout_suspect(self) -> bool:
         """The live plant's states are being refused and none was accepted for over a second:
-        the pattern a forged far-ahead sequence number or episode leaves (status, issue 13)."""
+        the pattern a forged far-ahead sequence number or episode leaves (status)."""
         with self.lock:
             held = self.latest
         now = self.clock()
@@ -386,7 +377,7 @@ class RealtimeActor:
             "plant_sources": float(len(self.plant_gate.sources())),
             "plant_conflict": float(self.plant_gate.conflict),
             "lockout_suspect": float(self.lockout_suspect()),
-            "arrived": float(self.arrived),  # the arrival rule holds the robot (issue 21)
+            "arrived": float(self.arrived),  # the arrival rule holds the robot (common/math/arrival.py)
             "arrived_steps": float(self.arrived_steps),
         }
 

@@ -53,7 +53,8 @@ from scipy.optimize import Bounds, OptimizeResult, minimize
 
 from common.config.assembly import build_actor
 from common.config.settings import PAPER_METHOD, Settings
-from common.math.actor import ActorProblem, StackedActor
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorProblem
 from common.math.agents import AGENTS
 from common.math.agents import parse_agents as parse_agent_names
 from common.math.agents import parse_horizons as parse_horizon_numbers
@@ -61,6 +62,7 @@ from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.math.features import feature_count, feature_index_pairs
 from common.math.loop import ExactPlant
 from common.math.stats import summarize
+from tools.bench.meta import run_info
 from tools.bench.snapshots import SNAPSHOT_FILE, load_snapshots, snapshot_weights
 
 # -- constants of the benchmark -------------------------------------------------------------
@@ -79,7 +81,7 @@ TARGET_MEDIAN_MS = 0.75
 TARGET_P99_MS = 2.0
 TARGET_SPEEDUP_MPC = 20.0
 TARGET_SPEEDUP_ALL = 5.0
-# The argmin (issue 18), judged on the rows with learned or trained weights: the actor in the
+# The argmin, judged on the rows with learned or trained weights: the actor in the
 # loop not worse than a cold SLSQP solve (to OBJ_RTOL) at this share of the states, and the
 # median relative gap at most this (0 up to the comparison's own tolerance).
 TARGET_ARGMIN_SHARE = 0.9
@@ -523,7 +525,7 @@ def _row(
 
 
 def evaluate_targets(rows: list[dict[str, Any]], main_solver: str) -> dict[str, dict[str, Any]]:
-    """The issue's targets over the main-solver rows; ``pass`` is None when no row applies."""
+    """The targets over the main-solver rows; ``pass`` is None when no row applies."""
     main = [r for r in rows if r["solver"] == main_solver]
     at_target = [r for r in main if r["horizon"] == TARGET_HORIZON]
 
@@ -829,6 +831,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
             "targets": targets,
             "weights": {w.name: w.info for w in weight_sets}
             | {f"{a} N={n} {w.name}": w.info for (a, n), sets in trained.items() for w in sets},
+            "run": run_info(),
             "baseline": {
                 "method": BASELINE_METHOD,
                 "tol": BASELINE_TOL,
