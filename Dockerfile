@@ -40,7 +40,7 @@ RUN python3 -m venv /opt/srl \
     else \
       echo "srl image: no dist/wheels: building srl and fetching its dependencies from PyPI"; \
       /opt/srl/bin/python -m pip install --prefer-binary '/src[physics]' \
-      || { echo "srl image: the install from PyPI failed; without network, run docker/build-wheels first (README, Containers)" >&2; exit 1; }; \
+      || { echo "srl image: the install from PyPI failed; without network, run docker/build-wheels first (docs/getting-started.md)" >&2; exit 1; }; \
     fi \
  && /opt/srl/bin/python -m pip uninstall --yes --quiet pip \
  && find /opt/srl/lib -depth -type d -name tests -path '*/site-packages/*/tests' -exec rm -rf {} + \
