@@ -38,7 +38,7 @@ from common.contracts.ros_wire import TB3_BURGER_OMEGA_MAX, TB3_BURGER_V_MAX
 from common.net.provenance import RESYNC_AFTER, SequenceGuard, SourceGate
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import MAX_SEQ_JUMP
-from services.robot_bridge.service import RobotBridge
+from services.robot_bridge.bridge import RobotBridge
 from tests.harness import FakeCounts, cluster, wait_until
 from tests.test_realtime_actor import PLANT, Loop
 
@@ -359,6 +359,8 @@ def test_the_actor_state_acceptance_is_never_locked_out(data: st.DataObject, rea
     assert first < t.loop.order.restart_after + RESYNC_AFTER and all(taken[first:])
 
 
+@pytest.mark.timing
+@pytest.mark.integration
 @pytest.mark.slow
 def test_live_fuzz_every_key_for_ten_seconds() -> None:
     rng = random.Random(20261122)
@@ -427,7 +429,7 @@ def _record_action(sample: zenoh.Sample, sink: list[tuple[float, float]], episod
 
 
 def test_the_true_state_is_optional_on_the_wire_and_absent_when_unknown() -> None:
-    """Schema 1 plus an optional true state (issue 21): a robot's message carries no such key,
+    """Schema 1 plus an optional true state (docs/reference/messages.md): a robot's message carries no such key,
     byte for byte what it was; a simulator's round-trips."""
     robot = PlantState(robot="r", episode=1, seq=2, stamp_ns=3, state=(0.1, 0.2, 0.3), source="robot")
     assert json.loads(robot.encode()) == {

@@ -24,9 +24,10 @@ from common.contracts.summaries import (
     PlantSummary,
     RouterSummary,
 )
-from services.robot_bridge.service import RobotBridge
+from services.robot_bridge.bridge import RobotBridge
 from tests.harness import FakeCounts
-from tools.launch.up import CHILD_SUMMARIES, Child, _contract_summary, optional_summary
+from tools.launch.supervisor import CHILD_SUMMARIES, Child, optional_summary
+from tools.launch.supervisor import contract_summary as _contract_summary
 
 
 def _episode() -> dict[str, object]:
@@ -70,6 +71,7 @@ def test_the_actor_summary_is_told_apart_by_its_mode() -> None:
         ACTOR_SUMMARY.validate_python({**lockstep, "mode": "realtime"})
 
 
+@pytest.mark.integration
 def test_srl_up_says_in_one_line_which_child_summary_is_missing_or_wrong() -> None:
     process = subprocess.Popen([sys.executable, "-c", "pass"], text=True)
     process.wait()
@@ -160,6 +162,7 @@ def test_the_plant_bridge_emulator_and_router_summaries_fit_and_refuse_a_drifted
         parsed.service = "other"  # type: ignore[misc]
 
 
+@pytest.mark.integration
 def test_srl_up_reads_the_plant_and_the_bridge_through_their_contracts() -> None:
     assert CHILD_SUMMARIES["plant"] is PlantSummary and CHILD_SUMMARIES["robot_bridge"] is BridgeSummary
     process = subprocess.Popen([sys.executable, "-c", "pass"], text=True)
@@ -182,8 +185,10 @@ def _stage(state: np.ndarray, action: np.ndarray, r: tuple[float, ...]) -> float
     return float(sum(r_i * c * c for r_i, c in zip(r, chi, strict=True)))
 
 
+@pytest.mark.integration
 def test_a_summary_on_the_actuator_plant_reports_the_truth_beside_the_odometry() -> None:
-    """Fails on the main of issue 21: the summary had no truth, and no plant saturated a wheel."""
+    """On the actuator plant the summary carries the truth beside the odometry, and the plant
+    saturates a wheel."""
     settings = Settings.load(
         plant={"model": "actuator"},
         actuator={"slip": 0.1, "slip_std": 0.02, "imu_heading": False},
@@ -212,6 +217,7 @@ def test_a_summary_on_the_actuator_plant_reports_the_truth_beside_the_odometry()
     assert boxed_summary.saturated_commands == 0
 
 
+@pytest.mark.integration
 def test_on_the_ideal_plant_the_truth_is_what_the_robot_reports() -> None:
     settings = Settings.load(actor={"agent": "mpc"}, episode={"duration": 2.0})
     summary = EpisodeSummary.model_validate(episode_summary(run_episode(settings), settings))
@@ -221,6 +227,7 @@ def test_on_the_ideal_plant_the_truth_is_what_the_robot_reports() -> None:
     assert summary.saturated_commands == 0
 
 
+@pytest.mark.integration
 def test_a_plant_without_the_truth_gives_a_summary_that_says_so() -> None:
     from common.math.loop import ExactPlant
 
@@ -236,7 +243,7 @@ def test_a_plant_without_the_truth_gives_a_summary_that_says_so() -> None:
     settings = Settings.load(actor={"agent": "mpc"}, episode={"duration": 1.0})
     summary = episode_summary(run_episode(settings, plant=OdometryOnly()), settings)
     assert summary["truth"] is None and summary["saturated_commands"] is None
-    from tools.cli import format_run_summary
+    from tools.commands.run import format_run_summary
 
     text = format_run_summary({**summary, "wall_seconds": 0.0, "transport": "inproc"})
     assert "only its odometry is known" in text

@@ -1,7 +1,7 @@
 """The actor's ports: what the loop talks to, over Zenoh.
 
 * :class:`WeightsInbox` -- the newest accepted critic weights (provenance, box, versions, trained
-  step: issue 13);
+  step: common.net.provenance);
 * :class:`ZenohPlant` -- the plant behind its lockstep queryables (``plant/reset``, ``plant/step``);
 * :class:`ZenohCriticPort` -- transitions out to the off-board critic, weights back.
 
@@ -33,11 +33,10 @@ log = logging.getLogger(__name__)
 # our clock by more than the skew between the two hosts: NTP keeps hosts within milliseconds,
 # 5 s tolerates a badly synchronized one. This refuses a single forged far-future version; it
 # cannot bound a forged version *within* the window (the real versions, which lag the clock, never
-# catch up with it): the resync below does (issue 13: with 60 s here, one forged message with the
-# live critic's id locked out every real update).
+# catch up with it): the resync below does (common.net.provenance.RefusalRun).
 MAX_VERSION_AHEAD_US = 5_000_000
 # Weights beyond the critic's box are refused; without a box (critic.weight_bounds = []) this
-# is the bound: far above any fit of ours (README), far below where the objective overflows.
+# is the bound: far above any fit of ours (docs/concepts.md), far below where the objective overflows.
 MAX_ABS_WEIGHT_UNBOXED = 1e6
 
 
@@ -53,7 +52,7 @@ class HeldWeights:
 class WeightsInbox:
     """Newest accepted critic weights of the current episode (thread-safe).
 
-    Weights are accepted only (issue 13): from the live critic session when a ``gate`` is given
+    Weights are accepted only: from the live critic session when a ``gate`` is given
     (its identity token, common.net.provenance), for the current episode, newer than the held
     version of the same critic session (a new session -- a restarted critic -- resynchronizes),
     within the configured weight box (else the last good weights are kept), and trained on a

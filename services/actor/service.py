@@ -46,12 +46,8 @@ log = logging.getLogger(__name__)
 def run(
     settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None, sync_critic: bool
 ) -> dict[str, Any]:
-    robot = settings.transport.robot
     actor = build_actor(settings)  # built once, before the loop starts
-    critic_gate = SourceGate("critic")
-    bus.watch_identities(robot, "critic", critic_gate)
-    inbox = WeightsInbox(settings, bus, critic_gate)
-    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
+    inbox = wire_weights(settings, bus)
     # the liveliness token means "ready": declared by each mode once all its inputs are subscribed
     if mode == "lockstep":
         return _run_lockstep(settings, bus, actor, inbox, sync_critic)
@@ -89,6 +85,17 @@ def _run_lockstep(
         }
     )
     return LockstepActorSummary.model_validate(summary).to_json_dict()
+
+
+def wire_weights(settings: Settings, bus: Bus) -> WeightsInbox:
+    """One robot's weights inbox on the bus (``settings.transport.robot``'s keys): weights only
+    from the live critic session of that robot (its identity watched, common.net.provenance)."""
+    robot = settings.transport.robot
+    critic_gate = SourceGate("critic")
+    bus.watch_identities(robot, "critic", critic_gate)
+    inbox = WeightsInbox(settings, bus, critic_gate)
+    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
+    return inbox
 
 
 def wire_realtime(

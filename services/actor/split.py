@@ -1,4 +1,4 @@
-"""``srl actor --robots ... --hosts H``: one command, H actor host processes (issue 16).
+"""``srl actor --robots ... --hosts H``: one command, H actor host processes.
 
 A host's solves run in one thread, so a fleet that needs more than one core needs more than one
 host process: ``srl up`` starts them itself (``--actor-hosts``); a container (compose's fleet

@@ -24,7 +24,7 @@ Nothing is lost across a crash:
 Steps more than ``retention`` behind the newest step of the episode are refused as too old
 (counted): this bounds the memory of seen steps and the checkpoint's size.
 
-``critic.pooled`` (``srl critic --pooled``; issue 16): ONE learner for every robot
+``critic.pooled`` (``srl critic --pooled``): ONE learner for every robot
 (:class:`~common.math.critic.PooledLearner`). Each robot keeps its stream (episode, replay of M, steps
 seen) and TD pairs never leave a stream; the one critic is fitted once per fleet step (as many
 transitions due a fit as the fleet has robots since the last fit) and its weights go to every
@@ -529,10 +529,10 @@ def run(
             message = inbox.get(timeout=0.05)
         except queue.Empty:
             continue
-        # Every transition waiting is taken in one batch (a fleet sends one per robot per step,
-        # issue 16): every robot due a fit is fitted at the batch's end, all in one stacked solve,
-        # then ONE checkpoint holds them all, then the batch's weights go out. One robot alone
-        # gives batches of one: as before.
+        # Every transition waiting is taken in one batch (a fleet sends one per robot per step):
+        # every robot due a fit is fitted at the batch's end, all in one stacked solve, then ONE
+        # checkpoint holds them all, then the batch's weights go out. One robot alone gives
+        # batches of one: a fit per transition due, as without batching.
         batch = take_batch(message, inbox, settings.critic.batch_window, len(learner.learners))
         before = learner.accepted
         outgoing: list[CriticWeights] = []

@@ -10,7 +10,7 @@ reported pose (the odometry) and, since a simulator knows it, the true pose besi
 * realtime: integrates continuously at ``state_rate`` Hz with the newest action held, publishes
   the state each period, and stops the robot (zero velocity) when no action arrived for
   ``action_timeout_steps * delta``. It serves no query: a step or reset from anyone would move
-  the robot behind the actor's back (issue 13, finding 3), so neither queryable is declared.
+  the robot behind the actor's back, so neither queryable is declared.
 Every applied action is clamped to the robot's limits; messages are validated by schema.
 """
 
@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -57,6 +58,72 @@ def state_ticks(
             last = now
     finally:
         bus.count("missed_ticks", ticker.missed)
+
+
+class ActionIntake:
+    """One robot's actions into a plant: only the live actor session's, in its order
+    (:class:`~common.net.provenance.ActionGate`: a stray or forged publisher on the key is refused,
+    counted), each held until the next; zero velocity at once when the followed actor session is
+    gone, and from the watchdog when no action came for ``action_timeout_steps * delta``.
+    One plant_sim and each robot of the plant host alike (transport-free).
+
+    ``hold`` takes the action to hold (it clamps it to the robot's limits), ``reject`` a refusal
+    (what, why), ``count`` (optional) each of ``actions_applied``, ``actor_lost_stops`` and
+    ``watchdog_stops`` as it happens; the same counts are kept as attributes."""
+
+    def __init__(
+        self,
+        hold: Callable[[Any], None],
+        reject: Callable[[str, str], None],
+        count: Callable[[str], None] | None = None,
+    ) -> None:
+        self.hold, self.reject, self.count = hold, reject, count
+        self.gate = ActionGate(SourceGate("actor"))
+        self.lock = threading.Lock()
+        self.at: float | None = None  # when the held action arrived (None: holding zero)
+        self.applied = 0
+        self.refused = 0
+        self.watchdog_stops = 0
+        self.actor_lost_stops = 0
+
+    def _counted(self, name: str) -> None:
+        if self.count is not None:
+            self.count(name)
+
+    def on_action(self, message: Action, source: str | None) -> None:
+        self.take(message, source)
+
+    def take(self, message: Action, source: str | None) -> float | None:
+        """An action from session ``source``: held if admitted; when it arrived (None: refused)."""
+        now = time.monotonic()
+        with self.lock:
+            refusal = self.gate.admit(message.episode, message.step, source, now)
+            if refusal is not None:
+                self.refused += 1
+                self.reject(*refusal)
+                return None
+            self.hold(message.action)
+            self.at = now
+            self.applied += 1
+        self._counted("actions_applied")
+        return now
+
+    def on_actor_identity(self, zid: str, alive: bool) -> None:
+        with self.lock:
+            if not alive and self.gate.lost(zid, time.monotonic()):  # the followed actor is gone: stop at once
+                self.at = None
+                self.hold((0.0, 0.0))
+                self.actor_lost_stops += 1
+                self._counted("actor_lost_stops")
+
+    def watchdog(self, now: float, timeout: float) -> None:
+        """Zero velocity once the held action is older than ``timeout`` [s], until a fresh one."""
+        with self.lock:
+            if self.at is not None and now - self.at > timeout:
+                self.watchdog_stops += 1
+                self._counted("watchdog_stops")
+                self.at = None  # stopped: zero until the next fresh action
+                self.hold((0.0, 0.0))
 
 
 class SimulatedPlant:
@@ -156,7 +223,7 @@ class SimulatedPlant:
 def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None) -> dict:
     plant = SimulatedPlant(settings)
     robot = settings.transport.robot
-    # one plant per robot (issue 13): a second simulator (or a bridge) for the same robot would
+    # one plant per robot: a second simulator (or a bridge) for the same robot would
     # make the actor follow one robot's states while commanding another
     bus.refuse_other_plant(robot)
     publish_state = bus.publisher(STATE, robot)
@@ -164,33 +231,12 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
         bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
 
-    latest: dict[str, object] = {"at": None}
-    # whose actions drive the robot: only the live actor session's, in its order (issue 13: the
-    # same gate as the robot bridge's; a stray or forged publisher on the key is refused, counted)
-    actions = ActionGate(SourceGate("actor"))
-    action_lock = threading.Lock()
-
-    def on_action(message: Action, source: str | None) -> None:
-        now = time.monotonic()
-        with action_lock:
-            refusal = actions.admit(message.episode, message.step, source, now)
-            if refusal is not None:
-                bus.reject(*refusal)
-                return
-            plant.hold(plant.clamp(message.action))
-            latest["at"] = now
-        bus.count("actions_applied")
-
-    def on_actor_identity(zid: str, alive: bool) -> None:
-        with action_lock:
-            if not alive and actions.lost(zid, time.monotonic()):  # the followed actor is gone: stop at once
-                latest["at"] = None
-                plant.hold(np.zeros(2))
-                bus.count("actor_lost_stops")
-
+    # whose actions drive the robot: only the live actor session's, in its order (the same gate
+    # as the robot bridge's)
+    intake = ActionIntake(lambda action: plant.hold(plant.clamp(action)), bus.reject, bus.count)
     if mode == "realtime":
-        bus.watch_identities(robot, "actor", actions.gate, on_actor_identity)
-        bus.subscribe(ACTION, ACTION.key(robot), on_action, with_source=True)
+        bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
+        bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
     bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
     start_status_thread(bus, robot, settings.transport.status_period, stop, lambda: {"seq": plant.seq})
     log.info("plant_sim ready (%s mode, robot %s)", mode, robot)
@@ -198,12 +244,7 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
     if mode == "realtime":
         timeout = action_timeout(settings)
         for now, elapsed in state_ticks(settings, bus, stop, duration):
-            at = latest["at"]
-            fresh = at is not None and now - float(at) <= timeout  # type: ignore[arg-type]
-            if not fresh and at is not None:
-                bus.count("watchdog_stops")
-                latest["at"] = None  # stopped: zero until the next fresh action
-                plant.hold(np.zeros(2))
+            intake.watchdog(now, timeout)
             publish_state(plant.advance(elapsed))
     else:
         stop.wait(duration)

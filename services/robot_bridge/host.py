@@ -1,4 +1,4 @@
-"""The bridge host (issue 16): one ``srl robot-bridge --robots ...`` process for several ROS 2 robots.
+"""The bridge host: one ``srl robot-bridge --robots ...`` process for several ROS 2 robots.
 
 Each srl robot id is its robot's ROS namespace (common/math/fleet.py ``ros_fleet``): robot ``tb3_1``
 reads ``/tb3_1/odom`` and commands ``/tb3_1/cmd_vel`` (rmw_zenoh keys ``<domain>/tb3_1/odom/...``,
@@ -7,17 +7,18 @@ Every robot keeps what one bridge keeps -- its own :class:`RobotBridge` (goal fr
 odometry checks, the live actor session's actions in order, the watchdog) and its own
 :class:`RosLink` (cmd_vel discovery, attachment format, publishers), its own counters and
 summary -- on srl's keys of its own id (``srl/<id>/state``, ``action``, ``alive/plant``,
-``alive/robot_bridge``, ``status/plant``). One srl session serves them all, and one client
+``alive/robot_bridge``, ``status/plant``), wired, attached and shut down as one bridge is
+(services/robot_bridge/service.py). One srl session serves them all, and one client
 session per distinct robot endpoint: robots that each run their own router (``rmw_zenohd`` on
 the robot, ``--robot-endpoints``) get one session each, robots reached through one router
 (``--robot-endpoint``) share one. A robot's commands can only go to its own namespace's keys:
 its link builds every key from its namespace, and its bridge applies only actions for its id.
 
 Why a host and not one bridge per robot: a bridge process is a Python interpreter with Zenoh and
-the ROS type store (~73 MB peak RSS here); one host for 3 robots costs the same 73 MB, three
-bridges 220 MB (README "Several TurtleBot3s"). One bridge per robot
-(``srl up --robots K --plant robot --layout process``) isolates a crash to one robot; either way a
-real robot still needs its own command timeout (README "Robot bridge").
+the ROS type store, and a host pays for one of them whatever its number of robots
+(docs/fleets.md). One bridge per robot (``srl up --robots K --plant robot --layout process``)
+isolates a crash to one robot; either way a real robot still needs its own command timeout
+(docs/turtlebot.md).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import zenoh
 from common.config.arguments import UsageError
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetBridgeSummary
-from common.contracts.keys import ACTION, STATE, STATUS, liveliness_key
+from common.contracts.keys import STATE, STATUS, liveliness_key
 from common.contracts.messages import Action, ServiceStatus
 from common.contracts.ros_wire import RosGraph
 from common.net.provenance import SourceGate
@@ -41,7 +42,9 @@ from common.net.security import SecurityError
 from common.net.transport import Bus, plain_config
 from common.process.counts import RobotCounts
 from common.system.clock import Ticker
-from services.robot_bridge.service import SHUTDOWN_ZEROS, RobotBridge, RosLink, bridge_summary
+from services.robot_bridge.bridge import RobotBridge
+from services.robot_bridge.ros_link import RosLink
+from services.robot_bridge.service import attach, bridge_summary, shut_down, wire_robot
 
 log = logging.getLogger(__name__)
 # node and entity ids per robot in a shared session: robot i uses i * ENTITY_IDS ... (rmw_zenoh
@@ -87,13 +90,9 @@ def open_unit(
     """Robot ``index`` of the host on ``session`` (its robot's router, or srl's): transport-free
     but for the session, so a test can hand it a fake one."""
     own = robot_settings(settings, robot, endpoint)
-    graph = RosGraph.from_settings(own.bridge)
     counts = RobotCounts(robot, "robot_bridge")
-    link = RosLink(session, graph, own.bridge, counts, entity_base=index * ENTITY_IDS)
-    gate = SourceGate("actor")
-    bridge = RobotBridge(own, publish_state, link.send, counts, gate)
-    link.on_odometry = bridge.on_odometry
-    return BridgeUnit(robot, endpoint, own, graph, counts, link, bridge, gate)
+    link, bridge, gate = wire_robot(own, session, publish_state, counts, entity_base=index * ENTITY_IDS)
+    return BridgeUnit(robot, endpoint, own, link.graph, counts, link, bridge, gate)
 
 
 def run_bridge_host(
@@ -110,7 +109,7 @@ def run_bridge_host(
     units: list[BridgeUnit] = []
     tokens: list[Any] = []
     try:
-        for robot in robots:  # one plant per robot (issue 13), before declaring anything
+        for robot in robots:  # one plant per robot, before declaring anything
             bus.refuse_other_plant(robot)
         for endpoint in sorted({e for e in fleet.values() if e}):
             try:
@@ -125,9 +124,7 @@ def run_bridge_host(
             session = sessions[endpoint] if endpoint else bus.session
             units.append(open_unit(settings, robot, endpoint, index, session, bus.publisher(STATE, robot)))
         for unit in units:
-            bus.watch_identities(unit.robot, "actor", unit.actor_gate, unit.bridge.on_actor_identity)
-            bus.subscribe(ACTION, ACTION.key(unit.robot), unit.on_action, with_source=True)
-            unit.link.start()
+            attach(bus, unit.robot, unit.link, unit.bridge, unit.actor_gate)
         bus.declare_sole_plants(robots)
         tokens = [bus.session.liveliness().declare_token(liveliness_key(r, "robot_bridge")) for r in robots]
         status = threading.Thread(
@@ -148,20 +145,8 @@ def run_bridge_host(
                 unit.link.tick(now)
                 unit.bridge.tick(now)
     finally:
-        wires = {unit.robot: unit.link.describe() for unit in units}
-        for _ in range(SHUTDOWN_ZEROS):  # on the way out: stop every robot
-            for unit in units:
-                unit.bridge.stop()
-            time.sleep(0.02)
-        for token in tokens:
-            try:
-                token.undeclare()
-            except zenoh.ZError as error:
-                log.debug("undeclare: %s", error)
-        for unit in units:
-            unit.link.close()
-        for session in sessions.values():
-            session.close()
+        described = shut_down([(unit.link, unit.bridge) for unit in units], tokens, list(sessions.values()))
+        wires = {unit.robot: wire for unit, wire in zip(units, described, strict=True)}
     return FleetBridgeSummary(
         robots=robots,
         endpoints=dict(fleet),

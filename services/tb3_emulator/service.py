@@ -32,7 +32,7 @@ A stock TurtleBot3 has no cmd_vel timeout: the OpenCR stops only when the heartb
 turtlebot3_node stops for 500 ms (``HEARTBEAT_TIMEOUT_MS``), and turtlebot3_node writes it every
 100 ms whatever cmd_vel does -- it holds its last command forever. That is why the bridge has a
 watchdog, and why a robot whose command path can break (its cmd_vel comes through a router that
-may die) needs a timeout of its own (README "Robot bridge": turtlebot3_node's timeout or a
+may die) needs a timeout of its own (docs/turtlebot.md: turtlebot3_node's timeout or a
 ``twist_mux`` with one). The emulator therefore times out by default (``--cmd-timeout``, 0.5 s,
 the OpenCR's own heartbeat bound); ``--cmd-timeout 0`` emulates the stock robot that holds.
 """
@@ -54,7 +54,7 @@ from common.contracts import ros_wire
 from common.contracts.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
 from common.math.frames import Pose2D, quaternion_from_yaw
 from common.math.physics import PhysicsBot, PhysicsParams
-from common.math.turtlebot import TurtleBot, TurtleBotParams, firmware_velocity
+from common.math.turtlebot import TurtleBot, TurtleBotParams, cmd_vel_to_wheels
 from common.system.clock import Ticker
 
 log = logging.getLogger(__name__)
@@ -116,8 +116,9 @@ class Tb3Model:
         return self.robot.applied
 
     def command(self, v: float, omega: float, now: float) -> tuple[float, float]:
-        """A cmd_vel arrives: convert as the firmware does; apply now or after the latency."""
-        target = (firmware_velocity(v, self.robot.params.v_max), firmware_velocity(omega, self.robot.params.omega_max))
+        """A cmd_vel arrives: applied now or after the latency. Returns the (v, omega) the robot
+        will apply (its conversion: common.math.turtlebot.cmd_vel_to_wheels)."""
+        target = cmd_vel_to_wheels(self.robot.params, v, omega).applied
         with self.lock:
             self.pending.append((now + self.latency, v, omega))
             self._advance(now)
