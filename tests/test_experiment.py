@@ -26,8 +26,9 @@ from common.config.settings import Settings
 from common.math.agents import parse_agents, parse_horizons
 from tests.harness import ROOT
 from tools.experiment.grid import RunSpec, grid_starts, held_out_starts, plan_runs, run_settings
+from tools.experiment.output import prepare_output
 from tools.experiment.report import ratio_table, read_runs_csv, toml_dumps
-from tools.experiment.runner import Scheduler, prepare_output
+from tools.experiment.workers import Scheduler
 
 REDUCED = ["--grid", "2", "--duration", "3", "--agents", "mpc,rlqv", "--horizons", "6", "--no-progress"]
 REDUCED_RUNS = 2 * 2 * 2 * 1  # starts x agents x horizons
@@ -190,6 +191,7 @@ def reduced_inproc(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     yield out
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> None:
     out = reduced_inproc
@@ -247,7 +249,7 @@ def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> 
             assert data["costs"][i].sum() == pytest.approx(r["accumulated_cost"], rel=1e-12)
             np.testing.assert_allclose(data["states"][i, 0], [r["start_x"], r["start_y"], r["start_alpha"]])
             np.testing.assert_allclose(data["states"][i, -1], [r["final_x"], r["final_y"], r["final_alpha"]])
-            # "at rest" (issue 21) by hand, with plain loops: the last 10 s (here the whole 3 s run)
+            # "at rest" (docs/experiment.md) by hand, with plain loops: the last 10 s (here the whole 3 s run)
             # of positions span <= 0.05 m and v (|v| >= 0.01) changes sign at most 5 times
             xy = [tuple(p[:2]) for p in data["states"][i, -101:]]
             span = max(math.dist(a, b) for a in xy for b in xy)
@@ -260,9 +262,10 @@ def test_reduced_grid_writes_every_output_consistently(reduced_inproc: Path) -> 
     assert f"| {group['parked']}/4 | {group['at_rest']}/4 |" in markdown and "at rest = over the last 10 s" in markdown
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_the_papers_method_by_default_and_the_robots_on_request(reduced_inproc: Path, tmp_path: Path) -> None:
-    """srl experiment runs the paper's method exactly (issue 21's actor settings off, though the
+    """srl experiment runs the paper's method exactly (the robot's actor settings off, though the
     packaged srl.toml turns them on); --method robot keeps them, and its actions keep each
     TurtleBot3 wheel within 6.7 rad/s, which the paper's box (0.22 m/s, 2.84 rad/s) does not."""
     paper = Settings.load(reduced_inproc / "config.toml").actor
@@ -284,6 +287,7 @@ def test_the_papers_method_by_default_and_the_robots_on_request(reduced_inproc: 
     assert "--method=robot" in summary["experiment"]["command"]
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_zenoh_transport_gives_the_inproc_numbers(reduced_inproc: Path, tmp_path: Path) -> None:
     # A checkpoint named in the environment (it outranks --config) is still switched off:
@@ -338,6 +342,7 @@ def _alive(pid: int) -> bool:
         return False
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", ["inproc", "zenoh"])
 def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, transport: str) -> None:
@@ -415,6 +420,7 @@ def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, tra
     _assert_all_gone([*summary["worker_pids"], *summary["services"].get("pids", {}).values()])
 
 
+@pytest.mark.integration
 def test_bad_options_are_usage_errors(tmp_path: Path) -> None:
     for bad in (["--agents", "mpc,dqn"], ["--horizons", "1"], ["--grid", "0"], ["--config", "/nonexistent.toml"]):
         done = subprocess.run(

@@ -1,4 +1,4 @@
-"""srl up's supervisor stops the services first and the router last (tools/launch/up.py)."""
+"""srl up's supervisor stops the services first and the router last (tools/launch/supervisor.py)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,11 @@ import sys
 import time
 from pathlib import Path
 
-from tools.launch.up import Child, Supervisor
+import pytest
+
+from tools.launch.supervisor import Child, Supervisor
+
+pytestmark = pytest.mark.integration
 
 # Each fake service writes when it got SIGINT, takes 0.3 s to say goodbye, writes when it
 # ended and exits 0.

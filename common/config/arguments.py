@@ -79,13 +79,61 @@ def add_lifetime_arguments(
 ) -> None:
     """--run-seconds and --connect-timeout, as every long-running service process takes them."""
     parser.add_argument("--run-seconds", type=float, help=run_help)
+    add_connect_timeout_argument(parser)
+
+
+CONNECT_TIMEOUT_SECONDS = 30.0
+
+
+def add_connect_timeout_argument(parser: argparse.ArgumentParser) -> None:
+    """--connect-timeout, as every process that joins a running system takes it (services, srl record,
+    srl view, srl status): how long to wait for the router before one clear error."""
     parser.add_argument(
-        "--connect-timeout", type=float, default=30.0, help="[s] wait this long for the router (default: 30)"
+        "--connect-timeout",
+        type=float,
+        default=CONNECT_TIMEOUT_SECONDS,
+        help=f"[s] wait this long for the router (default: {CONNECT_TIMEOUT_SECONDS:g})",
+    )
+
+
+def add_seconds_argument(
+    parser: argparse.ArgumentParser,
+    default: float | None = None,
+    helptext: str = "stop after this long (default: until Ctrl-C)",
+) -> None:
+    """--seconds: how long a tool runs [s]; without a default, until Ctrl-C (srl record, view,
+    status), with one, a benchmark's real-time run (its help says per what)."""
+    parser.add_argument("--seconds", type=float, default=default, help=helptext)
+
+
+CIRCLE_RADIUS_M = 1.5
+
+
+def _circle_radius(text: str) -> float:
+    try:
+        radius = float(text)
+    except ValueError:
+        radius = math.nan
+    if not (math.isfinite(radius) and radius > 0):
+        raise argparse.ArgumentTypeError(f"{text}: the start circle's radius must be a positive number of metres")
+    return radius
+
+
+def add_circle_argument(parser: argparse.ArgumentParser) -> None:
+    """--circle, as a fleet's plant host (srl plant-sim --robots) and srl up --robots take it: where
+    the robots start (common.math.fleet.circle_starts)."""
+    parser.add_argument(
+        "--circle",
+        type=_circle_radius,
+        default=CIRCLE_RADIUS_M,
+        metavar="R",
+        help="with --robots: the robots start evenly on a circle of R metres around the target, "
+        f"each heading away from it (default: {CIRCLE_RADIUS_M:g})",
     )
 
 
 def add_robots_argument(parser: argparse.ArgumentParser, what: str) -> None:
-    """--robots, as the actor host, the plant host, the critic and ``srl up`` take it (issue 16)."""
+    """--robots, as the actor host, the plant host, the critic and ``srl up`` take it (docs/fleets.md)."""
     parser.add_argument(
         "--robots",
         metavar="IDS|K",

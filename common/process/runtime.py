@@ -59,9 +59,8 @@ class SignalWatch:
 
     A Python signal handler runs in the main thread between two bytecodes, possibly inside
     ``threading.Event.wait`` while that thread holds the event's (non-reentrant) lock: a handler
-    that calls ``stop.set()`` then waits for a lock its own thread holds, forever. That hung
-    services on their stop (a SIGTERM, or the parent-death signal) in CI, with ``Event.set``
-    nested in ``Condition.wait`` in the stuck main thread's stack. Here the handler only writes
+    that calls ``stop.set()`` then waits for a lock its own thread holds, forever: the process
+    never stops. Here the handler only writes
     the signal's number to a pipe (``os.write``, no lock), and so does Python's C-level handler
     (``signal.set_wakeup_fd``) the moment the signal arrives, even while the main thread is
     blocked in native code; a daemon thread reads the pipe and calls ``callback``. ``callback``
@@ -178,7 +177,7 @@ def lower_priority(niceness: int, who: str) -> None:
     inherit it. Needs no root (only raising a priority does); where it is refused, a warning and
     the normal priority. With the kernel's autogroups on (``/proc/sys/kernel/sched_autogroup_enabled``)
     it orders threads within one session only: ``srl up`` starts each service in a session of
-    its own, so a niced service does not yield to another service (README, Fleet)."""
+    its own, so a niced service does not yield to another service (docs/fleets.md)."""
     if niceness <= 0:
         return
     try:
@@ -201,7 +200,7 @@ def realtime_priority(priority: int, who: str) -> Iterator[int]:
 
     A real-time thread is given a core before any thread of the normal class, whatever their
     sessions and autogroups: an actor's tick thread is not made to wait behind a critic's fit
-    or another service's burst (issue 16, README "Real-time priority"). It needs ``CAP_SYS_NICE``
+    or another service's burst (docs/fleets.md). It needs ``CAP_SYS_NICE``
     (root, or ``cap_add: [SYS_NICE]`` in compose) or a ``rtprio`` limit (``ulimit -r``, e.g.
     ``@realtime - rtprio 20`` in /etc/security/limits.conf); where refused, one INFO line and
     the normal class. ``SCHED_RESET_ON_FORK``: threads and processes it starts are normal. The
@@ -216,7 +215,7 @@ def realtime_priority(priority: int, who: str) -> Iterator[int]:
     except OSError as error:
         log.info(
             "%s: ticks at normal priority (SCHED_FIFO %d refused: %s; it needs CAP_SYS_NICE or "
-            "an rtprio limit, README Real-time priority)",
+            "an rtprio limit, docs/fleets.md)",
             who,
             priority,
             error.strerror or error,
@@ -369,10 +368,9 @@ def entry(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[st
     Zenoh runs Python callbacks on its own native (Rust) threads. A thread that asks for the
     GIL while the interpreter finalizes is ended by CPython with ``pthread_exit``, and that
     forced unwinding through Rust frames aborts the whole process (SIGABRT, exit -6) after its
-    work is done and reported: seen once in the test suite, an actor that had printed its
-    summary. Such a process therefore runs its ``atexit`` handlers (logging, multiprocessing),
-    flushes its streams and leaves with ``os._exit``: nothing of
-    ours is left to finalize (every service has closed its Zenoh session by then).
+    work is done and reported. Such a process therefore runs its ``atexit`` handlers (logging,
+    multiprocessing), flushes its streams and leaves with ``os._exit``: nothing of ours is left to
+    finalize (every service has closed its Zenoh session by then).
     """
     import os
 

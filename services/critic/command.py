@@ -21,7 +21,7 @@ HELP = "the off-board critic learner (TD least squares)"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
     add_lifetime_arguments(
-        parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
+        parser, "[s] learn this long, then stop (default: until signalled; srl up stops it after the actor)"
     )
     add_robots_argument(
         parser, "learn from these robots only and declare this critic alive for each (a fleet, or its shard): "

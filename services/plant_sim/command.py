@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import math
 
 from common.config.arguments import (
     COMMAND_SETTINGS,
-    UsageError,
+    add_circle_argument,
     add_lifetime_arguments,
     add_mode_argument,
     add_robots_argument,
@@ -25,17 +24,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
     add_mode_argument(parser)
     add_lifetime_arguments(
-        parser, "stop after this long (default: until signalled; a lockstep actor stops after one episode)"
+        parser,
+        "[s] simulate this long: publish states (realtime) or answer the actor's steps (lockstep), then "
+        "stop (default: until signalled; srl up stops it after the actor)",
     )
     add_robots_argument(parser, "simulate every robot of the list in this one process (real time): ")
-    parser.add_argument(
-        "--circle",
-        type=float,
-        default=1.5,
-        metavar="R",
-        help="with --robots: the robots start evenly on a circle of R metres around the target, "
-        "each heading away from it (default: 1.5)",
-    )
+    add_circle_argument(parser)
     parser.set_defaults(func=main)
 
 
@@ -46,8 +40,6 @@ def main(args: argparse.Namespace) -> int:
     if robots is not None:
         from services.plant_sim.host import run_plant_host
 
-        if not (math.isfinite(args.circle) and args.circle > 0):
-            raise UsageError(f"--circle {args.circle}: the start circle's radius must be a positive number of metres")
         return serve(
             settings_from_args(args),
             "plant",

@@ -1,4 +1,4 @@
-"""``srl experiment fleet``: the paper's starts as ONE fleet, per-robot vs pooled critics (issue 16).
+"""``srl experiment fleet``: the paper's starts as ONE fleet, per-robot vs pooled critics (docs/fleets.md).
 
 Every start of the grid is a robot of one fleet; the fleet runs Algorithm 1 in lockstep in one
 process (:func:`common.config.assembly.run_fleet_episode`: one built actor, every robot stepping

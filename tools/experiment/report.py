@@ -373,7 +373,7 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         f"J/J_mpc < {100 - summary['tie_percent']:g} % (within {summary['tie_percent']:g} % of 100 % is a tie: "
         f"the solver tolerance alone moves J that much); at rest = over the last {WINDOW_S:g} s the position "
         f"spans <= {SPAN_M:g} m and v (|v| >= 0.01 m/s) changes sign at most {MAX_SIGN_CHANGES} times "
-        "(no chatter; issue 21)",
+        "(no chatter)",
         "",
         "| agent | N | runs | median J | median J/J_mpc | better than MPC | ties | min J/J_mpc | max J/J_mpc "
         "| parked | at rest | solver failures |",

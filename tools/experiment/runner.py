@@ -34,385 +34,29 @@ finished (marked interrupted) and exits with 130.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import logging
-import math
-import os
 import queue
-import shlex
 import signal
-import socket
-import sys
 import threading
 import time
-import traceback
-from collections import deque
-from collections.abc import Iterable
-from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from common.config.settings import METHODS, PAPER_METHOD, Settings
-from common.math.agents import AGENTS, PAPER_AGENTS, learns, parse_agents, parse_horizons
-from tools.experiment.grid import STARTS, RunSpec, make_starts, plan_runs, run_settings
-from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
+from common.config.settings import Settings
+from tools.experiment.grid import RunSpec, make_starts, plan_runs
+from tools.experiment.options import EXIT_INTERRUPTED, ExperimentError, ExperimentOptions, Outcome
+from tools.experiment.output import experiment_settings, prepare_output, record_experiment, write_outputs
 from tools.experiment.report import (
-    check_claims,
-    git_commit,
-    group_summary,
-    head_to_head,
-    ratio_table,
     sorted_rows,
-    summary_markdown,
-    toml_dumps,
-    write_runs_csv,
-    write_trajectories,
 )
+from tools.experiment.services import ExperimentServices
+from tools.experiment.workers import Scheduler, WorkerConfig, worker_main
 
 log = logging.getLogger(__name__)
-
-DEFAULT_HORIZONS = (12, 6)
-EXIT_INTERRUPTED = 130
-PEER_MODE, PEER_LISTEN = "peer", ["tcp/127.0.0.1:0"]  # the zenoh transport's sessions (see transport_for)
-OUTPUT_FILES = (
-    "runs.csv",
-    "trajectories.npz",
-    "config.toml",
-    "settings.json",
-    "summary.md",
-    "summary.json",
-    "trajectories.png",
-)
-
-
-class ExperimentError(RuntimeError):
-    """A run or a service failed: the experiment stops (partial results are still written)."""
-
-
-@dataclass
-class WorkerConfig:
-    slot: int
-    base: dict[str, Any]  # Settings.model_dump(mode="json") of the resolved base settings
-    transport: str
-    robot: str = ""
-
-
-class _InprocRunner:
-    def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.config.assembly import build_plant, local_critic, run_episode
-
-        critic = local_critic(settings, learn=learns(settings.actor.agent))
-        return run_episode(settings, actor=actor, plant=build_plant(settings), critic=critic), {}
-
-    def close(self) -> None:
-        pass
-
-
-class _ZenohRunner:
-    """This worker as the actor of robot ``config.robot``, the actor service's lockstep code."""
-
-    def __init__(self, base: Settings) -> None:
-        from common.contracts.keys import WEIGHTS
-        from common.net.transport import Bus
-        from services.actor.ports import WeightsInbox
-
-        self.robot = base.transport.robot
-        self.bus = Bus.open(base.transport, "actor")
-        self.inbox = WeightsInbox(base, self.bus)  # initial weights depend on cost and delta only
-        self.bus.subscribe(WEIGHTS, WEIGHTS.key(self.robot), self.inbox.offer)
-        self.bus.declare_alive(self.robot)
-        self.bus.wait_alive(self.robot, "plant", timeout=60.0)
-        self.bus.wait_alive(self.robot, "critic", timeout=60.0)
-        self.episode_id = 0
-        self.port: Any = None
-
-    def _port(self, settings: Settings) -> Any:
-        """The critic port for this episode: ONE per worker, so one transition publisher
-        (a cached, heartbeating advanced publisher) for the worker's life, as the actor
-        service has; only the per-episode state is reset."""
-        from services.actor.ports import ZenohCriticPort
-
-        if self.port is None:
-            self.port = ZenohCriticPort(settings, self.bus, self.inbox, self.episode_id, sync=True)
-        self.port.new_episode(settings, self.episode_id)  # the port's own public reset
-        return self.port
-
-    def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.config.assembly import local_critic, run_episode
-        from services.actor.ports import ZenohPlant, new_episode_id
-
-        # Episode ids must increase (the critic starts a fresh learner on a newer one).
-        self.episode_id = max(new_episode_id(), self.episode_id + 1)
-        plant = ZenohPlant(settings, self.bus, self.episode_id)
-        if settings.actor.agent == "mpc":
-            # MPC has no critic: nothing to send to the learner (inproc fits nothing either).
-            critic = local_critic(settings, learn=False)
-            return run_episode(settings, actor=actor, plant=plant, critic=critic), {}
-        port = self._port(settings)
-        episode = run_episode(settings, actor=actor, plant=plant, critic=port)
-        return episode, {"critic_timeouts": port.timeouts, "max_staleness_steps": int(max(port.staleness, default=0))}
-
-    def close(self) -> None:
-        self.bus.close()
-
-
-def _run_one(
-    runner: Any, actors: dict[tuple[str, int], Any], base: dict[str, Any], spec: RunSpec, slot: int
-) -> dict[str, Any]:
-    from common.config.assembly import build_actor
-    from common.math.parking import parking
-    from common.math.stats import summarize
-
-    settings = run_settings(base, spec)
-    actor = actors.get(spec.group)
-    if actor is None:
-        actor = actors[spec.group] = build_actor(settings)
-    started = time.perf_counter()
-    episode, extra = runner.run(settings, actor)
-    wall = time.perf_counter() - started
-    final = episode.final_state
-    solve = summarize(episode.solve_seconds, scale=1e3)
-    # "at rest" beside "parked" (issue 21): no chatter over the last 10 s, on the true states where
-    # the plant knows them
-    rest = parking(
-        episode.true_states if episode.truth_known else episode.states, episode.actions, settings.plant.sampling_time
-    )
-    row = {
-        "run_id": spec.run_id,
-        "agent": spec.agent,
-        "horizon": spec.horizon,
-        "start_index": spec.start.index,
-        "start_x": spec.start.x,
-        "start_y": spec.start.y,
-        "start_alpha": spec.start.alpha,
-        "accumulated_cost": episode.accumulated_cost,
-        "final_x": float(final[0]),
-        "final_y": float(final[1]),
-        "final_alpha": float(final[2]),
-        "final_distance": float(np.hypot(final[0], final[1])),
-        "at_rest": int(rest.at_rest),
-        "last_span_m": rest.span,
-        "sign_changes": rest.sign_changes,
-        "steps": episode.steps,
-        "solver_failures": episode.solver_failures,
-        "solve_ms_median": solve["median"],
-        "solve_ms_p99": solve["p99"],
-        "solve_ms_max": solve["max"],
-        "wall_seconds": wall,
-        "worker": slot,
-        "critic_timeouts": extra.get("critic_timeouts", 0),
-        "max_staleness_steps": extra.get("max_staleness_steps", 0),
-    }
-    arrays = {
-        "states": np.asarray(episode.states, dtype=float),
-        "actions": np.asarray(episode.actions, dtype=float),
-        "costs": np.asarray(episode.costs, dtype=float),
-    }
-    return {"row": row, "arrays": arrays}
-
-
-def _worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
-    """A worker process: build actors lazily, run what the scheduler sends, until ``None``."""
-    # Ctrl-C is the parent's business (it stops us by pid); SIGTERM ends us through
-    # SystemExit so that ``finally`` blocks (the runner's close) and atexit still run.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
-    logging.basicConfig(
-        level=logging.WARNING,
-        format=f"%(asctime)s %(levelname)s [worker {config.slot}] %(name)s: %(message)s",
-        stream=sys.stderr,
-    )
-    # A late weight message of a finished episode is refused by design (its episode id), which
-    # is expected between episodes here and not worth a warning.
-    logging.getLogger("common.net.transport").setLevel(logging.ERROR)
-    runner: Any = None
-    try:
-        base = Settings.model_validate(config.base)
-        runner = _ZenohRunner(base) if config.transport == "zenoh" else _InprocRunner()
-        actors: dict[tuple[str, int], Any] = {}
-        results.put(("ready", config.slot, None))
-        while (spec := tasks.get()) is not None:
-            try:
-                outcome = _run_one(runner, actors, config.base, spec, config.slot)
-            except Exception:
-                results.put(("error", config.slot, f"run {spec.run_id}: {traceback.format_exc()}"))
-                return
-            results.put(("done", config.slot, outcome))
-    except Exception:
-        results.put(("error", config.slot, f"worker {config.slot}: {traceback.format_exc()}"))
-    finally:
-        if runner is not None:
-            runner.close()
-
-
-class Scheduler:
-    """Hand each worker runs of the ``(agent, N)`` it already built, while any are left;
-    else the pair with most runs left that no other worker is on (else the largest)."""
-
-    def __init__(self, specs: Iterable[RunSpec]) -> None:
-        self.pending: dict[tuple[str, int], deque[RunSpec]] = {}
-        for spec in specs:
-            self.pending.setdefault(spec.group, deque()).append(spec)
-        self.current: dict[int, tuple[str, int] | None] = {}
-
-    def next_for(self, slot: int) -> RunSpec | None:
-        group = self.current.get(slot)
-        if group is None or not self.pending.get(group):
-            left = [g for g, q in self.pending.items() if q]
-            if not left:
-                self.current[slot] = None
-                return None
-            taken = {g for s, g in self.current.items() if s != slot}
-            free = [g for g in left if g not in taken]
-            group = max(free or left, key=lambda g: len(self.pending[g]))
-            self.current[slot] = group
-        return self.pending[group].popleft()
-
-
-# -- options ----------------------------------------------------------------------------
-@dataclass
-class ExperimentOptions:
-    grid: int = 5
-    extent: float = 2.0
-    starts: str = "paper"
-    seed: int = 0
-    agents: tuple[str, ...] = PAPER_AGENTS
-    horizons: tuple[int, ...] = DEFAULT_HORIZONS
-    transport: str = "inproc"
-    workers: int = 0  # 0 = every core this process may use
-    out: Path = field(default_factory=lambda: Path("out"))
-    plots: bool = True
-    progress: bool = True
-    command: str = ""
-    record: Path | None = None  # one MCAP file of every run (tools/recording/record.py)
-
-    def worker_count(self, runs: int) -> int:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        return max(1, min(self.workers or cores, runs))
-
-
-# -- the experiment ---------------------------------------------------------------------
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-class _Services:
-    """Router + one plant_sim (lockstep) and one critic per worker, kept up across runs."""
-
-    def __init__(self, config_path: Path, base: Settings, workers: int) -> None:
-        from tools.launch.up import Supervisor
-
-        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
-        self.robots = [f"exp{slot}" for slot in range(workers)]
-        # No critic checkpoint (see experiment_settings), even if the environment names one:
-        # SRL_ variables outrank the --config file the services read.
-        env = {
-            **os.environ,
-            "PYTHONUNBUFFERED": "1",
-            "SRL_CRITIC__CHECKPOINT": "",
-            "SRL_TRANSPORT__MODE": PEER_MODE,
-            "SRL_TRANSPORT__LISTEN": json.dumps(PEER_LISTEN),
-        }
-        self.supervisor = Supervisor([], env, quiet=True)
-        self.common = ["--config", str(config_path), "--router", self.endpoint]
-        self.base = base
-
-    def transport_for(self, robot: str) -> dict[str, Any]:
-        # Peers that listen on a free loopback port and learn each other from the router
-        # (gossip, no multicast): the worker's queries, transitions and weights go straight to
-        # its plant and critic instead of through the router. Measured on the 3 x 3 grid:
-        # 12-20 % less wall time than client mode, the router's CPU a third.
-        return {
-            "router": self.endpoint,
-            "robot": robot,
-            "multicast_scouting": False,
-            "connect": [],
-            "mode": PEER_MODE,
-            "listen": PEER_LISTEN,
-        }
-
-    def start(self) -> None:
-        from tools.launch.up import ServiceDiedError
-
-        try:
-            self._start()
-        except ServiceDiedError as error:
-            raise ExperimentError(f"{error}: {' | '.join(error.tail)}") from error
-        except TimeoutError as error:
-            raise ExperimentError(str(error)) from error
-
-    def _start(self) -> None:
-        from tools.launch.up import alive_probe, router_reachable
-
-        sup = self.supervisor
-        sup.spawn("router", ["router", *self.common, "--robot", self.robots[0]])
-        router_settings = self._settings(self.robots[0])
-        sup.wait_for("router", lambda: router_reachable(router_settings), timeout=30)
-        for robot in self.robots:
-            sup.spawn(f"plant-{robot}", ["plant-sim", "--mode", "lockstep", *self.common, "--robot", robot])
-            # each critic learns from its own worker's robot only (critic.robots; "*" would make
-            # every critic fit every robot's transitions, W times the work)
-            sup.spawn(f"critic-{robot}", ["critic", *self.common, "--robot", robot], {"SRL_CRITIC__ROBOTS": robot})
-        for robot in self.robots:
-            settings = self._settings(robot)
-            sup.wait_for(f"plant of {robot}", alive_probe(settings, "plant"), timeout=60)
-            sup.wait_for(f"critic of {robot}", alive_probe(settings, "critic"), timeout=60)
-
-    def _settings(self, robot: str) -> Settings:
-        data = self.base.model_dump(mode="json")
-        data["transport"].update(self.transport_for(robot))
-        return Settings.model_validate(data)
-
-    def check(self) -> None:
-        from tools.launch.up import ServiceDiedError
-
-        try:
-            self.supervisor.check()
-        except ServiceDiedError as error:
-            raise ExperimentError(f"{error}: {' | '.join(error.tail)}") from error
-
-    def pids(self) -> dict[str, int]:
-        return {name: child.process.pid for name, child in self.supervisor.children.items()}
-
-    def stop(self) -> dict[str, int | None]:
-        self.supervisor.stop_all()  # SIGINT by process group (= pid), SIGKILL after the grace
-        return {name: child.process.returncode for name, child in self.supervisor.children.items()}
-
-    def resources(self) -> dict[str, Any]:
-        """CPU seconds and peak RSS each service reported when it stopped (its last JSON line)."""
-        report: dict[str, Any] = {}
-        for name, child in self.supervisor.children.items():
-            summary = child.summary() or {}
-            report[name] = {
-                **summary.get("resources", {}),
-                **(
-                    {"transitions": summary["transitions_received"], "fit_ms": summary.get("fit_ms")}
-                    if "transitions_received" in summary
-                    else {}
-                ),
-            }
-        return report
-
-
-@dataclass
-class Outcome:
-    rows: list[dict[str, Any]]
-    arrays: dict[str, dict[str, np.ndarray]]
-    planned: int
-    interrupted: bool
-    error: str | None
-    wall_seconds: float
-    setup_seconds: float
-    workers: int
-    services: dict[str, Any]
-    worker_pids: list[int]
 
 
 def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], config_path: Path) -> Outcome:
@@ -424,7 +68,7 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
     results = context.Queue()
     task_queues = [context.Queue() for _ in range(workers)]
     processes: list[Any] = []
-    services: _Services | None = None
+    services: ExperimentServices | None = None
     services_info: dict[str, Any] = {}
     done: list[dict[str, Any]] = []
     arrays: dict[str, dict[str, np.ndarray]] = {}
@@ -440,7 +84,7 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
             base_data = base.model_dump(mode="json")
             if options.transport == "zenoh":
                 progress.update(task, description="starting router, plant_sim and critic services")
-                services = _Services(config_path, base, workers)
+                services = ExperimentServices(config_path, base, workers)
                 services.start()
                 services_info["endpoint"] = services.endpoint
             setup_seconds = time.perf_counter() - started
@@ -451,7 +95,7 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
                     robot = services.robots[slot]
                     data["transport"].update(services.transport_for(robot))
                 process = context.Process(
-                    target=_worker_main,
+                    target=worker_main,
                     args=(WorkerConfig(slot, data, options.transport, robot), task_queues[slot], results),
                     name=f"srl-experiment-worker-{slot}",
                     daemon=True,
@@ -483,8 +127,10 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
                     raise ExperimentError(str(payload))
                 if kind == "done":
                     row = payload["row"]
-                    done.append(row)
+                    # the trajectory before the row: a Ctrl-C (KeyboardInterrupt) between the two
+                    # leaves at most an unlisted trajectory, never a listed run without one
                     arrays[row["run_id"]] = payload["arrays"]
+                    done.append(row)
                     progress.update(task, advance=1, description=f"{row['run_id']}  J = {row['accumulated_cost']:.2f}")
                     log.info(
                         "run %s done (%d/%d): J = %.4f", row["run_id"], len(done), len(specs), row["accumulated_cost"]
@@ -582,133 +228,6 @@ def _progress(enabled: bool) -> Any:
     )
 
 
-def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome: Outcome) -> dict[str, Any]:
-    rows = sorted_rows(outcome.rows, options.agents, options.horizons)
-    ratios = ratio_table(rows)
-    groups = group_summary(rows, options.agents, options.horizons, ratios)
-    duels = [d for h in options.horizons if (d := head_to_head(rows, "rlqv", "rlq", h)) is not None]
-    write_runs_csv(out / "runs.csv", rows, ratios)
-    write_trajectories(out / "trajectories.npz", rows, outcome.arrays)
-    summary: dict[str, Any] = {
-        "experiment": {
-            "starts": options.starts,
-            "grid": options.grid,
-            "extent": options.extent,
-            "seed": options.seed,
-            "agents": list(options.agents),
-            "horizons": list(options.horizons),
-            "transport": options.transport,
-            "duration": base.episode.duration,
-            "steps": base.steps,
-            "command": options.command,
-        },
-        "status": "interrupted" if outcome.interrupted else ("failed" if outcome.error else "complete"),
-        "interrupted": outcome.interrupted,
-        "error": outcome.error,
-        "runs_planned": outcome.planned,
-        "runs_completed": len(rows),
-        "wall_seconds": outcome.wall_seconds,
-        "setup_seconds": outcome.setup_seconds,
-        "workers": outcome.workers,
-        "cpu_count": os.cpu_count(),
-        "git": git_commit(),
-        "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
-        "park_tolerance_m": PARK_TOLERANCE_M,
-        "tie_percent": TIE_PERCENT,
-        "groups": groups,
-        "head_to_head": duels,
-        "claims": check_claims(groups, rows, options.horizons) if not outcome.interrupted else [],
-        "ratios": [
-            {k: t[k] for k in ("run_id", "agent", "horizon", "start_index", "start_x", "start_y", "ratio_percent")}
-            for t in ratios
-        ],
-        "services": outcome.services,
-        "worker_pids": outcome.worker_pids,
-        "settings": base.as_dict(),
-        "plots": [],
-    }
-    if options.plots and rows:
-        from tools.experiment.plots import plot_ratio_contours, plot_trajectory_overview
-
-        for horizon in options.horizons:
-            path = out / f"ratio_N{horizon}.png"
-            if plot_ratio_contours([t for t in ratios if t["horizon"] == horizon], horizon, options.extent, path):
-                summary["plots"].append(path.name)
-        plot_trajectory_overview(
-            rows,
-            outcome.arrays,
-            options.agents,
-            options.horizons,
-            options.extent,
-            out / "trajectories.png",
-            PARK_TOLERANCE_M,
-        )
-        summary["plots"].append("trajectories.png")
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=True) + "\n")
-    (out / "summary.md").write_text(summary_markdown(summary))
-    return summary
-
-
-def record_experiment(recorder: Any, rows: list[dict[str, Any]], arrays: dict[str, dict[str, np.ndarray]]) -> None:
-    """Every run that finished into one recording: run ``<run_id>`` is the robot ``/<run_id>/...``
-    (ROS-named: ``rlqv_N12_s000``), and every run starts at the same moment, so a player shows the
-    whole grid parking at once. States, actions and costs as trajectories.npz holds them (the
-    experiment keeps no per-step weights or solve times: those topics are absent)."""
-    from common.math.loop import Episode
-    from tools.recording.record import record_episode
-
-    origin_ns = time.time_ns()
-    try:
-        for row in rows:
-            run = arrays[row["run_id"]]
-            episode = Episode(
-                agent=row["agent"],
-                horizon=row["horizon"],
-                states=list(run["states"]),
-                actions=list(run["actions"]),
-                costs=[float(c) for c in run["costs"]],
-            )
-            record_episode(recorder, episode, row["run_id"], origin_ns)
-    finally:
-        recorder.close()
-
-
-def prepare_output(out: Path, base: Settings) -> Path:
-    """Create ``out``, remove our own stale files, write the resolved config; return its path."""
-    out.mkdir(parents=True, exist_ok=True)
-    for name in OUTPUT_FILES:
-        (out / name).unlink(missing_ok=True)
-    for stale in out.glob("ratio_N*.png"):
-        stale.unlink()
-    config_path = out / "config.toml"
-    config_path.write_text(
-        "# Every setting of this experiment, resolved (packaged srl.toml < --config < SRL_ env < flags).\n"
-        "# Runs override only actor.agent, actor.horizon and episode.start. Reuse: --config config.toml\n"
-        + toml_dumps(base.model_dump(mode="json"))
-    )
-    # The file must reproduce these settings exactly (as the experiment uses them: an SRL_
-    # environment variable naming a checkpoint still applies on load, and is switched off again).
-    reloaded, expected = experiment_settings(Settings.load(config_path)), experiment_settings(base)
-    if reloaded != expected:
-        differ = [k for k, v in expected.model_dump().items() if reloaded.model_dump()[k] != v]
-        raise ExperimentError(f"{config_path} does not reproduce the resolved settings (sections {differ})")
-    (out / "settings.json").write_text(json.dumps(base.as_dict(), indent=2) + "\n")
-    return config_path
-
-
-def experiment_settings(base: Settings) -> Settings:
-    """The base settings as the experiment uses them: no critic checkpoint file.
-
-    Every episode starts from the initial weights by design, and a checkpoint per robot id
-    (``exp<worker>``) would be shared by concurrent experiments and cost a synced write per step.
-    """
-    data = base.model_dump(mode="json")
-    if data["critic"].get("checkpoint"):
-        data["critic"]["checkpoint"] = ""
-        return Settings.model_validate(data)
-    return base
-
-
 def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dict[str, Any]]:
     """Everything ``srl experiment paper`` does after parsing: (exit code, summary)."""
     base = experiment_settings(base)
@@ -737,175 +256,3 @@ def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dic
     if outcome.interrupted:
         return EXIT_INTERRUPTED, summary
     return (1 if outcome.error else 0), summary
-
-
-# -- command line -----------------------------------------------------------------------
-def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "which",
-        choices=["paper", "fleet"],
-        help="paper: section IV, the grid of starts and cost ratios; fleet: the same starts as ONE fleet in "
-        "lockstep, per-robot vs pooled critics (issue 16)",
-    )
-    parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
-    parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
-    parser.add_argument(
-        "--starts",
-        choices=STARTS,
-        default="paper",
-        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells (default: paper)",
-    )
-    parser.add_argument(
-        "--seed", type=int, default=0, help="seed of everything random (the held-out starts) (default: 0)"
-    )
-    parser.add_argument(
-        "--agents",
-        default=",".join(PAPER_AGENTS),
-        help=f"comma-separated, of {','.join(AGENTS)} (default: {','.join(PAPER_AGENTS)})",
-    )
-    parser.add_argument(
-        "--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS), help="comma-separated N values (default 12,6)"
-    )
-    parser.add_argument("--duration", type=float, help="episode length [s] (default from the config: 30)")
-    parser.add_argument(
-        "--method",
-        choices=METHODS,
-        default="paper",
-        help="paper: the paper's method exactly (no arrival rule, no wheel-speed box, the critics as fitted, "
-        "whatever the config says); robot: with them as configured ([actor] in srl.toml: on) (default: paper)",
-    )
-    parser.add_argument(
-        "--plant",
-        choices=["ideal", "actuator", "physics"],
-        default="ideal",
-        help="the simulated robot (plant.model): ideal, the paper's exact unicycle; actuator, the TurtleBot3 "
-        "model; physics, the MuJoCo TurtleBot3; J is on what the robot reported, true J beside it (default: ideal)",
-    )
-    parser.add_argument(
-        "--config", type=Path, help="a TOML file overriding common/config/srl.toml (any subset) (default: none)"
-    )
-    parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
-    parser.add_argument(
-        "--transport",
-        choices=["inproc", "zenoh"],
-        default="inproc",
-        help="inproc: workers run Algorithm 1 in process; zenoh: through router, plant_sim "
-        "and critic service processes (lockstep, synchronous critic) (default: inproc)",
-    )
-    parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
-    parser.add_argument(
-        "--critic",
-        default="per-robot,pooled",
-        help="fleet: the critic layouts compared, of per-robot,pooled (default: both)",
-    )
-    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument(
-        "--record",
-        type=Path,
-        metavar="FILE.mcap",
-        help="one MCAP recording (rosbag2 layout) of every run, each run a robot /<run_id>/..., all "
-        "starting together (default: none)",
-    )
-
-
-def _load_settings(args: argparse.Namespace) -> Settings:
-    from pydantic import ValidationError
-
-    overrides: dict[str, Any] = json.loads(json.dumps(PAPER_METHOD)) if args.method == "paper" else {}
-    if args.duration is not None:
-        overrides["episode"] = {"duration": args.duration}
-    overrides["plant"] = {"model": args.plant}
-    try:
-        return Settings.load(args.config, **overrides)
-    except ValidationError as error:
-        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
-        raise ValueError(f"invalid settings: {problems}") from error
-    except FileNotFoundError as error:
-        raise ValueError(str(error)) from error
-
-
-def cmd_experiment(args: argparse.Namespace) -> int:
-    try:
-        if args.grid < 1:
-            raise ValueError(f"--grid must be >= 1, got {args.grid}")
-        if not (math.isfinite(args.extent) and args.extent > 0):
-            raise ValueError(f"--extent must be a positive number, got {args.extent}")
-        if args.workers < 0:
-            raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
-        options = ExperimentOptions(
-            grid=args.grid,
-            extent=args.extent,
-            starts=args.starts,
-            seed=args.seed,
-            agents=parse_agents(args.agents),
-            horizons=parse_horizons(args.horizons),
-            transport=args.transport,
-            workers=args.workers,
-            out=args.out or Path("out") / f"paper-{datetime.now(UTC):%Y%m%d-%H%M%S}",
-            plots=not args.no_plots,
-            progress=not args.no_progress,
-            record=args.record,
-        )
-        options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
-        base = _load_settings(args)
-        if args.which == "fleet":
-            return _cmd_fleet(args, base)
-    except ValueError as error:
-        print(f"srl experiment: error: {error}", file=sys.stderr)
-        return 2
-    from tools.recording.record import RecordingError
-
-    try:
-        code, summary = run_experiment(options, base)
-    except RecordingError as error:
-        print(f"srl experiment: error: {error}", file=sys.stderr)
-        return 2
-    print(summary_markdown(summary), end="")
-    print(f"\nresults in {options.out}/", file=sys.stderr)
-    if summary.get("error"):
-        print(f"srl experiment: error: {summary['error']}", file=sys.stderr)
-    elif summary["interrupted"]:
-        print(
-            f"srl experiment: interrupted; {summary['runs_completed']} of {summary['runs_planned']} runs "
-            f"written to {options.out}/",
-            file=sys.stderr,
-        )
-    return code
-
-
-def _cmd_fleet(args: argparse.Namespace, base: Settings) -> int:
-    """``srl experiment fleet`` (tools/experiment/fleet.py): in process, one fleet per (agent, N, critic)."""
-    from tools.experiment.fleet import cmd_fleet
-
-    if args.transport != "inproc" or args.record is not None:
-        raise ValueError("experiment fleet runs in process: --transport zenoh and --record are for `experiment paper`")
-    starts = make_starts(args.starts, args.grid, args.extent, args.seed)
-    argv = [a for a in _argv_of(args) if not a.startswith("--transport=")]
-    command = "srl experiment " + " ".join(shlex.quote(a) for a in [*argv, f"--critic={args.critic}"])
-    return cmd_fleet(args, experiment_settings(base), starts, command)
-
-
-def _argv_of(args: argparse.Namespace) -> list[str]:
-    """A re-runnable command line for the summary (what was given, defaults spelled out)."""
-    argv = [
-        args.which,
-        f"--grid={args.grid}",
-        f"--extent={args.extent:g}",
-        f"--starts={args.starts}",
-        f"--seed={args.seed}",
-        f"--agents={args.agents}",
-        f"--horizons={args.horizons}",
-        f"--transport={args.transport}",
-        f"--method={args.method}",
-        f"--plant={args.plant}",
-    ]
-    if args.duration is not None:
-        argv.append(f"--duration={args.duration:g}")
-    if args.config is not None:
-        argv.append(f"--config={args.config}")
-    if args.workers:
-        argv.append(f"--workers={args.workers}")
-    if args.record is not None:
-        argv.append(f"--record={args.record}")
-    return argv

@@ -4,19 +4,18 @@ Two layouts, the same robots, keys and critic:
 
 * ``host`` (the default): ONE actor host (``srl actor --robots``), ONE plant host
   (``srl plant-sim --robots``) and the critic: four processes, whatever the fleet's size;
-* ``process`` (today's layout, the baseline of ``srl bench fleet``): one ``srl plant-sim`` and one
+* ``process`` (the baseline of ``srl bench fleet``): one ``srl plant-sim`` and one
   ``srl actor`` per robot, and the critic.
 
 Robots start evenly on a circle around the target (common/math/fleet.py), heading away from it. The
 run is bounded: readiness waits time out, the actors stop after ``duration`` seconds, and every
-child is stopped (SIGINT, SIGKILL after a grace) whatever happens (tools/launch/up.py's Supervisor). CPU
+child is stopped (SIGINT, SIGKILL after a grace) whatever happens (tools/launch/supervisor.py). CPU
 and memory of every srl process are read from /proc over the run itself (after start-up).
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import shutil
@@ -40,14 +39,16 @@ from common.contracts.summaries import CriticSummary, RealtimeActorSummary
 from common.math.fleet import circle_starts, split_evenly
 from common.net.transport import zenoh_config
 from common.process.runtime import fleet_hosts
-from tools.launch.up import (
+from tools.launch.supervisor import (
+    Child,
     Logins,
     ServiceDiedError,
-    SignalGuard,
+    StopSignals,
     Supervisor,
     free_loopback_endpoint,
     physics_plant,
     router_reachable,
+    write_child_summaries,
 )
 
 LAYOUTS = ("host", "process")
@@ -254,9 +255,166 @@ def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
     return {"actor": shares[0]} if hosts == 1 else {f"actor-{h + 1}": share for h, share in enumerate(shares)}
 
 
+@dataclass
+class FleetMeasures:
+    """What a fleet's run measured, from when every robot was ready to the end."""
+
+    cpu_seconds: dict[str, float]  # each process's
+    memory: tuple[float, float]  # all processes' RSS and peak RSS [MB] near the end
+    rss_series: RssSeries
+    messages: dict[str, list[int]]  # [count, bytes] of each kind (with count_messages)
+    ran: float  # [s] the span over which CPU was measured
+
+    def fields(self, processes: int) -> dict[str, Any]:
+        """The fleet summary's CPU and memory fields (CPU % of one core over the measured span)."""
+        use = ProcessUse(sum(self.cpu_seconds.values()), self.memory[0], self.memory[1], processes)
+        ran = self.ran
+        return {
+            "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
+            "cpu_percent_by_service": {
+                name: 100.0 * cpu / ran if ran > 0 else math.nan for name, cpu in self.cpu_seconds.items()
+            },
+            "rss_mb": use.rss_mb,
+            "rss_growth_percent": self.rss_series.growth_percent(),  # from the end of warm-up to the end (soak)
+            "rss_series_mb": self.rss_series.points,
+            "rss_growth_by_service_mb": self.rss_series.growth_by_service(),
+            "peak_rss_mb": use.peak_rss_mb,
+            "processes": use.processes,
+        }
+
+
+def measure_fleet(
+    supervisor: Supervisor,
+    settings: Settings,
+    actors: list[Child],
+    duration: float,
+    robots: int,
+    on_status: Callable[[str], None] | None,
+    count_messages: bool,
+) -> FleetMeasures:
+    """Watch the fleet until every actor has ended: CPU, memory and messages sampled while every
+    actor still runs (a reaped process has no /proc entry), a status line a second."""
+    pids = {name: child.process.pid for name, child in supervisor.children.items()}
+    counter = MessageCounter(settings) if count_messages else None
+    ready = time.monotonic()
+    cpu_before = cpu_of(pids)
+    monitor = FleetMonitor(settings) if on_status is not None else None
+    memory, sampled = (0.0, 0.0), ready
+    rss_series = RssSeries()
+    cpu_seconds = dict.fromkeys(pids, 0.0)
+    messages: dict[str, list[int]] = {}
+    try:
+        shown = 0
+        actor_names = {a.name for a in actors}
+        while any(a.process.poll() is None for a in actors):
+            supervisor.check(allowed_to_exit=actor_names)
+            now = time.monotonic()
+            if all(a.process.poll() is None for a in actors):
+                cpu_now, sampled = cpu_of(pids), now
+                cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
+                if counter is not None:
+                    messages = counter.snapshot()
+                if now - ready < duration - 1.0:
+                    each = memory_of(pids)  # near the end, while every process still runs
+                    memory = (sum(m[0] for m in each.values()), sum(m[1] for m in each.values()))
+                    rss_series.add(now - ready, memory[0], {name: m[0] for name, m in each.items()})
+            if monitor is not None and on_status is not None and int(now - ready) > shown:
+                shown = int(now - ready)
+                on_status(monitor.line(now - ready, robots))
+            time.sleep(0.2)
+    finally:
+        if monitor is not None:
+            monitor.close()
+        if counter is not None:
+            counter.close()
+    return FleetMeasures(cpu_seconds, memory, rss_series, messages, sampled - ready)
+
+
+def spawn_sim_plants(
+    supervisor: Supervisor,
+    common: list[str],
+    robots: list[str],
+    layout: str,
+    circle: float,
+    login: dict[str, str] | None,
+) -> None:
+    """The simulated robots: one plant host for all (``host``) or a plant_sim each (``process``),
+    starting evenly on the circle (common.math.fleet.circle_starts)."""
+    if layout == "host":
+        supervisor.spawn("plant", ["plant-sim", *common, f"--robots={','.join(robots)}", f"--circle={circle!r}"], login)
+        return
+    for robot, start in zip(robots, circle_starts(len(robots), circle), strict=True):
+        supervisor.spawn(
+            f"plant-{robot}",
+            ["plant-sim", *common, f"--robot={robot}", "--start=" + ",".join(repr(c) for c in start)],
+            login,
+        )
+
+
+def spawn_actors(
+    supervisor: Supervisor,
+    common: list[str],
+    robots: list[str],
+    layout: str,
+    actor_hosts: int,
+    duration: float,
+    login: dict[str, str] | None,
+) -> list[Child]:
+    """The actors, each running ``duration`` seconds: ``actor_hosts`` hosts (``host``) or one per robot."""
+    run = ["--run-seconds", repr(duration)]
+    if layout == "host":
+        return [
+            supervisor.spawn(name, ["actor", *common, f"--robots={','.join(share)}", *run], login)
+            for name, share in host_shares(robots, actor_hosts).items()
+        ]
+    return [supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run], login) for robot in robots]
+
+
+def actor_summaries(
+    supervisor: Supervisor, robots: list[str], layout: str, actor_hosts: int
+) -> tuple[dict[str, RealtimeActorSummary], list[dict[str, float]]]:
+    """Each robot's actor summary, and each actor process's own counters (a host's: its tick
+    thread's priority), from the actor processes of either layout."""
+    if layout == "host":
+        per_robot: dict[str, RealtimeActorSummary] = {}
+        process_counters = []
+        for name in host_shares(robots, actor_hosts):
+            host_summary = FleetActorSummary.model_validate(supervisor.children[name].summary())
+            per_robot.update(host_summary.per_robot)
+            process_counters.append(host_summary.counters)
+        return per_robot, process_counters
+    per_robot = {
+        robot: RealtimeActorSummary.model_validate(supervisor.children[f"actor-{robot}"].summary()) for robot in robots
+    }
+    return per_robot, [summary.counters for summary in per_robot.values()]
+
+
 def fleet_args(settings_args: list[str], router: str) -> list[str]:
     """The user's settings flags, without those the fleet sets per child, and the fleet's router."""
     return [a for a in settings_args if a.split("=", 1)[0] not in OWN_FLAGS] + [f"--router={router}"]
+
+
+def fleet_environment(pooled: bool) -> dict[str, str]:
+    """Every child's environment: this process's, with the settings a fleet runs its critic and
+    actors with (an ``SRL_`` variable the user set wins) and one BLAS thread per process."""
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    # one checkpoint write a second (all learners in each), not one per batch: a big fleet's critic
+    # would spend its time writing
+    env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
+    env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
+    env.setdefault("SRL_CRITIC__BATCH_WINDOW", "0.02")  # ~20 robots' fits in one stacked solve at 100 robots
+    # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
+    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second here) and
+    # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
+    # over the first 5 minutes: a fleet's memory would grow for that long
+    env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
+    env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
+    # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
+    # start threads, which spin on a busy machine and slow every fit
+    for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(variable, "1")
+    return env
 
 
 def run_fleet(
@@ -276,6 +434,7 @@ def run_fleet(
     bridge_args: list[str] | None = None,
     pooled: bool = False,
     secure: bool = False,
+    router: str | None = None,
 ) -> dict[str, Any]:
     """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary.
 
@@ -284,8 +443,10 @@ def run_fleet(
     ``plant="physics"``: simulated robots as for ``sim``, each the MuJoCo TurtleBot3
     (``plant.model = physics``: lag, deadband, slip, odometry) instead of the ideal unicycle.
     ``pooled``: one critic learner for every robot (critic.pooled), else one per robot.
-    ``secure``: as ``srl up --secure`` (tools.launch.up.Logins): every child logs in as its role over
-    mutual TLS, and the router's rules grant the roles the keys of every robot of the fleet."""
+    ``secure``: as ``srl up --secure`` (tools.launch.supervisor.Logins): every child logs in as its role over
+    mutual TLS, and the router's rules grant the roles the keys of every robot of the fleet.
+    ``router``: where the fleet's router listens (``srl up`` chooses it: tools/launch/fleet_cli.py);
+    default: a free loopback port, so that fleets side by side never meet."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
     if plant not in ("sim", "physics", "robot"):
@@ -294,35 +455,20 @@ def run_fleet(
         raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
     if secure and count_messages:
         raise ValueError("counting every message needs to read srl/**, which no role may do with secure")
-    router = free_loopback_endpoint()
+    router = router or free_loopback_endpoint()
     settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
-    env = dict(os.environ)
-    env.setdefault("PYTHONUNBUFFERED", "1")
-    # one write a second (all learners in each): per batch, the 50-robot critic spent half its time writing
-    env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
-    env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
-    env.setdefault("SRL_CRITIC__BATCH_WINDOW", "0.02")  # ~20 robots' fits in one stacked solve at 100 robots
-    # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
-    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second here) and
-    # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
-    # over the first 5 minutes (measured: most of a 50-robot soak's RSS growth)
-    env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
-    env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
+    env = fleet_environment(pooled)
     if plant == "physics":  # the plant host (or each plant_sim) steps one MuJoCo TurtleBot3 per robot
         settings = physics_plant(settings, env)
-    # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
-    # start threads, which spin on a busy machine (measured: fit median 5 -> 1.5 ms, p99 29 -> 2.5 ms)
-    for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env.setdefault(variable, "1")
     common = fleet_args(settings_args, router)
-    supervisor = Supervisor(common, env, quiet=quiet)
     ids = ",".join(robots)
     started = time.monotonic()
     logins: Logins | None = None
     scratch: Path | None = None
-    with SignalGuard() as guard:
+    with StopSignals() as signals:
+        supervisor = Supervisor(common, env, quiet=quiet, signals=signals)
         try:
-            # made under the guard: a signal from here on still removes them (the finally below)
+            # made while the signals are watched: a signal from here on still removes them (the finally below)
             scratch = Path(tempfile.mkdtemp(prefix="srl-fleet-"))
             # the critic's checkpoint is written as in any run (its cost is part of the fleet's), but here
             env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
@@ -350,17 +496,8 @@ def run_fleet(
                     layout,
                     login.get("plant"),
                 )
-            elif layout == "host":
-                supervisor.spawn(
-                    "plant", ["plant-sim", *common, f"--robots={ids}", f"--circle={circle!r}"], login.get("plant")
-                )
             else:
-                for robot, start in zip(robots, starts, strict=True):
-                    supervisor.spawn(
-                        f"plant-{robot}",
-                        ["plant-sim", *common, f"--robot={robot}", "--start=" + ",".join(repr(c) for c in start)],
-                        login.get("plant"),
-                    )
+                spawn_sim_plants(supervisor, common, robots, layout, circle, login.get("plant"))
             supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"], login.get("critic"))
             wait_fleet_alive(supervisor, settings, robots, "plant")
             if plant == "robot":
@@ -368,58 +505,14 @@ def run_fleet(
 
                 wait_fleet_odometry(supervisor, settings, ros)
             wait_fleet_alive(supervisor, settings, robots, "critic")
-            run = ["--run-seconds", repr(duration)]
-            if layout == "host":
-                actors = [
-                    supervisor.spawn(name, ["actor", *common, f"--robots={','.join(share)}", *run], login.get("actor"))
-                    for name, share in host_shares(robots, actor_hosts).items()
-                ]
-            else:
-                actors = [
-                    supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run], login.get("actor"))
-                    for robot in robots
-                ]
+            actors = spawn_actors(supervisor, common, robots, layout, actor_hosts, duration, login.get("actor"))
             wait_fleet_alive(supervisor, settings, robots, "actor")
-            pids = {name: child.process.pid for name, child in supervisor.children.items()}
-            counter = MessageCounter(settings) if count_messages else None
-            ready = time.monotonic()
-            cpu_before = cpu_of(pids)
-            monitor = FleetMonitor(settings) if on_status is not None else None
-            # CPU and memory sampled while every actor still runs (a reaped process has no /proc entry)
-            memory, sampled = (0.0, 0.0), ready
-            rss_series = RssSeries()
-            cpu_seconds = dict.fromkeys(pids, 0.0)
-            messages: dict[str, list[int]] = {}
-            try:
-                shown = 0
-                actor_names = {a.name for a in actors}
-                while any(a.process.poll() is None for a in actors):
-                    supervisor.check(allowed_to_exit=actor_names)
-                    now = time.monotonic()
-                    if all(a.process.poll() is None for a in actors):
-                        cpu_now, sampled = cpu_of(pids), now
-                        cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
-                        if counter is not None:
-                            messages = counter.snapshot()
-                        if now - ready < duration - 1.0:
-                            each = memory_of(pids)  # near the end, while every process still runs
-                            memory = (sum(m[0] for m in each.values()), sum(m[1] for m in each.values()))
-                            rss_series.add(now - ready, memory[0], {name: m[0] for name, m in each.items()})
-                    if monitor is not None and on_status is not None and int(now - ready) > shown:
-                        shown = int(now - ready)
-                        on_status(monitor.line(now - ready, len(robots)))
-                    time.sleep(0.2)
-            finally:
-                if monitor is not None:
-                    monitor.close()
-                if counter is not None:
-                    counter.close()
-            ran = sampled - ready
+            measures = measure_fleet(supervisor, settings, actors, duration, len(robots), on_status, count_messages)
             for actor in actors:
                 if actor.process.returncode != 0:
                     supervisor.check()
         finally:
-            guard.cleaning = True
+            signals.cleaning = True
             if plant == "robot":
                 from tools.launch.fleet_robot import stop_bridges
 
@@ -429,35 +522,21 @@ def run_fleet(
                 shutil.rmtree(scratch, ignore_errors=True)
             if logins is not None:
                 logins.remove()
-        guard.raise_if_received()
+        signals.raise_if_received()
     for name, child in supervisor.children.items():  # every service ended cleanly (as srl up checks)
         if exit_code(child.process.returncode) != 0:
             raise ServiceDiedError(name, child.process.returncode, child.stderr_tail[-10:])
     critic = TypeAdapter(CriticSummary).validate_python(supervisor.children["critic"].summary())
-    if layout == "host":
-        per_robot = {}
-        process_counters = []  # each actor process's own (the host's: its tick thread's priority)
-        for name in host_shares(robots, actor_hosts):
-            host_summary = FleetActorSummary.model_validate(supervisor.children[name].summary())
-            per_robot.update(host_summary.per_robot)
-            process_counters.append(host_summary.counters)
-        view = fleet_view(per_robot)
-    else:
-        per_robot = {
-            robot: RealtimeActorSummary.model_validate(supervisor.children[f"actor-{robot}"].summary())
-            for robot in robots
-        }
-        process_counters = [summary.counters for summary in per_robot.values()]
-        view = fleet_view(per_robot)
+    per_robot, process_counters = actor_summaries(supervisor, robots, layout, actor_hosts)
+    view = fleet_view(per_robot)
     ticks = sum(summary.steps for summary in per_robot.values())
     hurried = sum(summary.counters.get("hurried_solves", 0.0) for summary in per_robot.values())
-    use = ProcessUse(sum(cpu_seconds.values()), memory[0], memory[1], len(supervisor.children))
     summary = {
         "plant": plant,
         "layout": layout,
         "robots": robots,
         "seconds": duration,
-        "run_seconds": ran,  # the span over which CPU was measured
+        "run_seconds": measures.ran,  # the span over which CPU was measured
         "circle_radius_m": circle,
         "actor_hosts": actor_hosts if layout == "host" else len(robots),
         "secure": secure,
@@ -481,32 +560,19 @@ def run_fleet(
             "fits_coalesced": critic.fits_coalesced,
             "pooled": critic.pooled,
         },
-        "cpu_percent": 100.0 * use.cpu_seconds / ran if ran > 0 else math.nan,
-        "cpu_percent_by_service": {
-            name: 100.0 * cpu / ran if ran > 0 else math.nan for name, cpu in cpu_seconds.items()
-        },
-        "rss_mb": use.rss_mb,
-        "rss_growth_percent": rss_series.growth_percent(),  # from the end of warm-up to the end (soak)
-        "rss_series_mb": rss_series.points,
-        "rss_growth_by_service_mb": rss_series.growth_by_service(),
-        "peak_rss_mb": use.peak_rss_mb,
-        "processes": use.processes,
+        **measures.fields(len(supervisor.children)),
         "wall_seconds": time.monotonic() - started,
         "services": {name: child.process.pid for name, child in supervisor.children.items()},
         "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
     }
-    if counter is not None:  # over the same span as the CPU: [count, bytes] of each kind
-        summary["messages"] = messages
+    if count_messages:  # over the same span as the CPU: [count, bytes] of each kind
+        summary["messages"] = measures.messages
     if plant == "robot":
         from tools.launch.fleet_robot import robot_fleet_summary
 
         summary["robot_plant"] = robot_fleet_summary(supervisor, settings, robots, layout)
     if summary_dir is not None:
-        summary_dir.mkdir(parents=True, exist_ok=True)
-        for name, child in supervisor.children.items():
-            raw = child.summary()
-            if raw is not None:
-                (summary_dir / f"{name}.json").write_text(json.dumps(raw, indent=1) + "\n")
+        write_child_summaries(summary_dir, supervisor.children)
         summary["summary_dir"] = str(summary_dir)
         summary["per_robot_final"] = {r: s.final_state for r, s in per_robot.items()}
     return summary

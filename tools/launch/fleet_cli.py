@@ -1,16 +1,17 @@
-"""``srl up --robots``'s options and command (issue 16), kept apart from tools/launch/fleet.py so that
+"""``srl up --robots``'s options and command (docs/fleets.md), kept apart from tools/launch/fleet.py so that
 building the ``srl`` parser does not import Zenoh."""
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
+import shlex
 import sys
 from pathlib import Path
 
 from common.config.arguments import (
     UsageError,
+    add_circle_argument,
     add_robot_endpoints_argument,
     add_robots_argument,
     fleet_robots,
@@ -18,12 +19,13 @@ from common.config.arguments import (
 )
 from common.config.settings import Settings
 from common.math.fleet import ROS_FLEET_PREFIX
+from tools.commands.view import VIEW_PORT
 
 LAYOUTS = ("host", "process")
 
 
 def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
-    """``srl up``'s fleet options (issue 16)."""
+    """``srl up``'s fleet options (docs/fleets.md)."""
     add_robots_argument(
         parser,
         f"a fleet (real time; with --plant robot each robot's id is its ROS namespace, K: {ROS_FLEET_PREFIX}1.."
@@ -37,13 +39,7 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --robots: host = one actor and one plant process for every robot; "
         "process = one actor and one plant_sim per robot (default: host)",
     )
-    parser.add_argument(
-        "--circle",
-        type=float,
-        default=1.5,
-        metavar="R",
-        help="with --robots: starts evenly on a circle of R metres around the target (default: 1.5)",
-    )
+    add_circle_argument(parser)
     parser.add_argument(
         "--actor-hosts",
         default="auto",
@@ -57,6 +53,17 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         help="with --robots: a learner per robot, or one pooled learner trained on every robot's transitions "
         "(default: setting critic.pooled, false: per-robot)",
     )
+
+
+def beside_commands(args: argparse.Namespace, router: str, default_router: str) -> str:
+    """The exact ``srl record`` and ``srl view`` commands that join this fleet: ``--router`` when
+    the fleet's router is not where they look by default, ``--config`` when one was given."""
+    flags = "" if router == default_router else f" --router {router}"
+    if args.config is not None:
+        flags += f" --config {shlex.quote(str(args.config))}"
+    record = shlex.quote(str(args.record)) if getattr(args, "record", None) is not None else "FILE.mcap"
+    port = f" --port {args.view}" if getattr(args, "view", None) not in (None, VIEW_PORT) else ""
+    return f"`srl record {record}{flags}`, `srl view{port}{flags}`"
 
 
 def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: list[str], summary_dir: Path) -> int:
@@ -79,22 +86,31 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
         bridge_args = [a for a in bridge_argv(args) if a.split("=", 1)[0] not in ("--namespace", "--robot-endpoint")]
     elif getattr(args, "robot_endpoints", None):
         raise UsageError("--robot-endpoints is for --plant robot")
+    from tools.launch.supervisor import local_router_endpoint
+
+    router = local_router_endpoint(settings.transport.router, given=args.router is not None)
+    default_router = Settings.load(args.config).transport.router  # where srl record and srl view look
     if getattr(args, "record", None) is not None or getattr(args, "view", None) is not None:
+        why = "" if args.router is not None else f": {default_router} is taken"
+        again = "" if router == default_router else f" (with `--router {router}`{why})"
         raise UsageError(
-            "--record and --view do not start with --robots yet: run `srl record FILE.mcap` or `srl view` "
-            "beside the fleet (both carry every robot)"
+            f"--record and --view do not start with --robots yet: run the fleet without them{again} and, beside "
+            f"it, {beside_commands(args, router, default_router)} (both carry every robot)"
         )
+    print(
+        f"srl up: the fleet's router listens on {router}; beside it: {beside_commands(args, router, default_router)}",
+        file=sys.stderr,
+        flush=True,
+    )
     from tools.launch.fleet import actor_hosts
 
     args.actor_hosts = actor_hosts(str(args.actor_hosts), len(robots))
-    if not (math.isfinite(args.circle) and args.circle > 0):
-        raise UsageError(f"--circle {args.circle}: the start circle's radius must be a positive number of metres")
 
     def show(line: str) -> None:
         print(f"srl up {line}", file=sys.stderr, flush=True)
 
     from tools.launch.fleet import format_fleet_summary, run_fleet
-    from tools.launch.up import ServiceDiedError
+    from tools.launch.supervisor import ServiceDiedError
 
     try:
         summary = run_fleet(
@@ -112,12 +128,10 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
             bridge_args=bridge_args,
             pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
             secure=args.secure,
+            router=router,
         )
-    except ServiceDiedError as error:  # as srl up says it: one line and the service's last words
-        print(f"srl up: error: {error}", file=sys.stderr)
-        for line in error.tail:
-            print(f"  [{error.name}] {line}", file=sys.stderr)
-        return 1
+    except ServiceDiedError as error:
+        return error.say("srl up")
     except TimeoutError as error:
         raise UsageError(str(error)) from error
     print(format_fleet_summary(summary))

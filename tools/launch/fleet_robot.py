@@ -1,4 +1,4 @@
-"""``srl up --robots K --plant robot``: a fleet of ROS 2 robots behind robot bridges (issue 16).
+"""``srl up --robots K --plant robot``: a fleet of ROS 2 robots behind robot bridges (docs/fleets.md).
 
 Each robot's srl id is its ROS namespace (common/math/fleet.py ``ros_fleet``; ``--robots K`` names
 them ``tb3_1`` .. ``tb3_K``). Without endpoints, K emulated TurtleBot3s are started, each under
@@ -12,6 +12,7 @@ exactly as for a simulated fleet.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -27,7 +28,7 @@ from common.contracts.messages import PlantState
 from common.contracts.summaries import BridgeSummary, EmulatorSummary
 from common.math.frames import Pose2D, to_goal_frame
 from common.net.transport import zenoh_config
-from tools.launch.up import Supervisor, free_loopback_endpoint, router_reachable
+from tools.launch.supervisor import Supervisor, free_loopback_endpoint, router_reachable
 
 EMULATOR_READY_S = 30.0  # [s] an emulator's router answers (as srl up --plant robot waits)
 ODOMETRY_READY_S = 60.0  # [s] every robot's first state through its bridge
@@ -71,7 +72,7 @@ def spawn_robot_plants(
             continue
         supervisor.wait_for(
             f"the emulated robot {robot}'s router ({fleet[robot]})",
-            lambda e=fleet[robot]: router_reachable(settings, e),
+            functools.partial(router_reachable, settings, fleet[robot]),
             timeout=EMULATOR_READY_S,
         )
     if layout == "host":

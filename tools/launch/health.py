@@ -4,8 +4,8 @@
 * ``actor``, ``critic``, ``plant``, ``robot_bridge``, ...: the service's liveliness token
   ``srl/<robot>/alive/<service>`` is visible through the router. Every srl service declares it
   once it is ready (plant_sim and robot_bridge both as ``plant``; the bridge also as
-  ``robot_bridge``), and it vanishes within milliseconds when the holder dies (DESIGN.md
-  section 3).
+  ``robot_bridge``), and it vanishes within milliseconds when the holder dies
+  (docs/architecture.md).
 * ``robot``: the ROS 2 robot (a real one, or the TurtleBot3 emulator) is visible through the
   router: a liveliness token of its graph, for the ``[bridge]`` settings' wire profile, domain
   and namespace (the pattern the bridge discovers the robot's ``cmd_vel`` subscription with).
@@ -16,9 +16,9 @@ The session is a client of the router: explicit endpoint, multicast scouting as 
 (off by default), listening nowhere.
 
 Why this module reads three transport settings itself: Docker runs a healthcheck every few
-seconds in every container, and ``python -m tools.launch.health`` then costs 0.05 s of CPU where
-``srl health`` (which imports the full settings stack: pydantic, numpy) costs 0.5 s (measured:
-five containers checked every 2 s would take most of a core on a 2-core machine). So
+seconds in every container, and ``srl health`` imports the full settings stack (pydantic, numpy),
+ten times the CPU of ``python -m tools.launch.health``: on a small machine, several containers'
+checks would take most of a core. So
 ``transport_settings`` resolves ``router``, ``robot``, ``multicast_scouting`` and ``connect``
 with the same precedence as :class:`common.config.settings.Settings` (flags > ``SRL_TRANSPORT__<NAME>``
 > ``--config``/``SRL_CONFIG`` > the packaged ``common/config/srl.toml``) and ``ALIVE_KEY`` mirrors
@@ -43,21 +43,19 @@ from typing import Any
 import common
 
 HEALTHY, UNHEALTHY, BAD_USAGE = 0, 1, 2
-PACKAGED_CONFIG = Path(common.__file__).with_name("srl.toml")
+PACKAGED_CONFIG = Path(common.__file__).parent / "config" / "srl.toml"  # == common.config.settings.DEFAULT_CONFIG
 ALIVE_KEY = "srl/{robot}/alive/{service}"  # == common.contracts.keys.liveliness_key (tested)
 _CHUNK = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 FIELDS = ("router", "robot", "multicast_scouting", "connect", "secure")  # of [transport]
 _TRUE, _FALSE = {"1", "true", "yes", "on", "t", "y"}, {"0", "false", "no", "off", "f", "n"}
 
 
-def add_health_parser(sub: Any) -> None:
-    """Register ``srl health`` on the ``srl`` command's subparsers."""
-    parser = sub.add_parser("health", help="exit 0 if a service is ready (router reachable, liveliness token seen)")
-    add_health_arguments(parser)
-    parser.set_defaults(func=cmd_health)
+NAME = "health"
+HELP = "exit 0 if a service is ready (router reachable, liveliness token seen)"
 
 
-def add_health_arguments(parser: argparse.ArgumentParser) -> None:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``srl health``'s options (tools/cli.py) and ``python -m tools.launch.health``'s."""
     parser.add_argument(
         "service",
         nargs="?",
@@ -74,6 +72,7 @@ def add_health_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--router", help="Zenoh router endpoint (default from config/environment)")
     parser.add_argument("--robot", help="robot id, the <robot> chunk of the key (default from config: tb3_0)")
     parser.add_argument("--timeout", type=float, default=2.0, help="[s] how long to wait for an answer (default: 2)")
+    parser.set_defaults(func=main)
 
 
 def transport_settings(
@@ -177,7 +176,8 @@ def check(
     return False, f"no liveliness token {wanted} seen through {endpoint} within {remaining:.1f} s"
 
 
-def cmd_health(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:
+    """``srl health``: one line on stdout, the exit code says ready (0), not ready (1), bad usage (2)."""
     try:
         transport = transport_settings(args.config, args.router, args.robot)
         ready, what = check(transport, args.service, args.key, args.timeout, args.config)
@@ -188,14 +188,14 @@ def cmd_health(args: argparse.Namespace) -> int:
     return HEALTHY if ready else UNHEALTHY
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def module_main(argv: Sequence[str] | None = None) -> int:
     """``python -m tools.launch.health``: the same as ``srl health``, without the ``srl`` imports."""
     parser = argparse.ArgumentParser(
         prog="python -m tools.launch.health", description=(__doc__ or "").split("\n", 1)[0]
     )
-    add_health_arguments(parser)
-    return cmd_health(parser.parse_args(argv))
+    add_arguments(parser)
+    return main(parser.parse_args(argv))
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(module_main())

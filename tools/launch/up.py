@@ -1,16 +1,11 @@
-"""``srl up``: the router and every service as separate child processes.
+"""``srl up``: the router and every service as separate child processes, one run.
 
-Children are ``python -m tools.cli <service> ...`` with the same configuration (each gets
-only the flags its subcommand takes). Their log lines are forwarded to stderr prefixed with
-``[name]``; each prints one JSON summary as its last stdout line when it ends: those are kept,
-written to ``<summary_dir>/<name>.json``, never echoed. While the actor runs, its 1 Hz status
-(``srl/<robot>/status/actor``) is handed to ``on_status`` (``srl up`` prints a status line).
-The actor defines the end of the run: when it exits, the others are stopped (SIGINT, then
-SIGKILL after a grace period). If any child dies first, everything is stopped and ``srl up``
-exits non-zero naming it. SIGINT (Ctrl-C), SIGTERM and SIGHUP all stop everything the same
-way (children by pid, credentials removed) and ``srl up`` exits with 128 + the signal number
-(130, 143, 129). Every child gets ``SRL_PARENT_PID``: it dies with this process even when this
-process is killed with SIGKILL (common/system/lifeline.py).
+The children are started, watched and stopped by tools/launch/supervisor.py. While the actor runs,
+its 1 Hz status (``srl/<robot>/status/actor``) is handed to ``on_status`` (``srl up`` prints a
+status line). The actor defines the end of the run: when it exits, the others are stopped
+(SIGINT, then SIGKILL after a grace period). If any child dies first, everything is stopped and
+``srl up`` exits non-zero naming it. Each child's JSON summary is written to
+``<summary_dir>/<name>.json``.
 
 ``--plant physics`` is ``plant-sim`` with ``plant.model = "physics"`` (the MuJoCo TurtleBot3,
 common/math/physics.py) for every child. ``--plant robot`` starts ``robot-bridge`` (and
@@ -29,391 +24,79 @@ import json
 import logging
 import math
 import os
-import shutil
 import signal
-import subprocess
-import sys
-import tempfile
-import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, TypeVar
+from typing import Any
 
 import zenoh
-from pydantic import TypeAdapter, ValidationError
+from pydantic import TypeAdapter
 
-from common.config.settings import Settings, TransportSettings
+from common.config.settings import Settings
 from common.contracts.summaries import (
     ACTOR_SUMMARY,
-    BridgeSummary,
     CriticSummary,
-    EmulatorSummary,
     LockstepActorSummary,
-    PlantSummary,
     RealtimeActorSummary,
-    RouterSummary,
 )
 from common.math.frames import Pose2D, to_goal_frame
-from common.net.certs import write_tls_material
-from common.net.security import ROLES, write_credentials
 from common.net.transport import zenoh_config
+from tools.launch.supervisor import (
+    CHILD_SUMMARIES,
+    Child,
+    Logins,
+    OtherSummary,
+    ServiceDiedError,
+    StopSignals,
+    Supervisor,
+    alive_probe,
+    contract_summary,
+    free_loopback_endpoint,
+    optional_summary,
+    physics_plant,
+    router_reachable,
+    state_probe,
+    write_child_summaries,
+)
 
 log = logging.getLogger(__name__)
-GRACE_SECONDS = 5.0
-T = TypeVar("T")
-# the children's contracts besides the actor's and the critic's (common/contracts/summaries.py)
-OtherSummary = RouterSummary | PlantSummary | BridgeSummary | EmulatorSummary
-CHILD_SUMMARIES: dict[str, type[OtherSummary]] = {
-    "router": RouterSummary,
-    "plant": PlantSummary,
-    "robot_bridge": BridgeSummary,
-    "tb3_emulator": EmulatorSummary,
-}
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+PLANTS = ("sim", "robot", "physics")
 
 
-class Stopped(KeyboardInterrupt):
-    """``srl up`` was stopped by a signal; everything has been cleaned up as for Ctrl-C.
+@dataclass(frozen=True)
+class UpOptions:
+    """One ``srl up`` run, as :func:`run_up` takes it.
 
-    A KeyboardInterrupt, so that a caller that handles Ctrl-C handles SIGTERM and SIGHUP alike."""
+    ``plant``: ``sim`` (plant_sim), ``physics`` (plant_sim with the MuJoCo TurtleBot3) or ``robot``
+    (the robot bridge, and the TurtleBot3 emulator unless ``settings.bridge.robot_endpoint`` names a
+    real robot; real time only: a robot cannot be stepped by a lockstep query).
+    ``sync_critic``: the lockstep actor waits for the weights trained on the previous step.
+    ``settings_args``: the settings flags every child gets; ``bridge_args``: the bridge and
+    emulator's own. ``secure``: fresh logins per role and mutual TLS (:class:`Logins`).
+    ``on_status``: handed the actor's status counters once a second. ``record``: an ``srl record``
+    child writes every robot to this MCAP file; ``view_port``: an ``srl view`` child serves the run
+    to Foxglove on that loopback port."""
 
-    def __init__(self, signum: int) -> None:
-        self.signum = signum
-        super().__init__(signal.Signals(signum).name)
-
-    @property
-    def exit_code(self) -> int:
-        """The shell's convention: 128 + the signal number (SIGINT 130, SIGTERM 143, SIGHUP 129)."""
-        return 128 + self.signum
-
-
-class SignalGuard:
-    """While active, SIGINT, SIGTERM and SIGHUP raise :class:`Stopped` in the main thread, once.
-
-    During cleanup (``cleaning``) a signal is only remembered, never raised: an exception in the
-    middle of stopping the children would leave some of them running and the credentials on disk.
-    """
-
-    def __init__(self) -> None:
-        self.cleaning = False
-        self.received: int | None = None
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> SignalGuard:
-        if threading.current_thread() is threading.main_thread():  # signals reach the main thread only
-            for signum in STOP_SIGNALS:
-                self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def _handle(self, signum: int, _frame: Any) -> None:
-        first = self.received is None
-        self.received = self.received or signum
-        if self.cleaning or not first:
-            log.warning("srl up: %s while stopping: finishing the cleanup", signal.Signals(signum).name)
-            return
-        log.warning("srl up: %s: stopping every service", signal.Signals(signum).name)
-        raise Stopped(signum)
-
-    def __exit__(self, *exc: object) -> None:
-        for signum, previous in self._previous.items():
-            signal.signal(signum, previous)
-
-    def raise_if_received(self) -> None:
-        """After the cleanup: a signal that came during it still ends the run as stopped."""
-        if self.received is not None:
-            raise Stopped(self.received)
-
-
-def physics_plant(settings: Settings, env: dict[str, str]) -> Settings:
-    """``--plant physics``: plant_sim (or the plant host) with the MuJoCo TurtleBot3; every child
-    sees it through ``env``, and the settings returned say it to this process."""
-    env["SRL_PLANT__MODEL"] = "physics"
-    return settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
-
-
-def _contract_summary(child: Child, contract: TypeAdapter[T]) -> T:
-    """A child's JSON summary read through its contract; one line if it has none or does not fit."""
-    raw = child.summary()
-    if raw is None:
-        raise ValueError(f"{child.name} ended without its JSON summary (its last stdout line)")
-    try:
-        return contract.validate_python(raw)
-    except ValidationError as error:
-        first = error.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise ValueError(
-            f"{child.name}'s summary does not fit common/contracts/summaries.py: {where}: {first['msg']}"
-        ) from None
-
-
-def optional_summary(child: Child, contract: TypeAdapter[T]) -> T | None:
-    """A child's summary through its contract, or None if it printed none (a child killed after
-    the grace); one that does not fit raises as :func:`_contract_summary` does."""
-    return None if child.summary() is None else _contract_summary(child, contract)
-
-
-def free_loopback_endpoint() -> str:
-    """``tcp/127.0.0.1:<port>`` on a port that was free a moment ago (the OS picked it)."""
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
-
-
-class ServiceDiedError(RuntimeError):
-    def __init__(self, name: str, code: int | None, tail: list[str]) -> None:
-        self.name, self.code, self.tail = name, code, tail
-        super().__init__(f"service {name!r} exited with code {code} before the run ended")
-
-
-@dataclass
-class Child:
-    name: str
-    process: subprocess.Popen[str]
-    stdout_lines: list[str] = field(default_factory=list)
-    stderr_tail: list[str] = field(default_factory=list)
-    threads: list[threading.Thread] = field(default_factory=list)
-
-    def summary(self) -> dict[str, Any] | None:
-        for line in reversed(self.stdout_lines):
-            if line.startswith("{"):
-                try:
-                    return json.loads(line)
-                except json.JSONDecodeError:
-                    return None
-        return None
-
-
-def _pump(stream: IO[str], name: str, sink: list[str], echo: IO[str] | None, keep: int | None) -> None:
-    """Keep a child's lines (``keep`` at most); echo them (its logs) if ``echo``."""
-    for line in stream:
-        line = line.rstrip("\n")
-        sink.append(line)
-        if keep is not None and len(sink) > keep:
-            del sink[0]
-        if echo is not None:
-            echo.write(f"[{name}] {line}\n")
-            echo.flush()
-
-
-class Supervisor:
-    def __init__(self, settings_args: list[str], env: dict[str, str], quiet: bool = False) -> None:
-        self.settings_args = settings_args
-        self.env = env
-        self.quiet = quiet
-        self.children: dict[str, Child] = {}
-
-    def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
-        from common.config.arguments import child_argv
-
-        command = [sys.executable, "-m", "tools.cli", *child_argv(argv)]
-        process = subprocess.Popen(
-            command,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            # SRL_PARENT_PID: the child stops when this process dies, however it dies (common/system/lifeline.py)
-            env={**self.env, **(env or {}), "SRL_PARENT_PID": str(os.getpid())},
-            start_new_session=True,  # our Ctrl-C is forwarded by us, in order
-        )
-        child = Child(name, process)
-        echo = None if self.quiet else sys.stderr
-        # stdout holds the JSON summary (kilobytes): kept, not echoed; stderr holds the logs
-        for stream, sink, keep, shown in (
-            (process.stdout, child.stdout_lines, 1000, None),
-            (process.stderr, child.stderr_tail, 200, echo),
-        ):
-            thread = threading.Thread(target=_pump, args=(stream, name, sink, shown, keep), daemon=True)
-            thread.start()
-            child.threads.append(thread)
-        self.children[name] = child
-        log.info("started %s (pid %d)", name, process.pid)
-        return child
-
-    def check(self, allowed_to_exit: set[str] = frozenset()) -> None:  # type: ignore[assignment]
-        for child in self.children.values():
-            code = child.process.poll()
-            if code is not None and child.name not in allowed_to_exit:
-                for thread in child.threads:
-                    thread.join(timeout=1.0)
-                raise ServiceDiedError(child.name, code, child.stderr_tail[-10:])
-
-    def wait_for(self, what: str, probe: Any, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.check()
-            if probe():
-                return
-            time.sleep(0.05)
-        raise TimeoutError(f"{what} not ready after {timeout:.0f} s")
-
-    def stop_one(self, name: str) -> None:
-        """SIGINT one child and wait for it (SIGKILL after the grace period)."""
-        child = self.children[name]
-        if child.process.poll() is not None:
-            return
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(child.process.pid, signal.SIGINT)
-        try:
-            child.process.wait(timeout=GRACE_SECONDS)
-        except subprocess.TimeoutExpired:
-            log.warning("%s did not stop within %.0f s: killing it", name, GRACE_SECONDS)
-            os.killpg(child.process.pid, signal.SIGKILL)
-            child.process.wait()
-
-    def stop_all(self) -> None:
-        """SIGINT every service still running (newest first) and wait for them, SIGKILL after the
-        grace; the router last, once nobody is left to say goodbye through it (a router closing
-        under its clients' last messages was seen to outlast the grace on a loaded CI machine)."""
-        services = [c for c in reversed(list(self.children.values())) if c.name != "router"]
-        self._stop_group(services)
-        self._stop_group([c for c in self.children.values() if c.name == "router"])
-        for child in self.children.values():
-            for thread in child.threads:
-                thread.join(timeout=2.0)
-
-    def _stop_group(self, children: list[Child]) -> None:
-        alive = [c for c in children if c.process.poll() is None]
-        for child in alive:
-            with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
-                os.killpg(child.process.pid, signal.SIGINT)
-        deadline = time.monotonic() + GRACE_SECONDS
-        for child in alive:
-            try:
-                child.process.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning("%s did not stop within %.0f s: killing it", child.name, GRACE_SECONDS)
-                os.killpg(child.process.pid, signal.SIGKILL)
-                child.process.wait()
-
-
-def router_reachable(settings: Settings, endpoint: str | None = None) -> bool:
-    """Can a client session open to srl's router (or, without login, to ``endpoint``)?"""
-    transport = settings.transport
-    if endpoint is not None:
-        transport = transport.model_copy(update={"router": endpoint, "connect": [], "secure": False})
-    try:
-        session = zenoh.open(zenoh_config(transport))
-    except zenoh.ZError:
-        return False
-    session.close()
-    return True
-
-
-def alive_probe(settings: Settings, service: str) -> Any:
-    from common.net.transport import Bus
-
-    state: dict[str, Bus | None] = {"bus": None}
-
-    def probe() -> bool:
-        if state["bus"] is None:
-            try:
-                state["bus"] = Bus.open(settings.transport, "up")
-            except zenoh.ZError:
-                return False
-        bus = state["bus"]
-        assert bus is not None
-        if bus.is_alive(settings.transport.robot, service, timeout=0.5):
-            bus.close()
-            return True
-        return False
-
-    return probe
-
-
-def state_probe(settings: Settings) -> Any:
-    """True once a state sample has been seen (the robot's odometry came through the bridge)."""
-    from common.contracts.keys import STATE
-
-    seen = threading.Event()
-    held: dict[str, Any] = {}
-
-    def probe() -> bool:
-        if "session" not in held:
-            try:
-                held["session"] = zenoh.open(zenoh_config(settings.transport))
-            except zenoh.ZError:
-                return False
-            held["subscriber"] = held["session"].declare_subscriber(
-                STATE.key(settings.transport.robot), lambda _: seen.set()
-            )
-        if seen.wait(0.1):
-            held["subscriber"].undeclare()
-            held["session"].close()
-            return True
-        return False
-
-    return probe
-
-
-def _tls_endpoint(endpoint: str) -> str | None:
-    """``tcp/H:P`` -> ``tls/H:P`` (``srl up --secure``); a tls/ endpoint as is; None for others."""
-    if endpoint.startswith("tls/"):
-        return endpoint
-    return "tls/" + endpoint[len("tcp/") :] if endpoint.startswith("tcp/") else None
-
-
-@dataclass
-class Logins:
-    """One secure run's logins (``srl up --secure``, also with ``--robots``): fresh random
-    credentials for every role in a private temporary directory, and mutual TLS on the same
-    address when the router's endpoint is tcp/. ``environment`` is the login environment of each
-    role's children and of the router (``"router"``); ``monitor`` is the transport this process's
-    own probes log in with; :meth:`argv` moves the children's ``--router`` to the TLS endpoint;
-    :meth:`remove` deletes every secret (the caller's ``finally``)."""
-
-    directory: Path
-    environment: dict[str, dict[str, str]]
-    monitor: TransportSettings
-    tls_router: str | None
-
-    @classmethod
-    def create(cls, transport: TransportSettings, *, lockstep: bool, robots: list[str] | None = None) -> Logins:
-        """``robots``: the fleet whose keys the router's rules grant (default: transport.robot)."""
-        credentials = write_credentials(Path(tempfile.mkdtemp(prefix="srl-secure-")))
-        try:
-            environment = {user: credentials.role_environment(user) for user in ("actor", "critic", "plant")}
-            environment["router"] = credentials.router_environment(lockstep=lockstep)
-            if robots is not None:
-                environment["router"]["SRL_TRANSPORT__ACL_ROBOTS"] = ",".join(robots)
-            monitor = credentials.transport(transport, "monitor")
-            tls_router = _tls_endpoint(transport.router)
-            if tls_router is not None:  # the same address over mutual TLS (certificates next to the passwords)
-                tls = write_tls_material(credentials.directory / "tls", ROLES)
-                for user in environment:
-                    environment[user] = {
-                        **environment[user],
-                        **tls.environment(user),
-                        "SRL_TRANSPORT__ROUTER": tls_router,
-                    }
-                monitor = monitor.model_copy(
-                    update={
-                        "router": tls_router,
-                        "tls_ca": str(tls.ca),
-                        "tls_cert": str(tls.cert("monitor")),
-                        "tls_key": str(tls.key("monitor")),
-                    }
-                )
-        except BaseException:
-            shutil.rmtree(credentials.directory, ignore_errors=True)
-            raise
-        return cls(credentials.directory, environment, monitor, tls_router)
-
-    def argv(self, args: list[str]) -> list[str]:
-        if self.tls_router is None:
-            return list(args)
-        return [f"--router={self.tls_router}" if arg.startswith("--router=") else arg for arg in args]
-
-    def remove(self) -> None:
-        shutil.rmtree(self.directory, ignore_errors=True)
+    settings_args: list[str]
+    mode: str
+    plant: str
+    duration: float
+    sync_critic: bool = False
+    quiet: bool = False
+    bridge_args: list[str] = field(default_factory=list)
+    secure: bool = False
+    on_status: Callable[[dict[str, float]], None] | None = None
+    summary_dir: Path | None = None
+    record: Path | None = None
+    view_port: int | None = None
 
 
 class StatusMonitor:
     """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session,
     with the plant's refusal counters (``srl/<robot>/status/plant``: the bridge's refused and
-    resynchronized actions, issue 13) merged in under ``plant.``."""
+    resynchronized actions) merged in under ``plant.``."""
 
     def __init__(self, settings: Settings) -> None:
         from common.contracts.keys import STATUS
@@ -475,36 +158,15 @@ def emulator_truth(emulator: dict[str, Any] | None, settings: Settings) -> dict[
 
 def write_summaries(directory: Path, children: dict[str, Child], merged: dict[str, Any]) -> None:
     """Each child's JSON summary line to ``<name>.json`` and the merged one to ``summary.json``."""
-    directory.mkdir(parents=True, exist_ok=True)
-    for name, child in children.items():
-        summary = child.summary()
-        if summary is not None:
-            (directory / f"{name}.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_child_summaries(directory, children)
     (directory / "summary.json").write_text(json.dumps(merged, indent=1) + "\n")
 
 
-def run_up(
-    settings: Settings,
-    settings_args: list[str],
-    mode: str,
-    plant: str,
-    sync_critic: bool,
-    duration: float,
-    quiet: bool = False,
-    bridge_args: list[str] | None = None,
-    secure: bool = False,
-    on_status: Any = None,
-    summary_dir: Path | None = None,
-    record: Path | None = None,
-    view_port: int | None = None,
-) -> dict[str, Any]:
+def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
     """Start everything, run one actor episode/duration, stop everything; the merged summary.
 
-    ``plant="robot"``: the robot bridge in place of plant_sim, and the TurtleBot3 emulator as the
-    robot unless ``settings.bridge.robot_endpoint`` names a real one. The emulator is the robot's
-    own Zenoh router (``--listen`` on a free loopback port) and the bridge its client, so the
-    bridge's path to the robot does not go through srl's router. Real time only: a robot cannot
-    be stepped by a lockstep query.
+    The emulated robot is its own Zenoh router (``--listen`` on a free loopback port) and the
+    bridge its client, so the bridge's path to the robot does not go through srl's router.
 
     ``secure``: fresh random credentials for every role in a private temporary directory
     (0700, files 0600, removed at exit); the router authenticates users and enforces the role
@@ -513,78 +175,52 @@ def run_up(
     A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
     fresh private CA and one certificate per role in the same directory (common/net/certs.py).
 
-    ``record``: an ``srl record`` child writes every robot to this MCAP file (``--clock steps`` in
-    lockstep); ``view_port``: an ``srl view`` child serves the run to Foxglove on that loopback port.
-    Both start before the plant and stop after everything but the router, so they see it all.
+    The recorder (``--clock steps`` in lockstep) and the view start before the plant and stop
+    after everything but the router, so they see it all.
 
     SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
     """
-    if secure and (record is not None or view_port is not None):
+    if options.secure and (options.record is not None or options.view_port is not None):
         raise ValueError(
             "--record and --view do not run with --secure yet: the read-only monitor role may read "
             "only states and status, not the transitions and weights a recording carries"
         )
-    if record is not None:  # a bad path is one line now, before anything starts
+    if options.record is not None:  # a bad path is one line now, before anything starts
         from tools.recording.record import RecordingError, open_for_writing
 
         try:
-            open_for_writing(record).close()
+            open_for_writing(options.record).close()
         except RecordingError as error:
             raise ValueError(str(error)) from None
-    if plant not in ("sim", "robot", "physics"):
-        raise ValueError(f"unknown plant {plant!r} (sim, robot or physics)")
-    if plant == "robot" and mode != "realtime":
+    if options.plant not in PLANTS:
+        raise ValueError(f"unknown plant {options.plant!r} (sim, robot or physics)")
+    if options.plant == "robot" and options.mode != "realtime":
         raise ValueError(
             "--plant robot runs in real time only: lockstep steps plant_sim through its "
             "plant/step queryable, and a robot cannot be stepped; use --mode realtime"
         )
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
-    if plant == "physics":
+    if options.plant == "physics":
         settings = physics_plant(settings, env)
-    supervisor = Supervisor(settings_args, env, quiet=quiet)
-    robot_args = [*settings_args, *(bridge_args or [])]
     started = time.monotonic()
-    with SignalGuard() as guard:
-        summary = _run_up(
-            settings,
-            settings_args,
-            mode,
-            plant,
-            sync_critic,
-            duration,
-            supervisor,
-            robot_args,
-            secure,
-            started,
-            guard,
-            on_status,
-            summary_dir,
-            record,
-            view_port,
-        )
-    return summary
+    with StopSignals() as signals:
+        supervisor = Supervisor(options.settings_args, env, quiet=options.quiet, signals=signals)
+        return _run_up(settings, options, supervisor, started, signals)
+
+
+def _said(child: Child, text: str) -> Callable[[], bool]:
+    """A readiness probe: ``child`` has logged a line containing ``text``."""
+    return lambda: any(text in line for line in child.stderr_tail)
 
 
 def _run_up(
-    settings: Settings,
-    settings_args: list[str],
-    mode: str,
-    plant: str,
-    sync_critic: bool,
-    duration: float,
-    supervisor: Supervisor,
-    robot_args: list[str],
-    secure: bool,
-    started: float,
-    guard: SignalGuard,
-    on_status: Any,
-    summary_dir: Path | None,
-    record: Path | None = None,
-    view_port: int | None = None,
+    settings: Settings, options: UpOptions, supervisor: Supervisor, started: float, signals: StopSignals
 ) -> dict[str, Any]:
-    common_args = [*settings_args]
-    logins = Logins.create(settings.transport, lockstep=mode == "lockstep") if secure else None
+    mode, plant, record, view_port = options.mode, options.plant, options.record, options.view_port
+    common_args = [*options.settings_args]
+    robot_args = [*options.settings_args, *options.bridge_args]
+    logins = Logins.create(settings.transport, lockstep=mode == "lockstep") if options.secure else None
     role: dict[str, dict[str, str]] = {}  # child -> its login environment
     if logins is not None:
         users = {"plant": "plant", "robot_bridge": "plant", "critic": "critic", "actor": "actor", "router": "router"}
@@ -604,7 +240,7 @@ def _run_up(
             observers.append(("view", ["view", "--port", str(view_port), *common_args], "srl view: serving"))
         for name, argv, ready in observers:
             child = supervisor.spawn(name, argv)
-            supervisor.wait_for(name, lambda c=child, r=ready: any(r in line for line in c.stderr_tail), timeout=30)
+            supervisor.wait_for(name, _said(child, ready), timeout=30)
         if plant in ("sim", "physics"):
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
@@ -636,16 +272,17 @@ def _run_up(
         supervisor.wait_for("critic", alive_probe(settings, "critic"), timeout=60)
         actor_args = ["actor", "--mode", mode, *common_args]
         if mode == "realtime":
-            actor_args += ["--run-seconds", str(duration)]
-        if sync_critic:
+            actor_args += ["--run-seconds", str(options.duration)]
+        if options.sync_critic:
             actor_args.append("--sync-critic")
         actor = supervisor.spawn("actor", actor_args, role.get("actor"))
+        on_status = options.on_status
         status = StatusMonitor(settings) if on_status is not None else None
         try:
             shown = 0
             while actor.process.poll() is None:
                 supervisor.check(allowed_to_exit={"actor"})
-                if status is not None and status.seen > shown and status.latest is not None:
+                if on_status is not None and status is not None and status.seen > shown and status.latest is not None:
                     shown = status.seen
                     on_status(status.latest)
                 time.sleep(0.05)
@@ -655,21 +292,28 @@ def _run_up(
         if actor.process.returncode != 0:
             raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
     finally:
-        guard.cleaning = True  # a signal from here on is remembered, never raised mid-cleanup
+        signals.cleaning = True  # a signal from here on is remembered, never raised mid-cleanup
         if "robot_bridge" in supervisor.children:  # first, so that its last zero reaches the robot
             supervisor.stop_one("robot_bridge")
         supervisor.stop_all()
         if logins is not None:
             logins.remove()
-    guard.raise_if_received()
+    signals.raise_if_received()
+    return merged_summary(settings, options, supervisor, started)
+
+
+def merged_summary(settings: Settings, options: UpOptions, supervisor: Supervisor, started: float) -> dict[str, Any]:
+    """The run's summary: the actor's, with the critic's and the other children's figures merged in;
+    each child's own written to ``options.summary_dir``. A child that did not end cleanly raises."""
+    mode, plant, record, view_port = options.mode, options.plant, options.record, options.view_port
     for name, child in supervisor.children.items():
         code = child.process.returncode
         if name != "actor" and code not in (0, -signal.SIGINT):
             raise ServiceDiedError(name, code, child.stderr_tail[-10:])
     # the children's summaries through their contracts (common/contracts/summaries.py): a service that
     # printed none, or one that does not fit, is said here, not met later as a missing key
-    actor_summary = _contract_summary(supervisor.children["actor"], ACTOR_SUMMARY)
-    critic_summary = _contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
+    actor_summary = contract_summary(supervisor.children["actor"], ACTOR_SUMMARY)
+    critic_summary = contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
     # the others as far as they printed one (the router's may be cut by its bounded close)
     others: dict[str, OtherSummary] = {
         name: summary
@@ -698,7 +342,7 @@ def _run_up(
             "mode": mode,
             "plant": plant,
             "plant_model": settings.plant.model,  # the simulated robot's model (the truth line names it)
-            "secure": secure,
+            "secure": options.secure,
             "router": settings.transport.router,
             "transitions_received": critic_summary.transitions_received,
             "critic_weights_published": critic_summary.weights_published,
@@ -716,7 +360,7 @@ def _run_up(
         )
     if view_port is not None:
         merged["view"] = supervisor.children["view"].summary()
-    if summary_dir is not None:
-        merged["summary_dir"] = str(summary_dir)
-        write_summaries(summary_dir, supervisor.children, merged)
+    if options.summary_dir is not None:
+        merged["summary_dir"] = str(options.summary_dir)
+        write_summaries(options.summary_dir, supervisor.children, merged)
     return merged

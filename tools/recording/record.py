@@ -531,7 +531,8 @@ OBSERVER_NICENESS = 10  # srl record / srl view yield the CPU to the loop they w
 def yield_cpu_to_the_loop() -> None:
     """Lower this process's CPU priority (nice +10, common.process.runtime.lower_priority) before Zenoh's
     threads start, so they and the writer run niced too, and on a busy machine the actor's tick
-    comes first (measured: srl bench loop --record). Refused: a warning, and it records anyway."""
+    comes first (srl bench loop --record holds the cost to the loop's jitter). Refused: a warning, and it
+    records anyway."""
     from common.process.runtime import lower_priority
 
     lower_priority(OBSERVER_NICENESS, "the recorder")

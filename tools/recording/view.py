@@ -6,7 +6,7 @@ The same mapping as the recordings (:mod:`tools.recording.record`: every robot's
 subscriber (:class:`tools.recording.record.Feed`); only the sink differs: :class:`FoxgloveSink` logs each
 sample on a foxglove-sdk channel of its own context, served by a WebSocket server bound to
 loopback (127.0.0.1) unless ``--host`` says otherwise. ``docs/foxglove-layout.json`` opens the
-view (3D scene, plots). From another host: an SSH tunnel (README), never an open port.
+view (3D scene, plots). From another host: an SSH tunnel (docs/recordings.md), never an open port.
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         log.warning(
             "view: serving on %s without authentication: whoever reaches the port sees every robot "
-            "(prefer the loopback default and an SSH tunnel, README)",
+            "(prefer the loopback default and an SSH tunnel, docs/recordings.md)",
             args.host,
         )
     yield_cpu_to_the_loop()

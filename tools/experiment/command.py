@@ -1,0 +1,195 @@
+"""``srl experiment paper|fleet``: its options, and the command that runs it (tools/experiment/runner.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.math.agents import AGENTS, PAPER_AGENTS, parse_agents, parse_horizons
+from tools.experiment.grid import STARTS, make_starts
+from tools.experiment.options import DEFAULT_HORIZONS, ExperimentOptions
+from tools.experiment.output import experiment_settings
+from tools.experiment.report import summary_markdown
+from tools.experiment.runner import run_experiment
+
+NAME = "experiment"
+HELP = "the paper's experiment: grid of starts, cost ratios, plots"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "which",
+        choices=["paper", "fleet"],
+        help="paper: section IV, the grid of starts and cost ratios; fleet: the same starts as ONE fleet in "
+        "lockstep, per-robot vs pooled critics (docs/fleets.md)",
+    )
+    parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
+    parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
+    parser.add_argument(
+        "--starts",
+        choices=STARTS,
+        default="paper",
+        help="paper: the K x K lattice; held-out: one seeded random start in each of K x K cells (default: paper)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="seed of everything random (the held-out starts) (default: 0)"
+    )
+    parser.add_argument(
+        "--agents",
+        default=",".join(PAPER_AGENTS),
+        help=f"comma-separated, of {','.join(AGENTS)} (default: {','.join(PAPER_AGENTS)})",
+    )
+    parser.add_argument(
+        "--horizons", default=",".join(str(h) for h in DEFAULT_HORIZONS), help="comma-separated N values (default 12,6)"
+    )
+    parser.add_argument("--duration", type=float, help="episode length [s] (default from the config: 30)")
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="paper",
+        help="paper: the paper's method exactly (no arrival rule, no wheel-speed box, the critics as fitted, "
+        "whatever the config says); robot: with them as configured ([actor] in srl.toml: on) (default: paper)",
+    )
+    parser.add_argument(
+        "--plant",
+        choices=["ideal", "actuator", "physics"],
+        default="ideal",
+        help="the simulated robot (plant.model): ideal, the paper's exact unicycle; actuator, the TurtleBot3 "
+        "model; physics, the MuJoCo TurtleBot3; J is on what the robot reported, true J beside it (default: ideal)",
+    )
+    parser.add_argument(
+        "--config", type=Path, help="a TOML file overriding common/config/srl.toml (any subset) (default: none)"
+    )
+    parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
+    parser.add_argument(
+        "--transport",
+        choices=["inproc", "zenoh"],
+        default="inproc",
+        help="inproc: workers run Algorithm 1 in process; zenoh: through router, plant_sim "
+        "and critic service processes (lockstep, synchronous critic) (default: inproc)",
+    )
+    parser.add_argument("--workers", type=int, default=0, help="worker processes (default: every core)")
+    parser.add_argument(
+        "--critic",
+        default="per-robot,pooled",
+        help="fleet: the critic layouts compared, of per-robot,pooled (default: both)",
+    )
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="one MCAP recording (rosbag2 layout) of every run, each run a robot /<run_id>/..., all "
+        "starting together (default: none)",
+    )
+    parser.set_defaults(func=main)
+
+
+def _load_settings(args: argparse.Namespace) -> Settings:
+    from pydantic import ValidationError
+
+    overrides: dict[str, Any] = json.loads(json.dumps(PAPER_METHOD)) if args.method == "paper" else {}
+    if args.duration is not None:
+        overrides["episode"] = {"duration": args.duration}
+    overrides["plant"] = {"model": args.plant}
+    try:
+        return Settings.load(args.config, **overrides)
+    except ValidationError as error:
+        problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
+        raise ValueError(f"invalid settings: {problems}") from error
+    except FileNotFoundError as error:
+        raise ValueError(str(error)) from error
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        if args.grid < 1:
+            raise ValueError(f"--grid must be >= 1, got {args.grid}")
+        if not (math.isfinite(args.extent) and args.extent > 0):
+            raise ValueError(f"--extent must be a positive number, got {args.extent}")
+        if args.workers < 0:
+            raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
+        options = ExperimentOptions(
+            grid=args.grid,
+            extent=args.extent,
+            starts=args.starts,
+            seed=args.seed,
+            agents=parse_agents(args.agents),
+            horizons=parse_horizons(args.horizons),
+            transport=args.transport,
+            workers=args.workers,
+            out=args.out or Path("out") / f"paper-{datetime.now(UTC):%Y%m%d-%H%M%S}",
+            plots=not args.no_plots,
+            progress=not args.no_progress,
+            record=args.record,
+        )
+        options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
+        base = _load_settings(args)
+        if args.which == "fleet":
+            return _cmd_fleet(args, base)
+    except ValueError as error:
+        print(f"srl experiment: error: {error}", file=sys.stderr)
+        return 2
+    from tools.recording.record import RecordingError
+
+    try:
+        code, summary = run_experiment(options, base)
+    except RecordingError as error:
+        print(f"srl experiment: error: {error}", file=sys.stderr)
+        return 2
+    print(summary_markdown(summary), end="")
+    print(f"\nresults in {options.out}/", file=sys.stderr)
+    if summary.get("error"):
+        print(f"srl experiment: error: {summary['error']}", file=sys.stderr)
+    elif summary["interrupted"]:
+        print(
+            f"srl experiment: interrupted; {summary['runs_completed']} of {summary['runs_planned']} runs "
+            f"written to {options.out}/",
+            file=sys.stderr,
+        )
+    return code
+
+
+def _cmd_fleet(args: argparse.Namespace, base: Settings) -> int:
+    """``srl experiment fleet`` (tools/experiment/fleet.py): in process, one fleet per (agent, N, critic)."""
+    from tools.experiment.fleet import cmd_fleet
+
+    if args.transport != "inproc" or args.record is not None:
+        raise ValueError("experiment fleet runs in process: --transport zenoh and --record are for `experiment paper`")
+    starts = make_starts(args.starts, args.grid, args.extent, args.seed)
+    argv = [a for a in _argv_of(args) if not a.startswith("--transport=")]
+    command = "srl experiment " + " ".join(shlex.quote(a) for a in [*argv, f"--critic={args.critic}"])
+    return cmd_fleet(args, experiment_settings(base), starts, command)
+
+
+def _argv_of(args: argparse.Namespace) -> list[str]:
+    """A re-runnable command line for the summary (what was given, defaults spelled out)."""
+    argv = [
+        args.which,
+        f"--grid={args.grid}",
+        f"--extent={args.extent:g}",
+        f"--starts={args.starts}",
+        f"--seed={args.seed}",
+        f"--agents={args.agents}",
+        f"--horizons={args.horizons}",
+        f"--transport={args.transport}",
+        f"--method={args.method}",
+        f"--plant={args.plant}",
+    ]
+    if args.duration is not None:
+        argv.append(f"--duration={args.duration:g}")
+    if args.config is not None:
+        argv.append(f"--config={args.config}")
+    if args.workers:
+        argv.append(f"--workers={args.workers}")
+    if args.record is not None:
+        argv.append(f"--record={args.record}")
+    return argv
