@@ -268,8 +268,9 @@ def test_secure_settings_refuse_what_cannot_work(tmp_path: Path, monkeypatch: py
     assert "not-a-real-secret-0123" not in json.dumps(settings.as_dict())
 
 
+@pytest.mark.integration
 def test_no_secret_is_committed() -> None:
-    transport = Settings.load(ROOT / "common" / "srl.toml").transport
+    transport = Settings.load(ROOT / "common" / "config" / "srl.toml").transport
     assert (
         transport.secure,
         transport.user,
@@ -404,6 +405,8 @@ ROGUE_READS = [
 ]
 
 
+@pytest.mark.timing
+@pytest.mark.integration
 @pytest.mark.slow
 def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_path: Path) -> None:
     credentials = write_credentials(tmp_path / "credentials")
@@ -510,6 +513,7 @@ def test_secured_services_run_and_wrong_roles_can_neither_publish_nor_read(tmp_p
     )
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_strangers_and_wrong_passwords_cannot_connect(tmp_path: Path) -> None:
     credentials = write_credentials(tmp_path / "credentials")
@@ -556,6 +560,7 @@ def _tcp_open(endpoint: str) -> bool:
         return sock.connect_ex((host, int(port))) == 0
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["realtime", "lockstep"])
 def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: str) -> None:

@@ -45,7 +45,8 @@ from common.contracts.summaries import BridgeSummary
 from common.math.stats import summarize
 from common.math.turtlebot import firmware_velocity
 from common.net.transport import zenoh_config
-from tools.launch.up import Supervisor, alive_probe, optional_summary, router_reachable, state_probe
+from tools.bench.meta import run_info
+from tools.launch.supervisor import Supervisor, alive_probe, optional_summary, router_reachable, state_probe
 
 TARGET_P99_MS = 1.0
 SPEEDS = [round(0.02 + 0.01 * i, 2) for i in range(15)]  # 0.02 .. 0.16 m/s, all below the limits
@@ -304,7 +305,7 @@ def run_bridge_benchmark(
     result["targets"] = {name: ("PASS" if ok else "FAIL") for name, ok in checks.items()}
     print(format_table(result))
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps({**result, "run": run_info()}))
     return 0
 
 

@@ -9,7 +9,7 @@ and second are the counts over robots and seconds (their spread over the sizes i
 
 The model then answers "how many hosts and routers for 1,000 and 10,000 robots": a component's
 cores are ``fixed + per_robot * robots`` at a utilisation of at most ``--utilisation`` (real-time
-work needs headroom: the 2-core machine of issue 16 missed deadlines from ~75 %); one actor host
+work needs headroom: a loaded machine misses deadlines well before 100 %); one actor host
 process serves as many robots as fit one core at that utilisation (its solves run in one thread);
 routers as many as the routed messages need cores (the router's CPU per robot, measured with the
 counter attached: one extra delivery per message, so the figure is an upper bound), at least one per
@@ -29,6 +29,7 @@ import numpy as np
 from common.config.arguments import UsageError
 from common.config.settings import Settings
 from tools.bench.fleet import actor_hosts, measured_run, robot_counts, run_header
+from tools.bench.meta import run_info
 
 COMPONENTS = ("router", "plant", "critic", "actor")
 FLEETS = (1_000, 10_000)
@@ -128,7 +129,7 @@ def run_capacity_benchmark(args: argparse.Namespace, settings: Settings, setting
     }
     print(format_model(result))
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps({**result, "run": run_info()}))
     return 0
 
 

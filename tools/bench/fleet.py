@@ -1,8 +1,8 @@
-"""``srl bench fleet``: how many robots one 2-core machine serves at ``delta`` (issue 16).
+"""``srl bench fleet``: how many robots one 2-core machine serves at ``delta`` (docs/fleets.md).
 
 For each fleet size, one real-time run of ``--seconds`` with the host layout (one actor host,
 one plant host, the critic: ``srl up --robots K``), and for the baseline sizes one run with
-today's layout (one plant_sim and one actor process per robot), in the same invocation and
+the process layout (one plant_sim and one actor process per robot), in the same invocation and
 interleaved by size, so both see the same machine. Each row: missed deadlines (all robots), tick
 jitter and state -> action latency p99 (worst robot), weight staleness p99 / max (worst robot),
 robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle), CPU % of all
@@ -24,8 +24,9 @@ from typing import Any
 from common.config.arguments import UsageError
 from common.config.settings import Settings
 from common.math.fleet import FleetError, parse_robots
+from tools.bench.meta import run_info
 from tools.launch.fleet import actor_hosts, run_fleet
-from tools.launch.up import ServiceDiedError
+from tools.launch.supervisor import ServiceDiedError
 
 TARGETS: dict[int, dict[str, float]] = {
     50: {"missed_deadlines": 0, "latency_p99_ms": 20.0, "staleness_p99_steps": 1.0},
@@ -46,7 +47,7 @@ def robot_counts(text: str, option: str) -> list[int]:
     return sizes
 
 
-# the soak of issue 16: ``--robots 50 --baseline '' --seconds 600`` (RSS from the end of warm-up to the end)
+# the soak: ``--robots 50 --baseline '' --seconds 600`` (RSS from the end of warm-up to the end)
 SOAK_ROBOTS, SOAK_SECONDS, SOAK_GROWTH_PERCENT = 50, 600.0, 2.0
 
 
@@ -114,7 +115,7 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
     result = {**run_header(settings, args.seconds), "rows": rows}
     print(format_table(result))
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps({**result, "run": run_info()}))
     return 0
 
 

@@ -14,7 +14,8 @@ from typing import Any
 
 from common.config.arguments import UsageError
 from common.config.settings import Settings
-from tools.launch.up import run_up
+from tools.bench.meta import run_info
+from tools.launch.up import UpOptions, run_up
 
 RECORD_JITTER_MARGIN_MS = 0.5  # a recorder may cost the loop's jitter p99 at most this much
 TARGETS = {"missed_deadlines": 0, "jitter_p99_ms": 2.0, "latency_p99_ms": 1.0, "staleness_median_steps": 1.0}
@@ -31,7 +32,7 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         return compare_recording(args, settings, settings_argv)
     load_before = os.getloadavg()
     summary = run_up(
-        settings, settings_argv, mode="realtime", plant="sim", sync_critic=False, duration=args.seconds, quiet=True
+        settings, UpOptions(settings_argv, mode="realtime", plant="sim", duration=args.seconds, quiet=True)
     )
     load_after = os.getloadavg()
     loop = summary["loop"]
@@ -65,7 +66,7 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
     result["targets"] = {name: ("PASS" if ok else "FAIL") for name, ok in checks.items()}
     print(format_table(result))
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps({**result, "run": run_info()}))
     return 0
 
 
@@ -132,16 +133,10 @@ def compare_recording(args: argparse.Namespace, settings: Settings, settings_arg
             for recording in (False, True):
                 path = Path(directory) / f"round{index}.mcap" if recording else None
                 load_before = os.getloadavg()[0]
-                summary = run_up(
-                    settings,
-                    settings_argv,
-                    mode="realtime",
-                    plant="sim",
-                    sync_critic=False,
-                    duration=args.seconds,
-                    quiet=True,
-                    record=path,
+                options = UpOptions(
+                    settings_argv, mode="realtime", plant="sim", duration=args.seconds, quiet=True, record=path
                 )
+                summary = run_up(settings, options)
                 loop = summary["loop"]
                 runs.append(
                     {
@@ -199,5 +194,5 @@ def compare_recording(args: argparse.Namespace, settings: Settings, settings_arg
     lines.append("  targets: " + ", ".join(f"{k}: {v}" for k, v in result["targets"].items()))
     print("\n".join(lines))
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps({**result, "run": run_info()}))
     return 0

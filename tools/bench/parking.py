@@ -1,11 +1,11 @@
-"""``srl bench parking``: does the robot park, truly, and rest there? (issue 21)
+"""``srl bench parking``: does the robot park, truly, and rest there? (docs/turtlebot.md)
 
 In process and as fast as the CPU allows (Algorithm 1 with the in-process plant and critic,
 the lockstep semantics), five starts of the paper's 5 x 5 grid x the agents at one horizon x
 the plants (``plant.model``: ideal, actuator, physics), 35 s each. One row per run: the TRUE final
 distance, the one the robot reported (what srl saw), the span of the true position and the
 sign changes of ``v`` over the last 10 s (common/math/parking.py), J on the true and on the
-reported states, and the commands a wheel could not follow. Targets (issue 21): true final
+reported states, and the commands a wheel could not follow. Targets: true final
 distance <= 0.05 m, span <= 0.05 m, <= 5 sign changes; PASS/FAIL per row and a count.
 With ``--json`` the last stdout line is one JSON object (:class:`ParkingResult`).
 """
@@ -17,7 +17,7 @@ import json
 import math
 import time
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict
 
@@ -27,14 +27,15 @@ from common.config.settings import METHODS, PAPER_METHOD, Settings
 from common.math.actor import StackedActor
 from common.math.agents import Agent, learns, parse_agents, parse_horizons
 from common.math.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
+from tools.bench.meta import run_info
 
-# Five nodes of the paper's 5 x 5 grid over [-2, 2]^2 (DESIGN.md section 2), one per quadrant
+# Five nodes of the paper's 5 x 5 grid over [-2, 2]^2 (docs/experiment.md), one per quadrant
 # and one on an axis; each start turned away from the target, as the paper's.
 STARTS: tuple[tuple[float, float], ...] = ((2.0, 2.0), (-2.0, 2.0), (-1.0, -2.0), (2.0, -1.0), (-2.0, 0.0))
 AGENTS = "mpc,rlq,rlqv"
 HORIZON = 12
 PLANTS = "ideal,actuator,physics"
-METHOD_NAMES = ",".join(METHODS)  # paper (issue 21's robot settings off) and robot (srl.toml's)
+METHOD_NAMES = ",".join(METHODS)  # paper (the robot settings off) and robot (srl.toml's)
 SECONDS = 35.0
 PlantModel = Literal["ideal", "actuator", "physics"]
 Method = Literal["paper", "robot"]
@@ -73,6 +74,7 @@ class ParkingResult(_Model):
     rows: list[ParkingRow]
     passed: int
     total: int
+    run: dict[str, Any] | None = None  # date, commit, machine (tools/bench/meta.py), set when printed
 
 
 def parse_starts(text: str) -> list[tuple[float, float]]:
@@ -220,5 +222,5 @@ def run_parking_benchmark(args: argparse.Namespace, settings: Settings) -> int:
     result = run_parking(settings, plants, agents, horizons[0], starts, args.parking_seconds, methods)
     print(format_table(result))
     if args.json:
-        print(json.dumps(result.model_dump()))
+        print(json.dumps({**result.model_dump(), "run": run_info()}))
     return 0

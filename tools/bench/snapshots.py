@@ -1,4 +1,4 @@
-"""Critic weights the paper's loop really learned, for ``srl bench actor`` (issue 18).
+"""Critic weights the paper's loop really learned, for ``srl bench actor``.
 
 The bench's ``learned`` weights are seeded noise on the initial ones; these are snapshots of
 what the critic fitted in the paper's Algorithm 1 (:func:`common.config.assembly.run_episode`, in
@@ -26,8 +26,8 @@ from common.math.agents import learns
 SNAPSHOT_FILE = Path(__file__).with_name("critic_snapshots.json")
 SNAPSHOT_AGENTS = ("rlq", "rlqv", "rlqv+")
 SNAPSHOT_HORIZONS = (6, 12, 30)
-# (-1, -2): the paper grid's hardest start (RL-Q at N = 6 does not park from it, README
-# "Results"); at steps 50 and 150 the fitted Q quadratic is indefinite at N = 6.
+# (-1, -2): the paper grid's hardest start (RL-Q at N = 6 does not park from it,
+# docs/experiment.md); at steps 50 and 150 the fitted Q quadratic is indefinite at N = 6.
 SNAPSHOT_START = (-1.0, -2.0)
 SNAPSHOT_STEPS = (50, 150)
 

@@ -1,0 +1,436 @@
+"""The benchmark pages and the README's headline table, read off the JSON ``srl bench`` printed.
+
+``srl bench KIND ... --json`` prints one JSON object as its last stdout line; kept as
+docs/benchmarks/data/KIND.json it becomes docs/benchmarks/KIND.md. Every page states what the
+JSON says about its run (tools/bench/meta.py): the command, date, commit, CPU, cores and the load,
+because a figure measured on a shared, loaded machine means little without them.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+from tools.docs.reference import GENERATED, cell, code, docstring, first_paragraph
+
+HEADLINE_BEGIN = "<!-- headline:begin -->"
+HEADLINE_END = "<!-- headline:end -->"
+# The order of the pages in the index, and their titles.
+KINDS = {
+    "actor": "Actor solve time",
+    "loop": "Real-time loop",
+    "bridge": "Robot bridge",
+    "parking": "Parking",
+    "fleet": "Fleet on one machine",
+    "capacity": "Fleet capacity",
+}
+
+
+def ms(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "-"
+    return f"{value:.{digits}f}"
+
+
+def load_data(directory: Path) -> dict[str, dict[str, Any]]:
+    """``kind -> JSON`` of every docs/benchmarks/data/*.json, by name."""
+    return {path.stem: json.loads(path.read_text()) for path in sorted(directory.glob("*.json"))}
+
+
+def run_lines(data: dict[str, Any]) -> list[str]:
+    """What the JSON says about its run: command, date, commit, machine, load."""
+    run = data.get("run") or {}
+    if not run:
+        return ["*This JSON carries no record of its run (date, commit, machine): rerun the command.*", ""]
+    commit = run.get("commit") or "unknown"
+    modified = " (with uncommitted changes)" if run.get("worktree_modified") else ""
+    load = run.get("load_average")
+    load_text = " / ".join(f"{x:.2f}" for x in load) if load else "unknown"
+    lines = [
+        "| | |",
+        "|---|---|",
+        f"| Command | {code(run.get('command') or 'not recorded')} |",
+        f"| Date (UTC) | {cell(run.get('date', 'unknown'))} |",
+        f"| Commit | `{commit[:12]}`{modified} |",
+        f"| CPU | {cell(run.get('cpu_model', 'unknown'))}, {run.get('cpu_count', '?')} cores "
+        f"({run.get('cpus_usable', '?')} usable) |",
+        f"| Load average (1 / 5 / 15 min) at the end | {load_text} |",
+    ]
+    if run.get("wall_seconds") is not None:
+        lines.append(f"| Wall time | {run['wall_seconds']:.0f} s |")
+    lines.append("")
+    if run.get("note"):
+        lines += [f"**Note.** {run['note']}", ""]
+    return lines
+
+
+def targets_lines(targets: dict[str, Any]) -> list[str]:
+    """The bench's own targets: ``name -> "PASS"/"FAIL"`` or ``name -> {description, pass, worst, worst_row}``."""
+    if not targets:
+        return []
+    lines = ["## Targets", "", "| Target | Verdict | Worst |", "|---|---|---|"]
+    for name, target in targets.items():
+        if isinstance(target, dict):
+            verdict = {None: "N/A", True: "PASS", False: "FAIL"}[target.get("pass")]
+            worst = "" if target.get("worst") is None else f"{target['worst']:.4g} ({target.get('worst_row', '')})"
+            lines.append(f"| {cell(target.get('description', name))} | {verdict} | {cell(worst)} |")
+        else:
+            lines.append(f"| {cell(name)} | {cell(target)} | |")
+    return [*lines, ""]
+
+
+def _stats_row(name: str, stats: dict[str, Any] | None, unit: str = "ms") -> str:
+    stats = stats or {}
+    return f"| {cell(name)} | {ms(stats.get('median'))} | {ms(stats.get('p99'))} | {ms(stats.get('max'))} | {unit} |"
+
+
+def actor_body(data: dict[str, Any]) -> list[str]:
+    lines = [
+        "Whole actor step [ms] per agent, N and critic weights, against the slow baseline (SLSQP with finite",
+        "differences, no warm start). *gap* is the median relative gap of the objective the actor reached to",
+        "a cold SLSQP solve at the same states (< 0: the actor's is lower); *not worse* the share of those",
+        "states where it is as low or lower.",
+        "",
+        "| agent | N | weights | solver | median | p99 | max | failures | baseline median | speedup | gap "
+        "| not worse |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in data.get("rows", []):
+        objective = r.get("objective") or {}
+        share = objective.get("share_le")
+        lines.append(
+            f"| {r['agent']} | {r['horizon']} | {cell(r['weights'])} | {r['solver']} | {ms(r['median_ms'])} | "
+            f"{ms(r['p99_ms'])} | {ms(r['max_ms'])} | {r['failures']} | {ms(r['baseline_median_ms'], 1)} | "
+            f"{r['speedup']:.1f}x | {objective.get('median_rel_gap', float('nan')):.2g} | "
+            f"{'-' if share is None else f'{share:.0%}'} |"
+        )
+    machine = data.get("machine") or {}
+    load = _load_pair(machine.get("load_average"), machine.get("load_average_end"))
+    lines += [
+        "",
+        f"Solver {machine.get('solver', '?')}, predictor {machine.get('predictor', '?')}, JIT "
+        f"{machine.get('jit', '?')}; casadi {machine.get('casadi', '?')}, scipy {machine.get('scipy', '?')}, "
+        f"numpy {machine.get('numpy', '?')}; load {load}.",
+        "",
+    ]
+    return lines
+
+
+def _load_pair(before: Iterable[float] | None, after: Iterable[float] | None) -> str:
+    def one(load: Iterable[float] | None) -> str:
+        return "?" if not load else f"{next(iter(load)):.2f}"
+
+    return f"{one(before)} -> {one(after)} (1-min average, start -> end)"
+
+
+def loop_body(data: dict[str, Any]) -> list[str]:
+    machine = data.get("machine") or {}
+    lines = [
+        f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time "
+        f"({data.get('steps')} steps), critic load: {'M = 1000 every step' if data.get('critic_load') else 'no'}; "
+        f"load {_load_pair(machine.get('load_before'), machine.get('load_after'))}.",
+        "",
+        "| | median | p99 | max | unit |",
+        "|---|---|---|---|---|",
+        _stats_row("tick period", data.get("period_ms")),
+        _stats_row("tick jitter", data.get("jitter_ms")),
+        _stats_row("actor solve", data.get("solve_ms")),
+        _stats_row("state -> action latency", data.get("latency_ms")),
+        _stats_row("weight staleness", data.get("staleness_steps"), "steps"),
+        _stats_row("critic fit", data.get("critic_fit_ms")),
+        "",
+        f"Missed deadlines: {data.get('missed_deadlines')}; transitions the critic received: "
+        f"{data.get('transitions_received')}.",
+        "",
+    ]
+    return lines
+
+
+def bridge_body(data: dict[str, Any]) -> list[str]:
+    internal = data.get("bridge_internal") or {}
+    lines = [
+        f"Profile {data.get('profile')} ({data.get('ros_distro')}, {data.get('cmd_type')}), "
+        f"{data.get('steps')} commands per phase.",
+        "",
+        "| | median | p99 | max | unit |",
+        "|---|---|---|---|---|",
+        _stats_row("zenoh hop via the router (baseline)", data.get("zenoh_hop_ms")),
+        _stats_row("another process and back (baseline)", data.get("process_echo_ms")),
+        _stats_row("bridge: action -> cmd_vel", data.get("action_to_cmd_ms")),
+        _stats_row("bridge: odom -> state", data.get("odom_to_state_ms")),
+        _stats_row("command -> odometry (bridge + robot)", data.get("command_to_odom_ms")),
+        _stats_row("cmd_vel -> odometry (robot alone, baseline)", data.get("direct_cmd_to_odom_ms")),
+        _stats_row("inside the bridge: action -> cmd_vel", internal.get("action_to_cmd_ms")),
+        _stats_row("inside the bridge: odom -> state", internal.get("odom_to_state_ms")),
+        "",
+    ]
+    if data.get("bridge_cpu_seconds") is not None:
+        lines += [
+            f"Bridge process: {data['bridge_cpu_seconds']:.2f} CPU s over {data['bridge_wall_seconds']:.0f} s, "
+            f"peak RSS {data['bridge_peak_rss_mb']:.1f} MB.",
+            "",
+        ]
+    return lines
+
+
+def parking_body(data: dict[str, Any]) -> list[str]:
+    lines = [
+        f"{data.get('seconds')} s per run; the last {data.get('window_seconds')} s judged. Passed "
+        f"**{data.get('passed')} of {data.get('total')}**. Targets: "
+        + ", ".join(f"{k} {v:g}" for k, v in sorted((data.get("targets") or {}).items()))
+        + ".",
+        "",
+        "| method | plant | passed | true final d [m] | v sign changes (max) | saturated commands (max) |",
+        "|---|---|---|---|---|---|",
+    ]
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in data.get("rows", []):
+        groups.setdefault((r["method"], r["plant"]), []).append(r)
+    for (method, plant), rows in groups.items():
+        finals = [r["true_final_distance"] for r in rows]
+        lines.append(
+            f"| {method} | {plant} | {sum(r['passed'] for r in rows)} of {len(rows)} | "
+            f"{min(finals):.3f}-{max(finals):.3f} | {max(r['sign_changes'] for r in rows)} | "
+            f"{max(r['saturated_commands'] for r in rows)} |"
+        )
+    lines += [
+        "",
+        "Every run:",
+        "",
+        "| method | plant | agent | N | start | true final d [m] | reported d [m] | span [m] | v sign changes "
+        "| true J | reported J | saturated | passed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in data.get("rows", []):
+        start = ", ".join(f"{c:.2f}" for c in r["start"])
+        lines.append(
+            f"| {r['method']} | {r['plant']} | {r['agent']} | {r['horizon']} | ({start}) | "
+            f"{r['true_final_distance']:.3f} | {r['reported_final_distance']:.3f} | {r['span_m']:.3f} | "
+            f"{r['sign_changes']} | {r['true_cost']:.3f} | {r['reported_cost']:.3f} | {r['saturated_commands']} | "
+            f"{'PASS' if r['passed'] else 'FAIL'} |"
+        )
+    return [*lines, ""]
+
+
+def fleet_body(data: dict[str, Any]) -> list[str]:
+    lines = [
+        f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time per row. Jitter, "
+        "latency, staleness: the worst robot; CPU: all srl processes (100 % = one core).",
+        "",
+        "| robots | layout | missed | jitter p99 [ms] | latency p99 [ms] | staleness p99 / max [steps] | parked "
+        "| CPU % | RSS MB | load before -> after | targets |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in data.get("rows", []):
+        load = f"{row['load_before'][0]:.2f} -> {row['load_after'][0]:.2f}"
+        if "error" in row:
+            lines.append(f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} | | | | | | | {load} | |")
+            continue
+        f = row["fleet"]
+        layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+        targets = ", ".join(f"{k}: {v}" for k, v in row.get("targets", {}).items()) or "-"
+        lines.append(
+            f"| {row['robots']} | {layout} | {f['missed_deadlines']} | {f['jitter_p99_ms']:.2f} | "
+            f"{f['latency_p99_ms']:.2f} | {f['staleness_p99_steps']:.0f} / {f['staleness_max_steps']:.0f} | "
+            f"{f['parked']}/{row['robots']} | {row['cpu_percent']:.0f} | {row['rss_mb']:.0f} | {load} | "
+            f"{cell(targets)} |"
+        )
+    return [*lines, ""]
+
+
+def capacity_body(data: dict[str, Any]) -> list[str]:
+    model = data.get("model") or {}
+    lines = [
+        f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time per fleet size "
+        f"({', '.join(str(r['robots']) for r in data.get('rows', []))} robots). CPU per component = fixed + per "
+        "robot, a least-squares line over the sizes (1 core = 100 %).",
+        "",
+        "| component | fixed [% of a core] | per robot [% of a core] |",
+        "|---|---|---|",
+    ]
+    for name, c in (model.get("cpu") or {}).items():
+        lines.append(f"| {name} | {100 * c['fixed_cores']:.2f} | {100 * c['per_robot_cores']:.3f} |")
+    lines += ["", "| message kind | per robot per s | bytes per robot per s |", "|---|---|---|"]
+    for kind, r in (model.get("messages") or {}).items():
+        lines.append(f"| {cell(kind)} | {r['per_robot_per_s']:.2f} | {r['bytes_per_robot_per_s']:.0f} |")
+    lines += [
+        "",
+        f"What a fleet needs at <= {100 * model.get('utilisation', 0):.0f} % of each core, "
+        f"{model.get('host_cores')}-core hosts:",
+        "",
+        "| robots | cores | actor host processes | hosts | routers | messages/s | MB/s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for fleet, need in (model.get("fleets") or {}).items():
+        cores = ", ".join(f"{name} {value:.1f}" for name, value in need["cores"].items())
+        lines.append(
+            f"| {fleet} | {cores} | {need['actor_host_processes']} | {need['hosts']} | {need['routers']} | "
+            f"{need['messages_per_s']:.0f} | {need['megabytes_per_s']:.1f} |"
+        )
+    return [*lines, ""]
+
+
+def generic_body(data: dict[str, Any]) -> list[str]:
+    scalars = {k: v for k, v in sorted(data.items()) if isinstance(v, str | int | float | bool) and k != "run"}
+    return ["| | |", "|---|---|", *(f"| {cell(k)} | {cell(v)} |" for k, v in scalars.items()), ""]
+
+
+BODIES: dict[str, Callable[[dict[str, Any]], list[str]]] = {
+    "actor": actor_body,
+    "loop": loop_body,
+    "bridge": bridge_body,
+    "parking": parking_body,
+    "fleet": fleet_body,
+    "capacity": capacity_body,
+}
+
+
+def what_it_measures(kind: str) -> str:
+    try:
+        module = importlib.import_module(f"tools.bench.{kind}")
+    except ImportError:
+        return ""
+    return first_paragraph(module.__doc__)
+
+
+def benchmark_page(kind: str, data: dict[str, Any]) -> str:
+    title = KINDS.get(kind, kind)
+    lines = [GENERATED, "", f"# {title}: `srl bench {kind}`", ""]
+    about = what_it_measures(kind)
+    if about:
+        lines += [docstring(about), ""]
+    lines += run_lines(data)
+    lines += ["## Results", ""]
+    lines += BODIES.get(kind, generic_body)(data)
+    lines += targets_lines(data.get("targets") or {})
+    lines += [f"The JSON this page is generated from: `docs/benchmarks/data/{kind}.json`.", ""]
+    return "\n".join(lines)
+
+
+def index_page(data: dict[str, dict[str, Any]]) -> str:
+    lines = [
+        GENERATED,
+        "",
+        "# Benchmarks",
+        "",
+        "Each page below is generated by `srl docs` from the JSON one `srl bench KIND ... --json` printed as",
+        "its last line, kept in `docs/benchmarks/data/KIND.json`. Each says the command, date, commit, CPU and",
+        "load of its run: the machine these ran on is shared with other work, so the times are an upper bound",
+        "of what the code does on a quiet machine, and targets marked FAIL there may pass on one.",
+        "",
+        "To refresh a page, run its benchmark and regenerate:",
+        "",
+        "<!-- not run: a benchmark takes minutes and loads the machine -->",
+        "```bash",
+        "./srl bench actor --horizons 12 --json | tail -n 1 > docs/benchmarks/data/actor.json",
+        "./srl docs",
+        "```",
+        "",
+        "| Benchmark | Command | Date (UTC) | Commit | CPU | Load (1 min) at the end |",
+        "|---|---|---|---|---|---|",
+    ]
+    for kind in sorted(data, key=lambda k: (list(KINDS).index(k) if k in KINDS else len(KINDS), k)):
+        run = data[kind].get("run") or {}
+        load = run.get("load_average")
+        lines.append(
+            f"| [{KINDS.get(kind, kind)}]({kind}.md) | {code(run.get('command') or 'not recorded')} | "
+            f"{cell(run.get('date', '?'))} | `{(run.get('commit') or '?')[:12]}` | "
+            f"{cell(run.get('cpu_model', '?'))}, {run.get('cpu_count', '?')} cores | "
+            f"{'?' if not load else f'{load[0]:.2f}'} |"
+        )
+    lines.append("")
+    return "\n".join(lines)
+
+
+# -- the README's headline table --------------------------------------------------------------
+def headline_table(data: dict[str, dict[str, Any]], paper_summary: dict[str, Any] | None) -> str:
+    """Today's headline figures: the actor's step at N = 12, the paper experiment's ratios, a fleet."""
+    lines = ["| Figure | Value | Source |", "|---|---|---|"]
+    machines: list[str] = []
+    actor = data.get("actor")
+    if actor:
+        solver = (actor.get("machine") or {}).get("solver")
+        rows = [
+            r
+            for r in actor.get("rows", [])
+            if r["horizon"] == 12
+            and (r["agent"] == "mpc" or r["weights"] == "initial")
+            and (solver is None or r["solver"] == solver)
+        ]
+        if rows:
+            times = ", ".join(f"{r['agent']} {ms(r['median_ms'], 2)} / {ms(r['p99_ms'], 1)}" for r in rows)
+            lines.append(
+                f"| Actor step at N = 12, median / p99 [ms] (initial critic weights) | {times} | "
+                "[actor benchmark](docs/benchmarks/actor.md) |"
+            )
+            machines.append(_machine_text("actor", actor))
+    if paper_summary:
+        by_horizon: dict[int, list[str]] = {}
+        for group in paper_summary.get("groups", []):
+            if "median_ratio_percent" in group:
+                by_horizon.setdefault(group["horizon"], []).append(
+                    f"{group['agent']} {group['median_ratio_percent']:.1f} % ({group['beat_mpc']}/{group['ratios']})"
+                )
+        for horizon, ratios in sorted(by_horizon.items(), reverse=True):
+            lines.append(
+                f"| Paper experiment at N = {horizon}: median J / J_mpc (starts better than MPC) | "
+                f"{', '.join(ratios)} | [experiment](docs/experiment.md) |"
+            )
+    fleet = data.get("fleet")
+    if fleet:
+        values = [
+            f"{row['robots']} robots: {row['fleet']['missed_deadlines']} missed, jitter p99 "
+            f"{row['fleet']['jitter_p99_ms']:.2f} ms, {row['fleet']['parked']} parked"
+            for row in fleet.get("rows", [])
+            if "error" not in row
+        ]
+        if values:
+            lines.append(
+                f"| Fleet on one machine, {fleet.get('seconds', '?')} s | {'; '.join(values)} | "
+                "[fleet benchmark](docs/benchmarks/fleet.md) |"
+            )
+            machines.append(_machine_text("fleet", fleet))
+    lines.append("")
+    if machines:
+        lines.append("Measured on " + "; ".join(machines) + ": [all benchmarks](docs/benchmarks/index.md).")
+    if paper_summary:
+        lines.append(
+            f"The paper experiment: `srl experiment paper`, {paper_summary.get('finished_at', '?')[:10]} "
+            "(docs/paper/paper-grid/summary.json)."
+        )
+    return "\n".join(lines)
+
+
+def _machine_text(kind: str, data: dict[str, Any]) -> str:
+    """The machine and date of a headline row (the README names no commit: its page does)."""
+    run = data.get("run") or {}
+    load = run.get("load_average")
+    return (
+        f"{kind}: {run.get('date', '?')[:10]}, "
+        f"{run.get('cpu_model', '?')} ({run.get('cpu_count', '?')} cores, shared), "
+        f"load {'?' if not load else f'{load[0]:.1f}'}"
+    )
+
+
+def replace_headline(readme: str, table: str) -> str:
+    """``readme`` with ``table`` between the headline markers (unchanged if the markers are absent)."""
+    begin, end = readme.find(HEADLINE_BEGIN), readme.find(HEADLINE_END)
+    if begin < 0 or end < begin:
+        return readme
+    return readme[: begin + len(HEADLINE_BEGIN)] + "\n" + table.rstrip() + "\n" + readme[end:]
+
+
+def pages(data_dir: Path) -> dict[str, str]:
+    """``file name under docs/benchmarks/ -> Markdown`` for every JSON and the index."""
+    data = load_data(data_dir)
+    out = {f"{kind}.md": benchmark_page(kind, values) for kind, values in data.items()}
+    out["index.md"] = index_page(data)
+    return out
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    return json.loads(path.read_text()) if path.is_file() else None

@@ -1,0 +1,125 @@
+"""``srl docs``: write the generated pages, or (``--check``) say which one is stale.
+
+What is generated, all of it from files in this repository:
+
+* docs/reference/settings.md, cli.md, messages.md, keys.md (tools/docs/reference.py);
+* docs/benchmarks/KIND.md and index.md from docs/benchmarks/data/KIND.json (tools/docs/benchmarks.py);
+* docs/changelog.md, CHANGELOG.md as the site shows it;
+* the README's headline table, between its ``<!-- headline:begin -->`` and ``<!-- headline:end -->``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from tools.docs import benchmarks, reference
+
+ROOT = Path(__file__).resolve().parents[2]
+BENCHMARK_DATA = Path("docs/benchmarks/data")
+PAPER_SUMMARY = Path("docs/paper/paper-grid/summary.json")
+
+
+def changelog_page(text: str) -> str:
+    """CHANGELOG.md as a page of docs/: its links into docs/ made relative to docs/."""
+    return re.sub(r"\]\((?:\./)?docs/", "](", text)
+
+
+def generated_files(root: Path = ROOT) -> dict[Path, str]:
+    """Every generated file (relative to ``root``) and the text the code would give it now."""
+    files: dict[Path, str] = {
+        Path("docs/reference/settings.md"): reference.settings_page(),
+        Path("docs/reference/cli.md"): reference.cli_page(),
+        Path("docs/reference/messages.md"): reference.messages_page(),
+        Path("docs/reference/keys.md"): reference.keys_page(),
+    }
+    for name, text in benchmarks.pages(root / BENCHMARK_DATA).items():
+        files[Path("docs/benchmarks") / name] = text
+    changelog = root / "CHANGELOG.md"
+    if changelog.is_file():
+        files[Path("docs/changelog.md")] = changelog_page(changelog.read_text())
+    readme = root / "README.md"
+    if readme.is_file():
+        table = benchmarks.headline_table(
+            benchmarks.load_data(root / BENCHMARK_DATA), benchmarks.read_json(root / PAPER_SUMMARY)
+        )
+        files[Path("README.md")] = benchmarks.replace_headline(readme.read_text(), table)
+    return {path: text if text.endswith("\n") else text + "\n" for path, text in sorted(files.items())}
+
+
+def orphans(root: Path, files: dict[Path, str]) -> list[Path]:
+    """Generated pages under docs/benchmarks/ that nothing generates any more (their JSON is gone)."""
+    found = []
+    for path in sorted((root / "docs/benchmarks").glob("*.md")):
+        relative = path.relative_to(root)
+        if relative not in files and path.read_text().startswith(reference.GENERATED):
+            found.append(relative)
+    return found
+
+
+def stale_files(root: Path = ROOT) -> list[str]:
+    """The generated files that differ from what the code would write now (empty: all current)."""
+    files = generated_files(root)
+    stale = [str(p) for p, text in files.items() if not (root / p).is_file() or (root / p).read_text() != text]
+    return stale + [f"{p} (nothing generates it: delete it)" for p in orphans(root, files)]
+
+
+def write(root: Path = ROOT) -> list[str]:
+    """Write every generated file that changed; the paths written."""
+    written = []
+    files = generated_files(root)
+    for path, text in files.items():
+        target = root / path
+        if target.is_file() and target.read_text() == text:
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(text)
+        written.append(str(path))
+    for path in orphans(root, files):
+        (root / path).unlink()
+        written.append(f"{path} (deleted)")
+    return written
+
+
+NAME = "docs"
+HELP = "write the generated documentation pages (reference, benchmarks, README headline)"
+DESCRIPTION = (
+    "Write the documentation pages generated from the code: docs/reference/*.md (settings, CLI, wire\n"
+    "messages, keys), docs/benchmarks/*.md (from docs/benchmarks/data/*.json), docs/changelog.md and the\n"
+    "README's headline table. --check writes nothing and exits 1 naming every stale file."
+)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``srl docs [--check]``: the exit code."""
+    root = Path(args.root) if args.root else ROOT
+    if args.check:
+        stale = stale_files(root)
+        for path in stale:
+            print(f"srl docs: stale: {path} (run srl docs)", file=sys.stderr)
+        if not stale:
+            print(f"srl docs: {len(generated_files(root))} generated files are current")
+        return 1 if stale else 0
+    written = write(root)
+    print(f"srl docs: wrote {len(written)} files" + "".join(f"\n  {p}" for p in written))
+    return 0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="write nothing; exit 1 if a generated file differs from what srl docs writes",
+    )
+    parser.add_argument(
+        "--root", metavar="DIR", help="the repository to generate in (default: the checkout srl runs from)"
+    )
+    parser.set_defaults(func=main)
+
+
+def add_docs_parser(sub: Any) -> None:
+    """Register ``srl docs`` on the ``srl`` command's subparsers."""
+    add_arguments(sub.add_parser(NAME, help=HELP, description=DESCRIPTION))
