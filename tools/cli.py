@@ -70,9 +70,6 @@ def sentence(text: str) -> str:
 def add_command(sub: Any, module: ModuleType) -> None:
     """Register one subcommand module (``NAME``, ``HELP``, ``add_arguments``) on ``sub``, the
     ``srl`` parser's subparsers."""
-    if not hasattr(module, "NAME"):  # a module that registers itself on the subparsers
-        module.add_docs_parser(sub)
-        return
     description = getattr(module, "DESCRIPTION", None) or sentence(module.HELP)
     module.add_arguments(sub.add_parser(module.NAME, help=module.HELP, description=description))
 

@@ -14,7 +14,6 @@ import argparse
 import re
 import sys
 from pathlib import Path
-from typing import Any
 
 from tools.docs import benchmarks, reference
 
@@ -118,8 +117,3 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--root", metavar="DIR", help="the repository to generate in (default: the checkout srl runs from)"
     )
     parser.set_defaults(func=main)
-
-
-def add_docs_parser(sub: Any) -> None:
-    """Register ``srl docs`` on the ``srl`` command's subparsers."""
-    add_arguments(sub.add_parser(NAME, help=HELP, description=DESCRIPTION))
