@@ -177,6 +177,7 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
     os.chdir(path)
     compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
     keeper = _SigintKeeper() if main else None
+    os.environ.pop("SRL_JIT_KEEPER", None)  # this process's keeper only, never one inherited
     if keeper is not None and keeper.running:
         os.environ["SRL_JIT_KEEPER"] = "1"  # the wrapper waits for the keeper before gcc starts
     try:
