@@ -1,7 +1,9 @@
 """Test-wide rules.
 
 * Isolation: no test reads or writes the user's real critic checkpoint, nor the user's JIT cache
-  (``actor.jit_cache``: one private directory for the session, so a problem compiles once per run).
+  (``actor.jit_cache``: one private directory for the run, so a problem compiles once per run),
+  nor meets a router it did not start: ``transport.router`` is a free loopback port of its own
+  per test process.
 * Machine requirements: a test that needs more than python3 (root, iproute2 and iptables for
   network namespaces; a C compiler for the actor's JIT build; the right to real-time scheduling)
   carries a marker (``needs_root``, ``needs_compiler``, ``needs_rtprio``); where the machine lacks
@@ -9,16 +11,22 @@
   SKIPPED with one line saying what it needs and how to run it, so that ``./srl test`` passes on a
   fresh machine with only python3. ``SRL_TEST_REQUIRE_ALL=1`` (CI, ``.ci/run``) turns every such
   skip into a failure, and fails the session if any test at all was skipped.
+* Tiers: the markers ``integration`` (starts a process or opens a socket), ``slow`` and ``timing``,
+  ``--fast``, the guard that fails an unmarked test that starts a process, the per-test time
+  limit and the two phases of ``./srl test``: tests/tiers.py (docs/development.md).
 """
 
 from __future__ import annotations
 
+import _socket
 import os
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+
+pytest_plugins = ("tests.tiers",)
 
 REQUIRE_ALL = "SRL_TEST_REQUIRE_ALL"
 
@@ -30,7 +38,7 @@ def _netns_missing() -> list[str]:
 
 
 def _compiler_missing() -> list[str]:
-    # the actor builds without JIT when there is none (common/math/actor.py), so only the tests of the
+    # the actor builds without JIT when there is none (common/math/actor_nlp.py), so only the tests of the
     # JIT build itself need one
     return [] if shutil.which("gcc") or shutil.which("cc") else ["no C compiler (gcc or cc) on PATH"]
 
@@ -49,7 +57,7 @@ REQUIREMENTS: dict[str, tuple[Callable[[], list[str]], str]] = {
     "needs_compiler": (_compiler_missing, "install a C compiler (Debian: apt-get install gcc), then ./srl test {path}"),
     "needs_rtprio": (
         _rtprio_missing,
-        "run as root (sudo ./srl test {path}) or with an rtprio limit of 10 or more (README, Real-time priority)",
+        "run as root (sudo ./srl test {path}) or with an rtprio limit of 10 or more (docs/fleets.md)",
     ),
 }
 
@@ -96,10 +104,35 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # transport.router of this test process (each parallel worker has its own): a router, service
+    # or srl up that a test starts without --router meets that test's own, never one of a test
+    # running in another worker, nor a router the machine itself runs on the packaged 7447. The C
+    # socket type: a session nested in a test (pytester) is configured inside that test, where the
+    # guard of tests/tiers.py refuses socket.socket.
+    sock = _socket.socket()
+    try:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    finally:
+        sock.close()
+    os.environ["SRL_TRANSPORT__ROUTER"] = f"tcp/127.0.0.1:{port}"
+
+
 @pytest.fixture(autouse=True, scope="session")
 def jit_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """The session's JIT cache (service processes started by a test inherit it)."""
-    path = tmp_path_factory.mktemp("jit-cache")
+    """The run's JIT cache (service processes started by a test inherit it). Parallel workers
+    (pytest-xdist) share one, beside their own temporary directories: its objects are stored by
+    an atomic rename (common/system/jit.py), so a problem compiles once per run, not per worker."""
+    from tests.tiers import JIT_CACHE
+
+    if os.environ.get(JIT_CACHE):  # ./srl test: its two phases share one too
+        path = Path(os.environ[JIT_CACHE])
+    elif os.environ.get("PYTEST_XDIST_WORKER"):
+        path = tmp_path_factory.getbasetemp().parent / "jit-cache"
+        path.mkdir(exist_ok=True)
+    else:
+        path = tmp_path_factory.mktemp("jit-cache")
     path.chmod(0o700)
     before = os.environ.get("SRL_ACTOR__JIT_CACHE")
     os.environ["SRL_ACTOR__JIT_CACHE"] = str(path)

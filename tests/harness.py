@@ -1,7 +1,6 @@
 """Start real service processes on free loopback ports, wait on readiness, clean up by pid.
 
-Why :class:`Proc` and :class:`Cluster` do not reuse ``tools.launch.up.Supervisor`` (issue 15 counted
-them as a second supervisor; decided to keep them apart):
+Why :class:`Proc` and :class:`Cluster` do not reuse ``tools.launch.supervisor.Supervisor``:
 
 * Tests do not set up with the code they test: the Supervisor is under test itself
   (test_up_supervisor.py, and the ``srl up`` runs of test_services.py and test_security.py). A
@@ -124,8 +123,12 @@ class Proc:
         )
         self.stdout: list[str] = []
         self.stderr: list[str] = []
-        for stream, sink in ((self.process.stdout, self.stdout), (self.process.stderr, self.stderr)):
-            threading.Thread(target=lambda st=stream, sk=sink: [sk.append(x.rstrip()) for x in st], daemon=True).start()
+        self.readers = [
+            threading.Thread(target=lambda st=stream, sk=sink: [sk.append(x.rstrip()) for x in st], daemon=True)
+            for stream, sink in ((self.process.stdout, self.stdout), (self.process.stderr, self.stderr))
+        ]
+        for reader in self.readers:
+            reader.start()
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 10.0) -> int:
         if self.process.poll() is None:
@@ -135,7 +138,8 @@ class Proc:
             except subprocess.TimeoutExpired:
                 os.killpg(self.process.pid, signal.SIGKILL)
                 self.process.wait()
-        time.sleep(0.05)  # let the reader threads drain
+        for reader in self.readers:  # every line read: the pipes end when the process group has ended
+            reader.join(timeout=2.0)
         return int(self.process.returncode)
 
     def summary(self) -> dict[str, Any]:

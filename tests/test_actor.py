@@ -1,7 +1,7 @@
 """The stacked actors against brute-force grid search, plus bounds, validation and failures.
 
-The oracle objective is written out here in numpy from DESIGN.md's table (Euler prediction,
-features from a hand-written pair list), evaluated on a grid of held actions.
+The oracle objective is written out here in numpy from the stacked objectives of docs/concepts.md
+(Euler prediction, features from a hand-written pair list), evaluated on a grid of held actions.
 """
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from common.math.actor import ActorMemory, ActorProblem, StackedActor
+from common.math.actor import StackedActor
+from common.math.actor_problem import ActorMemory, ActorProblem
 from common.math.dynamics import exact_step
 
 DELTA = 0.1
@@ -54,7 +55,8 @@ def _quad(weights: np.ndarray, pairs, z: list[np.ndarray]) -> np.ndarray:
 
 
 def hand_objective(agent: str, state, plan: list[tuple[np.ndarray, np.ndarray]], w, v_w) -> np.ndarray:
-    """DESIGN.md's objective; ``plan`` is a list of (v_i, omega_i) arrays (broadcastable)."""
+    """The agent's stacked objective (docs/concepts.md); ``plan`` is a list of (v_i, omega_i) arrays
+    (broadcastable)."""
     n = len(plan) + 1  # N
     x, y, a = (np.float64(c) for c in state)
     total = 0.0
@@ -131,7 +133,7 @@ def test_mpc_two_actions_beats_grid_search() -> None:
 
 @pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
 def test_longer_horizon_objective_and_local_optimality(agent: str) -> None:
-    # N = 5: the reported objective is DESIGN.md's at the returned plan, and no feasible
+    # N = 5: the reported objective is docs/concepts.md's at the returned plan, and no feasible
     # perturbation of the plan does better (a local minimum of the hand-written objective).
     rng = np.random.default_rng(21)
     actor = make_actor(agent, 5)
@@ -161,6 +163,7 @@ def test_ipopt_and_fatrop_agree() -> None:
     assert fatrop.objective == pytest.approx(ipopt.objective, rel=1e-7)
 
 
+@pytest.mark.integration
 def test_jit_build_solves_the_same_problem_and_leaves_no_files(tmp_path, monkeypatch) -> None:
     import tempfile
 
@@ -202,6 +205,7 @@ def _same_steps(one: StackedActor, other: StackedActor, steps: int = 3) -> None:
         state = exact_step(state, a.action, DELTA)
 
 
+@pytest.mark.integration
 @pytest.mark.needs_compiler
 def test_the_jit_cache_compiles_a_problem_once_and_the_cached_build_solves_bit_for_bit(tmp_path) -> None:
     """actor.jit_cache: the first build stores each compiled object (private directory); the next
@@ -222,6 +226,7 @@ def test_the_jit_cache_compiles_a_problem_once_and_the_cached_build_solves_bit_f
     _same_steps(first, uncached)
 
 
+@pytest.mark.integration
 @pytest.mark.needs_compiler
 def test_a_damaged_cached_object_is_compiled_again_and_replaced(tmp_path, caplog) -> None:
     cache = tmp_path / "jit"
@@ -237,6 +242,7 @@ def test_a_damaged_cached_object_is_compiled_again_and_replaced(tmp_path, caplog
     _same_steps(rebuilt, make_actor("rlqv", 3, jit=True))
 
 
+@pytest.mark.integration
 @pytest.mark.needs_compiler
 def test_a_jit_cache_another_user_could_write_is_not_used(tmp_path, caplog) -> None:
     cache = tmp_path / "shared"
@@ -378,9 +384,9 @@ def test_failure_after_success_falls_back_to_shifted_plan() -> None:
 
 
 def test_fallback_stops_once_the_previous_plan_is_used_up() -> None:
-    # DESIGN.md: on failure "the shifted previous plan, then zero velocity". A plan of N - 1
-    # actions covers N - 2 failed steps after the solved one; after that the robot must stand
-    # still, not repeat the last held action for ever.
+    # On a failed solve the actor takes the shifted previous plan, then zero velocity
+    # (docs/concepts.md). A plan of N - 1 actions covers N - 2 failed steps after the solved
+    # one; after that the robot must stand still, not repeat the last held action for ever.
     rng = np.random.default_rng(31)
     w, v_w = psd_weights(rng, 5, PAIRS5), psd_weights(rng, 3, PAIRS3)
     actor = make_actor("rlqv", 3)
@@ -486,7 +492,7 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
     assert iterations[True] < 0.9 * iterations[False], iterations
 
 
-# -- the argmin (issue 18) ------------------------------------------------------------------------
+# -- the argmin -----------------------------------------------------------------------------------
 def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
     # Oracle: hand_objective along the Euler rollout. Each start descends monotonically inside
     # the box; the reported end value is the objective of the end's actions, and the decision
@@ -526,10 +532,10 @@ def test_bad_multistart_settings_raise(changes: dict) -> None:
 
 @pytest.mark.parametrize(("agent", "horizon"), [("rlq", 6), ("rlqv+", 6), ("rlqv+", 12)])
 def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, horizon: int) -> None:
-    # Issue 18: the minimizer the actor takes in the closed loop (warm-started from its own
-    # plans, the benchmark's non-convex "learned" weights) against the paper framework's way, a
-    # cold SLSQP solve from standing still at the same state (tools/bench/actor.py). Before the
-    # global phase the actor was worse at 19 of 20 such states (rlq, N = 6, +8.8 % median).
+    # The minimizer the actor takes in the closed loop (warm-started from its own plans, the
+    # benchmark's non-convex "learned" weights) is no worse than the paper framework's way, a
+    # cold SLSQP solve from standing still at the same state (tools/bench/actor.py): the global
+    # phase finds the minima the warm start alone misses.
     # Generous bounds: not worse (to 1e-6 relative) at >= 75 % of the states, median gap <= 1e-6.
     from common.config.assembly import build_actor
     from common.config.settings import PAPER_METHOD, Settings
@@ -649,7 +655,7 @@ def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> No
 
 
 def test_a_hurried_step_is_one_warm_polish_and_skips_the_extras() -> None:
-    # services/actor/host.py hurries a tick served late (issue 16): the runner-up polish and the
+    # services/actor/host.py hurries a tick served late (docs/fleets.md): the runner-up polish and the
     # vertex search are skipped and, once the robot has a plan, the global phase too: one fatrop
     # polish of the warm start. Oracles: with no plan yet (a cold step) an actor built without
     # the extras (margin and refresh off, flips off) gives the same actions; with a plan, an

@@ -1,4 +1,4 @@
-"""Issue 13 at the actor: valid but malicious states and weights against real processes.
+"""Valid but malicious states and weights against real processes, at the actor (docs/security.md).
 
 Each test starts a router, a real-time plant_sim, a critic and an actor (real processes on a
 free loopback port), lets a rogue client -- another Zenoh session on the same router, its
@@ -22,7 +22,7 @@ from common.contracts.keys import identity_key
 from common.contracts.messages import Action, CriticWeights, MessageError, PlantState, ServiceStatus, Transition, decode
 from tests.harness import Cluster, client_config, cluster, wait_until
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
 DELTA = 0.1
 OMEGA_MAX = Settings.load().plant.omega_max
 

@@ -1,6 +1,6 @@
-"""Issue 13 at the robot bridge and the plants: valid but malicious messages against real processes.
+"""Valid but malicious messages against real processes, at the robot bridge and the plants (docs/security.md).
 
-Each test runs the attack of the issue's findings against the real bridge (with the emulated
+Each test runs one attack against the real bridge (with the emulated
 TurtleBot3 behind it) or plant_sim processes, prints one ``figures:`` line, and asserts that the
 attack no longer works: a far-future action or odometry stamp from a rogue session locks nothing
 out, and a second plant for one robot refuses to start.
@@ -24,7 +24,7 @@ from common.net.transport import Bus
 from tests.harness import client_config, cluster, declare_service_tokens, wait_until
 from tests.test_robot_bridge import DELTA, TIMEOUT, RobotWatch
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
 GRAPH = RosGraph("rmw_zenoh", "jazzy", 0, "")
 
 
@@ -88,11 +88,11 @@ def test_one_far_future_action_from_another_session_locks_nothing_out() -> None:
 
 
 def test_a_far_future_episode_with_the_live_actor_id_locks_nothing_out() -> None:
-    """Audit of issue 13: a forger that copies the live actor's session id (Zenoh client ids can
-    be forged) sent Action(episode=2**62): before, every later real action was refused until the
-    actor restarted. Here the forged actions come from the actor's own session (what the bridge
-    sees of a perfect forgery): one is refused alone; a burst of RESYNC_AFTER that counts on is
-    followed, then the real actor is followed again after RESYNC_AFTER - 1 refused actions."""
+    """A forger that copies the live actor's session id (Zenoh client ids can be forged) sends
+    Action(episode=2**62): no later real action may be refused for it. Here the forged actions
+    come from the actor's own session (what the bridge sees of a perfect forgery): one is
+    refused alone; a burst of RESYNC_AFTER that counts on is followed, then the real actor is
+    followed again after RESYNC_AFTER - 1 refused actions."""
     robot = "atk_e"
     with cluster(robot=robot) as c:
         assert c.session is not None
@@ -208,7 +208,7 @@ def test_a_second_plant_for_one_robot_refuses_to_start(second: str) -> None:
 
 
 def test_two_plants_racing_past_the_start_check_leave_exactly_one() -> None:
-    """Issue 13 (audit): two plants that start at the same moment both pass the "another plant's
+    """Two plants that start at the same moment both pass the "another plant's
     token exists" check before either declares. Reproduced exactly here: two plant sessions both
     pass Bus.refuse_other_plant, then declare at once; the tie-break after declaring leaves one."""
     robot = "atk_r"
@@ -273,10 +273,9 @@ def test_two_plant_processes_started_at_once_leave_exactly_one(second: str) -> N
 
 
 def test_a_rogue_alive_actor_token_does_not_delay_the_stop() -> None:
-    """Issue 13 finding 10: a rogue ``alive/actor`` token hid the real actor's death: the bridge
-    stopped the robot only by its watchdog (308 ms after the kill). Now the bridge follows the
-    actor session's identity token: the robot stops when that session vanishes, whatever other
-    actor token lingers."""
+    """A rogue ``alive/actor`` token must not hide the real actor's death (the robot would stop
+    only by the bridge's watchdog): the bridge follows the actor session's identity token, so the
+    robot stops when that session vanishes, whatever other actor token lingers."""
     robot = "atk_t"
     with cluster(robot=robot) as c:
         assert c.session is not None

@@ -213,6 +213,7 @@ def test_targets_pass_fail_and_not_applicable() -> None:
 
 
 # -- the command --------------------------------------------------------------------------------
+@pytest.mark.integration
 @pytest.mark.slow
 def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
     code = main(
@@ -258,6 +259,7 @@ def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
     assert "baseline_median_ms" in out and ("PASS" in out or "FAIL" in out)
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_bench_actor_reference_rows(capsys: pytest.CaptureFixture[str]) -> None:
     """The IPOPT reference rows, selected by ``reference_horizons``, agree with fatrop."""
@@ -282,7 +284,7 @@ def test_bench_actor_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -
     assert main(["bench", "actor", "--steps", "0"]) == 2
 
 
-# -- the critic snapshots (issue 18) --------------------------------------------------------------
+# -- the critic snapshots -------------------------------------------------------------------------
 def test_trained_weight_sets_come_from_the_snapshot_file() -> None:
     from tools.bench.snapshots import SNAPSHOT_AGENTS, SNAPSHOT_HORIZONS, SNAPSHOT_STEPS, load_snapshots
 

@@ -6,7 +6,7 @@ import pytest
 
 from tests.harness import run_bench
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.integration, pytest.mark.timing]
 
 
 def test_bench_bridge_short_run_reports_paths_and_baselines() -> None:

@@ -6,7 +6,7 @@ import pytest
 
 from tests.harness import run_bench
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.integration, pytest.mark.timing]
 
 
 def test_bench_loop_short_run_reports_every_figure() -> None:

@@ -62,6 +62,7 @@ def test_the_model_scales_the_measured_costs_to_large_fleets() -> None:
     assert result["fleets"]["10000"]["actor_host_processes"] == 200
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_the_capacity_bench_measures_every_component_and_the_messages() -> None:
     """A miniature run: two sizes, every component's CPU, each robot's states (synced to its
@@ -84,6 +85,7 @@ def test_the_capacity_bench_measures_every_component_and_the_messages() -> None:
     assert result["model"]["cpu"]["actor"]["per_robot_cores"] > 0
 
 
+@pytest.mark.integration
 def test_bad_options_are_refused_in_one_line() -> None:
     for argv, says in (
         (["--robots", "x"], "--robots"),

@@ -15,6 +15,8 @@ import pytest
 
 from tests.harness import ROOT
 
+pytestmark = pytest.mark.integration
+
 SCRIPT = """
 import atexit, sys
 from pathlib import Path

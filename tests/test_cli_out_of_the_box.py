@@ -1,4 +1,4 @@
-"""Issue 14, the command line "out of the box": negative numbers, help, refused options,
+"""The command line "out of the box": negative numbers, help, refused options,
 errors that name the cause and the fix, signals and pipes, bounds, checkpoints, status, plot.
 
 Every process test runs the real ``srl`` as a user does (``python -m tools.cli``) on free
@@ -62,6 +62,7 @@ def test_negative_numbers_are_values_everywhere(argv: list[str], name: str, valu
     assert getattr(args, name) == pytest.approx(value)
 
 
+@pytest.mark.integration
 def test_a_negative_start_runs_an_episode() -> None:
     done = srl("run", "--start", "-1.2,0.7", "--horizon", "4", "--duration", "0.3", "--no-jit", "--json")
     assert done.returncode == 0, done.stderr
@@ -87,6 +88,7 @@ def test_every_subcommand_has_a_description_and_every_option_its_default() -> No
     assert not missing, f"options whose help shows no default: {missing}"
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("command", "flag"),
     [
@@ -138,6 +140,7 @@ def test_children_get_only_the_flags_their_command_takes() -> None:
 
 
 # -- point 9 / 6: errors that name the cause and the fix ----------------------------------
+@pytest.mark.integration
 def test_settings_errors_name_the_file_the_variable_and_the_bound(tmp_path: Path) -> None:
     bad = tmp_path / "bad.toml"
     bad.write_text("[actor]\nhorizon = [\n")
@@ -157,6 +160,7 @@ def test_settings_errors_name_the_file_the_variable_and_the_bound(tmp_path: Path
         assert "Json5Err" not in done.stderr and "Traceback" not in done.stderr
 
 
+@pytest.mark.integration
 def test_a_start_far_outside_the_workspace_warns_once() -> None:
     done = srl("run", "--start", "20,0", "--horizon", "4", "--duration", "0.2", "--no-jit")
     assert done.returncode == 0, done.stderr
@@ -178,6 +182,7 @@ def test_a_readable_password_file_warns_once(tmp_path: Path, caplog: pytest.LogC
     assert len(warnings) == 1
 
 
+@pytest.mark.integration
 def test_router_unreachable_and_wrong_password_are_told_apart(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     started = time.monotonic()
@@ -252,6 +257,7 @@ def _wait_for_line(stream: object, needle: str, timeout: float) -> list[str]:
     return seen
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130)] * 5 + [(signal.SIGTERM, 143)])
 def test_a_signal_during_srl_run_ends_it_in_one_line(signum: int, code: int) -> None:
     process = _start_run("--duration", "600")  # 6000 steps: seconds of solving
@@ -269,6 +275,7 @@ def test_a_signal_during_srl_run_ends_it_in_one_line(signum: int, code: int) -> 
     assert err.strip().splitlines() == [f"srl: interrupted ({signal.Signals(signum).name}): stopped"]
 
 
+@pytest.mark.integration
 def test_a_closed_pipe_ends_srl_run_quietly() -> None:
     read, write = os.pipe()
     os.close(read)  # `srl run | head` once head has gone
@@ -319,6 +326,7 @@ def _cmdline(pid: int) -> bytes:
         return b""
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.needs_compiler
 @pytest.mark.parametrize(
@@ -435,6 +443,8 @@ def test_a_new_run_starts_fresh_and_a_crash_in_the_same_run_continues(tmp_path: 
 
 
 # -- points 8 and 11: srl up's status line, summaries and checkpoints -----------------------
+@pytest.mark.timing
+@pytest.mark.integration
 @pytest.mark.slow
 def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fresh_critic(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -543,6 +553,7 @@ def test_the_path_plot_keeps_its_arrows_in_the_axes_and_the_end_above_the_target
 
 
 # -- point 8: log levels that mean something; point 9: no Rust internals --------------------
+@pytest.mark.integration
 def test_the_router_says_it_listens_on_stdout_and_a_taken_port_in_one_line() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = subprocess.Popen(

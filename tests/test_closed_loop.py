@@ -9,7 +9,7 @@ from common.config.assembly import run_episode
 from common.config.settings import Settings
 from common.math.dynamics import exact_step
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
 # The four corners of the paper's 4 m x 4 m polygon: 2.8 m from the target, facing away.
 CORNERS = [(2.0, 2.0), (-2.0, 2.0), (-2.0, -2.0), (2.0, -2.0)]

@@ -1,4 +1,4 @@
-"""A fleet's critic fits every robot due in a batch in one stacked solve (issue 16).
+"""A fleet's critic fits every robot due in a batch in one stacked solve (docs/fleets.md).
 
 The contract: each robot's weights are those of its fit alone, bit for bit, whatever the batch;
 the minimum is the bounded TD least squares (the augmented problem that scipy's BVLS solves);
@@ -247,6 +247,7 @@ def test_a_batch_takes_what_waits_and_no_more_without_a_window() -> None:
     assert inbox.qsize() == 1
 
 
+@pytest.mark.timing
 def test_a_batch_window_collects_until_every_robot_is_in_or_the_window_ends() -> None:
     inbox: queue.Queue[Transition] = queue.Queue()
     feeder = threading.Thread(target=lambda: [time.sleep(0.01) or inbox.put(transition(r)) for r in "bcd"], daemon=True)

@@ -1,4 +1,4 @@
-"""A fleet on one machine (issue 16): robot lists, starts on a circle, the vectorized plant against
+"""A fleet on one machine (docs/fleets.md): robot lists, starts on a circle, the vectorized plant against
 the single-robot plant, one built actor shared by robots against one actor per robot (bit for
 bit), the host's earliest-deadline-first scheduler on a fake clock, the one-line refusals, and
 (slow) a 3-robot fleet of real processes: actor host, plant host, critic."""
@@ -23,7 +23,7 @@ import pytest
 from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import PARKED_WITHIN_M
-from common.math.actor import ActorCounters, ActorMemory
+from common.math.actor_problem import ActorCounters, ActorMemory
 from common.math.dynamics import exact_step, exact_steps
 from common.math.fleet import FleetError, circle_starts, parse_robots
 from common.math.stats import Window
@@ -54,6 +54,7 @@ def test_a_bad_robot_list_is_refused_in_one_line(text: str, says: str) -> None:
     assert says in str(error.value) and "\n" not in str(error.value)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("argv", "says"),
     [
@@ -269,6 +270,7 @@ print("after", os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
 """
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("user", [pytest.param("allowed", marks=pytest.mark.needs_rtprio), "refused"])
 def test_the_tick_thread_is_real_time_where_allowed_and_normal_with_one_line_where_not(user: str) -> None:
     """common.process.runtime.realtime_priority (actor.realtime_priority): where the user may (root,
@@ -310,6 +312,7 @@ def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole
 # -- a fleet of real processes ------------------------------------------------------------------
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("layout", ["host", "process"])
 def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: str) -> None:
@@ -329,6 +332,7 @@ def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: 
     assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside_the_truth(tmp_path: Path) -> None:
     """``srl up --robots K --plant physics``: the plant host steps one MuJoCo TurtleBot3 per robot
@@ -356,8 +360,11 @@ def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside
         assert drift > 1e-4, physics  # odometry is not the truth on the physics robot
 
 
+@pytest.mark.integration
 @pytest.mark.slow
-def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(tmp_path: Path) -> None:
+def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``srl up --robots 2 --secure``: fresh logins per role, mutual TLS, and a router whose rules
     grant each role the keys of BOTH robots (transport.acl_robots). Were the rules one robot's
     (the single-robot ACL), the second robot's actions, states and weights would be refused by
@@ -366,6 +373,11 @@ def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(tmp_path: P
 
     from tools.launch.fleet import format_fleet_summary, run_fleet
 
+    # a temporary directory of its own: tests running beside it write their own srl-secure-*
+    private = tmp_path / "tmp"
+    private.mkdir()
+    monkeypatch.setenv("TMPDIR", str(private))
+    monkeypatch.setattr(tempfile, "tempdir", str(private))
     before = {p.name for p in Path(tempfile.gettempdir()).glob("srl-secure-*")}
     summary = run_fleet(Settings.load(), [], ["sa", "sb"], 8.0, quiet=True, secure=True, summary_dir=tmp_path)
     assert summary["secure"] is True and summary["router"].startswith("tls/")
@@ -405,6 +417,7 @@ def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition
     assert learner.fits_coalesced == 3 and learner.accepted == 5
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up() -> None:
     """``srl bench fleet`` in miniature: one host row and one baseline row, bounded, and no srl
@@ -440,10 +453,11 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
         assert row["processes"] == (4 if row["layout"] == "host" else 2 + 2 * 2)
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
-    split a fleet (issue 16: critics sharded by robot across processes or hosts); each robot's
+    split a fleet across processes or hosts (docs/fleets.md); each robot's
     weights come from its own shard, and a robot of neither shard is learned by none."""
     from common.contracts.keys import STATUS, TRANSITION, WEIGHTS
     from common.contracts.messages import CriticWeights, ServiceStatus
@@ -575,6 +589,7 @@ def _alive(pid: int) -> bool:
     return state != "Z"
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_one_actor_command_splits_its_robots_over_host_processes_that_live_and_die_together() -> None:
     """``srl actor --robots K --hosts 2`` (compose's fleet profile, a hand-started fleet): two host
@@ -650,6 +665,7 @@ def test_one_actor_command_splits_its_robots_over_host_processes_that_live_and_d
             proc.stop()
 
 
+@pytest.mark.integration
 def test_hosts_without_robots_or_beyond_one_per_robot_is_refused_in_one_line() -> None:
     from tests.harness import srl
 
@@ -662,6 +678,7 @@ def test_hosts_without_robots_or_beyond_one_per_robot_is_refused_in_one_line() -
         assert result.returncode == 2 and result.stderr.strip().splitlines() == [f"srl: error: {says}"], result.stderr
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_the_newest_state_is_kept_by_zenoh_and_taken_with_its_source_and_a_bounded_arrival_time() -> None:
     """``Bus.subscribe_newest`` (the actor host's states): Zenoh keeps only the newest sample (no

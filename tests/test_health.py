@@ -111,6 +111,7 @@ def _health(*argv: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_exit_codes_against_real_services() -> None:
     nobody = f"tcp/127.0.0.1:{free_port()}"

@@ -1,8 +1,8 @@
 """Network faults between hosts: router, actor, critic and plant each in its own network namespace.
 
 The hosts sit on a bridge in a namespace of its own (:mod:`tests.netns`); the faults are put on
-the critic's link only, the one that crosses a network in a real deployment (DESIGN.md section
-4: the critic may run off-board). Invariants, for a real-time actor under load:
+the critic's link only, the one that crosses a network in a real deployment (the critic may run
+off-board: docs/architecture.md). Invariants, for a real-time actor under load:
 
 * 5 % random loss each way (iptables ``statistic``) and 20 ms added each way (this kernel has
   no ``netem``: the critic reaches the router through a delaying TCP relay,
@@ -12,8 +12,8 @@ the critic's link only, the one that crosses a network in a real deployment (DES
   actor keeps its deadlines on its last weights, their staleness grows and is reported, and
   afterwards the critic catches up: every transition reaches it, its replay is the actor's
   record, weight versions strictly increase. A 5 s partition is shorter than Zenoh's session
-  lease (10 s): the sessions survive and TCP delivers what waited. A 15 s one (beyond issue 6's
-  brief) lets the critic's session expire: it reconnects and recovers what it missed from the
+  lease (10 s): the sessions survive and TCP delivers what waited. A 15 s one
+  lets the critic's session expire: it reconnects and recovers what it missed from the
   actor's publisher cache (Zenoh's advanced publisher/subscriber).
 
 Needs root, ``ip`` (iproute2) and ``iptables`` (marker ``needs_root``, tests/conftest.py): without
@@ -47,7 +47,7 @@ PARTITION_S = 5.0
 START_TIMEOUT_S = 90.0  # a service is alive (the actor JIT-compiles first)
 CATCH_UP_S = 20.0  # after the fault is lifted: every transition at the critic
 
-pytestmark = [pytest.mark.slow, pytest.mark.needs_root]
+pytestmark = [pytest.mark.slow, pytest.mark.needs_root, pytest.mark.integration, pytest.mark.timing]
 
 
 class System:
@@ -58,7 +58,7 @@ class System:
         self.robot = robot
         router_ip = topo.hosts["r"].ip
         self.endpoint = f"tcp/{router_ip}:{ROUTER_PORT}"
-        # its own network namespace is the private network of the opt-out (README "Security"): a
+        # its own network namespace is the private network of the opt-out (docs/security.md): a
         # router on 10.213.x.y would otherwise refuse to start without login and TLS
         self.router = topo.spawn(
             "r",

@@ -1,6 +1,6 @@
 """A fleet across hosts: one router per host, the routers linked, robots on two hosts, the critic on a third.
 
-Three network namespaces on a bridge (:mod:`tests.netns`), laid out as README "Across hosts" tells
+Three network namespaces on a bridge (:mod:`tests.netns`), laid out as docs/fleets.md tells
 a user to (rmw_zenoh's multi-robot way: one router per host, services connect to their own host's
 router on loopback, routers connect to each other):
 
@@ -52,7 +52,7 @@ STALENESS_BOUND_STEPS = 10  # a robot that is not cut off: weights never older t
 MISSED_ALLOWED = int(0.01 * RUN_S / 0.1)  # ticks per robot (see the assertion)
 APPROACHED_M = 0.5  # from 1.5 m: every robot ends at most this far from the target
 
-pytestmark = [pytest.mark.slow, pytest.mark.needs_root]
+pytestmark = [pytest.mark.slow, pytest.mark.needs_root, pytest.mark.integration, pytest.mark.timing]
 
 
 class Fleet:
@@ -80,7 +80,7 @@ class Fleet:
 
     def router(self, host: str, *connect: str) -> NsProc:
         argv = srl("router", f"--router=tcp/0.0.0.0:{PORT}", *(f"--connect={endpoint}" for endpoint in connect))
-        # off loopback without login and TLS: the namespaces are the private network (README "Security")
+        # off loopback without login and TLS: the namespaces are the private network (docs/security.md)
         return self.topo.spawn(host, f"router-{host}", argv, env={"SRL_TRANSPORT__ALLOW_INSECURE_NETWORK": "true"})
 
     def start_actors(self) -> None:

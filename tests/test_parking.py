@@ -50,6 +50,7 @@ def test_a_shuffle_near_the_target_is_not_at_rest() -> None:
     assert resting.final_distance == pytest.approx(0.02)
 
 
+@pytest.mark.integration
 def test_bench_parking_runs_one_row_and_prints_the_typed_row(capsys: pytest.CaptureFixture[str]) -> None:
     code = main(
         [

@@ -151,6 +151,7 @@ def test_plant_sim_runs_the_physics_robot_in_lockstep() -> None:
     assert reply.state != reply.true_state  # odometry beside the truth
 
 
+@pytest.mark.integration
 def test_srl_run_parks_the_physics_robot_and_reports_the_truth() -> None:
     result = subprocess.run(
         [sys.executable, "-m", "tools.cli", "run", "--agent", "rlqv", "--horizon", "12", "--start", "2,-1",

@@ -1,4 +1,4 @@
-"""The pooled fleet critic (issue 16): one learner on every robot's transitions, TD pairs only
+"""The pooled fleet critic (docs/fleets.md): one learner on every robot's transitions, TD pairs only
 within one robot's consecutive steps; a pool of one is the per-robot learner bit for bit."""
 
 from __future__ import annotations
@@ -343,6 +343,7 @@ def test_the_critic_command_takes_pooled_and_srl_up_a_critic_layout() -> None:
     assert args.critic == "pooled"
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() -> None:
     """The real services (srl up --robots 3 --critic pooled): one learner, every robot served."""
@@ -358,6 +359,7 @@ def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() ->
         assert row["final_distance_m"] < 1.5 - 0.5, row  # from 1.5 m: approached
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_experiment_fleet_per_robot_gives_the_paper_experiments_j_and_pooled_beside_it(tmp_path: Path) -> None:
     """``srl experiment fleet`` on a reduced grid: its per-robot fleet is ``srl experiment paper``

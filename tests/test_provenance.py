@@ -1,4 +1,4 @@
-"""Provenance (issue 13) without a network: SourceGate, SequenceGuard and the actor's WeightsInbox.
+"""Provenance (docs/security.md) without a network: SourceGate, SequenceGuard and the actor's WeightsInbox.
 
 The gate decides whose samples a receiver believes (the one live session of a singleton
 service); the guard keeps one stream's order without letting a far-future value lock it out; the
@@ -100,7 +100,7 @@ def test_guard_accepts_first_and_newer_refuses_old_and_equal() -> None:
 def test_guard_refuses_a_far_jump_without_moving_the_reference() -> None:
     guard = SequenceGuard(max_jump=100)
     assert guard.check(CRITIC, 5) is None
-    refusal = guard.check(CRITIC, 2**62)  # issue 13: one PlantState(seq=2**62)
+    refusal = guard.check(CRITIC, 2**62)  # one forged PlantState(seq=2**62)
     assert refusal is not None and "jumps more than 100" in refusal
     assert guard.last[CRITIC] == 5
     # ...so every real value after it is still accepted: no lockout
@@ -171,8 +171,8 @@ def test_refusal_run_counts_only_an_increasing_stream_within_its_time() -> None:
 
 
 def test_action_order_refuses_a_far_future_episode_alone() -> None:
-    """Issue 13: one Action(episode=2**62) with the live actor's session id locked out every real
-    action until the actor restarted; now it is refused and the real stream goes on."""
+    """One Action(episode=2**62) with the live actor's session id is refused alone: the real
+    stream goes on."""
     order = ActionOrder(max_step_jump=100, max_episode_jump=1000)
     assert order.check(500, 0, 0.0) is None
     refusal = order.check(2**62, 0, 0.05)
@@ -288,8 +288,8 @@ def test_inbox_refuses_a_foreign_session_and_while_no_critic_is_live() -> None:
 
 @pytest.mark.parametrize("value", [-100.0, 1e300, 100.5, -1e-9])
 def test_inbox_refuses_weights_outside_the_box_and_keeps_the_last_good(value: float) -> None:
-    """Issue 13 finding 2: -100 weights spun the robot at full speed, 1e300 failed the solver;
-    from the live critic session too, they are refused and the last good weights kept."""
+    """Weights outside the box (-100 would spin the robot at full speed, 1e300 fail the solver),
+    from the live critic session too, are refused and the last good weights kept."""
     inbox, bus, _ = _inbox()
     good = _now_us()
     inbox.offer(_weights(good, value=3.0), CRITIC)
@@ -307,7 +307,8 @@ def test_inbox_refuses_weights_outside_the_box_and_keeps_the_last_good(value: fl
 
 
 def test_inbox_refuses_a_trained_step_beyond_the_published_step() -> None:
-    """Issue 13 finding 10: a forged trained_step made staleness_steps -999,721."""
+    """A forged trained_step beyond the published step is refused (it would make the staleness
+    negative)."""
     inbox, bus, _ = _inbox()
     inbox.offer(_weights(_now_us(), trained_step=1_000_000), CRITIC)
     inbox.offer(_weights(_now_us(), trained_step=51), CRITIC)
@@ -367,9 +368,9 @@ def test_a_version_ahead_of_the_clock_is_accepted_only_within_the_bound() -> Non
 
 
 def test_a_forged_version_with_the_live_critic_id_costs_a_bounded_run_of_updates() -> None:
-    """Issue 13: a version 59 s ahead with the live critic's id made the actor refuse every real
-    update (150 in 15 s). Now the window is 5 s, and a run of the real critic's versions refused
-    in a row is followed again: at most RESYNC_AFTER - 1 real updates are lost."""
+    """A version 59 s ahead with the live critic's id costs a bounded run: the window is 5 s, and a
+    run of the real critic's versions refused in a row is followed again: at most
+    RESYNC_AFTER - 1 real updates are lost."""
     inbox, bus, _ = _inbox()
     start = _now_us() - 3_600_000_000  # a critic that started an hour ago counts from then
     inbox.offer(_weights(start, value=2.0), CRITIC)

@@ -15,6 +15,8 @@ import pytest
 
 import common
 
+pytestmark = pytest.mark.integration
+
 ROOT = Path(common.__file__).resolve().parent.parent
 FORBIDDEN = ("zenoh", "rclpy")
 

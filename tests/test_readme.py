@@ -16,6 +16,8 @@ import re
 import signal
 import subprocess
 
+import pytest
+
 from tests.harness import ROOT
 
 README = (ROOT / "README.md").read_text()
@@ -69,6 +71,7 @@ def run(argv: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
     return subprocess.CompletedProcess(argv, process.returncode, stdout, stderr)
 
 
+@pytest.mark.integration
 def test_first_command_prints_the_j_the_readme_quotes() -> None:
     command, comment = bash_commands(README)[0]
     assert command.startswith("./srl run "), command

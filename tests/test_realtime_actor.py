@@ -186,8 +186,8 @@ def test_a_far_future_sequence_number_locks_nothing_out() -> None:
 
 
 def test_a_forged_episode_from_the_live_plant_id_locks_nothing_out() -> None:
-    """Audit of issue 13: a state of another episode with the live plant's session id reset the
-    seq reference (and was followed); now it is refused alone, and the real stream goes on."""
+    """A state of another episode with the live plant's session id neither resets the seq
+    reference nor is followed: it is refused alone, and the real stream goes on."""
     t = Loop()
     t.run(3)
     for episode in (2**62, 7, 1):
@@ -233,7 +233,7 @@ def test_weight_staleness_in_steps() -> None:
     t.fake.now += DELTA
     t.loop.tick(5, t.fake.now)
     assert t.loop.staleness_steps.last == 0
-    t.inbox.offer(weights(99, 11), "c1")  # a step not published yet: refused (issue 13)
+    t.inbox.offer(weights(99, 11), "c1")  # a step not published yet: refused
     assert t.inbox.current().version == 10
 
 
@@ -370,7 +370,7 @@ def test_the_summary_reports_the_truth_only_when_the_plant_sends_it() -> None:
 
 
 def test_the_arrival_rule_holds_the_robot_with_zero_and_the_loop_says_so() -> None:
-    """A real actor with its arrival rule (issue 21): inside the tolerance every tick commands
+    """A real actor with its arrival rule (docs/concepts.md): inside the tolerance every tick commands
     exactly zero and still publishes its transition (the critic sees no gap); the status says
     "arrived"; leaving the outer tolerance resumes the solves."""
     from common.math.actor import StackedActor

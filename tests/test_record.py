@@ -1,4 +1,4 @@
-"""Recordings (issue 17), read back by readers that did not write them.
+"""Recordings (docs/recordings.md), read back by readers that did not write them.
 
 srl writes CDR with ``rosbags`` into the ``mcap`` library's writer; these tests read with the
 ``mcap`` reader and decode with ``mcap-ros2-support`` (its own CDR decoder, from the schema text in
@@ -106,6 +106,7 @@ def check_steps(
     np.testing.assert_allclose(np.remainder(yaw - states[:, 2] + math.pi, 2 * math.pi) - math.pi, 0, atol=1e-9)
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_srl_run_and_srl_up_record_the_runs_trajectory_and_srl_plot_draws_it(tmp_path: Path) -> None:
     args = ["--agent", "rlqv", "--horizon", "12", "--start", "1.5,1", "--duration", "3", "--no-jit"]
@@ -137,6 +138,7 @@ def test_srl_run_and_srl_up_record_the_runs_trajectory_and_srl_plot_draws_it(tmp
     assert f"J = {summary['accumulated_cost']:.4f}" in plotted.stdout
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_the_experiment_records_every_run_as_trajectories_npz_holds_it(tmp_path: Path) -> None:
     out, path = tmp_path / "exp", tmp_path / "exp.mcap"
@@ -159,6 +161,7 @@ def test_the_experiment_records_every_run_as_trajectories_npz_holds_it(tmp_path:
     assert len(origins) == 1, "every run starts at the same moment"
 
 
+@pytest.mark.integration
 def test_a_bad_recording_path_is_one_line_before_anything_runs(tmp_path: Path) -> None:
     for argv in (
         ["run", "--duration", "1", "--record", str(tmp_path / "missing" / "x.mcap")],
@@ -176,6 +179,7 @@ def test_a_bad_recording_path_is_one_line_before_anything_runs(tmp_path: Path) -
         assert "Traceback" not in done.stderr
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
 def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_path: Path, stop: int) -> None:
@@ -254,6 +258,7 @@ async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tup
         return decoded, channel
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_protocol() -> None:
     router = f"tcp/127.0.0.1:{free_port()}"
@@ -283,6 +288,7 @@ def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_pr
             proc.stop()
 
 
+@pytest.mark.integration
 def test_the_shipped_foxglove_layout_is_the_generated_one_and_names_recorded_topics(tmp_path: Path) -> None:
     from tools.recording.view import foxglove_layout
 
@@ -297,6 +303,7 @@ def test_the_shipped_foxglove_layout_is_the_generated_one_and_names_recorded_top
     assert named <= recorded, named - recorded
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_path: Path) -> None:
     """--plant robot: the emulated TurtleBot3's odometry, through the bridge, in real time."""
@@ -321,6 +328,7 @@ def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_
     assert plotted.returncode == 0 and (tmp_path / "robot.png").exists(), plotted.stderr
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_srl_bench_loop_record_compares_the_loop_without_and_with_a_recorder() -> None:
     done = srl(
@@ -362,6 +370,7 @@ def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path)
     assert replayed.accumulated_cost == episode.accumulated_cost
 
 
+@pytest.mark.integration
 def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> None:
     """common.process.runtime.lower_priority (the recorder's nice +10): the threads already running (a
     BLAS pool) and those started after it (Zenoh's) run at the lowered niceness; 0 changes none."""

@@ -49,6 +49,7 @@ def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path: Path) -> None:
     assert json.loads(path.read_text()) == {"a": 2}
 
 
+@pytest.mark.timing
 def test_the_checkpoint_writer_writes_off_the_callers_thread_newest_last_and_fails_loudly(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -164,12 +165,14 @@ def test_seen_steps_are_bounded_and_too_old_ones_refused() -> None:
 # -- processes --------------------------------------------------------------------------
 
 
+@pytest.mark.timing
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("critic", ["per-robot", "pooled"])
 def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(
     critic_checkpoint: Path, critic: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # pooled (issue 16): the pool of this one robot, from its checkpoint, recovers the same way
+    # pooled (docs/fleets.md): the pool of this one robot, from its checkpoint, recovers the same way
     monkeypatch.setenv("SRL_CRITIC__POOLED", "true" if critic == "pooled" else "false")
     checkpoint = Path(str(critic_checkpoint).format(robot="kr"))
     with cluster(robot="kr") as c:
@@ -210,6 +213,8 @@ def test_critic_kill_9_loses_no_transition_and_versions_keep_increasing(
     assert actor_summary["loop"]["missed_deadlines"] == 0
 
 
+@pytest.mark.timing
+@pytest.mark.integration
 @pytest.mark.slow
 def test_actor_stops_the_robot_when_the_plant_vanishes_and_resumes_when_it_returns() -> None:
     with cluster(robot="lv") as c:
@@ -252,6 +257,8 @@ def test_actor_stops_the_robot_when_the_plant_vanishes_and_resumes_when_it_retur
     assert summary["loop"]["missed_deadlines"] == 0
 
 
+@pytest.mark.timing
+@pytest.mark.integration
 @pytest.mark.slow
 def test_every_client_reconnects_after_a_router_restart() -> None:
     with cluster(robot="rr") as c:

@@ -1,4 +1,4 @@
-"""Issue 21's actor settings for a running robot against independent oracles: the wheel-speed box
+"""The actor's settings for a running robot (docs/turtlebot.md) against independent oracles: the wheel-speed box
 (brute force over the feasible grid), the convexified critics (the quadratic form by hand), the
 arrival rule inside the actor, and the chatter of the paper's method on the ideal plant."""
 
@@ -121,9 +121,9 @@ def test_the_actor_commands_exactly_zero_once_arrived_and_resumes_beyond_the_out
     assert not actor.arrived
 
 
-# -- the chatter on the ideal plant (issue 21, "Chatter, already on the ideal plant") --------
+# -- the chatter on the ideal plant ---------------------------------------------------------------
 def _v_sign_flips(actions: list[np.ndarray], last: int = 100) -> int:
-    """Sign changes of v over the last 10 s, counting only |v| >= 0.01 m/s (the issue's measure)."""
+    """Sign changes of v over the last 10 s, counting only |v| >= 0.01 m/s (docs/experiment.md's measure)."""
     signs = [math.copysign(1.0, a[0]) for a in actions[-last:] if abs(a[0]) >= 0.01]
     return sum(a != b for a, b in itertools.pairwise(signs))
 
@@ -131,10 +131,10 @@ def _v_sign_flips(actions: list[np.ndarray], last: int = 100) -> int:
 @pytest.mark.parametrize("start", [(-1.0, -2.0), (-2.0, 2.0)])
 def test_rlqv_parks_without_chatter_by_default_and_the_papers_method_chatters(start: tuple[float, float]) -> None:
     """rlqv at N = 12 from two of the paper's starts, 35 s on the ideal plant. The paper's method
-    with the actor issue 21 measured (the warm start alone, multistart off) shuttles at full speed
-    to the end (a period-2 limit cycle; measured 79 and 34 flips); with the default settings
-    (arrival rule, wheel box, convex critics) it parks: <= 5 flips, final distance <= 0.05 m, at
-    rest. (Issue 18's global phase alone parks from (-1, -2): the next test.)"""
+    with the paper's actor (the warm start alone, multistart off) shuttles at full speed to the
+    end (a period-2 limit cycle); with the default settings (arrival rule, wheel box, convex
+    critics) it parks: <= 5 flips, final distance <= 0.05 m, at rest. (The global phase alone
+    parks from (-1, -2): the next test.)"""
     x, y = start
     common = {"actor": {"agent": "rlqv", "horizon": 12, "jit": False}, "episode": {"duration": 35.0, "start": [x, y]}}
     paper = Settings.load(**{**common, "actor": {**common["actor"], **PAPER_METHOD["actor"], "multistart": False}})
@@ -152,7 +152,7 @@ def test_rlqv_parks_without_chatter_by_default_and_the_papers_method_chatters(st
 
 
 def test_the_global_phase_alone_ends_the_limit_cycle_from_one_start_not_from_the_other() -> None:
-    """Issue 18: part of the paper's method's chatter was the actor stuck between two local
+    """Part of the paper's method's chatter is the actor stuck between two local
     minima. With the global phase (multistart, on by default) rlqv from (-1, -2) parks at rest
     (measured 0 flips, against 79 without it) at a lower J; from (-2, 2) the fitted critic's
     limit cycle remains (23 flips): that one the robot settings above are for."""

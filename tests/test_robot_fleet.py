@@ -1,4 +1,4 @@
-"""Several ROS 2 robots (issue 16): each srl robot id is its robot's ROS namespace.
+"""Several ROS 2 robots (docs/fleets.md): each srl robot id is its robot's ROS namespace.
 
 First the mapping (common/math/fleet.py ``ros_fleet``) and the bridge host's per-robot units against an
 in-memory Zenoh (every unit on ONE session, as robots reached through one router: only the
@@ -249,6 +249,7 @@ def _srl(*argv: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     return srl(*argv, timeout=timeout)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("argv", "says"),
     [
@@ -285,6 +286,7 @@ def _actor_summaries(summary: dict[str, Any], layout: str = "host") -> dict[str,
     return {robot: json.loads((directory / f"actor-{robot}.json").read_text()) for robot in summary["robots"]}
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("layout", ["host", "process"])
 def test_up_three_emulated_turtlebots(tmp_path: Path, layout: str) -> None:
@@ -327,6 +329,7 @@ def test_up_three_emulated_turtlebots(tmp_path: Path, layout: str) -> None:
     assert summary["critic"]["transitions_received"] == summary["fleet"]["steps"]
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> None:
     """Two robots reached through ONE router (``--robot-endpoint``): only the namespaces keep them

@@ -1,4 +1,4 @@
-"""``srl router --connect``: routers linked across hosts (README "Across hosts"), here on loopback.
+"""``srl router --connect``: routers linked across hosts (docs/fleets.md), here on loopback.
 
 The multi-host behaviour under faults is tests/test_netns_fleet.py (network namespaces, root);
 this checks what any machine can: a router started before the one it connects to links when that
@@ -14,9 +14,12 @@ import sys
 import threading
 import time
 
+import pytest
 import zenoh
 
 from tests.harness import ROOT, client_config, free_port
+
+pytestmark = pytest.mark.integration
 
 CLI = [sys.executable, "-m", "tools.cli"]
 

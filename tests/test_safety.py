@@ -1,4 +1,4 @@
-"""Issue 13 ("Safety first"), the process side: each attack or fault run against real processes.
+"""Safety (docs/security.md), the process side: each attack or fault run against real processes.
 
 * a rogue client steps and resets a real-time plant_sim (finding 3);
 * srl's router is killed while the robot drives (finding 4), with the robot on its own router
@@ -114,6 +114,7 @@ def _open(endpoint: str) -> zenoh.Session:
 
 
 # -- finding 3: a real-time plant serves no step and no reset -------------------------------------
+@pytest.mark.integration
 @pytest.mark.slow
 def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
     with cluster(robot="rq") as c:
@@ -128,7 +129,7 @@ def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
         wait_until(lambda: len(states) >= 5, 10, "real-time states")
         start = states[-1].state
         replies = []
-        for step in range(3):  # the attack of issue 13: 2.2 m per step at full speed for 10 s
+        for step in range(3):  # the attack: 2.2 m per step at full speed for 10 s
             request = StepRequest(robot="rq", episode=0, step=step, action=(0.22, 0.0), duration=10.0)
             replies += list(c.session.get("srl/rq/plant/step", payload=request.encode(), timeout=1.0))
         reset = ResetRequest(robot="rq", episode=0, state=(50.0, 50.0, 0.0))
@@ -162,8 +163,9 @@ def test_realtime_plant_sim_ignores_rogue_steps_and_resets() -> None:
     )
 
 
+@pytest.mark.integration
 def test_realtime_plant_sim_applies_actions_of_the_live_actor_session_only() -> None:
-    """Provenance at the simulator (issue 13): like the robot bridge, a real-time plant_sim drives
+    """Provenance at the simulator (docs/security.md): like the robot bridge, a real-time plant_sim drives
     only by the live actor session's actions; another session publishing on the same key (a stray
     client, a second actor) is refused and counted, and the robot stops at once when the followed
     actor session is gone."""
@@ -235,6 +237,7 @@ def _distance_after(odometry: Odometry, killed: float, reference: tuple[float, f
     return max((math.dist(s[1:3], reference[1:3]) for s in odometry.after(killed)), default=0.0)
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     """``srl up --plant robot`` (the default topology): kill -9 srl's router while the robot drives."""
@@ -318,6 +321,7 @@ def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
     assert distance <= 0.05
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_router_kill_robot_through_srl_router_stops_by_its_own_timeout() -> None:
     """The robot's traffic through srl's router: no zero can reach it; its cmd_vel timeout stops it."""
@@ -380,6 +384,7 @@ def _wait_children(up: subprocess.Popen[str], count: int) -> list[int]:
     return children_of(up.pid)
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("signum", "argv"),
@@ -413,6 +418,7 @@ def test_srl_up_cleans_up_on_sigterm_and_sighup(tmp_path: Path, signum: int, arg
     )
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_kill_9_of_srl_up_takes_every_service_with_it(tmp_path: Path) -> None:
     up, _ = _start_up(tmp_path, "--robot", "k9", "--plant", "robot")
@@ -442,6 +448,7 @@ def test_kill_9_of_srl_up_takes_every_service_with_it(tmp_path: Path) -> None:
     assert took <= 5.0
 
 
+@pytest.mark.integration
 def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None:
     """In a child process (the guard arms PR_SET_PDEATHSIG and an exit watchdog on the process
     that calls it: never on the test runner): a process whose SRL_PARENT_PID is not its parent
@@ -470,6 +477,7 @@ def test_die_with_parent_stops_at_once_when_the_parent_is_already_gone() -> None
     assert done.returncode == 3 and took < 8.0, (done.returncode, took, done.stderr[-2000:])
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("bounded", [True, False])
 def test_a_stop_that_hangs_holding_the_gil_still_ends(bounded: bool) -> None:
     """A service's stop on a signal (common.process.runtime.stop_within_bounds) that then hangs in native
@@ -530,6 +538,7 @@ SIGNAL_STORM = (
 )
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("watch", [True, False])
 def test_a_signal_while_the_main_thread_waits_on_the_stop_never_deadlocks(watch: bool) -> None:
     """A signal handler runs in the main thread, possibly inside ``stop.wait()`` while that thread
@@ -571,6 +580,7 @@ def test_a_signal_watch_restores_the_handlers_and_wakeup_fd_it_replaced() -> Non
 
 
 # -- finding 10: smaller points ----------------------------------------------------------------------
+@pytest.mark.integration
 def test_stale_checkpoint_temporaries_are_removed_at_start(tmp_path: Path) -> None:
     path = tmp_path / "critic-r.json"
     atomic_write_json(path, {"a": 1})
@@ -598,12 +608,13 @@ def test_stale_checkpoint_temporaries_are_removed_at_start(tmp_path: Path) -> No
         sleeper.wait()
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_critic_removes_a_killed_writes_temporary_at_start(critic_checkpoint: Path) -> None:
     checkpoint = Path(str(critic_checkpoint).format(robot="tm"))
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
     leftover = checkpoint.with_name(f".{checkpoint.name}.999999999.q1w2e3.tmp")
-    leftover.write_bytes(b"")  # what kill -9 during a checkpoint write leaves (issue 13: 0 bytes)
+    leftover.write_bytes(b"")  # what kill -9 during a checkpoint write can leave: 0 bytes
     with cluster(robot="tm") as c:
         c.start("critic", "critic")
         c.wait_alive("critic")
@@ -640,6 +651,7 @@ def test_a_tick_that_wakes_up_late_is_a_missed_deadline() -> None:
     assert ticker.missed == 4 and ticker.late == 2  # 100.7 skipped and 100.8 overrun: 2 more, no "late"
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_a_10_mb_payload_does_not_grow_the_receiving_service() -> None:
     with cluster(robot="big") as c:

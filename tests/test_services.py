@@ -20,7 +20,7 @@ from common.config.settings import Settings
 from common.contracts.messages import Action, CriticWeights, ServiceStatus
 from tests.harness import ROOT, Proc, cluster, free_port, srl, wait_until
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.integration]
 
 
 def _run_cli(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
@@ -60,6 +60,7 @@ def test_lockstep_through_zenoh_equals_inproc(agent: str) -> None:
     assert all(code == 0 for code in distributed["exit_codes"].values())
 
 
+@pytest.mark.timing
 def test_realtime_up_every_service_a_process() -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -130,6 +131,7 @@ def test_realtime_up_every_service_a_process() -> None:
     assert all(math.isfinite(v) and math.isfinite(w) for v, w in actions)
 
 
+@pytest.mark.timing
 def test_actor_keeps_its_loop_without_critic_and_resumes_with_new_weights() -> None:
     with cluster(robot="ck") as c:
         c.start_plant_and_critic()
@@ -297,7 +299,7 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
 
 
 def test_the_realtime_actor_logs_its_status_line_at_info() -> None:
-    """compose shows the live status (issue 14, point 2): the actor run at INFO, as compose runs
+    """compose shows the live status: the actor run at INFO, as compose runs
     it, logs its status line once a second (step, pose, distance, J, weights, missed deadlines)."""
     with cluster(robot="sl") as c:
         c.start_plant_and_critic()

@@ -1,4 +1,4 @@
-"""Issue 13: the status line (``srl status``, ``srl up``) shows the lockout-like patterns.
+"""The status line (``srl status``, ``srl up``) shows the lockout-like patterns.
 
 The actor computes ``plant_conflict`` and ``lockout_suspect``; the bridge counts the actions it
 refuses and the resyncs. A quiet line when nothing is wrong, one word per alarm when it is; the
@@ -8,6 +8,8 @@ monitor merges the plant's refusal counters into the actor's status it shows.
 from __future__ import annotations
 
 import time
+
+import pytest
 
 from common.config.settings import Settings
 from common.contracts.keys import STATUS
@@ -34,6 +36,7 @@ def test_the_status_line_shows_a_lockout_a_conflict_and_the_bridge_refusals() ->
     assert "bridge refused 10 actions (2 resyncs)" in line
 
 
+@pytest.mark.integration
 def test_the_monitor_merges_the_plant_refusals_into_the_actor_status() -> None:
     robot = "st_m"
     with cluster(robot=robot) as c:
@@ -67,6 +70,7 @@ def test_the_monitor_merges_the_plant_refusals_into_the_actor_status() -> None:
     assert "LOCKOUT SUSPECT" in line and "bridge refused 4 actions (1 resyncs)" in line
 
 
+@pytest.mark.integration
 def test_a_monitor_without_an_actor_status_shows_nothing() -> None:
     robot = "st_n"
     with cluster(robot=robot) as c:

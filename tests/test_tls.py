@@ -1,4 +1,4 @@
-"""TLS links and secure-by-default routers (issue 13, finding 9).
+"""TLS links and secure-by-default routers (docs/security.md).
 
 Real processes on free loopback ports: a router with login, the role rules and mutual TLS
 (``tls/127.0.0.1:<port>``) lets nothing through from a client without a certificate, with a
@@ -77,6 +77,7 @@ def test_a_network_router_needs_login_and_tls(tmp_path: Path) -> None:
     check_network_exposure(_transport(allow_insecure_network=True), ["tcp/0.0.0.0:7447"])  # the opt-out
 
 
+@pytest.mark.integration
 def test_certs_are_private_and_named_by_role(tmp_path: Path) -> None:
     out = tmp_path / "secrets"
     done = subprocess.run(
@@ -138,6 +139,7 @@ def test_certs_are_private_and_named_by_role(tmp_path: Path) -> None:
     assert kept.returncode == 0 and "kept" in kept.stdout
 
 
+@pytest.mark.integration
 def test_router_off_loopback_refuses_to_start() -> None:
     """``srl router`` on a network address (TEST-NET-1: nothing is ever bound) without login and
     TLS exits 2 with one clear line, before Zenoh tries to listen."""
@@ -214,6 +216,7 @@ def _open_or_none(endpoint: str, values: dict[str, Any]) -> zenoh.Session | None
         return None
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_tls_router_lets_nothing_through_without_certificate_ca_or_password(tmp_path: Path) -> None:
     other = write_tls_material(tmp_path / "other-ca", ROLES)  # a stranger's own CA, same role names
@@ -278,6 +281,7 @@ def test_tls_router_lets_nothing_through_without_certificate_ca_or_password(tmp_
     assert actions == [b"legit action"] and all(not v for v in stolen.values())
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_actor_critic_plant_run_over_mutual_tls(tmp_path: Path) -> None:
     with tls_router(tmp_path) as (endpoint, secrets, tls, router):
@@ -331,6 +335,7 @@ def _readme_block(marker: str) -> str:
     return match.group(1)
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_readme_add_a_host_steps_work(tmp_path: Path) -> None:
     """The README's "add a host" commands, run as written. Substituted, and nothing else: the
