@@ -14,7 +14,7 @@ import re
 import signal
 import socket
 import subprocess
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 BLOCK_SECONDS = 120
@@ -29,6 +29,7 @@ def free_port() -> int:
 FENCE = re.compile(r"^(\s*)(`{3,}|~{3,})\s*([\w+-]*)")
 NOT_RUN = re.compile(r"^\s*<!--\s*not run:(.*?)-->\s*$")
 PRINTS = re.compile(r"\s#\s*prints:\s*(.+?)\s*$")
+COMMENT = re.compile(r"(^|\s+)#(?:\s.*)?$")  # a shell comment: `#` at the start or after blanks, then a blank
 RUNS_THE_TESTS = re.compile(r"(^|[\s;&|(])(\./)?srl\s+test\b|\bpytest\b|\.ci/run\b", re.MULTILINE)
 
 
@@ -39,10 +40,16 @@ class Block:
     text: str
     skipped_because: str | None = None  # the not-run reason ("" if the marker gives none)
     expected: list[str] = field(default_factory=list)  # the # prints: texts
+    same_as: list[str] = field(default_factory=list)  # ids of blocks with the same commands, run with this one
 
     @property
     def id(self) -> str:
         return f"{self.path}:{self.line}"
+
+    @property
+    def commands(self) -> str:
+        """The block without its comments: what bash runs."""
+        return "\n".join(line for line in (COMMENT.sub("", raw).rstrip() for raw in self.text.splitlines()) if line)
 
 
 def blocks_of(path: Path, root: Path) -> list[Block]:
@@ -81,6 +88,22 @@ def documentation_files(root: Path) -> list[Path]:
 
 def all_blocks(root: Path) -> list[Block]:
     return [block for path in documentation_files(root) if path.is_file() for block in blocks_of(path, root)]
+
+
+def runnable_blocks(blocks: list[Block]) -> list[Block]:
+    """The blocks to run: one per distinct command text (the README and a page often show the same
+    command), carrying every copy's ``# prints:`` texts, so each copy is checked by one run."""
+    runs: dict[str, Block] = {}
+    for block in blocks:
+        if block.skipped_because is not None:
+            continue
+        first = runs.get(block.commands)
+        if first is None:
+            runs[block.commands] = replace(block, expected=list(block.expected), same_as=[])
+            continue
+        first.same_as.append(block.id)
+        first.expected += [text for text in block.expected if text not in first.expected]
+    return list(runs.values())
 
 
 def run_block(block: Block, root: Path, seconds: float = BLOCK_SECONDS) -> str | None:

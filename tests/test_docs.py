@@ -194,7 +194,7 @@ BLOCKS = docs_blocks.all_blocks(ROOT)
 
 @pytest.mark.integration
 @pytest.mark.slow
-@pytest.mark.parametrize("block", [b for b in BLOCKS if b.skipped_because is None], ids=lambda b: b.id)
+@pytest.mark.parametrize("block", docs_blocks.runnable_blocks(BLOCKS), ids=lambda b: b.id)
 def test_the_documented_commands_run_and_print_what_they_say(block: docs_blocks.Block) -> None:
     # the test suite inside the test suite would run this test again, and it again: such a block is not run
     assert not docs_blocks.RUNS_THE_TESTS.search(block.text), (
@@ -202,6 +202,17 @@ def test_the_documented_commands_run_and_print_what_they_say(block: docs_blocks.
     )
     failure = docs_blocks.run_block(block, ROOT)
     assert failure is None, failure
+
+
+def test_blocks_with_the_same_commands_run_once_and_check_every_copys_output(tmp_path: Path) -> None:
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "README.md").write_text("```bash\necho one two   # prints: one\n```\n")
+    (tmp_path / "docs" / "a.md").write_text("```bash\necho one two   # prints: two\n```\n\n```bash\necho three\n```\n")
+    runs = docs_blocks.runnable_blocks(docs_blocks.all_blocks(tmp_path))
+    assert [(b.id, b.expected, b.same_as) for b in runs] == [
+        ("README.md:1", ["one", "two"], ["docs/a.md:1"]),
+        ("docs/a.md:5", [], []),
+    ]
 
 
 def test_every_block_not_run_says_why() -> None:
