@@ -106,15 +106,22 @@ def runnable_blocks(blocks: list[Block]) -> list[Block]:
     return list(runs.values())
 
 
-def run_block(block: Block, root: Path, seconds: float = BLOCK_SECONDS) -> str | None:
-    """Run one block; None if it succeeded and printed what it says, else what went wrong."""
+def run_block(block: Block, root: Path, seconds: float = BLOCK_SECONDS, tmp: Path | None = None) -> str | None:
+    """Run one block; None if it succeeded and printed what it says, else what went wrong.
+
+    ``tmp``: where the block's ``/tmp/...`` paths go (in its commands and in its ``# prints:``
+    texts), so a run leaves nothing in /tmp and never meets another user's file of that name."""
+    text, expected = block.text, block.expected
+    if tmp is not None:
+        text = text.replace("/tmp/", f"{tmp}/")
+        expected = [line.replace("/tmp/", f"{tmp}/") for line in expected]
     env = dict(os.environ)
     env["PATH"] = f"{root / '.venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}"
     # a router port of its own (the packaged 7447 may be taken by another test or a running system):
     # the environment is below any flag the block gives, so a block that names its router keeps it
     env["SRL_TRANSPORT__ROUTER"] = f"tcp/127.0.0.1:{free_port()}"
     process = subprocess.Popen(
-        ["bash", "-c", "set -e\n" + block.text],
+        ["bash", "-c", "set -e\n" + text],
         cwd=root,
         env=env,
         stdout=subprocess.PIPE,
@@ -134,7 +141,7 @@ def run_block(block: Block, root: Path, seconds: float = BLOCK_SECONDS) -> str |
             os.killpg(process.pid, signal.SIGKILL)  # whatever the block left running in the background
     if process.returncode != 0:
         return f"{block.id}: exit {process.returncode}; output:\n{output[-4000:]}"
-    missing = [text for text in block.expected if text not in output]
+    missing = [line for line in expected if line not in output]
     if missing:
         return f"{block.id}: the output lacks {missing}; output:\n{output[-4000:]}"
     return None

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import subprocess
 import tomllib
@@ -195,12 +196,12 @@ BLOCKS = docs_blocks.all_blocks(ROOT)
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize("block", docs_blocks.runnable_blocks(BLOCKS), ids=lambda b: b.id)
-def test_the_documented_commands_run_and_print_what_they_say(block: docs_blocks.Block) -> None:
+def test_the_documented_commands_run_and_print_what_they_say(block: docs_blocks.Block, tmp_path: Path) -> None:
     # the test suite inside the test suite would run this test again, and it again: such a block is not run
     assert not docs_blocks.RUNS_THE_TESTS.search(block.text), (
         f"{block.id} runs the test suite: give it a block of its own, marked <!-- not run: it is the test suite -->"
     )
-    failure = docs_blocks.run_block(block, ROOT)
+    failure = docs_blocks.run_block(block, ROOT, tmp=tmp_path)
     assert failure is None, failure
 
 
@@ -213,6 +214,17 @@ def test_blocks_with_the_same_commands_run_once_and_check_every_copys_output(tmp
         ("README.md:1", ["one", "two"], ["docs/a.md:1"]),
         ("docs/a.md:5", [], []),
     ]
+
+
+@pytest.mark.integration
+def test_a_blocks_tmp_paths_go_to_the_tests_own_directory(tmp_path: Path) -> None:
+    name = f"srl-block-probe-{os.getpid()}.txt"
+    block = docs_blocks.Block(
+        path=Path("README.md"), line=1, text=f"echo hi > /tmp/{name}; ls /tmp/{name}", expected=[f"/tmp/{name}"]
+    )
+    assert docs_blocks.run_block(block, ROOT, seconds=20, tmp=tmp_path) is None
+    assert (tmp_path / name).read_text() == "hi\n"
+    assert not (Path("/tmp") / name).exists()
 
 
 def test_every_block_not_run_says_why() -> None:
