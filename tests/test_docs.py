@@ -35,7 +35,9 @@ REFERENCE = ROOT / "docs" / "reference"
 # -- the generated pages are current and complete ----------------------------------------------
 @pytest.mark.integration
 def test_the_generated_pages_are_what_srl_docs_writes_now() -> None:
-    stale = stale_files(ROOT)
+    from tools.cli import build_parser
+
+    stale = stale_files(build_parser(), ROOT)
     assert not stale, f"stale generated files (run ./srl docs): {stale}"
 
 

@@ -80,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in command_modules():
         add_command(sub, module)
+    # the parser itself, for the commands that describe every command (srl docs: the CLI reference)
+    parser.set_defaults(srl_parser=parser)
     for action in sub._choices_actions:  # every subcommand's --help opens with what it does
         subparser = sub.choices[action.dest]
         if not subparser.description:

@@ -27,11 +27,11 @@ def changelog_page(text: str) -> str:
     return re.sub(r"\]\((?:\./)?docs/", "](", text)
 
 
-def generated_files(root: Path = ROOT) -> dict[Path, str]:
+def generated_files(srl: argparse.ArgumentParser, root: Path = ROOT) -> dict[Path, str]:
     """Every generated file (relative to ``root``) and the text the code would give it now."""
     files: dict[Path, str] = {
         Path("docs/reference/settings.md"): reference.settings_page(),
-        Path("docs/reference/cli.md"): reference.cli_page(),
+        Path("docs/reference/cli.md"): reference.cli_page(srl),
         Path("docs/reference/messages.md"): reference.messages_page(),
         Path("docs/reference/keys.md"): reference.keys_page(),
     }
@@ -59,17 +59,17 @@ def orphans(root: Path, files: dict[Path, str]) -> list[Path]:
     return found
 
 
-def stale_files(root: Path = ROOT) -> list[str]:
+def stale_files(srl: argparse.ArgumentParser, root: Path = ROOT) -> list[str]:
     """The generated files that differ from what the code would write now (empty: all current)."""
-    files = generated_files(root)
+    files = generated_files(srl, root)
     stale = [str(p) for p, text in files.items() if not (root / p).is_file() or (root / p).read_text() != text]
     return stale + [f"{p} (nothing generates it: delete it)" for p in orphans(root, files)]
 
 
-def write(root: Path = ROOT) -> list[str]:
+def write(srl: argparse.ArgumentParser, root: Path = ROOT) -> list[str]:
     """Write every generated file that changed; the paths written."""
     written = []
-    files = generated_files(root)
+    files = generated_files(srl, root)
     for path, text in files.items():
         target = root / path
         if target.is_file() and target.read_text() == text:
@@ -96,13 +96,13 @@ def main(args: argparse.Namespace) -> int:
     """``srl docs [--check]``: the exit code."""
     root = Path(args.root) if args.root else ROOT
     if args.check:
-        stale = stale_files(root)
+        stale = stale_files(args.srl_parser, root)
         for path in stale:
             print(f"srl docs: stale: {path} (run srl docs)", file=sys.stderr)
         if not stale:
-            print(f"srl docs: {len(generated_files(root))} generated files are current")
+            print(f"srl docs: {len(generated_files(args.srl_parser, root))} generated files are current")
         return 1 if stale else 0
-    written = write(root)
+    written = write(args.srl_parser, root)
     print(f"srl docs: wrote {len(written)} files" + "".join(f"\n  {p}" for p in written))
     return 0
 

@@ -298,9 +298,9 @@ def _help_text(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
         return text
 
 
-def cli_page() -> str:
-    from tools.cli import build_parser
-
+def cli_page(srl: argparse.ArgumentParser) -> str:
+    """The CLI reference of ``srl``, the parser tools/cli.py builds (handed in: this module is one of
+    the commands that parser lists)."""
     lines = [
         GENERATED,
         "",
@@ -311,7 +311,7 @@ def cli_page() -> str:
         "default from `common/config/srl.toml` in its description ([the settings reference](settings.md)).",
         "",
     ]
-    for command, helptext, parser in parsers(build_parser()):
+    for command, helptext, parser in parsers(srl):
         depth = max(command.count(" "), 1) + 1  # srl and its commands: level 2; srl bench KIND: level 3
         lines += [f"{'#' * depth} {command}", ""]
         description = parser.description or helptext
