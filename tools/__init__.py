@@ -1,1 +1,2 @@
-"""Tools above the services: the srl command, the launcher, health checks, benchmarks, the experiment, plots."""
+"""Tools above the services: the srl command (commands/), the launcher (launch/), recordings and the
+live view (recording/), benchmarks (bench/), the experiment (experiment/), the generated docs (docs/)."""
