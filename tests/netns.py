@@ -82,6 +82,14 @@ def wait_for(predicate: Callable[[], bool], timeout: float, what: str, poll: flo
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def _host_env() -> dict[str, str]:
+    """The environment of a program on a namespace's host: the test process's, without the
+    router that tests/conftest.py gives each test process on the machine's loopback. Inside a
+    namespace, a service without --router meets its own host's router on the packaged port, as
+    on a real robot."""
+    return {key: value for key, value in os.environ.items() if key != "SRL_TRANSPORT__ROUTER"}
+
+
 class NsProc:
     """A program running inside a network namespace; output collected line by line."""
 
@@ -95,7 +103,7 @@ class NsProc:
             stderr=subprocess.PIPE,
             text=True,
             cwd=ROOT,
-            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+            env={**_host_env(), "PYTHONUNBUFFERED": "1", **(env or {})},
             start_new_session=True,
         )
         self.stdout: list[str] = []
