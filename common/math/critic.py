@@ -37,9 +37,9 @@ import contextlib
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from scipy.optimize import lsq_linear
 
 from common.math.agents import fit_due
 from common.math.features import Q_FEATURES, phi_q, phi_q_rows, phi_v, phi_v_rows
@@ -75,6 +75,15 @@ def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
     return [(a, a + 1) for a in range(len(steps) - 1) if steps[a + 1] == steps[a] + 1]
 
 
+def _lsq_linear() -> Any:
+    """scipy's ``lsq_linear``, imported on the first fit: scipy.optimize takes ~0.4 s of CPU to
+    import, which every process that imports this module (the actor, the plant, the bridge)
+    would pay at start-up without ever fitting."""
+    from scipy.optimize import lsq_linear
+
+    return lsq_linear
+
+
 KKT_TOLERANCE = 1e-10  # scipy's lsq_linear default ``tol``: the largest KKT violation accepted
 ACTIVE_SET_STEPS = 3  # primal-dual active-set steps tried on a rejected guess before BVLS (fit_gram)
 
@@ -97,7 +106,7 @@ def bounded_lstsq(
         x, accepted, _ = solve_on_guess((a.T @ a)[None], (a.T @ b)[None], low[None], high[None], guess[None], blocks)
         if accepted[0, 0]:
             return x[0], guess.copy()
-    solution = lsq_linear(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
+    solution = _lsq_linear()(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
     return solution.x, np.asarray(solution.active_mask, dtype=float)
 
 
@@ -157,7 +166,9 @@ def bvls_gram(gram: np.ndarray, linear: np.ndarray, low: np.ndarray, high: np.nd
     With ``G = R^T R`` (Cholesky), ``|R x - R^-T g|^2`` is the same objective up to a constant,
     an (n, n) least squares however many rows the data had."""
     upper = np.linalg.cholesky(gram).T
-    solution = lsq_linear(upper, np.linalg.solve(upper.T, linear), bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
+    solution = _lsq_linear()(
+        upper, np.linalg.solve(upper.T, linear), bounds=(low, high), method="bvls", tol=KKT_TOLERANCE
+    )
     return solution.x, np.asarray(solution.active_mask, dtype=float)
 
 
