@@ -75,13 +75,13 @@ def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
     return [(a, a + 1) for a in range(len(steps) - 1) if steps[a + 1] == steps[a] + 1]
 
 
-def _lsq_linear() -> Any:
+def lsq_linear(*args: Any, **kwargs: Any) -> Any:
     """scipy's ``lsq_linear``, imported on the first fit: scipy.optimize takes ~0.4 s of CPU to
     import, which every process that imports this module (the actor, the plant, the bridge)
     would pay at start-up without ever fitting."""
-    from scipy.optimize import lsq_linear
+    from scipy.optimize import lsq_linear as bvls
 
-    return lsq_linear
+    return bvls(*args, **kwargs)
 
 
 KKT_TOLERANCE = 1e-10  # scipy's lsq_linear default ``tol``: the largest KKT violation accepted
@@ -106,7 +106,7 @@ def bounded_lstsq(
         x, accepted, _ = solve_on_guess((a.T @ a)[None], (a.T @ b)[None], low[None], high[None], guess[None], blocks)
         if accepted[0, 0]:
             return x[0], guess.copy()
-    solution = _lsq_linear()(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
+    solution = lsq_linear(a, b, bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
     return solution.x, np.asarray(solution.active_mask, dtype=float)
 
 
@@ -166,9 +166,7 @@ def bvls_gram(gram: np.ndarray, linear: np.ndarray, low: np.ndarray, high: np.nd
     With ``G = R^T R`` (Cholesky), ``|R x - R^-T g|^2`` is the same objective up to a constant,
     an (n, n) least squares however many rows the data had."""
     upper = np.linalg.cholesky(gram).T
-    solution = _lsq_linear()(
-        upper, np.linalg.solve(upper.T, linear), bounds=(low, high), method="bvls", tol=KKT_TOLERANCE
-    )
+    solution = lsq_linear(upper, np.linalg.solve(upper.T, linear), bounds=(low, high), method="bvls", tol=KKT_TOLERANCE)
     return solution.x, np.asarray(solution.active_mask, dtype=float)
 
 
