@@ -104,6 +104,24 @@ def check_steps(
     np.testing.assert_allclose(positions, states[:, :2], rtol=0, atol=1e-9)
     yaw = np.array([2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w) for _, m in odometry])
     np.testing.assert_allclose(np.remainder(yaw - states[:, 2] + math.pi, 2 * math.pi) - math.pi, 0, atol=1e-9)
+    # /tf: odom -> <robot>/base_footprint with every odometry message, equal to the state (a
+    # simulated plant's odom is its goal frame, docs/recordings.md "Frames")
+    base = [
+        (t, transform.transform)
+        for t, m in topics["/tf"]
+        for transform in m.transforms
+        if transform.child_frame_id == f"{robot}/base_footprint"
+    ]
+    assert [t for t, _ in base] == [t for t, _ in odometry]
+    assert all(
+        transform.header.frame_id == "odom"
+        for _, m in topics["/tf"]
+        for transform in m.transforms
+        if transform.child_frame_id == f"{robot}/base_footprint"
+    )
+    np.testing.assert_allclose([[b.translation.x, b.translation.y] for _, b in base], states[:, :2], rtol=0, atol=1e-9)
+    tf_yaw = np.array([2 * math.atan2(b.rotation.z, b.rotation.w) for _, b in base])
+    np.testing.assert_allclose(np.remainder(tf_yaw - states[:, 2] + math.pi, 2 * math.pi) - math.pi, 0, atol=1e-9)
 
 
 @pytest.mark.integration
@@ -224,6 +242,10 @@ def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_p
             assert (m.pose.pose.position.x, m.pose.pose.position.y) == pose[:2]
             yaw = 2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w)
             assert math.isclose(yaw, pose[2], abs_tol=1e-12)
+        # a fleet's /tf: one base_footprint per robot, one transform per state, at the state
+        bases = [tf for _, m in topics["/tf"] for tf in m.transforms if tf.child_frame_id == f"{robot}/base_footprint"]
+        assert len(bases) == len(odometry) and all(tf.header.frame_id == "odom" for tf in bases)
+        assert {(tf.transform.translation.x, tf.transform.translation.y) for tf in bases} == {pose[:2]}
 
 
 async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tuple[list[Any], dict[str, Any]]:
@@ -282,6 +304,17 @@ def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_pr
                 position, q = odom.pose.pose.position, odom.pose.pose.orientation
                 assert (position.x, position.y) == expected[:2]
                 assert math.isclose(2 * math.atan2(q.z, q.w), expected[2], abs_tol=1e-12)
+        # /tf: each robot's base_footprint in odom, at its pose (docs/recordings.md "Frames")
+        messages, channel = asyncio.run(foxglove_poses(url.group(0), "/tf", 20, timeout=30))
+        assert channel["schemaName"] == "tf2_msgs/msg/TFMessage"
+        bases = {t.child_frame_id: t for m in messages for t in m.transforms if t.child_frame_id != "goal"}
+        assert set(bases) == {"v1/base_footprint", "v2/base_footprint"}
+        for robot, expected in (("v1", (1.0, -0.5, 0.3)), ("v2", (-1.5, 2.0, 0.0))):
+            tf = bases[f"{robot}/base_footprint"]
+            assert tf.header.frame_id == "odom"
+            assert (tf.transform.translation.x, tf.transform.translation.y) == expected[:2]
+            q = tf.transform.rotation
+            assert math.isclose(2 * math.atan2(q.z, q.w), expected[2], abs_tol=1e-12)
         assert view.stop(signal.SIGINT, timeout=20) == 0, view.stderr
     finally:
         for proc in reversed(procs):
@@ -322,6 +355,12 @@ def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_
     assert len(odometry) > len(transitions)  # the robot's odometry rate (20 Hz) over the 10 Hz loop
     times = [t for t, _ in odometry]
     assert times == sorted(times)
+    # a robot with bridge.goal [0, 0, 0] and odometry only: odom -> tb/base_footprint is its odometry
+    bases = [(t, tf) for t, m in topics["/tf"] for tf in m.transforms if tf.child_frame_id == "tb/base_footprint"]
+    assert [t for t, _ in bases] == times and all(tf.header.frame_id == "odom" for _, tf in bases)
+    assert [(tf.transform.translation.x, tf.transform.translation.y) for _, tf in bases] == [
+        (m.pose.pose.position.x, m.pose.pose.position.y) for _, m in odometry
+    ]
     last = odometry[-1][1].pose.pose.position
     np.testing.assert_allclose([last.x, last.y], summary["final_state"][:2], atol=0.02)  # the same odometry
     plotted = srl("plot", str(path), "--out", str(tmp_path / "robot.png"))

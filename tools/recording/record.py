@@ -8,8 +8,9 @@ sinks that take its CDR samples: :class:`McapSink` (an MCAP file in the rosbag2 
 ==========================  ==============================  =========================================
 topic                       type                            what
 ==========================  ==============================  =========================================
-``/<robot>/odom``           ``nav_msgs/msg/Odometry``       the state the robot reports (goal frame =
-                                                            ``odom``, child ``base_footprint``)
+``/<robot>/odom``           ``nav_msgs/msg/Odometry``       the state the robot reports (goal-frame
+                                                            pose, frame :attr:`PoseFrames.pose_frame`,
+                                                            child ``base_footprint``)
 ``/<robot>/path``           ``nav_msgs/msg/Path``           the last :data:`PATH_POSES` step poses,
                                                             every :data:`PATH_EVERY` steps
 ``/<robot>/cmd_vel``        ``geometry_msgs/msg/TwistStamped``  the action u_k, one per step
@@ -17,7 +18,17 @@ topic                       type                            what
 ``/<robot>/srl/critic_weights`` ``srl_msgs/msg/CriticWeights``  version, trained step, w, v, residuals
 ``/<robot>/srl/actor_status``   ``srl_msgs/msg/ActorStatus``    solve time, staleness, tick jitter (1 Hz)
 ``/target``                 ``geometry_msgs/msg/PoseStamped``  the target: the origin of the goal frame
+``/tf``                     ``tf2_msgs/msg/TFMessage``      ``odom -> <robot>/base_footprint`` per state,
+                                                            ``odom -> goal``, ``map -> odom`` when localized
 ==========================  ==============================  =========================================
+
+The frames (REP 105, https://www.ros.org/reps/rep-0105.html; docs/recordings.md "Frames"): srl's
+states are in the goal frame (docs/concepts.md "Frames: the goal frame"); :class:`PoseFrames` says
+where that frame sits: the goal pose ``g`` in the pose frame (``odom``, or ``map`` when localized)
+and, when the robot bridge reports it, the ``map -> odom`` correction. ``/tf`` carries
+``odom -> <robot>/base_footprint`` (the robot's pose in its odometry frame), ``odom -> goal`` (the
+target as a frame) and ``map -> odom``; a simulated plant's goal frame is its odom frame (``g`` the
+identity).
 
 srl's own types are ROS 2 message definitions too (``srl_msgs/msg/*``, :data:`SRL_MSGS`), so every
 channel of a recording is CDR with its full ``ros2msg`` definition in the schema: Foxglove decodes
@@ -51,6 +62,7 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
 
 log = logging.getLogger(__name__)
@@ -58,8 +70,13 @@ log = logging.getLogger(__name__)
 Clock = Literal["wall", "steps"]
 Vector = Sequence[float] | np.ndarray  # a state (x, y, alpha) or an action (v, omega)
 DISTRO = "humble"  # the message definitions of the recording (the same in Jazzy for these types)
-ODOM_FRAME = "odom"  # the goal frame: the target is its origin
+ODOM_FRAME = "odom"  # REP 105's odometry frame: a simulated plant's goal frame (the target is its origin)
+MAP_FRAME = "map"  # REP 105's localization frame: the pose frame of a localized robot
+GOAL_FRAME = "goal"  # the actor's frame: the target pose, heading 0 (docs/concepts.md)
 BASE_FRAME = "base_footprint"
+IDENTITY = Pose2D(0.0, 0.0, 0.0)
+TF_TOPIC = "/tf"
+TF_MESSAGE, TRANSFORM_STAMPED = "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped"
 PATH_POSES = 600  # the path keeps the last 60 s of steps: bounded, however long the recording
 PATH_EVERY = 10  # a path message every 10 steps (1 Hz): a path is re-sent whole each time
 TARGET_TOPIC = "/target"
@@ -146,6 +163,18 @@ class RosMapping:
         sec, nanosec = divmod(int(t_ns), 1_000_000_000)
         return self.types["std_msgs/msg/Header"](
             stamp=self.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame
+        )
+
+    def transform(self, t_ns: int, parent: str, child: str, pose: Pose2D) -> Any:
+        """``geometry_msgs/TransformStamped``: the planar ``pose`` of ``child`` in ``parent``."""
+        t = self.types
+        return t[TRANSFORM_STAMPED](
+            header=self.header(t_ns, parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=float(pose.x), y=float(pose.y), z=0.0),
+                rotation=self.pose(pose).orientation,
+            ),
         )
 
     def pose(self, state: Vector) -> Any:
@@ -283,6 +312,56 @@ class McapSink:
         return json.dumps({"rosbag2_bagfile_information": info}, indent=1)
 
 
+@dataclass(frozen=True)
+class PoseFrames:
+    """Where a robot's goal-frame state sits in REP 105's frames (docs/recordings.md "Frames").
+
+    The state ``s`` is the pose of the robot in the goal frame, and the goal ``g`` is a pose in
+    the pose frame (``odom``; ``map`` when localized: ``bridge.goal``), so the robot's pose in the
+    pose frame is ``g (+) s`` (:func:`common.math.frames.from_goal_frame`). Localized with the
+    ``map -> odom`` correction ``C`` known, the odometry pose is ``C^-1 (+) g (+) s`` and ``/tf``
+    chains ``map -> odom -> base_footprint``; without ``C`` the base hangs from ``map``, the frame
+    its pose is known in. The default (``g`` the identity, not localized) is a simulated plant's:
+    its goal frame is its odom frame."""
+
+    goal: Pose2D = IDENTITY
+    localized: bool = False
+    map_to_odom: Pose2D | None = None
+
+    @property
+    def root(self) -> str:
+        """The pose frame: the parent of ``goal``."""
+        return MAP_FRAME if self.localized else ODOM_FRAME
+
+    @property
+    def pose_frame(self) -> str:
+        """The frame srl's goal-frame poses (odometry, path, target) are stamped in: ``odom`` where
+        the goal frame is the odom frame (a simulated plant; a robot with ``bridge.goal`` zero and
+        odometry only), else ``goal``. ``/tf`` joins either to the rest."""
+        return ODOM_FRAME if not self.localized and self.goal == IDENTITY else GOAL_FRAME
+
+    def transforms(self, state: Vector, base: str) -> list[tuple[str, str, Pose2D]]:
+        """``(parent, child, pose)`` of ``base`` for the goal-frame state ``state``, and ``map ->
+        odom`` when known."""
+        s = Pose2D(float(state[0]), float(state[1]), float(state[2]))
+        pose = s if self.goal == IDENTITY else from_goal_frame(s, self.goal)  # g (+) s
+        if not self.localized:
+            return [(ODOM_FRAME, base, pose)]
+        if self.map_to_odom is None:
+            return [(MAP_FRAME, base, pose)]
+        return [(MAP_FRAME, ODOM_FRAME, self.map_to_odom), (ODOM_FRAME, base, to_goal_frame(pose, self.map_to_odom))]
+
+
+SIMULATED = PoseFrames()
+GOAL_EVERY = PATH_EVERY  # states of a robot between two ``goal`` transforms on /tf (and with the first)
+
+
+def base_frame(robot: str) -> str:
+    """The robot's base frame on ``/tf``: ``<robot>/base_footprint``, one per robot of a fleet (a
+    frame-name prefix per robot, as ROS's tf_prefix gave), the same for one robot and for many."""
+    return f"{ros_name(robot)}/{BASE_FRAME}"
+
+
 @dataclass
 class _Track:
     """What the mapping remembers of one robot: bounded (the path's last poses, one episode).
@@ -298,6 +377,8 @@ class _Track:
     late: int = 0  # transitions that came after a later step (dropped: one per step, in order)
     state_episode: int = -1  # of the newest state
     states_seen: int = 0  # states of that episode (clock "steps": state n at origin + n delta)
+    tf_sent: int = 0  # /tf messages of this robot (the goal transform every GOAL_EVERY)
+    pose_frame: str = ODOM_FRAME  # of the newest state (PoseFrames.pose_frame)
 
 
 ORIGINS_KEPT = 64  # (robot, episode) origins remembered: bounded however many episodes pass
@@ -325,7 +406,11 @@ class Recorder:
         track = self.tracks.setdefault(robot, _Track())
         if episode != track.episode:  # a new episode: its own cost and path
             self.tracks[robot] = track = _Track(
-                episode=episode, state_episode=track.state_episode, states_seen=track.states_seen
+                episode=episode,
+                state_episode=track.state_episode,
+                states_seen=track.states_seen,
+                tf_sent=track.tf_sent,
+                pose_frame=track.pose_frame,
             )
         return track
 
@@ -342,28 +427,43 @@ class Recorder:
             self.origins[key] = now_ns - step * self.delta_ns
         return self.origins[key] + step * self.delta_ns
 
-    def target(self, t_ns: int) -> None:
-        """The target pose: the origin of the goal frame (once)."""
+    def target(self, t_ns: int, frame: str = ODOM_FRAME) -> None:
+        """The target pose: the origin of the goal frame (once), in ``frame`` (the goal frame's name)."""
         if not self.target_sent:
             self.target_sent = True
-            message = self.ros.types[POSE_STAMPED](header=self.ros.header(t_ns), pose=self.ros.pose((0.0, 0.0, 0.0)))
+            message = self.ros.types[POSE_STAMPED](header=self.ros.header(t_ns, frame), pose=self.ros.pose(IDENTITY))
             self._write(TARGET_TOPIC, POSE_STAMPED, message, t_ns)
 
-    def state(self, robot: str, episode: int, state: Vector, now_ns: int) -> None:
-        """A state the robot reported: ``/<robot>/odom`` (twist: the action it holds)."""
+    def state(self, robot: str, episode: int, state: Vector, now_ns: int, frames: PoseFrames = SIMULATED) -> None:
+        """A state the robot reported: ``/<robot>/odom`` (twist: the action it holds) and ``/tf``
+        (:meth:`tf`)."""
         track = self.tracks.setdefault(robot, _Track())
         if episode != track.state_episode:
             track.state_episode, track.states_seen = episode, 0
         t_ns = self.step_time(robot, episode, track.states_seen, now_ns) if self.clock == "steps" else now_ns
         track.states_seen += 1
-        self.target(t_ns)
+        track.pose_frame = frames.pose_frame
+        self.target(t_ns, track.pose_frame)
         ros = self.ros
         pose = ros.types["geometry_msgs/msg/PoseWithCovariance"](pose=ros.pose(state), covariance=np.zeros(36))
         twist = ros.types["geometry_msgs/msg/TwistWithCovariance"](
             twist=ros.twist(*track.action), covariance=np.zeros(36)
         )
-        odometry = ros.types[ODOMETRY](header=ros.header(t_ns), child_frame_id=BASE_FRAME, pose=pose, twist=twist)
+        header = ros.header(t_ns, track.pose_frame)
+        odometry = ros.types[ODOMETRY](header=header, child_frame_id=BASE_FRAME, pose=pose, twist=twist)
         self._write(f"/{ros_name(robot)}/odom", ODOMETRY, odometry, t_ns)
+        self.tf(robot, track, state, frames, t_ns)
+
+    def tf(self, robot: str, track: _Track, state: Vector, frames: PoseFrames, t_ns: int) -> None:
+        """``/tf`` of one state: the robot's base (and ``map -> odom``, :meth:`PoseFrames.transforms`),
+        with ``<root> -> goal`` in the first and every :data:`GOAL_EVERY`-th message of the robot, so
+        a live view that joins late sees the target within a second."""
+        moves = frames.transforms(state, base_frame(robot))
+        if track.tf_sent % GOAL_EVERY == 0:
+            moves.append((frames.root, GOAL_FRAME, frames.goal))
+        track.tf_sent += 1
+        transforms = [self.ros.transform(t_ns, parent, child, pose) for parent, child, pose in moves]
+        self._write(TF_TOPIC, TF_MESSAGE, self.ros.types[TF_MESSAGE](transforms=transforms), t_ns)
 
     def transition(
         self,
@@ -385,13 +485,13 @@ class Recorder:
         track.last_step = step
         track.accumulated_cost += float(cost)
         track.action = (float(action[0]), float(action[1]))
-        self.target(t_ns)
+        self.target(t_ns, track.pose_frame)
         ros = self.ros
         header = ros.header(t_ns, BASE_FRAME)
         command = ros.types[TWIST_STAMPED](header=header, twist=ros.twist(*action))
         self._write(f"/{ros_name(robot)}/cmd_vel", TWIST_STAMPED, command, t_ns)
         sample = ros.types[TRANSITION](
-            header=ros.header(t_ns),
+            header=ros.header(t_ns, track.pose_frame),
             episode=episode,
             step=step,
             x=float(state[0]),
@@ -403,7 +503,7 @@ class Recorder:
             accumulated_cost=track.accumulated_cost,
         )
         self._write(f"/{ros_name(robot)}/srl/transition", TRANSITION, sample, t_ns)
-        track.path.append(ros.types[POSE_STAMPED](header=ros.header(t_ns), pose=ros.pose(state)))
+        track.path.append(ros.types[POSE_STAMPED](header=ros.header(t_ns, track.pose_frame), pose=ros.pose(state)))
         if step % PATH_EVERY == 0:
             self.path(robot, t_ns)
         return True
@@ -411,7 +511,7 @@ class Recorder:
     def path(self, robot: str, t_ns: int) -> None:
         track = self.tracks.get(robot)
         if track is not None and track.path:
-            message = self.ros.types[PATH](header=self.ros.header(t_ns), poses=list(track.path))
+            message = self.ros.types[PATH](header=self.ros.header(t_ns, track.pose_frame), poses=list(track.path))
             self._write(f"/{ros_name(robot)}/path", PATH, message, t_ns)
 
     def weights(
@@ -538,6 +638,22 @@ def yield_cpu_to_the_loop() -> None:
     lower_priority(OBSERVER_NICENESS, "the recorder")
 
 
+def robot_frames(bridge: Any, message: Any) -> PoseFrames:
+    """The frames of a state message (:class:`PoseFrames`): a robot bridge's (``source`` "robot")
+    goal is ``bridge.goal`` of these settings (``srl up`` hands the recorder the bridge's), in
+    ``map`` when ``bridge.pose_source`` localizes, with the ``map -> odom`` correction when the
+    state carries one (a ``map_to_odom`` field, (x [m], y [m], theta [rad])); a simulated plant's
+    goal frame is its odom frame."""
+    if getattr(message, "source", "sim") != "robot":
+        return SIMULATED
+    correction = getattr(message, "map_to_odom", None)
+    return PoseFrames(
+        goal=Pose2D(*(float(c) for c in bridge.goal)),
+        localized=getattr(bridge, "pose_source", "odom") != "odom",
+        map_to_odom=None if correction is None else Pose2D(*(float(c) for c in correction)),
+    )
+
+
 class Feed:
     """Subscribes to every robot's state, transitions, critic weights and actor status
     (``srl/*/...``) and hands them, in arrival order, to a :class:`Recorder` on its own writer
@@ -551,6 +667,7 @@ class Feed:
         from common.net.transport import Bus
 
         self.recorder = recorder
+        self.bridge = settings.bridge  # a robot's goal and pose source (robot_frames)
         self.queue: queue.Queue[tuple[str, Any, int] | None] = queue.Queue(QUEUE_LIMIT)
         self.dropped = 0
         self.received = 0
@@ -599,7 +716,7 @@ class Feed:
     def _apply(self, kind: str, m: Any, now_ns: int) -> None:
         r = self.recorder
         if kind == "state":
-            r.state(m.robot, m.episode, m.state, now_ns)
+            r.state(m.robot, m.episode, m.state, now_ns, robot_frames(self.bridge, m))
         elif kind == "transition":
             r.transition(m.robot, m.episode, m.step, m.state, m.action, m.cost, now_ns)
         elif kind == "weights":

@@ -1,8 +1,8 @@
 """``srl view``: a running system, live, in Foxglove (the Foxglove WebSocket protocol, ``foxglove-sdk``).
 
 The same mapping as the recordings (:mod:`tools.recording.record`: every robot's ``/<robot>/odom``,
-``path``, ``cmd_vel``, ``srl/transition``, ``srl/critic_weights``, ``srl/actor_status`` and
-``/target``, ROS 2 messages in CDR with their ``ros2msg`` definitions) fed by the same Zenoh
+``path``, ``cmd_vel``, ``srl/transition``, ``srl/critic_weights``, ``srl/actor_status``, ``/target``
+and ``/tf``, ROS 2 messages in CDR with their ``ros2msg`` definitions) fed by the same Zenoh
 subscriber (:class:`tools.recording.record.Feed`); only the sink differs: :class:`FoxgloveSink` logs each
 sample on a foxglove-sdk channel of its own context, served by a WebSocket server bound to
 loopback (127.0.0.1) unless ``--host`` says otherwise. ``docs/foxglove-layout.json`` opens the
@@ -19,7 +19,7 @@ from typing import Any
 import foxglove
 
 from common.config.arguments import UsageError, settings_from_args
-from tools.recording.record import Feed, Recorder, positive_seconds, yield_cpu_to_the_loop
+from tools.recording.record import ODOM_FRAME, Feed, Recorder, base_frame, positive_seconds, yield_cpu_to_the_loop
 
 log = logging.getLogger(__name__)
 
@@ -81,10 +81,12 @@ def cmd_view(args: argparse.Namespace) -> int:
 
 
 def foxglove_layout(robots: list[str]) -> str:
-    """The Foxglove layout of docs/foxglove-layout.json (``foxglove.layouts``): the 3D scene in the
-    ``odom`` (goal) frame seen from above with every robot's odometry and path and the target,
-    beside plots of the costs, the critic weights, the solve time, staleness and tick jitter
-    (the first robot's; add series for more, the topics are ``/<robot>/...``)."""
+    """The Foxglove layout of docs/foxglove-layout.json (``foxglove.layouts``): the 3D scene first,
+    fixed in ``odom`` and following the first robot's ``<robot>/base_footprint`` from ``/tf``
+    (docs/recordings.md "Frames"), seen from above with every robot's odometry, path, base frame
+    and the target (its pose and the ``goal`` frame), beside plots of the costs, the critic
+    weights, the solve time, staleness and tick jitter (the first robot's; add series for more,
+    the topics are ``/<robot>/...``)."""
     import foxglove.layouts as fl
 
     scene_topics: dict[str, Any] = {
@@ -102,9 +104,14 @@ def foxglove_layout(robots: list[str]) -> str:
         )
 
     scene = fl.ThreeDeePanel(
-        title="robots (goal frame)",
+        title=f"robots ({ODOM_FRAME} frame, following {base_frame(first)})",
         config=fl.ThreeDeeConfig(
-            follow_tf="odom",
+            fixed_frame=ODOM_FRAME,
+            follow_tf=base_frame(first),
+            follow_mode="follow-position",
+            scene=fl.BaseRendererSceneSettings(
+                transforms=fl.BaseRendererTransforms(show_label=True, label_size=0.15, axis_size=0.25)
+            ),
             topics=scene_topics,
             camera_state=fl.ThreeDeeCameraState(distance=8.0, perspective=False, phi=0.0, target=(0.0, 0.0, 0.0)),
         ),

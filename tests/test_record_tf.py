@@ -1,0 +1,226 @@
+"""``/tf`` in recordings and the live view (docs/recordings.md "Frames").
+
+Recordings are written in process (no service, no socket) and read back with the ``mcap`` reader
+and ``mcap-ros2-support``'s own CDR decoder; the live view's sink takes the same :class:`Recorder`
+output, checked here with a sink that keeps what it is given (its WebSocket end is in
+tests/test_record.py).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from rosbags.typesys import Stores, get_typestore
+
+from common.config.settings import Settings
+from common.contracts.messages import PlantState
+from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
+from common.math.loop import Episode
+from tests.test_record import read
+from tools.recording.record import (
+    GOAL_EVERY,
+    SIMULATED,
+    TF_MESSAGE,
+    PoseFrames,
+    Recorder,
+    RosMapping,
+    episode_recorder,
+    record_episode,
+    robot_frames,
+)
+
+ORIGIN_NS = 1_700_000_000_000_000_000
+DELTA_NS = 100_000_000
+
+
+def yaw(q: Any) -> float:
+    return 2 * math.atan2(q.z, q.w)
+
+
+def planar(transform: Any) -> Pose2D:
+    t = transform.transform
+    assert t.translation.z == 0.0 and t.rotation.x == 0.0 and t.rotation.y == 0.0
+    return Pose2D(t.translation.x, t.translation.y, yaw(t.rotation))
+
+
+def close(a: Pose2D, b: Pose2D, atol: float = 1e-9) -> bool:
+    return (
+        abs(a.x - b.x) <= atol
+        and abs(a.y - b.y) <= atol
+        and abs(math.remainder(a.theta - b.theta, 2 * math.pi)) <= atol
+    )
+
+
+def edges(messages: list[tuple[int, Any]]) -> list[tuple[int, str, str, Pose2D]]:
+    """Every transform of ``/tf``: (log time, parent, child, planar pose), stamp = log time."""
+    out = []
+    for t_ns, message in messages:
+        for transform in message.transforms:
+            stamp = int(transform.header.stamp.sec) * 1_000_000_000 + int(transform.header.stamp.nanosec)
+            assert stamp == t_ns
+            out.append((t_ns, transform.header.frame_id, transform.child_frame_id, planar(transform)))
+    return out
+
+
+class ListSink:
+    """A sink that keeps every sample: what the live view's FoxgloveSink is handed."""
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[str, str, str, bytes, int]] = []
+        self.ros = RosMapping()
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        self.samples.append((topic, ros_type, definition, data, t_ns))
+
+    def close(self) -> None:
+        pass
+
+    def decoded(self, topic: str) -> list[tuple[int, Any]]:
+        return [(t, self.ros.deserialize(d, rt)) for tp, rt, _, d, t in self.samples if tp == topic]
+
+
+def episode(seed: int, steps: int = 25) -> Episode:
+    """A made-up trajectory (headings past +-pi, unwrapped): the recorder copies, it does not simulate."""
+    rng = np.random.default_rng(seed)
+    states = [
+        np.array([2.0, -1.0, 3.0]) + np.cumsum(rng.normal(0, 0.2, (steps + 1, 3)), axis=0)[k] for k in range(steps + 1)
+    ]
+    return Episode(
+        agent="rlqv",
+        horizon=12,
+        states=states,
+        actions=[rng.normal(0, 0.1, 2) for _ in range(steps)],
+        costs=[float(c) for c in rng.uniform(0, 1, steps)],
+    )
+
+
+def test_a_recording_carries_tf_odom_to_base_footprint_equal_to_every_state_and_the_goal(tmp_path: Path) -> None:
+    run = episode(1)
+    recorder = episode_recorder(tmp_path / "e.mcap", 0.1, {"agent": "rlqv", "horizon": 12})
+    record_episode(recorder, run, "tb3_0", origin_ns=ORIGIN_NS)
+    recorder.close()
+    with (tmp_path / "e.mcap").open("rb") as file:
+        summary = make_reader(file).get_summary()
+    assert summary is not None
+    [channel] = [c for c in summary.channels.values() if c.topic == "/tf"]
+    schema = summary.schemas[channel.schema_id]
+    # the library's definition of tf2_msgs/msg/TFMessage (rosbags' Humble store), not a hand-written one
+    assert (schema.name, schema.encoding, channel.message_encoding) == (TF_MESSAGE, "ros2msg", "cdr")
+    expected = get_typestore(Stores.ROS2_HUMBLE).generate_msgdef(TF_MESSAGE, ros_version=2)[0]
+    assert schema.data.decode() == expected
+    topics = read(tmp_path / "e.mcap")
+    tf = edges(topics["/tf"])
+    bases = [(t, pose) for t, parent, child, pose in tf if (parent, child) == ("odom", "tb3_0/base_footprint")]
+    assert len(bases) == run.steps + 1 == len(tf) - len([e for e in tf if e[2] == "goal"])
+    assert [t for t, _ in bases] == [ORIGIN_NS + k * DELTA_NS for k in range(run.steps + 1)]
+    assert [t for t, _ in bases] == [t for t, _ in topics["/tb3_0/odom"]], "one transform per odometry message"
+    for (_, pose), state in zip(bases, run.states, strict=True):
+        assert close(pose, Pose2D(*state)), (pose, state)  # a simulated plant: odom is the goal frame
+    goals = [(t, parent, pose) for t, parent, child, pose in tf if child == "goal"]
+    assert [t for t, _, _ in goals] == [ORIGIN_NS + k * DELTA_NS for k in range(0, run.steps + 1, GOAL_EVERY)]
+    assert all(parent == "odom" and pose == (0.0, 0.0, 0.0) for _, parent, pose in goals)
+    frames = {m.header.frame_id for _, m in topics["/tb3_0/odom"]} | {topics["/target"][0][1].header.frame_id}
+    assert frames == {"odom"} and {m.header.frame_id for _, m in topics["/tb3_0/path"]} == {"odom"}
+
+
+def test_a_fleet_gets_one_base_footprint_per_robot_under_one_odom() -> None:
+    sink = ListSink()
+    recorder = Recorder(sink, 0.1, clock="wall")
+    robots = {"tb3_0": (1.0, 2.0, 0.5), "tb3_1": (-1.5, 0.25, -2.0), "rlqv+-N12-s003": (0.3, -0.7, 7.0)}
+    for n in range(3):
+        for i, (robot, state) in enumerate(robots.items()):
+            recorder.state(robot, 0, (state[0] + n, state[1], state[2]), ORIGIN_NS + 1000 * n + i)
+    tf = edges(sink.decoded("/tf"))
+    children = {child for _, parent, child, _ in tf if child != "goal"}
+    assert children == {"tb3_0/base_footprint", "tb3_1/base_footprint", "rlqvplus_N12_s003/base_footprint"}
+    assert {parent for _, parent, _, _ in tf} == {"odom"}
+    for robot, state in robots.items():
+        child = f"{robot.replace('+', 'plus').replace('-', '_')}/base_footprint"
+        poses = [pose for _, _, c, pose in tf if c == child]
+        assert len(poses) == 3
+        assert all(close(pose, Pose2D(state[0] + n, state[1], state[2])) for n, pose in enumerate(poses))
+    assert len([e for e in tf if e[2] == "goal"]) == len(robots), "with each robot's first state"
+
+
+def test_a_robot_with_a_goal_publishes_its_odometry_pose_and_the_goal_as_a_frame() -> None:
+    """bridge.goal g: odom -> base is g (+) s, odom -> goal is g; the goal-frame poses say `goal`."""
+    goal = Pose2D(1.0, 0.5, 2.5)
+    frames = PoseFrames(goal=goal)
+    sink = ListSink()
+    recorder = Recorder(sink, 0.1, clock="steps")
+    states = [(0.8, -0.3, 3.5), (0.5, -0.1, 3.3), (0.2, 0.05, 3.2)]
+    for state in states:
+        recorder.state("tb", 0, state, 0, frames)
+    recorder.transition("tb", 0, 0, states[0], (0.1, 0.0), 0.5, 0)
+    recorder.path("tb", 0)
+    tf = edges(sink.decoded("/tf"))
+    bases = [pose for _, parent, child, pose in tf if (parent, child) == ("odom", "tb/base_footprint")]
+    assert len(bases) == len(states)
+    for pose, state in zip(bases, states, strict=True):
+        assert close(pose, from_goal_frame(Pose2D(*state), goal))
+        assert close(to_goal_frame(pose, goal), Pose2D(*state))  # the state, back from the transform
+    assert [(p, pose) for _, p, c, pose in tf if c == "goal"] == [("odom", goal)]
+    odometry = sink.decoded("/tb/odom")
+    assert {m.header.frame_id for _, m in odometry} == {"goal"}
+    assert [(m.pose.pose.position.x, m.pose.pose.position.y) for _, m in odometry] == [s[:2] for s in states]
+    assert sink.decoded("/target")[0][1].header.frame_id == "goal"
+    path = sink.decoded("/tb/path")[0][1]
+    assert path.header.frame_id == "goal" and path.poses[0].header.frame_id == "goal"
+
+
+@pytest.mark.parametrize("correction", [Pose2D(0.4, -0.2, 0.3), None])
+def test_a_localized_robot_chains_map_odom_base_when_the_correction_is_known(correction: Pose2D | None) -> None:
+    goal = Pose2D(-2.0, 1.0, -0.7)
+    frames = PoseFrames(goal=goal, localized=True, map_to_odom=correction)
+    sink = ListSink()
+    recorder = Recorder(sink, 0.1)
+    state = (0.6, 0.2, -3.9)
+    recorder.state("tb", 0, state, ORIGIN_NS, frames)
+    tf = {(parent, child): pose for _, parent, child, pose in edges(sink.decoded("/tf"))}
+    in_map = from_goal_frame(Pose2D(*state), goal)
+    assert close(tf[("map", "goal")], goal)
+    if correction is None:  # the pose is known in map only: the base hangs from map
+        assert set(tf) == {("map", "goal"), ("map", "tb/base_footprint")}
+        assert close(tf[("map", "tb/base_footprint")], in_map)
+    else:  # REP 105: map -> odom -> base, composing to the localized pose
+        assert set(tf) == {("map", "goal"), ("map", "odom"), ("odom", "tb/base_footprint")}
+        assert close(tf[("map", "odom")], correction)
+        assert close(from_goal_frame(tf[("odom", "tb/base_footprint")], correction), in_map)
+    assert {m.header.frame_id for _, m in sink.decoded("/tb/odom")} == {"goal"}
+
+
+def test_the_feed_takes_a_robots_goal_from_the_bridge_settings_and_a_simulated_plants_as_odom() -> None:
+    bridge = Settings.load(bridge={"goal": [1.0, -2.0, 0.5]}).bridge
+    sim = PlantState(robot="r", episode=0, seq=0, stamp_ns=0, state=(1.0, 2.0, 0.0), source="sim")
+    robot = sim.model_copy(update={"source": "robot"})
+    assert robot_frames(bridge, sim) == SIMULATED
+    assert robot_frames(bridge, robot).goal == Pose2D(1.0, -2.0, 0.5)
+    assert robot_frames(bridge, robot).map_to_odom is None  # the state carries no correction
+    # a localizing bridge whose state carries its map -> odom correction: map -> odom on /tf
+    localizing = SimpleNamespace(goal=(0.0, 0.0, 0.0), pose_source="pose_with_covariance")
+    corrected = SimpleNamespace(source="robot", map_to_odom=(0.5, -0.25, 0.1))
+    frames = robot_frames(localizing, corrected)
+    assert frames == PoseFrames(goal=Pose2D(0.0, 0.0, 0.0), localized=True, map_to_odom=Pose2D(0.5, -0.25, 0.1))
+    assert frames.root == "map" and frames.pose_frame == "goal"
+    odometry_only = robot_frames(SimpleNamespace(goal=(0.0, 0.0, 0.0), pose_source="odom"), robot)
+    assert odometry_only == SIMULATED and odometry_only.pose_frame == "odom"
+
+
+def test_the_shipped_layout_opens_on_the_3d_panel_following_a_recorded_base_frame(tmp_path: Path) -> None:
+    layout = json.loads((Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json").read_text())
+    first = layout["content"]["items"][0]["content"]
+    assert first["panelType"] == "ThreeDee"
+    config = first["config"]
+    recorder = episode_recorder(tmp_path / "e.mcap", 0.1, {"agent": "rlqv"})
+    record_episode(recorder, episode(2, steps=3), "tb3_0", origin_ns=ORIGIN_NS)
+    recorder.close()
+    frames = {f for _, p, c, _ in edges(read(tmp_path / "e.mcap")["/tf"]) for f in (p, c)}
+    assert config["fixedFrame"] == "odom" and config["followTf"] == "tb3_0/base_footprint"
+    assert {config["fixedFrame"], config["followTf"], "goal"} <= frames
