@@ -6,6 +6,7 @@ packaged defaults, and the resolved :class:`~common.config.settings.Settings` (f
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import math
 import os
@@ -208,7 +209,10 @@ def _choices(section: str, name: str) -> tuple[str, ...]:
     return tuple(str(v) for v in get_args(section_model.model_fields[name].annotation))
 
 
+@functools.cache
 def _packaged_defaults() -> dict[str, dict[str, Any]]:
+    """The packaged srl.toml, read once per process: every option's help quotes it, and a
+    process builds the help of ~100 options (callers only read the result)."""
     import tomllib
 
     from common.config.settings import DEFAULT_CONFIG
