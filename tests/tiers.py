@@ -256,6 +256,11 @@ def _phase(args: list[str], jit_cache: Path) -> tuple[int, dict[str, int], float
         tally = Path(scratch) / "tally.json"
         started = time.monotonic()
         env = {**os.environ, TALLY: str(tally), JIT_CACHE: str(jit_cache)}
+        if env.pop("PYTHONDONTWRITEBYTECODE", ""):
+            # the suite starts hundreds of Python processes: without bytecode each would compile
+            # srl's modules again. Kept beside the JIT cache, so the tree stays as the user keeps it
+            # and the run leaves nothing behind.
+            env["PYTHONPYCACHEPREFIX"] = str(jit_cache / "bytecode")
         code = subprocess.call([sys.executable, "-m", "pytest", *args], env=env)
         took = time.monotonic() - started
         counts = json.loads(tally.read_text())["counts"] if tally.exists() else {}
