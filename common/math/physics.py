@@ -3,20 +3,31 @@
 The actuator model (:mod:`common.math.turtlebot`) writes lag, deadband and slip down as formulas.
 Here they arise from physics, as on a real Burger: a rigid body of ROBOTIS's published masses and
 dimensions (turtlebot3_description ``turtlebot3_burger.urdf``; docs/turtlebot.md cites each) on
-two wheels and a sliding caster, with contact friction; each wheel driven by a velocity servo
-(the Dynamixel's velocity loop, MuJoCo's ``velocity`` actuator: torque ``kv (w_cmd - w)``,
-limited to the motor's stall torque) against the joint's dry friction. So
+two wheels and a ball caster, with contact friction; each wheel driven by a Dynamixel XL430-W250
+in velocity control mode, as the e-Manual draws its controller
+(https://emanual.robotis.com/docs/en/dxl/x/xl430-w250/#velocity-pi-gain76-78): a PI loop on
+the velocity error whose output is the motor's PWM, limited by the PWM limit (100 %: the stall
+torque, ``torque_max``), against the joint's breakaway (dry) friction. So
 
-* **lag**: the servo accelerates the wheel and the robot's share of its mass; its time constant
-  is ``J_eff / kv``, and ``kv`` is chosen so that it equals ``[actuator] lag``;
-* **deadband and shortfall**: the tyres' rolling resistance on the floor (MuJoCo's soft
-  contact: ~0.008 N m per wheel) and the joints' dry friction (``motor_friction``)
-  hold a wheel whose servo torque is below them, and leave a running wheel short of its
-  command by ``resistance / kv`` (~1.5 rad/s, ~0.05 m/s, at ``lag = 0.1``) at any speed;
-* **slip**: the tyres slide on the floor when the caster drags or the robot turns in place;
-  nothing draws it, the contact solver does;
+* **steady state**: the integral term holds whatever torque the wheel's load needs (the
+  tyres' rolling resistance, the joint's friction, a slope), so a running wheel reaches its
+  command (:func:`velocity_gains`);
+* **lag**: the PI's gains against the wheel's and the robot's inertia: the step response is the
+  closed loop's, not a drawn time constant;
+* **deadband**: a wheel at rest starts only when the servo's torque exceeds the breakaway
+  friction ``motor_friction``; the integral term gets there after a while for any command, so a
+  command below :func:`breakaway_speed` leaves a wheel at rest for its hold and starts it when
+  held longer (a command that must leave the robot at rest is zero);
+* **slip**: the tyres slide on the floor when the robot turns in place; nothing draws it, the
+  contact solver does;
 * **saturation**: each wheel's command is clamped to ``wheel_speed_max`` (the actuator's
   control range).
+
+The P term is MuJoCo's ``velocity`` actuator (its damping is integrated implicitly, so a free
+wheel of 2e-5 kg m^2 is stable at any gain); the I term a ``motor`` actuator whose torque
+:class:`PhysicsBot` integrates every MuJoCo step with the e-Manual's anti-windup (the integral
+stops growing while the output is at its limit); the joint's ``actuatorfrcrange`` limits the two
+together to the stall torque.
 
 Before the wheels: the OpenCR command path and the clamp of
 :func:`common.math.turtlebot.cmd_vel_to_wheels`. After them: the encoders (the wheel joints'
@@ -54,6 +65,14 @@ CASTER_RADIUS = 0.005  # a sphere in the URDF's 0.030 x 0.009 x 0.020 box, touch
 SCAN_MASS = 0.114  # base_scan (the LDS) [kg], at (-0.032, 0, 0.172) of base_link
 SCAN_POSITION = (-0.032, 0.0, 0.172 + BASE_HEIGHT)
 ENCODER_TICKS = 4096  # per wheel revolution (XL430-W250, ROBOTIS e-manual; turtlebot3_node)
+# XL430-W250 control table (https://emanual.robotis.com/docs/en/dxl/x/xl430-w250/): Goal and
+# Present Velocity in units of 0.229 rev/min; PWM in units of 0.113 %, PWM Limit(36) 885 = 100 %.
+VELOCITY_UNIT = 0.229 * 2.0 * math.pi / 60.0  # [rad/s] per unit
+PWM_FULL = 885
+# Velocity PI Gain(76, 78): K_VP = KVP(TBL) / 128 and K_VI = KVI(TBL) / 65536 in PWM units per
+# velocity unit (the integral's constant includes the sampling time, per control period).
+P_GAIN_SCALE = 128
+I_GAIN_SCALE = 65536
 
 
 @dataclass(frozen=True)
@@ -62,56 +81,95 @@ class PhysicsParams:
 
     timestep: float  # [s] MuJoCo's integration step
     tire_friction: float  # sliding friction coefficient of the tyres on the floor
-    caster_friction: float  # of the caster on the floor
-    torque_max: float  # [N m] each motor's torque limit (the XL430-W250's stall torque)
-    motor_friction: float  # [N m] each wheel joint's dry friction (0: the tyres' rolling resistance only)
+    caster_friction: float  # of the caster's ball on the floor
+    torque_max: float  # [N m] each motor's torque at 100 % PWM (the XL430-W250's stall torque)
+    motor_friction: float  # [N m] each wheel joint's breakaway (dry) friction
     odometry_period: float  # [s] how often the encoders are read and integrated
     encoder_ticks: int  # per wheel revolution (0: exact angles)
+    velocity_p_gain: int  # Velocity P Gain(78), control table units
+    velocity_i_gain: int  # Velocity I Gain(76), control table units
+    velocity_loop_period: float  # [s] the XL430's control period (the I gain's time base)
+    caster_socket_friction: float  # [N m] the caster ball's dry friction in its socket
 
     def __post_init__(self) -> None:
-        values = (self.timestep, self.tire_friction, self.caster_friction, self.torque_max, self.odometry_period)
+        values = (
+            self.timestep, self.tire_friction, self.caster_friction, self.torque_max, self.odometry_period,
+            self.velocity_loop_period,
+        )  # fmt: skip
         if not all(math.isfinite(v) and v > 0 for v in values):
             raise ValueError(f"physics constants must be finite and > 0, got {values}")
-        if not (math.isfinite(self.motor_friction) and self.motor_friction >= 0):
-            raise ValueError(f"motor_friction must be finite and >= 0, got {self.motor_friction}")
+        for name in ("motor_friction", "caster_socket_friction"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {value}")
         if self.encoder_ticks < 0:
             raise ValueError(f"encoder_ticks must be >= 0, got {self.encoder_ticks}")
+        if not all(0 <= g <= 16383 for g in (self.velocity_p_gain, self.velocity_i_gain)):
+            raise ValueError(
+                f"velocity gains are control table values 0 .. 16383, got P {self.velocity_p_gain}, "
+                f"I {self.velocity_i_gain}"
+            )
 
 
 def effective_wheel_inertia(params: TurtleBotParams) -> float:
-    """What one wheel's servo accelerates when both drive straight: its own inertia about the
+    """What one wheel's motor accelerates when both drive straight: its own inertia about the
     axle plus half the robot's mass at the wheel radius [kg m^2]."""
     total = BASE_MASS + 2 * WHEEL_MASS + CASTER_MASS + SCAN_MASS
     return WHEEL_INERTIA[1] + total / 2.0 * params.wheel_radius**2
 
 
-def servo_gain(params: TurtleBotParams) -> float:
-    """``kv`` [N m s / rad] whose time constant ``J_eff / kv`` is ``params.lag`` (a stiff servo,
-    10 ms, when the lag is 0)."""
-    return effective_wheel_inertia(params) / (params.lag if params.lag > 0 else 0.01)
+def velocity_gains(physics: PhysicsParams) -> tuple[float, float]:
+    """The XL430's velocity PI in torque at the wheel: ``(kp [N m s/rad], ki [N m/rad])``.
+
+    The e-Manual's controller turns the velocity error (units of 0.229 rev/min) into PWM (units
+    of 1/885 of full) with ``KVP(TBL) / 128`` and, per control period, ``KVI(TBL) / 65536``; full
+    PWM holds the stall torque ``torque_max`` at rest. The motor's back-EMF, which caps the
+    datasheet's no-load speed (61 rev/min at 12 V, 6.39 rad/s, below the 6.67 rad/s of the
+    Burger's 0.22 m/s), is not drawn: the robot's top speed is ``[actuator] wheel_speed_max``.
+    """
+    torque_per_unit = physics.torque_max / PWM_FULL / VELOCITY_UNIT  # [N m] per (rad/s) per gain
+    kp = physics.velocity_p_gain / P_GAIN_SCALE * torque_per_unit
+    ki = physics.velocity_i_gain / I_GAIN_SCALE * torque_per_unit / physics.velocity_loop_period
+    return kp, ki
+
+
+def breakaway_speed(physics: PhysicsParams, hold: float) -> float:
+    """The largest wheel command [rad/s] that leaves a wheel at rest for ``hold`` seconds: the PI's
+    torque ``(kp + ki t) e`` stays below the joint's breakaway friction until ``t = hold`` (the
+    tyres' rolling resistance adds to it: a lower bound). Held longer, any command starts the
+    wheel; 0 without friction."""
+    kp, ki = velocity_gains(physics)
+    return physics.motor_friction / (kp + ki * max(hold, 0.0))
 
 
 def burger_mjcf(params: TurtleBotParams, physics: PhysicsParams) -> str:
-    """The Burger as MJCF: one free body (base_footprint) with the base's, the LDS's and the
-    caster's masses, two hinged wheels, a floor; velocity servos on the wheels."""
+    """The Burger as MJCF: one free body (base_footprint) with the base's, the LDS's masses, a
+    ball caster, two hinged wheels, a floor; each wheel's XL430 as a P (velocity) and an I
+    (motor) actuator, limited together to the stall torque by the joint."""
     r, half_b = params.wheel_radius, params.wheel_separation / 2.0
-    kv = servo_gain(params)
-    friction = physics.motor_friction  # the joints' dry friction torque [N m]
+    kp, _ = velocity_gains(physics)
+    friction = physics.motor_friction  # the joints' breakaway friction torque [N m]
+    t_max = physics.torque_max
     w_max = params.wheel_speed_max if math.isfinite(params.wheel_speed_max) and params.wheel_speed_max > 0 else 0.0
     ctrl = f'ctrllimited="true" ctrlrange="{-w_max} {w_max}"' if w_max > 0 else 'ctrllimited="false"'
-    torque = f'forcelimited="true" forcerange="{-physics.torque_max} {physics.torque_max}"'
+    # Dry friction as a hard constraint (MuJoCo's default is soft: a wheel below its breakaway
+    # torque creeps at ~1/10 of its command): the stiffest time constant MuJoCo integrates stably
+    # (2 steps) and an impedance near 1 (https://mujoco.readthedocs.io/en/stable/modeling.html#solver-parameters)
+    stiction = f'solreffriction="{2 * physics.timestep} 1" solimpfriction="0.99 0.999 0.001"'
     ix, iy, iz = BASE_INERTIA
     wx, wy, wz = WHEEL_INERTIA
     sx, sy, sz = SCAN_POSITION
     wheels = "".join(
         f"""
       <body name="wheel_{side}" pos="0 {sign * half_b} {r}">
-        <joint name="wheel_{side}" type="hinge" axis="0 1 0" frictionloss="{friction}"/>
+        <joint name="wheel_{side}" type="hinge" axis="0 1 0" frictionloss="{friction}" {stiction}
+               actuatorfrclimited="true" actuatorfrcrange="{-t_max} {t_max}"/>
         <inertial pos="0 0 0" mass="{WHEEL_MASS}" diaginertia="{wx} {wy} {wz}"/>
         <geom type="sphere" size="{r}" friction="{physics.tire_friction} 0.005 0.0001"/>
       </body>"""
         for side, sign in (("left", 1), ("right", -1))
     )
+    ball = 2.0 / 5.0 * CASTER_MASS * CASTER_RADIUS**2  # a solid sphere's inertia [kg m^2]
     return f"""<mujoco model="turtlebot3_burger">
   <option timestep="{physics.timestep}" integrator="implicitfast"/>
   <worldbody>
@@ -123,14 +181,17 @@ def burger_mjcf(params: TurtleBotParams, physics: PhysicsParams) -> str:
         <inertial pos="0 0 0" mass="{SCAN_MASS}" diaginertia="0.001 0.001 0.001"/>
       </body>
       <body name="caster_back" pos="{CASTER_X} 0 {CASTER_RADIUS}">
-        <inertial pos="0 0 0" mass="{CASTER_MASS}" diaginertia="1e-6 1e-6 1e-6"/>
+        <joint name="caster_ball" type="ball" frictionloss="{physics.caster_socket_friction}" {stiction}/>
+        <inertial pos="0 0 0" mass="{CASTER_MASS}" diaginertia="{ball} {ball} {ball}"/>
         <geom type="sphere" size="{CASTER_RADIUS}" friction="{physics.caster_friction} 0.005 0.0001"/>
       </body>{wheels}
     </body>
   </worldbody>
   <actuator>
-    <velocity name="left" joint="wheel_left" kv="{kv}" {ctrl} {torque}/>
-    <velocity name="right" joint="wheel_right" kv="{kv}" {ctrl} {torque}/>
+    <velocity name="left" joint="wheel_left" kv="{kp}" {ctrl}/>
+    <velocity name="right" joint="wheel_right" kv="{kp}" {ctrl}/>
+    <motor name="left_integral" joint="wheel_left" ctrllimited="true" ctrlrange="{-t_max} {t_max}"/>
+    <motor name="right_integral" joint="wheel_right" ctrllimited="true" ctrlrange="{-t_max} {t_max}"/>
   </actuator>
 </mujoco>
 """
@@ -153,7 +214,7 @@ def _yaw(quaternion: FloatArray) -> float:
 
 class PhysicsBot(Burger):
     """The MuJoCo Burger, a :class:`common.math.turtlebot.Burger` as the actuator model is: the
-    wheels' commands go to their velocity servos; ``true_pose`` is the body's pose."""
+    wheels' commands go to their XL430s' velocity PI loops; ``true_pose`` is the body's pose."""
 
     SETTLE = 0.1  # [s] on the floor before a start: the contacts settle, then the pose is set again
 
@@ -165,6 +226,10 @@ class PhysicsBot(Burger):
         self.data = self.mujoco.MjData(self.model)
         self.wheel_qpos = [int(self.model.jnt_qposadr[self.model.joint(f"wheel_{s}").id]) for s in ("left", "right")]
         self.wheel_dof = [int(self.model.jnt_dofadr[self.model.joint(f"wheel_{s}").id]) for s in ("left", "right")]
+        self.integral_actuators = [int(self.model.actuator(f"{s}_integral").id) for s in ("left", "right")]
+        self.kp, self.ki = velocity_gains(physics)
+        self._ki_dt = self.ki * physics.timestep
+        self._loops = tuple(zip((0, 1), self.wheel_dof, self.integral_actuators, strict=True))  # goal, wheel, I
         self.odometry_steps = max(1, round(physics.odometry_period / physics.timestep))
         self.reset(pose)
 
@@ -174,7 +239,7 @@ class PhysicsBot(Burger):
         pose = np.asarray(pose, dtype=float)
         self.mujoco.mj_resetData(self.model, self.data)
         self._place(pose)
-        self.data.ctrl[:] = 0.0
+        self.data.ctrl[:] = 0.0  # goal velocities and the PI's integral terms
         self.mujoco.mj_step(self.model, self.data, nstep=max(1, round(self.SETTLE / self.physics.timestep)))
         self._place(pose)  # the settled heights and contacts, at exactly the start pose
         self.mujoco.mj_forward(self.model, self.data)
@@ -215,16 +280,37 @@ class PhysicsBot(Burger):
         return self.params.gain
 
     def _drive(self) -> None:
-        self.data.ctrl[:] = self.wheel_command
+        """The goal velocities (Goal Velocity(104)); the integral terms carry on from their state."""
+        self.data.ctrl[:2] = self.wheel_command
+
+    @property
+    def integral_torque(self) -> FloatArray:
+        """Each wheel's PI integral term now [N m] (left, right)."""
+        return np.array([float(self.data.ctrl[i]) for i in self.integral_actuators])
+
+    def _integrate(self) -> None:
+        """One MuJoCo step of the PI's integral term: ``ki * error * dt``, with the e-Manual's
+        anti-windup (the integral does not grow while the output is at the torque limit in the
+        error's direction) and bounded by the limit itself."""
+        t_max, ctrl, qvel = self.physics.torque_max, self.data.ctrl, self.data.qvel
+        for goal, dof, actuator in self._loops:
+            error = ctrl[goal] - qvel[dof]
+            integral = ctrl[actuator]
+            output = self.kp * error + integral
+            if -t_max < output < t_max or output * error < 0:
+                integral = min(max(integral + self._ki_dt * error, -t_max), t_max)
+                ctrl[actuator] = integral
 
     def advance(self, duration: float) -> None:
-        """Hold the current command for ``duration`` seconds, reading the encoders every
-        ``odometry_period`` (the last read at the end)."""
+        """Hold the current command for ``duration`` seconds, the XL430's PI updated every MuJoCo
+        step, reading the encoders every ``odometry_period`` (the last read at the end)."""
         steps = round(duration / self.physics.timestep)
         while steps > 0:
             n = min(steps, self.odometry_steps)
             yaw_before = _yaw(self.data.qpos[3:7])
-            self.mujoco.mj_step(self.model, self.data, nstep=n)
+            for _ in range(n):
+                self._integrate()
+                self.mujoco.mj_step(self.model, self.data)
             steps -= n
             turned = _yaw(self.data.qpos[3:7]) - yaw_before
             self.heading += math.remainder(turned, 2.0 * math.pi)
@@ -262,4 +348,4 @@ def simulated_robot(
     return None
 
 
-__all__ = ["PhysicsBot", "PhysicsParams", "burger_mjcf", "servo_gain", "simulated_robot"]
+__all__ = ["PhysicsBot", "PhysicsParams", "breakaway_speed", "burger_mjcf", "simulated_robot", "velocity_gains"]
