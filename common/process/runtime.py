@@ -21,6 +21,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from common.config.arguments import Parser, UsageError, add_log_level
@@ -235,18 +236,56 @@ def realtime_priority(priority: int, who: str) -> Iterator[int]:
 LOGIN_REFUSED_AFTER = 2.0
 
 
+@dataclass(frozen=True)
+class RouterWait:
+    """The router :func:`connect_with_retry` waits for, as its lines name it: srl's own router
+    (:meth:`of_srl`), or another, e.g. a robot's own router (services/robot_bridge/robot_router.py).
+    ``user``: who logs in there (None: no login, so a refused session is never called a login
+    refusal); ``login_setting`` turns a login on; the hints say where to look when the login is
+    refused or the router never comes."""
+
+    endpoint: str
+    name: str
+    user: str | None
+    login_setting: str
+    credentials_hint: str
+    start_hint: str
+
+    @classmethod
+    def of_srl(cls, settings: Settings) -> RouterWait:
+        transport = settings.transport
+        return cls(
+            transport.router,
+            "the Zenoh router",
+            transport.user if transport.secure else None,
+            "transport.secure",
+            "check transport.password_file or SRL_TRANSPORT__PASSWORD against the router's users file",
+            "is `srl router` running? see --router, --connect-timeout",
+        )
+
+
 def connect_with_retry(
-    opener: Callable[[], Any], settings: Settings, service: str, timeout: float, stop: threading.Event
+    opener: Callable[[], Any],
+    settings: Settings | None,
+    service: str,
+    timeout: float,
+    stop: threading.Event,
+    router: RouterWait | None = None,
 ) -> Any:
     """Open the Zenoh session, retrying every 0.2 s for ``timeout`` s, and say why it failed.
 
     "waiting for the router" is said at once; at the end a router that listens but refuses the
-    session (secure: the login) is told apart from one that is not there at all, without Zenoh's
-    Rust internals (those go to DEBUG)."""
+    session (a login is configured: the login) is told apart from one that is not there at all,
+    without Zenoh's Rust internals (those go to DEBUG). ``router``: which router (default srl's,
+    from ``settings``)."""
     from common.net.transport import session_errors  # zenoh only through the transport, and only here
 
     refused = session_errors()
-    transport = settings.transport
+    if router is None:
+        if settings is None:
+            raise ValueError("connect_with_retry: neither settings nor a router to wait for")
+        router = RouterWait.of_srl(settings)
+    short = router.name.replace(" Zenoh", "")  # "the router", "the robot's router"
     deadline = time.monotonic() + timeout
     refused_since: float | None = None
     said = False
@@ -256,26 +295,25 @@ def connect_with_retry(
         except refused as error:
             log.debug("%s: zenoh.open: %s", service, error)
             now = time.monotonic()
-            listening = _endpoint_listening(transport.router)
+            listening = _endpoint_listening(router.endpoint)
             refused_since = (refused_since or now) if listening else None
-            if transport.secure and refused_since is not None and now - refused_since >= LOGIN_REFUSED_AFTER:
+            if router.user is not None and refused_since is not None and now - refused_since >= LOGIN_REFUSED_AFTER:
                 raise UsageError(
-                    f"{service}: the router at {transport.router} refused the login of user "
-                    f"{transport.user!r}: wrong password or unknown user (check transport.password_file "
-                    "or SRL_TRANSPORT__PASSWORD against the router's users file)"
+                    f"{service}: {short} at {router.endpoint} refused the login of user "
+                    f"{router.user!r}: wrong password or unknown user ({router.credentials_hint})"
                 ) from None
             if now > deadline or stop.is_set():
                 if listening:
                     raise UsageError(
-                        f"{service}: something listens at {transport.router} but refused a Zenoh "
-                        "session (not a Zenoh router, or it requires a login: transport.secure)"
+                        f"{service}: something listens at {router.endpoint} but refused a Zenoh "
+                        f"session (not a Zenoh router, or it requires a login: {router.login_setting})"
                     ) from None
                 raise UsageError(
-                    f"{service}: cannot reach the Zenoh router at {transport.router} after "
-                    f"{timeout:.0f} s (is `srl router` running? see --router, --connect-timeout)"
+                    f"{service}: cannot reach {router.name} at {router.endpoint} after "
+                    f"{timeout:.0f} s ({router.start_hint})"
                 ) from None
             if not said:
-                log.warning("%s: waiting for the Zenoh router at %s (up to %.0f s)", service, transport.router, timeout)
+                log.warning("%s: waiting for %s at %s (up to %.0f s)", service, router.name, router.endpoint, timeout)
                 said = True
             time.sleep(0.2)
 

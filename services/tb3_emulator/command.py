@@ -9,6 +9,7 @@ import time
 
 from common.config.arguments import (
     COMMAND_SETTINGS,
+    UsageError,
     add_bridge_arguments,
     add_lifetime_arguments,
     add_settings_arguments,
@@ -69,7 +70,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="rmw_zenoh attachment format: compact (rmw_zenoh_cpp Humble >= 0.1.2, Jazzy >= 0.2.4) "
         "or legacy (Humble 0.1.0-0.1.1, Jazzy 0.2.0-0.2.3) (default: compact)",
     )
-    parser.add_argument("--listen", help="be the robot's Zenoh router on this endpoint (default: connect to --router)")
+    parser.add_argument(
+        "--listen",
+        help="be the robot's Zenoh router on this endpoint; transport.secure, users_file and tls_* secure it "
+        "as they secure srl router, with the robot's access rules (docs/security.md) (default: connect to --router)",
+    )
+    parser.add_argument(
+        "--localization",
+        choices=("none", "tf", "pose_with_covariance", "odometry", "pose_stamped"),
+        help="also publish a localization on the bridge's pose topic: the true pose in map (docs/turtlebot.md "
+        "'Localization') (default: the settings' bridge.pose_source; none for odom)",
+    )
+    parser.add_argument(
+        "--localization-noise",
+        type=floats_arg(2),
+        default=(0.0, 0.0),
+        metavar="SIGMA_XY,SIGMA_THETA",
+        help="std. dev. of Gaussian noise on the published localization [m, rad] (default 0,0)",
+    )
+    parser.add_argument(
+        "--localization-update",
+        type=floats_arg(2),
+        default=(0.25, 0.2),
+        metavar="DIST,ANGLE",
+        help="AMCL-like sources (pose_with_covariance, tf): a fix after this much motion [m, rad] "
+        "(nav2_amcl update_min_d, update_min_a of turtlebot3_navigation2) (default 0.25,0.2)",
+    )
+    parser.add_argument(
+        "--localization-rate",
+        type=float,
+        default=10.0,
+        help="[Hz] streaming sources (odometry, pose_stamped) and /tf (default: 10)",
+    )
     add_lifetime_arguments(parser)
     parser.set_defaults(func=main)
 
@@ -79,10 +111,11 @@ def main(args: argparse.Namespace) -> int:
     import zenoh
 
     from common.contracts import ros_wire
-    from common.contracts.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph
+    from common.contracts.ros_wire import CMD_TYPES, DEFAULT_CMD_TYPE, RosGraph, pose_topic
     from common.math.frames import Pose2D, from_goal_frame
-    from common.net.transport import plain_config, zenoh_config
-    from services.tb3_emulator.service import Tb3Model, run
+    from common.net.transport import zenoh_config
+    from services.robot_bridge.robot_router import robot_router_config
+    from services.tb3_emulator.service import LocalizationConfig, Tb3Model, run
 
     settings = settings_from_args(args)
     bridge = settings.bridge
@@ -92,8 +125,8 @@ def main(args: argparse.Namespace) -> int:
         pose = from_goal_frame(Pose2D(*(float(c) for c in settings.start_state())), Pose2D(*bridge.goal))
     cmd_type = DEFAULT_CMD_TYPE[bridge.ros_distro] if bridge.cmd_type == "auto" else CMD_TYPES[bridge.cmd_type]
     stop = service_stop()  # signals (bounded) and srl up's death
-    if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot)
-        session = zenoh.open(plain_config(settings.transport, args.listen, router=True))
+    if args.listen:  # the robot's own Zenoh router (like rmw_zenohd on the robot; secured by [transport])
+        session = zenoh.open(robot_router_config(settings, args.listen))
     else:
         session = connect_with_retry(
             lambda: zenoh.open(zenoh_config(settings.transport)), settings, "tb3-emulator", args.connect_timeout, stop
@@ -113,6 +146,20 @@ def main(args: argparse.Namespace) -> int:
         params=None if robot_model == "ideal" else settings.turtlebot_params(),
         physics=settings.physics_params() if robot_model == "physics" else None,
     )
+    source = args.localization or ("none" if bridge.pose_source == "odom" else bridge.pose_source)
+    if not (args.localization_rate > 0 and all(c >= 0 for c in (*args.localization_noise, *args.localization_update))):
+        raise UsageError("tb3-emulator: --localization-rate must be > 0, its noise and update >= 0")
+    localization = (
+        None
+        if source == "none"
+        else LocalizationConfig(
+            source,
+            pose_topic(bridge.model_copy(update={"pose_source": source})),
+            (args.localization_noise[0], args.localization_noise[1]),
+            (args.localization_update[0], args.localization_update[1]),
+            args.localization_rate,
+        )
+    )
     try:
         result = run(
             session,
@@ -125,6 +172,7 @@ def main(args: argparse.Namespace) -> int:
             bridge.cmd_vel_topic,
             args.odom_rate,
             attachment=args.attachment,
+            localization=localization,
         )
     finally:
         session.close()

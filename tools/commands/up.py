@@ -51,7 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="Zenoh user/password login with fresh random credentials per role, and access rules "
         "at the router: only the actor publishes actions, the critic weights, the plant state; "
-        "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA)",
+        "a tcp/ router endpoint becomes tls/ with mutual TLS (fresh private CA); --plant robot: the emulated "
+        "robot's own router too (TLS, the bridge's login, the robot's access rules), and a warning if the "
+        "robot at --robot-endpoint lets in sessions without credentials",
     )
     parser.add_argument("--json", action="store_true", help="last stdout line: the merged summary as one JSON object")
     parser.add_argument(
@@ -150,6 +152,11 @@ def format_up_summary(summary: dict[str, Any]) -> str:
             "  security       user/password login per role + access rules at the router (common/net/security.py)"
             + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else "")
         )
+        if summary.get("emulator"):  # srl up secures the emulated robot's own router (tools/launch/up.py)
+            lines.append(
+                "  robot router   the emulated robot's own: mutual TLS, the bridge's login and the "
+                "robot's access rules (services/robot_bridge/robot_router.py)"
+            )
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
     if summary.get("start_state"):
         lines.append(f"  start          {fmt_state(summary['start_state'])} (the robot's first state)")

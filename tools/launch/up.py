@@ -43,6 +43,7 @@ from common.contracts.summaries import (
 )
 from common.math.frames import Pose2D, to_goal_frame
 from common.net.transport import zenoh_config
+from services.robot_bridge.robot_router import RobotLogins, robot_router_reachable
 from tools.launch.supervisor import (
     CHILD_SUMMARIES,
     Child,
@@ -58,6 +59,7 @@ from tools.launch.supervisor import (
     physics_plant,
     router_reachable,
     state_probe,
+    tls_endpoint,
     write_child_summaries,
 )
 
@@ -174,6 +176,9 @@ def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
     as its role, this supervisor as ``monitor``.
     A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
     fresh private CA and one certificate per role in the same directory (common/net/certs.py).
+    The emulated robot's own router is secured as a robot's should be (docs/security.md): mutual
+    TLS from a CA of its own, a login and access rules (services/robot_bridge/robot_router.py);
+    only the bridge gets those credentials.
 
     The recorder (``--clock steps`` in lockstep) and the view start before the plant and stop
     after everything but the router, so they see it all.
@@ -245,22 +250,35 @@ def _run_up(
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
             robot_endpoint = settings.bridge.robot_endpoint
+            bridge_env = role.get("robot_bridge")
             if not robot_endpoint:  # the emulated robot runs its own Zenoh router, as a real one does
                 robot_endpoint = free_loopback_endpoint()
-                supervisor.spawn("tb3_emulator", ["tb3-emulator", *robot_args, "--listen", robot_endpoint])
+                emulator_env: dict[str, str] | None = None
+                probe_bridge = settings.bridge.model_copy(update={"robot_endpoint": robot_endpoint})
+                if logins is not None:  # secured as a robot should be: TLS, login, access rules
+                    robot_endpoint = tls_endpoint(robot_endpoint) or robot_endpoint
+                    robot_logins = RobotLogins.create(logins.directory / "robot")
+                    emulator_env = robot_logins.emulator_environment
+                    bridge_env = {**(bridge_env or {}), **robot_logins.bridge_environment}
+                    probe_bridge = robot_logins.bridge(settings.bridge, robot_endpoint)
+                supervisor.spawn(
+                    "tb3_emulator", ["tb3-emulator", *robot_args, "--listen", robot_endpoint], emulator_env
+                )
                 log.info("the emulated robot's Zenoh router: %s", robot_endpoint)
                 supervisor.wait_for(
                     f"the emulated robot's router ({robot_endpoint})",
-                    lambda: router_reachable(settings, robot_endpoint),
+                    lambda: robot_router_reachable(probe_bridge, settings.transport),
                     timeout=30,
                 )
             supervisor.spawn(
-                "robot_bridge",
-                ["robot-bridge", *robot_args, f"--robot-endpoint={robot_endpoint}"],
-                role.get("robot_bridge"),
+                "robot_bridge", ["robot-bridge", *robot_args, f"--robot-endpoint={robot_endpoint}"], bridge_env
             )
         supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
-        supervisor.wait_for("plant" if plant != "robot" else "robot_bridge", alive_probe(settings, "plant"), timeout=60)
+        # the bridge is alive once it reaches the robot's router, which it waits for (a robot boots slowly)
+        plant_timeout = 60 + (settings.bridge.robot_connect_timeout if plant == "robot" else 0)
+        supervisor.wait_for(
+            "plant" if plant != "robot" else "robot_bridge", alive_probe(settings, "plant"), timeout=plant_timeout
+        )
         if plant == "robot":
             supervisor.wait_for(
                 f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
