@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import math
 import struct
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -452,3 +453,82 @@ def test_attachment_encoding_is_zenoh_exts_serialization(fmt: str) -> None:
         )
         assert attachment.encode() == bytes(zenoh.ext.z_serialize(fields).to_bytes())
         assert Attachment.decode(attachment.encode()) == attachment
+
+
+# -- localization messages (docs/turtlebot.md "Localization") --------------------------------------
+# RIHS01 hashes of the localization types as ROS 2 Jazzy publishes them (``ros2 topic info -v``
+# transcripts of AMCL's /tf and golden-hash tables of independent ROS 2 client libraries agree).
+POSE_WITH_COVARIANCE_HASH = "RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e"
+POSE_STAMPED_HASH = "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"
+TF_MESSAGE_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+
+
+def test_localization_type_hashes_are_the_published_ones() -> None:
+    assert ros_wire.type_hash("jazzy", ros_wire.POSE_WITH_COVARIANCE) == POSE_WITH_COVARIANCE_HASH
+    assert ros_wire.type_hash("jazzy", ros_wire.POSE_STAMPED) == POSE_STAMPED_HASH
+    assert ros_wire.type_hash("jazzy", ros_wire.TF_MESSAGE) == TF_MESSAGE_HASH
+
+
+def _hand_built_pose(x: float, y: float, yaw: float, covariance: list[float] | None) -> bytes:
+    """PoseStamped (``covariance`` None) or PoseWithCovarianceStamped packed field by field with
+    struct, as the CDR rules say: header (stamp 12 s 345 ns, frame "map"), position, orientation."""
+    out = b"\x00\x01\x00\x00" + struct.pack("<iI", 12, 345)
+    frame, offset = _cdr_string("map", 8)
+    out += frame + b"\x00" * (-offset % 8)
+    doubles = [x, y, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2), *(covariance or [])]
+    return out + struct.pack(f"<{len(doubles)}d", *doubles)
+
+
+def test_pose_messages_golden_bytes() -> None:
+    covariance = [0.0] * 36
+    covariance[0], covariance[7], covariance[35] = 0.04, 0.09, 0.01
+    fix = ros_wire.PoseFix(12_000_000_345, "map", "", 1.25, -0.5, quaternion_from_yaw(2.0), (0.04, 0.09, 0.01))
+    for distro in ("humble", "jazzy"):
+        for ros_type, cov in ((ros_wire.POSE_WITH_COVARIANCE, covariance), (ros_wire.POSE_STAMPED, None)):
+            raw = _hand_built_pose(1.25, -0.5, 2.0, cov)
+            # header 4 | stamp 8 | "map" 4+4 (ends at offset 16: aligned, no pad) | 7 (+ 36) float64
+            assert len(raw) == 4 + 8 + (4 + 4) + (7 + (36 if cov else 0)) * 8
+            assert ros_wire.encode_pose(distro, ros_type, fix if cov else replace(fix, variance=(0, 0, 0))) == raw
+            [decoded] = ros_wire.decode_localization(distro, ros_type, raw)
+            assert (decoded.stamp_ns, decoded.frame_id, decoded.x, decoded.y) == (12_000_000_345, "map", 1.25, -0.5)
+            assert yaw_from_quaternion(*decoded.orientation) == pytest.approx(2.0, abs=1e-12)
+            assert decoded.variance == ((0.04, 0.09, 0.01) if cov else (0.0, 0.0, 0.0))
+
+
+def test_tf_message_golden_bytes() -> None:
+    """tf2_msgs/msg/TFMessage with one map -> odom transform: sequence length, then a
+    TransformStamped (header, child_frame_id, translation xyz, rotation xyzw)."""
+    out = b"\x00\x01\x00\x00" + struct.pack("<I", 1) + struct.pack("<iI", 7, 5)  # 1 transform, stamp 7 s 5 ns
+    frame, offset = _cdr_string("map", 12)
+    child, offset = _cdr_string("odom", offset)
+    out += frame + child + b"\x00" * (-offset % 8)
+    raw = out + struct.pack("<7d", 0.5, -2.0, 0.0, 0.0, 0.0, math.sin(0.25), math.cos(0.25))
+    transform = ros_wire.PoseFix(7_000_000_005, "map", "odom", 0.5, -2.0, quaternion_from_yaw(0.5))
+    for distro in ("humble", "jazzy"):
+        assert ros_wire.encode_tf(distro, [transform]) == raw
+        assert ros_wire.decode_localization(distro, ros_wire.TF_MESSAGE, raw) == [transform]
+    assert ros_wire.decode_localization("jazzy", ros_wire.TF_MESSAGE, ros_wire.encode_tf("jazzy", [])) == []
+
+
+def test_amcl_pose_tokens_are_transient_local() -> None:
+    """nav2_amcl's amcl_pose publisher (KeepLast(1), reliable, transient local): durability 1
+    (RMW_QOS_POLICY_DURABILITY_TRANSIENT_LOCAL) and depth 1 in the QoS chunk; tf's listener KeepLast(100)."""
+    zid = "1f2e3d4c5b6a79880f1e2d3c4b5a6978"
+    jazzy = RosGraph("rmw_zenoh", "jazzy", 0, "")
+    source = ros_wire.POSE_SOURCES["pose_with_covariance"]
+    qos = ros_wire.qos_chunk(source.depth, source.transient_local)
+    assert qos == ":1:,1:,:,:,,"
+    assert jazzy.endpoint_token(zid, 30, 31, "MP", "amcl", "amcl_pose", source.ros_type, qos=qos) == (
+        f"@ros2_lv/0/{zid}/30/31/MP/%/%/amcl/%amcl_pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/"
+        f"{POSE_WITH_COVARIANCE_HASH}/:1:,1:,:,:,,"
+    )
+    assert ros_wire.qos_chunk(100) == "::,100:,:,:,,"
+    assert jazzy.data_key("tf", ros_wire.TF_MESSAGE) == f"0/tf/tf2_msgs::msg::dds_::TFMessage_/{TF_MESSAGE_HASH}"
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=900))
+def test_localization_decoders_raise_only_wire_errors(data: bytes) -> None:
+    for ros_type in (ros_wire.POSE_WITH_COVARIANCE, ros_wire.POSE_STAMPED, ros_wire.TF_MESSAGE, ODOMETRY):
+        with contextlib.suppress(WireError):  # anything else fails the test
+            ros_wire.decode_localization("jazzy", ros_type, data)

@@ -111,11 +111,17 @@ class PhysicsSettings(_Section):
 
     timestep: float = Field(gt=0, le=0.01, description="[s] MuJoCo's integration step")
     tire_friction: float = Field(gt=0, le=10, description="sliding friction of the tyres on the floor")
-    caster_friction: float = Field(gt=0, le=10, description="sliding friction of the caster on the floor")
-    torque_max: float = Field(gt=0, le=100, description="[N m] each wheel motor's torque limit")
-    motor_friction: float = Field(ge=0, le=10, description="[N m] each wheel joint's dry friction")
+    caster_friction: float = Field(gt=0, le=10, description="sliding friction of the caster's ball on the floor")
+    torque_max: float = Field(gt=0, le=100, description="[N m] each wheel motor's torque at 100 % PWM (stall torque)")
+    motor_friction: float = Field(ge=0, le=10, description="[N m] each wheel joint's breakaway (dry) friction")
     odometry_period: float = Field(gt=0, le=0.1, description="[s] how often the encoders are integrated")
     encoder_ticks: int = Field(ge=0, description="encoder ticks per wheel revolution (0: exact)")
+    velocity_p_gain: int = Field(ge=0, le=16383, description="the XL430's Velocity P Gain(78), control table units")
+    velocity_i_gain: int = Field(ge=0, le=16383, description="the XL430's Velocity I Gain(76), control table units")
+    velocity_loop_period: float = Field(
+        gt=0, le=0.01, description="[s] the XL430's control period, the time base of its I gain"
+    )
+    caster_socket_friction: float = Field(ge=0, le=1, description="[N m] the caster ball's dry friction in its socket")
 
 
 class CostSettings(_Section):
@@ -335,17 +341,57 @@ class BridgeSettings(_Section):
     cmd_type: Literal["auto", "twist", "twist_stamped"]
     odom_topic: str = Field(pattern=rf"^{_ROS_NAME}$")
     cmd_vel_topic: str = Field(pattern=rf"^{_ROS_NAME}$")
-    goal: tuple[float, float, float] = Field(description="goal pose (x [m], y [m], theta [rad]) in the odom frame")
+    goal: tuple[float, float, float] = Field(
+        description="goal pose (x [m], y [m], theta [rad]) in the odom frame (localized: in the map frame)"
+    )
     watchdog_timeout_steps: int = Field(ge=1, description="zero velocity after this many delta without action")
     robot_endpoint: str = Field(description="'' = the robot is on srl's router; else its Zenoh endpoint")
     discovery_timeout: float = Field(gt=0, description="[s] auto cmd_type: wait this long for the robot's tokens")
+    # The state's pose (services/robot_bridge/bridge.py, docs/turtlebot.md "Localization")
+    pose_source: Literal["odom", "tf", "pose_with_covariance", "odometry", "pose_stamped"] = Field(
+        description="the state's pose: odom (odometry only), tf (odom corrected by map -> odom on /tf), "
+        "pose_with_covariance (AMCL), odometry (an EKF's nav_msgs/Odometry), pose_stamped (motion capture)"
+    )
+    pose_topic: str = Field(
+        pattern=rf"^(|{_ROS_NAME})$",
+        description="the localization topic; '' = the source's usual one "
+        "(tf, amcl_pose, odometry/filtered, mocap/pose)",
+    )
+    pose_timeout: float = Field(
+        gt=0, description="[s] a streaming localization (tf, odometry, pose_stamped) older than this is stale"
+    )
+    pose_stale_distance: float = Field(
+        gt=0, description="[m] any localization is stale once odometry has moved this far since its last fix"
+    )
+    pose_stale_angle: float = Field(
+        gt=0, description="[rad] any localization is stale once odometry has turned this far since its last fix"
+    )
+    pose_blend_time: float = Field(ge=0, description="[s] a new localization correction is blended in over this")
+    # The robot's own Zenoh router (rmw_zenohd): its login and TLS (services/robot_bridge/robot_router.py,
+    # docs/security.md "The robot's own router")
+    robot_user: str = Field(description="user the bridge logs in as at the robot's router ('' = no login)")
+    robot_password_file: str = Field(description="file whose first line is robot_user's password (mode 600)")
+    robot_tls_ca: str = Field(description="tls/ robot_endpoint: PEM CA certificate that signed the robot router's")
+    robot_tls_cert: str = Field(description="tls/ robot_endpoint: the bridge's PEM certificate (mutual TLS)")
+    robot_tls_key: str = Field(description="tls/ robot_endpoint: PEM private key of robot_tls_cert (mode 600)")
+    robot_connect_timeout: float = Field(
+        gt=0, description="[s] wait this long for the robot's router to accept the bridge (a robot boots slowly)"
+    )
 
     @field_validator("namespace", mode="before")
     @classmethod
     def _strip_slashes(cls, v: object) -> object:
         return v.strip("/") if isinstance(v, str) else v
 
-    @field_validator("goal", "discovery_timeout")
+    @field_validator(
+        "goal",
+        "discovery_timeout",
+        "robot_connect_timeout",
+        "pose_timeout",
+        "pose_stale_distance",
+        "pose_stale_angle",
+        "pose_blend_time",
+    )
     @classmethod
     def _finite_values(cls, v: object) -> object:
         values = v if isinstance(v, tuple) else (v,)

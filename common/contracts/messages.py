@@ -60,10 +60,10 @@ def decode(schema: type[M], payload: bytes) -> M:
 class PlantState(Message):
     """The robot's state, published by plant_sim or robot_bridge.
 
-    ``state`` is what the robot reports (a robot's odometry). ``true_state`` and
-    ``saturated_commands`` are optional: set only by a plant that knows the truth (plant_sim),
-    never by the robot bridge, and omitted from the payload when absent (:meth:`encode` drops
-    None fields)."""
+    ``state`` is what the robot reports (a robot's odometry, or its localized pose). ``true_state``
+    and ``saturated_commands`` are optional: set only by a plant that knows the truth (plant_sim),
+    never by the robot bridge; ``map_to_odom`` only by a localized robot bridge. Each is omitted
+    from the payload when absent (:meth:`encode` drops None fields)."""
 
     robot: RobotId
     episode: int = Field(ge=0)
@@ -74,6 +74,11 @@ class PlantState(Message):
     true_state: Vec3 | None = Field(default=None, description="where the robot really is (a simulator only)")
     saturated_commands: int | None = Field(
         default=None, ge=0, description="commands of this episode a wheel could not follow (a simulator only)"
+    )
+    map_to_odom: Vec3 | None = Field(
+        default=None,
+        description="(x [m], y [m], theta [rad]) of the map -> odom correction applied to this state "
+        "(a localized robot bridge only, docs/turtlebot.md)",
     )
 
     def encode(self) -> bytes:

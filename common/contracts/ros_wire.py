@@ -68,6 +68,9 @@ Profile = Literal["rmw_zenoh", "ros2dds"]
 TWIST = "geometry_msgs/msg/Twist"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
+POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 CMD_TYPES = {"twist": TWIST, "twist_stamped": TWIST_STAMPED}
 # What a TurtleBot3 subscribes to by default: turtlebot3_bringup's burger.yaml sets
 # enable_stamped_cmd_vel false on Humble and true on Jazzy.
@@ -98,6 +101,39 @@ ADMIN = "@ros2_lv"
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _STORES = {"humble": Stores.ROS2_HUMBLE, "jazzy": Stores.ROS2_JAZZY}
 DECODE_ERRORS = (SerdeError, ValueError, IndexError, TypeError, UnicodeDecodeError)
+
+# A localization source (bridge.pose_source, docs/turtlebot.md "Localization"): its ROS type, its
+# conventional topic, and the QoS its usual publisher declares. nav2_amcl publishes ``amcl_pose``
+# reliable, transient local, KeepLast(1) (amcl_node.cpp: ``rclcpp::QoS(rclcpp::KeepLast(1))
+# .transient_local().reliable()``); tf2_ros's listener subscribes ``/tf`` KeepLast(100), reliable,
+# volatile (``DynamicListenerQoS``); robot_localization's ``odometry/filtered`` and a motion-capture
+# ``PoseStamped`` are plain sensor streams (reliable, volatile, KeepLast(10)).
+MAP_FRAME = "map"
+
+
+@dataclass(frozen=True)
+class PoseSource:
+    """A localization source's ROS type, conventional topic and publisher QoS."""
+
+    ros_type: str
+    topic: str
+    depth: int
+    transient_local: bool
+
+
+POSE_SOURCES: dict[str, PoseSource] = {
+    "tf": PoseSource(TF_MESSAGE, "tf", 100, False),
+    "pose_with_covariance": PoseSource(POSE_WITH_COVARIANCE, "amcl_pose", 1, True),
+    "odometry": PoseSource(ODOMETRY, "odometry/filtered", QOS_DEPTH, False),
+    "pose_stamped": PoseSource(POSE_STAMPED, "mocap/pose", QOS_DEPTH, False),
+}
+
+
+def pose_topic(bridge: Any) -> str:
+    """The localization topic of ``bridge`` settings: ``pose_topic``, or the source's usual one."""
+    if bridge.pose_source == "odom":
+        return str(bridge.odom_topic)
+    return str(bridge.pose_topic or POSE_SOURCES[bridge.pose_source].topic)
 
 
 class WireError(ValueError):
@@ -139,9 +175,11 @@ def escape_ros2dds(name: str) -> str:
     return name.replace("/", "§")
 
 
-def qos_chunk(depth: int = QOS_DEPTH) -> str:
-    """rmw_zenoh QoS chunk of a reliable, volatile, keep-last ``depth`` endpoint."""
-    return f"::,{'' if depth == 42 else depth}:,:,:,,"
+def qos_chunk(depth: int = QOS_DEPTH, transient_local: bool = False) -> str:
+    """rmw_zenoh QoS chunk of a reliable, keep-last ``depth`` endpoint, volatile or transient local
+    (``qos_to_keyexpr`` in liveliness_utils.cpp writes the rmw enum values that differ from the
+    default; RMW_QOS_POLICY_DURABILITY_TRANSIENT_LOCAL is 1)."""
+    return f":{'1' if transient_local else ''}:,{'' if depth == 42 else depth}:,:,:,,"
 
 
 @dataclass(frozen=True)
@@ -221,14 +259,16 @@ class RosGraph:
         topic: str,
         ros_type: str,
         hash_chunk: str | None = None,
+        qos: str | None = None,
     ) -> str:
-        """rmw_zenoh token of a publisher (MP) or subscription (MS) of ``node``."""
+        """rmw_zenoh token of a publisher (MP) or subscription (MS) of ``node`` (``qos``: its
+        :func:`qos_chunk`, default the TurtleBot3's KeepLast(10), reliable, volatile)."""
         if self.profile == "ros2dds":
             return self.ros2dds_token(zid, kind, topic, ros_type)
         chunk = type_hash(self.distro, ros_type) if hash_chunk is None else hash_chunk
         return (
             f"{ADMIN}/{self.domain_id}/{zid}/{nid}/{eid}/{kind}/%/{mangle(self.node_namespace())}/{node}/"
-            f"{mangle(self.topic_name(topic))}/{dds_type_name(ros_type)}/{chunk}/{qos_chunk()}"
+            f"{mangle(self.topic_name(topic))}/{dds_type_name(ros_type)}/{chunk}/{qos or qos_chunk()}"
         )
 
     def ros2dds_token(self, zid: str, kind: Literal["MP", "MS"], topic: str, ros_type: str) -> str:
@@ -474,3 +514,120 @@ def decode_odometry(distro: str, payload: bytes) -> Odometry:
         v=float(message.twist.twist.linear.x),
         omega=float(message.twist.twist.angular.z),
     )
+
+
+@dataclass(frozen=True)
+class PoseFix:
+    """A localization sample: the pose of ``child_frame_id`` in ``frame_id`` (``map`` -> ``odom`` of a
+    ``/tf`` transform, or the robot's pose in ``map`` of AMCL, an EKF or motion capture).
+    ``variance`` is the covariance diagonal of x, y and yaw (zero where the message has none)."""
+
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    x: float
+    y: float
+    orientation: tuple[float, float, float, float]  # (x, y, z, w)
+    variance: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+def _header(store: Any, stamp_ns: int, frame_id: str) -> Any:
+    return store.types["std_msgs/msg/Header"](stamp=_stamp(store, stamp_ns), frame_id=frame_id)
+
+
+def _pose(store: Any, fix: PoseFix) -> Any:
+    t = store.types
+    qx, qy, qz, qw = fix.orientation
+    return t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=float(fix.x), y=float(fix.y), z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
+    )
+
+
+def encode_pose(distro: str, ros_type: str, fix: PoseFix) -> bytes:
+    """CDR of a PoseWithCovarianceStamped (``variance`` on the x, y, yaw diagonal) or a PoseStamped."""
+    store = typestore(distro)
+    t = store.types
+    header = _header(store, fix.stamp_ns, fix.frame_id)
+    if ros_type == POSE_WITH_COVARIANCE:
+        covariance = np.zeros(36)
+        covariance[[0, 7, 35]] = fix.variance
+        message = t[ros_type](
+            header=header, pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=_pose(store, fix), covariance=covariance)
+        )
+    elif ros_type == POSE_STAMPED:
+        message = t[ros_type](header=header, pose=_pose(store, fix))
+    else:
+        raise ValueError(f"{ros_type} is not a pose type")
+    return bytes(store.serialize_cdr(message, ros_type, little_endian=True))
+
+
+def encode_tf(distro: str, transforms: list[PoseFix]) -> bytes:
+    """CDR of a tf2_msgs/msg/TFMessage: each fix a ``frame_id -> child_frame_id`` transform (z 0)."""
+    store = typestore(distro)
+    t = store.types
+    stamped = []
+    for fix in transforms:
+        qx, qy, qz, qw = fix.orientation
+        transform = t["geometry_msgs/msg/Transform"](
+            translation=_vector3(store, fix.x, fix.y, 0.0),
+            rotation=t["geometry_msgs/msg/Quaternion"](x=float(qx), y=float(qy), z=float(qz), w=float(qw)),
+        )
+        stamped.append(
+            t["geometry_msgs/msg/TransformStamped"](
+                header=_header(store, fix.stamp_ns, fix.frame_id),
+                child_frame_id=fix.child_frame_id,
+                transform=transform,
+            )
+        )
+    return bytes(store.serialize_cdr(t[TF_MESSAGE](transforms=stamped), TF_MESSAGE, little_endian=True))
+
+
+def _stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _quaternion(q: Any) -> tuple[float, float, float, float]:
+    return (float(q.x), float(q.y), float(q.z), float(q.w))
+
+
+def decode_localization(distro: str, ros_type: str, payload: bytes) -> list[PoseFix]:
+    """The fixes of a localization sample of ``ros_type`` (a TFMessage may hold several, the others
+    one); WireError if it is not one (values not checked)."""
+    if ros_type == ODOMETRY:
+        odom = decode_odometry(distro, payload)
+        return [PoseFix(odom.stamp_ns, odom.frame_id, odom.child_frame_id, odom.x, odom.y, odom.orientation)]
+    if ros_type not in (POSE_WITH_COVARIANCE, POSE_STAMPED, TF_MESSAGE):
+        raise ValueError(f"{ros_type} is not a localization type")
+    try:
+        message = typestore(distro).deserialize_cdr(payload, ros_type)
+    except DECODE_ERRORS as error:
+        raise WireError(f"not a {ros_type}: {error}") from None
+    if ros_type == TF_MESSAGE:
+        return [
+            PoseFix(
+                _stamp_ns(tf.header),
+                str(tf.header.frame_id),
+                str(tf.child_frame_id),
+                float(tf.transform.translation.x),
+                float(tf.transform.translation.y),
+                _quaternion(tf.transform.rotation),
+            )
+            for tf in message.transforms
+        ]
+    pose = message.pose.pose if ros_type == POSE_WITH_COVARIANCE else message.pose
+    variance = (0.0, 0.0, 0.0)
+    if ros_type == POSE_WITH_COVARIANCE:
+        c = message.pose.covariance
+        variance = (float(c[0]), float(c[7]), float(c[35]))
+    return [
+        PoseFix(
+            _stamp_ns(message.header),
+            str(message.header.frame_id),
+            "",
+            float(pose.position.x),
+            float(pose.position.y),
+            _quaternion(pose.orientation),
+            variance,
+        )
+    ]

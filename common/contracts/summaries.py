@@ -225,12 +225,16 @@ class BridgeSummary(_Summary):
     profile: str = Field(description="rmw_zenoh or ros2dds")
     ros_distro: str = Field(description="humble or jazzy")
     namespace: str
-    goal: list[float] = Field(description="the target pose in the odom frame [m, m, rad]")
+    goal: list[float] = Field(description="the target pose in the odom frame (localized: map) [m, m, rad]")
     cmd_vel: list[CmdVelTarget]
     fallback: bool = Field(description="cmd_vel guessed from the distro, never announced by the robot")
     discovered: list[str]
     attachment_format: str | None = Field(description="rmw_zenoh: compact or legacy, None until seen")
     final_state: list[float] | None
+    localization: str = Field(
+        default="odometry only",
+        description="the state's pose: 'odometry only' or '<pose_source> on <topic> (frame <frame>)'",
+    )
     max_abs_command: list[float] = Field(description="[|v| m/s, |omega| rad/s], the largest sent")
     timing: BridgeTiming
     counters: dict[str, int]
@@ -247,6 +251,9 @@ class EmulatorSummary(_Summary):
     attachment: str | None = Field(description="rmw_zenoh: compact or legacy; None with ros2dds")
     cmd_key: str
     odom_key: str
+    localization: str | None = Field(
+        default=None, description="the localization it publishes (a bridge.pose_source), None: odometry only"
+    )
     model: Literal["ideal", "actuator", "physics"] = Field(
         description="the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3"
     )

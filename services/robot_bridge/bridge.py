@@ -10,6 +10,19 @@ services/robot_bridge/ros_link.py, the process services/robot_bridge/service.py.
   after ``reset_odometry``). Not "the pose at bridge start-up": a bridge restart would then move
   the target to wherever the robot stands, silently. The state is ``common.math.frames.to_goal_frame``
   of the odometry pose, its heading unwrapped (continuous) from sample to sample.
+* **Localization** (``bridge.pose_source``, docs/turtlebot.md "Localization"). ``odom``: the state is
+  the odometry pose. Otherwise the state is the odometry pose corrected by the ``map -> odom``
+  transform (common/math/localization.py): taken from ``/tf`` as it is, or computed from each fix
+  of AMCL's ``PoseWithCovarianceStamped``, an EKF's ``Odometry`` or a motion-capture
+  ``PoseStamped`` and the odometry at the fix's stamp; a new correction is blended in over
+  ``bridge.pose_blend_time`` (no jump in the state), and the goal is in the localization's frame.
+  The localization is **stale** once odometry has moved ``bridge.pose_stale_distance`` or turned
+  ``bridge.pose_stale_angle`` since its last fix (AMCL updates only after motion, so age alone
+  says nothing while the robot stands), or, for a streaming source (tf, odometry, pose_stamped),
+  when its last fix is older than ``bridge.pose_timeout``. Stale: the robot is commanded zero at
+  once, no state is published and no action applied until a fresh fix (one warning line, counted
+  under ``localization_stale_stops``); before the first fix no state is published (one warning
+  after ``bridge.pose_timeout``).
 * **Odometry** is refused (counted, never published) when it has a non-finite pose or a zero
   quaternion, is beyond the schema's physical bounds, or is not newer than the last sample by its
   header stamp (out of order), or is stamped far ahead of the robot's clock. After
@@ -42,10 +55,11 @@ from pydantic import ValidationError
 
 from common.config.settings import Settings
 from common.contracts import ros_wire
-from common.contracts.messages import Action, PlantState
-from common.contracts.ros_wire import Odometry
+from common.contracts.messages import MAX_POSITION, Action, PlantState
+from common.contracts.ros_wire import ODOM_FRAME, Odometry, PoseFix, pose_topic
 from common.math.dynamics import unwrap_heading
 from common.math.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
+from common.math.localization import CorrectionBlend, OdomHistory, correction, motion
 from common.math.stats import Window
 from common.net.provenance import (
     MAX_ACTION_EPISODE_JUMP,
@@ -63,6 +77,8 @@ CLOCK_RESET_AFTER = 20  # consecutive out-of-order odometry samples taken as a r
 # hour ahead must not make the next real samples "old". CLOCK_RESET_AFTER such samples in a row
 # are taken as the robot's clock having jumped forward.
 FUTURE_STAMP_TOLERANCE_NS = 5_000_000_000
+# A localization fix farther than this from its frame's origin is refused: the state schema's bound.
+LOCALIZATION_BOUND = MAX_POSITION
 
 
 class Counts(Protocol):
@@ -108,6 +124,26 @@ class RobotBridge:
         self.alpha: float | None = None
         self.last_state: tuple[float, float, float] | None = None
         self.frames: tuple[str, str] | None = None
+        # localization (bridge.pose_source): the map -> odom correction and when it is stale
+        bridge = settings.bridge
+        self.pose_source = bridge.pose_source
+        self.localized = bridge.pose_source != "odom"
+        self.pose_topic = pose_topic(bridge)
+        self.odom_frame = f"{bridge.namespace}/{ODOM_FRAME}" if bridge.namespace else ODOM_FRAME
+        self.pose_timeout = bridge.pose_timeout
+        self.stale_distance, self.stale_angle = bridge.pose_stale_distance, bridge.pose_stale_angle
+        self.streaming = bridge.pose_source != "pose_with_covariance"  # AMCL's pose: only after motion
+        self.blend = CorrectionBlend(bridge.pose_blend_time)
+        self.correction: Pose2D | None = None  # the map -> odom correction of the newest localized state
+        self.history = OdomHistory()
+        self.fix_at: float | None = None  # when (our monotonic clock) the last fix came
+        self.fix_odom: Pose2D | None = None  # the odometry pose at the last fix
+        self.fix_stamp_ns: int | None = None
+        self.fix_frame: str | None = None
+        self.pending_fix: tuple[int, Pose2D, float] | None = None  # a fix that came before any odometry
+        self.localization_stale: str | None = None  # why the localization is stale (None: fresh)
+        self.missing_warned = False
+        self.started_at = time.monotonic()
         # commands
         self.actor_alive = False
         # (episode, step) of the followed actor session, bounded both ways (common.net.provenance)
@@ -162,7 +198,17 @@ class RobotBridge:
                     self.stale_run,
                 )
                 self.counts.count("odom_clock_resets")
-            pose = to_goal_frame(Pose2D(odom.x, odom.y, yaw), self.goal)
+            raw = Pose2D(odom.x, odom.y, yaw)
+            if self.localized:
+                located = self._localize(odom.stamp_ns, raw, received)
+                if located is None:  # no fresh localization: no state (the actor stops on its own)
+                    self.stale_run = self.future_run = 0
+                    self.last_stamp_ns, self.last_stamp_at = odom.stamp_ns, received
+                    self.counts.count("states_withheld")
+                    return None
+                raw = located
+            correction = self.correction if self.localized else None
+            pose = to_goal_frame(raw, self.goal)
             alpha = wrap_angle(pose.theta) if self.alpha is None else unwrap_heading(self.alpha, pose.theta)
             try:
                 state = PlantState(
@@ -172,6 +218,7 @@ class RobotBridge:
                     stamp_ns=time.monotonic_ns(),
                     state=(pose.x, pose.y, alpha),
                     source="robot",
+                    map_to_odom=None if correction is None else (correction.x, correction.y, correction.theta),
                 )
             except ValidationError as error:  # beyond the schema's physical bounds (1e4 m)
                 self.counts.reject("odom", f"state {pose} out of range: {error.errors()[0]['msg']}")
@@ -195,6 +242,115 @@ class RobotBridge:
             self.counts.count("states_published")
             return state
 
+    # -- localization ---------------------------------------------------------------------
+    def on_localization(self, fix: PoseFix, received: float) -> None:
+        """A fix of the localization source: the ``map -> odom`` correction it implies."""
+        if not self.localized:
+            return
+        if self.pose_source == "tf" and fix.child_frame_id.lstrip("/") != self.odom_frame:
+            return  # /tf carries every transform of the robot: only map -> odom is ours
+        try:
+            yaw = yaw_from_quaternion(*fix.orientation)
+            if not (math.isfinite(fix.x) and math.isfinite(fix.y)):
+                raise ValueError(f"position ({fix.x}, {fix.y}) is not finite")
+            if max(abs(fix.x), abs(fix.y)) > LOCALIZATION_BOUND:
+                raise ValueError(f"position ({fix.x}, {fix.y}) beyond {LOCALIZATION_BOUND:g} m")
+        except ValueError as error:
+            self.counts.reject("localization", str(error))
+            return
+        with self.lock:
+            if self.fix_stamp_ns is not None and fix.stamp_ns <= self.fix_stamp_ns:
+                # transient-local history and the live sample may both bring one fix
+                self.counts.reject("localization", f"stamp {fix.stamp_ns} not newer than {self.fix_stamp_ns}")
+                return
+            self.fix_stamp_ns = fix.stamp_ns
+            if self.fix_frame != fix.frame_id:
+                self.fix_frame = fix.frame_id
+                log.info(
+                    "robot_bridge: localized by %s on %s in frame %s", self.pose_source, self.pose_topic, fix.frame_id
+                )
+            pose = Pose2D(fix.x, fix.y, yaw)
+            if self.pose_source != "tf" and self.history.latest() is None:
+                # a fix before any odometry (AMCL's transient-local pose comes at once): fused with
+                # the first odometry sample
+                self.pending_fix = (fix.stamp_ns, pose, received)
+                return
+            self._take_fix(fix.stamp_ns, pose, received)
+
+    def _take_fix(self, stamp_ns: int, pose: Pose2D, received: float) -> None:
+        """A fix's correction (lock held): ``/tf``'s map -> odom as it is, else the fix composed
+        with the odometry at its stamp."""
+        self.pending_fix = None
+        if self.pose_source == "tf":
+            target, at = pose, self.history.latest()
+        else:
+            at = self.history.at(stamp_ns)
+            if at is None:
+                return
+            target = correction(pose, at)
+        # after a stale spell (the robot stopped, no state published) or at the first fix the
+        # correction is taken at once; otherwise blended in: no jump in the actor's state
+        self.blend.set(target, received, snap=self.localization_stale is not None or self.fix_at is None)
+        self.fix_at, self.fix_odom = received, at
+        self.counts.count("localization_fixes")
+        if self.localization_stale is not None:
+            log.warning("robot_bridge: localization on %s is back: states resume", self.pose_topic)
+            self.localization_stale = None
+
+    def _localize(self, stamp_ns: int, odom: Pose2D, now: float) -> Pose2D | None:
+        """The localized pose of an odometry sample (lock held); None while the localization is
+        missing or stale (then the robot is stopped once, with one warning)."""
+        self.history.add(stamp_ns, odom)
+        if self.pending_fix is not None:
+            self._take_fix(*self.pending_fix)
+        reason = self._stale_reason(odom, now)
+        if reason is not None:
+            self._localization_lost(reason, now)
+            return None
+        self.correction = self.blend.value(now)
+        return self.blend.apply(odom, now)
+
+    def _stale_reason(self, odom: Pose2D | None, now: float) -> str | None:
+        if self.fix_at is None:
+            return "missing"
+        if odom is not None and self.fix_odom is not None:
+            distance, angle = motion(self.fix_odom, odom)
+            if distance > self.stale_distance or angle > self.stale_angle:
+                return (
+                    f"odometry moved {distance:.2f} m and turned {angle:.2f} rad since the last fix on "
+                    f"{self.pose_topic} (limits {self.stale_distance:g} m, {self.stale_angle:g} rad)"
+                )
+        if self.streaming and now - self.fix_at > self.pose_timeout:
+            return f"no fix on {self.pose_topic} for {now - self.fix_at:.2f} s (limit {self.pose_timeout:g} s)"
+        return None
+
+    def _localization_lost(self, reason: str, now: float) -> None:
+        """No usable localization (lock held): say so once, stop the robot if it was localized."""
+        if reason == "missing":
+            if not self.missing_warned and now - self.started_at > self.pose_timeout:
+                self.missing_warned = True
+                self.counts.count("localization_missing")
+                log.warning(
+                    "robot_bridge: no localization on %s (pose_source %s) in %.1f s: no state until a fix comes",
+                    self.pose_topic,
+                    self.pose_source,
+                    self.pose_timeout,
+                )
+            return
+        if self.localization_stale is None:
+            self.localization_stale = reason
+            self.counts.count("localization_stale_stops")
+            log.warning("robot_bridge: localization stale (%s): stopping the robot, no state until a fresh fix", reason)
+            self.driving = False
+            self.last_action_at = None
+            self._zero(now)
+
+    def localization(self) -> str:
+        """What the state's pose is, for the summary."""
+        if not self.localized:
+            return "odometry only"
+        return f"{self.pose_source} on {self.pose_topic} (frame {self.fix_frame or 'none seen'})"
+
     # -- commands -------------------------------------------------------------------------
     def on_action(self, message: Action, received: float, source: str | None = None) -> None:
         with self.lock:
@@ -204,6 +360,9 @@ class RobotBridge:
             if not self.actor_alive:  # an action in flight when its actor left is late (ActionGate)
                 late = self.actions.late_refusal(source, received) if self.actions is not None else None
                 self.counts.reject(*(late or ("action", "the actor's liveliness token is absent")))
+                return
+            if self.localized and (self.fix_at is None or self.localization_stale is not None):
+                self.counts.reject("action", "no fresh localization")
                 return
             try:  # the value first: a refused one never moves the order
                 v, omega = clamp_command(message.action[0], message.action[1], self.v_max, self.omega_max)
@@ -269,6 +428,10 @@ class RobotBridge:
     def tick(self, now: float) -> None:
         """The watchdog: zero velocity, repeated, while no fresh action from a live actor."""
         with self.lock:
+            if self.localized and self.localization_stale is None and self.fix_at is not None:
+                reason = self._stale_reason(self.history.latest(), now)  # a streaming source fell silent
+                if reason is not None:
+                    self._localization_lost(reason, now)
             fresh = self.actor_alive and self.last_action_at is not None and now - self.last_action_at <= self.timeout
             if fresh:
                 return

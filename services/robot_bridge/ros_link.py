@@ -30,25 +30,31 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from common.config.settings import BridgeSettings
 from common.contracts import ros_wire
 from common.contracts.ros_wire import (
     ODOMETRY,
+    POSE_SOURCES,
     TWIST,
     TWIST_STAMPED,
     Attachment,
     AttachmentFormat,
     CmdEndpoint,
     Odometry,
+    PoseFix,
     RosGraph,
     WireError,
+    pose_topic,
+    qos_chunk,
 )
-from common.net.transport import plain_config
 from services.robot_bridge.bridge import Counts
 
 log = logging.getLogger(__name__)
 FALLBACK = "fallback"  # the source of a cmd_vel target guessed from the distro, not discovered
+MAX_TRANSFORMS = 64  # of one /tf sample looked at (a robot's tree has a few dozen frames)
+LOCALIZATION_EID = 50  # the entity id of the localization subscription (after odom and cmd_vel's)
 
 
 class _Target:
@@ -71,6 +77,7 @@ class RosLink:
         # that share a session to one router take disjoint ranges (services/robot_bridge/host.py)
         self.entity_base = entity_base
         self.on_odometry: Callable[[Odometry, float], object] = lambda odom, received: None
+        self.on_localization: Callable[[PoseFix, float], object] = lambda fix, received: None
         self.lock = threading.Lock()
         self.targets: dict[str, _Target] = {}
         self.entities: list[Any] = []
@@ -99,6 +106,8 @@ class RosLink:
                     )
                 )
             )
+        if self.bridge.pose_source != "odom":
+            self._subscribe_localization()
         if self.bridge.cmd_type == "auto":
             pattern = self.graph.discovery_pattern(self.bridge.cmd_vel_topic)
             self.entities.append(self.session.liveliness().declare_subscriber(pattern, self._on_token, history=True))
@@ -114,6 +123,44 @@ class RosLink:
             self.bridge.cmd_type,
         )
 
+    def _subscribe_localization(self) -> None:
+        """The localization topic, with the QoS its publisher uses (ros_wire.POSE_SOURCES).
+
+        Transient local (AMCL's ``amcl_pose``): rmw_zenoh_cpp (Jazzy >= 0.2.2, "Introduce the
+        advanced publisher and subscriber", ros2/rmw_zenoh#469) publishes it with a zenoh-ext
+        AdvancedPublisher that caches the last ``depth`` samples and announces itself, and
+        subscribes with an AdvancedSubscriber whose history detects late publishers and queries
+        their caches (rmw_subscription_data.cpp). The link does the same (under ros2dds too: a
+        cache the robot's side keeps in zenoh-ext's form answers it), so the fix AMCL made before
+        the bridge started arrives at once."""
+        source = POSE_SOURCES[self.bridge.pose_source]
+        topic = pose_topic(self.bridge)
+        key = self.graph.data_key(topic, source.ros_type, "*")
+        self.localization_key = key
+        if source.transient_local:
+            history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=source.depth)
+            self.entities.append(
+                zenoh.ext.declare_advanced_subscriber(
+                    self.session, key, self._on_pose_sample, history=history, subscriber_detection=True
+                )
+            )
+        else:
+            self.entities.append(self.session.declare_subscriber(key, self._on_pose_sample))
+        if self.graph.profile == "rmw_zenoh":
+            nid = self.entity_base
+            token = self.graph.endpoint_token(
+                self.zid,
+                nid,
+                nid + LOCALIZATION_EID,
+                "MS",
+                ros_wire.BRIDGE_NODE,
+                topic,
+                source.ros_type,
+                qos=qos_chunk(source.depth, source.transient_local),
+            )
+            self.entities.append(self.session.liveliness().declare_token(token))
+        log.info("robot_bridge: localization %s on %s", self.bridge.pose_source, key)
+
     def close(self) -> None:
         with self.lock:
             targets = list(self.targets.values())
@@ -122,28 +169,37 @@ class RosLink:
         self.entities.clear()
 
     # -- odometry in ----------------------------------------------------------------------
+    def _rmw_attachment(self, sample: zenoh.Sample, what: str, ros_type: str) -> Attachment | None:
+        """rmw_zenoh: the sample's attachment, after its key's type hash is checked; None (counted)
+        when either is not rmw_zenoh's."""
+        key = str(sample.key_expr)
+        if sample.attachment is None:
+            self.counts.reject(what, f"{key}: no rmw_zenoh attachment")
+            return None
+        try:
+            attachment = Attachment.decode(bytes(sample.attachment.to_bytes()))
+        except WireError as error:
+            self.counts.reject(what, f"{key}: {error}; srl speaks {ros_wire.SUPPORTED_RMW_ZENOH}")
+            return None
+        chunk = self.graph.hash_chunk_of(key)
+        if not self.graph.accepts_hash(ros_type, chunk):
+            self.counts.reject(what, f"{key}: type hash {chunk} is not {ros_type}'s")
+            return None
+        return attachment
+
     def _on_odom_sample(self, sample: zenoh.Sample) -> None:
         received = time.monotonic()
-        key = str(sample.key_expr)
+        attachment = None
         if self.graph.profile == "rmw_zenoh":
-            if sample.attachment is None:
-                self.counts.reject("odom", f"{key}: no rmw_zenoh attachment")
-                return
-            try:
-                attachment = Attachment.decode(bytes(sample.attachment.to_bytes()))
-            except WireError as error:
-                self.counts.reject("odom", f"{key}: {error}; srl speaks {ros_wire.SUPPORTED_RMW_ZENOH}")
-                return
-            chunk = self.graph.hash_chunk_of(key)
-            if not self.graph.accepts_hash(ODOMETRY, chunk):
-                self.counts.reject("odom", f"{key}: type hash {chunk} is not {ODOMETRY}'s")
+            attachment = self._rmw_attachment(sample, "odom", ODOMETRY)
+            if attachment is None:
                 return
         try:
             odom = ros_wire.decode_odometry(self.graph.distro, bytes(sample.payload.to_bytes()))
         except WireError as error:
             self.counts.reject("odom", str(error))
             return
-        if self.graph.profile == "rmw_zenoh":
+        if attachment is not None:
             self._learn_format(attachment.format)
         self.counts.count("odom_received")
         try:
@@ -151,6 +207,25 @@ class RosLink:
         except Exception:  # a handler bug must not kill zenoh's callback thread silently
             self.counts.count("handler_errors.odom")
             log.exception("robot_bridge: odometry handler failed")
+
+    # -- localization in ---------------------------------------------------------------------
+    def _on_pose_sample(self, sample: zenoh.Sample) -> None:
+        received = time.monotonic()
+        ros_type = POSE_SOURCES[self.bridge.pose_source].ros_type
+        if self.graph.profile == "rmw_zenoh" and self._rmw_attachment(sample, "localization", ros_type) is None:
+            return
+        try:
+            fixes = ros_wire.decode_localization(self.graph.distro, ros_type, bytes(sample.payload.to_bytes()))
+        except WireError as error:
+            self.counts.reject("localization", str(error))
+            return
+        self.counts.count("localization_received")
+        for fix in fixes[:MAX_TRANSFORMS]:
+            try:
+                self.on_localization(fix, received)
+            except Exception:  # a handler bug must not kill zenoh's callback thread silently
+                self.counts.count("handler_errors.localization")
+                log.exception("robot_bridge: localization handler failed")
 
     def _learn_format(self, found: AttachmentFormat) -> None:
         """The robot's attachment format, from a valid odometry sample: cmd_vel follows it."""
@@ -338,8 +413,3 @@ def undeclare(entities: list[Any]) -> None:
             entity.undeclare()
         except zenoh.ZError as error:
             log.debug("undeclare: %s", error)
-
-
-def robot_session(bridge: BridgeSettings, transport: Any) -> zenoh.Session:
-    """A client session to the robot's own Zenoh router (multicast scouting off)."""
-    return zenoh.open(plain_config(transport, bridge.robot_endpoint))

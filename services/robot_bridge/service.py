@@ -30,7 +30,8 @@ from common.net.security import SecurityError
 from common.net.transport import Bus, start_status_thread
 from common.system.clock import Ticker
 from services.robot_bridge.bridge import Counts, RobotBridge
-from services.robot_bridge.ros_link import RosLink, robot_session, undeclare
+from services.robot_bridge.robot_router import robot_session
+from services.robot_bridge.ros_link import RosLink, undeclare
 
 log = logging.getLogger(__name__)
 # zero-velocity commands on the way out, 20 ms apart: one lost sample must not leave the robot
@@ -51,6 +52,7 @@ def wire_robot(
     actor_gate = SourceGate("actor")
     bridge = RobotBridge(settings, publish_state, link.send, counts, actor_gate)
     link.on_odometry = bridge.on_odometry
+    link.on_localization = bridge.on_localization
     return link, bridge, actor_gate
 
 
@@ -96,7 +98,7 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         )
     robot = settings.transport.robot
     own_session = bool(settings.bridge.robot_endpoint)
-    session = robot_session(settings.bridge, settings.transport) if own_session else bus.session
+    session = robot_session(settings.bridge, settings.transport, stop) if own_session else bus.session
     link, bridge, actor_gate = wire_robot(settings, session, bus.publisher(STATE, robot), bus)
     graph = link.graph
     tokens: list[Any] = []
@@ -138,6 +140,7 @@ def bridge_summary(
             "goal": list(settings.bridge.goal),
             **wire,
             "final_state": None if bridge.last_state is None else list(bridge.last_state),
+            "localization": bridge.localization(),
             "max_abs_command": bridge.max_abs_command,
             "timing": bridge.timing(),
             "counters": counters,

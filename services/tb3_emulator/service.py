@@ -28,6 +28,19 @@ sensor timer), frame ``odom``, child ``base_footprint`` (namespace-prefixed when
 with the applied velocity in its twist; optional seeded Gaussian noise on the reported pose and
 a command latency.
 
+**Localization** (``--localization``, docs/turtlebot.md "Localization"): the emulator also plays
+the robot's localization, so the bridge's ``bridge.pose_source`` path is tested end to end. Then
+its world frame is ``map``, its odometry starts at the origin of ``odom`` where the robot stands
+at start (as a TurtleBot3's does at bringup), and it publishes the true pose in ``map`` with
+seeded Gaussian noise (``--localization-noise``) by the source's rule (:class:`FixRule`):
+``pose_with_covariance`` is AMCL's ``amcl_pose`` (a fix at start, then only after the robot
+moved ``--localization-update`` 0.25 m or turned 0.2 rad, nav2_amcl's update_min_d/update_min_a
+of turtlebot3_navigation2's burger.yaml; reliable, transient local, KeepLast(1), served to late
+subscribers from a zenoh-ext AdvancedPublisher cache as rmw_zenoh_cpp does); ``tf`` is AMCL's
+``map -> odom`` on ``/tf``, from the same sparse fixes, sent at ``--localization-rate``;
+``odometry`` (an EKF's ``odometry/filtered``) and ``pose_stamped`` (motion capture) stream at
+``--localization-rate`` (10 Hz).
+
 A stock TurtleBot3 has no cmd_vel timeout: the OpenCR stops only when the heartbeat from
 turtlebot3_node stops for 500 ms (``HEARTBEAT_TIMEOUT_MS``), and turtlebot3_node writes it every
 100 ms whatever cmd_vel does -- it holds its last command forever. That is why the bridge has a
@@ -49,10 +62,22 @@ from typing import Any
 
 import numpy as np
 import zenoh
+import zenoh.ext
 
 from common.contracts import ros_wire
-from common.contracts.ros_wire import ODOMETRY, Attachment, AttachmentFormat, Odometry, RosGraph, WireError
+from common.contracts.ros_wire import (
+    ODOMETRY,
+    POSE_SOURCES,
+    Attachment,
+    AttachmentFormat,
+    Odometry,
+    PoseFix,
+    RosGraph,
+    WireError,
+    qos_chunk,
+)
 from common.math.frames import Pose2D, quaternion_from_yaw
+from common.math.localization import compose, correction, inverse, motion
 from common.math.physics import PhysicsBot, PhysicsParams
 from common.math.turtlebot import TurtleBot, TurtleBotParams, cmd_vel_to_wheels
 from common.system.clock import Ticker
@@ -155,6 +180,50 @@ class Tb3Model:
         return pose, velocity
 
 
+# The ROS node that publishes each localization source (its liveliness token's node name).
+LOCALIZATION_NODES = {
+    "tf": "amcl",
+    "pose_with_covariance": "amcl",
+    "odometry": "ekf_filter_node",
+    "pose_stamped": "mocap",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class LocalizationConfig:
+    """What localization the emulator publishes (``--localization`` and its options)."""
+
+    source: str  # a key of ros_wire.POSE_SOURCES
+    topic: str
+    noise: tuple[float, float] = (0.0, 0.0)  # [m, rad] std. dev. on the published pose
+    update: tuple[float, float] = (0.25, 0.2)  # [m, rad] AMCL: a fix after this much motion
+    rate: float = 10.0  # [Hz] streaming sources, and /tf
+
+
+class FixRule:
+    """When a localization fix is due: AMCL-like (``pose_with_covariance``, ``tf``) at the first
+    call and then after the true pose moved ``update`` (distance or angle) since the last fix;
+    streaming (``odometry``, ``pose_stamped``) every ``1 / rate`` seconds."""
+
+    def __init__(self, config: LocalizationConfig) -> None:
+        self.sparse = config.source in ("pose_with_covariance", "tf")
+        self.update, self.period = config.update, 1.0 / config.rate
+        self.last_pose: Pose2D | None = None
+        self.last_at: float | None = None
+
+    def due(self, truth: Pose2D, now: float) -> bool:
+        if self.last_pose is None or self.last_at is None:
+            ok = True
+        elif self.sparse:
+            distance, angle = motion(self.last_pose, truth)
+            ok = distance >= self.update[0] or angle >= self.update[1]
+        else:
+            ok = now - self.last_at >= self.period - 1e-9
+        if ok:
+            self.last_pose, self.last_at = truth, now
+        return ok
+
+
 def run(
     session: zenoh.Session,
     graph: RosGraph,
@@ -166,6 +235,7 @@ def run(
     cmd_topic: str,
     odom_rate: float,
     attachment: AttachmentFormat = "compact",
+    localization: LocalizationConfig | None = None,
 ) -> dict[str, Any]:
     counters: Counter[str] = Counter()
     lock = threading.Lock()
@@ -240,6 +310,11 @@ def run(
         odom_key,
     )
 
+    localize = None if localization is None else _Localizer(session, graph, zid, localization, model, attachment)
+    if localize is not None:
+        entities.extend(localize.entities)
+    # localized: the odom frame starts where the robot stands (REP 105), the world frame is map
+    origin = Pose2D(*(float(c) for c in model.state)) if localize is not None else None
     seq = 0
     ticker = Ticker(1.0 / odom_rate, stop)
     end = None if duration is None else time.monotonic() + duration
@@ -247,6 +322,8 @@ def run(
         while (now := ticker.wait()) is not None and (end is None or now < end):
             pose, (v, omega) = model.sample(now)
             stamp = time.time_ns()
+            if origin is not None:
+                pose = np.array(compose(inverse(origin), Pose2D(*(float(c) for c in pose))))
             payload = ros_wire.encode_odometry(
                 graph.distro,
                 Odometry(
@@ -266,6 +343,9 @@ def run(
             else:
                 publisher.put(payload)
             count("odom_published")
+            if localize is not None:
+                for name in localize.publish(Pose2D(*(float(c) for c in pose)), stamp, now):
+                    count(name)
     finally:
         for entity in reversed(entities):
             try:
@@ -273,6 +353,9 @@ def run(
             except zenoh.ZError as error:
                 log.debug("undeclare: %s", error)
     _, applied = model.sample(time.monotonic())
+    reported = Pose2D(*(float(c) for c in model.odometry))
+    if origin is not None:  # localized: odometry in its own odom frame
+        reported = compose(inverse(origin), reported)
     return {
         "service": "tb3_emulator",
         "profile": graph.profile,
@@ -281,9 +364,10 @@ def run(
         "attachment": attachment if graph.profile == "rmw_zenoh" else None,
         "cmd_key": cmd_key,
         "odom_key": odom_key,
+        "localization": None if localization is None else localization.source,
         "model": model.kind,
         "final_pose": [float(c) for c in model.state],  # the truth (odom frame)
-        "final_odometry": [float(c) for c in model.odometry],  # what it reported
+        "final_odometry": [float(c) for c in reported],  # what it reported
         "saturated_commands": model.robot.saturated_commands,
         "applied": list(applied),
         "max_abs_applied": model.max_abs,
@@ -291,3 +375,107 @@ def run(
         "counters": dict(counters),
         "missed_ticks": ticker.missed,
     }
+
+
+class _Localizer:
+    """The emulated robot's localization publisher (:class:`LocalizationConfig`, :class:`FixRule`)."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        graph: RosGraph,
+        zid: str,
+        config: LocalizationConfig,
+        model: Tb3Model,
+        attachment: AttachmentFormat,
+    ) -> None:
+        self.graph, self.config, self.model, self.attachment = graph, config, model, attachment
+        self.source = POSE_SOURCES[config.source]
+        self.rule = FixRule(config)
+        self.rng = np.random.default_rng(model.rng.integers(2**32))  # its own stream, seeded by --seed
+        self.key = graph.data_key(config.topic, self.source.ros_type)
+        node = LOCALIZATION_NODES[config.source]
+        if graph.profile == "rmw_zenoh":
+            tokens = [
+                graph.node_token(zid, 30, node),
+                graph.endpoint_token(
+                    zid,
+                    30,
+                    31,
+                    "MP",
+                    node,
+                    config.topic,
+                    self.source.ros_type,
+                    qos=qos_chunk(self.source.depth, self.source.transient_local),
+                ),
+            ]
+        else:
+            tokens = [graph.ros2dds_token(zid, "MP", config.topic, self.source.ros_type)]
+        self.gid = ros_wire.gid_for(tokens[-1])
+        self.entities: list[Any] = [session.liveliness().declare_token(token) for token in tokens]
+        if self.source.transient_local:
+            # rmw_zenoh_cpp's transient-local publisher (rmw_publisher_data.cpp): an AdvancedPublisher
+            # with a cache of ``depth`` samples, detectable by late subscribers
+            self.publisher: Any = zenoh.ext.declare_advanced_publisher(
+                session,
+                self.key,
+                cache=zenoh.ext.CacheConfig(max_samples=self.source.depth),
+                publisher_detection=True,
+            )
+        else:
+            self.publisher = session.declare_publisher(self.key)
+        self.entities.append(self.publisher)
+        self.seq = 0
+        self.frames = (graph.frame_id(ros_wire.MAP_FRAME), graph.frame_id(ros_wire.ODOM_FRAME))
+        self.child = graph.frame_id(ros_wire.BASE_FRAME)
+        self.map_to_odom: Pose2D | None = None
+        self.tf_at: float | None = None
+        log.info("tb3-emulator: localization %s on %s", config.source, self.key)
+
+    def publish(self, odom: Pose2D, stamp: int, now: float) -> list[str]:
+        """Publish what is due at ``now`` (``odom``: the odometry just published); the counter names."""
+        truth = Pose2D(*(float(c) for c in self.model.state))
+        published: list[str] = []
+        if self.rule.due(truth, now):
+            sigma_xy, sigma_theta = self.config.noise
+            noise = self.rng.normal(0.0, 1.0, 3) * np.array([sigma_xy, sigma_xy, sigma_theta])
+            fix = Pose2D(truth.x + noise[0], truth.y + noise[1], truth.theta + noise[2])
+            if self.config.source == "tf":
+                self.map_to_odom = correction(fix, odom)  # AMCL's map -> odom from its estimate
+            else:
+                message = PoseFix(
+                    stamp,
+                    self.frames[0],
+                    self.child,
+                    fix.x,
+                    fix.y,
+                    quaternion_from_yaw(fix.theta),
+                    (sigma_xy**2, sigma_xy**2, sigma_theta**2),
+                )
+                if self.source.ros_type == ODOMETRY:
+                    payload = ros_wire.encode_odometry(
+                        self.graph.distro,
+                        Odometry(stamp, message.frame_id, self.child, fix.x, fix.y, message.orientation, 0.0, 0.0),
+                    )
+                else:
+                    payload = ros_wire.encode_pose(self.graph.distro, self.source.ros_type, message)
+                self._put(payload, stamp)
+                published.append("localization_published")
+        if (
+            self.config.source == "tf"
+            and self.map_to_odom is not None
+            and (self.tf_at is None or now - self.tf_at >= 1.0 / self.config.rate - 1e-9)
+        ):
+            self.tf_at = now
+            c = self.map_to_odom
+            transform = PoseFix(stamp, self.frames[0], self.frames[1], c.x, c.y, quaternion_from_yaw(c.theta))
+            self._put(ros_wire.encode_tf(self.graph.distro, [transform]), stamp)
+            published.append("tf_published")
+        return published
+
+    def _put(self, payload: bytes, stamp: int) -> None:
+        self.seq += 1
+        if self.graph.profile == "rmw_zenoh":
+            self.publisher.put(payload, attachment=Attachment(self.seq, stamp, self.gid, self.attachment).encode())
+        else:
+            self.publisher.put(payload)
