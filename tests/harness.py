@@ -36,8 +36,11 @@ import numpy as np
 import zenoh
 
 from common.config.settings import Settings
-from common.contracts.messages import Transition
+from common.contracts.messages import PlantState, Transition
+from common.contracts.ros_wire import Odometry
+from common.math.frames import quaternion_from_yaw
 from common.net.transport import plain_config
+from services.robot_bridge.bridge import RobotBridge
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,6 +86,21 @@ class FakeCounts:
 
     def reject(self, what: str, reason: str) -> None:
         self.counters[f"rejected.{what}"] += 1
+
+
+def fake_bridge(**bridge: Any) -> tuple[RobotBridge, list[PlantState], list[tuple[float, float]], FakeCounts]:
+    """A :class:`RobotBridge` of robot ``u0`` with ``[bridge]`` settings ``bridge``, on fake ports:
+    the states it publishes, the (v, omega) it commands, its counters."""
+    settings = Settings.load(transport={"robot": "u0"}, bridge=bridge)
+    states: list[PlantState] = []
+    commands: list[tuple[float, float]] = []
+    counts = FakeCounts()
+    return RobotBridge(settings, states.append, lambda v, w: commands.append((v, w)), counts), states, commands, counts
+
+
+def odom_sample(stamp: int, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> Odometry:
+    """An odometry sample at rest in ``odom``: pose (x, y, yaw), ROS stamp ``stamp`` [ns]."""
+    return Odometry(stamp, "odom", "base_footprint", x, y, quaternion_from_yaw(yaw), 0.0, 0.0)
 
 
 def free_port() -> int:

@@ -17,12 +17,12 @@ from pydantic import ValidationError
 
 from common.config.settings import Settings
 from common.contracts.messages import Action, PlantState
-from common.contracts.ros_wire import Odometry, PoseFix
+from common.contracts.ros_wire import PoseFix
 from common.math.frames import Pose2D, quaternion_from_yaw, wrap_angle
 from common.math.localization import CorrectionBlend, OdomHistory, compose, correction, inverse, motion
 from services.robot_bridge.bridge import RobotBridge
 from services.tb3_emulator.service import FixRule, LocalizationConfig
-from tests.harness import ROOT, FakeCounts, free_port
+from tests.harness import ROOT, fake_bridge, free_port, odom_sample
 
 SECOND = 10**9
 
@@ -77,16 +77,8 @@ def test_a_new_correction_is_blended_in_without_a_jump() -> None:
 # -- the bridge, against fakes -----------------------------------------------------------------
 
 
-def _bridge(**bridge: Any) -> tuple[RobotBridge, list[PlantState], list[tuple[float, float]], FakeCounts]:
-    settings = Settings.load(transport={"robot": "u0"}, bridge=bridge)
-    states: list[PlantState] = []
-    commands: list[tuple[float, float]] = []
-    counts = FakeCounts()
-    return RobotBridge(settings, states.append, lambda v, w: commands.append((v, w)), counts), states, commands, counts
-
-
-def _odom(stamp: int, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> Odometry:
-    return Odometry(stamp, "odom", "base_footprint", x, y, quaternion_from_yaw(yaw), 0.0, 0.0)
+_bridge = fake_bridge
+_odom = odom_sample
 
 
 def _fix(stamp: int, x: float, y: float, yaw: float = 0.0, frame: str = "map", child: str = "") -> PoseFix:

@@ -27,7 +27,7 @@ from common.contracts import ros_wire
 from common.contracts.messages import Action, PlantState
 from common.contracts.ros_wire import ODOMETRY, TWIST, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.math.dynamics import exact_step
-from common.math.frames import Pose2D, quaternion_from_yaw
+from common.math.frames import Pose2D
 from common.net.provenance import RESYNC_AFTER, SourceGate
 from services.robot_bridge.bridge import CLOCK_RESET_AFTER, RobotBridge
 from services.tb3_emulator.service import Tb3Model
@@ -36,7 +36,9 @@ from tests.harness import (
     FakeCounts,
     cluster,
     declare_service_tokens,
+    fake_bridge,
     free_port,
+    odom_sample,
     open_session,
     wait_until,
 )
@@ -55,16 +57,8 @@ def firmware(value: float) -> float:
 # -- the logic, against fakes -----------------------------------------------------------------
 
 
-def _bridge(**bridge: Any) -> tuple[RobotBridge, list[PlantState], list[tuple[float, float]], FakeCounts]:
-    settings = Settings.load(transport={"robot": "u0"}, bridge=bridge)
-    states: list[PlantState] = []
-    commands: list[tuple[float, float]] = []
-    counts = FakeCounts()
-    return RobotBridge(settings, states.append, lambda v, w: commands.append((v, w)), counts), states, commands, counts
-
-
-def _odom(stamp: int, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> Odometry:
-    return Odometry(stamp, "odom", "base_footprint", x, y, quaternion_from_yaw(yaw), 0.0, 0.0)
+_bridge = fake_bridge
+_odom = odom_sample
 
 
 def _action(step: int, v: float = 0.1, omega: float = 0.0, episode: int = 1, robot: str = "u0") -> Action:
