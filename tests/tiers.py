@@ -22,8 +22,11 @@ parallel pytest-xdist workers (``--dist worksteal``: each worker starts on a run
 order, and a worker that runs out takes tests from another's queue, so the long files of
 real-time runs do not leave workers idle); phase 2 runs the ``timing`` tests on one worker, alone. The
 last line counts both phases as pytest does; the exit code is non-zero if either phase failed.
-``SRL_TEST_TIMING_WORKERS=2`` runs the timing tests two at a time (faster; as root, the actor's
-real-time tick thread keeps its deadlines beside another test, without that right it may not).
+Phase 2 runs the ``timing`` tests in two streams side by side (``--dist loadgroup``), each one test
+at a time: the tests of network-namespace hosts (``needs_root``: their services mostly wait on
+real time, lossy links and partitions, about a third of a core) and all the others. So no two
+CPU-bound timing tests ever share the cores. ``SRL_TEST_TIMING_WORKERS=1`` runs all of them alone,
+one by one (without root the namespace stream is empty and the phase is that already).
 
 Every test has a time limit (pytest-timeout, ``timeout`` in pyproject.toml; a longer one with
 ``@pytest.mark.timeout(SECONDS)``): past it the test fails with its stack. A test stuck where
@@ -52,7 +55,9 @@ from typing import Any
 import pytest
 
 WORKERS = 3  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
-TIMING_WORKERS = 1  # the timing tests alone: none shares the cores with another test
+TIMING_WORKERS = 2  # the timing phase's two streams side by side (NETNS_STREAM, TIMING_STREAM)
+NETNS_STREAM = "netns"  # the timing tests of namespaced hosts (needs_root): one after another
+TIMING_STREAM = "timing"  # every other timing test: one after another
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
 JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by both phases (tests/conftest.py)
@@ -179,6 +184,10 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:  # the timing phase's two streams (main): the namespaced hosts, the rest
+        if item.get_closest_marker("timing"):
+            stream = NETNS_STREAM if item.get_closest_marker("needs_root") else TIMING_STREAM
+            item.add_marker(pytest.mark.xdist_group(stream))
     if not config.getoption("fast"):
         return
     keep: list[pytest.Item] = []
@@ -287,7 +296,7 @@ def main(extra: list[str]) -> int:
         (
             ("timing, alone", ["-p", "no:xdist", "-m", "timing", *extra])
             if timing <= 1
-            else (f"timing, {timing} at a time", ["-n", str(timing), "--dist", "worksteal", "-m", "timing", *extra])
+            else (f"timing, {timing} streams", ["-n", str(timing), "--dist", "loadgroup", "-m", "timing", *extra])
         ),
     ]
     code, seconds = 0, 0.0
