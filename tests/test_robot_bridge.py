@@ -751,12 +751,28 @@ def test_up_with_the_emulated_robot() -> None:
     start, final = np.array(summary["start_state"]), np.array(summary["final_state"])
     assert np.hypot(*final[:2]) < np.hypot(*start[:2]) - 0.3, (start, final)
     bridge, emulator = summary["bridge"], summary["emulator"]
+    # no localization source: the pose is the odometry's, said without --json too
+    assert bridge["localization"] == "odometry only"
+    assert "\n  localization   odometry only\n" in done.stdout
     assert bridge["discovered"] == [TWIST_STAMPED]
     assert bridge["counters"]["actions_applied"] >= summary["steps"] - 2
     assert emulator["counters"].get("nonfinite_commands", 0) == 0
     assert emulator["counters"].get("rejected_no_attachment", 0) == 0
     assert emulator["applied"] == [0.0, 0.0]  # stopped at the end
     assert summary["transitions_received"] == summary["steps"]
+
+
+def test_the_up_summary_says_what_the_robots_pose_is() -> None:
+    """Odometry only or the localization source, for a robot plant; nothing for a simulated one."""
+    from tools.commands.up import format_up_summary
+
+    base = {"mode": "realtime", "plant": "robot", "services": {}, "steps": 1}
+    odometry = format_up_summary({**base, "bridge": {"localization": "odometry only"}}).splitlines()
+    located = "pose_with_covariance on amcl_pose (frame map)"
+    localized = format_up_summary({**base, "bridge": {"localization": located}}).splitlines()
+    assert "  localization   odometry only" in odometry
+    assert f"  localization   {located}" in localized
+    assert not any("localization" in line for line in format_up_summary({**base, "plant": "sim"}).splitlines())
 
 
 @pytest.mark.integration

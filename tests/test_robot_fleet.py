@@ -9,9 +9,11 @@ TurtleBot3s, and a fleet on one shared robot router beside a robot the fleet doe
 from __future__ import annotations
 
 import json
+import logging
 import math
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,13 +24,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.config.settings import Settings
+from common.config.arguments import UsageError
+from common.config.settings import BridgeSettings, Settings, TransportSettings
 from common.contracts import ros_wire
 from common.contracts.messages import Action, PlantState
 from common.contracts.ros_wire import ODOMETRY, TWIST_STAMPED, Attachment, Odometry, RosGraph
 from common.math.fleet import FleetError, circle_starts, ros_fleet
 from common.math.frames import quaternion_from_yaw
-from services.robot_bridge.host import BridgeUnit, open_unit
+from services.robot_bridge.host import BridgeUnit, open_robot_sessions, open_unit
 from tests.harness import ROOT, free_port, open_session, srl
 
 ROBOTS = ["tb3_1", "tb3_2", "tb3_3"]
@@ -242,11 +245,86 @@ def test_robots_on_one_session_have_distinct_rmw_zenoh_entities() -> None:
     assert all(keys[robot].startswith(f"0/{robot}/cmd_vel/") for robot in ROBOTS)
 
 
+# -- the host's sessions to the robots' own routers --------------------------------------------
+
+
+def test_the_host_opens_each_robot_router_once_with_the_bridges_login_under_one_deadline() -> None:
+    """Robots on one router share a session; each router gets the bridge's login and TLS
+    (bridge.robot_*), the run's stop event, and what is left of ONE connect timeout."""
+    settings = Settings.load(
+        bridge={
+            "robot_user": "srl_bridge",
+            "robot_password_file": "/secrets/srl_bridge.password",
+            "robot_tls_ca": "/secrets/ca.pem",
+            "robot_connect_timeout": 7.0,
+        }
+    )
+    shared, own = "tls/127.0.0.1:7001", "tls/127.0.0.1:7000"
+    fleet = {"tb3_1": shared, "tb3_2": shared, "tb3_3": own}
+    stop = threading.Event()
+    calls: list[BridgeSettings] = []
+
+    def connect(bridge: BridgeSettings, transport: TransportSettings, given: threading.Event) -> str:
+        assert given is stop and transport == settings.transport
+        calls.append(bridge)
+        time.sleep(0.05)  # a robot that takes a while: the next one gets less time
+        return f"session to {bridge.robot_endpoint}"
+
+    sessions: dict[str, Any] = {}
+    open_robot_sessions(settings, fleet, stop, sessions, connect)
+    assert sessions == {own: f"session to {own}", shared: f"session to {shared}"}
+    assert [c.robot_endpoint for c in calls] == [own, shared]
+    for call in calls:
+        assert (call.robot_user, call.robot_password_file, call.robot_tls_ca) == (
+            "srl_bridge",
+            "/secrets/srl_bridge.password",
+            "/secrets/ca.pem",
+        )
+    assert 6.9 < calls[0].robot_connect_timeout <= 7.0
+    assert calls[1].robot_connect_timeout <= calls[0].robot_connect_timeout - 0.05
+
+
+def test_a_robot_router_that_never_comes_is_one_line_naming_its_robots() -> None:
+    settings = Settings.load()
+    fleet = {"tb3_1": "tcp/127.0.0.1:7000", "tb3_2": "tcp/127.0.0.1:7001", "tb3_3": "tcp/127.0.0.1:7001"}
+
+    def connect(bridge: BridgeSettings, _transport: TransportSettings, _stop: threading.Event) -> str:
+        if bridge.robot_endpoint.endswith(":7001"):
+            raise UsageError(f"robot_bridge: cannot reach the robot's Zenoh router at {bridge.robot_endpoint}")
+        return "opened"
+
+    sessions: dict[str, Any] = {}
+    with pytest.raises(UsageError) as refused:
+        open_robot_sessions(settings, fleet, threading.Event(), sessions, connect)
+    assert str(refused.value) == (
+        "robot_bridge: cannot reach the robot's Zenoh router at tcp/127.0.0.1:7001 (robot tb3_2, tb3_3)"
+    )
+    assert sessions == {"tcp/127.0.0.1:7000": "opened"}  # left for the host to close
+
+
+@pytest.mark.integration
+def test_the_host_waits_for_a_late_robot_with_one_status_line_and_gives_up_at_its_timeout(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The real session (services/robot_bridge/robot_router.py robot_session), no robot there."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    settings = Settings.load(bridge={"robot_connect_timeout": 1.0})
+    started = time.monotonic()
+    with caplog.at_level(logging.WARNING), pytest.raises(UsageError) as refused:
+        open_robot_sessions(settings, {"tb3_1": endpoint}, threading.Event(), {})
+    waited = time.monotonic() - started
+    waiting = [r.getMessage() for r in caplog.records if "waiting for" in r.getMessage()]
+    assert waiting == [f"robot_bridge: waiting for the robot's Zenoh router at {endpoint} (up to 1 s)"]
+    assert 1.0 <= waited < 5.0
+    assert str(refused.value).startswith(f"robot_bridge: cannot reach the robot's Zenoh router at {endpoint}")
+    assert str(refused.value).endswith("(robot tb3_1)")
+
+
 # -- the command line: a bad mapping is one line, nothing starts ------------------------------
 
 
-def _srl(*argv: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
-    return srl(*argv, timeout=timeout)
+def _srl(*argv: str, timeout: float = 60, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return srl(*argv, timeout=timeout, env=env)
 
 
 @pytest.mark.integration
@@ -271,11 +349,18 @@ def test_the_command_line_refuses_an_unmapped_namespace_in_one_line(argv: tuple[
 # -- integration: srl up --robots 3 --plant robot ---------------------------------------------
 
 
-def _up(summary_dir: Path, *argv: str, timeout: float = 240) -> dict[str, Any]:
+def _up_run(
+    summary_dir: Path, *argv: str, timeout: float = 240, env: dict[str, str] | None = None
+) -> tuple[dict[str, Any], str, str]:
+    """``srl up ... --json``: its summary, stdout and stderr."""
     router = f"tcp/127.0.0.1:{free_port()}"
-    done = _srl("up", *argv, "--router", router, "--json", "--summary-dir", str(summary_dir), timeout=timeout)
+    done = _srl("up", *argv, "--router", router, "--json", "--summary-dir", str(summary_dir), timeout=timeout, env=env)
     assert done.returncode == 0, done.stderr[-3000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    return json.loads(done.stdout.strip().splitlines()[-1]), done.stdout, done.stderr
+
+
+def _up(summary_dir: Path, *argv: str, timeout: float = 240) -> dict[str, Any]:
+    return _up_run(summary_dir, *argv, timeout=timeout)[0]
 
 
 def _actor_summaries(summary: dict[str, Any], layout: str = "host") -> dict[str, Any]:
@@ -288,15 +373,39 @@ def _actor_summaries(summary: dict[str, Any], layout: str = "host") -> dict[str,
 
 @pytest.mark.integration
 @pytest.mark.slow
-@pytest.mark.parametrize("layout", ["host", "process"])
-def test_up_three_emulated_turtlebots(tmp_path: Path, layout: str) -> None:
+@pytest.mark.parametrize(("layout", "secure"), [("host", True), ("process", False)])
+def test_up_three_emulated_turtlebots(tmp_path: Path, layout: str, secure: bool) -> None:
     """Three emulated TurtleBot3s (tb3_1..tb3_3, each its own router), one bridge host and one actor
     host (or one bridge and one actor per robot), the critic: each robot's odometry drives its own
-    actor, every robot approaches the target."""
-    summary = _up(
-        tmp_path, "--robots", "3", "--plant", "robot", "--layout", layout, "--agent", "mpc", "--duration", "12"
+    actor, every robot approaches the target. ``--secure`` (host layout): srl's router wants every
+    role's login, and each emulated robot's own router TLS, the bridge's login and the robot's
+    access rules, which the bridge host presents (services/robot_bridge/host.py)."""
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    summary, out, err = _up_run(
+        tmp_path,
+        "--robots",
+        "3",
+        "--plant",
+        "robot",
+        "--layout",
+        layout,
+        "--agent",
+        "mpc",
+        "--duration",
+        "12",
+        *(["--secure"] if secure else []),
+        env={"TMPDIR": str(temp)},
     )
-    assert summary["robots"] == ROBOTS and summary["plant"] == "robot"
+    assert list(temp.iterdir()) == [], "srl up left credentials or scratch behind"
+    assert summary["robots"] == ROBOTS and summary["plant"] == "robot" and summary["secure"] is secure
+    if secure:  # every robot's router is tls/, and none lets in a session without credentials
+        assert all(summary["robot_plant"][r]["endpoint"].startswith("tls/127.0.0.1:") for r in ROBOTS)
+        assert "robot routers  each emulated robot's own: mutual TLS, the bridge's login" in out
+        assert "lets in sessions without login" not in err
+    for robot in ROBOTS:  # no localization source: each robot's pose is its odometry, and the table says so
+        assert summary["robot_plant"][robot]["localization"] == "odometry only"
+        assert any(line.startswith(f"  {robot} ") and line.endswith("pose: odometry only") for line in out.splitlines())
     per_robot = (
         ["robot_bridge", "actor"]
         if layout == "host"

@@ -11,8 +11,11 @@ summary -- on srl's keys of its own id (``srl/<id>/state``, ``action``, ``alive/
 (services/robot_bridge/service.py). One srl session serves them all, and one client
 session per distinct robot endpoint: robots that each run their own router (``rmw_zenohd`` on
 the robot, ``--robot-endpoints``) get one session each, robots reached through one router
-(``--robot-endpoint``) share one. A robot's commands can only go to its own namespace's keys:
-its link builds every key from its namespace, and its bridge applies only actions for its id.
+(``--robot-endpoint``) share one. Each is opened as one bridge opens its robot's
+(services/robot_bridge/robot_router.py ``robot_session``): with the ``bridge.robot_*`` login and
+TLS, waited for up to ``bridge.robot_connect_timeout``. A robot's commands can only go to its own
+namespace's keys: its link builds every key from its namespace, and its bridge applies only
+actions for its id.
 
 Why a host and not one bridge per robot: a bridge process is a Python interpreter with Zenoh and
 the ROS type store, and a host pays for one of them whatever its number of robots
@@ -26,23 +29,25 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import zenoh
 
 from common.config.arguments import UsageError
-from common.config.settings import Settings
+from common.config.settings import BridgeSettings, Settings, TransportSettings
 from common.contracts.fleet_summary import FleetBridgeSummary
 from common.contracts.keys import STATE, STATUS, liveliness_key
 from common.contracts.messages import Action, ServiceStatus
 from common.contracts.ros_wire import RosGraph
 from common.net.provenance import SourceGate
 from common.net.security import SecurityError
-from common.net.transport import Bus, plain_config
+from common.net.transport import Bus
 from common.process.counts import RobotCounts
 from common.system.clock import Ticker
 from services.robot_bridge.bridge import RobotBridge
+from services.robot_bridge.robot_router import robot_session
 from services.robot_bridge.ros_link import RosLink
 from services.robot_bridge.service import attach, bridge_summary, shut_down, wire_robot
 
@@ -95,6 +100,32 @@ def open_unit(
     return BridgeUnit(robot, endpoint, own, link.graph, counts, link, bridge, gate)
 
 
+def open_robot_sessions(
+    settings: Settings,
+    fleet: dict[str, str],
+    stop: threading.Event,
+    sessions: dict[str, Any],
+    connect: Callable[[BridgeSettings, TransportSettings, threading.Event], Any] = robot_session,
+) -> None:
+    """One session per distinct robot endpoint of ``fleet`` into ``sessions``, each opened as one
+    bridge opens its robot's (services/robot_bridge/robot_router.py ``robot_session``): the
+    ``bridge.robot_user`` login and ``robot_tls_*`` on a ``tls/`` endpoint, waiting with one status
+    line up to ``bridge.robot_connect_timeout`` for a robot that boots late, ``stop`` ending the
+    wait, and under ``transport.secure`` one WARNING per robot router that lets in strangers. The
+    timeout bounds the whole fleet, not each robot (``srl up`` waits that long for the host). A
+    robot that never comes is one error line naming the robots behind that endpoint; the sessions
+    already open stay in ``sessions`` for the caller to close."""
+    deadline = time.monotonic() + settings.bridge.robot_connect_timeout
+    for endpoint in sorted({e for e in fleet.values() if e}):
+        left = max(0.0, deadline - time.monotonic())
+        bridge = settings.bridge.model_copy(update={"robot_endpoint": endpoint, "robot_connect_timeout": left})
+        try:
+            sessions[endpoint] = connect(bridge, settings.transport, stop)
+        except UsageError as error:
+            on_it = ", ".join(r for r, e in fleet.items() if e == endpoint)
+            raise UsageError(f"{error} (robot {on_it})") from None
+
+
 def run_bridge_host(
     settings: Settings, bus: Bus, fleet: dict[str, str], stop: threading.Event, duration: float | None
 ) -> dict[str, Any]:
@@ -111,14 +142,7 @@ def run_bridge_host(
     try:
         for robot in robots:  # one plant per robot, before declaring anything
             bus.refuse_other_plant(robot)
-        for endpoint in sorted({e for e in fleet.values() if e}):
-            try:
-                sessions[endpoint] = zenoh.open(plain_config(settings.transport, endpoint))
-            except zenoh.ZError:
-                on_it = ", ".join(r for r, e in fleet.items() if e == endpoint)
-                raise UsageError(
-                    f"robot_bridge: no Zenoh router at {endpoint} (robot {on_it}): is rmw_zenohd running there?"
-                ) from None
+        open_robot_sessions(settings, fleet, stop, sessions)
         for index, robot in enumerate(robots):
             endpoint = fleet[robot]
             session = sessions[endpoint] if endpoint else bus.session

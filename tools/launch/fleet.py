@@ -444,7 +444,8 @@ def run_fleet(
     (``plant.model = physics``: lag, deadband, slip, odometry) instead of the ideal unicycle.
     ``pooled``: one critic learner for every robot (critic.pooled), else one per robot.
     ``secure``: as ``srl up --secure`` (tools.launch.supervisor.Logins): every child logs in as its role over
-    mutual TLS, and the router's rules grant the roles the keys of every robot of the fleet.
+    mutual TLS, and the router's rules grant the roles the keys of every robot of the fleet; with
+    ``plant="robot"`` each emulated robot's own router is secured too (tools/launch/fleet_robot.py).
     ``router``: where the fleet's router listens (``srl up`` chooses it: tools/launch/fleet_cli.py);
     default: a free loopback port, so that fleets side by side never meet."""
     if layout not in LAYOUTS:
@@ -495,6 +496,7 @@ def run_fleet(
                     bridge_args or [],
                     layout,
                     login.get("plant"),
+                    None if logins is None else logins.directory / "robot",  # removed with the fleet's logins
                 )
             else:
                 spawn_sim_plants(supervisor, common, robots, layout, circle, login.get("plant"))
@@ -593,6 +595,10 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
             "  security       user/password login per role + access rules at the router for every robot"
             + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""),
         )
+        if summary.get("robot_plant"):
+            from tools.launch.fleet_robot import robot_router_line
+
+            lines.insert(2, robot_router_line(summary["robot_plant"]))
     for row in view.rows:
         lines.append(
             f"  {row.robot:<12} {row.steps:>5} {row.missed_deadlines:>6} {row.jitter_p99_ms:>8.2f}ms "

@@ -3,7 +3,8 @@
 Each robot's srl id is its ROS namespace (common/math/fleet.py ``ros_fleet``; ``--robots K`` names
 them ``tb3_1`` .. ``tb3_K``). Without endpoints, K emulated TurtleBot3s are started, each under
 its namespace and as its own Zenoh router on a free loopback port (as a real robot runs
-``rmw_zenohd``), from distinct starts on the fleet's circle. With ``--robot-endpoints`` /
+``rmw_zenohd``; under ``--secure`` secured as the one robot's, :func:`spawn_robot_plants`), from
+distinct starts on the fleet's circle. With ``--robot-endpoints`` /
 ``--robot-endpoint`` no emulator is started: the bridges talk to the real robots there.
 Layout ``host``: one bridge host for every robot (services/robot_bridge/host.py); ``process``:
 one ``srl robot-bridge`` per robot. tools/launch/fleet.py starts the rest (router, critic, actors)
@@ -16,6 +17,7 @@ import functools
 import math
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -28,7 +30,8 @@ from common.contracts.messages import PlantState
 from common.contracts.summaries import BridgeSummary, EmulatorSummary
 from common.math.frames import Pose2D, to_goal_frame
 from common.net.transport import zenoh_config
-from tools.launch.supervisor import Supervisor, free_loopback_endpoint, router_reachable
+from services.robot_bridge.robot_router import RobotLogins, robot_router_reachable
+from tools.launch.supervisor import Supervisor, free_loopback_endpoint, tls_endpoint
 
 EMULATOR_READY_S = 30.0  # [s] an emulator's router answers (as srl up --plant robot waits)
 ODOMETRY_READY_S = 60.0  # [s] every robot's first state through its bridge
@@ -48,14 +51,27 @@ def spawn_robot_plants(
     bridge_args: list[str],
     layout: str,
     login: dict[str, str] | None = None,
+    robot_secrets: Path | None = None,
 ) -> dict[str, str]:
     """The emulated robots (for robots without an endpoint) and the bridge(s); robot -> endpoint.
-    ``login``: the bridges' login environment (the plant role's, ``--secure``)."""
+    ``login``: the bridges' login environment (the plant role's, ``--secure``). ``robot_secrets``
+    (``--secure``): a directory for the emulated robots' router credentials; each emulated robot's
+    own router is then secured as ``srl up --plant robot --secure`` secures the one robot's
+    (tools/launch/up.py; docs/security.md, "The robot's own router"): ``tls/``, a login and the
+    robot's access rules for its namespace, from ONE set of credentials
+    (services/robot_bridge/robot_router.py ``RobotLogins``), since one bridge host logs in to every
+    robot with one ``bridge.robot_*``. Real robots' routers are as their owners configured them."""
     fleet = dict(endpoints)
+    emulated = [robot for robot in robots if not fleet.get(robot)]
+    robot_logins = RobotLogins.create(robot_secrets) if robot_secrets is not None and emulated else None
+    emulator_env = None if robot_logins is None else robot_logins.emulator_environment
+    if robot_logins is not None:  # the robot's credentials go to the bridges only
+        login = {**(login or {}), **robot_logins.bridge_environment}
     for robot, start in zip(robots, starts, strict=True):
         if fleet.get(robot):
             continue  # a real robot: it is where it is
-        fleet[robot] = endpoint = free_loopback_endpoint()
+        endpoint = free_loopback_endpoint()
+        fleet[robot] = endpoint = endpoint if robot_logins is None else tls_endpoint(endpoint) or endpoint
         supervisor.spawn(
             f"tb3_emulator-{robot}",
             [
@@ -66,13 +82,17 @@ def spawn_robot_plants(
                 f"--listen={endpoint}",
                 "--start=" + ",".join(repr(c) for c in start),
             ],
+            emulator_env,
         )
-    for robot in robots:
-        if endpoints.get(robot):
-            continue
+    for robot in emulated:  # reachable as its bridge reaches it (with the login, if any)
+        probe = (
+            settings.bridge.model_copy(update={"robot_endpoint": fleet[robot]})
+            if robot_logins is None
+            else robot_logins.bridge(settings.bridge, fleet[robot])
+        )
         supervisor.wait_for(
             f"the emulated robot {robot}'s router ({fleet[robot]})",
-            functools.partial(router_reachable, settings, fleet[robot]),
+            functools.partial(robot_router_reachable, probe, settings.transport),
             timeout=EMULATOR_READY_S,
         )
     if layout == "host":
@@ -164,6 +184,7 @@ def robot_fleet_summary(supervisor: Supervisor, settings: Settings, robots: list
             "actions_refused": sum(n for k, n in bridge.counters.items() if k.split(".")[:2] == ["rejected", "action"]),
             "commands_sent": bridge.counters.get("commands_sent", 0),  # every cmd_vel put: actions and zeros
             "states_published": bridge.counters.get("states_published", 0),
+            "localization": bridge.localization,  # "odometry only", or the source its pose came from
             "emulator": None,
         }
         child = supervisor.children.get(f"tb3_emulator-{robot}")
@@ -192,6 +213,20 @@ def format_robot_lines(rows: dict[str, Any]) -> list[str]:
         where = "real robot" if emulator is None else f"emulated, true final {emulator['true_final_distance_m']:.3f} m"
         lines.append(
             f"  {robot:<12} namespace /{row['namespace']}: actions applied {row['actions_applied']}, "
-            f"refused {row['actions_refused']}, {where}"
+            f"refused {row['actions_refused']}, {where}, pose: {row.get('localization', 'odometry only')}"
         )
     return lines
+
+
+def robot_router_line(rows: dict[str, Any]) -> str:
+    """What ``--secure`` covers on the robots' side: the emulated robots' own routers are secured
+    (:func:`spawn_robot_plants`); real robots' routers are as configured there (docs/security.md)."""
+    if any(row["emulator"] is not None for row in rows.values()):
+        return (
+            "  robot routers  each emulated robot's own: mutual TLS, the bridge's login and the robot's "
+            "access rules (services/robot_bridge/robot_router.py)"
+        )
+    return (
+        "  robot routers  the robots' own, as configured there: the bridge logs in with bridge.robot_* and "
+        "warns if one lets in sessions without credentials (docs/security.md)"
+    )
