@@ -66,7 +66,7 @@ def test_bench_parking_runs_one_row_and_prints_the_typed_row(capsys: pytest.Capt
     for row in (paper, robot):
         assert (row.plant, row.agent, row.horizon, row.steps) == ("actuator", "mpc", 12, 120)
         assert row.start == pytest.approx((1.0, -1.0, math.atan2(-1.0, 1.0)))
-        assert row.passed == (row.final_ok and row.span_ok and row.sign_changes_ok)
+        assert row.passed == (row.final_ok and row.span_ok and row.sign_changes_ok and row.arrival_ok)
         assert row.final_ok == (row.true_final_distance <= 0.05)
     assert (paper.method, robot.method) == ("paper", "robot")
     # the paper's actor boxes v and omega separately: a wheel is asked beyond its limit; the wheel

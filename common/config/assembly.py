@@ -19,7 +19,7 @@ from common.contracts.summaries import EpisodeSummary, TrueView
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorMemory, ActorProblem
 from common.math.agents import learns
-from common.math.arrival import ArrivalRule, ArrivalTolerances
+from common.math.arrival import ArrivalRule, ArrivalTolerances, WheelDeadband
 from common.math.critic import DoubleCritic, PooledLearner
 from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1, run_fleet_lockstep
 from common.math.physics import simulated_robot
@@ -34,7 +34,8 @@ def arrival_rule(settings: Settings) -> ArrivalRule | None:
     if not a.arrival:
         return None
     return ArrivalRule(
-        ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
+        ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis),
+        WheelDeadband(a.wheel_breakaway_speed, a.wheel_radius, a.wheel_separation),
     )
 
 

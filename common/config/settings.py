@@ -214,6 +214,13 @@ class ActorSettings(_Section):
     arrival_position_tolerance: float = Field(gt=0, le=1.0, allow_inf_nan=False, description="[m]")
     arrival_heading_tolerance: float = Field(gt=0, le=math.pi, allow_inf_nan=False, description="[rad]")
     arrival_hysteresis: float = Field(ge=1.0, le=10.0, allow_inf_nan=False, description="outer = this x inner")
+    wheel_breakaway_speed: float = Field(
+        ge=0,
+        le=10,
+        allow_inf_nan=False,
+        description="[rad/s] with arrival: a command whose wheels are all below this is zero inside the outer "
+        "tolerances, else raised to it (common/math/arrival.py); 0 = off",
+    )
     wheel_speed_max: float = Field(ge=0, allow_inf_nan=False, description="[rad/s] wheel box; 0 = off")
     wheel_radius: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")

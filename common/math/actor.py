@@ -437,6 +437,8 @@ class StackedActor:
         self.counters.solves += 1
         self._episode_solves += 1
         self.counters.solve_seconds.append(elapsed)
+        if self.arrival is not None:  # the wheels' deadband at the output (common.math.arrival)
+            plan[0] = self.arrival.last_word(plan[0], state)
         return ActorStep(
             action=plan[0].copy(),
             plan=plan,

@@ -22,6 +22,10 @@ from __future__ import annotations
 import bisect
 import math
 from collections import deque
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
 
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame, wrap_angle
 
@@ -121,3 +125,106 @@ class CorrectionBlend:
         """The localized pose of odometry pose ``odom`` at ``now``; None before the first fix."""
         c = self.value(now)
         return None if c is None else compose(c, odom)
+
+
+# -- a localization source for srl's simulated plants ------------------------------------------
+# The sources a simulated robot can be given (``srl bench parking --localization``): AMCL-like
+# sparse fixes, or motion capture streaming at a rate.
+SIM_SOURCES = ("amcl", "mocap")
+
+
+class SimulatedRobot(Protocol):
+    """What :class:`LocalizedPlant` wraps: a ``common.math.loop.Plant`` that knows the truth."""
+
+    def reset(self, state: np.ndarray) -> np.ndarray: ...
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray: ...
+    @property
+    def true_state(self) -> np.ndarray | None: ...
+    @property
+    def saturated_commands(self) -> int | None: ...
+
+
+@dataclass(frozen=True)
+class SimLocalization:
+    """A simulated localization source: the true pose with seeded Gaussian noise, by a rule.
+
+    ``amcl``: a fix at start, then whenever the true pose moved ``update`` (distance [m] or
+    angle [rad]) since the last fix, as nav2_amcl's ``update_min_d`` 0.25 m / ``update_min_a``
+    0.2 rad (turtlebot3_navigation2 ``param/burger.yaml``); ``mocap``: a fix every ``1 / rate``
+    seconds. ``blend_time`` is the robot bridge's ``bridge.pose_blend_time``."""
+
+    source: str
+    noise: tuple[float, float] = (0.0, 0.0)  # [m, rad] standard deviations of a fix
+    update: tuple[float, float] = (0.25, 0.2)  # [m, rad] amcl: a fix after this much motion
+    rate: float = 10.0  # [Hz] mocap
+    blend_time: float = 1.0  # [s]
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.source not in SIM_SOURCES:
+            raise ValueError(f"a simulated localization is {' or '.join(SIM_SOURCES)}, got {self.source!r}")
+        values = (*self.noise, *self.update, self.rate, self.blend_time)
+        if not all(math.isfinite(v) and v >= 0 for v in values) or self.rate <= 0 or min(self.update) <= 0:
+            raise ValueError(f"localization noise, update, rate and blend time must be finite, >= 0, got {values}")
+
+
+class LocalizedPlant:
+    """A simulated robot whose reported state is its odometry corrected by a localization, fused
+    by the robot bridge's own rule (:func:`correction`, :class:`CorrectionBlend`): the first fix
+    taken at once, every later one blended in over ``blend_time``. Fixes come from the true pose
+    (:class:`SimLocalization`), stamped when they are taken (no latency, so the odometry at the
+    fix's stamp is the current one). A ``common.math.loop.Plant``; ``corrections`` counts fixes."""
+
+    def __init__(self, plant: SimulatedRobot, localization: SimLocalization) -> None:
+        self.plant, self.localization = plant, localization
+        self._reset_clock()
+
+    def _reset_clock(self) -> None:
+        self.now = 0.0
+        self.rng = np.random.default_rng(self.localization.seed)
+        self.blend = CorrectionBlend(self.localization.blend_time)
+        self.last_fix_pose: Pose2D | None = None
+        self.last_fix_at = 0.0
+        self.fixes = 0
+
+    def _due(self, truth: Pose2D) -> bool:
+        if self.last_fix_pose is None:
+            return True
+        if self.localization.source == "amcl":
+            distance, angle = motion(self.last_fix_pose, truth)
+            return distance >= self.localization.update[0] or angle >= self.localization.update[1]
+        return self.now - self.last_fix_at >= 1.0 / self.localization.rate - 1e-9
+
+    def _report(self, odometry: np.ndarray) -> np.ndarray:
+        odom = Pose2D(*(float(c) for c in odometry))
+        true = self.plant.true_state
+        if true is None:
+            raise ValueError("a localized plant needs a plant that knows its true pose")
+        truth = Pose2D(*(float(c) for c in true))
+        if self._due(truth):
+            sigma_xy, sigma_theta = self.localization.noise
+            noise = self.rng.normal(0.0, 1.0, 3) * np.array([sigma_xy, sigma_xy, sigma_theta])
+            fix = Pose2D(truth.x + noise[0], truth.y + noise[1], truth.theta + noise[2])
+            self.blend.set(correction(fix, odom), self.now, snap=self.last_fix_pose is None)
+            self.last_fix_pose, self.last_fix_at = truth, self.now
+            self.fixes += 1
+        pose = self.blend.apply(odom, self.now)
+        assert pose is not None  # a fix was taken at reset
+        return np.array(pose, dtype=float)
+
+    def reset(self, state: np.ndarray) -> np.ndarray:
+        self._reset_clock()
+        return self._report(self.plant.reset(state))
+
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
+        odometry = self.plant.apply(action, duration)
+        self.now += duration
+        return self._report(odometry)
+
+    @property
+    def true_state(self) -> np.ndarray | None:
+        return self.plant.true_state
+
+    @property
+    def saturated_commands(self) -> int | None:
+        return self.plant.saturated_commands

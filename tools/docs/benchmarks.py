@@ -184,34 +184,41 @@ def parking_body(data: dict[str, Any]) -> list[str]:
         + ", ".join(f"{k} {v:g}" for k, v in sorted((data.get("targets") or {}).items()))
         + ".",
         "",
-        "| method | plant | passed | true final d [m] | v sign changes (max) | saturated commands (max) |",
-        "|---|---|---|---|---|---|",
+        "| method | plant | pose | agent | passed | true final d [m] | v sign changes (max) | arrived in time "
+        "| saturated commands (max) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
-    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, str, str, str], list[dict[str, Any]]] = {}
     for r in data.get("rows", []):
-        groups.setdefault((r["method"], r["plant"]), []).append(r)
-    for (method, plant), rows in groups.items():
+        key = (r["method"], r["plant"], r.get("localization", "odometry only"), r["agent"])
+        groups.setdefault(key, []).append(r)
+    for (method, plant, pose, agent), rows in groups.items():
         finals = [r["true_final_distance"] for r in rows]
         lines.append(
-            f"| {method} | {plant} | {sum(r['passed'] for r in rows)} of {len(rows)} | "
+            f"| {method} | {plant} | {pose} | {agent} | {sum(r['passed'] for r in rows)} of {len(rows)} | "
             f"{min(finals):.3f}-{max(finals):.3f} | {max(r['sign_changes'] for r in rows)} | "
+            f"{sum(r.get('arrival_ok', True) for r in rows)} of {len(rows)} | "
             f"{max(r['saturated_commands'] for r in rows)} |"
         )
     lines += [
         "",
         "Every run:",
         "",
-        "| method | plant | agent | N | start | true final d [m] | reported d [m] | span [m] | v sign changes "
-        "| true J | reported J | saturated | passed |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| method | plant | pose | agent | N | start | true final d [m] | reported d [m] | span [m] | v sign changes "
+        "| arrived [s] | bound [s] | true J | reported J | saturated | passed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in data.get("rows", []):
         start = ", ".join(f"{c:.2f}" for c in r["start"])
+        arrived = r.get("arrival_seconds")
+        bound = r.get("arrival_bound")
         lines.append(
-            f"| {r['method']} | {r['plant']} | {r['agent']} | {r['horizon']} | ({start}) | "
+            f"| {r['method']} | {r['plant']} | {r.get('localization', 'odometry only')} | {r['agent']} | "
+            f"{r['horizon']} | ({start}) | "
             f"{r['true_final_distance']:.3f} | {r['reported_final_distance']:.3f} | {r['span_m']:.3f} | "
-            f"{r['sign_changes']} | {r['true_cost']:.3f} | {r['reported_cost']:.3f} | {r['saturated_commands']} | "
-            f"{'PASS' if r['passed'] else 'FAIL'} |"
+            f"{r['sign_changes']} | {'never' if arrived is None else f'{arrived:.1f}'} | "
+            f"{'--' if bound is None else f'{bound:.1f}'} | {r['true_cost']:.3f} | {r['reported_cost']:.3f} | "
+            f"{r['saturated_commands']} | {'PASS' if r['passed'] else 'FAIL'} |"
         )
     return [*lines, ""]
 
