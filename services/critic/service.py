@@ -262,7 +262,8 @@ class CriticLearner:
 
     def _fit_due(self) -> list[CriticWeights]:
         """The per-robot fits due, all in one stacked solve (:func:`~common.math.critic.update_many`:
-        each robot's weights are those of its fit alone, bit for bit); a fit's time is its share."""
+        the designs gathered from the replays' kept rows; each robot's weights are those of its fit
+        alone, bit for bit); a fit's time is its share."""
         due, self.due = self.due, {}
         if not due:
             return []

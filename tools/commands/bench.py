@@ -23,7 +23,7 @@ NAME = "bench"
 HELP = "benchmarks that print a table (and JSON)"
 DESCRIPTION = (
     "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
-    "as the last stdout line): srl bench actor | loop | bridge | parking | fleet | capacity --help for each "
+    "as the last stdout line): srl bench actor | loop | bridge | parking | fleet | capacity | critic --help for each "
     "one's options."
 )
 
@@ -102,6 +102,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bridge_bench = kind("bridge", "the robot bridge's latencies against an echo robot (ROS 2 over Zenoh)")
     add_bridge_arguments(bridge_bench)
     add_seconds_argument(bridge_bench, 60.0, "both phases together [s] (default: 60)")
+    from tools.bench.critic import add_parser as add_critic_bench  # light: numpy loads when it runs
+
+    add_critic_bench(kinds)
 
     parking = kind("parking", "parking on the ideal and the TurtleBot3 plants: truth vs odometry, chatter")
     parking.add_argument("--agents", default="mpc,rlq,rlqv", help="comma-separated agents (default: mpc,rlq,rlqv)")
@@ -116,8 +119,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parking.add_argument(
         "--starts",
-        help="X,Y starts separated by ';', e.g. --starts='-1,2;2,0' (default: "
-        "2,2;-2,2;-1,-2;2,-1;-2,0, five nodes of the paper's grid)",
+        help="grid (the paper's 25), random:COUNT:SEED (within 3 m, any heading), or X,Y[,ALPHA] starts "
+        "separated by ';', e.g. --starts='-1,2;2,0,1.57' (default: 2,2;-2,2;-1,-2;2,-1;-2,0, five nodes "
+        "of the paper's grid)",
+    )
+    parking.add_argument(
+        "--localization",
+        help="comma-separated poses the actor sees: none (odometry only), amcl (sparse fixes after 0.25 m "
+        "/ 0.2 rad), mocap (10 Hz), fused as the robot bridge fuses them (default: none)",
+    )
+    parking.add_argument(
+        "--localization-noise",
+        help="SIGMA_XY,SIGMA_THETA of each fix [m, rad] (default: amcl 0.01,0.01; mocap 0.001,0.002)",
     )
     parking.add_argument("--parking-seconds", type=float, default=35.0, help="episode length per run [s] (default: 35)")
 

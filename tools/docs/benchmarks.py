@@ -25,8 +25,10 @@ KINDS = {
     "loop": "Real-time loop",
     "bridge": "Robot bridge",
     "parking": "Parking",
+    "parking-localized": "Parking from every start, localized",
     "fleet": "Fleet on one machine",
     "capacity": "Fleet capacity",
+    "critic": "Critic fits across robots",
 }
 
 
@@ -177,6 +179,12 @@ def bridge_body(data: dict[str, Any]) -> list[str]:
     return lines
 
 
+def arrived_in_time(rows: list[dict[str, Any]]) -> str:
+    """``K of N`` runs that arrived within their bound; ``--`` where the run did not judge arrival."""
+    judged = [r["arrival_ok"] for r in rows if "arrival_ok" in r]
+    return f"{sum(judged)} of {len(judged)}" if judged else "--"
+
+
 def parking_body(data: dict[str, Any]) -> list[str]:
     lines = [
         f"{data.get('seconds')} s per run; the last {data.get('window_seconds')} s judged. Passed "
@@ -197,7 +205,7 @@ def parking_body(data: dict[str, Any]) -> list[str]:
         lines.append(
             f"| {method} | {plant} | {pose} | {agent} | {sum(r['passed'] for r in rows)} of {len(rows)} | "
             f"{min(finals):.3f}-{max(finals):.3f} | {max(r['sign_changes'] for r in rows)} | "
-            f"{sum(r.get('arrival_ok', True) for r in rows)} of {len(rows)} | "
+            f"{arrived_in_time(rows)} | "
             f"{max(r['saturated_commands'] for r in rows)} |"
         )
     lines += [
@@ -281,6 +289,24 @@ def capacity_body(data: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
+def critic_body(data: dict[str, Any]) -> list[str]:
+    lines = [
+        f"CPU per robot's fit [us], the median of {data.get('rounds')} rounds run in turn (per robot, rebuilt, "
+        "batched, per round): **per robot** one robot per call, designs built from the samples; **rebuilt** "
+        "every robot due in one stacked solve, designs built from the samples; **batched** the stacked solve on "
+        "the designs the replays keep. The weights of the three ways must agree (largest difference shown).",
+        "",
+        "| robots | per robot | rebuilt | batched | speedup | add a sample | largest weight difference |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in data.get("rows", []):
+        lines.append(
+            f"| {r['robots']} | {r['per_robot_fit_us']:.1f} | {r['rebuilt_fit_us']:.1f} | {r['batched_fit_us']:.1f} "
+            f"| {r['speedup']:.1f}x | {r['add_us']:.1f} | {r['max_weight_difference']:.1e} |"
+        )
+    return [*lines, ""]
+
+
 def generic_body(data: dict[str, Any]) -> list[str]:
     scalars = {k: v for k, v in sorted(data.items()) if isinstance(v, str | int | float | bool) and k != "run"}
     return ["| | |", "|---|---|", *(f"| {cell(k)} | {cell(v)} |" for k, v in scalars.items()), ""]
@@ -291,14 +317,21 @@ BODIES: dict[str, Callable[[dict[str, Any]], list[str]]] = {
     "loop": loop_body,
     "bridge": bridge_body,
     "parking": parking_body,
+    "parking-localized": parking_body,
     "fleet": fleet_body,
     "capacity": capacity_body,
+    "critic": critic_body,
 }
+
+
+def bench_of(kind: str) -> str:
+    """The benchmark a page's data comes from: ``parking-localized`` is a run of ``srl bench parking``."""
+    return kind.partition("-")[0]
 
 
 def what_it_measures(kind: str) -> str:
     try:
-        module = importlib.import_module(f"tools.bench.{kind}")
+        module = importlib.import_module(f"tools.bench.{bench_of(kind)}")
     except ImportError:
         return ""
     return first_paragraph(module.__doc__)
@@ -306,7 +339,7 @@ def what_it_measures(kind: str) -> str:
 
 def benchmark_page(kind: str, data: dict[str, Any]) -> str:
     title = KINDS.get(kind, kind)
-    lines = [GENERATED, "", f"# {title}: `srl bench {kind}`", ""]
+    lines = [GENERATED, "", f"# {title}: `srl bench {bench_of(kind)}`", ""]
     about = what_it_measures(kind)
     if about:
         lines += [docstring(about), ""]
