@@ -302,6 +302,9 @@ class TransportSettings(_Section):
     action_timeout_steps: int = Field(ge=2)
     transition_cache: int = Field(ge=0, description="transitions kept for recovery by a late critic")
     max_message_bytes: int = Field(ge=65_536, le=2**30, description="Zenoh drops bigger messages on arrival")
+    shared_memory: bool = Field(
+        description="Zenoh's shared memory between processes of one host: a large put skips max_message_bytes"
+    )
     # Zenoh authentication and access control (common/net/security.py, docs/security.md)
     secure: bool = Field(description="router: require user/password, enforce role rules; others: log in")
     user: str = Field(description="this process's Zenoh user = its role (actor, critic, plant, monitor)")

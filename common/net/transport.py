@@ -53,10 +53,15 @@ def zenoh_config(
     config.insert_json5("timestamping/enabled", "true")
     # Zenoh's own bound on a (defragmented) message: a bigger one is dropped on arrival, before
     # it is reassembled in memory and handed to us (an unbounded put grows every receiving
-    # service by its size, retained). srl's messages are a few kB. Zenoh 1.10 drops only the
-    # FIRST oversized message of a link, later ones are delivered (docs/security.md): this
-    # bounds one message, not a flood.
+    # service by its size, retained). srl's messages are a few kB.
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(transport.max_message_bytes))
+    # The bound holds only for what crosses the link: with shared memory on (Zenoh's default,
+    # DEFAULT_CONFIG.json5 transport/shared_memory/transport_optimization), a put of 3 kB or more
+    # between sessions of one host travels as a reference into the sender's pool and is never
+    # reassembled: an oversized put is delivered whole (docs/security.md#limits).
+    # Off on every session and router srl builds: an intruder's session cannot turn it back on,
+    # shared memory needs both ends.
+    config.insert_json5("transport/shared_memory/enabled", json.dumps(transport.shared_memory))
     if router:
         listening, connecting = listen or [transport.router], transport.connect
         check_network_exposure(transport, listening)  # off loopback only with login + TLS (or opted out)
