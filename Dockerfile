@@ -17,6 +17,14 @@
 #
 #   docker build --build-arg BASE=srl-base:bookworm -t srl:latest .
 #
+# arm64 (a TurtleBot3's Raspberry Pi 4, docs/turtlebot.md#the-actor-on-the-robots-raspberry-pi):
+# python:3.11-slim is a multi-architecture image and every dependency has an aarch64 wheel on
+# PyPI, so the same Dockerfile builds for linux/arm64 (on an x86_64 host through buildx and
+# qemu-user; .ci/aarch64-test runs srl under that emulation):
+#       docker buildx build --platform linux/arm64 -t srl:arm64 --load .
+# dist/wheels are used only when they were built for the architecture being built (docker/build-wheels
+# downloads its host's), else the build goes to PyPI as without them.
+#
 # JIT: the actor can compile its optimal-control problem with a C compiler. Measured on 2 vCPUs
 # (casadi 3.8.2, fatrop): median solve 0.40-0.59 ms compiled vs 0.46-0.77 ms not (N = 12), and
 # 0.6-1.0 ms vs 0.7-1.5 ms (N = 30); compiling costs 0.9-4.8 s at every actor start and gcc
@@ -34,11 +42,11 @@ COPY . /src
 # there, PEP 668). Then pip and the dependencies' own test suites (numpy, scipy, matplotlib, ...:
 # ~57 MB) are removed: the image never installs anything and never runs them.
 RUN python3 -m venv /opt/srl \
- && if ls /src/dist/wheels/srl-*.whl >/dev/null 2>&1; then \
+ && if ls /src/dist/wheels/srl-*.whl /src/dist/wheels/*_"$(uname -m)".whl >/dev/null 2>&1; then \
       echo "srl image: installing from dist/wheels (offline, --no-index)"; \
       /opt/srl/bin/python -m pip install --no-index --find-links /src/dist/wheels 'srl[physics]'; \
     else \
-      echo "srl image: no dist/wheels: building srl and fetching its dependencies from PyPI"; \
+      echo "srl image: no dist/wheels for $(uname -m): building srl and fetching its dependencies from PyPI"; \
       /opt/srl/bin/python -m pip install --prefer-binary '/src[physics]' \
       || { echo "srl image: the install from PyPI failed; without network, run docker/build-wheels first (docs/getting-started.md)" >&2; exit 1; }; \
     fi \
