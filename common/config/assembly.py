@@ -21,7 +21,8 @@ from common.math.actor_problem import ActorMemory, ActorProblem
 from common.math.agents import learns
 from common.math.arrival import ArrivalRule, ArrivalTolerances, WheelDeadband
 from common.math.critic import DoubleCritic, PooledLearner
-from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, Plant, run_algorithm1, run_fleet_lockstep
+from common.math.dynamics import Plant
+from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, run_algorithm1, run_fleet_lockstep
 from common.math.physics import simulated_robot
 from common.math.stats import summarize
 from common.math.turtlebot import RobotPlant

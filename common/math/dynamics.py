@@ -11,7 +11,7 @@ integral :func:`exact_step`, the plant. The heading is never wrapped: it stays c
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -104,3 +104,19 @@ def heading_away_from_target(x: float, y: float) -> float:
 def unwrap_heading(previous: float, measured: float) -> float:
     """Continuous heading: the representative of ``measured`` (mod 2 pi) nearest ``previous``."""
     return previous + float(np.remainder(measured - previous + np.pi, 2.0 * np.pi) - np.pi)
+
+
+class Plant(Protocol):
+    """A plant of Algorithm 1 (common/math/loop.py): ``reset`` and ``apply`` return the state the
+    robot reports (a real robot: its odometry).
+
+    ``true_state`` is where it really is, if the plant knows (a simulator does, a real robot
+    does not: None); ``saturated_commands`` counts commands a wheel could not follow (None:
+    not known)."""
+
+    def reset(self, state: np.ndarray) -> np.ndarray: ...
+    def apply(self, action: np.ndarray, duration: float) -> np.ndarray: ...
+    @property
+    def true_state(self) -> np.ndarray | None: ...
+    @property
+    def saturated_commands(self) -> int | None: ...

@@ -23,10 +23,10 @@ import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 
+from common.math.dynamics import Plant
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame, wrap_angle
 
 IDENTITY = Pose2D(0.0, 0.0, 0.0)
@@ -133,17 +133,6 @@ class CorrectionBlend:
 SIM_SOURCES = ("amcl", "mocap")
 
 
-class SimulatedRobot(Protocol):
-    """What :class:`LocalizedPlant` wraps: a ``common.math.loop.Plant`` that knows the truth."""
-
-    def reset(self, state: np.ndarray) -> np.ndarray: ...
-    def apply(self, action: np.ndarray, duration: float) -> np.ndarray: ...
-    @property
-    def true_state(self) -> np.ndarray | None: ...
-    @property
-    def saturated_commands(self) -> int | None: ...
-
-
 @dataclass(frozen=True)
 class SimLocalization:
     """A simulated localization source: the true pose with seeded Gaussian noise, by a rule.
@@ -173,9 +162,9 @@ class LocalizedPlant:
     by the robot bridge's own rule (:func:`correction`, :class:`CorrectionBlend`): the first fix
     taken at once, every later one blended in over ``blend_time``. Fixes come from the true pose
     (:class:`SimLocalization`), stamped when they are taken (no latency, so the odometry at the
-    fix's stamp is the current one). A ``common.math.loop.Plant``; ``corrections`` counts fixes."""
+    fix's stamp is the current one). A :class:`common.math.dynamics.Plant`; ``corrections`` counts fixes."""
 
-    def __init__(self, plant: SimulatedRobot, localization: SimLocalization) -> None:
+    def __init__(self, plant: Plant, localization: SimLocalization) -> None:
         self.plant, self.localization = plant, localization
         self._reset_clock()
 

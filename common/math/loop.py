@@ -19,25 +19,10 @@ import numpy as np
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorMemory
 from common.math.critic import DoubleCritic, PooledLearner, Sample
-from common.math.dynamics import exact_step
+from common.math.dynamics import Plant, exact_step
 from common.math.features import stage_cost
 
 log = logging.getLogger(__name__)
-
-
-class Plant(Protocol):
-    """``reset`` and ``apply`` return the state the robot reports (a real robot: its odometry).
-
-    ``true_state`` is where it really is, if the plant knows (a simulator does, a real robot
-    does not: None); ``saturated_commands`` counts commands a wheel could not follow (None:
-    not known)."""
-
-    def reset(self, state: np.ndarray) -> np.ndarray: ...
-    def apply(self, action: np.ndarray, duration: float) -> np.ndarray: ...
-    @property
-    def true_state(self) -> np.ndarray | None: ...
-    @property
-    def saturated_commands(self) -> int | None: ...
 
 
 class CriticPort(Protocol):

@@ -276,7 +276,7 @@ class SimulatedRobot(Protocol):
 
 
 class RobotPlant:
-    """A simulated TurtleBot3 in process, a ``common.math.loop.Plant``: it reports the robot's
+    """A simulated TurtleBot3 in process, a :class:`common.math.dynamics.Plant`: it reports the robot's
     odometry and keeps the true pose beside it. A reset puts the robot at rest at the start (the
     actuator model's slip re-seeded: every episode of the same settings sees the same slip)."""
 

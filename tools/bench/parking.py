@@ -34,9 +34,9 @@ from common.config.assembly import build_actor, build_plant, local_critic, run_e
 from common.config.settings import METHODS, PAPER_METHOD, Settings
 from common.math.actor import StackedActor
 from common.math.agents import Agent, learns, parse_agents, parse_horizons
+from common.math.dynamics import Plant
 from common.math.frames import wrap_angle
 from common.math.localization import SIM_SOURCES, LocalizedPlant, SimLocalization
-from common.math.loop import Plant
 from common.math.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
 from common.math.physics import breakaway_speed
 from tools.bench.meta import run_info
