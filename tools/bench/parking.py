@@ -147,21 +147,12 @@ def parse_starts(text: str) -> list[Start]:
     return starts
 
 
-def parse_plants(text: str) -> list[PlantModel]:
-    plants: list[PlantModel] = []
-    for name in text.split(","):
-        if name not in PLANT_NAMES:
-            raise ValueError(f"a plant is {', '.join(PLANT_NAMES)}, got {name!r}")
-        plants.append(name)  # type: ignore[arg-type]
-    return plants
-
-
-def parse_localizations(text: str) -> list[Localization]:
-    names: list[Localization] = []
-    for name in text.split(","):
-        if name not in LOCALIZATIONS:
-            raise ValueError(f"a localization is {', '.join(LOCALIZATIONS)}, got {name!r}")
-        names.append(name)  # type: ignore[arg-type]
+def parse_names(text: str, allowed: Sequence[str], what: str) -> list[Any]:
+    """Comma-separated ``text`` as a list of ``allowed`` names; one line naming them otherwise."""
+    names = text.split(",")
+    for name in names:
+        if name not in allowed:
+            raise ValueError(f"a {what} is {', '.join(allowed)}, got {name!r}")
     return names
 
 
@@ -386,11 +377,13 @@ def run_parking_benchmark(args: argparse.Namespace, settings: Settings) -> int:
         horizons = parse_horizons(args.horizons) if args.horizons else (HORIZON,)
         if len(horizons) != 1:
             raise ValueError(f"parking runs one horizon at a time (--horizons N), got {list(horizons)}")
-        plants = parse_plants(args.plants or PLANTS)
+        plants: list[PlantModel] = parse_names(args.plants or PLANTS, PLANT_NAMES, "plant")
         methods = parse_methods(args.methods or METHOD_NAMES)
         agents = list(parse_agents(args.agents or AGENTS))
         starts = parse_starts(args.starts) if args.starts else list(STARTS)
-        localizations = parse_localizations(getattr(args, "localization", None) or "none")
+        localizations: list[Localization] = parse_names(
+            getattr(args, "localization", None) or "none", LOCALIZATIONS, "localization"
+        )
         noise_text = getattr(args, "localization_noise", None)
         noise = parse_noise(noise_text) if noise_text else None
         if not (args.parking_seconds > 0 and math.isfinite(args.parking_seconds)):
