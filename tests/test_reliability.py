@@ -162,7 +162,80 @@ def test_seen_steps_are_bounded_and_too_old_ones_refused() -> None:
     assert learner.too_old == 1
 
 
+def test_the_first_transition_heard_names_the_steps_the_critic_missed(tmp_path: Path) -> None:
+    settings = Settings.load(transport={"transition_cache": 10}, critic={"replay_size": 5})
+    stream = _transitions(80)
+    fresh = CriticLearner(settings)
+    assert fresh.missing_before(stream[0]) == range(0)  # a run heard from its start
+    assert fresh.missing_before(stream[12]) == range(0, 12)  # a late critic
+    assert fresh.missing_before(stream[70]) == range(51, 70)  # no more than it would keep (retention 20)
+    first = CriticLearner(settings)
+    for t in stream[:50]:
+        first.on_transition(t)
+    path = tmp_path / "critic.json"
+    atomic_write_json(path, first.state())
+    restarted = CriticLearner(settings)
+    assert load_checkpoint(restarted, path)
+    assert restarted.confirm(stream[55]) is not None  # the same run goes on from step 49
+    assert restarted.missing_before(stream[55]) == range(50, 55)
+    assert restarted.missing_before(stream[50]) == range(0)
+    other = CriticLearner(settings)
+    assert load_checkpoint(other, path)
+    later_run = stream[5].model_copy(update={"episode": 8})
+    assert other.confirm(later_run) is None  # a new run: everything before step 5 of it
+    assert other.missing_before(later_run) == range(0, 5)
+
+
 # -- processes --------------------------------------------------------------------------
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("asks_again", [True, False])
+def test_a_critic_whose_history_came_too_late_asks_the_cache_again(
+    asks_again: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Zenoh-ext's recovery drops a publisher's history that comes after its first live sample;
+    # here it never comes (the critic subscribes without recovery) and the critic must ask the
+    # actor's cache itself. The negative control, without the second ask, misses the start.
+    import threading
+
+    from common.contracts.keys import TRANSITION
+    from common.net.transport import Bus
+    from services.critic import service
+
+    subscribe = Bus.subscribe
+    monkeypatch.setattr(
+        Bus, "subscribe", lambda self, *args, **kwargs: subscribe(self, *args, **{**kwargs, "recover": False})
+    )
+    if not asks_again:
+        monkeypatch.setattr(Bus, "history", lambda *args, **kwargs: None)
+    with cluster(robot="h1") as c:
+        settings = Settings.load(transport={"router": c.endpoint, "robot": "h1"}, critic={"checkpoint": ""})
+        actor, critic = Bus.open(settings.transport, "actor"), Bus.open(settings.transport, "critic")
+        stop, result = threading.Event(), {}
+        try:
+            publish = actor.publisher(TRANSITION, "h1", cache=100)
+            stream = random_transitions(30, ("h1",))
+            for t in stream[:12]:  # before the critic
+                publish(t)
+            runner = threading.Thread(target=lambda: result.update(service.run(settings, critic, stop, 30.0)))
+            runner.start()
+            wait_until(lambda: c.alive("critic"), 30, "the critic")
+            for t in stream[12:]:
+                time.sleep(0.05)
+                publish(t)
+            wait_until(lambda: critic.counters["received.transition"] >= 18, 10, "the live transitions")
+            time.sleep(0.5)
+        finally:
+            stop.set()
+            runner.join(timeout=10)
+            critic.close()
+            actor.close()
+    seen = result["seen_steps"]["h1"]
+    if asks_again:
+        assert seen == [[0, 29]] and result["counters"]["recovered.transition"] >= 12, result
+    else:
+        assert seen[0][0] > 0, seen
 
 
 @pytest.mark.timing

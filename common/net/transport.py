@@ -19,7 +19,15 @@ import zenoh
 import zenoh.ext
 
 from common.config.settings import TransportSettings
-from common.contracts.keys import Service, Topic, identity_key, identity_of, identity_pattern, liveliness_key
+from common.contracts.keys import (
+    Service,
+    Topic,
+    advanced_pattern,
+    identity_key,
+    identity_of,
+    identity_pattern,
+    liveliness_key,
+)
 from common.contracts.messages import Message, MessageError, decode
 from common.net.provenance import QUIET_REFUSALS, PlantConflictError, SourceGate, yields_to
 from common.net.security import check_network_exposure, tls_entries, zenoh_entries
@@ -248,6 +256,37 @@ class Bus:
             )
         else:
             self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample)))
+
+    def history(self, topic: Topic[M], key: str, handler: Callable[[M], None], timeout: float = 10.0) -> None:
+        """Ask every advanced publisher on ``key`` for all it caches, without waiting: each cached
+        sample is decoded (a malformed one counted as rejected) and handed to ``handler`` on
+        Zenoh's thread, in the cache's order.
+
+        A :meth:`subscribe` with ``recover=True`` gets a publisher's history only if the answer
+        to its own history query comes before that publisher's next live sample: a sample it
+        delivers live ends the recovery of everything older. A service that sees a stream
+        start later than it should asks again with this (the critic does)."""
+        name = topic.pattern.split("/", 2)[-1]
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                return
+            try:
+                message = decode(topic.schema, reply.ok.payload.to_bytes())
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            self.count(f"recovered.{name}")
+            handler(message)
+
+        self.session.get(
+            advanced_pattern(key),
+            self._callback(on_reply),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            accept_replies=zenoh.ReplyKeyExpr.ANY,  # the cache answers on the key itself
+            timeout=timeout,
+        )
 
     def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
         """Keep only the newest sample on ``key``, undecoded, in Zenoh (a ring channel of one);

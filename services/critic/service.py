@@ -11,7 +11,9 @@ Nothing is lost across a crash:
 * the actor publishes transitions through a Zenoh advanced publisher that caches the last
   ``transport.transition_cache`` of them; the critic subscribes with history and recovery, so
   at (re)start it receives what was published while it was down, and after a partition what
-  it missed, in step order;
+  it missed, in step order. A robot whose stream still starts later than the critic needs (the
+  subscription's history query answered after the first live transition, which ends its
+  recovery) is asked again: the critic queries the actor's cache for the missing steps;
 * after every accepted transition the critic writes a checkpoint (``critic.checkpoint``, per
   robot and stack: weights, version, replay, the steps seen) atomically, and reads it at start.
   A learner read from it continues only if the first transition is of its own episode (this
@@ -187,6 +189,17 @@ class CriticLearner:
         self.continued.add(message.robot)
         trained = learner.replay.samples[-1].step if len(learner.replay) else -1
         return self._message(message.robot, learner, trained, 0.0, 0.0, 0)
+
+    def missing_before(self, message: Transition) -> range:
+        """Steps of ``message``'s episode before it that this critic does not hold, for the first
+        transition it hears of a robot since it started: empty when the stream starts where the
+        critic is (step 0 of a new run, or the step after its checkpoint's newest). The steps a
+        late or restarted critic missed, which the actor's cache may still hold; at most
+        ``retention`` of them (older ones would be refused as too old)."""
+        learner = self.learners.get(message.robot)
+        held = learner is not None and learner.episode == message.episode and message.robot in self.continued
+        first = learner.newest + 1 if held and learner is not None else 0
+        return range(max(first, message.step - self.retention + 1), message.step)
 
     def _new_pooled_run(self) -> None:
         """The first robot back from a checkpoint is on a new episode: the pool's run is over.
@@ -485,6 +498,27 @@ def run(
         publisher(weights)  # type: ignore[operator]
         bus.count("weights_published")
 
+    heard: set[str] = set()  # robots heard since the start
+
+    def recover(first: Transition, missing: range) -> None:
+        """The stream of ``first``'s robot starts later than this critic needs (its subscription's
+        history came too late, or not at all): what the actor's cache holds of ``missing`` goes
+        to the inbox, as if it had come in time."""
+        log.info(
+            "critic: %s's transitions start at step %d; asking the actor's cache for steps %d-%d",
+            first.robot,
+            first.step,
+            missing.start,
+            missing.stop - 1,
+        )
+        bus.count("history_queries")
+
+        def keep(message: Transition) -> None:
+            if message.robot == first.robot and message.episode == first.episode and message.step in missing:
+                inbox.put(message)
+
+        bus.history(TRANSITION, TRANSITION.key(first.robot), keep)
+
     if restored and learner.resume:  # asked to start from them: the actor may use them from step 0
         for weights in learner.current_weights():
             publish(weights)
@@ -547,6 +581,11 @@ def run(
             if continued is not None:
                 log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
                 publish(continued)
+            if message.robot not in heard:
+                heard.add(message.robot)
+                missing = learner.missing_before(message)
+                if missing:
+                    recover(message, missing)
             outgoing += learner.take(message, fit=not defer and index not in superseded, defer=True)
         outgoing += learner.flush()
         batches.append(len(batch))
