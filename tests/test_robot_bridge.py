@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -793,9 +794,9 @@ def test_swap_sim_and_robot_agree() -> None:
     20 s episode ended some runs mid-shuffle. The episode is 30 s: the shuffle may take twice its
     usual time. Parked, the end points agree to a few mm and the costs to ~1 %.
     """
-    runs = {}
-    for plant in ("sim", "robot"):
-        done = _run_up(
+
+    def run(plant: str) -> subprocess.CompletedProcess[str]:
+        return _run_up(
             "--plant",
             plant,
             "--agent",
@@ -809,8 +810,14 @@ def test_swap_sim_and_robot_agree() -> None:
             "--robot",
             f"swap_{plant}",
         )
-        assert done.returncode == 0, done.stderr[-3000:]
-        runs[plant] = json.loads(done.stdout.strip().splitlines()[-1])
+
+    # the two runs side by side (own routers, own robot ids): each waits on real time
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        done = dict(zip(("sim", "robot"), pool.map(run, ("sim", "robot")), strict=True))
+    runs = {}
+    for plant, finished in done.items():
+        assert finished.returncode == 0, finished.stderr[-3000:]
+        runs[plant] = json.loads(finished.stdout.strip().splitlines()[-1])
     sim, robot = runs["sim"], runs["robot"]
     np.testing.assert_allclose(sim["start_state"], robot["start_state"], atol=1e-9)
     for run in (sim, robot):

@@ -8,8 +8,8 @@ Markers (registered in pyproject.toml; docs/development.md):
   so a new test is checked by default and the marker can never be missing.
 * ``slow``: seconds of CPU in the test's own process (closed-loop episodes, benchmarks in miniature).
 * ``timing``: asserts a real-time bound (0 missed deadlines, a latency or period bound, steps done
-  within a wall-clock run). These run alone, after everything else: a parallel worker on the
-  same cores would make them fail for want of CPU, not for a bug.
+  within a wall-clock run). These run after everything else, among themselves only: a CPU-bound
+  test on the same cores would make them fail for want of CPU, not for a bug.
 
 ``pytest --fast`` (``./srl test --fast``): only the tests carrying none of the three markers: no
 process, no socket, seconds in all; the edit-test loop. Under ``--fast`` the guard also fails a test
@@ -20,13 +20,11 @@ of the test process grew.
 Phase 1 runs every test not marked ``timing`` on ``SRL_TEST_WORKERS`` (default :data:`WORKERS`)
 parallel pytest-xdist workers (``--dist worksteal``: each worker starts on a run of whole files, in
 order, and a worker that runs out takes tests from another's queue, so the long files of
-real-time runs do not leave workers idle); phase 2 runs the ``timing`` tests on one worker, alone. The
-last line counts both phases as pytest does; the exit code is non-zero if either phase failed.
-Phase 2 runs the ``timing`` tests in two streams side by side (``--dist loadgroup``), each one test
-at a time: the tests of network-namespace hosts (``needs_root``: their services mostly wait on
-real time, lossy links and partitions, about a third of a core) and all the others. So no two
-CPU-bound timing tests ever share the cores. ``SRL_TEST_TIMING_WORKERS=1`` runs all of them alone,
-one by one (without root the namespace stream is empty and the phase is that already).
+real-time runs do not leave workers idle). The last line counts both phases as pytest does; the exit
+code is non-zero if either phase failed. Phase 2 runs the ``timing`` tests :data:`TIMING_WORKERS` at a time (``--dist worksteal``): each of
+them mostly waits on real time (services at ``delta``, partitions, lossy links; all of them together
+use about half a core), so side by side they still get the CPU their deadlines need, which they
+would not beside phase 1's CPU-bound tests. ``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one.
 
 Every test has a time limit (pytest-timeout, ``timeout`` in pyproject.toml; a longer one with
 ``@pytest.mark.timeout(SECONDS)``): past it the test fails with its stack. A test stuck where
@@ -55,9 +53,7 @@ from typing import Any
 import pytest
 
 WORKERS = 3  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
-TIMING_WORKERS = 2  # the timing phase's two streams side by side (NETNS_STREAM, TIMING_STREAM)
-NETNS_STREAM = "netns"  # the timing tests of namespaced hosts (needs_root): one after another
-TIMING_STREAM = "timing"  # every other timing test: one after another
+TIMING_WORKERS = 4  # the timing tests side by side: each mostly waits on real time
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
 JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by both phases (tests/conftest.py)
@@ -184,10 +180,6 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:  # the timing phase's two streams (main): the namespaced hosts, the rest
-        if item.get_closest_marker("timing"):
-            stream = NETNS_STREAM if item.get_closest_marker("needs_root") else TIMING_STREAM
-            item.add_marker(pytest.mark.xdist_group(stream))
     if not config.getoption("fast"):
         return
     keep: list[pytest.Item] = []
@@ -296,7 +288,7 @@ def main(extra: list[str]) -> int:
         (
             ("timing, alone", ["-p", "no:xdist", "-m", "timing", *extra])
             if timing <= 1
-            else (f"timing, {timing} streams", ["-n", str(timing), "--dist", "loadgroup", "-m", "timing", *extra])
+            else (f"timing, {timing} at a time", ["-n", str(timing), "--dist", "worksteal", "-m", "timing", *extra])
         ),
     ]
     code, seconds = 0, 0.0
