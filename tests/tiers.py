@@ -20,11 +20,12 @@ of the test process grew.
 Phase 1 runs every test not marked ``timing`` on ``SRL_TEST_WORKERS`` (default :data:`WORKERS`)
 parallel pytest-xdist workers (``--dist worksteal``: each worker starts on a run of whole files, in
 order, and a worker that runs out takes tests from another's queue, so the long files of
-real-time runs do not leave workers idle). The last line counts both phases as pytest does; the exit
-code is non-zero if either phase failed. Phase 2 runs the ``timing`` tests :data:`TIMING_WORKERS` at a time (``--dist worksteal``): each of
-them mostly waits on real time (services at ``delta``, partitions, lossy links; all of them together
-use about half a core), so side by side they still get the CPU their deadlines need, which they
-would not beside phase 1's CPU-bound tests. ``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one.
+real-time runs do not leave workers idle). Phase 2 runs the ``timing`` tests :data:`TIMING_WORKERS` at a
+time (``--dist worksteal``): each of them mostly waits on real time (services at ``delta``,
+partitions, lossy links; all of them together use about half a core), so side by side they still get
+the CPU their deadlines need, which they would not beside phase 1's CPU-bound tests.
+``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one. The last line counts both phases as pytest
+does; the exit code is non-zero if either phase failed.
 
 Every test has a time limit (pytest-timeout, ``timeout`` in pyproject.toml; a longer one with
 ``@pytest.mark.timeout(SECONDS)``): past it the test fails with its stack. A test stuck where
