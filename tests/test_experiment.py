@@ -289,6 +289,24 @@ def test_the_papers_method_by_default_and_the_robots_on_request(reduced_inproc: 
 
 @pytest.mark.integration
 @pytest.mark.slow
+def test_a_localized_physics_robot_gets_rows_with_the_truth_beside_what_it_reported(tmp_path: Path) -> None:
+    """--plant physics --localization amcl: the actor sees odometry corrected by AMCL-like fixes
+    (common.config.assembly.localized_plant); each row carries J and the final distance on the
+    true states beside the reported ones. Only the in-process plant takes a localization."""
+    done = _experiment(tmp_path, "--method", "robot", "--plant", "physics", "--localization", "amcl")
+    assert done.returncode == 0, done.stderr[-3000:]
+    rows = read_runs_csv(tmp_path / "runs.csv")
+    assert rows and all(r["true_accumulated_cost"] is not None and r["true_final_distance"] is not None for r in rows)
+    assert any(r["true_final_distance"] != pytest.approx(r["final_distance"], abs=1e-9) for r in rows)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["experiment"]["localization"] == "amcl" and "--localization=amcl" in summary["experiment"]["command"]
+    assert (tmp_path / "summary.md").read_text().splitlines()[0].endswith("plant physics, pose amcl")
+    refused = _experiment(tmp_path / "zenoh", "--localization", "mocap", "--transport", "zenoh", timeout=60)
+    assert refused.returncode == 2 and "--localization is for" in refused.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.integration
+@pytest.mark.slow
 def test_zenoh_transport_gives_the_inproc_numbers(reduced_inproc: Path, tmp_path: Path) -> None:
     # A checkpoint named in the environment (it outranks --config) is still switched off:
     # every episode starts from the initial weights, and nothing is written per step.

@@ -22,6 +22,7 @@ from common.math.agents import learns
 from common.math.arrival import ArrivalRule, ArrivalTolerances, WheelDeadband
 from common.math.critic import DoubleCritic, PooledLearner
 from common.math.dynamics import Plant
+from common.math.localization import SIM_NOISE, SIM_SOURCES, LocalizedPlant, SimLocalization
 from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, run_algorithm1, run_fleet_lockstep
 from common.math.physics import simulated_robot
 from common.math.stats import summarize
@@ -84,6 +85,24 @@ def build_plant(settings: Settings) -> ExactPlant | RobotPlant:
     p = settings.plant
     robot = simulated_robot(p.model, settings.turtlebot_params(), settings.physics_params(), np.zeros(3))
     return ExactPlant() if robot is None else RobotPlant(robot)
+
+
+def localized_plant(settings: Settings, localization: str, noise: tuple[float, float] | None = None) -> Plant:
+    """The in-process simulated robot (:func:`build_plant`), its odometry corrected by a simulated
+    localization (``amcl`` or ``mocap``, :data:`common.math.localization.SIM_NOISE` unless ``noise``)
+    fused as the robot bridge fuses one (``bridge.pose_blend_time``); ``none``: the plant as built.
+    Raises ValueError for an unknown source."""
+    plant = build_plant(settings)
+    if localization == "none":
+        return plant
+    if localization not in SIM_SOURCES:
+        raise ValueError(f"a simulated localization is none, {' or '.join(SIM_SOURCES)}; got {localization!r}")
+    source = SimLocalization(
+        localization,
+        noise=SIM_NOISE[localization] if noise is None else noise,
+        blend_time=settings.bridge.pose_blend_time,
+    )
+    return LocalizedPlant(plant, source)
 
 
 def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:

@@ -131,6 +131,9 @@ class CorrectionBlend:
 # The sources a simulated robot can be given (``srl bench parking --localization``): AMCL-like
 # sparse fixes, or motion capture streaming at a rate.
 SIM_SOURCES = ("amcl", "mocap")
+# Their error, one standard deviation of each fix (x, y [m]; heading [rad]): an assumption of a
+# well-mapped room (AMCL) and of a motion-capture lab (docs/turtlebot.md "Parking").
+SIM_NOISE = {"amcl": (0.01, 0.01), "mocap": (0.001, 0.002)}
 
 
 @dataclass(frozen=True)

@@ -65,6 +65,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "model; physics, the MuJoCo TurtleBot3; J is on what the robot reported, true J beside it (default: ideal)",
     )
     parser.add_argument(
+        "--localization",
+        choices=["none", "amcl", "mocap"],
+        default="none",
+        help="the pose the actor sees (inproc): none, the robot's odometry; amcl, corrected by a fix at start and "
+        "after every 0.25 m or 0.2 rad; mocap, by a fix every 0.1 s (the robot bridge's fusion, docs/turtlebot.md "
+        "'Parking') (default: none)",
+    )
+    parser.add_argument(
         "--config", type=Path, help="a TOML file overriding common/config/srl.toml (any subset) (default: none)"
     )
     parser.add_argument("--out", type=Path, help="output directory (default out/paper-<UTC time>)")
@@ -115,6 +123,8 @@ def main(args: argparse.Namespace) -> int:
             raise ValueError(f"--grid must be >= 1, got {args.grid}")
         if not (math.isfinite(args.extent) and args.extent > 0):
             raise ValueError(f"--extent must be a positive number, got {args.extent}")
+        if args.localization != "none" and (args.transport != "inproc" or args.which == "fleet"):
+            raise ValueError("--localization is for `srl experiment paper --transport inproc` (the in-process plant)")
         if args.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
         options = ExperimentOptions(
@@ -125,6 +135,7 @@ def main(args: argparse.Namespace) -> int:
             agents=parse_agents(args.agents),
             horizons=parse_horizons(args.horizons),
             transport=args.transport,
+            localization=args.localization,
             workers=args.workers,
             out=args.out or Path("out") / f"paper-{datetime.now(UTC):%Y%m%d-%H%M%S}",
             plots=not args.no_plots,
@@ -184,6 +195,8 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
         f"--method={args.method}",
         f"--plant={args.plant}",
     ]
+    if args.localization != "none":
+        argv.append(f"--localization={args.localization}")
     if args.duration is not None:
         argv.append(f"--duration={args.duration:g}")
     if args.config is not None:

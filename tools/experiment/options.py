@@ -30,6 +30,7 @@ class ExperimentOptions:
     agents: tuple[str, ...] = PAPER_AGENTS
     horizons: tuple[int, ...] = DEFAULT_HORIZONS
     transport: str = "inproc"
+    localization: str = "none"  # inproc: the simulated robot's pose corrected by amcl or mocap
     workers: int = 0  # 0 = every core this process may use
     out: Path = field(default_factory=lambda: Path("out"))
     plots: bool = True

@@ -55,6 +55,7 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
             "agents": list(options.agents),
             "horizons": list(options.horizons),
             "transport": options.transport,
+            "localization": options.localization,
             "duration": base.episode.duration,
             "steps": base.steps,
             "command": options.command,

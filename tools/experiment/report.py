@@ -194,6 +194,8 @@ CSV_COLUMNS = (
     "worker",
     "critic_timeouts",
     "max_staleness_steps",
+    "true_accumulated_cost",  # on the true states, where the plant knows them ('' where not)
+    "true_final_distance",
 )
 
 
@@ -215,6 +217,7 @@ def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[
             writer.writerow(
                 {
                     **{k: r.get(k) for k in CSV_COLUMNS},
+                    **{k: "" if r.get(k) is None else repr(float(r[k])) for k in CSV_COLUMNS[-2:]},
                     "ratio_to_mpc_percent": "" if ratio is None else repr(float(ratio)),
                     "parked": int(r["final_distance"] <= PARK_TOLERANCE_M),
                     **{
@@ -345,7 +348,8 @@ def _fmt_ratio(v: float | None) -> str:
 def summary_markdown(summary: dict[str, Any]) -> str:
     e, s = summary["experiment"], summary["settings"]
     lines = [
-        f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}, plant {s['plant']['model']}",
+        f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}, plant {s['plant']['model']}"
+        + (f", pose {e['localization']}" if e.get("localization", "none") != "none" else ""),
         "",
     ]
     status = (

@@ -96,7 +96,11 @@ def run_grid(options: ExperimentOptions, base: Settings, specs: list[RunSpec], c
                     data["transport"].update(services.transport_for(robot))
                 process = context.Process(
                     target=worker_main,
-                    args=(WorkerConfig(slot, data, options.transport, robot), task_queues[slot], results),
+                    args=(
+                        WorkerConfig(slot, data, options.transport, robot, options.localization),
+                        task_queues[slot],
+                        results,
+                    ),
                     name=f"srl-experiment-worker-{slot}",
                     daemon=True,
                 )

@@ -27,14 +27,19 @@ class WorkerConfig:
     base: dict[str, Any]  # Settings.model_dump(mode="json") of the resolved base settings
     transport: str
     robot: str = ""
+    localization: str = "none"  # inproc: common.config.assembly.localized_plant
 
 
 class InprocRunner:
+    def __init__(self, localization: str = "none") -> None:
+        self.localization = localization  # the pose the actor sees: none (odometry), amcl or mocap
+
     def run(self, settings: Settings, actor: Any) -> tuple[Any, dict[str, Any]]:
-        from common.config.assembly import build_plant, local_critic, run_episode
+        from common.config.assembly import local_critic, localized_plant, run_episode
 
         critic = local_critic(settings, learn=learns(settings.actor.agent))
-        return run_episode(settings, actor=actor, plant=build_plant(settings), critic=critic), {}
+        plant = localized_plant(settings, self.localization)
+        return run_episode(settings, actor=actor, plant=plant, critic=critic), {}
 
     def close(self) -> None:
         pass
@@ -122,6 +127,11 @@ def run_one(
         "final_y": float(final[1]),
         "final_alpha": float(final[2]),
         "final_distance": float(np.hypot(final[0], final[1])),
+        # the truth beside what the robot reported, where the plant knows it (equal on the ideal plant)
+        "true_accumulated_cost": episode.true_accumulated_cost(
+            settings.plant.sampling_time, tuple(settings.cost.r_diag)
+        ),
+        "true_final_distance": float(np.hypot(*episode.true_states[-1][:2])) if episode.truth_known else None,
         "at_rest": int(rest.at_rest),
         "last_span_m": rest.span,
         "sign_changes": rest.sign_changes,
@@ -160,7 +170,7 @@ def worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
     runner: Any = None
     try:
         base = Settings.model_validate(config.base)
-        runner = ZenohRunner(base) if config.transport == "zenoh" else InprocRunner()
+        runner = ZenohRunner(base) if config.transport == "zenoh" else InprocRunner(config.localization)
         actors: dict[tuple[str, int], Any] = {}
         results.put(("ready", config.slot, None))
         while (spec := tasks.get()) is not None:
