@@ -12,6 +12,7 @@ import pytest
 
 from common.math.arrival import ArrivalRule, ArrivalTolerances, WheelDeadband, deadband_action
 from common.math.localization import LocalizedPlant, SimLocalization
+from common.math.turtlebot import firmware_velocity
 from tools.bench.parking import (
     ODOMETRY_ONLY,
     ParkingResult,
@@ -97,6 +98,28 @@ def test_moving_commands_zero_and_breakaway_zero_pass_unchanged() -> None:
         WheelDeadband(-1.0, 0.033, 0.160)
     with pytest.raises(ValueError, match="breakaway"):
         WheelDeadband(float("nan"), 0.033, 0.160)
+
+
+def test_a_command_the_robot_truncates_to_zero_is_a_deadband_command() -> None:
+    """turtlebot3_node sends int32(v * 100): (-0.009, -0.006) reaches the wheels as zero although
+    its wheels would run at 0.26 rad/s, above breakaway (a robot held 0.07 m off for 20 s)."""
+    hunt = np.array([-0.009, -0.006])
+    robot = WheelDeadband(0.132, 0.033, 0.160, resolution=0.01)
+    assert min(abs(w) for w in DEADBAND.wheels(hunt)) > DEADBAND.breakaway  # taken as sent: moves
+    np.testing.assert_array_equal(deadband_action(hunt, FAR, DEADBAND, TOLERANCES), hunt)
+    assert robot.peak(hunt) == 0.0
+    sent = deadband_action(hunt, FAR, robot, TOLERANCES)
+    applied = [firmware_velocity(float(c), 10.0) for c in sent]
+    assert max(abs(w) for w in robot.wheels(np.array(applied))) >= robot.breakaway  # as the robot applies it
+    assert np.sign(sent[0]) == -1 and np.sign(sent[1]) == -1 and abs(sent[0]) < 0.02  # its direction, slow
+    np.testing.assert_array_equal(deadband_action(hunt, np.array([0.04, 0.0, 0.0]), robot, TOLERANCES), [0.0, 0.0])
+    turn = np.array([0.0, 0.012])  # survives the truncation, but 0.01 rad/s moves no wheel: raised
+    sent = deadband_action(turn, FAR, robot, TOLERANCES)
+    assert sent[0] == 0.0 and robot.peak(sent) >= robot.breakaway
+    assert deadband_commands([hunt, [0.1, 0.0]], 0.132, 0.033, 0.160, resolution=0.01) == 1
+    assert deadband_commands([hunt, [0.1, 0.0]], 0.132, 0.033, 0.160) == 0
+    with pytest.raises(ValueError, match="resolution"):
+        WheelDeadband(0.132, 0.033, 0.160, resolution=-0.01)
 
 
 def test_the_arrival_rule_applies_the_deadband_only_when_given_one() -> None:

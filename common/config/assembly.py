@@ -19,7 +19,7 @@ from common.contracts.summaries import EpisodeSummary, TrueView
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorMemory, ActorProblem
 from common.math.agents import learns
-from common.math.arrival import ArrivalRule, ArrivalTolerances, WheelDeadband
+from common.math.arrival import ArrivalRule, ArrivalTolerances, Docking, TurnFirst, WheelDeadband
 from common.math.critic import DoubleCritic, PooledLearner
 from common.math.dynamics import Plant
 from common.math.localization import SIM_NOISE, SIM_SOURCES, LocalizedPlant, SimLocalization
@@ -35,10 +35,36 @@ def arrival_rule(settings: Settings) -> ArrivalRule | None:
     a = settings.actor
     if not a.arrival:
         return None
+    tolerances = ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
     return ArrivalRule(
-        ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis),
-        WheelDeadband(a.wheel_breakaway_speed, a.wheel_radius, a.wheel_separation),
+        tolerances,
+        WheelDeadband(a.wheel_breakaway_speed, a.wheel_radius, a.wheel_separation, a.command_resolution),
+        TurnFirst(
+            a.turn_first_threshold,
+            a.arrival_heading_tolerance,
+            turn_rate_in_place(settings),
+            settings.plant.sampling_time,
+            min_distance=a.arrival_hysteresis * a.arrival_position_tolerance,
+        ),
+        Docking(
+            a.docking_radius,
+            a.docking_reversals,
+            a.wheel_radius * a.wheel_speed_max if a.wheel_speed_max > 0 else settings.plant.v_max,
+            turn_rate_in_place(settings),
+            settings.plant.sampling_time,
+            half_track=a.wheel_separation / 2.0 if a.wheel_speed_max > 0 else 0.0,
+        ),
     )
+
+
+def turn_rate_in_place(settings: Settings) -> float:
+    """The actor's top turning rate in place [rad/s]: omega_max, and with the wheel box the wheels
+    at +-wheel_speed_max (omega = 2 r w / b)."""
+    a = settings.actor
+    rate = settings.plant.omega_max
+    if a.wheel_speed_max > 0:
+        rate = min(rate, 2.0 * a.wheel_radius * a.wheel_speed_max / a.wheel_separation)
+    return rate
 
 
 def jit_cache_path(setting: str) -> str:

@@ -221,6 +221,30 @@ class ActorSettings(_Section):
         description="[rad/s] with arrival: a command whose wheels are all below this is zero inside the outer "
         "tolerances, else raised to it (common/math/arrival.py); 0 = off",
     )
+    command_resolution: float = Field(
+        ge=0,
+        le=0.1,
+        allow_inf_nan=False,
+        description="[m/s, rad/s] with arrival: the robot truncates each cmd_vel component to a multiple of this; "
+        "the deadband rule judges a command as applied (common/math/arrival.py); 0 = none",
+    )
+    turn_first_threshold: float = Field(
+        ge=0,
+        le=math.pi / 2,
+        allow_inf_nan=False,
+        description="[rad] with arrival: a goal whose line of travel (ahead or back) starts more than this off the "
+        "target's bearing is turned to it in place first (common/math/arrival.py TurnFirst); 0 = off",
+    )
+    docking_radius: float = Field(
+        ge=0,
+        le=1.0,
+        allow_inf_nan=False,
+        description="[m] with arrival: within this of the target an approach that shuffles is finished by rotate, "
+        "drive straight, rotate (common/math/arrival.py Docking); 0 = off",
+    )
+    docking_reversals: int = Field(
+        ge=1, le=100, description="docking: this many reversals of the actor's v within the radius make a shuffle"
+    )
     wheel_speed_max: float = Field(ge=0, allow_inf_nan=False, description="[rad/s] wheel box; 0 = off")
     wheel_radius: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")

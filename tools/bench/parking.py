@@ -30,13 +30,13 @@ from numpy.typing import ArrayLike
 from pydantic import BaseModel, ConfigDict
 
 from common.config.arguments import UsageError
-from common.config.assembly import build_actor, build_plant, local_critic, run_episode
+from common.config.assembly import build_actor, local_critic, localized_plant, run_episode
 from common.config.settings import METHODS, PAPER_METHOD, Settings
 from common.math.actor import StackedActor
 from common.math.agents import Agent, learns, parse_agents, parse_horizons
-from common.math.dynamics import Plant
+from common.math.arrival import WheelDeadband
 from common.math.frames import wrap_angle
-from common.math.localization import SIM_SOURCES, LocalizedPlant, SimLocalization
+from common.math.localization import SIM_SOURCES
 from common.math.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
 from common.math.physics import breakaway_speed
 from tools.bench.meta import run_info
@@ -58,9 +58,6 @@ Localization = Literal["none", "amcl", "mocap"]
 LOCALIZATIONS = ("none", *SIM_SOURCES)
 ODOMETRY_ONLY = "odometry only"  # what a row without a localization says its pose was
 TRUTH = "truth"  # ... on the ideal plant, whose reported pose is the true one
-# The simulated localization's error, one standard deviation of each fix (x, y [m]; heading [rad]):
-# an assumption of a well-mapped room (AMCL) and a motion-capture lab (docs/turtlebot.md).
-LOCALIZATION_NOISE = {"amcl": (0.01, 0.01), "mocap": (0.001, 0.002)}
 # The arrival bound: the time to turn to the target, drive there and turn to its heading at the
 # Burger's top speeds (0.22 m/s, 2.84 rad/s: ROBOTIS e-Manual), x 1.5, + 3 s.
 TOP_SPEED, TOP_TURN, BOUND_FACTOR, BOUND_SLACK = 0.22, 2.84, 1.5, 3.0
@@ -182,13 +179,16 @@ def arrival_time(true_states: ArrayLike, sampling_time: float, radius: float = F
     return None if last == len(distances) - 1 else (last + 1) * sampling_time
 
 
-def deadband_commands(actions: ArrayLike, breakaway: float, radius: float, separation: float) -> int:
-    """Commands that move no wheel: not exactly zero, and every wheel below ``breakaway`` [rad/s]."""
+def deadband_commands(
+    actions: ArrayLike, breakaway: float, radius: float, separation: float, resolution: float = 0.0
+) -> int:
+    """Commands that move no wheel: not exactly zero, and every wheel below ``breakaway`` [rad/s]
+    as the robot applies the command (each component truncated to a multiple of ``resolution``:
+    the OpenCR path's 0.01, common/math/arrival.py WheelDeadband.applied)."""
+    wheels = WheelDeadband(breakaway, radius, separation, resolution)
     count = 0
-    for v, omega in np.asarray(actions, dtype=float).reshape(-1, 2):
-        half = omega * separation / 2.0
-        peak = max(abs(v - half), abs(v + half)) / radius
-        count += int(0.0 < peak < breakaway)
+    for action in np.asarray(actions, dtype=float).reshape(-1, 2):
+        count += int(np.any(action != 0.0) and wheels.peak(action) < breakaway)
     return count
 
 
@@ -221,18 +221,11 @@ def run_settings(
     return Settings.model_validate(data)
 
 
-def localized_plant(settings: Settings, localization: Localization, noise: tuple[float, float] | None = None) -> Plant:
-    """The run's plant: srl's simulated robot, its odometry corrected by a simulated localization
-    (the bridge's ``pose_blend_time``) unless ``none``."""
-    plant = build_plant(settings)
-    if localization == "none":
-        return plant
-    source = SimLocalization(
-        localization,
-        noise=LOCALIZATION_NOISE[localization] if noise is None else noise,
-        blend_time=settings.bridge.pose_blend_time,
-    )
-    return LocalizedPlant(plant, source)
+def command_resolution(settings: Settings) -> float:
+    """The simulated robot's command resolution: 0.01 (m/s, rad/s) on the OpenCR path
+    (``actuator.quantize``, common/math/turtlebot.py firmware_velocity), else none; the ideal plant
+    takes commands as sent."""
+    return 0.01 if settings.plant.model != "ideal" and settings.actuator.quantize else 0.0
 
 
 def parking_row(
@@ -275,7 +268,9 @@ def parking_row(
         true_cost=episode.accumulated_cost if true_cost is None else true_cost,
         reported_cost=episode.accumulated_cost,
         saturated_commands=episode.saturated_commands or 0,
-        deadband_commands=deadband_commands(episode.actions, breakaway, a.wheel_radius, a.wheel_separation),
+        deadband_commands=deadband_commands(
+            episode.actions, breakaway, a.wheel_radius, a.wheel_separation, resolution=command_resolution(settings)
+        ),
         arrival_seconds=arrived,
         arrival_bound=bound,
         final_ok=final_ok,
