@@ -297,7 +297,11 @@ def test_srl_view_serves_the_running_robots_poses_over_the_foxglove_websocket_pr
         url = re.search(r"ws://127\.0\.0\.1:\d+", line)
         assert url is not None, line  # bound to loopback by default
         for robot, expected in (("v1", (1.0, -0.5, 0.3)), ("v2", (-1.5, 2.0, 0.0))):
-            poses, channel = asyncio.run(foxglove_poses(url.group(0), f"/{robot}/odom", 5, timeout=30))
+            try:
+                poses, channel = asyncio.run(foxglove_poses(url.group(0), f"/{robot}/odom", 5, timeout=30))
+            except TimeoutError:  # say what the services said: the cause is theirs or the view's
+                tails = {p.name: (p.process.poll(), p.stderr[-5:]) for p in procs}
+                raise AssertionError(f"no /{robot}/odom from srl view in 30 s; exit codes, stderr: {tails}") from None
             assert channel["schemaName"] == "nav_msgs/msg/Odometry"
             for odom in poses:
                 assert odom.header.frame_id == "odom" and odom.child_frame_id == "base_footprint"

@@ -53,7 +53,7 @@ from typing import Any
 
 import pytest
 
-WORKERS = 3  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
+WORKERS = 4  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
 TIMING_WORKERS = 4  # the timing tests side by side: each mostly waits on real time
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
