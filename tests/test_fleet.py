@@ -451,6 +451,34 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
     for row in result["rows"]:
         assert row["fleet"]["robots"] == 2 and len(row["load_before"]) == 3 and row["rss_mb"] > 0
         assert row["processes"] == (4 if row["layout"] == "host" else 2 + 2 * 2)
+        # CPU per robot per tick: all processes' CPU over the run, per robot per delta
+        assert row["cpu_ms_per_robot_tick"] == pytest.approx(row["cpu_percent"] / 100 * 0.1 * 1e3 / 2)
+        # parking by the robots' own states: 5 s from 1.5 m away is too short to arrive
+        fleet = row["fleet"]
+        own = [r["own_final_distance_m"] for r in fleet["rows"]]
+        assert fleet["worst_own_final_distance_m"] == max(own) and fleet["at_target"] == 0
+
+
+def test_the_fleet_bench_judges_100_and_300_robots_as_one_robot_alone() -> None:
+    from tools.bench.fleet import checks, cpu_ms_per_robot_tick
+
+    assert cpu_ms_per_robot_tick(162.0, 100, 0.1) == pytest.approx(1.62)  # 1.62 cores for 1000 robot ticks a second
+    fleet = {"missed_deadlines": 0, "latency_p99_ms": 1.0, "staleness_p99_steps": 1.0, "parked": 100, "at_target": 100}
+    row = {"robots": 100, "fleet": fleet, "rss_mb": 900.0, "cpu_percent": 40.0, "cpus": 2, "seconds": 40}
+    row["cpu_ms_per_robot_tick"] = cpu_ms_per_robot_tick(row["cpu_percent"], 100, 0.1)  # 0.4 ms
+    assert all(checks(row).values()) and len(checks(row)) == 7
+    one_off = {**row, "fleet": {**fleet, "at_target": 99}}
+    assert [name for name, ok in checks(one_off).items() if not ok] == ["every robot at its target"]
+    busy = {**row, "cpu_percent": 150.0, "cpu_ms_per_robot_tick": 1.5}  # 75 % of the 2 cores
+    assert sorted(name for name, ok in checks(busy).items() if not ok) == [
+        "CPU <= 70 % of the machine",
+        "CPU per robot tick <= 0.5 ms",
+    ]
+    big = {**row, "robots": 300, "fleet": {**fleet, "at_target": 300}, "rss_mb": 2100.0, "cpu_ms_per_robot_tick": 0.6}
+    assert sorted(name for name, ok in checks(big).items() if not ok) == [
+        "CPU per robot tick <= 0.5 ms",
+        "RSS <= 2.0 GB",
+    ]
 
 
 @pytest.mark.integration

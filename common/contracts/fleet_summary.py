@@ -15,6 +15,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from common.contracts.summaries import BridgeSummary, RealtimeActorSummary
 
 PARKED_WITHIN_M = 0.25  # [m] a robot that ends this close to the target parked (the fleet bench's bound)
+# As one robot alone parks (docs/turtlebot.md "Parking"): by its own final state, within this of the
+# target, and at rest: the last command its actor sent was exactly zero (the arrival rule's stop).
+AT_TARGET_M = 0.05
 
 
 class FleetModel(BaseModel):
@@ -39,6 +42,10 @@ class RobotRow(FleetModel):
     stale_state_stops: int
     final_distance_m: float = Field(description="true final distance if the plant knows it, else reported; nan: none")
     parked: bool
+    own_final_distance_m: float = Field(
+        default=math.nan, description="final distance by the robot's own last state (its odometry); nan: none"
+    )
+    at_rest: bool = Field(default=False, description="the last command the actor sent was exactly zero")
 
 
 class FleetView(FleetModel):
@@ -54,6 +61,10 @@ class FleetView(FleetModel):
     staleness_max_steps: float = Field(description="worst robot")
     solver_failures: int
     parked: int = Field(description=f"robots ending within {PARKED_WITHIN_M} m of the target")
+    at_target: int = Field(
+        default=0, description=f"robots whose own final state is within {AT_TARGET_M} m of the target, at rest"
+    )
+    worst_own_final_distance_m: float = Field(default=math.nan, description="by the robots' own final states")
     rows: list[RobotRow]
 
 
@@ -81,6 +92,8 @@ def robot_row(robot: str, summary: RealtimeActorSummary) -> RobotRow:
         distance = math.hypot(summary.final_state[0], summary.final_state[1])
     else:
         distance = math.nan
+    own = math.hypot(summary.final_state[0], summary.final_state[1]) if summary.final_state is not None else math.nan
+    last = summary.transitions_tail[-1] if summary.transitions_tail else None  # k, x, y, alpha, v, omega, r
     return RobotRow(
         robot=robot,
         steps=summary.steps,
@@ -94,6 +107,8 @@ def robot_row(robot: str, summary: RealtimeActorSummary) -> RobotRow:
         stale_state_stops=summary.stale_state_stops,
         final_distance_m=distance,
         parked=math.isfinite(distance) and distance <= PARKED_WITHIN_M,
+        own_final_distance_m=own,
+        at_rest=last is not None and last[4] == 0.0 and last[5] == 0.0,
     )
 
 
@@ -110,6 +125,8 @@ def fleet_view(per_robot: dict[str, RealtimeActorSummary]) -> FleetView:
         staleness_max_steps=_worst([r.staleness_max_steps for r in rows]),
         solver_failures=sum(r.solver_failures for r in rows),
         parked=sum(r.parked for r in rows),
+        at_target=sum(r.at_rest and r.own_final_distance_m <= AT_TARGET_M for r in rows),
+        worst_own_final_distance_m=_worst([r.own_final_distance_m for r in rows]),
         rows=rows,
     )
 

@@ -5,9 +5,11 @@ one plant host, the critic: ``srl up --robots K``), and for the baseline sizes o
 the process layout (one plant_sim and one actor process per robot), in the same invocation and
 interleaved by size, so both see the same machine. Each row: missed deadlines (all robots), tick
 jitter and state -> action latency p99 (worst robot), weight staleness p99 / max (worst robot),
-robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle), CPU % of all
-srl processes over the run (100 % = one core), their total resident memory, and the machine's
-load average before and after. Targets (PASS/FAIL) at 50 and 100 robots, and the soak's (RSS
+robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle), robots at their
+target as one robot alone parks (by their own final state within 0.05 m, and at rest: the last
+command zero) and the farthest, CPU % of all srl processes over the run (100 % = one core) and
+that CPU per robot per sampling interval, their total resident memory, and the machine's load
+average before and after. Targets (PASS/FAIL) at 50, 100 and 300 robots, and the soak's (RSS
 growth <= 2 % at 50 robots over 600 s and more). Every run is bounded (start-up timeouts, then
 ``--seconds``) and every process is stopped after it (tools/launch/fleet.py).
 """
@@ -30,8 +32,29 @@ from tools.launch.supervisor import ServiceDiedError
 
 TARGETS: dict[int, dict[str, float]] = {
     50: {"missed_deadlines": 0, "latency_p99_ms": 20.0, "staleness_p99_steps": 1.0},
-    100: {"missed_deadlines": 0, "latency_p99_ms": 50.0, "staleness_p99_steps": 1.0, "rss_mb": 1536.0},
+    100: {
+        "missed_deadlines": 0,
+        "latency_p99_ms": 50.0,
+        "staleness_p99_steps": 1.0,
+        "rss_mb": 1536.0,
+        "machine_cpu_percent": 70.0,
+        "cpu_ms_per_robot_tick": 0.5,
+    },
+    300: {
+        "missed_deadlines": 0,
+        "latency_p99_ms": 50.0,
+        "staleness_p99_steps": 1.0,
+        "rss_mb": 2048.0,
+        "cpu_ms_per_robot_tick": 0.5,
+    },
 }
+
+
+def cpu_ms_per_robot_tick(cpu_percent: float, robots: int, delta: float) -> float:
+    """CPU of every srl process per robot per sampling interval [ms]: ``cpu_percent`` is over the
+    run, 100 % = one core, so each second costs ``cpu_percent / 100`` s, shared by ``robots / delta``
+    robot ticks."""
+    return cpu_percent / 100.0 * delta * 1e3 / robots
 
 
 def robot_counts(text: str, option: str) -> list[int]:
@@ -64,6 +87,16 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
     }
     if row["robots"] == 50:
         result["every robot parked"] = fleet["parked"] == row["robots"]
+    if row["robots"] >= 100:  # as one robot alone: by its own state within 0.05 m, at rest
+        result["every robot at its target"] = fleet.get("at_target", 0) == row["robots"]
+    if "machine_cpu_percent" in target:
+        machine = row["cpu_percent"] / (row.get("cpus") or os.cpu_count() or 1)
+        result[f"CPU <= {target['machine_cpu_percent']:.0f} % of the machine"] = (
+            machine <= target["machine_cpu_percent"]
+        )
+    if "cpu_ms_per_robot_tick" in target:
+        limit = target["cpu_ms_per_robot_tick"]
+        result[f"CPU per robot tick <= {limit} ms"] = row["cpu_ms_per_robot_tick"] <= limit
     if "rss_mb" in target:
         result[f"RSS <= {target['rss_mb'] / 1024:.1f} GB"] = row["rss_mb"] <= target["rss_mb"]
     if row["robots"] == SOAK_ROBOTS and row["seconds"] >= SOAK_SECONDS:  # the soak: memory stays put
@@ -82,8 +115,10 @@ def measured_run(
         summary = run_fleet(settings, settings_argv, parse_robots(str(size)), seconds, quiet=True, **options)
     except (ServiceDiedError, TimeoutError, ValueError) as error:
         summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
-    row = {"layout": options.get("layout", "host"), **summary, "robots": size}
+    row = {"layout": options.get("layout", "host"), **summary, "robots": size, "cpus": os.cpu_count()}
     row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
+    if "cpu_percent" in row:
+        row["cpu_ms_per_robot_tick"] = cpu_ms_per_robot_tick(row["cpu_percent"], size, settings.plant.sampling_time)
     return row
 
 
@@ -121,7 +156,8 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
-    f"{'parked':>7} {'CPU %':>6} {'RSS MB':>7} {'growth':>7} {'procs':>5} {'RT':>5} {'hurried':>7}  "
+    f"{'parked':>7} {'at target':>9} {'worst m':>7} {'CPU %':>6} {'ms/tick':>7} {'RSS MB':>7} {'growth':>7} "
+    f"{'procs':>5} {'RT':>5} {'hurried':>7}  "
     "load before -> after  targets"
 )
 
@@ -139,7 +175,9 @@ def format_row(row: dict[str, Any]) -> str:
     return (
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
-        f"{f['parked']:>3}/{row['robots']:<3} {row['cpu_percent']:>6.0f} {row['rss_mb']:>7.0f} "
+        f"{f['parked']:>3}/{row['robots']:<3} {f.get('at_target', 0):>4}/{row['robots']:<4} "
+        f"{f.get('worst_own_final_distance_m', math.nan):>7.3f} {row['cpu_percent']:>6.0f} "
+        f"{row['cpu_ms_per_robot_tick']:>7.3f} {row['rss_mb']:>7.0f} "
         f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5} {realtime:>5} {hurried:>7}  {load:<20} {targets}"
     )
 
@@ -148,7 +186,10 @@ def format_table(result: dict[str, Any]) -> str:
     lines = [
         f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
         f"starts on a 1.5 m circle, {result['cpus']} CPUs; jitter, latency, staleness: worst robot; "
-        "CPU: all srl processes (100 % = one core); growth: their RSS from the end of warm-up (the first "
+        "at target: robots whose own final state is within 0.05 m of the target, at rest (last command zero); "
+        "worst m: the farthest robot by its own state; "
+        "CPU: all srl processes (100 % = one core), ms/tick: their CPU per robot per sampling interval; "
+        "growth: their RSS from the end of warm-up (the first "
         "tenth) to the end; RT: actor processes whose tick thread ran under SCHED_FIFO (actor.realtime_priority); "
         "hurried: ticks solved in a hurry (served late or over actor.host_cpu_budget); load: 1-min average",
         HEADER,
