@@ -18,13 +18,14 @@
 
 from __future__ import annotations
 
-import _socket
 import os
 import shutil
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+
+from common.system.ports import free_port
 
 pytest_plugins = ("tests.tiers",)
 
@@ -107,15 +108,9 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     # transport.router of this test process (each parallel worker has its own): a router, service
     # or srl up that a test starts without --router meets that test's own, never one of a test
-    # running in another worker, nor a router the machine itself runs on the packaged 7447. The C
-    # socket type: a session nested in a test (pytester) is configured inside that test, where the
-    # guard of tests/tiers.py refuses socket.socket.
-    sock = _socket.socket()
-    try:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    finally:
-        sock.close()
+    # running in another worker, nor a router the machine itself runs on the packaged 7447
+    # (common/system/ports.py: below the ephemeral range, so no outgoing connection takes it meanwhile).
+    port = free_port()
     os.environ["SRL_TRANSPORT__ROUTER"] = f"tcp/127.0.0.1:{port}"
 
 

@@ -12,18 +12,13 @@ import contextlib
 import os
 import re
 import signal
-import socket
 import subprocess
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from common.system.ports import free_port
+
 BLOCK_SECONDS = 120
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 FENCE = re.compile(r"^(\s*)(`{3,}|~{3,})\s*([\w+-]*)")

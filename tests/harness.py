@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -40,6 +39,7 @@ from common.contracts.messages import PlantState, Transition
 from common.contracts.ros_wire import Odometry
 from common.math.frames import quaternion_from_yaw
 from common.net.transport import plain_config
+from common.system.ports import free_port
 from services.robot_bridge.bridge import RobotBridge
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,12 +101,6 @@ def fake_bridge(**bridge: Any) -> tuple[RobotBridge, list[PlantState], list[tupl
 def odom_sample(stamp: int, x: float = 0.0, y: float = 0.0, yaw: float = 0.0) -> Odometry:
     """An odometry sample at rest in ``odom``: pose (x, y, yaw), ROS stamp ``stamp`` [ns]."""
     return Odometry(stamp, "odom", "base_footprint", x, y, quaternion_from_yaw(yaw), 0.0, 0.0)
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def client_config(endpoint: str) -> zenoh.Config:

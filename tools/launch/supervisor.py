@@ -39,6 +39,7 @@ from common.net.certs import write_tls_material
 from common.net.security import ROLES, write_credentials
 from common.net.transport import zenoh_config
 from common.process.runtime import SignalWatch
+from common.system.ports import free_port
 
 log = logging.getLogger(__name__)
 GRACE_SECONDS = 5.0
@@ -154,10 +155,8 @@ def optional_summary(child: Child, contract: TypeAdapter[T]) -> T | None:
 
 
 def free_loopback_endpoint() -> str:
-    """``tcp/127.0.0.1:<port>`` on a port that was free a moment ago (the OS picked it)."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    """``tcp/127.0.0.1:<port>`` on a port that was free a moment ago (common/system/ports.py)."""
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
