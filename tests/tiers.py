@@ -23,7 +23,9 @@ order, and a worker that runs out takes tests from another's queue, so the long 
 real-time runs do not leave workers idle). Phase 2 runs the ``timing`` tests :data:`TIMING_WORKERS` at a
 time (``--dist worksteal``): each of them mostly waits on real time (services at ``delta``,
 partitions, lossy links; all of them together use about half a core), so side by side they still get
-the CPU their deadlines need, which they would not beside phase 1's CPU-bound tests.
+the CPU their deadlines need, which they would not beside phase 1's CPU-bound tests. Where the
+actor's tick thread cannot run SCHED_FIFO (:func:`realtime_allowed`: not root, a low rtprio limit)
+it shares the cores with ordinary threads, and the phase runs :data:`TIMING_WORKERS_WITHOUT_RT` at a time.
 ``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one. The last line counts both phases as pytest
 does; the exit code is non-zero if either phase failed.
 
@@ -54,7 +56,9 @@ from typing import Any
 import pytest
 
 WORKERS = 4  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
-TIMING_WORKERS = 4  # the timing tests side by side: each mostly waits on real time
+TIMING_WORKERS = 4  # the timing tests side by side: each mostly waits on real time ...
+TIMING_WORKERS_WITHOUT_RT = 2  # ... but two where the actor's tick cannot run SCHED_FIFO (realtime_allowed)
+RT_PRIORITY = 10  # actor.realtime_priority in common/config/srl.toml
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
 JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by both phases (tests/conftest.py)
@@ -280,10 +284,17 @@ def _line(counts: dict[str, int], seconds: float) -> str:
     return f"{', '.join(parts) or 'no tests ran'} in {seconds:.2f}s (0:{minutes:02d}:{rest:02d})"
 
 
+def realtime_allowed() -> bool:
+    """Whether this user's processes may ask for SCHED_FIFO at the actor's priority (root, or an
+    rtprio limit that high): the actor's tick thread then keeps its deadlines beside other work."""
+    return os.geteuid() == 0 or resource.getrlimit(resource.RLIMIT_RTPRIO)[0] >= RT_PRIORITY
+
+
 def main(extra: list[str]) -> int:
     """The two phases, each on ``extra`` (paths; none: the whole suite)."""
     workers = int(os.environ.get("SRL_TEST_WORKERS", WORKERS))
-    timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", TIMING_WORKERS))
+    default_timing = TIMING_WORKERS if realtime_allowed() else TIMING_WORKERS_WITHOUT_RT
+    timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", default_timing))
     phases = [
         ("parallel", ["-n", str(workers), "--dist", "worksteal", "-m", "not timing", *extra]),
         (
