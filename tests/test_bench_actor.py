@@ -8,11 +8,13 @@ and hand-made rows for the target evaluation.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 
 import numpy as np
 import pytest
+from scipy.optimize import approx_fprime
 
 from common.config.assembly import build_actor
 from common.config.settings import PAPER_METHOD, Settings
@@ -23,12 +25,16 @@ from common.math.features import phi_q, phi_v, stage_cost
 from tools.bench import actor as bench_actor
 from tools.bench.actor import (
     NumpyObjective,
+    best_known,
     compare_objectives,
     evaluate_targets,
     initial_weights,
     learned_weights,
+    phase_shares,
     quadratic_form_matrix,
+    row_settings,
     sample_indices,
+    slsqp_solve,
 )
 from tools.cli import main
 
@@ -312,3 +318,45 @@ def test_snapshot_file_is_what_the_paper_loop_learns() -> None:
     for step, weights in stored.items():
         np.testing.assert_allclose(fresh[step]["q"], weights["q"], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(fresh[step]["v"], weights["v"], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
+def test_numpy_objective_gradient_is_the_objectives_derivative(agent: str) -> None:
+    settings = Settings.load()
+    problem = build_actor(row_settings(settings, agent, 6)).problem
+    weights = learned_weights(settings)
+    objective = NumpyObjective(problem, weights.q, weights.v)
+    rng = np.random.default_rng(4)
+    state = np.array([1.2, -0.7, 2.5])  # a heading past pi/2: every trigonometric term counts
+    actions = rng.uniform(objective.bounds.lb, objective.bounds.ub)
+    numeric = approx_fprime(actions, objective, 1e-7, state)
+    exact = objective.gradient(actions, state)
+    assert np.max(np.abs(exact - numeric)) <= 1e-5 * max(1.0, float(np.max(np.abs(numeric))))
+    # negative control: the gradient at another state is not this one
+    assert np.max(np.abs(objective.gradient(actions, state + 0.3) - numeric)) > 1e-3
+
+
+def test_best_known_is_reproducible_and_no_worse_than_one_cold_solve() -> None:
+    settings = Settings.load()
+    problem = build_actor(row_settings(settings, "rlqv", 6)).problem
+    weights = learned_weights(settings)  # indefinite: several local minima
+    objective = NumpyObjective(problem, weights.q, weights.v)
+    state = np.array([0.4, 0.3, -0.5])
+    best = best_known(objective, state, starts=6, seed=2)
+    assert best == best_known(objective, state, starts=6, seed=2)
+    assert best <= slsqp_solve(objective, state).value + 1e-9
+    assert best_known(objective, state, starts=1, seed=2) >= best  # more starts never find less
+
+
+def test_phase_shares_count_what_each_step_ran() -> None:
+    settings = Settings.load()
+    actor = build_actor(row_settings(settings, "rlqv", 6))
+    weights = initial_weights(settings)
+    before = copy.deepcopy(actor.counters)
+    state = settings.start_state()
+    actor.step(state, weights.q, weights.v)
+    actor.step(state, weights.q, weights.v, hurry=True)  # a hurried step has a plan: no global phase
+    shares = phase_shares(before, actor.counters, 2)
+    assert shares["global"]["share"] == 0.5 and shares["polish"]["share"] == 1.0
+    assert shares["global"]["mean_ms"] > 0 and shares["polish"]["mean_ms"] > 0
+    assert shares["flip_search"]["share"] <= 0.5  # never in a hurry

@@ -175,10 +175,11 @@ class StackedActor:
         """The arrival rule holds the robot at the target (False without a rule)."""
         return self.arrival is not None and self.arrival.arrived
 
-    def _initial_guess(self, state: np.ndarray, hurry: bool = False) -> None:
+    def _initial_guess(self, state: np.ndarray, hurry: bool = False) -> bool:
         """Warm start, written in place into the solver's input ``self._x0`` (the weights
         must already be in ``self._params``). ``hurry`` with a previous plan: the merit-only warm
-        start below instead of the global phase (multistart), ~0.2 ms less at N = 12.
+        start below instead of the global phase (multistart), ~0.2 ms less at N = 12. Returns
+        whether the global phase ran.
 
         The usual guess is the previous primal solution shifted by one stage, last stage
         repeated: with multiple shooting it needs not satisfy the dynamics, so shifting the
@@ -191,7 +192,8 @@ class StackedActor:
         and costs 2-4 times the iterations). A merit evaluation (JIT) costs ~2 us.
         """
         x0 = self._x0
-        if self.problem.multistart and not (hurry and self._previous_x is not None):
+        global_phase = self.problem.multistart and not (hurry and self._previous_x is not None)
+        if global_phase:
             self._global_guess(state)
         elif self._previous_x is None:
             x0[:] = 0.0
@@ -204,6 +206,7 @@ class StackedActor:
                 if self._merit_of(self._earlier_x) < self._merit_of(x0):
                     x0[:] = self._earlier_x
         x0[:STATE_DIM] = state
+        return global_phase
 
     def _global_guess(self, state: np.ndarray) -> None:
         """The multistart guess (ActorProblem.multistart), written into ``self._x0``: every
@@ -226,6 +229,12 @@ class StackedActor:
         values = self._end_values
         best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
         self._x0[:] = self._end_vectors[best]
+
+    def _phase_done(self, phase: str, since: float) -> float:
+        """Count one run of ``phase`` that began at ``since`` (perf_counter); return now."""
+        now = time.perf_counter()
+        self.counters.add_phase(phase, now - since)
+        return now
 
     def _solve(self) -> tuple[bool, str, np.ndarray, float]:
         """One solve from ``self._x0``: (success, status, solution, objective)."""
@@ -384,10 +393,14 @@ class StackedActor:
             v_weights = nearest_psd_weights(v_weights, STATE_DIM)
         self._params[:Q_FEATURES] = q_weights
         self._params[Q_FEATURES:] = v_weights
-        self._initial_guess(state, hurry)
+        counters = self.counters
+        mark = time.perf_counter()
+        if self._initial_guess(state, hurry):
+            mark = self._phase_done("global", mark)
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
         success, status, x_opt, objective = self._solve()
+        mark = self._phase_done("polish", mark)
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
             self.counters.hurried_solves += 1
@@ -400,17 +413,23 @@ class StackedActor:
             # the lower.
             self._x0[:] = runner_up
             self._x0[:STATE_DIM] = state
-            self.counters.second_solves += 1
+            counters.second_solves += 1
             second = self._solve()
+            mark = self._phase_done("runner_up", mark)
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
         flips = extras and self.problem.multistart_flips > 0
-        neighbour = self._flip_search(state, x_opt) if success and flips else None
+        neighbour = None
+        if success and flips:
+            mark = time.perf_counter()
+            neighbour = self._flip_search(state, x_opt)
+            mark = self._phase_done("flip_search", mark)
         if neighbour is not None:
             # A lower vertex neighbour of the solution: polish it, keep the lower.
             self._x0[:] = neighbour
-            self.counters.flip_solves += 1
+            counters.flip_solves += 1
             flipped = self._solve()
+            self._phase_done("flip_polish", mark)
             if flipped[0] and flipped[3] < objective:
                 success, status, x_opt, objective = flipped
 

@@ -191,6 +191,11 @@ class ActorStep:
     status: str
 
 
+# The phases of a step (StackedActor.step): the global phase (multistart), the solver's polish
+# of the chosen start, the runner-up's polish, the vertex search and the polish of what it found.
+PHASES = ("global", "polish", "runner_up", "flip_search", "flip_polish")
+
+
 @dataclass
 class ActorCounters:
     """Solves, failures and the step times (a fixed window: an actor runs for days)."""
@@ -202,6 +207,14 @@ class ActorCounters:
     flip_solves: int = 0  # steps whose vertex search found a lower neighbour and polished it (multistart_flips)
     hurried_solves: int = 0  # steps solved in a hurry: the runner-up polish and vertex search skipped
     solve_seconds: Window = field(default_factory=Window)
+    # per phase of a step (PHASES): the steps that ran it and its total time [s] (sums, not lists)
+    phase_counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(PHASES, 0))
+    phase_seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PHASES, 0.0))
+
+    def add_phase(self, phase: str, seconds: float) -> None:
+        """One run of ``phase`` (one of PHASES) that took ``seconds``."""
+        self.phase_counts[phase] += 1
+        self.phase_seconds[phase] += seconds
 
 
 @dataclass
