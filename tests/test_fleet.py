@@ -419,9 +419,10 @@ def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition
 
 @pytest.mark.integration
 @pytest.mark.slow
-def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up() -> None:
-    """``srl bench fleet`` in miniature: one host row and one baseline row, bounded, and no srl
-    process of it left behind (its children are in its own session: none may outlive it)."""
+def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up(tmp_path: Path) -> None:
+    """``srl bench fleet --record`` in miniature: one host row and one baseline row, each with srl
+    record attached, bounded, and nothing of it left behind: no srl process (its children are in its
+    own session: none may outlive it), no recording, no scratch directory."""
     done = subprocess.run(
         [
             sys.executable,
@@ -435,14 +436,17 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
             "2",
             "--seconds",
             "5",
+            "--record",
             "--json",
         ],
         capture_output=True,
         text=True,
         timeout=300,
         check=False,
+        env={**os.environ, "TMPDIR": str(tmp_path)},
     )
     assert done.returncode == 0, done.stderr[-2000:]
+    assert list(tmp_path.iterdir()) == []  # the recordings and the fleets' scratch directories are gone
     lines = done.stdout.strip().splitlines()
     assert any(line.split()[:3] == ["2", "host", "x1"] for line in lines), done.stdout
     assert any(line.split()[:2] == ["2", "process"] for line in lines), done.stdout
@@ -450,7 +454,9 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
     assert [(r["robots"], r["layout"]) for r in result["rows"]] == [(2, "host"), (2, "process")]
     for row in result["rows"]:
         assert row["fleet"]["robots"] == 2 and len(row["load_before"]) == 3 and row["rss_mb"] > 0
-        assert row["processes"] == (4 if row["layout"] == "host" else 2 + 2 * 2)
+        assert row["processes"] == (5 if row["layout"] == "host" else 3 + 2 * 2)  # with the recorder
+        assert row["recorder"].startswith("srl record: recorded ") and row["recording_mb"] > 0, row["recorder"]
+        assert "(2 robots: robot1, robot2)" in row["recorder"]  # both robots in the recording
         # CPU per robot per tick: all processes' CPU over the run, per robot per delta
         assert row["cpu_ms_per_robot_tick"] == pytest.approx(row["cpu_percent"] / 100 * 0.1 * 1e3 / 2)
         # parking by the robots' own states: 5 s from 1.5 m away is too short to arrive

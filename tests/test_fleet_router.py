@@ -1,12 +1,14 @@
 """A fleet's router is findable: ``srl up --robots`` listens where every other command looks by
 default (transport.router) unless that port is taken or ``--router`` was given, prints its
-endpoint at start, and ``srl record`` run exactly as it says records every robot of the fleet.
+endpoint at start, and ``srl record`` run exactly as it says records every robot of the fleet;
+``srl up --robots K --record FILE`` records every robot itself.
 
 Everything on loopback; every wait is bounded; every process is stopped by its pid.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -75,9 +77,9 @@ def test_srl_record_beside_a_fleet_records_both_robots(tmp_path: Path, default_p
     up: subprocess.Popen[str] | None = None
     record: subprocess.Popen[str] | None = None
     try:
-        # 1. what srl up says to a user who asks a fleet for --record: the exact commands
+        # 1. what srl up says to a user who asks a fleet for --view: the exact commands beside it
         hint = subprocess.run(
-            [sys.executable, "-m", "tools.cli", "up", "--robots", "2", "--record", str(recording)],
+            [sys.executable, "-m", "tools.cli", "up", "--robots", "2", "--view"],
             cwd=ROOT, env=env, capture_output=True, text=True, timeout=60, check=False,
         )  # fmt: skip
         assert hint.returncode == 2, hint.stderr
@@ -120,3 +122,34 @@ def test_srl_record_beside_a_fleet_records_both_robots(tmp_path: Path, default_p
                 stop(process)
         if blocker is not None:
             blocker.close()
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(UP_SECONDS + 60)
+def test_srl_up_fleet_records_every_robot_itself(tmp_path: Path) -> None:
+    env = {**os.environ, "SRL_TRANSPORT__ROUTER": f"tcp/127.0.0.1:{free_port()}", "PYTHONUNBUFFERED": "1"}
+    recording = tmp_path / "fleet.mcap"
+    argv = ["up", "--robots", ",".join(ROBOTS), "--duration", "8", "--no-jit", "--record", str(recording), "--json"]
+    up = subprocess.Popen(
+        [sys.executable, "-m", "tools.cli", *argv],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        out, err = up.communicate(timeout=UP_SECONDS)
+    finally:
+        stop(up)
+    assert up.returncode == 0, err[-3000:]
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["recording"] == str(recording)
+    assert summary["recorder"] and summary["recorder"].startswith("srl record:"), summary.get("recorder")
+    assert summary["exit_codes"]["recorder"] == 0
+    episodes, _ = read_episodes(recording)
+    assert set(episodes) == set(ROBOTS), sorted(episodes)
+    assert all(episodes[robot].steps >= 60 for robot in ROBOTS), {r: e.steps for r, e in episodes.items()}
+    # a bad path changes nothing: one line, exit 2, before anything starts
+    bad = subprocess.run(
+        [sys.executable, "-m", "tools.cli", *argv[:-2], str(tmp_path / "missing" / "x.mcap")],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert "missing" in bad.stderr and not (tmp_path / "missing").exists(), bad.stderr

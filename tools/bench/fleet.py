@@ -11,7 +11,9 @@ command zero) and the farthest, CPU % of all srl processes over the run (100 % =
 that CPU per robot per sampling interval, their total resident memory, and the machine's load
 average before and after. Targets (PASS/FAIL) at 50, 100 and 300 robots, and the soak's (RSS
 growth <= 2 % at 50 robots over 600 s and more). Every run is bounded (start-up timeouts, then
-``--seconds``) and every process is stopped after it (tools/launch/fleet.py).
+``--seconds``) and every process is stopped after it (tools/launch/fleet.py). ``--record``: every
+row with ``srl record`` attached for the whole run (a subscriber to every robot's keys, as a user
+records a fleet), its file in a temporary directory removed after the row.
 """
 
 from __future__ import annotations
@@ -20,7 +22,9 @@ import argparse
 import json
 import math
 import os
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 from common.config.arguments import UsageError
@@ -116,6 +120,9 @@ def measured_run(
     except (ServiceDiedError, TimeoutError, ValueError) as error:
         summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
     row = {"layout": options.get("layout", "host"), **summary, "robots": size, "cpus": os.cpu_count()}
+    recording = options.get("record")
+    if recording is not None:
+        row["recording_mb"] = recording.stat().st_size / 1e6 if recording.exists() else 0.0
     row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
     if "cpu_percent" in row:
         row["cpu_ms_per_robot_tick"] = cpu_ms_per_robot_tick(row["cpu_percent"], size, settings.plant.sampling_time)
@@ -141,13 +148,18 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
         actor_hosts(args.actor_hosts, size)  # a bad value is refused before the first run
     plan = sorted([(n, "host") for n in hosts] + [(n, "process") for n in baseline])
     rows: list[dict[str, Any]] = []
+    record = bool(getattr(args, "record", False))
     for size, layout in plan:
         split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
-        row = measured_run(settings, settings_argv, size, args.seconds, layout=layout, actor_hosts=split)
+        with tempfile.TemporaryDirectory(prefix="srl-bench-fleet-") as scratch:
+            recording = Path(scratch) / f"fleet-{size}.mcap" if record else None
+            row = measured_run(
+                settings, settings_argv, size, args.seconds, layout=layout, actor_hosts=split, record=recording
+            )
         row["targets"] = {name: "PASS" if ok else "FAIL" for name, ok in checks(row).items()}
         rows.append(row)
         print(format_row(row), flush=True)
-    result = {**run_header(settings, args.seconds), "rows": rows}
+    result = {**run_header(settings, args.seconds), "recorded": record, "rows": rows}
     print(format_table(result))
     if args.json:
         print(json.dumps({**result, "run": run_info()}))
@@ -172,6 +184,9 @@ def format_row(row: dict[str, Any]) -> str:
     ticks = row.get("actor_ticks")  # RT: actor processes whose tick thread was real-time, of all
     realtime = f"{ticks['realtime']}/{ticks['processes']}" if ticks else "-"
     hurried = f"{ticks['hurried_percent']:.1f}%" if ticks else "-"
+    if "recording_mb" in row:  # srl record's summary line: "srl record: recorded N messages on ..."
+        said = (row.get("recorder") or "").split(" on ", 1)[0].removeprefix("srl record: ")
+        targets += f"; {said or 'srl record said nothing'} ({row['recording_mb']:.1f} MB)"
     return (
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
@@ -185,7 +200,9 @@ def format_row(row: dict[str, Any]) -> str:
 def format_table(result: dict[str, Any]) -> str:
     lines = [
         f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
-        f"starts on a 1.5 m circle, {result['cpus']} CPUs; jitter, latency, staleness: worst robot; "
+        f"starts on a 1.5 m circle, {result['cpus']} CPUs"
+        + (", srl record attached to every row" if result.get("recorded") else "")
+        + "; jitter, latency, staleness: worst robot; "
         "at target: robots whose own final state is within 0.05 m of the target, at rest (last command zero); "
         "worst m: the farthest robot by its own state; "
         "CPU: all srl processes (100 % = one core), ms/tick: their CPU per robot per sampling interval; "

@@ -89,6 +89,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="actor processes of the host layout: a number, or auto = 1 below 50 robots, else one per core "
         "(default: auto)",
     )
+    fleet_bench.add_argument(
+        "--record",
+        action="store_true",
+        help="every row with an srl record process attached for the whole run, writing every robot to an MCAP "
+        "file in a temporary directory removed after the row (its CPU and memory count with the fleet's)",
+    )
     add_seconds_argument(fleet_bench, 30.0, "real-time run per row [s] (default: 30)")
     capacity = kind(
         "capacity", "a fleet's cost per robot and component (CPU, messages), and what 1,000 and 10,000 need"

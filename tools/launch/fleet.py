@@ -48,6 +48,7 @@ from tools.launch.supervisor import (
     free_loopback_endpoint,
     physics_plant,
     router_reachable,
+    said,
     write_child_summaries,
 )
 
@@ -435,6 +436,7 @@ def run_fleet(
     pooled: bool = False,
     secure: bool = False,
     router: str | None = None,
+    record: Path | None = None,
 ) -> dict[str, Any]:
     """Start the fleet, run it ``duration`` seconds, stop everything; the fleet's summary.
 
@@ -447,13 +449,18 @@ def run_fleet(
     mutual TLS, and the router's rules grant the roles the keys of every robot of the fleet; with
     ``plant="robot"`` each emulated robot's own router is secured too (tools/launch/fleet_robot.py).
     ``router``: where the fleet's router listens (``srl up`` chooses it: tools/launch/fleet_cli.py);
-    default: a free loopback port, so that fleets side by side never meet."""
+    default: a free loopback port, so that fleets side by side never meet. ``record``: an ``srl record``
+    child writes every robot to this MCAP file for the whole run (subscribed before the first state;
+    its CPU and memory count with the fleet's); refused with ``secure`` (the read-only monitor role may
+    not read the transitions and weights a recording carries)."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
     if plant not in ("sim", "physics", "robot"):
         raise ValueError(f"unknown plant {plant!r} (sim, physics or robot)")
     if not 1 <= actor_hosts <= len(robots):
         raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
+    if secure and record is not None:
+        raise ValueError("--record does not run with --secure: no role may read the transitions and weights")
     if secure and count_messages:
         raise ValueError("counting every message needs to read srl/**, which no role may do with secure")
     router = router or free_loopback_endpoint()
@@ -482,6 +489,9 @@ def run_fleet(
                 settings = settings.model_copy(update={"transport": logins.monitor})
             supervisor.spawn("router", ["router", *common], login.get("router"))
             supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
+            if record is not None:  # subscribed before the first state is published
+                recorder = supervisor.spawn("recorder", ["record", str(record), "--clock", "wall", *common])
+                supervisor.wait_for("recorder", said(recorder, "srl record: recording"), timeout=30)
             starts = circle_starts(len(robots), circle)
             if plant == "robot":  # emulated or real TurtleBot3s behind bridges
                 from tools.launch.fleet_robot import spawn_robot_plants
@@ -567,6 +577,11 @@ def run_fleet(
         "services": {name: child.process.pid for name, child in supervisor.children.items()},
         "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
     }
+    if record is not None:
+        summary["recording"] = str(record)
+        summary["recorder"] = next(
+            (line for line in supervisor.children["recorder"].stdout_lines if line.startswith("srl record:")), None
+        )
     if count_messages:  # over the same span as the CPU: [count, bytes] of each kind
         summary["messages"] = measures.messages
     if plant == "robot":

@@ -90,13 +90,26 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
 
     router = local_router_endpoint(settings.transport.router, given=args.router is not None)
     default_router = Settings.load(args.config).transport.router  # where srl record and srl view look
-    if getattr(args, "record", None) is not None or getattr(args, "view", None) is not None:
+    if getattr(args, "view", None) is not None:
         why = "" if args.router is not None else f": {default_router} is taken"
         again = "" if router == default_router else f" (with `--router {router}`{why})"
         raise UsageError(
-            f"--record and --view do not start with --robots yet: run the fleet without them{again} and, beside "
+            f"--view does not start with --robots yet: run the fleet without it{again} and, beside "
             f"it, {beside_commands(args, router, default_router)} (both carry every robot)"
         )
+    record = getattr(args, "record", None)
+    if record is not None:
+        if args.secure:
+            raise UsageError(
+                "--record does not run with --secure yet: the read-only monitor role may read only states and "
+                "status, not the transitions and weights a recording carries"
+            )
+        from tools.recording.record import RecordingError, open_for_writing
+
+        try:  # a bad path is one line now, before anything starts
+            open_for_writing(record).close()
+        except RecordingError as error:
+            raise UsageError(str(error)) from error
     print(
         f"srl up: the fleet's router listens on {router}; beside it: {beside_commands(args, router, default_router)}",
         file=sys.stderr,
@@ -129,6 +142,7 @@ def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: li
             pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
             secure=args.secure,
             router=router,
+            record=record,
         )
     except ServiceDiedError as error:
         return error.say("srl up")

@@ -220,6 +220,11 @@ class Child:
         return None
 
 
+def said(child: Child, text: str) -> Callable[[], bool]:
+    """A readiness probe: ``child`` has logged a line containing ``text``."""
+    return lambda: any(text in line for line in child.stderr_tail)
+
+
 def write_child_summaries(directory: Path, children: dict[str, Child]) -> None:
     """Each child's JSON summary line to ``<directory>/<name>.json`` (a child that printed none: no file)."""
     directory.mkdir(parents=True, exist_ok=True)

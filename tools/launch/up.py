@@ -58,6 +58,7 @@ from tools.launch.supervisor import (
     optional_summary,
     physics_plant,
     router_reachable,
+    said,
     state_probe,
     tls_endpoint,
     write_child_summaries,
@@ -214,11 +215,6 @@ def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
         return _run_up(settings, options, supervisor, started, signals)
 
 
-def _said(child: Child, text: str) -> Callable[[], bool]:
-    """A readiness probe: ``child`` has logged a line containing ``text``."""
-    return lambda: any(text in line for line in child.stderr_tail)
-
-
 def _run_up(
     settings: Settings, options: UpOptions, supervisor: Supervisor, started: float, signals: StopSignals
 ) -> dict[str, Any]:
@@ -245,7 +241,7 @@ def _run_up(
             observers.append(("view", ["view", "--port", str(view_port), *common_args], "srl view: serving"))
         for name, argv, ready in observers:
             child = supervisor.spawn(name, argv)
-            supervisor.wait_for(name, _said(child, ready), timeout=30)
+            supervisor.wait_for(name, said(child, ready), timeout=30)
         if plant in ("sim", "physics"):
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
