@@ -224,3 +224,33 @@ def test_the_shipped_layout_opens_on_the_3d_panel_following_a_recorded_base_fram
     frames = {f for _, p, c, _ in edges(read(tmp_path / "e.mcap")["/tf"]) for f in (p, c)}
     assert config["fixedFrame"] == "odom" and config["followTf"] == "tb3_0/base_footprint"
     assert {config["fixedFrame"], config["followTf"], "goal"} <= frames
+
+
+@pytest.mark.parametrize("frame", ["", "map", "odom", "tb3_0/odom"])
+@pytest.mark.parametrize("count", [0, 1, 2, 600])
+def test_the_path_written_with_numpy_is_the_cdr_rosbags_writes(frame: str, count: int) -> None:
+    """``RosMapping.path_cdr`` gives byte for byte what rosbags serializes for the same
+    ``nav_msgs/Path``: every alignment the header's frame and the poses' frame can leave
+    (frame names of 0 to 10 characters), no pose to a full path, stamps past 2^53 ns."""
+    from tools.recording.record import PATH, POSE_STAMPED, RosMapping
+
+    ros = RosMapping()
+    rng = np.random.default_rng(count)
+    for own in ("odom", "map", "g", "goal_frame"):
+        poses = [(int(rng.integers(0, 2 * 10**18)), *map(float, rng.normal(size=3))) for _ in range(count)]
+        stamp = int(rng.integers(0, 2 * 10**18))
+        message = ros.types[PATH](
+            header=ros.header(stamp, frame),
+            poses=[ros.types[POSE_STAMPED](header=ros.header(p[0], own), pose=ros.pose(p[1:])) for p in poses],
+        )
+        assert ros.path_cdr(stamp, frame, poses, [own] * count) == ros.cdr(message, PATH)
+    if count >= 2:  # poses in two frames (a robot localized mid-path): the same bytes, through rosbags
+        frames = ["odom"] * (count - 1) + ["map"]
+        message = ros.types[PATH](
+            header=ros.header(stamp, frame),
+            poses=[
+                ros.types[POSE_STAMPED](header=ros.header(p[0], f), pose=ros.pose(p[1:]))
+                for p, f in zip(poses, frames, strict=True)
+            ],
+        )
+        assert ros.path_cdr(stamp, frame, poses, frames) == ros.cdr(message, PATH)

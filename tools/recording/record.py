@@ -155,6 +155,76 @@ class RosMapping:
     def cdr(self, message: Any, ros_type: str) -> bytes:
         return bytes(self.store.serialize_cdr(message, ros_type, little_endian=True))
 
+    def path_cdr(
+        self, t_ns: int, frame: str, poses: Sequence[tuple[int, float, float, float]], frames: Sequence[str]
+    ) -> bytes:
+        """``nav_msgs/Path`` of ``poses`` ``(t_ns, x, y, alpha)`` in ``frames`` (one each), stamped
+        ``t_ns`` in ``frame``, as CDR: the bytes :meth:`cdr` gives for the same message, written with
+        numpy (a path of 600 poses every second per robot is most of a recorder's CPU through
+        rosbags' per-field serializer). The layout is CDR's (OMG DDS-XTypes, XCDR1, little endian):
+        after the 4-byte encapsulation header, each field aligned to its size from the payload's
+        start; a string is a uint32 length (with its NUL) and its bytes. Poses in more than one
+        frame go through :meth:`cdr`."""
+        distinct = set(frames)
+        if len(distinct) > 1:
+            message = self.types[PATH](
+                header=self.header(t_ns, frame),
+                poses=[
+                    self.types[POSE_STAMPED](header=self.header(stamp, f), pose=self.pose((x, y, alpha)))
+                    for (stamp, x, y, alpha), f in zip(poses, frames, strict=True)
+                ],
+            )
+            return self.cdr(message, PATH)
+        own = distinct.pop().encode() + b"\0" if distinct else b"\0"
+        head = frame.encode() + b"\0"
+        table = np.array([pose[1:] for pose in poses], dtype=np.float64).reshape(-1, 3)
+        count = len(table)
+        stamps = np.array([pose[0] for pose in poses], dtype=np.int64)  # exact: past 2^53 ns as a float is not
+        alpha = table[:, 2]
+        values = np.column_stack(
+            (
+                table[:, 0],
+                table[:, 1],
+                np.zeros(count),
+                np.zeros(count),
+                np.zeros(count),
+                np.sin(alpha / 2),
+                np.cos(alpha / 2),
+            )
+        )
+        string = len(own)
+
+        def align(offset: int, size: int) -> int:
+            return -(-offset // size) * size
+
+        start = align(12 + len(head), 4) + 4  # after the header and the sequence's length
+        # a pose's doubles end 8-aligned, so every pose after the first starts 8-aligned: the
+        # first may be padded differently (by where the header left it), the others alike
+        first_doubles = align(start + 12 + string, 8) - start
+        rest_doubles = align(12 + string, 8)
+        sizes = ([first_doubles + 56] + [rest_doubles + 56] * (count - 1)) if count else []
+        out = np.zeros(4 + start + sum(sizes), dtype=np.uint8)
+        out[:4] = (0, 1, 0, 0)  # CDR_LE encapsulation
+        payload = out[4:]
+        sec, nanosec = divmod(int(t_ns), 1_000_000_000)
+        payload[:12] = np.frombuffer(np.array([sec, nanosec, len(head)], dtype="<u4").tobytes(), np.uint8)
+        payload[12 : 12 + len(head)] = np.frombuffer(head, np.uint8)
+        payload[start - 4 : start] = np.frombuffer(np.uint32(count).astype("<u4").tobytes(), np.uint8)
+
+        def fill(block: np.ndarray, rows: slice, doubles_at: int) -> None:
+            secs, nanos = np.divmod(stamps[rows], 1_000_000_000)
+            fields = np.column_stack((secs, nanos, np.full(len(secs), string))).astype("<u4")
+            block[:, :12] = fields.view(np.uint8).reshape(-1, 12)
+            block[:, 12 : 12 + string] = np.frombuffer(own, np.uint8)
+            block[:, doubles_at:] = np.ascontiguousarray(values[rows], dtype="<f8").view(np.uint8).reshape(-1, 56)
+
+        if count:
+            fill(payload[start : start + sizes[0]].reshape(1, -1), slice(0, 1), first_doubles)
+            if count > 1:
+                rest = payload[start + sizes[0] :].reshape(count - 1, rest_doubles + 56)
+                fill(rest, slice(1, None), rest_doubles)
+        return out.tobytes()
+
     def deserialize(self, data: bytes, ros_type: str) -> Any:
         return self.store.deserialize_cdr(data, ros_type)
 
@@ -373,7 +443,9 @@ class _Track:
     last_step: int = -1
     accumulated_cost: float = 0.0
     action: tuple[float, float] = (0.0, 0.0)
-    path: deque[Any] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
+    # the path's poses: (t_ns, x, y, alpha) and their frame (RosMapping.path_cdr serializes them at once)
+    path: deque[tuple[int, float, float, float]] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
+    path_frames: deque[str] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
     late: int = 0  # transitions that came after a later step (dropped: one per step, in order)
     state_episode: int = -1  # of the newest state
     states_seen: int = 0  # states of that episode (clock "steps": state n at origin + n delta)
@@ -503,7 +575,8 @@ class Recorder:
             accumulated_cost=track.accumulated_cost,
         )
         self._write(f"/{ros_name(robot)}/srl/transition", TRANSITION, sample, t_ns)
-        track.path.append(ros.types[POSE_STAMPED](header=ros.header(t_ns, track.pose_frame), pose=ros.pose(state)))
+        track.path.append((t_ns, float(state[0]), float(state[1]), float(state[2])))
+        track.path_frames.append(track.pose_frame)
         if step % PATH_EVERY == 0:
             self.path(robot, t_ns)
         return True
@@ -511,8 +584,8 @@ class Recorder:
     def path(self, robot: str, t_ns: int) -> None:
         track = self.tracks.get(robot)
         if track is not None and track.path:
-            message = self.ros.types[PATH](header=self.ros.header(t_ns, track.pose_frame), poses=list(track.path))
-            self._write(f"/{ros_name(robot)}/path", PATH, message, t_ns)
+            data = self.ros.path_cdr(t_ns, track.pose_frame, track.path, track.path_frames)
+            self.sink.write(f"/{ros_name(robot)}/path", PATH, self.ros.definition(PATH), data, t_ns)
 
     def weights(
         self,
