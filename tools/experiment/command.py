@@ -1,4 +1,5 @@
-"""``srl experiment paper|fleet``: its options, and the command that runs it (tools/experiment/runner.py)."""
+"""``srl experiment paper|fleet|baselines``: its options, and the command that runs it
+(tools/experiment/runner.py; baselines: tools/experiment/baselines.py)."""
 
 from __future__ import annotations
 
@@ -20,15 +21,17 @@ from tools.experiment.report import summary_markdown
 from tools.experiment.runner import run_experiment
 
 NAME = "experiment"
-HELP = "the paper's experiment: grid of starts, cost ratios, plots"
+HELP = "the paper's experiment: grid of starts, cost ratios, plots; SAC and PPO beside it"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "which",
-        choices=["paper", "fleet"],
+        choices=["paper", "fleet", "baselines"],
         help="paper: section IV, the grid of starts and cost ratios; fleet: the same starts as ONE fleet in "
-        "lockstep, per-robot vs pooled critics (docs/fleets.md)",
+        "lockstep, per-robot vs pooled critics (docs/fleets.md); baselines: SAC and PPO (stable-baselines3, "
+        "the extra srl[baselines]) trained on srl's Gymnasium environments, beside srl's agents on the paper's "
+        "and the held-out starts (docs/gym.md)",
     )
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
     parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
@@ -91,6 +94,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    baselines = parser.add_argument_group("baselines")
+    baselines.add_argument(
+        "--algos", default="sac,ppo", help="baselines: comma-separated, of sac,ppo (default: sac,ppo)"
+    )
+    baselines.add_argument(
+        "--envs",
+        default="Unicycle-v0,TurtleBot3-v0",
+        help="baselines: comma-separated Gymnasium ids (srl/ optional), of Unicycle-v0,TurtleBot3-v0,"
+        "TurtleBot3Physics-v0 (default: Unicycle-v0,TurtleBot3-v0)",
+    )
+    baselines.add_argument(
+        "--budgets",
+        help="baselines: comma-separated environment steps, one training per seed copied at each "
+        "(default: 10000,50000,200000; --quick: 1000,5000)",
+    )
+    baselines.add_argument(
+        "--seeds", type=int, help="baselines: training seeds --seed, --seed + 1, ... (default: 3; --quick: 1)"
+    )
+    baselines.add_argument(
+        "--quick",
+        action="store_true",
+        help="baselines: 1 seed, budgets 1000,5000, the 3 x 3 grids of starts (under 10 minutes on 2 cores)",
+    )
+    baselines.add_argument(
+        "--hyper",
+        action="append",
+        default=[],
+        metavar="ALGO.NAME=VALUE",
+        help="baselines: override one of the RL Zoo's hyperparameters, e.g. ppo.n_steps=64, repeatable (default: none)",
+    )
     parser.add_argument(
         "--record",
         type=Path,
@@ -127,6 +160,8 @@ def main(args: argparse.Namespace) -> int:
             raise ValueError("--localization is for `srl experiment paper --transport inproc` (the in-process plant)")
         if args.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
+        if args.which == "baselines":
+            return _cmd_baselines(args)
         options = ExperimentOptions(
             grid=args.grid,
             extent=args.extent,
@@ -179,6 +214,66 @@ def _cmd_fleet(args: argparse.Namespace, base: Settings) -> int:
     argv = [a for a in _argv_of(args) if not a.startswith("--transport=")]
     command = "srl experiment " + " ".join(shlex.quote(a) for a in [*argv, f"--critic={args.critic}"])
     return cmd_fleet(args, experiment_settings(base), starts, command)
+
+
+def _cmd_baselines(args: argparse.Namespace) -> int:
+    """``srl experiment baselines`` (tools/experiment/baselines.py): in process, one thread."""
+    if args.transport != "inproc" or args.record is not None or args.localization != "none":
+        raise ValueError("experiment baselines runs in process: --transport, --record and --localization are not its")
+    if args.plant != "ideal" or args.starts != "paper":
+        raise ValueError("experiment baselines: choose the robots with --envs; it evaluates on both sets of starts")
+    try:
+        import stable_baselines3  # noqa: F401 - the extra's, imported where the trainings run
+        import torch  # noqa: F401
+
+        from tools.experiment import baselines as bl
+    except ImportError as error:
+        raise ValueError(f"experiment baselines needs the extra: pip install 'srl[baselines]' ({error})") from error
+    seeds = args.seeds if args.seeds is not None else (1 if args.quick else bl.DEFAULT_SEEDS)
+    if seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {seeds}")
+    options = bl.BaselineOptions(
+        algos=bl.parse_choices(args.algos, bl.ALGOS, "algorithm"),
+        envs=bl.parse_envs(args.envs),
+        budgets=bl.parse_budgets(args.budgets)
+        if args.budgets
+        else (bl.QUICK_BUDGETS if args.quick else bl.DEFAULT_BUDGETS),
+        seeds=seeds,
+        seed=args.seed,
+        grid=bl.QUICK_GRID if args.quick else args.grid,
+        extent=args.extent,
+        agents=parse_agents(args.agents),
+        horizons=parse_horizons(args.horizons),
+        method=args.method,
+        hyper=bl.parse_hyper(args.hyper),
+        out=args.out or Path("out") / f"baselines-{datetime.now(UTC):%Y%m%d-%H%M%S}",
+        plots=not args.no_plots,
+        progress=not args.no_progress,
+        quick=args.quick,
+    )
+    argv = [
+        "baselines",
+        f"--algos={','.join(options.algos)}",
+        f"--envs={','.join(e.removeprefix('srl/') for e in options.envs)}",
+        f"--budgets={','.join(str(b) for b in options.budgets)}",
+        f"--seeds={options.seeds}",
+        f"--seed={options.seed}",
+        f"--grid={options.grid}",
+        f"--extent={options.extent:g}",
+        f"--agents={args.agents}",
+        f"--horizons={args.horizons}",
+        f"--method={args.method}",
+        *(f"--hyper={item}" for item in args.hyper),
+    ]
+    if args.duration is not None:
+        argv.append(f"--duration={args.duration:g}")
+    if args.config is not None:
+        argv.append(f"--config={args.config}")
+    options.command = "srl experiment " + " ".join(shlex.quote(a) for a in argv)
+    summary, _ = bl.run_baselines(options, experiment_settings(_load_settings(args)))
+    print(bl.table_markdown(summary) + "\n" + bl.notes_markdown(summary), end="")
+    print(f"\nresults in {options.out}/", file=sys.stderr)
+    return 0
 
 
 def _argv_of(args: argparse.Namespace) -> list[str]:
