@@ -687,3 +687,28 @@ def test_a_hurried_step_is_one_warm_polish_and_skips_the_extras() -> None:
     assert full.counters.hurried_solves == 0
     assert full.counters.second_solves + full.counters.flip_solves > 0  # the extras a hurry skips
     assert moved > 0  # the global phase a hurry skips does change plans here
+
+
+def test_global_every_k_runs_the_global_phase_every_kth_solve_and_the_vertex_search_every_solve() -> None:
+    # ActorProblem.global_every (an actor host's): the global phase, and the runner-up polish that
+    # picks among its ends, at solves 0, k, 2k ... of a robot and at any solve without a plan; the
+    # vertex search at every solve. Negative control: k = 1 (one robot's actor) runs it every solve.
+    every = make_actor("rlq", 6, multistart=True, multistart_flips=3, global_every=3)
+    always = make_actor("rlq", 6, multistart=True, multistart_flips=3)
+    w, v_w, start = next(indefinite_problems(5, 1))
+    for actor in (every, always):
+        state = start
+        for _ in range(7):
+            step = actor.step(state, w, v_w)
+            assert step.success and np.all(np.abs(step.action) <= [V_MAX, OMEGA_MAX])
+            state = exact_step(state, step.action, DELTA)
+    assert every.counters.phase_counts["global"] == 3  # solves 0, 3 and 6
+    assert always.counters.phase_counts["global"] == 7
+    assert every.counters.phase_counts["flip_search"] == 7 == always.counters.phase_counts["flip_search"]
+    assert every.counters.phase_counts["runner_up"] <= 3
+    every.reset()  # a new episode: no plan, so its first solve runs the global phase again
+    every.step(start, w, v_w)
+    every.step(exact_step(start, np.zeros(2), DELTA), w, v_w)
+    assert every.counters.phase_counts["global"] == 4
+    with pytest.raises(ValueError, match="global_every"):
+        make_actor("rlq", 6, multistart=True, global_every=0)

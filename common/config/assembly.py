@@ -74,7 +74,9 @@ def jit_cache_path(setting: str) -> str:
     return "" if setting == "off" else os.path.expanduser(setting)
 
 
-def build_actor(settings: Settings) -> StackedActor:
+def build_actor(settings: Settings, global_every: int = 1) -> StackedActor:
+    """The actor of the settings; ``global_every``: ActorProblem.global_every (an actor host
+    passes actor.host_global_every, one robot's actor keeps 1: the global phase at every solve)."""
     a, p = settings.actor, settings.plant
     return StackedActor(
         ActorProblem(
@@ -101,6 +103,7 @@ def build_actor(settings: Settings) -> StackedActor:
             multistart_margin=a.multistart_margin,
             multistart_refresh=a.multistart_refresh,
             multistart_flips=a.multistart_flips,
+            global_every=global_every,
         ),
         arrival=arrival_rule(settings),
     )

@@ -198,6 +198,11 @@ class ActorSettings(_Section):
     realtime_priority: int = Field(
         default=10, ge=0, le=99, description="the tick thread under SCHED_FIFO at this priority, if allowed (0 = off)"
     )
+    host_global_every: int = Field(
+        ge=1,
+        le=100,
+        description="an actor host runs the global phase at every this many solves of a robot (1 = every solve)",
+    )
     host_cpu_budget: float = Field(
         default=0.3,
         gt=0,

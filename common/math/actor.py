@@ -192,7 +192,8 @@ class StackedActor:
         and costs 2-4 times the iterations). A merit evaluation (JIT) costs ~2 us.
         """
         x0 = self._x0
-        global_phase = self.problem.multistart and not (hurry and self._previous_x is not None)
+        settled = self._previous_x is not None and (hurry or self._episode_solves % self.problem.global_every != 0)
+        global_phase = self.problem.multistart and not settled
         if global_phase:
             self._global_guess(state)
         elif self._previous_x is None:
@@ -395,7 +396,8 @@ class StackedActor:
         self._params[Q_FEATURES:] = v_weights
         counters = self.counters
         mark = time.perf_counter()
-        if self._initial_guess(state, hurry):
+        global_phase = self._initial_guess(state, hurry)
+        if global_phase:
             mark = self._phase_done("global", mark)
         self._lbx_np[:STATE_DIM] = state
         self._ubx_np[:STATE_DIM] = state
@@ -404,7 +406,7 @@ class StackedActor:
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
             self.counters.hurried_solves += 1
-        runner_up = self._runner_up() if extras else None
+        runner_up = self._runner_up() if extras and global_phase else None
         if runner_up is not None and success and self._same_basin(state, runner_up, x_opt):
             runner_up = None
         if runner_up is not None:

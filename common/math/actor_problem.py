@@ -80,6 +80,12 @@ class ActorProblem:
     # along them a local minimum sits on one bound while the other may be lower, which neither
     # the descent nor the interior point can see. 0: off.
     multistart_flips: int = 0
+    # The global phase (and the runner-up polish, which picks among its ends) at every this many
+    # solves of a robot, and at every solve without a plan; the solves between start from the
+    # cheaper of the shifted and the earlier plan (as ``multistart`` off) and keep the vertex
+    # search. Once a plan has settled the global phase rarely moves the answer, and it is ~40 % of
+    # a solve at N = 12; an actor host serving many robots sets it (actor.host_global_every). 1: every solve.
+    global_every: int = 1
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -108,6 +114,8 @@ class ActorProblem:
             raise ValueError(f"multistart_refresh must be >= 0 (0 = never), got {self.multistart_refresh}")
         if self.multistart_iterations < 1:
             raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
+        if self.global_every < 1:
+            raise ValueError(f"global_every must be >= 1 (1 = every solve), got {self.global_every}")
         if self.multistart_flips < 0:
             raise ValueError(f"multistart_flips must be >= 0 (0 = off), got {self.multistart_flips}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):

@@ -272,7 +272,8 @@ def run_host(
 ) -> dict[str, Any]:
     """The real-time loops of ``robots`` in this process, over one Zenoh session."""
     started = time.monotonic()
-    shared = build_actor(settings)  # built once for every robot (one compiled problem per agent, N)
+    # built once for every robot (one compiled problem per agent, N)
+    shared = build_actor(settings, global_every=settings.actor.host_global_every)
     log.info(
         "actor host: %d robots, %s N = %d, built in %.1f s",
         len(robots),
