@@ -243,7 +243,8 @@ def test_the_path_written_with_numpy_is_the_cdr_rosbags_writes(frame: str, count
             header=ros.header(stamp, frame),
             poses=[ros.types[POSE_STAMPED](header=ros.header(p[0], own), pose=ros.pose(p[1:])) for p in poses],
         )
-        assert ros.path_cdr(stamp, frame, poses, [own] * count) == ros.cdr(message, PATH)
+        stamps, table = np.array([p[0] for p in poses], dtype=np.int64), np.array([p[1:] for p in poses]).reshape(-1, 3)
+        assert ros.path_cdr(stamp, frame, stamps, table, [own] * count) == ros.cdr(message, PATH)
     if count >= 2:  # poses in two frames (a robot localized mid-path): the same bytes, through rosbags
         frames = ["odom"] * (count - 1) + ["map"]
         message = ros.types[PATH](
@@ -253,4 +254,57 @@ def test_the_path_written_with_numpy_is_the_cdr_rosbags_writes(frame: str, count
                 for p, f in zip(poses, frames, strict=True)
             ],
         )
-        assert ros.path_cdr(stamp, frame, poses, frames) == ros.cdr(message, PATH)
+        assert ros.path_cdr(stamp, frame, stamps, table, frames) == ros.cdr(message, PATH)
+
+
+@pytest.mark.parametrize("frame", ["", "odom", "goal", "tb3_0/base_footprint"])
+def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) -> None:
+    """Odometry, /tf, cmd_vel and transitions (every state and step of every robot) packed by
+    ``CdrLayout``: byte for byte what rosbags serializes for the same messages, for frame names
+    that leave every alignment, stamps past 2^53 ns and any values."""
+    from tools.recording.record import (
+        ODOMETRY,
+        TF_MESSAGE,
+        TRANSITION,
+        TWIST_STAMPED,
+        RosMapping,
+        odometry_cdr,
+        tf_cdr,
+        transition_cdr,
+        twist_stamped_cdr,
+    )
+
+    ros = RosMapping()
+    types = ros.types
+    rng = np.random.default_rng(len(frame))
+    for _ in range(20):
+        t_ns = int(rng.integers(0, 2 * 10**18))
+        x, y, alpha, v, omega, cost, total = map(float, rng.normal(size=7) * 10)
+        odometry = types[ODOMETRY](
+            header=ros.header(t_ns, frame),
+            child_frame_id="base_footprint",
+            pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=ros.pose((x, y, alpha)), covariance=np.zeros(36)),
+            twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=ros.twist(v, omega), covariance=np.zeros(36)),
+        )
+        assert odometry_cdr(t_ns, frame, "base_footprint", (x, y, alpha), (v, omega)) == ros.cdr(odometry, ODOMETRY)
+        for count in (1, 2, 3):
+            moves = [(frame, f"child{i}" * i, Pose2D(x + i, y - i, alpha * i)) for i in range(count)]
+            message = types[TF_MESSAGE](transforms=[ros.transform(t_ns, p, c, pose) for p, c, pose in moves])
+            assert tf_cdr(t_ns, moves) == ros.cdr(message, TF_MESSAGE)
+        command = types[TWIST_STAMPED](header=ros.header(t_ns, frame), twist=ros.twist(v, omega))
+        assert twist_stamped_cdr(t_ns, frame, v, omega) == ros.cdr(command, TWIST_STAMPED)
+        episode, step = int(rng.integers(0, 2**63)), int(rng.integers(0, 2**32))
+        sample = types[TRANSITION](
+            header=ros.header(t_ns, frame),
+            episode=episode,
+            step=step,
+            x=x,
+            y=y,
+            alpha=alpha,
+            v=v,
+            omega=omega,
+            stage_cost=cost,
+            accumulated_cost=total,
+        )
+        values = (x, y, alpha, v, omega, cost, total)
+        assert transition_cdr(t_ns, frame, episode, step, values) == ros.cdr(sample, TRANSITION)

@@ -34,7 +34,10 @@ srl's own types are ROS 2 message definitions too (``srl_msgs/msg/*``, :data:`SR
 channel of a recording is CDR with its full ``ros2msg`` definition in the schema: Foxglove decodes
 and plots them, ``ros2 bag info`` lists them. The CDR and the definitions come from ``rosbags``
 (its Humble typestore, srl's types registered in a private copy); the MCAP container from the
-``mcap`` library. Nothing is hand-packed.
+``mcap`` library. The messages written at every step and state of every robot (odometry, ``/tf``,
+``cmd_vel``, transitions, the path) are packed by :class:`CdrLayout` instead, byte for byte what
+rosbags writes for them (tests/test_record_tf.py compares the two), at a fraction of its CPU: a
+recorder beside a fleet writes thousands of them a second.
 
 Time: a step ``k`` of a robot's episode is placed at ``origin + k delta`` (``origin``: the
 recording's start for ``srl run`` and the experiment; for a recorder over Zenoh, the arrival of the
@@ -45,11 +48,13 @@ lockstep, one step each (``clock = "steps"``).
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
 import os
 import re
+import struct
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -155,31 +160,25 @@ class RosMapping:
     def cdr(self, message: Any, ros_type: str) -> bytes:
         return bytes(self.store.serialize_cdr(message, ros_type, little_endian=True))
 
-    def path_cdr(
-        self, t_ns: int, frame: str, poses: Sequence[tuple[int, float, float, float]], frames: Sequence[str]
-    ) -> bytes:
-        """``nav_msgs/Path`` of ``poses`` ``(t_ns, x, y, alpha)`` in ``frames`` (one each), stamped
-        ``t_ns`` in ``frame``, as CDR: the bytes :meth:`cdr` gives for the same message, written with
-        numpy (a path of 600 poses every second per robot is most of a recorder's CPU through
-        rosbags' per-field serializer). The layout is CDR's (OMG DDS-XTypes, XCDR1, little endian):
-        after the 4-byte encapsulation header, each field aligned to its size from the payload's
-        start; a string is a uint32 length (with its NUL) and its bytes. Poses in more than one
-        frame go through :meth:`cdr`."""
+    def path_cdr(self, t_ns: int, frame: str, stamps: np.ndarray, table: np.ndarray, frames: Sequence[str]) -> bytes:
+        """``nav_msgs/Path`` of the poses ``table`` (rows x, y, alpha), stamped ``stamps`` [ns] in
+        ``frames`` (one each), the path stamped ``t_ns`` in ``frame``, as CDR: the bytes :meth:`cdr`
+        gives for the same message, written with numpy (a path of 600 poses every second per robot
+        is most of a recorder's CPU through rosbags' per-field serializer). The layout is
+        :class:`CdrLayout`'s. Poses in more than one frame go through :meth:`cdr`."""
         distinct = set(frames)
         if len(distinct) > 1:
             message = self.types[PATH](
                 header=self.header(t_ns, frame),
                 poses=[
-                    self.types[POSE_STAMPED](header=self.header(stamp, f), pose=self.pose((x, y, alpha)))
-                    for (stamp, x, y, alpha), f in zip(poses, frames, strict=True)
+                    self.types[POSE_STAMPED](header=self.header(int(stamp), f), pose=self.pose(pose))
+                    for stamp, pose, f in zip(stamps, table, frames, strict=True)
                 ],
             )
             return self.cdr(message, PATH)
         own = distinct.pop().encode() + b"\0" if distinct else b"\0"
         head = frame.encode() + b"\0"
-        table = np.array([pose[1:] for pose in poses], dtype=np.float64).reshape(-1, 3)
         count = len(table)
-        stamps = np.array([pose[0] for pose in poses], dtype=np.int64)  # exact: past 2^53 ns as a float is not
         alpha = table[:, 2]
         values = np.column_stack(
             (
@@ -262,6 +261,127 @@ class RosMapping:
         )
 
 
+class CdrLayout:
+    """The ``struct`` format of one CDR message as OMG DDS-XTypes' XCDR1 little endian lays it out
+    (what ROS 2 and rosbags write): each field aligned to its own size counted from the end of the
+    4-byte encapsulation header, a string as its uint32 length (with its NUL), its bytes and the NUL.
+    Built once per message shape (its strings fixed), then one ``pack`` per message."""
+
+    def __init__(self) -> None:
+        self.parts = ["<4s"]  # the encapsulation header CDR_LE
+        self.offset = 0  # from the end of the encapsulation header
+
+    def _field(self, code: str, size: int, count: int = 1) -> CdrLayout:
+        pad = -self.offset % size
+        if pad:
+            self.parts.append(f"{pad}x")
+        self.parts.append(f"{count}{code}")
+        self.offset += pad + size * count
+        return self
+
+    def uint32(self) -> CdrLayout:
+        return self._field("I", 4)
+
+    def uint64(self) -> CdrLayout:
+        return self._field("Q", 8)
+
+    def float64(self, count: int) -> CdrLayout:
+        return self._field("d", 8, count)
+
+    def zeros64(self, count: int) -> CdrLayout:
+        """``count`` float64 zeros (a covariance nobody estimated): padding bytes, no value."""
+        pad = -self.offset % 8
+        self.parts.append(f"{pad + 8 * count}x")
+        self.offset += pad + 8 * count
+        return self
+
+    def string(self, text: str) -> CdrLayout:
+        """A fixed string: its length and bytes are in the format, not among the values."""
+        self.uint32()
+        size = len(text.encode()) + 1
+        self.parts.append(f"{size}s")
+        self.offset += size
+        return self
+
+    def header(self) -> CdrLayout:
+        """``std_msgs/Header``'s stamp (int32 sec, uint32 nanosec); its frame_id follows (:meth:`string`)."""
+        return self._field("i", 4)._field("I", 4)
+
+    def compile(self) -> struct.Struct:
+        return struct.Struct("".join(self.parts))
+
+
+CDR_LE = b"\x00\x01\x00\x00"
+
+
+def _stamp(t_ns: int) -> tuple[int, int]:
+    sec, nanosec = divmod(int(t_ns), 1_000_000_000)
+    return sec, nanosec
+
+
+def _text(text: str) -> tuple[int, bytes]:
+    raw = text.encode() + b"\0"
+    return len(raw), raw
+
+
+def _planar(x: float, y: float, alpha: float) -> tuple[float, ...]:
+    """A planar pose as ``geometry_msgs/Pose`` (or ``Transform``): position (x, y, 0), rotation about z."""
+    return (x, y, 0.0, 0.0, 0.0, math.sin(alpha / 2), math.cos(alpha / 2))
+
+
+@functools.cache
+def _odometry_layout(frame: str, child: str) -> struct.Struct:
+    layout = CdrLayout().header().string(frame).string(child).float64(7).zeros64(36).float64(6).zeros64(36)
+    return layout.compile()
+
+
+@functools.cache
+def _tf_layout(frames: tuple[tuple[str, str], ...]) -> struct.Struct:
+    layout = CdrLayout().uint32()
+    for parent, child in frames:
+        layout.header().string(parent).string(child).float64(7)
+    return layout.compile()
+
+
+@functools.cache
+def _twist_stamped_layout(frame: str) -> struct.Struct:
+    return CdrLayout().header().string(frame).float64(6).compile()
+
+
+@functools.cache
+def _transition_layout(frame: str) -> struct.Struct:
+    return CdrLayout().header().string(frame).uint64().uint32().float64(7).compile()
+
+
+def odometry_cdr(t_ns: int, frame: str, child: str, state: Vector, action: tuple[float, float]) -> bytes:
+    """``nav_msgs/Odometry`` of a planar ``state`` holding ``action``, covariances zero."""
+    pose = _planar(float(state[0]), float(state[1]), float(state[2]))
+    v, omega = action
+    return _odometry_layout(frame, child).pack(
+        CDR_LE, *_stamp(t_ns), *_text(frame), *_text(child), *pose, v, 0.0, 0.0, 0.0, 0.0, omega
+    )
+
+
+def tf_cdr(t_ns: int, moves: Sequence[tuple[str, str, Pose2D]]) -> bytes:
+    """``tf2_msgs/TFMessage`` of planar ``(parent, child, pose)`` transforms, all stamped ``t_ns``."""
+    values: list[Any] = [CDR_LE, len(moves)]
+    stamp = _stamp(t_ns)
+    for parent, child, pose in moves:
+        values += [*stamp, *_text(parent), *_text(child), *_planar(float(pose.x), float(pose.y), float(pose.theta))]
+    return _tf_layout(tuple((parent, child) for parent, child, _ in moves)).pack(*values)
+
+
+def twist_stamped_cdr(t_ns: int, frame: str, v: float, omega: float) -> bytes:
+    """``geometry_msgs/TwistStamped``: linear (v, 0, 0), angular (0, 0, omega)."""
+    return _twist_stamped_layout(frame).pack(CDR_LE, *_stamp(t_ns), *_text(frame), v, 0.0, 0.0, 0.0, 0.0, omega)
+
+
+def transition_cdr(t_ns: int, frame: str, episode: int, step: int, values: Sequence[float]) -> bytes:
+    """``srl_msgs/Transition`` (:data:`SRL_MSGS`): ``values`` = x, y, alpha, v, omega, stage_cost,
+    accumulated_cost."""
+    return _transition_layout(frame).pack(CDR_LE, *_stamp(t_ns), *_text(frame), episode, step, *values)
+
+
 class Sink(Protocol):
     """Where CDR samples go: an MCAP file (:class:`McapSink`) or a live server (tools/recording/view.py)."""
 
@@ -269,6 +389,7 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
+@functools.lru_cache(maxsize=4096)  # a fleet's ids, bounded whatever names arrive
 def ros_name(robot: str) -> str:
     """A robot id as a ROS 2 name chunk (letters, digits, underscores): ``rlqv+-N12-s000`` ->
     ``rlqvplus_N12_s000``; srl's usual ids (``tb3_0``) stay as they are."""
@@ -432,6 +553,36 @@ def base_frame(robot: str) -> str:
     return f"{ros_name(robot)}/{BASE_FRAME}"
 
 
+class PathBuffer:
+    """A path's newest ``size`` poses, oldest first: stamps [ns] and ``(x, y, alpha)`` in
+    preallocated arrays used as a ring (bounded, and no list of tuples to convert per path),
+    and the frame of each."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.stamps = np.zeros(size, dtype=np.int64)
+        self.table = np.zeros((size, 3))
+        self.frames: deque[str] = deque(maxlen=size)
+        self.count = 0  # poses ever appended
+
+    def __len__(self) -> int:
+        return min(self.count, self.size)
+
+    def append(self, t_ns: int, state: Vector, frame: str) -> None:
+        slot = self.count % self.size
+        self.stamps[slot] = t_ns
+        self.table[slot] = state[:3]
+        self.frames.append(frame)
+        self.count += 1
+
+    def ordered(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps, poses) of the kept poses, oldest first."""
+        if self.count <= self.size:
+            return self.stamps[: self.count], self.table[: self.count]
+        order = np.roll(np.arange(self.size), -(self.count % self.size))
+        return self.stamps[order], self.table[order]
+
+
 @dataclass
 class _Track:
     """What the mapping remembers of one robot: bounded (the path's last poses, one episode).
@@ -444,8 +595,7 @@ class _Track:
     accumulated_cost: float = 0.0
     action: tuple[float, float] = (0.0, 0.0)
     # the path's poses: (t_ns, x, y, alpha) and their frame (RosMapping.path_cdr serializes them at once)
-    path: deque[tuple[int, float, float, float]] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
-    path_frames: deque[str] = field(default_factory=lambda: deque(maxlen=PATH_POSES))
+    path: PathBuffer = field(default_factory=lambda: PathBuffer(PATH_POSES))
     late: int = 0  # transitions that came after a later step (dropped: one per step, in order)
     state_episode: int = -1  # of the newest state
     states_seen: int = 0  # states of that episode (clock "steps": state n at origin + n delta)
@@ -473,9 +623,19 @@ class Recorder:
     def _write(self, topic: str, ros_type: str, message: Any, t_ns: int) -> None:
         self.sink.write(topic, ros_type, self.ros.definition(ros_type), self.ros.cdr(message, ros_type), t_ns)
 
+    def _write_cdr(self, topic: str, ros_type: str, data: bytes, t_ns: int) -> None:
+        self.sink.write(topic, ros_type, self.ros.definition(ros_type), data, t_ns)
+
+    def _robot(self, robot: str) -> _Track:
+        """The robot's track, made at its first message (not one per call, as setdefault would)."""
+        track = self.tracks.get(robot)
+        if track is None:
+            track = self.tracks[robot] = _Track()
+        return track
+
     def _track(self, robot: str, episode: int) -> _Track:
         """The robot's step stream, reset by a new episode of its transitions."""
-        track = self.tracks.setdefault(robot, _Track())
+        track = self._robot(robot)
         if episode != track.episode:  # a new episode: its own cost and path
             self.tracks[robot] = track = _Track(
                 episode=episode,
@@ -509,21 +669,15 @@ class Recorder:
     def state(self, robot: str, episode: int, state: Vector, now_ns: int, frames: PoseFrames = SIMULATED) -> None:
         """A state the robot reported: ``/<robot>/odom`` (twist: the action it holds) and ``/tf``
         (:meth:`tf`)."""
-        track = self.tracks.setdefault(robot, _Track())
+        track = self._robot(robot)
         if episode != track.state_episode:
             track.state_episode, track.states_seen = episode, 0
         t_ns = self.step_time(robot, episode, track.states_seen, now_ns) if self.clock == "steps" else now_ns
         track.states_seen += 1
         track.pose_frame = frames.pose_frame
         self.target(t_ns, track.pose_frame)
-        ros = self.ros
-        pose = ros.types["geometry_msgs/msg/PoseWithCovariance"](pose=ros.pose(state), covariance=np.zeros(36))
-        twist = ros.types["geometry_msgs/msg/TwistWithCovariance"](
-            twist=ros.twist(*track.action), covariance=np.zeros(36)
-        )
-        header = ros.header(t_ns, track.pose_frame)
-        odometry = ros.types[ODOMETRY](header=header, child_frame_id=BASE_FRAME, pose=pose, twist=twist)
-        self._write(f"/{ros_name(robot)}/odom", ODOMETRY, odometry, t_ns)
+        odometry = odometry_cdr(t_ns, track.pose_frame, BASE_FRAME, state, track.action)
+        self._write_cdr(f"/{ros_name(robot)}/odom", ODOMETRY, odometry, t_ns)
         self.tf(robot, track, state, frames, t_ns)
 
     def tf(self, robot: str, track: _Track, state: Vector, frames: PoseFrames, t_ns: int) -> None:
@@ -534,8 +688,7 @@ class Recorder:
         if track.tf_sent % GOAL_EVERY == 0:
             moves.append((frames.root, GOAL_FRAME, frames.goal))
         track.tf_sent += 1
-        transforms = [self.ros.transform(t_ns, parent, child, pose) for parent, child, pose in moves]
-        self._write(TF_TOPIC, TF_MESSAGE, self.ros.types[TF_MESSAGE](transforms=transforms), t_ns)
+        self._write_cdr(TF_TOPIC, TF_MESSAGE, tf_cdr(t_ns, moves), t_ns)
 
     def transition(
         self,
@@ -558,34 +711,23 @@ class Recorder:
         track.accumulated_cost += float(cost)
         track.action = (float(action[0]), float(action[1]))
         self.target(t_ns, track.pose_frame)
-        ros = self.ros
-        header = ros.header(t_ns, BASE_FRAME)
-        command = ros.types[TWIST_STAMPED](header=header, twist=ros.twist(*action))
-        self._write(f"/{ros_name(robot)}/cmd_vel", TWIST_STAMPED, command, t_ns)
-        sample = ros.types[TRANSITION](
-            header=ros.header(t_ns, track.pose_frame),
-            episode=episode,
-            step=step,
-            x=float(state[0]),
-            y=float(state[1]),
-            alpha=float(state[2]),
-            v=float(action[0]),
-            omega=float(action[1]),
-            stage_cost=float(cost),
-            accumulated_cost=track.accumulated_cost,
-        )
-        self._write(f"/{ros_name(robot)}/srl/transition", TRANSITION, sample, t_ns)
-        track.path.append((t_ns, float(state[0]), float(state[1]), float(state[2])))
-        track.path_frames.append(track.pose_frame)
+        name = ros_name(robot)
+        command = twist_stamped_cdr(t_ns, BASE_FRAME, *track.action)
+        self._write_cdr(f"/{name}/cmd_vel", TWIST_STAMPED, command, t_ns)
+        values = (*(float(c) for c in state[:3]), *track.action, float(cost), track.accumulated_cost)
+        sample = transition_cdr(t_ns, track.pose_frame, episode, step, values)
+        self._write_cdr(f"/{name}/srl/transition", TRANSITION, sample, t_ns)
+        track.path.append(t_ns, state, track.pose_frame)
         if step % PATH_EVERY == 0:
             self.path(robot, t_ns)
         return True
 
     def path(self, robot: str, t_ns: int) -> None:
         track = self.tracks.get(robot)
-        if track is not None and track.path:
-            data = self.ros.path_cdr(t_ns, track.pose_frame, track.path, track.path_frames)
-            self.sink.write(f"/{ros_name(robot)}/path", PATH, self.ros.definition(PATH), data, t_ns)
+        if track is not None and len(track.path):
+            stamps, table = track.path.ordered()
+            data = self.ros.path_cdr(t_ns, track.pose_frame, stamps, table, track.path.frames)
+            self._write_cdr(f"/{ros_name(robot)}/path", PATH, data, t_ns)
 
     def weights(
         self,
