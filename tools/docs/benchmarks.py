@@ -258,26 +258,42 @@ def parking_body(data: dict[str, Any]) -> list[str]:
 
 def fleet_body(data: dict[str, Any]) -> list[str]:
     lines = [
-        f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time per row. Jitter, "
-        "latency, staleness: the worst robot; CPU: all srl processes (100 % = one core).",
+        f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time per row"
+        + (", `srl record` attached to every row" if data.get("recorded") else "")
+        + ". Jitter, latency, staleness: the worst robot; parked: within 0.25 m at the end; at target: by the "
+        "robot's own final state within 0.05 m and at rest (its last command zero), as one robot alone is "
+        "judged; worst: the farthest robot by its own state; CPU: all srl processes (100 % = one core), and "
+        "that CPU per robot per sampling interval; hurried: ticks solved in a hurry (served late or over the "
+        "host's CPU budget).",
         "",
         "| robots | layout | missed | jitter p99 [ms] | latency p99 [ms] | staleness p99 / max [steps] | parked "
-        "| CPU % | RSS MB | load before -> after | targets |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| at target | worst [m] | CPU % | CPU per robot tick [ms] | RSS MB | hurried | recorded | load before -> "
+        "after | targets |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in data.get("rows", []):
         load = f"{row['load_before'][0]:.2f} -> {row['load_after'][0]:.2f}"
         if "error" in row:
-            lines.append(f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} | | | | | | | {load} | |")
+            lines.append(
+                f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} | | | | | | | | | | | | {load} | |"
+            )
             continue
         f = row["fleet"]
         layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
         targets = ", ".join(f"{k}: {v}" for k, v in row.get("targets", {}).items()) or "-"
+        worst = f.get("worst_own_final_distance_m")
+        per_tick = row.get("cpu_ms_per_robot_tick")
+        ticks = row.get("actor_ticks") or {}
+        hurried = ticks.get("hurried_percent")
+        recorder = row.get("recorder") or ""
+        recorded = recorder.removeprefix("srl record: recorded ").split(" on ", 1)[0] if recorder else "-"
         lines.append(
             f"| {row['robots']} | {layout} | {f['missed_deadlines']} | {f['jitter_p99_ms']:.2f} | "
             f"{f['latency_p99_ms']:.2f} | {f['staleness_p99_steps']:.0f} / {f['staleness_max_steps']:.0f} | "
-            f"{f['parked']}/{row['robots']} | {row['cpu_percent']:.0f} | {row['rss_mb']:.0f} | {load} | "
-            f"{cell(targets)} |"
+            f"{f['parked']}/{row['robots']} | {f.get('at_target', '-')}/{row['robots']} | "
+            f"{'-' if worst is None else f'{worst:.3f}'} | {row['cpu_percent']:.0f} | "
+            f"{'-' if per_tick is None else f'{per_tick:.3f}'} | {row['rss_mb']:.0f} | "
+            f"{'-' if hurried is None else f'{hurried:.1f} %'} | {cell(recorded)} | {load} | {cell(targets)} |"
         )
     return [*lines, ""]
 
@@ -449,13 +465,21 @@ def headline_table(data: dict[str, dict[str, Any]], paper_summary: dict[str, Any
     if fleet:
         values = [
             f"{row['robots']} robots: {row['fleet']['missed_deadlines']} missed, jitter p99 "
-            f"{row['fleet']['jitter_p99_ms']:.2f} ms, {row['fleet']['parked']} parked"
+            f"{row['fleet']['jitter_p99_ms']:.2f} ms, {row['fleet'].get('at_target', row['fleet']['parked'])} "
+            + ("at target" if "at_target" in row["fleet"] else "parked")
+            + (
+                ""
+                if row.get("cpu_ms_per_robot_tick") is None
+                else f", {row['cpu_ms_per_robot_tick']:.2f} ms CPU per robot tick"
+            )
             for row in fleet.get("rows", [])
-            if "error" not in row
+            if "error" not in row and row.get("layout", "host") == "host"  # the baseline rows are on the page
         ]
         if values:
             lines.append(
-                f"| Fleet on one machine, {fleet.get('seconds', '?')} s | {'; '.join(values)} | "
+                f"| Fleet on one machine, {fleet.get('seconds', '?')} s"
+                + (", `srl record` attached" if fleet.get("recorded") else "")
+                + f" | {'; '.join(values)} | "
                 "[fleet benchmark](docs/benchmarks/fleet.md) |"
             )
             machines.append(_machine_text("fleet", fleet))
