@@ -262,17 +262,8 @@ def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) 
     """Odometry, /tf, cmd_vel and transitions (every state and step of every robot) packed by
     ``CdrLayout``: byte for byte what rosbags serializes for the same messages, for frame names
     that leave every alignment, stamps past 2^53 ns and any values."""
-    from tools.recording.record import (
-        ODOMETRY,
-        TF_MESSAGE,
-        TRANSITION,
-        TWIST_STAMPED,
-        RosMapping,
-        odometry_cdr,
-        tf_cdr,
-        transition_cdr,
-        twist_stamped_cdr,
-    )
+    from tools.recording.cdr import odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr
+    from tools.recording.record import ODOMETRY, TF_MESSAGE, TRANSITION, TWIST_STAMPED, RosMapping
 
     ros = RosMapping()
     types = ros.types

@@ -35,7 +35,7 @@ channel of a recording is CDR with its full ``ros2msg`` definition in the schema
 and plots them, ``ros2 bag info`` lists them. The CDR and the definitions come from ``rosbags``
 (its Humble typestore, srl's types registered in a private copy); the MCAP container from the
 ``mcap`` library. The messages written at every step and state of every robot (odometry, ``/tf``,
-``cmd_vel``, transitions, the path) are packed by :class:`CdrLayout` instead, byte for byte what
+``cmd_vel``, transitions, the path) are packed by :mod:`tools.recording.cdr` instead, byte for byte what
 rosbags writes for them (tests/test_record_tf.py compares the two), at a fraction of its CPU: a
 recorder beside a fleet writes thousands of them a second.
 
@@ -54,7 +54,6 @@ import logging
 import math
 import os
 import re
-import struct
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -69,6 +68,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
+from tools.recording.cdr import odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +165,7 @@ class RosMapping:
         ``frames`` (one each), the path stamped ``t_ns`` in ``frame``, as CDR: the bytes :meth:`cdr`
         gives for the same message, written with numpy (a path of 600 poses every second per robot
         is most of a recorder's CPU through rosbags' per-field serializer). The layout is
-        :class:`CdrLayout`'s. Poses in more than one frame go through :meth:`cdr`."""
+        :class:`tools.recording.cdr.CdrLayout`'s. Poses in more than one frame go through :meth:`cdr`."""
         distinct = set(frames)
         if len(distinct) > 1:
             message = self.types[PATH](
@@ -259,127 +259,6 @@ class RosMapping:
         return self.types["geometry_msgs/msg/Twist"](
             linear=vector(x=float(v), y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=float(omega))
         )
-
-
-class CdrLayout:
-    """The ``struct`` format of one CDR message as OMG DDS-XTypes' XCDR1 little endian lays it out
-    (what ROS 2 and rosbags write): each field aligned to its own size counted from the end of the
-    4-byte encapsulation header, a string as its uint32 length (with its NUL), its bytes and the NUL.
-    Built once per message shape (its strings fixed), then one ``pack`` per message."""
-
-    def __init__(self) -> None:
-        self.parts = ["<4s"]  # the encapsulation header CDR_LE
-        self.offset = 0  # from the end of the encapsulation header
-
-    def _field(self, code: str, size: int, count: int = 1) -> CdrLayout:
-        pad = -self.offset % size
-        if pad:
-            self.parts.append(f"{pad}x")
-        self.parts.append(f"{count}{code}")
-        self.offset += pad + size * count
-        return self
-
-    def uint32(self) -> CdrLayout:
-        return self._field("I", 4)
-
-    def uint64(self) -> CdrLayout:
-        return self._field("Q", 8)
-
-    def float64(self, count: int) -> CdrLayout:
-        return self._field("d", 8, count)
-
-    def zeros64(self, count: int) -> CdrLayout:
-        """``count`` float64 zeros (a covariance nobody estimated): padding bytes, no value."""
-        pad = -self.offset % 8
-        self.parts.append(f"{pad + 8 * count}x")
-        self.offset += pad + 8 * count
-        return self
-
-    def string(self, text: str) -> CdrLayout:
-        """A fixed string: its length and bytes are in the format, not among the values."""
-        self.uint32()
-        size = len(text.encode()) + 1
-        self.parts.append(f"{size}s")
-        self.offset += size
-        return self
-
-    def header(self) -> CdrLayout:
-        """``std_msgs/Header``'s stamp (int32 sec, uint32 nanosec); its frame_id follows (:meth:`string`)."""
-        return self._field("i", 4)._field("I", 4)
-
-    def compile(self) -> struct.Struct:
-        return struct.Struct("".join(self.parts))
-
-
-CDR_LE = b"\x00\x01\x00\x00"
-
-
-def _stamp(t_ns: int) -> tuple[int, int]:
-    sec, nanosec = divmod(int(t_ns), 1_000_000_000)
-    return sec, nanosec
-
-
-def _text(text: str) -> tuple[int, bytes]:
-    raw = text.encode() + b"\0"
-    return len(raw), raw
-
-
-def _planar(x: float, y: float, alpha: float) -> tuple[float, ...]:
-    """A planar pose as ``geometry_msgs/Pose`` (or ``Transform``): position (x, y, 0), rotation about z."""
-    return (x, y, 0.0, 0.0, 0.0, math.sin(alpha / 2), math.cos(alpha / 2))
-
-
-@functools.cache
-def _odometry_layout(frame: str, child: str) -> struct.Struct:
-    layout = CdrLayout().header().string(frame).string(child).float64(7).zeros64(36).float64(6).zeros64(36)
-    return layout.compile()
-
-
-@functools.cache
-def _tf_layout(frames: tuple[tuple[str, str], ...]) -> struct.Struct:
-    layout = CdrLayout().uint32()
-    for parent, child in frames:
-        layout.header().string(parent).string(child).float64(7)
-    return layout.compile()
-
-
-@functools.cache
-def _twist_stamped_layout(frame: str) -> struct.Struct:
-    return CdrLayout().header().string(frame).float64(6).compile()
-
-
-@functools.cache
-def _transition_layout(frame: str) -> struct.Struct:
-    return CdrLayout().header().string(frame).uint64().uint32().float64(7).compile()
-
-
-def odometry_cdr(t_ns: int, frame: str, child: str, state: Vector, action: tuple[float, float]) -> bytes:
-    """``nav_msgs/Odometry`` of a planar ``state`` holding ``action``, covariances zero."""
-    pose = _planar(float(state[0]), float(state[1]), float(state[2]))
-    v, omega = action
-    return _odometry_layout(frame, child).pack(
-        CDR_LE, *_stamp(t_ns), *_text(frame), *_text(child), *pose, v, 0.0, 0.0, 0.0, 0.0, omega
-    )
-
-
-def tf_cdr(t_ns: int, moves: Sequence[tuple[str, str, Pose2D]]) -> bytes:
-    """``tf2_msgs/TFMessage`` of planar ``(parent, child, pose)`` transforms, all stamped ``t_ns``."""
-    values: list[Any] = [CDR_LE, len(moves)]
-    stamp = _stamp(t_ns)
-    for parent, child, pose in moves:
-        values += [*stamp, *_text(parent), *_text(child), *_planar(float(pose.x), float(pose.y), float(pose.theta))]
-    return _tf_layout(tuple((parent, child) for parent, child, _ in moves)).pack(*values)
-
-
-def twist_stamped_cdr(t_ns: int, frame: str, v: float, omega: float) -> bytes:
-    """``geometry_msgs/TwistStamped``: linear (v, 0, 0), angular (0, 0, omega)."""
-    return _twist_stamped_layout(frame).pack(CDR_LE, *_stamp(t_ns), *_text(frame), v, 0.0, 0.0, 0.0, 0.0, omega)
-
-
-def transition_cdr(t_ns: int, frame: str, episode: int, step: int, values: Sequence[float]) -> bytes:
-    """``srl_msgs/Transition`` (:data:`SRL_MSGS`): ``values`` = x, y, alpha, v, omega, stage_cost,
-    accumulated_cost."""
-    return _transition_layout(frame).pack(CDR_LE, *_stamp(t_ns), *_text(frame), episode, step, *values)
 
 
 class Sink(Protocol):
