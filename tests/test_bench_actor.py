@@ -18,6 +18,7 @@ from scipy.optimize import approx_fprime
 
 from common.config.assembly import build_actor
 from common.config.settings import PAPER_METHOD, Settings
+from common.math.actor import StackedActor
 from common.math.actor_problem import ActorProblem
 from common.math.agents import AGENTS
 from common.math.dynamics import euler_step
@@ -320,10 +321,16 @@ def test_snapshot_file_is_what_the_paper_loop_learns() -> None:
         np.testing.assert_allclose(fresh[step]["v"], weights["v"], rtol=1e-9, atol=1e-12)
 
 
+def interpreted_actor(settings: Settings, agent: str, horizon: int) -> StackedActor:
+    """A bench row's actor without the JIT build (no compiler process: the fast tier's rule)."""
+    row = row_settings(settings, agent, horizon)
+    return build_actor(row.model_copy(update={"actor": row.actor.model_copy(update={"jit": False})}))
+
+
 @pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])
 def test_numpy_objective_gradient_is_the_objectives_derivative(agent: str) -> None:
     settings = Settings.load()
-    problem = build_actor(row_settings(settings, agent, 6)).problem
+    problem = interpreted_actor(settings, agent, 6).problem
     weights = learned_weights(settings)
     objective = NumpyObjective(problem, weights.q, weights.v)
     rng = np.random.default_rng(4)
@@ -338,7 +345,7 @@ def test_numpy_objective_gradient_is_the_objectives_derivative(agent: str) -> No
 
 def test_best_known_is_reproducible_and_no_worse_than_one_cold_solve() -> None:
     settings = Settings.load()
-    problem = build_actor(row_settings(settings, "rlqv", 6)).problem
+    problem = interpreted_actor(settings, "rlqv", 6).problem
     weights = learned_weights(settings)  # indefinite: several local minima
     objective = NumpyObjective(problem, weights.q, weights.v)
     state = np.array([0.4, 0.3, -0.5])
@@ -350,7 +357,7 @@ def test_best_known_is_reproducible_and_no_worse_than_one_cold_solve() -> None:
 
 def test_phase_shares_count_what_each_step_ran() -> None:
     settings = Settings.load()
-    actor = build_actor(row_settings(settings, "rlqv", 6))
+    actor = interpreted_actor(settings, "rlqv", 6)
     weights = initial_weights(settings)
     before = copy.deepcopy(actor.counters)
     state = settings.start_state()
