@@ -170,3 +170,23 @@ def test_a_training_seed_repeats_the_training() -> None:
     weights = [[p.detach().numpy().copy() for p in snapshot.policy.parameters()] for snapshot in (first, second, other)]
     assert all(np.array_equal(a, b) for a, b in zip(weights[0], weights[1], strict=True))
     assert not all(np.array_equal(a, b) for a, b in zip(weights[0], weights[2], strict=True))
+
+
+@pytest.mark.slow
+@pytest.mark.integration  # worker processes, and srl's actor JIT-built with the C compiler
+def test_trainings_in_worker_processes_give_the_same_table_as_one_after_another(
+    tiny: tuple[dict[str, Any], list[Row], Path], tmp_path: Path
+) -> None:
+    # --workers 2: the four trainings (sac, ppo; two budgets each) in two spawned processes; each
+    # is seeded on its own, so every J and every action is what the one-process run gave
+    summary, rows, _ = tiny
+    parallel, parallel_rows = run_baselines(
+        replace(TINY, out=tmp_path, workers=2), experiment_settings(Settings.load())
+    )
+    assert [r.label for r in parallel_rows] == [r.label for r in rows]
+    for one, other in zip(rows, parallel_rows, strict=True):
+        assert [e.cost for _, e in one.episodes] == [e.cost for _, e in other.episodes], one.label
+        assert all(
+            np.array_equal(a.actions, b.actions) for (_, a), (_, b) in zip(one.episodes, other.episodes, strict=True)
+        )
+    assert [r["paper"] for r in parallel["rows"]] == [r["paper"] for r in summary["rows"]]

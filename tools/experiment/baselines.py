@@ -35,7 +35,7 @@ import platform
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from functools import partial
 from pathlib import Path
@@ -55,7 +55,9 @@ from tools.gym.policies import SrlPolicy
 FloatArray = NDArray[np.float64]
 ALGOS: Final[tuple[str, ...]] = ("sac", "ppo")
 DEFAULT_ENVS: Final[tuple[str, ...]] = ("Unicycle-v0", "TurtleBot3-v0")
-DEFAULT_BUDGETS: Final[tuple[int, ...]] = (10_000, 50_000, 200_000)
+# Up to 5 times the RL Zoo's budget for SAC on Pendulum-v1 (2 x 10^4) and its budget for PPO (10^5):
+# SAC takes ~17 ms a step on one core here, so the 6 SAC trainings to 10^5 take ~1.5 h on 2 workers
+DEFAULT_BUDGETS: Final[tuple[int, ...]] = (10_000, 30_000, 100_000)
 DEFAULT_SEEDS = 3
 # --quick: one seed, two small budgets, the 3 x 3 grids of starts (under 10 minutes on 2 cores)
 QUICK_BUDGETS: Final[tuple[int, ...]] = (1_000, 5_000)
@@ -98,6 +100,7 @@ class BaselineOptions:
     plots: bool = True
     progress: bool = True
     quick: bool = False
+    workers: int = 1  # trainings side by side, one process each (torch on one thread in each)
     command: str = ""
 
 
@@ -383,7 +386,7 @@ def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None
     srl_runs = list(dict.fromkeys([("mpc", reference), *((a, n) for n in options.horizons for a in options.agents)]))
     seeds = [options.seed + i for i in range(options.seeds)]
     bar = progress if progress is not None else _progress(options.progress)
-    rows: list[Row] = []
+    by_env: dict[str, list[Row]] = {env_id: [] for env_id in options.envs}  # srl's agents, then SAC, PPO
     with bar:
         for env_id in options.envs:
             settings = env_settings_for(base, env_id)
@@ -395,26 +398,17 @@ def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None
                 episodes, wall, cpu = evaluate(env, policy, starts, partial(bar.advance, task))
                 row = Row(env_id, agent, horizon, None, settings.steps, 1, wall, cpu)
                 row.episodes = [(0, e) for e in episodes]
-                rows.append(row)
+                by_env[env_id].append(row)
+            env.close()
+        jobs = [Job(env_id, algo, seed) for env_id in options.envs for algo in options.algos for seed in seeds]
+        results = _run_jobs(jobs, options, base, starts, bar)
+        for env_id in options.envs:
             for algo in options.algos:
                 by_budget: dict[int, Row] = {}
-                for seed in seeds:
-                    task = bar.add_task(f"{env_id}: {algo} seed {seed} training", total=max(options.budgets))
-                    snapshots = train(
-                        env_id,
-                        algo,
-                        options.budgets,
-                        seed,
-                        settings,
-                        options.extent,
-                        options.hyper,
-                        partial(_completed, bar, task),
-                    )
-                    task = bar.add_task(f"{env_id}: {algo} seed {seed} evaluation", total=len(snapshots) * per_model)
-                    for snap in snapshots:
-                        episodes, wall, cpu = evaluate(
-                            env, ModelController(snap.policy, env), starts, partial(bar.advance, task)
-                        )
+                for job, evaluated in zip(jobs, results, strict=True):
+                    if (job.env_id, job.algo) != (env_id, algo):
+                        continue
+                    for snap, episodes, wall, cpu in evaluated:
                         row = by_budget.setdefault(
                             snap.budget, Row(env_id, algo, None, snap.budget, snap.steps, 0, 0.0, 0.0)
                         )
@@ -422,12 +416,74 @@ def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None
                         row.models += 1
                         row.wall_seconds += snap.wall_seconds + wall
                         row.cpu_seconds += snap.cpu_seconds + cpu
-                        row.episodes += [(seed, e) for e in episodes]
-                rows += [by_budget[b] for b in sorted(by_budget)]
-            env.close()
+                        row.episodes += [(job.seed, e) for e in episodes]
+                by_env[env_id] += [by_budget[b] for b in sorted(by_budget)]
+    rows = [row for env_id in options.envs for row in by_env[env_id]]
     summary = summarize(rows, options, reference, started, time.perf_counter() - wall0, time.process_time() - cpu0)
     write_outputs(options.out, rows, summary, options.plots)
     return summary, rows
+
+
+@dataclass(frozen=True)
+class Job:
+    """One training: ``algo`` on ``env_id`` from ``seed``, copied and evaluated at every budget."""
+
+    env_id: str
+    algo: str
+    seed: int
+
+
+Evaluated = list[tuple[Snapshot, list[Episode], float, float]]  # per budget: the snapshot, episodes, wall, CPU
+
+
+def train_and_evaluate(
+    job: Job,
+    options: BaselineOptions,
+    base: Settings,
+    starts: dict[str, list[Start]],
+    bar: Any = None,
+) -> Evaluated:
+    """``job``'s training to every budget and each copy's episodes from ``starts`` (the snapshots
+    keep no policy: what crosses back from a worker process is numbers only). ``bar``: a rich
+    progress to report on (in the calling process only)."""
+    import torch
+
+    torch.set_num_threads(1)
+    settings = env_settings_for(base, job.env_id)
+    advance = None
+    if bar is not None:
+        task = bar.add_task(f"{job.env_id}: {job.algo} seed {job.seed} training", total=max(options.budgets))
+        advance = partial(_completed, bar, task)
+    snapshots = train(job.env_id, job.algo, options.budgets, job.seed, settings, options.extent, options.hyper, advance)
+    env = gymnasium.make(job.env_id, settings=settings)
+    evaluated: Evaluated = []
+    for snap in snapshots:
+        episodes, wall, cpu = evaluate(env, ModelController(snap.policy, env), starts)
+        evaluated.append((replace(snap, policy=None), episodes, wall, cpu))
+    env.close()
+    return evaluated
+
+
+def _run_jobs(
+    jobs: list[Job], options: BaselineOptions, base: Settings, starts: dict[str, list[Start]], bar: Any
+) -> list[Evaluated]:
+    """Every job, in order: here one after another (``workers`` 1, with the progress bar), else in
+    ``workers`` processes side by side (each job's numbers are its own: the same either way, seeded;
+    the bar then counts finished trainings)."""
+    if options.workers <= 1 or len(jobs) <= 1:
+        return [train_and_evaluate(job, options, base, starts, bar) for job in jobs]
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    task = bar.add_task(f"{len(jobs)} trainings in {options.workers} processes", total=len(jobs))
+    context = multiprocessing.get_context("spawn")  # torch's state never forked
+    with ProcessPoolExecutor(max_workers=min(options.workers, len(jobs)), mp_context=context) as pool:
+        futures = [pool.submit(train_and_evaluate, job, options, base, starts) for job in jobs]
+        results = []
+        for future in futures:
+            results.append(future.result())
+            bar.advance(task)
+    return results
 
 
 def _completed(bar: Any, task: Any, steps: int) -> None:

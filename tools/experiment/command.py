@@ -7,6 +7,7 @@ import argparse
 import importlib.util
 import json
 import math
+import os
 import shlex
 import sys
 from datetime import UTC, datetime
@@ -224,6 +225,8 @@ def _cmd_baselines(args: argparse.Namespace) -> int:
     if args.plant != "ideal" or args.starts != "paper":
         raise ValueError("experiment baselines: choose the robots with --envs; it evaluates on both sets of starts")
     # the extra's packages are imported where the trainings run; here only found (torch takes ~1.5 s)
+    if args.workers < 0:
+        raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
     missing = [name for name in ("gymnasium", "stable_baselines3", "torch") if importlib.util.find_spec(name) is None]
     if missing:
         raise ValueError(
@@ -252,6 +255,7 @@ def _cmd_baselines(args: argparse.Namespace) -> int:
         plots=not args.no_plots,
         progress=not args.no_progress,
         quick=args.quick,
+        workers=args.workers or os.cpu_count() or 1,
     )
     argv = [
         "baselines",
