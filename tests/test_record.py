@@ -259,8 +259,25 @@ async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tup
         decoded: list[Any] = []
         decoder = None
         deadline = time.monotonic() + timeout
+        subscriptions: list[int] = []  # ours; one more when a subscription brought nothing for 2 s
+        asked = 0.0
         while len(decoded) < want:
-            frame = await asyncio.wait_for(socket.recv(), max(0.1, deadline - time.monotonic()))
+            if channel is not None and not decoded and time.monotonic() - asked > 2.0 and len(subscriptions) < 5:
+                # foxglove-sdk may advertise a channel a moment before it accepts subscriptions to
+                # it ("subscribe to unknown channel"): ask again, as a client reconnecting would
+                subscriptions.append(7 + len(subscriptions))
+                subscribe = {
+                    "op": "subscribe",
+                    "subscriptions": [{"id": subscriptions[-1], "channelId": channel["id"]}],
+                }
+                await socket.send(json.dumps(subscribe))
+                asked = time.monotonic()
+            try:
+                frame = await asyncio.wait_for(socket.recv(), min(0.5, max(0.1, deadline - time.monotonic())))
+            except TimeoutError:
+                if time.monotonic() > deadline:
+                    raise
+                continue
             if isinstance(frame, str):
                 message = json.loads(frame)
                 if message["op"] == "advertise" and channel is None:
@@ -270,11 +287,9 @@ async def foxglove_poses(url: str, topic: str, want: int, timeout: float) -> tup
                         text = channel["schema"].encode()
                         schema = Schema(id=1, name=channel["schemaName"], encoding="ros2msg", data=text)
                         decoder = DecoderFactory().decoder_for("cdr", schema)
-                        subscribe = {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}
-                        await socket.send(json.dumps(subscribe))
             elif frame[0] == 0x01:  # MessageData: subscription id, log time, payload
                 subscription, _log_time = struct.unpack_from("<IQ", frame, 1)
-                assert subscription == 7 and decoder is not None
+                assert subscription in subscriptions and decoder is not None
                 decoded.append(decoder(bytes(frame[13:])))
         assert channel is not None
         return decoded, channel
