@@ -405,7 +405,7 @@ class StackedActor:
         mark = self._phase_done("polish", mark)
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
-            self.counters.hurried_solves += 1
+            counters.hurried_solves += 1
         runner_up = self._runner_up() if extras and global_phase else None
         if runner_up is not None and success and self._same_basin(state, runner_up, x_opt):
             runner_up = None

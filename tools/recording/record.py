@@ -68,12 +68,11 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
-from tools.recording.cdr import odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr
+from tools.recording.cdr import Vector, odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr
 
 log = logging.getLogger(__name__)
 
 Clock = Literal["wall", "steps"]
-Vector = Sequence[float] | np.ndarray  # a state (x, y, alpha) or an action (v, omega)
 DISTRO = "humble"  # the message definitions of the recording (the same in Jazzy for these types)
 ODOM_FRAME = "odom"  # REP 105's odometry frame: a simulated plant's goal frame (the target is its origin)
 MAP_FRAME = "map"  # REP 105's localization frame: the pose frame of a localized robot
