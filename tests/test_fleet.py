@@ -314,6 +314,7 @@ def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.timing  # staleness <= 5 steps: a latency bound
 @pytest.mark.parametrize("layout", ["host", "process"])
 def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: str) -> None:
     from tools.launch.fleet import run_fleet

@@ -343,8 +343,41 @@ def test_the_critic_command_takes_pooled_and_srl_up_a_critic_layout() -> None:
     assert args.critic == "pooled"
 
 
+class AliveProbe:
+    """A bus that records the critic's calls up to its declaring itself alive, then stops it."""
+
+    class Alive(Exception):
+        pass
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def subscribe(self, *args: object, **kwargs: object) -> None:
+        self.calls.append("subscribe")
+
+    def declare_alive(self, robot: str) -> None:
+        self.calls.append("alive")
+        raise self.Alive
+
+
+def test_the_critic_loads_its_solver_before_it_is_alive(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The launcher starts the actors once the critic is alive: an import in its first fit would
+    make every actor's weights seconds stale (a loaded machine, 0.15-0.4 s of CPU quiet)."""
+    import threading
+
+    from services.critic import service
+
+    bus = AliveProbe()
+    monkeypatch.setattr(service, "load_solver", lambda: bus.calls.append("solver"))
+    settings = Settings.load(critic={"checkpoint": ""})
+    with pytest.raises(AliveProbe.Alive):
+        service.run(settings, bus, threading.Event(), 1.0)  # type: ignore[arg-type]
+    assert bus.calls.index("solver") < bus.calls.index("alive"), bus.calls
+
+
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.timing  # staleness <= 5 steps: a latency bound
 def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() -> None:
     """The real services (srl up --robots 3 --critic pooled): one learner, every robot served."""
     from tools.launch.fleet import run_fleet

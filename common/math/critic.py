@@ -99,10 +99,18 @@ def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
 def lsq_linear(*args: Any, **kwargs: Any) -> Any:
     """scipy's ``lsq_linear``, imported on the first fit: scipy.optimize takes ~0.4 s of CPU to
     import, which every process that imports this module (the actor, the plant, the bridge)
-    would pay at start-up without ever fitting."""
+    would pay at start-up without ever fitting. A process that will fit calls
+    :func:`load_solver` before it is ready."""
     from scipy.optimize import lsq_linear as bvls
 
     return bvls(*args, **kwargs)
+
+
+def load_solver() -> None:
+    """Import scipy's BVLS now: the critic service pays the import (0.15-0.4 s of CPU, seconds on
+    a loaded machine) before it declares itself alive, not in the first fit that needs BVLS, whose
+    weights every actor would then wait for."""
+    import scipy.optimize  # noqa: F401
 
 
 KKT_TOLERANCE = 1e-10  # scipy's lsq_linear default ``tol``: the largest KKT violation accepted

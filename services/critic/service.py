@@ -55,7 +55,7 @@ from common.contracts.keys import TRANSITION, WEIGHTS
 from common.contracts.messages import CriticWeights, Transition
 from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
-from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, update_many
+from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, load_solver, update_many
 from common.math.stats import Window
 from common.net.transport import Bus, start_status_thread
 from common.system.checkpoint import (
@@ -482,6 +482,7 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
 def run(
     settings: Settings, bus: Bus, stop: threading.Event, duration: float | None, robots: list[str] | None = None
 ) -> dict:
+    load_solver()  # before the critic is alive, so the actors never wait on an import
     learner = CriticLearner(settings, fleet_size=len(robots) if robots else None)
     path = checkpoint_path(settings)
     restored = load_checkpoint(learner, path)
