@@ -21,6 +21,9 @@ from common.config.settings import Settings
 from common.math import physics
 from tools.cli import main as srl
 from tools.experiment.baselines import (
+    DEFAULT_BUDGETS,
+    DEFAULT_SEEDS,
+    QUICK_BUDGETS,
     ZOO,
     BaselineOptions,
     Row,
@@ -74,6 +77,15 @@ def test_the_options_parse_and_refuse_in_one_line() -> None:
         with pytest.raises(ValueError) as raised:
             call()
         assert "\n" not in str(raised.value), bad
+
+
+def test_the_help_states_the_defaults_the_code_uses(capsys: pytest.CaptureFixture[str]) -> None:
+    """The CLI cannot import this module (its extra's gymnasium), so its help repeats them."""
+    with pytest.raises(SystemExit):
+        srl(["experiment", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    budgets = f"(default: {','.join(map(str, DEFAULT_BUDGETS))}; --quick: {','.join(map(str, QUICK_BUDGETS))})"
+    assert budgets in text and f"(default: {DEFAULT_SEEDS}; --quick: 1)" in text, text
 
 
 @pytest.mark.parametrize(

@@ -109,7 +109,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     baselines.add_argument(
         "--budgets",
         help="baselines: comma-separated environment steps, one training per seed copied at each "
-        "(default: 10000,50000,200000; --quick: 1000,5000)",
+        "(default: 10000,30000,100000; --quick: 1000,5000)",
     )
     baselines.add_argument(
         "--seeds", type=int, help="baselines: training seeds --seed, --seed + 1, ... (default: 3; --quick: 1)"
