@@ -346,7 +346,7 @@ def test_the_critic_command_takes_pooled_and_srl_up_a_critic_layout() -> None:
 class AliveProbe:
     """A bus that records the critic's calls up to its declaring itself alive, then stops it."""
 
-    class Alive(Exception):
+    class AliveError(Exception):
         pass
 
     def __init__(self) -> None:
@@ -357,7 +357,7 @@ class AliveProbe:
 
     def declare_alive(self, robot: str) -> None:
         self.calls.append("alive")
-        raise self.Alive
+        raise self.AliveError
 
 
 def test_the_critic_loads_its_solver_before_it_is_alive(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -370,7 +370,7 @@ def test_the_critic_loads_its_solver_before_it_is_alive(monkeypatch: pytest.Monk
     bus = AliveProbe()
     monkeypatch.setattr(service, "load_solver", lambda: bus.calls.append("solver"))
     settings = Settings.load(critic={"checkpoint": ""})
-    with pytest.raises(AliveProbe.Alive):
+    with pytest.raises(AliveProbe.AliveError):
         service.run(settings, bus, threading.Event(), 1.0)  # type: ignore[arg-type]
     assert bus.calls.index("solver") < bus.calls.index("alive"), bus.calls
 

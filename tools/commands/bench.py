@@ -23,8 +23,8 @@ NAME = "bench"
 HELP = "benchmarks that print a table (and JSON)"
 DESCRIPTION = (
     "Benchmarks that print a table with the targets as PASS/FAIL (and, with --json, one JSON object\n"
-    "as the last stdout line): srl bench actor | loop | bridge | parking | fleet | capacity | critic --help for each "
-    "one's options."
+    "as the last stdout line): srl bench actor | loop | bridge | parking | fleet | capacity | critic | messages\n"
+    "--help for each one's options."
 )
 
 
@@ -111,6 +111,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from tools.bench.critic import add_parser as add_critic_bench  # light: numpy loads when it runs
 
     add_critic_bench(kinds)
+    from tools.bench.messages import add_parser as add_messages_bench  # light: pydantic loads when it runs
+
+    add_messages_bench(kinds)
 
     parking = kind("parking", "parking on the ideal and the TurtleBot3 plants: truth vs odometry, chatter")
     parking.add_argument("--agents", default="mpc,rlq,rlqv", help="comma-separated agents (default: mpc,rlq,rlqv)")

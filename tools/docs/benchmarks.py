@@ -29,6 +29,7 @@ KINDS = {
     "fleet": "Fleet on one machine",
     "capacity": "Fleet capacity",
     "critic": "Critic fits across robots",
+    "messages": "A message's CPU",
 }
 
 
@@ -348,6 +349,40 @@ def critic_body(data: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
+def messages_body(data: dict[str, Any]) -> list[str]:
+    lines = [
+        "CPU per message [us] in one process: **encode** `Message.encode`; **parse** the JSON alone "
+        "(pydantic-core's parser, the one `decode` uses); **decode** parse and validate (bounds, NaN, sizes, "
+        "versions); **validate** their difference.",
+        "",
+        "| kind | bytes | encode | parse | decode | validate |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in data.get("codec", []):
+        lines.append(
+            f"| {c['kind']} | {c['bytes']} | {c['encode_us']:.1f} | {c['parse_us']:.1f} | {c['decode_us']:.1f} "
+            f"| {c['validate_us']:.1f} |"
+        )
+    lines += [
+        "",
+        f"Through a Zenoh router on loopback: {data.get('robots')} robots' `{data.get('kind')}` messages at "
+        f"{ms(data.get('rate_hz'), 0)} Hz, {ms(data.get('seconds'), 0)} s a run, {data.get('rounds')} rounds of "
+        "the two ways in turn; CPU of each process (user + system, every thread) per robot message, the median "
+        "of the rounds. **each**: srl's wire, one message per robot on its own key; **batched**: one message "
+        "per tick holding every robot's (not srl's wire: what a host could send), each validated on arrival.",
+        "",
+        "| way | publisher | router | subscriber | total | validated / sent |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in data.get("rows", []):
+        lines.append(
+            f"| {r['way']} | {r['publisher_us']:.1f} | {r['router_us']:.1f} | {r['subscriber_us']:.1f} "
+            f"| {r['total_us']:.1f} | {r['validated']} / {r['sent']} |"
+        )
+    before, after = data.get("load_before") or [math.nan], data.get("load_after") or [math.nan]
+    return [*lines, "", f"Load (1 min) {ms(before[0], 2)} before, {ms(after[0], 2)} after.", ""]
+
+
 def generic_body(data: dict[str, Any]) -> list[str]:
     scalars = {k: v for k, v in sorted(data.items()) if isinstance(v, str | int | float | bool) and k != "run"}
     return ["| | |", "|---|---|", *(f"| {cell(k)} | {cell(v)} |" for k, v in scalars.items()), ""]
@@ -362,6 +397,7 @@ BODIES: dict[str, Callable[[dict[str, Any]], list[str]]] = {
     "fleet": fleet_body,
     "capacity": capacity_body,
     "critic": critic_body,
+    "messages": messages_body,
 }
 
 
