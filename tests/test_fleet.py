@@ -141,12 +141,14 @@ def test_robots_sharing_one_built_actor_act_as_one_actor_each_bit_for_bit() -> N
 class FakeClock:
     def __init__(self) -> None:
         self.now = 50.0
+        self.sleeps = 0
 
     def clock(self) -> float:
         return self.now
 
     def sleep(self, seconds: float) -> bool:
         self.now += seconds
+        self.sleeps += 1
         return False
 
 
@@ -176,7 +178,7 @@ class FakeLoop:
 
 
 def host(
-    count: int, work: float = 0.001, budget: float = 1.0
+    count: int, work: float = 0.001, budget: float = 1.0, group: int = 1
 ) -> tuple[HostScheduler, list[FakeLoop], list[tuple[str, int, float]], FakeClock]:
     fake = FakeClock()
     served: list[tuple[str, int, float]] = []
@@ -188,6 +190,7 @@ def host(
         clock=fake.clock,
         sleep=fake.sleep,
         budget=budget,
+        group=group,
     )
     return scheduler, loops, served, fake
 
@@ -213,6 +216,32 @@ def test_the_host_serves_every_robot_each_period_in_deadline_order_with_spread_p
         assert np.allclose(np.diff(ticks), 0.1)
         assert loop.ticker.missed == 0 and loop.jitter.maximum == pytest.approx(0.0, abs=1e-9)
         assert loop.sent[-1][1] == (0.0, 0.0)  # every robot stopped on the way out
+
+
+def test_a_host_serves_a_tick_group_back_to_back_with_one_wake_up() -> None:
+    # actor.host_tick_group: 6 robots in groups of 3 are 2 phases of the period (0 and delta / 2);
+    # each group's ticks run one after another, so the host wakes twice a period, not 6 times.
+    scheduler, loops, served, fake = host(6, work=0.002, group=3)
+    start = fake.now
+    scheduler.run(end=start + 10 * 0.1 + 0.01, manual_gc=False)
+    for i, loop in enumerate(loops):
+        ticks = [t for r, _, t in served if r == loop.robot]
+        # robot i: its group's phase, then the 2 ms ticks of the robots before it in the group
+        assert ticks[0] == pytest.approx(start + 0.1 + (i // 3) * 0.05 + (i % 3) * 0.002)
+        assert np.allclose(np.diff(ticks), 0.1) and loop.ticker.missed == 0
+    assert not any(h for loop in loops for h in loop.hurried)  # waiting for its group is not late
+    grouped_sleeps = fake.sleeps
+    scheduler, loops, served, fake = host(6, work=0.002)  # the negative control: one phase per robot
+    scheduler.run(end=fake.now + 10 * 0.1 + 0.01, manual_gc=False)
+    assert fake.sleeps >= 2.5 * grouped_sleeps, (fake.sleeps, grouped_sleeps)
+
+
+def test_a_tick_group_that_begins_late_is_hurried_whole() -> None:
+    scheduler, loops, _, fake = host(4, work=0.001, group=2)
+    loops[1].work = 0.06  # the second group (r2, r3), due 0.05 after the first, begins 0.01 late
+    scheduler.run(end=fake.now + 0.35, manual_gc=False)
+    assert all(loops[2].hurried) and all(loops[3].hurried) and loops[2].hurried
+    assert not any(loops[0].hurried) and not any(loops[1].hurried)
 
 
 def test_a_tick_served_late_is_solved_in_a_hurry_and_one_on_time_is_not() -> None:

@@ -203,6 +203,11 @@ class ActorSettings(_Section):
         le=100,
         description="an actor host runs the global phase at every this many solves of a robot (1 = every solve)",
     )
+    host_tick_group: int = Field(
+        ge=1,
+        le=1000,
+        description="an actor host serves its robots' ticks in groups of this many, back to back (1 = each alone)",
+    )
     host_cpu_budget: float = Field(
         default=0.3,
         gt=0,

@@ -153,6 +153,7 @@ class HostScheduler:
         sleep: Callable[[float], bool] | None = None,
         states: list[Newest[PlantState]] | None = None,
         budget: float = 1.0,
+        group: int = 1,
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
         self.states = states  # each robot's newest state, taken at its tick (None: fed by on_state)
@@ -160,7 +161,8 @@ class HostScheduler:
         self.sleep = sleep or stop.wait
         start = clock()
         count = len(loops)
-        self.tickers = [RobotTicker(period, start + i * period / count) for i in range(count)]
+        groups = -(-count // group)  # the robots' ticks in this many phases of the period
+        self.tickers = [RobotTicker(period, start + (i // group) * period / groups) for i in range(count)]
         for loop, ticker in zip(loops, self.tickers, strict=True):
             loop.ticker = ticker
         self.served = 0
@@ -183,6 +185,7 @@ class HostScheduler:
         heap = [(ticker.next_due, i) for i, ticker in enumerate(self.tickers)]
         heapq.heapify(heap)
         rounds, pending_gc = 0, -1
+        group_due, group_start = -1.0, 0.0  # the due time of the group being served, when it began
         try:
             while not self.stop.is_set():
                 due, i = heap[0]
@@ -200,6 +203,8 @@ class HostScheduler:
                 loop, ticker = self.loops[i], self.tickers[i]
                 previous = ticker.last_tick if ticker.index else None
                 now = self.clock()
+                if due != group_due:
+                    group_due, group_start = due, now
                 missed = ticker.missed
                 k = ticker.serve(now)
                 if self.states is not None and (newest := self.states[i].take()) is not None:
@@ -220,7 +225,9 @@ class HostScheduler:
                     loop.jitter.append(abs(now - previous - self.period))
                 over = self.spent_sum > self.budget
                 self.over_budget += over
-                loop.tick(k, now, hurry=over or now - due > HURRY_FRACTION * self.period)  # the lighter solve
+                # late: the group began late (its later ticks wait for the earlier ones by design)
+                late = group_start - due > HURRY_FRACTION * self.period
+                loop.tick(k, now, hurry=over or late)  # the lighter solve
                 spent = self.clock() - now
                 slot = self.served % len(self.spent)
                 self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
@@ -312,7 +319,12 @@ def run_host(
     gc.collect()
     gc.freeze()
     scheduler = HostScheduler(
-        loops, settings.plant.sampling_time, stop, states=states, budget=settings.actor.host_cpu_budget
+        loops,
+        settings.plant.sampling_time,
+        stop,
+        states=states,
+        budget=settings.actor.host_cpu_budget,
+        group=settings.actor.host_tick_group,
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:
