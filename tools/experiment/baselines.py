@@ -56,7 +56,7 @@ FloatArray = NDArray[np.float64]
 ALGOS: Final[tuple[str, ...]] = ("sac", "ppo")
 DEFAULT_ENVS: Final[tuple[str, ...]] = ("Unicycle-v0", "TurtleBot3-v0")
 # Up to 5 times the RL Zoo's budget for SAC on Pendulum-v1 (2 x 10^4) and its budget for PPO (10^5):
-# SAC takes ~17 ms a step on one core here, so the 6 SAC trainings to 10^5 take ~1.5 h on 2 workers
+# SAC takes 17-20 ms a step on one core here, so the 6 SAC trainings to 10^5 take 1.5-2.5 h on 2 workers
 DEFAULT_BUDGETS: Final[tuple[int, ...]] = (10_000, 30_000, 100_000)
 DEFAULT_SEEDS = 3
 # --quick: one seed, two small budgets, the 3 x 3 grids of starts (under 10 minutes on 2 cores)
