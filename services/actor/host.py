@@ -141,6 +141,8 @@ class HostScheduler:
     ``over_budget``), as a tick served late is. With the thread real-time (``realtime_priority``)
     nothing else makes it shed work, and a real-time host that never sheds can take the cores the
     critic needs (docs/fleets.md).
+    ``group`` (``actor.host_tick_group``): robots ``i // group`` share a phase of the period and are
+    served back to back, one wake-up per group; a group is late (hurried) when its first tick is.
     ``clock`` and ``sleep`` (``sleep(seconds) -> True`` to stop) are injectable, as for Ticker."""
 
     def __init__(
