@@ -689,6 +689,45 @@ def test_a_hurried_step_is_one_warm_polish_and_skips_the_extras() -> None:
     assert moved > 0  # the global phase a hurry skips does change plans here
 
 
+def test_a_descending_hurry_descends_the_warm_start_without_the_solver() -> None:
+    # ActorProblem.hurry "descend" (an actor host over its CPU budget or late, docs/fleets.md): once
+    # the robot has a plan, a hurried step is the warm start descended by the global phase's
+    # compiled projected gradient, and the solver does not run. Oracles: the step's objective is
+    # the hand-written objective of its plan, never above the warm start's (the shifted previous
+    # plan: the descent takes only steps that lower the objective), and the solver's polish count
+    # stands still. Negative control: "polish" runs the solver on the same steps.
+    descend = make_actor("rlq", 6, multistart=True, multistart_flips=3, hurry="descend")
+    polish = make_actor("rlq", 6, multistart=True, multistart_flips=3, hurry="polish")
+    lowered = 0
+    for w, v_w, state in indefinite_problems(4, 12):
+        for actor in (descend, polish):
+            actor.reset()
+        first = descend.step(state, w, v_w, hurry=True)  # no plan yet: the global phase and the solver
+        assert first.success and first.status == "success"
+        polish.step(state, w, v_w, hurry=True)
+        after = exact_step(state, first.action, 0.1)
+        shifted = [*first.plan[1:], first.plan[-1]]  # the warm start: the plan shifted, last action held
+        warm = float(hand_objective("rlq", after, shifted, w, v_w))
+        polished = descend.counters.phase_counts["polish"], polish.counters.phase_counts["polish"]
+        second = descend.step(after, w, v_w, hurry=True)
+        polish.step(after, w, v_w, hurry=True)
+        assert second.success and second.status == "descended"
+        assert descend.counters.phase_counts["polish"] == polished[0]
+        assert polish.counters.phase_counts["polish"] == polished[1] + 1
+        plan = [(np.float64(a), np.float64(b)) for a, b in second.plan]
+        assert second.objective == pytest.approx(float(hand_objective("rlq", after, plan, w, v_w)), rel=1e-6, abs=1e-9)
+        assert second.objective <= warm + 1e-9 * (1 + abs(warm))
+        assert np.all(np.abs(second.plan) <= [V_MAX, OMEGA_MAX])
+        lowered += second.objective < warm - 1e-6 * (1 + abs(warm))
+    assert lowered > 0  # the descent moves plans: not the warm start handed back
+    assert descend.counters.hurried_solves == polish.counters.hurried_solves == 24
+
+
+def test_an_unknown_hurry_is_refused() -> None:
+    with pytest.raises(ValueError, match="unknown hurry 'sprint'"):
+        make_actor("rlq", 6, hurry="sprint")
+
+
 def test_global_every_k_runs_the_global_phase_every_kth_solve_and_the_vertex_search_every_solve() -> None:
     # ActorProblem.global_every (an actor host's): the global phase, and the runner-up polish that
     # picks among its ends, at solves 0, k, 2k ... of a robot and at any solve without a plan; the

@@ -74,9 +74,10 @@ def jit_cache_path(setting: str) -> str:
     return "" if setting == "off" else os.path.expanduser(setting)
 
 
-def build_actor(settings: Settings, global_every: int = 1) -> StackedActor:
-    """The actor of the settings; ``global_every``: ActorProblem.global_every (an actor host
-    passes actor.host_global_every, one robot's actor keeps 1: the global phase at every solve)."""
+def build_actor(settings: Settings, global_every: int = 1, hurry: str = "polish") -> StackedActor:
+    """The actor of the settings; ``global_every`` and ``hurry``: ActorProblem's (an actor host
+    passes actor.host_global_every and actor.host_hurry; one robot's actor keeps 1, the global
+    phase at every solve, and "polish", since it never hurries)."""
     a, p = settings.actor, settings.plant
     return StackedActor(
         ActorProblem(
@@ -104,6 +105,7 @@ def build_actor(settings: Settings, global_every: int = 1) -> StackedActor:
             multistart_refresh=a.multistart_refresh,
             multistart_flips=a.multistart_flips,
             global_every=global_every,
+            hurry=hurry,
         ),
         arrival=arrival_rule(settings),
     )

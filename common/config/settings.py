@@ -215,6 +215,9 @@ class ActorSettings(_Section):
         allow_inf_nan=False,
         description="share of each period an actor host's full solves may take; beyond, it hurries",
     )
+    host_hurry: Literal["polish", "descend"] = Field(
+        description="an actor host's hurried tick: one solver polish of the warm start, or its descent (no solver)",
+    )
     max_iter: int = Field(ge=1)
     tolerance: float = Field(gt=0)
     mu_init: float = Field(gt=0)

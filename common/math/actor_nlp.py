@@ -18,7 +18,8 @@ and the critic weights through the parameter vector, so a step never rebuilds an
 
 Beside the solver, :func:`build` compiles the functions :class:`common.math.actor.StackedActor`
 steps with: the merit (the objective along a single-shooting rollout), the global phase
-(``multistart``) and the vertex search (``multistart_flips``).
+(``multistart``), the hurried step's descent (``hurry`` "descend") and the vertex search
+(``multistart_flips``).
 """
 
 from __future__ import annotations
@@ -48,13 +49,15 @@ class ActorFunctions:
     ``s_1 d_1 s_2 d_2 .. s_N`` (``d_i`` the stage's decision variables: the held action, or the
     wheels' rim speeds with the wheel box on). ``merit``: (s_1, decisions, weights) -> the
     objective along the rollout. ``global_phase`` (multistart): (starts, s_1, weights) -> (ends,
-    their objective, their decision vectors). ``flips`` and ``rollout`` (multistart_flips):
-    (s_1, candidates, weights) -> each candidate's merit, and (s_1, decisions) -> the decision
-    vector of their rollout."""
+    their objective, their decision vectors). ``descent`` (``hurry`` "descend"): the same for one
+    start, (start, s_1, weights) -> (end, its objective, its decision vector). ``flips`` and
+    ``rollout`` (multistart_flips): (s_1, candidates, weights) -> each candidate's merit, and
+    (s_1, decisions) -> the decision vector of their rollout."""
 
     solver: ca.Function
     merit: ca.Function
     global_phase: ca.Function | None
+    descent: ca.Function | None
     flips: ca.Function | None
     rollout: ca.Function | None
     lbx: np.ndarray
@@ -80,9 +83,13 @@ def objective(problem: ActorProblem, states: list[Any], actions: list[Any], w: A
     return total
 
 
-def global_phase(problem: ActorProblem, state: Any, params: Any, bounds: list[float]) -> tuple[list[Any], list[Any]]:
+def global_phase(
+    problem: ActorProblem, state: Any, params: Any, bounds: list[float]
+) -> tuple[tuple[list[Any], list[Any]], tuple[list[Any], list[Any]]]:
     """The global phase's function: (starts, s_1, weights) -> (ends, their objective, their
-    decision vectors), every start descended on its own (ActorProblem.multistart).
+    decision vectors), every start descended on its own (ActorProblem.multistart); and the
+    descent of one start, (start, s_1, weights) -> (end, its objective, its decision vector),
+    which a hurried step runs alone (ActorProblem.hurry "descend").
 
     A start is the stage decisions scaled to the box [-1, 1] (z = d / bound), flattened
     u_1 first; the objective is the agent's along the predictor's rollout from s_1 (single
@@ -157,10 +164,11 @@ def global_phase(problem: ActorProblem, state: Any, params: Any, bounds: list[fl
         ca.repmat(diagonal(start, s_mx, p_mx), 1, iterations),
     )
     end = path[:, -1]
-    one = ca.Function("descend", [start, s_mx, p_mx], [end, values[-1], decision_vector(end, s_mx)])
+    single = ([start, s_mx, p_mx], [end, values[-1], decision_vector(end, s_mx)])
+    one = ca.Function("descend", *single)
     starts = ca.MX.sym("starts", n_z, GLOBAL_STARTS)
     ends = one.map(GLOBAL_STARTS)(starts, ca.repmat(s_mx, 1, GLOBAL_STARTS), ca.repmat(p_mx, 1, GLOBAL_STARTS))
-    return [starts, s_mx, p_mx], list(ends)
+    return ([starts, s_mx, p_mx], list(ends)), single
 
 
 def flip_functions(
@@ -208,7 +216,9 @@ def build(problem: ActorProblem) -> ActorFunctions:
     searches = p.multistart and p.multistart_flips > 0
     flip_args = flip_functions(p, merit_args, rollout, decisions) if searches else None
     bounds = p.decision_bounds
-    global_args = global_phase(p, states[0], ca.vertcat(w, v), bounds) if p.multistart else None
+    phases = global_phase(p, states[0], ca.vertcat(w, v), bounds) if p.multistart else None
+    global_args = phases[0] if phases is not None else None
+    descent_args = phases[1] if phases is not None and p.hurry == "descend" else None
 
     # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
     variables = []
@@ -277,14 +287,24 @@ def build(problem: ActorProblem) -> ActorFunctions:
     def functions(compiler: str | None) -> ActorFunctions:
         solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
         merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
-        global_fn = flips = rollout_fn = None
+        global_fn = descent_fn = flips = rollout_fn = None
         if global_args is not None:
             global_fn = ca.Function("global_phase", *global_args, compiled("srl_global", compiler))
+        if descent_args is not None:
+            descent_fn = ca.Function("descent", *descent_args, compiled("srl_descent", compiler))
         if flip_args is not None:
             flips = ca.Function("vertex_neighbours", *flip_args[0], compiled("srl_flips", compiler))
             rollout_fn = ca.Function("rollout", *flip_args[1], compiled("srl_rollout", compiler))
         return ActorFunctions(
-            solver, merit, global_fn, flips, rollout_fn, np.array(lbx, dtype=float), np.array(ubx, dtype=float), n_g
+            solver,
+            merit,
+            global_fn,
+            descent_fn,
+            flips,
+            rollout_fn,
+            np.array(lbx, dtype=float),
+            np.array(ubx, dtype=float),
+            n_g,
         )
 
     built = build_with_jit(functions, p.jit_cache) if jit else functions(None)

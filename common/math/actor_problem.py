@@ -22,6 +22,8 @@ from common.math.stats import Window
 # The global phase's starts (ActorProblem.multistart): the shifted and the earlier plan (or, with
 # no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
 GLOBAL_STARTS = 5
+# What a hurried step does once the robot has a plan (ActorProblem.hurry).
+HURRIES = ("polish", "descend")
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,12 @@ class ActorProblem:
     # search. Once a plan has settled the global phase rarely moves the answer, and it is ~40 % of
     # a solve at N = 12; an actor host serving many robots sets it (actor.host_global_every). 1: every solve.
     global_every: int = 1
+    # What a hurried step (StackedActor.step ``hurry``) does once the robot has a plan: "polish",
+    # one solver polish of the warm start; "descend", the warm start descended by the global
+    # phase's compiled projected gradient, no solver (one start: a fifth of the global phase; compiled only
+    # with this setting and ``multistart``). An actor host over its CPU budget sets it
+    # (actor.host_hurry): what a hurried tick costs is what caps the host's CPU.
+    hurry: str = "polish"
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -116,6 +124,8 @@ class ActorProblem:
             raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
         if self.global_every < 1:
             raise ValueError(f"global_every must be >= 1 (1 = every solve), got {self.global_every}")
+        if self.hurry not in HURRIES:
+            raise ValueError(f"unknown hurry {self.hurry!r}; choose one of {', '.join(HURRIES)}")
         if self.multistart_flips < 0:
             raise ValueError(f"multistart_flips must be >= 0 (0 = off), got {self.multistart_flips}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):

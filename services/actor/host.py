@@ -57,9 +57,9 @@ from services.actor.service import wire_realtime, wire_weights
 log = logging.getLogger(__name__)
 
 # A tick served more than this fraction of a period after its due time is solved in a hurry
-# (StackedActor.step: one polish of the warm start, no global phase, runner-up polish or vertex
-# search): a host behind its schedule sheds the optional work until it is on time again,
-# instead of missing deadlines.
+# (StackedActor.step: the warm start descended or polished once, actor.host_hurry; no global
+# phase, runner-up polish or vertex search): a host behind its schedule sheds the optional work
+# until it is on time again, instead of missing deadlines.
 HURRY_FRACTION = 0.05
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.
@@ -282,7 +282,7 @@ def run_host(
     """The real-time loops of ``robots`` in this process, over one Zenoh session."""
     started = time.monotonic()
     # built once for every robot (one compiled problem per agent, N)
-    shared = build_actor(settings, global_every=settings.actor.host_global_every)
+    shared = build_actor(settings, global_every=settings.actor.host_global_every, hurry=settings.actor.host_hurry)
     log.info(
         "actor host: %d robots, %s N = %d, built in %.1f s",
         len(robots),
