@@ -452,3 +452,46 @@ def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> N
     own = os.getpriority(os.PRIO_PROCESS, 0)
     lowered = min(19, own + 5)
     assert done.stdout.split() == [str(own), str(lowered), str(lowered), str(lowered)], done.stderr
+
+
+def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whatever_the_default() -> None:
+    # Bus._callback: transport.callback_threads is the default; ``threaded`` overrides it for one
+    # subscription (a recorder's wildcards, which take every robot's samples).
+    from common.net.transport import Bus
+
+    for default in (False, True):
+        bus = Bus(object(), "test", callback_threads=default)  # type: ignore[arg-type]  # no session needed
+        assert bus._callback(print).indirect is default
+        assert bus._callback(print, threaded=True).indirect is True
+        assert bus._callback(print, threaded=False).indirect is False
+
+
+def test_the_recorder_takes_every_robots_samples_on_threads_of_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    from common.config.settings import Settings
+    from common.net.transport import Bus
+    from tools.recording.record import Feed, Recorder
+
+    subscribed: list[tuple[str, dict[str, Any]]] = []
+
+    class FakeBus:
+        def subscribe(self, topic: Any, key: str, handler: Any, **options: Any) -> None:
+            subscribed.append((key, options))
+
+        def close(self) -> None:
+            pass
+
+    class NoSink:
+        def write(self, *args: Any) -> None:
+            pass
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: FakeBus()))
+    feed = Feed(Settings.load(), Recorder(NoSink(), 0.1))
+    feed.close()
+    from common.contracts.keys import STATE, STATUS, TRANSITION, WEIGHTS, every_robot
+
+    robots = [every_robot(STATE), every_robot(TRANSITION), every_robot(WEIGHTS)]
+    assert [key for key, _ in subscribed] == [*robots, every_robot(STATUS, service="actor")]
+    assert all(options.get("threaded") is True for _, options in subscribed)

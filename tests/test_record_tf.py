@@ -259,11 +259,11 @@ def test_the_path_written_with_numpy_is_the_cdr_rosbags_writes(frame: str, count
 
 @pytest.mark.parametrize("frame", ["", "odom", "goal", "tb3_0/base_footprint"])
 def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) -> None:
-    """Odometry, /tf, cmd_vel and transitions (every state and step of every robot) packed by
+    """Odometry, /tf, cmd_vel, transitions and critic weights (every state and step of every robot) packed by
     ``CdrLayout``: byte for byte what rosbags serializes for the same messages, for frame names
     that leave every alignment, stamps past 2^53 ns and any values."""
-    from tools.recording.cdr import odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr
-    from tools.recording.record import ODOMETRY, TF_MESSAGE, TRANSITION, TWIST_STAMPED, RosMapping
+    from tools.recording.cdr import odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr, weights_cdr
+    from tools.recording.record import ODOMETRY, TF_MESSAGE, TRANSITION, TWIST_STAMPED, WEIGHTS, RosMapping
 
     ros = RosMapping()
     types = ros.types
@@ -299,3 +299,20 @@ def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) 
         )
         values = (x, y, alpha, v, omega, cost, total)
         assert transition_cdr(t_ns, frame, episode, step, values) == ros.cdr(sample, TRANSITION)
+        q_weights, v_weights = rng.normal(size=15) * 10, rng.normal(size=6) * 10
+        version, trained, pairs = int(rng.integers(0, 2**63)), int(rng.integers(-1, 2**31)), int(rng.integers(0, 2**32))
+        fit = types[WEIGHTS](
+            header=ros.header(t_ns, frame),
+            episode=episode,
+            version=version,
+            trained_step=trained,
+            q_weights=q_weights,
+            v_weights=v_weights,
+            q_residual=cost,
+            v_residual=total,
+            pairs=pairs,
+        )
+        packed = weights_cdr(t_ns, frame, episode, version, trained, q_weights, v_weights, (cost, total), pairs)
+        assert packed == ros.cdr(fit, WEIGHTS)
+    with pytest.raises(ValueError, match="critic weights are 15 \\+ 6 numbers, got 14 \\+ 6"):
+        weights_cdr(0, frame, 0, 1, 0, np.zeros(14), np.zeros(6), (0.0, 0.0), 0)

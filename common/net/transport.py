@@ -126,14 +126,17 @@ class Bus:
     def open(cls, transport: TransportSettings, service: str) -> Bus:
         return cls(zenoh.open(zenoh_config(transport)), service, transport.express, transport.callback_threads)
 
-    def _callback(self, handler: Callable[[Any], None]) -> Any:
-        """A subscription's handler as Zenoh runs it (transport.callback_threads): in a Python
-        thread of its own, fed by a channel (Zenoh's default), or directly in Zenoh's network
-        thread. Direct saves a thread per subscription (an actor host of 50 robots has ~250) and
-        the hand-over of every sample to it: ~7 % of a core for such a host (docs/fleets.md).
-        Handlers here only decode, check and store (none waits on the network), so they may run
-        on the network thread."""
-        return zenoh.handlers.Callback(handler, indirect=self.callback_threads)
+    def _callback(self, handler: Callable[[Any], None], threaded: bool | None = None) -> Any:
+        """A subscription's handler as Zenoh runs it (``threaded``, by default
+        transport.callback_threads): in a Python thread of its own, fed by a channel (Zenoh's
+        default), or directly in Zenoh's network thread. Direct saves a thread per subscription
+        (an actor host of 50 robots has ~250) and the hand-over of every sample to it: ~7 % of a
+        core for such a host (docs/fleets.md). Handlers here only decode, check and store (none
+        waits on the network), so they may run on the network thread. A few subscriptions that
+        take many samples each (a recorder's wildcards) are cheaper threaded: a Python thread that
+        lives as long as the subscription calls the handler, where on the network thread every
+        sample attaches that thread to the interpreter anew."""
+        return zenoh.handlers.Callback(handler, indirect=self.callback_threads if threaded is None else threaded)
 
     def close(self) -> None:
         self.closing.set()
@@ -214,8 +217,10 @@ class Bus:
         what: str | None = None,
         recover: bool = False,
         with_source: bool = False,
+        threaded: bool | None = None,
     ) -> None:
-        """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``.
+        """Decode every sample on ``key`` (may be a wildcard) as ``topic.schema``; ``threaded``:
+        where the handler runs (:meth:`_callback`).
 
         ``recover``: a Zenoh advanced subscriber that fetches the history cached by advanced
         publishers (also of publishers that appear later) and recovers samples it missed, as
@@ -249,13 +254,13 @@ class Bus:
                 zenoh.ext.declare_advanced_subscriber(
                     self.session,
                     key,
-                    self._callback(on_sample),
+                    self._callback(on_sample, threaded),
                     history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
                     recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
                 )
             )
         else:
-            self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample)))
+            self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample, threaded)))
 
     def history(self, topic: Topic[M], key: str, handler: Callable[[M], None], timeout: float = 10.0) -> None:
         """Ask every advanced publisher on ``key`` for all it caches, without waiting: each cached

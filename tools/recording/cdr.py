@@ -1,5 +1,5 @@
 """CDR of the messages a recording writes at every state and step of every robot (odometry,
-``/tf``, ``cmd_vel``, srl's transitions), packed with one precompiled :mod:`struct` layout per
+``/tf``, ``cmd_vel``, srl's transitions and critic weights), packed with one precompiled :mod:`struct` layout per
 message shape: byte for byte what rosbags serializes for them (tests/test_record_tf.py compares the
 two), at a fraction of its CPU, for a recorder beside a fleet writes thousands of them a second.
 """
@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from common.math.features import Q_FEATURES, V_FEATURES
 from common.math.frames import Pose2D
 
 Vector = Sequence[float] | np.ndarray  # a state (x, y, alpha) or an action (v, omega)
@@ -112,6 +113,12 @@ def _transition_layout(frame: str) -> struct.Struct:
     return CdrLayout().header().string(frame).uint64().uint32().float64(7).compile()
 
 
+@functools.cache
+def _weights_layout(frame: str) -> struct.Struct:
+    layout = CdrLayout().header().string(frame).uint64().uint64().field("i", 4)
+    return layout.float64(Q_FEATURES).float64(V_FEATURES).float64(2).uint32().compile()
+
+
 def odometry_cdr(t_ns: int, frame: str, child: str, state: Vector, action: tuple[float, float]) -> bytes:
     """``nav_msgs/Odometry`` of a planar ``state`` holding ``action``, covariances zero."""
     pose = _planar(float(state[0]), float(state[1]), float(state[2]))
@@ -139,3 +146,34 @@ def transition_cdr(t_ns: int, frame: str, episode: int, step: int, values: Seque
     """``srl_msgs/Transition`` (:data:`SRL_MSGS`): ``values`` = x, y, alpha, v, omega, stage_cost,
     accumulated_cost."""
     return _transition_layout(frame).pack(CDR_LE, *_stamp(t_ns), *_text(frame), episode, step, *values)
+
+
+def weights_cdr(
+    t_ns: int,
+    frame: str,
+    episode: int,
+    version: int,
+    trained_step: int,
+    q_weights: Vector,
+    v_weights: Vector,
+    residuals: tuple[float, float],
+    pairs: int,
+) -> bytes:
+    """``srl_msgs/CriticWeights`` (:data:`SRL_MSGS`): ``float64[15] q_weights``, ``float64[6] v_weights``."""
+    if len(q_weights) != Q_FEATURES or len(v_weights) != V_FEATURES:
+        raise ValueError(
+            f"critic weights are {Q_FEATURES} + {V_FEATURES} numbers, got {len(q_weights)} + {len(v_weights)}"
+        )
+    return _weights_layout(frame).pack(
+        CDR_LE,
+        *_stamp(t_ns),
+        *_text(frame),
+        episode,
+        version,
+        trained_step,
+        *(float(w) for w in q_weights),
+        *(float(v) for v in v_weights),
+        float(residuals[0]),
+        float(residuals[1]),
+        pairs,
+    )

@@ -35,7 +35,7 @@ channel of a recording is CDR with its full ``ros2msg`` definition in the schema
 and plots them, ``ros2 bag info`` lists them. The CDR and the definitions come from ``rosbags``
 (its Humble typestore, srl's types registered in a private copy); the MCAP container from the
 ``mcap`` library. The messages written at every step and state of every robot (odometry, ``/tf``,
-``cmd_vel``, transitions, the path) are packed by :mod:`tools.recording.cdr` instead, byte for byte what
+``cmd_vel``, transitions, critic weights, the path) are packed by :mod:`tools.recording.cdr` instead, byte for byte what
 rosbags writes for them (tests/test_record_tf.py compares the two), at a fraction of its CPU: a
 recorder beside a fleet writes thousands of them a second.
 
@@ -68,7 +68,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
-from tools.recording.cdr import Vector, odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr
+from tools.recording.cdr import Vector, odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr, weights_cdr
 
 log = logging.getLogger(__name__)
 
@@ -622,18 +622,8 @@ class Recorder:
         """``/<robot>/srl/critic_weights``: at arrival, or (clock "steps") at the step after the
         last one the fit used, where the actor can use them first."""
         t_ns = self.step_time(robot, episode, trained_step + 1, now_ns) if self.clock == "steps" else now_ns
-        message = self.ros.types[WEIGHTS](
-            header=self.ros.header(t_ns),
-            episode=episode,
-            version=version,
-            trained_step=trained_step,
-            q_weights=np.asarray(q_weights, dtype=float),
-            v_weights=np.asarray(v_weights, dtype=float),
-            q_residual=float(residuals[0]),
-            v_residual=float(residuals[1]),
-            pairs=pairs,
-        )
-        self._write(f"/{ros_name(robot)}/srl/critic_weights", WEIGHTS, message, t_ns)
+        data = weights_cdr(t_ns, ODOM_FRAME, episode, version, trained_step, q_weights, v_weights, residuals, pairs)
+        self._write_cdr(f"/{ros_name(robot)}/srl/critic_weights", WEIGHTS, data, t_ns)
 
     def status(self, robot: str, counters: dict[str, float], now_ns: int) -> None:
         """``/<robot>/srl/actor_status`` from the actor's status counters (NaN where absent)."""
@@ -768,12 +758,16 @@ class Feed:
         self.bus = Bus.open(settings.transport, "recorder")
         self.writer = threading.Thread(target=self._drain, name="recorder-writer", daemon=True)
         self.writer.start()
-        self.bus.subscribe(STATE, every_robot(STATE), lambda m: self._put("state", m))
+        # four wildcards that take every robot's samples: each handler in a thread of its own
+        # (Bus._callback), which takes what queued while it ran in one go
+        bus = self.bus
+        bus.subscribe(STATE, every_robot(STATE), lambda m: self._put("state", m), threaded=True)
         # transitions from the actor's advanced publisher: a recorder that joins late still gets
         # its cached history (duplicates are dropped by step, Recorder.transition)
-        self.bus.subscribe(TRANSITION, every_robot(TRANSITION), lambda m: self._put("transition", m), recover=True)
-        self.bus.subscribe(WEIGHTS, every_robot(WEIGHTS), lambda m: self._put("weights", m))
-        self.bus.subscribe(STATUS, every_robot(STATUS, service="actor"), lambda m: self._put("status", m))
+        transitions = every_robot(TRANSITION)
+        bus.subscribe(TRANSITION, transitions, lambda m: self._put("transition", m), recover=True, threaded=True)
+        bus.subscribe(WEIGHTS, every_robot(WEIGHTS), lambda m: self._put("weights", m), threaded=True)
+        bus.subscribe(STATUS, every_robot(STATUS, service="actor"), lambda m: self._put("status", m), threaded=True)
 
     def _put(self, kind: str, message: Any) -> None:
         import queue
