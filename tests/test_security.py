@@ -642,3 +642,28 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
         f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic; "
         f"the actor role's plant/reset query got {len(reset_replies)} replies"
     )
+
+
+@pytest.mark.parametrize(
+    ("key", "accepted"),
+    [
+        ("srl/tb3_0/transition", True),
+        ("srl/tb3_1/transition", False),  # another robot's key: a robot's login may publish there in a fleet
+        ("srl/tb3_0x/transition", False),
+        ("other/tb3_0/transition", False),
+    ],
+)
+def test_a_sample_about_one_robot_on_another_robots_key_is_refused(key: str, accepted: bool) -> None:
+    # common.net.transport.decode_sample, what every subscription, newest-sample take and history
+    # reply decodes with: the key's robot chunk and the message's robot field must agree, or a
+    # critic (a wildcard on srl/*/transition) would file one robot's transition under another's.
+    from common.contracts.keys import TRANSITION, robot_of
+    from common.contracts.messages import MessageError, Transition
+    from common.net.transport import decode_sample
+
+    sample = Transition(robot="tb3_0", episode=1, step=3, state=(0.1, 0.2, 0.3), action=(0.0, 0.0), cost=0.01).encode()
+    if accepted:
+        assert decode_sample(TRANSITION, key, sample).robot == "tb3_0" == robot_of(key)
+    else:
+        with pytest.raises(MessageError, match=f"robot 'tb3_0' on the key {key}, which names another robot"):
+            decode_sample(TRANSITION, key, sample)

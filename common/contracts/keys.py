@@ -81,6 +81,13 @@ def every_robot(topic: Topic[M], **chunks: str) -> str:
     return topic.pattern.format(robot="*", **chunks)
 
 
+def robot_of(key: str) -> str:
+    """The robot chunk of one of srl's keys (``srl/<robot>/...``): the robot the key's messages
+    are about, which their ``robot`` field must name too (common.net.transport checks it)."""
+    parts = key.split("/", 2)
+    return parts[1] if len(parts) > 2 and parts[0] == "srl" else ""
+
+
 def liveliness_key(robot: str, service: str) -> str:
     """Liveliness token of one service of one robot: ``srl/<robot>/alive/<service>``."""
     return ALIVE.format(robot=check_chunk(robot, "robot id"), service=check_chunk(service, "service"))

@@ -27,6 +27,7 @@ from common.contracts.keys import (
     identity_of,
     identity_pattern,
     liveliness_key,
+    robot_of,
 )
 from common.contracts.messages import Message, MessageError, decode
 from common.net.provenance import QUIET_REFUSALS, PlantConflictError, SourceGate, yields_to
@@ -100,6 +101,18 @@ def session_errors() -> tuple[type[Exception], ...]:
     """What opening (or using) a Zenoh session raises when the network refuses it, for modules
     that must catch it without importing zenoh themselves (common.process.runtime's connect retry)."""
     return (zenoh.ZError,)
+
+
+def decode_sample(topic: Topic[M], key: str, payload: bytes) -> M:
+    """A sample received on ``key`` as ``topic.schema``: :func:`~common.contracts.messages.decode`,
+    and a message about a robot (its ``robot`` field) must come on that robot's key
+    (``srl/<robot>/...``): on another robot's key it is refused (MessageError), whoever may
+    publish there, so no service files one robot's sample under another's."""
+    message = decode(topic.schema, payload)
+    robot = getattr(message, "robot", None)
+    if robot is not None and robot != robot_of(key):
+        raise MessageError(f"{topic.schema.__name__}: robot {robot!r} on the key {key}, which names another robot")
+    return message
 
 
 class Bus:
@@ -234,7 +247,7 @@ class Bus:
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
-                message = decode(topic.schema, sample.payload.to_bytes())
+                message = decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())
             except MessageError as error:
                 self.reject(name, str(error))
                 return
@@ -277,7 +290,7 @@ class Bus:
             if reply.ok is None:
                 return
             try:
-                message = decode(topic.schema, reply.ok.payload.to_bytes())
+                message = decode_sample(topic, str(reply.ok.key_expr), reply.ok.payload.to_bytes())
             except MessageError as error:
                 self.reject(name, str(error))
                 return
@@ -466,7 +479,7 @@ class Newest(Generic[M]):
             age = time.time() - stamp.get_time_as_ntp64().as_secs_f64()
             arrived = min(now, max(since, now - age))
         try:
-            message = decode(self.topic.schema, sample.payload.to_bytes())
+            message = decode_sample(self.topic, str(sample.key_expr), sample.payload.to_bytes())
         except MessageError as error:
             self.bus.reject(self.name, str(error))
             return None
