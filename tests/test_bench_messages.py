@@ -62,7 +62,7 @@ def test_over_a_router_every_robot_message_sent_is_validated(capsys: pytest.Capt
         == 0
     )
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert [r["way"] for r in result["runs"]] == ["each", "batched"]  # in turn
+    assert [r["way"] for r in result["runs"]] == ["each", "threaded", "batched"]  # in turn
     for row in result["rows"]:
         assert row["sent"] >= 5 * 15 and row["validated"] == row["sent"], row  # ~10 Hz for 2 s, nothing lost
         assert row["publisher_us"] >= 0 and row["subscriber_us"] >= 0

@@ -8,12 +8,15 @@ common/net/transport.py):
   ``decode`` uses), and of ``decode`` (parsing and pydantic's validation: bounds, NaN, sizes,
   versions); validation is their difference.
 * **wire**, over a Zenoh router on loopback (three processes: a publisher, the router, a subscriber):
-  ``--robots`` robots' messages of one kind at ``1 / delta`` for ``--seconds``, sent two ways in
-  turn, ``each, batched, each, batched, ...`` (``--rounds`` pairs), so a change of the machine's load
-  hits both:
+  ``--robots`` robots' messages of one kind at ``1 / delta`` for ``--seconds``, sent three ways in
+  turn, ``each, threaded, batched, each, ...`` (``--rounds`` rounds), so a change of the machine's
+  load hits all:
 
   - ``each``: srl's wire today, one message per robot on its own key (``srl/<robot>/state``) through
-    :class:`~common.net.transport.Bus` (``Bus.publisher``, ``Bus.subscribe`` on ``srl/*/state``);
+    :class:`~common.net.transport.Bus` (``Bus.publisher``, ``Bus.subscribe`` on ``srl/*/state``), the
+    subscriber's handler on Zenoh's network thread (``transport.callback_threads = false``);
+  - ``threaded``: the same wire, the handler on a thread of its own (``Bus.subscribe(threaded=True)``,
+    what ``srl record``'s wildcards do);
   - ``batched``: what a plant or actor host could send instead (not srl's wire): one message per tick
     holding every robot's, a JSON array of the same encoded messages, each validated by the same
     schema on arrival.
@@ -35,7 +38,7 @@ import time
 from typing import Any
 
 KINDS = ("state", "action", "transition", "weights")
-WAYS = ("each", "batched")
+WAYS = ("each", "threaded", "batched")  # the publisher of "threaded" is "each"'s
 BATCH_KEY = "srl/bench/batch"  # the batched way's one key (outside every robot's srl/<robot>/...)
 CODEC_REPEATS = 3000
 
@@ -49,7 +52,7 @@ def add_parser(kinds: Any) -> None:
         "--kind", choices=KINDS, default="state", help="the message sent over the wire (default: state)"
     )
     parser.add_argument("--seconds", type=float, default=10.0, help="each run over the wire [s] (default: 10)")
-    parser.add_argument("--rounds", type=int, default=2, help="pairs of runs (each, batched) (default: 2)")
+    parser.add_argument("--rounds", type=int, default=2, help="rounds of runs (each, threaded, batched) (default: 2)")
     parser.add_argument("--json", action="store_true", help="last stdout line: one JSON object")
     parser.set_defaults(func=main)
 
@@ -165,8 +168,8 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
         with lock:
             count[0] += 1
 
-    if way == "each":
-        bus.subscribe(topic, topic.pattern.format(robot="*"), one)
+    if way in ("each", "threaded"):
+        bus.subscribe(topic, topic.pattern.format(robot="*"), one, threaded=way == "threaded")
     else:
         batch = TypeAdapter(list[topic.schema])  # type: ignore[name-defined]
 
@@ -197,7 +200,7 @@ def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, pe
 
     topic = topic_of(kind)
     bus = Bus.open(_transport(router), "bench")
-    if way == "each":
+    if way != "batched":
         sends = [bus.publisher(topic, f"robot{i + 1}") for i in range(robots)]
     else:
         batch = bus.session.declare_publisher(BATCH_KEY, express=bus.express)  # undeclared with the session
@@ -206,7 +209,7 @@ def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, pe
     started, tick, sent = time.monotonic(), 0, 0
     while time.monotonic() - started < seconds:
         messages = [sample_message(kind, i, tick) for i in range(robots)]
-        if way == "each":
+        if way != "batched":
             for send, message in zip(sends, messages, strict=True):
                 send(message)
         else:
@@ -363,7 +366,8 @@ def format_table(result: dict[str, Any]) -> str:
     lines += [
         "",
         f"wire: {result['robots']} robots' {result['kind']} at {result['rate_hz']:.0f} Hz, {result['seconds']:.0f} s a "
-        f"run, {result['rounds']} rounds (each, batched, in turn); CPU per robot message, median of the rounds",
+        f"run, {result['rounds']} rounds (each, threaded, batched, in turn); CPU per robot message, median of "
+        "the rounds",
         "way       publisher  router  subscriber   total  validated/sent",
     ]
     for r in result["rows"]:

@@ -367,9 +367,11 @@ def messages_body(data: dict[str, Any]) -> list[str]:
         "",
         f"Through a Zenoh router on loopback: {data.get('robots')} robots' `{data.get('kind')}` messages at "
         f"{ms(data.get('rate_hz'), 0)} Hz, {ms(data.get('seconds'), 0)} s a run, {data.get('rounds')} rounds of "
-        "the two ways in turn; CPU of each process (user + system, every thread) per robot message, the median "
-        "of the rounds. **each**: srl's wire, one message per robot on its own key; **batched**: one message "
-        "per tick holding every robot's (not srl's wire: what a host could send), each validated on arrival.",
+        "the ways in turn; CPU of each process (user + system, every thread) per robot message, the median "
+        "of the rounds. **each**: srl's wire, one message per robot on its own key, the subscriber's handler on "
+        "Zenoh's network thread (srl's default); **threaded**: the same, the handler on a thread of its own "
+        "(what `srl record`'s wildcards do); **batched**: one message per tick holding every robot's (not srl's "
+        "wire: what a host could send), each validated on arrival.",
         "",
         "| way | publisher | router | subscriber | total | validated / sent |",
         "|---|---|---|---|---|---|",
