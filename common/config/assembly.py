@@ -17,7 +17,7 @@ import numpy as np
 from common.config.settings import Settings
 from common.contracts.summaries import EpisodeSummary, TrueView
 from common.math.actor import StackedActor
-from common.math.actor_problem import ActorMemory, ActorProblem
+from common.math.actor_problem import ActorMemory, ActorProblem, Hurry
 from common.math.agents import learns
 from common.math.arrival import ArrivalRule, ArrivalTolerances, Docking, TurnFirst, WheelDeadband
 from common.math.critic import DoubleCritic, PooledLearner
@@ -74,7 +74,7 @@ def jit_cache_path(setting: str) -> str:
     return "" if setting == "off" else os.path.expanduser(setting)
 
 
-def build_actor(settings: Settings, global_every: int = 1, hurry: str = "polish") -> StackedActor:
+def build_actor(settings: Settings, global_every: int = 1, hurry: Hurry = "polish") -> StackedActor:
     """The actor of the settings; ``global_every`` and ``hurry``: ActorProblem's (an actor host
     passes actor.host_global_every and actor.host_hurry; one robot's actor keeps 1, the global
     phase at every solve, and "polish", since it never hurries)."""

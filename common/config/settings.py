@@ -24,6 +24,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from common.math.actor_problem import Hurry
 from common.math.agents import Agent
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
@@ -215,7 +216,7 @@ class ActorSettings(_Section):
         allow_inf_nan=False,
         description="share of each period an actor host's full solves may take; beyond, it hurries",
     )
-    host_hurry: Literal["polish", "descend"] = Field(
+    host_hurry: Hurry = Field(
         description="an actor host's hurried tick: one solver polish of the warm start, or its descent (no solver)",
     )
     max_iter: int = Field(ge=1)

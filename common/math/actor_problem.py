@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -23,7 +24,8 @@ from common.math.stats import Window
 # no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
 GLOBAL_STARTS = 5
 # What a hurried step does once the robot has a plan (ActorProblem.hurry).
-HURRIES = ("polish", "descend")
+Hurry = Literal["polish", "descend"]
+HURRIES: tuple[Hurry, ...] = get_args(Hurry)
 
 
 @dataclass(frozen=True)
@@ -90,10 +92,10 @@ class ActorProblem:
     global_every: int = 1
     # What a hurried step (StackedActor.step ``hurry``) does once the robot has a plan: "polish",
     # one solver polish of the warm start; "descend", the warm start descended by the global
-    # phase's compiled projected gradient, no solver (one start: a fifth of the global phase; compiled only
-    # with this setting and ``multistart``). An actor host over its CPU budget sets it
+    # phase's compiled projected gradient, no solver (one start: a fifth of the global phase;
+    # compiled only with this setting and ``multistart``). An actor host over its CPU budget sets it
     # (actor.host_hurry): what a hurried tick costs is what caps the host's CPU.
-    hurry: str = "polish"
+    hurry: Hurry = "polish"
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
