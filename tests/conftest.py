@@ -112,6 +112,17 @@ def pytest_configure(config: pytest.Config) -> None:
     # (common/system/ports.py: below the ephemeral range, so no outgoing connection takes it meanwhile).
     port = free_port()
     os.environ["SRL_TRANSPORT__ROUTER"] = f"tcp/127.0.0.1:{port}"
+    _build_font_cache()
+
+
+def _build_font_cache() -> None:
+    """Matplotlib builds its font cache once per user, running ``fc-list`` to find the fonts:
+    built here, before any test, so a test's first plot on a new account starts no process (the
+    fast tier's guard, tests/tiers.py, would fail it). A cache already there is left alone."""
+    import matplotlib
+
+    if not any(Path(matplotlib.get_cachedir()).glob("fontlist-v*.json")):
+        import matplotlib.font_manager  # builds and stores the cache
 
 
 @pytest.fixture(autouse=True, scope="session")
