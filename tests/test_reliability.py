@@ -7,6 +7,7 @@ the fault (``kill -9``, a vanished plant, a restarted router) and watch the inva
 
 from __future__ import annotations
 
+import itertools
 import json
 import signal
 import time
@@ -17,7 +18,7 @@ import pytest
 
 from common.config.settings import Settings
 from common.contracts.messages import Action, CriticWeights, Transition
-from common.system.checkpoint import CheckpointError, CheckpointWriter, atomic_write_json, from_runs, to_runs
+from common.system.checkpoint import CheckpointError, CheckpointWriter, StepRuns, atomic_write_json
 from services.critic.service import CriticLearner, load_checkpoint
 from tests.harness import cluster, random_transitions, wait_until
 
@@ -30,12 +31,39 @@ def _replay(learner: CriticLearner, robot: str = "r1") -> list[list[float]]:
     return [[s.step, *s.state, *s.action, s.cost] for s in learner.learners[robot].replay.samples]
 
 
+def _runs_of(steps: set[int]) -> StepRuns:
+    runs = StepRuns()
+    for step in steps:
+        runs.add(step)
+    return runs
+
+
 def test_runs_round_trip() -> None:
     steps = {0, 1, 2, 5, 7, 8, 100}
-    assert to_runs(steps) == [[0, 2], [5, 5], [7, 8], [100, 100]]
-    assert from_runs(to_runs(steps)) == steps
+    assert _runs_of(steps).runs() == [[0, 2], [5, 5], [7, 8], [100, 100]]
+    assert set(StepRuns.from_runs(_runs_of(steps).runs())) == steps
+    assert StepRuns.from_runs([[7, 8], [0, 2], [1, 5]]).runs() == [[0, 5], [7, 8]]  # unsorted, overlapping
     with pytest.raises(CheckpointError):
-        from_runs([[3, 1]])
+        StepRuns.from_runs([[3, 1]])
+
+
+def test_step_runs_behave_as_a_set_in_any_order() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        steps = rng.choice(200, size=int(rng.integers(1, 150)), replace=False).tolist()
+        held, runs = set(), StepRuns()
+        for step in steps:  # out of order, gaps closing and opening
+            runs.add(step)
+            runs.add(step)  # a duplicate changes nothing
+            held.add(step)
+            assert len(runs) == len(held) and step in runs
+        assert list(runs) == sorted(held)
+        assert all((k in runs) == (k in held) for k in range(-2, 203))
+        floor = int(rng.integers(-1, 200))
+        runs.keep_after(floor)
+        held = {k for k in held if k > floor}
+        assert list(runs) == sorted(held) and len(runs) == len(held)
+        assert all(a[1] + 1 < b[0] for a, b in itertools.pairwise(runs.runs()))  # disjoint, never touching
 
 
 def test_atomic_write_replaces_and_leaves_no_temporary(tmp_path: Path) -> None:
@@ -136,6 +164,47 @@ def test_unusable_checkpoint_is_set_aside_and_the_critic_starts_fresh(tmp_path: 
     assert not path.exists()
     assert (tmp_path / "critic.json.unusable").read_text() == content
     assert (tmp_path / "critic.json.unusable.why").read_text().strip()
+
+
+def test_a_checkpoint_of_schema_1_is_still_read_as_the_packed_one(tmp_path: Path) -> None:
+    """Schema 2 packs each replay (base64 float64 rows); a checkpoint an older srl wrote (schema 1,
+    rows of JSON numbers) restores the same learner, bit for bit."""
+    settings = Settings.load()
+    learner = CriticLearner(settings)
+    for t in _transitions(60):
+        learner.on_transition(t)
+    packed = learner.state()
+    assert packed["schema"] == 2 and isinstance(packed["learners"]["r1"]["replay"], str)
+    old = json.loads(json.dumps(packed))
+    old["schema"] = 1
+    old["learners"]["r1"]["replay"] = _replay(learner)  # what schema 1 held
+    restored = {}
+    for name, payload in (("packed", packed), ("old", old)):
+        path = tmp_path / f"{name}.json"
+        atomic_write_json(path, payload)
+        restored[name] = CriticLearner(settings)
+        assert load_checkpoint(restored[name], path)
+        assert _replay(restored[name]) == _replay(learner)
+        assert restored[name].learners["r1"].seen.runs() == learner.learners["r1"].seen.runs() == [[0, 59]]
+    nxt = _transitions(61)[60]
+    weights = [restored[name].on_transition(nxt) for name in ("packed", "old")]
+    assert weights[0] is not None and weights[1] is not None
+    assert weights[0].q_weights == weights[1].q_weights and weights[0].v_weights == weights[1].v_weights
+
+
+@pytest.mark.parametrize("replay", ["not base64!", "AAAA", 7, [[0, 0, 0, 0, 0, 0, 0]]])
+def test_a_packed_replay_that_is_not_one_is_refused(tmp_path: Path, replay: object) -> None:
+    learner = CriticLearner(Settings.load())
+    for t in _transitions(5):
+        learner.on_transition(t)
+    state = learner.state()
+    state["learners"]["r1"]["replay"] = replay  # bad base64, 3 bytes, a number, schema 1's lists
+    path = tmp_path / "critic.json"
+    path.write_text(json.dumps(state))
+    fresh = CriticLearner(Settings.load())
+    assert not load_checkpoint(fresh, path)
+    assert fresh.learners == {}
+    assert "replay" in (tmp_path / "critic.json.unusable.why").read_text()
 
 
 def test_checkpoint_with_non_finite_weights_is_refused(tmp_path: Path) -> None:

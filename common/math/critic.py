@@ -372,6 +372,7 @@ class Replay:
         self.steps = np.zeros(capacity, dtype=np.int64)  # ring slot -> step
         self.costs = np.zeros(capacity)
         self.rows = np.zeros((capacity, QV_FEATURES))  # ring slot -> phi_Q, phi_V of its sample
+        self.values = np.zeros((capacity, 5))  # ring slot -> its state and action (x, y, alpha, v, omega)
         self.start = 0  # the ring slot of the oldest sample
         self.kept = True  # every sample's row is in the ring (False: a sample of another shape)
 
@@ -416,7 +417,19 @@ class Replay:
             self.kept = False  # not the unicycle's (s, u): designs come from the samples
             return
         z = np.concatenate([state, action])
+        self.values[slot] = z
         np.multiply(z[_QV_LEFT], z[_QV_RIGHT], out=self.rows[slot])
+
+    def table(self) -> np.ndarray:
+        """Its samples as rows ``(step, x, y, alpha, v, omega, cost)`` in step order, ``(n, 7)``
+        (a checkpoint's replay): from the ring arrays, no Python loop over samples."""
+        if not self.kept:
+            return np.array(
+                [[s.step, *np.asarray(s.state, float), *np.asarray(s.action, float), s.cost] for s in self._samples],
+                dtype=float,
+            ).reshape(-1, 7)
+        order = (self.start + np.arange(len(self._samples))) % self.capacity
+        return np.column_stack((self.steps[order], self.values[order], self.costs[order])).astype(float)
 
     def replays(self) -> list[Replay]:
         """Its streams as :func:`kept_designs` takes them: itself."""

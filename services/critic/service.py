@@ -38,6 +38,7 @@ initial weights (``critic.resume``: from the checkpoint's) with no robot's old s
 
 from __future__ import annotations
 
+import base64
 import logging
 import math
 import os
@@ -61,16 +62,17 @@ from common.net.transport import Bus, start_status_thread
 from common.system.checkpoint import (
     CheckpointError,
     CheckpointWriter,
-    from_runs,
+    StepRuns,
     read_json,
     remove_stale_temporaries,
     set_aside,
-    to_runs,
 )
 
 log = logging.getLogger(__name__)
 SEEN_SLACK = 100  # steps seen beyond the retention (at most as many again) before the set is pruned to it
-CHECKPOINT_SCHEMA = 1
+# 2: each learner's replay packed (REPLAY_PACKING); 1 (still read): the replay as lists of numbers
+CHECKPOINT_SCHEMA = 2
+READABLE_SCHEMAS = (1, 2)
 MAX_BATCH = 1000  # transitions taken from the inbox at once (then one checkpoint for all of them)
 
 
@@ -79,7 +81,7 @@ class Learner:
     episode: int
     replay: Replay
     critic: DoubleCritic
-    seen: set[int]
+    seen: StepRuns
     newest: int = -1
 
 
@@ -140,8 +142,8 @@ class CriticLearner:
         """A robot's new learner: its own critic, or (pooled) a new stream of ``pool`` and its critic."""
         pool = pool or self.pool
         if pool is not None:
-            return Learner(episode, pool.replay.restart(robot), pool.critic, set())
-        return Learner(episode, Replay(self.settings.critic.replay_size), self._fresh_critic(), set())
+            return Learner(episode, pool.replay.restart(robot), pool.critic, StepRuns())
+        return Learner(episode, Replay(self.settings.critic.replay_size), self._fresh_critic(), StepRuns())
 
     def initial_weights(self, robot: str, episode: int) -> CriticWeights:
         learner = self._fresh(robot, episode)
@@ -166,8 +168,8 @@ class CriticLearner:
             episode=learner.episode,
             version=self.version if version is None else version,
             trained_step=trained_step,
-            q_weights=tuple(float(w) for w in learner.critic.q_weights),
-            v_weights=tuple(float(w) for w in learner.critic.v_weights),
+            q_weights=tuple(learner.critic.q_weights.tolist()),
+            v_weights=tuple(learner.critic.v_weights.tolist()),
             q_residual=q_res,
             v_residual=v_res,
             pairs=pairs,
@@ -250,7 +252,7 @@ class CriticLearner:
             learner.newest = message.step
             if len(learner.seen) > self.retention + min(SEEN_SLACK, self.retention):  # pruned often: flat memory
                 floor = learner.newest - self.retention
-                learner.seen = {step for step in learner.seen if step > floor}
+                learner.seen.keep_after(floor)
         if message.robot in self.due:  # its fit left to the batch's end is made first, on the replay as it was
             self.outgoing += self._fit_due()
         learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
@@ -327,8 +329,8 @@ class CriticLearner:
                 "q_weights": learner.critic.q_weights.tolist(),
                 "v_weights": learner.critic.v_weights.tolist(),
                 **active_sets(learner.critic),
-                "replay": [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in learner.replay.samples],
-                "seen": to_runs(learner.seen),
+                "replay": pack_rows(learner.replay.table()),
+                "seen": learner.seen.runs(),
             }
         payload: dict[str, Any] = {"schema": CHECKPOINT_SCHEMA, "version": self.version, "learners": learners}
         if self.pool is not None:
@@ -342,8 +344,9 @@ class CriticLearner:
 
     def restore(self, payload: dict[str, Any]) -> None:
         """Load :meth:`state` output; raises :class:`CheckpointError` and changes nothing if bad."""
-        if payload.get("schema") != CHECKPOINT_SCHEMA:
-            raise CheckpointError(f"checkpoint schema {payload.get('schema')!r} is not {CHECKPOINT_SCHEMA}")
+        schema = payload.get("schema")
+        if schema not in READABLE_SCHEMAS:
+            raise CheckpointError(f"checkpoint schema {schema!r} is not one of {READABLE_SCHEMAS}")
         if ("pool" in payload) != (self.pool is not None):
             kinds = ("per-robot", "pooled")
             raise CheckpointError(
@@ -361,11 +364,12 @@ class CriticLearner:
                     raise CheckpointError(f"{robot}: non-finite weights")
                 learner.critic.q_weights, learner.critic.v_weights = q, v
                 restore_active_sets(learner.critic, entry, robot)
-                for row in entry["replay"]:
+                rows = entry["replay"] if schema == 1 else unpack_rows(entry["replay"], robot)
+                for row in rows:
                     if len(row) != 7 or not all(np.isfinite(row)):
                         raise CheckpointError(f"{robot}: bad replay row {row}")
                     learner.replay.add(Sample(int(row[0]), np.array(row[1:4]), np.array(row[4:6]), float(row[6])))
-                learner.seen = from_runs(entry["seen"])
+                learner.seen = StepRuns.from_runs(entry["seen"])
                 learner.newest = int(entry["newest"])
                 learners[robot] = learner
             version = int(payload["version"])
@@ -417,6 +421,30 @@ def take_batch(first: Transition, inbox: queue.Queue[Transition], window: float,
         batch.append(message)
         heard.add(message.robot)
     return batch
+
+
+REPLAY_PACKING = "<f8"  # a replay in a checkpoint: base64 of little-endian float64 rows of 7 numbers
+
+
+def pack_rows(table: np.ndarray) -> str:
+    """A replay's rows ``(step, x, y, alpha, v, omega, cost)`` for the checkpoint: base64 of their
+    float64 bytes (:data:`REPLAY_PACKING`), exact, and ~20 times cheaper to write and read than
+    a JSON number each (a fleet's critic writes every learner's replay once a second)."""
+    return base64.b64encode(np.ascontiguousarray(table, dtype=REPLAY_PACKING).tobytes()).decode("ascii")
+
+
+def unpack_rows(text: object, owner: str) -> list[list[float]]:
+    """:func:`pack_rows` back into rows; CheckpointError if it is not such a packing."""
+    if not isinstance(text, str):
+        raise CheckpointError(f"{owner}: the replay is not a packed table")
+    try:
+        data = base64.b64decode(text.encode("ascii"), validate=True)
+    except (ValueError, UnicodeEncodeError) as error:
+        raise CheckpointError(f"{owner}: the replay is not base64: {error}") from None
+    if len(data) % (7 * 8):
+        raise CheckpointError(f"{owner}: a packed replay of {len(data)} bytes is not rows of 7 numbers")
+    rows: list[list[float]] = np.frombuffer(data, dtype=REPLAY_PACKING).reshape(-1, 7).tolist()
+    return rows
 
 
 def active_sets(critic: DoubleCritic) -> dict[str, list[float] | None]:
@@ -614,7 +642,7 @@ def run(
             "resume": learner.resume,
             "checkpoint": None if path is None else str(path),
             "checkpoint_ms": checkpoint_seconds.summary(1e3),
-            "seen_steps": {robot: to_runs(x.seen) for robot, x in learner.learners.items()},
+            "seen_steps": {robot: x.seen.runs() for robot, x in learner.learners.items()},
             "replay": {
                 robot: [[s.step, *s.state.tolist(), *s.action.tolist(), s.cost] for s in x.replay.samples]
                 for robot, x in learner.learners.items()
