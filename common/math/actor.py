@@ -32,6 +32,7 @@ from common.math.agents import learns
 from common.math.arrival import ArrivalRule
 from common.math.dynamics import ACTION_DIM, STATE_DIM
 from common.math.features import Q_FEATURES, V_FEATURES
+from common.math.stats import all_finite
 
 log = logging.getLogger(__name__)
 
@@ -402,10 +403,10 @@ class StackedActor:
         state = np.asarray(state, dtype=float)
         q_weights = np.asarray(q_weights, dtype=float)
         v_weights = np.asarray(v_weights, dtype=float)
-        if state.shape != (STATE_DIM,) or not np.all(np.isfinite(state)):
+        if state.shape != (STATE_DIM,) or not all_finite(state):
             raise ValueError(f"state must be {STATE_DIM} finite numbers, got {state}")
         for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
-            if weights.shape != (size,) or not np.all(np.isfinite(weights)):
+            if weights.shape != (size,) or not all_finite(weights):
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
         if self.arrival is not None and self.arrival.update(state):
             # Arrived: exactly zero, no solve. The plan is void: resuming starts cold.
