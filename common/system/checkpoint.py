@@ -58,9 +58,9 @@ def write_private(path: Path, data: bytes) -> None:
 class CheckpointWriter:
     """Writes a checkpoint's newest payload to ``path`` (:func:`atomic_write_json`) in a thread
     of its own, so the caller's loop does not wait for the encoding, the write and the fsync
-    (a fleet's critic writes every learner at once: at 100 robots ~0.4 MB, tens of ms its fits
-    would otherwise wait). A payload given while one is being written
-    waits; a newer one replaces it (each holds everything: the newest is the checkpoint).
+    (a fleet's critic writes every learner at once: at 100 robots ~0.3 MB, whose fsync alone
+    may take tens of ms on a busy disk). A payload given while one is being written waits; a
+    newer one replaces it (each holds everything: the newest is the checkpoint).
 
     A write that fails is raised again by the next :meth:`submit` or by :meth:`close` (the
     caller fails as if it had written itself); :meth:`close` writes what is still pending and
