@@ -26,6 +26,9 @@ from common.math.loop import Episode
 from tests.test_record import read
 from tools.recording.record import (
     GOAL_EVERY,
+    PATH_EVERY,
+    PATH_POSES,
+    PATH_STRIDE,
     SIMULATED,
     TF_MESSAGE,
     PoseFrames,
@@ -128,6 +131,24 @@ def test_a_recording_carries_tf_odom_to_base_footprint_equal_to_every_state_and_
     assert all(parent == "odom" and pose == (0.0, 0.0, 0.0) for _, parent, pose in goals)
     frames = {m.header.frame_id for _, m in topics["/tb3_0/odom"]} | {topics["/target"][0][1].header.frame_id}
     assert frames == {"odom"} and {m.header.frame_id for _, m in topics["/tb3_0/path"]} == {"odom"}
+
+
+def test_the_path_holds_the_last_minute_at_every_fifth_step_and_ends_at_its_own_step() -> None:
+    sink = ListSink()
+    recorder = Recorder(sink, 0.1, clock="steps")
+    steps = 1000  # well past the path's minute
+    for k in range(steps + 1):
+        recorder.transition("tb3_0", 0, k, (0.001 * k, -0.002 * k, 0.01 * k), (0.1, 0.2), 0.5, ORIGIN_NS)
+    paths = sink.decoded("/tb3_0/path")
+    assert len(paths) == steps // PATH_EVERY + 1  # one each PATH_EVERY steps, the first at step 0
+    assert PATH_EVERY % PATH_STRIDE == 0 and PATH_POSES * PATH_STRIDE * 0.1 == pytest.approx(60.0)
+    for t_ns, path in paths:
+        k = (t_ns - ORIGIN_NS) // DELTA_NS
+        expected = [j for j in range(0, k + 1, PATH_STRIDE)][-PATH_POSES:]  # ends at the path's own step
+        stamps = [p.header.stamp.sec * 10**9 + p.header.stamp.nanosec for p in path.poses]
+        assert stamps == [ORIGIN_NS + j * DELTA_NS for j in expected]
+        last = path.poses[-1].pose.position
+        assert (last.x, last.y) == pytest.approx((0.001 * k, -0.002 * k))
 
 
 def test_a_fleet_gets_one_base_footprint_per_robot_under_one_odom() -> None:

@@ -11,8 +11,9 @@ topic                       type                            what
 ``/<robot>/odom``           ``nav_msgs/msg/Odometry``       the state the robot reports (goal-frame
                                                             pose, frame :attr:`PoseFrames.pose_frame`,
                                                             child ``base_footprint``)
-``/<robot>/path``           ``nav_msgs/msg/Path``           the last :data:`PATH_POSES` step poses,
-                                                            every :data:`PATH_EVERY` steps
+``/<robot>/path``           ``nav_msgs/msg/Path``           the last :data:`PATH_POSES` poses of every
+                                                            :data:`PATH_STRIDE`-th step, every
+                                                            :data:`PATH_EVERY` steps
 ``/<robot>/cmd_vel``        ``geometry_msgs/msg/TwistStamped``  the action u_k, one per step
 ``/<robot>/srl/transition`` ``srl_msgs/msg/Transition``     s_k, u_k, c_k and J, one per step
 ``/<robot>/srl/critic_weights`` ``srl_msgs/msg/CriticWeights``  version, trained step, w, v, residuals
@@ -81,8 +82,9 @@ BASE_FRAME = "base_footprint"
 IDENTITY = Pose2D(0.0, 0.0, 0.0)
 TF_TOPIC = "/tf"
 TF_MESSAGE, TRANSFORM_STAMPED = "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped"
-PATH_POSES = 600  # the path keeps the last 60 s of steps: bounded, however long the recording
-PATH_EVERY = 10  # a path message every 10 steps (1 Hz): a path is re-sent whole each time
+PATH_STRIDE = 5  # the path holds every 5th step's pose (2 a second at delta = 0.1 s; /odom has every one)
+PATH_POSES = 120  # the path keeps the last 60 s of them: bounded, however long the recording
+PATH_EVERY = 10  # a path message every 10 steps (1 Hz), ending at that step: re-sent whole each time
 TARGET_TOPIC = "/target"
 ODOMETRY, PATH, TWIST_STAMPED = "nav_msgs/msg/Odometry", "nav_msgs/msg/Path", "geometry_msgs/msg/TwistStamped"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -162,8 +164,8 @@ class RosMapping:
     def path_cdr(self, t_ns: int, frame: str, stamps: np.ndarray, table: np.ndarray, frames: Sequence[str]) -> bytes:
         """``nav_msgs/Path`` of the poses ``table`` (rows x, y, alpha), stamped ``stamps`` [ns] in
         ``frames`` (one each), the path stamped ``t_ns`` in ``frame``, as CDR: the bytes :meth:`cdr`
-        gives for the same message, written with numpy (a path of 600 poses every second per robot
-        is most of a recorder's CPU through rosbags' per-field serializer). The layout is
+        gives for the same message, written with numpy (a path of :data:`PATH_POSES` poses every
+        second per robot would be most of a recorder's CPU through rosbags' per-field serializer). The layout is
         :class:`tools.recording.cdr.CdrLayout`'s. Poses in more than one frame go through :meth:`cdr`."""
         distinct = set(frames)
         if len(distinct) > 1:
@@ -595,7 +597,8 @@ class Recorder:
         values = (*(float(c) for c in state[:3]), *track.action, float(cost), track.accumulated_cost)
         sample = transition_cdr(t_ns, track.pose_frame, episode, step, values)
         self._write_cdr(f"/{name}/srl/transition", TRANSITION, sample, t_ns)
-        track.path.append(t_ns, state, track.pose_frame)
+        if step % PATH_STRIDE == 0:
+            track.path.append(t_ns, state, track.pose_frame)
         if step % PATH_EVERY == 0:
             self.path(robot, t_ns)
         return True
