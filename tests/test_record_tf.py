@@ -141,7 +141,7 @@ def test_the_path_holds_the_last_minute_at_every_fifth_step_and_ends_at_its_own_
         recorder.transition("tb3_0", 0, k, (0.001 * k, -0.002 * k, 0.01 * k), (0.1, 0.2), 0.5, ORIGIN_NS)
     paths = sink.decoded("/tb3_0/path")
     assert len(paths) == steps // PATH_EVERY + 1  # one each PATH_EVERY steps, the first at step 0
-    assert PATH_EVERY % PATH_STRIDE == 0 and PATH_POSES * PATH_STRIDE * 0.1 == pytest.approx(60.0)
+    assert PATH_EVERY % PATH_STRIDE == 0 and pytest.approx(60.0) == PATH_POSES * PATH_STRIDE * 0.1
     for t_ns, path in paths:
         k = (t_ns - ORIGIN_NS) // DELTA_NS
         expected = [j for j in range(0, k + 1, PATH_STRIDE)][-PATH_POSES:]  # ends at the path's own step
@@ -149,6 +149,42 @@ def test_the_path_holds_the_last_minute_at_every_fifth_step_and_ends_at_its_own_
         assert stamps == [ORIGIN_NS + j * DELTA_NS for j in expected]
         last = path.poses[-1].pose.position
         assert (last.x, last.y) == pytest.approx((0.001 * k, -0.002 * k))
+
+
+def test_a_recording_is_on_the_disk_within_its_chunk_age_not_when_the_chunk_fills(tmp_path: Path) -> None:
+    """What a recorder killed outright (SIGKILL, no close) leaves: every message older than
+    CHUNK_SECONDS is in the file's chunks, however few bytes they are."""
+    from mcap.exceptions import EndOfFile
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    from tools.recording.record import McapSink
+
+    def on_disk(path: Path) -> list[int]:  # the log times of the messages the file holds so far
+        times: list[int] = []
+        with path.open("rb") as file:
+            try:
+                for record in StreamReader(file).records:
+                    if isinstance(record, Message):
+                        times.append(record.log_time)
+            except EndOfFile:  # no summary or footer: the file of a recorder that is still running
+                pass
+        return times
+
+    path = tmp_path / "live.mcap"
+    sink = McapSink(path)
+    recorder = Recorder(sink, 0.1, clock="steps")
+    for k in range(20):  # a few KB: far below a chunk's CHUNK_BYTES
+        recorder.transition("tb3_0", 0, k, (0.1 * k, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
+    assert on_disk(path) == []  # all in the chunk in progress
+    before = sink.messages
+    sink.chunk_started -= sink.CHUNK_SECONDS  # as if that chunk had been open that long
+    recorder.transition("tb3_0", 0, 20, (2.0, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
+    # the chunk went to the disk with the first message written after its age: every one before it too
+    assert len(on_disk(path)) == before + 1
+    assert {(t - ORIGIN_NS) // DELTA_NS for t in on_disk(path)} == set(range(21))
+    sink.close()
+    assert len(read(path)["/tb3_0/srl/transition"]) == 21  # and the closed file is whole
 
 
 def test_a_fleet_gets_one_base_footprint_per_robot_under_one_odom() -> None:

@@ -292,10 +292,18 @@ def open_for_writing(path: Path) -> IO[bytes]:
 
 
 class McapSink:
-    """An MCAP file in the rosbag2 layout, streamed: chunks of :data:`CHUNK_BYTES` go to the disk as
-    they fill (memory stays bounded); :meth:`close` adds the ``rosbag2`` metadata and the summary."""
+    """An MCAP file in the rosbag2 layout, streamed: a chunk goes to the disk when it holds
+    :data:`CHUNK_BYTES` or is :data:`CHUNK_SECONDS` old, whichever comes first, so a recorder killed
+    outright loses at most that much; :meth:`close` adds the ``rosbag2`` metadata and the summary.
 
-    CHUNK_BYTES = 256 * 1024
+    The writer keeps one index entry per chunk, naming every channel in it, for the summary it
+    writes at the end: a recording's memory grows with its chunks (100 robots, 600 channels: ~24 KB
+    a chunk). Big chunks keep that growth small (at 100 robots ~0.7 MB a minute, not 12.5 with
+    256 KiB chunks) and cost less to write (a quarter less CPU per message); the age bound keeps a
+    recording of one robot, a few KB a second, on the disk within seconds."""
+
+    CHUNK_BYTES = 4 * 1024 * 1024
+    CHUNK_SECONDS = 2.0
 
     def __init__(self, path: Path, extra_metadata: dict[str, str] | None = None) -> None:
         self.path = Path(path).expanduser()
@@ -310,6 +318,7 @@ class McapSink:
         self.last_ns = 0
         self.extra_metadata = extra_metadata or {}
         self.closed = False
+        self.chunk_started = time.monotonic()
 
     def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
         channel = self.channels.get(topic)
@@ -325,6 +334,10 @@ class McapSink:
         self.first_ns = t_ns if self.first_ns is None else min(self.first_ns, t_ns)
         self.last_ns = max(self.last_ns, t_ns)
         self.writer.add_message(channel, log_time=t_ns, data=data, publish_time=t_ns, sequence=self.counts[topic])
+        now = time.monotonic()
+        if now - self.chunk_started >= self.CHUNK_SECONDS:
+            self.writer.flush()  # the chunk in progress to the disk, full or not
+            self.chunk_started = now
 
     @property
     def messages(self) -> int:
