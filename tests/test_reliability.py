@@ -41,10 +41,10 @@ def _runs_of(steps: set[int]) -> StepRuns:
 def test_runs_round_trip() -> None:
     steps = {0, 1, 2, 5, 7, 8, 100}
     assert _runs_of(steps).runs() == [[0, 2], [5, 5], [7, 8], [100, 100]]
-    assert set(StepRuns.from_runs(_runs_of(steps).runs())) == steps
-    assert StepRuns.from_runs([[7, 8], [0, 2], [1, 5]]).runs() == [[0, 5], [7, 8]]  # unsorted, overlapping
+    assert set(StepRuns(_runs_of(steps).runs())) == steps
+    assert StepRuns([[7, 8], [0, 2], [1, 5]]).runs() == [[0, 5], [7, 8]]  # unsorted, overlapping
     with pytest.raises(CheckpointError):
-        StepRuns.from_runs([[3, 1]])
+        StepRuns([[3, 1]])
 
 
 def test_step_runs_behave_as_a_set_in_any_order() -> None:

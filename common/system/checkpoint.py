@@ -188,28 +188,23 @@ class StepRuns:
     step extends the last run, and the checkpoint form costs one list per run -- not a sort of
     every step held (6,000 per robot after 10 min; a fleet's critic writes it every second)."""
 
-    def __init__(self) -> None:
+    def __init__(self, runs: Iterable[Iterable[int]] = ()) -> None:
+        """From :meth:`runs`'s form (runs in any order, overlapping or not); a run whose last step
+        is before its first is a CheckpointError."""
         self._firsts: list[int] = []
         self._lasts: list[int] = []
         self._count = 0
-
-    @classmethod
-    def from_runs(cls, runs: Iterable[Iterable[int]]) -> StepRuns:
-        """From :meth:`runs`'s form (runs in any order, overlapping or not); a run whose last step
-        is before its first is a CheckpointError."""
-        steps = cls()
         for first, last in sorted((int(a), int(b)) for a, b in runs):
             if last < first:
                 raise CheckpointError(f"bad run [{first}, {last}]")
-            if steps._lasts and first <= steps._lasts[-1] + 1:  # overlaps or touches the last run
-                if last > steps._lasts[-1]:
-                    steps._count += last - steps._lasts[-1]
-                    steps._lasts[-1] = last
+            if self._lasts and first <= self._lasts[-1] + 1:  # overlaps or touches the last run
+                if last > self._lasts[-1]:
+                    self._count += last - self._lasts[-1]
+                    self._lasts[-1] = last
                 continue
-            steps._firsts.append(first)
-            steps._lasts.append(last)
-            steps._count += last - first + 1
-        return steps
+            self._firsts.append(first)
+            self._lasts.append(last)
+            self._count += last - first + 1
 
     def __contains__(self, step: object) -> bool:
         if not isinstance(step, SupportsIndex):  # any integer (numpy's too), as a set of ints takes them

@@ -369,7 +369,7 @@ class CriticLearner:
                     if len(row) != 7 or not all(np.isfinite(row)):
                         raise CheckpointError(f"{robot}: bad replay row {row}")
                     learner.replay.add(Sample(int(row[0]), np.array(row[1:4]), np.array(row[4:6]), float(row[6])))
-                learner.seen = StepRuns.from_runs(entry["seen"])
+                learner.seen = StepRuns(entry["seen"])
                 learner.newest = int(entry["newest"])
                 learners[robot] = learner
             version = int(payload["version"])
