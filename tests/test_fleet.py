@@ -490,10 +490,31 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
         assert "(2 robots: robot1, robot2)" in row["recorder"]  # both robots in the recording
         # CPU per robot per tick: all processes' CPU over the run, per robot per delta
         assert row["cpu_ms_per_robot_tick"] == pytest.approx(row["cpu_percent"] / 100 * 0.1 * 1e3 / 2)
+        # of it, Zenoh's runtime threads: most of a router's CPU (Zenoh's own work), a part of every other's
+        zenoh, cpu = row["zenoh_cpu_percent_by_service"], row["cpu_percent_by_service"]
+        assert set(zenoh) == set(cpu) and all(zenoh[name] >= 0 for name in zenoh), zenoh  # CPU in 10 ms ticks
+        assert 0 < row["zenoh_cpu_percent"] < row["cpu_percent"] and zenoh["router"] > 0.5 * cpu["router"], (zenoh, cpu)
         # parking by the robots' own states: 5 s from 1.5 m away is too short to arrive
         fleet = row["fleet"]
         own = [r["own_final_distance_m"] for r in fleet["rows"]]
         assert fleet["worst_own_final_distance_m"] == max(own) and fleet["at_target"] == 0
+
+
+@pytest.mark.integration
+def test_the_cpu_of_zenohs_threads_is_read_by_their_names() -> None:
+    from tools.launch.fleet import ZENOH_THREAD, cpu_of
+
+    assert all(ZENOH_THREAD.match(name) for name in ("rx-0", "tx-12", "app-0", "acc-0", "net-3"))
+    assert not any(ZENOH_THREAD.match(name) for name in ("python", "rx", "rx-", "srl-rx-0", "rx-0x", "tx-1-a"))
+    busy = subprocess.Popen([sys.executable, "-c", "import time\nend = time.time() + 3\nwhile time.time() < end: pass"])
+    try:
+        time.sleep(1.0)  # a process without Zenoh, busy on its main thread
+        total, zenoh = cpu_of({"p": busy.pid}), cpu_of({"p": busy.pid}, zenoh=True)
+        assert total["p"] > 0.3 and zenoh["p"] == 0.0
+    finally:
+        busy.kill()
+        busy.wait()
+    assert cpu_of({"gone": busy.pid}, zenoh=True) == {"gone": 0.0}  # a process that is gone: nothing
 
 
 def test_the_fleet_bench_judges_100_and_300_robots_as_one_robot_alone() -> None:

@@ -168,7 +168,8 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
-    f"{'parked':>7} {'at target':>9} {'worst m':>7} {'CPU %':>6} {'ms/tick':>7} {'RSS MB':>7} {'growth':>7} "
+    f"{'parked':>7} {'at target':>9} {'worst m':>7} {'CPU %':>6} {'Zenoh %':>7} {'ms/tick':>7} {'RSS MB':>7} "
+    f"{'growth':>7} "
     f"{'procs':>5} {'RT':>5} {'hurried':>7}  "
     "load before -> after  targets"
 )
@@ -192,7 +193,7 @@ def format_row(row: dict[str, Any]) -> str:
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
         f"{f['parked']:>3}/{row['robots']:<3} {f.get('at_target', 0):>4}/{row['robots']:<4} "
         f"{f.get('worst_own_final_distance_m', math.nan):>7.3f} {row['cpu_percent']:>6.0f} "
-        f"{row['cpu_ms_per_robot_tick']:>7.3f} {row['rss_mb']:>7.0f} "
+        f"{row.get('zenoh_cpu_percent', math.nan):>7.0f} {row['cpu_ms_per_robot_tick']:>7.3f} {row['rss_mb']:>7.0f} "
         f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5} {realtime:>5} {hurried:>7}  {load:<20} {targets}"
     )
 
@@ -205,7 +206,8 @@ def format_table(result: dict[str, Any]) -> str:
         + "; jitter, latency, staleness: worst robot; "
         "at target: robots whose own final state is within 0.05 m of the target, at rest (last command zero); "
         "worst m: the farthest robot by its own state; "
-        "CPU: all srl processes (100 % = one core), ms/tick: their CPU per robot per sampling interval; "
+        "CPU: all srl processes (100 % = one core), Zenoh: of it their Zenoh runtime threads' (the network, and "
+        "the handlers called on it), ms/tick: their CPU per robot per sampling interval; "
         "growth: their RSS from the end of warm-up (the first "
         "tenth) to the end; RT: actor processes whose tick thread ran under SCHED_FIFO (actor.realtime_priority); "
         "hurried: ticks solved in a hurry (served late or over actor.host_cpu_budget); load: 1-min average",

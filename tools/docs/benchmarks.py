@@ -263,21 +263,20 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
         + (", `srl record` attached to every row" if data.get("recorded") else "")
         + ". Jitter, latency, staleness: the worst robot; parked: within 0.25 m at the end; at target: by the "
         "robot's own final state within 0.05 m and at rest (its last command zero), as one robot alone is "
-        "judged; worst: the farthest robot by its own state; CPU: all srl processes (100 % = one core), and "
-        "that CPU per robot per sampling interval; hurried: ticks solved in a hurry (served late or over the "
-        "host's CPU budget).",
+        "judged; worst: the farthest robot by its own state; CPU: all srl processes (100 % = one core), of it "
+        "their Zenoh runtime threads' (the network, and the handlers Zenoh calls on its thread), and that CPU "
+        "per robot per sampling interval; hurried: ticks solved in a hurry (served late or over the host's CPU "
+        "budget).",
         "",
         "| robots | layout | missed | jitter p99 [ms] | latency p99 [ms] | staleness p99 / max [steps] | parked "
-        "| at target | worst [m] | CPU % | CPU per robot tick [ms] | RSS MB | hurried | recorded | load before -> "
-        "after | targets |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| at target | worst [m] | CPU % | of it Zenoh % | CPU per robot tick [ms] | RSS MB | hurried | recorded | "
+        "load before -> after | targets |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in data.get("rows", []):
         load = f"{row['load_before'][0]:.2f} -> {row['load_after'][0]:.2f}"
         if "error" in row:
-            lines.append(
-                f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} | | | | | | | | | | | | {load} | |"
-            )
+            lines.append(f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} |{' |' * 12} {load} | |")
             continue
         f = row["fleet"]
         layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
@@ -288,14 +287,33 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
         hurried = ticks.get("hurried_percent")
         recorder = row.get("recorder") or ""
         recorded = recorder.removeprefix("srl record: recorded ").split(" on ", 1)[0] if recorder else "-"
+        zenoh = row.get("zenoh_cpu_percent")
         lines.append(
             f"| {row['robots']} | {layout} | {f['missed_deadlines']} | {f['jitter_p99_ms']:.2f} | "
             f"{f['latency_p99_ms']:.2f} | {f['staleness_p99_steps']:.0f} / {f['staleness_max_steps']:.0f} | "
             f"{f['parked']}/{row['robots']} | {f.get('at_target', '-')}/{row['robots']} | "
             f"{'-' if worst is None else f'{worst:.3f}'} | {row['cpu_percent']:.0f} | "
-            f"{'-' if per_tick is None else f'{per_tick:.3f}'} | {row['rss_mb']:.0f} | "
+            f"{'-' if zenoh is None else f'{zenoh:.0f}'} | {'-' if per_tick is None else f'{per_tick:.3f}'} | "
+            f"{row['rss_mb']:.0f} | "
             f"{'-' if hurried is None else f'{hurried:.1f} %'} | {cell(recorded)} | {load} | {cell(targets)} |"
         )
+    by_process = [row for row in data.get("rows", []) if "zenoh_cpu_percent_by_service" in row]
+    if by_process:
+        lines += [
+            "",
+            "CPU of each process [% of a core], and in parentheses of its Zenoh runtime threads:",
+            "",
+            "| robots | layout | processes |",
+            "|---|---|---|",
+        ]
+        for row in by_process:
+            zenoh = row["zenoh_cpu_percent_by_service"]
+            each = ", ".join(
+                f"{name} {cpu:.1f} ({zenoh.get(name, math.nan):.1f})"
+                for name, cpu in row["cpu_percent_by_service"].items()
+            )
+            layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+            lines.append(f"| {row['robots']} | {layout} | {each} |")
     return [*lines, ""]
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import re
 import shutil
 import signal
 import tempfile
@@ -81,6 +82,24 @@ def _proc_cpu(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
 
 
+# Zenoh's runtime threads: its tokio runtimes name their workers rx-0, tx-0, app-0, acc-0, net-0 (a
+# process's other threads are the interpreter's, named after the program)
+ZENOH_THREAD = re.compile(r"^(rx|tx|app|acc|net)-\d+$")
+
+
+def _zenoh_cpu(pid: int) -> float:
+    """CPU seconds so far of the process's live Zenoh runtime threads (:data:`ZENOH_THREAD`): the
+    network's own work, and the handlers Zenoh calls on its network thread (Bus.subscribe)."""
+    ticks = 0
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{task}/stat") as stat:
+            text = stat.read()
+            name, fields = text[text.index("(") + 1 : text.rindex(")")], text.rsplit(")", 1)[1].split()
+            if ZENOH_THREAD.match(name):
+                ticks += int(fields[11]) + int(fields[12])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
 def _proc_memory(pid: int) -> tuple[float, float]:
     rss = peak = 0.0
     with open(f"/proc/{pid}/status") as status:
@@ -92,12 +111,13 @@ def _proc_memory(pid: int) -> tuple[float, float]:
     return rss, peak
 
 
-def cpu_of(pids: dict[str, int]) -> dict[str, float]:
-    """CPU seconds so far of each named process (0 for one that is gone)."""
+def cpu_of(pids: dict[str, int], zenoh: bool = False) -> dict[str, float]:
+    """CPU seconds so far of each named process (0 for one that is gone); ``zenoh``: of its Zenoh
+    runtime threads only (:func:`_zenoh_cpu`)."""
     seconds = dict.fromkeys(pids, 0.0)
     for name, pid in pids.items():
         with contextlib.suppress(OSError):
-            seconds[name] = _proc_cpu(pid)
+            seconds[name] = _zenoh_cpu(pid) if zenoh else _proc_cpu(pid)
     return seconds
 
 
@@ -146,6 +166,7 @@ def memory_of(pids: dict[str, int]) -> dict[str, tuple[float, float]]:
 
 
 RSS_SAMPLE_S = 5.0  # [s] between the points of a run's RSS series
+ZENOH_SAMPLE_S = 1.0  # [s] between two readings of every thread's CPU (a file per thread)
 RSS_POINTS = 240  # at most (a longer run keeps every other point: bounded whatever the length)
 WARM_UP_SHARE = 0.1  # the first tenth of a run (at least one RSS sample period) is its warm-up
 
@@ -261,10 +282,15 @@ class FleetMeasures:
     """What a fleet's run measured, from when every robot was ready to the end."""
 
     cpu_seconds: dict[str, float]  # each process's
+    zenoh_seconds: dict[str, float]  # of it, its Zenoh runtime threads'
     memory: tuple[float, float]  # all processes' RSS and peak RSS [MB] near the end
     rss_series: RssSeries
     messages: dict[str, list[int]]  # [count, bytes] of each kind (with count_messages)
     ran: float  # [s] the span over which CPU was measured
+    zenoh_ran: float  # [s] the span over which the Zenoh threads' CPU was (sampled less often)
+
+    def zenoh_percent(self, seconds: float) -> float:
+        return 100.0 * seconds / self.zenoh_ran if self.zenoh_ran > 0 else math.nan
 
     def fields(self, processes: int) -> dict[str, Any]:
         """The fleet summary's CPU and memory fields (CPU % of one core over the measured span)."""
@@ -275,6 +301,9 @@ class FleetMeasures:
             "cpu_percent_by_service": {
                 name: 100.0 * cpu / ran if ran > 0 else math.nan for name, cpu in self.cpu_seconds.items()
             },
+            # of it, Zenoh's runtime threads (the network, and handlers run on its thread)
+            "zenoh_cpu_percent": self.zenoh_percent(sum(self.zenoh_seconds.values())),
+            "zenoh_cpu_percent_by_service": {name: self.zenoh_percent(cpu) for name, cpu in self.zenoh_seconds.items()},
             "rss_mb": use.rss_mb,
             "rss_growth_percent": self.rss_series.growth_percent(),  # from the end of warm-up to the end (soak)
             "rss_series_mb": self.rss_series.points,
@@ -298,11 +327,12 @@ def measure_fleet(
     pids = {name: child.process.pid for name, child in supervisor.children.items()}
     counter = MessageCounter(settings) if count_messages else None
     ready = time.monotonic()
-    cpu_before = cpu_of(pids)
+    cpu_before, zenoh_before = cpu_of(pids), cpu_of(pids, zenoh=True)
     monitor = FleetMonitor(settings) if on_status is not None else None
     memory, sampled = (0.0, 0.0), ready
     rss_series = RssSeries()
     cpu_seconds = dict.fromkeys(pids, 0.0)
+    zenoh_seconds, zenoh_sampled = dict.fromkeys(pids, 0.0), -math.inf
     messages: dict[str, list[int]] = {}
     try:
         shown = 0
@@ -313,6 +343,9 @@ def measure_fleet(
             if all(a.process.poll() is None for a in actors):
                 cpu_now, sampled = cpu_of(pids), now
                 cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
+                if now - zenoh_sampled >= ZENOH_SAMPLE_S:  # every thread's file: read less often
+                    zenoh_now, zenoh_sampled = cpu_of(pids, zenoh=True), now
+                    zenoh_seconds = {name: zenoh_now[name] - zenoh_before[name] for name in pids}
                 if counter is not None:
                     messages = counter.snapshot()
                 if now - ready < duration - 1.0:
@@ -328,7 +361,9 @@ def measure_fleet(
             monitor.close()
         if counter is not None:
             counter.close()
-    return FleetMeasures(cpu_seconds, memory, rss_series, messages, sampled - ready)
+    return FleetMeasures(
+        cpu_seconds, zenoh_seconds, memory, rss_series, messages, sampled - ready, zenoh_sampled - ready
+    )
 
 
 def spawn_sim_plants(
