@@ -502,19 +502,62 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
 
 @pytest.mark.integration
 def test_the_cpu_of_zenohs_threads_is_read_by_their_names() -> None:
-    from tools.launch.fleet import ZENOH_THREAD, cpu_of
+    from tools.launch.fleet import ZENOH_THREAD, ZenohCpu, cpu_of
 
     assert all(ZENOH_THREAD.match(name) for name in ("rx-0", "tx-12", "app-0", "acc-0", "net-3"))
     assert not any(ZENOH_THREAD.match(name) for name in ("python", "rx", "rx-", "srl-rx-0", "rx-0x", "tx-1-a"))
     busy = subprocess.Popen([sys.executable, "-c", "import time\nend = time.time() + 3\nwhile time.time() < end: pass"])
     try:
         time.sleep(1.0)  # a process without Zenoh, busy on its main thread
-        total, zenoh = cpu_of({"p": busy.pid}), cpu_of({"p": busy.pid}, zenoh=True)
-        assert total["p"] > 0.3 and zenoh["p"] == 0.0
+        zenoh = ZenohCpu({"p": busy.pid})
+        time.sleep(0.5)
+        assert cpu_of({"p": busy.pid})["p"] > 0.3 and zenoh.seconds() == {"p": 0.0}
     finally:
         busy.kill()
         busy.wait()
-    assert cpu_of({"gone": busy.pid}, zenoh=True) == {"gone": 0.0}  # a process that is gone: nothing
+    assert ZenohCpu({"gone": busy.pid}).seconds() == {"gone": 0.0}  # a process that is gone: nothing
+
+
+# eight threads named as Zenoh names its workers, started 0.5 s in, each on a CPU for less than a
+# clock tick (10 ms), then ending 1 s later
+_SHORT_THREADS = """
+import threading, time
+def work(i):
+    with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as comm:
+        comm.write(f"rx-{i}")
+    end = time.thread_time() + 0.006
+    while time.thread_time() < end:
+        pass
+    time.sleep(1.0)
+time.sleep(0.5)
+for i in range(8):
+    threading.Thread(target=work, args=(i,), daemon=True).start()
+time.sleep(10)
+"""
+
+
+@pytest.mark.integration
+def test_the_cpu_of_zenohs_threads_keeps_threads_that_started_and_ended_and_time_below_a_clock_tick() -> None:
+    from tools.launch.fleet import ZenohCpu
+
+    def threads(pid: int, count: int) -> None:
+        deadline = time.monotonic() + 5.0
+        while len(os.listdir(f"/proc/{pid}/task")) != count and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    short = subprocess.Popen([sys.executable, "-c", _SHORT_THREADS])
+    try:
+        zenoh = ZenohCpu({"p": short.pid})  # before the threads exist: each counts from zero
+        threads(short.pid, 9)
+        time.sleep(0.3)  # every thread has run its 6 ms and sleeps
+        running = zenoh.seconds()["p"]
+        # 8 x 6 ms: counted in whole ticks thread by thread, most of it would be lost (8 x 0 ticks)
+        assert 0.040 <= running < 0.2, running
+        threads(short.pid, 1)
+        assert zenoh.seconds()["p"] == running  # the threads have ended: what they ran is kept
+    finally:
+        short.kill()
+        short.wait()
 
 
 def test_the_fleet_bench_judges_100_and_300_robots_as_one_robot_alone() -> None:

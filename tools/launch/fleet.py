@@ -87,17 +87,53 @@ def _proc_cpu(pid: int) -> float:
 ZENOH_THREAD = re.compile(r"^(rx|tx|app|acc|net)-\d+$")
 
 
-def _zenoh_cpu(pid: int) -> float:
-    """CPU seconds so far of the process's live Zenoh runtime threads (:data:`ZENOH_THREAD`): the
-    network's own work, and the handlers Zenoh calls on its network thread (Bus.subscribe)."""
-    ticks = 0
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with contextlib.suppress(OSError), open(f"/proc/{pid}/task/{task}/stat") as stat:
-            text = stat.read()
-            name, fields = text[text.index("(") + 1 : text.rindex(")")], text.rsplit(")", 1)[1].split()
-            if ZENOH_THREAD.match(name):
-                ticks += int(fields[11]) + int(fields[12])
-    return ticks / os.sysconf("SC_CLK_TCK")
+class ZenohCpu:
+    """CPU seconds of each named process's Zenoh runtime threads (:data:`ZENOH_THREAD`: the network's
+    own work, and the handlers Zenoh calls on its network thread, Bus.subscribe) since this was made.
+
+    Kept thread by thread: a thread that ends keeps what it ran until its last reading, one that starts
+    later counts from zero, so the sum never goes back when a runtime retires a worker. Each thread's
+    time is read in nanoseconds (``schedstat``) where the kernel has it, not in clock ticks (``stat``):
+    a sum over many threads of tick counts truncated one by one loses up to a tick per thread, most of
+    a quiet process's Zenoh time over a few seconds. Memory: one pair per thread ever seen."""
+
+    def __init__(self, pids: dict[str, int]) -> None:
+        self.pids = dict(pids)
+        self.since: dict[tuple[str, str], float] = {}  # (process, thread id) -> seconds when first read
+        self.last: dict[tuple[str, str], float] = {}
+        for key, seconds in self._read().items():
+            self.since[key] = self.last[key] = seconds
+
+    def seconds(self) -> dict[str, float]:
+        """Each process's Zenoh thread CPU seconds since construction (0 for one that is gone)."""
+        for key, seconds in self._read().items():
+            self.since.setdefault(key, 0.0)  # a thread started since: all its time is in the span
+            self.last[key] = seconds
+        total = dict.fromkeys(self.pids, 0.0)
+        for (name, task), seconds in self.last.items():
+            total[name] += seconds - self.since[(name, task)]
+        return total
+
+    def _read(self) -> dict[tuple[str, str], float]:
+        now: dict[tuple[str, str], float] = {}
+        for name, pid in self.pids.items():
+            with contextlib.suppress(OSError):
+                for task in os.listdir(f"/proc/{pid}/task"):
+                    with contextlib.suppress(OSError, ValueError), open(f"/proc/{pid}/task/{task}/stat") as stat:
+                        text = stat.read()
+                        if ZENOH_THREAD.match(text[text.index("(") + 1 : text.rindex(")")]):
+                            now[(name, task)] = _thread_cpu(pid, task, text.rsplit(")", 1)[1].split())
+        return now
+
+
+def _thread_cpu(pid: int, task: str, stat_fields: list[str]) -> float:
+    """CPU seconds of one thread: its time on a CPU in ns from ``schedstat`` (a kernel with
+    scheduler info), else its utime + stime in clock ticks from ``stat``."""
+    try:
+        with open(f"/proc/{pid}/task/{task}/schedstat") as schedstat:
+            return int(schedstat.read().split()[0]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return (int(stat_fields[11]) + int(stat_fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _proc_memory(pid: int) -> tuple[float, float]:
@@ -111,13 +147,12 @@ def _proc_memory(pid: int) -> tuple[float, float]:
     return rss, peak
 
 
-def cpu_of(pids: dict[str, int], zenoh: bool = False) -> dict[str, float]:
-    """CPU seconds so far of each named process (0 for one that is gone); ``zenoh``: of its Zenoh
-    runtime threads only (:func:`_zenoh_cpu`)."""
+def cpu_of(pids: dict[str, int]) -> dict[str, float]:
+    """CPU seconds so far of each named process (0 for one that is gone)."""
     seconds = dict.fromkeys(pids, 0.0)
     for name, pid in pids.items():
         with contextlib.suppress(OSError):
-            seconds[name] = _zenoh_cpu(pid) if zenoh else _proc_cpu(pid)
+            seconds[name] = _proc_cpu(pid)
     return seconds
 
 
@@ -327,7 +362,7 @@ def measure_fleet(
     pids = {name: child.process.pid for name, child in supervisor.children.items()}
     counter = MessageCounter(settings) if count_messages else None
     ready = time.monotonic()
-    cpu_before, zenoh_before = cpu_of(pids), cpu_of(pids, zenoh=True)
+    cpu_before, zenoh_cpu = cpu_of(pids), ZenohCpu(pids)
     monitor = FleetMonitor(settings) if on_status is not None else None
     memory, sampled = (0.0, 0.0), ready
     rss_series = RssSeries()
@@ -344,8 +379,7 @@ def measure_fleet(
                 cpu_now, sampled = cpu_of(pids), now
                 cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
                 if now - zenoh_sampled >= ZENOH_SAMPLE_S:  # every thread's file: read less often
-                    zenoh_now, zenoh_sampled = cpu_of(pids, zenoh=True), now
-                    zenoh_seconds = {name: zenoh_now[name] - zenoh_before[name] for name in pids}
+                    zenoh_seconds, zenoh_sampled = zenoh_cpu.seconds(), now
                 if counter is not None:
                     messages = counter.snapshot()
                 if now - ready < duration - 1.0:
