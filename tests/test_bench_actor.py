@@ -33,6 +33,7 @@ from tools.bench.actor import (
     learned_weights,
     phase_shares,
     quadratic_form_matrix,
+    reference_share,
     row_settings,
     sample_indices,
     slsqp_solve,
@@ -254,6 +255,8 @@ def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
     for r in rows:
         assert r["steps"] == 20 and r["baseline_steps"] == 3
         assert r["objective_reference"] == "slsqp"
+        if r["weights"].startswith("trained"):  # the judge checked against a second run of itself
+            assert 0.0 <= r["best_known"]["reference_share"] <= 1.0
     assert payload["machine"]["cpu_count"] >= 1 and payload["machine"]["casadi"]
     assert payload["settings"]["actor"]["solver"] == "fatrop"
     # N = 12 was not benchmarked: its targets are not applicable; the speedup ones are judged
@@ -353,6 +356,16 @@ def test_best_known_is_reproducible_and_no_worse_than_one_cold_solve() -> None:
     assert best == best_known(objective, state, starts=6, seed=2)
     assert best <= slsqp_solve(objective, state).value + 1e-9
     assert best_known(objective, state, starts=1, seed=2) >= best  # more starts never find less
+
+
+def test_the_reference_share_is_how_often_the_first_best_known_is_the_lower_of_two() -> None:
+    # state 0: both equal; 1: the first lower; 2: the second lower by 1 %; 3: lower by less than 1e-6
+    first, second = [1.0, 2.0, 3.0, 4.0], [1.0, 2.5, 2.97, 4.0 - 1e-7]
+    assert reference_share(first, second) == 0.75
+    assert reference_share(second, first) == 0.75  # states 1 and 2 swap: 3.0 misses the lower
+    assert reference_share(first, first) == 1.0
+    with pytest.raises(ValueError):
+        reference_share(first, second[:2])  # the same states, or no share
 
 
 def test_phase_shares_count_what_each_step_ran() -> None:

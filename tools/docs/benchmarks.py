@@ -98,21 +98,24 @@ def actor_body(data: dict[str, Any]) -> list[str]:
         "a cold SLSQP solve at the same states (< 0: the actor's is lower); *not worse* the share of those",
         "states where it is as low or lower; *best known* (trained weights) the share of 40 states of the loop",
         "where the actor's objective is within 1e-6 of the lowest of 20 SLSQP solves (exact gradient) from",
-        "standing still and 19 random plans.",
+        "standing still and 19 random plans; *reference* how often that lowest of 20 is itself within 1e-6 of",
+        "the lowest of 40 (a second 20-start run with other random plans): the judge's own reliability.",
         "",
         "| agent | N | weights | solver | median | p99 | max | failures | baseline median | speedup | gap "
-        "| not worse | best known |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| not worse | best known | reference |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in data.get("rows", []):
         objective = r.get("objective") or {}
         share = objective.get("share_le")
         best = (r.get("best_known") or {}).get("share_le")
+        reference = (r.get("best_known") or {}).get("reference_share")
         lines.append(
             f"| {r['agent']} | {r['horizon']} | {cell(r['weights'])} | {r['solver']} | {ms(r['median_ms'])} | "
             f"{ms(r['p99_ms'])} | {ms(r['max_ms'])} | {r['failures']} | {ms(r['baseline_median_ms'], 1)} | "
             f"{r['speedup']:.1f}x | {objective.get('median_rel_gap', float('nan')):.2g} | "
-            f"{'-' if share is None else f'{share:.0%}'} | {'-' if best is None else f'{best:.0%}'} |"
+            f"{'-' if share is None else f'{share:.0%}'} | {'-' if best is None else f'{best:.0%}'} | "
+            f"{'-' if reference is None else f'{reference:.0%}'} |"
         )
     phased = [r for r in data.get("rows", []) if r.get("phases")]
     if phased:
