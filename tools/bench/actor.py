@@ -1000,7 +1000,8 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
         f"best_share: at {BEST_KNOWN_STATES} states of the row's closed loop (trained weights only), the share/count "
         f"where the actor's objective is within {OBJ_RTOL:g} of the best known minimum: the lowest of "
         f"{BEST_KNOWN_STARTS} SLSQP solves (exact gradient, tol {BEST_KNOWN_TOL:g}) from standing still and "
-        f"{BEST_KNOWN_STARTS - 1} seeded random plans"
+        f"{BEST_KNOWN_STARTS - 1} seeded random plans; ref_share: the share where that minimum is itself within "
+        f"{OBJ_RTOL:g} of the lower of it and a second {BEST_KNOWN_STARTS}-start run with other random plans"
     )
     print("phases of a step: share of the steps that ran it / its mean cost [ms]")
     print(format_phase_table(rows))
