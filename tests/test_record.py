@@ -186,6 +186,7 @@ def test_a_bad_recording_path_is_one_line_before_anything_runs(tmp_path: Path) -
         ["run", "--duration", "1", "--record", str(tmp_path / "x.bag")],
         ["up", "--duration", "1", "--router", f"tcp/127.0.0.1:{free_port()}", "--record", str(tmp_path)],
         ["record", str(tmp_path / "missing" / "x.mcap"), "--router", f"tcp/127.0.0.1:{free_port()}"],
+        ["record", str(tmp_path / "x.mcap"), "--split-minutes", "-1", "--router", f"tcp/127.0.0.1:{free_port()}"],
         ["plot", str(tmp_path / "none.mcap")],
         # the monitor role may not read transitions and weights: refused before anything starts
         ["up", "--secure", "--duration", "1", "--router", f"tcp/127.0.0.1:{free_port()}", "--view"],

@@ -23,7 +23,7 @@ from common.config.settings import Settings
 from common.contracts.messages import PlantState
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
-from tests.test_record import read
+from tests.test_record import check_rosbag2_layout, read
 from tools.recording.record import (
     GOAL_EVERY,
     PATH_EVERY,
@@ -33,8 +33,12 @@ from tools.recording.record import (
     TF_MESSAGE,
     PoseFrames,
     Recorder,
+    RecordingError,
     RosMapping,
+    SplitSink,
+    describe,
     episode_recorder,
+    part_path,
     record_episode,
     robot_frames,
 )
@@ -185,6 +189,38 @@ def test_a_recording_is_on_the_disk_within_its_chunk_age_not_when_the_chunk_fill
     assert {(t - ORIGIN_NS) // DELTA_NS for t in on_disk(path)} == set(range(21))
     sink.close()
     assert len(read(path)["/tb3_0/srl/transition"]) == 21  # and the closed file is whole
+
+
+def test_a_recording_split_in_parts_has_every_message_once_and_each_file_readable_alone(tmp_path: Path) -> None:
+    path = tmp_path / "split.mcap"
+    sink = SplitSink(path, {"sampling_time": "0.1"}, split_seconds=1.0)
+    recorder = Recorder(sink, 0.1, clock="steps")
+    for k in range(35):  # 3.5 s of steps: files of [0, 1), [1, 2), [2, 3) and [3, 3.5) s
+        state = (1.0 - 0.01 * k, 0.0, 0.0)
+        recorder.state("tb3_0", 0, state, ORIGIN_NS)
+        recorder.transition("tb3_0", 0, k, state, (0.1, 0.0), 0.5, ORIGIN_NS)
+    recorder.close()
+    assert sink.paths == [part_path(path, part) for part in range(4)] == sorted(tmp_path.iterdir())
+    assert [p.name for p in sink.paths] == ["split.mcap", "split_1.mcap", "split_2.mcap", "split_3.mcap"]
+    steps, odometry, in_files = [], 0, 0
+    for file in sink.paths:
+        info = check_rosbag2_layout(file)  # each a whole recording: summary, rosbag2 metadata
+        topics = read(file)
+        first = min(t for messages in topics.values() for t, _ in messages)
+        assert [t for t, _ in topics["/target"]] == [first]  # the target again, at each file's start
+        steps += [m.step for _, m in topics["/tb3_0/srl/transition"]]
+        odometry += len(topics["/tb3_0/odom"])
+        in_files += info["message_count"]
+    assert steps == list(range(35)) and odometry == 35  # every message once, in order, none lost at a boundary
+    assert sink.messages == in_files - 3 and sink.counts["/target"] == 1  # the target written again 3 times
+    assert "to " + str(path) + " and 3 more files (split_3.mcap)" in describe(sink)
+    with pytest.raises(RecordingError, match="positive time"):
+        SplitSink(tmp_path / "bad.mcap", split_seconds=math.nan)
+    one = SplitSink(tmp_path / "one.mcap", split_seconds=0.0)  # 0: never split
+    for k in range(50):
+        one.write("/x", "std_msgs/msg/Empty", "", b"\x00\x01\x00\x00", ORIGIN_NS + k * 10**9)
+    one.close()
+    assert one.paths == [tmp_path / "one.mcap"] and "more file" not in describe(one)
 
 
 def test_a_fleet_gets_one_base_footprint_per_robot_under_one_odom() -> None:

@@ -39,6 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="wall: states stamped on arrival (a real-time system); steps: one state per step "
         "at origin + k delta (a lockstep system) (default: wall)",
     )
+    parser.add_argument(
+        "--split-minutes",
+        type=float,
+        default=60.0,
+        metavar="M",
+        help="a new file (FILE_1.mcap, FILE_2.mcap, ...) every M minutes of messages, each readable "
+        "alone: a recorder's memory grows with its file's length; 0 = one file (default: 60)",
+    )
     add_seconds_argument(parser)
     add_connect_timeout_argument(parser)
     parser.set_defaults(func=main)

@@ -396,6 +396,65 @@ class McapSink:
         return json.dumps({"rosbag2_bagfile_information": info}, indent=1)
 
 
+def part_path(path: Path, part: int) -> Path:
+    """The ``part``-th file of a recording split in parts: the first is ``path`` itself, the next
+    ``<stem>_1.mcap``, ``<stem>_2.mcap``, ... beside it."""
+    return path if part == 0 else path.with_name(f"{path.stem}_{part}{path.suffix}")
+
+
+class SplitSink:
+    """A recording in consecutive MCAP files (:class:`McapSink`), a new one when the current file's
+    messages span ``split_seconds`` (by their own stamps): what a file's writer keeps in memory for
+    its summary (an index entry per chunk) is bounded by one file's length, not the recording's.
+    A closed file's writer is let go; what stays per file is its path.
+
+    Each file is a complete recording of its span, readable alone: the messages written once (the
+    target pose, :data:`LATCHED_TOPICS`) are written again at the start of every file, with the
+    new file's first stamp; ``/tf`` carries the goal frame every second anyway. ``split_seconds``
+    0: one file, as :class:`McapSink` alone."""
+
+    LATCHED_TOPICS = frozenset({TARGET_TOPIC})
+
+    def __init__(self, path: Path, extra_metadata: dict[str, str] | None = None, split_seconds: float = 0.0) -> None:
+        if not (math.isfinite(split_seconds) and split_seconds >= 0):
+            raise RecordingError(f"a recording's part must span a positive time (0: one file), got {split_seconds}")
+        self.split_ns = round(split_seconds * 1e9)
+        self.extra_metadata = extra_metadata or {}
+        self.current = McapSink(path, self.extra_metadata)
+        self.path = self.current.path  # the first file's: the name the recording was asked for
+        self.paths = [self.path]
+        self.counts: dict[str, int] = {}  # messages per topic as they came (not the latched ones written again)
+        self.latched: dict[str, tuple[str, str, bytes]] = {}
+        self.file_first_ns: int | None = None
+
+    @property
+    def messages(self) -> int:
+        return sum(self.counts.values())
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        if self.file_first_ns is None:
+            self.file_first_ns = t_ns
+        elif self.split_ns and t_ns - self.file_first_ns >= self.split_ns:
+            self._next_file(t_ns)
+        if topic in self.LATCHED_TOPICS:
+            self.latched[topic] = (ros_type, definition, data)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.current.write(topic, ros_type, definition, data, t_ns)
+
+    def _next_file(self, t_ns: int) -> None:
+        """Close the current file (its summary and metadata written), open the next one and write
+        the latched messages into it first."""
+        self.current.close()
+        self.paths.append(part_path(self.path, len(self.paths)))
+        self.current = McapSink(self.paths[-1], self.extra_metadata)
+        self.file_first_ns = t_ns
+        for topic, (ros_type, definition, data) in self.latched.items():
+            self.current.write(topic, ros_type, definition, data, t_ns)
+
+    def close(self) -> None:
+        self.current.close()
+
+
 @dataclass(frozen=True)
 class PoseFrames:
     """Where a robot's goal-frame state sits in REP 105's frames (docs/recordings.md "Frames").
@@ -710,14 +769,19 @@ def wall_ns() -> int:
     return time.time_ns()
 
 
-def describe(sink: McapSink) -> str:
-    """The one summary line of a closed recording."""
-    robots = sorted({t.split("/")[1] for t in sink.counts if t.count("/") >= 2})
-    size = os.path.getsize(sink.path) if sink.path.exists() else 0
+def describe(sink: McapSink | SplitSink) -> str:
+    """The one summary line of a closed recording (of a split one: its files and their total size)."""
+    counts = sink.counts
+    robots = sorted({t.split("/")[1] for t in counts if t.count("/") >= 2})
+    paths = sink.paths if isinstance(sink, SplitSink) else [sink.path]
+    size = sum(os.path.getsize(path) for path in paths if path.exists())
+    files = (
+        "" if len(paths) == 1 else f" and {len(paths) - 1} more file{'s' if len(paths) > 2 else ''} ({paths[-1].name})"
+    )
     return (
-        f"recorded {sink.messages} messages on {len(sink.counts)} topics "
+        f"recorded {sum(counts.values())} messages on {len(counts)} topics "
         f"({len(robots)} robot{'s' if len(robots) != 1 else ''}: {', '.join(robots) or 'none'}) "
-        f"to {sink.path} ({size / 1024:.1f} KiB)"
+        f"to {sink.path}{files} ({size / 1024:.1f} KiB)"
     )
 
 
@@ -880,7 +944,11 @@ def cmd_record(args: Any) -> int:
     if args.file is None:
         args.file = Path(time.strftime("srl-%Y%m%d-%H%M%S.mcap", time.gmtime()))
     try:
-        sink = McapSink(args.file, {"sampling_time": json.dumps(settings.plant.sampling_time), "source": '"zenoh"'})
+        sink = SplitSink(
+            args.file,
+            {"sampling_time": json.dumps(settings.plant.sampling_time), "source": '"zenoh"'},
+            split_seconds=60.0 * args.split_minutes,
+        )
     except RecordingError as error:
         raise UsageError(str(error)) from None
     recorder = Recorder(sink, settings.plant.sampling_time, clock=args.clock)
