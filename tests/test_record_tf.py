@@ -216,6 +216,11 @@ def test_a_recording_split_in_parts_has_every_message_once_and_each_file_readabl
     assert "to " + str(path) + " and 3 more files (split_3.mcap)" in describe(sink)
     with pytest.raises(RecordingError, match="positive time"):
         SplitSink(tmp_path / "bad.mcap", split_seconds=math.nan)
+    (tmp_path / "split_7.mcap").write_bytes(b"an older, longer recording's part")
+    (tmp_path / "split_notes.mcap").write_bytes(b"not a part")
+    again = SplitSink(path, split_seconds=1.0)  # the same name again: replaces the recording, parts too
+    again.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["split.mcap", "split_notes.mcap"]
     one = SplitSink(tmp_path / "one.mcap", split_seconds=0.0)  # 0: never split
     for k in range(50):
         one.write("/x", "std_msgs/msg/Empty", "", b"\x00\x01\x00\x00", ORIGIN_NS + k * 10**9)

@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=Path,
         nargs="?",
         metavar="FILE.mcap",
-        help="the recording to write, replaced if it exists (default: srl-<UTC time>.mcap here)",
+        help="the recording to write, replaced if it exists, its parts too (default: srl-<UTC time>.mcap here)",
     )
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
     parser.add_argument(

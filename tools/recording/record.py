@@ -50,6 +50,7 @@ lockstep, one step each (``clock = "steps"``).
 from __future__ import annotations
 
 import functools
+import glob
 import json
 import logging
 import math
@@ -408,7 +409,8 @@ class SplitSink:
     its summary (an index entry per chunk) is bounded by one file's length, not the recording's.
     A closed file's writer is let go; what stays per file is its path.
 
-    Each file is a complete recording of its span, readable alone: the messages written once (the
+    A recording replaces the one of the same name, its parts too (``<stem>_<n>.mcap``). Each file is
+    a complete recording of its span, readable alone: the messages written once (the
     target pose, :data:`LATCHED_TOPICS`) are written again at the start of every file, with the
     new file's first stamp; ``/tf`` carries the goal frame every second anyway. ``split_seconds``
     0: one file, as :class:`McapSink` alone."""
@@ -423,6 +425,9 @@ class SplitSink:
         self.current = McapSink(path, self.extra_metadata)
         self.path = self.current.path  # the first file's: the name the recording was asked for
         self.paths = [self.path]
+        for old in self.path.parent.glob(f"{glob.escape(self.path.stem)}_*{self.path.suffix}"):
+            if old.stem[len(self.path.stem) + 1 :].isdigit():  # a part of the recording this one replaces
+                old.unlink(missing_ok=True)
         self.counts: dict[str, int] = {}  # messages per topic as they came (not the latched ones written again)
         self.latched: dict[str, tuple[str, str, bytes]] = {}
         self.file_first_ns: int | None = None
