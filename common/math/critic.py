@@ -372,7 +372,7 @@ class Replay:
         self.steps = np.zeros(capacity, dtype=np.int64)  # ring slot -> step
         self.costs = np.zeros(capacity)
         self.rows = np.zeros((capacity, QV_FEATURES))  # ring slot -> phi_Q, phi_V of its sample
-        self.values = np.zeros((capacity, 5))  # ring slot -> its state and action (x, y, alpha, v, omega)
+        self.values = np.zeros((capacity, STATE_DIM + ACTION_DIM))  # ring slot -> its (x, y, alpha, v, omega)
         self.start = 0  # the ring slot of the oldest sample
         self.kept = True  # every sample's row is in the ring (False: a sample of another shape)
 
@@ -427,7 +427,7 @@ class Replay:
             return np.array(
                 [[s.step, *np.asarray(s.state, float), *np.asarray(s.action, float), s.cost] for s in self._samples],
                 dtype=float,
-            ).reshape(-1, 7)
+            ).reshape(-1, 2 + STATE_DIM + ACTION_DIM)
         order = (self.start + np.arange(len(self._samples))) % self.capacity
         return np.column_stack((self.steps[order], self.values[order], self.costs[order])).astype(float)
 
