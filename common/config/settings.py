@@ -334,9 +334,6 @@ class TransportSettings(_Section):
         description="a plant host publishes a driven robot's state only at the state ticks just before its actor's tick"
     )
     express: bool = Field(description="every put sent at once (true) or batched by Zenoh with others due")
-    zenoh_threads: int = Field(
-        ge=0, le=64, description="threads of Zenoh's runtime in a service or recorder process (0: Zenoh's own pools)"
-    )
     callback_threads: bool = Field(
         description="each subscription's handler in a Python thread of its own (true) or on Zenoh's network thread"
     )

@@ -7,14 +7,12 @@ is counted under ``rejected.<topic>`` and logged (rate-limited), and never reach
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
-import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
 import zenoh
@@ -44,41 +42,6 @@ RECOVERY_HEARTBEAT_S = 0.5  # advanced publishers announce their last sequence n
 # router's other subscribers in about 1.5 ms on loopback, and a few hundred ms on a loaded
 # host or a slow link; 0.3 s delays a plant's start only once.
 PLANT_SETTLE_S = 0.3
-
-
-# Zenoh's runtimes besides "app" (zenoh-runtime's ZRuntime): the links' receive and send, the
-# listeners' accept, and the network's own tasks; each a pool of its own unless handed over.
-ZENOH_RUNTIME_PARTS = ("rx", "tx", "acc", "net")
-
-
-def runtime_spec(threads: int) -> str | None:
-    """The value of ``ZENOH_RUNTIME`` that runs every Zenoh runtime of a process on ``threads``
-    threads, one pool (the others hand their work over to "app"); None for 0 (Zenoh's own pools)."""
-    if threads <= 0:
-        return None
-    handover = ", ".join(f"{part}: (handover: app)" for part in ZENOH_RUNTIME_PARTS)
-    return f"(app: (worker_threads: {threads}), {handover})"
-
-
-@contextlib.contextmanager
-def zenoh_threads(threads: int) -> Iterator[None]:
-    """The sessions opened inside run Zenoh's runtime on ``threads`` threads (:func:`runtime_spec`;
-    0: Zenoh's own pools), if theirs is the process's first: Zenoh reads ``ZENOH_RUNTIME`` once,
-    when the first session starts its runtime. Afterwards the environment is as it was, so a
-    process started later (a router above all: one thread there drops messages under a burst)
-    inherits nothing. A ``ZENOH_RUNTIME`` already set (the user's) wins. For a service or a
-    recorder (``transport.zenoh_threads``): with one thread, no sample is handed from thread to
-    thread; a handler Zenoh calls on its thread then holds up the process's other receives,
-    sends and timers while it runs (srl's are short: decode, check, queue)."""
-    spec = runtime_spec(threads)
-    if spec is None or "ZENOH_RUNTIME" in os.environ:
-        yield
-        return
-    os.environ["ZENOH_RUNTIME"] = spec
-    try:
-        yield
-    finally:
-        os.environ.pop("ZENOH_RUNTIME", None)
 
 
 def zenoh_config(

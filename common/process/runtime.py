@@ -141,13 +141,10 @@ def stop_on_signals() -> Iterator[SignalStop]:
 def serve(settings: Settings, service: str, connect_timeout: float, body: Callable[..., dict[str, Any]]) -> int:
     """The one life cycle of a service process: signals, parent watch, session (with retry),
     ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line."""
-    from common.net.transport import Bus, zenoh_threads
+    from common.net.transport import Bus
 
     stop = service_stop()
-    with zenoh_threads(settings.transport.zenoh_threads):  # before the first session starts Zenoh's runtime
-        bus = connect_with_retry(
-            lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop
-        )
+    bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:
         result = body(settings, bus, stop)
     finally:

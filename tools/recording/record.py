@@ -913,17 +913,13 @@ class Feed:
         out whatever happens (a recording is complete after this)."""
         import sys
 
-        from common.net.transport import zenoh_threads
         from common.process.runtime import connect_with_retry, stop_on_signals
         from common.system.lifeline import die_with_parent
 
         with stop_on_signals() as stop:
             die_with_parent(stop)
             try:
-                with zenoh_threads(settings.transport.zenoh_threads):  # as a service's (common.process.runtime.serve)
-                    feed = connect_with_retry(
-                        lambda: cls(settings, recorder), settings, who, args.connect_timeout, stop
-                    )
+                feed = connect_with_retry(lambda: cls(settings, recorder), settings, who, args.connect_timeout, stop)
             except BaseException:
                 recorder.close()
                 raise
