@@ -104,6 +104,7 @@ def build_actor(settings: Settings, global_every: int = 1, hurry: Hurry = "polis
             multistart_margin=a.multistart_margin,
             multistart_refresh=a.multistart_refresh,
             multistart_flips=a.multistart_flips,
+            newton_iterations=a.newton_iterations,
             global_every=global_every,
             hurry=hurry,
         ),

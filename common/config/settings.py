@@ -274,6 +274,12 @@ class ActorSettings(_Section):
     multistart_flips: int = Field(
         ge=0, le=1000, description="vertex-search sweeps after the polish: each action entry to either bound (0 = off)"
     )
+    newton_iterations: int = Field(
+        ge=0,
+        le=50,
+        description="the polish: this many compiled projected-Newton iterations, the solver only where they end "
+        "short of stationary (0 = the solver polishes every start)",
+    )
 
     @field_validator("horizon")
     @classmethod

@@ -22,6 +22,7 @@ import numpy as np
 from common.math.actor_nlp import build
 from common.math.actor_problem import (
     GLOBAL_STARTS,
+    NEWTON_TOLERANCE,
     ActorCounters,
     ActorMemory,
     ActorProblem,
@@ -98,6 +99,9 @@ class StackedActor:
         self._descent_ready = built.descent is not None
         if built.descent is not None:
             self._setup_descent(built.descent)
+        self._newton_ready = built.newton is not None
+        if built.newton is not None:
+            self._setup_newton(built.newton)
         if built.flips is not None and built.rollout is not None:
             self._setup_flip_search(built.flips, built.rollout)
 
@@ -149,6 +153,24 @@ class StackedActor:
             self._descent_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
         for index, array in enumerate((self._descent_end, self._descent_value, self._descent_vector)):
             self._descent_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+
+    def _setup_newton(self, function: ca.Function) -> None:
+        """The polish's Newton iterations (ActorProblem.newton_iterations): zero-copy buffers of
+        (start, s_1, weights) -> (end, objective, stationarity, decision vector)."""
+        n_z = ACTION_DIM * (self.problem.horizon - 1)
+        self._newton_start = np.zeros(n_z)
+        self._newton_state = np.zeros(STATE_DIM)
+        self._newton_end = np.zeros(n_z)
+        self._newton_value = np.zeros(1)
+        self._newton_stationarity = np.zeros(1)
+        self._newton_vector = np.zeros(self._n_x)
+        self._newton_buffer, self._evaluate_newton = function.buffer()
+        inputs = (self._newton_start, self._newton_state, self._params)
+        outputs = (self._newton_end, self._newton_value, self._newton_stationarity, self._newton_vector)
+        for index, array in enumerate(inputs):
+            self._newton_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        for index, array in enumerate(outputs):
+            self._newton_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
 
     def _setup_flip_search(self, flips: ca.Function, rollout: ca.Function) -> None:
         """The vertex search's zero-copy buffers (see _flip_search). ``_candidates`` has one row
@@ -267,6 +289,23 @@ class StackedActor:
             if "process failed" not in str(error):  # an evaluation error, not a failed solve
                 status += f" (error: {str(error).strip().splitlines()[-1]})"
             return False, status, self._x0.copy(), float("nan")
+
+    def _polish(self) -> tuple[bool, str, np.ndarray, float]:
+        """The polish of the start in ``self._x0`` (the solver's bounds already hold the state):
+        the compiled Newton iterations (ActorProblem.newton_iterations), whose end is the answer
+        when it is stationary (projected gradient <= NEWTON_TOLERANCE); else, or without them,
+        the solver, from their end when it is finite (it lies no higher than the start)."""
+        if self._newton_ready:
+            np.clip((self._decisions_of(self._x0) / self._decision_bounds).ravel(), -1.0, 1.0, out=self._newton_start)
+            self._newton_state[:] = self._x0[:STATE_DIM]
+            self._evaluate_newton()
+            value = float(self._newton_value[0])
+            if np.isfinite(value):
+                if self._newton_stationarity[0] <= NEWTON_TOLERANCE:
+                    return True, "success", self._newton_vector.copy(), value
+                self._x0[:] = self._newton_vector
+            self.counters.newton_fallbacks += 1
+        return self._solve()
 
     def _descend(self) -> tuple[bool, str, np.ndarray, float]:
         """The hurried step's answer (ActorProblem.hurry "descend"): the warm start in
@@ -435,7 +474,7 @@ class StackedActor:
         else:
             self._lbx_np[:STATE_DIM] = state
             self._ubx_np[:STATE_DIM] = state
-            success, status, x_opt, objective = self._solve()
+            success, status, x_opt, objective = self._polish()
             mark = self._phase_done("polish", mark)
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
@@ -450,7 +489,7 @@ class StackedActor:
             self._x0[:] = runner_up
             self._x0[:STATE_DIM] = state
             counters.second_solves += 1
-            second = self._solve()
+            second = self._polish()
             mark = self._phase_done("runner_up", mark)
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
@@ -464,7 +503,7 @@ class StackedActor:
             # A lower vertex neighbour of the solution: polish it, keep the lower.
             self._x0[:] = neighbour
             counters.flip_solves += 1
-            flipped = self._solve()
+            flipped = self._polish()
             self._phase_done("flip_polish", mark)
             if flipped[0] and flipped[3] < objective:
                 success, status, x_opt, objective = flipped

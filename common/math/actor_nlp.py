@@ -18,8 +18,8 @@ and the critic weights through the parameter vector, so a step never rebuilds an
 
 Beside the solver, :func:`build` compiles the functions :class:`common.math.actor.StackedActor`
 steps with: the merit (the objective along a single-shooting rollout), the global phase
-(``multistart``), the hurried step's descent (``hurry`` "descend") and the vertex search
-(``multistart_flips``).
+(``multistart``), the hurried step's descent (``hurry`` "descend"), the polish's projected Newton
+iterations (``newton_iterations``) and the vertex search (``multistart_flips``).
 """
 
 from __future__ import annotations
@@ -40,6 +40,8 @@ from common.system.jit import build_with_jit, compiler_available
 
 log = logging.getLogger(__name__)
 
+NEWTON_TRIALS = 10  # step sizes 1, 1/2, .., 1/512 each Newton iteration tries (newton_polish)
+
 
 @dataclass(frozen=True)
 class ActorFunctions:
@@ -50,7 +52,9 @@ class ActorFunctions:
     wheels' rim speeds with the wheel box on). ``merit``: (s_1, decisions, weights) -> the
     objective along the rollout. ``global_phase`` (multistart): (starts, s_1, weights) -> (ends,
     their objective, their decision vectors). ``descent`` (``hurry`` "descend"): the same for one
-    start, (start, s_1, weights) -> (end, its objective, its decision vector). ``flips`` and
+    start, (start, s_1, weights) -> (end, its objective, its decision vector). ``newton``
+    (``newton_iterations``): the polish's projected Newton iterations, (start, s_1, weights) ->
+    (end, its objective, its projected gradient's largest entry, its decision vector). ``flips`` and
     ``rollout`` (multistart_flips): (s_1, candidates, weights) -> each candidate's merit, and
     (s_1, decisions) -> the decision vector of their rollout."""
 
@@ -58,6 +62,7 @@ class ActorFunctions:
     merit: ca.Function
     global_phase: ca.Function | None
     descent: ca.Function | None
+    newton: ca.Function | None
     flips: ca.Function | None
     rollout: ca.Function | None
     lbx: np.ndarray
@@ -83,6 +88,82 @@ def objective(problem: ActorProblem, states: list[Any], actions: list[Any], w: A
     return total
 
 
+def scaled_objective(problem: ActorProblem, state: Any, params: Any, bounds: list[float]) -> tuple[Any, Any, Any, Any]:
+    """The agent's objective along the predictor's rollout from ``state`` (single shooting, as
+    the merit) of the stage decisions scaled to the box [-1, 1] (z = d / bound, u_1 first):
+    (z, the weights' symbol, the objective, the function (z, s_1) -> the decision vector of the
+    rollout, stage-wise as the solver's)."""
+    p = problem
+    n_act, step = p.horizon - 1, PREDICTORS[p.predictor]
+    z = ca.SX.sym("z", ACTION_DIM * n_act)
+    scale = ca.DM(bounds)
+    decisions = [z[ACTION_DIM * i : ACTION_DIM * (i + 1)] * scale for i in range(n_act)]
+    to_action = ca.DM(p.action_matrix)
+    actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
+    rollout = [state]
+    for u_i in actions:
+        rollout.append(step(rollout[-1], u_i, p.sampling_time))
+    weights = ca.SX.sym("p", params.numel())
+    cost = objective(p, rollout, actions, weights[:Q_FEATURES], weights[Q_FEATURES:])
+    stages: list[Any] = []
+    for s_i, d_i in zip(rollout[:-1], decisions, strict=True):
+        stages += [s_i, d_i]
+    decision_vector = ca.Function("descent_rollout", [z, state], [ca.vertcat(*stages, rollout[-1])])
+    return z, weights, cost, decision_vector
+
+
+def newton_polish(problem: ActorProblem, state: Any, params: Any, bounds: list[float]) -> tuple[list[Any], list[Any]]:
+    """The polish's projected Newton iterations (ActorProblem.newton_iterations): (start, s_1,
+    weights) -> (end, its objective, the largest entry of its projected gradient, its decision
+    vector), the start and the end scaled to the box [-1, 1] as the global phase's.
+
+    Each iteration is Bertsekas' projected Newton method for a box: the entries at a bound whose
+    gradient pushes outwards (within eps, the projected gradient's size, capped at 1e-3) stay
+    there; on the others a Newton step on the exact Hessian of the single-shooting objective
+    (22 entries at N = 12: one dense QR), or, where that Hessian is indefinite and the Newton
+    step is no descent, the gradient scaled by the Hessian's diagonal. The step is projected on
+    the box and halved until the objective falls by Armijo's rule (up to NEWTON_TRIALS sizes,
+    all tried at once); none falling, the iterate stays. From a start in a minimum's basin (the
+    global phase's end, the shifted plan) the iterations converge quadratically to it, in one
+    compiled call; the actor checks the projected gradient and leaves what did not converge to
+    the solver (common.math.actor.StackedActor._polish)."""
+    p = problem
+    z, weights, cost, decision_vector = scaled_objective(p, state, params, bounds)
+    hessian, gradient = ca.hessian(cost, z)
+    value = ca.Function("newton_value", [z, state, weights], [cost])
+    derivatives = ca.Function("newton_derivatives", [z, state, weights], [gradient, hessian])
+    n_z = z.numel()
+    z_mx, f_mx = ca.MX.sym("z", n_z), ca.MX.sym("f", 1)
+    s_mx, p_mx = ca.MX.sym("s", STATE_DIM), ca.MX.sym("p", params.numel())
+    g, h = derivatives(z_mx, s_mx, p_mx)
+    projected = z_mx - ca.fmin(ca.fmax(z_mx - g, -1.0), 1.0)
+    eps = ca.fmin(1e-3, ca.mmax(ca.fabs(projected)))
+    active = ca.logic_or(ca.logic_and(z_mx <= -1.0 + eps, g > 0), ca.logic_and(z_mx >= 1.0 - eps, g < 0))
+    free = 1 - active
+    reduced = ca.diag(free) @ h @ ca.diag(free) + ca.diag(active)
+    newton = -ca.solve(reduced, free * g, "qr")
+    curvature = ca.fabs(ca.diag(h))
+    scaled_gradient = -free * g / ca.fmax(curvature, 1e-6 * ca.mmax(curvature) + 1e-12)
+    direction = ca.if_else(ca.dot(g, newton) < 0, newton, scaled_gradient)  # false for NaN too
+    z_next, f_next = z_mx, f_mx
+    for j in reversed(range(NEWTON_TRIALS)):  # the largest step that passes wins: tried last
+        trial = ca.fmin(ca.fmax(z_mx + 0.5**j * direction, -1.0), 1.0)
+        f_trial = value(trial, s_mx, p_mx)
+        passes = ca.logic_and(f_trial <= f_mx + 1e-4 * ca.dot(g, trial - z_mx), f_trial <= f_mx)  # false for NaN
+        z_next = ca.if_else(passes, trial, z_next)
+        f_next = ca.if_else(passes, f_trial, f_next)
+    iteration = ca.Function("newton_iteration", [z_mx, f_mx, s_mx, p_mx], [z_next, f_next])
+    iterations = p.newton_iterations
+    start = ca.MX.sym("start", n_z)
+    path, values = iteration.mapaccum("newton", iterations, 2)(
+        start, value(start, s_mx, p_mx), ca.repmat(s_mx, 1, iterations), ca.repmat(p_mx, 1, iterations)
+    )
+    end = path[:, -1]
+    g_end, _ = derivatives(end, s_mx, p_mx)
+    stationarity = ca.mmax(ca.fabs(end - ca.fmin(ca.fmax(end - g_end, -1.0), 1.0)))
+    return [start, s_mx, p_mx], [end, values[-1], stationarity, decision_vector(end, s_mx)]
+
+
 def global_phase(
     problem: ActorProblem, state: Any, params: Any, bounds: list[float]
 ) -> tuple[tuple[list[Any], list[Any]], tuple[list[Any], list[Any]]]:
@@ -102,19 +183,8 @@ def global_phase(
     map: compiled once, no Python per iteration.
     """
     p = problem
-    n_act, step = p.horizon - 1, PREDICTORS[p.predictor]
-    n_z = ACTION_DIM * n_act
-    z = ca.SX.sym("z", n_z)
-    scale = ca.DM(bounds)
-    decisions = [z[ACTION_DIM * i : ACTION_DIM * (i + 1)] * scale for i in range(n_act)]
-    to_action = ca.DM(p.action_matrix)
-    actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
-    rollout = [state]
-    for u_i in actions:
-        rollout.append(step(rollout[-1], u_i, p.sampling_time))
-    weights = ca.SX.sym("p", params.numel())
-    w, v = weights[:Q_FEATURES], weights[Q_FEATURES:]
-    cost = objective(p, rollout, actions, w, v)
+    n_z = ACTION_DIM * (p.horizon - 1)
+    z, weights, cost, decision_vector = scaled_objective(p, state, params, bounds)
     value = ca.Function("descent_value", [z, state, weights], [cost])
     gradient = ca.Function("descent_gradient", [z, state, weights], [ca.gradient(cost, z)])
     # A diagonal preconditioner, the Hessian's diagonal at the start (its magnitude, floored):
@@ -123,10 +193,6 @@ def global_phase(
     curvature = ca.fabs(ca.diag(ca.hessian(cost, z)[0]))
     curvature = ca.fmax(curvature, 1e-6 * ca.mmax(curvature) + 1e-12)
     diagonal = ca.Function("descent_diagonal", [z, state, weights], [1.0 / curvature])
-    stages: list[Any] = []
-    for s_i, d_i in zip(rollout[:-1], decisions, strict=True):
-        stages += [s_i, d_i]
-    decision_vector = ca.Function("descent_rollout", [z, state], [ca.vertcat(*stages, rollout[-1])])
 
     z_mx, z_last, t, f_z, k = (
         ca.MX.sym(n, size) for n, size in (("z", n_z), ("z_last", n_z), ("t", 1), ("f", 1), ("k", 1))
@@ -219,6 +285,7 @@ def build(problem: ActorProblem) -> ActorFunctions:
     phases = global_phase(p, states[0], ca.vertcat(w, v), bounds) if p.multistart else None
     global_args = phases[0] if phases is not None else None
     descent_args = phases[1] if phases is not None and p.hurry == "descend" else None
+    newton_args = newton_polish(p, states[0], ca.vertcat(w, v), bounds) if p.newton_iterations > 0 else None
 
     # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
     variables = []
@@ -287,11 +354,13 @@ def build(problem: ActorProblem) -> ActorFunctions:
     def functions(compiler: str | None) -> ActorFunctions:
         solver = ca.nlpsol(name, p.solver, nlp, options | compiled("srl_actor", compiler))
         merit = ca.Function("merit", *merit_args, compiled("srl_merit", compiler))
-        global_fn = descent_fn = flips = rollout_fn = None
+        global_fn = descent_fn = newton_fn = flips = rollout_fn = None
         if global_args is not None:
             global_fn = ca.Function("global_phase", *global_args, compiled("srl_global", compiler))
         if descent_args is not None:
             descent_fn = ca.Function("descent", *descent_args, compiled("srl_descent", compiler))
+        if newton_args is not None:
+            newton_fn = ca.Function("newton_polish", *newton_args, compiled("srl_newton", compiler))
         if flip_args is not None:
             flips = ca.Function("vertex_neighbours", *flip_args[0], compiled("srl_flips", compiler))
             rollout_fn = ca.Function("rollout", *flip_args[1], compiled("srl_rollout", compiler))
@@ -300,6 +369,7 @@ def build(problem: ActorProblem) -> ActorFunctions:
             merit,
             global_fn,
             descent_fn,
+            newton_fn,
             flips,
             rollout_fn,
             np.array(lbx, dtype=float),

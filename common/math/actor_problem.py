@@ -23,6 +23,10 @@ from common.math.stats import Window
 # The global phase's starts (ActorProblem.multistart): the shifted and the earlier plan (or, with
 # no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
 GLOBAL_STARTS = 5
+# The polish's Newton iterations are done when the largest entry of the projected gradient (of
+# the objective in the box-scaled decisions z in [-1, 1]) is at most this; else the solver goes on
+# from their end (common.math.actor.StackedActor._polish).
+NEWTON_TOLERANCE = 1e-6
 # What a hurried step does once the robot has a plan (ActorProblem.hurry).
 Hurry = Literal["polish", "descend"]
 HURRIES: tuple[Hurry, ...] = get_args(Hurry)
@@ -96,6 +100,12 @@ class ActorProblem:
     # compiled only with this setting and ``multistart``). An actor host over its CPU budget sets it
     # (actor.host_hurry): what a hurried tick costs is what caps the host's CPU.
     hurry: Hurry = "polish"
+    # The polish (of the chosen start, the runner-up, a vertex neighbour): first this many
+    # projected Newton iterations on the single-shooting objective, compiled into one call
+    # (common.math.actor_nlp.newton_polish, ~10 us each at N = 12), and the solver only where
+    # their end is not stationary (projected gradient above NEWTON_TOLERANCE). 0: the solver
+    # polishes every start.
+    newton_iterations: int = 0
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -128,6 +138,8 @@ class ActorProblem:
             raise ValueError(f"global_every must be >= 1 (1 = every solve), got {self.global_every}")
         if self.hurry not in HURRIES:
             raise ValueError(f"unknown hurry {self.hurry!r}; choose one of {', '.join(HURRIES)}")
+        if not 0 <= self.newton_iterations <= 50:
+            raise ValueError(f"newton_iterations must be 0..50 (0 = no Newton), got {self.newton_iterations}")
         if self.multistart_flips < 0:
             raise ValueError(f"multistart_flips must be >= 0 (0 = off), got {self.multistart_flips}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
@@ -226,6 +238,7 @@ class ActorCounters:
     second_solves: int = 0  # steps that also polished the runner-up end (multistart_margin)
     flip_solves: int = 0  # steps whose vertex search found a lower neighbour and polished it (multistart_flips)
     hurried_solves: int = 0  # steps solved in a hurry: the runner-up polish and vertex search skipped
+    newton_fallbacks: int = 0  # polishes whose Newton iterations fell short: the solver went on (newton_iterations)
     solve_seconds: Window = field(default_factory=Window)
     # per phase of a step (PHASES): the steps that ran it and its total time [s] (sums, not lists)
     phase_counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(PHASES, 0))
