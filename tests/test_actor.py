@@ -473,8 +473,10 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
     from common.math.loop import ExactPlant
     from tools.bench.actor import learned_weights
 
-    # the merit-only warm start (multistart off); the global phase takes both plans as starts
-    settings = Settings.load(actor={"agent": agent, "horizon": 12, "jit": False, "multistart": False})
+    # the merit-only warm start (multistart off); the global phase takes both plans as starts.
+    # Solver iterations are what is counted: the solver polishes every step (no Newton iterations)
+    actor_settings = {"agent": agent, "horizon": 12, "jit": False, "multistart": False, "newton_iterations": 0}
+    settings = Settings.load(actor=actor_settings)
     weights = learned_weights(settings)
     iterations = {}
     for use_earlier in (True, False):
@@ -751,3 +753,50 @@ def test_global_every_k_runs_the_global_phase_every_kth_solve_and_the_vertex_sea
     assert every.counters.phase_counts["global"] == 4
     with pytest.raises(ValueError, match="global_every"):
         make_actor("rlq", 6, multistart=True, global_every=0)
+
+
+def test_the_newton_polish_reaches_the_solvers_minimum_and_leaves_the_rest_to_the_solver() -> None:
+    # ActorProblem.newton_iterations: a warm start's polish is the compiled projected Newton
+    # iterations, the solver only where they end short of stationary; a fresh start's is the
+    # solver's. Oracles: fatrop alone (newton_iterations 0) polishing the same start (the global
+    # phase's lowest end) on random indefinite critics; the hand-written objective of the plan;
+    # the start's merit (the iterations only descend). Negative control: one iteration from a
+    # vertex of the box (full speed ahead, turning) leaves many starts to the solver, and counts them.
+    newton = make_actor("rlqv", 6, multistart=True, newton_iterations=6)
+    solver = make_actor("rlqv", 6, multistart=True)
+    short = make_actor("rlqv", 6, multistart=True, newton_iterations=1)
+    stationary = agree = 0
+    for w, v_w, state in indefinite_problems(7, 20):
+        for actor in (newton, solver, short):
+            actor._params[:15], actor._params[15:] = w, v_w
+            actor.reset()
+            actor._global_guess(state)
+            actor._lbx_np[:3] = state
+            actor._ubx_np[:3] = state
+        newton._merit_state[:] = state
+        start = newton._merit_of(newton._x0)
+        before = newton.counters.newton_fallbacks
+        (success, _, x, value), reference = newton._polish(warm=True), solver._polish(warm=True)
+        assert success and reference[0]
+        assert value == pytest.approx(float(hand_objective("rlqv", state, _actions_of(x), w, v_w)), rel=1e-9)
+        assert value <= start + 1e-9 * (1 + abs(start))
+        assert np.all(np.abs(np.array(_actions_of(x))) <= np.array([V_MAX, OMEGA_MAX]) + 1e-9)
+        if newton.counters.newton_fallbacks == before:
+            stationary += 1
+            agree += value == pytest.approx(reference[3], rel=1e-6, abs=1e-9)
+        else:  # the solver from the start itself: fatrop's answer
+            np.testing.assert_array_equal(x, reference[2])
+        fresh = newton._polish(warm=False)  # a fresh start: the solver's, bit for bit
+        np.testing.assert_array_equal(fresh[2], reference[2])
+        short._x0[:-3].reshape(-1, 5)[:, 3:] = [V_MAX, OMEGA_MAX]
+        short._polish(warm=True)
+    assert newton.counters.newton_fallbacks == 20 - stationary  # the fresh polishes count none
+    assert solver.counters.newton_fallbacks == 0  # no Newton iterations: nothing to fall back from
+    assert stationary >= 15 and agree >= stationary - 1, (stationary, agree)
+    assert short.counters.newton_fallbacks >= 5  # 9 of these 20
+
+
+@pytest.mark.parametrize("iterations", [-1, 51])
+def test_bad_newton_iterations_raise(iterations: int) -> None:
+    with pytest.raises(ValueError, match="newton_iterations"):
+        ActorProblem("rlqv", 4, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, newton_iterations=iterations)

@@ -52,6 +52,7 @@ class StackedActor:
         self._previous_x: np.ndarray | None = None
         self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
         self._episode_solves = 0  # solves since the last reset (the refresh's phase)
+        self._warm_start = False  # the start in _x0 is a previous plan of the robot (_polish)
         # The compiled functions: they must live as long as the buffers below read from them.
         self._functions = built = build(problem)
         lbx, ubx, n_g = built.lbx, built.ubx, built.n_g
@@ -235,6 +236,7 @@ class StackedActor:
         x0 = self._x0
         settled = self._previous_x is not None and (hurry or self._episode_solves % self.problem.global_every != 0)
         global_phase = self.problem.multistart and not settled
+        self._warm_start = self._previous_x is not None  # the shifted or the earlier plan (_polish)
         if global_phase:
             self._global_guess(state)
         elif self._previous_x is None:
@@ -271,6 +273,7 @@ class StackedActor:
         values = self._end_values
         best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
         self._x0[:] = self._end_vectors[best]
+        self._warm_start = self._previous_x is not None and best < 2
 
     def _phase_done(self, phase: str, since: float) -> float:
         """Count one run of ``phase`` that began at ``since`` (perf_counter); return now."""
@@ -290,20 +293,22 @@ class StackedActor:
                 status += f" (error: {str(error).strip().splitlines()[-1]})"
             return False, status, self._x0.copy(), float("nan")
 
-    def _polish(self) -> tuple[bool, str, np.ndarray, float]:
-        """The polish of the start in ``self._x0`` (the solver's bounds already hold the state):
-        the compiled Newton iterations (ActorProblem.newton_iterations), whose end is the answer
-        when it is stationary (projected gradient <= NEWTON_TOLERANCE); else, or without them,
-        the solver, from their end when it is finite (it lies no higher than the start)."""
-        if self._newton_ready:
+    def _polish(self, warm: bool) -> tuple[bool, str, np.ndarray, float]:
+        """The polish of the start in ``self._x0`` (the solver's bounds already hold the state).
+        A ``warm`` start (a previous plan of this robot, shifted or not, after the global phase's
+        descent if it ran: it lies in the basin of the minimum it was polished to) goes to the
+        compiled Newton iterations (ActorProblem.newton_iterations), whose end is the answer when
+        it is stationary (projected gradient <= NEWTON_TOLERANCE). A fresh start (standing still,
+        full speed, a vertex neighbour), and a warm one whose iterations fall short, goes to the
+        solver from the start itself: the interior point's path may leave a fresh start's basin
+        for a lower minimum, where the Newton iterations only descend into the nearest one."""
+        if warm and self._newton_ready:
             np.clip((self._decisions_of(self._x0) / self._decision_bounds).ravel(), -1.0, 1.0, out=self._newton_start)
             self._newton_state[:] = self._x0[:STATE_DIM]
             self._evaluate_newton()
             value = float(self._newton_value[0])
-            if np.isfinite(value):
-                if self._newton_stationarity[0] <= NEWTON_TOLERANCE:
-                    return True, "success", self._newton_vector.copy(), value
-                self._x0[:] = self._newton_vector
+            if np.isfinite(value) and self._newton_stationarity[0] <= NEWTON_TOLERANCE:
+                return True, "success", self._newton_vector.copy(), value
             self.counters.newton_fallbacks += 1
         return self._solve()
 
@@ -338,6 +343,7 @@ class StackedActor:
             return None
         if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
             return None
+        self._warm_start = self._previous_x is not None and other < 2
         vector: np.ndarray = self._end_vectors[other]
         return vector
 
@@ -474,7 +480,7 @@ class StackedActor:
         else:
             self._lbx_np[:STATE_DIM] = state
             self._ubx_np[:STATE_DIM] = state
-            success, status, x_opt, objective = self._polish()
+            success, status, x_opt, objective = self._polish(self._warm_start)
             mark = self._phase_done("polish", mark)
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
@@ -489,7 +495,7 @@ class StackedActor:
             self._x0[:] = runner_up
             self._x0[:STATE_DIM] = state
             counters.second_solves += 1
-            second = self._polish()
+            second = self._polish(self._warm_start)
             mark = self._phase_done("runner_up", mark)
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
@@ -503,7 +509,7 @@ class StackedActor:
             # A lower vertex neighbour of the solution: polish it, keep the lower.
             self._x0[:] = neighbour
             counters.flip_solves += 1
-            flipped = self._polish()
+            flipped = self._solve()  # a fresh start: a vertex of the box moved (_polish)
             self._phase_done("flip_polish", mark)
             if flipped[0] and flipped[3] < objective:
                 success, status, x_opt, objective = flipped

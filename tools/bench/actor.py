@@ -938,7 +938,13 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
                     continue
                 note(f"building {agent} N={horizon} ({reference_solver}, reference)")
                 t0 = time.perf_counter()
-                ref_actor = build_actor(row_settings(settings, agent, horizon, reference_solver, method))
+                # the reference solver polishes every start itself (no Newton iterations before it)
+                ref_settings = row_settings(settings, agent, horizon, reference_solver, method)
+                ref_actor = build_actor(
+                    ref_settings.model_copy(
+                        update={"actor": ref_settings.actor.model_copy(update={"newton_iterations": 0})}
+                    )
+                )
                 ref_build = time.perf_counter() - t0
                 for weights in sets:
                     label = NO_WEIGHTS if agent == "mpc" else weights.name
