@@ -438,8 +438,8 @@ class StackedActor:
         ``solve_seconds`` is the whole step (guess, solve, checks), not the solver alone.
         ``hurry``: the caller is behind its schedule or over its CPU budget (an actor host,
         services/actor/host.py): the warm start (the previous plan, as with ``multistart`` off;
-        the global phase only while there is no plan yet) polished once by the solver
-        (ActorProblem.hurry "polish", ~0.26 ms instead of ~0.5 at N = 12) or descended by the
+        the global phase only while there is no plan yet) polished once (ActorProblem.hurry
+        "polish": its Newton iterations, the solver where they fall short) or descended by the
         compiled projected gradient ("descend", no solver: a fifth of the global phase), without
         the runner-up polish and the vertex search (counted in ``hurried_solves``), so a host that
         fell behind catches up instead of missing deadlines.
