@@ -31,7 +31,7 @@ from tools.gym.vector import SrlVectorEnv
 physics.load_mujoco()
 # the README's first command: ./srl run --agent rlqv --horizon 12 --start 2,2 --duration 30
 README_RUN = {"actor": {"agent": "rlqv", "horizon": 12}, "episode": {"start": [2.0, 2.0], "duration": 30.0}}
-README_J = "197.1661"
+README_J = "197.1662"
 # what Gymnasium's checker only recommends of a box: unbounded observations (the continuous
 # heading), a (v, omega) action box in physical units (normalized_actions gives [-1, 1])
 RECOMMENDATIONS = ("infinity", "symmetric and normalized")

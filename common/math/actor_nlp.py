@@ -285,7 +285,8 @@ def build(problem: ActorProblem) -> ActorFunctions:
     phases = global_phase(p, states[0], ca.vertcat(w, v), bounds) if p.multistart else None
     global_args = phases[0] if phases is not None else None
     descent_args = phases[1] if phases is not None and p.hurry == "descend" else None
-    newton_args = newton_polish(p, states[0], ca.vertcat(w, v), bounds) if p.newton_iterations > 0 else None
+    polishes = p.multistart and p.newton_iterations > 0  # without the global phase: the paper's actor, the solver
+    newton_args = newton_polish(p, states[0], ca.vertcat(w, v), bounds) if polishes else None
 
     # Stage-wise ordering x1 u1 x2 u2 ... x_N, as fatrop's structure detection expects.
     variables = []
