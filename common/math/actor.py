@@ -52,7 +52,6 @@ class StackedActor:
         self._previous_x: np.ndarray | None = None
         self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
         self._episode_solves = 0  # solves since the last reset (the refresh's phase)
-        self._warm_start = False  # the start in _x0 is a previous plan of the robot (_polish)
         # The compiled functions: they must live as long as the buffers below read from them.
         self._functions = built = build(problem)
         lbx, ubx, n_g = built.lbx, built.ubx, built.n_g
@@ -217,11 +216,12 @@ class StackedActor:
         """The arrival rule holds the robot at the target (False without a rule)."""
         return self.arrival is not None and self.arrival.arrived
 
-    def _initial_guess(self, state: np.ndarray, hurry: bool = False) -> bool:
+    def _initial_guess(self, state: np.ndarray, hurry: bool = False) -> tuple[bool, bool]:
         """Warm start, written in place into the solver's input ``self._x0`` (the weights
         must already be in ``self._params``). ``hurry`` with a previous plan: the merit-only warm
         start below instead of the global phase (multistart), ~0.2 ms less at N = 12. Returns
-        whether the global phase ran.
+        whether the global phase ran and whether the guess is warm: a previous plan of the
+        robot, after its descent if the global phase ran (:meth:`_polish`).
 
         The usual guess is the previous primal solution shifted by one stage, last stage
         repeated: with multiple shooting it needs not satisfy the dynamics, so shifting the
@@ -236,9 +236,10 @@ class StackedActor:
         x0 = self._x0
         settled = self._previous_x is not None and (hurry or self._episode_solves % self.problem.global_every != 0)
         global_phase = self.problem.multistart and not settled
-        self._warm_start = self._previous_x is not None  # the shifted or the earlier plan (_polish)
+        warm = self._previous_x is not None  # the shifted or the earlier plan
         if global_phase:
-            self._global_guess(state)
+            best = self._global_guess(state)
+            warm = warm and best < 2
         elif self._previous_x is None:
             x0[:] = 0.0
             for k in range(STATE_DIM):
@@ -250,14 +251,14 @@ class StackedActor:
                 if self._merit_of(self._earlier_x) < self._merit_of(x0):
                     x0[:] = self._earlier_x
         x0[:STATE_DIM] = state
-        return global_phase
+        return global_phase, warm
 
-    def _global_guess(self, state: np.ndarray) -> None:
+    def _global_guess(self, state: np.ndarray) -> int:
         """The multistart guess (ActorProblem.multistart), written into ``self._x0``: every
         start descended by the global phase (common.math.actor_nlp.global_phase) from
         ``state``, and the rollout of the end with the lowest objective. The warm starts are the
         shifted previous plan and the plan of two steps ago (the candidates of the merit-only
-        guess, see _initial_guess)."""
+        guess, see _initial_guess). Returns the row of the start whose end it is."""
         starts, bounds = self._starts, self._decision_bounds
         if self._previous_x is None:
             starts[0], starts[1] = self._turning
@@ -273,7 +274,7 @@ class StackedActor:
         values = self._end_values
         best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
         self._x0[:] = self._end_vectors[best]
-        self._warm_start = self._previous_x is not None and best < 2
+        return best
 
     def _phase_done(self, phase: str, since: float) -> float:
         """Count one run of ``phase`` that began at ``since`` (perf_counter); return now."""
@@ -323,14 +324,14 @@ class StackedActor:
         value = float(self._descent_value[0])
         return bool(np.isfinite(value)), "descended", self._descent_vector.copy(), value
 
-    def _runner_up(self) -> np.ndarray | None:
+    def _runner_up(self) -> tuple[np.ndarray, bool] | None:
         """The lowest end of the other kind of start, when the merit cannot tell it from the
         lowest end: the warm starts (rows 0-1: plans the solver converged, their ends at their
         minima) against the fresh ones (rows 2-4, whose descent may stop short of a lower
         minimum, in the flat valleys near the target above all). Returned when the two ends are
         apart and its objective is within ``multistart_margin`` (relative) of the lowest or the
-        solve is a ``multistart_refresh``-th one, else None. Read right after
-        :meth:`_global_guess` for the same state."""
+        solve is a ``multistart_refresh``-th one, with whether it is warm (:meth:`_polish`), else
+        None. Read right after :meth:`_global_guess` for the same state."""
         refresh = self.problem.multistart_refresh
         values = np.where(np.isfinite(self._end_values), self._end_values, np.inf)
         best = int(np.argmin(values))
@@ -343,9 +344,8 @@ class StackedActor:
             return None
         if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
             return None
-        self._warm_start = self._previous_x is not None and other < 2
         vector: np.ndarray = self._end_vectors[other]
-        return vector
+        return vector, self._previous_x is not None and other < 2
 
     def _same_basin(self, state: np.ndarray, start: np.ndarray, solution: np.ndarray) -> bool:
         """Does the objective fall all the way from ``start``'s actions to the ``solution``'s along
@@ -472,7 +472,7 @@ class StackedActor:
         self._params[Q_FEATURES:] = v_weights
         counters = self.counters
         mark = time.perf_counter()
-        global_phase = self._initial_guess(state, hurry)
+        global_phase, warm = self._initial_guess(state, hurry)
         if global_phase:
             mark = self._phase_done("global", mark)
         if hurry and self._descent_ready and not global_phase:
@@ -480,22 +480,22 @@ class StackedActor:
         else:
             self._lbx_np[:STATE_DIM] = state
             self._ubx_np[:STATE_DIM] = state
-            success, status, x_opt, objective = self._polish(self._warm_start)
+            success, status, x_opt, objective = self._polish(warm)
             mark = self._phase_done("polish", mark)
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
             counters.hurried_solves += 1
         runner_up = self._runner_up() if extras and global_phase else None
-        if runner_up is not None and success and self._same_basin(state, runner_up, x_opt):
+        if runner_up is not None and success and self._same_basin(state, runner_up[0], x_opt):
             runner_up = None
         if runner_up is not None:
             # The merit cannot tell a warm end (at its minimum) from a fresh one (whose descent
             # may stop short of a lower minimum, near the target above all): polish both, keep
             # the lower.
-            self._x0[:] = runner_up
+            self._x0[:] = runner_up[0]
             self._x0[:STATE_DIM] = state
             counters.second_solves += 1
-            second = self._polish(self._warm_start)
+            second = self._polish(runner_up[1])
             mark = self._phase_done("runner_up", mark)
             if second[0] and (not success or second[3] < objective):
                 success, status, x_opt, objective = second
