@@ -56,9 +56,10 @@ def test_step_runs_behave_as_a_set_in_any_order() -> None:
             runs.add(step)
             runs.add(step)  # a duplicate changes nothing
             held.add(step)
-            assert len(runs) == len(held) and step in runs
+            assert len(runs) == len(held) and step in runs and np.int64(step) in runs
         assert list(runs) == sorted(held)
         assert all((k in runs) == (k in held) for k in range(-2, 203))
+        assert "1" not in runs and None not in runs and 1.0 not in runs  # integers only
         floor = int(rng.integers(-1, 200))
         runs.keep_after(floor)
         held = {k for k in held if k > floor}

@@ -21,7 +21,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any, SupportsIndex
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -207,9 +207,12 @@ class StepRuns:
             self._count += last - first + 1
 
     def __contains__(self, step: object) -> bool:
-        if not isinstance(step, SupportsIndex):  # any integer (numpy's too), as a set of ints takes them
+        # Any integer (numpy's too), as a set of ints takes them; operator.index refuses the rest
+        # (an isinstance check against the runtime protocol SupportsIndex costs microseconds).
+        try:
+            value = operator.index(step)  # type: ignore[arg-type]
+        except TypeError:
             return False
-        value = operator.index(step)
         index = bisect.bisect_right(self._firsts, value) - 1
         return index >= 0 and value <= self._lasts[index]
 
