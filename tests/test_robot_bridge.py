@@ -422,7 +422,7 @@ def test_bridge_drives_the_emulated_robot(profile: str, distro: str, emulator_cm
         moved = watch.states[-1].state
         assert moved[0] > first.state[0] + 0.1 and moved[2] > 0.2  # forward and turning left
 
-        # watchdog: actions stop -> zero within the timeout plus one odometry period
+        # watchdog: actions stop -> zero within the timeout, one watchdog check and one odometry period
         wait_until(lambda: watch.first_stop_after(last_put) is not None, 5, "the robot to stop")
         stopped_after = watch.first_stop_after(last_put) - last_put  # type: ignore[operator]
         assert TIMEOUT - 0.02 < stopped_after <= TIMEOUT + WATCHDOG_CHECK + ODOM_PERIOD + SLACK, stopped_after
