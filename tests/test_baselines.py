@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import tempfile
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -172,6 +173,22 @@ def test_every_j_is_finite_and_the_sum_of_the_environments_costs(tiny: tuple[dic
                 assert info["cost"] == -reward
                 costs.append(info["cost"])
             assert costs == e.costs.tolist() and float(np.sum(costs)) == e.cost, row.label
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_a_training_leaves_nothing_in_the_temporary_directory(
+    algo: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # stable-baselines3 makes an SB3-<date> folder in the temporary directory at each learn()
+    # unless the model has a logger of its own; the control shows where its default would go.
+    from stable_baselines3.common.utils import configure_logger
+
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    train("srl/Unicycle-v0", algo, (64, 128), 3, experiment_settings(Settings.load()))
+    assert list(tmp_path.iterdir()) == []
+    configure_logger()  # the negative control: SB3's default logger
+    assert [p.name[:4] for p in tmp_path.iterdir()] == ["SB3-"]
 
 
 @pytest.mark.slow

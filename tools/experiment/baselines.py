@@ -196,6 +196,7 @@ def train(
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
 
     torch.set_num_threads(1)  # one core per training: the machine's others stay free
     params = hyperparameters(algo, hyper)
@@ -203,6 +204,9 @@ def train(
     policy = params.pop("policy")
     env = training_env(env_id, settings, extent, seed, n_envs)
     model = (SAC if algo == "sac" else PPO)(policy, env, seed=seed, device="cpu", verbose=0, **params)
+    # A logger with no outputs: without one, each learn() makes an empty SB3-<date> folder in the
+    # temporary directory (stable_baselines3.common.logger.configure) and leaves it there.
+    model.set_logger(Logger(folder=None, output_formats=[]))
 
     class Progress(BaseCallback):
         def _on_step(self) -> bool:
