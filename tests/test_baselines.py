@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import tempfile
 import warnings
 from dataclasses import replace
@@ -180,15 +181,21 @@ def test_a_training_leaves_nothing_in_the_temporary_directory(
     algo: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # stable-baselines3 makes an SB3-<date> folder in the temporary directory at each learn()
-    # unless the model has a logger of its own; the control shows where its default would go.
+    # unless the model has a logger of its own (the control shows where its default would go),
+    # and torch its compiler's cache torchinductor_<user> unless told another place: srl's cache.
     from stable_baselines3.common.utils import configure_logger
 
-    monkeypatch.delenv("SB3_LOGDIR", raising=False)
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    temporary, cache = tmp_path / "tmp", tmp_path / "cache"
+    temporary.mkdir()
+    for name in ("SB3_LOGDIR", "TORCHINDUCTOR_CACHE_DIR"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(cache))
+    monkeypatch.setattr(tempfile, "tempdir", str(temporary))
     train("srl/Unicycle-v0", algo, (64, 128), 3, experiment_settings(Settings.load()))
-    assert list(tmp_path.iterdir()) == []
+    assert list(temporary.iterdir()) == []
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(cache / "srl" / "torchinductor")
     configure_logger()  # the negative control: SB3's default logger
-    assert [p.name[:4] for p in tmp_path.iterdir()] == ["SB3-"]
+    assert [p.name[:4] for p in temporary.iterdir()] == ["SB3-"]
 
 
 @pytest.mark.slow

@@ -91,10 +91,15 @@ exit "$status"
 JIT_CACHE_ENTRIES = 200  # compiled objects kept (~0.1-2 MB each); the least recently used go first
 
 
+def srl_cache() -> str:
+    """srl's per-user cache: ``$XDG_CACHE_HOME/srl`` (``~/.cache/srl``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "srl")
+
+
 def default_jit_cache() -> str:
     """Where compiled actor problems are kept: ``$XDG_CACHE_HOME/srl/jit`` (``~/.cache/srl/jit``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "srl", "jit")
+    return os.path.join(srl_cache(), "jit")
 
 
 def jit_cache_directory(path: str) -> str | None:

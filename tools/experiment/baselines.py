@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 
 from common.config.settings import Settings
 from common.math.parking import parking
+from common.system.jit import srl_cache
 from tools.experiment.grid import STARTS, Start, make_starts
 from tools.experiment.marks import PARK_TOLERANCE_M
 from tools.gym.envs import ENV_MODELS, normalized_actions  # importing tools.gym registers the srl/ ids
@@ -148,6 +149,16 @@ def parse_hyper(items: Sequence[str]) -> dict[str, dict[str, Any]]:
     return hyper
 
 
+def import_torch() -> Any:
+    """torch, with its compiler's cache in srl's (``~/.cache/srl/torchinductor``) unless the user
+    chose one: torch makes ``torchinductor_<user>`` in the temporary directory when its compiler
+    is first imported (an optimizer's first step) and leaves it there."""
+    os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", os.path.join(srl_cache(), "torchinductor"))
+    import torch
+
+    return torch
+
+
 def hyperparameters(algo: str, hyper: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """The Zoo's set for ``algo`` with the overrides of ``hyper``."""
     return {**ZOO[algo], **(hyper or {}).get(algo, {})}
@@ -193,7 +204,7 @@ def train(
     """Train ``algo`` on ``env_id`` to the largest budget, one ``learn`` call per budget (the
     step counter carries on: one run), and copy the policy at each. ``advance(steps)`` is told the
     steps consumed as training goes (the progress bar)."""
-    import torch
+    torch = import_torch()
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import Logger
@@ -379,7 +390,7 @@ def env_settings_for(base: Settings, env_id: str) -> Settings:
 def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None) -> tuple[dict[str, Any], list[Row]]:
     """Train, evaluate, and write OUT/baselines.{md,csv,json,png}; returns the summary (what
     baselines.json holds) and the rows with their episodes (costs and actions)."""
-    import torch
+    torch = import_torch()
 
     torch.set_num_threads(1)
     started = datetime.now(UTC)
@@ -450,7 +461,7 @@ def train_and_evaluate(
     """``job``'s training to every budget and each copy's episodes from ``starts`` (the snapshots
     keep no policy: what crosses back from a worker process is numbers only). ``bar``: a rich
     progress to report on (in the calling process only)."""
-    import torch
+    torch = import_torch()
 
     torch.set_num_threads(1)
     settings = env_settings_for(base, job.env_id)
