@@ -105,13 +105,17 @@ def run_block(block: Block, root: Path, seconds: float = BLOCK_SECONDS, tmp: Pat
     """Run one block; None if it succeeded and printed what it says, else what went wrong.
 
     ``tmp``: where the block's ``/tmp/...`` paths go (in its commands and in its ``# prints:``
-    texts), so a run leaves nothing in /tmp and never meets another user's file of that name."""
+    texts), and its temporary directory (``TMPDIR``: what a library makes there, as
+    stable-baselines3's default logger and torch's compiler cache do), so a run leaves nothing in
+    /tmp and never meets another user's file of that name."""
     text, expected = block.text, block.expected
     if tmp is not None:
         text = text.replace("/tmp/", f"{tmp}/")
         expected = [line.replace("/tmp/", f"{tmp}/") for line in expected]
     env = dict(os.environ)
     env["PATH"] = f"{root / '.venv' / 'bin'}{os.pathsep}{env.get('PATH', '')}"
+    if tmp is not None:
+        env["TMPDIR"] = str(tmp)
     # a router port of its own (the packaged 7447 may be taken by another test or a running system):
     # the environment is below any flag the block gives, so a block that names its router keeps it
     env["SRL_TRANSPORT__ROUTER"] = f"tcp/127.0.0.1:{free_port()}"
