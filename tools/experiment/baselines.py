@@ -149,14 +149,16 @@ def parse_hyper(items: Sequence[str]) -> dict[str, dict[str, Any]]:
     return hyper
 
 
-def import_torch() -> Any:
-    """torch, with its compiler's cache in srl's (``~/.cache/srl/torchinductor``) unless the user
-    chose one: torch makes ``torchinductor_<user>`` in the temporary directory when its compiler
-    is first imported (an optimizer's first step) and leaves it there."""
+def use_torch() -> None:
+    """torch as every training and evaluation here uses it: on one thread (one core per
+    training: the machine's others stay free), its compiler's cache in srl's
+    (``~/.cache/srl/torchinductor``) unless the user chose one -- torch makes
+    ``torchinductor_<user>`` in the temporary directory when its compiler is first imported (an
+    optimizer's first step) and leaves it there."""
     os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", os.path.join(srl_cache(), "torchinductor"))
     import torch
 
-    return torch
+    torch.set_num_threads(1)
 
 
 def hyperparameters(algo: str, hyper: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -204,12 +206,11 @@ def train(
     """Train ``algo`` on ``env_id`` to the largest budget, one ``learn`` call per budget (the
     step counter carries on: one run), and copy the policy at each. ``advance(steps)`` is told the
     steps consumed as training goes (the progress bar)."""
-    torch = import_torch()
+    use_torch()
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import Logger
 
-    torch.set_num_threads(1)  # one core per training: the machine's others stay free
     params = hyperparameters(algo, hyper)
     n_envs = int(params.pop("n_envs", 1))
     policy = params.pop("policy")
@@ -390,9 +391,7 @@ def env_settings_for(base: Settings, env_id: str) -> Settings:
 def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None) -> tuple[dict[str, Any], list[Row]]:
     """Train, evaluate, and write OUT/baselines.{md,csv,json,png}; returns the summary (what
     baselines.json holds) and the rows with their episodes (costs and actions)."""
-    torch = import_torch()
-
-    torch.set_num_threads(1)
+    use_torch()
     started = datetime.now(UTC)
     wall0, cpu0 = time.perf_counter(), time.process_time()
     starts = evaluation_starts(options.grid, options.extent, options.seed)
@@ -461,9 +460,7 @@ def train_and_evaluate(
     """``job``'s training to every budget and each copy's episodes from ``starts`` (the snapshots
     keep no policy: what crosses back from a worker process is numbers only). ``bar``: a rich
     progress to report on (in the calling process only)."""
-    torch = import_torch()
-
-    torch.set_num_threads(1)
+    use_torch()
     settings = env_settings_for(base, job.env_id)
     advance = None
     if bar is not None:
