@@ -80,6 +80,9 @@ HEARTBEAT = "srl/t0/transition/@adv/pub/1234abcd/1/uhlc"  # an advanced publishe
         ("srl/t0/transition", {"actor"}),
         (HEARTBEAT, {"actor"}),
         ("srl/t0/critic/weights", {"critic"}),
+        ("srl/@batch/critic/weights", {"critic"}),  # a round of weights (common.contracts.keys.Batch)
+        ("srl/@batch/state", {"plant"}),  # a plant host's states of one state tick
+        ("srl/@batch/action", set()),  # no other batch key is anyone's
         ("srl/t0/state", {"plant"}),
         ("srl/t0/status/actor", {"actor"}),
         ("srl/t0/status/critic", {"critic"}),
@@ -101,6 +104,8 @@ def test_only_the_owner_role_may_publish_a_key(key: str, writers: set[str]) -> N
         ("srl/t0/state", {"actor", "monitor"}),
         ("srl/t0/action", {"plant"}),
         ("srl/t0/critic/weights", {"actor"}),
+        ("srl/@batch/critic/weights", {"actor"}),
+        ("srl/@batch/state", {"actor", "monitor"}),
         ("srl/t0/transition", {"critic"}),
         ("srl/*/transition", {"critic"}),  # the critic's own (wildcard) subscription
         (HEARTBEAT, {"critic"}),
@@ -195,6 +200,10 @@ def test_a_fleet_acl_grants_each_role_its_keys_of_every_robot_of_the_fleet_only(
         }
     for key in ("srl/t2/action", "srl/t2/critic/weights", "srl/t2/state"):
         assert who(fleet, "put", "ingress", key) == set()  # not a robot of the fleet
+    # the critic's rounds: one key for the fleet (each item still goes only to its own robot's
+    # subscriptions, from a live critic of that robot: common.net.transport, common.net.provenance)
+    assert who(fleet, "put", "ingress", "srl/@batch/critic/weights") == {"critic"}
+    assert who(fleet, "put", "egress", "srl/@batch/critic/weights") == {"actor"}
     assert who(fleet, "liveliness_query", "ingress", "srl/*/alive/actor") == {"monitor"}
     assert who(fleet, "declare_subscriber", "ingress", "srl/*/status/actor") == {"monitor"}
     assert who(fleet, "declare_subscriber", "ingress", "srl/*/state") == {"monitor"}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from common.contracts.messages import (
     Action,
@@ -57,11 +57,41 @@ class Service(Generic[M, R]):
         return self.pattern.format(robot=check_chunk(robot, "robot id"))
 
 
+@dataclass(frozen=True)
+class Batch(Generic[M]):
+    """Many robots' messages of ``topic`` in one sample: a JSON array of the topic's messages (each
+    validated as one, common.contracts.messages.decode_batch), on the topic's key with the robot
+    chunk :data:`BATCH_CHUNK`. A service that serves many robots sends what it has for them in one
+    round as one sample (common.net.transport.Bus.round_publisher): a sample's cost in Zenoh and in
+    the receiving process is mostly per sample, not per byte (docs/fleets.md). A receiver gets
+    each item as if it had come on its robot's key (common.net.transport.Bus.subscribe)."""
+
+    topic: Topic[M]
+
+    @property
+    def pattern(self) -> str:
+        return self.topic.pattern.format(robot=BATCH_CHUNK)
+
+    @property
+    def schema(self) -> type[M]:
+        return self.topic.schema
+
+
+# A verbatim chunk (``@``): no wildcard matches it (``srl/*/...`` nor ``srl/**``), so a per-robot
+# subscriber never receives a batch it would refuse, and access rules name batch keys explicitly.
+# No robot id can take it (an id is A-Z a-z 0-9 _ -).
+BATCH_CHUNK = "@batch"
+
 STATE = Topic("srl/{robot}/state", PlantState)
 ACTION = Topic("srl/{robot}/action", Action)
 TRANSITION = Topic("srl/{robot}/transition", Transition)
 WEIGHTS = Topic("srl/{robot}/critic/weights", CriticWeights)
 STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
+# the states a plant host publishes at one state tick (two or more robots; one goes on its STATE key)
+STATE_BATCH = Batch(STATE)
+# the critic's weights of one fit round, of every robot it fitted (two or more; one goes on its
+# robot's WEIGHTS key)
+WEIGHTS_BATCH = Batch(WEIGHTS)
 PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
 PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
 
@@ -72,6 +102,14 @@ IDENTITY = "srl/{robot}/alive/{service}/{zid}"
 ALL_KEYS = "srl/**"  # every key of srl (but the verbatim @adv chunks: see advanced_pattern)
 
 SERVICES = ("actor", "critic", "plant", "router")
+
+
+def batch_of(topic: Topic[M]) -> Batch[M] | None:
+    """The batch form of ``topic``, if its messages may also come in batches (:class:`Batch`)."""
+    return BATCHES.get(topic.pattern)
+
+
+BATCHES: dict[str, Batch[Any]] = {STATE.pattern: STATE_BATCH, WEIGHTS.pattern: WEIGHTS_BATCH}
 
 
 def every_robot(topic: Topic[M], **chunks: str) -> str:

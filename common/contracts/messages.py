@@ -7,9 +7,11 @@ Units are in the field descriptions; states are in the goal frame (heading unwra
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, TypeVar
+from collections.abc import Iterator, Sequence
+from functools import cache
+from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 SCHEMA_VERSION: Literal[1] = 1
 MAX_PAYLOAD_BYTES = 64 * 1024  # nothing we send comes close; bigger is refused unparsed
@@ -55,6 +57,44 @@ def decode(schema: type[M], payload: bytes) -> M:
         first = error.errors()[0]
         where = ".".join(str(p) for p in first["loc"]) or "payload"
         raise MessageError(f"{schema.__name__}: {where}: {first['msg']}") from None
+
+
+def batch_payloads(messages: Sequence[Message]) -> Iterator[bytes]:
+    """``messages`` as JSON arrays of their encodings (a batch, common.contracts.keys.Batch), each
+    array within :data:`MAX_PAYLOAD_BYTES` (as many as it takes); a message too big alone raises
+    MessageError (none of ours comes close)."""
+    parts: list[bytes] = []
+    size = 2  # the brackets
+    for message in messages:
+        encoded = message.encode()
+        if len(encoded) + 2 > MAX_PAYLOAD_BYTES:
+            raise MessageError(f"{type(message).__name__}: {len(encoded)} bytes do not fit a batch")
+        if parts and size + 1 + len(encoded) > MAX_PAYLOAD_BYTES:
+            yield b"[" + b",".join(parts) + b"]"
+            parts, size = [], 2
+        size += len(encoded) + (1 if parts else 0)
+        parts.append(encoded)
+    if parts:
+        yield b"[" + b",".join(parts) + b"]"
+
+
+@cache
+def _batch_adapter(schema: type[M]) -> TypeAdapter[list[M]]:
+    return TypeAdapter(list[schema])  # type: ignore[valid-type]  # a schema known at run time
+
+
+def decode_batch(schema: type[M], payload: bytes) -> list[M]:
+    """A batch: a JSON array of ``schema`` messages, each validated as :func:`decode` validates one,
+    the whole within :data:`MAX_PAYLOAD_BYTES`. One bad item refuses the batch (MessageError
+    naming it): a sender that writes one bad item is not trusted with the others."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise MessageError(f"{schema.__name__} batch: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    try:
+        return _batch_adapter(schema).validate_json(payload)
+    except ValidationError as error:
+        first: Any = error.errors()[0]
+        where = "item " + ".".join(str(p) for p in first["loc"]) if first["loc"] else "payload"
+        raise MessageError(f"{schema.__name__} batch: {where}: {first['msg']}") from None
 
 
 class PlantState(Message):

@@ -48,12 +48,15 @@ from common.contracts.keys import (
     ACTION,
     ALIVE,
     ALL_KEYS,
+    BATCH_CHUNK,
     PLANT_RESET,
     PLANT_STEP,
     STATE,
+    STATE_BATCH,
     STATUS,
     TRANSITION,
     WEIGHTS,
+    WEIGHTS_BATCH,
     advanced_pattern,
     check_chunk,
 )
@@ -131,8 +134,13 @@ def advanced_read(key: str) -> list[Rule]:
     return [*read(key, adv), *query(adv), Rule("query history", "egress", ("reply",), (key,)), *watch(adv)]
 
 
+# the batch keys' verbatim chunk (srl/@batch/...) is outside srl/**: named here, or no publisher of
+# a batch would hear of its subscribers (common.contracts.keys.Batch)
 DISCOVERY = Rule(
-    "discover", "egress", ("declare_subscriber", "declare_queryable", "query"), (ALL_KEYS, advanced_pattern(ALL_KEYS))
+    "discover",
+    "egress",
+    ("declare_subscriber", "declare_queryable", "query"),
+    (ALL_KEYS, advanced_pattern(ALL_KEYS), f"srl/{BATCH_CHUNK}/**"),
 )
 
 
@@ -189,13 +197,14 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
         "actor": [
             *publish(key(ACTION.pattern), key(STATUS.pattern, "actor")),
             *advanced_publish(key(TRANSITION.pattern)),
-            *read(key(STATE.pattern), key(WEIGHTS.pattern)),
+            # states and weights come on the robot's key or in batches (common.contracts.keys.Batch)
+            *read(key(STATE.pattern), STATE_BATCH.pattern, key(WEIGHTS.pattern), WEIGHTS_BATCH.pattern),
             *(query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
             *token(*own("actor")),
             *watch(*alive),
         ],
         "critic": [
-            *publish(key(WEIGHTS.pattern), key(STATUS.pattern, "critic")),
+            *publish(key(WEIGHTS.pattern), WEIGHTS_BATCH.pattern, key(STATUS.pattern, "critic")),
             # the critic subscribes to every robot's transitions (srl/*/transition): the rule
             # must include that wildcard; it still publishes weights for this robot only
             *advanced_read(key(TRANSITION.pattern, robot="*")),
@@ -203,14 +212,14 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
             *watch(*alive),
         ],
         "plant": [
-            *publish(key(STATE.pattern), key(STATUS.pattern, "plant")),
+            *publish(key(STATE.pattern), STATE_BATCH.pattern, key(STATUS.pattern, "plant")),
             *read(key(ACTION.pattern)),
             *(serve(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
             *token(*own("plant"), key(ALIVE, "robot_bridge")),
             *watch(*alive),
         ],
         "monitor": [
-            *read(key(STATUS.pattern), key(STATE.pattern)),
+            *read(key(STATUS.pattern), key(STATE.pattern), STATE_BATCH.pattern),
             *watch(*alive),
         ],
     }

@@ -2,7 +2,9 @@
 
 The only module of ``common`` that imports zenoh; the math never does. Every subscriber
 decodes with the schema of its :class:`~common.contracts.keys.Topic`; a payload that does not decode
-is counted under ``rejected.<topic>`` and logged (rate-limited), and never reaches the handler.
+is counted under ``rejected.<topic>`` and logged (rate-limited), and never reaches the handler. A
+topic with a batch form (:class:`~common.contracts.keys.Batch`) reaches a subscriber both ways: on
+the robot's key, and as the items of batches, each handed over as if it had come alone.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import logging
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, Generic, TypeVar
 
 import zenoh
@@ -23,13 +25,14 @@ from common.contracts.keys import (
     Service,
     Topic,
     advanced_pattern,
+    batch_of,
     identity_key,
     identity_of,
     identity_pattern,
     liveliness_key,
     robot_of,
 )
-from common.contracts.messages import Message, MessageError, decode
+from common.contracts.messages import Message, MessageError, batch_payloads, decode, decode_batch
 from common.net.provenance import QUIET_REFUSALS, PlantConflictError, SourceGate, yields_to
 from common.net.security import check_network_exposure, tls_entries, zenoh_entries
 
@@ -115,6 +118,12 @@ def decode_sample(topic: Topic[M], key: str, payload: bytes) -> M:
     return message
 
 
+def source_of(sample: zenoh.Sample) -> str | None:
+    """The id of the session that published ``sample`` (its Zenoh timestamp's id; None if unstamped)."""
+    stamp = sample.timestamp
+    return None if stamp is None else str(stamp.get_id())
+
+
 class Bus:
     """One Zenoh session of one service, with counters shared by all its handlers."""
 
@@ -130,6 +139,10 @@ class Bus:
         self._last_warning: dict[str, float] = {}
         self._keep: list[Any] = []  # declared entities live as long as the bus
         self._queriers: dict[tuple[str, float], Any] = {}
+        # batch key -> the subscriptions its items go to, as (their key, their delivery): one
+        # Zenoh subscription per batch key, however many robots subscribe (_route_batches)
+        self._batch_routes: dict[str, tuple[tuple[zenoh.KeyExpr, Callable[[Any, str | None], None]], ...]] = {}
+        self._batch_targets: dict[str, list[Callable[[Any, str | None], None]]] = {}  # robot key -> deliveries
         # Our own threads (status): ended and joined by close(), before the session goes, so
         # none is inside Zenoh or pydantic when the interpreter finalizes.
         self.closing = threading.Event()
@@ -217,6 +230,35 @@ class Bus:
 
         return publish
 
+    def round_publisher(self, topic: Topic[M]) -> Callable[[Sequence[M]], None]:
+        """Puts a round of many robots' messages on ``topic``: one message on its robot's key, two
+        or more as batches (common.contracts.keys.Batch: one sample per 64 KiB of them,
+        common.contracts.messages.MAX_PAYLOAD_BYTES) when the topic has a batch form, else each on
+        its robot's key. Every receiver gets each message as if it had come alone (:meth:`subscribe`)."""
+        batch = batch_of(topic)
+        batched = None if batch is None else self.session.declare_publisher(batch.pattern, express=self.express)
+        if batched is not None:
+            self._keep.append(batched)
+        singles: dict[str, Callable[[M], None]] = {}
+
+        def publish(messages: Sequence[M]) -> None:
+            for message in messages:
+                if not isinstance(message, topic.schema):
+                    raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
+            if batched is not None and len(messages) > 1:
+                for payload in batch_payloads(messages):
+                    batched.put(payload)
+                    self.count("batches_published")
+                return
+            for message in messages:
+                robot = getattr(message, "robot")  # noqa: B009  # every topic's schema names its robot
+                single = singles.get(robot)
+                if single is None:
+                    single = singles[robot] = self.publisher(topic, robot)
+                single(message)
+
+        return publish
+
     @property
     def zid(self) -> str:
         """This session's Zenoh id: the id Zenoh stamps on every sample it publishes."""
@@ -245,22 +287,24 @@ class Bus:
         to be checked against the live identities (:meth:`watch_identities`)."""
         name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
 
+        def deliver(message: M, source: str | None) -> None:
+            self.count(f"received.{name}")
+            try:
+                if with_source:
+                    handler(message, source)
+                else:
+                    handler(message)
+            except Exception:  # a handler bug must not kill zenoh's callback thread silently
+                self.count(f"handler_errors.{name}")
+                log.exception("%s: handler for %s failed", self.service, name)
+
         def on_sample(sample: zenoh.Sample) -> None:
             try:
                 message = decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())
             except MessageError as error:
                 self.reject(name, str(error))
                 return
-            self.count(f"received.{name}")
-            try:
-                if with_source:
-                    stamp = sample.timestamp
-                    handler(message, None if stamp is None else str(stamp.get_id()))
-                else:
-                    handler(message)
-            except Exception:  # a handler bug must not kill zenoh's callback thread silently
-                self.count(f"handler_errors.{name}")
-                log.exception("%s: handler for %s failed", self.service, name)
+            deliver(message, source_of(sample))
 
         if recover:
             self._keep.append(
@@ -274,6 +318,50 @@ class Bus:
             )
         else:
             self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample, threaded)))
+        if batch_of(topic) is not None:
+            self._route_batches(topic, key, deliver, name, threaded)
+
+    def _route_batches(
+        self,
+        topic: Topic[M],
+        key: str,
+        deliver: Callable[[M, str | None], None],
+        name: str,
+        threaded: bool | None,
+    ) -> None:
+        """The items of ``topic``'s batches whose robot key ``key`` includes go to ``deliver``, with
+        the batch's source: one Zenoh subscription per batch key and bus (the first subscriber's
+        ``threaded`` says where its handler runs), each batch decoded once and its items handed
+        to every subscription of their robot (an item of a robot nobody here subscribed to is
+        not ours, and is passed over)."""
+        batch = batch_of(topic)
+        assert batch is not None
+        pattern = batch.pattern
+        with self._lock:
+            first = pattern not in self._batch_routes
+            self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), (zenoh.KeyExpr(key), deliver))
+            self._batch_targets = {}  # the routes changed: every robot's deliveries again
+
+        def on_batch(sample: zenoh.Sample) -> None:
+            try:
+                items = decode_batch(topic.schema, sample.payload.to_bytes())
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            source = source_of(sample)
+            targets = self._batch_targets
+            for item in items:
+                robot_key = topic.key(getattr(item, "robot"))  # noqa: B009  # every batch item names its robot
+                deliveries = targets.get(robot_key)
+                if deliveries is None:
+                    concrete = zenoh.KeyExpr(robot_key)
+                    routes = self._batch_routes[pattern]
+                    deliveries = targets[robot_key] = [d for k, d in routes if k.intersects(concrete)]
+                for each in deliveries:
+                    each(item, source)
+
+        if first:
+            self._keep.append(self.session.declare_subscriber(pattern, self._callback(on_batch, threaded)))
 
     def history(self, topic: Topic[M], key: str, handler: Callable[[M], None], timeout: float = 10.0) -> None:
         """Ask every advanced publisher on ``key`` for all it caches, without waiting: each cached
@@ -313,7 +401,11 @@ class Bus:
         Python runs per sample, and only the sample the loop uses is parsed."""
         subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
         self._keep.append(subscriber)
-        return Newest(self, topic, what or topic.pattern.split("/", 2)[-1], subscriber)
+        name = what or topic.pattern.split("/", 2)[-1]
+        newest = Newest(self, topic, name, subscriber)
+        if batch_of(topic) is not None:  # a batch's items are decoded once, on arrival, and held
+            self._route_batches(topic, key, newest.offer, name, None)
+        return newest
 
     # -- queries ------------------------------------------------------------------------
     def serve(self, service: Service[M, R], robot: str, handler: Callable[[M], R]) -> None:
@@ -459,6 +551,16 @@ class Newest(Generic[M]):
         self.bus, self.topic, self.name = bus, topic, name
         self.subscriber = subscriber
         self.taken_at = time.monotonic()  # the last take: what the channel holds now came after it
+        # the newest item of a batch (common.contracts.keys.Batch), decoded when its batch came:
+        # (message, source, arrival); a batch's callback writes it, take() reads and clears it
+        self._offered: tuple[M, str | None, float] | None = None
+        self._offer_lock = threading.Lock()
+
+    def offer(self, message: M, source: str | None) -> None:
+        """An item of a batch, for this robot: held as the newest, arrived now (Bus._route_batches)."""
+        self.bus.count(f"received.{self.name}")
+        with self._offer_lock:
+            self._offered = (message, source, time.monotonic())
 
     def take(self) -> tuple[M, str | None, float] | None:
         """The newest sample since the last take, decoded (message, source, arrival), or None.
@@ -471,18 +573,22 @@ class Newest(Generic[M]):
         sample = self.subscriber.try_recv()
         now = time.monotonic()
         since, self.taken_at = self.taken_at, now
+        with self._offer_lock:
+            offered, self._offered = self._offered, None
         if sample is None:
-            return None
+            return offered
         stamp = sample.timestamp
         arrived = now
         if stamp is not None:  # its age on the publisher's clock, moved to this one
             age = time.time() - stamp.get_time_as_ntp64().as_secs_f64()
             arrived = min(now, max(since, now - age))
+        if offered is not None and offered[2] >= arrived:  # a batch's item came after the sample
+            return offered
         try:
             message = decode_sample(self.topic, str(sample.key_expr), sample.payload.to_bytes())
         except MessageError as error:
             self.bus.reject(self.name, str(error))
-            return None
+            return offered
         self.bus.count(f"received.{self.name}")
         return message, None if stamp is None else str(stamp.get_id()), arrived
 

@@ -424,13 +424,17 @@ def key_definitions(module: types.ModuleType) -> list[tuple[str, Any]]:
     for name, value in vars(module).items():
         if name.startswith("_"):
             continue
-        if isinstance(value, module.Topic | module.Service) or (isinstance(value, str) and value.startswith("srl/")):
+        if isinstance(value, module.Topic | module.Service | module.Batch) or (
+            isinstance(value, str) and value.startswith("srl/")
+        ):
             found.append((name, value))
     lines = source_lines(module)
     return sorted(found, key=lambda item: lines.get(item[0], 0))
 
 
 def _schemas_of(value: Any) -> list[tuple[str, type[BaseModel]]]:
+    if hasattr(value, "topic"):  # a Batch: its topic's messages, many in one sample
+        return [("in batches", value.schema)]
     if hasattr(value, "schema"):
         return [("published", value.schema)]
     if hasattr(value, "request"):
@@ -491,6 +495,8 @@ def keys_page() -> str:
     for name, value in definitions:
         if isinstance(value, keys.Topic):
             kind, schema = "topic (put/subscribe)", _message_link(value.schema)
+        elif isinstance(value, keys.Batch):
+            kind, schema = "batch (put/subscribe)", f"JSON array of {_message_link(value.schema)}"
         elif isinstance(value, keys.Service):
             kind = "queryable (get/reply)"
             schema = f"query {_message_link(value.request)}, reply {_message_link(value.reply)}"

@@ -1,0 +1,207 @@
+"""Batches on the wire (common.contracts.keys.Batch): many robots' messages of a topic in one sample.
+
+A service serving many robots (a fleet's critic) sends a round as one sample; a receiver gets each
+item as if it had come alone on its robot's key (``Bus.subscribe``), validated as one, with the
+batch's source; a batch with one bad item is refused whole and counted."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import pytest
+
+from common.contracts.keys import WEIGHTS, WEIGHTS_BATCH, batch_of, every_robot
+from common.contracts.messages import (
+    MAX_PAYLOAD_BYTES,
+    CriticWeights,
+    MessageError,
+    batch_payloads,
+    decode_batch,
+)
+
+
+def weights(robot: str, version: int = 1, q0: float = 0.0) -> CriticWeights:
+    return CriticWeights(
+        robot=robot,
+        episode=0,
+        version=version,
+        trained_step=version - 2,
+        q_weights=(q0, *([0.5] * 14)),
+        v_weights=(1.0,) * 6,
+        q_residual=0.0,
+        v_residual=0.0,
+        pairs=3,
+    )
+
+
+def test_a_batch_key_is_the_topics_with_a_chunk_no_robot_id_and_no_wildcard_can_take() -> None:
+    import zenoh
+
+    assert WEIGHTS_BATCH.pattern == "srl/@batch/critic/weights" and batch_of(WEIGHTS) is WEIGHTS_BATCH
+    batch = zenoh.KeyExpr(WEIGHTS_BATCH.pattern)
+    for wildcard in (every_robot(WEIGHTS), "srl/**", "srl/*/critic/**"):
+        assert not zenoh.KeyExpr(wildcard).intersects(batch), wildcard  # a per-robot subscriber never sees one
+    with pytest.raises(ValueError):
+        WEIGHTS.key("@batch")  # and no robot is called that
+
+
+def test_a_round_is_split_into_batches_within_the_message_bound_and_comes_back_in_order() -> None:
+    sent = [weights(f"r{i}", version=i + 1) for i in range(400)]
+    payloads = list(batch_payloads(sent))
+    assert len(payloads) > 1 and all(len(p) <= MAX_PAYLOAD_BYTES for p in payloads)
+    back = [item for payload in payloads for item in decode_batch(CriticWeights, payload)]
+    assert back == sent
+    assert list(batch_payloads([])) == []
+
+
+@pytest.mark.parametrize(
+    ("payload", "says"),
+    [
+        (b'[{"robot": 1}]', "item 0.robot"),
+        (b"{}", "payload: Input should be a valid array"),
+        (b"[1, 2", "Invalid JSON"),
+        (b"[" + b" " * MAX_PAYLOAD_BYTES + b"]", "exceeds"),
+    ],
+)
+def test_a_bad_batch_is_refused_whole_with_one_line(payload: bytes, says: str) -> None:
+    with pytest.raises(MessageError, match=says) as refused:
+        decode_batch(CriticWeights, payload)
+    assert "\n" not in str(refused.value)
+
+
+def test_one_bad_item_refuses_the_batch_and_names_it() -> None:
+    good = weights("r1").encode()
+    nan = weights("r2").encode().replace(b'"q_weights":[0.0', b'"q_weights":[NaN')
+    assert nan != weights("r2").encode()
+    with pytest.raises(MessageError, match=r"item 1\.q_weights\.0"):
+        decode_batch(CriticWeights, b"[" + good + b"," + nan + b"]")
+    other_version = weights("r2").encode().replace(b'"schema_version":1', b'"schema_version":2')
+    with pytest.raises(MessageError, match=r"item 1\.schema_version"):
+        decode_batch(CriticWeights, b"[" + good + b"," + other_version + b"]")
+
+
+@pytest.mark.integration
+def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad_batch_none() -> None:
+    """Through a router on loopback: the critic's side (``Bus.round_publisher``) sends a round of three
+    robots as one sample and a round of one on its robot's key; the actor's side subscribes per robot
+    (with the source) and a recorder's by wildcard. Each subscription gets its robots' items only, in
+    order, once; an item of a robot nobody subscribed to reaches nobody; a malformed batch reaches
+    no handler and is counted as refused."""
+    import zenoh
+
+    from common.net.transport import Bus
+    from tests.harness import Proc, client_config, free_port, open_session, wait_until
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("router", ["router", "--router", endpoint])
+    opened: list[Any] = []
+    try:
+        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
+        opened.append(reader)
+        writer = Bus(zenoh.open(client_config(endpoint)), "critic")
+        opened.append(writer)
+        raw_single: list[bytes] = []
+        raw_batch: list[bytes] = []
+        raw = zenoh.open(client_config(endpoint))
+        opened.append(raw)
+        keep = [
+            raw.declare_subscriber(WEIGHTS.key("b1"), lambda s: raw_single.append(s.payload.to_bytes())),
+            raw.declare_subscriber(WEIGHTS_BATCH.pattern, lambda s: raw_batch.append(s.payload.to_bytes())),
+        ]
+        lock = threading.Lock()
+        got: dict[str, list[tuple[int, str | None]]] = {"b1": [], "b2": [], "*": []}
+
+        def on(robot: str) -> Any:
+            def handler(message: CriticWeights, source: str | None = None) -> None:
+                assert robot == "*" or message.robot == robot
+                with lock:
+                    got[robot].append((message.version, source))
+
+            return handler
+
+        reader.subscribe(WEIGHTS, WEIGHTS.key("b1"), on("b1"), with_source=True)
+        reader.subscribe(WEIGHTS, WEIGHTS.key("b2"), on("b2"), with_source=True)
+        reader.subscribe(WEIGHTS, every_robot(WEIGHTS), on("*"))
+        send = writer.round_publisher(WEIGHTS)
+        time.sleep(1.0)  # the subscriptions reach the writer
+        send([weights("b1", 1), weights("b2", 2), weights("b9", 3), weights("b1", 4)])
+        wait_until(lambda: len(got["*"]) == 4, 10, "the round")
+        send([weights("b2", 5)])  # one alone: on its robot's key
+        wait_until(lambda: len(got["*"]) == 5 and len(got["b2"]) == 2, 10, "the single")
+        zid = writer.zid
+        assert got["b1"] == [(1, zid), (4, zid)]
+        assert got["b2"] == [(2, zid), (5, zid)]
+        assert [v for v, _ in got["*"]] == [1, 2, 3, 4, 5]
+        assert len(raw_batch) == 1 and len(raw_single) == 0  # the round as one sample
+        assert writer.counters["batches_published"] == 1
+        assert reader.counters["received.critic/weights"] == 4 + 5  # per robot subscription + the wildcard's
+        # a malformed batch, and one with a bad item: refused whole, counted, nobody called
+        bad = b"[" + weights("b1", 6).encode() + b',{"robot": "b2"}]'
+        raw.put(WEIGHTS_BATCH.pattern, bad)
+        raw.put(WEIGHTS_BATCH.pattern, b"not json")
+        wait_until(lambda: reader.counters["rejected.critic/weights"] == 2, 10, "both refusals")
+        time.sleep(0.3)
+        assert len(got["b1"]) == 2 and len(got["*"]) == 5
+        for entity in keep:
+            entity.undeclare()
+    finally:
+        for session in reversed(opened):
+            session.close()
+        router.stop()
+
+
+@pytest.mark.integration
+def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_came_last() -> None:
+    """``Bus.subscribe_newest`` (the actor host's states): a plant host's batch of one state tick is
+    decoded once on arrival and each robot's item held as its newest, with the batch's source; a
+    state on the robot's own key that comes later wins, and a batch that comes later wins over it."""
+    import zenoh
+
+    from common.contracts.keys import STATE
+    from common.contracts.messages import PlantState
+    from common.net.transport import Bus
+    from tests.harness import Proc, client_config, free_port, open_session, wait_until
+
+    def state(robot: str, seq: int) -> PlantState:
+        return PlantState(robot=robot, episode=0, seq=seq, stamp_ns=seq, state=(0.1 * seq, 0.0, 0.0), source="sim")
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("router", ["router", "--router", endpoint])
+    opened: list[Any] = []
+    try:
+        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
+        opened.append(reader)
+        writer = Bus(zenoh.open(client_config(endpoint)), "plant")
+        opened.append(writer)
+        n1, n2 = reader.subscribe_newest(STATE, STATE.key("n1")), reader.subscribe_newest(STATE, STATE.key("n2"))
+        send = writer.round_publisher(STATE)
+        time.sleep(1.0)
+        assert n1.take() is None and n2.take() is None
+
+        def take(newest: Any) -> tuple[PlantState, str | None, float]:
+            held: list[Any] = []
+            wait_until(lambda: bool(held.append(newest.take()) or held[-1] is not None), 5, "a state")
+            return held[-1]  # type: ignore[no-any-return]
+
+        before = time.monotonic()
+        send([state("n1", 1), state("n2", 1), state("n3", 1)])  # n3: no subscription here
+        first, second = take(n1), take(n2)
+        assert (first[0].robot, first[0].seq, second[0].robot, second[0].seq) == ("n1", 1, "n2", 1)
+        assert first[1] == writer.zid and before <= first[2] <= time.monotonic()
+        assert writer.counters["batches_published"] == 1
+        send([state("n1", 2)])  # alone: on its own key
+        time.sleep(0.3)
+        send([state("n1", 3), state("n2", 3)])  # then a batch: the newest
+        time.sleep(0.3)
+        assert take(n1)[0].seq == 3 and n1.take() is None
+        send([state("n1", 4), state("n2", 4)])
+        time.sleep(0.3)
+        send([state("n1", 5)])  # the key's state came last
+        time.sleep(0.3)
+        assert take(n1)[0].seq == 5 and take(n2)[0].seq == 4
+    finally:
+        for session in reversed(opened):
+            session.close()
+        router.stop()
