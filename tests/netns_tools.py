@@ -292,8 +292,16 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
     JSON lines; each robot's actions counted by the id of the session that sent them (in the summary)."""
     import zenoh
 
-    from common.contracts.keys import ACTION, STATUS, TRANSITION, WEIGHTS, every_robot
-    from common.contracts.messages import Action, CriticWeights, MessageError, ServiceStatus, Transition, decode
+    from common.contracts.keys import ACTION, STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH, every_robot
+    from common.contracts.messages import (
+        Action,
+        CriticWeights,
+        MessageError,
+        ServiceStatus,
+        Transition,
+        decode,
+        decode_batch,
+    )
     from common.process.runtime import SignalWatch
 
     stop = threading.Event()
@@ -317,6 +325,16 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
 
     def on_weights(sample: zenoh.Sample) -> None:
         if (w := decoded(CriticWeights, sample)) is not None:
+            record("weights", robot=w.robot, version=w.version, trained_step=w.trained_step)
+
+    def on_weights_batch(sample: zenoh.Sample) -> None:  # a fleet critic's round (common.contracts.keys.Batch)
+        try:
+            batch = decode_batch(CriticWeights, sample.payload.to_bytes())
+        except MessageError:
+            with lock:
+                counts["undecodable"] += 1
+            return
+        for w in batch:
             record("weights", robot=w.robot, version=w.version, trained_step=w.trained_step)
 
     def on_transition(sample: zenoh.Sample) -> None:
@@ -352,6 +370,7 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         return 1
     keep = [
         session.declare_subscriber(every_robot(WEIGHTS), on_weights),
+        session.declare_subscriber(WEIGHTS_BATCH.pattern, on_weights_batch),
         session.declare_subscriber(every_robot(TRANSITION), on_transition),
         session.declare_subscriber(every_robot(ACTION), on_action),
         session.declare_subscriber(STATUS.pattern.format(robot="*", service="*"), on_status),

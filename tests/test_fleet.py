@@ -591,8 +591,8 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
     split a fleet across processes or hosts (docs/fleets.md); each robot's
     weights come from its own shard, and a robot of neither shard is learned by none."""
-    from common.contracts.keys import STATUS, TRANSITION, WEIGHTS
-    from common.contracts.messages import CriticWeights, ServiceStatus
+    from common.contracts.keys import STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH
+    from common.contracts.messages import CriticWeights, ServiceStatus, decode_batch
     from tests.harness import Proc, free_port, open_session, random_transitions, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -621,6 +621,11 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
             with lock:
                 fits.setdefault(w.robot, []).append(w.version)
 
+        def on_batch(sample: Any) -> None:  # shard a's rounds of s1 and s2 (common.contracts.keys.Batch)
+            for w in decode_batch(CriticWeights, sample.payload.to_bytes()):
+                with lock:
+                    fits.setdefault(w.robot, []).append(w.version)
+
         received: dict[str, float] = {}
 
         def on_status(sample: Any) -> None:
@@ -630,6 +635,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
                 received[status.robot] = counters.get("transitions_received", 0) - counters.get("duplicates", 0)
 
         subscriber = session.declare_subscriber(WEIGHTS.pattern.format(robot="*"), on_weights)
+        batches = session.declare_subscriber(WEIGHTS_BATCH.pattern, on_batch)
         statuses = session.declare_subscriber(STATUS.pattern.format(robot="*", service="critic"), on_status)
         sent = random_transitions(20, robots=("s1", "s2", "s3", "s4"))
         # as the actors publish them: a cached advanced publisher per robot, so a shard recovers
@@ -650,6 +656,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
         wait_until(lambda: {"s1", "s2", "s3"} <= set(fits), 30, "weights of every served robot")
         wait_until(lambda: received.get("a", 0) >= 40 and received.get("b", 0) >= 20, 30, "all at their shards")
         subscriber.undeclare()
+        batches.undeclare()
         statuses.undeclare()
         assert "s4" not in fits  # in no shard: learned by none
         assert shards["a"].stop() == 0 and shards["b"].stop() == 0

@@ -45,6 +45,7 @@ import os
 import queue
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -517,15 +518,16 @@ def run(
     checkpoint_seconds = Window()
     writer = None if path is None else CheckpointWriter(path, checkpoint_seconds.append)
     batches = Window()  # transitions taken per batch
-    publishers: dict[str, object] = {}
     inbox: queue.Queue[Transition] = queue.Queue()
+    sends: list[Callable[[Sequence[CriticWeights]], None]] = []  # declared at the first round
 
-    def publish(weights: CriticWeights) -> None:
-        publisher = publishers.get(weights.robot)
-        if publisher is None:
-            publisher = publishers[weights.robot] = bus.publisher(WEIGHTS, weights.robot)
-        publisher(weights)  # type: ignore[operator]
-        bus.count("weights_published")
+    def publish(round_: list[CriticWeights]) -> None:
+        """A round's weights: one robot's on its key, more as batches (Bus.round_publisher)."""
+        if round_:
+            if not sends:
+                sends.append(bus.round_publisher(WEIGHTS))
+            sends[0](round_)
+            bus.count("weights_published", len(round_))
 
     heard: set[str] = set()  # robots heard since the start
 
@@ -549,8 +551,7 @@ def run(
         bus.history(TRANSITION, TRANSITION.key(first.robot), keep)
 
     if restored and learner.resume:  # asked to start from them: the actor may use them from step 0
-        for weights in learner.current_weights():
-            publish(weights)
+        publish(list(learner.current_weights()))
     # the transitions of the robots it serves: srl/<id>/transition of each robot of --robots (a
     # critic shard learns only its own robots: critics split a fleet by robot, across processes
     # or hosts), else critic.robots' (srl/*/transition: every robot, the key chunk names it; or
@@ -609,7 +610,7 @@ def run(
             continued = learner.confirm(message)
             if continued is not None:
                 log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
-                publish(continued)
+                publish([continued])
             if message.robot not in heard:
                 heard.add(message.robot)
                 missing = learner.missing_before(message)
@@ -625,8 +626,7 @@ def run(
             # again from the actors' publisher caches)
             writer.submit(learner.state())
             written, dirty = time.monotonic(), False
-        for fitted in outgoing:
-            publish(fitted)
+        publish(outgoing)
 
     if writer is not None:
         if dirty:  # what came after the last periodic write

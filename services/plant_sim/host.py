@@ -1,7 +1,8 @@
 """The plant host: one ``srl plant-sim --robots ...`` process simulates many robots.
 
 Real time only. One timer at ``transport.state_rate``; each period every robot is advanced with
-its newest action held and its state published on ``srl/<robot>/state``. The ideal unicycle of
+its newest action held and its state published: the states of one period as one batch on
+``srl/@batch/state`` (one robot's alone on ``srl/<robot>/state``, common.contracts.keys.Batch). The ideal unicycle of
 the whole fleet is one numpy step (:func:`common.math.dynamics.exact_steps`); the TurtleBot3 models
 (``plant.model = actuator | physics``) step one :class:`SimulatedPlant` per robot. Each robot
 keeps what one plant_sim keeps: only its live actor session's actions, in order
@@ -183,7 +184,8 @@ def run_plant_host(
     plant = FleetPlant(settings, robots, starts)
     for robot in robots:  # one plant per robot, before declaring
         bus.refuse_other_plant(robot)
-    publishers = [bus.publisher(STATE, robot) for robot in robots]
+    # the states of one state tick in one round: two or more robots' as one batch (common.contracts.keys.Batch)
+    publish_states = bus.round_publisher(STATE)
     period = 1.0 / settings.transport.state_rate
     sync = StateSync(len(robots), settings.plant.sampling_time, period) if settings.transport.state_sync else None
     intakes = [RobotIntake(plant, i, bus, sync) for i in range(len(robots))]
@@ -202,11 +204,9 @@ def run_plant_host(
         for intake in intakes:
             intake.watchdog(now, timeout)
         messages = plant.advance(elapsed, None if sync is None else sync.due(now))
-        published = 0
-        for publish, message in zip(publishers, messages, strict=True):
-            if message is not None:
-                publish(message)
-                published += 1
+        due = [message for message in messages if message is not None]
+        publish_states(due)
+        published = len(due)
         bus.count("states_published", published)
         bus.count("states_held_back", len(messages) - published)
     return FleetPlantSummary(

@@ -16,6 +16,7 @@ and memory of every srl process are read from /proc over the run itself (after s
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import os
 import re
@@ -34,7 +35,7 @@ from pydantic import TypeAdapter
 
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, FleetView, fleet_view
-from common.contracts.keys import STATUS
+from common.contracts.keys import BATCH_CHUNK, STATUS
 from common.contracts.messages import ServiceStatus
 from common.contracts.summaries import CriticSummary, RealtimeActorSummary
 from common.math.fleet import circle_starts, split_evenly
@@ -157,29 +158,47 @@ def cpu_of(pids: dict[str, int]) -> dict[str, float]:
 
 
 def message_kind(key: str) -> str:
-    """``srl/<robot>/state`` -> ``state``; ``srl/<robot>/status/actor`` -> ``status/actor``."""
+    """``srl/<robot>/state`` -> ``state``; ``srl/<robot>/status/actor`` -> ``status/actor``; a
+    batch's key ``srl/@batch/state`` -> ``state`` (common.contracts.keys.Batch)."""
     return "/".join(key.split("/")[2:]) or key
 
 
 class MessageCounter:
-    """Every ``srl/**`` sample routed during a run, counted (and its bytes) by kind: what
-    ``srl bench capacity`` reports per robot and second. It is one more subscriber of everything:
-    the router delivers each message once more to it (said wherever its figures are shown)."""
+    """Every robot message routed during a run (``srl/**`` and the batches, ``srl/@batch/**``),
+    counted (and its bytes) by kind: what ``srl bench capacity`` reports per robot and second. A
+    batch counts its items, each a robot's message, and its bytes; ``batches`` counts the batch
+    samples themselves. It is one more subscriber of everything: the router delivers each sample
+    once more to it (said wherever its figures are shown)."""
 
     def __init__(self, settings: Settings) -> None:
         self.counts: dict[str, list[int]] = {}
+        self.batches: dict[str, int] = {}
         self.lock = threading.Lock()
         self.session = zenoh.open(zenoh_config(settings.transport))
 
         def on_sample(sample: Any) -> None:
             kind = message_kind(str(sample.key_expr))
-            size = len(sample.payload.to_bytes())
+            payload = sample.payload.to_bytes()
             with self.lock:
                 count = self.counts.setdefault(kind, [0, 0])
                 count[0] += 1
-                count[1] += size
+                count[1] += len(payload)
+
+        def on_batch(sample: Any) -> None:
+            kind = message_kind(str(sample.key_expr))
+            payload = sample.payload.to_bytes()
+            try:
+                items = len(json.loads(payload))
+            except (ValueError, TypeError):
+                items = 1  # not a batch srl would send: one sample, counted as one
+            with self.lock:
+                count = self.counts.setdefault(kind, [0, 0])
+                count[0] += items
+                count[1] += len(payload)
+                self.batches[kind] = self.batches.get(kind, 0) + 1
 
         self.subscriber = self.session.declare_subscriber("srl/**", on_sample)
+        self.batch_subscriber = self.session.declare_subscriber(f"srl/{BATCH_CHUNK}/**", on_batch)
 
     def snapshot(self) -> dict[str, list[int]]:
         with self.lock:
@@ -188,6 +207,7 @@ class MessageCounter:
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):
             self.subscriber.undeclare()
+            self.batch_subscriber.undeclare()
         self.session.close()
 
 
