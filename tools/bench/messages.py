@@ -17,9 +17,10 @@ common/net/transport.py):
     subscriber's handler on Zenoh's network thread (``transport.callback_threads = false``);
   - ``threaded``: the same wire, the handler on a thread of its own (``Bus.subscribe(threaded=True)``,
     what ``srl record``'s wildcards do);
-  - ``batched``: what a plant or actor host could send instead (not srl's wire): one message per tick
-    holding every robot's, a JSON array of the same encoded messages, each validated by the same
-    schema on arrival.
+  - ``batched``: one message per tick holding every robot's, as srl's plant host sends its states and
+    a fleet's critic its weights (common.contracts.keys.Batch): a JSON array of the same encoded
+    messages (``batch_payloads``), each validated by the same schema on arrival (``decode_batch``),
+    here on a key of the benchmark's own.
 
   The CPU of each process over the run (/proc: user + system, every thread), divided by the robot
   messages sent, is its cost per robot message; the subscriber's count of what it validated must
@@ -156,8 +157,7 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
     ``limit`` seconds); print the count."""
     import threading
 
-    from pydantic import TypeAdapter
-
+    from common.contracts.messages import decode_batch
     from common.net.transport import Bus
 
     topic = topic_of(kind)
@@ -171,10 +171,9 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
     if way in ("each", "threaded"):
         bus.subscribe(topic, topic.pattern.format(robot="*"), one, threaded=way == "threaded")
     else:
-        batch = TypeAdapter(list[topic.schema])  # type: ignore[name-defined]
 
         def many(sample: Any) -> None:
-            messages = batch.validate_json(sample.payload.to_bytes())
+            messages = decode_batch(topic.schema, sample.payload.to_bytes())
             with lock:
                 count[0] += len(messages)
 
@@ -196,6 +195,7 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
 def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, period: float) -> None:
     """``robots`` robots' messages every ``period`` for ``seconds``: "sending" at the start, then the
     number of robot messages sent."""
+    from common.contracts.messages import batch_payloads
     from common.net.transport import Bus
 
     topic = topic_of(kind)
@@ -213,7 +213,8 @@ def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, pe
             for send, message in zip(sends, messages, strict=True):
                 send(message)
         else:
-            batch.put(b"[" + b",".join(message.encode() for message in messages) + b"]")
+            for payload in batch_payloads(messages):
+                batch.put(payload)
         sent += robots
         tick += 1
         time.sleep(max(0.0, started + tick * period - time.monotonic()))
