@@ -292,7 +292,7 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
     JSON lines; each robot's actions counted by the id of the session that sent them (in the summary)."""
     import zenoh
 
-    from common.contracts.keys import ACTION, STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH, every_robot
+    from common.contracts.keys import ACTION, ACTION_BATCH, STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH, every_robot
     from common.contracts.messages import (
         Action,
         CriticWeights,
@@ -345,15 +345,26 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         if (s := decoded(ServiceStatus, sample)) is not None:
             record("status", robot=s.robot, service=s.service, counters=s.counters)
 
-    def on_action(sample: zenoh.Sample) -> None:
-        if decoded(Action, sample) is None:
-            return
-        robot = str(sample.key_expr).split("/")[1]
+    def count_action(robot: str, sample: zenoh.Sample) -> None:
         source = "unstamped" if sample.timestamp is None else str(sample.timestamp.get_id())
         with lock:
             counts["action"] += 1
             per_robot = action_sources.setdefault(robot, {})
             per_robot[source] = per_robot.get(source, 0) + 1
+
+    def on_action(sample: zenoh.Sample) -> None:
+        if decoded(Action, sample) is not None:
+            count_action(str(sample.key_expr).split("/")[1], sample)
+
+    def on_action_batch(sample: zenoh.Sample) -> None:  # an actor host's tick group (common.contracts.keys.Batch)
+        try:
+            batch = decode_batch(Action, sample.payload.to_bytes())
+        except MessageError:
+            with lock:
+                counts["undecodable"] += 1
+            return
+        for action in batch:
+            count_action(action.robot, sample)
 
     def on_token(sample: zenoh.Sample) -> None:
         chunks = str(sample.key_expr).split("/")  # srl/<robot>/alive/<service>[/<zid>]
@@ -373,6 +384,7 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         session.declare_subscriber(WEIGHTS_BATCH.pattern, on_weights_batch),
         session.declare_subscriber(every_robot(TRANSITION), on_transition),
         session.declare_subscriber(every_robot(ACTION), on_action),
+        session.declare_subscriber(ACTION_BATCH.pattern, on_action_batch),
         session.declare_subscriber(STATUS.pattern.format(robot="*", service="*"), on_status),
         session.liveliness().declare_subscriber("srl/*/alive/**", on_token, history=True),
     ]

@@ -237,6 +237,61 @@ def test_a_host_serves_a_tick_group_back_to_back_with_one_wake_up() -> None:
     assert fake.sleeps >= 2.5 * grouped_sleeps, (fake.sleeps, grouped_sleeps)
 
 
+@pytest.mark.parametrize(("work", "rounds"), [(0.0005, [3, 3]), (0.0025, [2, 1, 2, 1])])
+def test_a_hosts_actions_leave_as_one_round_per_tick_group_or_once_the_first_has_waited(
+    work: float, rounds: list[int]
+) -> None:
+    """ActionOutbox: each robot's action is put at the end of its tick; a group's actions leave
+    together when the group is served, or as soon as the first has waited ACTION_WAIT_S (2 ms),
+    so no action waits much longer than that; every action leaves once, in order, and the stop
+    actions on the way out leave too."""
+    from common.contracts.messages import Action
+    from services.actor.host import ACTION_WAIT_S, ActionOutbox
+
+    sent: list[list[Action]] = []
+    scheduler, loops, _, fake = host(6, work=work, group=3)
+    outbox = ActionOutbox(sent.append, clock=fake.clock)
+    scheduler.outbox = outbox
+    put_at: dict[tuple[str, int], float] = {}
+    left_at: dict[tuple[str, int], float] = {}
+
+    def send(robot: str) -> Any:
+        def put(k: int, action: tuple[float, float], state_seq: int) -> None:
+            put_at[(robot, k)] = fake.now
+            outbox.put(Action(robot=robot, episode=0, step=k, stamp_ns=0, action=action, state_seq=state_seq))
+
+        return put
+
+    original = outbox.send
+
+    def record(round_: list[Action]) -> None:
+        for a in round_:
+            left_at[(a.robot, a.step)] = fake.now
+        original(round_)
+
+    outbox.send = record
+
+    def acting(loop: FakeLoop) -> Any:
+        ticking, put = loop.tick, send(loop.robot)
+
+        def tick(k: int, t: float, hurry: bool = False) -> None:
+            ticking(k, t, hurry)
+            put(k, (0.1, 0.0), k)
+
+        return tick
+
+    for loop in loops:
+        loop.tick = acting(loop)  # type: ignore[method-assign]
+        loop.send = send(loop.robot)  # type: ignore[method-assign]
+    scheduler.run(end=fake.now + 0.1 + 0.06, manual_gc=False)  # one period: both groups once
+    stops = sent.pop()  # on the way out: every robot's zero action, in one round
+    assert [(a.robot, a.action) for a in stops] == [(f"r{i}", (0.0, 0.0)) for i in range(6)]
+    assert [len(r) for r in sent] == rounds
+    assert [a.robot for r in sent for a in r] == [f"r{i}" for i in range(6)]  # each once, in order
+    waited = [left_at[key] - put_at[key] for key in put_at if key in left_at and key[1] == 0]
+    assert max(waited) <= ACTION_WAIT_S + work + 1e-12
+
+
 def test_a_tick_group_that_begins_late_is_hurried_whole() -> None:
     scheduler, loops, _, fake = host(4, work=0.001, group=2)
     loops[1].work = 0.06  # the second group (r2, r3), due 0.05 after the first, begins 0.01 late

@@ -82,7 +82,8 @@ HEARTBEAT = "srl/t0/transition/@adv/pub/1234abcd/1/uhlc"  # an advanced publishe
         ("srl/t0/critic/weights", {"critic"}),
         ("srl/@batch/critic/weights", {"critic"}),  # a round of weights (common.contracts.keys.Batch)
         ("srl/@batch/state", {"plant"}),  # a plant host's states of one state tick
-        ("srl/@batch/action", set()),  # no other batch key is anyone's
+        ("srl/@batch/action", {"actor"}),  # an actor host's actions of one tick group
+        ("srl/@batch/transition", set()),  # no other batch key is anyone's
         ("srl/t0/state", {"plant"}),
         ("srl/t0/status/actor", {"actor"}),
         ("srl/t0/status/critic", {"critic"}),
@@ -106,6 +107,7 @@ def test_only_the_owner_role_may_publish_a_key(key: str, writers: set[str]) -> N
         ("srl/t0/critic/weights", {"actor"}),
         ("srl/@batch/critic/weights", {"actor"}),
         ("srl/@batch/state", {"actor", "monitor"}),
+        ("srl/@batch/action", {"plant"}),
         ("srl/t0/transition", {"critic"}),
         ("srl/*/transition", {"critic"}),  # the critic's own (wildcard) subscription
         (HEARTBEAT, {"critic"}),

@@ -87,6 +87,8 @@ ACTION = Topic("srl/{robot}/action", Action)
 TRANSITION = Topic("srl/{robot}/transition", Transition)
 WEIGHTS = Topic("srl/{robot}/critic/weights", CriticWeights)
 STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
+# an actor host's actions of one tick group (two or more robots; one goes on its ACTION key)
+ACTION_BATCH = Batch(ACTION)
 # the states a plant host publishes at one state tick (two or more robots; one goes on its STATE key)
 STATE_BATCH = Batch(STATE)
 # the critic's weights of one fit round, of every robot it fitted (two or more; one goes on its
@@ -109,7 +111,11 @@ def batch_of(topic: Topic[M]) -> Batch[M] | None:
     return BATCHES.get(topic.pattern)
 
 
-BATCHES: dict[str, Batch[Any]] = {STATE.pattern: STATE_BATCH, WEIGHTS.pattern: WEIGHTS_BATCH}
+BATCHES: dict[str, Batch[Any]] = {
+    ACTION.pattern: ACTION_BATCH,
+    STATE.pattern: STATE_BATCH,
+    WEIGHTS.pattern: WEIGHTS_BATCH,
+}
 
 
 def every_robot(topic: Topic[M], **chunks: str) -> str:

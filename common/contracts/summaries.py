@@ -95,7 +95,10 @@ class RealtimeActorSummary(_Summary):
     loop: LoopStats
     solve_ms: Quantiles
     solver_failures: int
-    latency_ms: Quantiles
+    latency_ms: Quantiles = Field(
+        description="state arrival -> action handed to the transport, minus the solve (an actor host's "
+        "outbox may hold the action up to ~2 ms more, services/actor/host.py ACTION_WAIT_S)"
+    )
     staleness_steps: Quantiles
     staleness_ms: Quantiles
     stale_state_stops: int

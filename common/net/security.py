@@ -46,6 +46,7 @@ from typing import Any, Literal
 from common.config.settings import TransportSettings
 from common.contracts.keys import (
     ACTION,
+    ACTION_BATCH,
     ALIVE,
     ALL_KEYS,
     BATCH_CHUNK,
@@ -195,7 +196,7 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
 
     return {
         "actor": [
-            *publish(key(ACTION.pattern), key(STATUS.pattern, "actor")),
+            *publish(key(ACTION.pattern), ACTION_BATCH.pattern, key(STATUS.pattern, "actor")),
             *advanced_publish(key(TRANSITION.pattern)),
             # states and weights come on the robot's key or in batches (common.contracts.keys.Batch)
             *read(key(STATE.pattern), STATE_BATCH.pattern, key(WEIGHTS.pattern), WEIGHTS_BATCH.pattern),
@@ -213,7 +214,7 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
         ],
         "plant": [
             *publish(key(STATE.pattern), STATE_BATCH.pattern, key(STATUS.pattern, "plant")),
-            *read(key(ACTION.pattern)),
+            *read(key(ACTION.pattern), ACTION_BATCH.pattern),
             *(serve(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
             *token(*own("plant"), key(ALIVE, "robot_bridge")),
             *watch(*alive),

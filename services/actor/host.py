@@ -3,8 +3,9 @@
 Each robot has what a single actor has -- its own :class:`~services.actor.realtime.RealtimeActor`
 (state intake with provenance, weights inbox, statistics, transitions, staleness), its own plans
 and warm starts, arrival rule and counters (:class:`~common.math.actor_problem.ActorMemory`), its own tick
-accounting (:class:`RobotTicker`) and its own keys (``srl/<robot>/action``, ``.../transition``,
-``.../status/actor``, liveliness ``.../alive/actor``). What they share is ONE built problem per
+accounting (:class:`RobotTicker`) and its own keys (``srl/<robot>/transition``, ``.../status/actor``,
+liveliness ``.../alive/actor``); its actions leave with its tick group's as one batch
+(``srl/@batch/action``, :class:`ActionOutbox`). What they share is ONE built problem per
 (agent, N): :class:`RobotActor` swaps a robot's memory into the shared
 :class:`~common.math.actor.StackedActor` for its step. Every solve runs in one thread, the
 scheduler's, so the CasADi function and its buffers are never used by two robots at once (its
@@ -40,8 +41,8 @@ import numpy as np
 from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
-from common.contracts.keys import STATE, STATUS
-from common.contracts.messages import PlantState, ServiceStatus
+from common.contracts.keys import ACTION, STATE, STATUS
+from common.contracts.messages import Action, PlantState, ServiceStatus
 from common.contracts.summaries import RealtimeActorSummary
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
@@ -61,6 +62,11 @@ log = logging.getLogger(__name__)
 # phase, runner-up polish or vertex search): a host behind its schedule sheds the optional work
 # until it is on time again, instead of missing deadlines.
 HURRY_FRACTION = 0.05
+# An actor host's actions leave in rounds (ActionOutbox): those of one tick group together, or
+# sooner once the oldest has waited this long. A plant host learns each robot's phase from when
+# its actions arrive (services/plant_sim/host.py StateSync) and opens its window SYNC_MARGIN_S
+# (5 ms) early: a wait well inside that margin keeps every robot's newest state in the window.
+ACTION_WAIT_S = 0.002
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.
 PRIME_WAIT_S = 3.0
@@ -101,6 +107,36 @@ class RobotActor:
             return self.shared.step(state, q_weights, v_weights, hurry)
         finally:
             self.memory = self.shared.swap_memory(held)
+
+
+class ActionOutbox:
+    """The actions of a host's robots, sent as rounds (``send``: Bus.round_publisher, one sample
+    for two or more, common.contracts.keys.Batch): :class:`HostScheduler` flushes it when a tick
+    group is served, or earlier once the oldest action has waited ``wait`` seconds, and before it
+    sleeps. Used by the scheduler's thread only (every robot's actions are sent from its ticks)."""
+
+    def __init__(
+        self,
+        send: Callable[[list[Action]], None],
+        clock: Callable[[], float] = time.monotonic,
+        wait: float = ACTION_WAIT_S,
+    ) -> None:
+        self.send, self.clock, self.wait = send, clock, wait
+        self.pending: list[Action] = []
+        self.since = 0.0  # when the oldest pending action was put
+
+    def put(self, action: Action) -> None:
+        if not self.pending:
+            self.since = self.clock()
+        self.pending.append(action)
+
+    def overdue(self, now: float) -> bool:
+        return bool(self.pending) and now - self.since >= self.wait
+
+    def flush(self) -> None:
+        if self.pending:
+            pending, self.pending = self.pending, []
+            self.send(pending)
 
 
 class RobotTicker(Ticker):
@@ -156,8 +192,10 @@ class HostScheduler:
         states: list[Newest[PlantState]] | None = None,
         budget: float = 1.0,
         group: int = 1,
+        outbox: ActionOutbox | None = None,
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
+        self.outbox = outbox  # the robots' actions, sent per group (None: each robot sends its own)
         self.states = states  # each robot's newest state, taken at its tick (None: fed by on_state)
         self.clock = clock
         self.sleep = sleep or stop.wait
@@ -195,6 +233,8 @@ class HostScheduler:
                     break
                 wait = due - self.clock()
                 if wait > 0:
+                    if self.outbox is not None:
+                        self.outbox.flush()  # nothing is held back while the thread waits
                     if pending_gc >= 0 and wait > 0.002:
                         gc.collect(pending_gc)
                         pending_gc = -1
@@ -235,6 +275,10 @@ class HostScheduler:
                 self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
                 self.spent[slot] = spent
                 heapq.heappush(heap, (ticker.next_due, i))
+                # the group is served (the next tick due is another phase's), or its first action
+                # has waited long enough: its actions go out as one round
+                if self.outbox is not None and (heap[0][0] != due or self.outbox.overdue(self.clock())):
+                    self.outbox.flush()
                 self.served += 1
                 if manual_gc and self.served % len(self.loops) == 0:
                     pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
@@ -244,6 +288,8 @@ class HostScheduler:
                 gc.enable()
         for loop, ticker in zip(self.loops, self.tickers, strict=True):  # on the way out: stop every robot
             loop.send(ticker.index, (0.0, 0.0), -1)
+        if self.outbox is not None:
+            self.outbox.flush()
 
 
 def _status_loop(
@@ -294,12 +340,13 @@ def run_host(
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
     states: list[Newest[PlantState]] = []
+    outbox = ActionOutbox(bus.round_publisher(ACTION))
     for robot in robots:
         own = robot_settings(settings, robot)
         count = RobotCounts(robot, "actor", forward=bus.reject)
         inbox = wire_weights(own, bus)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
-        loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id())
+        loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id(), outbox.put)
         states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
         loops.append(loop)
         counts.append(count)
@@ -327,6 +374,7 @@ def run_host(
         states=states,
         budget=settings.actor.host_cpu_budget,
         group=settings.actor.host_tick_group,
+        outbox=outbox,
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:

@@ -21,12 +21,14 @@ import gc
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from common.config.assembly import build_actor, episode_summary, run_episode
 from common.config.settings import Settings
 from common.contracts.keys import ACTION, STATE, TRANSITION, WEIGHTS
 from common.contracts.messages import (
+    Action,
     MessageError,
 )
 from common.contracts.summaries import LockstepActorSummary, format_status_line
@@ -99,19 +101,26 @@ def wire_weights(settings: Settings, bus: Bus) -> WeightsInbox:
 
 
 def wire_realtime(
-    settings: Settings, bus: Bus, actor: StackedActor | Steps, inbox: WeightsInbox, counters: Counts, episode_id: int
+    settings: Settings,
+    bus: Bus,
+    actor: StackedActor | Steps,
+    inbox: WeightsInbox,
+    counters: Counts,
+    episode_id: int,
+    publish_action: Callable[[Action], None] | None = None,
 ) -> RealtimeActor:
     """One robot's real-time loop on the bus (``settings.transport.robot``'s keys): its action and
     transition publishers, the plant's session identities and liveliness watched. Provenance
     first: the caller subscribes the states after this, so the live plant sessions are known
     before the first state is judged (one actor: a callback per state; the actor host: the
-    newest, judged at the robot's tick)."""
+    newest, judged at the robot's tick). ``publish_action``: where its actions go instead of
+    their own key (an actor host's outbox, services/actor/host.py ActionOutbox)."""
     robot = settings.transport.robot
     loop = RealtimeActor(
         settings,
         actor,
         inbox,
-        bus.publisher(ACTION, robot),
+        publish_action or bus.publisher(ACTION, robot),
         bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
         counters,
         episode_id,
