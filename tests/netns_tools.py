@@ -327,14 +327,17 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         if (w := decoded(CriticWeights, sample)) is not None:
             record("weights", robot=w.robot, version=w.version, trained_step=w.trained_step)
 
-    def on_weights_batch(sample: zenoh.Sample) -> None:  # a fleet critic's round (common.contracts.keys.Batch)
+    def items(schema: Any, sample: zenoh.Sample) -> list[Any]:
+        """A batch's messages (common.contracts.keys.Batch); none if it does not decode (counted)."""
         try:
-            batch = decode_batch(CriticWeights, sample.payload.to_bytes())
+            return decode_batch(schema, sample.payload.to_bytes())
         except MessageError:
             with lock:
                 counts["undecodable"] += 1
-            return
-        for w in batch:
+            return []
+
+    def on_weights_batch(sample: zenoh.Sample) -> None:  # a fleet critic's round
+        for w in items(CriticWeights, sample):
             record("weights", robot=w.robot, version=w.version, trained_step=w.trained_step)
 
     def on_transition(sample: zenoh.Sample) -> None:
@@ -356,14 +359,8 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         if decoded(Action, sample) is not None:
             count_action(str(sample.key_expr).split("/")[1], sample)
 
-    def on_action_batch(sample: zenoh.Sample) -> None:  # an actor host's tick group (common.contracts.keys.Batch)
-        try:
-            batch = decode_batch(Action, sample.payload.to_bytes())
-        except MessageError:
-            with lock:
-                counts["undecodable"] += 1
-            return
-        for action in batch:
+    def on_action_batch(sample: zenoh.Sample) -> None:  # an actor host's tick group
+        for action in items(Action, sample):
             count_action(action.robot, sample)
 
     def on_token(sample: zenoh.Sample) -> None:

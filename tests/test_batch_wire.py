@@ -6,8 +6,10 @@ batch's source; a batch with one bad item is refused whole and counted."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import pytest
@@ -20,6 +22,30 @@ from common.contracts.messages import (
     batch_payloads,
     decode_batch,
 )
+
+
+@contextlib.contextmanager
+def router_and_buses(sender: str) -> Iterator[tuple[str, Any, Any, list[Any]]]:
+    """A router on a free loopback port, an actor's bus and a ``sender``'s bus on it, and a list
+    of more sessions to close; all closed, and the router stopped, on the way out."""
+    import zenoh
+
+    from common.net.transport import Bus
+    from tests.harness import Proc, client_config, free_port, open_session
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = Proc("router", ["router", "--router", endpoint])
+    opened: list[Any] = []
+    try:
+        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
+        opened.append(reader)
+        writer = Bus(zenoh.open(client_config(endpoint)), sender)
+        opened.append(writer)
+        yield endpoint, reader, writer, opened
+    finally:
+        for session in reversed(opened):
+            session.close()
+        router.stop()
 
 
 def weights(robot: str, version: int = 1, q0: float = 0.0) -> CriticWeights:
@@ -91,17 +117,9 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
     no handler and is counted as refused."""
     import zenoh
 
-    from common.net.transport import Bus
-    from tests.harness import Proc, client_config, free_port, open_session, wait_until
+    from tests.harness import client_config, wait_until
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = Proc("router", ["router", "--router", endpoint])
-    opened: list[Any] = []
-    try:
-        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
-        opened.append(reader)
-        writer = Bus(zenoh.open(client_config(endpoint)), "critic")
-        opened.append(writer)
+    with router_and_buses("critic") as (endpoint, reader, writer, opened):
         raw_single: list[bytes] = []
         raw_batch: list[bytes] = []
         raw = zenoh.open(client_config(endpoint))
@@ -146,10 +164,6 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
         assert len(got["b1"]) == 2 and len(got["*"]) == 5
         for entity in keep:
             entity.undeclare()
-    finally:
-        for session in reversed(opened):
-            session.close()
-        router.stop()
 
 
 @pytest.mark.integration
@@ -157,24 +171,14 @@ def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_cam
     """``Bus.subscribe_newest`` (the actor host's states): a plant host's batch of one state tick is
     decoded once on arrival and each robot's item held as its newest, with the batch's source; a
     state on the robot's own key that comes later wins, and a batch that comes later wins over it."""
-    import zenoh
-
     from common.contracts.keys import STATE
     from common.contracts.messages import PlantState
-    from common.net.transport import Bus
-    from tests.harness import Proc, client_config, free_port, open_session, wait_until
+    from tests.harness import wait_until
 
     def state(robot: str, seq: int) -> PlantState:
         return PlantState(robot=robot, episode=0, seq=seq, stamp_ns=seq, state=(0.1 * seq, 0.0, 0.0), source="sim")
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = Proc("router", ["router", "--router", endpoint])
-    opened: list[Any] = []
-    try:
-        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
-        opened.append(reader)
-        writer = Bus(zenoh.open(client_config(endpoint)), "plant")
-        opened.append(writer)
+    with router_and_buses("plant") as (_, reader, writer, _opened):
         n1, n2 = reader.subscribe_newest(STATE, STATE.key("n1")), reader.subscribe_newest(STATE, STATE.key("n2"))
         send = writer.round_publisher(STATE)
         time.sleep(1.0)
@@ -201,7 +205,3 @@ def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_cam
         send([state("n1", 5)])  # the key's state came last
         time.sleep(0.3)
         assert take(n1)[0].seq == 5 and take(n2)[0].seq == 4
-    finally:
-        for session in reversed(opened):
-            session.close()
-        router.stop()
