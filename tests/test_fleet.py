@@ -292,6 +292,30 @@ def test_a_hosts_actions_leave_as_one_round_per_tick_group_or_once_the_first_has
     assert max(waited) <= ACTION_WAIT_S + work + 1e-12
 
 
+def test_a_round_of_actions_that_cannot_be_sent_is_counted_and_the_next_one_goes(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from common.contracts.messages import Action
+    from services.actor.host import ActionOutbox
+
+    sent: list[list[str]] = []
+
+    def send(round_: list[Action]) -> None:
+        if not sent:
+            sent.append([])
+            raise RuntimeError("the session is closed")
+        sent.append([a.robot for a in round_])
+
+    outbox = ActionOutbox(send, clock=lambda: 0.0)
+    for robot in ("r0", "r1"):
+        outbox.put(Action(robot=robot, episode=0, step=0, stamp_ns=0, action=(0.1, 0.0), state_seq=0))
+    outbox.flush()  # raises inside: logged and counted, not raised
+    assert outbox.failed_rounds == 1 and "could not be sent" in caplog.text and not outbox.pending
+    outbox.put(Action(robot="r2", episode=0, step=1, stamp_ns=0, action=(0.1, 0.0), state_seq=0))
+    outbox.flush()
+    assert sent[1:] == [["r2"]] and outbox.failed_rounds == 1
+
+
 def test_a_tick_group_that_begins_late_is_hurried_whole() -> None:
     scheduler, loops, _, fake = host(4, work=0.001, group=2)
     loops[1].work = 0.06  # the second group (r2, r3), due 0.05 after the first, begins 0.01 late

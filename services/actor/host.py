@@ -124,6 +124,7 @@ class ActionOutbox:
         self.send, self.clock, self.wait = send, clock, wait
         self.pending: list[Action] = []
         self.since = 0.0  # when the oldest pending action was put
+        self.failed_rounds = 0
 
     def put(self, action: Action) -> None:
         if not self.pending:
@@ -134,9 +135,16 @@ class ActionOutbox:
         return bool(self.pending) and now - self.since >= self.wait
 
     def flush(self) -> None:
+        """Send what is pending. A send that fails is logged and counted (``failed_rounds``), and
+        the scheduler goes on: the robots whose actions it held stop by their plant's watchdog,
+        as they would if those actions had been lost on the way."""
         if self.pending:
             pending, self.pending = self.pending, []
-            self.send(pending)
+            try:
+                self.send(pending)
+            except Exception:  # a failed round must not end the loop that keeps every robot safe
+                self.failed_rounds += 1
+                log.exception("actor host: a round of %d actions could not be sent", len(pending))
 
 
 class RobotTicker(Ticker):
@@ -389,7 +397,11 @@ def run_host(
         100 * settings.actor.host_cpu_budget,
     )
     summary = host_summary(robots, loops, bus)
-    summary["counters"].update(ticks_over_budget=float(scheduler.over_budget), realtime_priority=float(priority))
+    summary["counters"].update(
+        ticks_over_budget=float(scheduler.over_budget),
+        realtime_priority=float(priority),
+        failed_action_rounds=float(outbox.failed_rounds),
+    )
     return summary
 
 
