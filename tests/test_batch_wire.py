@@ -110,11 +110,12 @@ def test_one_bad_item_refuses_the_batch_and_names_it() -> None:
 
 @pytest.mark.integration
 def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad_batch_none() -> None:
-    """Through a router on loopback: the critic's side (``Bus.round_publisher``) sends a round of three
-    robots as one sample and a round of one on its robot's key; the actor's side subscribes per robot
-    (with the source) and a recorder's by wildcard. Each subscription gets its robots' items only, in
-    order, once; an item of a robot nobody subscribed to reaches nobody; a malformed batch reaches
-    no handler and is counted as refused."""
+    """Through a router on loopback: a fleet critic's side (``Bus.round_publisher``) sends a round of
+    three robots as one sample, and a round of one as a batch too (one path per robot: order kept);
+    a critic of one robot (``batches=False``) sends on the robot's key. The actor's side subscribes
+    per robot (with the source) and a recorder's by wildcard. Each subscription gets its robots'
+    items only, in order, once; an item of a robot nobody subscribed to reaches nobody; a malformed
+    batch reaches no handler and is counted as refused."""
     import zenoh
 
     from tests.harness import client_config, wait_until
@@ -143,25 +144,29 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
         reader.subscribe(WEIGHTS, WEIGHTS.key("b2"), on("b2"), with_source=True)
         reader.subscribe(WEIGHTS, every_robot(WEIGHTS), on("*"))
         send = writer.round_publisher(WEIGHTS)
+        alone = writer.round_publisher(WEIGHTS, batches=False)
         time.sleep(1.0)  # the subscriptions reach the writer
         send([weights("b1", 1), weights("b2", 2), weights("b9", 3), weights("b1", 4)])
         wait_until(lambda: len(got["*"]) == 4, 10, "the round")
-        send([weights("b2", 5)])  # one alone: on its robot's key
-        wait_until(lambda: len(got["*"]) == 5 and len(got["b2"]) == 2, 10, "the single")
+        send([weights("b2", 5)])  # a round of one robot: a batch too
+        wait_until(lambda: len(got["*"]) == 5 and len(got["b2"]) == 2, 10, "the round of one")
+        assert len(raw_batch) == 2 and len(raw_single) == 0  # each round one sample, none on a robot's key
+        alone([weights("b1", 6)])  # a critic of one robot: on its key
+        wait_until(lambda: len(got["*"]) == 6 and len(got["b1"]) == 3, 10, "the single")
         zid = writer.zid
-        assert got["b1"] == [(1, zid), (4, zid)]
+        assert got["b1"] == [(1, zid), (4, zid), (6, zid)]
         assert got["b2"] == [(2, zid), (5, zid)]
-        assert [v for v, _ in got["*"]] == [1, 2, 3, 4, 5]
-        assert len(raw_batch) == 1 and len(raw_single) == 0  # the round as one sample
-        assert writer.counters["batches_published"] == 1
-        assert reader.counters["received.critic/weights"] == 4 + 5  # per robot subscription + the wildcard's
+        assert [v for v, _ in got["*"]] == [1, 2, 3, 4, 5, 6]
+        assert len(raw_batch) == 2 and len(raw_single) == 1
+        assert writer.counters["batches_published"] == 2
+        assert reader.counters["received.critic/weights"] == 5 + 6  # per robot subscription + the wildcard's
         # a malformed batch, and one with a bad item: refused whole, counted, nobody called
-        bad = b"[" + weights("b1", 6).encode() + b',{"robot": "b2"}]'
+        bad = b"[" + weights("b1", 7).encode() + b',{"robot": "b2"}]'
         raw.put(WEIGHTS_BATCH.pattern, bad)
         raw.put(WEIGHTS_BATCH.pattern, b"not json")
         wait_until(lambda: reader.counters["rejected.critic/weights"] == 2, 10, "both refusals")
         time.sleep(0.3)
-        assert len(got["b1"]) == 2 and len(got["*"]) == 5
+        assert len(got["b1"]) == 3 and len(got["*"]) == 6
         for entity in keep:
             entity.undeclare()
 
@@ -181,6 +186,7 @@ def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_cam
     with router_and_buses("plant") as (_, reader, writer, _opened):
         n1, n2 = reader.subscribe_newest(STATE, STATE.key("n1")), reader.subscribe_newest(STATE, STATE.key("n2"))
         send = writer.round_publisher(STATE)
+        alone = writer.round_publisher(STATE, batches=False)  # as a plant of one robot sends
         time.sleep(1.0)
         assert n1.take() is None and n2.take() is None
 
@@ -195,13 +201,13 @@ def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_cam
         assert (first[0].robot, first[0].seq, second[0].robot, second[0].seq) == ("n1", 1, "n2", 1)
         assert first[1] == writer.zid and before <= first[2] <= time.monotonic()
         assert writer.counters["batches_published"] == 1
-        send([state("n1", 2)])  # alone: on its own key
+        alone([state("n1", 2)])  # on its own key
         time.sleep(0.3)
         send([state("n1", 3), state("n2", 3)])  # then a batch: the newest
         time.sleep(0.3)
         assert take(n1)[0].seq == 3 and n1.take() is None
         send([state("n1", 4), state("n2", 4)])
         time.sleep(0.3)
-        send([state("n1", 5)])  # the key's state came last
+        alone([state("n1", 5)])  # the key's state came last
         time.sleep(0.3)
         assert take(n1)[0].seq == 5 and take(n2)[0].seq == 4

@@ -230,12 +230,15 @@ class Bus:
 
         return publish
 
-    def round_publisher(self, topic: Topic[M]) -> Callable[[Sequence[M]], None]:
-        """Puts a round of many robots' messages on ``topic``: one message on its robot's key, two
-        or more as batches (common.contracts.keys.Batch: one sample per 64 KiB of them,
-        common.contracts.messages.MAX_PAYLOAD_BYTES) when the topic has a batch form, else each on
-        its robot's key. Every receiver gets each message as if it had come alone (:meth:`subscribe`)."""
-        batch = batch_of(topic)
+    def round_publisher(self, topic: Topic[M], batches: bool = True) -> Callable[[Sequence[M]], None]:
+        """Puts rounds of many robots' messages on ``topic``: with ``batches`` (a service that
+        serves many robots) and a topic that has a batch form, every round as batches
+        (common.contracts.keys.Batch: one sample per 64 KiB of them,
+        common.contracts.messages.MAX_PAYLOAD_BYTES), a round of one robot too; else each message
+        on its robot's key. One sender's messages of a robot so take one path: a receiver's
+        subscriptions may each run in a thread of their own, and two paths would lose their order.
+        Every receiver gets each message as if it had come alone (:meth:`subscribe`)."""
+        batch = batch_of(topic) if batches else None
         batched = None if batch is None else self.session.declare_publisher(batch.pattern, express=self.express)
         if batched is not None:
             self._keep.append(batched)
@@ -245,7 +248,7 @@ class Bus:
             for message in messages:
                 if not isinstance(message, topic.schema):
                     raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
-            if batched is not None and len(messages) > 1:
+            if batched is not None:
                 for payload in batch_payloads(messages):
                     batched.put(payload)
                     self.count("batches_published")

@@ -110,8 +110,8 @@ class RobotActor:
 
 
 class ActionOutbox:
-    """The actions of a host's robots, sent as rounds (``send``: Bus.round_publisher, one sample
-    for two or more, common.contracts.keys.Batch): :class:`HostScheduler` flushes it when a tick
+    """The actions of a host's robots, sent as rounds (``send``: Bus.round_publisher, one batch
+    sample a round, common.contracts.keys.Batch): :class:`HostScheduler` flushes it when a tick
     group is served, or earlier once the oldest action has waited ``wait`` seconds, and before it
     sleeps. Used by the scheduler's thread only (every robot's actions are sent from its ticks)."""
 
@@ -348,7 +348,7 @@ def run_host(
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
     states: list[Newest[PlantState]] = []
-    outbox = ActionOutbox(bus.round_publisher(ACTION))
+    outbox = ActionOutbox(bus.round_publisher(ACTION, batches=len(robots) > 1))
     for robot in robots:
         own = robot_settings(settings, robot)
         count = RobotCounts(robot, "actor", forward=bus.reject)

@@ -522,10 +522,10 @@ def run(
     sends: list[Callable[[Sequence[CriticWeights]], None]] = []  # declared at the first round
 
     def publish(round_: list[CriticWeights]) -> None:
-        """A round's weights: one robot's on its key, more as batches (Bus.round_publisher)."""
+        """A round's weights: batches for a critic of a robot list, else each on its robot's key."""
         if round_:
-            if not sends:
-                sends.append(bus.round_publisher(WEIGHTS))
+            if not sends:  # a critic of a robot list sends every round as a batch
+                sends.append(bus.round_publisher(WEIGHTS, batches=robots is not None and len(robots) > 1))
             sends[0](round_)
             bus.count("weights_published", len(round_))
 

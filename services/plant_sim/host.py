@@ -2,7 +2,7 @@
 
 Real time only. One timer at ``transport.state_rate``; each period every robot is advanced with
 its newest action held and its state published: the states of one period as one batch on
-``srl/@batch/state`` (one robot's alone on ``srl/<robot>/state``, common.contracts.keys.Batch). The ideal unicycle of
+``srl/@batch/state`` (common.contracts.keys.Batch; a host of one robot on ``srl/<robot>/state``). The ideal unicycle of
 the whole fleet is one numpy step (:func:`common.math.dynamics.exact_steps`); the TurtleBot3 models
 (``plant.model = actuator | physics``) step one :class:`SimulatedPlant` per robot. Each robot
 keeps what one plant_sim keeps: only its live actor session's actions, in order
@@ -184,8 +184,8 @@ def run_plant_host(
     plant = FleetPlant(settings, robots, starts)
     for robot in robots:  # one plant per robot, before declaring
         bus.refuse_other_plant(robot)
-    # the states of one state tick in one round: two or more robots' as one batch (common.contracts.keys.Batch)
-    publish_states = bus.round_publisher(STATE)
+    # the states of one state tick in one round, as one batch (common.contracts.keys.Batch)
+    publish_states = bus.round_publisher(STATE, batches=len(robots) > 1)
     period = 1.0 / settings.transport.state_rate
     sync = StateSync(len(robots), settings.plant.sampling_time, period) if settings.transport.state_sync else None
     intakes = [RobotIntake(plant, i, bus, sync) for i in range(len(robots))]
