@@ -7,7 +7,7 @@ Units are in the field descriptions; states are in the goal frame (heading unwra
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from functools import cache
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -45,18 +45,25 @@ class Message(BaseModel):
 
 
 M = TypeVar("M", bound=Message)
+T = TypeVar("T")
+
+
+def _validated(what: str, item: str, validate: Callable[[bytes], T], payload: bytes) -> T:
+    """``validate(payload)`` within :data:`MAX_PAYLOAD_BYTES`; any problem -> one MessageError line
+    naming ``what`` and where (``item`` before a field's location: "item " in a batch)."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise MessageError(f"{what}: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
+    try:
+        return validate(payload)
+    except ValidationError as error:
+        first: Any = error.errors()[0]
+        location = ".".join(str(p) for p in first["loc"])
+        raise MessageError(f"{what}: {item + location if location else 'payload'}: {first['msg']}") from None
 
 
 def decode(schema: type[M], payload: bytes) -> M:
     """Parse and validate; any problem (size, JSON, schema, version, NaN) -> MessageError."""
-    if len(payload) > MAX_PAYLOAD_BYTES:
-        raise MessageError(f"{schema.__name__}: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
-    try:
-        return schema.model_validate_json(payload)
-    except ValidationError as error:
-        first = error.errors()[0]
-        where = ".".join(str(p) for p in first["loc"]) or "payload"
-        raise MessageError(f"{schema.__name__}: {where}: {first['msg']}") from None
+    return _validated(schema.__name__, "", schema.model_validate_json, payload)
 
 
 def batch_payloads(messages: Sequence[Message]) -> Iterator[bytes]:
@@ -87,14 +94,7 @@ def decode_batch(schema: type[M], payload: bytes) -> list[M]:
     """A batch: a JSON array of ``schema`` messages, each validated as :func:`decode` validates one,
     the whole within :data:`MAX_PAYLOAD_BYTES`. One bad item refuses the batch (MessageError
     naming it): a sender that writes one bad item is not trusted with the others."""
-    if len(payload) > MAX_PAYLOAD_BYTES:
-        raise MessageError(f"{schema.__name__} batch: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
-    try:
-        return _batch_adapter(schema).validate_json(payload)
-    except ValidationError as error:
-        first: Any = error.errors()[0]
-        where = "item " + ".".join(str(p) for p in first["loc"]) if first["loc"] else "payload"
-        raise MessageError(f"{schema.__name__} batch: {where}: {first['msg']}") from None
+    return _validated(f"{schema.__name__} batch", "item ", _batch_adapter(schema).validate_json, payload)
 
 
 class PlantState(Message):
