@@ -292,7 +292,16 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
     JSON lines; each robot's actions counted by the id of the session that sent them (in the summary)."""
     import zenoh
 
-    from common.contracts.keys import ACTION, ACTION_BATCH, STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH, every_robot
+    from common.contracts.keys import (
+        ACTION,
+        ACTION_BATCH,
+        STATUS,
+        TRANSITION,
+        TRANSITION_BATCH,
+        WEIGHTS,
+        WEIGHTS_BATCH,
+        every_robot,
+    )
     from common.contracts.messages import (
         Action,
         CriticWeights,
@@ -344,6 +353,10 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         if (t := decoded(Transition, sample)) is not None:
             record("transition", robot=t.robot, step=t.step)
 
+    def on_transition_batch(sample: zenoh.Sample) -> None:  # an actor host's tick group
+        for t in items(Transition, sample):
+            record("transition", robot=t.robot, step=t.step)
+
     def on_status(sample: zenoh.Sample) -> None:
         if (s := decoded(ServiceStatus, sample)) is not None:
             record("status", robot=s.robot, service=s.service, counters=s.counters)
@@ -380,6 +393,7 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         session.declare_subscriber(every_robot(WEIGHTS), on_weights),
         session.declare_subscriber(WEIGHTS_BATCH.pattern, on_weights_batch),
         session.declare_subscriber(every_robot(TRANSITION), on_transition),
+        session.declare_subscriber(TRANSITION_BATCH.pattern, on_transition_batch),
         session.declare_subscriber(every_robot(ACTION), on_action),
         session.declare_subscriber(ACTION_BATCH.pattern, on_action_batch),
         session.declare_subscriber(STATUS.pattern.format(robot="*", service="*"), on_status),

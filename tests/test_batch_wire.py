@@ -211,3 +211,87 @@ def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_cam
         alone([state("n1", 5)])  # the key's state came last
         time.sleep(0.3)
         assert take(n1)[0].seq == 5 and take(n2)[0].seq == 4
+
+
+def test_a_hosts_transition_cache_holds_as_many_periods_of_every_robot_as_a_robots_own() -> None:
+    """An actor host sends one round of transitions per tick group and period, each within the
+    64 KiB bound: TRANSITIONS_PER_SAMPLE of the longest a Transition can be fit one sample, so
+    its cache (transition_cache x transition_rounds samples) keeps transition_cache periods."""
+    from common.contracts.messages import Transition
+    from services.actor.host import TRANSITIONS_PER_SAMPLE, transition_rounds
+
+    longest = Transition(
+        robot="r" * 64,
+        episode=2**62,
+        step=2**62,
+        state=(-1.2345678901234567e-300,) * 3,
+        action=(-1.2345678901234567e-300,) * 2,
+        cost=1.2345678901234567e-300,
+    )
+    assert len(list(batch_payloads([longest] * TRANSITIONS_PER_SAMPLE))) == 1
+    assert len(list(batch_payloads([longest] * 4 * TRANSITIONS_PER_SAMPLE))) > 1  # the check can fail
+    assert transition_rounds(50, 10) == 5 and transition_rounds(1, 10) == 1 and transition_rounds(7, 10) == 1
+    assert transition_rounds(300, 300) == 3  # a group of 300: three samples a round at most
+
+
+def test_history_recovery_asks_once_for_every_robot_waiting_and_again_for_those_that_came_later() -> None:
+    """services.critic.service.HistoryRecovery: one query out at a time, for every robot waiting
+    when it is asked; a robot that starts waiting while it is out is asked for next; what comes
+    back goes to the inbox only if it is a missing step of the robot's episode."""
+    from services.critic.service import HistoryRecovery
+    from tests.harness import random_transitions
+
+    asked: list[tuple[list[str], Any, Any]] = []
+    inbox: list[Any] = []
+    recovery = HistoryRecovery(lambda robots, answer, done: asked.append((robots, answer, done)), inbox.append)
+    stream = random_transitions(10, ("a", "b", "c"))
+    step = {(t.robot, t.step): t for t in stream}
+    recovery.need(step[("a", 6)], range(0, 6))
+    recovery.need(step[("b", 6)], range(0, 6))  # while the first query is out
+    recovery.need(step[("c", 6)], range(3, 6))
+    assert [robots for robots, _, _ in asked] == [["a"]]
+    _, answer, done = asked[0]
+    for t in stream:  # the cache holds every robot's steps 0-9
+        answer(t)
+    answer(step[("b", 2)].model_copy(update={"episode": 99}))  # another episode: not asked for
+    assert [(t.robot, t.step) for t in inbox] == [
+        (t.robot, t.step) for t in stream if t.step < 6 and (t.robot != "c" or t.step >= 3)
+    ]
+    done()
+    assert [robots for robots, _, _ in asked] == [["a"], ["b", "c"]]  # the rest, in one
+    asked[1][2]()
+    assert len(asked) == 2 and not recovery.waiting  # nothing waits: no query
+
+
+@pytest.mark.integration
+def test_a_late_subscriber_with_recovery_gets_a_batch_publishers_history_item_by_item() -> None:
+    """An actor host's transitions (``round_publisher(TRANSITION, cache=...)``): a subscriber that
+    comes after the rounds were sent (a critic or recorder started late) and asks for recovery
+    gets the cached batches, every robot's steps in order, once each. A subscription of the same
+    process that asks for a recovery the batch key's first one did not is refused."""
+    from common.contracts.keys import TRANSITION
+    from tests.harness import random_transitions, wait_until
+
+    with router_and_buses("actor") as (_, reader, writer, _opened):
+        send = writer.round_publisher(TRANSITION, cache=20)
+        robots = ("t1", "t2", "t3")
+        stream = random_transitions(6, robots)
+        for k in range(6):
+            send(stream[3 * k : 3 * k + 3])
+        time.sleep(0.5)
+        got: dict[str, list[int]] = {robot: [] for robot in robots}
+        lock = threading.Lock()
+
+        def on(message: Any) -> None:
+            with lock:
+                got[message.robot].append(message.step)
+
+        reader.subscribe(TRANSITION, every_robot(TRANSITION), on, recover=True)
+        wait_until(lambda: sum(map(len, got.values())) >= 18, 10, "the cached rounds")
+        send(random_transitions(7, robots)[18:])  # step 6, live
+        wait_until(lambda: sum(map(len, got.values())) >= 21, 10, "the live round")
+        time.sleep(0.3)
+        assert got == {robot: list(range(7)) for robot in robots}
+        writer.subscribe(TRANSITION, TRANSITION.key("t1"), on)  # the batch key's first here: no recovery
+        with pytest.raises(ValueError, match="without recovery"):
+            writer.subscribe(TRANSITION, TRANSITION.key("t2"), on, recover=True)

@@ -241,17 +241,20 @@ def test_a_host_serves_a_tick_group_back_to_back_with_one_wake_up() -> None:
 def test_a_hosts_actions_leave_as_one_round_per_tick_group_or_once_the_first_has_waited(
     work: float, rounds: list[int]
 ) -> None:
-    """ActionOutbox: each robot's action is put at the end of its tick; a group's actions leave
+    """Outbox: each robot's action is put at the end of its tick; a group's actions leave
     together when the group is served, or as soon as the first has waited ACTION_WAIT_S (2 ms),
     so no action waits much longer than that; every action leaves once, in order, and the stop
-    actions on the way out leave too."""
+    actions on the way out leave too. Transitions (an outbox without a wait) leave once per
+    group, whatever the work: one round per group and period, what their cache is sized for."""
     from common.contracts.messages import Action
-    from services.actor.host import ACTION_WAIT_S, ActionOutbox
+    from services.actor.host import ACTION_WAIT_S, Outbox
 
     sent: list[list[Action]] = []
     scheduler, loops, _, fake = host(6, work=work, group=3)
-    outbox = ActionOutbox(sent.append, clock=fake.clock)
-    scheduler.outbox = outbox
+    outbox = Outbox(sent.append, clock=fake.clock)
+    transitions: list[list[str]] = []
+    following = Outbox(transitions.append, "transitions", clock=fake.clock, wait=None)
+    scheduler.outboxes = (outbox, following)
     put_at: dict[tuple[str, int], float] = {}
     left_at: dict[tuple[str, int], float] = {}
 
@@ -277,6 +280,7 @@ def test_a_hosts_actions_leave_as_one_round_per_tick_group_or_once_the_first_has
         def tick(k: int, t: float, hurry: bool = False) -> None:
             ticking(k, t, hurry)
             put(k, (0.1, 0.0), k)
+            following.put(f"{loop.robot}/{k}")
 
         return tick
 
@@ -288,6 +292,7 @@ def test_a_hosts_actions_leave_as_one_round_per_tick_group_or_once_the_first_has
     assert [(a.robot, a.action) for a in stops] == [(f"r{i}", (0.0, 0.0)) for i in range(6)]
     assert [len(r) for r in sent] == rounds
     assert [a.robot for r in sent for a in r] == [f"r{i}" for i in range(6)]  # each once, in order
+    assert transitions == [[f"r{i}/0" for i in range(3)], [f"r{i}/0" for i in range(3, 6)]]
     waited = [left_at[key] - put_at[key] for key in put_at if key in left_at and key[1] == 0]
     assert max(waited) <= ACTION_WAIT_S + work + 1e-12
 
@@ -296,7 +301,7 @@ def test_a_round_of_actions_that_cannot_be_sent_is_counted_and_the_next_one_goes
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     from common.contracts.messages import Action
-    from services.actor.host import ActionOutbox
+    from services.actor.host import Outbox
 
     sent: list[list[str]] = []
 
@@ -306,7 +311,7 @@ def test_a_round_of_actions_that_cannot_be_sent_is_counted_and_the_next_one_goes
             raise RuntimeError("the session is closed")
         sent.append([a.robot for a in round_])
 
-    outbox = ActionOutbox(send, clock=lambda: 0.0)
+    outbox = Outbox(send, clock=lambda: 0.0)
     for robot in ("r0", "r1"):
         outbox.put(Action(robot=robot, episode=0, step=0, stamp_ns=0, action=(0.1, 0.0), state_seq=0))
     outbox.flush()  # raises inside: logged and counted, not raised

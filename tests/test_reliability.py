@@ -314,6 +314,70 @@ def test_a_critic_whose_history_came_too_late_asks_the_cache_again(
         assert seen[0][0] > 0, seen
 
 
+@pytest.mark.integration
+@pytest.mark.parametrize("asks_again", [True, False])
+def test_a_fleet_critic_asks_an_actor_hosts_batch_cache_for_every_robot_that_started_late(
+    asks_again: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An actor host's transitions come in batches (srl/@batch/transition) from one advanced
+    # publisher; the critic's own subscription gets no history here (it subscribes without
+    # recovery), so it must ask the batch cache, once for the first robot heard and once for
+    # the others (HistoryRecovery), not once per robot. The negative control does not ask.
+    import threading
+
+    from common.contracts.keys import TRANSITION, TRANSITION_BATCH
+    from common.net.transport import Bus
+    from services.critic import service
+
+    subscribe = Bus.subscribe
+    monkeypatch.setattr(
+        Bus, "subscribe", lambda self, *args, **kwargs: subscribe(self, *args, **{**kwargs, "recover": False})
+    )
+    if not asks_again:
+        monkeypatch.setattr(Bus, "history", lambda *args, **kwargs: None)
+    robots = [f"h{i}" for i in range(1, 9)]
+    with cluster(robot="h1") as c:
+        settings = Settings.load(transport={"router": c.endpoint, "robot": "h1"}, critic={"checkpoint": ""})
+        actor, critic = Bus.open(settings.transport, "actor"), Bus.open(settings.transport, "critic")
+        stop, result = threading.Event(), {}
+        try:
+            publish = actor.round_publisher(TRANSITION, batches=True, cache=100)
+            stream = random_transitions(30, robots)
+            rounds = [stream[i : i + len(robots)] for i in range(0, len(stream), len(robots))]
+            routed: list[object] = []  # an observer: what the router forwarded before the critic subscribed
+            assert c.session is not None
+            c.session.declare_subscriber(TRANSITION_BATCH.pattern, routed.append)
+            probe = actor.session.declare_publisher(TRANSITION_BATCH.pattern)
+            wait_until(lambda: probe.matching_status.matching, 10, "the observer's subscription at the actor")
+            for round_ in rounds[:12]:
+                publish(round_)
+            wait_until(lambda: len(routed) == 12, 10, "the first 12 rounds through the router")
+            runner = threading.Thread(
+                target=lambda: result.update(service.run(settings, critic, stop, 30.0, robots=robots))
+            )
+            runner.start()
+            wait_until(lambda: c.alive("critic"), 30, "the critic")
+            for round_ in rounds[12:]:
+                time.sleep(0.05)
+                publish(round_)
+            wait_until(lambda: critic.counters["received.transition"] >= 18 * len(robots), 10, "the live transitions")
+            time.sleep(0.5)
+        finally:
+            stop.set()
+            runner.join(timeout=10)
+            critic.close()
+            actor.close()
+    seen, counters = result["seen_steps"], result["counters"]
+    if asks_again:
+        assert all(seen[robot] == [[0, 29]] for robot in robots), seen
+        # the first robot heard, then those heard while it was out (2 unless the machine stalls
+        # the critic between two robots of one batch): never one per robot
+        assert 1 <= counters.get("history_queries", 0) < len(robots), counters
+        assert counters.get("recovered.transition", 0) >= 12 * len(robots), counters
+    else:
+        assert all(seen[robot][0][0] > 0 for robot in robots), seen
+
+
 @pytest.mark.timing
 @pytest.mark.integration
 @pytest.mark.slow

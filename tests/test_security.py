@@ -83,7 +83,9 @@ HEARTBEAT = "srl/t0/transition/@adv/pub/1234abcd/1/uhlc"  # an advanced publishe
         ("srl/@batch/critic/weights", {"critic"}),  # a round of weights (common.contracts.keys.Batch)
         ("srl/@batch/state", {"plant"}),  # a plant host's states of one state tick
         ("srl/@batch/action", {"actor"}),  # an actor host's actions of one tick group
-        ("srl/@batch/transition", set()),  # no other batch key is anyone's
+        ("srl/@batch/transition", {"actor"}),  # an actor host's transitions of one tick group
+        ("srl/@batch/transition/@adv/pub/z1/e1/tok", {"actor"}),  # its cache's heartbeats
+        ("srl/@batch/status/actor", set()),  # no other batch key is anyone's
         ("srl/t0/state", {"plant"}),
         ("srl/t0/status/actor", {"actor"}),
         ("srl/t0/status/critic", {"critic"}),
@@ -110,6 +112,8 @@ def test_only_the_owner_role_may_publish_a_key(key: str, writers: set[str]) -> N
         ("srl/@batch/action", {"plant"}),
         ("srl/t0/transition", {"critic"}),
         ("srl/*/transition", {"critic"}),  # the critic's own (wildcard) subscription
+        ("srl/@batch/transition", {"critic"}),
+        ("srl/@batch/transition/@adv/pub/z1/e1/tok", {"critic"}),
         (HEARTBEAT, {"critic"}),
         ("srl/t0/status/*", {"monitor"}),
         ("srl/**", set()),

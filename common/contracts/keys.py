@@ -93,6 +93,9 @@ ACTION_BATCH = Batch(ACTION)
 STATE_BATCH = Batch(STATE)
 # the weights of one fit round of a critic of a robot list (a fleet's), of every robot it fitted
 WEIGHTS_BATCH = Batch(WEIGHTS)
+# an actor host's transitions of one tick group (a host of many robots), sent through an advanced
+# publisher whose cache keeps transport.transition_cache periods of them (a late critic recovers)
+TRANSITION_BATCH = Batch(TRANSITION)
 PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
 PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
 
@@ -114,6 +117,7 @@ BATCHES: dict[str, Batch[Any]] = {
     ACTION.pattern: ACTION_BATCH,
     STATE.pattern: STATE_BATCH,
     WEIGHTS.pattern: WEIGHTS_BATCH,
+    TRANSITION.pattern: TRANSITION_BATCH,
 }
 
 

@@ -56,6 +56,7 @@ from common.contracts.keys import (
     STATE_BATCH,
     STATUS,
     TRANSITION,
+    TRANSITION_BATCH,
     WEIGHTS,
     WEIGHTS_BATCH,
     advanced_pattern,
@@ -141,7 +142,7 @@ DISCOVERY = Rule(
     "discover",
     "egress",
     ("declare_subscriber", "declare_queryable", "query"),
-    (ALL_KEYS, advanced_pattern(ALL_KEYS), f"srl/{BATCH_CHUNK}/**"),
+    (ALL_KEYS, advanced_pattern(ALL_KEYS), f"srl/{BATCH_CHUNK}/**", advanced_pattern(f"srl/{BATCH_CHUNK}/**")),
 )
 
 
@@ -198,6 +199,7 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
         "actor": [
             *publish(key(ACTION.pattern), ACTION_BATCH.pattern, key(STATUS.pattern, "actor")),
             *advanced_publish(key(TRANSITION.pattern)),
+            *advanced_publish(TRANSITION_BATCH.pattern),  # an actor host's (a host of many robots)
             # states and weights come on the robot's key or in batches (common.contracts.keys.Batch)
             *read(key(STATE.pattern), STATE_BATCH.pattern, key(WEIGHTS.pattern), WEIGHTS_BATCH.pattern),
             *(query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
@@ -209,6 +211,7 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
             # the critic subscribes to every robot's transitions (srl/*/transition): the rule
             # must include that wildcard; it still publishes weights for this robot only
             *advanced_read(key(TRANSITION.pattern, robot="*")),
+            *advanced_read(TRANSITION_BATCH.pattern),
             *token(*own("critic")),
             *watch(*alive),
         ],

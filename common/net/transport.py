@@ -143,6 +143,7 @@ class Bus:
         # Zenoh subscription per batch key, however many robots subscribe (_route_batches)
         self._batch_routes: dict[str, tuple[tuple[zenoh.KeyExpr, Callable[[Any, str | None], None]], ...]] = {}
         self._batch_targets: dict[str, list[Callable[[Any, str | None], None]]] = {}  # robot key -> deliveries
+        self._batch_recovers: dict[str, bool] = {}  # batch key -> subscribed with recovery
         # Our own threads (status): ended and joined by close(), before the session goes, so
         # none is inside Zenoh or pydantic when the interpreter finalizes.
         self.closing = threading.Event()
@@ -205,7 +206,18 @@ class Bus:
         """Typed put on ``topic``. ``cache > 0``: a Zenoh advanced publisher that keeps the last
         ``cache`` samples and sends heartbeats, so a subscriber declared with ``recover=True``
         gets what it missed (late start, restart, partition) instead of losing it."""
-        key = topic.key(robot, **chunks)
+        publisher = self._declare_publisher(topic.key(robot, **chunks), cache)
+
+        def publish(message: M) -> None:
+            if not isinstance(message, topic.schema):
+                raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
+            publisher.put(message.encode())
+
+        return publish
+
+    def _declare_publisher(self, key: str, cache: int) -> Any:
+        """A publisher on ``key`` that lives as long as the bus: advanced, caching the last
+        ``cache`` samples, if ``cache > 0`` (:meth:`publisher`)."""
         publisher: Any
         if cache > 0:
             publisher = zenoh.ext.declare_advanced_publisher(
@@ -222,26 +234,20 @@ class Bus:
             # express (transport.express): sent at once, never held back to fill a batch
             publisher = self.session.declare_publisher(key, express=self.express)
         self._keep.append(publisher)
+        return publisher
 
-        def publish(message: M) -> None:
-            if not isinstance(message, topic.schema):
-                raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
-            publisher.put(message.encode())
-
-        return publish
-
-    def round_publisher(self, topic: Topic[M], batches: bool = True) -> Callable[[Sequence[M]], None]:
+    def round_publisher(self, topic: Topic[M], batches: bool = True, cache: int = 0) -> Callable[[Sequence[M]], None]:
         """Puts rounds of many robots' messages on ``topic``: with ``batches`` (a service that
         serves many robots) and a topic that has a batch form, every round as batches
         (common.contracts.keys.Batch: one sample per 64 KiB of them,
         common.contracts.messages.MAX_PAYLOAD_BYTES), a round of one robot too; else each message
         on its robot's key. One sender's messages of a robot so take one path: a receiver's
         subscriptions may each run in a thread of their own, and two paths would lose their order.
-        Every receiver gets each message as if it had come alone (:meth:`subscribe`)."""
+        Every receiver gets each message as if it had come alone (:meth:`subscribe`). ``cache > 0``:
+        the publisher (of the batches, or of each robot's key) is an advanced one that keeps its
+        last ``cache`` samples (:meth:`publisher`): a batch sample counts as one."""
         batch = batch_of(topic) if batches else None
-        batched = None if batch is None else self.session.declare_publisher(batch.pattern, express=self.express)
-        if batched is not None:
-            self._keep.append(batched)
+        batched = None if batch is None else self._declare_publisher(batch.pattern, cache)
         singles: dict[str, Callable[[M], None]] = {}
 
         def publish(messages: Sequence[M]) -> None:
@@ -257,7 +263,7 @@ class Bus:
                 robot = getattr(message, "robot")  # noqa: B009  # every topic's schema names its robot
                 single = singles.get(robot)
                 if single is None:
-                    single = singles[robot] = self.publisher(topic, robot)
+                    single = singles[robot] = self.publisher(topic, robot, cache=cache)
                 single(message)
 
         return publish
@@ -309,20 +315,24 @@ class Bus:
                 return
             deliver(message, source_of(sample))
 
-        if recover:
-            self._keep.append(
-                zenoh.ext.declare_advanced_subscriber(
-                    self.session,
-                    key,
-                    self._callback(on_sample, threaded),
-                    history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
-                    recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
-                )
-            )
-        else:
-            self._keep.append(self.session.declare_subscriber(key, self._callback(on_sample, threaded)))
-        if batch_of(topic) is not None:
-            self._route_batches(topic, key, deliver, name, threaded)
+        batch = batch_of(topic)
+        if batch is not None and recover and self._batch_recovers.get(batch.pattern) is False:
+            raise ValueError(f"{batch.pattern} is subscribed without recovery in this process: ask for it first")
+        self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), recover))
+        if batch is not None:
+            self._route_batches(topic, key, deliver, name, threaded, recover)
+
+    def _declare_subscriber(self, key: str, callback: Any, recover: bool) -> Any:
+        """A subscriber on ``key``; ``recover``: an advanced one, with history and recovery (:meth:`subscribe`)."""
+        if not recover:
+            return self.session.declare_subscriber(key, callback)
+        return zenoh.ext.declare_advanced_subscriber(
+            self.session,
+            key,
+            callback,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+            recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
+        )
 
     def _route_batches(
         self,
@@ -331,17 +341,20 @@ class Bus:
         deliver: Callable[[M, str | None], None],
         name: str,
         threaded: bool | None,
+        recover: bool,
     ) -> None:
         """The items of ``topic``'s batches whose robot key ``key`` includes go to ``deliver``, with
         the batch's source: one Zenoh subscription per batch key and bus (the first subscriber's
-        ``threaded`` says where its handler runs), each batch decoded once and its items handed
-        to every subscription of their robot (an item of a robot nobody here subscribed to is
-        not ours, and is passed over)."""
+        ``threaded`` says where its handler runs, its ``recover`` whether the batches' history and
+        missed samples are fetched: a later subscription may not ask for a recovery the first did
+        not), each batch decoded once and its items handed to every subscription of their robot
+        (an item of a robot nobody here subscribed to is not ours, and is passed over)."""
         batch = batch_of(topic)
         assert batch is not None
         pattern = batch.pattern
         with self._lock:
             first = pattern not in self._batch_routes
+            self._batch_recovers.setdefault(pattern, recover)
             self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), (zenoh.KeyExpr(key), deliver))
             self._batch_targets = {}  # the routes changed: every robot's deliveries again
 
@@ -364,38 +377,74 @@ class Bus:
                     each(item, source)
 
         if first:
-            self._keep.append(self.session.declare_subscriber(pattern, self._callback(on_batch, threaded)))
+            self._keep.append(self._declare_subscriber(pattern, self._callback(on_batch, threaded), recover))
 
-    def history(self, topic: Topic[M], key: str, handler: Callable[[M], None], timeout: float = 10.0) -> None:
-        """Ask every advanced publisher on ``key`` for all it caches, without waiting: each cached
-        sample is decoded (a malformed one counted as rejected) and handed to ``handler`` on
-        Zenoh's thread, in the cache's order.
+    def history(
+        self,
+        topic: Topic[M],
+        keys: str | Sequence[str],
+        handler: Callable[[M], None],
+        done: Callable[[], None] | None = None,
+        timeout: float = 10.0,
+    ) -> None:
+        """Ask every advanced publisher on ``keys`` (one key or several) for all it caches, without
+        waiting: each cached sample is decoded (a malformed one counted as rejected) and handed to
+        ``handler`` on Zenoh's thread, in the cache's order. A topic with a batch form
+        (common.contracts.keys.Batch) asks the batch publishers' caches too, once for all of
+        ``keys``: the items of their robots are handed over one by one. ``done`` is called once,
+        when every publisher has answered or ``timeout`` has passed.
 
         A :meth:`subscribe` with ``recover=True`` gets a publisher's history only if the answer
         to its own history query comes before that publisher's next live sample: a sample it
         delivers live ends the recovery of everything older. A service that sees a stream
         start later than it should asks again with this (the critic does)."""
         name = topic.pattern.split("/", 2)[-1]
+        wanted = [keys] if isinstance(keys, str) else list(keys)
+        batch = batch_of(topic)
+        selectors = [advanced_pattern(key) for key in wanted]
+        if batch is not None:
+            selectors.append(advanced_pattern(batch.pattern))
+        expressions = [zenoh.KeyExpr(key) for key in wanted]
+        open_queries = [len(selectors)]  # queries not yet ended (done when none is left)
+        lock = threading.Lock()
+
+        def hand(message: M) -> None:
+            self.count(f"recovered.{name}")
+            handler(message)
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.ok is None:
                 return
+            key = str(reply.ok.key_expr)
             try:
-                message = decode_sample(topic, str(reply.ok.key_expr), reply.ok.payload.to_bytes())
+                if batch is None or key != batch.pattern:
+                    hand(decode_sample(topic, key, reply.ok.payload.to_bytes()))
+                    return
+                items = decode_batch(topic.schema, reply.ok.payload.to_bytes())
             except MessageError as error:
                 self.reject(name, str(error))
                 return
-            self.count(f"recovered.{name}")
-            handler(message)
+            for item in items:
+                robot_key = zenoh.KeyExpr(topic.key(getattr(item, "robot")))  # noqa: B009  # every item names its robot
+                if any(expression.intersects(robot_key) for expression in expressions):
+                    hand(item)
 
-        self.session.get(
-            advanced_pattern(key),
-            self._callback(on_reply),
-            target=zenoh.QueryTarget.ALL,
-            consolidation=zenoh.ConsolidationMode.NONE,
-            accept_replies=zenoh.ReplyKeyExpr.ANY,  # the cache answers on the key itself
-            timeout=timeout,
-        )
+        def on_end() -> None:
+            with lock:
+                open_queries[0] -= 1
+                last = open_queries[0] == 0
+            if last and done is not None:
+                done()
+
+        for selector in selectors:
+            self.session.get(
+                selector,
+                zenoh.handlers.Callback(on_reply, on_end, indirect=self.callback_threads),
+                target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                accept_replies=zenoh.ReplyKeyExpr.ANY,  # the cache answers on the key itself
+                timeout=timeout,
+            )
 
     def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
         """Keep only the newest sample on ``key``, undecoded, in Zenoh (a ring channel of one);
@@ -407,7 +456,7 @@ class Bus:
         name = what or topic.pattern.split("/", 2)[-1]
         newest = Newest(self, topic, name, subscriber)
         if batch_of(topic) is not None:  # a batch's items are decoded once, on arrival, and held
-            self._route_batches(topic, key, newest.offer, name, None)
+            self._route_batches(topic, key, newest.offer, name, None, recover=False)
         return newest
 
     # -- queries ------------------------------------------------------------------------

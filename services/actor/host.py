@@ -3,9 +3,10 @@
 Each robot has what a single actor has -- its own :class:`~services.actor.realtime.RealtimeActor`
 (state intake with provenance, weights inbox, statistics, transitions, staleness), its own plans
 and warm starts, arrival rule and counters (:class:`~common.math.actor_problem.ActorMemory`), its own tick
-accounting (:class:`RobotTicker`) and its own keys (``srl/<robot>/transition``, ``.../status/actor``,
-liveliness ``.../alive/actor``); its actions leave with its tick group's as one batch
-(``srl/@batch/action``, :class:`ActionOutbox`). What they share is ONE built problem per
+accounting (:class:`RobotTicker`) and its own keys (``.../status/actor``, liveliness
+``.../alive/actor``); its actions and its transitions leave with its tick group's, a batch each
+(``srl/@batch/action``, ``srl/@batch/transition``, :class:`Outbox`; a host of one robot: on the
+robot's keys). What they share is ONE built problem per
 (agent, N): :class:`RobotActor` swaps a robot's memory into the shared
 :class:`~common.math.actor.StackedActor` for its step. Every solve runs in one thread, the
 scheduler's, so the CasADi function and its buffers are never used by two robots at once (its
@@ -33,16 +34,16 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
 from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
-from common.contracts.keys import ACTION, STATE, STATUS
-from common.contracts.messages import Action, PlantState, ServiceStatus
+from common.contracts.keys import ACTION, STATE, STATUS, TRANSITION
+from common.contracts.messages import PlantState, ServiceStatus
 from common.contracts.summaries import RealtimeActorSummary
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
@@ -57,16 +58,21 @@ from services.actor.service import wire_realtime, wire_weights
 
 log = logging.getLogger(__name__)
 
+M = TypeVar("M")
+
 # A tick served more than this fraction of a period after its due time is solved in a hurry
 # (StackedActor.step: the warm start descended or polished once, actor.host_hurry; no global
 # phase, runner-up polish or vertex search): a host behind its schedule sheds the optional work
 # until it is on time again, instead of missing deadlines.
 HURRY_FRACTION = 0.05
-# An actor host's actions leave in rounds (ActionOutbox): those of one tick group together, or
+# An actor host's actions leave in rounds (Outbox): those of one tick group together, or
 # sooner once the oldest has waited this long. A plant host learns each robot's phase from when
 # its actions arrive (services/plant_sim/host.py StateSync) and opens its window SYNC_MARGIN_S
 # (5 ms) early: a wait well inside that margin keeps every robot's newest state in the window.
 ACTION_WAIT_S = 0.002
+# A lower bound on the transitions one batch sample holds: an encoded Transition is under 640
+# bytes (tests/test_batch_wire.py checks a worst case), the sample's bound is 64 KiB.
+TRANSITIONS_PER_SAMPLE = 100
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.
 PRIME_WAIT_S = 3.0
@@ -109,42 +115,56 @@ class RobotActor:
             self.memory = self.shared.swap_memory(held)
 
 
-class ActionOutbox:
-    """The actions of a host's robots, sent as rounds (``send``: Bus.round_publisher, one batch
-    sample a round, common.contracts.keys.Batch): :class:`HostScheduler` flushes it when a tick
-    group is served, or earlier once the oldest action has waited ``wait`` seconds, and before it
-    sleeps. Used by the scheduler's thread only (every robot's actions are sent from its ticks)."""
+class Outbox(Generic[M]):
+    """What a host's robots send at their ticks (actions, transitions), sent as rounds (``send``:
+    Bus.round_publisher, one batch sample a round, common.contracts.keys.Batch):
+    :class:`HostScheduler` flushes it when a tick group is served and before it sleeps, and, when
+    ``wait`` is given, earlier once the oldest message has waited that long (the actions:
+    :data:`ACTION_WAIT_S`). Used by the scheduler's thread only (every robot's messages are put
+    at its ticks). ``what`` names the messages in the log."""
 
     def __init__(
         self,
-        send: Callable[[list[Action]], None],
+        send: Callable[[list[M]], None],
+        what: str = "actions",
         clock: Callable[[], float] = time.monotonic,
-        wait: float = ACTION_WAIT_S,
+        wait: float | None = ACTION_WAIT_S,
     ) -> None:
-        self.send, self.clock, self.wait = send, clock, wait
-        self.pending: list[Action] = []
-        self.since = 0.0  # when the oldest pending action was put
+        self.send, self.what, self.clock, self.wait = send, what, clock, wait
+        self.pending: list[M] = []
+        self.since = 0.0  # when the oldest pending message was put
         self.failed_rounds = 0
 
-    def put(self, action: Action) -> None:
+    def put(self, message: M) -> None:
         if not self.pending:
             self.since = self.clock()
-        self.pending.append(action)
+        self.pending.append(message)
 
     def overdue(self, now: float) -> bool:
-        return bool(self.pending) and now - self.since >= self.wait
+        return self.wait is not None and bool(self.pending) and now - self.since >= self.wait
 
     def flush(self) -> None:
         """Send what is pending. A send that fails is logged and counted (``failed_rounds``), and
         the scheduler goes on: the robots whose actions it held stop by their plant's watchdog,
-        as they would if those actions had been lost on the way."""
+        as they would if those actions had been lost on the way; a round of transitions lost is
+        a gap in the critic's replay, as a transition lost on the way is."""
         if self.pending:
             pending, self.pending = self.pending, []
             try:
                 self.send(pending)
             except Exception:  # a failed round must not end the loop that keeps every robot safe
                 self.failed_rounds += 1
-                log.exception("actor host: a round of %d actions could not be sent", len(pending))
+                log.exception("actor host: a round of %d %s could not be sent", len(pending), self.what)
+
+
+def transition_rounds(robots: int, group: int) -> int:
+    """The samples an actor host of ``robots`` sends per period on ``srl/@batch/transition``: one
+    round per tick group (:class:`HostScheduler`), each of at most ``group`` transitions, as many
+    samples as the 64 KiB bound takes (:data:`TRANSITIONS_PER_SAMPLE` at least per sample). Its
+    publisher caches ``transport.transition_cache`` periods of them: as many of each robot's
+    transitions as a publisher of one robot keeps."""
+    groups = -(-robots // group)
+    return groups * -(-min(group, robots) // TRANSITIONS_PER_SAMPLE)
 
 
 class RobotTicker(Ticker):
@@ -200,10 +220,11 @@ class HostScheduler:
         states: list[Newest[PlantState]] | None = None,
         budget: float = 1.0,
         group: int = 1,
-        outbox: ActionOutbox | None = None,
+        outboxes: Sequence[Outbox[Any]] = (),
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
-        self.outbox = outbox  # the robots' actions, sent per group (None: each robot sends its own)
+        # the robots' actions and transitions, sent per group (none: each robot sends its own)
+        self.outboxes = tuple(outboxes)
         self.states = states  # each robot's newest state, taken at its tick (None: fed by on_state)
         self.clock = clock
         self.sleep = sleep or stop.wait
@@ -241,8 +262,7 @@ class HostScheduler:
                     break
                 wait = due - self.clock()
                 if wait > 0:
-                    if self.outbox is not None:
-                        self.outbox.flush()  # nothing is held back while the thread waits
+                    self.flush()  # nothing is held back while the thread waits
                     if pending_gc >= 0 and wait > 0.002:
                         gc.collect(pending_gc)
                         pending_gc = -1
@@ -283,10 +303,13 @@ class HostScheduler:
                 self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
                 self.spent[slot] = spent
                 heapq.heappush(heap, (ticker.next_due, i))
-                # the group is served (the next tick due is another phase's), or its first action
-                # has waited long enough: its actions go out as one round
-                if self.outbox is not None and (heap[0][0] != due or self.outbox.overdue(self.clock())):
-                    self.outbox.flush()
+                # the group is served (the next tick due is another phase's): its actions and
+                # its transitions go out, a round each; or its first action has waited long enough
+                if heap[0][0] != due:
+                    self.flush()
+                elif self.outboxes and (late_box := [box for box in self.outboxes if box.overdue(self.clock())]):
+                    for box in late_box:
+                        box.flush()
                 self.served += 1
                 if manual_gc and self.served % len(self.loops) == 0:
                     pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
@@ -296,8 +319,11 @@ class HostScheduler:
                 gc.enable()
         for loop, ticker in zip(self.loops, self.tickers, strict=True):  # on the way out: stop every robot
             loop.send(ticker.index, (0.0, 0.0), -1)
-        if self.outbox is not None:
-            self.outbox.flush()
+        self.flush()
+
+    def flush(self) -> None:
+        for box in self.outboxes:
+            box.flush()
 
 
 def _status_loop(
@@ -348,13 +374,18 @@ def run_host(
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
     states: list[Newest[PlantState]] = []
-    outbox = ActionOutbox(bus.round_publisher(ACTION, batches=len(robots) > 1))
+    batches = len(robots) > 1
+    outbox = Outbox(bus.round_publisher(ACTION, batches=batches))
+    # a host of one robot: the robot's advanced publisher (transition_cache of its transitions)
+    cache = settings.transport.transition_cache
+    cache *= transition_rounds(len(robots), settings.actor.host_tick_group) if batches else 1
+    transitions = Outbox(bus.round_publisher(TRANSITION, batches=batches, cache=cache), "transitions", wait=None)
     for robot in robots:
         own = robot_settings(settings, robot)
         count = RobotCounts(robot, "actor", forward=bus.reject)
         inbox = wire_weights(own, bus)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
-        loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id(), outbox.put)
+        loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id(), outbox.put, transitions.put)
         states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
         loops.append(loop)
         counts.append(count)
@@ -382,7 +413,7 @@ def run_host(
         states=states,
         budget=settings.actor.host_cpu_budget,
         group=settings.actor.host_tick_group,
-        outbox=outbox,
+        outboxes=(outbox, transitions),
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:
@@ -401,6 +432,7 @@ def run_host(
         ticks_over_budget=float(scheduler.over_budget),
         realtime_priority=float(priority),
         failed_action_rounds=float(outbox.failed_rounds),
+        failed_transition_rounds=float(transitions.failed_rounds),
     )
     return summary
 

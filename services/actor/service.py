@@ -30,6 +30,7 @@ from common.contracts.keys import ACTION, STATE, TRANSITION, WEIGHTS
 from common.contracts.messages import (
     Action,
     MessageError,
+    Transition,
 )
 from common.contracts.summaries import LockstepActorSummary, format_status_line
 from common.math.actor import StackedActor
@@ -108,20 +109,22 @@ def wire_realtime(
     counters: Counts,
     episode_id: int,
     publish_action: Callable[[Action], None] | None = None,
+    publish_transition: Callable[[Transition], None] | None = None,
 ) -> RealtimeActor:
     """One robot's real-time loop on the bus (``settings.transport.robot``'s keys): its action and
     transition publishers, the plant's session identities and liveliness watched. Provenance
     first: the caller subscribes the states after this, so the live plant sessions are known
     before the first state is judged (one actor: a callback per state; the actor host: the
-    newest, judged at the robot's tick). ``publish_action``: where its actions go instead of
-    their own key (an actor host's outbox, services/actor/host.py ActionOutbox)."""
+    newest, judged at the robot's tick). ``publish_action``, ``publish_transition``: where its
+    actions and transitions go instead of their own keys (an actor host's outboxes,
+    services/actor/host.py Outbox)."""
     robot = settings.transport.robot
     loop = RealtimeActor(
         settings,
         actor,
         inbox,
         publish_action or bus.publisher(ACTION, robot),
-        bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
+        publish_transition or bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
         counters,
         episode_id,
     )

@@ -9,11 +9,13 @@ step they were trained on and the fit residuals. Non-finite fits are never publi
 Nothing is lost across a crash:
 
 * the actor publishes transitions through a Zenoh advanced publisher that caches the last
-  ``transport.transition_cache`` of them; the critic subscribes with history and recovery, so
-  at (re)start it receives what was published while it was down, and after a partition what
-  it missed, in step order. A robot whose stream still starts later than the critic needs (the
-  subscription's history query answered after the first live transition, which ends its
-  recovery) is asked again: the critic queries the actor's cache for the missing steps;
+  ``transport.transition_cache`` of them (an actor host of many robots: one publisher of their
+  batches, srl/@batch/transition, that caches as many periods of all of them); the critic
+  subscribes with history and recovery, so at (re)start it receives what was published while it
+  was down, and after a partition what it missed, in step order. A robot whose stream still
+  starts later than the critic needs (the subscription's history query answered after the first
+  live transition, which ends its recovery) is asked again: the critic queries the actors'
+  caches for the missing steps, one query for every robot waiting (:class:`HistoryRecovery`);
 * after every accepted transition the critic writes a checkpoint (``critic.checkpoint``, per
   robot and stack: weights, version, replay, the steps seen) atomically, and reads it at start.
   A learner read from it continues only if the first transition is of its own episode (this
@@ -84,6 +86,64 @@ class Learner:
     critic: DoubleCritic
     seen: StepRuns
     newest: int = -1
+
+
+class HistoryRecovery:
+    """The robots whose transitions start later than the critic needs, recovered from the actors'
+    caches (:meth:`Bus.history`): one query at a time, for every robot waiting when it is asked,
+    so a critic that restarts beside a fleet asks an actor host's batch cache (its robots' last
+    ``transport.transition_cache`` periods, srl/@batch/transition) once, not once per robot. A
+    robot that starts waiting while a query is out is asked for in the next one (the answer of
+    one asked before it may have passed its steps over). What comes back goes to ``put`` if it is
+    a missing step of a waiting robot's episode. ``ask(robots, handler, done)`` is the query;
+    ``done`` is called once when it ends. Thread-safe: ``need`` runs on the critic's loop, the
+    answers on Zenoh's threads."""
+
+    def __init__(
+        self,
+        ask: Callable[[list[str], Callable[[Transition], None], Callable[[], None]], None],
+        put: Callable[[Transition], None],
+    ) -> None:
+        self.ask, self.put = ask, put
+        self.lock = threading.Lock()
+        self.waiting: dict[str, tuple[int, range]] = {}  # robot -> (episode, its missing steps)
+        self.asked: dict[str, tuple[int, range]] = {}  # what the query out asks for
+        self.queries = 0
+
+    def need(self, first: Transition, missing: range) -> None:
+        """``first`` is the first transition of its robot this critic got, ``missing`` the steps before it it needs."""
+        with self.lock:
+            self.waiting[first.robot] = (first.episode, missing)
+            if self.asked:
+                return  # asked for in the next query, when this one ends
+        self._next()
+
+    def _next(self) -> None:
+        with self.lock:
+            self.asked = dict(self.waiting)
+            if not self.asked:
+                return
+            self.queries += 1
+        log.info(
+            "critic: asking the actors' caches for the missing steps of %d robots (%s)",
+            len(self.asked),
+            ", ".join(f"{robot} {steps.start}-{steps.stop - 1}" for robot, (_, steps) in list(self.asked.items())[:5])
+            + (", ..." if len(self.asked) > 5 else ""),
+        )
+        self.ask(list(self.asked), self._answer, self._done)
+
+    def _answer(self, message: Transition) -> None:
+        wanted = self.waiting.get(message.robot)
+        if wanted is not None and message.episode == wanted[0] and message.step in wanted[1]:
+            self.put(message)
+
+    def _done(self) -> None:
+        with self.lock:
+            for robot, wanted in self.asked.items():
+                if self.waiting.get(robot) == wanted:  # not waiting for more since it was asked
+                    del self.waiting[robot]
+            self.asked = {}
+        self._next()
 
 
 def checkpoint_path(settings: Settings) -> Path | None:
@@ -531,24 +591,14 @@ def run(
 
     heard: set[str] = set()  # robots heard since the start
 
-    def recover(first: Transition, missing: range) -> None:
-        """The stream of ``first``'s robot starts later than this critic needs (its subscription's
-        history came too late, or not at all): what the actor's cache holds of ``missing`` goes
-        to the inbox, as if it had come in time."""
-        log.info(
-            "critic: %s's transitions start at step %d; asking the actor's cache for steps %d-%d",
-            first.robot,
-            first.step,
-            missing.start,
-            missing.stop - 1,
-        )
+    # a robot whose stream starts later than this critic needs (its subscription's history came
+    # too late, or not at all): what the actors' caches hold of the missing steps goes to the
+    # inbox, as if it had come in time
+    def ask(robots: list[str], answer: Callable[[Transition], None], done: Callable[[], None]) -> None:
         bus.count("history_queries")
+        bus.history(TRANSITION, [TRANSITION.key(robot) for robot in robots], answer, done)
 
-        def keep(message: Transition) -> None:
-            if message.robot == first.robot and message.episode == first.episode and message.step in missing:
-                inbox.put(message)
-
-        bus.history(TRANSITION, TRANSITION.key(first.robot), keep)
+    recovery = HistoryRecovery(ask, inbox.put)
 
     if restored and learner.resume:  # asked to start from them: the actor may use them from step 0
         publish(list(learner.current_weights()))
@@ -615,7 +665,7 @@ def run(
                 heard.add(message.robot)
                 missing = learner.missing_before(message)
                 if missing:
-                    recover(message, missing)
+                    recovery.need(message, missing)
             outgoing += learner.take(message, fit=not defer and index not in superseded, defer=True)
         outgoing += learner.flush()
         batches.append(len(batch))
