@@ -295,3 +295,32 @@ def test_a_late_subscriber_with_recovery_gets_a_batch_publishers_history_item_by
         writer.subscribe(TRANSITION, TRANSITION.key("t1"), on)  # the batch key's first here: no recovery
         with pytest.raises(ValueError, match="without recovery"):
             writer.subscribe(TRANSITION, TRANSITION.key("t2"), on, recover=True)
+
+
+def test_a_history_whose_query_cannot_be_sent_still_ends_once() -> None:
+    """``Bus.history``: ``done`` is called once when every query has ended; a query the session
+    refuses (it is closed) has ended, and so have those after it: the caller hears the error and
+    ``done``, and a critic's HistoryRecovery is free to ask again."""
+    from common.contracts.keys import TRANSITION
+    from common.net.transport import Bus
+
+    class Refusing:
+        def __init__(self) -> None:
+            self.asked: list[str] = []
+            self.handlers: list[Any] = []
+
+        def get(self, selector: str, handler: Any, **kwargs: Any) -> None:
+            self.asked.append(selector)
+            if len(self.asked) == 2:
+                raise RuntimeError("session closed")
+            self.handlers.append(handler)
+
+    session = Refusing()
+    ended: list[int] = []
+    with pytest.raises(RuntimeError, match="session closed"):
+        Bus(session, "critic").history(  # type: ignore[arg-type]
+            TRANSITION, [TRANSITION.key(r) for r in ("a", "b", "c")], lambda m: None, lambda: ended.append(1)
+        )
+    assert session.asked == ["srl/a/transition/@adv/**", "srl/b/transition/@adv/**"] and ended == []
+    session.handlers[0].drop()  # the first query, sent, ends later
+    assert ended == [1]

@@ -436,15 +436,21 @@ class Bus:
             if last and done is not None:
                 done()
 
-        for selector in selectors:
-            self.session.get(
-                selector,
-                zenoh.handlers.Callback(on_reply, on_end, indirect=self.callback_threads),
-                target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                accept_replies=zenoh.ReplyKeyExpr.ANY,  # the cache answers on the key itself
-                timeout=timeout,
-            )
+        for index, selector in enumerate(selectors):
+            try:
+                self.session.get(
+                    selector,
+                    zenoh.handlers.Callback(on_reply, on_end, indirect=self.callback_threads),
+                    target=zenoh.QueryTarget.ALL,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,  # the cache answers on the key itself
+                    timeout=timeout,
+                )
+            except BaseException:  # a query that cannot be sent (a closed session) has ended, so have the rest
+                with lock:
+                    open_queries[0] -= len(selectors) - index - 1
+                on_end()
+                raise
 
     def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
         """Keep only the newest sample on ``key``, undecoded, in Zenoh (a ring channel of one);
