@@ -12,6 +12,7 @@ import json
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -259,70 +260,14 @@ def test_the_first_transition_heard_names_the_steps_the_critic_missed(tmp_path: 
 # -- processes --------------------------------------------------------------------------
 
 
-@pytest.mark.integration
-@pytest.mark.parametrize("asks_again", [True, False])
-def test_a_critic_whose_history_came_too_late_asks_the_cache_again(
-    asks_again: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # Zenoh-ext's recovery drops a publisher's history that comes after its first live sample;
-    # here it never comes (the critic subscribes without recovery) and the critic must ask the
-    # actor's cache itself. The negative control, without the second ask, misses the start.
-    import threading
-
-    from common.contracts.keys import TRANSITION
-    from common.net.transport import Bus
-    from services.critic import service
-
-    subscribe = Bus.subscribe
-    monkeypatch.setattr(
-        Bus, "subscribe", lambda self, *args, **kwargs: subscribe(self, *args, **{**kwargs, "recover": False})
-    )
-    if not asks_again:
-        monkeypatch.setattr(Bus, "history", lambda *args, **kwargs: None)
-    with cluster(robot="h1") as c:
-        settings = Settings.load(transport={"router": c.endpoint, "robot": "h1"}, critic={"checkpoint": ""})
-        actor, critic = Bus.open(settings.transport, "actor"), Bus.open(settings.transport, "critic")
-        stop, result = threading.Event(), {}
-        try:
-            publish = actor.publisher(TRANSITION, "h1", cache=100)
-            stream = random_transitions(30, ("h1",))
-            routed: list[object] = []  # an observer: what the router forwarded before the critic subscribed
-            assert c.session is not None
-            c.session.declare_subscriber("srl/h1/transition", routed.append)
-            probe = actor.session.declare_publisher("srl/h1/transition")
-            wait_until(lambda: probe.matching_status.matching, 10, "the observer's subscription at the actor")
-            for t in stream[:12]:
-                publish(t)
-            wait_until(lambda: len(routed) == 12, 10, "the first 12 transitions through the router")
-            runner = threading.Thread(target=lambda: result.update(service.run(settings, critic, stop, 30.0)))
-            runner.start()
-            wait_until(lambda: c.alive("critic"), 30, "the critic")
-            for t in stream[12:]:
-                time.sleep(0.05)
-                publish(t)
-            wait_until(lambda: critic.counters["received.transition"] >= 18, 10, "the live transitions")
-            time.sleep(0.5)
-        finally:
-            stop.set()
-            runner.join(timeout=10)
-            critic.close()
-            actor.close()
-    seen = result["seen_steps"]["h1"]
-    if asks_again:
-        assert seen == [[0, 29]] and result["counters"].get("recovered.transition", 0) >= 12, (seen, result["counters"])
-    else:
-        assert seen[0][0] > 0, seen
-
-
-@pytest.mark.integration
-@pytest.mark.parametrize("asks_again", [True, False])
-def test_a_fleet_critic_asks_an_actor_hosts_batch_cache_for_every_robot_that_started_late(
-    asks_again: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # An actor host's transitions come in batches (srl/@batch/transition) from one advanced
-    # publisher; the critic's own subscription gets no history here (it subscribes without
-    # recovery), so it must ask the batch cache, once for the first robot heard and once for
-    # the others (HistoryRecovery), not once per robot. The negative control does not ask.
+def critic_joining_late(robots: list[str], asks_again: bool, monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    """The critic's summary after it joined an actor's stream late: 12 steps of every robot
+    published (and through the router) before it starts, 18 after. The critic subscribes without
+    recovery here, so Zenoh-ext's history never comes (as when its answer comes after the first
+    live sample, which ends the recovery) and only the critic's own ask of the cache can fill the
+    gap; ``asks_again`` False is the negative control (it does not ask). One robot: its own
+    cached publisher (srl/<robot>/transition); several: an actor host's batches
+    (srl/@batch/transition), the critic given the robot list."""
     import threading
 
     from common.contracts.keys import TRANSITION, TRANSITION_BATCH
@@ -335,25 +280,28 @@ def test_a_fleet_critic_asks_an_actor_hosts_batch_cache_for_every_robot_that_sta
     )
     if not asks_again:
         monkeypatch.setattr(Bus, "history", lambda *args, **kwargs: None)
-    robots = [f"h{i}" for i in range(1, 9)]
-    with cluster(robot="h1") as c:
-        settings = Settings.load(transport={"router": c.endpoint, "robot": "h1"}, critic={"checkpoint": ""})
+    fleet = len(robots) > 1
+    key = TRANSITION_BATCH.pattern if fleet else TRANSITION.key(robots[0])
+    with cluster(robot=robots[0]) as c:
+        settings = Settings.load(transport={"router": c.endpoint, "robot": robots[0]}, critic={"checkpoint": ""})
         actor, critic = Bus.open(settings.transport, "actor"), Bus.open(settings.transport, "critic")
         stop, result = threading.Event(), {}
         try:
-            publish = actor.round_publisher(TRANSITION, batches=True, cache=100)
+            publish = actor.round_publisher(TRANSITION, batches=fleet, cache=100)
             stream = random_transitions(30, robots)
             rounds = [stream[i : i + len(robots)] for i in range(0, len(stream), len(robots))]
             routed: list[object] = []  # an observer: what the router forwarded before the critic subscribed
             assert c.session is not None
-            c.session.declare_subscriber(TRANSITION_BATCH.pattern, routed.append)
-            probe = actor.session.declare_publisher(TRANSITION_BATCH.pattern)
+            c.session.declare_subscriber(key, routed.append)
+            probe = actor.session.declare_publisher(key)
             wait_until(lambda: probe.matching_status.matching, 10, "the observer's subscription at the actor")
             for round_ in rounds[:12]:
                 publish(round_)
-            wait_until(lambda: len(routed) == 12, 10, "the first 12 rounds through the router")
+            wait_until(lambda: len(routed) == 12 * (1 if fleet else len(robots)), 10, "the first 12 steps")
             runner = threading.Thread(
-                target=lambda: result.update(service.run(settings, critic, stop, 30.0, robots=robots))
+                target=lambda: result.update(
+                    service.run(settings, critic, stop, 30.0, robots=robots if fleet else None)
+                )
             )
             runner.start()
             wait_until(lambda: c.alive("critic"), 30, "the critic")
@@ -367,6 +315,30 @@ def test_a_fleet_critic_asks_an_actor_hosts_batch_cache_for_every_robot_that_sta
             runner.join(timeout=10)
             critic.close()
             actor.close()
+    return result
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("asks_again", [True, False])
+def test_a_critic_whose_history_came_too_late_asks_the_cache_again(
+    asks_again: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    result = critic_joining_late(["h1"], asks_again, monkeypatch)
+    seen = result["seen_steps"]["h1"]
+    if asks_again:
+        assert seen == [[0, 29]] and result["counters"].get("recovered.transition", 0) >= 12, (seen, result["counters"])
+    else:
+        assert seen[0][0] > 0, seen
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("asks_again", [True, False])
+def test_a_fleet_critic_asks_an_actor_hosts_batch_cache_for_every_robot_that_started_late(
+    asks_again: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # one query for the first robot heard and one for the others (HistoryRecovery), not one per robot
+    robots = [f"h{i}" for i in range(1, 9)]
+    result = critic_joining_late(robots, asks_again, monkeypatch)
     seen, counters = result["seen_steps"], result["counters"]
     if asks_again:
         assert all(seen[robot] == [[0, 29]] for robot in robots), seen
