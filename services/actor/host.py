@@ -307,9 +307,11 @@ class HostScheduler:
                 # its transitions go out, a round each; or its first action has waited long enough
                 if heap[0][0] != due:
                     self.flush()
-                elif self.outboxes and (late_box := [box for box in self.outboxes if box.overdue(self.clock())]):
-                    for box in late_box:
-                        box.flush()
+                elif self.outboxes:
+                    flushed_at = self.clock()
+                    for box in self.outboxes:
+                        if box.overdue(flushed_at):
+                            box.flush()
                 self.served += 1
                 if manual_gc and self.served % len(self.loops) == 0:
                     pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
