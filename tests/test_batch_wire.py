@@ -172,6 +172,44 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
 
 
 @pytest.mark.integration
+def test_a_bus_remembers_the_deliveries_of_a_bounded_number_of_robots_and_still_routes_every_item(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A bus matches a batch item's robot to its subscriptions once and remembers it
+    (``Bus._route_batches``), for at most BATCH_ROBOTS_KEPT robots per batch key (a sender may name
+    any robot id): past the bound the memory is emptied and each item still reaches exactly the
+    subscriptions of its robot. The negative control: the memory does fill up to the bound."""
+    import common.net.transport as transport
+    from tests.harness import wait_until
+
+    monkeypatch.setattr(transport, "BATCH_ROBOTS_KEPT", 3)
+    with router_and_buses("critic") as (_, reader, writer, _opened):
+        lock = threading.Lock()
+        got: dict[str, list[int]] = {"b1": [], "*": []}
+
+        def on(name: str) -> Any:
+            def handler(message: CriticWeights) -> None:
+                with lock:
+                    got[name].append(message.version)
+
+            return handler
+
+        reader.subscribe(WEIGHTS, WEIGHTS.key("b1"), on("b1"))
+        reader.subscribe(WEIGHTS, every_robot(WEIGHTS), on("*"))
+        send = writer.round_publisher(WEIGHTS)
+        time.sleep(1.0)  # the subscriptions reach the writer
+        send([weights("b1", 1), weights("b2", 2), weights("b3", 3)])
+        wait_until(lambda: len(got["*"]) == 3, 10, "the first round")
+        remembered = reader._batch_targets[WEIGHTS_BATCH.pattern]
+        assert sorted(remembered) == ["b1", "b2", "b3"]  # filled up to the bound
+        send([weights(f"x{i}", 10 + i) for i in range(7)] + [weights("b1", 20)])
+        wait_until(lambda: len(got["*"]) == 11, 10, "the second round")
+        assert len(reader._batch_targets[WEIGHTS_BATCH.pattern]) <= 3
+        assert got["b1"] == [1, 20]  # still routed to its robot's subscription, and only its items
+        assert got["*"] == [1, 2, 3, *range(10, 17), 20]
+
+
+@pytest.mark.integration
 def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_came_last() -> None:
     """``Bus.subscribe_newest`` (the actor host's states): a plant host's batch of one state tick is
     decoded once on arrival and each robot's item held as its newest, with the batch's source; a

@@ -45,6 +45,9 @@ RECOVERY_HEARTBEAT_S = 0.5  # advanced publishers announce their last sequence n
 # router's other subscribers in about 1.5 ms on loopback, and a few hundred ms on a loaded
 # host or a slow link; 0.3 s delays a plant's start only once.
 PLANT_SETTLE_S = 0.3
+# The robots a bus remembers the batch deliveries of, per batch key (Bus._route_batches): a fleet's
+# robots, many times over; past it the memory is emptied and matched anew.
+BATCH_ROBOTS_KEPT = 4096
 
 
 def zenoh_config(
@@ -142,7 +145,8 @@ class Bus:
         # batch key -> the subscriptions its items go to, as (their key, their delivery): one
         # Zenoh subscription per batch key, however many robots subscribe (_route_batches)
         self._batch_routes: dict[str, tuple[tuple[zenoh.KeyExpr, Callable[[Any, str | None], None]], ...]] = {}
-        self._batch_targets: dict[str, list[Callable[[Any, str | None], None]]] = {}  # robot key -> deliveries
+        # batch pattern -> robot id -> the deliveries of its items (emptied when the routes change)
+        self._batch_targets: dict[str, dict[str, list[Callable[[Any, str | None], None]]]] = {}
         self._batch_recovers: dict[str, bool] = {}  # batch key -> subscribed with recovery
         # Our own threads (status): ended and joined by close(), before the session goes, so
         # none is inside Zenoh or pydantic when the interpreter finalizes.
@@ -365,14 +369,18 @@ class Bus:
                 self.reject(name, str(error))
                 return
             source = source_of(sample)
-            targets = self._batch_targets
+            targets = self._batch_targets.get(pattern)
+            if targets is None:
+                targets = self._batch_targets[pattern] = {}
             for item in items:
-                robot_key = topic.key(getattr(item, "robot"))  # noqa: B009  # every batch item names its robot
-                deliveries = targets.get(robot_key)
+                robot = getattr(item, "robot")  # noqa: B009  # every batch item names its robot
+                deliveries = targets.get(robot)  # a robot's routes are matched once, not per item
                 if deliveries is None:
-                    concrete = zenoh.KeyExpr(robot_key)
+                    if len(targets) >= BATCH_ROBOTS_KEPT:  # bounded whatever robot ids senders invent
+                        targets.clear()
+                    concrete = zenoh.KeyExpr(topic.key(robot))
                     routes = self._batch_routes[pattern]
-                    deliveries = targets[robot_key] = [d for k, d in routes if k.intersects(concrete)]
+                    deliveries = targets[robot] = [d for k, d in routes if k.intersects(concrete)]
                 for each in deliveries:
                     each(item, source)
 
