@@ -105,10 +105,11 @@ def check_steps(
     yaw = np.array([2 * math.atan2(m.pose.pose.orientation.z, m.pose.pose.orientation.w) for _, m in odometry])
     np.testing.assert_allclose(np.remainder(yaw - states[:, 2] + math.pi, 2 * math.pi) - math.pi, 0, atol=1e-9)
     # /tf: odom -> <robot>/base_footprint with every odometry message, equal to the state (a
-    # simulated plant's odom is its goal frame, docs/recordings.md "Frames")
+    # simulated plant's odom is its goal frame, docs/recordings.md "Frames"), stamped as the state
+    # (srl record gathers many states' transforms in one /tf message)
     base = [
-        (t, transform.transform)
-        for t, m in topics["/tf"]
+        (stamp_ns(transform.header), transform.transform)
+        for _, m in topics["/tf"]
         for transform in m.transforms
         if transform.child_frame_id == f"{robot}/base_footprint"
     ]
@@ -375,8 +376,14 @@ def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_
     assert len(odometry) > len(transitions)  # the robot's odometry rate (20 Hz) over the 10 Hz loop
     times = [t for t, _ in odometry]
     assert times == sorted(times)
-    # a robot with bridge.goal [0, 0, 0] and odometry only: odom -> tb/base_footprint is its odometry
-    bases = [(t, tf) for t, m in topics["/tf"] for tf in m.transforms if tf.child_frame_id == "tb/base_footprint"]
+    # a robot with bridge.goal [0, 0, 0] and odometry only: odom -> tb/base_footprint is its odometry,
+    # each transform stamped as its state (srl record gathers many states' transforms in one /tf)
+    bases = [
+        (stamp_ns(tf.header), tf)
+        for _, m in topics["/tf"]
+        for tf in m.transforms
+        if tf.child_frame_id == "tb/base_footprint"
+    ]
     assert [t for t, _ in bases] == times and all(tf.header.frame_id == "odom" for _, tf in bases)
     assert [(tf.transform.translation.x, tf.transform.translation.y) for _, tf in bases] == [
         (m.pose.pose.position.x, m.pose.pose.position.y) for _, m in odometry

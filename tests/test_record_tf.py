@@ -247,6 +247,45 @@ def test_a_fleet_gets_one_base_footprint_per_robot_under_one_odom() -> None:
     assert len([e for e in tf if e[2] == "goal"]) == len(robots), "with each robot's first state"
 
 
+def test_a_recorder_that_gathers_tf_writes_many_states_transforms_in_one_message_each_at_its_state() -> None:
+    """``Recorder.gather_tf`` (srl record's writer): the transforms of many states in one ``/tf``
+    message, at most ``limit`` of them, the rest at ``flush_tf`` and at ``close``; each transform
+    keeps its state's stamp and the message is logged at the newest. Without it (the negative
+    control): one message per state."""
+    states = {f"r{i}": (0.1 * i, -0.2 * i, 0.3 * i) for i in range(5)}
+
+    def record(gather: bool) -> ListSink:
+        sink = ListSink()
+        recorder = Recorder(sink, 0.1, clock="wall")
+        if gather:
+            recorder.gather_tf(limit=4)
+        for n in range(2):
+            for i, (robot, state) in enumerate(states.items()):
+                recorder.state(robot, 0, state, ORIGIN_NS + 10**8 * n + i)
+            recorder.flush_tf()  # the writer's batch ends
+        recorder.close()
+        return sink
+
+    one_each, gathered = record(False), record(True)
+    assert len(one_each.decoded("/tf")) == 10
+    # 5 states + 5 goals (each robot's first state) = 10 transforms, then 5: 4 + 4 + 2 and 4 + 1
+    messages = gathered.decoded("/tf")
+    assert [len(m.transforms) for _, m in messages] == [4, 4, 2, 4, 1]
+    for t_ns, message in messages:
+        stamps = [int(tf.header.stamp.sec) * 10**9 + int(tf.header.stamp.nanosec) for tf in message.transforms]
+        assert t_ns == max(stamps)
+    every = [(t.header.stamp.sec, t.header.stamp.nanosec, t.child_frame_id) for _, m in messages for t in m.transforms]
+    assert every == [
+        (t.header.stamp.sec, t.header.stamp.nanosec, t.child_frame_id)
+        for _, m in one_each.decoded("/tf")
+        for t in m.transforms
+    ]
+    odometry = [
+        [(data, t) for topic, _, _, data, t in sink.samples if topic == "/r3/odom"] for sink in (gathered, one_each)
+    ]
+    assert odometry[0] == odometry[1] and len(odometry[0]) == 2  # the rest is as before
+
+
 def test_a_robot_with_a_goal_publishes_its_odometry_pose_and_the_goal_as_a_frame() -> None:
     """bridge.goal g: odom -> base is g (+) s, odom -> goal is g; the goal-frame poses say `goal`."""
     goal = Pose2D(1.0, 0.5, 2.5)
@@ -379,7 +418,11 @@ def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) 
         for count in (1, 2, 3):
             moves = [(frame, f"child{i}" * i, Pose2D(x + i, y - i, alpha * i)) for i in range(count)]
             message = types[TF_MESSAGE](transforms=[ros.transform(t_ns, p, c, pose) for p, c, pose in moves])
-            assert tf_cdr(t_ns, moves) == ros.cdr(message, TF_MESSAGE)
+            assert tf_cdr([(t_ns, *move) for move in moves]) == ros.cdr(message, TF_MESSAGE)
+        # many robots' transforms gathered in one message, each with its own stamp (srl record)
+        stamped = [(t_ns + 7919 * i, frame, f"r{i}/base" + "x" * (i % 9), Pose2D(x - i, y, alpha)) for i in range(40)]
+        gathered = types[TF_MESSAGE](transforms=[ros.transform(t, p, c, pose) for t, p, c, pose in stamped])
+        assert tf_cdr(stamped) == ros.cdr(gathered, TF_MESSAGE)
         command = types[TWIST_STAMPED](header=ros.header(t_ns, frame), twist=ros.twist(v, omega))
         assert twist_stamped_cdr(t_ns, frame, v, omega) == ros.cdr(command, TWIST_STAMPED)
         episode, step = int(rng.integers(0, 2**63)), int(rng.integers(0, 2**32))

@@ -10,7 +10,6 @@ import functools
 import math
 import struct
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
@@ -26,9 +25,11 @@ class CdrLayout:
     4-byte encapsulation header, a string as its uint32 length (with its NUL), its bytes and the NUL.
     Built once per message shape (its strings fixed), then one ``pack`` per message."""
 
-    def __init__(self) -> None:
-        self.parts = ["<4s"]  # the encapsulation header CDR_LE
-        self.offset = 0  # from the end of the encapsulation header
+    def __init__(self, offset: int | None = None) -> None:
+        """A whole message (its encapsulation header first), or with ``offset`` a part of one that
+        starts ``offset`` bytes after the encapsulation header (aligned as there)."""
+        self.parts = ["<4s"] if offset is None else ["<"]  # the encapsulation header CDR_LE
+        self.offset = offset or 0  # from the end of the encapsulation header
 
     def field(self, code: str, size: int, count: int = 1) -> CdrLayout:
         """``count`` values of the ``struct`` type ``code``, ``size`` bytes each, aligned to ``size``."""
@@ -95,12 +96,14 @@ def _odometry_layout(frame: str, child: str) -> struct.Struct:
     return layout.compile()
 
 
-@functools.cache
-def _tf_layout(frames: tuple[tuple[str, str], ...]) -> struct.Struct:
-    layout = CdrLayout().uint32()
-    for parent, child in frames:
-        layout.header().string(parent).string(child).float64(7)
-    return layout.compile()
+_TF_COUNT = struct.Struct("<4sI")  # a TFMessage's encapsulation header and its count of transforms
+
+
+@functools.lru_cache(maxsize=4096)  # the frame pairs of a fleet's robots, bounded whatever ids come
+def _transform_layout(parent: str, child: str, first: bool) -> struct.Struct:
+    """One ``geometry_msgs/TransformStamped`` of a TFMessage: the first 4 bytes into the body
+    (after the count), every other at a multiple of 8 (the one before ends with a float64)."""
+    return CdrLayout(offset=4 if first else 0).header().string(parent).string(child).float64(7).compile()
 
 
 @functools.cache
@@ -128,13 +131,15 @@ def odometry_cdr(t_ns: int, frame: str, child: str, state: Vector, action: tuple
     )
 
 
-def tf_cdr(t_ns: int, moves: Sequence[tuple[str, str, Pose2D]]) -> bytes:
-    """``tf2_msgs/TFMessage`` of planar ``(parent, child, pose)`` transforms, all stamped ``t_ns``."""
-    values: list[Any] = [CDR_LE, len(moves)]
-    stamp = _stamp(t_ns)
-    for parent, child, pose in moves:
-        values += [*stamp, *_text(parent), *_text(child), *_planar(float(pose.x), float(pose.y), float(pose.theta))]
-    return _tf_layout(tuple((parent, child) for parent, child, _ in moves)).pack(*values)
+def tf_cdr(transforms: Sequence[tuple[int, str, str, Pose2D]]) -> bytes:
+    """``tf2_msgs/TFMessage`` of planar ``(stamp [ns], parent, child, pose)`` transforms."""
+    parts = [_TF_COUNT.pack(CDR_LE, len(transforms))]
+    for i, (t_ns, parent, child, pose) in enumerate(transforms):
+        planar = _planar(float(pose.x), float(pose.y), float(pose.theta))
+        parts.append(
+            _transform_layout(parent, child, i == 0).pack(*_stamp(t_ns), *_text(parent), *_text(child), *planar)
+        )
+    return b"".join(parts)
 
 
 def twist_stamped_cdr(t_ns: int, frame: str, v: float, omega: float) -> bytes:

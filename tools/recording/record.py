@@ -502,6 +502,9 @@ class PoseFrames:
 
 SIMULATED = PoseFrames()
 GOAL_EVERY = PATH_EVERY  # states of a robot between two ``goal`` transforms on /tf (and with the first)
+# A recorder that gathers /tf (Recorder.gather_tf: srl record and srl view, whose writer takes a
+# fleet's states many at a time) writes at most this many transforms in one TFMessage.
+TF_GATHERED = 256
 
 
 def base_frame(robot: str) -> str:
@@ -576,6 +579,24 @@ class Recorder:
         self.tracks: dict[str, _Track] = {}
         self.origins: dict[tuple[str, int], int] = {}
         self.target_sent = False
+        self.tf_gathered = 1  # transforms per /tf message at most (gather_tf)
+        self.tf_pending: list[tuple[int, str, str, Pose2D]] = []
+
+    def gather_tf(self, limit: int = TF_GATHERED) -> None:
+        """From now on the transforms of many states go out as one ``/tf`` message (each with its
+        own stamp, as a ROS tf broadcaster of many frames sends them): when ``limit`` are pending
+        and at :meth:`flush_tf`, which the caller calls when it has written what it had (srl
+        record's writer: at the end of each batch, Feed). One TFMessage per state is a fifth of a
+        fleet recorder's messages and of its writing CPU."""
+        self.flush_tf()
+        self.tf_gathered = max(1, limit)
+
+    def flush_tf(self) -> None:
+        """The pending transforms as one ``/tf`` message, logged at the newest of their stamps."""
+        if self.tf_pending:
+            pending, self.tf_pending = self.tf_pending, []
+            t_ns = max(stamp for stamp, _, _, _ in pending)
+            self._write_cdr(TF_TOPIC, TF_MESSAGE, tf_cdr(pending), t_ns)
 
     def _write(self, topic: str, ros_type: str, message: Any, t_ns: int) -> None:
         self.sink.write(topic, ros_type, self.ros.definition(ros_type), self.ros.cdr(message, ros_type), t_ns)
@@ -645,7 +666,12 @@ class Recorder:
         if track.tf_sent % GOAL_EVERY == 0:
             moves.append((frames.root, GOAL_FRAME, frames.goal))
         track.tf_sent += 1
-        self._write_cdr(TF_TOPIC, TF_MESSAGE, tf_cdr(t_ns, moves), t_ns)
+        if self.tf_gathered == 1:
+            self._write_cdr(TF_TOPIC, TF_MESSAGE, tf_cdr([(t_ns, *move) for move in moves]), t_ns)
+            return
+        self.tf_pending += [(t_ns, *move) for move in moves]
+        if len(self.tf_pending) >= self.tf_gathered:
+            self.flush_tf()
 
     def transition(
         self,
@@ -728,6 +754,7 @@ class Recorder:
         self._write(f"/{ros_name(robot)}/srl/actor_status", STATUS, message, t_ns)
 
     def close(self) -> None:
+        self.flush_tf()
         self.sink.close()
 
 
@@ -835,6 +862,7 @@ class Feed:
         from common.net.transport import Bus
 
         self.recorder = recorder
+        recorder.gather_tf()  # the writer takes states many at a time: their /tf in few messages
         self.bridge = settings.bridge  # a robot's goal and pose source (robot_frames)
         self.queue: queue.Queue[tuple[str, Any, int] | None] = queue.Queue(QUEUE_LIMIT)
         self.dropped = 0
@@ -881,6 +909,11 @@ class Feed:
                     item = self.queue.get_nowait()
                 except queue.Empty:
                     break
+            try:
+                self.recorder.flush_tf()  # the batch's /tf out before the pause
+            except Exception:
+                self.errors += 1
+                log.exception("recorder: cannot record /tf")
             if item is None:
                 return
             time.sleep(BATCH_SECONDS)
