@@ -503,3 +503,46 @@ def test_the_recorder_takes_every_robots_samples_on_threads_of_its_own(monkeypat
     robots = [every_robot(STATE), every_robot(TRANSITION), every_robot(WEIGHTS)]
     assert [key for key, _ in subscribed] == [*robots, every_robot(STATUS, service="actor")]
     assert all(options.get("threaded") is True for _, options in subscribed)
+
+
+def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_writes_the_rest_at_close(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Feed: Zenoh's threads append, the writer takes everything waiting every BATCH_SECONDS. At
+    most QUEUE_LIMIT samples wait (the rest are counted as dropped); close writes what waits at
+    once, without waiting out the pause."""
+    import tools.recording.record as record
+    from common.config.settings import Settings
+    from common.contracts.keys import STATE, every_robot
+    from common.net.transport import Bus
+
+    handlers: dict[str, Any] = {}
+
+    class FakeBus:
+        def subscribe(self, topic: Any, key: str, handler: Any, **options: Any) -> None:
+            handlers[key] = handler
+
+        def close(self) -> None:
+            pass
+
+    class NoSink:
+        def write(self, *args: Any) -> None:
+            pass
+
+        def close(self) -> None:
+            pass
+
+    applied: list[Any] = []
+    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: FakeBus()))
+    monkeypatch.setattr(record, "QUEUE_LIMIT", 4)
+    monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
+    monkeypatch.setattr(record.Feed, "_apply", lambda self, kind, message, now_ns: applied.append((kind, message)))
+    feed = record.Feed(Settings.load(), record.Recorder(NoSink(), 0.1))
+    time.sleep(0.3)  # the writer's first batch (nothing yet) is done: it waits BATCH_SECONDS
+    for i in range(10):
+        handlers[every_robot(STATE)](i)
+    assert feed.dropped == 6 and applied == []
+    started = time.monotonic()
+    feed.close()
+    assert time.monotonic() - started < 5.0
+    assert applied == [("state", i) for i in range(4)] and feed.received == 4
