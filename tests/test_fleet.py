@@ -374,11 +374,20 @@ if len(sys.argv) > 1:  # an unprivileged user: no rtprio limit (lowering it is a
         os.setgid(65534)
         os.setuid(65534)
 seen = {}
+release = threading.Event()
+helper = threading.Thread(target=release.wait)  # a thread that may hold the GIL the block waits for
+helper.start()
+policy = lambda tid: (os.sched_getscheduler(tid) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(tid).sched_priority)
 with realtime_priority(10, "probe") as granted:
-    seen["inside"] = os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(0).sched_priority
+    seen["inside"] = policy(0)
+    seen["helper"] = policy(helper.native_id)
     started = threading.Thread(target=lambda: seen.update(thread=os.sched_getscheduler(0)))
     started.start()
     started.join()
+seen["helper after"] = policy(helper.native_id)
+release.set()
+helper.join()
+print("helper", *seen["helper"], "then", *seen["helper after"])
 print("granted", granted, "inside", *seen["inside"], "thread", seen["thread"])
 print("after", os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
 """
@@ -400,9 +409,13 @@ def test_the_tick_thread_is_real_time_where_allowed_and_normal_with_one_line_whe
     if user == "allowed":
         assert lines[-2] == f"granted 10 inside {os.SCHED_FIFO} 10 thread {os.SCHED_OTHER}", lines
         assert lines[0] == "probe: ticks under SCHED_FIFO 10"
+        # the thread already running is real-time one step below for the block, normal after it
+        assert lines[1] == "probe: the threads it may wait for under SCHED_FIFO 9: 1", lines
+        assert lines[-3] == f"helper {os.SCHED_FIFO} 9 then {os.SCHED_OTHER} 0", lines
     else:
         assert lines[-2] == f"granted 0 inside {os.SCHED_OTHER} 0 thread {os.SCHED_OTHER}", lines
-        assert len(lines) == 3 and lines[0].startswith("probe: ticks at normal priority (SCHED_FIFO 10 refused: "), (
+        assert lines[-3] == f"helper {os.SCHED_OTHER} 0 then {os.SCHED_OTHER} 0", lines
+        assert len(lines) == 4 and lines[0].startswith("probe: ticks at normal priority (SCHED_FIFO 10 refused: "), (
             lines
         )
         assert "CAP_SYS_NICE or an rtprio limit" in lines[0]

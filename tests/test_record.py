@@ -462,6 +462,36 @@ def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> N
     assert done.stdout.split() == [str(own), str(lowered), str(lowered), str(lowered)], done.stderr
 
 
+@pytest.mark.integration
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel has no autogroups")
+@pytest.mark.parametrize("own_session", [True, False])
+def test_lower_priority_lowers_the_sessions_autogroup_only_where_the_process_leads_its_session(
+    own_session: bool,
+) -> None:
+    """common.process.runtime.lower_session_priority (through lower_priority): a recorder that leads
+    its session (srl up and srl bench start each service in one of its own) lowers its autogroup,
+    so it yields to the other services' sessions; one started from a shell (not the session's
+    leader: the negative control) leaves the shell's autogroup as it is."""
+    script = (
+        "from common.process.runtime import lower_priority\n"
+        "before = open('/proc/self/autogroup').read().split()[-1]\n"
+        "lower_priority(10, 'test')\n"
+        "print(before, open('/proc/self/autogroup').read().split()[-1])\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+        start_new_session=own_session,
+    )
+    before, after = done.stdout.split()
+    assert before == "0" if own_session else after == before, done.stdout
+    assert after == ("10" if own_session else before), done.stdout
+
+
 def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whatever_the_default() -> None:
     # Bus._callback: transport.callback_threads is the default; ``threaded`` overrides it for one
     # subscription (a recorder's wildcards, which take every robot's samples).
