@@ -385,6 +385,7 @@ def _drive(
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.timing  # the watchdog's stop within its timeout: a latency bound (tests/tiers.py)
 @pytest.mark.parametrize(
     ("profile", "distro", "emulator_cmd", "expected"),
     [
