@@ -504,16 +504,18 @@ def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whate
         assert bus._callback(print, threaded=False).indirect is False
 
 
-def test_the_recorder_takes_every_robots_samples_on_threads_of_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+def feed_on_a_fake_bus(monkeypatch: pytest.MonkeyPatch) -> tuple[Any, list[tuple[str, Any, dict[str, Any]]]]:
+    """A recorder's Feed on a bus that only notes its subscriptions (key, handler, options), writing
+    to a sink that keeps nothing: no Zenoh, no file."""
     from common.config.settings import Settings
     from common.net.transport import Bus
     from tools.recording.record import Feed, Recorder
 
-    subscribed: list[tuple[str, dict[str, Any]]] = []
+    subscribed: list[tuple[str, Any, dict[str, Any]]] = []
 
     class FakeBus:
         def subscribe(self, topic: Any, key: str, handler: Any, **options: Any) -> None:
-            subscribed.append((key, options))
+            subscribed.append((key, handler, options))
 
         def close(self) -> None:
             pass
@@ -526,13 +528,17 @@ def test_the_recorder_takes_every_robots_samples_on_threads_of_its_own(monkeypat
             pass
 
     monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: FakeBus()))
-    feed = Feed(Settings.load(), Recorder(NoSink(), 0.1))
+    return Feed(Settings.load(), Recorder(NoSink(), 0.1)), subscribed
+
+
+def test_the_recorder_takes_every_robots_samples_on_threads_of_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    feed, subscribed = feed_on_a_fake_bus(monkeypatch)
     feed.close()
     from common.contracts.keys import STATE, STATUS, TRANSITION, WEIGHTS, every_robot
 
     robots = [every_robot(STATE), every_robot(TRANSITION), every_robot(WEIGHTS)]
-    assert [key for key, _ in subscribed] == [*robots, every_robot(STATUS, service="actor")]
-    assert all(options.get("threaded") is True for _, options in subscribed)
+    assert [key for key, _, _ in subscribed] == [*robots, every_robot(STATUS, service="actor")]
+    assert all(options.get("threaded") is True for _, _, options in subscribed)
 
 
 def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_writes_the_rest_at_close(
@@ -542,32 +548,14 @@ def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_w
     most QUEUE_LIMIT samples wait (the rest are counted as dropped); close writes what waits at
     once, without waiting out the pause."""
     import tools.recording.record as record
-    from common.config.settings import Settings
     from common.contracts.keys import STATE, every_robot
-    from common.net.transport import Bus
-
-    handlers: dict[str, Any] = {}
-
-    class FakeBus:
-        def subscribe(self, topic: Any, key: str, handler: Any, **options: Any) -> None:
-            handlers[key] = handler
-
-        def close(self) -> None:
-            pass
-
-    class NoSink:
-        def write(self, *args: Any) -> None:
-            pass
-
-        def close(self) -> None:
-            pass
 
     applied: list[Any] = []
-    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: FakeBus()))
     monkeypatch.setattr(record, "QUEUE_LIMIT", 4)
     monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
     monkeypatch.setattr(record.Feed, "_apply", lambda self, kind, message, now_ns: applied.append((kind, message)))
-    feed = record.Feed(Settings.load(), record.Recorder(NoSink(), 0.1))
+    feed, subscribed = feed_on_a_fake_bus(monkeypatch)
+    handlers = {key: handler for key, handler, _ in subscribed}
     time.sleep(0.3)  # the writer's first batch (nothing yet) is done: it waits BATCH_SECONDS
     for i in range(10):
         handlers[every_robot(STATE)](i)
