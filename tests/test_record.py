@@ -492,6 +492,38 @@ def test_lower_priority_lowers_the_sessions_autogroup_only_where_the_process_lea
     assert after == ("10" if own_session else before), done.stdout
 
 
+@pytest.mark.integration
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel has no autogroups")
+def test_a_session_is_raised_where_allowed_and_left_with_one_line_where_not() -> None:
+    """common.process.runtime.session_priority (critic.session_niceness = -5): a critic leading its
+    session raises its autogroup where it may (root, CAP_SYS_NICE); where not, one INFO line says
+    so and the autogroup stays; 0 changes nothing."""
+    script = (
+        "import logging, sys\n"
+        "logging.basicConfig(level=logging.INFO, format='%(message)s', stream=sys.stdout)\n"
+        "from common.process.runtime import session_priority\n"
+        "def nice(): return open('/proc/self/autogroup').read().split()[-1]\n"
+        "before = nice(); unchanged = session_priority(0, 'critic')\n"
+        "raised = session_priority(-5, 'critic')\n"
+        "print(before, unchanged, raised, nice())\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=30,
+        check=True,
+        start_new_session=True,
+    )
+    lines = done.stdout.strip().splitlines()
+    if os.geteuid() == 0:
+        assert lines == ["critic: its session's niceness is -5", "0 False True -5"], lines
+    else:
+        assert lines[-1] == "0 False False 0", lines
+        assert lines[0].startswith("critic: its session keeps its CPU share (niceness -5 refused: "), lines
+
+
 def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whatever_the_default() -> None:
     # Bus._callback: transport.callback_threads is the default; ``threaded`` overrides it for one
     # subscription (a recorder's wildcards, which take every robot's samples).

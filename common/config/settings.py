@@ -161,6 +161,12 @@ class CriticSettings(_Section):
     )
     robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
     pooled: bool = Field(default=False, description="one learner trained on every robot's transitions (a fleet's)")
+    session_niceness: int = Field(
+        default=-5,
+        ge=-20,
+        le=19,
+        description="its session's (autogroup's) niceness where it leads it; < 0 needs CAP_SYS_NICE; 0 = leave it",
+    )
 
     @field_validator("robots")
     @classmethod

@@ -192,24 +192,31 @@ def lower_priority(niceness: int, who: str) -> None:
         pass
     except OSError as error:
         log.warning("%s: cannot lower its CPU priority (nice +%d): %s", who, niceness, error)
-    lower_session_priority(niceness, who)
+    session_priority(min(19, niceness), who)
 
 
-def lower_session_priority(niceness: int, who: str) -> bool:
-    """With the kernel's autogroups on, lower this process's autogroup by ``niceness`` too
-    (``/proc/self/autogroup``), so under contention its session yields to the other services'
-    (each of which ``srl up`` starts in a session of its own): only when this process leads its
-    session, as a service ``srl up`` or ``srl bench`` starts does -- started from a shell, the
-    autogroup is the shell's, and the shell's other processes are left as they are. True if
-    lowered."""
+def session_priority(niceness: int, who: str) -> bool:
+    """With the kernel's autogroups on, the CPU is shared between sessions before threads, and
+    ``srl up`` starts each service in a session of its own: set this session's autogroup
+    niceness (``/proc/self/autogroup``), so under contention it yields to the other services'
+    (``niceness`` > 0, the recorder) or comes before them (< 0, the critic: needs root or
+    ``CAP_SYS_NICE``; refused, one INFO line). Only when this process leads its session, as a
+    service ``srl up`` or ``srl bench`` starts does -- started from a shell the autogroup is the
+    shell's, whose other processes are left as they are. True if set; 0 changes nothing."""
+    if niceness == 0:
+        return False
     try:
         if os.getsid(0) != os.getpid():
             return False
         with open("/proc/self/autogroup", "w") as autogroup:
-            autogroup.write(str(min(19, niceness)))
-    except OSError as error:  # no autogroups (or /proc), or refused
+            autogroup.write(str(niceness))
+    except PermissionError as error:
+        log.info("%s: its session keeps its CPU share (niceness %d refused: %s)", who, niceness, error.strerror)
+        return False
+    except OSError as error:  # no autogroups (or no /proc)
         log.debug("%s: autogroup kept (%s)", who, error)
         return False
+    log.info("%s: its session's niceness is %d", who, niceness)
     return True
 
 

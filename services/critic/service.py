@@ -62,6 +62,7 @@ from common.math.agents import fit_due
 from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, load_solver, update_many
 from common.math.stats import Window
 from common.net.transport import Bus, start_status_thread
+from common.process.runtime import session_priority
 from common.system.checkpoint import (
     CheckpointError,
     CheckpointWriter,
@@ -571,6 +572,7 @@ def load_checkpoint(learner: CriticLearner, path: Path | None) -> bool:
 def run(
     settings: Settings, bus: Bus, stop: threading.Event, duration: float | None, robots: list[str] | None = None
 ) -> dict:
+    session_priority(settings.critic.session_niceness, "critic")  # its fits before the recorder's writing
     load_solver()  # before the critic is alive, so the actors never wait on an import
     learner = CriticLearner(settings, fleet_size=len(robots) if robots else None)
     path = checkpoint_path(settings)
