@@ -462,22 +462,9 @@ def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> N
     assert done.stdout.split() == [str(own), str(lowered), str(lowered), str(lowered)], done.stderr
 
 
-@pytest.mark.integration
-@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel has no autogroups")
-@pytest.mark.parametrize("own_session", [True, False])
-def test_lower_priority_lowers_the_sessions_autogroup_only_where_the_process_leads_its_session(
-    own_session: bool,
-) -> None:
-    """common.process.runtime.lower_session_priority (through lower_priority): a recorder that leads
-    its session (srl up and srl bench start each service in one of its own) lowers its autogroup,
-    so it yields to the other services' sessions; one started from a shell (not the session's
-    leader: the negative control) leaves the shell's autogroup as it is."""
-    script = (
-        "from common.process.runtime import lower_priority\n"
-        "before = open('/proc/self/autogroup').read().split()[-1]\n"
-        "lower_priority(10, 'test')\n"
-        "print(before, open('/proc/self/autogroup').read().split()[-1])\n"
-    )
+def output_of(script: str, own_session: bool) -> str:
+    """What a Python ``script`` prints, run in a session of its own (as srl up starts a service) or
+    in this one (as from a shell)."""
     done = subprocess.run(
         [sys.executable, "-c", script],
         cwd=ROOT,
@@ -487,9 +474,27 @@ def test_lower_priority_lowers_the_sessions_autogroup_only_where_the_process_lea
         check=True,
         start_new_session=own_session,
     )
-    before, after = done.stdout.split()
-    assert before == "0" if own_session else after == before, done.stdout
-    assert after == ("10" if own_session else before), done.stdout
+    return done.stdout
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel has no autogroups")
+@pytest.mark.parametrize("own_session", [True, False])
+def test_lower_priority_lowers_the_sessions_autogroup_only_where_the_process_leads_its_session(
+    own_session: bool,
+) -> None:
+    """common.process.runtime.session_priority (through lower_priority): a recorder that leads
+    its session (srl up and srl bench start each service in one of its own) lowers its autogroup,
+    so it yields to the other services' sessions; one started from a shell (not the session's
+    leader: the negative control) leaves the shell's autogroup as it is."""
+    script = (
+        "from common.process.runtime import lower_priority\n"
+        "before = open('/proc/self/autogroup').read().split()[-1]\n"
+        "lower_priority(10, 'test')\n"
+        "print(before, open('/proc/self/autogroup').read().split()[-1])\n"
+    )
+    before, after = output_of(script, own_session).split()
+    assert after == ("10" if own_session else before), (before, after)
 
 
 @pytest.mark.integration
@@ -507,16 +512,7 @@ def test_a_session_is_raised_where_allowed_and_left_with_one_line_where_not() ->
         "raised = session_priority(-5, 'critic')\n"
         "print(before, unchanged, raised, nice())\n"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", script],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=30,
-        check=True,
-        start_new_session=True,
-    )
-    lines = done.stdout.strip().splitlines()
+    lines = output_of(script, own_session=True).strip().splitlines()
     if os.geteuid() == 0:
         assert lines == ["critic: its session's niceness is -5", "0 False True -5"], lines
     else:
