@@ -666,11 +666,8 @@ class Recorder:
         if track.tf_sent % GOAL_EVERY == 0:
             moves.append((frames.root, GOAL_FRAME, frames.goal))
         track.tf_sent += 1
-        if self.tf_gathered == 1:
-            self._write_cdr(TF_TOPIC, TF_MESSAGE, tf_cdr([(t_ns, *move) for move in moves]), t_ns)
-            return
         self.tf_pending += [(t_ns, *move) for move in moves]
-        if len(self.tf_pending) >= self.tf_gathered:
+        if len(self.tf_pending) >= self.tf_gathered:  # without gather_tf: at once, one message per state
             self.flush_tf()
 
     def transition(
