@@ -221,11 +221,11 @@ def session_priority(niceness: int, who: str) -> bool:
 
 
 @contextlib.contextmanager
-def realtime_priority(priority: int, who: str, helpers_too: bool = True) -> Iterator[int]:
+def realtime_priority(priority: int, who: str) -> Iterator[int]:
     """Run the calling thread under ``SCHED_FIFO`` at ``priority`` (1-99; 0: leave it as it is)
     until the block ends, then give it back its policy. Yields the priority granted, 0 if none.
-    ``helpers_too``: the threads it may wait for on the GIL one step below (:func:`realtime_helpers`)
-    for as long.
+    The threads it may wait for on the GIL run one step below it for as long
+    (:func:`realtime_helpers`).
 
     A real-time thread is given a core before any thread of the normal class, whatever their
     sessions and autogroups: an actor's tick thread is not made to wait behind a critic's fit
@@ -252,7 +252,7 @@ def realtime_priority(priority: int, who: str, helpers_too: bool = True) -> Iter
         yield 0
         return
     log.info("%s: ticks under SCHED_FIFO %d", who, priority)
-    helpers = realtime_helpers(max(1, priority - 1), who) if helpers_too else []
+    helpers = realtime_helpers(max(1, priority - 1), who)
     try:
         yield priority
     finally:
