@@ -462,11 +462,16 @@ def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> N
     assert done.stdout.split() == [str(own), str(lowered), str(lowered), str(lowered)], done.stderr
 
 
+# The autogroup niceness of the process running a script, "none" where its session has no autogroup
+# of its own (the kernel's default group, whose file is empty: a container's first session).
+AUTOGROUP_NICE = "def nice(): return (open('/proc/self/autogroup').read().split() or ['none'])[-1]\n"
+
+
 def output_of(script: str, own_session: bool) -> str:
     """What a Python ``script`` prints, run in a session of its own (as srl up starts a service) or
-    in this one (as from a shell)."""
+    in this one (as from a shell); ``nice()`` (AUTOGROUP_NICE) is defined for it."""
     done = subprocess.run(
-        [sys.executable, "-c", script],
+        [sys.executable, "-c", AUTOGROUP_NICE + script],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -489,9 +494,9 @@ def test_lower_priority_lowers_the_sessions_autogroup_only_where_the_process_lea
     leader: the negative control) leaves the shell's autogroup as it is."""
     script = (
         "from common.process.runtime import lower_priority\n"
-        "before = open('/proc/self/autogroup').read().split()[-1]\n"
+        "before = nice()\n"
         "lower_priority(10, 'test')\n"
-        "print(before, open('/proc/self/autogroup').read().split()[-1])\n"
+        "print(before, nice())\n"
     )
     before, after = output_of(script, own_session).split()
     assert after == ("10" if own_session else before), (before, after)
@@ -507,7 +512,6 @@ def test_a_session_is_raised_where_allowed_and_left_with_one_line_where_not() ->
         "import logging, sys\n"
         "logging.basicConfig(level=logging.INFO, format='%(message)s', stream=sys.stdout)\n"
         "from common.process.runtime import session_priority\n"
-        "def nice(): return open('/proc/self/autogroup').read().split()[-1]\n"
         "before = nice(); unchanged = session_priority(0, 'critic')\n"
         "raised = session_priority(-5, 'critic')\n"
         "print(before, unchanged, raised, nice())\n"
