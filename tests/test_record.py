@@ -1,6 +1,6 @@
 """Recordings (docs/recordings.md), read back by readers that did not write them.
 
-srl writes CDR with ``rosbags`` into the ``mcap`` library's writer; these tests read with the
+srl writes CDR with ``rosbags`` into foxglove-sdk's MCAP writer; these tests read with the
 ``mcap`` reader and decode with ``mcap-ros2-support`` (its own CDR decoder, from the schema text in
 the file), and compare with what the run itself reported (``--json --trajectory``,
 ``trajectories.npz``). The live view's test speaks the Foxglove WebSocket protocol with a plain
@@ -596,3 +596,32 @@ def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_w
     feed.close()
     assert time.monotonic() - started < 5.0
     assert applied == [("state", i) for i in range(4)] and feed.received == 4
+
+
+def test_a_recorder_that_cannot_write_its_file_counts_every_sample_and_says_why_once(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Feed: a file that cannot be written (RecordingError from the sink, a full disk) does not
+    end the recording; every sample it could not write is counted in ``errors`` and the reason
+    is logged once, not once per sample; a bad sample is still logged with its own line."""
+    import logging
+
+    import tools.recording.record as record
+    from common.contracts.keys import STATE, every_robot
+
+    def apply(self: Any, kind: str, message: Any, now_ns: int) -> None:
+        if message == "bad":
+            raise ValueError("a malformed sample")
+        raise record.RecordingError("cannot write /x.mcap: [Errno 28] No space left on device")
+
+    monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
+    monkeypatch.setattr(record.Feed, "_apply", apply)
+    feed, subscribed = feed_on_a_fake_bus(monkeypatch)
+    handlers = {key: handler for key, handler, _ in subscribed}
+    with caplog.at_level(logging.ERROR, logger=record.log.name):
+        for message in (1, 2, "bad", 3):
+            handlers[every_robot(STATE)](message)
+        feed.close()
+    assert feed.errors == 4 and feed.received == 0
+    full = [r for r in caplog.records if "No space left" in r.getMessage()]
+    assert len(full) == 1 and len([r for r in caplog.records if "a state sample" in r.getMessage()]) == 1

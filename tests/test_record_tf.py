@@ -191,6 +191,36 @@ def test_a_recording_is_on_the_disk_within_its_chunk_age_not_when_the_chunk_fill
     assert len(read(path)["/tb3_0/srl/transition"]) == 21  # and the closed file is whole
 
 
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full")
+def test_a_recording_whose_disk_is_full_says_so_once_and_writes_nothing_more(tmp_path: Path) -> None:
+    """A sink whose file cannot be written (its descriptor on /dev/full: every write ENOSPC) says
+    so at the chunk's flush with a RecordingError naming the file and the reason; every later
+    write raises the same at once, without reaching the writer; close lets the file go quietly."""
+    import os
+
+    from tools.recording.record import McapSink, RecordingError
+
+    path = tmp_path / "full.mcap"
+    sink = McapSink(path)
+    recorder = Recorder(sink, 0.1, clock="steps")
+    recorder.transition("tb3_0", 0, 0, (0.1, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
+    full = os.open("/dev/full", os.O_WRONLY)
+    try:
+        os.dup2(full, sink.file.fileno())
+    finally:
+        os.close(full)
+    sink.chunk_started -= sink.CHUNK_SECONDS  # the next write flushes the chunk
+    with pytest.raises(RecordingError, match=r"cannot write .*full\.mcap: .*") as first:
+        recorder.transition("tb3_0", 0, 1, (0.2, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
+    assert "\n" not in str(first.value)
+    written = sink.messages
+    with pytest.raises(RecordingError) as again:
+        recorder.transition("tb3_0", 0, 2, (0.3, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
+    assert str(again.value) == str(first.value) and sink.messages == written
+    sink.close()  # no second error: it was said
+    assert sink.file.closed
+
+
 def test_a_recording_split_in_parts_has_every_message_once_and_each_file_readable_alone(tmp_path: Path) -> None:
     path = tmp_path / "split.mcap"
     sink = SplitSink(path, {"sampling_time": "0.1"}, split_seconds=1.0)
