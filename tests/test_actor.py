@@ -6,6 +6,7 @@ The oracle objective is written out here in numpy from the stacked objectives of
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Iterator
@@ -582,6 +583,66 @@ def test_runner_up_polish_keeps_the_lower_solution(margin: float, refresh: int) 
         plan = [(np.float64(a), np.float64(b)) for a, b in two.plan]
         assert two.objective == pytest.approx(float(hand_objective("rlqv+", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
     assert single.counters.second_solves == 0 and double.counters.second_solves >= 1
+
+
+def test_a_runner_up_that_lost_by_a_lot_is_skipped_until_a_refresh_measures_again() -> None:
+    # StackedActor._runner_up with multistart_hopeless: the other kind of start's end is offered
+    # (within the margin) unless the last runner-up polish lost by more than the share; a
+    # refresh's solve offers it whatever; 0 never skips (the negative control).
+    actor = make_actor("mpc", 4, multistart=True, multistart_margin=0.1, multistart_refresh=3, multistart_hopeless=0.02)
+    actor.step(np.array([1.0, 0.5, 0.3]), np.zeros(15), np.zeros(6))  # a plan: the ends are set up
+    actor._end_values[:] = [1.0, 2.0, 1.05, 3.0, 3.0]  # warm row 0 lowest, fresh row 2 within 10 %
+    actor._ends[:] = 0.0
+    actor._ends[2] = 0.5  # apart from the lowest end
+
+    def offered(shortfall: float, solves: int, hopeless: float = 0.02) -> bool:
+        actor.problem = dataclasses.replace(actor.problem, multistart_hopeless=hopeless)
+        actor._runner_up_shortfall, actor._episode_solves = shortfall, solves
+        return actor._runner_up() is not None
+
+    assert offered(0.0, 1) and offered(0.02, 1)  # never lost, or lost by no more than the share
+    assert not offered(0.05, 1) and not offered(0.05, 2)  # lost by 5 %: skipped between refreshes
+    assert offered(0.05, 3)  # a refresh's solve measures again
+    assert offered(0.05, 1, hopeless=0.0)  # 0: never skipped
+
+
+def test_the_runner_up_shortfall_is_kept_per_robot_and_saves_polishes_on_a_critic_that_misleads() -> None:
+    # The actor benchmark's "learned" critic (indefinite): its fresh ends keep looking within the
+    # margin and polish to a minimum a few % worse. With multistart_hopeless the runner-up is then
+    # polished at the refreshes only (0: at every offer, the negative control); the shortfall goes
+    # with a robot's memory (swap_memory) and a reset forgets it.
+    from common.config.settings import Settings
+    from tools.bench.actor import learned_weights
+
+    weights = learned_weights(Settings.load())
+    counts = {}
+    for hopeless in (0.0, 0.02):
+        actor = make_actor(
+            "rlqv+",
+            12,
+            multistart=True,
+            multistart_margin=0.1,
+            multistart_refresh=3,
+            multistart_hopeless=hopeless,
+            multistart_flips=3,
+            newton_iterations=6,
+        )
+        state = np.array([2.0, 2.0, math.pi / 4])
+        shortfalls = []
+        for _ in range(40):
+            step = actor.step(state, weights.q, weights.v)
+            shortfalls.append(actor._runner_up_shortfall)
+            state = exact_step(state, step.action, DELTA)
+        counts[hopeless] = actor.counters.second_solves
+        assert max(shortfalls) > 0.02, shortfalls  # the critic misleads: a polish lost by more
+        if hopeless:
+            held = actor.swap_memory(ActorMemory())
+            assert held.runner_up_shortfall == shortfalls[-1] and actor._runner_up_shortfall == 0.0
+            actor.swap_memory(held)
+            assert actor._runner_up_shortfall == shortfalls[-1]
+            actor.reset()
+            assert actor._runner_up_shortfall == 0.0
+    assert counts[0.0] >= 20 and counts[0.02] <= counts[0.0] - 5, counts
 
 
 def test_same_basin_follows_the_merit_along_the_segment() -> None:

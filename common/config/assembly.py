@@ -103,6 +103,7 @@ def build_actor(settings: Settings, global_every: int = 1, hurry: Hurry = "polis
             multistart_iterations=a.multistart_iterations,
             multistart_margin=a.multistart_margin,
             multistart_refresh=a.multistart_refresh,
+            multistart_hopeless=a.multistart_hopeless,
             multistart_flips=a.multistart_flips,
             newton_iterations=a.newton_iterations,
             global_every=global_every,

@@ -277,6 +277,11 @@ class ActorSettings(_Section):
         ge=0, allow_inf_nan=False, description="also polish the other kind of start's lowest end within this share"
     )
     multistart_refresh: int = Field(ge=0, description="and every this many solves whatever the merit says (0 = never)")
+    multistart_hopeless: float = Field(
+        ge=0,
+        allow_inf_nan=False,
+        description="a runner-up polish that lost by more than this share: the next wait for a refresh (0 = never)",
+    )
     multistart_flips: int = Field(
         ge=0, le=1000, description="vertex-search sweeps after the polish: each action entry to either bound (0 = off)"
     )

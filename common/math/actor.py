@@ -52,6 +52,7 @@ class StackedActor:
         self._previous_x: np.ndarray | None = None
         self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
         self._episode_solves = 0  # solves since the last reset (the refresh's phase)
+        self._runner_up_shortfall = 0.0  # the last runner-up polish's, relative (multistart_hopeless)
         # The compiled functions: they must live as long as the buffers below read from them.
         self._functions = built = build(problem)
         lbx, ubx, n_g = built.lbx, built.ubx, built.n_g
@@ -199,16 +200,24 @@ class StackedActor:
         # the refresh's phase (multistart_refresh) counts from here: a run never depends on
         # what the same actor solved before (the experiment's workers reuse their actors)
         self._episode_solves = 0
+        self._runner_up_shortfall = 0.0
         if self.arrival is not None:
             self.arrival.reset()
 
     def swap_memory(self, memory: ActorMemory) -> ActorMemory:
         """Step on with ``memory`` (another robot's plans, arrival rule and counters); returns
         the memory held until now. Not thread-safe: one step at a time per built actor."""
-        held = ActorMemory(self._previous_x, self._earlier_x, self.arrival, self.counters, self._episode_solves)
+        held = ActorMemory(
+            self._previous_x,
+            self._earlier_x,
+            self.arrival,
+            self.counters,
+            self._episode_solves,
+            self._runner_up_shortfall,
+        )
         self._previous_x, self._earlier_x = memory.previous_x, memory.earlier_x
         self.arrival, self.counters = memory.arrival, memory.counters
-        self._episode_solves = memory.episode_solves
+        self._episode_solves, self._runner_up_shortfall = memory.episode_solves, memory.runner_up_shortfall
         return held
 
     @property
@@ -331,7 +340,8 @@ class StackedActor:
         minimum, in the flat valleys near the target above all). Returned when the two ends are
         apart and its objective is within ``multistart_margin`` (relative) of the lowest or the
         solve is a ``multistart_refresh``-th one, with whether it is warm (:meth:`_polish`), else
-        None. Read right after :meth:`_global_guess` for the same state."""
+        None; between refreshes, None while the last runner-up polish lost by more than
+        ``multistart_hopeless``. Read right after :meth:`_global_guess` for the same state."""
         refresh = self.problem.multistart_refresh
         values = np.where(np.isfinite(self._end_values), self._end_values, np.inf)
         best = int(np.argmin(values))
@@ -340,6 +350,9 @@ class StackedActor:
         if not np.isfinite(values[other]):
             return None
         due = refresh > 0 and self._episode_solves % refresh == 0
+        hopeless = self.problem.multistart_hopeless
+        if not due and hopeless > 0 and self._runner_up_shortfall > hopeless:
+            return None
         if not due and values[other] > values[best] + self.problem.multistart_margin * abs(values[best]) + 1e-12:
             return None
         if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
@@ -497,7 +510,10 @@ class StackedActor:
             counters.second_solves += 1
             second = self._polish(runner_up[1])
             mark = self._phase_done("runner_up", mark)
-            if second[0] and (not success or second[3] < objective):
+            won = second[0] and (not success or second[3] < objective)
+            lost_by = (second[3] - objective) / max(abs(objective), 1e-12) if second[0] and success else 0.0
+            self._runner_up_shortfall = 0.0 if won else lost_by
+            if won:
                 success, status, x_opt, objective = second
         flips = extras and self.problem.multistart_flips > 0
         neighbour = None

@@ -72,6 +72,7 @@ def generate(base: Settings) -> dict[str, Any]:
             "multistart_iterations": actor.multistart_iterations,
             "multistart_margin": actor.multistart_margin,
             "multistart_refresh": actor.multistart_refresh,
+            "multistart_hopeless": actor.multistart_hopeless,
             "multistart_flips": actor.multistart_flips,
             "jit": False,
         },
