@@ -487,3 +487,31 @@ def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) 
         assert packed == ros.cdr(fit, WEIGHTS)
     with pytest.raises(ValueError, match="critic weights are 15 \\+ 6 numbers, got 14 \\+ 6"):
         weights_cdr(0, frame, 0, 1, 0, np.zeros(14), np.zeros(6), (0.0, 0.0), 0)
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full")
+def test_a_full_disk_met_by_a_full_chunk_stops_the_writes_at_the_next_message(tmp_path: Path) -> None:
+    """A write the writer makes between two of srl's flushes (a chunk that fills up, a buffered
+    file's seek) and fails: the next write raises RecordingError at once and the writer is handed
+    nothing more (each message it refused would be a log line of its own)."""
+    import os
+
+    from tools.recording.record import McapSink, RecordingError
+
+    sink = McapSink(tmp_path / "full.mcap")
+    full = os.open("/dev/full", os.O_WRONLY)
+    try:
+        os.dup2(full, sink.file.fileno())
+    finally:
+        os.close(full)
+    payload = bytes(1000)
+    raised = None
+    for k in range(10_000):  # 4 MiB chunks: the first is full after ~4,000 of these
+        try:
+            sink.write("/x", "std_msgs/msg/String", "string data", payload, ORIGIN_NS + k)
+        except RecordingError as error:
+            raised = (k, str(error))
+            break
+    assert raised is not None and "No space left on device" in raised[1], raised
+    assert sink.messages == raised[0]  # the message that met the error was not counted, none after
+    sink.close()

@@ -294,6 +294,36 @@ def open_for_writing(path: Path) -> IO[bytes]:
         raise RecordingError(f"cannot record to {path}: {error.strerror}") from None
 
 
+class _Disk:
+    """The file as an MCAP writer sees it (write, seek, tell, flush), keeping the first error any
+    of them met (a buffered file's seek writes its buffer too): :class:`McapSink` raises it at its
+    next write instead of handing the writer more messages, each of which it would refuse with a
+    log line of its own."""
+
+    def __init__(self, file: IO[bytes]) -> None:
+        self.file = file
+        self.error: OSError | None = None
+
+    def _kept(self, call: Callable[..., Any], *args: Any) -> Any:
+        try:
+            return call(*args)
+        except OSError as error:
+            self.error = self.error or error
+            raise
+
+    def write(self, data: bytes) -> int:
+        return int(self._kept(self.file.write, data))
+
+    def flush(self) -> None:
+        self._kept(self.file.flush)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return int(self._kept(self.file.seek, offset, whence))
+
+    def tell(self) -> int:
+        return int(self._kept(self.file.tell))
+
+
 class McapSink:
     """An MCAP file in the rosbag2 layout, streamed: a chunk goes to the disk when it holds
     :data:`CHUNK_BYTES` or is :data:`CHUNK_SECONDS` old, whichever comes first, so a recorder killed
@@ -311,9 +341,9 @@ class McapSink:
     256 KiB chunks) and cost less to write; the age bound keeps a recording of one robot, a few KB
     a second, on the disk within seconds.
 
-    A write that fails (a full disk) is known at the chunk's flush: from then on every
-    :meth:`write` raises :class:`RecordingError` saying why, and nothing more is sent to the writer
-    (the writer itself logs one line per message it cannot write)."""
+    A write that fails (a full disk) is known when the writer writes a chunk (full, or at its
+    age): from the next :meth:`write` on, every one raises :class:`RecordingError` saying why and
+    nothing more goes to the writer (which logs one line for the message whose chunk failed)."""
 
     CHUNK_BYTES = 4 * 1024 * 1024
     CHUNK_SECONDS = 2.0
@@ -331,7 +361,8 @@ class McapSink:
             # short (a recorder killed) ends at a record's end and reads up to it
             disable_seeking=True,
         )
-        self.writer = foxglove.open_mcap(self.file, context=self.context, writer_options=options)
+        self.disk = _Disk(self.file)
+        self.writer = foxglove.open_mcap(self.disk, context=self.context, writer_options=options)
         self.schemas: dict[str, foxglove.Schema] = {}
         self.channels: dict[str, foxglove.Channel] = {}
         self.counts: dict[str, int] = {}
@@ -344,6 +375,8 @@ class McapSink:
         self.chunk_started = time.monotonic()
 
     def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        if self.failure is None and self.disk.error is not None:  # a chunk the last write completed
+            self.failure = f"cannot write {self.path}: {self.disk.error}"
         if self.failure is not None:
             raise RecordingError(self.failure)
         channel = self.channels.get(topic)
