@@ -295,10 +295,10 @@ def open_for_writing(path: Path) -> IO[bytes]:
 
 
 class _Disk:
-    """The file as an MCAP writer sees it (write, seek, tell, flush), keeping the first error any
-    of them met (a buffered file's seek writes its buffer too): :class:`McapSink` raises it at its
-    next write instead of handing the writer more messages, each of which it would refuse with a
-    log line of its own."""
+    """The file as an MCAP writer sees it (foxglove's ``McapWritable``: write, seek, flush),
+    keeping the first error any of them met (a buffered file's seek writes its buffer too):
+    :class:`McapSink` raises it at its next write instead of handing the writer more messages,
+    each of which it would refuse with a log line of its own."""
 
     def __init__(self, file: IO[bytes]) -> None:
         self.file = file
@@ -311,7 +311,7 @@ class _Disk:
             self.error = self.error or error
             raise
 
-    def write(self, data: bytes) -> int:
+    def write(self, data: bytes | bytearray) -> int:
         return int(self._kept(self.file.write, data))
 
     def flush(self) -> None:
@@ -319,9 +319,6 @@ class _Disk:
 
     def seek(self, offset: int, whence: int = 0) -> int:
         return int(self._kept(self.file.seek, offset, whence))
-
-    def tell(self) -> int:
-        return int(self._kept(self.file.tell))
 
 
 class McapSink:
