@@ -977,21 +977,19 @@ class Feed:
             closing = self.closing.is_set()  # before the batch: nothing put before close is left
             while pending:
                 kind, message, now_ns = pending.popleft()
-                self.received += self._guarded(
-                    f"a {kind} sample", functools.partial(self._apply, kind, message, now_ns)
-                )
+                self.received += self._guarded(kind, self._apply, kind, message, now_ns)
             self._guarded("/tf", self.recorder.flush_tf)  # the batch's /tf out before the pause
             if closing:
                 return
             self.closing.wait(BATCH_SECONDS)
 
-    def _guarded(self, what: str, write: Callable[[], None]) -> bool:
-        """Run ``write`` (one sample, or the batch's /tf); True if it was written. A failure is
-        counted in ``errors`` and does not end the recording: a bad sample is logged with its
-        traceback, a file that cannot be written (:class:`RecordingError`, a full disk) once per
-        reason, not once per sample."""
+    def _guarded(self, kind: str, write: Callable[..., None], *args: Any) -> bool:
+        """``write(*args)`` (one sample of ``kind``, or the batch's /tf); True if it was written.
+        A failure is counted in ``errors`` and does not end the recording: a bad sample is logged
+        with its traceback, a file that cannot be written (:class:`RecordingError`, a full disk)
+        once per reason, not once per sample. Nothing is built per sample but the call."""
         try:
-            write()
+            write(*args)
             return True
         except RecordingError as error:
             self.errors += 1
@@ -1000,7 +998,7 @@ class Feed:
                 log.error("recorder: %s", error)
         except Exception:
             self.errors += 1
-            log.exception("recorder: cannot record %s", what)
+            log.exception("recorder: cannot record a %s sample", kind)
         return False
 
     def _apply(self, kind: str, m: Any, now_ns: int) -> None:
