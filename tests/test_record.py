@@ -625,3 +625,17 @@ def test_a_recorder_that_cannot_write_its_file_counts_every_sample_and_says_why_
     assert feed.errors == 4 and feed.received == 0
     full = [r for r in caplog.records if "No space left" in r.getMessage()]
     assert len(full) == 1 and len([r for r in caplog.records if "a state sample" in r.getMessage()]) == 1
+
+
+@pytest.mark.integration
+@pytest.mark.skipif(not os.path.exists("/proc/self/autogroup"), reason="the kernel has no autogroups")
+def test_a_session_changed_twice_in_a_row_takes_the_second_change_too() -> None:
+    """common.process.runtime.session_priority: without CAP_SYS_ADMIN the kernel takes one
+    autogroup change per 0.1 s, machine-wide, and refuses the rest with EAGAIN (services that start
+    together, tests in parallel); a refused change is tried again until taken. As root there is no
+    such limit."""
+    script = (
+        "from common.process.runtime import session_priority\n"
+        "print(session_priority(10, 'first'), session_priority(12, 'second'), nice())\n"
+    )
+    assert output_of(script, own_session=True).split() == ["True", "True", "12"]

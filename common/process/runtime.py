@@ -195,6 +195,9 @@ def lower_priority(niceness: int, who: str) -> None:
     session_priority(min(19, niceness), who)
 
 
+AUTOGROUP_ATTEMPTS = 5  # session_priority: writes refused with EAGAIN (one change per 0.1 s) tried again
+
+
 def session_priority(niceness: int, who: str) -> bool:
     """With the kernel's autogroups on, the CPU is shared between sessions before threads, and
     ``srl up`` starts each service in a session of its own: set this session's autogroup
@@ -202,14 +205,25 @@ def session_priority(niceness: int, who: str) -> bool:
     (``niceness`` > 0, the recorder) or comes before them (< 0, the critic: needs root or
     ``CAP_SYS_NICE``; refused, one INFO line). Only when this process leads its session, as a
     service ``srl up`` or ``srl bench`` starts does -- started from a shell the autogroup is the
-    shell's, whose other processes are left as they are. True if set; 0 changes nothing."""
+    shell's, whose other processes are left as they are. True if set; 0 changes nothing.
+
+    Without ``CAP_SYS_ADMIN`` the kernel takes one autogroup change per 0.1 s, machine-wide, and
+    refuses the others with EAGAIN: services that start together (``srl up``) try again, up to
+    AUTOGROUP_ATTEMPTS times, 0.11 s apart."""
     if niceness == 0:
         return False
     try:
         if os.getsid(0) != os.getpid():
             return False
-        with open("/proc/self/autogroup", "w") as autogroup:
-            autogroup.write(str(niceness))
+        for attempt in range(AUTOGROUP_ATTEMPTS):
+            try:
+                with open("/proc/self/autogroup", "w") as autogroup:
+                    autogroup.write(str(niceness))
+                break
+            except BlockingIOError:  # EAGAIN: another change within the kernel's 0.1 s
+                if attempt == AUTOGROUP_ATTEMPTS - 1:
+                    raise
+                time.sleep(0.11)
     except PermissionError as error:
         log.info("%s: its session keeps its CPU share (niceness %d refused: %s)", who, niceness, error.strerror)
         return False
