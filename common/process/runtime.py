@@ -224,7 +224,7 @@ def session_priority(niceness: int, who: str) -> bool:
                 if attempt == AUTOGROUP_ATTEMPTS - 1:
                     raise
                 time.sleep(0.11)
-    except PermissionError as error:
+    except (PermissionError, BlockingIOError) as error:  # not allowed, or still busy after every try
         log.info("%s: its session keeps its CPU share (niceness %d refused: %s)", who, niceness, error.strerror)
         return False
     except OSError as error:  # no autogroups (or no /proc)
