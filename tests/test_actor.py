@@ -9,7 +9,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -643,6 +644,67 @@ def test_the_runner_up_shortfall_is_kept_per_robot_and_saves_polishes_on_a_criti
             actor.reset()
             assert actor._runner_up_shortfall == 0.0
     assert counts[0.0] >= 20 and counts[0.02] <= counts[0.0] - 5, counts
+
+
+def test_a_step_whose_newton_iterations_fell_short_polishes_no_runner_up() -> None:
+    # StackedActor.step: a polish that fell back to fatrop is the step's one interior-point
+    # solve; no runner-up polish follows it. The benchmark's "learned" critic offers a runner-up
+    # at most steps (multistart_hopeless 0). Every Newton end made to look short of stationary:
+    # no step polishes again after a polish that fell back, while the same loop with the Newton
+    # iterations as they are (the negative control) polishes a runner-up at 20 or more of 40
+    # steps, and one whose first polish ran no Newton iterations still polishes its runner-up.
+    from common.config.settings import Settings
+    from tools.bench.actor import learned_weights
+
+    weights = learned_weights(Settings.load())
+    second = {}
+    for short in (False, True):
+        actor = make_actor(
+            "rlqv+",
+            12,
+            multistart=True,
+            multistart_margin=0.1,
+            multistart_refresh=3,
+            multistart_hopeless=0.0,
+            multistart_flips=3,
+            newton_iterations=6,
+        )
+        polishes: list[bool] = []  # this step's polishes: did each fall back to fatrop?
+        if short:
+            newton = actor._evaluate_newton
+
+            def fall_short(newton: Callable[[], None] = newton, actor: StackedActor = actor) -> None:
+                newton()
+                actor._newton_stationarity[0] = 1.0
+
+            actor._evaluate_newton = fall_short  # type: ignore[method-assign]
+        polish = actor._polish
+
+        def counted(
+            warm: bool,
+            polish: Callable[[bool], Any] = polish,
+            actor: StackedActor = actor,
+            polishes: list[bool] = polishes,
+        ) -> Any:
+            fallbacks = actor.counters.newton_fallbacks
+            result = polish(warm)
+            polishes.append(actor.counters.newton_fallbacks > fallbacks)
+            return result
+
+        actor._polish = counted  # type: ignore[method-assign]
+        state = np.array([2.0, 2.0, math.pi / 4])
+        after_fresh = 0
+        for _ in range(40):
+            polishes.clear()
+            step = actor.step(state, weights.q, weights.v)
+            assert step.success
+            if short:
+                assert len(polishes) == 1 or not polishes[0], polishes
+                after_fresh += len(polishes) > 1
+            state = exact_step(state, step.action, DELTA)
+        second[short] = actor.counters.second_solves
+    assert second[False] >= 20, second
+    assert 0 < second[True] == after_fresh, (second, after_fresh)
 
 
 def test_same_basin_follows_the_merit_along_the_segment() -> None:

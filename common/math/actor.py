@@ -341,7 +341,8 @@ class StackedActor:
         apart and its objective is within ``multistart_margin`` (relative) of the lowest or the
         solve is a ``multistart_refresh``-th one, with whether it is warm (:meth:`_polish`), else
         None; between refreshes, None while the last runner-up polish lost by more than
-        ``multistart_hopeless``. Read right after :meth:`_global_guess` for the same state."""
+        ``multistart_hopeless``. Read right after :meth:`_global_guess` for the same state, and
+        not at all when the polish of the lowest end fell back to the solver (:meth:`step`)."""
         refresh = self.problem.multistart_refresh
         values = np.where(np.isfinite(self._end_values), self._end_values, np.inf)
         best = int(np.argmin(values))
@@ -485,6 +486,7 @@ class StackedActor:
         self._params[Q_FEATURES:] = v_weights
         counters = self.counters
         mark = time.perf_counter()
+        fallbacks = counters.newton_fallbacks
         global_phase, warm = self._initial_guess(state, hurry)
         if global_phase:
             mark = self._phase_done("global", mark)
@@ -498,7 +500,11 @@ class StackedActor:
         extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
         if hurry and self.problem.multistart:
             counters.hurried_solves += 1
-        runner_up = self._runner_up() if extras and global_phase else None
+        # A polish that fell back to the solver has run its interior point from the warm end
+        # (which may leave that basin for a lower minimum): a runner-up polish too would be a
+        # second interior-point solve in one step, the slowest steps (docs/concepts.md, item 3).
+        fell_back = counters.newton_fallbacks > fallbacks
+        runner_up = self._runner_up() if extras and global_phase and not fell_back else None
         if runner_up is not None and success and self._same_basin(state, runner_up[0], x_opt):
             runner_up = None
         if runner_up is not None:
