@@ -575,3 +575,27 @@ def test_the_router_says_it_listens_on_stdout_and_a_taken_port_in_one_line() -> 
     assert taken.returncode == 2
     assert taken.stderr.strip().splitlines() == [taken.stderr.strip()]
     assert "Address already in use" in taken.stderr and ".rs:" not in taken.stderr and "--router" in taken.stderr
+
+
+@pytest.mark.integration
+def test_an_srl_process_runs_one_openblas_thread_unless_the_user_sets_more() -> None:
+    # tools/__init__.py: importing srl's tools before numpy and scipy load OpenBLAS leaves the
+    # process its main thread alone (an OpenBLAS worker spins on a core after each call); a user's
+    # OPENBLAS_NUM_THREADS wins, and with 2 each OpenBLAS starts a worker (the negative control,
+    # on a machine of more than one core).
+    probe = "import os, tools.cli, numpy, scipy.linalg; print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))"
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    default = subprocess.run(
+        [sys.executable, "-c", probe], env=env, cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert default.returncode == 0, default.stderr
+    assert default.stdout.split() == ["1", "1"], default.stdout
+    env["OPENBLAS_NUM_THREADS"] = "2"
+    chosen = subprocess.run(
+        [sys.executable, "-c", probe], env=env, cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert chosen.returncode == 0, chosen.stderr
+    value, threads = chosen.stdout.split()
+    assert value == "2"
+    if (os.cpu_count() or 1) > 1:
+        assert int(threads) > 1, chosen.stdout
