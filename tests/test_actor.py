@@ -607,6 +607,22 @@ def test_a_runner_up_that_lost_by_a_lot_is_skipped_until_a_refresh_measures_agai
     assert offered(0.05, 1, hopeless=0.0)  # 0: never skipped
 
 
+def learned_critic_actor(hopeless: float) -> StackedActor:
+    """RL-QV+ at N = 12 with the full multistart (the defaults' margin, refresh, vertex search and
+    Newton iterations), the runner-up skipped after a loss of more than ``hopeless``: the actor the
+    benchmark's "learned" critic misleads (tools.bench.actor.learned_weights)."""
+    return make_actor(
+        "rlqv+",
+        12,
+        multistart=True,
+        multistart_margin=0.1,
+        multistart_refresh=3,
+        multistart_hopeless=hopeless,
+        multistart_flips=3,
+        newton_iterations=6,
+    )
+
+
 def test_the_runner_up_shortfall_is_kept_per_robot_and_saves_polishes_on_a_critic_that_misleads() -> None:
     # The actor benchmark's "learned" critic (indefinite): its fresh ends keep looking within the
     # margin and polish to a minimum a few % worse. With multistart_hopeless the runner-up is then
@@ -618,16 +634,7 @@ def test_the_runner_up_shortfall_is_kept_per_robot_and_saves_polishes_on_a_criti
     weights = learned_weights(Settings.load())
     counts = {}
     for hopeless in (0.0, 0.02):
-        actor = make_actor(
-            "rlqv+",
-            12,
-            multistart=True,
-            multistart_margin=0.1,
-            multistart_refresh=3,
-            multistart_hopeless=hopeless,
-            multistart_flips=3,
-            newton_iterations=6,
-        )
+        actor = learned_critic_actor(hopeless)
         state = np.array([2.0, 2.0, math.pi / 4])
         shortfalls = []
         for _ in range(40):
@@ -659,16 +666,7 @@ def test_a_step_whose_newton_iterations_fell_short_polishes_no_runner_up() -> No
     weights = learned_weights(Settings.load())
     second = {}
     for short in (False, True):
-        actor = make_actor(
-            "rlqv+",
-            12,
-            multistart=True,
-            multistart_margin=0.1,
-            multistart_refresh=3,
-            multistart_hopeless=0.0,
-            multistart_flips=3,
-            newton_iterations=6,
-        )
+        actor = learned_critic_actor(0.0)
         polishes: list[bool] = []  # this step's polishes: did each fall back to fatrop?
         if short:
             newton = actor._evaluate_newton
