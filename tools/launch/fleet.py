@@ -500,9 +500,10 @@ def fleet_environment(pooled: bool) -> dict[str, str]:
     # over the first 5 minutes: a fleet's memory would grow for that long
     env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
     env["SRL_CRITIC__POOLED"] = "true" if pooled else "false"
-    # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for OpenBLAS to
-    # start threads, which spin on a busy machine and slow every fit
-    for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for a BLAS to
+    # start threads, which spin on a busy machine and slow every fit. OPENBLAS_NUM_THREADS is already
+    # in this process's environment (tools/__init__.py); the children's other BLAS libraries too:
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env.setdefault(variable, "1")
     return env
 
