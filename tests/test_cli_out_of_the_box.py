@@ -583,7 +583,10 @@ def test_an_srl_process_runs_one_openblas_thread_unless_the_user_sets_more() -> 
     # process its main thread alone (an OpenBLAS worker spins on a core after each call); a user's
     # OPENBLAS_NUM_THREADS wins, and with 2 each OpenBLAS starts a worker (the negative control,
     # on a machine of more than one core).
-    probe = "import os, tools.cli, numpy, scipy.linalg; print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))"
+    probe = (
+        "import os, tools.cli, numpy, scipy.linalg; "
+        "print(os.environ['OPENBLAS_NUM_THREADS'], len(os.listdir('/proc/self/task')))"
+    )
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
     default = subprocess.run(
         [sys.executable, "-c", probe], env=env, cwd=ROOT, capture_output=True, text=True, timeout=60
