@@ -263,7 +263,11 @@ def observe(router: str, robot: str, connect_timeout: float) -> int:
         CriticWeights, "weights", lambda w: {"version": w.version, "trained_step": w.trained_step, "episode": w.episode}
     )
     on_status = recorder(ServiceStatus, "status", lambda s: {"service": s.service, "counters": s.counters})
-    on_transition = recorder(Transition, "transition", lambda t: {"step": t.step, "episode": t.episode})
+    on_transition = recorder(
+        Transition,
+        "transition",
+        lambda t: {"step": t.step, "episode": t.episode, "state": list(t.state), "action": list(t.action)},
+    )
 
     def on_token(sample: zenoh.Sample) -> None:
         record("alive", service=str(sample.key_expr).rsplit("/", 1)[-1], alive=sample.kind == zenoh.SampleKind.PUT)

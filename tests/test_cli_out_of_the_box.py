@@ -259,8 +259,12 @@ def _wait_for_line(stream: object, needle: str, timeout: float) -> list[str]:
 
 @pytest.mark.integration
 @pytest.mark.parametrize(("signum", "code"), [(signal.SIGINT, 130)] * 5 + [(signal.SIGTERM, 143)])
-def test_a_signal_during_srl_run_ends_it_in_one_line(signum: int, code: int) -> None:
-    process = _start_run("--duration", "600")  # 6000 steps: seconds of solving
+def test_a_signal_during_srl_run_ends_it_in_one_line(signum: int, code: int, tmp_path: Path) -> None:
+    # 6000 steps, every one solved: without the arrival rule (the paper's actor) the robot never
+    # rests, so neither the solves nor the critic's fits stop (a parked robot's steps take microseconds)
+    paper = tmp_path / "paper.toml"
+    paper.write_text("[actor]\narrival = false\n")
+    process = _start_run("--duration", "600", "--config", str(paper))
     try:
         _wait_for_line(process.stderr, "episode started", 60)
         time.sleep(random.uniform(0.0, 1.0))

@@ -30,12 +30,21 @@ from common.math.turtlebot import RobotPlant
 from common.system.jit import default_jit_cache
 
 
-def arrival_rule(settings: Settings) -> ArrivalRule | None:
-    """The actor's goal checker of the settings, or None (``actor.arrival = false``, the paper's)."""
+def arrival_tolerances(settings: Settings) -> ArrivalTolerances | None:
+    """The arrival rule's tolerances, or None (``actor.arrival = false``, the paper's): also what
+    the critic needs to know a robot held at rest (common.math.critic.at_rest)."""
     a = settings.actor
     if not a.arrival:
         return None
-    tolerances = ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
+    return ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
+
+
+def arrival_rule(settings: Settings) -> ArrivalRule | None:
+    """The actor's goal checker of the settings, or None (``actor.arrival = false``, the paper's)."""
+    a = settings.actor
+    tolerances = arrival_tolerances(settings)
+    if tolerances is None:
+        return None
     return ArrivalRule(
         tolerances,
         WheelDeadband(a.wheel_breakaway_speed, a.wheel_radius, a.wheel_separation, a.command_resolution),
@@ -150,6 +159,7 @@ def local_critic(settings: Settings, learn: bool = True) -> LocalCritic:
         c.replay_size,
         c.update_every,
         learn=learn,
+        rest=arrival_tolerances(settings),
     )
 
 

@@ -149,6 +149,9 @@ class CriticSummary(_Summary):
         default=None, description="transitions taken per batch (one checkpoint each; a fleet's come together)"
     )
     fits_coalesced: int = Field(default=0, description="due fits left to a newer transition of the robot in the batch")
+    fits_at_rest: int = Field(
+        default=0, description="due fits not made: the robot held at rest by the arrival rule (no action uses them)"
+    )
     pooled: bool = Field(default=False, description="one learner for every robot (critic.pooled)")
     counters: dict[str, float]
     resources: dict[str, Any] | None = None

@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from common.math.agents import fit_due
+from common.math.arrival import ArrivalTolerances, arrival_update
 from common.math.dynamics import ACTION_DIM, STATE_DIM
 from common.math.features import (
     Q_FEATURES,
@@ -85,6 +86,51 @@ class FitResult:
     pairs: int
     # Bounded fits: which weights ended on a bound (-1 low, +1 high, 0 free); the next fit's guess.
     on_bound: np.ndarray | None = None
+
+
+def at_rest(previous: Sample | None, sample: Sample, tolerances: ArrivalTolerances | None) -> bool:
+    """``sample`` is a robot held at rest by the arrival rule (common/math/arrival.py): the step
+    after ``previous``, the same state, inside the rule's INNER tolerances (where the rule holds a
+    robot whatever it said before), and both held actions exactly zero. Its critic enters it into
+    the replay but does not fit on it (nor publishes weights): while the rule holds the robot its
+    actor solves nothing and uses no weights, so a fit would only move weights nobody uses. The
+    first transition after the robot moves (another state) is fitted on the whole replay, rests
+    included. Between the inner and the outer tolerances a zero command may be the wheel deadband's
+    on a solve that has not arrived: there every due fit is made, so the next solve sees new
+    weights. ``tolerances`` None (no arrival rule, the paper's method): never at rest."""
+    return (
+        tolerances is not None
+        and previous is not None
+        and sample.step == previous.step + 1
+        and not np.any(sample.action)
+        and not np.any(previous.action)
+        and np.array_equal(sample.state, previous.state)
+        and arrival_update(False, np.asarray(sample.state, dtype=float), tolerances)
+    )
+
+
+class FitsDue:
+    """What a robot's critic fits of the transitions its actor sends (:func:`at_rest`), as the
+    actor sees it: ``newest``, the newest step sent that is fitted (-1: none), is the step fresh
+    weights are trained on, so the weights' staleness is ``newest - trained_step`` (a robot at rest
+    sends transitions nobody fits: its weights are as fresh as they can be)."""
+
+    def __init__(self, tolerances: ArrivalTolerances | None) -> None:
+        self.tolerances = tolerances
+        self.reset()
+
+    def reset(self) -> None:
+        self.previous: Sample | None = None
+        self.newest = -1
+        self.resting = False  # the last sample sent was at rest
+
+    def sent(self, sample: Sample) -> bool:
+        """``sample`` goes to the critic: True when the critic fits on it (when one is due)."""
+        self.resting = at_rest(self.previous, sample, self.tolerances)
+        self.previous = sample
+        if not self.resting:
+            self.newest = sample.step
+        return not self.resting
 
 
 def consecutive_pairs(steps: Sequence[int]) -> list[tuple[int, int]]:
@@ -387,6 +433,11 @@ class Replay:
     @property
     def samples(self) -> list[Sample]:
         return list(self._samples)
+
+    @property
+    def newest(self) -> Sample | None:
+        """The sample of the highest step (None: empty)."""
+        return self._samples[-1] if self._samples else None
 
     def clear(self) -> None:
         self._samples.clear()

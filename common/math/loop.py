@@ -18,7 +18,8 @@ import numpy as np
 
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorMemory
-from common.math.critic import DoubleCritic, PooledLearner, Sample
+from common.math.arrival import ArrivalTolerances
+from common.math.critic import DoubleCritic, PooledLearner, Sample, at_rest
 from common.math.dynamics import Plant, exact_step
 from common.math.features import stage_cost
 
@@ -76,11 +77,13 @@ class LocalCritic:
         replay_size: int,
         update_every: int,
         learn: bool = True,
+        rest: ArrivalTolerances | None = None,
     ) -> None:
         self.q_init, self.v_init = q_init, v_init
         self.discount, self.ridge, self.bounds = discount, ridge, bounds
         self.replay_size, self.update_every = replay_size, update_every
         self.learn = learn
+        self.rest = rest  # the arrival rule's tolerances: no fit on a robot held at rest (critic.at_rest)
         self.pool = self._fresh_pool()
         self.updates = 0
         self.last_residuals = (float("nan"), float("nan"))  # of the newest fit (Q, V)
@@ -99,9 +102,10 @@ class LocalCritic:
         return self.critic.q_weights, self.critic.v_weights
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        previous = self.pool.replay.stream(self.ROBOT).newest
         due = self.pool.record(self.ROBOT, sample)
         self.last_residuals = (float("nan"), float("nan"))
-        if self.learn and due:
+        if self.learn and due and not at_rest(previous, sample, self.rest):
             update = self.pool.fit()
             self.last_residuals = (float(update.q.residual), float(update.v.residual))
             self.updates += 1

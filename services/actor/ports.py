@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 
+from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
 from common.contracts.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
 from common.contracts.messages import CriticWeights, Message, PlantState, ResetRequest, StepRequest, Transition
 from common.math.agents import fit_due, learns
-from common.math.critic import Sample
+from common.math.critic import FitsDue, Sample
 from common.net.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
 from common.net.transport import Bus
 
@@ -224,14 +225,17 @@ class ZenohCriticPort:
         self.publish = bus.publisher(TRANSITION, self.robot, cache=settings.transport.transition_cache)
         self.staleness: list[int] = []
         self.timeouts = 0
+        self.fits = FitsDue(arrival_tolerances(settings))  # none on a robot held at rest
 
     def new_episode(self, settings: Settings, episode: int) -> None:
         """The same port (one cached transition publisher for the process's life) for a new
         episode: its settings and id, staleness and timeouts counted afresh."""
         self.settings, self.episode = settings, episode
         self.staleness, self.timeouts = [], 0
+        self.fits = FitsDue(arrival_tolerances(settings))
 
     def reset(self) -> tuple[np.ndarray, np.ndarray]:
+        self.fits.reset()
         held = self.inbox.reset(self.episode)
         return held.q, held.v
 
@@ -247,7 +251,10 @@ class ZenohCriticPort:
                 cost=float(sample.cost),
             )
         )
+        # the critic fits when a fit is due, but not on a robot held at rest (no weights come back)
+        fitted = self.fits.sent(sample)
         needs_fit = learns(self.settings.actor.agent) and fit_due(sample.step, self.settings.critic.update_every)
+        needs_fit = needs_fit and fitted
         if self.sync and needs_fit and not self.inbox.wait_trained(sample.step, self.settings.transport.critic_timeout):
             self.timeouts += 1
             self.bus.count("critic_timeouts")
@@ -258,6 +265,7 @@ class ZenohCriticPort:
                 self.inbox.current().version,
             )
         held = self.inbox.current()
-        # staleness of the weights the NEXT step will use: ideally trained on this step
-        self.staleness.append(sample.step - held.trained_step)
+        # staleness of the weights the NEXT step will use: ideally trained on this step (at rest:
+        # on the newest step the critic fits)
+        self.staleness.append(self.fits.newest - held.trained_step)
         return held.q, held.v

@@ -2,7 +2,9 @@
 
 At tick ``k`` (absolute time ``t0 + k delta``, :class:`common.system.clock.Ticker`) it takes the newest
 accepted state, solves, publishes the action and one transition. It never waits for the critic:
-it uses the newest weights it holds and reports their staleness. It commands zero velocity and
+it uses the newest weights it holds and reports their staleness: the steps between the newest
+transition its critic fits and the one they were trained on (a robot held at rest sends
+transitions its critic does not fit, common.math.critic.at_rest). It commands zero velocity and
 records no transition (the critic sees a gap, never a false pair) when the state is stale
 (older than ``(action_timeout_steps - 1) delta``), never came, when the plant's liveliness token
 vanished, or while two plant sessions are alive (common.net.provenance).
@@ -31,12 +33,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
 from common.contracts.messages import Action, PlantState, Transition
 from common.contracts.summaries import RealtimeActorSummary, TrueView
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorStep
 from common.math.agents import learns
+from common.math.critic import FitsDue, Sample
 from common.math.features import stage_cost
 from common.math.stats import Window
 from common.net.provenance import RefusalRun, SequenceGuard, SourceGate
@@ -119,6 +123,7 @@ class RealtimeActor:
         self.latencies = Window()
         self.staleness_steps = Window()
         self.staleness_ms = Window()
+        self.fits = FitsDue(arrival_tolerances(settings))  # what the critic fits of what this loop sends
         self.accumulated_cost = 0.0
         self.tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)  # what a replay must hold
         # when each of the last PUBLISH_TIMES_KEPT steps was published (slot k % KEPT holds step k):
@@ -292,6 +297,11 @@ class RealtimeActor:
             self.true_accumulated_cost += self.delta * float(
                 stage_cost(true_state, step.action, self.settings.cost.r_diag)
             )
+        # the step fresh weights would be trained on: the previous one (ideally), or, while the
+        # robot rests (the critic fits no transition of a robot at rest), the newest one fitted
+        resting = self.fits.resting
+        due = self.fits.newest if resting else k - 1
+        self.fits.sent(Sample(k, state, step.action, cost))
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         self.publish_transition(
             Transition(
@@ -311,9 +321,10 @@ class RealtimeActor:
         else:
             self.published_steps.append([k, k])
         if learns(self.settings.actor.agent):
-            self.staleness_steps.append((k - 1) - weights.trained_step)
+            self.staleness_steps.append(due - weights.trained_step)
             slot = weights.trained_step % PUBLISH_TIMES_KEPT
-            if weights.trained_step >= 0 and self.published_step[slot] == weights.trained_step:
+            # at rest, the weights' age in time grows with the rest: not a delay of the critic's
+            if not resting and weights.trained_step >= 0 and self.published_step[slot] == weights.trained_step:
                 self.staleness_ms.append((done - float(self.published_at[slot])) * 1e3)
         self.steps += 1
 

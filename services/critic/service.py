@@ -54,12 +54,13 @@ from typing import Any
 
 import numpy as np
 
+from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
 from common.contracts.keys import TRANSITION, WEIGHTS
 from common.contracts.messages import CriticWeights, Transition
 from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
-from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, load_solver, update_many
+from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, at_rest, load_solver, update_many
 from common.math.stats import Window
 from common.net.transport import Bus, start_status_thread
 from common.process.runtime import session_priority
@@ -182,6 +183,8 @@ class CriticLearner:
         self.too_old = 0
         self.accepted = 0  # transitions that entered a replay
         self.fits_coalesced = 0  # due fits left to a newer transition of the same robot in the batch
+        self.fits_at_rest = 0  # due fits not made: the robot held at rest (common.math.critic.at_rest)
+        self.rest = arrival_tolerances(settings)
         self.due: dict[str, tuple[Learner, int]] = {}  # per-robot fits left to flush(): learner, step
         self.outgoing: list[CriticWeights] = []  # weights of fits made early in a batch, for flush()
         self.resume = settings.critic.resume
@@ -317,7 +320,9 @@ class CriticLearner:
                 learner.seen.keep_after(floor)
         if message.robot in self.due:  # its fit left to the batch's end is made first, on the replay as it was
             self.outgoing += self._fit_due()
-        learner.replay.add(Sample(message.step, np.array(message.state), np.array(message.action), message.cost))
+        newest = learner.replay.newest
+        sample = Sample(message.step, np.array(message.state), np.array(message.action), message.cost)
+        learner.replay.add(sample)
         if self.pool is not None:
             if not self.pool.count(message.step):
                 return []
@@ -327,6 +332,9 @@ class CriticLearner:
                 return []
             return self._pooled_fit()
         if not fit_due(message.step, self.settings.critic.update_every):
+            return []
+        if at_rest(newest, sample, self.rest):  # a per-robot learner; the pooled one fits the fleet as it steps
+            self.fits_at_rest += 1
             return []
         if not fit:
             self.fits_coalesced += 1
@@ -704,6 +712,7 @@ def run(
             "fit_ms": learner.fit_seconds.summary(1e3),
             "batch_transitions": batches.summary(),
             "fits_coalesced": learner.fits_coalesced,
+            "fits_at_rest": learner.fits_at_rest,
             "pooled": learner.pool is not None,
             "counters": dict(bus.counters),
         }

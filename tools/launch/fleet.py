@@ -660,6 +660,7 @@ def run_fleet(
             "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
             "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
             "fits_coalesced": critic.fits_coalesced,
+            "fits_at_rest": critic.fits_at_rest,
             "pooled": critic.pooled,
         },
         **measures.fields(len(supervisor.children)),

@@ -1,0 +1,215 @@
+"""A robot held at rest by the arrival rule costs its critic no fit (common.math.critic.at_rest):
+the rule itself, the per-robot critic service, the in-process critic (the same decisions), the
+lockstep port (which then waits for no weights) and the real-time actor's staleness (over the
+ticks that use weights)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.config.assembly import local_critic
+from common.config.settings import Settings
+from common.contracts.messages import CriticWeights, Transition
+from common.math.arrival import ArrivalTolerances
+from common.math.critic import Sample, at_rest
+from services.actor.ports import HeldWeights, ZenohCriticPort
+from services.critic.service import CriticLearner
+from tests.test_realtime_actor import DELTA, FakeStep, Loop
+
+TOLERANCES = ArrivalTolerances(position=0.03, heading=0.1, hysteresis=1.5)
+PARKED = np.array([0.01, -0.02, 0.05])  # inside the inner tolerances
+ZERO = np.zeros(2)
+
+
+def sample(step: int, state: np.ndarray = PARKED, action: np.ndarray = ZERO, cost: float = 1e-5) -> Sample:
+    return Sample(step, np.array(state, dtype=float), np.array(action, dtype=float), cost)
+
+
+def test_at_rest_is_the_same_state_held_at_zero_inside_the_tolerances() -> None:
+    assert at_rest(sample(4), sample(5), TOLERANCES)
+    inner = np.array([0.029, 0.0, 0.099])
+    assert at_rest(sample(4, inner), sample(5, inner), TOLERANCES)
+    # between the inner and the outer tolerances (0.03 and 1.5 x 0.03 m) a zero command may be the
+    # wheel deadband's on a robot that has not arrived: its fits go on (the next solve may move it)
+    annulus = np.array([0.04, 0.0, 0.0])
+    assert not at_rest(sample(4, annulus), sample(5, annulus), TOLERANCES)
+    turned = np.array([0.0, 0.0, 0.12])  # heading beyond 0.1 rad
+    assert not at_rest(sample(4, turned), sample(5, turned), TOLERANCES)
+    # each condition alone breaks it
+    assert not at_rest(sample(4), sample(5), None)  # no arrival rule (the paper's method)
+    assert not at_rest(None, sample(5), TOLERANCES)  # nothing before it
+    assert not at_rest(sample(3), sample(5), TOLERANCES)  # a gap: not the step after
+    assert not at_rest(sample(4, action=np.array([0.0, 1e-12])), sample(5), TOLERANCES)  # it moved
+    assert not at_rest(sample(4), sample(5, action=np.array([1e-12, 0.0])), TOLERANCES)  # it moves now
+    moved = PARKED + np.array([0.0, 0.0, 1e-15])
+    assert not at_rest(sample(4), sample(5, moved), TOLERANCES)  # another state (pushed, noise)
+
+
+def robot_run(approach: int = 8, rest: int = 12, leave: int = 6) -> list[Sample]:
+    """A robot that drives in, is held at rest, then is pushed and drives again."""
+    out, state = [], np.array([0.6, 0.3, 0.4])
+    for k in range(approach):
+        action = np.array([-0.2, 0.1])
+        out.append(sample(k, state, action, cost=0.01 * (approach - k)))
+        state = state * 0.6
+    state = PARKED
+    for k in range(approach, approach + rest):
+        out.append(sample(k, state))
+    for k in range(approach + rest, approach + rest + leave):
+        state = state + np.array([0.02, 0.01, -0.03])  # pushed away, then driving back
+        out.append(sample(k, state, np.array([0.1, -0.2]), cost=0.005))
+    return out
+
+
+def message(robot: str, s: Sample) -> Transition:
+    return Transition(
+        robot=robot,
+        episode=1,
+        step=s.step,
+        state=(float(s.state[0]), float(s.state[1]), float(s.state[2])),
+        action=(float(s.action[0]), float(s.action[1])),
+        cost=s.cost,
+    )
+
+
+def settings(arrival: bool = True) -> Settings:
+    return Settings.load(critic={"checkpoint": ""}, actor={"arrival": arrival})
+
+
+@pytest.mark.parametrize("arrival", [True, False])
+def test_the_critic_makes_no_fit_while_the_robot_is_held_at_rest_and_fits_again_when_it_moves(arrival: bool) -> None:
+    run = robot_run()
+    learner = CriticLearner(settings(arrival))
+    fitted = [s.step for s in run if learner.on_transition(message("r1", s)) is not None]
+    if not arrival:  # the negative control: without the rule every due fit is made
+        assert fitted == [s.step for s in run] and learner.fits_at_rest == 0
+        return
+    # the first transition at the target is fitted (the robot came from elsewhere), the 11 after it
+    # repeat it and are not; the push is fitted at once, on the whole replay, the rests included
+    assert fitted == list(range(0, 9)) + list(range(20, 26))
+    assert learner.fits_at_rest == 11
+    assert learner.accepted == len(run)  # every transition entered the replay
+    replay = learner.learners["r1"].replay
+    assert [s.step for s in replay.samples] == [s.step for s in run]
+
+
+def test_the_in_process_critic_makes_the_same_fits_as_the_critic_service() -> None:
+    run = robot_run()
+    learner, local = CriticLearner(settings()), local_critic(settings())
+    local.reset()
+    for s in run:
+        weights = learner.on_transition(message("r1", s))
+        q, v = local.record(s)
+        fitted_locally = not np.isnan(local.last_residuals[0])
+        assert fitted_locally == (weights is not None), s.step
+        if weights is not None:
+            np.testing.assert_array_equal(q, np.array(weights.q_weights))
+            np.testing.assert_array_equal(v, np.array(weights.v_weights))
+    assert local.updates == len(run) - 11
+
+
+@dataclass
+class FakeInbox:
+    held: HeldWeights = field(default_factory=lambda: HeldWeights(np.ones(15), np.ones(6), 1, -1, 0.0))
+    waited: list[int] = field(default_factory=list)
+
+    def reset(self, episode: int) -> HeldWeights:
+        return self.held
+
+    def published(self, step: int) -> None:
+        pass
+
+    def wait_trained(self, step: int, timeout: float) -> bool:
+        self.waited.append(step)
+        self.held = HeldWeights(self.held.q, self.held.v, self.held.version + 1, step, 0.0)
+        return True
+
+    def current(self) -> HeldWeights:
+        return self.held
+
+
+class FakeBus:
+    def __init__(self) -> None:
+        self.sent: list[Any] = []
+
+    def publisher(self, topic: Any, robot: str, cache: int = 0) -> Any:
+        return self.sent.append
+
+    def count(self, name: str, amount: int = 1) -> None:
+        pass
+
+
+@pytest.mark.parametrize("arrival", [True, False])
+def test_the_lockstep_port_waits_for_no_fit_at_rest(arrival: bool) -> None:
+    own = Settings.load(critic={"checkpoint": ""}, actor={"arrival": arrival}, transport={"robot": "r1"})
+    inbox, bus = FakeInbox(), FakeBus()
+    port = ZenohCriticPort(own, bus, inbox, episode=1, sync=True)  # type: ignore[arg-type]
+    port.reset()
+    run = robot_run()
+    for s in run:
+        port.record(s)
+    assert len(bus.sent) == len(run)  # every transition is published
+    rests = set(range(9, 20)) if arrival else set()
+    assert inbox.waited == [s.step for s in run if s.step not in rests]
+    # the weights are as fresh as the critic makes them at every step, the rests too
+    assert port.staleness == [0] * len(run)
+
+
+def test_the_real_time_actor_counts_staleness_from_the_newest_transition_its_critic_fits() -> None:
+    t = Loop()
+    held = {"arrived": False}
+    step = t.actor.step
+
+    def arriving(*args: Any, **kwargs: Any) -> FakeStep:
+        done = step(*args, **kwargs)
+        return FakeStep(np.zeros(2), status="arrived") if held["arrived"] else done
+
+    t.actor.step = arriving  # type: ignore[method-assign]
+    t.loop.on_state = parked(t.loop.on_state)  # type: ignore[method-assign]
+
+    def ticks(steps: range) -> None:
+        for k in steps:
+            t.publish_state()
+            t.fake.now += DELTA
+            t.loop.tick(k, t.fake.now)
+
+    ticks(range(0, 3))  # driving on the initial weights (trained_step -1): staleness k
+    held["arrived"] = True
+    ticks(range(3, 8))  # held at rest from step 4 on: the critic fits step 3 (the arrival), none after
+    assert list(t.loop.staleness_steps.values()) == [0, 1, 2, 3, 4, 4, 4, 4]
+    assert len(t.transitions) == 8  # its transitions still go out (the critic's replay)
+    t.inbox.offer(weights(3), "c1")  # the critic fitted the arrival: as fresh as it gets
+    ticks(range(8, 10))
+    assert list(t.loop.staleness_steps.values())[-2:] == [0, 0]
+    assert t.loop.staleness_ms.count == 0  # at rest, the weights' age in time is not a delay
+    held["arrived"] = False
+    ticks(range(10, 12))  # moves at step 10: the transition of step 10 is due a fit, so step 11's
+    assert list(t.loop.staleness_steps.values())[-2:] == [0, 10 - 3]  # weights lag 7 behind it
+    assert t.loop.staleness_ms.count == 1
+
+
+def parked(on_state: Any) -> Any:
+    """The loop's state intake with every state at the target (the arrival rule's inner tolerances)."""
+
+    def intake(message: Any, source: Any, received: float | None = None) -> None:
+        on_state(message.model_copy(update={"state": (0.01, 0.0, 0.0)}), source, received)
+
+    return intake
+
+
+def weights(trained: int) -> CriticWeights:
+    return CriticWeights(
+        robot="fk",
+        episode=7,
+        version=10 + trained,
+        trained_step=trained,
+        q_weights=(1.0,) * 15,
+        v_weights=(1.0,) * 6,
+        q_residual=0.0,
+        v_residual=0.0,
+        pairs=1,
+    )
