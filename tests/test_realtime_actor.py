@@ -210,22 +210,23 @@ def test_a_forged_episode_from_the_live_plant_id_locks_nothing_out() -> None:
     assert t.counts.counters["state_episode_resyncs"] == 1
 
 
+def weights(trained: int, version: int) -> CriticWeights:
+    """Weights of the loop's robot and episode (:class:`Loop`), trained on step ``trained``."""
+    return CriticWeights(
+        robot="fk",
+        episode=7,
+        version=version,
+        trained_step=trained,
+        q_weights=(1.0,) * 15,
+        v_weights=(1.0,) * 6,
+        q_residual=0.0,
+        v_residual=0.0,
+        pairs=1,
+    )
+
+
 def test_weight_staleness_in_steps() -> None:
     t = Loop()
-
-    def weights(trained: int, version: int) -> CriticWeights:
-        return CriticWeights(
-            robot="fk",
-            episode=7,
-            version=version,
-            trained_step=trained,
-            q_weights=(1.0,) * 15,
-            v_weights=(1.0,) * 6,
-            q_residual=0.0,
-            v_residual=0.0,
-            pairs=1,
-        )
-
     t.run(5)  # initial weights (trained_step -1) at steps 0..4: staleness k - 1 - (-1) = k
     assert list(t.loop.staleness_steps.values()) == [0, 1, 2, 3, 4]
     t.inbox.offer(weights(4, 10), "c1")  # trained on the newest step: fresh for step 5
@@ -273,19 +274,6 @@ def test_memory_is_bounded_over_a_million_ticks() -> None:
     t.loop.publish_transition = sent.append
     state = PlantState(robot="fk", episode=0, seq=1, stamp_ns=0, state=(1.0, 0.5, 0.1), source="sim")
     seen: dict[str, Any] = {"sleeps": 0, "version": 0}
-
-    def weights(trained: int, version: int) -> CriticWeights:
-        return CriticWeights(
-            robot="fk",
-            episode=7,
-            version=version,
-            trained_step=trained,
-            q_weights=(1.0,) * 15,
-            v_weights=(1.0,) * 6,
-            q_residual=0.0,
-            v_residual=0.0,
-            pairs=1,
-        )
 
     def on_sleep(fake: FakeClock) -> None:  # what the ports deliver while the loop sleeps
         seen["sleeps"] += 1

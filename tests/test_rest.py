@@ -13,12 +13,12 @@ import pytest
 
 from common.config.assembly import local_critic
 from common.config.settings import Settings
-from common.contracts.messages import CriticWeights, Transition
+from common.contracts.messages import Transition
 from common.math.arrival import ArrivalTolerances
 from common.math.critic import Sample, at_rest
 from services.actor.ports import HeldWeights, ZenohCriticPort
 from services.critic.service import CriticLearner
-from tests.test_realtime_actor import DELTA, FakeStep, Loop
+from tests.test_realtime_actor import DELTA, FakeStep, Loop, weights
 
 TOLERANCES = ArrivalTolerances(position=0.03, heading=0.1, hysteresis=1.5)
 PARKED = np.array([0.01, -0.02, 0.05])  # inside the inner tolerances
@@ -182,7 +182,7 @@ def test_the_real_time_actor_counts_staleness_from_the_newest_transition_its_cri
     ticks(range(3, 8))  # held at rest from step 4 on: the critic fits step 3 (the arrival), none after
     assert list(t.loop.staleness_steps.values()) == [0, 1, 2, 3, 4, 4, 4, 4]
     assert len(t.transitions) == 8  # its transitions still go out (the critic's replay)
-    t.inbox.offer(weights(3), "c1")  # the critic fitted the arrival: as fresh as it gets
+    t.inbox.offer(weights(3, version=13), "c1")  # the critic fitted the arrival: as fresh as it gets
     ticks(range(8, 10))
     assert list(t.loop.staleness_steps.values())[-2:] == [0, 0]
     assert t.loop.staleness_ms.count == 0  # at rest, the weights' age in time is not a delay
@@ -199,17 +199,3 @@ def parked(on_state: Any) -> Any:
         on_state(message.model_copy(update={"state": (0.01, 0.0, 0.0)}), source, received)
 
     return intake
-
-
-def weights(trained: int) -> CriticWeights:
-    return CriticWeights(
-        robot="fk",
-        episode=7,
-        version=10 + trained,
-        trained_step=trained,
-        q_weights=(1.0,) * 15,
-        v_weights=(1.0,) * 6,
-        q_residual=0.0,
-        v_residual=0.0,
-        pairs=1,
-    )
