@@ -301,7 +301,7 @@ class RealtimeActor:
         # robot rests (the critic fits no transition of a robot at rest), the newest one fitted
         resting = self.fits.resting
         due = self.fits.newest if resting else k - 1
-        self.fits.sent(Sample(k, state, step.action, cost))
+        self.fits.sent(Sample(k, state, np.array(action), cost))  # the values the transition carries
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         self.publish_transition(
             Transition(
