@@ -421,6 +421,39 @@ def test_the_tick_thread_is_real_time_where_allowed_and_normal_with_one_line_whe
         assert "CAP_SYS_NICE or an rtprio limit" in lines[0]
 
 
+_PLANT_PROBE = """
+import collections, os, sys, threading
+from common.config.settings import Settings
+from services.plant_sim.service import state_ticks
+class Counts:  # the part of a Bus that state_ticks uses
+    counters = collections.Counter()
+    def count(self, name, amount=1):
+        self.counters[name] += amount
+settings = Settings.load(plant={"realtime_priority": int(sys.argv[1])}, transport={"state_rate": 100.0})
+bus = Counts()
+seen = set()
+for now, elapsed in state_ticks(settings, bus, threading.Event(), 0.1):
+    seen.add((os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(0).sched_priority))
+print("inside", *sorted(seen), "counted", bus.counters["realtime_priority"])
+print("after", os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+"""
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("priority", [pytest.param(10, marks=pytest.mark.needs_rtprio), 0])
+def test_the_plants_state_loop_is_real_time_at_its_priority_and_normal_after(priority: int) -> None:
+    """plant.realtime_priority: the real-time plant's loop (plant_sim and the plant host,
+    services.plant_sim.service.state_ticks) runs every tick under SCHED_FIFO at the priority, counts
+    it (``realtime_priority``), and gives the thread its policy back when the loop ends; 0 leaves
+    the loop in the normal class (the negative control)."""
+    argv = [sys.executable, "-c", _PLANT_PROBE, str(priority)]
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=60, cwd=Path(__file__).parents[1])
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
+    assert lines == [f"inside ({policy}, {priority}) counted {priority}", f"after {os.SCHED_OTHER} 0"], lines
+
+
 def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole_periods_are_skipped() -> None:
     scheduler, loops, _, fake = host(2)
     loops[0].work = 0.02  # r1 is due 0.05 after r0: served on time
@@ -585,6 +618,7 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
         assert row["processes"] == (5 if row["layout"] == "host" else 3 + 2 * 2)  # with the recorder
         assert row["recorder"].startswith("srl record: recorded ") and row["recording_mb"] > 0, row["recorder"]
         assert "(2 robots: robot1, robot2)" in row["recorder"]  # both robots in the recording
+        assert row["recorder_dropped"] == 0, row["recorder"]  # the writer kept up: nothing lost
         # CPU per robot per tick: all processes' CPU over the run, per robot per delta
         assert row["cpu_ms_per_robot_tick"] == pytest.approx(row["cpu_percent"] / 100 * 0.1 * 1e3 / 2)
         # of it, Zenoh's runtime threads: most of a router's CPU (Zenoh's own work), a part of every other's

@@ -83,6 +83,9 @@ class PlantSettings(_Section):
         description="ideal: the exact unicycle; actuator: a TurtleBot3's wheels and odometry ([actuator]); "
         "physics: a rigid-body TurtleBot3 in MuJoCo ([physics], the extra srl[physics])"
     )
+    realtime_priority: int = Field(
+        default=10, ge=0, le=99, description="the state loop under SCHED_FIFO at this priority, if allowed (0 = off)"
+    )
 
     @field_validator("sampling_time", "v_max", "omega_max")
     @classmethod

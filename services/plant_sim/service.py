@@ -33,6 +33,7 @@ from common.math.physics import PhysicsBot, simulated_robot
 from common.math.turtlebot import TurtleBot
 from common.net.provenance import ActionGate, SourceGate
 from common.net.transport import Bus, start_status_thread
+from common.process.runtime import realtime_priority
 from common.system.clock import Ticker
 
 log = logging.getLogger(__name__)
@@ -48,16 +49,23 @@ def state_ticks(
 ) -> Iterator[tuple[float, float]]:
     """The real-time plant's clock: ``(now, seconds since the previous tick)`` at
     ``transport.state_rate`` until ``stop`` or ``duration``; the missed ticks counted on ``bus``
-    at the end (one robot's plant_sim and the plant host alike)."""
+    at the end (one robot's plant_sim and the plant host alike).
+
+    The caller's loop runs under ``SCHED_FIFO`` at ``plant.realtime_priority`` where the user may
+    (:func:`~common.process.runtime.realtime_priority`, counted as ``realtime_priority``, 0 where
+    refused), as the actor's tick thread does: the actors act on the states it publishes, and a
+    state published late is a robot stopped on a stale state (docs/fleets.md)."""
     ticker = Ticker(1.0 / settings.transport.state_rate, stop)
     end = None if duration is None else time.monotonic() + duration
-    last = time.monotonic()
-    try:
-        while (now := ticker.wait()) is not None and (end is None or now < end):
-            yield now, now - last
-            last = now
-    finally:
-        bus.count("missed_ticks", ticker.missed)
+    with realtime_priority(settings.plant.realtime_priority, "plant") as priority:
+        bus.count("realtime_priority", priority)
+        last = time.monotonic()
+        try:
+            while (now := ticker.wait()) is not None and (end is None or now < end):
+                yield now, now - last
+                last = now
+        finally:
+            bus.count("missed_ticks", ticker.missed)
 
 
 class ActionIntake:
