@@ -598,6 +598,68 @@ def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_w
     assert applied == [("state", i) for i in range(4)] and feed.received == 4
 
 
+def test_the_recorders_backlog_is_bounded_in_memory_by_the_samples_it_holds() -> None:
+    """QUEUE_LIMIT bounds the writer's backlog in samples; the decoded messages a fleet sends at
+    every step (states with their truth, transitions, critic weights), measured as they wait, keep
+    it under 512 MB at the limit (an actor's status, once a second, is under 4 KB)."""
+    import tracemalloc
+    from collections import deque
+
+    import tools.recording.record as record
+    from common.contracts.messages import CriticWeights, PlantState, ServiceStatus, Transition
+
+    def state(i: int) -> PlantState:
+        position = (0.1 * i, 0.2, 0.3)
+        return PlantState(robot=f"robot{i}", episode=1, seq=i, stamp_ns=i, state=position, source="sim",
+                          true_state=position, saturated_commands=0)  # fmt: skip
+
+    def transition(i: int) -> Transition:
+        return Transition(robot=f"robot{i}", episode=1, step=i, state=(0.1 * i, 0.2, 0.3), action=(0.1, 0.2), cost=0.5)
+
+    def weights(i: int) -> CriticWeights:
+        q, v = tuple(0.5 * i + j for j in range(15)), tuple(0.25 * i + j for j in range(6))
+        return CriticWeights(robot=f"robot{i}", episode=1, version=i + 1, trained_step=i, q_weights=q, v_weights=v,
+                             q_residual=0.1, v_residual=0.2, pairs=29)  # fmt: skip
+
+    def status(i: int) -> ServiceStatus:
+        counters = {f"counter_{j}": float(i + j) for j in range(24)}
+        return ServiceStatus(robot=f"robot{i}", service="actor", stamp_ns=i, counters=counters)
+
+    sizes = {}
+    for kind, make in (("state", state), ("transition", transition), ("weights", weights), ("status", status)):
+        waiting: deque[tuple[str, Any, int]] = deque()
+        tracemalloc.start()
+        try:
+            before = tracemalloc.get_traced_memory()[0]
+            for i in range(2000):
+                waiting.append((kind, make(i), time.time_ns()))
+            sizes[kind] = (tracemalloc.get_traced_memory()[0] - before) / len(waiting)
+        finally:
+            tracemalloc.stop()
+    steps = [sizes[kind] for kind in ("state", "transition", "weights")]  # each robot's, at every step
+    assert all(200 < size < 2_600 for size in steps) and sizes["status"] < 4_000, sizes
+    # statuses come once a second per robot, against 20 and more of the others
+    assert record.QUEUE_LIMIT * max(steps) < 512e6, sizes
+
+
+def test_a_fleets_recording_summary_names_its_first_robots_and_counts_them_all() -> None:
+    import tools.recording.record as record
+
+    class Sink:
+        path = Path("/nonexistent/fleet.mcap")
+        counts = {f"/robot{i}/odom": 3 for i in range(300)} | {"/target": 1}
+
+    line = record.describe(Sink())  # type: ignore[arg-type]  # the part of a sink describe reads
+    robots = sorted(f"robot{i}" for i in range(300))[: record.NAMED_ROBOTS]
+    assert f"(300 robots: {', '.join(robots)}, ...) " in line and "robot99" not in line, line
+    assert line.startswith("recorded 901 messages on 301 topics"), line
+    alone = record.describe(type("One", (), {"path": Sink.path, "counts": {"/r1/odom": 2}})())  # type: ignore[arg-type]
+    assert "(1 robot: r1) " in alone, alone
+    # what the fleet bench reads back from the line: the samples its writer dropped
+    assert record.dropped_by_writer(line + record.DROPPED_NOTE.format(count=6) + "; 2 late transitions skipped") == 6
+    assert record.dropped_by_writer(line) == 0 and record.dropped_by_writer(None) == 0
+
+
 def test_a_recorder_that_cannot_write_its_file_counts_every_sample_and_says_why_once(
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -122,7 +122,10 @@ def measured_run(
     row = {"layout": options.get("layout", "host"), **summary, "robots": size, "cpus": os.cpu_count()}
     recording = options.get("record")
     if recording is not None:
+        from tools.recording.record import dropped_by_writer
+
         row["recording_mb"] = recording.stat().st_size / 1e6 if recording.exists() else 0.0
+        row["recorder_dropped"] = dropped_by_writer(row.get("recorder"))
     row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
     if "cpu_percent" in row:
         row["cpu_ms_per_robot_tick"] = cpu_ms_per_robot_tick(row["cpu_percent"], size, settings.plant.sampling_time)
@@ -187,7 +190,8 @@ def format_row(row: dict[str, Any]) -> str:
     hurried = f"{ticks['hurried_percent']:.1f}%" if ticks else "-"
     if "recording_mb" in row:  # srl record's summary line: "srl record: recorded N messages on ..."
         said = (row.get("recorder") or "").split(" on ", 1)[0].removeprefix("srl record: ")
-        targets += f"; {said or 'srl record said nothing'} ({row['recording_mb']:.1f} MB)"
+        dropped = f", {row['recorder_dropped']} dropped" if row.get("recorder_dropped") else ""
+        targets += f"; {said or 'srl record said nothing'}{dropped} ({row['recording_mb']:.1f} MB)"
     return (
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "

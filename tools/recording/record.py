@@ -876,6 +876,9 @@ def wall_ns() -> int:
     return time.time_ns()
 
 
+NAMED_ROBOTS = 8  # the robots a recording's summary line names (a fleet's: the first of them, then "...")
+
+
 def describe(sink: McapSink | SplitSink) -> str:
     """The one summary line of a closed recording (of a split one: its files and their total size)."""
     counts = sink.counts
@@ -885,17 +888,31 @@ def describe(sink: McapSink | SplitSink) -> str:
     files = (
         "" if len(paths) == 1 else f" and {len(paths) - 1} more file{'s' if len(paths) > 2 else ''} ({paths[-1].name})"
     )
+    named = ", ".join(robots[:NAMED_ROBOTS]) + (", ..." if len(robots) > NAMED_ROBOTS else "")
     return (
         f"recorded {sum(counts.values())} messages on {len(counts)} topics "
-        f"({len(robots)} robot{'s' if len(robots) != 1 else ''}: {', '.join(robots) or 'none'}) "
+        f"({len(robots)} robot{'s' if len(robots) != 1 else ''}: {named or 'none'}) "
         f"to {sink.path}{files} ({size / 1024:.1f} KiB)"
     )
 
 
 # -- a running system, over Zenoh (srl record, srl view, srl up --record / --view) -------------
-QUEUE_LIMIT = 10_000  # samples waiting for the writer; beyond it they are dropped and counted
+# Samples waiting for the writer; beyond it they are dropped and counted. A fleet of 300 robots
+# gives a recorder ~400,000 messages in 30 s, and the writer, niced (OBSERVER_NICENESS), falls
+# behind while the fleet drives and catches up while it rests: 10,000 (under a second of them) lost
+# 3-39 % of a 30 s run's samples, this many (15-20 s of them) none. A waiting sample holds 1.5-2 KB
+# (a decoded message; tests/test_record.py measures them): at most ~400 MB.
+QUEUE_LIMIT = 200_000
+DROPPED_NOTE = "; {count} dropped (writer behind)"  # in srl record's summary line (dropped_by_writer reads it)
 BATCH_SECONDS = 0.2  # the writer's pause between batches (a real-time system: ~10 states + 2 steps each)
 OBSERVER_NICENESS = 10  # srl record / srl view yield the CPU to the loop they watch
+
+
+def dropped_by_writer(summary_line: str | None) -> int:
+    """The samples an ``srl record`` summary line says it dropped with its writer behind (0: none)."""
+    pattern = re.escape(DROPPED_NOTE).replace(re.escape("{count}"), r"(\d+)")
+    match = re.search(pattern, summary_line or "")
+    return int(match.group(1)) if match else 0
 
 
 def yield_cpu_to_the_loop() -> None:
@@ -1076,7 +1093,7 @@ def cmd_record(args: Any) -> int:
     ready = f"srl record: recording srl/* (every robot) from {settings.transport.router} to {sink.path}; Ctrl-C ends it"
     feed = Feed.run(settings, recorder, "record", args, lambda: ready)
     late = sum(t.late for t in recorder.tracks.values())
-    extra = f"; {feed.dropped} dropped (writer behind)" if feed.dropped else ""
+    extra = DROPPED_NOTE.format(count=feed.dropped) if feed.dropped else ""
     extra += f"; {late} late transitions skipped" if late else ""
     print(f"srl record: {describe(sink)}{extra}", flush=True)
     return 0
