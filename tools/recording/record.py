@@ -899,9 +899,10 @@ def describe(sink: McapSink | SplitSink) -> str:
 # -- a running system, over Zenoh (srl record, srl view, srl up --record / --view) -------------
 # Samples waiting for the writer; beyond it they are dropped and counted. A fleet of 300 robots
 # gives a recorder ~400,000 messages in 30 s, and the writer, niced (OBSERVER_NICENESS), falls
-# behind while the fleet drives and catches up while it rests: 10,000 (under a second of them) lost
-# 3-39 % of a 30 s run's samples, this many (15-20 s of them) none. A waiting sample holds 1.5-2 KB
-# (a decoded message; tests/test_record.py measures them): at most ~400 MB.
+# behind while the fleet drives and catches up while it rests: with 10,000 (under a second of
+# them) 24 of 26 runs of 30 s lost samples (up to 179,079), with this many (15-20 s) none of 5. A
+# waiting sample holds 1.3-2 KB (a decoded message; tests/test_record.py measures them): at most
+# ~400 MB.
 QUEUE_LIMIT = 200_000
 DROPPED_NOTE = "; {count} dropped (writer behind)"  # in srl record's summary line (dropped_by_writer reads it)
 BATCH_SECONDS = 0.2  # the writer's pause between batches (a real-time system: ~10 states + 2 steps each)
