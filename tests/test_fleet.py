@@ -714,6 +714,12 @@ def test_the_fleet_bench_judges_100_and_300_robots_as_one_robot_alone() -> None:
         "CPU per robot tick <= 0.5 ms",
         "RSS <= 2.0 GB",
     ]
+    # with srl record attached (--record): the recording is complete only if its writer dropped nothing
+    recorded = {**row, "recording_mb": 30.0, "recorder_dropped": 0}
+    assert checks(recorded)["recording complete"] and len(checks(recorded)) == 8
+    assert [name for name, ok in checks({**recorded, "recorder_dropped": 24264}).items() if not ok] == [
+        "recording complete"
+    ]
 
 
 @pytest.mark.integration

@@ -9,8 +9,9 @@ robots parked (within 0.25 m of the target at the end; starts on a 1.5 m circle)
 target as one robot alone parks (by their own final state within 0.05 m, and at rest: the last
 command zero) and the farthest, CPU % of all srl processes over the run (100 % = one core) and
 that CPU per robot per sampling interval, their total resident memory, and the machine's load
-average before and after. Targets (PASS/FAIL) at 50, 100 and 300 robots, and the soak's (RSS
-growth <= 2 % at 50 robots over 600 s and more). Every run is bounded (start-up timeouts, then
+average before and after. Targets (PASS/FAIL) at 50, 100 and 300 robots, the soak's (RSS
+growth <= 2 % at 50 robots over 600 s and more), and with ``--record`` a complete recording (its
+writer dropped nothing). Every run is bounded (start-up timeouts, then
 ``--seconds``) and every process is stopped after it (tools/launch/fleet.py). ``--record``: every
 row with ``srl record`` attached for the whole run (a subscriber to every robot's keys, as a user
 records a fleet), its file in a temporary directory removed after the row.
@@ -103,6 +104,8 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
         result[f"CPU per robot tick <= {limit} ms"] = row["cpu_ms_per_robot_tick"] <= limit
     if "rss_mb" in target:
         result[f"RSS <= {target['rss_mb'] / 1024:.1f} GB"] = row["rss_mb"] <= target["rss_mb"]
+    if "recorder_dropped" in row:  # srl record attached: it recorded the whole run, nothing dropped
+        result["recording complete"] = row["recorder_dropped"] == 0
     if row["robots"] == SOAK_ROBOTS and row["seconds"] >= SOAK_SECONDS:  # the soak: memory stays put
         result[f"soak: RSS growth <= {SOAK_GROWTH_PERCENT:.0f} %"] = row["rss_growth_percent"] <= SOAK_GROWTH_PERCENT
     return result
