@@ -253,8 +253,8 @@ class ZenohCriticPort:
         )
         # the critic fits when a fit is due, but not on a robot held at rest (no weights come back)
         fitted = self.fits.sent(sample)
-        needs_fit = learns(self.settings.actor.agent) and fit_due(sample.step, self.settings.critic.update_every)
-        needs_fit = needs_fit and fitted
+        due = fit_due(sample.step, self.settings.critic.update_every)
+        needs_fit = fitted and due and learns(self.settings.actor.agent)
         if self.sync and needs_fit and not self.inbox.wait_trained(sample.step, self.settings.transport.critic_timeout):
             self.timeouts += 1
             self.bus.count("critic_timeouts")
