@@ -15,9 +15,9 @@ from common.config.assembly import local_critic
 from common.config.settings import Settings
 from common.contracts.messages import Transition
 from common.math.arrival import ArrivalTolerances
-from common.math.critic import Sample, at_rest
+from common.math.critic import FitsDue, Sample, at_rest
 from services.actor.ports import HeldWeights, ZenohCriticPort
-from services.critic.service import CriticLearner
+from services.critic.service import CriticLearner, coalesced_fits
 from tests.test_realtime_actor import DELTA, FakeStep, Loop, weights
 
 TOLERANCES = ArrivalTolerances(position=0.03, heading=0.1, hysteresis=1.5)
@@ -95,6 +95,35 @@ def test_the_critic_makes_no_fit_while_the_robot_is_held_at_rest_and_fits_again_
     assert learner.accepted == len(run)  # every transition entered the replay
     replay = learner.learners["r1"].replay
     assert [s.step for s in replay.samples] == [s.step for s in run]
+
+
+def test_a_critic_behind_still_makes_the_last_fit_before_a_rest() -> None:
+    """A critic that fell behind (``critic.coalesce_fits``) takes a robot's approach, its arrival
+    and its first rests in one batch. The rests are not fitted, so they make no fit redundant: the
+    arrival's fit is made, on the step the robot's actor counts its weights' staleness from
+    (FitsDue.newest). Without the rests known (the negative control) the rests superseded it, no
+    fit was made, and the actor's staleness stayed at its value of then for the whole rest."""
+    run = robot_run()  # steps 0-7 approach, 8 the arrival (fitted), 9-19 at rest, then pushed
+    batch = [message("r1", s) for s in run[:12]]
+    learner = CriticLearner(settings())
+    resting = learner.resting(batch)
+    assert resting == [False] * 9 + [True] * 3
+    superseded = coalesced_fits(batch, 1, resting)
+    assert superseded == set(range(8))  # the approach's fits, made redundant by the arrival's
+    outgoing = [w for i, m in enumerate(batch) for w in learner.take(m, fit=i not in superseded, defer=True)]
+    outgoing += learner.flush()
+    assert [w.trained_step for w in outgoing] == [8]
+    assert learner.fits_coalesced == 8 and learner.fits_at_rest == 3
+    actor = FitsDue(TOLERANCES)
+    for s in run[:12]:
+        actor.sent(s)
+    assert actor.resting and actor.newest == 8  # what the weights the actor waits for are trained on
+
+    unaware = CriticLearner(settings())
+    superseded = coalesced_fits(batch, 1)
+    assert superseded == set(range(11))
+    outgoing = [w for i, m in enumerate(batch) for w in unaware.take(m, fit=i not in superseded, defer=True)]
+    assert outgoing + unaware.flush() == []
 
 
 def test_the_in_process_critic_makes_the_same_fits_as_the_critic_service() -> None:

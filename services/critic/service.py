@@ -284,6 +284,25 @@ class CriticLearner:
         """A checkpoint's learner is in use: resumed on request, or continued within its run."""
         return bool(self.continued) or (self.resume and self.loaded)
 
+    def resting(self, batch: Sequence[Transition]) -> list[bool]:
+        """Per transition of ``batch``, taken in order: will :meth:`take` find its robot at rest
+        (:func:`~common.math.critic.at_rest` after the sample before it: the robot's previous one
+        in the batch, else its replay's newest) and fit nothing? Never for the pooled learner,
+        which fits the fleet as it steps."""
+        if self.pool is not None or self.rest is None:
+            return [False] * len(batch)
+        before: dict[tuple[str, int], Sample] = {}
+        resting = []
+        for message in batch:
+            key = (message.robot, message.episode)
+            previous = before.get(key)
+            if previous is None and (learner := self.learners.get(message.robot)) is not None:
+                previous = learner.replay.newest if learner.episode == message.episode else None
+            sample = Sample(message.step, np.array(message.state), np.array(message.action), message.cost)
+            resting.append(at_rest(previous, sample, self.rest))
+            before[key] = sample
+        return resting
+
     def on_transition(self, message: Transition, fit: bool = True) -> CriticWeights | None:
         """:meth:`take`, and of what it returns the weights for the message's robot."""
         return next((w for w in self.take(message, fit) if w.robot == message.robot), None)
@@ -540,14 +559,16 @@ def restore_active_sets(critic: DoubleCritic, entry: dict[str, Any], owner: str)
         setattr(critic, name, on_bound)
 
 
-def coalesced_fits(batch: list[Transition], update_every: int) -> set[int]:
+def coalesced_fits(batch: list[Transition], update_every: int, resting: Sequence[bool] | None = None) -> set[int]:
     """Indices of the batch's transitions whose due fit a later transition of the same robot and
-    episode, also due a fit, makes redundant."""
+    episode, also fitted, makes redundant. ``resting``: per transition, whether its learner will
+    not fit it although due (a robot held at rest, :meth:`CriticLearner.resting`): such a
+    transition makes no fit redundant, so a robot's last fit before its rest is made."""
     later: set[tuple[str, int]] = set()
     superseded: set[int] = set()
     for index in range(len(batch) - 1, -1, -1):
         message = batch[index]
-        if fit_due(message.step, update_every):
+        if fit_due(message.step, update_every) and not (resting is not None and resting[index]):
             if (message.robot, message.episode) in later:
                 superseded.add(index)
             later.add((message.robot, message.episode))
@@ -664,7 +685,11 @@ def run(
         # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
         # robot) fits each robot once, on its newest: its actor uses only the newest weights anyway.
         # Pooled, the fit due in the batch is made once, at its end, on all of it.
-        superseded = coalesced_fits(batch, settings.critic.update_every) if settings.critic.coalesce_fits else set()
+        superseded = (
+            coalesced_fits(batch, settings.critic.update_every, learner.resting(batch))
+            if settings.critic.coalesce_fits
+            else set()
+        )
         defer = settings.critic.coalesce_fits and learner.pool is not None
         for index, message in enumerate(batch):
             continued = learner.confirm(message)
