@@ -489,6 +489,9 @@ def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: 
         assert row["staleness_max_steps"] <= 5
     assert fleet["parked"] == sum(row["final_distance_m"] <= PARKED_WITHIN_M for row in fleet["rows"])
     assert summary["critic"]["transitions_received"] >= fleet["steps"] - 3
+    # the critic kept up: never more than a second of the fleet's transitions waiting for it
+    waiting = summary["critic"]["waiting_transitions"]
+    assert 1 <= waiting["median"] <= waiting["max"] <= 3 * 10, waiting
     assert summary["processes"] == (4 if layout == "host" else 2 + 2 * 3)
     assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
 

@@ -148,6 +148,11 @@ class CriticSummary(_Summary):
     batch_transitions: Quantiles | None = Field(
         default=None, description="transitions taken per batch (one checkpoint each; a fleet's come together)"
     )
+    waiting_transitions: Quantiles | None = Field(
+        default=None,
+        description="transitions waiting when a batch began: the critic's backlog (one that keeps up has "
+        "at most about a round of its robots' transitions waiting)",
+    )
     fits_coalesced: int = Field(default=0, description="due fits left to a newer transition of the robot in the batch")
     fits_at_rest: int = Field(
         default=0, description="due fits not made: the robot held at rest by the arrival rule (no action uses them)"

@@ -609,6 +609,7 @@ def run(
     checkpoint_seconds = Window()
     writer = None if path is None else CheckpointWriter(path, checkpoint_seconds.append)
     batches = Window()  # transitions taken per batch
+    waiting = Window()  # transitions waiting when a batch began: the critic's backlog
     inbox: queue.Queue[Transition] = queue.Queue()
     sends: list[Callable[[Sequence[CriticWeights]], None]] = []  # declared at the first round
 
@@ -675,6 +676,7 @@ def run(
             message = inbox.get(timeout=0.05)
         except queue.Empty:
             continue
+        waiting.append(1 + inbox.qsize())
         # Every transition waiting is taken in one batch (a fleet sends one per robot per step):
         # every robot due a fit is fitted at the batch's end, all in one stacked solve, then ONE
         # checkpoint holds them all, then the batch's weights go out. One robot alone gives
@@ -736,6 +738,7 @@ def run(
             "last_version": learner.version,
             "fit_ms": learner.fit_seconds.summary(1e3),
             "batch_transitions": batches.summary(),
+            "waiting_transitions": waiting.summary(),
             "fits_coalesced": learner.fits_coalesced,
             "fits_at_rest": learner.fits_at_rest,
             "pooled": learner.pool is not None,

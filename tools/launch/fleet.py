@@ -659,6 +659,9 @@ def run_fleet(
             "fit_ms": critic.fit_ms.to_json_dict(),
             "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
             "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
+            "waiting_transitions": None
+            if critic.waiting_transitions is None
+            else critic.waiting_transitions.to_json_dict(),
             "fits_coalesced": critic.fits_coalesced,
             "fits_at_rest": critic.fits_at_rest,
             "pooled": critic.pooled,
