@@ -687,11 +687,9 @@ def run(
         # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
         # robot) fits each robot once, on its newest: its actor uses only the newest weights anyway.
         # Pooled, the fit due in the batch is made once, at its end, on all of it.
-        superseded = (
-            coalesced_fits(batch, settings.critic.update_every, learner.resting(batch))
-            if settings.critic.coalesce_fits
-            else set()
-        )
+        # (only a robot with several transitions in the batch can have a fit made redundant)
+        repeats = settings.critic.coalesce_fits and len({m.robot for m in batch}) < len(batch)
+        superseded = coalesced_fits(batch, settings.critic.update_every, learner.resting(batch)) if repeats else set()
         defer = settings.critic.coalesce_fits and learner.pool is not None
         for index, message in enumerate(batch):
             continued = learner.confirm(message)
