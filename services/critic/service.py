@@ -160,6 +160,11 @@ def checkpoint_path(settings: Settings) -> Path | None:
     )
 
 
+def replay_sample(message: Transition) -> Sample:
+    """A transition as its robot's replay holds it."""
+    return Sample(message.step, np.array(message.state), np.array(message.action), message.cost)
+
+
 class CriticLearner:
     """Transport-free core: feed transitions, get the weight messages to publish.
 
@@ -298,7 +303,7 @@ class CriticLearner:
             previous = before.get(key)
             if previous is None and (learner := self.learners.get(message.robot)) is not None:
                 previous = learner.replay.newest if learner.episode == message.episode else None
-            sample = Sample(message.step, np.array(message.state), np.array(message.action), message.cost)
+            sample = replay_sample(message)
             resting.append(at_rest(previous, sample, self.rest))
             before[key] = sample
         return resting
@@ -340,7 +345,7 @@ class CriticLearner:
         if message.robot in self.due:  # its fit left to the batch's end is made first, on the replay as it was
             self.outgoing += self._fit_due()
         newest = learner.replay.newest
-        sample = Sample(message.step, np.array(message.state), np.array(message.action), message.cost)
+        sample = replay_sample(message)
         learner.replay.add(sample)
         if self.pool is not None:
             if not self.pool.count(message.step):
