@@ -496,6 +496,57 @@ def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: 
     assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
 
 
+def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
+    """The rest mark: made at the first read with every robot arrived, never moved; a robot that
+    leaves the tolerance later shows in ``fewest_arrived``. The phases add up to the run."""
+    from tools.launch.fleet import FleetMeasures, RssSeries, rest_mark
+
+    mark = rest_mark(None, 1.0, {"actor": 0.4, "plant": 0.1}, 2, 3)
+    assert mark is None  # 2 of 3 arrived: the robots still drive
+    mark = rest_mark(mark, 2.0, {"actor": 1.0, "plant": 0.5}, 3, 3)
+    assert mark is not None and (mark.at, mark.cpu_seconds, mark.fewest_arrived) == (
+        2.0,
+        {"actor": 1.0, "plant": 0.5},
+        3,
+    )
+    assert rest_mark(mark, 3.0, {"actor": 1.1, "plant": 0.6}, 2, 3) is mark  # one robot left the tolerance
+    assert (mark.at, mark.fewest_arrived) == (2.0, 2)
+    measures = FleetMeasures({"actor": 3.0, "plant": 0.5}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0, mark)
+    phases = measures.phases()
+    assert phases is not None
+    assert phases["driving"]["seconds"] == 2.0 and phases["at_rest"]["seconds"] == 4.0
+    assert phases["driving"]["cpu_percent_by_service"] == pytest.approx({"actor": 50.0, "plant": 25.0})
+    assert phases["at_rest"]["cpu_percent_by_service"] == pytest.approx({"actor": 50.0, "plant": 0.0})
+    assert phases["at_rest"]["fewest_arrived"] == 2
+    whole = measures.fields(2)["cpu_percent"] * 6.0  # the run's CPU is the phases' together
+    assert whole == pytest.approx(phases["driving"]["cpu_percent"] * 2.0 + phases["at_rest"]["cpu_percent"] * 4.0)
+    # negative control: without a mark (not every robot arrived) there are no phases
+    unsplit = FleetMeasures({"actor": 3.0}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0)
+    assert unsplit.phases() is None and unsplit.fields(1)["cpu_phases"] is None
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_fleet_that_parks_reports_its_cpu_while_driving_and_at_rest() -> None:
+    """Two robots from 0.3 m park within a few seconds of a 10 s run: the summary splits the run's
+    CPU where every robot has first reported itself arrived, and ``srl up`` prints both."""
+    from tools.launch.fleet import format_fleet_summary, run_fleet
+
+    summary = run_fleet(Settings.load(), [], ["ra", "rb"], 10.0, quiet=True, circle=0.3)
+    assert summary["fleet"]["parked"] == 2
+    phases = summary["cpu_phases"]
+    assert phases is not None, summary
+    driving, at_rest = phases["driving"], phases["at_rest"]
+    assert driving["seconds"] > 0 and at_rest["seconds"] >= 3.0, phases
+    assert driving["seconds"] + at_rest["seconds"] == pytest.approx(summary["run_seconds"])
+    assert at_rest["fewest_arrived"] == 2
+    services = set(summary["cpu_percent_by_service"])
+    assert set(driving["cpu_percent_by_service"]) == set(at_rest["cpu_percent_by_service"]) == services
+    spent = driving["cpu_percent"] * driving["seconds"] + at_rest["cpu_percent"] * at_rest["seconds"]
+    assert spent == pytest.approx(summary["cpu_percent"] * summary["run_seconds"])
+    assert "once every robot had arrived" in format_fleet_summary(summary)
+
+
 @pytest.mark.integration
 @pytest.mark.slow
 def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside_the_truth(tmp_path: Path) -> None:
@@ -632,6 +683,7 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
         fleet = row["fleet"]
         own = [r["own_final_distance_m"] for r in fleet["rows"]]
         assert fleet["worst_own_final_distance_m"] == max(own) and fleet["at_target"] == 0
+        assert row["cpu_phases"] is None  # so no robot arrived: the run is not split into driving and rest
 
 
 @pytest.mark.integration

@@ -132,7 +132,14 @@ def measured_run(
     row["load_before"], row["load_after"] = list(load_before), list(os.getloadavg())
     if "cpu_percent" in row:
         row["cpu_ms_per_robot_tick"] = cpu_ms_per_robot_tick(row["cpu_percent"], size, settings.plant.sampling_time)
+    for phase in (row.get("cpu_phases") or {}).values():  # driving, and at rest (no solve, no fit)
+        phase["cpu_ms_per_robot_tick"] = cpu_ms_per_robot_tick(phase["cpu_percent"], size, settings.plant.sampling_time)
     return row
+
+
+def phase_ms(row: dict[str, Any], phase: str) -> float:
+    """CPU per robot tick [ms] of one phase of a row's run (NaN: not every robot arrived)."""
+    return float(((row.get("cpu_phases") or {}).get(phase) or {}).get("cpu_ms_per_robot_tick", math.nan))
 
 
 def run_header(settings: Settings, seconds: float) -> dict[str, Any]:
@@ -174,7 +181,8 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
-    f"{'parked':>7} {'at target':>9} {'worst m':>7} {'CPU %':>6} {'Zenoh %':>7} {'ms/tick':>7} {'RSS MB':>7} "
+    f"{'parked':>7} {'at target':>9} {'worst m':>7} {'CPU %':>6} {'Zenoh %':>7} {'ms/tick':>7} {'drive':>6} "
+    f"{'rest':>6} {'RSS MB':>7} "
     f"{'growth':>7} "
     f"{'procs':>5} {'RT':>5} {'hurried':>7}  "
     "load before -> after  targets"
@@ -200,7 +208,8 @@ def format_row(row: dict[str, Any]) -> str:
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
         f"{f['parked']:>3}/{row['robots']:<3} {f.get('at_target', 0):>4}/{row['robots']:<4} "
         f"{f.get('worst_own_final_distance_m', math.nan):>7.3f} {row['cpu_percent']:>6.0f} "
-        f"{row.get('zenoh_cpu_percent', math.nan):>7.0f} {row['cpu_ms_per_robot_tick']:>7.3f} {row['rss_mb']:>7.0f} "
+        f"{row.get('zenoh_cpu_percent', math.nan):>7.0f} {row['cpu_ms_per_robot_tick']:>7.3f} "
+        f"{phase_ms(row, 'driving'):>6.3f} {phase_ms(row, 'at_rest'):>6.3f} {row['rss_mb']:>7.0f} "
         f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5} {realtime:>5} {hurried:>7}  {load:<20} {targets}"
     )
 
@@ -214,7 +223,9 @@ def format_table(result: dict[str, Any]) -> str:
         "at target: robots whose own final state is within 0.05 m of the target, at rest (last command zero); "
         "worst m: the farthest robot by its own state; "
         "CPU: all srl processes (100 % = one core), Zenoh: of it their Zenoh runtime threads' (the network, and "
-        "the handlers called on it), ms/tick: their CPU per robot per sampling interval; "
+        "the handlers called on it), ms/tick: their CPU per robot per sampling interval, over the run, while the "
+        "robots drive (drive: until every robot has reported itself arrived) and at rest (rest: from then on, no "
+        "solve and no fit; nan: not every robot arrived); "
         "growth: their RSS from the end of warm-up (the first "
         "tenth) to the end; RT: actor processes whose tick thread ran under SCHED_FIFO (actor.realtime_priority); "
         "hurried: ticks solved in a hurry (served late or over actor.host_cpu_budget); load: 1-min average",

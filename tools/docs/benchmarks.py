@@ -260,6 +260,13 @@ def parking_body(data: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
+def phase_cell(row: dict[str, Any], phase: str) -> str:
+    """A fleet row's CPU per robot tick [ms] in one phase of its run ("-": not measured, a row from
+    before the phases were, or not every robot arrived)."""
+    measured = ((row.get("cpu_phases") or {}).get(phase) or {}).get("cpu_ms_per_robot_tick")
+    return "-" if measured is None else f"{measured:.3f}"
+
+
 def fleet_body(data: dict[str, Any]) -> list[str]:
     lines = [
         f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time per row"
@@ -268,18 +275,19 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
         "robot's own final state within 0.05 m and at rest (its last command zero), as one robot alone is "
         "judged; worst: the farthest robot by its own state; CPU: all srl processes (100 % = one core), of it "
         "their Zenoh runtime threads' (the network, and the handlers Zenoh calls on its thread), and that CPU "
-        "per robot per sampling interval; hurried: ticks solved in a hurry (served late or over the host's CPU "
-        "budget).",
+        "per robot per sampling interval, over the run, while the robots drive (until every robot has reported "
+        "itself arrived) and at rest (from then on: no solve, no fit; what the fleet's messages and bookkeeping "
+        "cost alone); hurried: ticks solved in a hurry (served late or over the host's CPU budget).",
         "",
         "| robots | layout | missed | jitter p99 [ms] | latency p99 [ms] | staleness p99 / max [steps] | parked "
-        "| at target | worst [m] | CPU % | of it Zenoh % | CPU per robot tick [ms] | RSS MB | hurried | recorded | "
-        "load before -> after | targets |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| at target | worst [m] | CPU % | of it Zenoh % | CPU per robot tick [ms] | driving | at rest | RSS MB "
+        "| hurried | recorded | load before -> after | targets |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in data.get("rows", []):
         load = f"{row['load_before'][0]:.2f} -> {row['load_after'][0]:.2f}"
         if "error" in row:
-            lines.append(f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} |{' |' * 12} {load} | |")
+            lines.append(f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} |{' |' * 14} {load} | |")
             continue
         f = row["fleet"]
         layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
@@ -297,7 +305,7 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
             f"{f['parked']}/{row['robots']} | {f.get('at_target', '-')}/{row['robots']} | "
             f"{'-' if worst is None else f'{worst:.3f}'} | {row['cpu_percent']:.0f} | "
             f"{'-' if zenoh is None else f'{zenoh:.0f}'} | {'-' if per_tick is None else f'{per_tick:.3f}'} | "
-            f"{row['rss_mb']:.0f} | "
+            f"{phase_cell(row, 'driving')} | {phase_cell(row, 'at_rest')} | {row['rss_mb']:.0f} | "
             f"{'-' if hurried is None else f'{hurried:.1f} %'} | {cell(recorded)} | {load} | {cell(targets)} |"
         )
     by_process = [row for row in data.get("rows", []) if "zenoh_cpu_percent_by_service" in row]
@@ -317,6 +325,24 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
             )
             layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
             lines.append(f"| {row['robots']} | {layout} | {each} |")
+    phased = [row for row in data.get("rows", []) if row.get("cpu_phases")]
+    if phased:
+        lines += [
+            "",
+            "CPU of each process [% of a core] while the robots drive and once every robot has arrived (at rest: "
+            "no solve, no fit), and how long each phase lasted:",
+            "",
+            "| robots | layout | driving | at rest |",
+            "|---|---|---|---|",
+        ]
+        for row in phased:
+            layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+            cells = []
+            for phase in ("driving", "at_rest"):
+                spent = row["cpu_phases"][phase]
+                each = ", ".join(f"{name} {cpu:.1f}" for name, cpu in spent["cpu_percent_by_service"].items())
+                cells.append(f"{spent['seconds']:.1f} s: {each}")
+            lines.append(f"| {row['robots']} | {layout} | {cells[0]} | {cells[1]} |")
     return [*lines, ""]
 
 

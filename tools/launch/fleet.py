@@ -284,6 +284,11 @@ class FleetMonitor:
 
         self.subscriber = self.session.declare_subscriber(STATUS.pattern.format(robot="*", service="actor"), on_sample)
 
+    def arrived(self) -> int:
+        """Robots whose newest status says they have arrived (at rest: no solve, no fit)."""
+        with self.lock:
+            return sum(c.get("arrived", 0.0) > 0 for c in self.latest.values())
+
     def line(self, elapsed: float, robots: int) -> str:
         with self.lock:
             seen = list(self.latest.values())
@@ -333,6 +338,44 @@ def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
 
 
 @dataclass
+class RestMark:
+    """When every robot of the fleet had first reported itself arrived, and each process's CPU
+    seconds then: it splits the run's CPU into the robots' drive and their rest. At rest an actor
+    solves nothing and the critic fits nothing, so the rest's CPU is what the fleet costs for its
+    messages and bookkeeping alone. ``fewest_arrived``: the fewest robots arrived at any status
+    read after the mark (fewer than all: some left the arrival tolerance, and solved, within the rest)."""
+
+    at: float  # [s] after every robot was ready
+    cpu_seconds: dict[str, float]  # each process's CPU seconds at the mark (since the start)
+    fewest_arrived: int
+
+
+def rest_mark(
+    mark: RestMark | None, at: float, cpu_seconds: dict[str, float], arrived: int, robots: int
+) -> RestMark | None:
+    """The run's :class:`RestMark` after a read at ``at`` s of ``arrived`` robots arrived (of
+    ``robots``) and the CPU seconds: made at the first read where every robot has arrived, never
+    moved after; later reads only lower its ``fewest_arrived``."""
+    if mark is None:
+        return RestMark(at, cpu_seconds, arrived) if arrived == robots else None
+    mark.fewest_arrived = min(mark.fewest_arrived, arrived)
+    return mark
+
+
+def cpu_phase(cpu_seconds: dict[str, float], seconds: float) -> dict[str, Any]:
+    """A span's CPU: its length, all processes' CPU [% of a core] and each one's."""
+
+    def percent(cpu: float) -> float:
+        return 100.0 * cpu / seconds if seconds > 0 else math.nan
+
+    return {
+        "seconds": seconds,
+        "cpu_percent": percent(sum(cpu_seconds.values())),
+        "cpu_percent_by_service": {name: percent(cpu) for name, cpu in cpu_seconds.items()},
+    }
+
+
+@dataclass
 class FleetMeasures:
     """What a fleet's run measured, from when every robot was ready to the end."""
 
@@ -343,9 +386,22 @@ class FleetMeasures:
     messages: dict[str, list[int]]  # [count, bytes] of each kind (with count_messages)
     ran: float  # [s] the span over which CPU was measured
     zenoh_ran: float  # [s] the span over which the Zenoh threads' CPU was (sampled less often)
+    rest: RestMark | None = None  # None: not every robot arrived while every actor ran
 
     def zenoh_percent(self, seconds: float) -> float:
         return 100.0 * seconds / self.zenoh_ran if self.zenoh_ran > 0 else math.nan
+
+    def phases(self) -> dict[str, Any] | None:
+        """The run's CPU before and after :class:`RestMark` (``driving``, ``at_rest``), each as
+        :func:`cpu_phase`; None without a mark."""
+        rest = self.rest
+        if rest is None:
+            return None
+        driving = cpu_phase(rest.cpu_seconds, rest.at)
+        at_rest = cpu_phase(
+            {name: cpu - rest.cpu_seconds.get(name, 0.0) for name, cpu in self.cpu_seconds.items()}, self.ran - rest.at
+        )
+        return {"driving": driving, "at_rest": {**at_rest, "fewest_arrived": rest.fewest_arrived}}
 
     def fields(self, processes: int) -> dict[str, Any]:
         """The fleet summary's CPU and memory fields (CPU % of one core over the measured span)."""
@@ -365,6 +421,8 @@ class FleetMeasures:
             "rss_growth_by_service_mb": self.rss_series.growth_by_service(),
             "peak_rss_mb": use.peak_rss_mb,
             "processes": use.processes,
+            # the CPU while the robots drive and once every one has arrived (RestMark)
+            "cpu_phases": self.phases(),
         }
 
 
@@ -378,12 +436,14 @@ def measure_fleet(
     count_messages: bool,
 ) -> FleetMeasures:
     """Watch the fleet until every actor has ended: CPU, memory and messages sampled while every
-    actor still runs (a reaped process has no /proc entry), a status line a second."""
+    actor still runs (a reaped process has no /proc entry), a status line a second, and the
+    :class:`RestMark` (from the robots' statuses, once a second each)."""
     pids = {name: child.process.pid for name, child in supervisor.children.items()}
     counter = MessageCounter(settings) if count_messages else None
     ready = time.monotonic()
     cpu_before, zenoh_cpu = cpu_of(pids), ZenohCpu(pids)
-    monitor = FleetMonitor(settings) if on_status is not None else None
+    monitor = FleetMonitor(settings)
+    rest: RestMark | None = None
     memory, sampled = (0.0, 0.0), ready
     rss_series = RssSeries()
     cpu_seconds = dict.fromkeys(pids, 0.0)
@@ -398,6 +458,7 @@ def measure_fleet(
             if all(a.process.poll() is None for a in actors):
                 cpu_now, sampled = cpu_of(pids), now
                 cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
+                rest = rest_mark(rest, now - ready, cpu_seconds, monitor.arrived(), robots)
                 if now - zenoh_sampled >= ZENOH_SAMPLE_S:  # every thread's file: read less often
                     zenoh_seconds, zenoh_sampled = zenoh_cpu.seconds(), now
                 if counter is not None:
@@ -406,17 +467,16 @@ def measure_fleet(
                     each = memory_of(pids)  # near the end, while every process still runs
                     memory = (sum(m[0] for m in each.values()), sum(m[1] for m in each.values()))
                     rss_series.add(now - ready, memory[0], {name: m[0] for name, m in each.items()})
-            if monitor is not None and on_status is not None and int(now - ready) > shown:
+            if on_status is not None and int(now - ready) > shown:
                 shown = int(now - ready)
                 on_status(monitor.line(now - ready, robots))
             time.sleep(0.2)
     finally:
-        if monitor is not None:
-            monitor.close()
+        monitor.close()
         if counter is not None:
             counter.close()
     return FleetMeasures(
-        cpu_seconds, zenoh_seconds, memory, rss_series, messages, sampled - ready, zenoh_sampled - ready
+        cpu_seconds, zenoh_seconds, memory, rss_series, messages, sampled - ready, zenoh_sampled - ready, rest
     )
 
 
@@ -720,6 +780,13 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
         f"staleness p99/max {view.staleness_p99_steps:.0f}/{view.staleness_max_steps:.0f} steps, "
         f"CPU {summary['cpu_percent']:.0f} %, RSS {summary['rss_mb']:.0f} MB in {summary['processes']} processes"
     )
+    phases = summary.get("cpu_phases")
+    if phases:
+        drive, rest = phases["driving"], phases["at_rest"]
+        lines.append(
+            f"  CPU while the robots drove {drive['cpu_percent']:.0f} % ({drive['seconds']:.1f} s), "
+            f"once every robot had arrived {rest['cpu_percent']:.0f} % ({rest['seconds']:.1f} s: no solve, no fit)"
+        )
     if summary.get("actor_ticks"):
         ticks = summary["actor_ticks"]
         lines.append(
