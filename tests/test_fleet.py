@@ -545,6 +545,9 @@ def test_a_fleet_that_parks_reports_its_cpu_while_driving_and_at_rest() -> None:
     spent = driving["cpu_percent"] * driving["seconds"] + at_rest["cpu_percent"] * at_rest["seconds"]
     assert spent == pytest.approx(summary["cpu_percent"] * summary["run_seconds"])
     assert "once every robot had arrived" in format_fleet_summary(summary)
+    assert "at times only" not in format_fleet_summary(summary)  # no robot left the tolerance
+    at_rest["fewest_arrived"] = 1  # one of the two left it for a while: said
+    assert "no solve, no fit; at times only 1 of 2 arrived)" in format_fleet_summary(summary)
 
 
 @pytest.mark.integration

@@ -785,7 +785,12 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
         drive, rest = phases["driving"], phases["at_rest"]
         lines.append(
             f"  CPU while the robots drove {drive['cpu_percent']:.0f} % ({drive['seconds']:.1f} s), "
-            f"once every robot had arrived {rest['cpu_percent']:.0f} % ({rest['seconds']:.1f} s: no solve, no fit)"
+            f"once every robot had arrived {rest['cpu_percent']:.0f} % ({rest['seconds']:.1f} s: no solve, no fit"
+            + (
+                f"; at times only {rest['fewest_arrived']} of {len(summary['robots'])} arrived)"
+                if rest["fewest_arrived"] < len(summary["robots"])
+                else ")"
+            )
         )
     if summary.get("actor_ticks"):
         ticks = summary["actor_ticks"]
