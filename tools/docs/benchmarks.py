@@ -263,8 +263,10 @@ def parking_body(data: dict[str, Any]) -> list[str]:
 def phase_cell(row: dict[str, Any], phase: str) -> str:
     """A fleet row's CPU per robot tick [ms] in one phase of its run ("-": not measured, a row from
     before the phases were, or not every robot arrived)."""
-    measured = ((row.get("cpu_phases") or {}).get(phase) or {}).get("cpu_ms_per_robot_tick")
-    return "-" if measured is None else f"{measured:.3f}"
+    from tools.bench.fleet import phase_ms
+
+    measured = phase_ms(row, phase)
+    return "-" if math.isnan(measured) else f"{measured:.3f}"
 
 
 def fleet_body(data: dict[str, Any]) -> list[str]:
