@@ -137,6 +137,11 @@ def measured_run(
     return row
 
 
+def layout_label(row: dict[str, Any]) -> str:
+    """A row's layout as tables show it: ``process``, or ``host xH`` (H actor hosts)."""
+    return str(row["layout"]) if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+
+
 def phase_ms(row: dict[str, Any], phase: str) -> float:
     """CPU per robot tick [ms] of one phase of a row's run (NaN: not every robot arrived)."""
     return float(((row.get("cpu_phases") or {}).get(phase) or {}).get("cpu_ms_per_robot_tick", math.nan))
@@ -194,7 +199,7 @@ def format_row(row: dict[str, Any]) -> str:
     if "error" in row:
         return f"{row['robots']:>6} {row['layout']:<10} failed: {row['error']}  (load {load})"
     f = row["fleet"]
-    layout = row["layout"] if row["layout"] == "process" else f"host x{row['actor_hosts']}"
+    layout = layout_label(row)
     targets = ", ".join(f"{name}: {verdict}" for name, verdict in row["targets"].items()) or "-"
     ticks = row.get("actor_ticks")  # RT: actor processes whose tick thread was real-time, of all
     realtime = f"{ticks['realtime']}/{ticks['processes']}" if ticks else "-"

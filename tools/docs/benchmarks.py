@@ -270,6 +270,8 @@ def phase_cell(row: dict[str, Any], phase: str) -> str:
 
 
 def fleet_body(data: dict[str, Any]) -> list[str]:
+    from tools.bench.fleet import layout_label
+
     lines = [
         f"{data.get('agent')}, N = {data.get('horizon')}, {data.get('seconds')} s in real time per row"
         + (", `srl record` attached to every row" if data.get("recorded") else "")
@@ -292,7 +294,7 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
             lines.append(f"| {row['robots']} | {row['layout']} | failed: {cell(row['error'])} |{' |' * 14} {load} | |")
             continue
         f = row["fleet"]
-        layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+        layout = layout_label(row)
         targets = ", ".join(f"{k}: {v}" for k, v in row.get("targets", {}).items()) or "-"
         worst = f.get("worst_own_final_distance_m")
         per_tick = row.get("cpu_ms_per_robot_tick")
@@ -325,7 +327,7 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
                 f"{name} {cpu:.1f} ({zenoh.get(name, math.nan):.1f})"
                 for name, cpu in row["cpu_percent_by_service"].items()
             )
-            layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+            layout = layout_label(row)
             lines.append(f"| {row['robots']} | {layout} | {each} |")
     phased = [row for row in data.get("rows", []) if row.get("cpu_phases")]
     if phased:
@@ -338,7 +340,7 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
             "|---|---|---|---|",
         ]
         for row in phased:
-            layout = row["layout"] if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
+            layout = layout_label(row)
             cells = []
             for phase in ("driving", "at_rest"):
                 spent = row["cpu_phases"][phase]
