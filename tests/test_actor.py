@@ -6,10 +6,9 @@ The oracle objective is written out here in numpy from the stacked objectives of
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -448,8 +447,8 @@ def test_warm_start_takes_the_cheaper_of_shifted_and_earlier_solution() -> None:
         first = actor.step(s_a, w, v_w)
         second = actor.step(s_b, w, v_w)
         assert first.success and second.success
-        earlier, previous = actor._earlier_x.copy(), actor._previous_x.copy()
-        actor._initial_guess(s_a)
+        earlier, previous = actor.memory.earlier_x.copy(), actor.memory.previous_x.copy()
+        actor._warm_guess(s_a)
         guess = _actions_of(actor._x0)
         shifted = _actions_of(np.concatenate([previous[5:], previous[-5:]]))
         costs = {
@@ -477,7 +476,7 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
 
     # the merit-only warm start (multistart off); the global phase takes both plans as starts.
     # Solver iterations are what is counted: the solver polishes every step (no Newton iterations)
-    actor_settings = {"agent": agent, "horizon": 12, "jit": False, "multistart": False, "newton_iterations": 0}
+    actor_settings = {"agent": agent, "horizon": 12, "jit": False, "multistart": False}
     settings = Settings.load(actor=actor_settings)
     weights = learned_weights(settings)
     iterations = {}
@@ -488,7 +487,7 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
         iterations[use_earlier] = 0
         for _ in range(150):
             if not use_earlier:
-                actor._earlier_x = None  # only the shifted previous solution is a candidate
+                actor.memory.earlier_x = None  # only the shifted previous solution is a candidate
             result = actor.step(state, weights.q, weights.v)
             assert result.success
             iterations[use_earlier] += int(actor._buffer.stats()["iter_count"])
@@ -496,38 +495,231 @@ def test_earlier_solution_candidate_saves_iterations_in_the_learned_weight_loop(
     assert iterations[True] < 0.9 * iterations[False], iterations
 
 
-# -- the argmin -----------------------------------------------------------------------------------
-def test_global_phase_ends_are_rollouts_no_worse_than_their_starts() -> None:
-    # Oracle: hand_objective along the Euler rollout. Each start descends monotonically inside
-    # the box; the reported end value is the objective of the end's actions, and the decision
-    # vector handed to the solver is that end's rollout from the state.
-    actor = make_actor("rlqv+", 5, multistart=True, multistart_iterations=20)
+# -- the argmin (common/math/actor_search.py) --------------------------------------------------------
+def searching_actor(agent: str, horizon: int, **kwargs: Any) -> StackedActor:
+    """The argmin's actor (multistart) with the packaged defaults, interpreted."""
+    return make_actor(agent, horizon, multistart=True, **kwargs)
+
+
+def scaled_plan(actor: StackedActor, plan: np.ndarray) -> np.ndarray:
+    """A plan of held actions as the search's z (the decisions scaled to [-1, 1], u_1 first)."""
+    return (plan / np.array([V_MAX, OMEGA_MAX])).ravel()
+
+
+def test_the_ticks_answer_is_a_stationary_minimum_of_the_objective_it_reports() -> None:
+    # Oracles: the hand-written objective of the returned plan; no small feasible perturbation of
+    # the plan lowers it (a local minimum); the answer never above the warm start's objective
+    # (the shifted previous plan: every phase only descends, and the warm polish starts there).
+    rng = np.random.default_rng(41)
+    actor = searching_actor("rlqv+", 5)
     bounds = np.array([V_MAX, OMEGA_MAX])
-    for w, v_w, state in indefinite_problems(18, 4):
-        actor._params[:15], actor._params[15:] = w, v_w
+    for w, v_w, state in indefinite_problems(23, 8, spread=1.5):
         actor.reset()
-        actor._global_guess(state)
-        for row in range(actor._starts.shape[0]):
-            start = [(np.float64(a), np.float64(b)) for a, b in actor._starts[row].reshape(-1, 2) * bounds]
-            end_plan = actor._ends[row].reshape(-1, 2) * bounds
-            end = [(np.float64(a), np.float64(b)) for a, b in end_plan]
-            assert np.all(np.abs(actor._ends[row]) <= 1.0)
-            assert actor._end_values[row] == pytest.approx(float(hand_objective("rlqv+", state, end, w, v_w)), rel=1e-9)
-            assert actor._end_values[row] <= float(hand_objective("rlqv+", state, start, w, v_w)) + 1e-12
-            x = actor._end_vectors[row]
-            np.testing.assert_allclose(_actions_of(x), end_plan, atol=1e-12)
-            s = state
-            for k, u in enumerate(end_plan):  # the states are the Euler rollout of the actions
-                np.testing.assert_allclose(x[5 * k : 5 * k + 3], s, atol=1e-12)
-                s = s + DELTA * np.array([u[0] * np.cos(s[2]), u[0] * np.sin(s[2]), u[1]])
-            np.testing.assert_allclose(x[-3:], s, atol=1e-12)
-        best = int(np.argmin(actor._end_values))
-        np.testing.assert_array_equal(actor._x0, actor._end_vectors[best])
+        first = actor.step(state, w, v_w)
+        after = exact_step(state, first.action, DELTA)
+        shifted = [*first.plan[1:], first.plan[-1]]
+        warm = float(hand_objective("rlqv+", after, shifted, w, v_w))
+        second = actor.step(after, w, v_w)
+        for result, at in ((first, state), (second, after)):
+            assert result.success and result.status == "success"
+            plan = [(np.float64(a), np.float64(b)) for a, b in result.plan]
+            value = float(hand_objective("rlqv+", at, plan, w, v_w))
+            assert result.objective == pytest.approx(value, rel=1e-9, abs=1e-12)
+            kicks = rng.normal(size=(300, 4, 2)) * bounds * rng.choice([1e-4, 1e-3, 1e-2], size=(300, 1, 1))
+            trial = np.clip(result.plan + kicks, -bounds, bounds)
+            values = hand_objective("rlqv+", at, [(trial[:, i, 0], trial[:, i, 1]) for i in range(4)], w, v_w)
+            assert values.min() >= value - 1e-7 * max(1.0, abs(value))
+        assert second.objective <= warm + 1e-9 * (1 + abs(warm))
+    assert actor.counters.phase_counts["solver"] == 0  # the Newton iterations converged every time
+
+
+def test_the_alternatives_descent_only_descends_and_reports_the_objective_of_its_ends() -> None:
+    # actor_search.descent_function: every start (a column) descends monotonically inside the box,
+    # and the value reported for an end is the hand-written objective of its actions.
+    from common.math.actor_search import search_graph
+
+    problem = ActorProblem("rlqv+", 5, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, multistart=True, jit=False)
+    graph = search_graph(problem)
+    bounds = np.array([V_MAX, OMEGA_MAX])
+    rng = np.random.default_rng(8)
+    for w, v_w, state in indefinite_problems(18, 4):
+        starts = rng.uniform(-1, 1, size=(8, graph.starts))
+        ends, values = (np.array(x) for x in graph.descent(starts, state, np.r_[w, v_w]))
+        for column in range(graph.starts):
+            start = [(np.float64(a), np.float64(b)) for a, b in starts[:, column].reshape(-1, 2) * bounds]
+            end = [(np.float64(a), np.float64(b)) for a, b in ends[:, column].reshape(-1, 2) * bounds]
+            assert np.all(np.abs(ends[:, column]) <= 1.0)
+            assert values[0, column] == pytest.approx(float(hand_objective("rlqv+", state, end, w, v_w)), rel=1e-9)
+            assert values[0, column] <= float(hand_objective("rlqv+", state, start, w, v_w)) + 1e-12
+
+
+def test_the_polish_reaches_the_solvers_minimum_from_the_same_start() -> None:
+    # actor_search's polish (projected Newton, damped where the Hessian is indefinite) against
+    # fatrop from the same start on random indefinite critics: both stationary, and where they end
+    # in the same minimum (the same plan) the same objective; the polish never rises above its start.
+    from common.math.actor_search import NEWTON_TOLERANCE, search_graph
+
+    actor = make_actor("rlqv", 6)  # fatrop: the oracle
+    graph = search_graph(ActorProblem("rlqv", 6, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, multistart=True, jit=False))
+    rng = np.random.default_rng(9)
+    stationary = same = 0
+    for w, v_w, state in indefinite_problems(7, 20):
+        weights = np.r_[w, v_w]
+        z0 = rng.uniform(-0.5, 0.5, size=10)
+        f0 = float(graph.value(z0, state, weights))
+        z, f, stationarity, _ = (np.array(x).ravel() for x in graph.polish(z0, f0, state, weights))
+        plan = [(np.float64(a), np.float64(b)) for a, b in z.reshape(-1, 2) * [V_MAX, OMEGA_MAX]]
+        assert float(f[0]) == pytest.approx(float(hand_objective("rlqv", state, plan, w, v_w)), rel=1e-9)
+        assert float(f[0]) <= f0 + 1e-12 * (1 + abs(f0))
+        stationary += float(stationarity[0]) <= NEWTON_TOLERANCE
+        actor._params[:15], actor._params[15:] = w, v_w
+        actor._x0[:] = np.array(graph.decision_vector(z0, state)).ravel()
+        solved = actor._solve()
+        assert solved[0]
+        if np.allclose(actor._decisions_of(solved[2]).ravel() / np.tile([V_MAX, OMEGA_MAX], 5), z, atol=1e-4):
+            same += 1
+            assert float(f[0]) == pytest.approx(solved[3], rel=1e-6, abs=1e-9)
+    assert stationary >= 19 and same >= 12, (stationary, same)
+
+
+def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> None:
+    # Random indefinite critics make the objective concave along some action entries: the
+    # polished minimum then sits on one bound of such an entry while the other may be lower. The
+    # vertex search (multistart_flips) moves entries to either bound while that lowers the
+    # objective and polishes the result. Oracle: brute force over the 2^6 vertices of the action
+    # box (N = 4). Negative control: the same actor without the search stays above the lowest
+    # vertex where the search reaches it.
+    import itertools
+
+    horizon = 4
+    plain = searching_actor("rlq", horizon, multistart_flips=0)
+    search = searching_actor("rlq", horizon, multistart_flips=3)
+    vertices = [
+        [(np.float64(p[2 * i]), np.float64(p[2 * i + 1])) for i in range(horizon - 1)]
+        for p in itertools.product((-V_MAX, V_MAX), (-OMEGA_MAX, OMEGA_MAX), repeat=horizon - 1)
+    ]
+    found = []
+    for w, v_w, state in indefinite_problems(0, 40):
+        plain.reset()
+        search.reset()
+        before, after = plain.step(state, w, v_w), search.step(state, w, v_w)
+        assert before.success and after.success
+        plan = [(np.float64(a), np.float64(b)) for a, b in after.plan]
+        assert after.objective == pytest.approx(float(hand_objective("rlq", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
+        lowest_vertex = min(float(hand_objective("rlq", state, p, w, v_w)) for p in vertices)
+        tolerance = 1e-6 * (1 + abs(lowest_vertex))
+        if after.objective <= lowest_vertex + tolerance < before.objective - 1e-3 * (1 + abs(lowest_vertex)):
+            found.append((before.objective, after.objective, lowest_vertex))
+    assert found, "no problem where the search reached a lower vertex than the actor without it"
+    assert search.counters.vertex_wins >= 1 and plain.counters.vertex_wins == 0
+    assert plain.counters.phase_counts["vertex_search"] == 0 < search.counters.phase_counts["vertex_search"]
+
+
+def test_a_hurried_step_is_the_warm_polish_alone() -> None:
+    # services/actor/host.py hurries a tick served late (docs/fleets.md): once the robot has a
+    # plan, neither the search nor the vertex search runs, and the answer is the warm start (the
+    # cheaper of the shifted and the earlier plan) polished. Oracle: the search graph's own polish
+    # from that warm start. Negative control: the unhurried step runs both and, here, moves plans.
+    from common.math.actor_search import search_graph
+
+    hurried = searching_actor("rlq", 6)
+    full = searching_actor("rlq", 6)
+    graph = search_graph(hurried.problem)
+    moved = 0
+    for w, v_w, state in indefinite_problems(4, 10):
+        for actor in (hurried, full):
+            actor.reset()
+        first = hurried.step(state, w, v_w, hurry=True)  # no plan yet: a full step
+        full.step(state, w, v_w)
+        after = exact_step(state, first.action, DELTA)
+        searches = hurried.counters.phase_counts["search"]
+        shifted = np.r_[scaled_plan(hurried, first.plan)[2:], scaled_plan(hurried, first.plan)[-2:]]
+        weights = np.r_[w, v_w]
+        z, _, _, _ = graph.polish(shifted, float(graph.value(shifted, after, weights)), after, weights)
+        second = hurried.step(after, w, v_w, hurry=True)
+        assert second.success and hurried.counters.phase_counts["search"] == searches
+        np.testing.assert_allclose(scaled_plan(hurried, second.plan), np.array(z).ravel(), atol=1e-9)
+        moved += not np.allclose(full.step(after, w, v_w).plan, second.plan, atol=1e-6)
+    assert hurried.counters.hurried_solves == 10 and full.counters.hurried_solves == 0
+    assert hurried.counters.phase_counts["vertex_search"] == 10  # the first, unhurried steps only
+    assert moved > 0  # what a hurry skips does change plans here
+
+
+def test_an_episode_does_not_depend_on_what_the_actor_solved_before() -> None:
+    # The experiment's workers reuse one actor for many runs: after reset() the search (its
+    # alternatives, their ages and the fresh-start table's row) acts as on a fresh actor, step for step.
+    rng = np.random.default_rng(3)
+    w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+    used = searching_actor("rlqv", 5)
+    for _ in range(7):
+        used.step(rng.uniform(-1, 1, size=3), w, v_w)
+    used.reset()
+    fresh = searching_actor("rlqv", 5)
+    state_used = state_fresh = np.array([1.2, -0.8, 2.0])
+    for _ in range(12):
+        a, b = used.step(state_used, w, v_w), fresh.step(state_fresh, w, v_w)
+        np.testing.assert_array_equal(a.plan, b.plan)
+        state_used, state_fresh = exact_step(state_used, a.action, DELTA), exact_step(state_fresh, b.action, DELTA)
+    assert used.memory.fresh == fresh.memory.fresh
+    np.testing.assert_array_equal(used.memory.alternatives, fresh.memory.alternatives)
+
+
+def test_each_robots_memory_keeps_its_own_alternatives() -> None:
+    # One built actor serves many robots (services/actor/host.py): two robots stepped in turn
+    # through swap_memory get exactly what two actors of their own give them.
+    rng = np.random.default_rng(5)
+    w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
+    shared, own = searching_actor("rlqv", 5), [searching_actor("rlqv", 5), searching_actor("rlqv", 5)]
+    memories = [ActorMemory(), ActorMemory()]
+    states = [np.array([1.2, -0.8, 2.0]), np.array([-0.5, 1.0, 0.3])]
+    for _ in range(8):
+        for robot in range(2):
+            held = shared.swap_memory(memories[robot])
+            got = shared.step(states[robot], w, v_w)
+            memories[robot] = shared.swap_memory(held)
+            expected = own[robot].step(states[robot], w, v_w)
+            np.testing.assert_array_equal(got.plan, expected.plan)
+            states[robot] = exact_step(states[robot], got.action, DELTA)
+    for robot in range(2):
+        np.testing.assert_array_equal(memories[robot].alternatives, own[robot].memory.alternatives)
+
+
+def test_a_polish_that_ends_short_goes_on_and_then_falls_back_to_the_solver() -> None:
+    # Where the tick's answer is not stationary, its Newton iterations go on once more from where
+    # they ended (no search), and where that too ends short the solver (fatrop) takes it from there.
+    # The tick's stationarity made to look short once, then always; the control leaves it as is.
+    def short(actor: StackedActor, times: int) -> None:
+        tick, left = actor._evaluate_tick, [times]
+
+        def looks_short() -> None:
+            tick()
+            if left[0] != 0:
+                left[0] -= 1
+                actor._tick_stationarity[0] = 1.0
+
+        actor._evaluate_tick = looks_short  # type: ignore[method-assign]
+
+    w, v_w, state = next(indefinite_problems(6, 1, spread=1.0))
+    for times, solver in ((0, 0), (1, 0), (-1, 1)):  # never, once, always short
+        actor = searching_actor("rlqv", 5)
+        actor.step(state, w, v_w)  # the plan (a cold start: its rounds are not made short)
+        short(actor, times)
+        result = actor.step(exact_step(state, np.zeros(2), DELTA), w, v_w)
+        assert result.success
+        assert actor.counters.repolished == (times != 0)
+        assert actor.counters.phase_counts["solver"] == solver
 
 
 @pytest.mark.parametrize(
     "changes",
-    [{"multistart_iterations": 0}, {"multistart_margin": -0.1}, {"multistart_refresh": -1}, {"multistart_flips": -1}],
+    [
+        {"multistart_iterations": 0},
+        {"multistart_margin": -0.1},
+        {"multistart_flips": -1},
+        {"multistart_starts": 0},
+        {"newton_iterations": 0},
+        {"newton_iterations": 51},
+    ],
 )
 def test_bad_multistart_settings_raise(changes: dict) -> None:
     with pytest.raises(ValueError):
@@ -538,8 +730,8 @@ def test_bad_multistart_settings_raise(changes: dict) -> None:
 def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, horizon: int) -> None:
     # The minimizer the actor takes in the closed loop (warm-started from its own plans, the
     # benchmark's non-convex "learned" weights) is no worse than the paper framework's way, a
-    # cold SLSQP solve from standing still at the same state (tools/bench/actor.py): the global
-    # phase finds the minima the warm start alone misses.
+    # cold SLSQP solve from standing still at the same state (tools/bench/actor.py): the search
+    # finds the minima the warm start alone misses.
     # Generous bounds: not worse (to 1e-6 relative) at >= 75 % of the states, median gap <= 1e-6.
     from common.config.assembly import build_actor
     from common.config.settings import PAPER_METHOD, Settings
@@ -567,357 +759,3 @@ def test_actor_in_the_loop_is_not_worse_than_a_cold_slsqp_solve(agent: str, hori
     assert np.mean(not_worse) >= 0.75, list(zip(ours, cold, strict=True))
     assert np.median(gaps) <= 1e-6, gaps
     assert np.median(seconds) < 0.05  # generous: ~1 ms without JIT on 2 shared cores
-
-
-@pytest.mark.parametrize(("margin", "refresh"), [(10.0, 0), (0.0, 1)])
-def test_runner_up_polish_keeps_the_lower_solution(margin: float, refresh: int) -> None:
-    # With a wide margin, or a refresh at every solve, the actor also polishes the other kind of
-    # start's lowest end and keeps the lower of the two solutions: never above the single polish.
-    single = make_actor("rlqv+", 6, multistart=True, multistart_margin=0.0, multistart_refresh=0)
-    double = make_actor("rlqv+", 6, multistart=True, multistart_margin=margin, multistart_refresh=refresh)
-    for w, v_w, state in indefinite_problems(7, 6, spread=1):
-        single.reset()
-        double.reset()
-        one, two = single.step(state, w, v_w), double.step(state, w, v_w)
-        assert one.success and two.success
-        assert two.objective <= one.objective + 1e-9 * (1 + abs(one.objective))
-        plan = [(np.float64(a), np.float64(b)) for a, b in two.plan]
-        assert two.objective == pytest.approx(float(hand_objective("rlqv+", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
-    assert single.counters.second_solves == 0 and double.counters.second_solves >= 1
-
-
-def test_a_runner_up_that_lost_by_a_lot_is_skipped_until_a_refresh_measures_again() -> None:
-    # StackedActor._runner_up with multistart_hopeless: the other kind of start's end is offered
-    # (within the margin) unless the last runner-up polish lost by more than the share; a
-    # refresh's solve offers it whatever; 0 never skips (the negative control).
-    actor = make_actor("mpc", 4, multistart=True, multistart_margin=0.1, multistart_refresh=3, multistart_hopeless=0.02)
-    actor.step(np.array([1.0, 0.5, 0.3]), np.zeros(15), np.zeros(6))  # a plan: the ends are set up
-    actor._end_values[:] = [1.0, 2.0, 1.05, 3.0, 3.0]  # warm row 0 lowest, fresh row 2 within 10 %
-    actor._ends[:] = 0.0
-    actor._ends[2] = 0.5  # apart from the lowest end
-
-    def offered(shortfall: float, solves: int, hopeless: float = 0.02) -> bool:
-        actor.problem = dataclasses.replace(actor.problem, multistart_hopeless=hopeless)
-        actor._runner_up_shortfall, actor._episode_solves = shortfall, solves
-        return actor._runner_up() is not None
-
-    assert offered(0.0, 1) and offered(0.02, 1)  # never lost, or lost by no more than the share
-    assert not offered(0.05, 1) and not offered(0.05, 2)  # lost by 5 %: skipped between refreshes
-    assert offered(0.05, 3)  # a refresh's solve measures again
-    assert offered(0.05, 1, hopeless=0.0)  # 0: never skipped
-
-
-def learned_critic_actor(hopeless: float) -> StackedActor:
-    """RL-QV+ at N = 12 with the full multistart (the defaults' margin, refresh, vertex search and
-    Newton iterations), the runner-up skipped after a loss of more than ``hopeless``: the actor the
-    benchmark's "learned" critic misleads (tools.bench.actor.learned_weights)."""
-    return make_actor(
-        "rlqv+",
-        12,
-        multistart=True,
-        multistart_margin=0.1,
-        multistart_refresh=3,
-        multistart_hopeless=hopeless,
-        multistart_flips=3,
-        newton_iterations=6,
-    )
-
-
-def test_the_runner_up_shortfall_is_kept_per_robot_and_saves_polishes_on_a_critic_that_misleads() -> None:
-    # The actor benchmark's "learned" critic (indefinite): its fresh ends keep looking within the
-    # margin and polish to a minimum a few % worse. With multistart_hopeless the runner-up is then
-    # polished at the refreshes only (0: at every offer, the negative control); the shortfall goes
-    # with a robot's memory (swap_memory) and a reset forgets it.
-    from common.config.settings import Settings
-    from tools.bench.actor import learned_weights
-
-    weights = learned_weights(Settings.load())
-    counts = {}
-    for hopeless in (0.0, 0.02):
-        actor = learned_critic_actor(hopeless)
-        state = np.array([2.0, 2.0, math.pi / 4])
-        shortfalls = []
-        for _ in range(40):
-            step = actor.step(state, weights.q, weights.v)
-            shortfalls.append(actor._runner_up_shortfall)
-            state = exact_step(state, step.action, DELTA)
-        counts[hopeless] = actor.counters.second_solves
-        assert max(shortfalls) > 0.02, shortfalls  # the critic misleads: a polish lost by more
-        if hopeless:
-            held = actor.swap_memory(ActorMemory())
-            assert held.runner_up_shortfall == shortfalls[-1] and actor._runner_up_shortfall == 0.0
-            actor.swap_memory(held)
-            assert actor._runner_up_shortfall == shortfalls[-1]
-            actor.reset()
-            assert actor._runner_up_shortfall == 0.0
-    assert counts[0.0] >= 20 and counts[0.02] <= counts[0.0] - 5, counts
-
-
-def test_a_step_whose_newton_iterations_fell_short_polishes_no_runner_up() -> None:
-    # StackedActor.step: a polish that fell back to fatrop is the step's one interior-point
-    # solve; no runner-up polish follows it. The benchmark's "learned" critic offers a runner-up
-    # at most steps (multistart_hopeless 0). Every Newton end made to look short of stationary:
-    # no step polishes again after a polish that fell back, while the same loop with the Newton
-    # iterations as they are (the negative control) polishes a runner-up at 20 or more of 40
-    # steps, and one whose first polish ran no Newton iterations still polishes its runner-up.
-    from common.config.settings import Settings
-    from tools.bench.actor import learned_weights
-
-    weights = learned_weights(Settings.load())
-    second = {}
-    for short in (False, True):
-        actor = learned_critic_actor(0.0)
-        polishes: list[bool] = []  # this step's polishes: did each fall back to fatrop?
-        if short:
-            newton = actor._evaluate_newton
-
-            def fall_short(newton: Callable[[], None] = newton, actor: StackedActor = actor) -> None:
-                newton()
-                actor._newton_stationarity[0] = 1.0
-
-            actor._evaluate_newton = fall_short  # type: ignore[method-assign]
-        polish = actor._polish
-
-        def counted(
-            warm: bool,
-            polish: Callable[[bool], Any] = polish,
-            actor: StackedActor = actor,
-            polishes: list[bool] = polishes,
-        ) -> Any:
-            fallbacks = actor.counters.newton_fallbacks
-            result = polish(warm)
-            polishes.append(actor.counters.newton_fallbacks > fallbacks)
-            return result
-
-        actor._polish = counted  # type: ignore[method-assign]
-        state = np.array([2.0, 2.0, math.pi / 4])
-        after_fresh = 0
-        for _ in range(40):
-            polishes.clear()
-            step = actor.step(state, weights.q, weights.v)
-            assert step.success
-            if short:
-                assert len(polishes) == 1 or not polishes[0], polishes
-                after_fresh += len(polishes) > 1
-            state = exact_step(state, step.action, DELTA)
-        second[short] = actor.counters.second_solves
-    assert second[False] >= 20, second
-    assert 0 < second[True] == after_fresh, (second, after_fresh)
-
-
-def test_same_basin_follows_the_merit_along_the_segment() -> None:
-    # The second polish is skipped when the objective falls monotonically from the runner-up's
-    # end to the first solution (one basin), taken when it rises on the way (a ridge).
-    actor = make_actor("mpc", 4, multistart=True)
-    state = np.array([1.0, 0.5, 0.3])
-    result = actor.step(state, np.zeros(15), np.zeros(6))
-    solution = actor._previous_x.copy()
-    start = np.zeros_like(solution)  # standing still: the convex MPC objective falls towards its minimum
-    assert actor._same_basin(state, start, solution)
-    values = iter([1.0, 0.9, 1.2, 0.8, 0.7])  # a ridge between start (1.0) and solution (0.7)
-    actor._merit_of = lambda x: next(values)  # type: ignore[method-assign]
-    assert not actor._same_basin(state, start, solution)
-    assert result.success
-
-
-def test_an_episode_does_not_depend_on_what_the_actor_solved_before() -> None:
-    # The experiment's workers reuse one actor for many runs: after reset() the global phase
-    # (its refresh's phase included) must act as on a fresh actor, step for step.
-    rng = np.random.default_rng(3)  # weights whose starts end apart: refreshes polish twice
-    w, v_w = 3 * rng.normal(size=15), 3 * rng.normal(size=6)
-    used = make_actor("rlqv", 5, multistart=True, multistart_margin=0.0, multistart_refresh=3)
-    for _ in range(7):  # an earlier episode of 7 solves: not a multiple of the refresh period
-        used.step(rng.uniform(-1, 1, size=3), w, v_w)
-    used.reset()
-    fresh = make_actor("rlqv", 5, multistart=True, multistart_margin=0.0, multistart_refresh=3)
-    for actor in (used, fresh):  # every refresh then polishes twice: its phase shows
-        actor._same_basin = lambda *args: False  # type: ignore[method-assign]
-    state_used = state_fresh = np.array([1.2, -0.8, 2.0])
-    polished_twice: dict[str, list[int]] = {"used": [], "fresh": []}
-    for _ in range(12):
-        counts = (used.counters.second_solves, fresh.counters.second_solves)
-        a, b = used.step(state_used, w, v_w), fresh.step(state_fresh, w, v_w)
-        polished_twice["used"].append(used.counters.second_solves - counts[0])
-        polished_twice["fresh"].append(fresh.counters.second_solves - counts[1])
-        np.testing.assert_array_equal(a.plan, b.plan)
-        state_used, state_fresh = exact_step(state_used, a.action, DELTA), exact_step(state_fresh, b.action, DELTA)
-    assert polished_twice["used"] == polished_twice["fresh"] and sum(polished_twice["fresh"]) >= 1, polished_twice
-
-
-def test_vertex_search_finds_the_lower_vertex_that_the_polish_cannot_see() -> None:
-    # Random indefinite critics make the objective concave along some action entries: the
-    # polished minimum then sits on one bound of such an entry while the other bound may be
-    # lower. The vertex search (multistart_flips) moves entries to either bound while that lowers
-    # the objective and polishes the result. Oracle: brute force over the 2^6 vertices of the
-    # action box (N = 4). Negative control: the same actor without the search, on the same
-    # problems, stays above the lowest vertex where the search reaches it.
-    import itertools
-
-    horizon = 4
-    plain = make_actor("rlq", horizon, multistart=True)
-    search = make_actor("rlq", horizon, multistart=True, multistart_flips=3)
-    vertices = [
-        [(np.float64(p[2 * i]), np.float64(p[2 * i + 1])) for i in range(horizon - 1)]
-        for p in itertools.product((-V_MAX, V_MAX), (-OMEGA_MAX, OMEGA_MAX), repeat=horizon - 1)
-    ]
-    found = []
-    for w, v_w, state in indefinite_problems(0, 30):
-        plain.reset()
-        search.reset()
-        before, after = plain.step(state, w, v_w), search.step(state, w, v_w)
-        assert before.success and after.success
-        assert after.objective <= before.objective + 1e-9 * (1 + abs(before.objective))  # never worse
-        plan = [(np.float64(a), np.float64(b)) for a, b in after.plan]
-        assert after.objective == pytest.approx(float(hand_objective("rlq", state, plan, w, v_w)), rel=1e-6, abs=1e-9)
-        lowest_vertex = min(float(hand_objective("rlq", state, p, w, v_w)) for p in vertices)
-        tolerance = 1e-6 * (1 + abs(lowest_vertex))
-        if after.objective <= lowest_vertex + tolerance < before.objective - 1e-3 * (1 + abs(lowest_vertex)):
-            found.append((before.objective, after.objective, lowest_vertex))
-    assert found, "no problem where the search reached a lower vertex than the polish alone"
-    assert search.counters.flip_solves >= len(found) and plain.counters.flip_solves == 0
-
-
-def test_a_hurried_step_is_one_warm_polish_and_skips_the_extras() -> None:
-    # services/actor/host.py hurries a tick served late (docs/fleets.md): the runner-up polish and the
-    # vertex search are skipped and, once the robot has a plan, the global phase too: one fatrop
-    # polish of the warm start. Oracles: with no plan yet (a cold step) an actor built without
-    # the extras (margin and refresh off, flips off) gives the same actions; with a plan, an
-    # actor built without the global phase (multistart off) given the same plans does. Negative
-    # controls: the unhurried actor uses its extras, and its global phase moves some plans.
-    hurried = make_actor("rlq", 6, multistart=True, multistart_flips=3)
-    bare = make_actor("rlq", 6, multistart=True, multistart_flips=0, multistart_margin=0.0, multistart_refresh=0)
-    full = make_actor("rlq", 6, multistart=True, multistart_flips=3)
-    warm_only = make_actor("rlq", 6, multistart=False)
-    moved = 0
-    for w, v_w, state in indefinite_problems(4, 12):
-        for actor in (hurried, bare, full, warm_only):
-            actor.reset()
-        fast = hurried.step(state, w, v_w, hurry=True)
-        assert fast.success
-        np.testing.assert_allclose(fast.plan, bare.step(state, w, v_w).plan, atol=1e-9)
-        full.step(state, w, v_w)
-        plans = hurried.swap_memory(ActorMemory())
-        hurried.swap_memory(plans)
-        warm_only.swap_memory(ActorMemory(plans.previous_x.copy(), None))  # type: ignore[union-attr]
-        after = exact_step(state, fast.action, 0.1)
-        second = hurried.step(after, w, v_w, hurry=True)
-        assert second.success
-        np.testing.assert_allclose(second.plan, warm_only.step(after, w, v_w).plan, atol=1e-9)
-        bare.swap_memory(ActorMemory(plans.previous_x.copy(), None))  # type: ignore[union-attr]
-        moved += not np.allclose(bare.step(after, w, v_w).plan, second.plan, atol=1e-6)
-    assert hurried.counters.hurried_solves == 24
-    assert hurried.counters.second_solves == 0 and hurried.counters.flip_solves == 0
-    assert full.counters.hurried_solves == 0
-    assert full.counters.second_solves + full.counters.flip_solves > 0  # the extras a hurry skips
-    assert moved > 0  # the global phase a hurry skips does change plans here
-
-
-def test_a_descending_hurry_descends_the_warm_start_without_the_solver() -> None:
-    # ActorProblem.hurry "descend" (an actor host over its CPU budget or late, docs/fleets.md): once
-    # the robot has a plan, a hurried step is the warm start descended by the global phase's
-    # compiled projected gradient, and the solver does not run. Oracles: the step's objective is
-    # the hand-written objective of its plan, never above the warm start's (the shifted previous
-    # plan: the descent takes only steps that lower the objective), and the solver's polish count
-    # stands still. Negative control: "polish" runs the solver on the same steps.
-    descend = make_actor("rlq", 6, multistart=True, multistart_flips=3, hurry="descend")
-    polish = make_actor("rlq", 6, multistart=True, multistart_flips=3, hurry="polish")
-    lowered = 0
-    for w, v_w, state in indefinite_problems(4, 12):
-        for actor in (descend, polish):
-            actor.reset()
-        first = descend.step(state, w, v_w, hurry=True)  # no plan yet: the global phase and the solver
-        assert first.success and first.status == "success"
-        polish.step(state, w, v_w, hurry=True)
-        after = exact_step(state, first.action, 0.1)
-        shifted = [*first.plan[1:], first.plan[-1]]  # the warm start: the plan shifted, last action held
-        warm = float(hand_objective("rlq", after, shifted, w, v_w))
-        polished = descend.counters.phase_counts["polish"], polish.counters.phase_counts["polish"]
-        second = descend.step(after, w, v_w, hurry=True)
-        polish.step(after, w, v_w, hurry=True)
-        assert second.success and second.status == "descended"
-        assert descend.counters.phase_counts["polish"] == polished[0]
-        assert polish.counters.phase_counts["polish"] == polished[1] + 1
-        plan = [(np.float64(a), np.float64(b)) for a, b in second.plan]
-        assert second.objective == pytest.approx(float(hand_objective("rlq", after, plan, w, v_w)), rel=1e-6, abs=1e-9)
-        assert second.objective <= warm + 1e-9 * (1 + abs(warm))
-        assert np.all(np.abs(second.plan) <= [V_MAX, OMEGA_MAX])
-        lowered += second.objective < warm - 1e-6 * (1 + abs(warm))
-    assert lowered > 0  # the descent moves plans: not the warm start handed back
-    assert descend.counters.hurried_solves == polish.counters.hurried_solves == 24
-
-
-def test_an_unknown_hurry_is_refused() -> None:
-    with pytest.raises(ValueError, match="unknown hurry 'sprint'"):
-        make_actor("rlq", 6, hurry="sprint")
-
-
-def test_global_every_k_runs_the_global_phase_every_kth_solve_and_the_vertex_search_every_solve() -> None:
-    # ActorProblem.global_every (an actor host's): the global phase, and the runner-up polish that
-    # picks among its ends, at solves 0, k, 2k ... of a robot and at any solve without a plan; the
-    # vertex search at every solve. Negative control: k = 1 (one robot's actor) runs it every solve.
-    every = make_actor("rlq", 6, multistart=True, multistart_flips=3, global_every=3)
-    always = make_actor("rlq", 6, multistart=True, multistart_flips=3)
-    w, v_w, start = next(indefinite_problems(5, 1))
-    for actor in (every, always):
-        state = start
-        for _ in range(7):
-            step = actor.step(state, w, v_w)
-            assert step.success and np.all(np.abs(step.action) <= [V_MAX, OMEGA_MAX])
-            state = exact_step(state, step.action, DELTA)
-    assert every.counters.phase_counts["global"] == 3  # solves 0, 3 and 6
-    assert always.counters.phase_counts["global"] == 7
-    assert every.counters.phase_counts["flip_search"] == 7 == always.counters.phase_counts["flip_search"]
-    assert every.counters.phase_counts["runner_up"] <= 3
-    every.reset()  # a new episode: no plan, so its first solve runs the global phase again
-    every.step(start, w, v_w)
-    every.step(exact_step(start, np.zeros(2), DELTA), w, v_w)
-    assert every.counters.phase_counts["global"] == 4
-    with pytest.raises(ValueError, match="global_every"):
-        make_actor("rlq", 6, multistart=True, global_every=0)
-
-
-def test_the_newton_polish_reaches_the_solvers_minimum_and_leaves_the_rest_to_the_solver() -> None:
-    # ActorProblem.newton_iterations: a warm start's polish is the compiled projected Newton
-    # iterations, the solver only where they end short of stationary; a fresh start's is the
-    # solver's. Oracles: fatrop alone (newton_iterations 0) polishing the same start (the global
-    # phase's lowest end) on random indefinite critics; the hand-written objective of the plan;
-    # the start's merit (the iterations only descend). Negative control: one iteration from a
-    # vertex of the box (full speed ahead, turning) leaves many starts to the solver, and counts them.
-    newton = make_actor("rlqv", 6, multistart=True, newton_iterations=6)
-    solver = make_actor("rlqv", 6, multistart=True)
-    short = make_actor("rlqv", 6, multistart=True, newton_iterations=1)
-    stationary = agree = 0
-    for w, v_w, state in indefinite_problems(7, 20):
-        for actor in (newton, solver, short):
-            actor._params[:15], actor._params[15:] = w, v_w
-            actor.reset()
-            actor._global_guess(state)
-            actor._lbx_np[:3] = state
-            actor._ubx_np[:3] = state
-        newton._merit_state[:] = state
-        start = newton._merit_of(newton._x0)
-        before = newton.counters.newton_fallbacks
-        (success, _, x, value), reference = newton._polish(warm=True), solver._polish(warm=True)
-        assert success and reference[0]
-        assert value == pytest.approx(float(hand_objective("rlqv", state, _actions_of(x), w, v_w)), rel=1e-9)
-        assert value <= start + 1e-9 * (1 + abs(start))
-        assert np.all(np.abs(np.array(_actions_of(x))) <= np.array([V_MAX, OMEGA_MAX]) + 1e-9)
-        if newton.counters.newton_fallbacks == before:
-            stationary += 1
-            agree += value == pytest.approx(reference[3], rel=1e-6, abs=1e-9)
-        else:  # the solver from the start itself: fatrop's answer
-            np.testing.assert_array_equal(x, reference[2])
-        fresh = newton._polish(warm=False)  # a fresh start: the solver's, bit for bit
-        np.testing.assert_array_equal(fresh[2], reference[2])
-        short._x0[:-3].reshape(-1, 5)[:, 3:] = [V_MAX, OMEGA_MAX]
-        short._polish(warm=True)
-    assert newton.counters.newton_fallbacks == 20 - stationary  # the fresh polishes count none
-    assert solver.counters.newton_fallbacks == 0  # no Newton iterations: nothing to fall back from
-    assert stationary >= 15 and agree >= stationary - 1, (stationary, agree)
-    assert short.counters.newton_fallbacks >= 5  # 9 of these 20
-
-
-@pytest.mark.parametrize("iterations", [-1, 51])
-def test_bad_newton_iterations_raise(iterations: int) -> None:
-    with pytest.raises(ValueError, match="newton_iterations"):
-        ActorProblem("rlqv", 4, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, newton_iterations=iterations)

@@ -8,7 +8,6 @@ and hand-made rows for the target evaluation.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 
@@ -25,13 +24,13 @@ from common.math.dynamics import euler_step
 from common.math.features import phi_q, phi_v, stage_cost
 from tools.bench import actor as bench_actor
 from tools.bench.actor import (
+    BestKnown,
     NumpyObjective,
-    best_known,
+    PhaseTimer,
     compare_objectives,
     evaluate_targets,
     initial_weights,
     learned_weights,
-    phase_shares,
     quadratic_form_matrix,
     reference_share,
     row_settings,
@@ -206,14 +205,14 @@ def test_targets_pass_fail_and_not_applicable() -> None:
             "speedup": speedup,
         }
 
-    rows = [
-        row("mpc", 12, 0.4, 1.0, 60.0),
-        row("rlqv", 12, 0.8, 1.5, 30.0, "learned"),
+    rows = [  # the targets at N = 12: median <= 0.25 ms, p99 <= 0.8 ms
+        row("mpc", 12, 0.2, 0.5, 60.0),
+        row("rlqv", 12, 0.4, 0.8, 30.0, "learned"),
         row("rlqv", 6, 0.3, 0.5, 4.0),
         row("rlqv", 12, 3.0, 9.0, 1.0, solver="ipopt"),
     ]
     targets = evaluate_targets(rows, "fatrop")
-    assert targets["median_n12"]["pass"] is False and targets["median_n12"]["worst"] == 0.8
+    assert targets["median_n12"]["pass"] is False and targets["median_n12"]["worst"] == 0.4
     assert targets["p99_n12"]["pass"] is True  # the ipopt reference row is not judged
     assert targets["speedup_mpc"]["pass"] is True
     assert targets["speedup_all"]["pass"] is False and targets["speedup_all"]["worst"] == 4.0
@@ -235,6 +234,8 @@ def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
             "--steps",
             "20",
             "--baseline-steps",
+            "3",
+            "--judged-states",
             "3",
             "--json",
         ]
@@ -273,7 +274,9 @@ def test_bench_actor_cli_json(capsys: pytest.CaptureFixture[str]) -> None:
 @pytest.mark.slow
 def test_bench_actor_reference_rows(capsys: pytest.CaptureFixture[str]) -> None:
     """The IPOPT reference rows, selected by ``reference_horizons``, agree with fatrop."""
-    args = argparse.Namespace(agents="rlq", horizons="6", steps=15, baseline_steps=2, json=True, reference_horizons="6")
+    args = argparse.Namespace(
+        agents="rlq", horizons="6", steps=15, baseline_steps=2, judged_states=3, json=True, reference_horizons="6"
+    )
     assert bench_actor.run_actor_benchmark(args, Settings.load()) == 0
     rows = _last_json(capsys.readouterr().out)["rows"]
     weights = ["initial", "learned", "trained@50", "trained@150"]
@@ -292,6 +295,7 @@ def test_bench_actor_rejects_bad_arguments(capsys: pytest.CaptureFixture[str]) -
     assert "unknown agent" in capsys.readouterr().err
     assert main(["bench", "actor", "--horizons", "1"]) == 2
     assert main(["bench", "actor", "--steps", "0"]) == 2
+    assert main(["bench", "actor", "--judged-states", "0"]) == 2
 
 
 # -- the critic snapshots -------------------------------------------------------------------------
@@ -346,16 +350,39 @@ def test_numpy_objective_gradient_is_the_objectives_derivative(agent: str) -> No
     assert np.max(np.abs(objective.gradient(actions, state + 0.3) - numeric)) > 1e-3
 
 
-def test_best_known_is_reproducible_and_no_worse_than_one_cold_solve() -> None:
+def test_best_known_is_reproducible_and_no_worse_than_a_cold_solve_or_the_actor() -> None:
+    # BestKnown: the same seed finds the same minimum; it is never above a cold SLSQP solve from
+    # standing still, nor above the actor's own answer at the state (both are among what it could
+    # find); another seed may find another minimum of the same problem, never a value off the
+    # objective (the numpy objective of what it found, checked here by a polish from it).
     settings = Settings.load()
-    problem = interpreted_actor(settings, "rlqv", 6).problem
+    actor = interpreted_actor(settings, "rlqv", 6)
     weights = learned_weights(settings)  # indefinite: several local minima
-    objective = NumpyObjective(problem, weights.q, weights.v)
-    state = np.array([0.4, 0.3, -0.5])
-    best = best_known(objective, state, starts=6, seed=2)
-    assert best == best_known(objective, state, starts=6, seed=2)
-    assert best <= slsqp_solve(objective, state).value + 1e-9
-    assert best_known(objective, state, starts=1, seed=2) >= best  # more starts never find less
+    objective = NumpyObjective(actor.problem, weights.q, weights.v)
+    judge = BestKnown(actor.problem)
+    for state in (np.array([0.4, 0.3, -0.5]), np.array([1.5, -1.0, 2.0])):
+        best = judge.minimum(objective, weights.q, weights.v, state, seed=2)
+        assert best == judge.minimum(objective, weights.q, weights.v, state, seed=2)
+        assert best <= slsqp_solve(objective, state).value + 1e-9
+        actor.reset()
+        assert best <= actor.step(state, weights.q, weights.v).objective + 1e-9
+        assert math.isfinite(best)
+
+
+def test_best_known_minima_are_kept_per_state_and_seed() -> None:
+    settings = Settings.load()
+    actor = interpreted_actor(settings, "rlq", 4)
+    weights = learned_weights(settings)
+    objective = NumpyObjective(actor.problem, weights.q, weights.v)
+    judge = BestKnown(actor.problem)
+    states = [np.array([0.4, 0.3, -0.5]), np.array([0.4, 0.3, -0.5]), np.array([1.0, -1.0, 0.2])]
+    found: dict[tuple[bytes, int], float] = {}
+    minima = judge.minima(
+        objective, bench_actor.WeightSet("learned", weights.q, weights.v, {}), states, [0, 1, 2], 7, found
+    )
+    assert len(found) == 3  # seeds 7, 8, 9: a key per state and seed
+    assert minima[0] == judge.minimum(objective, weights.q, weights.v, states[0], 7)
+    assert minima[2] == judge.minimum(objective, weights.q, weights.v, states[2], 9)
 
 
 def test_the_reference_share_is_how_often_the_first_best_known_is_the_lower_of_two() -> None:
@@ -368,15 +395,23 @@ def test_the_reference_share_is_how_often_the_first_best_known_is_the_lower_of_t
         reference_share(first, second[:2])  # the same states, or no share
 
 
-def test_phase_shares_count_what_each_step_ran() -> None:
+def test_the_phase_timer_splits_a_steps_time_into_what_each_step_ran() -> None:
+    # PhaseTimer: a cold step (its rounds search, polish and sweep), then a hurried one (the warm
+    # polish alone): each part's share of the steps and a positive mean time where it ran; the
+    # shares of what every step has (the warm polish, the Python around) are 1.
     settings = Settings.load()
     actor = interpreted_actor(settings, "rlqv", 6)
-    weights = initial_weights(settings)
-    before = copy.deepcopy(actor.counters)
+    timer = PhaseTimer(actor.problem)
+    weights = learned_weights(settings)
+    records: list = []
+    actor.recorder = records
     state = settings.start_state()
-    actor.step(state, weights.q, weights.v)
-    actor.step(state, weights.q, weights.v, hurry=True)  # a hurried step has a plan: no global phase
-    shares = phase_shares(before, actor.counters, 2)
-    assert shares["global"]["share"] == 0.5 and shares["polish"]["share"] == 1.0
-    assert shares["global"]["mean_ms"] > 0 and shares["polish"]["mean_ms"] > 0
-    assert shares["flip_search"]["share"] <= 0.5  # never in a hurry
+    steps = [actor.step(state, weights.q, weights.v).solve_seconds]
+    steps.append(actor.step(state, weights.q, weights.v, hurry=True).solve_seconds)
+    split = timer.split(records, actor.counters, steps)
+    assert set(split) == set(bench_actor.SPLIT)
+    assert split["warm_polish"]["share"] == 1.0 and split["python"]["share"] == 1.0
+    assert split["search"]["share"] == 0.5 and split["vertex_search"]["share"] == 0.5  # not in the hurry
+    for part in ("warm_polish", "search", "vertex_search", "python"):
+        assert split[part]["mean_ms"] > 0
+    assert split["solver"]["share"] == 0.0 and split["solver"]["mean_ms"] == 0.0

@@ -17,7 +17,7 @@ import numpy as np
 from common.config.settings import Settings
 from common.contracts.summaries import EpisodeSummary, TrueView
 from common.math.actor import StackedActor
-from common.math.actor_problem import ActorMemory, ActorProblem, Hurry
+from common.math.actor_problem import ActorMemory, ActorProblem
 from common.math.agents import learns
 from common.math.arrival import ArrivalRule, ArrivalTolerances, Docking, TurnFirst, WheelDeadband
 from common.math.critic import DoubleCritic, PooledLearner
@@ -83,10 +83,8 @@ def jit_cache_path(setting: str) -> str:
     return "" if setting == "off" else os.path.expanduser(setting)
 
 
-def build_actor(settings: Settings, global_every: int = 1, hurry: Hurry = "polish") -> StackedActor:
-    """The actor of the settings; ``global_every`` and ``hurry``: ActorProblem's (an actor host
-    passes actor.host_global_every and actor.host_hurry; one robot's actor keeps 1, the global
-    phase at every solve, and "polish", since it never hurries)."""
+def build_actor(settings: Settings) -> StackedActor:
+    """The actor of the settings."""
     a, p = settings.actor, settings.plant
     return StackedActor(
         ActorProblem(
@@ -109,14 +107,11 @@ def build_actor(settings: Settings, global_every: int = 1, hurry: Hurry = "polis
             wheel_separation=a.wheel_separation,
             convex_critics=a.convex_critics,
             multistart=a.multistart,
+            multistart_starts=a.multistart_starts,
             multistart_iterations=a.multistart_iterations,
             multistart_margin=a.multistart_margin,
-            multistart_refresh=a.multistart_refresh,
-            multistart_hopeless=a.multistart_hopeless,
             multistart_flips=a.multistart_flips,
             newton_iterations=a.newton_iterations,
-            global_every=global_every,
-            hurry=hurry,
         ),
         arrival=arrival_rule(settings),
     )

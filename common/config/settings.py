@@ -24,7 +24,6 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from common.math.actor_problem import Hurry
 from common.math.agents import Agent
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
@@ -208,11 +207,6 @@ class ActorSettings(_Section):
     realtime_priority: int = Field(
         default=10, ge=0, le=99, description="the tick thread under SCHED_FIFO at this priority, if allowed (0 = off)"
     )
-    host_global_every: int = Field(
-        ge=1,
-        le=100,
-        description="an actor host runs the global phase at every this many solves of a robot (1 = every solve)",
-    )
     host_tick_group: int = Field(
         ge=1,
         le=1000,
@@ -224,9 +218,6 @@ class ActorSettings(_Section):
         le=1,
         allow_inf_nan=False,
         description="share of each period an actor host's full solves may take; beyond, it hurries",
-    )
-    host_hurry: Hurry = Field(
-        description="an actor host's hurried tick: one solver polish of the warm start, or its descent (no solver)",
     )
     max_iter: int = Field(ge=1)
     tolerance: float = Field(gt=0)
@@ -273,26 +264,22 @@ class ActorSettings(_Section):
     wheel_separation: float = Field(gt=0, allow_inf_nan=False, description="[m]")
     convex_critics: bool = Field(description="the actor uses the nearest PSD quadratic to each learned critic")
     multistart: bool = Field(
-        description="the actor's global phase: descend from several starts, the solver polishes the lowest end"
+        description="the actor's argmin: warm polish, a search over alternative plans and a vertex search each tick, "
+        "the solver only where the Newton iterations fall short (false: the solver from the warm start)"
     )
-    multistart_iterations: int = Field(ge=1, le=1000, description="projected-gradient iterations per start")
+    multistart_starts: int = Field(ge=1, le=32, description="alternative plans a robot keeps and descends every tick")
+    multistart_iterations: int = Field(ge=1, le=1000, description="gradient iterations per alternative and tick")
     multistart_margin: float = Field(
-        ge=0, allow_inf_nan=False, description="also polish the other kind of start's lowest end within this share"
-    )
-    multistart_refresh: int = Field(ge=0, description="and every this many solves whatever the merit says (0 = never)")
-    multistart_hopeless: float = Field(
-        ge=0,
-        allow_inf_nan=False,
-        description="a runner-up polish that lost by more than this share: the next wait for a refresh (0 = never)",
+        ge=0, allow_inf_nan=False, description="an alternative within this share of the warm answer is polished too"
     )
     multistart_flips: int = Field(
-        ge=0, le=1000, description="vertex-search sweeps after the polish: each action entry to either bound (0 = off)"
+        ge=0, le=10, description="vertex-search sweeps after the polish: each decision entry to either bound (0 = off)"
     )
     newton_iterations: int = Field(
-        ge=0,
+        ge=1,
         le=50,
-        description="the polish: this many compiled projected-Newton iterations, the solver only where they end "
-        "short of stationary (0 = the solver polishes every start)",
+        description="the polish: at most this many projected-Newton iterations, the solver only where they end "
+        "short of stationary",
     )
 
     @field_validator("horizon")

@@ -1,10 +1,13 @@
 """The stacked actor's step (Algorithm 1, line 4): the first held action of the agent's
-objective minimized from the measured state, warm-started from the previous plans.
+objective minimized from the measured state, warm-started from the robot's previous plans.
 
 The problem is built once (common/math/actor_nlp.py, from an
 :class:`~common.math.actor_problem.ActorProblem`); a step writes the state, the critic weights
-and the initial guess into the compiled solver's buffers and solves. With ``multistart`` a
-global phase picks the start the solver polishes (docs/concepts.md).
+and the robot's plans into the compiled functions' buffers and calls them. With ``multistart``
+(the default) a step is one call of the argmin's tick (common/math/actor_search.py: the warm
+polish, the search over the robot's alternative plans, the vertex search), and the
+interior-point solver runs only where the tick's Newton iterations fell short; without it, the
+solver from the cheaper of the shifted and the earlier plan (the paper's actor).
 
 The learned weights may make the problem non-convex (and the dynamics already do). When the
 solver fails, :meth:`StackedActor.step` still returns a finite, bounded action: the next
@@ -15,20 +18,14 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
+from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from common.math.actor_nlp import build
-from common.math.actor_problem import (
-    GLOBAL_STARTS,
-    NEWTON_TOLERANCE,
-    ActorCounters,
-    ActorMemory,
-    ActorProblem,
-    ActorStep,
-    nearest_psd_weights,
-)
+from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep, nearest_psd_weights
+from common.math.actor_search import NEWTON_TOLERANCE, REPORT, fresh_starts
 from common.math.agents import learns
 from common.math.arrival import ArrivalRule
 from common.math.dynamics import ACTION_DIM, STATE_DIM
@@ -38,6 +35,49 @@ from common.math.stats import all_finite
 log = logging.getLogger(__name__)
 
 STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
+# With no plan yet (the first step of an episode) the tick runs this many times at once: the
+# alternatives, fresh starts, descend COLD_ROUNDS x multistart_iterations iterations before the
+# first answer, as a global search from scratch would.
+COLD_ROUNDS = 5
+FRESH_ROWS = 64  # rows of the fresh-start table (actor_search.fresh_starts)
+# The phases (ActorProblem PHASES) a tick ran, read from its report (actor_search.REPORT).
+_TICK_PHASES = (
+    ("warm_polish", REPORT.index("warm_iterations")),
+    ("search", REPORT.index("searched")),
+    ("alternative_polish", REPORT.index("alternative_polished")),
+    ("vertex_search", REPORT.index("sweeps")),
+    ("vertex_polish", REPORT.index("vertex_moved")),
+)
+_REPLACED, _ALTERNATIVE_WON, _VERTEX_WON = (
+    REPORT.index(name) for name in ("replaced", "alternative_won", "vertex_won")
+)
+
+
+@dataclass(frozen=True)
+class TickRecord:
+    """One call of the argmin's tick as ``srl bench actor`` replays it to time its phases: its
+    inputs (actor_search.TICK_INPUTS), its report and trace, and how long it took [s]."""
+
+    state: np.ndarray
+    weights: np.ndarray
+    alternatives: np.ndarray
+    flags: np.ndarray
+    report: np.ndarray
+    trace: np.ndarray
+    seconds: float
+    step: int  # the robot's solves before this one's step: the rounds of one step share it
+
+
+def _bind(function: Any, inputs: tuple[np.ndarray, ...], outputs: tuple[np.ndarray, ...]) -> Any:
+    """Zero-copy calls: CasADi's buffer API reads the inputs from, and writes the outputs into,
+    these numpy arrays in place (converting numpy to DM costs ~25 us per argument). The arrays
+    must live as long as the returned evaluator and are only ever written element-wise."""
+    buffer, evaluate = function.buffer()
+    for index, array in enumerate(inputs):
+        buffer.set_arg(index, memoryview(array))  # type: ignore[arg-type]  # numpy arrays are buffers
+    for index, array in enumerate(outputs):
+        buffer.set_res(index, memoryview(array))  # type: ignore[arg-type]
+    return buffer, evaluate
 
 
 class StackedActor:
@@ -45,22 +85,13 @@ class StackedActor:
 
     def __init__(self, problem: ActorProblem, arrival: ArrivalRule | None = None) -> None:
         self.problem = problem
-        # The goal checker (common.math.arrival): inside its tolerances step() commands exactly
-        # zero, status "arrived", without solving. None = the paper's method (never stops).
-        self.arrival = arrival
-        self.counters = ActorCounters()
-        self._previous_x: np.ndarray | None = None
-        self._earlier_x: np.ndarray | None = None  # the solution one step before _previous_x
-        self._episode_solves = 0  # solves since the last reset (the refresh's phase)
-        self._runner_up_shortfall = 0.0  # the last runner-up polish's, relative (multistart_hopeless)
+        self.memory = ActorMemory(arrival=arrival)
+        # A list to append every tick's TickRecord to (srl bench actor's phase split); None: none kept.
+        self.recorder: list[TickRecord] | None = None
         # The compiled functions: they must live as long as the buffers below read from them.
         self._functions = built = build(problem)
         lbx, ubx, n_g = built.lbx, built.ubx, built.n_g
         self._n_x = lbx.size
-        # Zero-copy calls: CasADi's buffer API reads the inputs from, and writes the outputs
-        # into, these numpy arrays in place (converting numpy to DM costs ~25 us per argument,
-        # a third of a warm-started solve). They must live as long as the solver and are only
-        # ever written element-wise, never rebound.
         self._x0 = np.zeros(self._n_x)
         self._params = np.zeros(Q_FEATURES + V_FEATURES)
         self._lbx_np = lbx
@@ -69,230 +100,210 @@ class StackedActor:
         self._zeros_x = np.zeros(self._n_x)
         self._x_out = np.zeros(self._n_x)
         self._f_out = np.zeros(1)
-        self._buffer, self._evaluate = built.solver.buffer()
-        for index, array in enumerate(
-            (
-                self._x0,
-                self._params,
-                self._lbx_np,
-                self._ubx_np,
-                self._zeros_g,
-                self._zeros_g,
-                self._zeros_x,
-                self._zeros_g,
-            )
-        ):
-            self._buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        self._buffer.set_res(0, memoryview(self._x_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        self._buffer.set_res(1, memoryview(self._f_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
+        solver_inputs = (self._x0, self._params, lbx, ubx, self._zeros_g, self._zeros_g, self._zeros_x, self._zeros_g)
+        self._buffer, self._evaluate = _bind(built.solver, solver_inputs, (self._x_out, self._f_out))
         self._action_bounds = np.array([problem.v_max, problem.omega_max])
         self._decision_bounds = np.array(problem.decision_bounds)
-        # The warm-start merit, called the same zero-copy way: (s_1, actions, weights) -> cost.
+        # The warm-start merit of the paper's actor: (s_1, actions, weights) -> cost.
         self._merit_state = np.zeros(STATE_DIM)
         self._merit_actions = np.zeros((problem.horizon - 1, ACTION_DIM))  # row-major = u_1, u_2, ...
         self._merit_out = np.zeros(1)
-        self._merit_buffer, self._evaluate_merit = built.merit.buffer()
-        for index, array in enumerate((self._merit_state, self._merit_actions, self._params)):
-            self._merit_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        self._merit_buffer.set_res(0, memoryview(self._merit_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        if built.global_phase is not None:
-            self._setup_global_phase(built.global_phase)
-        self._descent_ready = built.descent is not None
-        if built.descent is not None:
-            self._setup_descent(built.descent)
-        self._newton_ready = built.newton is not None
-        if built.newton is not None:
-            self._setup_newton(built.newton)
-        if built.flips is not None and built.rollout is not None:
-            self._setup_flip_search(built.flips, built.rollout)
-
-    def _setup_global_phase(self, function: ca.Function) -> None:
-        """The global phase's zero-copy buffers and its fixed starts (common.math.actor_nlp.global_phase).
-
-        ``_starts`` has one row per start (CasADi reads the (n_z, starts) matrix column by
-        column, so the rows of a C-ordered array are its columns): rows 0-1 the warm starts,
-        rows 2-4 standing still, full speed ahead and full speed back, written once."""
-        p = self.problem
-        n_act = p.horizon - 1
-        self._starts = np.zeros((GLOBAL_STARTS, ACTION_DIM * n_act))
-        self._ends = np.zeros_like(self._starts)
-        self._end_values = np.zeros(GLOBAL_STARTS)
-        self._end_vectors = np.zeros((GLOBAL_STARTS, self._n_x))
-        self._global_state = np.zeros(STATE_DIM)
-        self._shifted = np.zeros(self._n_x)
-        self._segment = np.zeros(self._n_x)
-        if p.wheel_box:  # both wheels at the rim speed: straight; opposite: turning in place
-            speed, turn = p.wheel_rim_speed, 2.0 * p.wheel_rim_speed / p.wheel_separation
-        else:
-            speed, turn = p.v_max, p.omega_max
-        to_decision = np.linalg.inv(p.action_matrix)
-
-        def scaled(action: tuple[float, float]) -> np.ndarray:
-            row: np.ndarray = np.clip(to_decision @ np.array(action) / self._decision_bounds, -1.0, 1.0)
-            return np.tile(row, n_act)
-
-        self._turning = (scaled((0.0, turn)), scaled((0.0, -turn)))
-        for row, action in zip(range(2, GLOBAL_STARTS), ((0.0, 0.0), (speed, 0.0), (-speed, 0.0)), strict=True):
-            self._starts[row] = scaled(action)
-        self._global_buffer, self._evaluate_global = function.buffer()
-        for index, array in enumerate((self._starts, self._global_state, self._params)):
-            self._global_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        for index, array in enumerate((self._ends, self._end_values, self._end_vectors)):
-            self._global_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-
-    def _setup_descent(self, function: ca.Function) -> None:
-        """The hurried step's descent (ActorProblem.hurry "descend"): zero-copy buffers of the
-        global phase's descent of one start (common.math.actor_nlp.global_phase)."""
-        n_z = ACTION_DIM * (self.problem.horizon - 1)
-        self._descent_start = np.zeros(n_z)
-        self._descent_state = np.zeros(STATE_DIM)
-        self._descent_end = np.zeros(n_z)
-        self._descent_value = np.zeros(1)
-        self._descent_vector = np.zeros(self._n_x)
-        self._descent_buffer, self._evaluate_descent = function.buffer()
-        for index, array in enumerate((self._descent_start, self._descent_state, self._params)):
-            self._descent_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        for index, array in enumerate((self._descent_end, self._descent_value, self._descent_vector)):
-            self._descent_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-
-    def _setup_newton(self, function: ca.Function) -> None:
-        """The polish's Newton iterations (ActorProblem.newton_iterations): zero-copy buffers of
-        (start, s_1, weights) -> (end, objective, stationarity, decision vector)."""
-        n_z = ACTION_DIM * (self.problem.horizon - 1)
-        self._newton_start = np.zeros(n_z)
-        self._newton_state = np.zeros(STATE_DIM)
-        self._newton_end = np.zeros(n_z)
-        self._newton_value = np.zeros(1)
-        self._newton_stationarity = np.zeros(1)
-        self._newton_vector = np.zeros(self._n_x)
-        self._newton_buffer, self._evaluate_newton = function.buffer()
-        inputs = (self._newton_start, self._newton_state, self._params)
-        outputs = (self._newton_end, self._newton_value, self._newton_stationarity, self._newton_vector)
-        for index, array in enumerate(inputs):
-            self._newton_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        for index, array in enumerate(outputs):
-            self._newton_buffer.set_res(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-
-    def _setup_flip_search(self, flips: ca.Function, rollout: ca.Function) -> None:
-        """The vertex search's zero-copy buffers (see _flip_search). ``_candidates`` has one row
-        per neighbour (CasADi reads the (n_z, 2 n_z) matrix column by column)."""
-        n_z = ACTION_DIM * (self.problem.horizon - 1)
-        self._flat_bounds = np.tile(self._decision_bounds, self.problem.horizon - 1)
-        self._candidates = np.zeros((2 * n_z, n_z))
-        self._candidate_values = np.zeros(2 * n_z)
-        self._flip_state = np.zeros(STATE_DIM)
-        self._flip_buffer, self._evaluate_flips = flips.buffer()
-        for index, array in enumerate((self._flip_state, self._candidates, self._params)):
-            self._flip_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        self._flip_buffer.set_res(0, memoryview(self._candidate_values))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        self._rollout_decisions = np.zeros(n_z)
-        self._rollout_out = np.zeros(self._n_x)
-        self._rollout_buffer, self._evaluate_rollout = rollout.buffer()
-        for index, array in enumerate((self._flip_state, self._rollout_decisions)):
-            self._rollout_buffer.set_arg(index, memoryview(array))  # type: ignore[call-arg, arg-type]  # casadi's stub
-        self._rollout_buffer.set_res(0, memoryview(self._rollout_out))  # type: ignore[call-arg, arg-type]  # casadi's stub
-
-    # -- stepping -----------------------------------------------------------------------
-    def reset(self) -> None:
-        """Forget the previous plans and arrival (new episode, or the plan no longer matches the robot)."""
-        self._previous_x = None
-        self._earlier_x = None
-        # the refresh's phase (multistart_refresh) counts from here: a run never depends on
-        # what the same actor solved before (the experiment's workers reuse their actors)
-        self._episode_solves = 0
-        self._runner_up_shortfall = 0.0
-        if self.arrival is not None:
-            self.arrival.reset()
-
-    def swap_memory(self, memory: ActorMemory) -> ActorMemory:
-        """Step on with ``memory`` (another robot's plans, arrival rule and counters); returns
-        the memory held until now. Not thread-safe: one step at a time per built actor."""
-        held = ActorMemory(
-            self._previous_x,
-            self._earlier_x,
-            self.arrival,
-            self.counters,
-            self._episode_solves,
-            self._runner_up_shortfall,
+        self._merit_buffer, self._evaluate_merit = _bind(
+            built.merit, (self._merit_state, self._merit_actions, self._params), (self._merit_out,)
         )
-        self._previous_x, self._earlier_x = memory.previous_x, memory.earlier_x
-        self.arrival, self.counters = memory.arrival, memory.counters
-        self._episode_solves, self._runner_up_shortfall = memory.episode_solves, memory.runner_up_shortfall
-        return held
+        if built.tick is not None:
+            self._setup_tick(built.tick)
+
+    def _setup_tick(self, tick: Any) -> None:
+        """The tick's zero-copy buffers (actor_search.TICK_INPUTS, TICK_OUTPUTS) and the fresh starts."""
+        p = self.problem
+        n_z, count = ACTION_DIM * (p.horizon - 1), p.multistart_starts
+        values, masks = fresh_starts(p, FRESH_ROWS)
+        # the table twice over: the rows a tick takes (memory.fresh onwards, modulo its length) are one slice
+        self._fresh_values, self._fresh_masks = np.vstack([values, values]), np.vstack([masks, masks])
+        self._tick_state = np.zeros(STATE_DIM)
+        self._warm = np.zeros((2, self._n_x))  # rows: the previous plan, the earlier one (CasADi's columns)
+        self._alternatives = np.zeros((count, n_z))
+        self._fresh = np.zeros((count, n_z))
+        self._masks = np.zeros((count, n_z))
+        self._ages = np.zeros(count)
+        self._flags = np.zeros(3)  # has an earlier plan, search, shift
+        self._tick_x = np.zeros(self._n_x)
+        self._tick_plan = np.zeros((p.horizon - 1, ACTION_DIM))
+        self._tick_f = np.zeros(1)
+        self._tick_stationarity = np.zeros(1)
+        self._kept = np.zeros((count, n_z))
+        self._kept_ages = np.zeros(count)
+        self._trace = np.zeros((4, n_z))  # actor_search.SearchGraph: what the tick's phases started from
+        self._report = np.zeros(len(REPORT))
+        inputs = (
+            self._tick_state,
+            self._params,
+            self._warm,
+            self._alternatives,
+            self._fresh,
+            self._masks,
+            self._ages,
+            self._flags,
+        )
+        outputs = (
+            self._tick_x,
+            self._tick_plan,
+            self._tick_f,
+            self._tick_stationarity,
+            self._kept,
+            self._kept_ages,
+            self._trace,
+            self._report,
+        )
+        self._tick_buffer, self._evaluate_tick = _bind(tick, inputs, outputs)
+
+    # -- one robot's memory ---------------------------------------------------------------
+    @property
+    def counters(self) -> ActorCounters:
+        return self.memory.counters
+
+    @property
+    def arrival(self) -> ArrivalRule | None:
+        return self.memory.arrival
 
     @property
     def arrived(self) -> bool:
         """The arrival rule holds the robot at the target (False without a rule)."""
-        return self.arrival is not None and self.arrival.arrived
+        return self.memory.arrival is not None and self.memory.arrival.arrived
 
-    def _initial_guess(self, state: np.ndarray, hurry: bool = False) -> tuple[bool, bool]:
-        """Warm start, written in place into the solver's input ``self._x0`` (the weights
-        must already be in ``self._params``). ``hurry`` with a previous plan: the merit-only warm
-        start below instead of the global phase (multistart), ~0.2 ms less at N = 12. Returns
-        whether the global phase ran and whether the guess is warm: a previous plan of the
-        robot, after its descent if the global phase ran (:meth:`_polish`).
+    def reset(self) -> None:
+        """Forget the previous plans, the alternatives and the arrival (a new episode, or the plan no
+        longer matches the robot): a run never depends on what the same actor solved before."""
+        self.memory.forget()
 
-        The usual guess is the previous primal solution shifted by one stage, last stage
-        repeated: with multiple shooting it needs not satisfy the dynamics, so shifting the
-        whole vector (states and actions) is both cheap and closer than a re-rollout. The
-        other candidate is the solution from two steps ago, unshifted, and the one whose
-        actions cost less along a rollout from ``state`` is used. That candidate wins when the
-        loop alternates between two local minima (period-2 chattering, which the benchmark's
-        non-convex "learned" weights produce: the robot returns to the state of two steps
-        ago, where that solution is optimal, while the shifted guess lies in the other basin
-        and costs 2-4 times the iterations). A merit evaluation (JIT) costs ~2 us.
-        """
-        x0 = self._x0
-        settled = self._previous_x is not None and (hurry or self._episode_solves % self.problem.global_every != 0)
-        global_phase = self.problem.multistart and not settled
-        warm = self._previous_x is not None  # the shifted or the earlier plan
-        if global_phase:
-            best = self._global_guess(state)
-            warm = warm and best < 2
-        elif self._previous_x is None:
+    def swap_memory(self, memory: ActorMemory) -> ActorMemory:
+        """Step on with ``memory`` (another robot's plans, alternatives, arrival rule and counters);
+        returns the memory held until now. Not thread-safe: one step at a time per built actor."""
+        held, self.memory = self.memory, memory
+        return held
+
+    # -- stepping -------------------------------------------------------------------------
+    def _next_fresh(self) -> None:
+        """The next multistart_starts rows of the fresh-start table into the tick's input."""
+        first = self.memory.fresh % FRESH_ROWS
+        count = self._fresh.shape[0]
+        self._fresh[:] = self._fresh_values[first : first + count]
+        self._masks[:] = self._fresh_masks[first : first + count]
+        self._fresh[0], self._masks[0] = 0.0, 1.0  # the cold lane starts standing still (actor_search.COLD_PERIOD)
+
+    def _tick(self, state: np.ndarray, hurry: bool) -> tuple[bool, str, np.ndarray, float, np.ndarray | None]:
+        """The argmin's tick (actor_search): (success, status, decision vector, objective, plan or
+        None: the plan of the decision vector); the solver goes on where its Newton iterations ended
+        short of stationary."""
+        memory, counters = self.memory, self.memory.counters
+        self._tick_state[:] = state
+        started = time.perf_counter()
+        count = self._alternatives.shape[0]
+        if memory.previous_x is None or memory.alternatives is None or memory.ages is None:
+            # a cold start: the alternatives from the table, descended COLD_ROUNDS times
+            self._alternatives[:] = self._fresh_values[:count]
+            memory.fresh = count
+            self._ages[:] = 0.0
+            self._warm[:] = 0.0
+            self._warm[0, 0::STAGE], self._warm[0, 1::STAGE], self._warm[0, 2::STAGE] = state  # standing still
+            self._flags[:] = (0.0, 1.0, 0.0)
+            rounds = COLD_ROUNDS
+        else:
+            self._warm[0] = memory.previous_x
+            self._warm[1] = memory.earlier_x if memory.earlier_x is not None else memory.previous_x
+            self._alternatives[:] = memory.alternatives
+            self._ages[:] = memory.ages
+            self._flags[:] = (memory.earlier_x is not None, not hurry, 1.0)
+            rounds = 1
+        report = self._report
+        ran = [0.0] * len(REPORT)
+        for round_ in range(rounds + 1):
+            if round_ == rounds:  # once more only where the polish ended short of stationary
+                if not self._tick_stationarity[0] > NEWTON_TOLERANCE or self._tick_f[0] != self._tick_f[0]:
+                    break
+                # its Newton iterations go on from where they ended (no search: the alternatives stay)
+                counters.repolished += 1
+                self._warm[0] = self._tick_x
+                self._alternatives[:] = self._kept
+                self._ages[:] = self._kept_ages
+                self._flags[:] = (0.0, 0.0, 0.0)
+            self._next_fresh()
+            called = time.perf_counter()
+            self._evaluate_tick()
+            if self.recorder is not None:
+                self.recorder.append(
+                    TickRecord(
+                        state.copy(),
+                        self._params.copy(),
+                        self._alternatives.copy(),
+                        self._flags.copy(),
+                        report.copy(),
+                        self._trace.copy(),
+                        time.perf_counter() - called,
+                        counters.solves,
+                    )
+                )
+            said = report.tolist()
+            ran = [a + b for a, b in zip(ran, said, strict=True)]
+            if said[_REPLACED]:  # renewed alternatives took these rows: the next ones
+                memory.fresh += count
+            if round_ < rounds - 1:
+                self._warm[0] = self._tick_x
+                self._alternatives[:] = self._kept
+                self._ages[:] = self._kept_ages
+                self._flags[:] = (0.0, 1.0, 0.0)
+        counters.search_seconds += time.perf_counter() - started
+        memory.alternatives = self._kept.copy()
+        memory.ages = self._kept_ages.copy()
+        phases = counters.phase_counts
+        for phase, entry in _TICK_PHASES:
+            if ran[entry] > 0:
+                phases[phase] += 1
+        counters.alternative_wins += ran[_ALTERNATIVE_WON] > 0
+        counters.vertex_wins += ran[_VERTEX_WON] > 0
+        objective = float(self._tick_f[0])
+        if objective == objective and self._tick_stationarity[0] <= NEWTON_TOLERANCE:  # not NaN: x is finite
+            return True, "success", self._tick_x.copy(), objective, self._tick_plan.copy()
+        # the Newton iterations fell short (or a NaN): the interior point from where they ended
+        x = self._tick_x.copy()
+        phases["solver"] += 1
+        if np.all(np.isfinite(x)):
+            self._x0[:] = x
+            self._x0[:STATE_DIM] = state
+        else:
+            self._warm_guess(state)
+        started = time.perf_counter()
+        solved = self._solve()
+        counters.solver_seconds += time.perf_counter() - started
+        if solved[0] or not np.isfinite(objective):
+            return (*solved, None)
+        return True, "success", x, objective, self._tick_plan.copy()  # the solver failed: the tick's answer stands
+
+    def _warm_guess(self, state: np.ndarray) -> None:
+        """The paper's actor's warm start, written in place into the solver's input ``self._x0``:
+        the previous primal solution shifted by one stage (last stage repeated), or the solution
+        from two steps ago, unshifted, whichever costs less along a rollout from ``state``
+        (the merit). That candidate wins when the loop alternates between two local minima
+        (period-2 chattering: the robot returns to the state of two steps ago, where that
+        solution is optimal). With multiple shooting the guess needs not satisfy the dynamics."""
+        x0, memory = self._x0, self.memory
+        if memory.previous_x is None:
             x0[:] = 0.0
             for k in range(STATE_DIM):
                 x0[k::STAGE] = state[k]
         else:
-            self._shift_into(x0, self._previous_x)
-            if self._earlier_x is not None:
+            self._shift_into(x0, memory.previous_x)
+            if memory.earlier_x is not None:
                 self._merit_state[:] = state
-                if self._merit_of(self._earlier_x) < self._merit_of(x0):
-                    x0[:] = self._earlier_x
+                if self._merit_of(memory.earlier_x) < self._merit_of(x0):
+                    x0[:] = memory.earlier_x
         x0[:STATE_DIM] = state
-        return global_phase, warm
-
-    def _global_guess(self, state: np.ndarray) -> int:
-        """The multistart guess (ActorProblem.multistart), written into ``self._x0``: every
-        start descended by the global phase (common.math.actor_nlp.global_phase) from
-        ``state``, and the rollout of the end with the lowest objective. The warm starts are the
-        shifted previous plan and the plan of two steps ago (the candidates of the merit-only
-        guess, see _initial_guess). Returns the row of the start whose end it is."""
-        starts, bounds = self._starts, self._decision_bounds
-        if self._previous_x is None:
-            starts[0], starts[1] = self._turning
-        else:
-            self._shift_into(self._shifted, self._previous_x)
-            np.clip((self._decisions_of(self._shifted) / bounds).ravel(), -1.0, 1.0, out=starts[0])
-            if self._earlier_x is None:
-                starts[1] = self._turning[0]
-            else:
-                np.clip((self._decisions_of(self._earlier_x) / bounds).ravel(), -1.0, 1.0, out=starts[1])
-        self._global_state[:] = state
-        self._evaluate_global()
-        values = self._end_values
-        best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
-        self._x0[:] = self._end_vectors[best]
-        return best
-
-    def _phase_done(self, phase: str, since: float) -> float:
-        """Count one run of ``phase`` that began at ``since`` (perf_counter); return now."""
-        now = time.perf_counter()
-        self.counters.add_phase(phase, now - since)
-        return now
 
     def _solve(self) -> tuple[bool, str, np.ndarray, float]:
         """One solve from ``self._x0``: (success, status, solution, objective)."""
+        self._lbx_np[:STATE_DIM] = self._x0[:STATE_DIM]
+        self._ubx_np[:STATE_DIM] = self._x0[:STATE_DIM]
         try:
             self._evaluate()
             return True, "success", self._x_out.copy(), float(self._f_out[0])
@@ -302,119 +313,6 @@ class StackedActor:
             if "process failed" not in str(error):  # an evaluation error, not a failed solve
                 status += f" (error: {str(error).strip().splitlines()[-1]})"
             return False, status, self._x0.copy(), float("nan")
-
-    def _polish(self, warm: bool) -> tuple[bool, str, np.ndarray, float]:
-        """The polish of the start in ``self._x0`` (the solver's bounds already hold the state).
-        A ``warm`` start (a previous plan of this robot, shifted or not, after the global phase's
-        descent if it ran: it lies in the basin of the minimum it was polished to) goes to the
-        compiled Newton iterations (ActorProblem.newton_iterations), whose end is the answer when
-        it is stationary (projected gradient <= NEWTON_TOLERANCE). A fresh start (standing still,
-        full speed, a vertex neighbour), and a warm one whose iterations fall short, goes to the
-        solver from the start itself: the interior point's path may leave a fresh start's basin
-        for a lower minimum, where the Newton iterations only descend into the nearest one."""
-        if warm and self._newton_ready:
-            np.clip((self._decisions_of(self._x0) / self._decision_bounds).ravel(), -1.0, 1.0, out=self._newton_start)
-            self._newton_state[:] = self._x0[:STATE_DIM]
-            self._evaluate_newton()
-            value = float(self._newton_value[0])
-            if np.isfinite(value) and self._newton_stationarity[0] <= NEWTON_TOLERANCE:
-                return True, "success", self._newton_vector.copy(), value
-            self.counters.newton_fallbacks += 1
-        return self._solve()
-
-    def _descend(self) -> tuple[bool, str, np.ndarray, float]:
-        """The hurried step's answer (ActorProblem.hurry "descend"): the warm start in
-        ``self._x0`` descended by the global phase's projected gradient, no solver: (success,
-        status, the rollout's decision vector, its objective). The descent only takes steps that
-        lower the objective, so the answer is never worse than the warm start along the rollout."""
-        np.clip((self._decisions_of(self._x0) / self._decision_bounds).ravel(), -1.0, 1.0, out=self._descent_start)
-        self._descent_state[:] = self._x0[:STATE_DIM]
-        self._evaluate_descent()
-        value = float(self._descent_value[0])
-        return bool(np.isfinite(value)), "descended", self._descent_vector.copy(), value
-
-    def _runner_up(self) -> tuple[np.ndarray, bool] | None:
-        """The lowest end of the other kind of start, when the merit cannot tell it from the
-        lowest end: the warm starts (rows 0-1: plans the solver converged, their ends at their
-        minima) against the fresh ones (rows 2-4, whose descent may stop short of a lower
-        minimum, in the flat valleys near the target above all). Returned when the two ends are
-        apart and its objective is within ``multistart_margin`` (relative) of the lowest or the
-        solve is a ``multistart_refresh``-th one, with whether it is warm (:meth:`_polish`), else
-        None; between refreshes, None while the last runner-up polish lost by more than
-        ``multistart_hopeless``. Read right after :meth:`_global_guess` for the same state, and
-        not at all when the polish of the lowest end fell back to the solver (:meth:`step`)."""
-        refresh = self.problem.multistart_refresh
-        values = np.where(np.isfinite(self._end_values), self._end_values, np.inf)
-        best = int(np.argmin(values))
-        group = range(2, GLOBAL_STARTS) if best < 2 else range(2)
-        other = min(group, key=lambda row: values[row])
-        if not np.isfinite(values[other]):
-            return None
-        due = refresh > 0 and self._episode_solves % refresh == 0
-        hopeless = self.problem.multistart_hopeless
-        if not due and hopeless > 0 and self._runner_up_shortfall > hopeless:
-            return None
-        if not due and values[other] > values[best] + self.problem.multistart_margin * abs(values[best]) + 1e-12:
-            return None
-        if np.max(np.abs(self._ends[best] - self._ends[other])) < 1e-3:  # the same end
-            return None
-        vector: np.ndarray = self._end_vectors[other]
-        return vector, self._previous_x is not None and other < 2
-
-    def _same_basin(self, state: np.ndarray, start: np.ndarray, solution: np.ndarray) -> bool:
-        """Does the objective fall all the way from ``start``'s actions to the ``solution``'s along
-        the straight line between them (the merit at 1/4, 1/2, 3/4)? Then both likely lie in one
-        basin and polishing ``start`` would find ``solution`` again; a rise on the way is a ridge
-        between two basins. ~10 us against a solve's 0.1-0.3 ms: with convex critics the fresh
-        ends are near the polished minimum's basin at most steps."""
-        self._merit_state[:] = state
-        segment = self._segment
-        previous = self._merit_of(start)
-        for fraction in (0.25, 0.5, 0.75, 1.0):
-            np.multiply(start, 1.0 - fraction, out=segment)
-            segment += fraction * solution
-            value = self._merit_of(segment)
-            if value > previous + 1e-12 * (1.0 + abs(previous)):
-                return False
-            previous = value
-        return True
-
-    def _flip_search(self, state: np.ndarray, x: np.ndarray) -> np.ndarray | None:
-        """The vertex search (ActorProblem.multistart_flips) from the solution ``x``: the
-        decision vector of the rollout of a lower vertex neighbour's actions, or None.
-
-        A sweep evaluates the 2 n_z neighbours -- one decision entry set to its lower or its
-        upper bound, the others as they are -- along the rollout from ``state`` (one compiled
-        call) and moves to the lowest while it is lower by more than 1e-6 relative (rounding and
-        flat entries never move it). Where a learned critic is concave along an entry the
-        objective along it is lowest at one of its two bounds: the polished solution sits on one
-        and cannot see the other."""
-        bounds, candidates, values = self._flat_bounds, self._candidates, self._candidate_values
-        decisions = np.clip(self._decisions_of(x).ravel(), -bounds, bounds)
-        self._merit_state[:] = state
-        self._merit_actions[:] = decisions.reshape(-1, ACTION_DIM)
-        self._evaluate_merit()
-        current = float(self._merit_out[0])
-        self._flip_state[:] = state
-        n_z = decisions.size
-        diagonal = np.arange(n_z)
-        moved = False
-        for _ in range(self.problem.multistart_flips):
-            candidates[:] = decisions
-            candidates[diagonal, diagonal] = bounds
-            candidates[n_z + diagonal, diagonal] = -bounds
-            self._evaluate_flips()
-            best = int(np.argmin(np.where(np.isfinite(values), values, np.inf)))
-            if not values[best] < current - 1e-6 * abs(current) - 1e-12:
-                break
-            decisions[:] = candidates[best]
-            current = float(values[best])
-            moved = True
-        if not moved:
-            return None
-        self._rollout_decisions[:] = decisions
-        self._evaluate_rollout()
-        return self._rollout_out.copy()
 
     @staticmethod
     def _shift_into(out: np.ndarray, x: np.ndarray) -> None:
@@ -449,14 +347,11 @@ class StackedActor:
     def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray, hurry: bool = False) -> ActorStep:
         """Minimize the agent's objective from ``state``; return the first held action.
 
-        ``solve_seconds`` is the whole step (guess, solve, checks), not the solver alone.
-        ``hurry``: the caller is behind its schedule or over its CPU budget (an actor host,
-        services/actor/host.py): the warm start (the previous plan, as with ``multistart`` off;
-        the global phase only while there is no plan yet) polished once (ActorProblem.hurry
-        "polish": its Newton iterations, the solver where they fall short) or descended by the
-        compiled projected gradient ("descend", no solver: a fifth of the global phase), without
-        the runner-up polish and the vertex search (counted in ``hurried_solves``), so a host that
-        fell behind catches up instead of missing deadlines.
+        ``solve_seconds`` is the whole step (checks, the tick or the solver, the plan), not the
+        solver alone. ``hurry``: the caller is behind its schedule or over its CPU budget (an actor
+        host, services/actor/host.py): the warm polish only, without the search and the vertex
+        search (counted in ``hurried_solves``), so a host that fell behind catches up instead of
+        missing deadlines; with no plan yet the step is a full one.
         """
         started = time.perf_counter()
         state = np.asarray(state, dtype=float)
@@ -467,10 +362,11 @@ class StackedActor:
         for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
             if weights.shape != (size,) or not all_finite(weights):
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
-        if self.arrival is not None and self.arrival.update(state):
+        memory, counters = self.memory, self.memory.counters
+        if memory.arrival is not None and memory.arrival.update(state):
             # Arrived: exactly zero, no solve. The plan is void: resuming starts cold.
-            self._previous_x = self._earlier_x = None
-            self.counters.arrived_steps += 1
+            memory.previous_x = memory.earlier_x = None
+            counters.arrived_steps += 1
             return ActorStep(
                 action=np.zeros(ACTION_DIM),
                 plan=np.zeros((self.problem.horizon - 1, ACTION_DIM)),
@@ -484,83 +380,42 @@ class StackedActor:
             v_weights = nearest_psd_weights(v_weights, STATE_DIM)
         self._params[:Q_FEATURES] = q_weights
         self._params[Q_FEATURES:] = v_weights
-        counters = self.counters
-        mark = time.perf_counter()
-        fallbacks = counters.newton_fallbacks
-        global_phase, warm = self._initial_guess(state, hurry)
-        if global_phase:
-            mark = self._phase_done("global", mark)
-        if hurry and self._descent_ready and not global_phase:
-            success, status, x_opt, objective = self._descend()
+        planned: np.ndarray | None = None
+        if self.problem.multistart:
+            hurried = hurry and memory.previous_x is not None
+            counters.hurried_solves += hurried
+            success, status, x_opt, objective, planned = self._tick(state, hurried)
         else:
-            self._lbx_np[:STATE_DIM] = state
-            self._ubx_np[:STATE_DIM] = state
-            success, status, x_opt, objective = self._polish(warm)
-            mark = self._phase_done("polish", mark)
-        extras = self.problem.multistart and not hurry  # the runner-up polish and the vertex search
-        if hurry and self.problem.multistart:
-            counters.hurried_solves += 1
-        # A polish that fell back to the solver has run its interior point from the warm end
-        # (which may leave that basin for a lower minimum): a runner-up polish too would be a
-        # second interior-point solve in one step, the slowest steps (docs/concepts.md, item 3).
-        fell_back = counters.newton_fallbacks > fallbacks
-        runner_up = self._runner_up() if extras and global_phase and not fell_back else None
-        if runner_up is not None and success and self._same_basin(state, runner_up[0], x_opt):
-            runner_up = None
-        if runner_up is not None:
-            # The merit cannot tell a warm end (at its minimum) from a fresh one (whose descent
-            # may stop short of a lower minimum, near the target above all): polish both, keep
-            # the lower.
-            self._x0[:] = runner_up[0]
-            self._x0[:STATE_DIM] = state
-            counters.second_solves += 1
-            second = self._polish(runner_up[1])
-            mark = self._phase_done("runner_up", mark)
-            won = second[0] and (not success or second[3] < objective)
-            lost_by = (second[3] - objective) / max(abs(objective), 1e-12) if second[0] and success else 0.0
-            self._runner_up_shortfall = 0.0 if won else lost_by
-            if won:
-                success, status, x_opt, objective = second
-        flips = extras and self.problem.multistart_flips > 0
-        neighbour = None
-        if success and flips:
-            mark = time.perf_counter()
-            neighbour = self._flip_search(state, x_opt)
-            mark = self._phase_done("flip_search", mark)
-        if neighbour is not None:
-            # A lower vertex neighbour of the solution: polish it, keep the lower.
-            self._x0[:] = neighbour
-            counters.flip_solves += 1
-            flipped = self._solve()  # a fresh start: a vertex of the box moved (_polish)
-            self._phase_done("flip_polish", mark)
-            if flipped[0] and flipped[3] < objective:
-                success, status, x_opt, objective = flipped
+            self._warm_guess(state)
+            success, status, x_opt, objective = self._solve()
 
-        if success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
+        if planned is not None:  # the tick's answer: finite (its rollout of a plan in the box), planned
+            plan = planned
+            memory.earlier_x, memory.previous_x = memory.previous_x, x_opt
+        elif success and np.isfinite(objective) and np.all(np.isfinite(x_opt)):
             plan = self._plan_of(x_opt)
-            self._earlier_x, self._previous_x = self._previous_x, x_opt
+            memory.earlier_x, memory.previous_x = memory.previous_x, x_opt
         else:
             success = False
-            self.counters.failures += 1
+            counters.failures += 1
             log.debug("actor solve failed (%s); falling back", status)
             # Safe fallback: the previous plan shifted by one step with zero velocity appended,
             # so repeated failures run the plan out and then stand still. Else standing
             # still. Finite and bounded.
-            if self._previous_x is not None:
+            if memory.previous_x is not None:
                 fallback = np.empty(self._n_x)
-                self._shift_into(fallback, self._previous_x)
+                self._shift_into(fallback, memory.previous_x)
                 fallback[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
                 plan = self._plan_of(fallback)
-                self._earlier_x, self._previous_x = self._previous_x, fallback
+                memory.earlier_x, memory.previous_x = memory.previous_x, fallback
             else:
                 plan = np.zeros((self.problem.horizon - 1, ACTION_DIM))
             objective = float("nan")
         elapsed = time.perf_counter() - started
-        self.counters.solves += 1
-        self._episode_solves += 1
-        self.counters.solve_seconds.append(elapsed)
-        if self.arrival is not None:  # the wheels' deadband at the output (common.math.arrival)
-            plan[0] = self.arrival.last_word(plan[0], state)
+        counters.solves += 1
+        counters.solve_seconds.append(elapsed)
+        if memory.arrival is not None:  # the wheels' deadband at the output (common.math.arrival)
+            plan[0] = memory.arrival.last_word(plan[0], state)
         return ActorStep(
             action=plan[0].copy(),
             plan=plan,

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Literal, get_args
 
 import numpy as np
 
@@ -19,17 +18,6 @@ from common.math.arrival import ArrivalRule
 from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.math.features import feature_index_pairs
 from common.math.stats import Window
-
-# The global phase's starts (ActorProblem.multistart): the shifted and the earlier plan (or, with
-# no plan yet, turning in place either way), standing still, full speed ahead, full speed back.
-GLOBAL_STARTS = 5
-# The polish's Newton iterations are done when the largest entry of the projected gradient (of
-# the objective in the box-scaled decisions z in [-1, 1]) is at most this; else the solver goes on
-# from their end (common.math.actor.StackedActor._polish).
-NEWTON_TOLERANCE = 1e-6
-# What a hurried step does once the robot has a plan (ActorProblem.hurry).
-Hurry = Literal["polish", "descend"]
-HURRIES: tuple[Hurry, ...] = get_args(Hurry)
 
 
 @dataclass(frozen=True)
@@ -64,55 +52,29 @@ class ActorProblem:
     # indefinite in (s, u) predicts negative costs near the target that only motion reaches, and
     # the actor chases them at full speed (docs/experiment.md, chatter). Not a shape change.
     convex_critics: bool = False
-    # The argmin (docs/concepts.md): before the solver, a cheap global phase -- projected-gradient
-    # descent on the objective along a rollout, from several starts at once (the shifted and the
-    # earlier plan, standing still, full speed ahead, full speed back; :meth:`StackedActor.
-    # _global_guess`) -- and the solver polishes the start whose descent ended lowest. False:
-    # the solver starts from the cheaper of the shifted and the earlier plan (merit only), which
-    # often stays in a worse local minimum with non-convex critics.
+    # The argmin (docs/concepts.md, "The argmin"; common/math/actor_search.py): every tick, in one
+    # compiled call, the warm plan polished by projected Newton iterations, the robot's alternative
+    # plans descended a little further (a global search spread over the ticks), the lowest of them
+    # polished where it may win, and a vertex search; the solver only where the Newton iterations
+    # fall short. False: the paper's actor, the solver from the cheaper of the shifted and the
+    # earlier plan (merit only), which with non-convex critics often stays in a worse local minimum.
     multistart: bool = False
-    multistart_iterations: int = 50  # projected-gradient iterations per start (compiled, ~1-3 us each at N = 12)
-    # The merit cannot tell: also polish the lowest end of the other kind of start (warm: the
-    # shifted and earlier plans; fresh: the other three) when its objective is within this share
-    # of the lowest's, and keep the lower solution (StackedActor._runner_up). 0: the lowest only.
+    multistart_starts: int = 4  # alternative plans each robot keeps and descends every tick
+    multistart_iterations: int = 10  # projected-gradient iterations per alternative and tick (~1 us each at N = 12)
+    # An alternative is polished when its objective is below the warm answer's, or within this share
+    # of it once it has descended for a few ticks (actor_search.MATURE); one that stays beyond it is
+    # renewed (actor_search.RETIRE).
     multistart_margin: float = 0.1
-    # Every this many solves, polish the other kind of start's lowest end whatever the merit says
-    # (a fresh descent may stop far short of a lower minimum: near the target its end often
-    # looks worse than a converged warm plan whose basin is worse); the warm start then keeps a
-    # lower minimum once found. 0: never (the margin alone decides).
-    multistart_refresh: int = 3
-    # A runner-up polish that ended above the answer by more than this share (it lost by a lot)
-    # predicts the next ones: they are skipped, the margin's as well, until a refresh's
-    # (``multistart_refresh``) polish measures again and loses by less or wins. Where the other
-    # kind of start keeps descending to a worse minimum (an indefinite critic: 6-7 % worse at 60 %
-    # of the steps, none lower) that is a fatrop solve saved per step; where it sometimes wins
-    # (losing by 0.2-0.3 % otherwise) nothing changes. 0: never skipped.
-    multistart_hopeless: float = 0.0
-    # After the polish, a vertex search (StackedActor._flip_search): every single held-action
-    # entry set to either bound, the lowest of these 2 (N - 1) x 2 neighbours along the rollout
-    # taken while it lowers the objective, up to this many sweeps, and the solver polishes the
-    # result (kept when lower). An indefinite critic is concave along some action directions:
-    # along them a local minimum sits on one bound while the other may be lower, which neither
-    # the descent nor the interior point can see. 0: off.
-    multistart_flips: int = 0
-    # The global phase (and the runner-up polish, which picks among its ends) at every this many
-    # solves of a robot, and at every solve without a plan; the solves between start from the
-    # cheaper of the shifted and the earlier plan (as ``multistart`` off) and keep the vertex
-    # search. Once a plan has settled the global phase rarely moves the answer, and it is ~40 % of
-    # a solve at N = 12; an actor host serving many robots sets it (actor.host_global_every). 1: every solve.
-    global_every: int = 1
-    # What a hurried step (StackedActor.step ``hurry``) does once the robot has a plan: "polish",
-    # one solver polish of the warm start; "descend", the warm start descended by the global
-    # phase's compiled projected gradient, no solver (one start: a fifth of the global phase;
-    # compiled only with this setting and ``multistart``). An actor host over its CPU budget sets it
-    # (actor.host_hurry): what a hurried tick costs is what caps the host's CPU.
-    hurry: Hurry = "polish"
-    # The polish (of the chosen start, the runner-up, a vertex neighbour): first this many
-    # projected Newton iterations on the single-shooting objective, compiled into one call
-    # (common.math.actor_nlp.newton_polish, ~10 us each at N = 12), and the solver only where
-    # their end is not stationary (projected gradient above NEWTON_TOLERANCE). 0: the solver
-    # polishes every start.
-    newton_iterations: int = 0
+    # After the polish, up to this many sweeps of the vertex search: every single decision entry
+    # set to either bound, the lowest of these 2 (N - 1) x 2 neighbours along the rollout taken
+    # while it lowers the objective, then polished (kept when lower). An indefinite critic is
+    # concave along some action directions: along them a local minimum sits on one bound while the
+    # other may be lower, which no descent can see. 0: off.
+    multistart_flips: int = 3
+    # The polish: at most this many projected Newton iterations on the single-shooting objective
+    # (~8 us each at N = 12), each skipped once the projected gradient is below
+    # actor_search.NEWTON_TOLERANCE; the solver (fatrop) only where they end short of it.
+    newton_iterations: int = 20
 
     def __post_init__(self) -> None:
         if self.agent not in AGENTS:
@@ -137,20 +99,14 @@ class ActorProblem:
             raise ValueError(f"bound_push must be in (0, 0.5], got {self.bound_push}")
         if not (np.isfinite(self.multistart_margin) and self.multistart_margin >= 0):
             raise ValueError(f"multistart_margin must be a number >= 0, got {self.multistart_margin}")
-        if not (np.isfinite(self.multistart_hopeless) and self.multistart_hopeless >= 0):
-            raise ValueError(f"multistart_hopeless must be a number >= 0 (0 = never), got {self.multistart_hopeless}")
-        if self.multistart_refresh < 0:
-            raise ValueError(f"multistart_refresh must be >= 0 (0 = never), got {self.multistart_refresh}")
-        if self.multistart_iterations < 1:
-            raise ValueError(f"multistart_iterations must be >= 1, got {self.multistart_iterations}")
-        if self.global_every < 1:
-            raise ValueError(f"global_every must be >= 1 (1 = every solve), got {self.global_every}")
-        if self.hurry not in HURRIES:
-            raise ValueError(f"unknown hurry {self.hurry!r}; choose one of {', '.join(HURRIES)}")
-        if not 0 <= self.newton_iterations <= 50:
-            raise ValueError(f"newton_iterations must be 0..50 (0 = no Newton), got {self.newton_iterations}")
-        if self.multistart_flips < 0:
-            raise ValueError(f"multistart_flips must be >= 0 (0 = off), got {self.multistart_flips}")
+        if not 1 <= self.multistart_starts <= 32:
+            raise ValueError(f"multistart_starts must be 1..32, got {self.multistart_starts}")
+        if not 1 <= self.multistart_iterations <= 1000:
+            raise ValueError(f"multistart_iterations must be 1..1000, got {self.multistart_iterations}")
+        if not 0 <= self.multistart_flips <= 10:
+            raise ValueError(f"multistart_flips must be 0..10 (0 = off), got {self.multistart_flips}")
+        if not 1 <= self.newton_iterations <= 50:
+            raise ValueError(f"newton_iterations must be 1..50, got {self.newton_iterations}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
             raise ValueError(f"wheel_speed_max must be >= 0 (0 = no wheel box), got {self.wheel_speed_max}")
         for name in ("wheel_radius", "wheel_separation"):
@@ -232,37 +188,36 @@ class ActorStep:
     status: str
 
 
-# The phases of a step (StackedActor.step): the global phase (multistart), the solver's polish
-# of the chosen start, the runner-up's polish, the vertex search and the polish of what it found.
-PHASES = ("global", "polish", "runner_up", "flip_search", "flip_polish")
+# What a step can run (StackedActor.step, common/math/actor_search.py): the warm polish, the
+# search (the alternatives' descent), the polish of an alternative, the vertex search, the polish
+# of where it ended, and the solver where the Newton iterations fell short.
+PHASES = ("warm_polish", "search", "alternative_polish", "vertex_search", "vertex_polish", "solver")
 
 
 @dataclass
 class ActorCounters:
-    """Solves, failures and the step times (a fixed window: an actor runs for days)."""
+    """Solves, failures and the step times (a fixed window: an actor runs for days; the rest are sums)."""
 
     solves: int = 0
     failures: int = 0
     arrived_steps: int = 0  # steps at which the arrival rule held the robot (no solve)
-    second_solves: int = 0  # steps that also polished the runner-up end (multistart_margin)
-    flip_solves: int = 0  # steps whose vertex search found a lower neighbour and polished it (multistart_flips)
-    hurried_solves: int = 0  # steps solved in a hurry: the runner-up polish and vertex search skipped
-    newton_fallbacks: int = 0  # polishes whose Newton iterations fell short: the solver went on (newton_iterations)
+    hurried_solves: int = 0  # steps solved in a hurry: the warm polish only (no search, no vertex search)
+    alternative_wins: int = 0  # steps whose answer is a polished alternative plan (the search)
+    vertex_wins: int = 0  # steps whose answer the vertex search found
+    repolished: int = 0  # steps whose polish ended short of stationary and went on for another tick's iterations
     solve_seconds: Window = field(default_factory=Window)
-    # per phase of a step (PHASES): the steps that ran it and its total time [s] (sums, not lists)
+    # per phase (PHASES): the steps that ran it; and the seconds of the compiled search calls
+    # (the rest of a step's time is the Python around them and the solver)
     phase_counts: dict[str, int] = field(default_factory=lambda: dict.fromkeys(PHASES, 0))
-    phase_seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PHASES, 0.0))
-
-    def add_phase(self, phase: str, seconds: float) -> None:
-        """One run of ``phase`` (one of PHASES) that took ``seconds``."""
-        self.phase_counts[phase] += 1
-        self.phase_seconds[phase] += seconds
+    search_seconds: float = 0.0
+    solver_seconds: float = 0.0
 
 
 @dataclass
 class ActorMemory:
     """What one robot's actor carries from one step to the next: its last two plans (the warm
-    starts), its arrival rule, its counters and the refresh's phase. Everything else of a
+    starts), its alternative plans and their ages (the search, common/math/actor_search.py), the
+    next row of the fresh-start table, its arrival rule and its counters. Everything else of a
     :class:`~common.math.actor.StackedActor` (the compiled problem and its buffers, which every
     step rewrites completely before solving) holds nothing between steps, so one built actor
     serves many robots, one step at a time, each with its own memory
@@ -272,5 +227,14 @@ class ActorMemory:
     earlier_x: np.ndarray | None = None
     arrival: ArrivalRule | None = None
     counters: ActorCounters = field(default_factory=ActorCounters)
-    episode_solves: int = 0  # solves since the last reset: the phase of multistart_refresh
-    runner_up_shortfall: float = 0.0  # how far the last runner-up polish ended above the answer (multistart_hopeless)
+    alternatives: np.ndarray | None = None  # (multistart_starts, 2 (N - 1)) scaled plans; None: none yet
+    ages: np.ndarray | None = None  # ticks each alternative has descended
+    fresh: int = 0  # the next row of the fresh-start table (actor_search.fresh_starts)
+
+    def forget(self) -> None:
+        """A new episode (or the plans no longer match the robot): no plans, no arrival; counters kept."""
+        self.previous_x = self.earlier_x = None
+        self.alternatives = self.ages = None
+        self.fresh = 0
+        if self.arrival is not None:
+            self.arrival.reset()

@@ -61,8 +61,8 @@ log = logging.getLogger(__name__)
 M = TypeVar("M")
 
 # A tick served more than this fraction of a period after its due time is solved in a hurry
-# (StackedActor.step: the warm start descended or polished once, actor.host_hurry; no global
-# phase, runner-up polish or vertex search): a host behind its schedule sheds the optional work
+# (StackedActor.step: the warm polish only, no search and no vertex search): a host behind its
+# schedule sheds the optional work
 # until it is on time again, instead of missing deadlines.
 HURRY_FRACTION = 0.05
 # An actor host's actions leave in rounds (Outbox): those of one tick group together, or
@@ -364,7 +364,7 @@ def run_host(
     """The real-time loops of ``robots`` in this process, over one Zenoh session."""
     started = time.monotonic()
     # built once for every robot (one compiled problem per agent, N)
-    shared = build_actor(settings, global_every=settings.actor.host_global_every, hurry=settings.actor.host_hurry)
+    shared = build_actor(settings)
     log.info(
         "actor host: %d robots, %s N = %d, built in %.1f s",
         len(robots),

@@ -69,11 +69,11 @@ def generate(base: Settings) -> dict[str, Any]:
         "steps": list(SNAPSHOT_STEPS),
         "actor": {
             "multistart": actor.multistart,
+            "multistart_starts": actor.multistart_starts,
             "multistart_iterations": actor.multistart_iterations,
             "multistart_margin": actor.multistart_margin,
-            "multistart_refresh": actor.multistart_refresh,
-            "multistart_hopeless": actor.multistart_hopeless,
             "multistart_flips": actor.multistart_flips,
+            "newton_iterations": actor.newton_iterations,
             "jit": False,
         },
         "critic": base.critic.model_dump(mode="json", exclude={"checkpoint", "resume", "robots"}),

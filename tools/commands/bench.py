@@ -42,12 +42,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     actor_bench.add_argument(
         "--agents", default=",".join(AGENTS), help=f"comma-separated agents (default: {','.join(AGENTS)})"
     )
-    actor_bench.add_argument("--horizons", default="6,12,30", help="comma-separated N values (default: 6,12,30)")
+    actor_bench.add_argument(
+        "--quick",
+        action="store_true",
+        help="N = 12 only, no reference rows, a 10-step baseline, the best known minimum at 20 states: "
+        "the speed and the argmin in a few minutes (the full bench: the benchmark page)",
+    )
+    actor_bench.add_argument(
+        "--horizons", default=None, help="comma-separated N values (default: 6,12,30; --quick: 12)"
+    )
     actor_bench.add_argument(
         "--steps", type=int, default=300, help="closed-loop steps per row (>= 300 for p99) (default: 300)"
     )
     actor_bench.add_argument(
-        "--baseline-steps", type=int, default=30, help="steps of the slow SLSQP baseline per row (default: 30)"
+        "--baseline-steps",
+        type=int,
+        default=None,
+        help="steps of the slow SLSQP baseline per row (default: 30; --quick: 10)",
+    )
+    actor_bench.add_argument(
+        "--judged-states",
+        type=int,
+        default=None,
+        help="closed-loop states per row at which the argmin is judged against the best known minimum "
+        "(default: 40; --quick: 20)",
     )
     actor_bench.add_argument(
         "--method",
@@ -58,8 +76,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     actor_bench.add_argument(
         "--reference-horizons",
-        default="12",
-        help="N values for the IPOPT reference rows ('' = none) (default: 12)",
+        default=None,
+        help="N values for the reference rows, the paper's plain actor with IPOPT ('' = none) "
+        "(default: 12; --quick: none)",
     )
 
     loop_bench = kind("loop", "the real-time loop through the services: tick jitter, latency, staleness")

@@ -337,7 +337,7 @@ def _solves(actor: Any) -> int:
     if actor is None:
         return 0
     counters = actor.counters
-    return int(counters.solves + counters.second_solves + counters.flip_solves)
+    return int(counters.solves)
 
 
 def evaluation_starts(grid: int, extent: float, seed: int) -> dict[str, list[Start]]:
