@@ -58,6 +58,11 @@ NEWTON_STEPS = (1 / 64, 1 / 16, 1 / 4, 1 / 2, 1.0, 2.0, 4.0, 8.0, 16.0)
 # How many times a Newton step raises its damping tenfold (from 1e-4, times the Hessian's largest
 # diagonal entry, up to 1) where the damped reduced Hessian is not positive definite.
 DAMPING_TRIES = 5
+# Up to this many decision entries (N <= 21) a Newton step factorizes by a Cholesky written out in
+# the compiled code (its failure the exact test of positive definiteness); beyond, by CasADi's sparse
+# LDL, whose code does not grow as N^3 (N = 30 compiles in ~1.5 minutes instead of ~2), taking the
+# step where it descends.
+CHOLESKY_ENTRIES = 40
 # The objective's relative rounding a Newton step may add (a few units in the last place).
 ROUNDING = 8.0 * float(np.finfo(float).eps)
 # An alternative within the margin of the warm answer is polished once it has descended this many ticks.
@@ -171,10 +176,15 @@ def newton_function(
         "newton_parts", [z, state, weights], [reduced, free * gradient, scaled_gradient, onto_bounds, scale]
     )
 
-    matrix, rhs, tau = ca.SX.sym("R", n, n), ca.SX.sym("g", n), ca.SX.sym("tau")
-    factor = ca.chol(matrix + tau * ca.SX.eye(n))  # upper triangular; NaN where not positive definite
-    step = -ca.solve(factor, ca.solve(factor.T, rhs))
-    solve = ca.Function("damped_solve", [matrix, rhs, tau], [step, ca.dot(rhs, step) < 0])  # false for NaN
+    if n <= CHOLESKY_ENTRIES:  # a Cholesky factorization written out: NaN where not positive definite
+        matrix_s, rhs_s, tau_s = ca.SX.sym("R", n, n), ca.SX.sym("g", n), ca.SX.sym("tau")
+        factor = ca.chol(matrix_s + tau_s * ca.SX.eye(n))  # upper triangular
+        step_s = -ca.solve(factor, ca.solve(factor.T, rhs_s))
+        solve = ca.Function("damped_solve", [matrix_s, rhs_s, tau_s], [step_s, ca.dot(rhs_s, step_s) < 0])
+    else:  # CasADi's sparse LDL: compact code at any N (where the Cholesky's grows as N^3)
+        matrix, rhs, tau = ca.MX.sym("R", n, n), ca.MX.sym("g", n), ca.MX.sym("tau")
+        step = -ca.solve(matrix + tau * ca.MX.eye(n), rhs, "ldl")
+        solve = ca.Function("damped_solve", [matrix, rhs, tau], [step, ca.dot(rhs, step) < 0])  # false for NaN
 
     zm, fm, mu_m = ca.MX.sym("z", n), ca.MX.sym("f"), ca.MX.sym("mu")
     sm, wm = ca.MX.sym("s", state.numel()), ca.MX.sym("w", weights.numel())
@@ -359,7 +369,9 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
         candidates.append(ca.logic_or(v_s[j] < f_warm, mature))  # false for NaN
     # the first alternative, the cold lane, is polished once it has descended COLD_PERIOD - 1 ticks
     # (or before, as any alternative, once it is below the warm answer)
-    due = ca.logic_and(a_s[0] >= COLD_PERIOD - 1, ca.mmax(ca.fabs(e_s[:, 0] - z_warm_s)) >= SAME_PLAN)
+    due = ca.logic_and(
+        ca.logic_and(a_s[0] >= COLD_PERIOD - 1, v_s[0] < within), ca.mmax(ca.fabs(e_s[:, 0] - z_warm_s)) >= SAME_PLAN
+    )
     candidates[0] = ca.logic_or(due, v_s[0] < f_warm)
     for j in range(1, count):  # the first, standing still, has a polish of its own
         better = ca.logic_and(candidates[j], v_s[j] < best_v)

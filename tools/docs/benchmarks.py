@@ -96,10 +96,11 @@ def actor_body(data: dict[str, Any]) -> list[str]:
         "Whole actor step [ms] per agent, N and critic weights, against the slow baseline (SLSQP with finite",
         "differences, no warm start). *gap* is the median relative gap of the objective the actor reached to",
         "a cold SLSQP solve at the same states (< 0: the actor's is lower); *not worse* the share of those",
-        "states where it is as low or lower; *best known* (trained weights) the share of 40 states of the loop",
-        "where the actor's objective is within 1e-6 of the lowest of 20 SLSQP solves (exact gradient) from",
-        "standing still and 19 random plans; *reference* how often that lowest of 20 is itself within 1e-6 of",
-        "the lowest of 40 (a second 20-start run with other random plans): the judge's own reliability.",
+        "states where it is as low or lower; *best known* (trained weights, N = 6 and 12) the share of the",
+        "loop's states where the actor's objective is within 1e-6 of the best known minimum (`BestKnown`:",
+        "every sign pattern of the held speeds, random plans, an iterated local search, the lowest polished",
+        "by SLSQP), +/- its standard error; *reference* how often that minimum is itself within 1e-6 of the",
+        "lower of it and a second run with other random draws: the judge's own reliability.",
         "",
         "| agent | N | weights | solver | median | p99 | max | failures | baseline median | speedup | gap "
         "| not worse | best known | reference |",
@@ -109,12 +110,14 @@ def actor_body(data: dict[str, Any]) -> list[str]:
         objective = r.get("objective") or {}
         share = objective.get("share_le")
         best = (r.get("best_known") or {}).get("share_le")
+        error = (r.get("best_known") or {}).get("standard_error")
         reference = (r.get("best_known") or {}).get("reference_share")
+        spread = "" if best is None or error is None else f" +/- {error:.0%}"
         lines.append(
             f"| {r['agent']} | {r['horizon']} | {cell(r['weights'])} | {r['solver']} | {ms(r['median_ms'])} | "
             f"{ms(r['p99_ms'])} | {ms(r['max_ms'])} | {r['failures']} | {ms(r['baseline_median_ms'], 1)} | "
             f"{r['speedup']:.1f}x | {objective.get('median_rel_gap', float('nan')):.2g} | "
-            f"{'-' if share is None else f'{share:.0%}'} | {'-' if best is None else f'{best:.0%}'} | "
+            f"{'-' if share is None else f'{share:.0%}'} | {'-' if best is None else f'{best:.0%}{spread}'} | "
             f"{'-' if reference is None else f'{reference:.0%}'} |"
         )
     phased = [r for r in data.get("rows", []) if r.get("phases")]
@@ -122,7 +125,9 @@ def actor_body(data: dict[str, Any]) -> list[str]:
         names = list(phased[0]["phases"])
         lines += [
             "",
-            "Each phase of the actor's step: the share of the steps that ran it and its mean cost per run [ms].",
+            "Where a step's time goes: each phase of the argmin (replayed on the inputs it had in the tick), the",
+            "solver, the rest of the compiled tick (tick_glue) and the Python around it (python): the share of the",
+            "steps that ran it and its mean cost per run [ms].",
             "",
             "| agent | N | weights | " + " | ".join(names) + " |",
             "|---|---|---|" + "---|" * len(names),
