@@ -45,6 +45,7 @@ _TICK_PHASES = (
     ("warm_polish", REPORT.index("warm_iterations")),
     ("search", REPORT.index("searched")),
     ("alternative_polish", REPORT.index("alternative_polished")),
+    ("cold_polish", REPORT.index("cold_polished")),
     ("vertex_search", REPORT.index("sweeps")),
     ("vertex_polish", REPORT.index("vertex_moved")),
 )
@@ -134,7 +135,7 @@ class StackedActor:
         self._tick_stationarity = np.zeros(1)
         self._kept = np.zeros((count, n_z))
         self._kept_ages = np.zeros(count)
-        self._trace = np.zeros((4, n_z))  # actor_search.SearchGraph: what the tick's phases started from
+        self._trace = np.zeros((5, n_z))  # actor_search.SearchGraph: what the tick's phases started from
         self._report = np.zeros(len(REPORT))
         inputs = (
             self._tick_state,

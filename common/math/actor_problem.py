@@ -189,9 +189,9 @@ class ActorStep:
 
 
 # What a step can run (StackedActor.step, common/math/actor_search.py): the warm polish, the
-# search (the alternatives' descent), the polish of an alternative, the vertex search, the polish
-# of where it ended, and the solver where the Newton iterations fell short.
-PHASES = ("warm_polish", "search", "alternative_polish", "vertex_search", "vertex_polish", "solver")
+# search (the alternatives' descent), the polish of an alternative, the cold lane's polish, the
+# vertex search, the polish of where it ended, and the solver where the Newton iterations fell short.
+PHASES = ("warm_polish", "search", "alternative_polish", "cold_polish", "vertex_search", "vertex_polish", "solver")
 
 
 @dataclass

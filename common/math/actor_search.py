@@ -79,8 +79,8 @@ SAME_PLAN = 1e-2
 TICK_INPUTS = ("state", "weights", "warm", "alternatives", "fresh", "masks", "ages", "flags")
 TICK_OUTPUTS = ("x", "plan", "objective", "stationarity", "kept", "kept_ages", "trace", "report")
 # The tick's report (its last output), one entry each: the warm polish's Newton iterations, the
-# search ran, an alternative was polished, it won, the vertex search moved, what it found won,
-# the alternatives replaced, the vertex sweeps evaluated.
+# search ran, an alternative was polished, it (or the cold lane) won, the vertex search moved, what it
+# found won, the alternatives replaced, the vertex sweeps evaluated, the cold lane was polished.
 REPORT = (
     "warm_iterations",
     "searched",
@@ -90,6 +90,7 @@ REPORT = (
     "vertex_won",
     "replaced",
     "sweeps",
+    "cold_polished",
 )
 
 
@@ -289,7 +290,8 @@ class SearchGraph:
     compiles the tick; ``srl bench actor`` the phases, to time each on the tick's own inputs).
 
     ``tick``: :data:`TICK_INPUTS` -> :data:`TICK_OUTPUTS` (module docstring; its trace: the warm
-    start, the alternative chosen for a polish, where the vertex search began and where it ended).
+    start, the alternative chosen for a polish, where the vertex search began and where it ended,
+    the cold lane's plan before its polish).
     ``polish``: (z, f, s, weights) -> (z, f, stationarity, Newton iterations). ``descent``:
     (alternatives, s, weights) -> (their ends, objectives). ``sweep``: (z, f, s, weights) -> (z, f,
     moved). ``value``: (z, s, weights) -> the objective. ``decision_vector``: (z, s) -> the
@@ -476,6 +478,7 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
     z_mid, f_mid = ca.if_else(alt_won, z_alt, z_warm), ca.if_else(alt_won, f_alt, f_warm_end)
     s_mid = ca.if_else(alt_won, s_alt, s_warm)
     still_polished = ca.logic_and(search, still_eligible)
+    z_cold = z_still
     z_still, f_still, s_still, _ = polish_if(still_polished, z_still, v_still, sm, wm)
     still_won = ca.logic_and(still_polished, f_still < f_mid)  # false for NaN
     alt_won = ca.logic_or(ca.logic_and(alt_won, ca.logic_not(still_won)), still_won)
@@ -500,8 +503,10 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
     kept = ca.if_else(search, kept, bank)
     kept_ages = ca.if_else(search, kept_ages, ages)
     replaced = ca.if_else(search, replaced, 0)
-    report = ca.vertcat(warm_iterations, search, polished, alt_won, any_moved, vertex_won, replaced, sweeps)
-    trace = ca.horzcat(start, z_chosen, z_mid, z_v)
+    report = ca.vertcat(
+        warm_iterations, search, polished, alt_won, any_moved, vertex_won, replaced, sweeps, still_polished
+    )
+    trace = ca.horzcat(start, z_chosen, z_mid, z_v, z_cold)
     outputs: list[Any] = [decision_vector(z_out, sm), plan_of(z_out), f_out, s_out, kept, kept_ages, trace, report]
     inputs: list[Any] = [sm, wm, warm, given, fresh, masks, given_ages, flags]
     tick = ca.Function("argmin_tick", inputs, outputs, list(TICK_INPUTS), list(TICK_OUTPUTS))

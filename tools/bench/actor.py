@@ -759,8 +759,8 @@ SPLIT = (*PHASES, "tick_glue", "python")
 class PhaseTimer:
     """Where a step's time goes: each recorded tick (StackedActor.recorder) replayed phase by
     phase through the same graph's phases compiled on their own (common.math.actor_search.
-    SearchGraph: the warm polish, the alternatives' descent, the polish of the alternative chosen,
-    the vertex sweeps, the polish of where they ended), each timed on the inputs it had in the
+    SearchGraph: the warm polish, the alternatives' descent, the polish of the alternative chosen
+    and of the cold lane, the vertex sweeps, the polish of where they ended), each timed on the inputs it had in the
     tick, through CasADi's buffers as the tick is called; the tick's time beyond their sum is its
     glue; the solver's time is the actor's counter; the rest of the step is the Python around."""
 
@@ -836,6 +836,9 @@ class PhaseTimer:
             if record.report[report["alternative_polished"]]:
                 self._at(record.trace[1])
                 spent += add("alternative_polish", self._timed(self.polish), step=step)
+            if record.report[report["cold_polished"]]:
+                self._at(record.trace[4])
+                spent += add("cold_polish", self._timed(self.polish), step=step)
             sweeps = int(record.report[report["sweeps"]])
             if sweeps:
                 self._at(record.trace[2])
