@@ -103,9 +103,7 @@ class RobotActor:
         return self.memory.arrival is not None and self.memory.arrival.arrived
 
     def reset(self) -> None:
-        self.memory.previous_x = self.memory.earlier_x = None
-        if self.memory.arrival is not None:
-            self.memory.arrival.reset()
+        self.memory.forget()
 
     def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray, hurry: bool = False) -> ActorStep:
         held = self.shared.swap_memory(self.memory)
