@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -269,6 +271,34 @@ def test_the_jit_cache_keeps_the_most_recently_used_objects_and_drops_old_leftov
     prune_jit_cache(str(tmp_path), keep=4)
     assert sorted(p.name for p in tmp_path.glob("*.o")) == [f"{i:064x}.o" for i in range(2, 6)]
     assert not stale.exists() and fresh.exists()
+
+
+def test_build_directories_of_processes_that_are_gone_are_removed_and_no_other(tmp_path) -> None:
+    """A build killed with SIGKILL while CasADi wrote its C leaves srl-jit-PID-*: the next build
+    and srl up's stop remove it; a running process's directory and other names stay."""
+    from common.system.jit import remove_orphan_build_directories
+
+    gone = int(Path("/proc/sys/kernel/pid_max").read_text())  # pids are below it: no process has it
+    orphan = tmp_path / f"srl-jit-{gone}-abc123"
+    running = tmp_path / f"srl-jit-{os.getpid()}-def456"
+    others = [tmp_path / "srl-jit-abc", tmp_path / "srl-jit-12x-abc", tmp_path / "srl-secure-1-x"]
+    for directory in [orphan, running, *others]:
+        directory.mkdir()
+        (directory / "srl_phase.c").write_text("int x;")
+    assert remove_orphan_build_directories(str(tmp_path)) == 1
+    assert not orphan.exists()
+    assert running.exists() and all(d.exists() for d in others)
+    assert remove_orphan_build_directories(str(tmp_path)) == 0
+
+
+def test_a_build_directory_is_named_by_its_process(tmp_path, monkeypatch) -> None:
+    from common.system.jit import jit_directory
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    with jit_directory() as compiler:
+        assert os.path.basename(os.getcwd()).startswith(f"srl-jit-{os.getpid()}-")
+        assert compiler.split()[0].startswith(os.getcwd())
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])

@@ -1,7 +1,9 @@
 """The actor's JIT build: CasADi's generated C compiled by the machine's C compiler, safely.
 
 * The build runs in a private temporary directory (:func:`jit_directory`), removed once the
-  compiled code is loaded: nothing is left in /tmp, even after a SIGKILL.
+  compiled code is loaded. Its name carries the building process's pid (``srl-jit-PID-*``):
+  a directory whose process is gone (killed with SIGKILL mid-build) is removed by the next build
+  and by ``srl up`` when its services have stopped (:func:`remove_orphan_build_directories`).
 * A signal during the build stops the compiler and ends the build with
   :class:`BuildInterrupted` (exit 128 + the signal), never a half-built actor.
 * Compiled objects are cached per user (:func:`default_jit_cache`), keyed by the SHA-256 of the
@@ -136,6 +138,49 @@ def prune_jit_cache(path: str, keep: int = JIT_CACHE_ENTRIES) -> None:
         log.debug("JIT cache %s: pruning: %s", path, error)
 
 
+BUILD_PREFIX = "srl-jit-"  # + the building process's pid + "-" + mkdtemp's random part
+
+
+def remove_orphan_build_directories(parent: str | None = None) -> int:
+    """Remove the build directories (``srl-jit-PID-*`` in ``parent``, the temporary directory by
+    default) of this user whose process is gone; returns how many. A directory of a running
+    process (or of a pid reused since) is kept: only its own build removes it."""
+    parent = parent or tempfile.gettempdir()
+    removed = 0
+    try:
+        entries = list(os.scandir(parent))
+    except OSError:
+        return 0
+    for entry in entries:
+        pid = _build_owner(entry.name)
+        if pid is None or _process_alive(pid):
+            continue
+        try:
+            if not entry.is_dir(follow_symlinks=False) or entry.stat(follow_symlinks=False).st_uid != os.getuid():
+                continue
+        except OSError:
+            continue
+        shutil.rmtree(entry.path, ignore_errors=True)
+        removed += not os.path.exists(entry.path)
+    return removed
+
+
+def _build_owner(name: str) -> int | None:
+    """The pid in a build directory's name, None for any other name."""
+    pid, dash, _ = name.removeprefix(BUILD_PREFIX).partition("-")
+    return int(pid) if name.startswith(BUILD_PREFIX) and dash and pid.isdigit() else None
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process of that pid: alive
+        return True
+    return True
+
+
 class BuildInterrupted(KeyboardInterrupt):
     """A signal ended the JIT build (its compiler killed, its directory removed)."""
 
@@ -153,7 +198,8 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
     leaves the mapping intact, so the directory is gone before the actor takes its first step:
     nothing is left in /tmp even when the process is later killed with SIGKILL.
     ``os.chdir`` is process-wide: actors are built before a service starts its threads, and
-    the previous directory is restored even if the build fails. Yields the compiler command
+    the previous directory is restored even if the build fails. Directories left by builds whose
+    process is gone (SIGKILL while CasADi wrote its C, before the wrapper ran) go first. Yields the compiler command
     (the wrapper above around gcc or cc). ``cache``: the directory of compiled objects kept
     across builds (see the wrapper; "" = none); ``refresh``: every object compiled and stored,
     none taken from it.
@@ -161,8 +207,9 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
     import signal
     import threading
 
+    remove_orphan_build_directories()
     previous = os.getcwd()
-    path = tempfile.mkdtemp(prefix="srl-jit-")
+    path = tempfile.mkdtemp(prefix=f"{BUILD_PREFIX}{os.getpid()}-")
     wrapper = os.path.join(path, "cc.sh")
     with open(wrapper, "w") as file:
         file.write(_JIT_WRAPPER)

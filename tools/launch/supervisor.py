@@ -39,6 +39,7 @@ from common.net.certs import write_tls_material
 from common.net.security import ROLES, write_credentials
 from common.net.transport import zenoh_config
 from common.process.runtime import SignalWatch
+from common.system.jit import remove_orphan_build_directories
 from common.system.ports import free_port
 
 log = logging.getLogger(__name__)
@@ -321,13 +322,16 @@ class Supervisor:
     def stop_all(self) -> None:
         """SIGINT every service still running (newest first) and wait for them, SIGKILL after the
         grace; the router last, once nobody is left to say goodbye through it (a router closing
-        under its clients' last messages can outlast the grace)."""
+        under its clients' last messages can outlast the grace). Then the JIT build directories
+        of processes that are gone (a child killed mid-build) are removed."""
         services = [c for c in reversed(list(self.children.values())) if c.name != "router"]
         self._stop_group(services)
         self._stop_group([c for c in self.children.values() if c.name == "router"])
         for child in self.children.values():
             for thread in child.threads:
                 thread.join(timeout=2.0)
+        if (removed := remove_orphan_build_directories()) > 0:
+            log.info("removed %d JIT build directories of stopped services", removed)
 
     def _stop_group(self, children: list[Child]) -> None:
         alive = [c for c in children if c.process.poll() is None]
