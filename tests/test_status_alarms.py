@@ -87,3 +87,50 @@ def test_a_monitor_without_an_actor_status_shows_nothing() -> None:
             assert monitor.latest is None and monitor.seen == 0  # a line needs the actor's status
         finally:
             monitor.close()
+
+
+@pytest.mark.integration
+def test_a_status_is_built_and_sent_only_while_someone_subscribes_to_it() -> None:
+    """One status loop for one robot and for a host of K (here 2): a robot's status costs nothing
+    until a subscriber matches its key, then comes within a period; the other robot's stays unbuilt."""
+    import threading
+
+    import zenoh
+
+    from common.net.transport import Bus, start_status_thread
+    from tests.harness import client_config
+
+    robots = ("st_a", "st_b")
+    built = {robot: 0 for robot in robots}
+    seen: list[ServiceStatus] = []
+
+    def counters(robot: str):  # type: ignore[no-untyped-def]
+        def read() -> dict[str, float]:
+            built[robot] += 1
+            return {"steps": float(built[robot]), "bad": float("nan")}
+
+        return read
+
+    with cluster(robot=robots[0]) as c:
+        assert c.session is not None
+        bus = Bus(zenoh.open(client_config(c.endpoint)), "plant")
+        stop = threading.Event()
+        try:
+            start_status_thread(bus, [(robot, counters(robot)) for robot in robots], 0.2, stop)
+            time.sleep(1.0)  # five periods, nobody subscribed
+            assert built == {"st_a": 0, "st_b": 0} and bus.counters.get("statuses_published", 0) == 0
+            subscriber = c.session.declare_subscriber(
+                STATUS.key("st_a", service="plant"),
+                lambda sample: seen.append(ServiceStatus.model_validate_json(sample.payload.to_bytes())),
+            )
+            wait_until(lambda: len(seen) >= 3, 10, "three of st_a's statuses")
+            assert built["st_b"] == 0 and {s.robot for s in seen} == {"st_a"}
+            assert "bad" not in seen[-1].counters and seen[-1].counters["steps"] >= 3
+            subscriber.undeclare()
+            time.sleep(0.5)
+            published = bus.counters["statuses_published"]
+            time.sleep(1.0)  # five periods after the subscriber left
+            assert bus.counters["statuses_published"] == published and built["st_b"] == 0
+        finally:
+            stop.set()
+            bus.close()

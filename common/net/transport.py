@@ -206,18 +206,11 @@ class Bus:
             )
 
     # -- pub/sub ------------------------------------------------------------------------
-    def publisher(self, topic: Topic[M], robot: str, *, cache: int = 0, **chunks: str) -> Callable[[M], None]:
+    def publisher(self, topic: Topic[M], robot: str, *, cache: int = 0, **chunks: str) -> TypedPublisher[M]:
         """Typed put on ``topic``. ``cache > 0``: a Zenoh advanced publisher that keeps the last
         ``cache`` samples and sends heartbeats, so a subscriber declared with ``recover=True``
         gets what it missed (late start, restart, partition) instead of losing it."""
-        publisher = self._declare_publisher(topic.key(robot, **chunks), cache)
-
-        def publish(message: M) -> None:
-            if not isinstance(message, topic.schema):
-                raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
-            publisher.put(message.encode())
-
-        return publish
+        return TypedPublisher(topic, self._declare_publisher(topic.key(robot, **chunks), cache))
 
     def _declare_publisher(self, key: str, cache: int) -> Any:
         """A publisher on ``key`` that lives as long as the bus: advanced, caching the last
@@ -606,6 +599,25 @@ class Bus:
         raise TimeoutError(f"service {service!r} of robot {robot!r} not alive after {timeout} s")
 
 
+class TypedPublisher(Generic[M]):
+    """A put of ``topic``'s messages on one key (:meth:`Bus.publisher`): call it with a message."""
+
+    def __init__(self, topic: Topic[M], publisher: Any) -> None:
+        self.topic, self.publisher = topic, publisher
+
+    def __call__(self, message: M) -> None:
+        if not isinstance(message, self.topic.schema):
+            raise TypeError(f"{self.topic.pattern} carries {self.topic.schema.__name__}, not {type(message)}")
+        self.publisher.put(message.encode())
+
+    @property
+    def matching(self) -> bool:
+        """Does a subscriber match the key now (Zenoh's matching status, ~1 us)? An advanced
+        publisher (a cache) always says yes: its history is for subscribers still to come."""
+        status = getattr(self.publisher, "matching_status", None)
+        return True if status is None else bool(status.matching)
+
+
 class Newest(Generic[M]):
     """The newest sample of a :meth:`Bus.subscribe_newest` subscription, taken by ONE thread.
 
@@ -665,42 +677,75 @@ def _plant_conflict(robot: str, others: list[str]) -> PlantConflictError:
     )
 
 
+StatusRow = tuple[str, Callable[[], dict[str, float]]]  # a robot and its status counters
+
+
+def bus_status(bus: Bus, extra: Callable[[], dict[str, float]]) -> Callable[[], dict[str, float]]:
+    """A one-robot service's status counters: its bus's counters and ``extra()``."""
+
+    def counters() -> dict[str, float]:
+        merged = {k: float(v) for k, v in dict(bus.counters).items()}
+        merged.update(extra())
+        return merged
+
+    return counters
+
+
 def start_status_thread(
     bus: Bus,
-    robot: str,
+    rows: Sequence[StatusRow],
     period: float,
     stop: threading.Event,
-    extra: Callable[[], dict[str, float]],
     on_status: Callable[[dict[str, float]], None] | None = None,
 ) -> threading.Thread:
-    """Publish this service's counters (and ``extra()``) every ``period`` seconds until stop
-    or until the bus closes (which joins the thread, so it is never left inside Zenoh).
-    ``on_status`` also gets them (the actor logs its status line: compose shows it)."""
+    """Each robot's status (``srl/<robot>/status/<bus.service>``, a row ``(robot, counters)``) once a
+    ``period``, until stop or until the bus closes (which joins the thread, so it is never left
+    inside Zenoh). One service of one robot and a host of K robots run the same loop.
+
+    * Spread over the period: one robot's status every ``period / K``. A host's K in one burst
+      would hold the GIL from its tick thread for all of them; one at a time holds it for one
+      robot's (tens of microseconds).
+    * On demand: a robot's status is built and sent only while a subscriber matches its key
+      (Zenoh's matching status: ``srl up``'s live line, ``srl view``, a recorder, any outside
+      client); a status nobody reads costs nothing. A subscriber that appears gets the next one,
+      within a period. Counted: ``statuses_published``.
+    * Counters that are NaN or infinite are left out (the schema refuses them).
+    * ``on_status`` gets every row's counters, read or not (the actor logs its status line:
+      compose shows it)."""
     from common.contracts.keys import STATUS
     from common.contracts.messages import ServiceStatus
 
-    publish = bus.publisher(STATUS, robot, service=bus.service)
+    service = bus.service
+    publishers = [(robot, counters, bus.publisher(STATUS, robot, service=service)) for robot, counters in rows]
+    gap = period / max(1, len(publishers))
 
     def loop() -> None:
-        while not bus.closing.wait(period) and not stop.is_set():
-            counters = {k: float(v) for k, v in dict(bus.counters).items()}
-            counters.update(extra())
-            if on_status is not None:
-                on_status(counters)
-            try:
-                publish(
-                    ServiceStatus(
-                        robot=robot,
-                        service=bus.service,
-                        stamp_ns=time.monotonic_ns(),
-                        counters={k: v for k, v in counters.items() if v == v and abs(v) != float("inf")},
+        while True:
+            for robot, counters, publish in publishers:
+                if bus.closing.wait(gap) or stop.is_set():
+                    return
+                if on_status is None and not publish.matching:
+                    continue
+                values = counters()
+                if on_status is not None:
+                    on_status(values)
+                if not publish.matching:
+                    continue
+                try:
+                    publish(
+                        ServiceStatus(
+                            robot=robot,
+                            service=service,
+                            stamp_ns=time.monotonic_ns(),
+                            counters={k: v for k, v in values.items() if v == v and abs(v) != float("inf")},
+                        )
                     )
-                )
-            except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
-                log.debug("%s status: %s", bus.service, error)
-                return
+                except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
+                    log.debug("%s status: %s", service, error)
+                    return
+                bus.count("statuses_published")
 
-    thread = threading.Thread(target=loop, name=f"{bus.service}-status", daemon=True)
+    thread = threading.Thread(target=loop, name=f"{service}-status", daemon=True)
     thread.start()
     bus.adopt(thread)  # joined by bus.close()
     return thread

@@ -42,13 +42,13 @@ import numpy as np
 from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
-from common.contracts.keys import ACTION, STATE, STATUS, TRANSITION
-from common.contracts.messages import PlantState, ServiceStatus
+from common.contracts.keys import ACTION, STATE, TRANSITION
+from common.contracts.messages import PlantState
 from common.contracts.summaries import RealtimeActorSummary
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.stats import Window
-from common.net.transport import Bus, Newest
+from common.net.transport import Bus, Newest, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker
@@ -326,34 +326,16 @@ class HostScheduler:
             box.flush()
 
 
-def _status_loop(
-    bus: Bus,
-    robots: list[str],
-    loops: list[RealtimeActor],
-    counts: list[RobotCounts],
-    period: float,
-    stop: threading.Event,
-) -> None:
-    """Each robot's status once a ``period``, one robot at a time spread over it: the whole
-    host's in one burst would hold the GIL from the scheduler thread for the sum of them, one at
-    a time holds it for one robot's (tens of microseconds)."""
-    publishers = [bus.publisher(STATUS, robot, service="actor") for robot in robots]
-    gap = period / max(1, len(robots))
-    while not stop.is_set():
-        for robot, loop, count, publish in zip(robots, loops, counts, publishers, strict=True):
-            if bus.closing.wait(gap) or stop.is_set():
-                return
-            with count.lock:
-                counters = {k: float(v) for k, v in count.counters.items()}
-            counters.update(loop.status())
-            publish(
-                ServiceStatus(
-                    robot=robot,
-                    service="actor",
-                    stamp_ns=time.monotonic_ns(),
-                    counters={k: v for k, v in counters.items() if v == v and abs(v) != float("inf")},
-                )
-            )
+def robot_status(loop: RealtimeActor, count: RobotCounts) -> Callable[[], dict[str, float]]:
+    """One robot's status counters (``srl/<robot>/status/actor``): its own counts and its loop's."""
+
+    def counters() -> dict[str, float]:
+        with count.lock:
+            values = {k: float(v) for k, v in count.counters.items()}
+        values.update(loop.status())
+        return values
+
+    return counters
 
 
 def run_host(
@@ -394,14 +376,8 @@ def run_host(
         bus.declare_alive(robot)
         inbox.reset(loop.episode_id)
     log.info("actor host ready: %d robots in %.1f s", len(robots), time.monotonic() - started)
-    status = threading.Thread(
-        target=_status_loop,
-        args=(bus, robots, loops, counts, settings.transport.status_period, stop),
-        name="actor-host-status",
-        daemon=True,
-    )
-    status.start()
-    bus.adopt(status)
+    rows = [(robot, robot_status(loop, count)) for robot, loop, count in zip(robots, loops, counts, strict=True)]
+    start_status_thread(bus, rows, settings.transport.status_period, stop)
     primed = prime_plans(loops, states, stop, PRIME_WAIT_S)
     log.info("actor host: %d of %d robots primed in %.1f s", primed, len(robots), time.monotonic() - started)
     gc.collect()

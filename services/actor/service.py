@@ -37,7 +37,7 @@ from common.math.actor import StackedActor
 from common.math.agents import learns
 from common.math.stats import summarize
 from common.net.provenance import SourceGate
-from common.net.transport import Bus, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.runtime import realtime_priority
 from common.system.clock import Ticker
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id
@@ -166,7 +166,9 @@ def _run_realtime(
             # INFO); srl up prints the same line from the published status instead
             log.info("status %s", format_status_line(counters, time.monotonic() - start_time, first_version))
 
-        start_status_thread(bus, robot, settings.transport.status_period, stop, loop.status, log_status)
+        start_status_thread(
+            bus, [(robot, bus_status(bus, loop.status))], settings.transport.status_period, stop, log_status
+        )
         with realtime_priority(settings.actor.realtime_priority, "actor") as priority:
             loop.run(ticker, end)
     finally:

@@ -62,7 +62,7 @@ from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
 from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, at_rest, load_solver, update_many
 from common.math.stats import Window
-from common.net.transport import Bus, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.runtime import session_priority
 from common.system.checkpoint import (
     CheckpointError,
@@ -655,17 +655,15 @@ def run(
     # of their own robot: srl/<robot>/alive/critic/<zid>)
     for robot in robots or [settings.transport.robot]:
         bus.declare_alive(robot)
-    start_status_thread(
+    own = bus_status(
         bus,
-        settings.transport.robot,
-        settings.transport.status_period,
-        stop,
         lambda: {
             "transitions_received": learner.received,
             "duplicates": learner.duplicates,
             "too_old": learner.too_old,
         },
     )
+    start_status_thread(bus, [(settings.transport.robot, own)], settings.transport.status_period, stop)
     log.info(
         "critic ready (robots %s, %s, M = %d, beta = %.4f, checkpoint %s)",
         settings.critic.robots,

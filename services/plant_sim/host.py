@@ -22,17 +22,18 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetPlantSummary, PlantRow
-from common.contracts.keys import ACTION, STATE, STATUS
-from common.contracts.messages import Action, PlantState, ServiceStatus
+from common.contracts.keys import ACTION, STATE
+from common.contracts.messages import Action, PlantState
 from common.math.dynamics import exact_steps
 from common.math.fleet import circle_starts
-from common.net.transport import Bus
+from common.net.transport import Bus, start_status_thread
 from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, state_ticks
 
 log = logging.getLogger(__name__)
@@ -193,11 +194,12 @@ def run_plant_host(
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
         bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
     bus.declare_sole_plants(robots)
-    status = threading.Thread(
-        target=_status_loop, args=(bus, plant, intakes, settings.transport.status_period, stop), daemon=True
+    start_status_thread(
+        bus,
+        [(robot, plant_status(plant, intake)) for robot, intake in zip(robots, intakes, strict=True)],
+        settings.transport.status_period,
+        stop,
     )
-    status.start()
-    bus.adopt(status)
     log.info("plant host ready: %d robots (%s), circle %.2f m", len(robots), settings.plant.model, radius)
     timeout = action_timeout(settings)
     for now, elapsed in state_ticks(settings, bus, stop, duration):
@@ -230,19 +232,15 @@ def run_plant_host(
     ).to_json_dict()
 
 
-def _status_loop(bus: Bus, plant: FleetPlant, intakes: list[RobotIntake], period: float, stop: threading.Event) -> None:
-    publishers = [bus.publisher(STATUS, robot, service="plant") for robot in plant.robots]
-    while not bus.closing.wait(period) and not stop.is_set():
-        for i, (publish, intake) in enumerate(zip(publishers, intakes, strict=True)):
-            publish(
-                ServiceStatus(
-                    robot=plant.robots[i],
-                    service="plant",
-                    stamp_ns=time.monotonic_ns(),
-                    counters={
-                        "seq": float(plant.seq[i]) if plant.ideal else float(plant.plants[i].seq),
-                        "actions_applied": float(intake.applied),
-                        "watchdog_stops": float(intake.watchdog_stops),
-                    },
-                )
-            )
+def plant_status(plant: FleetPlant, intake: RobotIntake) -> Callable[[], dict[str, float]]:
+    """One robot's status counters (``srl/<robot>/status/plant``)."""
+    i = intake.index
+
+    def counters() -> dict[str, float]:
+        return {
+            "seq": float(plant.seq[i]) if plant.ideal else float(plant.plants[i].seq),
+            "actions_applied": float(intake.applied),
+            "watchdog_stops": float(intake.watchdog_stops),
+        }
+
+    return counters

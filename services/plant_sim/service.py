@@ -32,7 +32,7 @@ from common.math.dynamics import exact_step
 from common.math.physics import PhysicsBot, simulated_robot
 from common.math.turtlebot import TurtleBot
 from common.net.provenance import ActionGate, SourceGate
-from common.net.transport import Bus, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.runtime import realtime_priority
 from common.system.clock import Ticker
 
@@ -246,7 +246,9 @@ def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
         bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
     bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
-    start_status_thread(bus, robot, settings.transport.status_period, stop, lambda: {"seq": plant.seq})
+    start_status_thread(
+        bus, [(robot, bus_status(bus, lambda: {"seq": plant.seq}))], settings.transport.status_period, stop
+    )
     log.info("plant_sim ready (%s mode, robot %s)", mode, robot)
 
     if mode == "realtime":

@@ -33,17 +33,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import zenoh
-
 from common.config.arguments import UsageError
 from common.config.settings import BridgeSettings, Settings, TransportSettings
 from common.contracts.fleet_summary import FleetBridgeSummary
-from common.contracts.keys import STATE, STATUS, liveliness_key
-from common.contracts.messages import Action, ServiceStatus
+from common.contracts.keys import STATE, liveliness_key
+from common.contracts.messages import Action
 from common.contracts.ros_wire import RosGraph
 from common.net.provenance import SourceGate
 from common.net.security import SecurityError
-from common.net.transport import Bus
+from common.net.transport import Bus, start_status_thread
 from common.process.counts import RobotCounts
 from common.system.clock import Ticker
 from services.robot_bridge.bridge import RobotBridge
@@ -151,11 +149,9 @@ def run_bridge_host(
             attach(bus, unit.robot, unit.link, unit.bridge, unit.actor_gate)
         bus.declare_sole_plants(robots)
         tokens = [bus.session.liveliness().declare_token(liveliness_key(r, "robot_bridge")) for r in robots]
-        status = threading.Thread(
-            target=_status_loop, args=(bus, units, settings.transport.status_period, stop), daemon=True
+        start_status_thread(
+            bus, [(unit.robot, unit_status(unit)) for unit in units], settings.transport.status_period, stop
         )
-        status.start()
-        bus.adopt(status)
         log.info(
             "bridge host ready: %d robots (%s), %s",
             len(robots),
@@ -184,23 +180,14 @@ def run_bridge_host(
     ).to_json_dict()
 
 
-def _status_loop(bus: Bus, units: list[BridgeUnit], period: float, stop: threading.Event) -> None:
-    """Every robot's ``srl/<id>/status/plant``: its own counters, as one bridge publishes them."""
-    publishers = [bus.publisher(STATUS, unit.robot, service="plant") for unit in units]
-    while not bus.closing.wait(period) and not stop.is_set():
-        for publish, unit in zip(publishers, units, strict=True):
-            counters = {k: float(v) for k, v in unit.counts.snapshot().items()}
-            counters.update(
-                {
-                    "seq": float(unit.bridge.seq),
-                    "cmd_v": unit.bridge.last_command[0],
-                    "cmd_omega": unit.bridge.last_command[1],
-                }
-            )
-            try:
-                publish(
-                    ServiceStatus(robot=unit.robot, service="plant", stamp_ns=time.monotonic_ns(), counters=counters)
-                )
-            except zenoh.ZError as error:  # the session closed under us at shutdown
-                log.debug("bridge host status: %s", error)
-                return
+def unit_status(unit: BridgeUnit) -> Callable[[], dict[str, float]]:
+    """One robot's status counters (``srl/<id>/status/plant``), as one bridge's."""
+
+    def counters() -> dict[str, float]:
+        values = {k: float(v) for k, v in unit.counts.snapshot().items()}
+        values.update(
+            seq=float(unit.bridge.seq), cmd_v=unit.bridge.last_command[0], cmd_omega=unit.bridge.last_command[1]
+        )
+        return values
+
+    return counters

@@ -27,7 +27,7 @@ from common.contracts.ros_wire import RosGraph
 from common.contracts.summaries import BridgeSummary
 from common.net.provenance import SourceGate
 from common.net.security import SecurityError
-from common.net.transport import Bus, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from common.system.clock import Ticker
 from services.robot_bridge.bridge import Counts, RobotBridge
 from services.robot_bridge.robot_router import robot_session
@@ -108,13 +108,10 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
         attach(bus, robot, link, bridge, actor_gate)
         bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
         tokens.append(bus.session.liveliness().declare_token(liveliness_key(robot, "robot_bridge")))
-        start_status_thread(
-            bus,
-            robot,
-            settings.transport.status_period,
-            stop,
-            lambda: {"seq": bridge.seq, "cmd_v": bridge.last_command[0], "cmd_omega": bridge.last_command[1]},
+        own = bus_status(
+            bus, lambda: {"seq": bridge.seq, "cmd_v": bridge.last_command[0], "cmd_omega": bridge.last_command[1]}
         )
+        start_status_thread(bus, [(robot, own)], settings.transport.status_period, stop)
         log.info(
             "robot_bridge ready (robot %s, %s, goal %s in the odom frame)", robot, graph.profile, settings.bridge.goal
         )
