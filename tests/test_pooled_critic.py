@@ -177,7 +177,7 @@ def test_pooled_learner_rejects_bad_arguments(kwargs: dict) -> None:
         PooledReplay(1)
 
 
-# -- the fleet in lockstep (common.math.loop.run_fleet_lockstep) ----------------------------------
+# -- the fleet in lockstep (common.math.loop.run_algorithm1 of K robots) --------------------------
 STARTS = [np.array([1.0, -0.5, 0.3]), np.array([-0.8, 0.6, 2.5])]
 
 

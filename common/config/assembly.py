@@ -23,7 +23,7 @@ from common.math.arrival import ArrivalRule, ArrivalTolerances, Docking, TurnFir
 from common.math.critic import DoubleCritic, PooledLearner
 from common.math.dynamics import Plant
 from common.math.localization import SIM_NOISE, SIM_SOURCES, LocalizedPlant, SimLocalization
-from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, run_algorithm1, run_fleet_lockstep
+from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, PoolPort, run_algorithm1
 from common.math.physics import simulated_robot
 from common.math.stats import summarize
 from common.math.turtlebot import RobotPlant
@@ -167,16 +167,17 @@ def run_episode(
 ) -> Episode:
     """Algorithm 1 (:func:`common.math.loop.run_algorithm1`) for ``settings.steps`` sampling intervals
     from ``settings.start_state()``; the plant of ``plant.model`` and a local critic unless given."""
-    return run_algorithm1(
+    (episode,) = run_algorithm1(
         actor or build_actor(settings),
-        plant or build_plant(settings),
-        critic or local_critic(settings, learn=learns(settings.actor.agent)),
-        settings.start_state(),
+        [plant or build_plant(settings)],
+        [critic or local_critic(settings, learn=learns(settings.actor.agent))],
+        [settings.start_state()],
         settings.steps,
         settings.plant.sampling_time,
         tuple(settings.cost.r_diag),
-        stop,
+        stop=stop,
     )
+    return episode
 
 
 CriticLayout = Literal["per-robot", "pooled"]
@@ -210,20 +211,22 @@ def run_fleet_episode(
     stop: threading.Event | None = None,
 ) -> list[Episode]:
     """A fleet from ``starts`` stepping together for ``settings.steps`` intervals, in process
-    (:func:`common.math.loop.run_fleet_lockstep`): one built actor, one plant of ``plant.model`` per
-    robot, per-robot or pooled critics."""
-    actor = actor or build_actor(settings)
-    memories = [ActorMemory(arrival=arrival_rule(settings)) for _ in starts]
-    return run_fleet_lockstep(
-        actor,
-        memories,
+    (:func:`common.math.loop.run_algorithm1` of K robots): one built actor, a memory, a plant of
+    ``plant.model`` and a port to its learner per robot (per-robot or pooled critics)."""
+    learn = learns(settings.actor.agent)
+    ports = [
+        PoolPort(learner, f"robot{i + 1}", learn)
+        for i, learner in enumerate(fleet_learners(settings, len(starts), critic))
+    ]
+    return run_algorithm1(
+        actor or build_actor(settings),
         [build_plant(settings) for _ in starts],
-        fleet_learners(settings, len(starts), critic),
+        ports,
         [np.asarray(start, dtype=float) for start in starts],
         settings.steps,
         settings.plant.sampling_time,
         tuple(settings.cost.r_diag),
-        learn=learns(settings.actor.agent),
+        memories=[ActorMemory(arrival=arrival_rule(settings)) for _ in starts],
         stop=stop,
     )
 

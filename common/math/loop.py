@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from common.math.actor import StackedActor
-from common.math.actor_problem import ActorMemory
+from common.math.actor_problem import ActorCounters, ActorMemory
 from common.math.arrival import ArrivalTolerances
 from common.math.critic import DoubleCritic, PooledLearner, Sample, at_rest
 from common.math.dynamics import Plant, exact_step
@@ -27,10 +27,16 @@ log = logging.getLogger(__name__)
 
 
 class CriticPort(Protocol):
-    """Where samples go and critic weights come from."""
+    """Where one robot's samples go and its critic weights come from: ``reset`` starts an
+    episode, ``record`` takes a sample (and returns the weights after it), ``weights`` are what
+    the robot acts on at its next step (a pooled critic may have fitted since its record, on
+    another robot's)."""
 
     def reset(self) -> tuple[np.ndarray, np.ndarray]: ...
+
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def weights(self) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class ExactPlant:
@@ -111,6 +117,34 @@ class LocalCritic:
             self.updates += 1
         return self.critic.q_weights, self.critic.v_weights
 
+    def weights(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.critic.q_weights, self.critic.v_weights
+
+
+class PoolPort:
+    """One robot's port to a fleet's learner (:class:`~common.math.critic.PooledLearner`): its
+    own pool of one (per-robot critics) or the pool every robot of the fleet shares, which fits
+    once the fleet's step is in (``record`` of the step's last robot) and every robot then acts
+    on that fit. Unlike :class:`LocalCritic` it fits a robot held at rest too (a fleet's rows
+    are what ``srl experiment fleet`` measured with it)."""
+
+    def __init__(self, learner: PooledLearner, robot: str, learn: bool = True) -> None:
+        self.learner, self.robot, self.learn = learner, robot, learn
+        self.last_residuals = (float("nan"), float("nan"))
+
+    def reset(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.weights()
+
+    def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        self.last_residuals = (float("nan"), float("nan"))
+        if self.learner.record(self.robot, sample) and self.learn:
+            update = self.learner.fit()
+            self.last_residuals = (float(update.q.residual), float(update.v.residual))
+        return self.weights()
+
+    def weights(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.learner.critic.q_weights, self.learner.critic.v_weights
+
 
 @dataclass
 class Episode:
@@ -162,48 +196,85 @@ class Episode:
 
 def run_algorithm1(
     actor: StackedActor,
-    plant: Plant,
-    critic: CriticPort,
-    start: np.ndarray,
+    plants: Sequence[Plant],
+    critics: Sequence[CriticPort],
+    starts: Sequence[np.ndarray],
     steps: int,
     sampling_time: float,
     r_diag: tuple[float, ...],
+    memories: Sequence[ActorMemory] | None = None,
     stop: threading.Event | None = None,
-) -> Episode:
-    """Algorithm 1 for ``steps`` sampling intervals from ``start`` (the paper's lines 4-6).
+) -> list[Episode]:
+    """Algorithm 1 (the paper's lines 4-6) for ``steps`` sampling intervals, for K robots stepping
+    together (K = 1: one robot): at every step each robot in turn acts with the weights its
+    critic port holds (line 4), is moved (line 5) and records its transition (line 6).
+
+    ``memories``: robot ``i``'s share of the one built ``actor``
+    (:meth:`~common.math.actor.StackedActor.swap_memory`: a fleet acts bit for bit as one actor per
+    robot); None (one robot only): the actor's own memory, reset first. ``critics[i]`` is robot
+    ``i``'s port: a :class:`LocalCritic`, the off-board critic over Zenoh
+    (services/actor/ports.py), or a :class:`PoolPort` of a fleet's learner.
 
     ``stop`` (set by a signal handler) ends the episode between two steps: a signal never
     interrupts a solve or a fit half way (CasADi callbacks cannot take an exception).
-    :func:`common.config.assembly.run_episode` runs it from settings."""
+    :func:`common.config.assembly.run_episode` and ``run_fleet_episode`` run it from settings."""
+    count = len(starts)
+    if not (len(plants) == len(critics) == count and (memories is None or len(memories) == count)):
+        raise ValueError(
+            f"{count} starts need as many plants, critics and memories "
+            f"(got {len(plants)}, {len(critics)}, {'none' if memories is None else len(memories)})"
+        )
+    if memories is None and count != 1:
+        raise ValueError("robots that share an actor need a memory each")
     delta = sampling_time
     agent, horizon = actor.problem.agent, actor.problem.horizon
-    actor.reset()
-    failures_before = actor.counters.failures
-    q_weights, v_weights = critic.reset()
-    state = plant.reset(start)
-    episode = Episode(agent=agent, horizon=horizon, states=[state])
-    _record_truth(episode, plant)
-    log.info("episode started: %s, N = %d, %d steps", agent, horizon, steps)
+    if memories is None:
+        actor.reset()
+    held = None if memories is None else list(memories)
+    failures = [c.failures for c in _counters(actor, held)]
+    for critic in critics:
+        critic.reset()
+    states = [plant.reset(start) for plant, start in zip(plants, starts, strict=True)]
+    episodes = [Episode(agent=agent, horizon=horizon, states=[state]) for state in states]
+    for episode, plant in zip(episodes, plants, strict=True):
+        _record_truth(episode, plant)
+    log.info("episode started: %s, N = %d, %d steps, %d robots", agent, horizon, steps, count)
     for k in range(steps):
         if stop is not None and stop.is_set():
             break
-        episode.q_weights.append(np.array(q_weights, dtype=float))
-        episode.v_weights.append(np.array(v_weights, dtype=float))
-        step = actor.step(state, q_weights, v_weights)  # line 4: update actor
-        cost = delta * float(stage_cost(state, step.action, r_diag))
-        next_state = plant.apply(step.action, delta)  # line 5: apply u_1
-        q_weights, v_weights = critic.record(Sample(k, state, step.action, cost))  # line 6
-        episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
-        episode.actions.append(step.action)
-        episode.costs.append(cost)
-        if step.status != "arrived":  # held by the arrival rule: no solve to time
-            episode.solve_seconds.append(step.solve_seconds)
-        episode.states.append(next_state)
-        _record_truth(episode, plant)
-        state = next_state
-    episode.solver_failures = actor.counters.failures - failures_before
-    episode.saturated_commands = getattr(plant, "saturated_commands", None)
-    return episode
+        for i in range(count):
+            critic, episode, state, plant = critics[i], episodes[i], states[i], plants[i]
+            q_weights, v_weights = critic.weights()
+            episode.q_weights.append(np.array(q_weights, dtype=float))
+            episode.v_weights.append(np.array(v_weights, dtype=float))
+            if held is None:
+                step = actor.step(state, q_weights, v_weights)  # line 4: update actor
+            else:
+                own = actor.swap_memory(held[i])
+                try:
+                    step = actor.step(state, q_weights, v_weights)
+                finally:
+                    held[i] = actor.swap_memory(own)
+            cost = delta * float(stage_cost(state, step.action, r_diag))
+            next_state = plant.apply(step.action, delta)  # line 5: apply u_1
+            critic.record(Sample(k, state, step.action, cost))  # line 6: update critic
+            episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
+            episode.actions.append(step.action)
+            episode.costs.append(cost)
+            if step.status != "arrived":  # held by the arrival rule: no solve to time
+                episode.solve_seconds.append(step.solve_seconds)
+            episode.states.append(next_state)
+            _record_truth(episode, plant)
+            states[i] = next_state
+    for episode, plant, counters, before in zip(episodes, plants, _counters(actor, held), failures, strict=True):
+        episode.solver_failures = counters.failures - before
+        episode.saturated_commands = getattr(plant, "saturated_commands", None)
+    return episodes
+
+
+def _counters(actor: StackedActor, memories: list[ActorMemory] | None) -> list[ActorCounters]:
+    """Each robot's actor counters: the actor's own (one robot, no memories), else its memory's."""
+    return [actor.counters] if memories is None else [memory.counters for memory in memories]
 
 
 def _record_truth(episode: Episode, plant: Plant) -> None:
@@ -213,72 +284,3 @@ def _record_truth(episode: Episode, plant: Plant) -> None:
         episode.true_states.clear()
     elif len(episode.true_states) == len(episode.states) - 1:
         episode.true_states.append(np.asarray(truth, dtype=float).copy())
-
-
-def run_fleet_lockstep(
-    actor: StackedActor,
-    memories: Sequence[ActorMemory],
-    plants: Sequence[Plant],
-    learners: Sequence[PooledLearner],
-    starts: Sequence[np.ndarray],
-    steps: int,
-    sampling_time: float,
-    r_diag: tuple[float, ...],
-    learn: bool = True,
-    stop: threading.Event | None = None,
-) -> list[Episode]:
-    """Algorithm 1 for a fleet stepping together, in one process: at every step each
-    robot in turn acts with the weights its learner holds, is moved and records its transition.
-
-    ``learners[i]`` is robot ``i``'s: per-robot critics are K pools of one, a pooled critic is the
-    SAME :class:`~common.math.critic.PooledLearner` for every robot (it fits once the fleet's step is
-    in, and every robot acts on that fit at the next step). ``memories[i]`` is robot ``i``'s
-    share of the one built ``actor`` (:meth:`~common.math.actor.StackedActor.swap_memory`: the fleet
-    acts bit for bit as one actor per robot). With per-robot learners each robot's episode is
-    exactly :func:`run_algorithm1`'s from its start."""
-    count = len(starts)
-    if not (len(memories) == len(plants) == len(learners) == count):
-        raise ValueError(
-            f"a fleet of {count} starts needs as many memories, plants and learners "
-            f"(got {len(memories)}, {len(plants)}, {len(learners)})"
-        )
-    delta = sampling_time
-    agent, horizon = actor.problem.agent, actor.problem.horizon
-    robots = [f"robot{i + 1}" for i in range(count)]
-    held = list(memories)
-    states = [plant.reset(start) for plant, start in zip(plants, starts, strict=True)]
-    episodes = [Episode(agent=agent, horizon=horizon, states=[state]) for state in states]
-    failures = [memory.counters.failures for memory in held]
-    for episode, plant in zip(episodes, plants, strict=True):
-        _record_truth(episode, plant)
-    for k in range(steps):
-        if stop is not None and stop.is_set():
-            break
-        for i in range(count):
-            learner, episode, state = learners[i], episodes[i], states[i]
-            q_weights, v_weights = learner.critic.q_weights, learner.critic.v_weights
-            episode.q_weights.append(np.array(q_weights, dtype=float))
-            episode.v_weights.append(np.array(v_weights, dtype=float))
-            own = actor.swap_memory(held[i])
-            try:
-                step = actor.step(state, q_weights, v_weights)
-            finally:
-                held[i] = actor.swap_memory(own)
-            cost = delta * float(stage_cost(state, step.action, r_diag))
-            next_state = plants[i].apply(step.action, delta)
-            residuals = (float("nan"), float("nan"))
-            if learner.record(robots[i], Sample(k, state, step.action, cost)) and learn:
-                update = learner.fit()
-                residuals = (float(update.q.residual), float(update.v.residual))
-            episode.td_residuals.append(residuals)
-            episode.actions.append(step.action)
-            episode.costs.append(cost)
-            if step.status != "arrived":
-                episode.solve_seconds.append(step.solve_seconds)
-            episode.states.append(next_state)
-            _record_truth(episode, plants[i])
-            states[i] = next_state
-    for i, episode in enumerate(episodes):
-        episode.solver_failures = held[i].counters.failures - failures[i]
-        episode.saturated_commands = getattr(plants[i], "saturated_commands", None)
-    return episodes

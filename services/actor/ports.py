@@ -269,3 +269,7 @@ class ZenohCriticPort:
         # on the newest step the critic fits)
         self.staleness.append(self.fits.newest - held.trained_step)
         return held.q, held.v
+
+    def weights(self) -> tuple[np.ndarray, np.ndarray]:
+        held = self.inbox.current()
+        return held.q, held.v
