@@ -274,7 +274,8 @@ def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
         assert up.stderr is not None
         lines.extend(up.stderr)
 
-    threading.Thread(target=read_stderr, daemon=True).start()
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
     session = None
     try:
 
@@ -300,6 +301,7 @@ def test_router_kill_robot_on_its_own_router_stops_within_5cm() -> None:
         time.sleep(1.0)
         distance = _distance_after(odometry, killed, reference)
         up.wait(timeout=60)
+        reader.join(timeout=10)  # srl up has ended; its last lines may still be in the pipe
     finally:
         if session is not None:
             session.close()
