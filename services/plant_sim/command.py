@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import threading
+from typing import Any
+
+import numpy as np
 
 from common.config.arguments import (
     COMMAND_SETTINGS,
@@ -14,6 +18,8 @@ from common.config.arguments import (
     fleet_robots,
     settings_from_args,
 )
+from common.config.settings import Settings
+from common.net.transport import Bus
 from common.process.runtime import serve
 
 NAME = "plant-sim"
@@ -34,21 +40,38 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from services.plant_sim.service import run
-
+    """Real time: a plant host of the robot list, or of the one robot (``transport.robot``);
+    lockstep: the one robot's queryable plant."""
     robots = fleet_robots(args)
-    if robots is not None:
-        from services.plant_sim.host import run_plant_host
+    if args.mode == "lockstep" and robots is None:
+        from services.plant_sim.service import run
 
         return serve(
             settings_from_args(args),
             "plant",
             args.connect_timeout,
-            lambda settings, bus, stop: run_plant_host(settings, bus, robots, args.circle, stop, args.run_seconds),
+            lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
         )
     return serve(
         settings_from_args(args),
         "plant",
         args.connect_timeout,
-        lambda settings, bus, stop: run(settings, bus, args.mode, stop, args.run_seconds),
+        lambda settings, bus, stop: host(settings, bus, stop, args, robots),
+    )
+
+
+def host(
+    settings: Settings, bus: Bus, stop: threading.Event, args: argparse.Namespace, robots: list[str] | None
+) -> dict[str, Any]:
+    from common.math.fleet import circle_starts
+    from services.plant_sim.host import fleet_plant_summary, plant_summary, run_plant_host
+
+    if robots is None:  # one robot, from its start
+        run = run_plant_host(
+            settings, bus, [settings.transport.robot], np.array([settings.start_state()]), stop, args.run_seconds
+        )
+        return plant_summary(run, settings, bus)
+    starts = np.array(circle_starts(len(robots), args.circle))
+    return fleet_plant_summary(
+        run_plant_host(settings, bus, robots, starts, stop, args.run_seconds), settings, bus, args.circle
     )

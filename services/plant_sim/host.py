@@ -23,6 +23,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,8 +32,8 @@ from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetPlantSummary, PlantRow
 from common.contracts.keys import ACTION, STATE
 from common.contracts.messages import Action, PlantState
+from common.contracts.summaries import PlantSummary
 from common.math.dynamics import exact_steps
-from common.math.fleet import circle_starts
 from common.net.transport import Bus, start_status_thread
 from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, state_ticks
 
@@ -145,6 +146,11 @@ class FleetPlant:
             for robot, s, seq, publish in zip(self.robots, states, seqs, wanted, strict=True)
         ]
 
+    def saturated_commands(self, index: int) -> int:
+        """Commands of robot ``index`` a wheel could not follow (the ideal unicycle has no wheels: 0)."""
+        robot = None if self.ideal else self.plants[index].robot
+        return 0 if robot is None else robot.saturated_commands
+
     def reported(self, index: int) -> list[float]:
         if self.ideal:
             return [float(c) for c in self.states[index]]
@@ -178,10 +184,21 @@ class RobotIntake(ActionIntake):
             self.sync.action(self.index, message.step, now)
 
 
+@dataclass
+class PlantHostRun:
+    """What a plant host's run leaves for its summary."""
+
+    robots: list[str]
+    starts: np.ndarray
+    plant: FleetPlant
+    intakes: list[RobotIntake]
+
+
 def run_plant_host(
-    settings: Settings, bus: Bus, robots: list[str], radius: float, stop: threading.Event, duration: float | None
-) -> dict[str, Any]:
-    starts = np.array(circle_starts(len(robots), radius))
+    settings: Settings, bus: Bus, robots: list[str], starts: np.ndarray, stop: threading.Event, duration: float | None
+) -> PlantHostRun:
+    """Simulate ``robots`` from ``starts`` in real time until ``stop`` or ``duration``: one robot
+    (``srl plant-sim``) or a fleet (``--robots``) alike."""
     plant = FleetPlant(settings, robots, starts)
     for robot in robots:  # one plant per robot, before declaring
         bus.refuse_other_plant(robot)
@@ -194,13 +211,12 @@ def run_plant_host(
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
         bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
     bus.declare_sole_plants(robots)
-    start_status_thread(
-        bus,
-        [(robot, plant_status(plant, intake)) for robot, intake in zip(robots, intakes, strict=True)],
-        settings.transport.status_period,
-        stop,
-    )
-    log.info("plant host ready: %d robots (%s), circle %.2f m", len(robots), settings.plant.model, radius)
+    rows = [
+        (robot, plant_status(plant, intake, bus if len(robots) == 1 else None))
+        for robot, intake in zip(robots, intakes, strict=True)
+    ]
+    start_status_thread(bus, rows, settings.transport.status_period, stop)
+    log.info("plant host ready: %d robots (%s)", len(robots), settings.plant.model)
     timeout = action_timeout(settings)
     for now, elapsed in state_ticks(settings, bus, stop, duration):
         for intake in intakes:
@@ -211,33 +227,67 @@ def run_plant_host(
         published = len(due)
         bus.count("states_published", published)
         bus.count("states_held_back", len(messages) - published)
+    return PlantHostRun(robots, np.asarray(starts, dtype=float).reshape(len(robots), 3), plant, intakes)
+
+
+def fleet_plant_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: float) -> dict[str, Any]:
+    """What ``srl plant-sim --robots`` prints."""
     return FleetPlantSummary(
-        robots=robots,
+        robots=run.robots,
         plant_model=settings.plant.model,
         circle_radius_m=radius,
         per_robot={
             robot: PlantRow(
-                start_state=[float(c) for c in starts[i]],
-                final_state=plant.reported(i),
-                true_final_state=plant.truth(i),
-                actions_applied=intakes[i].applied,
-                actions_refused=intakes[i].refused,
-                watchdog_stops=intakes[i].watchdog_stops,
-                actor_lost_stops=intakes[i].actor_lost_stops,
+                start_state=[float(c) for c in run.starts[i]],
+                final_state=run.plant.reported(i),
+                true_final_state=run.plant.truth(i),
+                actions_applied=run.intakes[i].applied,
+                actions_refused=run.intakes[i].refused,
+                watchdog_stops=run.intakes[i].watchdog_stops,
+                actor_lost_stops=run.intakes[i].actor_lost_stops,
             )
-            for i, robot in enumerate(robots)
+            for i, robot in enumerate(run.robots)
         },
         missed_ticks=int(bus.counters.get("missed_ticks", 0)),
         counters={k: float(v) for k, v in bus.counters.items()},
     ).to_json_dict()
 
 
-def plant_status(plant: FleetPlant, intake: RobotIntake) -> Callable[[], dict[str, float]]:
-    """One robot's status counters (``srl/<robot>/status/plant``)."""
+def plant_summary(run: PlantHostRun, settings: Settings, bus: Bus) -> dict[str, Any]:
+    """What ``srl plant-sim`` (one robot, real time) prints: its robot's view of the host's run."""
+    if len(run.robots) != 1:
+        raise ValueError(f"a plant summary of one robot, not {len(run.robots)}")
+    return PlantSummary.model_validate(
+        {
+            "mode": "realtime",
+            "plant_model": settings.plant.model,
+            "final_state": run.plant.reported(0),
+            "true_final_state": run.plant.truth(0),
+            "saturated_commands": run.plant.saturated_commands(0),
+            # the intake's counts, as a plant_sim of one robot counted them on its bus (when > 0)
+            "counters": {**dict(bus.counters), **intake_counts(run.intakes[0])},
+        }
+    ).to_json_dict()
+
+
+def intake_counts(intake: RobotIntake) -> dict[str, int]:
+    counts = {
+        "actions_applied": intake.applied,
+        "watchdog_stops": intake.watchdog_stops,
+        "actor_lost_stops": intake.actor_lost_stops,
+    }
+    return {name: count for name, count in counts.items() if count > 0}
+
+
+def plant_status(plant: FleetPlant, intake: RobotIntake, bus: Bus | None = None) -> Callable[[], dict[str, float]]:
+    """One robot's status counters (``srl/<robot>/status/plant``); with ``bus`` (a host of this
+    robot alone) the host's counters too: they are the robot's (its refused actions: srl up's
+    live line shows them)."""
     i = intake.index
 
     def counters() -> dict[str, float]:
-        return {
+        own = {} if bus is None else {k: float(v) for k, v in dict(bus.counters).items()}
+        return own | {
             "seq": float(plant.seq[i]) if plant.ideal else float(plant.plants[i].seq),
             "actions_applied": float(intake.applied),
             "watchdog_stops": float(intake.watchdog_stops),

@@ -3,14 +3,15 @@ or a TurtleBot3's actuators and odometry (actuator, common/math/turtlebot.py; ph
 Burger of common/math/physics.py). Its states carry the
 reported pose (the odometry) and, since a simulator knows it, the true pose beside it.
 
-* lockstep: queryables ``plant/reset`` and ``plant/step`` (declared in this mode only: apply
-  this action for ``duration``, return the next state). A repeated request for the step just
-  applied (a retry after a lost reply) returns the same reply again instead of applying the
-  action twice.
-* realtime: integrates continuously at ``state_rate`` Hz with the newest action held, publishes
-  the state each period, and stops the robot (zero velocity) when no action arrived for
-  ``action_timeout_steps * delta``. It serves no query: a step or reset from anyone would move
-  the robot behind the actor's back, so neither queryable is declared.
+* lockstep (:func:`run`): queryables ``plant/reset`` and ``plant/step`` (declared in this mode
+  only: apply this action for ``duration``, return the next state). A repeated request for the
+  step just applied (a retry after a lost reply) returns the same reply again instead of applying
+  the action twice.
+* realtime: a plant host (services/plant_sim/host.py) of this one robot or of many integrates
+  continuously at ``state_rate`` Hz with the newest action held, publishes the states, and stops
+  a robot (zero velocity) when no action arrived for ``action_timeout_steps * delta``
+  (:class:`ActionIntake`). It serves no query: a step or reset from anyone would move the robot
+  behind the actor's back, so neither queryable is declared.
 Every applied action is clamped to the robot's limits; messages are validated by schema.
 """
 
@@ -25,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from common.config.settings import Settings
-from common.contracts.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE
+from common.contracts.keys import PLANT_RESET, PLANT_STEP, STATE
 from common.contracts.messages import Action, PlantState, ResetRequest, StepRequest
 from common.contracts.summaries import PlantSummary
 from common.math.dynamics import exact_step
@@ -228,39 +229,26 @@ class SimulatedPlant:
             return self._message()
 
 
-def run(settings: Settings, bus: Bus, mode: str, stop: threading.Event, duration: float | None) -> dict:
+def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | None) -> dict:
+    """The lockstep plant of one robot: it moves only when the actor steps it (real time is a
+    plant host's, services/plant_sim/host.py, of one robot or many)."""
     plant = SimulatedPlant(settings)
     robot = settings.transport.robot
     # one plant per robot: a second simulator (or a bridge) for the same robot would
     # make the actor follow one robot's states while commanding another
     bus.refuse_other_plant(robot)
     publish_state = bus.publisher(STATE, robot)
-    if mode == "lockstep":  # real time: nobody may teleport or step the robot (the queryables do not exist)
-        bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
-        bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
-
-    # whose actions drive the robot: only the live actor session's, in its order (the same gate
-    # as the robot bridge's)
-    intake = ActionIntake(lambda action: plant.hold(plant.clamp(action)), bus.reject, bus.count)
-    if mode == "realtime":
-        bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
-        bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
+    bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
+    bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
     bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
     start_status_thread(
         bus, [(robot, bus_status(bus, lambda: {"seq": plant.seq}))], settings.transport.status_period, stop
     )
-    log.info("plant_sim ready (%s mode, robot %s)", mode, robot)
-
-    if mode == "realtime":
-        timeout = action_timeout(settings)
-        for now, elapsed in state_ticks(settings, bus, stop, duration):
-            intake.watchdog(now, timeout)
-            publish_state(plant.advance(elapsed))
-    else:
-        stop.wait(duration)
+    log.info("plant_sim ready (lockstep mode, robot %s)", robot)
+    stop.wait(duration)
     return PlantSummary.model_validate(
         {
-            "mode": mode,
+            "mode": "lockstep",
             "plant_model": settings.plant.model,
             "final_state": [float(c) for c in plant.reported],
             "true_final_state": [float(c) for c in plant.state],
