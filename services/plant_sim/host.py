@@ -205,7 +205,11 @@ def run_plant_host(
     # the states of one state tick in one round, as one batch (common.contracts.keys.Batch)
     publish_states = bus.round_publisher(STATE, batches=len(robots) > 1)
     period = 1.0 / settings.transport.state_rate
-    sync = StateSync(len(robots), settings.plant.sampling_time, period) if settings.transport.state_sync else None
+    # a fleet's states are synced to their actors' ticks (transport.state_sync); one robot's go out
+    # at every state tick: a live view or any reader of the robot's key gets them at state_rate,
+    # for a cost of state_rate samples a second
+    synced = settings.transport.state_sync and len(robots) > 1
+    sync = StateSync(len(robots), settings.plant.sampling_time, period) if synced else None
     intakes = [RobotIntake(plant, i, bus, sync) for i in range(len(robots))]
     for robot, intake in zip(robots, intakes, strict=True):
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
