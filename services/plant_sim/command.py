@@ -66,12 +66,16 @@ def host(
     from common.math.fleet import circle_starts
     from services.plant_sim.host import fleet_plant_summary, plant_summary, run_plant_host
 
-    if robots is None:  # one robot, from its start
+    if robots is None:  # one robot, from its start, its states at every state tick (srl.toml: state_sync)
+        one = [settings.transport.robot]
         run = run_plant_host(
-            settings, bus, [settings.transport.robot], np.array([settings.start_state()]), stop, args.run_seconds
+            settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced=False
         )
         return plant_summary(run, settings, bus)
     starts = np.array(circle_starts(len(robots), args.circle))
     return fleet_plant_summary(
-        run_plant_host(settings, bus, robots, starts, stop, args.run_seconds), settings, bus, args.circle
+        run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced=settings.transport.state_sync),
+        settings,
+        bus,
+        args.circle,
     )

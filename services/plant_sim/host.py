@@ -195,20 +195,25 @@ class PlantHostRun:
 
 
 def run_plant_host(
-    settings: Settings, bus: Bus, robots: list[str], starts: np.ndarray, stop: threading.Event, duration: float | None
+    settings: Settings,
+    bus: Bus,
+    robots: list[str],
+    starts: np.ndarray,
+    stop: threading.Event,
+    duration: float | None,
+    synced: bool,
 ) -> PlantHostRun:
     """Simulate ``robots`` from ``starts`` in real time until ``stop`` or ``duration``: one robot
-    (``srl plant-sim``) or a fleet (``--robots``) alike."""
+    (``srl plant-sim``) or a fleet (``--robots``) alike. ``synced``: each robot's states only at the
+    state ticks just before its actor's (:class:`StateSync`; a fleet's, ``transport.state_sync``);
+    else every state tick (one robot's plant-sim: a live view or any reader of the robot's key
+    gets them at ``state_rate``)."""
     plant = FleetPlant(settings, robots, starts)
     for robot in robots:  # one plant per robot, before declaring
         bus.refuse_other_plant(robot)
     # the states of one state tick in one round, as one batch (common.contracts.keys.Batch)
     publish_states = bus.round_publisher(STATE, batches=len(robots) > 1)
     period = 1.0 / settings.transport.state_rate
-    # a fleet's states are synced to their actors' ticks (transport.state_sync); one robot's go out
-    # at every state tick: a live view or any reader of the robot's key gets them at state_rate,
-    # for a cost of state_rate samples a second
-    synced = settings.transport.state_sync and len(robots) > 1
     sync = StateSync(len(robots), settings.plant.sampling_time, period) if synced else None
     intakes = [RobotIntake(plant, i, bus, sync) for i in range(len(robots))]
     for robot, intake in zip(robots, intakes, strict=True):
