@@ -180,8 +180,7 @@ class ResetRequest(Message):
 
 
 class ServiceStatus(Message):
-    """Periodic health and counters of one service (every ``transport.status_period``, 1 s), sent
-    while someone subscribes to its key (common.net.transport.start_status_thread)."""
+    """Periodic health and counters of one service (1 Hz)."""
 
     robot: RobotId
     service: str = Field(pattern=r"^[a-z_\-]{1,32}$")
