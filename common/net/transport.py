@@ -693,9 +693,8 @@ def start_status_thread(
     * Spread over the period: one robot's status every ``period / K``. A host's K in one burst
       would hold the GIL from its tick thread for all of them; one at a time holds it for one
       robot's (tens of microseconds).
-    * Sent whether or not anyone subscribes: a status gated on Zenoh's matching status stopped
-      reaching a monitor across linked routers after a partition, and the check, made from this
-      thread, coincided with missed ticks in that test (docs/notes/2026-12-02-status-on-demand.md).
+    * Sent whether or not anyone subscribes: gating them on Zenoh's matching status saved no
+      measurable CPU and was in doubt across linked routers (docs/notes/2026-12-02-status-on-demand.md).
       Counted: ``statuses_published``.
     * Counters that are NaN or infinite are left out (the schema refuses them).
     * ``on_status`` gets every row's counters (the actor logs its status line: compose shows it)."""
