@@ -7,6 +7,7 @@ monitor merges the plant's refusal counters into the actor's status it shows.
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import pytest
@@ -137,7 +138,7 @@ def test_one_status_loop_sends_every_robots_status_spread_over_the_period() -> N
             bus.close()
     order = [status.robot for _, status in seen]
     assert order[:6] == ["st_a", "st_b"] * 3  # one robot at a time, in turn
-    gaps = [later - earlier for (earlier, _), (later, _) in zip(seen, seen[1:], strict=False)][:5]
+    gaps = [later - earlier for (earlier, _), (later, _) in itertools.pairwise(seen)][:5]
     assert all(0.1 <= gap <= 0.4 for gap in gaps), gaps  # period / K = 0.2 s apart, not a burst
     assert all("bad" not in status.counters for _, status in seen)
     assert [status.counters["steps"] for _, status in seen if status.robot == "st_b"][:3] == [1.0, 2.0, 3.0]
