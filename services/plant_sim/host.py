@@ -34,7 +34,7 @@ from common.contracts.keys import ACTION, STATE
 from common.contracts.messages import Action, PlantState
 from common.contracts.summaries import PlantSummary
 from common.math.dynamics import exact_steps
-from common.net.transport import Bus, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, state_ticks
 
 log = logging.getLogger(__name__)
@@ -176,7 +176,7 @@ class RobotIntake(ActionIntake):
         def reject(what: str, why: str) -> None:
             bus.reject(what, f"robot {robot}: {why}")
 
-        super().__init__(hold, reject)
+        super().__init__(hold, reject, bus.count)  # the host's counts: the robot's in a host of one
 
     def on_action(self, message: Action, source: str | None) -> None:
         now = self.take(message, source)
@@ -220,10 +220,9 @@ def run_plant_host(
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
         bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
     bus.declare_sole_plants(robots)
-    rows = [
-        (robot, plant_status(plant, intake, bus if len(robots) == 1 else None))
-        for robot, intake in zip(robots, intakes, strict=True)
-    ]
+    rows = [(robot, plant_status(plant, intake)) for robot, intake in zip(robots, intakes, strict=True)]
+    if len(robots) == 1:  # the host's counters are its one robot's (refused actions: srl up's live line)
+        rows = [(robots[0], bus_status(bus, rows[0][1]))]
     start_status_thread(bus, rows, settings.transport.status_period, stop)
     log.info("plant host ready: %d robots (%s)", len(robots), settings.plant.model)
     timeout = action_timeout(settings)
@@ -273,30 +272,17 @@ def plant_summary(run: PlantHostRun, settings: Settings, bus: Bus) -> dict[str, 
             "final_state": run.plant.reported(0),
             "true_final_state": run.plant.truth(0),
             "saturated_commands": run.plant.saturated_commands(0),
-            # the intake's counts, as a plant_sim of one robot counted them on its bus (when > 0)
-            "counters": {**dict(bus.counters), **intake_counts(run.intakes[0])},
+            "counters": dict(bus.counters),
         }
     ).to_json_dict()
 
 
-def intake_counts(intake: RobotIntake) -> dict[str, int]:
-    counts = {
-        "actions_applied": intake.applied,
-        "watchdog_stops": intake.watchdog_stops,
-        "actor_lost_stops": intake.actor_lost_stops,
-    }
-    return {name: count for name, count in counts.items() if count > 0}
-
-
-def plant_status(plant: FleetPlant, intake: RobotIntake, bus: Bus | None = None) -> Callable[[], dict[str, float]]:
-    """One robot's status counters (``srl/<robot>/status/plant``); with ``bus`` (a host of this
-    robot alone) the host's counters too: they are the robot's (its refused actions: srl up's
-    live line shows them)."""
+def plant_status(plant: FleetPlant, intake: RobotIntake) -> Callable[[], dict[str, float]]:
+    """One robot's status counters (``srl/<robot>/status/plant``)."""
     i = intake.index
 
     def counters() -> dict[str, float]:
-        own = {} if bus is None else {k: float(v) for k, v in dict(bus.counters).items()}
-        return own | {
+        return {
             "seq": float(plant.seq[i]) if plant.ideal else float(plant.plants[i].seq),
             "actions_applied": float(intake.applied),
             "watchdog_stops": float(intake.watchdog_stops),
