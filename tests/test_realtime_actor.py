@@ -21,7 +21,7 @@ from common.config.settings import Settings
 from common.contracts.messages import Action, CriticWeights, PlantState, Transition
 from common.math.actor_problem import ActorCounters
 from common.net.provenance import RESYNC_AFTER, SourceGate
-from common.system.clock import Ticker
+from services.actor.host import HostScheduler, RobotTicker
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import RealtimeActor
 from tests.harness import FakeCounts
@@ -48,6 +48,14 @@ class FakeClock:
         if self.on_sleep is not None:
             self.on_sleep(self)
         return False
+
+
+def serve(loop: RealtimeActor, fake: FakeClock, ticks: float) -> RobotTicker:
+    """Serve ``loop``'s ticks for ``ticks`` periods from now as a host of one robot does
+    (services/actor/host.py HostScheduler on the fake clock): the path every real-time actor runs."""
+    scheduler = HostScheduler([loop], DELTA, threading.Event(), clock=fake.clock, sleep=fake.sleep)
+    scheduler.run(end=fake.now + ticks * DELTA, manual_gc=False)
+    return scheduler.tickers[0]
 
 
 @dataclass
@@ -107,15 +115,13 @@ class Loop:
             PlantState(robot="fk", episode=0, seq=self.seq, stamp_ns=0, state=(x, 0.5, 0.1), source="sim"), source
         )
 
-    def run(self, ticks: int, plant: bool = True) -> Ticker:
+    def run(self, ticks: int, plant: bool = True) -> RobotTicker:
         def on_sleep(fake: FakeClock) -> None:
             if plant and self.plant_alive:
                 self.publish_state()
 
         self.fake.on_sleep = on_sleep
-        ticker = Ticker(DELTA, clock=self.fake.clock, sleep=self.fake.sleep)
-        self.loop.run(ticker, end=ticker.start + (ticks + 0.5) * DELTA, manual_gc=False)
-        return ticker
+        return serve(self.loop, self.fake, ticks + 0.5)
 
 
 def test_ticks_at_absolute_times_one_action_and_one_transition_each() -> None:
@@ -137,7 +143,7 @@ def test_a_stale_state_commands_zero_and_records_no_transition() -> None:
     t = Loop()
     t.run(10)
     t.plant_alive = False  # the plant falls silent: its last state goes stale
-    t.loop.run(Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep), end=t.fake.now + 10.5 * DELTA, manual_gc=False)
+    serve(t.loop, t.fake, 10.5)
     stale = t.settings.transport.action_timeout_steps - 1  # ticks a state stays fresh
     zeros = [a for a in t.actions[11:-1] if a.action == (0.0, 0.0)]
     assert len(zeros) >= 10 - stale and t.loop.stale_state_stops >= 10 - stale
@@ -290,8 +296,7 @@ def test_memory_is_bounded_over_a_million_ticks() -> None:
             seen["snapshot"] = tracemalloc.take_snapshot()
 
     t.fake.on_sleep = on_sleep
-    ticker = Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep)
-    t.loop.run(ticker, end=ticker.start + (warm_up + ticks + 0.5) * DELTA, manual_gc=False)
+    serve(t.loop, t.fake, warm_up + ticks + 0.5)
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
     gc.collect()
@@ -379,14 +384,12 @@ def test_the_arrival_rule_holds_the_robot_with_zero_and_the_loop_says_so() -> No
         t.loop.on_state(PlantState(robot="fk", episode=0, seq=t.seq, stamp_ns=0, state=pose, source="sim"), PLANT)
 
     t.fake.on_sleep = on_sleep
-    ticker = Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep)
-    t.loop.run(ticker, end=ticker.start + 4.5 * DELTA, manual_gc=False)
+    serve(t.loop, t.fake, 4.5)
     sent = [a.action for a in t.actions[:-1]]
     assert sent[0] != (0.0, 0.0) and all(a == (0.0, 0.0) for a in sent[1:])
     assert [tr.step for tr in t.transitions] == [0, 1, 2, 3]  # one per tick, arrived or not
     assert t.loop.status()["arrived"] == 1.0 and t.loop.status()["arrived_steps"] == 3.0
-    ticker = Ticker(DELTA, clock=t.fake.clock, sleep=t.fake.sleep)
-    t.loop.run(ticker, end=ticker.start + 5.5 * DELTA, manual_gc=False)
+    serve(t.loop, t.fake, 5.5)
     assert t.loop.status()["arrived"] == 0.0 and t.actions[-2].action[0] < 0  # 0.2 m out: driving again
 
 

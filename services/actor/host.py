@@ -43,18 +43,17 @@ from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
 from common.contracts.keys import ACTION, STATE, TRANSITION
-from common.contracts.messages import PlantState
-from common.contracts.summaries import RealtimeActorSummary
+from common.contracts.messages import Action, PlantState, Transition
+from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.stats import Window
-from common.net.transport import Bus, Newest, start_status_thread
+from common.net.transport import Bus, Newest, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker
-from services.actor.ports import WeightsInbox, new_episode_id
-from services.actor.realtime import RealtimeActor
-from services.actor.service import wire_realtime, wire_weights
+from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
+from services.actor.realtime import Counts, RealtimeActor, Steps
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +80,38 @@ PRIME_WAIT_S = 3.0
 def robot_settings(settings: Settings, robot: str) -> Settings:
     """The settings of one robot of the fleet: the same, but its own id (its keys)."""
     return settings.model_copy(update={"transport": settings.transport.model_copy(update={"robot": robot})})
+
+
+def wire_realtime(
+    settings: Settings,
+    bus: Bus,
+    actor: StackedActor | Steps,
+    inbox: WeightsInbox,
+    counters: Counts,
+    episode_id: int,
+    publish_action: Callable[[Action], None] | None = None,
+    publish_transition: Callable[[Transition], None] | None = None,
+) -> RealtimeActor:
+    """One robot's real-time loop on the bus (``settings.transport.robot``'s keys): its action and
+    transition publishers, the plant's session identities and liveliness watched. Provenance
+    first: the caller subscribes the states after this, so the live plant sessions are known
+    before the first state is judged (one actor: a callback per state; the actor host: the
+    newest, judged at the robot's tick). ``publish_action``, ``publish_transition``: where its
+    actions and transitions go instead of their own keys (an actor host's outboxes,
+    services/actor/host.py Outbox)."""
+    robot = settings.transport.robot
+    loop = RealtimeActor(
+        settings,
+        actor,
+        inbox,
+        publish_action or bus.publisher(ACTION, robot),
+        publish_transition or bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
+        counters,
+        episode_id,
+    )
+    bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
+    bus.watch_alive(robot, "plant", loop.on_plant_token)
+    return loop
 
 
 class RobotActor:
@@ -377,7 +408,19 @@ def run_host(
         inbox.reset(loop.episode_id)
     log.info("actor host ready: %d robots in %.1f s", len(robots), time.monotonic() - started)
     rows = [(robot, robot_status(loop, count)) for robot, loop, count in zip(robots, loops, counts, strict=True)]
-    start_status_thread(bus, rows, settings.transport.status_period, stop)
+    log_status: Callable[[dict[str, float]], None] | None = None
+    if len(robots) == 1:
+        # a host of one robot: the process's counters are the robot's (refusals on the bus: srl up's
+        # live line), and its status line is logged at INFO (`docker compose up` shows it; srl up
+        # prints the same line from the published status); a host of many logs none (K lines a
+        # second are not read by anyone)
+        rows = [(robots[0], bus_status(bus, rows[0][1]))]
+        first_version: list[float] = []
+
+        def log_status(values: dict[str, float]) -> None:
+            log.info("status %s", format_status_line(values, time.monotonic() - started, first_version))
+
+    start_status_thread(bus, rows, settings.transport.status_period, stop, log_status)
     primed = prime_plans(loops, states, stop, PRIME_WAIT_S)
     log.info("actor host: %d of %d robots primed in %.1f s", primed, len(robots), time.monotonic() - started)
     gc.collect()
@@ -403,14 +446,17 @@ def run_host(
         scheduler.served,
         100 * settings.actor.host_cpu_budget,
     )
-    summary = host_summary(robots, loops, bus)
-    summary["counters"].update(
-        ticks_over_budget=float(scheduler.over_budget),
-        realtime_priority=float(priority),
-        failed_action_rounds=float(outbox.failed_rounds),
-        failed_transition_rounds=float(transitions.failed_rounds),
+    return host_summary(
+        robots,
+        loops,
+        bus,
+        {
+            "ticks_over_budget": float(scheduler.over_budget),
+            "realtime_priority": float(priority),
+            "failed_action_rounds": float(outbox.failed_rounds),
+            "failed_transition_rounds": float(transitions.failed_rounds),
+        },
     )
-    return summary
 
 
 def prime_plans(
@@ -435,13 +481,19 @@ def prime_plans(
     return len(loops) - len(pending)
 
 
-def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus) -> dict[str, Any]:
+def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: dict[str, float]) -> dict[str, Any]:
+    """What ``srl actor`` prints: a host of many robots, a :class:`FleetActorSummary` (every
+    robot's own summary, the fleet's view, the process's counters and ``host``'s); a host of one,
+    its robot's :class:`RealtimeActorSummary`, whose counters are the process's, the robot's and
+    ``host``'s (what one actor process printed before hosts served one robot too)."""
+    process = {k: float(v) for k, v in bus.counters.items()} | host
     per_robot = {
         robot: RealtimeActorSummary.model_validate(loop.summary()) for robot, loop in zip(robots, loops, strict=True)
     }
+    if len(robots) == 1:
+        own = per_robot[robots[0]].to_json_dict()
+        own["counters"] = process | own["counters"]
+        return RealtimeActorSummary.model_validate(own).to_json_dict()
     return FleetActorSummary(
-        robots=robots,
-        per_robot=per_robot,
-        fleet=fleet_view(per_robot),
-        counters={k: float(v) for k, v in bus.counters.items()},
+        robots=robots, per_robot=per_robot, fleet=fleet_view(per_robot), counters=process
     ).to_json_dict()

@@ -21,7 +21,7 @@ import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
-from common.contracts.keys import PLANT_RESET, PLANT_STEP, TRANSITION, Service
+from common.contracts.keys import PLANT_RESET, PLANT_STEP, TRANSITION, WEIGHTS, Service
 from common.contracts.messages import CriticWeights, Message, PlantState, ResetRequest, StepRequest, Transition
 from common.math.agents import fit_due, learns
 from common.math.critic import FitsDue, Sample
@@ -273,3 +273,14 @@ class ZenohCriticPort:
     def weights(self) -> tuple[np.ndarray, np.ndarray]:
         held = self.inbox.current()
         return held.q, held.v
+
+
+def wire_weights(settings: Settings, bus: Bus) -> WeightsInbox:
+    """One robot's weights inbox on the bus (``settings.transport.robot``'s keys): weights only
+    from the live critic session of that robot (its identity watched, common.net.provenance)."""
+    robot = settings.transport.robot
+    critic_gate = SourceGate("critic")
+    bus.watch_identities(robot, "critic", critic_gate)
+    inbox = WeightsInbox(settings, bus, critic_gate)
+    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
+    return inbox

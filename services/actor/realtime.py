@@ -1,6 +1,7 @@
 """The real-time actor: the ``delta``-periodic loop as a class with explicit state and ports.
 
-At tick ``k`` (absolute time ``t0 + k delta``, :class:`common.system.clock.Ticker`) it takes the newest
+At tick ``k`` (absolute time ``t0 + k delta``, served by services/actor/host.py's
+:class:`~services.actor.host.HostScheduler`, one robot or many) it takes the newest
 accepted state, solves, publishes the action and one transition. It never waits for the critic:
 it uses the newest weights it holds and reports their staleness: the steps between the newest
 transition its critic fits and the one they were trained on (a robot held at rest sends
@@ -21,10 +22,8 @@ newest ``M``. ``tests/test_realtime_actor.py`` runs it on a fake clock and fake 
 
 from __future__ import annotations
 
-import gc
 import logging
 import math
-import os
 import threading
 import time
 from collections import deque
@@ -83,7 +82,8 @@ class Steps(Protocol):
 
 class RealtimeActor:
     """One robot's real-time actor. Feed it states (:meth:`on_state`), plant identities and
-    tokens; :meth:`run` ticks until ``stop`` or the end; :meth:`status` and :meth:`summary`
+    tokens; a scheduler (services/actor/host.py HostScheduler, of one robot or many) calls
+    :meth:`tick` at each due time and sets :attr:`ticker`; :meth:`status` and :meth:`summary`
     report. Everything it sends goes through ``publish_action`` and ``publish_transition``."""
 
     def __init__(
@@ -327,33 +327,6 @@ class RealtimeActor:
             if not resting and weights.trained_step >= 0 and self.published_step[slot] == weights.trained_step:
                 self.staleness_ms.append((done - float(self.published_at[slot])) * 1e3)
         self.steps += 1
-
-    def run(self, ticker: Ticker, end: float | None, manual_gc: bool = True) -> None:
-        """Tick until ``ticker`` stops or its next tick is at or after ``end``.
-
-        ``manual_gc``: garbage collection off the critical path -- what exists now is frozen
-        out of the collector, automatic collection is off, and the loop collects in its slack
-        time after each tick's work is out (the young generation every tick, the middle one
-        every 10, all every 600). SRL_ACTOR_AUTOMATIC_GC=1 keeps Python's automatic collection."""
-        self.ticker = ticker
-        manual_gc = manual_gc and gc.isenabled() and os.environ.get("SRL_ACTOR_AUTOMATIC_GC") != "1"
-        if manual_gc:
-            gc.disable()
-        previous: float | None = None
-        try:
-            while (tick := ticker.wait()) is not None and (end is None or tick < end):
-                if previous is not None:
-                    self.periods.append(tick - previous)
-                    self.jitter.append(abs(tick - previous - self.delta))
-                previous = tick
-                k = ticker.index - 1
-                self.tick(k, tick)
-                if manual_gc:
-                    gc.collect(2 if k % 600 == 599 else 1 if k % 10 == 9 else 0)
-        finally:
-            if manual_gc:
-                gc.enable()
-        self.send(ticker.index, (0.0, 0.0), -1)  # on the way out: stop the robot
 
     # -- reports ------------------------------------------------------------------------------
     def lockout_suspect(self) -> bool:
