@@ -47,7 +47,7 @@ from tests.harness import (
 DELTA = 0.1
 TIMEOUT = 3 * DELTA  # bridge.watchdog_timeout_steps x delta (srl.toml)
 ODOM_PERIOD = 0.05  # the emulator's 20 Hz
-WATCHDOG_CHECK = DELTA / 10  # the bridge checks its watchdog every delta / 10 (services/robot_bridge/service.py)
+WATCHDOG_CHECK = DELTA / 10  # the bridge checks its watchdog every delta / 10 (services/robot_bridge/host.py)
 SLACK = 0.05  # scheduling on a loaded 2-vCPU machine
 
 

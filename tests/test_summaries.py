@@ -84,7 +84,7 @@ def test_srl_up_says_in_one_line_which_child_summary_is_missing_or_wrong() -> No
 
 
 def _bridge_summary() -> dict[str, object]:
-    """What services/robot_bridge/service.py prints (its timing from a real RobotBridge)."""
+    """What services/robot_bridge/host.py prints (its timing from a real RobotBridge)."""
     settings = Settings.load(transport={"robot": "u0"})
     bridge = RobotBridge(settings, lambda s: None, lambda v, w: None, FakeCounts())
     return {

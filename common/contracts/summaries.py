@@ -228,7 +228,7 @@ class BridgeTiming(_Summary):
 
 
 class BridgeSummary(_Summary):
-    """The ROS 2 robot bridge (services/robot_bridge/service.py)."""
+    """The ROS 2 robot bridge (services/robot_bridge/host.py)."""
 
     service: Literal["robot_bridge"] = "robot_bridge"
     # the wire names as plain strings: common.contracts.ros_wire's Literals would pull rosbags into every

@@ -2,7 +2,7 @@
 
 :class:`RobotBridge` is given its ports (``publish_state``, ``send_command``, counters, the actor's
 :class:`~common.net.provenance.SourceGate`) and knows nothing of Zenoh or ROS keys; the ROS side is
-services/robot_bridge/ros_link.py, the process services/robot_bridge/service.py. Its rules
+services/robot_bridge/ros_link.py, the process services/robot_bridge/host.py. Its rules
 (docs/turtlebot.md):
 
 * **Goal frame.** The goal is a configured pose ``bridge.goal`` in the robot's odom frame, default

@@ -37,30 +37,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from services.robot_bridge.service import run
+    from services.robot_bridge.host import run_bridge_host
 
+    settings = settings_from_args(args)
     robots = fleet_robots(args, ROS_FLEET_PREFIX)
-    if robots is not None:
-        from services.robot_bridge.host import run_bridge_host
-
-        settings = settings_from_args(args)
+    if robots is None:  # one robot: its id transport.robot, its ROS namespace bridge.namespace
+        if getattr(args, "robot_endpoints", None):
+            raise UsageError("--robot-endpoints needs --robots (one bridge for several robots)")
+        robot = settings.transport.robot
+        fleet = {robot: settings.bridge.robot_endpoint}
+        namespaces: dict[str, str] | None = {robot: settings.bridge.namespace}
+    else:  # each robot's id is its ROS namespace
         if settings.bridge.namespace:
             raise UsageError(
                 f"bridge.namespace {settings.bridge.namespace!r} with --robots: "
                 "each robot's ROS namespace is its robot id"
             )
         fleet = ros_fleet_endpoints(args, robots, settings.bridge.robot_endpoint)
-        return serve(
-            settings,
-            "plant",
-            args.connect_timeout,
-            lambda settings, bus, stop: run_bridge_host(settings, bus, fleet, stop, args.run_seconds),
-        )
-    if getattr(args, "robot_endpoints", None):
-        raise UsageError("--robot-endpoints needs --robots (one bridge for several robots)")
+        namespaces = None
     return serve(
-        settings_from_args(args),
+        settings,
         "plant",
         args.connect_timeout,
-        lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
+        lambda settings, bus, stop: run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces),
     )

@@ -1,27 +1,37 @@
-"""The bridge host: one ``srl robot-bridge --robots ...`` process for several ROS 2 robots.
+"""robot_bridge: ROS 2 robots as the plant -- odometry in, ``cmd_vel`` out, over Zenoh.
 
-Each srl robot id is its robot's ROS namespace (common/math/fleet.py ``ros_fleet``): robot ``tb3_1``
-reads ``/tb3_1/odom`` and commands ``/tb3_1/cmd_vel`` (rmw_zenoh keys ``<domain>/tb3_1/odom/...``,
-ros2dds keys ``tb3_1/odom``), and its frames are ``tb3_1/odom``, ``tb3_1/base_footprint``.
-Every robot keeps what one bridge keeps -- its own :class:`RobotBridge` (goal frame, heading,
-odometry checks, the live actor session's actions in order, the watchdog) and its own
-:class:`RosLink` (cmd_vel discovery, attachment format, publishers), its own counters and
-summary -- on srl's keys of its own id (``srl/<id>/state``, ``action``, ``alive/plant``,
-``alive/robot_bridge``, ``status/plant``), wired, attached and shut down as one bridge is
-(services/robot_bridge/service.py). One srl session serves them all, and one client
-session per distinct robot endpoint: robots that each run their own router (``rmw_zenohd`` on
-the robot, ``--robot-endpoints``) get one session each, robots reached through one router
-(``--robot-endpoint``) share one. Each is opened as one bridge opens its robot's
-(services/robot_bridge/robot_router.py ``robot_session``): with the ``bridge.robot_*`` login and
-TLS, waited for up to ``bridge.robot_connect_timeout``. A robot's commands can only go to its own
+It publishes and consumes the same keys as plant_sim (``srl/<robot>/state``, ``srl/<robot>/action``)
+and declares the same liveliness token (``srl/<robot>/alive/plant``, plus ``alive/robot_bridge``),
+so the actor and the critic cannot tell which plant they talk to (docs/turtlebot.md).
+
+One process serves K robots (``srl robot-bridge``: K = 1, its robot id ``transport.robot`` and its
+ROS namespace ``bridge.namespace``; ``--robots``: each robot's id is its ROS namespace,
+common/math/fleet.py ``ros_fleet``: robot ``tb3_1`` reads ``/tb3_1/odom`` and commands
+``/tb3_1/cmd_vel``, rmw_zenoh keys ``<domain>/tb3_1/odom/...``, ros2dds keys ``tb3_1/odom``, and its
+frames are ``tb3_1/odom``, ``tb3_1/base_footprint``). One robot and many run the same code.
+
+A robot's bridge is three parts: the logic (services/robot_bridge/bridge.py: goal frame, odometry
+checks, the live actor session's actions, the watchdog), the ROS side
+(services/robot_bridge/ros_link.py: keys, CDR, cmd_vel discovery, attachment format) and the run
+here: :func:`wire_robot` joins the first two for one robot, :func:`attach` puts them on srl's bus,
+:func:`shut_down` is the way out. Every robot keeps its own :class:`RobotBridge`, :class:`RosLink`,
+counters and summary, on srl's keys of its own id (``srl/<id>/state``, ``action``, ``alive/plant``,
+``alive/robot_bridge``, ``status/plant``). On the way out every robot is commanded zero
+:data:`SHUTDOWN_ZEROS` times before anything is undeclared.
+
+One srl session serves them all, and one client session per distinct robot endpoint: robots that
+each run their own router (``rmw_zenohd`` on the robot, ``--robot-endpoints``) get one session
+each, robots reached through one router (``--robot-endpoint``) share one. Each is opened by
+services/robot_bridge/robot_router.py ``robot_session``: with the ``bridge.robot_*`` login and TLS,
+waited for up to ``bridge.robot_connect_timeout``. A robot's commands can only go to its own
 namespace's keys: its link builds every key from its namespace, and its bridge applies only
 actions for its id.
 
-Why a host and not one bridge per robot: a bridge process is a Python interpreter with Zenoh and
-the ROS type store, and a host pays for one of them whatever its number of robots
-(docs/fleets.md). One bridge per robot (``srl up --robots K --plant robot --layout process``)
-isolates a crash to one robot; either way a real robot still needs its own command timeout
-(docs/turtlebot.md).
+Why one process for several robots and not one bridge per robot: a bridge process is a Python
+interpreter with Zenoh and the ROS type store, and a host pays for one of them whatever its number
+of robots (docs/fleets.md). One bridge per robot (``srl up --robots K --plant robot --layout
+process``) isolates a crash to one robot; either way a real robot still needs its own command
+timeout (docs/turtlebot.md).
 """
 
 from __future__ import annotations
@@ -36,28 +46,80 @@ from typing import Any
 from common.config.arguments import UsageError
 from common.config.settings import BridgeSettings, Settings, TransportSettings
 from common.contracts.fleet_summary import FleetBridgeSummary
-from common.contracts.keys import STATE, liveliness_key
-from common.contracts.messages import Action
+from common.contracts.keys import ACTION, STATE, liveliness_key
+from common.contracts.messages import Action, PlantState
 from common.contracts.ros_wire import RosGraph
+from common.contracts.summaries import BridgeSummary
 from common.net.provenance import SourceGate
 from common.net.security import SecurityError
-from common.net.transport import Bus, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.system.clock import Ticker
-from services.robot_bridge.bridge import RobotBridge
+from services.robot_bridge.bridge import Counts, RobotBridge
 from services.robot_bridge.robot_router import robot_session
-from services.robot_bridge.ros_link import RosLink
-from services.robot_bridge.service import attach, bridge_summary, shut_down, wire_robot
+from services.robot_bridge.ros_link import RosLink, undeclare
 
 log = logging.getLogger(__name__)
 # node and entity ids per robot in a shared session: robot i uses i * ENTITY_IDS ... (rmw_zenoh
 # wants them unique per session; a link needs 2 + one per cmd_vel target)
 ENTITY_IDS = 100
+# zero-velocity commands on the way out, 20 ms apart: one lost sample must not leave the robot
+# driving (a TurtleBot3 holds its last command)
+SHUTDOWN_ZEROS = 3
+
+
+def wire_robot(
+    settings: Settings,
+    session: Any,
+    publish_state: Callable[[PlantState], None],
+    counts: Counts,
+    entity_base: int = 0,
+) -> tuple[RosLink, RobotBridge, SourceGate]:
+    """One robot's bridge on ``session`` (its robot's router, or srl's): its ROS link, the logic
+    the link feeds and that sends through it, and the gate of the actor sessions it follows."""
+    link = RosLink(session, RosGraph.from_settings(settings.bridge), settings.bridge, counts, entity_base)
+    actor_gate = SourceGate("actor")
+    bridge = RobotBridge(settings, publish_state, link.send, counts, actor_gate)
+    link.on_odometry = bridge.on_odometry
+    link.on_localization = bridge.on_localization
+    return link, bridge, actor_gate
+
+
+def attach(bus: Bus, robot: str, link: RosLink, bridge: RobotBridge, actor_gate: SourceGate) -> None:
+    """One robot's bridge on srl's bus: the actor is alive while one of its sessions' identity
+    tokens is (common.net.provenance), its actions come in; then the ROS link starts."""
+    bus.watch_identities(robot, "actor", actor_gate, bridge.on_actor_identity)
+    bus.subscribe(
+        ACTION,
+        ACTION.key(robot),
+        lambda message, source: bridge.on_action(message, time.monotonic(), source),
+        with_source=True,
+    )
+    link.start()
+
+
+def shut_down(
+    robots: list[tuple[RosLink, RobotBridge]], tokens: list[Any], sessions: list[Any]
+) -> list[dict[str, Any]]:
+    """The way out of one bridge or a bridge host: each link's wire described, every robot
+    commanded zero :data:`SHUTDOWN_ZEROS` times, srl's ``tokens`` undeclared, the links closed,
+    then the robots' own ``sessions``. Returns each link's description, in order."""
+    wires = [link.describe() for link, _ in robots]
+    for _ in range(SHUTDOWN_ZEROS):  # on the way out: stop every robot
+        for _, bridge in robots:
+            bridge.stop()
+        time.sleep(0.02)
+    undeclare(tokens)
+    for link, _ in robots:
+        link.close()
+    for session in sessions:
+        session.close()
+    return wires
 
 
 @dataclass
 class BridgeUnit:
-    """One robot of the host: its id (= namespace), endpoint, settings, bridge and link."""
+    """One robot of the host: its id, endpoint, settings (its ROS namespace), bridge and link."""
 
     robot: str
     endpoint: str
@@ -72,12 +134,13 @@ class BridgeUnit:
         self.bridge.on_action(message, time.monotonic(), source)
 
 
-def robot_settings(settings: Settings, robot: str, endpoint: str) -> Settings:
-    """The settings of one robot of the host: its id, its namespace (the id), its endpoint."""
+def robot_settings(settings: Settings, robot: str, endpoint: str, namespace: str | None = None) -> Settings:
+    """The settings of one robot of the host: its id, its ROS namespace (default: the id), its endpoint."""
+    ros_namespace = robot if namespace is None else namespace
     return settings.model_copy(
         update={
             "transport": settings.transport.model_copy(update={"robot": robot}),
-            "bridge": settings.bridge.model_copy(update={"namespace": robot, "robot_endpoint": endpoint}),
+            "bridge": settings.bridge.model_copy(update={"namespace": ros_namespace, "robot_endpoint": endpoint}),
         }
     )
 
@@ -89,11 +152,14 @@ def open_unit(
     index: int,
     session: Any,
     publish_state: Any,
+    namespace: str | None = None,
+    forward: Callable[[str, str], None] | None = None,
 ) -> BridgeUnit:
     """Robot ``index`` of the host on ``session`` (its robot's router, or srl's): transport-free
-    but for the session, so a test can hand it a fake one."""
-    own = robot_settings(settings, robot, endpoint)
-    counts = RobotCounts(robot, "robot_bridge")
+    but for the session, so a test can hand it a fake one. ``namespace``: its ROS namespace
+    (default: its id); ``forward``: where its refusals go too (the process's ``Bus.reject``)."""
+    own = robot_settings(settings, robot, endpoint, namespace)
+    counts = RobotCounts(robot, "robot_bridge", forward=forward)
     link, bridge, gate = wire_robot(own, session, publish_state, counts, entity_base=index * ENTITY_IDS)
     return BridgeUnit(robot, endpoint, own, link.graph, counts, link, bridge, gate)
 
@@ -125,14 +191,27 @@ def open_robot_sessions(
 
 
 def run_bridge_host(
-    settings: Settings, bus: Bus, fleet: dict[str, str], stop: threading.Event, duration: float | None
+    settings: Settings,
+    bus: Bus,
+    fleet: dict[str, str],
+    stop: threading.Event,
+    duration: float | None,
+    namespaces: dict[str, str] | None = None,
 ) -> dict[str, Any]:
-    """Serve every robot of ``fleet`` (robot id = namespace -> its endpoint, '' = srl's router)."""
+    """Serve every robot of ``fleet`` (robot id -> its endpoint, '' = srl's router) until ``stop``
+    or ``duration``. ``namespaces``: each robot's ROS namespace (default: its id; one robot's
+    ``srl robot-bridge``: ``bridge.namespace``, which may be none). A host of one robot prints its
+    robot's :class:`BridgeSummary` (the process's counters and the robot's), a host of many a
+    :class:`FleetBridgeSummary`."""
     if settings.transport.secure and not all(fleet.values()):
+        # srl's access rules cover srl's keys: a robot's ROS 2 traffic on srl's secured router
+        # would be refused, and the bridge would wait for odometry that never comes
         raise SecurityError(
-            "robot_bridge: with transport.secure every robot must be on its own Zenoh router: "
-            "give every robot an endpoint (--robot-endpoints, --robot-endpoint)"
+            "robot_bridge: with transport.secure every robot must be on its own Zenoh router: give it an "
+            "endpoint (bridge.robot_endpoint, SRL_BRIDGE__ROBOT_ENDPOINT, --robot-endpoint; with --robots "
+            "also --robot-endpoints)"
         )
+    own_namespace = namespaces or {}
     robots = list(fleet)
     sessions: dict[str, Any] = {}
     units: list[BridgeUnit] = []
@@ -144,19 +223,25 @@ def run_bridge_host(
         for index, robot in enumerate(robots):
             endpoint = fleet[robot]
             session = sessions[endpoint] if endpoint else bus.session
-            units.append(open_unit(settings, robot, endpoint, index, session, bus.publisher(STATE, robot)))
+            publish = bus.publisher(STATE, robot)
+            namespace = own_namespace.get(robot)
+            units.append(open_unit(settings, robot, endpoint, index, session, publish, namespace, bus.reject))
         for unit in units:
             attach(bus, unit.robot, unit.link, unit.bridge, unit.actor_gate)
         bus.declare_sole_plants(robots)
         tokens = [bus.session.liveliness().declare_token(liveliness_key(r, "robot_bridge")) for r in robots]
-        start_status_thread(
-            bus, [(unit.robot, unit_status(unit)) for unit in units], settings.transport.status_period, stop
-        )
+        rows = [(unit.robot, unit_status(unit)) for unit in units]
+        if len(units) == 1:  # the process's counters are its one robot's (srl up's live line)
+            rows = [(units[0].robot, bus_status(bus, rows[0][1]))]
+        start_status_thread(bus, rows, settings.transport.status_period, stop)
         log.info(
-            "bridge host ready: %d robots (%s), %s",
+            "robot_bridge ready: %d robots (%s, goal %s in each odom frame), %s",
             len(robots),
             settings.bridge.profile,
-            ", ".join(f"{u.robot} on {u.endpoint or 'srl router'}" for u in units),
+            settings.bridge.goal,
+            ", ".join(
+                f"{u.robot} (namespace {u.graph.namespace or '/'}) on {u.endpoint or 'srl router'}" for u in units
+            ),
         )
         ticker = Ticker(settings.plant.sampling_time / 10.0, stop)
         end = None if duration is None else time.monotonic() + duration
@@ -167,6 +252,12 @@ def run_bridge_host(
     finally:
         described = shut_down([(unit.link, unit.bridge) for unit in units], tokens, list(sessions.values()))
         wires = {unit.robot: wire for unit, wire in zip(units, described, strict=True)}
+    process = {k: float(v) for k, v in bus.counters.items()}
+    if len(units) == 1:
+        [unit] = units
+        own = {k: float(v) for k, v in unit.counts.snapshot().items()}
+        summary = bridge_summary(unit.graph, unit.settings, wires[unit.robot], unit.bridge, process | own)
+        return summary.to_json_dict()
     return FleetBridgeSummary(
         robots=robots,
         endpoints=dict(fleet),
@@ -176,7 +267,7 @@ def run_bridge_host(
             )
             for unit in units
         },
-        counters={k: float(v) for k, v in bus.counters.items()},
+        counters=process,
     ).to_json_dict()
 
 
@@ -191,3 +282,23 @@ def unit_status(unit: BridgeUnit) -> Callable[[], dict[str, float]]:
         return values
 
     return counters
+
+
+def bridge_summary(
+    graph: RosGraph, settings: Settings, wire: dict[str, Any], bridge: RobotBridge, counters: dict[str, Any]
+) -> BridgeSummary:
+    """One robot's bridge summary."""
+    return BridgeSummary.model_validate(
+        {
+            "profile": graph.profile,
+            "ros_distro": graph.distro,
+            "namespace": graph.namespace,
+            "goal": list(settings.bridge.goal),
+            **wire,
+            "final_state": None if bridge.last_state is None else list(bridge.last_state),
+            "localization": bridge.localization(),
+            "max_abs_command": bridge.max_abs_command,
+            "timing": bridge.timing(),
+            "counters": counters,
+        }
+    )
