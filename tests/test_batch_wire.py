@@ -210,48 +210,6 @@ def test_a_bus_remembers_the_deliveries_of_a_bounded_number_of_robots_and_still_
         assert got["*"] == [1, 2, 3, *range(10, 17), 20]
 
 
-@pytest.mark.integration
-def test_the_newest_state_of_a_robot_comes_from_a_batch_or_its_key_whichever_came_last() -> None:
-    """``Bus.subscribe_newest`` (the actor host's states): a plant host's batch of one state tick is
-    decoded once on arrival and each robot's item held as its newest, with the batch's source; a
-    state on the robot's own key that comes later wins, and a batch that comes later wins over it."""
-    from common.contracts.keys import STATE
-    from common.contracts.messages import PlantState
-    from tests.harness import wait_until
-
-    def state(robot: str, seq: int) -> PlantState:
-        return PlantState(robot=robot, episode=0, seq=seq, stamp_ns=seq, state=(0.1 * seq, 0.0, 0.0), source="sim")
-
-    with router_and_buses("plant") as (_, reader, writer, _opened):
-        n1, n2 = reader.subscribe_newest(STATE, STATE.key("n1")), reader.subscribe_newest(STATE, STATE.key("n2"))
-        send = writer.round_publisher(STATE)
-        alone = writer.round_publisher(STATE, batches=False)  # as a plant of one robot sends
-        time.sleep(1.0)
-        assert n1.take() is None and n2.take() is None
-
-        def take(newest: Any) -> tuple[PlantState, str | None, float]:
-            held: list[Any] = []
-            wait_until(lambda: bool(held.append(newest.take()) or held[-1] is not None), 5, "a state")
-            return held[-1]  # type: ignore[no-any-return]
-
-        before = time.monotonic()
-        send([state("n1", 1), state("n2", 1), state("n3", 1)])  # n3: no subscription here
-        first, second = take(n1), take(n2)
-        assert (first[0].robot, first[0].seq, second[0].robot, second[0].seq) == ("n1", 1, "n2", 1)
-        assert first[1] == writer.zid and before <= first[2] <= time.monotonic()
-        assert writer.counters["batches_published"] == 1
-        alone([state("n1", 2)])  # on its own key
-        time.sleep(0.3)
-        send([state("n1", 3), state("n2", 3)])  # then a batch: the newest
-        time.sleep(0.3)
-        assert take(n1)[0].seq == 3 and n1.take() is None
-        send([state("n1", 4), state("n2", 4)])
-        time.sleep(0.3)
-        alone([state("n1", 5)])  # the key's state came last
-        time.sleep(0.3)
-        assert take(n1)[0].seq == 5 and take(n2)[0].seq == 4
-
-
 def test_a_hosts_transition_cache_holds_as_many_periods_of_every_robot_as_a_robots_own() -> None:
     """An actor host sends one round of transitions per tick group and period, each within the
     64 KiB bound: TRANSITIONS_PER_SAMPLE of the longest a Transition can be fit one sample, so

@@ -405,34 +405,27 @@ def test_priming_solves_once_from_the_held_state_and_acts_on_nothing() -> None:
 
 
 def test_a_host_primes_every_robot_whose_state_comes_in_time_and_starts_without_the_others() -> None:
+    """prime_plans: each robot's first state is judged as it arrives (on_state, Zenoh's thread;
+    here a timer's); a robot is primed once its state is held, the wait bounded, a stop ends it."""
     from services.actor.host import prime_plans
 
-    class Arriving:
-        """A robot's newest-state holder whose first state comes after ``after`` takes."""
-
-        def __init__(self, after: int | None) -> None:
-            self.after, self.takes = after, 0
-
-        def take(self) -> tuple[PlantState, str, float] | None:
-            self.takes += 1
-            if self.after is None or self.takes <= self.after:
-                return None
-            state = PlantState(robot="fk", episode=0, seq=self.takes, stamp_ns=0, state=(1.0, 0.5, 0.1), source="sim")
-            return state, PLANT, time.monotonic()
-
     robots = [Loop() for _ in range(3)]
-    states = [Arriving(0), Arriving(3), Arriving(None)]  # at once, after 3 rounds, never
+    robots[0].publish_state()  # at once; the second's after 0.1 s; the third's never
+    later = threading.Timer(0.1, robots[1].publish_state)
+    later.start()
     stop = threading.Event()
     started = time.monotonic()
-    primed = prime_plans([r.loop for r in robots], states, stop, wait=0.3)  # type: ignore[arg-type]
+    try:
+        primed = prime_plans([r.loop for r in robots], stop, wait=0.3)
+    finally:
+        later.cancel()
     waited = time.monotonic() - started
     assert primed == 2
     assert [r.actor.counters.solves for r in robots] == [1, 1, 0]  # each primed robot once, no more
     assert all(r.actions == [] and r.transitions == [] for r in robots)
     assert 0.3 <= waited < 2.0  # waited for the third, bounded
-    assert states[0].takes == 1  # a primed robot is not asked again
 
     stop.set()  # a stop ends the wait at once
     started = time.monotonic()
-    assert prime_plans([Loop().loop], [Arriving(None)], stop, wait=10.0) == 0  # type: ignore[list-item]
+    assert prime_plans([Loop().loop], stop, wait=10.0) == 0
     assert time.monotonic() - started < 1.0

@@ -44,19 +44,24 @@ class Window:
         # written through at once: the window's memory is resident from the start, so a long
         # run's RSS does not creep up as windows fill (a soak would read that as a leak)
         self._data = np.full(size, math.nan)
+        self._size = size
         self._next = 0
         self.count = 0
         self.maximum = -math.inf
         self.last = math.nan
 
     def append(self, value: float) -> None:
-        value = float(value)
+        # on every robot's every tick, several times: plain comparisons, no calls but the check
         if not math.isfinite(value):
             return
-        self._data[self._next] = value
-        self._next = (self._next + 1) % self._data.size
+        value = float(value)
+        slot = self._next
+        self._data[slot] = value
+        slot += 1
+        self._next = 0 if slot == self._size else slot
         self.count += 1
-        self.maximum = max(self.maximum, value)
+        if value > self.maximum:
+            self.maximum = value
         self.last = value
 
     def __len__(self) -> int:

@@ -15,7 +15,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
-from typing import Any, Generic, TypeVar
+from typing import Any, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -460,19 +460,6 @@ class Bus:
                 on_end()
                 raise
 
-    def subscribe_newest(self, topic: Topic[M], key: str, what: str | None = None) -> Newest[M]:
-        """Keep only the newest sample on ``key``, undecoded, in Zenoh (a ring channel of one);
-        :meth:`Newest.take` decodes it when asked, with its source and arrival time. For a host
-        that serves many robots at ``delta`` from states that come faster (docs/fleets.md): no
-        Python runs per sample, and only the sample the loop uses is parsed."""
-        subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
-        self._keep.append(subscriber)
-        name = what or topic.pattern.split("/", 2)[-1]
-        newest = Newest(self, topic, name, subscriber)
-        if batch_of(topic) is not None:  # a batch's items are decoded once, on arrival, and held
-            self._route_batches(topic, key, newest.offer, name, None, recover=False)
-        return newest
-
     # -- queries ------------------------------------------------------------------------
     def serve(self, service: Service[M, R], robot: str, handler: Callable[[M], R]) -> None:
         """A queryable: each valid request gets the handler's reply; bad ones an error reply."""
@@ -604,59 +591,6 @@ class Bus:
                 return
             time.sleep(0.05)
         raise TimeoutError(f"service {service!r} of robot {robot!r} not alive after {timeout} s")
-
-
-class Newest(Generic[M]):
-    """The newest sample of a :meth:`Bus.subscribe_newest` subscription, taken by ONE thread.
-
-    Zenoh keeps it (a ring channel of one sample): no Python runs, and the GIL is not taken, per
-    arriving sample. A 50-robot actor host gets 2,500 states a second; handing each to a Python
-    callback costs ~6 % of a core more than this (docs/fleets.md)."""
-
-    def __init__(self, bus: Bus, topic: Topic[M], name: str, subscriber: Any) -> None:
-        self.bus, self.topic, self.name = bus, topic, name
-        self.subscriber = subscriber
-        self.taken_at = time.monotonic()  # the last take: what the channel holds now came after it
-        # the newest item of a batch (common.contracts.keys.Batch), decoded when its batch came:
-        # (message, source, arrival); a batch's callback writes it, take() reads and clears it
-        self._offered: tuple[M, str | None, float] | None = None
-        self._offer_lock = threading.Lock()
-
-    def offer(self, message: M, source: str | None) -> None:
-        """An item of a batch, for this robot: held as the newest, arrived now (Bus._route_batches)."""
-        self.bus.count(f"received.{self.name}")
-        with self._offer_lock:
-            self._offered = (message, source, time.monotonic())
-
-    def take(self) -> tuple[M, str | None, float] | None:
-        """The newest sample since the last take, decoded (message, source, arrival), or None.
-        A payload that does not decode is counted and logged as :meth:`Bus.subscribe` does.
-
-        The arrival time (monotonic) is the sample's Zenoh timestamp (its publisher's clock)
-        seen on this clock, kept between the last take and now: a sample taken now arrived after
-        the last take, so a publisher's clock that is off moves it by at most that interval, and
-        a state never looks fresher than it is by more than that, nor younger than now."""
-        sample = self.subscriber.try_recv()
-        now = time.monotonic()
-        since, self.taken_at = self.taken_at, now
-        with self._offer_lock:
-            offered, self._offered = self._offered, None
-        if sample is None:
-            return offered
-        stamp = sample.timestamp
-        arrived = now
-        if stamp is not None:  # its age on the publisher's clock, moved to this one
-            age = time.time() - stamp.get_time_as_ntp64().as_secs_f64()
-            arrived = min(now, max(since, now - age))
-        if offered is not None and offered[2] >= arrived:  # a batch's item came after the sample
-            return offered
-        try:
-            message = decode_sample(self.topic, str(sample.key_expr), sample.payload.to_bytes())
-        except MessageError as error:
-            self.bus.reject(self.name, str(error))
-            return offered
-        self.bus.count(f"received.{self.name}")
-        return message, None if stamp is None else str(stamp.get_id()), arrived
 
 
 def _plant_conflict(robot: str, others: list[str]) -> PlantConflictError:

@@ -43,12 +43,12 @@ from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
 from common.contracts.keys import ACTION, STATE, TRANSITION
-from common.contracts.messages import Action, PlantState, Transition
+from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.stats import Window
-from common.net.transport import Bus, Newest, bus_status, start_status_thread
+from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker
@@ -246,7 +246,6 @@ class HostScheduler:
         *,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], bool] | None = None,
-        states: list[Newest[PlantState]] | None = None,
         budget: float = 1.0,
         group: int = 1,
         outboxes: Sequence[Outbox[Any]] = (),
@@ -254,7 +253,6 @@ class HostScheduler:
         self.loops, self.period, self.stop = loops, period, stop
         # the robots' actions and transitions, sent per group (none: each robot sends its own)
         self.outboxes = tuple(outboxes)
-        self.states = states  # each robot's newest state, taken at its tick (None: fed by on_state)
         self.clock = clock
         self.sleep = sleep or stop.wait
         start = clock()
@@ -273,10 +271,14 @@ class HostScheduler:
         self.over_budget = 0
 
     def run(self, end: float | None, manual_gc: bool = True) -> None:
-        """Serve ticks until ``stop`` or until every robot's next tick is at or after ``end``;
-        then each robot's last action is zero. ``manual_gc``: as RealtimeActor.run, the young
-        generation collected once per round of all robots (the middle every 10, all every 600),
-        only when the next tick is not due within 2 ms."""
+        """Serve ticks until ``stop`` or until every robot's next tick is at or after ``end`` (then
+        wait until the first of those is due); then each robot's last action is zero.
+
+        ``manual_gc``: garbage collection off the critical path -- automatic collection is off
+        while the loop runs (the caller froze what existed before), and the young generation is
+        collected once per round of all robots (the middle one every 10, all every 600), only when
+        the next tick is not due within 2 ms. SRL_ACTOR_AUTOMATIC_GC=1 keeps Python's automatic
+        collection."""
         manual_gc = manual_gc and gc.isenabled() and os.environ.get("SRL_ACTOR_AUTOMATIC_GC") != "1"
         if manual_gc:
             gc.disable()
@@ -287,7 +289,9 @@ class HostScheduler:
         try:
             while not self.stop.is_set():
                 due, i = heap[0]
-                if end is not None and due >= end:
+                if end is not None and due >= end:  # the run ends when its first unserved tick is due:
+                    self.flush()  # what answers the last ticks (the critic's weights) comes in meanwhile
+                    self.sleep(max(0.0, due - self.clock()))
                     break
                 wait = due - self.clock()
                 if wait > 0:
@@ -306,8 +310,6 @@ class HostScheduler:
                     group_due, group_start = due, now
                 missed = ticker.missed
                 k = ticker.serve(now)
-                if self.states is not None and (newest := self.states[i].take()) is not None:
-                    loop.on_state(*newest)  # the newest state, judged and timed as it arrived
                 self.lateness.append(now - due)
                 if ticker.missed != missed and now - self.warned >= 1.0:
                     self.warned = now
@@ -386,7 +388,6 @@ def run_host(
     loops: list[RealtimeActor] = []
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
-    states: list[Newest[PlantState]] = []
     batches = len(robots) > 1
     outbox = Outbox(bus.round_publisher(ACTION, batches=batches))
     # a host of one robot: the robot's advanced publisher (transition_cache of its transitions)
@@ -399,7 +400,9 @@ def run_host(
         inbox = wire_weights(own, bus)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
         loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id(), outbox.put, transitions.put)
-        states.append(bus.subscribe_newest(STATE, STATE.key(robot)))
+        # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
+        # forged state just before a tick cannot displace the live plant's newest
+        bus.subscribe(STATE, STATE.key(robot), loop.on_state, with_source=True)
         loops.append(loop)
         counts.append(count)
         inboxes.append(inbox)
@@ -421,7 +424,7 @@ def run_host(
             log.info("status %s", format_status_line(values, time.monotonic() - started, first_version))
 
     start_status_thread(bus, rows, settings.transport.status_period, stop, log_status)
-    primed = prime_plans(loops, states, stop, PRIME_WAIT_S)
+    primed = prime_plans(loops, stop, PRIME_WAIT_S)
     log.info("actor host: %d of %d robots primed in %.1f s", primed, len(robots), time.monotonic() - started)
     gc.collect()
     gc.freeze()
@@ -429,7 +432,6 @@ def run_host(
         loops,
         settings.plant.sampling_time,
         stop,
-        states=states,
         budget=settings.actor.host_cpu_budget,
         group=settings.actor.host_tick_group,
         outboxes=(outbox, transitions),
@@ -459,9 +461,7 @@ def run_host(
     )
 
 
-def prime_plans(
-    loops: list[RealtimeActor], states: list[Newest[PlantState]], stop: threading.Event, wait: float
-) -> int:
+def prime_plans(loops: list[RealtimeActor], stop: threading.Event, wait: float) -> int:
     """Before the first tick, each robot's first solve (:meth:`RealtimeActor.prime`) from its first
     state, off the schedule; robots whose state has not come within ``wait`` seconds start
     without (they solve cold at their first state). The number primed."""
@@ -470,9 +470,6 @@ def prime_plans(
     while pending and not stop.is_set():
         waiting = []
         for i in pending:
-            newest = states[i].take()
-            if newest is not None:
-                loops[i].on_state(*newest)  # judged as at a tick: provenance, order, arrival time
             if not loops[i].prime():
                 waiting.append(i)
         pending = waiting
