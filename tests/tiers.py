@@ -296,7 +296,8 @@ def main(extra: list[str]) -> int:
     default_timing = TIMING_WORKERS if realtime_allowed() else TIMING_WORKERS_WITHOUT_RT
     timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", default_timing))
     phases = [
-        ("parallel", ["-n", str(workers), "--dist", "worksteal", "-m", "not timing", *extra]),
+        # the parallel phase names its 15 slowest tests: where the suite's time goes
+        ("parallel", ["-n", str(workers), "--dist", "worksteal", "-m", "not timing", "--durations=15", *extra]),
         (
             ("timing, alone", ["-p", "no:xdist", "-m", "timing", *extra])
             if timing <= 1
