@@ -292,7 +292,8 @@ def test_a_bridge_started_before_the_robot_connects_when_it_comes_and_gives_up_a
     assert lost.process.returncode == 2 and "Traceback" not in "\n".join(lost.stderr)
     assert errors == [
         f"srl: error: robot_bridge: cannot reach the robot's Zenoh router at {never} after 2 s "
-        "(is the robot up and its rmw_zenohd running? see --robot-endpoint, bridge.robot_connect_timeout)"
+        "(is the robot up and its rmw_zenohd running? see --robot-endpoint, bridge.robot_connect_timeout) "
+        "(robot rr_never)"  # the robot behind that endpoint, as a bridge of several names them
     ]
 
 

@@ -479,18 +479,24 @@ def prime_plans(loops: list[RealtimeActor], stop: threading.Event, wait: float) 
 
 
 def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: dict[str, float]) -> dict[str, Any]:
-    """What ``srl actor`` prints: a host of many robots, a :class:`FleetActorSummary` (every
-    robot's own summary, the fleet's view, the process's counters and ``host``'s); a host of one,
-    its robot's :class:`RealtimeActorSummary`, whose counters are the process's, the robot's and
-    ``host``'s (what one actor process printed before hosts served one robot too)."""
-    process = {k: float(v) for k, v in bus.counters.items()} | host
+    """What ``srl actor --robots`` prints: every robot's own summary, the fleet's view, and the
+    process's counters with ``host``'s (:class:`FleetActorSummary`, whatever the number of robots)."""
     per_robot = {
         robot: RealtimeActorSummary.model_validate(loop.summary()) for robot, loop in zip(robots, loops, strict=True)
     }
-    if len(robots) == 1:
-        own = per_robot[robots[0]].to_json_dict()
-        own["counters"] = process | own["counters"]
-        return RealtimeActorSummary.model_validate(own).to_json_dict()
     return FleetActorSummary(
-        robots=robots, per_robot=per_robot, fleet=fleet_view(per_robot), counters=process
+        robots=robots,
+        per_robot=per_robot,
+        fleet=fleet_view(per_robot),
+        counters={k: float(v) for k, v in bus.counters.items()} | host,
     ).to_json_dict()
+
+
+def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
+    """What ``srl actor`` of one robot prints: its robot's :class:`RealtimeActorSummary` from the
+    host's, its counters the process's and the robot's (what one actor process always printed)."""
+    host = FleetActorSummary.model_validate(summary)
+    [robot] = host.robots
+    own = host.per_robot[robot].to_json_dict()
+    own["counters"] = host.counters | own["counters"]
+    return RealtimeActorSummary.model_validate(own).to_json_dict()

@@ -32,7 +32,7 @@ from common.math.actor import StackedActor
 from common.math.agents import learns
 from common.math.stats import summarize
 from common.net.transport import Bus
-from services.actor.host import run_host
+from services.actor.host import robot_summary, run_host
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id, wire_weights
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ def run(
     if mode == "lockstep":
         actor = build_actor(settings)  # built once, before the loop starts
         return _run_lockstep(settings, bus, actor, wire_weights(settings, bus), sync_critic)
-    return run_host(settings, bus, [settings.transport.robot], stop, duration)
+    return robot_summary(run_host(settings, bus, [settings.transport.robot], stop, duration))
 
 
 def _run_lockstep(

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import threading
+from typing import TYPE_CHECKING, Any
 
 from common.config.arguments import (
     COMMAND_SETTINGS,
@@ -18,6 +20,10 @@ from common.config.arguments import (
 )
 from common.math.fleet import ROS_FLEET_PREFIX
 from common.process.runtime import serve
+
+if TYPE_CHECKING:
+    from common.config.settings import Settings
+    from common.net.transport import Bus
 
 NAME = "robot-bridge"
 HELP = "a ROS 2 robot as the plant: odom in, cmd_vel out, over Zenoh"
@@ -37,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from services.robot_bridge.host import run_bridge_host
+    from services.robot_bridge.host import robot_summary, run_bridge_host
 
     settings = settings_from_args(args)
     robots = fleet_robots(args, ROS_FLEET_PREFIX)
@@ -55,9 +61,9 @@ def main(args: argparse.Namespace) -> int:
             )
         fleet = ros_fleet_endpoints(args, robots, settings.bridge.robot_endpoint)
         namespaces = None
-    return serve(
-        settings,
-        "plant",
-        args.connect_timeout,
-        lambda settings, bus, stop: run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces),
-    )
+
+    def body(settings: Settings, bus: Bus, stop: threading.Event) -> dict[str, Any]:
+        summary = run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces)
+        return summary if robots is not None else robot_summary(summary)
+
+    return serve(settings, "plant", args.connect_timeout, body)

@@ -200,9 +200,9 @@ def run_bridge_host(
 ) -> dict[str, Any]:
     """Serve every robot of ``fleet`` (robot id -> its endpoint, '' = srl's router) until ``stop``
     or ``duration``. ``namespaces``: each robot's ROS namespace (default: its id; one robot's
-    ``srl robot-bridge``: ``bridge.namespace``, which may be none). A host of one robot prints its
-    robot's :class:`BridgeSummary` (the process's counters and the robot's), a host of many a
-    :class:`FleetBridgeSummary`."""
+    ``srl robot-bridge``: ``bridge.namespace``, which may be none). The host's
+    :class:`FleetBridgeSummary`, whatever the number of robots (:func:`robot_summary`: one robot's
+    own)."""
     if settings.transport.secure and not all(fleet.values()):
         # srl's access rules cover srl's keys: a robot's ROS 2 traffic on srl's secured router
         # would be refused, and the bridge would wait for odometry that never comes
@@ -253,11 +253,6 @@ def run_bridge_host(
         described = shut_down([(unit.link, unit.bridge) for unit in units], tokens, list(sessions.values()))
         wires = {unit.robot: wire for unit, wire in zip(units, described, strict=True)}
     process = {k: float(v) for k, v in bus.counters.items()}
-    if len(units) == 1:
-        [unit] = units
-        own = {k: float(v) for k, v in unit.counts.snapshot().items()}
-        summary = bridge_summary(unit.graph, unit.settings, wires[unit.robot], unit.bridge, process | own)
-        return summary.to_json_dict()
     return FleetBridgeSummary(
         robots=robots,
         endpoints=dict(fleet),
@@ -302,3 +297,13 @@ def bridge_summary(
             "counters": counters,
         }
     )
+
+
+def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
+    """What ``srl robot-bridge`` of one robot prints: its robot's :class:`BridgeSummary` from the
+    host's, its counters the process's and the robot's (what one bridge process always printed)."""
+    host = FleetBridgeSummary.model_validate(summary)
+    [robot] = host.robots
+    own = host.per_robot[robot].to_json_dict()
+    own["counters"] = host.counters | own["counters"]
+    return BridgeSummary.model_validate(own).to_json_dict()
