@@ -47,7 +47,6 @@ from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
-from common.math.stats import Window
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
@@ -263,10 +262,9 @@ class HostScheduler:
             loop.ticker = ticker
         self.served = 0
         self.started = start
-        self.lateness = Window()  # of every served tick, all robots: how long after its due time
         self.warned = -1e9
         self.budget = budget * period
-        self.spent = np.zeros(count)  # the last round's tick times: a ring of one slot per robot
+        self.spent = [0.0] * count  # the last round's tick times: a ring of one slot per robot
         self.spent_sum = 0.0
         self.over_budget = 0
 
@@ -285,6 +283,7 @@ class HostScheduler:
         heap = [(ticker.next_due, i) for i, ticker in enumerate(self.tickers)]
         heapq.heapify(heap)
         rounds, pending_gc = 0, -1
+        count = len(self.loops)
         group_due, group_start = -1.0, 0.0  # the due time of the group being served, when it began
         try:
             while not self.stop.is_set():
@@ -310,7 +309,6 @@ class HostScheduler:
                     group_due, group_start = due, now
                 missed = ticker.missed
                 k = ticker.serve(now)
-                self.lateness.append(now - due)
                 if ticker.missed != missed and now - self.warned >= 1.0:
                     self.warned = now
                     log.warning(
@@ -330,7 +328,7 @@ class HostScheduler:
                 late = group_start - due > HURRY_FRACTION * self.period
                 loop.tick(k, now, hurry=over or late)  # the lighter solve
                 spent = self.clock() - now
-                slot = self.served % len(self.spent)
+                slot = self.served % count
                 self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
                 self.spent[slot] = spent
                 heapq.heappush(heap, (ticker.next_due, i))
@@ -344,7 +342,7 @@ class HostScheduler:
                         if box.overdue(flushed_at):
                             box.flush()
                 self.served += 1
-                if manual_gc and self.served % len(self.loops) == 0:
+                if manual_gc and self.served % count == 0:
                     pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
                     rounds += 1
         finally:
