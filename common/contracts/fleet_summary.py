@@ -168,3 +168,14 @@ class FleetBridgeSummary(FleetModel):
     per_robot: dict[str, BridgeSummary]
     counters: dict[str, float]
     resources: dict[str, Any] | None = None
+
+
+def robot_summary(robots: list[str], per_robot: dict[str, Any], counters: dict[str, float]) -> dict[str, Any]:
+    """What a host of ONE robot prints as its service of one robot always did: the robot's own
+    summary (an entry of ``per_robot``, re-validated as its own type), its counters the process's
+    ``counters`` and the robot's. The actor's and the bridge's (services/*/host.py)."""
+    [robot] = robots
+    own = per_robot[robot]
+    values = own.to_json_dict()
+    values["counters"] = counters | values["counters"]
+    return dict(type(own).model_validate(values).to_json_dict())

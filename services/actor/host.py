@@ -42,6 +42,7 @@ import numpy as np
 from common.config.assembly import arrival_rule, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
+from common.contracts.fleet_summary import robot_summary as robot_view
 from common.contracts.keys import ACTION, STATE, TRANSITION
 from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
@@ -491,10 +492,6 @@ def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: 
 
 
 def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl actor`` of one robot prints: its robot's :class:`RealtimeActorSummary` from the
-    host's, its counters the process's and the robot's (what one actor process always printed)."""
+    """What ``srl actor`` of one robot prints (common.contracts.fleet_summary.robot_summary)."""
     host = FleetActorSummary.model_validate(summary)
-    [robot] = host.robots
-    own = host.per_robot[robot].to_json_dict()
-    own["counters"] = host.counters | own["counters"]
-    return RealtimeActorSummary.model_validate(own).to_json_dict()
+    return robot_view(host.robots, dict(host.per_robot), host.counters)

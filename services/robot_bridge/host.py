@@ -46,6 +46,7 @@ from typing import Any
 from common.config.arguments import UsageError
 from common.config.settings import BridgeSettings, Settings, TransportSettings
 from common.contracts.fleet_summary import FleetBridgeSummary
+from common.contracts.fleet_summary import robot_summary as robot_view
 from common.contracts.keys import ACTION, STATE, liveliness_key
 from common.contracts.messages import Action, PlantState
 from common.contracts.ros_wire import RosGraph
@@ -300,10 +301,6 @@ def bridge_summary(
 
 
 def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl robot-bridge`` of one robot prints: its robot's :class:`BridgeSummary` from the
-    host's, its counters the process's and the robot's (what one bridge process always printed)."""
+    """What ``srl robot-bridge`` of one robot prints (common.contracts.fleet_summary.robot_summary)."""
     host = FleetBridgeSummary.model_validate(summary)
-    [robot] = host.robots
-    own = host.per_robot[robot].to_json_dict()
-    own["counters"] = host.counters | own["counters"]
-    return BridgeSummary.model_validate(own).to_json_dict()
+    return robot_view(host.robots, dict(host.per_robot), host.counters)
