@@ -36,7 +36,7 @@ def command_modules() -> list[ModuleType]:
     from services.plant_sim import command as plant_sim
     from services.robot_bridge import command as robot_bridge
     from services.tb3_emulator import command as tb3_emulator
-    from tools.commands import bench, certs, plot, record, router, run, status, up, view
+    from tools.commands import bench, build, certs, plot, record, router, run, status, up, view
     from tools.docs import command as docs
     from tools.experiment import command as experiment
     from tools.launch import health
@@ -57,6 +57,7 @@ def command_modules() -> list[ModuleType]:
         plot,
         view,
         experiment,
+        build,
         health,
         docs,
     ]

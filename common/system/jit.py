@@ -7,7 +7,8 @@
 * A signal during the build stops the compiler and ends the build with
   :class:`BuildInterrupted` (exit 128 + the signal), never a half-built actor.
 * Compiled objects are cached per user (:func:`default_jit_cache`), keyed by the SHA-256 of the
-  compiler's version, the flags and the source; the least recently used are pruned.
+  compiler's version, the flags and the source; the least recently used are pruned. Two
+  processes that need the same object compile it once: the second waits for the first's.
 
 No srl concept lives here: the actor (common/math/actor_nlp.py) hands its functions to
 :func:`build_with_jit` and gets them back compiled.
@@ -45,7 +46,10 @@ T = TypeVar("T")
 # With SRL_JIT_CACHE (a private directory, see jit_cache_directory), a compile (CasADi's
 # ``cc FLAGS -c SOURCE -o OBJECT``) is looked up by the SHA-256 of the compiler's version, the
 # flags and the source: the same problem compiles once per machine (CasADi's generated source
-# is the same bits every build), and a compiled object is stored by an atomic rename.
+# is the same bits every build), and a compiled object is stored by an atomic rename. A source is
+# compiled by one process at a time (flock on ``.KEY.lock`` beside the objects, where flock(1) is
+# installed): a second process that needs it (a fleet's second actor host, an experiment's other
+# worker, a test beside another) waits and takes the first one's object instead of compiling it too.
 _JIT_WRAPPER = r"""#!/bin/sh
 owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"; cache=${SRL_JIT_CACHE:-}
 TMPDIR="$dir"; export TMPDIR  # gcc's own temporaries (cc*.s) go with the build directory, even on SIGKILL
@@ -59,8 +63,16 @@ if [ -n "$cache" ] && [ -n "$src" ] && [ -n "$out" ]; then
     key=$({ "$1" --version 2>&1; for arg in "$@"; do
         case "$arg" in "$src") echo SOURCE;; "$out") echo OBJECT;; *) printf '%s\n' "$arg";; esac
     done; cat "$src"; } | sha256sum | cut -c1-64)
-    if [ -z "${SRL_JIT_CACHE_REFRESH:-}" ] && [ -f "$cache/$key.o" ] && cp "$cache/$key.o" "$out"; then
-        touch "$cache/$key.o"; exit 0
+    cached() {
+        [ -z "${SRL_JIT_CACHE_REFRESH:-}" ] && [ -f "$cache/$key.o" ] && cp "$cache/$key.o" "$out" &&
+            touch "$cache/$key.o"
+    }
+    cached && exit 0
+    if command -v flock >/dev/null 2>&1 && exec 9>"$cache/.$key.lock"; then  # one compile of a source at a time
+        while ! flock -w 0.5 9; do  # another process compiles it: wait (srl gone or signalled: stop)
+            { kill -0 "$owner" 2>/dev/null && [ ! -s "$signals" ]; } || exit 1
+        done
+        cached && exit 0  # ... and take its object
     fi
 fi
 if [ -n "${SRL_JIT_KEEPER:-}" ]; then  # srl hears SIGINT again before the compiler starts (_SigintKeeper)
