@@ -27,7 +27,11 @@ the CPU their deadlines need, which they would not beside phase 1's CPU-bound te
 actor's tick thread cannot run SCHED_FIFO (:func:`realtime_allowed`: not root, a low rtprio limit)
 it shares the cores with ordinary threads, and the phase runs :data:`TIMING_WORKERS_WITHOUT_RT` at a time.
 ``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one. The last line counts both phases as pytest
-does; the exit code is non-zero if either phase failed.
+does; the exit code is non-zero if either phase failed. Before phase 1 the runner compiles the
+documented commands' actor problems into the run's JIT cache (:data:`WARM_PROBLEMS`). After each
+phase the runner prints its total CPU (tests' processes and their children: services, ``srl``
+commands, the C compiler) and the tests that took the most: on a machine of two cores the suite's
+time is its CPU over the cores.
 
 Every test has a time limit (pytest-timeout, ``timeout`` in pyproject.toml; a longer one with
 ``@pytest.mark.timeout(SECONDS)``): past it the test fails with its stack. A test stuck where
@@ -62,6 +66,17 @@ RT_PRIORITY = 10  # actor.realtime_priority in common/config/srl.toml
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
 JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by both phases (tests/conftest.py)
+CPU_LOG = "SRL_TEST_CPU_LOG"  # a directory where each test process writes its tests' CPU seconds (the runner's table)
+CPU_TABLE_ROWS = 15
+# The actor problems compiled into the run's JIT cache before phase 1 (srl build): those that the
+# documented commands and the tests of whole runs build (srl run and srl up: the robot's method at
+# N = 12; srl experiment: the paper's at 6 and 12), each under a time limit (a docs block's 120 s)
+# and otherwise compiled beside three other workers' tests (N = 12: 15-25 s of one core alone, 40-70
+# s there). A problem missing here is compiled by the first test that needs it, once.
+WARM_PROBLEMS = (
+    ("build", "--agents", "mpc,rlq,rlqv", "--horizons", "12", "--methods", "robot"),
+    ("build", "--agents", "mpc,rlq,rlqv", "--horizons", "6,12", "--methods", "paper"),
+)
 TIER_MARKERS = ("integration", "slow", "timing")
 FAST_HINT = (
     "a test without the `integration` marker may start no process and open no socket or Zenoh "
@@ -205,16 +220,51 @@ def _timeout(item: pytest.Item) -> float:
     return float(option if option is not None else item.config.getini("timeout") or 0)
 
 
+def _cpu_seconds() -> float:
+    """This process's CPU time and its waited-for children's (a service, a docs block's ``srl``, gcc)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Any:
     limit = _timeout(item)
     if limit > 0:
         faulthandler.dump_traceback_later(limit + BACKSTOP_S, exit=True, file=sys.__stderr__ or sys.stderr)
+    cpu, wall = _cpu_seconds(), time.monotonic()
     try:
         return (yield)
     finally:
         if limit > 0:
             faulthandler.cancel_dump_traceback_later()
+        _log_cpu(item.nodeid, _cpu_seconds() - cpu, time.monotonic() - wall)
+
+
+def _log_cpu(nodeid: str, cpu: float, wall: float) -> None:
+    """With ``SRL_TEST_CPU_LOG`` set (by :func:`main`): one line per test, CPU and wall seconds."""
+    directory = os.environ.get(CPU_LOG)
+    if directory:
+        with open(Path(directory) / f"{os.getpid()}.tsv", "a", encoding="utf-8") as log:
+            log.write(f"{cpu:.3f}\t{wall:.3f}\t{nodeid}\n")
+
+
+def cpu_table(directory: Path, rows: int = CPU_TABLE_ROWS) -> str:
+    """The tests that took the most CPU (their processes' and their children's), and the total:
+    on a machine of few cores the suite's time is its CPU divided by the cores."""
+    tests = [
+        (float(cpu), float(wall), nodeid)
+        for path in directory.glob("*.tsv")
+        for cpu, wall, nodeid in (
+            line.split("\t", 2) for line in path.read_text().splitlines() if line.count("\t") >= 2
+        )
+    ]
+    if not tests:
+        return ""
+    tests.sort(reverse=True)
+    total = sum(cpu for cpu, _, _ in tests)
+    lines = [f"CPU of {len(tests)} tests: {total:.0f} s; the {min(rows, len(tests))} most (CPU s, wall s, share):"]
+    lines += [f"{cpu:8.1f} {wall:8.1f} {cpu / total:6.1%}  {nodeid}" for cpu, wall, nodeid in tests[:rows]]
+    return "\n".join(lines)
 
 
 @pytest.hookimpl(wrapper=True)
@@ -261,7 +311,9 @@ def _phase(args: list[str], jit_cache: Path) -> tuple[int, dict[str, int], float
     with tempfile.TemporaryDirectory(prefix="srl-test-") as scratch:
         tally = Path(scratch) / "tally.json"
         started = time.monotonic()
-        env = {**os.environ, TALLY: str(tally), JIT_CACHE: str(jit_cache)}
+        cpu_log = Path(scratch) / "cpu"
+        cpu_log.mkdir()
+        env = {**os.environ, TALLY: str(tally), JIT_CACHE: str(jit_cache), CPU_LOG: str(cpu_log)}
         if env.pop("PYTHONDONTWRITEBYTECODE", ""):
             # the suite starts hundreds of Python processes: without bytecode each would compile
             # srl's modules again. Kept beside the JIT cache, so the tree stays as the user keeps it
@@ -270,6 +322,10 @@ def _phase(args: list[str], jit_cache: Path) -> tuple[int, dict[str, int], float
         code = subprocess.call([sys.executable, "-m", "pytest", *args], env=env)
         took = time.monotonic() - started
         counts = json.loads(tally.read_text())["counts"] if tally.exists() else {}
+        table = cpu_table(cpu_log)
+        if table:  # where the suite's time goes
+            compiled = sum(1 for _ in jit_cache.glob("*.o"))
+            print(f"{table}\nJIT cache: {compiled} compiled objects after this phase", flush=True)
     return code, counts, took
 
 
@@ -296,8 +352,7 @@ def main(extra: list[str]) -> int:
     default_timing = TIMING_WORKERS if realtime_allowed() else TIMING_WORKERS_WITHOUT_RT
     timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", default_timing))
     phases = [
-        # the parallel phase names its 15 slowest tests: where the suite's time goes
-        ("parallel", ["-n", str(workers), "--dist", "worksteal", "-m", "not timing", "--durations=15", *extra]),
+        ("parallel", ["-n", str(workers), "--dist", "worksteal", "-m", "not timing", *extra]),
         (
             ("timing, alone", ["-p", "no:xdist", "-m", "timing", *extra])
             if timing <= 1
@@ -309,6 +364,8 @@ def main(extra: list[str]) -> int:
     done: list[str] = []
     jit_cache = Path(tempfile.mkdtemp(prefix="srl-test-jit-"))  # private (0700): a problem compiles once per run
     try:
+        seconds = _warm(jit_cache)
+        done.append(f"compiles before: {seconds:.0f}s")
         for name, args in phases:
             phase_code, counts, took = _run(name, args, len(done) + 1, len(phases), jit_cache)
             seconds += took
@@ -323,6 +380,19 @@ def main(extra: list[str]) -> int:
         shutil.rmtree(jit_cache, ignore_errors=True)
     print(f"===== {_line(total, seconds)} [{'; '.join(done)}] =====", flush=True)
     return code
+
+
+def _warm(jit_cache: Path) -> float:
+    """:data:`WARM_PROBLEMS` compiled into ``jit_cache``, one per core; the seconds it took. Not a
+    phase: without a compiler (or on a failure) the tests compile what they need themselves."""
+    started = time.monotonic()
+    env = {**os.environ, "SRL_ACTOR__JIT_CACHE": str(jit_cache)}
+    for argv in WARM_PROBLEMS:
+        print(f"===== srl test, before the phases: srl {' '.join(argv)} =====", flush=True)
+        code = subprocess.call([sys.executable, "-m", "tools.cli", *argv], env=env)
+        if code != 0:
+            print(f"srl test: srl build exited with {code}; the tests compile their problems themselves", flush=True)
+    return time.monotonic() - started
 
 
 def _run(name: str, args: list[str], number: int, of: int, jit_cache: Path) -> tuple[int, dict[str, int], float]:
