@@ -366,8 +366,8 @@ def main(extra: list[str]) -> int:
     try:
         seconds = _warm(jit_cache)
         done.append(f"compiles before: {seconds:.0f}s")
-        for name, args in phases:
-            phase_code, counts, took = _run(name, args, len(done) + 1, len(phases), jit_cache)
+        for number, (name, args) in enumerate(phases, start=1):
+            phase_code, counts, took = _run(name, args, number, len(phases), jit_cache)
             seconds += took
             done.append(f"{name}: {_line(counts, took)}")
             for key, n in counts.items():
