@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from tests.harness import ROOT, srl
+from tests.harness import ROOT, srl, wait_until
 
 
 def objects(cache: Path) -> set[str]:
@@ -106,3 +107,58 @@ def test_two_builds_of_one_problem_at_once_compile_each_source_once(tmp_path: Pa
     compiled = log.read_text().splitlines()
     stored = objects(cache)
     assert len(stored) >= 2 and len(compiled) == len(stored), (compiled, stored)
+
+
+def processes_with(marker: str) -> list[int]:
+    """The pids whose environment holds ``marker`` (a test's own TMPDIR: srl, its workers, gcc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if marker.encode() in (entry / "environ").read_bytes().split(b"\0"):
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.integration
+@pytest.mark.needs_compiler
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_stops_the_build_at_once_and_leaves_nothing_behind(sig: signal.Signals, tmp_path: Path) -> None:
+    """Three problems two at a time; the signal to srl alone once the first compile has begun: srl
+    exits 128 + the signal within 30 s, the third problem never starts (nothing "ready"), and no
+    process, build directory or compiled object of the run is left."""
+    cache, scratch = tmp_path / "jit", tmp_path / "tmp"
+    cache.mkdir(mode=0o700)
+    scratch.mkdir()
+    env = {**os.environ, "SRL_ACTOR__JIT_CACHE": str(cache), "TMPDIR": str(scratch)}
+    argv = [sys.executable, "-m", "tools.cli", "build", "--agents", "mpc,rlq,rlqv", "--horizons", "12"]
+    argv += ["--methods", "robot", "--jobs", "2"]
+    run = subprocess.Popen(
+        argv,
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        # as from a terminal: Ctrl-C's default action, even when this test runs with SIGINT ignored
+        # (a background job of a non-interactive shell, which children inherit)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    try:
+        wait_until(lambda: any(scratch.glob("srl-jit-*")), 120, "a JIT build directory")
+        run.send_signal(sig)
+        out, err = run.communicate(timeout=30)
+    finally:
+        if run.poll() is None:
+            os.killpg(run.pid, signal.SIGKILL)
+            run.wait()
+    assert run.returncode == 128 + sig, (run.returncode, err[-2000:])
+    assert "ready in" not in out, out
+    marker = f"TMPDIR={scratch}"
+    wait_until(lambda: not processes_with(marker), 15, "srl's workers and compilers gone")
+    wait_until(lambda: not any(scratch.iterdir()), 15, f"nothing left in TMPDIR: {list(scratch.iterdir())}")
+    assert not list(cache.glob("*.o")), "a compile finished after the signal"

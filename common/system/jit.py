@@ -53,6 +53,9 @@ T = TypeVar("T")
 _JIT_WRAPPER = r"""#!/bin/sh
 owner=$SRL_JIT_OWNER; dir=$(pwd); signals="$dir/SIGNALS"; cache=${SRL_JIT_CACHE:-}
 TMPDIR="$dir"; export TMPDIR  # gcc's own temporaries (cc*.s) go with the build directory, even on SIGKILL
+# srl gone (its build directory with it) or signalled: nothing to compile
+going() { ! kill -0 "$owner" 2>/dev/null || [ -s "$signals" ] || [ ! -d "$dir" ]; }
+going && exit 1
 key=; src=; out=; previous=
 for arg in "$@"; do
     case "$arg" in *.c) src=$arg;; esac
@@ -70,7 +73,7 @@ if [ -n "$cache" ] && [ -n "$src" ] && [ -n "$out" ]; then
     cached && exit 0
     if command -v flock >/dev/null 2>&1 && exec 9>"$cache/.$key.lock"; then  # one compile of a source at a time
         while ! flock -w 0.5 9; do  # another process compiles it: wait (srl gone or signalled: stop)
-            { kill -0 "$owner" 2>/dev/null && [ ! -s "$signals" ]; } || exit 1
+            going && exit 1
         done
         cached && exit 0  # ... and take its object
     fi
@@ -83,6 +86,7 @@ if [ -n "${SRL_JIT_KEEPER:-}" ]; then  # srl hears SIGINT again before the compi
         sleep 0.005; looks=$((looks + 1))
     done
 fi
+going && exit 1  # ... checked again: the waits above may have outlived srl (no compiler left running)
 niced=; command -v nice >/dev/null 2>&1 && niced="nice -n 10"
 setsid $niced "$@" &
 child=$!

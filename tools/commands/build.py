@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import time
-from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 from common.config.arguments import UsageError, add_settings_arguments, settings_from_args
 from common.config.settings import METHODS, PAPER_METHOD, Settings
 from common.math.agents import AGENTS, parse_agents, parse_horizons
+from common.process.runtime import SignalledError
 
 NAME = "build"
 HELP = "compile actor problems into the JIT cache ahead of the runs that need them"
@@ -74,7 +75,7 @@ def main(args: argparse.Namespace) -> int:
     import multiprocessing
 
     from common.config.assembly import jit_cache_path
-    from common.system.jit import compiler_available
+    from common.system.jit import compiler_available, remove_orphan_build_directories
 
     settings = settings_from_args(args)
     try:
@@ -108,17 +109,36 @@ def main(args: argparse.Namespace) -> int:
     jobs = min(args.jobs or cores, len(problems))
     started = time.perf_counter()
     context = multiprocessing.get_context("spawn")  # a fresh interpreter per worker, as the experiment's
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
-        futures = {pool.submit(build_one, one.model_dump(mode="json")): one.actor for one in problems.values()}
-        for future, actor in futures.items():
-            seconds = future.result()
+    pool = context.Pool(jobs)
+    previous = signal.signal(signal.SIGTERM, _raise_signalled)  # SIGTERM as Ctrl-C: the same stop, exit 143
+    try:
+        pending = [
+            (pool.apply_async(build_one, (one.model_dump(mode="json"),)), one.actor) for one in problems.values()
+        ]
+        pool.close()  # nothing more to come: the workers end once the queue is done
+        for result, actor in pending:
+            seconds = result.get()
             box = "wheel box" if actor.wheel_speed_max > 0 else "no wheel box"
             print(f"{actor.agent:6s} N = {actor.horizon:3d} ({box}): ready in {seconds:.1f} s", flush=True)
+    except BaseException:
+        # Ctrl-C, a signal or a failed build: no problem starts after it and the running builds
+        # end now (SIGTERM; the JIT wrapper stops its compiler and removes its directory when
+        # its process is gone, common/system/jit.py), instead of the pool finishing its queue
+        pool.terminate()
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        pool.join()
+        remove_orphan_build_directories()  # a worker ended before its compiler started leaves its directory
     print(
         f"srl build: {len(problems)} actor problems ready in {time.perf_counter() - started:.1f} s, {jobs} at a "
         f"time; {len(_objects(cache) - before)} compiled objects added to the JIT cache {cache}"
     )
     return 0
+
+
+def _raise_signalled(signum: int, _frame: object) -> None:
+    raise SignalledError(signum)
 
 
 def _objects(cache: str) -> set[str]:
