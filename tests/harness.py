@@ -161,6 +161,22 @@ class Proc:
         raise AssertionError(f"{self.name} printed no JSON summary; stderr: {self.stderr[-10:]}")
 
 
+def srl_as_from_a_terminal(argv: Sequence[str], env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    """``argv`` (a command line) started in a session of its own, its output piped, with Ctrl-C's
+    default action as from a terminal, even when this test runs with SIGINT ignored (a background
+    job of a non-interactive shell, ``nohup ... &``, which children inherit)."""
+    return subprocess.Popen(
+        list(argv),
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
 def srl(*argv: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess[str]:
     """``srl ARGV`` as a user types it (from the checkout, its output captured; never raises on
     the exit code: the test reads it)."""

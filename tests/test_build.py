@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.harness import ROOT, srl, wait_until
+from tests.harness import ROOT, srl, srl_as_from_a_terminal, wait_until
 
 
 def objects(cache: Path) -> set[str]:
@@ -136,18 +136,7 @@ def test_a_signal_stops_the_build_at_once_and_leaves_nothing_behind(sig: signal.
     env = {**os.environ, "SRL_ACTOR__JIT_CACHE": str(cache), "TMPDIR": str(scratch)}
     argv = [sys.executable, "-m", "tools.cli", "build", "--agents", "mpc,rlq,rlqv", "--horizons", "12"]
     argv += ["--methods", "robot", "--jobs", "2"]
-    run = subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        # as from a terminal: Ctrl-C's default action, even when this test runs with SIGINT ignored
-        # (a background job of a non-interactive shell, which children inherit)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    run = srl_as_from_a_terminal(argv, env)
     try:
         wait_until(lambda: any(scratch.glob("srl-jit-*")), 120, "a JIT build directory")
         run.send_signal(sig)

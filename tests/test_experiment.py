@@ -24,7 +24,7 @@ import pytest
 
 from common.config.settings import Settings
 from common.math.agents import parse_agents, parse_horizons
-from tests.harness import ROOT
+from tests.harness import ROOT, srl_as_from_a_terminal
 from tools.experiment.grid import RunSpec, grid_starts, held_out_starts, plan_runs, run_settings
 from tools.experiment.output import prepare_output
 from tools.experiment.report import ratio_table, read_runs_csv, toml_dumps
@@ -389,17 +389,7 @@ def test_ctrl_c_stops_everything_and_keeps_the_finished_runs(tmp_path: Path, tra
         "--out",
         str(tmp_path),
     ]
-    process = subprocess.Popen(
-        argv,
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-        # as from a terminal: Ctrl-C's default action, even when this test runs with SIGINT ignored
-        # (a background job of a non-interactive shell, `nohup ... &`, which children inherit)
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
-    )
+    process = srl_as_from_a_terminal(argv)
     first_run = threading.Event()
     stderr: list[str] = []
 
