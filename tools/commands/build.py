@@ -130,8 +130,9 @@ def main(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, previous)
         pool.join()
         remove_orphan_build_directories()  # a worker ended before its compiler started leaves its directory
+    count = f"{len(problems)} actor problem{'' if len(problems) == 1 else 's'}"
     print(
-        f"srl build: {len(problems)} actor problems ready in {time.perf_counter() - started:.1f} s, {jobs} at a "
+        f"srl build: {count} ready in {time.perf_counter() - started:.1f} s, {jobs} at a "
         f"time; {len(_objects(cache) - before)} compiled objects added to the JIT cache {cache}"
     )
     return 0
