@@ -3,6 +3,8 @@
 * The generated pages (docs/reference/, docs/benchmarks/, docs/changelog.md, the README's headline)
   are what ``srl docs`` would write now, and the reference pages name every setting, option,
   message and key: enumerated here from the code itself, not through tools/docs/.
+* Every benchmark page (docs/benchmarks/) is a summary of at most 1,500 words (``wc -w``), its rows
+  linked as a file (data/KIND.json, and a CSV where the page summarises them).
 * ``mkdocs build --strict`` passes: no broken link, no page missing from the nav.
 * Every fenced ``bash`` block of README.md and docs/ runs as written (tests/docs_blocks.py).
 * No cited path or anchor dangles, and the code says nothing of issue numbers or DESIGN.md
@@ -176,6 +178,73 @@ def test_a_reference_page_without_an_item_is_caught(page: str, item: str) -> Non
     text = (REFERENCE / page).read_text()
     assert item in text
     assert CHECKS[page](text.replace(item, "`elsewhere`")), f"{page} without {item!r} went unnoticed"
+
+
+# -- a benchmark page is a summary, its data a file ---------------------------------------------
+BENCHMARKS = ROOT / "docs" / "benchmarks"
+MAX_WORDS = 1500
+
+
+def words(text: str) -> int:
+    """Words as ``wc -w`` counts them: whatever whitespace separates (a table's ``|`` is one)."""
+    return len(text.split())
+
+
+def oversized_pages(directory: Path, limit: int = MAX_WORDS) -> list[str]:
+    """``name: N words`` of every page in ``directory`` with more than ``limit`` words."""
+    counts = {path.name: words(path.read_text()) for path in sorted(directory.glob("*.md"))}
+    return [f"{name}: {count} words" for name, count in counts.items() if count > limit]
+
+
+def test_every_benchmark_page_has_at_most_1500_words(tmp_path: Path) -> None:
+    from tools.docs import benchmarks
+
+    assert benchmarks.MAX_WORDS == MAX_WORDS
+    assert sorted(BENCHMARKS.glob("*.md")), "no benchmark pages"
+    oversized = oversized_pages(BENCHMARKS)
+    assert not oversized, (
+        f"benchmark pages over {MAX_WORDS} words (summarise them in tools/docs/benchmarks.py): {oversized}"
+    )
+    # negative control: a page one word over is caught, one at the limit is not
+    assert words("a | b\n\tc  d") == 5
+    (tmp_path / "over.md").write_text("| word |\n" * 500 + "word\n")
+    (tmp_path / "at.md").write_text("word " * MAX_WORDS)
+    assert oversized_pages(tmp_path) == [f"over.md: {MAX_WORDS + 1} words"]
+
+
+def test_a_benchmark_page_summarises_many_rows_and_links_their_data() -> None:
+    from tools.docs import benchmarks
+
+    rows = [
+        {
+            "method": "robot",
+            "plant": plant,
+            "localization": "amcl",
+            "agent": "rlqv",
+            "horizon": 12,
+            "start": [i / 100, 1.0, 0.5],
+            "true_final_distance": i / 1000,
+            "sign_changes": 0,
+            "saturated_commands": 0,
+            "deadband_commands": 0,
+            "arrival_seconds": None if i % 7 == 0 else 10.0 + i / 100,
+            "final_ok": i < 50,
+            "span_ok": True,
+            "sign_changes_ok": True,
+            "arrival_ok": i % 7 != 0,
+            "passed": i < 50 and i % 7 != 0,
+        }
+        for plant in ("physics", "slipping")
+        for i in range(1000)
+    ]
+    data = {"seconds": 35.0, "window_seconds": 10.0, "targets": {}, "rows": rows, "passed": 84, "total": 2000}
+    page = benchmarks.benchmark_page("parking", data)
+    assert words(page) <= MAX_WORDS
+    assert "| robot | slipping | amcl | rlqv | 12 | 42/1000 | 50/1000 | 1000/1000 | 857/1000 |" in page
+    assert "[parking.json](data/parking.json)" in page and "[parking.csv](data/parking.csv)" in page
+    table = benchmarks.csv_text(rows).splitlines()
+    assert len(table) == 1 + len(rows) and table[0].startswith("method,plant,localization,agent,horizon,start.0,")
+    assert benchmarks.nearest_rank([3.0, 1.0, float("inf"), 2.0], 0.5) == 2.0
 
 
 # -- the site builds --------------------------------------------------------------------------

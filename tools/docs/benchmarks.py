@@ -4,11 +4,18 @@
 docs/benchmarks/data/KIND.json it becomes docs/benchmarks/KIND.md. Every page states what the
 JSON says about its run (tools/bench/meta.py): the command, date, commit, CPU, cores and the load,
 because a figure measured on a shared, loaded machine means little without them.
+
+A page shows what was measured, the command, a summary and links to the full data: where a run has
+many rows (``parking``'s runs, ``actor``'s agent x N x weights x solver) the page summarises them and
+the rows go beside the JSON as a CSV, docs/benchmarks/data/KIND.csv. Each page stays under
+``MAX_WORDS`` words (tests/test_docs.py).
 """
 
 from __future__ import annotations
 
+import csv
 import importlib
+import io
 import json
 import math
 from collections.abc import Callable, Iterable
@@ -17,6 +24,8 @@ from typing import Any
 
 from tools.docs.reference import GENERATED, cell, code, docstring, first_paragraph
 
+# The most words (``len(text.split())``) a benchmark page may have: a summary, not the data.
+MAX_WORDS = 1500
 HEADLINE_BEGIN = "<!-- headline:begin -->"
 HEADLINE_END = "<!-- headline:end -->"
 # The order of the pages in the index, and their titles.
@@ -91,66 +100,124 @@ def _stats_row(name: str, stats: dict[str, Any] | None, unit: str = "ms") -> str
     return f"| {cell(name)} | {ms(stats.get('median'))} | {ms(stats.get('p99'))} | {ms(stats.get('max'))} | {unit} |"
 
 
+def percent(share: float) -> str:
+    """A share as a percentage: whole percents, a tenth where it is under 1 % but not 0."""
+    return f"{share:.1%}" if 0 < share < 0.01 else f"{share:.0%}"
+
+
+def _span(values: Iterable[str]) -> str:
+    """``low-high`` of formatted values (already sorted by their number), or the one value."""
+    texts = list(values)
+    return texts[0] if texts[0] == texts[-1] else f"{texts[0]}-{texts[-1]}"
+
+
+def _columns(rows: list[dict[str, Any]], solver: str | None) -> list[tuple[int, str]]:
+    """The (N, solver) pairs the actor rows cover: every N of the default solver, then the others."""
+    pairs = list(dict.fromkeys((r["horizon"], r["solver"]) for r in rows))
+    return sorted(pairs, key=lambda p: (p[1] != solver, p[1], p[0]))
+
+
+def _column_name(pair: tuple[int, str], solver: str | None) -> str:
+    return f"N = {pair[0]}" if pair[1] == solver else f"N = {pair[0]}, {pair[1]}"
+
+
+def _time_cell(row: dict[str, Any] | None) -> str:
+    """``median / p99 (speedup)`` of one actor row."""
+    if row is None:
+        return "-"
+    speedup = row["speedup"]
+    return f"{ms(row['median_ms'])} / {ms(row['p99_ms'])} ({speedup:.{0 if speedup >= 10 else 1}f}x)"
+
+
 def actor_body(data: dict[str, Any]) -> list[str]:
+    """One row per agent and weights, one column per N (and solver): time, speedup, argmin quality."""
+    rows = data.get("rows", [])
+    machine = data.get("machine") or {}
+    solver = machine.get("solver")
+    columns = _columns(rows, solver)
+    by_key: dict[tuple[str, str], dict[tuple[int, str], dict[str, Any]]] = {}
+    for r in rows:
+        by_key.setdefault((r["agent"], r["weights"]), {})[(r["horizon"], r["solver"])] = r
+    head = " | ".join(_column_name(c, solver) for c in columns)
+    rule = "|---|---|" + "---|" * len(columns)
     lines = [
-        "Whole actor step [ms] per agent, N and critic weights, against the slow baseline (SLSQP with finite",
-        "differences, no warm start). *gap* is the median relative gap of the objective the actor reached to",
-        "a cold SLSQP solve at the same states (< 0: the actor's is lower); *not worse* the share of those",
-        "states where it is as low or lower; *best known* (trained weights, N = 6 and 12) the share of the",
-        "loop's states where the actor's objective is within 1e-6 of the best known minimum (`BestKnown`:",
-        "every sign pattern of the held speeds, random plans, an iterated local search, the lowest polished",
-        "by SLSQP), +/- its standard error; *reference* how often that minimum is itself within 1e-6 of the",
-        "lower of it and a second run with other random draws: the judge's own reliability.",
+        "Whole actor step [ms] per agent, critic weights and N, median / p99, and in parentheses the",
+        "speedup over the slow baseline's median (SLSQP with finite differences, no warm start); "
+        f"solver {solver or '?'} unless the column names another.",
         "",
-        "| agent | N | weights | solver | median | p99 | max | failures | baseline median | speedup | gap "
-        "| not worse | best known | reference |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| agent | weights | {head} |",
+        rule,
     ]
-    for r in data.get("rows", []):
-        objective = r.get("objective") or {}
-        share = objective.get("share_le")
-        best = (r.get("best_known") or {}).get("share_le")
-        error = (r.get("best_known") or {}).get("standard_error")
-        reference = (r.get("best_known") or {}).get("reference_share")
-        spread = "" if best is None or error is None else f" +/- {error:.0%}"
-        lines.append(
-            f"| {r['agent']} | {r['horizon']} | {cell(r['weights'])} | {r['solver']} | {ms(r['median_ms'])} | "
-            f"{ms(r['p99_ms'])} | {ms(r['max_ms'])} | {r['failures']} | {ms(r['baseline_median_ms'], 1)} | "
-            f"{r['speedup']:.1f}x | {objective.get('median_rel_gap', float('nan')):.2g} | "
-            f"{'-' if share is None else f'{share:.0%}'} | {'-' if best is None else f'{best:.0%}{spread}'} | "
-            f"{'-' if reference is None else f'{reference:.0%}'} |"
-        )
-    phased = [r for r in data.get("rows", []) if r.get("phases")]
+    for (agent, weights), cells in by_key.items():
+        times = [_time_cell(cells.get(c)) for c in columns]
+        lines.append(f"| {agent} | {cell(weights)} | {' | '.join(times)} |")
+    lines += [
+        "",
+        "The argmin's quality: *not worse*, the share of the states where the objective the actor reached is",
+        "as low as a cold SLSQP solve's at the same state or lower, and (trained weights, where judged)",
+        "after the slash *best known*, the share of the loop's states where it is within 1e-6 of the best",
+        "known minimum (`BestKnown`), +/- its standard error.",
+        "",
+        f"| agent | weights | {head} |",
+        rule,
+    ]
+    for (agent, weights), cells in by_key.items():
+        shares = []
+        for c in columns:
+            r = cells.get(c)
+            share = None if r is None else (r.get("objective") or {}).get("share_le")
+            best = (r or {}).get("best_known") or {}
+            text = "-" if share is None else f"{share:.0%}"
+            if best.get("share_le") is not None:
+                error = best.get("standard_error")
+                text += f" / {best['share_le']:.0%}" + ("" if error is None else f" +/- {error:.0%}")
+            shares.append(text)
+        lines.append(f"| {agent} | {cell(weights)} | {' | '.join(shares)} |")
+    references = sorted(
+        b["reference_share"] for r in rows if (b := r.get("best_known") or {}).get("reference_share") is not None
+    )
+    failures = sum(r.get("failures", 0) for r in rows)
+    lines += [
+        "",
+        f"Solver failures: {failures} in {len(rows)} rows."
+        + (
+            ""
+            if not references
+            else f" The best known minimum agreed with a second run of the judge (other random draws) at "
+            f"{_span(f'{x:.0%}' for x in references)} of the states: the judge's own reliability."
+        ),
+    ]
+    phased = [r for r in rows if r.get("phases")]
     if phased:
-        names = list(phased[0]["phases"])
+        names = list(dict.fromkeys(n for r in phased for n in r["phases"]))
+        horizons = sorted({r["horizon"] for r in phased})
         lines += [
             "",
             "Where a step's time goes: each phase of the argmin (replayed on the inputs it had in the tick), the",
             "solver, the rest of the compiled tick (tick_glue) and the Python around it (python): the share of the",
-            "steps that ran it and its mean cost per run [ms].",
+            "steps that ran it / its mean cost per run [ms], lowest-highest over the agents and weights.",
             "",
-            "| agent | N | weights | " + " | ".join(names) + " |",
-            "|---|---|---|" + "---|" * len(names),
+            "| phase | " + " | ".join(f"N = {h}" for h in horizons) + " |",
+            "|---|" + "---|" * len(horizons),
         ]
-        for r in phased:
-            cells = " | ".join(
-                f"{r['phases'][n]['share']:.0%} / {r['phases'][n]['mean_ms']:.3f}" for n in names if n in r["phases"]
-            )
-            lines.append(f"| {r['agent']} | {r['horizon']} | {cell(r['weights'])} | {cells} |")
-    targets = data.get("targets") or {}
-    if targets:
-        lines += ["", "Targets:", ""]
-        for target in targets.values():
-            verdict = "N/A" if target.get("pass") is None else ("PASS" if target["pass"] else "FAIL")
-            worst = "" if target.get("worst") is None else f" (worst {target['worst']:.4g}: {target['worst_row']})"
-            lines.append(f"* {verdict} {target['description']}{worst}")
-    machine = data.get("machine") or {}
+        for name in names:
+            spans = []
+            for h in horizons:
+                found = [r["phases"][name] for r in phased if r["horizon"] == h and name in r["phases"]]
+                if not found:
+                    spans.append("-")
+                    continue
+                share = _span(percent(x) for x in sorted(p["share"] for p in found))
+                cost = _span(f"{x:.3f}" for x in sorted(p["mean_ms"] for p in found))
+                spans.append(f"{share} / {cost}")
+            lines.append(f"| {cell(name)} | {' | '.join(spans)} |")
     load = _load_pair(machine.get("load_average"), machine.get("load_average_end"))
     lines += [
         "",
         f"Solver {machine.get('solver', '?')}, predictor {machine.get('predictor', '?')}, JIT "
         f"{machine.get('jit', '?')}; casadi {machine.get('casadi', '?')}, scipy {machine.get('scipy', '?')}, "
-        f"numpy {machine.get('numpy', '?')}; load {load}.",
+        f"numpy {machine.get('numpy', '?')}; load {load}. Per row, the gap to the cold solve, the baseline's "
+        "times and each phase are in the data below.",
         "",
     ]
     return lines
@@ -219,48 +286,57 @@ def arrived_in_time(rows: list[dict[str, Any]]) -> str:
     return f"{sum(judged)} of {len(judged)}" if judged else "--"
 
 
+def nearest_rank(values: Iterable[float], q: float) -> float:
+    """The ``q`` quantile of ``values`` by nearest rank (a value of the list; ``inf`` sorts last)."""
+    ordered = sorted(values)
+    return ordered[max(0, math.ceil(q * len(ordered)) - 1)]
+
+
+def _seconds(value: float) -> str:
+    return "never" if math.isinf(value) else f"{value:.1f}"
+
+
 def parking_body(data: dict[str, Any]) -> list[str]:
+    """One row per method, plant, pose, agent and N: how many runs passed each criterion, and how far
+    and how soon they parked; every run is in the JSON and the CSV."""
+    targets = data.get("targets") or {}
     lines = [
         f"{data.get('seconds')} s per run; the last {data.get('window_seconds')} s judged. Passed "
         f"**{data.get('passed')} of {data.get('total')}**. Targets: "
-        + ", ".join(f"{k} {v:g}" for k, v in sorted((data.get("targets") or {}).items()))
+        + ", ".join(f"{k} {v:g}" for k, v in sorted(targets.items()))
         + ".",
         "",
-        "| method | plant | pose | agent | passed | true final d [m] | v sign changes (max) | arrived in time "
-        "| saturated commands (max) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "Per method, plant, pose the actor sees, agent and N, the runs that passed (*parked*: true final",
+        "distance within the target; *at rest*: span and sign changes of `v` over the judged window within",
+        "theirs; *in time*: arrived by the bound; *passed*: all three), the true final distance (median /",
+        "p90 by nearest rank, and lowest-highest), when the robot arrived (median / p90; *never*: not",
+        "within the run), the most sign changes of `v`, saturated and deadband commands in one run, and the",
+        "*worst start* (x [m], y [m], heading [rad]): that of the run that ended farthest from the target.",
+        "",
+        "| method | plant | pose | agent | N | passed | parked | at rest | in time | true final d [m] "
+        "| arrived [s] | v sign changes | saturated / deadband | worst start |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    groups: dict[tuple[str, str, str, str], list[dict[str, Any]]] = {}
+    groups: dict[tuple[str, str, str, str, int], list[dict[str, Any]]] = {}
     for r in data.get("rows", []):
-        key = (r["method"], r["plant"], r.get("localization", "odometry only"), r["agent"])
+        key = (r["method"], r["plant"], r.get("localization", "odometry only"), r["agent"], r["horizon"])
         groups.setdefault(key, []).append(r)
-    for (method, plant, pose, agent), rows in groups.items():
+    for (method, plant, pose, agent, horizon), rows in groups.items():
+        n = len(rows)
         finals = [r["true_final_distance"] for r in rows]
+        arrivals = [math.inf if r.get("arrival_seconds") is None else r["arrival_seconds"] for r in rows]
+        at_rest = sum(bool(r.get("span_ok")) and bool(r.get("sign_changes_ok")) for r in rows)
+        parked = sum(bool(r.get("final_ok")) for r in rows)
+        worst = max(rows, key=lambda r: r["true_final_distance"])
+        start = ", ".join(f"{c:.2f}" for c in worst["start"])
+        deadband = max(r.get("deadband_commands", 0) for r in rows)
         lines.append(
-            f"| {method} | {plant} | {pose} | {agent} | {sum(r['passed'] for r in rows)} of {len(rows)} | "
-            f"{min(finals):.3f}-{max(finals):.3f} | {max(r['sign_changes'] for r in rows)} | "
-            f"{arrived_in_time(rows)} | "
-            f"{max(r['saturated_commands'] for r in rows)} |"
-        )
-    lines += [
-        "",
-        "Every run:",
-        "",
-        "| method | plant | pose | agent | N | start | true final d [m] | reported d [m] | span [m] | v sign changes "
-        "| arrived [s] | bound [s] | true J | reported J | saturated | passed |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in data.get("rows", []):
-        start = ", ".join(f"{c:.2f}" for c in r["start"])
-        arrived = r.get("arrival_seconds")
-        bound = r.get("arrival_bound")
-        lines.append(
-            f"| {r['method']} | {r['plant']} | {r.get('localization', 'odometry only')} | {r['agent']} | "
-            f"{r['horizon']} | ({start}) | "
-            f"{r['true_final_distance']:.3f} | {r['reported_final_distance']:.3f} | {r['span_m']:.3f} | "
-            f"{r['sign_changes']} | {'never' if arrived is None else f'{arrived:.1f}'} | "
-            f"{'--' if bound is None else f'{bound:.1f}'} | {r['true_cost']:.3f} | {r['reported_cost']:.3f} | "
-            f"{r['saturated_commands']} | {'PASS' if r['passed'] else 'FAIL'} |"
+            f"| {method} | {plant} | {pose} | {agent} | {horizon} | {sum(r['passed'] for r in rows)}/{n} | "
+            f"{parked}/{n} | {at_rest}/{n} | {arrived_in_time(rows).replace(' of ', '/')} | "
+            f"{nearest_rank(finals, 0.5):.3f} / {nearest_rank(finals, 0.9):.3f}; {min(finals):.3f}-{max(finals):.3f} | "
+            f"{_seconds(nearest_rank(arrivals, 0.5))} / {_seconds(nearest_rank(arrivals, 0.9))} | "
+            f"{max(r['sign_changes'] for r in rows)} | {max(r['saturated_commands'] for r in rows)} / {deadband} | "
+            f"({start}) |"
         )
     return [*lines, ""]
 
@@ -472,6 +548,57 @@ def what_it_measures(kind: str) -> str:
     return first_paragraph(module.__doc__)
 
 
+# The benchmarks whose rows the page summarises: their rows are also a CSV beside the JSON.
+CSV_BENCHES = ("actor", "parking")
+
+
+def flatten(row: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """One JSON row as ``column -> value``: nested keys joined by ``.``, list items numbered (``start.0``)."""
+    out: dict[str, Any] = {}
+    for key, value in row.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, f"{name}."))
+        elif isinstance(value, list):
+            out.update(flatten({str(i): v for i, v in enumerate(value)}, f"{name}."))
+        else:
+            out[name] = value
+    return out
+
+
+def _csv_value(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def csv_text(rows: list[dict[str, Any]]) -> str:
+    """The rows as CSV: one line each, the columns of every row in the order first met, floats to 6 digits."""
+    flat = [flatten(r) for r in rows]
+    names = list(dict.fromkeys(name for r in flat for name in r))
+    # a field null in some rows and an object in others: its object's columns alone
+    columns = [name for name in names if not any(other.startswith(f"{name}.") for other in names)]
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(columns)
+    writer.writerows([_csv_value(r.get(name)) for name in columns] for r in flat)
+    return out.getvalue()
+
+
+def has_csv(kind: str, data: dict[str, Any]) -> bool:
+    return bench_of(kind) in CSV_BENCHES and bool(data.get("rows"))
+
+
+def run_command(kind: str, data: dict[str, Any]) -> str:
+    """The command that made the JSON, as run from a checkout (``./srl``)."""
+    command = (data.get("run") or {}).get("command") or f"srl bench {bench_of(kind)} --json"
+    return f"./{command}" if command.startswith("srl ") else command
+
+
 def benchmark_page(kind: str, data: dict[str, Any]) -> str:
     title = KINDS.get(kind, kind)
     lines = [GENERATED, "", f"# {title}: `srl bench {bench_of(kind)}`", ""]
@@ -479,10 +606,28 @@ def benchmark_page(kind: str, data: dict[str, Any]) -> str:
     if about:
         lines += [docstring(about), ""]
     lines += run_lines(data)
+    lines += [
+        "## How to run",
+        "",
+        "The command of this run, its JSON kept, and the page regenerated:",
+        "",
+        "<!-- not run: a benchmark takes minutes and loads the machine -->",
+        "```bash",
+        f"{run_command(kind, data)} | tail -n 1 > docs/benchmarks/data/{kind}.json",
+        "./srl docs",
+        "```",
+        "",
+    ]
     lines += ["## Results", ""]
     lines += BODIES.get(kind, generic_body)(data)
     lines += targets_lines(data.get("targets") or {})
-    lines += [f"The JSON this page is generated from: `docs/benchmarks/data/{kind}.json`.", ""]
+    lines += ["## Full data", "", f"* [{kind}.json](data/{kind}.json): everything the run printed."]
+    if has_csv(kind, data):
+        lines.append(
+            f"* [{kind}.csv](data/{kind}.csv): one line per row of the JSON, its nested fields as columns "
+            "(`a.b`, a list's items `a.0`, `a.1`, ...), numbers to 6 significant digits."
+        )
+    lines.append("")
     return "\n".join(lines)
 
 
@@ -608,9 +753,11 @@ def replace_headline(readme: str, table: str) -> str:
 
 
 def pages(data_dir: Path) -> dict[str, str]:
-    """``file name under docs/benchmarks/ -> Markdown`` for every JSON and the index."""
+    """``file name under docs/benchmarks/ -> text``: a page for every JSON, the index, and the CSV of
+    the rows a page summarises (``data/KIND.csv``)."""
     data = load_data(data_dir)
     out = {f"{kind}.md": benchmark_page(kind, values) for kind, values in data.items()}
+    out.update({f"data/{kind}.csv": csv_text(values["rows"]) for kind, values in data.items() if has_csv(kind, values)})
     out["index.md"] = index_page(data)
     return out
 

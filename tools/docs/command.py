@@ -3,7 +3,8 @@
 What is generated, all of it from files in this repository:
 
 * docs/reference/settings.md, cli.md, messages.md, keys.md (tools/docs/reference.py);
-* docs/benchmarks/KIND.md and index.md from docs/benchmarks/data/KIND.json (tools/docs/benchmarks.py);
+* docs/benchmarks/KIND.md and index.md from docs/benchmarks/data/KIND.json, and beside a JSON whose
+  rows a page summarises its CSV, KIND.csv (tools/docs/benchmarks.py);
 * docs/changelog.md, CHANGELOG.md as the site shows it;
 * the README's headline table, between its ``<!-- headline:begin -->`` and ``<!-- headline:end -->``.
 """
@@ -50,11 +51,16 @@ def generated_files(srl: argparse.ArgumentParser, root: Path = ROOT) -> dict[Pat
 
 
 def orphans(root: Path, files: dict[Path, str]) -> list[Path]:
-    """Generated pages under docs/benchmarks/ that nothing generates any more (their JSON is gone)."""
+    """Generated files under docs/benchmarks/ that nothing generates any more (their JSON is gone): a
+    page that says it is generated, a CSV beside no JSON."""
     found = []
     for path in sorted((root / "docs/benchmarks").glob("*.md")):
         relative = path.relative_to(root)
         if relative not in files and path.read_text().startswith(reference.GENERATED):
+            found.append(relative)
+    for path in sorted((root / BENCHMARK_DATA).glob("*.csv")):
+        relative = path.relative_to(root)
+        if relative not in files and not path.with_suffix(".json").is_file():
             found.append(relative)
     return found
 
