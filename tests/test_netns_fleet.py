@@ -19,8 +19,9 @@ received: shorter than Zenoh's 10 s session lease, so the router link survives):
 * every robot gets weights from the critic across the router link, their staleness bounded;
 * during the partition the robots of ``a`` keep their deadlines on their last weights (no
   weights reach them, their staleness grows and is reported), the robots of ``d`` go on getting
-  fresh weights; after it, ``a``'s robots get weights trained on their live edge again, and their
-  staleness is back within the bound;
+  fresh weights; after it, the critic fits what ``a``'s robots sent during the cut, their actors
+  hold newer weights whose staleness is back within the bound (a fit on a transition recovered
+  late is labelled with the newest step it was trained on, never an older one) and stays there;
 * every transition of every robot reaches the critic (its replay is each actor's record), and
   every robot approaches the target (from a 1.5 m circle).
 
@@ -167,24 +168,23 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
         time.sleep(PARTITION_S)  # the fault itself
         dropped = topo.restore("a", "drop")
         restored = time.monotonic()
-        # a's actors went on stepping (10 a second) and publishing transitions during the cut, the
-        # critic gets them once the link is back: weights trained on the step a's robots had
-        # reached when it came back (their live edge; 90 % of the partition's steps, for jitter)
-        at_cut = {
-            r: max(t["step"] for t in fleet.records("transition") if t["robot"] == r and t["t"] < cut)
-            for r in HOSTS["a"]
-        }
-        live_edge = {r: at_cut[r] + int(0.9 * (restored - cut) / 0.1) for r in HOSTS["a"]}
+        # a's actors went on stepping (10 a second) and publishing transitions during the cut; the
+        # critic gets them once the link is back and fits them: each of a's actors then holds
+        # weights newer than at the cut, fresh within the bound again by its own count (which
+        # knows that a robot at rest waits for no fit: weights "trained on the live edge" never
+        # come for a robot that came to rest before it), as its status across the link says
         back = {
             r: fleet.observer.wait_record(
-                lambda w, r=r: (
-                    w.get("kind") == "weights"
-                    and w["robot"] == r
-                    and w["t"] > restored
-                    and w["trained_step"] >= live_edge[r]
+                lambda s, r=r: (
+                    s.get("kind") == "status"
+                    and s["service"] == "actor"
+                    and s["robot"] == r
+                    and s["t"] > restored
+                    and s["counters"].get("weights_version", -1) > version_at_cut[r]
+                    and s["counters"].get("staleness_steps", math.inf) <= STALENESS_BOUND_STEPS
                 ),
                 CATCH_UP_S,
-                f"{r}'s weights trained on its live edge (step {live_edge[r]}) after the partition",
+                f"{r}'s actor holding fresh weights again after the partition",
             )
             for r in HOSTS["a"]
         }
@@ -194,6 +194,7 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
             assert actor.wait(RUN_S + 60) == 0, actor.stderr[-10:]
             summaries.update(actor.summary()["per_robot"])
             accepted[host] = actor.summary()["counters"].get("weights_accepted", 0)
+        ended = time.monotonic()
         total = sum(steps_of(summaries[r]["transition_steps"]) for r in ROBOTS)
         caught_up = wait_for(
             lambda: fleet.critic_holds() >= total, CATCH_UP_S, f"all {total} transitions at the critic"
@@ -222,9 +223,11 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
         )
     print(
         f"\n**Fleet across 3 hosts, host a partitioned {restored - cut:.1f} s ({dropped.dropped} packets dropped)**; "
-        f"weights back on a's live edge after "
+        f"a's actors fresh again after "
         + ", ".join(f"{r} {back[r]['t'] - restored:.2f} s" for r in HOSTS["a"])
-        + f"; all {total} transitions at the critic {caught_up:.1f} s after the actors' end; {ran:.0f} s run; "
+        + f"; all {total} transitions at the critic {caught_up:.1f} s after the actors' end; {ran:.0f} s run "
+        f"(cut at {cut - started:.1f} s, restored at {restored - started:.1f} s, "
+        f"actors ended at {ended - started:.1f} s); "
         f"load average before {load_before}\n\n"
         "| robot | steps | missed | staleness p99/max | weights during cut | weights | final distance m |\n"
         "|---|---|---|---|---|---|---|\n" + "\n".join(rows)
@@ -255,7 +258,10 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
         assert s["steps"] >= 0.8 * RUN_S / 0.1, (r, s["steps"])
         # weights came across the router link, versions only grew
         versions = [w["version"] for w in weights_all[r]]
-        assert s["weights_version"] in versions, (r, s["weights_version"])  # held the critic's, not its initial
+        # held the critic's, not its initial: in the critic's range (the observer is a subscriber
+        # like any other and may lose one of the critic's samples under load, so its list is not
+        # the judge; seen once at load 5.4: the held version missing from it)
+        assert versions[0] <= s["weights_version"] <= critic["last_version"], (r, s["weights_version"], versions[0])
         assert strictly_increasing(versions), r
         # nothing lost: the critic holds every transition the actor published, its replay the actor's tail
         assert critic["seen_steps"][r] == s["transition_steps"], r
@@ -270,6 +276,5 @@ def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> 
     for r in HOSTS["a"]:  # cut off: ran on their last weights, the staleness grew and was reported
         assert not weights_during[r], (r, weights_during[r][:3])
         assert summaries[r]["staleness_steps"]["max"] >= 0.8 * PARTITION_S / 0.1, (r, summaries[r]["staleness_steps"])
-        assert back[r]["version"] > version_at_cut[r]
         # and caught up: at the end its weights were as fresh as the others'
         assert last_status[r]["staleness_steps"] <= STALENESS_BOUND_STEPS, (r, last_status[r])

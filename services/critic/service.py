@@ -88,6 +88,9 @@ class Learner:
     critic: DoubleCritic
     seen: StepRuns
     newest: int = -1
+    # the step the last weights published were labelled trained on: a fit never labels older (a
+    # transition recovered late, after newer ones were fitted, is fitted with the whole replay)
+    fitted: int = -1
 
 
 class HistoryRecovery:
@@ -383,8 +386,13 @@ class CriticLearner:
         for (robot, (learner, step)), update in zip(due.items(), updates, strict=True):
             self.fit_seconds.append(share)
             if np.isfinite(update.q.residual) and np.isfinite(update.v.residual):
+                # A fit is on the whole replay: a late step's (a transition a partition held back,
+                # recovered after newer ones were fitted) is trained on those newer ones too. Labelled
+                # with the late step, it would reach the actor under a newer version and freeze the
+                # staleness of a robot then at rest (no fit comes to mend it).
+                learner.fitted = max(step, learner.fitted)
                 outgoing.append(
-                    self._message(robot, learner, step, update.q.residual, update.v.residual, update.q.pairs)
+                    self._message(robot, learner, learner.fitted, update.q.residual, update.v.residual, update.q.pairs)
                 )
         return outgoing
 
