@@ -39,11 +39,13 @@ MAX_HORIZON = 100
 # robot could park in: warned. Beyond the state schema's bound (common/contracts/messages.py) refused.
 WORKSPACE_HALF_WIDTH = 10.0
 MAX_START = 1e4
-# The paper's method exactly as the paper states it: the [actor] settings a running
-# robot adds (the arrival rule, the wheel-speed box, the convexified critics) switched off.
-# `srl experiment --method paper` (its default) and `srl bench actor --method paper` apply it.
-METHODS = ("paper", "robot")
+# The methods, one row each: what a method sets on top of the settings (with_method applies it;
+# the command lines' --method choices are the rows). paper: the paper's method exactly as the
+# paper states it, the [actor] settings a running robot adds (the arrival rule, the wheel-speed
+# box, the convexified critics) switched off (srl experiment's default); robot: the settings as
+# configured (srl run, srl up).
 PAPER_METHOD: dict[str, dict[str, Any]] = {"actor": {"arrival": False, "wheel_speed_max": 0.0, "convex_critics": False}}
+METHODS: dict[str, dict[str, dict[str, Any]]] = {"paper": PAPER_METHOD, "robot": {}}
 # Endpoints as Zenoh spells them: <protocol>/<address>, e.g. tcp/127.0.0.1:7447, tls/host:7447.
 _ENDPOINT = re.compile(
     r"^(tcp|udp|tls|quic|ws)/(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):[0-9]{1,5}([?#].*)?$"
@@ -568,6 +570,19 @@ class Settings(BaseSettings):
         data = self.model_dump(mode="json")
         data["derived"] = {"discount_beta": self.discount, "steps": self.steps}
         return data
+
+
+def with_method(settings: Settings, method: str, **actor: Any) -> Settings:
+    """``settings`` with ``method``'s row of :data:`METHODS` on its sections, then ``actor`` on its
+    ``[actor]``. Copied, not validated again: a caller whose values come from a user validates
+    (``Settings.model_validate(result.model_dump())``). Raises ValueError for an unknown method."""
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    update: dict[str, Any] = {
+        name: getattr(settings, name).model_copy(update=values) for name, values in METHODS[method].items()
+    }
+    update["actor"] = update.get("actor", settings.actor).model_copy(update=actor)
+    return settings.model_copy(update=update)
 
 
 def start_state(start: tuple[float, ...] | list[float]) -> np.ndarray:

@@ -54,7 +54,7 @@ import numpy as np
 from scipy.optimize import Bounds, OptimizeResult, minimize
 
 from common.config.assembly import build_actor, jit_cache_path
-from common.config.settings import PAPER_METHOD, Settings
+from common.config.settings import Settings, with_method
 from common.math.actor import StackedActor, TickRecord
 from common.math.actor_nlp import compiled
 from common.math.actor_problem import PHASES, ActorCounters, ActorProblem
@@ -666,15 +666,13 @@ def row_settings(
     settings: Settings, agent: str, horizon: int, solver: str | None = None, method: str = "paper"
 ) -> Settings:
     """One row's settings. The arrival rule is always off (it skips the solves this times);
-    ``method`` paper: the paper's problem (PAPER_METHOD), which NumpyObjective and the SLSQP
+    ``method`` paper: the paper's problem (``METHODS``' row), which NumpyObjective and the SLSQP
     baseline implement; robot: the wheel box and convex critics as configured (the baseline and
     its objective gap then still describe the paper's problem, not the actor's)."""
     update: dict[str, Any] = {"agent": agent, "horizon": horizon, "arrival": False}
-    if method == "paper":
-        update |= PAPER_METHOD["actor"]
     if solver is not None:
         update["solver"] = solver
-    return settings.model_copy(update={"actor": settings.actor.model_copy(update=update)})
+    return with_method(settings, method, **update)
 
 
 def _progress(message: str) -> None:

@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict
 
 from common.config.arguments import UsageError
 from common.config.assembly import build_actor, local_critic, localized_plant, run_episode
-from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.config.settings import METHODS, Settings, with_method
 from common.math.actor import StackedActor
 from common.math.agents import Agent, learns, parse_agents, parse_horizons
 from common.math.arrival import WheelDeadband
@@ -210,9 +210,7 @@ def run_settings(
     seconds: float,
     method: Method = "robot",
 ) -> Settings:
-    data = base.model_dump(mode="json")
-    if method == "paper":
-        data["actor"].update(PAPER_METHOD["actor"])
+    data = with_method(base, method).model_dump(mode="json")
     data["plant"]["model"] = "actuator" if plant == "slipping" else plant
     if plant == "slipping":
         data["actuator"]["slip"] = SLIPPING

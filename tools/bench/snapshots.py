@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from common.config.assembly import run_episode
-from common.config.settings import PAPER_METHOD, Settings
+from common.config.settings import Settings, with_method
 from common.math.agents import learns
 
 SNAPSHOT_FILE = Path(__file__).with_name("critic_snapshots.json")
@@ -34,7 +34,7 @@ SNAPSHOT_STEPS = (50, 150)
 
 def snapshot_settings(base: Settings, agent: str, horizon: int) -> Settings:
     """The settings an episode of the snapshots runs with: the paper's method, no JIT."""
-    actor = base.actor.model_copy(update={"agent": agent, "horizon": horizon, "jit": False, **PAPER_METHOD["actor"]})
+    actor = with_method(base, "paper", agent=agent, horizon=horizon, jit=False).actor
     episode = base.episode.model_copy(update={"start": SNAPSHOT_START, "duration": (max(SNAPSHOT_STEPS) + 1) * 0.1})
     return base.model_copy(update={"actor": actor, "episode": episode})
 

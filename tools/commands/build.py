@@ -17,7 +17,7 @@ import time
 from typing import Any
 
 from common.config.arguments import UsageError, add_settings_arguments, settings_from_args
-from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.config.settings import METHODS, Settings, with_method
 from common.math.agents import AGENTS, parse_agents, parse_horizons
 from common.process.runtime import SignalledError
 
@@ -51,10 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def problem_settings(settings: Settings, agent: str, horizon: int, method: str) -> Settings:
     """The settings of one problem: the agent and N, and for ``paper`` the paper's method."""
-    update: dict[str, Any] = {"agent": agent, "horizon": horizon}
-    if method == "paper":
-        update |= PAPER_METHOD["actor"]
-    return settings.model_copy(update={"actor": settings.actor.model_copy(update=update)})
+    return with_method(settings, method, agent=agent, horizon=horizon)
 
 
 def build_one(data: dict[str, Any]) -> float:

@@ -14,7 +14,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.config.settings import METHODS, Settings
 from common.math.agents import AGENTS, PAPER_AGENTS, parse_agents, parse_horizons
 from tools.experiment.grid import STARTS, make_starts
 from tools.experiment.options import DEFAULT_HORIZONS, ExperimentOptions
@@ -139,7 +139,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _load_settings(args: argparse.Namespace) -> Settings:
     from pydantic import ValidationError
 
-    overrides: dict[str, Any] = json.loads(json.dumps(PAPER_METHOD)) if args.method == "paper" else {}
+    overrides: dict[str, Any] = json.loads(json.dumps(METHODS[args.method]))  # the method's row, a copy
     if args.duration is not None:
         overrides["episode"] = {"duration": args.duration}
     overrides["plant"] = {"model": args.plant}

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.config.assembly import build_actor, local_critic
-from common.config.settings import METHODS, PAPER_METHOD, Settings
+from common.config.settings import Settings, with_method
 from common.math.actor_problem import ActorStep
 from common.math.agents import AGENTS, learns
 from common.math.critic import Sample
@@ -41,18 +41,13 @@ FloatArray = NDArray[np.float64]
 def policy_settings(settings: Settings | None, agent: str, horizon: int, method: str = "robot") -> Settings:
     """``settings`` (default: the packaged srl.toml and ``SRL_*``) with this agent and horizon;
     ``method = "paper"``: the paper's method exactly (no arrival rule, no wheel-speed box, the
-    critics as fitted: ``PAPER_METHOD``, as ``srl experiment paper`` runs it), ``"robot"``: the
+    critics as fitted: ``METHODS``' row, as ``srl experiment paper`` runs it), ``"robot"``: the
     ``[actor]`` settings as configured (as ``srl run``). Raises ValueError for an unknown agent or
     method, or a horizon the actor refuses."""
     if agent not in AGENTS:
         raise ValueError(f"unknown agent {agent!r}; choose one of {', '.join(AGENTS)}")
-    if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    data = (settings if settings is not None else Settings.load()).model_dump()
-    data["actor"].update(agent=agent, horizon=horizon)
-    if method == "paper":
-        data["actor"].update(PAPER_METHOD["actor"])
-    return Settings.model_validate(data)
+    chosen = with_method(settings if settings is not None else Settings.load(), method, agent=agent, horizon=horizon)
+    return Settings.model_validate(chosen.model_dump())  # the horizon is the user's: validated
 
 
 class SrlPolicy:
