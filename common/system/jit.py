@@ -137,14 +137,27 @@ def jit_cache_directory(path: str) -> str | None:
     return path
 
 
+def is_cached_object(name: str) -> bool:
+    """A compiled object of the JIT cache (``KEY.o``; ``.KEY.PID`` is a store under way, ``.KEY.lock``
+    its lock)."""
+    return name.endswith(".o") and not name.startswith(".")
+
+
+def cached_objects(path: str) -> set[str]:
+    """The names of the compiled objects in the JIT cache ``path`` (none if it does not exist)."""
+    try:
+        return {name for name in os.listdir(path) if is_cached_object(name)}
+    except FileNotFoundError:
+        return set()
+
+
 def prune_jit_cache(path: str, keep: int = JIT_CACHE_ENTRIES) -> None:
     """The ``keep`` most recently used objects stay; leftovers of a killed store (``.KEY.PID``,
     over an hour old) go."""
     try:
         entries = list(os.scandir(path))
         now = time.time()
-        objects = sorted((e for e in entries if e.name.endswith(".o") and not e.name.startswith(".")),
-                         key=lambda e: e.stat().st_mtime)  # fmt: skip
+        objects = sorted((e for e in entries if is_cached_object(e.name)), key=lambda e: e.stat().st_mtime)
         for entry in objects[: max(0, len(objects) - keep)]:
             os.remove(entry.path)
         for entry in entries:

@@ -72,7 +72,7 @@ def main(args: argparse.Namespace) -> int:
     import multiprocessing
 
     from common.config.assembly import jit_cache_path
-    from common.system.jit import compiler_available, remove_orphan_build_directories
+    from common.system.jit import cached_objects, compiler_available, remove_orphan_build_directories
 
     settings = settings_from_args(args)
     try:
@@ -101,7 +101,7 @@ def main(args: argparse.Namespace) -> int:
                 one = problem_settings(settings, agent, horizon, method)
                 problems.setdefault(one.actor.model_dump_json(), one)
     cache = jit_cache_path(settings.actor.jit_cache)
-    before = _objects(cache)
+    before = cached_objects(cache)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     jobs = min(args.jobs or cores, len(problems))
     started = time.perf_counter()
@@ -130,18 +130,10 @@ def main(args: argparse.Namespace) -> int:
     count = f"{len(problems)} actor problem{'' if len(problems) == 1 else 's'}"
     print(
         f"srl build: {count} ready in {time.perf_counter() - started:.1f} s, {jobs} at a "
-        f"time; {len(_objects(cache) - before)} compiled objects added to the JIT cache {cache}"
+        f"time; {len(cached_objects(cache) - before)} compiled objects added to the JIT cache {cache}"
     )
     return 0
 
 
 def _raise_signalled(signum: int, _frame: object) -> None:
     raise SignalledError(signum)
-
-
-def _objects(cache: str) -> set[str]:
-    """The compiled objects in the JIT cache (common/system/jit.py stores each as KEY.o)."""
-    try:
-        return {name for name in os.listdir(cache) if name.endswith(".o")}
-    except FileNotFoundError:
-        return set()
