@@ -35,10 +35,21 @@ def check_chunk(value: str, what: str) -> str:
 
 @dataclass(frozen=True)
 class Topic(Generic[M]):
+    """A key pattern and the schema of what it carries: ``STATE = Topic("srl/{robot}/state",
+    PlantState)``. Publishers and subscribers take a Topic (common.net.transport.Bus), so a key and
+    its message type cannot be mismatched; the keys' reference page is generated from the Topics.
+
+    Args:
+        pattern: the key expression with ``{robot}`` (and other chunks, e.g. ``{service}``) to fill.
+        schema: the message class every sample on the key decodes to (common.contracts.messages).
+    """
+
     pattern: str
     schema: type[M]
 
     def key(self, robot: str, **chunks: str) -> str:
+        """The key of one robot (and the other chunks of the pattern). Raises ValueError for an id
+        that is not one plain key chunk (:func:`check_chunk`)."""
         check_chunk(robot, "robot id")
         for name, value in chunks.items():
             check_chunk(value, name)
