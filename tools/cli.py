@@ -11,7 +11,10 @@ once, in common.process.runtime.main.
 from __future__ import annotations
 
 import argparse
+import tomllib
 from collections.abc import Sequence
+from importlib import metadata
+from pathlib import Path
 from types import ModuleType
 from typing import Any
 
@@ -26,6 +29,33 @@ SRL_<SECTION>__<NAME> environment variables and by the flags of each subcommand.
 Start with:  srl run            (one episode in this process)
              srl up             (router + every service as processes, a live status line)
 """
+
+
+PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
+
+
+def version() -> str:
+    """srl's version: the installed package's metadata, written from pyproject.toml's ``version``
+    (the newest milestone of CHANGELOG.md) at install; that file itself where srl is not installed
+    (the source tree on ``PYTHONPATH``)."""
+    try:
+        return metadata.version("srl")
+    except metadata.PackageNotFoundError:
+        return str(tomllib.loads(PYPROJECT.read_text())["project"]["version"])
+
+
+class VersionAction(argparse.Action):
+    """``srl --version``: ``srl X.Y.Z`` on stdout, exit 0 (argparse's own version action, but the
+    version is looked up only when asked for)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(
+        self, parser: argparse.ArgumentParser, namespace: Any, values: Any, option_string: str | None = None
+    ) -> None:
+        print(f"srl {version()}")
+        parser.exit()
 
 
 def command_modules() -> list[ModuleType]:
@@ -78,6 +108,7 @@ def add_command(sub: Any, module: ModuleType) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="srl", description=DESCRIPTION)
     add_log_level(parser)
+    parser.add_argument("--version", action=VersionAction, help="print srl's version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in command_modules():
         add_command(sub, module)
