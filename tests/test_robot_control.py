@@ -1,4 +1,4 @@
-"""The actor's settings for a running robot (docs/turtlebot.md) against independent oracles: the wheel-speed box
+"""The actor's settings for a running robot (docs/turtlebot-parking.md) against independent oracles: the wheel-speed box
 (brute force over the feasible grid), the convexified critics (the quadratic form by hand), the
 arrival rule inside the actor, and the chatter of the paper's method on the ideal plant."""
 

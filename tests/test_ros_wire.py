@@ -455,7 +455,7 @@ def test_attachment_encoding_is_zenoh_exts_serialization(fmt: str) -> None:
         assert Attachment.decode(attachment.encode()) == attachment
 
 
-# -- localization messages (docs/turtlebot.md "Localization") --------------------------------------
+# -- localization messages (docs/turtlebot-localization.md) --------------------------------------
 # RIHS01 hashes of the localization types as ROS 2 Jazzy publishes them (``ros2 topic info -v``
 # transcripts of AMCL's /tf and golden-hash tables of independent ROS 2 client libraries agree).
 POSE_WITH_COVARIANCE_HASH = "RIHS01_26432f9803e43727d3c8f668d1fdb3c630f548af631e2f4e31382371bfea3b6e"

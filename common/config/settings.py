@@ -95,7 +95,7 @@ class PlantSettings(_Section):
 
 
 class ActuatorSettings(_Section):
-    """The TurtleBot3 Burger actuator and odometry model (common/math/turtlebot.py, docs/turtlebot.md)."""
+    """The TurtleBot3 Burger actuator and odometry model (common/math/turtlebot.py, docs/turtlebot-models.md)."""
 
     wheel_radius: float = Field(gt=0, description="r [m]")
     wheel_separation: float = Field(gt=0, description="b [m]")
@@ -112,7 +112,7 @@ class ActuatorSettings(_Section):
 
 
 class PhysicsSettings(_Section):
-    """The MuJoCo TurtleBot3 Burger of plant.model = "physics" (common/math/physics.py, docs/turtlebot.md)."""
+    """The MuJoCo TurtleBot3 Burger of plant.model = "physics" (common/math/physics.py, docs/turtlebot-models.md)."""
 
     timestep: float = Field(gt=0, le=0.01, description="[s] MuJoCo's integration step")
     tire_friction: float = Field(gt=0, le=10, description="sliding friction of the tyres on the floor")
@@ -404,7 +404,7 @@ class BridgeSettings(_Section):
     watchdog_timeout_steps: int = Field(ge=1, description="zero velocity after this many delta without action")
     robot_endpoint: str = Field(description="'' = the robot is on srl's router; else its Zenoh endpoint")
     discovery_timeout: float = Field(gt=0, description="[s] auto cmd_type: wait this long for the robot's tokens")
-    # The state's pose (services/robot_bridge/bridge.py, docs/turtlebot.md "Localization")
+    # The state's pose (services/robot_bridge/bridge.py, docs/turtlebot-localization.md)
     pose_source: Literal["odom", "tf", "pose_with_covariance", "odometry", "pose_stamped"] = Field(
         description="the state's pose: odom (odometry only), tf (odom corrected by map -> odom on /tf), "
         "pose_with_covariance (AMCL), odometry (an EKF's nav_msgs/Odometry), pose_stamped (motion capture)"

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from common.contracts.summaries import BridgeSummary, RealtimeActorSummary
 
 PARKED_WITHIN_M = 0.25  # [m] a robot that ends this close to the target parked (the fleet bench's bound)
-# As one robot alone parks (docs/turtlebot.md "Parking"): by its own final state, within this of the
+# As one robot alone parks (docs/turtlebot-parking.md): by its own final state, within this of the
 # target, and at rest: the last command its actor sent was exactly zero (the arrival rule's stop).
 AT_TARGET_M = 0.05
 

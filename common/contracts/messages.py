@@ -118,7 +118,7 @@ class PlantState(Message):
     map_to_odom: Vec3 | None = Field(
         default=None,
         description="(x [m], y [m], theta [rad]) of the map -> odom correction applied to this state "
-        "(a localized robot bridge only, docs/turtlebot.md)",
+        "(a localized robot bridge only, docs/turtlebot-localization.md)",
     )
 
     def encode(self) -> bytes:

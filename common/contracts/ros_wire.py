@@ -1,7 +1,7 @@
 """The ROS 2 wire over Zenoh: every ROS key expression and token of srl, and the only place one is written.
 
 srl's own keys live in ``common/contracts/keys.py``; this module holds what a ROS 2 robot sees. Two wire
-profiles (docs/turtlebot.md):
+profiles (docs/robot.md):
 
 ``rmw_zenoh`` -- a robot running ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` (read from the
 rmw_zenoh_cpp sources, 0.1.x for Humble and 0.2.x for Jazzy, ``src/detail/liveliness_utils.cpp``,
@@ -92,7 +92,7 @@ GID_SIZE = 16
 AttachmentFormat = Literal["compact", "legacy"]
 ATTACHMENT_FORMATS: tuple[AttachmentFormat, ...] = ("compact", "legacy")
 LEGACY_FIELDS = ("sequence_number", "source_timestamp", "source_gid")
-# What the docs (docs/turtlebot.md) and every refusal name: the rmw_zenoh_cpp releases whose wire srl speaks.
+# What the docs (docs/robot.md) and every refusal name: the rmw_zenoh_cpp releases whose wire srl speaks.
 SUPPORTED_RMW_ZENOH = (
     "rmw_zenoh_cpp Humble 0.1.0-0.1.1 and Jazzy 0.2.0-0.2.3 (legacy attachment), "
     "Humble >= 0.1.2, Jazzy >= 0.2.4, Kilted, Lyrical and Rolling >= 0.6.0 (compact attachment)"
@@ -102,7 +102,7 @@ _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _STORES = {"humble": Stores.ROS2_HUMBLE, "jazzy": Stores.ROS2_JAZZY}
 DECODE_ERRORS = (SerdeError, ValueError, IndexError, TypeError, UnicodeDecodeError)
 
-# A localization source (bridge.pose_source, docs/turtlebot.md "Localization"): its ROS type, its
+# A localization source (bridge.pose_source, docs/turtlebot-localization.md): its ROS type, its
 # conventional topic, and the QoS its usual publisher declares. nav2_amcl publishes ``amcl_pose``
 # reliable, transient local, KeepLast(1) (amcl_node.cpp: ``rclcpp::QoS(rclcpp::KeepLast(1))
 # .transient_local().reliable()``); tf2_ros's listener subscribes ``/tf`` KeepLast(100), reliable,

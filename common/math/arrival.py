@@ -192,7 +192,7 @@ class TurnFirst:
     Controller does before it hands a new path to its primary controller
     (https://docs.nav2.org/configuration/packages/configuring-rotation-shim-controller.html,
     ``angular_dist_threshold``): a short-horizon actor facing across the target drives on along
-    its heading first and takes the long way round (docs/turtlebot.md, "Parking").
+    its heading first and takes the long way round (docs/turtlebot-parking.md).
 
     Engaged at a goal's first command when the robot is farther than ``min_distance`` from the
     target and its line of travel (ahead or back) is more than ``threshold`` off the bearing to
@@ -230,7 +230,7 @@ class Docking:
     https://wiki.ros.org/move_base), the approach is finished by rotate, drive straight, rotate
     (:func:`dock_action`) until the arrival rule holds the robot. Near the target a unicycle
     cannot move sideways (Brockett): the short-horizon actor closes a sideways offset of a few
-    centimetres by shuffling back and forth, which can last tens of seconds (docs/turtlebot.md,
+    centimetres by shuffling back and forth, which can last tens of seconds (docs/turtlebot-parking.md,
     "Parking"); a straight leg along the line through the target closes it at once."""
 
     radius: float  # [m] 0 = off
@@ -283,7 +283,7 @@ def dock_action(state: np.ndarray, docking: Docking, tolerances: ArrivalToleranc
 class WheelDeadband:
     """The wheels' breakaway: a wheel at rest does not start for a command below ``breakaway``
     [rad/s] held one sampling interval (for the physics plant :func:`common.math.physics.breakaway_speed`
-    with the hold = delta; docs/turtlebot.md "The deadband at the actor's output")."""
+    with the hold = delta; docs/turtlebot-parking.md "The deadband at the actor's output")."""
 
     breakaway: float  # [rad/s] per wheel; 0 = off
     wheel_radius: float  # [m]

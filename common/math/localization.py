@@ -132,7 +132,7 @@ class CorrectionBlend:
 # sparse fixes, or motion capture streaming at a rate.
 SIM_SOURCES = ("amcl", "mocap")
 # Their error, one standard deviation of each fix (x, y [m]; heading [rad]): an assumption of a
-# well-mapped room (AMCL) and of a motion-capture lab (docs/turtlebot.md "Parking").
+# well-mapped room (AMCL) and of a motion-capture lab (docs/turtlebot-parking.md).
 SIM_NOISE = {"amcl": (0.01, 0.01), "mocap": (0.001, 0.002)}
 
 

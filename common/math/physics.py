@@ -1,8 +1,8 @@
-"""A rigid-body TurtleBot3 Burger in MuJoCo: ``plant.model = "physics"`` (docs/turtlebot.md).
+"""A rigid-body TurtleBot3 Burger in MuJoCo: ``plant.model = "physics"`` (docs/turtlebot-models.md).
 
 The actuator model (:mod:`common.math.turtlebot`) writes lag, deadband and slip down as formulas.
 Here they arise from physics, as on a real Burger: a rigid body of ROBOTIS's published masses and
-dimensions (turtlebot3_description ``turtlebot3_burger.urdf``; docs/turtlebot.md cites each) on
+dimensions (turtlebot3_description ``turtlebot3_burger.urdf``; docs/turtlebot-models.md cites each) on
 two wheels and a ball caster, with contact friction; each wheel driven by a Dynamixel XL430-W250
 in velocity control mode, as the e-Manual draws its controller
 (https://emanual.robotis.com/docs/en/dxl/x/xl430-w250/#velocity-pi-gain76-78): a PI loop on
@@ -77,7 +77,7 @@ I_GAIN_SCALE = 65536
 
 @dataclass(frozen=True)
 class PhysicsParams:
-    """The physics plant's own constants (``[physics]`` in common/config/srl.toml, docs/turtlebot.md)."""
+    """The physics plant's own constants (``[physics]`` in common/config/srl.toml, docs/turtlebot-models.md)."""
 
     timestep: float  # [s] MuJoCo's integration step
     tire_friction: float  # sliding friction coefficient of the tyres on the floor

@@ -2,7 +2,7 @@
 
 The ideal unicycle (:func:`common.math.dynamics.exact_step`) turns a command into that motion at
 once and reports the true pose. A real Burger does neither. :class:`TurtleBot` models, from the
-command to the two poses (docs/turtlebot.md cites the source of every default):
+command to the two poses (docs/turtlebot-models.md cites the source of every default):
 
 1. **The OpenCR command path** (:func:`firmware_velocity`): turtlebot3_node writes
    ``int32(v * 100)``, the firmware multiplies by ``0.01f`` and constrains ``v`` and ``omega``
@@ -65,7 +65,8 @@ def firmware_velocity(value: float, limit: float) -> float:
 
 @dataclass(frozen=True)
 class TurtleBotParams:
-    """The model's constants (defaults: ``[actuator]`` in common/config/srl.toml, sources in docs/turtlebot.md)."""
+    """The model's constants (defaults: ``[actuator]`` in common/config/srl.toml; sources in
+    docs/turtlebot-models.md)."""
 
     v_max: float  # [m/s] the firmware's limit on v
     omega_max: float  # [rad/s] the firmware's limit on omega

@@ -3,14 +3,14 @@
 :class:`RobotBridge` is given its ports (``publish_state``, ``send_command``, counters, the actor's
 :class:`~common.net.provenance.SourceGate`) and knows nothing of Zenoh or ROS keys; the ROS side is
 services/robot_bridge/ros_link.py, the process services/robot_bridge/host.py. Its rules
-(docs/turtlebot.md):
+(docs/robot.md):
 
 * **Goal frame.** The goal is a configured pose ``bridge.goal`` in the robot's odom frame, default
   ``(0, 0, 0)``: the odom origin, where the robot's odometry started (TurtleBot3: at bringup or
   after ``reset_odometry``). Not "the pose at bridge start-up": a bridge restart would then move
   the target to wherever the robot stands, silently. The state is ``common.math.frames.to_goal_frame``
   of the odometry pose, its heading unwrapped (continuous) from sample to sample.
-* **Localization** (``bridge.pose_source``, docs/turtlebot.md "Localization"). ``odom``: the state is
+* **Localization** (``bridge.pose_source``, docs/turtlebot-localization.md). ``odom``: the state is
   the odometry pose. Otherwise the state is the odometry pose corrected by the ``map -> odom``
   transform (common/math/localization.py): taken from ``/tf`` as it is, or computed from each fix
   of AMCL's ``PoseWithCovarianceStamped``, an EKF's ``Odometry`` or a motion-capture

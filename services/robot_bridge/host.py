@@ -31,7 +31,7 @@ Why one process for several robots and not one bridge per robot: a bridge proces
 interpreter with Zenoh and the ROS type store, and a host pays for one of them whatever its number
 of robots (docs/fleets.md). One bridge per robot (``srl up --robots K --plant robot --layout
 process``) isolates a crash to one robot; either way a real robot still needs its own command
-timeout (docs/turtlebot.md).
+timeout (docs/robot.md).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 :class:`RosLink` subscribes the robot's odometry, decodes it (CDR, common/contracts/ros_wire.py)
 and hands it to the bridge's logic (services/robot_bridge/bridge.py); it finds the robot's
-``cmd_vel`` subscriptions and puts every command on them. Its rules (docs/turtlebot.md):
+``cmd_vel`` subscriptions and puts every command on them. Its rules (docs/robot.md):
 
 * **Odometry** is refused (counted) when it does not decode as nav_msgs/msg/Odometry, carries a
   foreign type hash, or has no rmw_zenoh attachment (the profile requires one).

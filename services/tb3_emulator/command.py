@@ -23,8 +23,8 @@ NAME = "tb3-emulator"
 HELP = "an emulated TurtleBot3 Burger speaking ROS 2 over Zenoh"
 
 # The emulator's cmd_vel timeout. 0.5 s is the OpenCR firmware's own HEARTBEAT_TIMEOUT_MS (it
-# stops the wheels when turtlebot3_node falls silent for 500 ms) and twist_mux's customary topic
-# timeout: five missed 10 Hz commands. At 0.22 m/s a broken command path then costs <= 11 cm.
+# stops the wheels when turtlebot3_node falls silent for 500 ms): five missed 10 Hz commands. At
+# 0.22 m/s a broken command path then costs <= 11 cm.
 CMD_TIMEOUT_DEFAULT = 0.5
 
 
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--model",
         choices=["ideal", "actuator", "physics"],
         help="ideal: wheels reach the command at once, odometry = truth; actuator: a TurtleBot3's wheels "
-        "and encoder odometry ([actuator] settings, docs/turtlebot.md); physics: a rigid-body TurtleBot3 "
+        "and encoder odometry ([actuator] settings, docs/turtlebot-models.md); physics: a rigid-body TurtleBot3 "
         "in MuJoCo ([physics] settings) (default: the settings' plant.model)",
     )
     parser.add_argument("--odom-rate", type=float, default=20.0, help="[Hz] odometry rate (default: 20)")
@@ -78,8 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--localization",
         choices=("none", "tf", "pose_with_covariance", "odometry", "pose_stamped"),
-        help="also publish a localization on the bridge's pose topic: the true pose in map (docs/turtlebot.md "
-        "'Localization') (default: the settings' bridge.pose_source; none for odom)",
+        help="also publish a localization on the bridge's pose topic: the true pose in map "
+        "(docs/turtlebot-localization.md) (default: the settings' bridge.pose_source; none for odom)",
     )
     parser.add_argument(
         "--localization-noise",

@@ -28,7 +28,7 @@ sensor timer), frame ``odom``, child ``base_footprint`` (namespace-prefixed when
 with the applied velocity in its twist; optional seeded Gaussian noise on the reported pose and
 a command latency.
 
-**Localization** (``--localization``, docs/turtlebot.md "Localization"): the emulator also plays
+**Localization** (``--localization``, docs/turtlebot-localization.md): the emulator also plays
 the robot's localization, so the bridge's ``bridge.pose_source`` path is tested end to end. Then
 its world frame is ``map``, its odometry starts at the origin of ``odom`` where the robot stands
 at start (as a TurtleBot3's does at bringup), and it publishes the true pose in ``map`` with
@@ -45,8 +45,9 @@ A stock TurtleBot3 has no cmd_vel timeout: the OpenCR stops only when the heartb
 turtlebot3_node stops for 500 ms (``HEARTBEAT_TIMEOUT_MS``), and turtlebot3_node writes it every
 100 ms whatever cmd_vel does -- it holds its last command forever. That is why the bridge has a
 watchdog, and why a robot whose command path can break (its cmd_vel comes through a router that
-may die) needs a timeout of its own (docs/turtlebot.md: turtlebot3_node's timeout or a
-``twist_mux`` with one). The emulator therefore times out by default (``--cmd-timeout``, 0.5 s,
+may die) needs a timeout of its own, a node that publishes zero when its input falls silent
+(docs/turtlebot-first-robot.md, the safety checklist: ``twist_mux`` alone only stops forwarding).
+The emulator therefore times out by default (``--cmd-timeout``, 0.5 s,
 the OpenCR's own heartbeat bound); ``--cmd-timeout 0`` emulates the stock robot that holds.
 """
 

@@ -1,4 +1,4 @@
-"""``srl bench parking``: does the robot park, truly, and rest there? (docs/turtlebot.md)
+"""``srl bench parking``: does the robot park, truly, and rest there? (docs/turtlebot-parking.md)
 
 In process and as fast as the CPU allows (Algorithm 1 with the in-process plant and critic,
 the lockstep semantics): starts (five of the paper's 5 x 5 grid by default, ``--starts grid`` all

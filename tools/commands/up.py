@@ -171,7 +171,8 @@ def format_up_summary(summary: dict[str, Any]) -> str:
         )
     else:
         lines.extend(truth_lines(summary))
-    if summary.get("bridge"):  # what the robot's pose is: odometry drifts with wheel slip (docs/turtlebot.md)
+    # what the robot's pose is: odometry drifts with wheel slip (docs/turtlebot-localization.md)
+    if summary.get("bridge"):
         lines.append(f"  localization   {summary['bridge'].get('localization', 'odometry only')}")
     lines.append(
         f"  critic         {summary.get('transitions_received')} transitions received, "

@@ -74,8 +74,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["none", "amcl", "mocap"],
         default="none",
         help="the pose the actor sees (inproc): none, the robot's odometry; amcl, corrected by a fix at start and "
-        "after every 0.25 m or 0.2 rad; mocap, by a fix every 0.1 s (the robot bridge's fusion, docs/turtlebot.md "
-        "'Parking') (default: none)",
+        "after every 0.25 m or 0.2 rad; mocap, by a fix every 0.1 s (the robot bridge's fusion, "
+        "docs/turtlebot-localization.md) (default: none)",
     )
     parser.add_argument(
         "--config", type=Path, help="a TOML file overriding common/config/srl.toml (any subset) (default: none)"
