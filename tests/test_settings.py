@@ -286,3 +286,33 @@ def test_cli_run_json_contract(capsys: pytest.CaptureFixture[str], monkeypatch: 
     np.testing.assert_allclose(summary["final_state"], states[-1], rtol=1e-15)
     # the robot moved towards the target (the MPC does its job)
     assert np.hypot(*states[-1][:2]) < np.hypot(*states[0][:2])
+
+
+def test_the_plant_models_are_one_table_that_the_settings_and_the_command_lines_read() -> None:
+    """common.math.plant_models.PLANT_MODELS, one row per model: the settings accept exactly its
+    names, and every command-line option that chooses a plant model offers exactly them."""
+    import argparse
+    from typing import get_args
+
+    from common.math.plant_models import PLANT_MODELS, PlantModel
+    from tools.cli import build_parser
+
+    assert tuple(PLANT_MODELS) == get_args(PlantModel) == ("ideal", "actuator", "physics")
+    for name in PLANT_MODELS:
+        assert Settings.load(plant={"model": name}).plant.model == name
+    with pytest.raises(ValidationError):
+        Settings.load(plant={"model": "slipping"})  # the parking bench's own plant, not a model
+
+    def choices(parser: argparse.ArgumentParser, path: str = "srl") -> dict[str, list[str]]:
+        found: dict[str, list[str]] = {}
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in action.choices.items():
+                    found |= choices(sub, f"{path} {name}")
+            elif action.choices is not None and "actuator" in action.choices:  # srl up --plant is not a model
+                found[f"{path} {action.option_strings}"] = list(action.choices)
+        return found
+
+    found = choices(build_parser())
+    assert {"srl experiment ['--plant']", "srl tb3-emulator ['--model']"} <= set(found), found
+    assert all(offered == list(PLANT_MODELS) for offered in found.values()), found

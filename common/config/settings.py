@@ -28,6 +28,7 @@ from common.math.agents import Agent
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
 from common.math.physics import PhysicsParams
+from common.math.plant_models import PlantModel, plant_models_text
 from common.math.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
@@ -80,10 +81,7 @@ class PlantSettings(_Section):
     sampling_time: float = Field(gt=0, description="delta [s]")
     v_max: float = Field(gt=0, description="[m/s]")
     omega_max: float = Field(gt=0, description="[rad/s]")
-    model: Literal["ideal", "actuator", "physics"] = Field(
-        description="ideal: the exact unicycle; actuator: a TurtleBot3's wheels and odometry ([actuator]); "
-        "physics: a rigid-body TurtleBot3 in MuJoCo ([physics], the extra srl[physics])"
-    )
+    model: PlantModel = Field(description=plant_models_text())
     realtime_priority: int = Field(
         default=10, ge=0, le=99, description="the state loop under SCHED_FIFO at this priority, if allowed (0 = off)"
     )

@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from common.math.dynamics import FloatArray
+from common.math.plant_models import PLANT_MODELS
 from common.math.turtlebot import Burger, TurtleBot, TurtleBotParams
 
 # turtlebot3_description/urdf/turtlebot3_burger.urdf (ROBOTIS), in base_footprint's frame
@@ -344,7 +345,7 @@ def simulated_robot(
     if model == "physics":
         return PhysicsBot(params, physics, pose)
     if model != "ideal":
-        raise ValueError(f"unknown plant model {model!r} (ideal, actuator or physics)")
+        raise ValueError(f"unknown plant model {model!r} ({', '.join(PLANT_MODELS)})")
     return None
 
 

@@ -17,6 +17,7 @@ from common.config.arguments import (
     settings_from_args,
 )
 from common.contracts.summaries import EmulatorSummary
+from common.math.plant_models import PLANT_MODELS
 from common.process.runtime import connect_with_retry, own_resources, service_stop
 
 NAME = "tb3-emulator"
@@ -57,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--omega-max", type=float, help="firmware limit [rad/s] (default: the Burger's 2.84)")
     parser.add_argument(
         "--model",
-        choices=["ideal", "actuator", "physics"],
+        choices=list(PLANT_MODELS),
         help="ideal: wheels reach the command at once, odometry = truth; actuator: a TurtleBot3's wheels "
         "and encoder odometry ([actuator] settings, docs/turtlebot-models.md); physics: a rigid-body TurtleBot3 "
         "in MuJoCo ([physics] settings) (default: the settings' plant.model)",

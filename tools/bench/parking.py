@@ -39,6 +39,7 @@ from common.math.frames import wrap_angle
 from common.math.localization import SIM_SOURCES
 from common.math.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
 from common.math.physics import breakaway_speed
+from common.math.plant_models import PLANT_MODELS, PlantModel
 from tools.bench.meta import run_info
 from tools.experiment.grid import grid_starts
 
@@ -48,11 +49,11 @@ STARTS: tuple[tuple[float, ...], ...] = ((2.0, 2.0), (-2.0, 2.0), (-1.0, -2.0), 
 AGENTS = "mpc,rlq,rlqv"
 HORIZON = 12
 PLANTS = "ideal,actuator,physics"
-PLANT_NAMES = ("ideal", "actuator", "physics", "slipping")
+PLANT_NAMES = (*PLANT_MODELS, "slipping")
 SLIPPING = 0.25  # the slipping robot: the actuator model with [actuator] slip 0.25 (odometry 25 % long)
 METHOD_NAMES = ",".join(METHODS)  # paper (the robot settings off) and robot (srl.toml's)
 SECONDS = 35.0
-PlantModel = Literal["ideal", "actuator", "physics", "slipping"]
+ParkingPlant = Literal[PlantModel, "slipping"]  # slipping: the actuator model on a slippery floor
 Method = Literal["paper", "robot"]
 Localization = Literal["none", "amcl", "mocap"]
 LOCALIZATIONS = ("none", *SIM_SOURCES)
@@ -70,7 +71,7 @@ class _Model(BaseModel):
 
 class ParkingRow(_Model):
     method: Method  # paper: the paper's actor; robot: with the arrival rule, wheel box, convex critics
-    plant: PlantModel
+    plant: ParkingPlant
     localization: str = ODOMETRY_ONLY  # the pose the actor saw: "odometry only", "amcl", "mocap"
     agent: Agent
     horizon: int
@@ -230,7 +231,7 @@ def parking_row(
     settings: Settings,
     actor: StackedActor,
     method: Method = "robot",
-    plant_name: PlantModel | None = None,
+    plant_name: ParkingPlant | None = None,
     localization: Localization = "none",
     noise: tuple[float, float] | None = None,
 ) -> ParkingRow:
@@ -282,7 +283,7 @@ def parking_row(
 
 def run_parking(
     base: Settings,
-    plants: list[PlantModel],
+    plants: list[ParkingPlant],
     agents: Sequence[str],
     horizon: int,
     starts: list[Start],
@@ -370,7 +371,7 @@ def run_parking_benchmark(args: argparse.Namespace, settings: Settings) -> int:
         horizons = parse_horizons(args.horizons) if args.horizons else (HORIZON,)
         if len(horizons) != 1:
             raise ValueError(f"parking runs one horizon at a time (--horizons N), got {list(horizons)}")
-        plants: list[PlantModel] = parse_names(args.plants or PLANTS, PLANT_NAMES, "plant")
+        plants: list[ParkingPlant] = parse_names(args.plants or PLANTS, PLANT_NAMES, "plant")
         methods = parse_methods(args.methods or METHOD_NAMES)
         agents = list(parse_agents(args.agents or AGENTS))
         starts = parse_starts(args.starts) if args.starts else list(STARTS)

@@ -16,6 +16,7 @@ from typing import Any
 
 from common.config.settings import METHODS, Settings
 from common.math.agents import AGENTS, PAPER_AGENTS, parse_agents, parse_horizons
+from common.math.plant_models import PLANT_MODELS
 from tools.experiment.grid import STARTS, make_starts
 from tools.experiment.options import DEFAULT_HORIZONS, ExperimentOptions
 from tools.experiment.output import experiment_settings
@@ -64,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--plant",
-        choices=["ideal", "actuator", "physics"],
+        choices=list(PLANT_MODELS),
         default="ideal",
         help="the simulated robot (plant.model): ideal, the paper's exact unicycle; actuator, the TurtleBot3 "
         "model; physics, the MuJoCo TurtleBot3; J is on what the robot reported, true J beside it (default: ideal)",

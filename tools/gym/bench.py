@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.math.plant_models import PLANT_MODELS
 from tools.gym.vector import SrlVectorEnv
 
 CHUNK = 500  # step calls between clock reads
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.gym.bench", description=__doc__.splitlines()[0])
     parser.add_argument("--robots", default="1,16,100", help="comma-separated K values (default: 1,16,100)")
     parser.add_argument("--seconds", type=float, default=2.0, help="CPU seconds per K (default: 2)")
-    parser.add_argument("--model", default="ideal", choices=["ideal", "actuator", "physics"], help="plant.model")
+    parser.add_argument("--model", default="ideal", choices=list(PLANT_MODELS), help="plant.model")
     args = parser.parse_args(argv)
     try:
         counts = [int(part) for part in args.robots.split(",")]
