@@ -11,3 +11,7 @@ A module imports ``common`` only from its own floor or the floors below, never `
 ``common.net.transport`` is the only module that imports zenoh, and none imports ROS
 (tests/test_architecture.py and tests/test_purity.py check both).
 """
+
+from common.system.blas import pin_openblas_kernel
+
+pin_openblas_kernel()  # before any module of common loads numpy: the same bits on every x86_64 CPU
