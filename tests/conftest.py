@@ -44,6 +44,13 @@ def _compiler_missing() -> list[str]:
     return [] if shutil.which("gcc") or shutil.which("cc") else ["no C compiler (gcc or cc) on PATH"]
 
 
+def _baselines_missing() -> list[str]:
+    import importlib.util
+
+    absent = [name for name in ("stable_baselines3", "torch") if importlib.util.find_spec(name) is None]
+    return [f"{' and '.join(absent)} not installed (the baselines extra)"] if absent else []
+
+
 def _rtprio_missing() -> list[str]:
     from tests.tiers import realtime_allowed
 
@@ -56,6 +63,11 @@ def _rtprio_missing() -> list[str]:
 REQUIREMENTS: dict[str, tuple[Callable[[], list[str]], str]] = {
     "needs_root": (_netns_missing, "run as root on Debian with iproute2 and iptables: sudo ./srl test {path}"),
     "needs_compiler": (_compiler_missing, "install a C compiler (Debian: apt-get install gcc), then ./srl test {path}"),
+    "needs_baselines": (
+        _baselines_missing,
+        "SRL_BASELINES=1 ./srl test {path} (installs the baselines extra: stable-baselines3 and torch, ~1 GB "
+        "with torch's CPU build)",
+    ),
     "needs_rtprio": (
         _rtprio_missing,
         "run as root (sudo ./srl test {path}) or with an rtprio limit of 10 or more (docs/fleets.md)",

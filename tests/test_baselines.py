@@ -109,6 +109,7 @@ def test_the_command_refuses_bad_options_before_any_training(
 
 
 # -- the second checker -------------------------------------------------------------------
+@pytest.mark.needs_baselines
 @pytest.mark.parametrize("env_id", sorted(ENV_MODELS))
 def test_each_environment_passes_stable_baselines3s_checker(env_id: str) -> None:
     from stable_baselines3.common.env_checker import check_env
@@ -130,6 +131,7 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], list
     return summary, rows, out
 
 
+@pytest.mark.needs_baselines
 @pytest.mark.slow
 @pytest.mark.integration  # srl's actor (J_mpc) is JIT-built with the C compiler
 def test_a_tiny_training_of_each_baseline_writes_every_output(tiny: tuple[dict[str, Any], list[Row], Path]) -> None:
@@ -159,6 +161,7 @@ def test_a_tiny_training_of_each_baseline_writes_every_output(tiny: tuple[dict[s
     assert len([line for line in table.splitlines() if line.startswith("| Unicycle-v0 |")]) == len(rows)
 
 
+@pytest.mark.needs_baselines
 @pytest.mark.slow
 @pytest.mark.integration  # srl's actor (J_mpc) is JIT-built with the C compiler
 def test_every_j_is_finite_and_the_sum_of_the_environments_costs(tiny: tuple[dict[str, Any], list[Row], Path]) -> None:
@@ -176,6 +179,7 @@ def test_every_j_is_finite_and_the_sum_of_the_environments_costs(tiny: tuple[dic
             assert costs == e.costs.tolist() and float(np.sum(costs)) == e.cost, row.label
 
 
+@pytest.mark.needs_baselines
 @pytest.mark.parametrize("algo", ["sac", "ppo"])
 def test_a_training_leaves_nothing_in_the_temporary_directory(
     algo: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
@@ -198,6 +202,7 @@ def test_a_training_leaves_nothing_in_the_temporary_directory(
     assert [p.name[:4] for p in temporary.iterdir()] == ["SB3-"]
 
 
+@pytest.mark.needs_baselines
 @pytest.mark.slow
 def test_a_training_seed_repeats_the_training() -> None:
     settings = experiment_settings(Settings.load())
@@ -208,6 +213,7 @@ def test_a_training_seed_repeats_the_training() -> None:
     assert not all(np.array_equal(a, b) for a, b in zip(weights[0], weights[2], strict=True))
 
 
+@pytest.mark.needs_baselines
 @pytest.mark.slow
 @pytest.mark.integration  # worker processes, and srl's actor JIT-built with the C compiler
 def test_trainings_in_worker_processes_give_the_same_table_as_one_after_another(

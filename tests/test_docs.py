@@ -266,7 +266,14 @@ BLOCKS = docs_blocks.all_blocks(ROOT)
 
 @pytest.mark.integration
 @pytest.mark.slow
-@pytest.mark.parametrize("block", docs_blocks.runnable_blocks(BLOCKS), ids=lambda b: b.id)
+@pytest.mark.parametrize(
+    "block",
+    [
+        # a block that trains SAC or PPO needs the baselines extra (tests/conftest.py: needs_baselines)
+        pytest.param(b, id=b.id, marks=[pytest.mark.needs_baselines] if "experiment baselines" in b.commands else [])
+        for b in docs_blocks.runnable_blocks(BLOCKS)
+    ],
+)
 def test_the_documented_commands_run_and_print_what_they_say(block: docs_blocks.Block, tmp_path: Path) -> None:
     # the test suite inside the test suite would run this test again, and it again: such a block is not run
     assert not docs_blocks.RUNS_THE_TESTS.search(block.text), (
