@@ -469,3 +469,68 @@ def test_the_hand_written_pages_read_in_an_afternoon(tmp_path: Path) -> None:
     print(f"\nhand-written pages: {total} words in all (at most {SITE_WORDS})")
     assert not findings, "pages too long or dated:\n" + "\n".join(findings)
     assert total <= SITE_WORDS, f"the hand-written pages have {total} words, at most {SITE_WORDS}: cut, do not move"
+
+
+# -- the architecture page's map of the code is the code's --------------------------------------
+def code_map_findings(page: str, root: Path) -> list[str]:
+    """What the map of the code in ``page`` (its ``text`` block under "The floors of the code")
+    leaves out or names wrongly: every module of common/ and services/ (but ``__init__``,
+    ``__main__`` and the services' ``command.py``) is named on its folder's lines, by its file name
+    or its stem; every ``NAME.py`` named there exists in that folder; every folder of tools/ is
+    named (tools/ is mapped by folder)."""
+    block = page.split("## The floors of the code", 1)[1].split("```text", 1)[1].split("```", 1)[0]
+    lines: dict[str, str] = {}  # "common/math" -> the text of its lines
+    top, folder = "", ""
+    for line in block.splitlines():
+        label = re.match(r"^(\s*)([a-z0-9_]+/)", line)
+        if label and not label.group(1):
+            top, folder = label.group(2).rstrip("/"), ""
+            lines[top] = lines.get(top, "") + line
+        elif label and len(label.group(1)) == 2:
+            folder = f"{top}/{label.group(2).rstrip('/')}"
+            lines[folder] = line
+        elif folder:
+            lines[folder] += " " + line
+        else:
+            lines[top] = lines.get(top, "") + " " + line
+    findings = []
+    for floor in ("common", "services"):
+        for package in sorted(p for p in (root / floor).iterdir() if (p / "__init__.py").is_file()):
+            name = f"{floor}/{package.name}"
+            text = lines.get(name)
+            if text is None:
+                findings.append(f"{name}/ is not on the map")
+                continue
+            for module in sorted(package.glob("*.py")):
+                skip = ("__init__", "__main__") + (("command",) if floor == "services" else ())
+                if module.stem not in skip and not re.search(rf"\b{re.escape(module.stem)}\b", text):
+                    findings.append(f"{name}/{module.name} is not on the map")
+            for named in re.findall(r"\b([a-z0-9_]+)\.py\b", text):
+                if named != "command" and not (package / f"{named}.py").is_file():
+                    findings.append(f"{name}/{named}.py is on the map but not in the code")
+    tools_text = lines.get("tools", "") + " ".join(v for k, v in lines.items() if k.startswith("tools/"))
+    for sub in sorted(p for p in (root / "tools").iterdir() if (p / "__init__.py").is_file()):
+        if f"{sub.name}/" not in tools_text:
+            findings.append(f"tools/{sub.name}/ is not on the map")
+    return findings
+
+
+def test_the_architecture_pages_map_of_the_code_is_the_code(tmp_path: Path) -> None:
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    findings = code_map_findings(page, ROOT)
+    assert not findings, "docs/architecture.md, 'The floors of the code':\n" + "\n".join(findings)
+    # negative control: a module added to the code and a module named but gone are both caught
+    (tmp_path / "common" / "math").mkdir(parents=True)
+    (tmp_path / "services" / "actor").mkdir(parents=True)
+    (tmp_path / "tools" / "gym").mkdir(parents=True)
+    for package in ("common/math", "services/actor", "tools/gym"):
+        (tmp_path / package / "__init__.py").write_text("")
+    (tmp_path / "common" / "math" / "critic.py").write_text("")
+    (tmp_path / "common" / "math" / "brand_new.py").write_text("")
+    (tmp_path / "services" / "actor" / "command.py").write_text("")
+    fake = "## The floors of the code\n\n```text\ntools/  gym/\nservices/\n  actor/  host.py\n"
+    fake += "common/\n  math/  critic\n```\n"
+    assert code_map_findings(fake, tmp_path) == [
+        "common/math/brand_new.py is not on the map",
+        "services/actor/host.py is on the map but not in the code",
+    ]
