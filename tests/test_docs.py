@@ -264,13 +264,17 @@ def test_mkdocs_build_strict_passes(tmp_path: Path) -> None:
 BLOCKS = docs_blocks.all_blocks(ROOT)
 
 
+# what trains the baselines: srl experiment baselines, or Python that imports their packages
+NEEDS_BASELINES = re.compile(r"experiment baselines|^\s*(?:import|from)\s+(?:torch|stable_baselines3)\b", re.MULTILINE)
+
+
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "block",
     [
         # a block that trains SAC or PPO needs the baselines extra (tests/conftest.py: needs_baselines)
-        pytest.param(b, id=b.id, marks=[pytest.mark.needs_baselines] if "experiment baselines" in b.commands else [])
+        pytest.param(b, id=b.id, marks=[pytest.mark.needs_baselines] if NEEDS_BASELINES.search(b.commands) else [])
         for b in docs_blocks.runnable_blocks(BLOCKS)
     ],
 )

@@ -228,8 +228,11 @@ def _cmd_baselines(args: argparse.Namespace) -> int:
     # the extra's packages are imported where the trainings run; here only found (torch takes ~1.5 s)
     if args.workers < 0:
         raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
-    missing = [name for name in ("gymnasium", "stable_baselines3", "torch") if importlib.util.find_spec(name) is None]
-    if missing:
+    # the options are checked first (gymnasium is all they need), then the trainings' packages:
+    # a bad option is named whether or not the extra is installed
+    extra = ("gymnasium", "stable_baselines3", "torch")
+    missing = [name for name in extra if importlib.util.find_spec(name) is None]
+    if "gymnasium" in missing:
         raise ValueError(
             f"experiment baselines needs the extra: pip install 'srl[baselines]' (missing {', '.join(missing)})"
         )
@@ -258,6 +261,10 @@ def _cmd_baselines(args: argparse.Namespace) -> int:
         quick=args.quick,
         workers=args.workers or os.cpu_count() or 1,
     )
+    if missing:
+        raise ValueError(
+            f"experiment baselines needs the extra: pip install 'srl[baselines]' (missing {', '.join(missing)})"
+        )
     argv = [
         "baselines",
         f"--algos={','.join(options.algos)}",
