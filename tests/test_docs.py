@@ -415,9 +415,9 @@ PAGE_WORDS = 3000
 SITE_WORDS = 25_000
 NOT_HAND_WRITTEN = ("reference/", "benchmarks/", "changelog.md")  # under docs/: generated, not counted
 MAY_BE_DATED = ("notes/", "benchmarks/", "changelog.md")  # under docs/: dated write-ups and measurements
-# an ISO date standing alone (not part of a path or a name: notes/2026-11-27-baselines.md is a link),
-# or a machine's load ("load 1.2", "load average"); a version number (3.8.2) is neither
-DATED = re.compile(r"(?<![\w/.-])\d{4}-\d{2}-\d{2}(?![\w-])|\bload(?: average|\s+\d)", re.IGNORECASE)
+# a date (2026-11-27, or a month: 2026-11), a link's path included (the notes are named without
+# one), or a machine's load ("load 1.2", "load average"); a version number (3.8.2) is neither
+DATED = re.compile(r"(?<![\w.])(?:19|20)\d{2}-\d{2}(?:-\d{2})?(?!\d)|\bload(?: average|\s+\d)", re.IGNORECASE)
 
 
 def reading_findings(docs: Path) -> tuple[list[str], int]:
@@ -450,15 +450,16 @@ def test_the_hand_written_pages_read_in_an_afternoon(tmp_path: Path) -> None:
 
     Together the hand-written pages have at most SITE_WORDS (25,000) words: the site reads in an
     afternoon."""
-    # negative control: a long dated guide is caught; a version number, a note's name in a link,
-    # a loaded machine, a payload, and dates in a note or a benchmark page are not
+    # negative control: a long dated guide and a link to a dated name are caught; a version number,
+    # an undated note's link, a loaded machine, a payload, and dates in a note or a benchmark page are not
     docs = tmp_path / "docs"
     (docs / "notes").mkdir(parents=True)
     (docs / "benchmarks").mkdir()
     (docs / "guide.md").write_text("# Guide\n\nMeasured 2026-11-27.\n\n" + "word " * PAGE_WORDS + "\n\nat load 1.2\n")
     (docs / "fine.md").write_text(
-        "# Fine\n\nCasADi 3.8.2, [the note](notes/2026-11-27-baselines.md), a loaded machine, a payload 64 KiB.\n"
+        "# Fine\n\nCasADi 3.8.2, [the note](notes/baselines.md), a loaded machine, a payload 64 KiB.\n"
     )
+    (docs / "linked.md").write_text("[the run](notes/2026-11-27-a.md)\n")
     (docs / "notes" / "2026-11-27-a.md").write_text("# 2026-11-27\n\nload average 3.1, load 1.2\n")
     (docs / "benchmarks" / "big.md").write_text("Date 2026-11-27, load 1.0\n" + "word " * (PAGE_WORDS + 1))
     assert reading_findings(docs) == (
@@ -466,8 +467,9 @@ def test_the_hand_written_pages_read_in_an_afternoon(tmp_path: Path) -> None:
             "docs/guide.md: 3007 words (at most 3000)",
             "docs/guide.md:3: dated: Measured 2026-11-27.",
             "docs/guide.md:7: dated: at load 1.2",
+            "docs/linked.md:1: dated: [the run](notes/2026-11-27-a.md)",
         ],
-        3007 + 13 + 7,  # the guide, fine.md and the note: every page but the benchmark page counts
+        3007 + 13 + 2 + 7,  # the guide, fine.md, linked.md and the note: all but the benchmark page
     )
     findings, total = reading_findings(ROOT / "docs")
     print(f"\nhand-written pages: {total} words in all (at most {SITE_WORDS})")

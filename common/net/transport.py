@@ -628,7 +628,7 @@ def start_status_thread(
       would hold the GIL from its tick thread for all of them; one at a time holds it for one
       robot's (tens of microseconds).
     * Sent whether or not anyone subscribes: gating them on Zenoh's matching status saved no
-      measurable CPU and was in doubt across linked routers (docs/notes/2026-12-02-status-on-demand.md).
+      measurable CPU and was in doubt across linked routers (docs/notes/status-on-demand.md).
       Counted: ``statuses_published``.
     * Counters that are NaN or infinite are left out (the schema refuses them).
     * ``on_status`` gets every row's counters (the actor logs its status line: compose shows it)."""
