@@ -5,11 +5,24 @@ from __future__ import annotations
 import argparse
 from typing import get_args
 
+import numpy as np
 import pytest
 
 from common.config.arguments import add_settings_arguments
 from common.config.settings import ActorSettings
-from common.math.agents import AGENTS, PAPER_AGENTS, fit_due, learns, parse_agents, parse_horizons, uses_value_critic
+from common.math.agents import (
+    AGENT_ROWS,
+    AGENTS,
+    PAPER_AGENTS,
+    REFERENCE_AGENT,
+    agent_row,
+    fit_due,
+    learns,
+    parse_agents,
+    parse_horizons,
+    stage_cost_weights,
+    uses_value_critic,
+)
 
 
 def test_settings_and_command_line_take_the_agents_from_one_place() -> None:
@@ -35,3 +48,51 @@ def test_lists_parse_once_each_in_order_and_refuse_the_unknown() -> None:
         parse_agents("mpc,dqn")
     with pytest.raises(ValueError, match="--reference"):
         parse_horizons("1", "--reference")
+
+
+def test_each_row_is_the_objective_the_actor_minimizes() -> None:
+    """common/math/agents.py AGENT_ROWS is what common/math/actor_search.py's objective is made of:
+    evaluated on numbers, each agent's objective equals the paper's formula for it (written out
+    here, not derived from the row), and the rows that say so learn and end with V."""
+    from common.math.actor_problem import ActorProblem
+    from common.math.actor_search import objective
+    from common.math.features import phi_q, phi_v, stage_cost
+
+    rng = np.random.default_rng(3)
+    horizon, delta, diag = 5, 0.1, (1.0, 2.0, 0.5, 0.1, 0.2)
+    states = [rng.normal(size=3) for _ in range(horizon)]
+    actions = [rng.normal(size=2) for _ in range(horizon - 1)]
+    w, v = rng.normal(size=15), rng.normal(size=6)
+    r = [delta * stage_cost(s, u, diag) for s, u in zip(states, actions, strict=False)]
+    q = [float(w @ phi_q(s, u)) for s, u in zip(states, actions, strict=False)]
+    end = float(v @ phi_v(states[-1]))
+    paper = {
+        "mpc": sum(r),
+        "rlq": sum(q),
+        "rlqv": sum(q) + end,
+        "rlqv+": sum(q[i] + (horizon - (i + 1)) * r[i] for i in range(horizon - 1)) + end,
+    }
+    assert set(paper) == set(AGENT_ROWS)
+    for agent, expected in paper.items():
+        problem = ActorProblem(agent, horizon, sampling_time=delta, cost_diag=diag, v_max=0.22, omega_max=2.84)
+        got = float(objective(problem, states, actions, w, v))
+        assert got == pytest.approx(expected, rel=1e-12), agent
+        row = AGENT_ROWS[agent]
+        assert learns(agent) == (row.q_critics or row.value_critic)
+        assert uses_value_critic(agent) == row.value_critic
+    assert stage_cost_weights("mpc", 4) == [1.0, 1.0, 1.0]
+    assert stage_cost_weights("rlqv+", 4) == [3.0, 2.0, 1.0]
+    assert stage_cost_weights("rlq", 4) == [0.0, 0.0, 0.0]
+    assert PAPER_AGENTS == ("mpc", "rlq", "rlqv") and REFERENCE_AGENT == "mpc"
+
+
+def test_an_unknown_agent_is_one_line_naming_the_known_ones() -> None:
+    for call in (learns, uses_value_critic, agent_row):
+        with pytest.raises(ValueError, match=r"^unknown agent 'dqn'; choose one of mpc, rlq, rlqv, rlqv\+$"):
+            call("dqn")
+
+
+def test_the_settings_and_help_describe_every_row() -> None:
+    description = ActorSettings.model_fields["agent"].description or ""
+    for name, row in AGENT_ROWS.items():
+        assert f"{name}: {row.objective}" in description

@@ -24,7 +24,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from common.math.agents import Agent
+from common.math.agents import Agent, agents_text
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
 from common.math.physics import PhysicsParams
@@ -196,7 +196,7 @@ class CriticSettings(_Section):
 
 
 class ActorSettings(_Section):
-    agent: Agent
+    agent: Agent = Field(description=agents_text())
     horizon: int = Field(description="N, 2 .. MAX_HORIZON")
     predictor: Literal["euler", "rk4"]
     solver: Literal["fatrop", "ipopt"]

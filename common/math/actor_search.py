@@ -45,7 +45,7 @@ import casadi as ca
 import numpy as np
 
 from common.math.actor_problem import ActorProblem
-from common.math.agents import learns, uses_value_critic
+from common.math.agents import agent_row
 from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.math.features import Q_FEATURES, V_FEATURES, phi_q, phi_v, stage_cost
 
@@ -105,17 +105,18 @@ def objective(problem: ActorProblem, states: list[Any], actions: list[Any], w: A
     | rlqv+   | sum_i [Qhat(s_i, u_i; w) + (N - i) delta r(s_i, u_i)] + Jhat(s_N; v)   |
     """
     p = problem
+    row = agent_row(p.agent)  # its terms: common/math/agents.py AGENT_ROWS
     total: Any = 0
     for i, (s_i, u_i) in enumerate(zip(states[:-1], actions, strict=True)):
         running = p.sampling_time * stage_cost(s_i, u_i, p.cost_diag)
-        if not learns(p.agent):
-            total += running
-        else:
+        if row.q_critics:
             total += ca.dot(w, phi_q(s_i, u_i))
-            if p.agent == "rlqv+":
-                # Remark (complemented stack): (N - i) r with the paper's i = 1..N-1.
-                total += (p.horizon - (i + 1)) * running
-    if uses_value_critic(p.agent):
+        if row.stage_costs == "each":
+            total += running
+        elif row.stage_costs == "remaining":
+            # Remark (complemented stack): (N - i) r with the paper's i = 1..N-1.
+            total += (p.horizon - (i + 1)) * running
+    if row.value_critic:
         total += ca.dot(v, phi_v(states[-1]))
     return total
 

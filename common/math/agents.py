@@ -1,29 +1,94 @@
-"""The paper's agents, defined once: their names and what each one learns.
+"""The paper's agents, one row each: their names, what each objective is made of and what it learns.
 
-``mpc`` minimizes the stage costs alone (no critic); ``rlq`` stacks learned Q-critics;
-``rlqv`` adds the learned value critic at the horizon end; ``rlqv+`` is rlqv complemented with
-the stage costs (the paper's complemented variant). Settings, the command line, the actor, the
-benchmarks and the experiment all take their vocabulary from here.
+Settings (``actor.agent``), the command line's choices and help, the actor's objective
+(common/math/actor_search.py), the benchmarks, the experiment's tables and plots and the docs
+(docs/concepts.md) all read :data:`AGENT_ROWS`; nothing else names an agent's
+properties. ``mpc`` minimizes the stage costs alone (no critic); ``rlq`` stacks learned
+Q-critics; ``rlqv`` adds the learned value critic at the horizon end; ``rlqv+`` is rlqv
+complemented with the stage costs (the paper's Remark on the complemented stack).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal, get_args
 
 Agent = Literal["mpc", "rlq", "rlqv", "rlqv+"]
+
+# How the stage cost delta r(s_i, u_i) enters the stacked objective at stage i = 1 .. N - 1:
+# "each" once per stage (MPC), "remaining" (N - i) times (the complemented stack), "none" not at all.
+StageCosts = Literal["each", "remaining", "none"]
+
+
+@dataclass(frozen=True)
+class AgentRow:
+    """One agent: its name in tables and plots, the terms of its stacked objective and where it
+    comes from. ``q_critics``: each stage's term is the learned Q-critic ``Qhat(s_i, u_i; w)``;
+    ``value_critic``: the learned ``Jhat(s_N; v)`` ends the stack; ``stage_costs``: how the
+    stage cost enters (:data:`StageCosts`); ``paper``: one of the paper's comparison;
+    ``objective``: the objective as one line (help texts and docs)."""
+
+    title: str
+    q_critics: bool
+    value_critic: bool
+    stage_costs: StageCosts
+    paper: bool
+    objective: str
+
+    @property
+    def learns(self) -> bool:
+        """It has critics to fit (a critic learner serves it)."""
+        return self.q_critics or self.value_critic
+
+
+AGENT_ROWS: dict[Agent, AgentRow] = {
+    "mpc": AgentRow("MPC", False, False, "each", True, "sum_i delta r(s_i, u_i)"),
+    "rlq": AgentRow("RL-Q", True, False, "none", True, "sum_i Qhat(s_i, u_i; w)"),
+    "rlqv": AgentRow("RL-QV", True, True, "none", True, "sum_i Qhat(s_i, u_i; w) + Jhat(s_N; v)"),
+    "rlqv+": AgentRow(
+        "RL-QV+", True, True, "remaining", False, "sum_i [Qhat(s_i, u_i; w) + (N - i) delta r(s_i, u_i)] + Jhat(s_N; v)"
+    ),
+}
 AGENTS: tuple[Agent, ...] = get_args(Agent)
+assert tuple(AGENT_ROWS) == AGENTS, "one row per name of Agent"
 # the paper's comparison (rlqv+ is ours to add with --agents)
-PAPER_AGENTS: tuple[Agent, ...] = ("mpc", "rlq", "rlqv")
+PAPER_AGENTS: tuple[Agent, ...] = tuple(name for name, row in AGENT_ROWS.items() if row.paper)
+# the agent every other is measured against (J / J_MPC in the experiment's tables and plots)
+REFERENCE_AGENT: Agent = "mpc"
+
+
+def agent_row(agent: str) -> AgentRow:
+    """The row of ``agent``; an unknown name is a one-line ValueError naming the known ones."""
+    try:
+        return AGENT_ROWS[agent]  # type: ignore[index]
+    except KeyError:
+        raise ValueError(f"unknown agent {agent!r}; choose one of {', '.join(AGENTS)}") from None
 
 
 def learns(agent: str) -> bool:
     """Does this agent have critics to fit (everything but mpc)?"""
-    return agent != "mpc"
+    return agent_row(agent).learns
 
 
 def uses_value_critic(agent: str) -> bool:
     """Does this agent's objective end with the learned value critic V?"""
-    return agent in ("rlqv", "rlqv+")
+    return agent_row(agent).value_critic
+
+
+def stage_cost_weights(agent: str, horizon: int) -> list[float]:
+    """How many times ``delta r(s_i, u_i)`` enters the objective at each stage i = 1 .. N - 1
+    (:data:`StageCosts`): all 1 (MPC), ``N - i`` (complemented), all 0 (none)."""
+    kind = agent_row(agent).stage_costs
+    if kind == "each":
+        return [1.0] * (horizon - 1)
+    if kind == "remaining":
+        return [float(horizon - i) for i in range(1, horizon)]
+    return [0.0] * (horizon - 1)
+
+
+def agents_text() -> str:
+    """``mpc: sum_i delta r(s_i, u_i); rlq: ...``: the rows as one line (help texts, descriptions)."""
+    return "; ".join(f"{name}: {row.objective}" for name, row in AGENT_ROWS.items())
 
 
 def fit_due(step: int, update_every: int) -> bool:

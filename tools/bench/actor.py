@@ -59,7 +59,7 @@ from common.math.actor import StackedActor, TickRecord
 from common.math.actor_nlp import compiled
 from common.math.actor_problem import PHASES, ActorCounters, ActorProblem
 from common.math.actor_search import REPORT, descent_function, scaled_objective, search_graph
-from common.math.agents import AGENTS
+from common.math.agents import AGENTS, REFERENCE_AGENT, agent_row, learns, stage_cost_weights
 from common.math.agents import parse_agents as parse_agent_names
 from common.math.agents import parse_horizons as parse_horizon_numbers
 from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
@@ -246,15 +246,12 @@ class NumpyObjective:
         self.r_diag = np.asarray(problem.cost_diag, dtype=float)
         self.q_matrix = quadratic_form_matrix(q_weights, STATE_DIM + ACTION_DIM)
         self.v_matrix = quadratic_form_matrix(v_weights, STATE_DIM)
-        # per-stage multiplier of delta r: 1 for mpc, (N - i) for rlqv+ (i = 1..N-1), else none
-        if self.agent == "mpc":
-            self.r_coef: np.ndarray | None = np.full(self.n_actions, self.delta)
-        elif self.agent == "rlqv+":
-            self.r_coef = self.delta * (self.horizon - np.arange(1, self.horizon, dtype=float))
-        else:
-            self.r_coef = None
-        self.use_q = self.agent != "mpc"
-        self.use_v = self.agent in ("rlqv", "rlqv+")
+        # per-stage multiplier of delta r (AGENT_ROWS' stage_costs): 1 for mpc, (N - i) for rlqv+, else none
+        row = agent_row(self.agent)
+        weights = np.array(stage_cost_weights(self.agent, self.horizon))
+        self.r_coef: np.ndarray | None = None if row.stage_costs == "none" else self.delta * weights
+        self.use_q = row.q_critics
+        self.use_v = row.value_critic
         self.euler = problem.predictor == "euler"
         self._step = PREDICTORS[problem.predictor]
         limits = np.array([problem.v_max, problem.omega_max])
@@ -917,7 +914,7 @@ def evaluate_targets(rows: list[dict[str, Any]], main_solver: str) -> dict[str, 
         check(
             "speedup_mpc",
             f"speedup >= {TARGET_SPEEDUP_MPC:g} for mpc (every benchmarked N)",
-            [r for r in main if r["agent"] == "mpc"],
+            [r for r in main if r["agent"] == REFERENCE_AGENT],
             "speedup",
             TARGET_SPEEDUP_MPC,
             False,
@@ -1128,7 +1125,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
     snapshots = load_snapshots()
     trained = {(a, n): trained_weights(snapshots, a, n) for a in agents for n in horizons}
     total = sum(
-        1 if a == "mpc" else len(weight_sets) + len(trained[a, n]) for a in agents for n in [*horizons, *reference]
+        1 if not learns(a) else len(weight_sets) + len(trained[a, n]) for a in agents for n in [*horizons, *reference]
     )
     began = time.perf_counter()
     rows: list[dict[str, Any]] = []
@@ -1148,11 +1145,11 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
                 build_seconds = time.perf_counter() - t0
                 timer = PhaseTimer(actor.problem, cache) if actor.problem.multistart else None
                 judge = None
-                sets = weight_sets[:1] if agent == "mpc" else weight_sets + trained[agent, horizon]
+                sets = weight_sets[:1] if not learns(agent) else weight_sets + trained[agent, horizon]
                 main_loops: dict[str, Loop] = {}
                 baselines: dict[str, Loop] = {}
                 for weights in sets:
-                    label = NO_WEIGHTS if agent == "mpc" else weights.name
+                    label = NO_WEIGHTS if not learns(agent) else weights.name
                     objective = NumpyObjective(actor.problem, weights.q, weights.v)
                     note(f"{agent} N={horizon} {label}: {steps} actor steps")
                     actor.memory.counters = ActorCounters()
@@ -1209,7 +1206,7 @@ def run_actor_benchmark(args: argparse.Namespace, settings: Settings) -> int:
                 )
                 ref_build = time.perf_counter() - t0
                 for weights in sets:
-                    label = NO_WEIGHTS if agent == "mpc" else weights.name
+                    label = NO_WEIGHTS if not learns(agent) else weights.name
                     objective = NumpyObjective(ref_actor.problem, weights.q, weights.v)
                     note(f"{agent} N={horizon} {label}: {steps} {reference_solver} steps + replay")
                     loop = actor_loop(ref_actor, objective, weights, start, steps)

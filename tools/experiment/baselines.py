@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.config.settings import Settings
+from common.math.agents import PAPER_AGENTS, REFERENCE_AGENT
 from common.math.parking import parking
 from common.system.jit import srl_cache
 from tools.experiment.grid import STARTS, Start, make_starts
@@ -93,7 +94,7 @@ class BaselineOptions:
     seed: int = 0  # the first training seed and the held-out starts' seed
     grid: int = 5
     extent: float = 2.0
-    agents: tuple[str, ...] = ("mpc", "rlq", "rlqv")
+    agents: tuple[str, ...] = PAPER_AGENTS
     horizons: tuple[int, ...] = (12, 6)
     method: str = "paper"
     hyper: dict[str, dict[str, Any]] = field(default_factory=dict)  # per algorithm, over ZOO
@@ -397,7 +398,9 @@ def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None
     starts = evaluation_starts(options.grid, options.extent, options.seed)
     per_model = sum(len(points) for points in starts.values())
     reference = options.horizons[0]
-    srl_runs = list(dict.fromkeys([("mpc", reference), *((a, n) for n in options.horizons for a in options.agents)]))
+    srl_runs = list(
+        dict.fromkeys([(REFERENCE_AGENT, reference), *((a, n) for n in options.horizons for a in options.agents)])
+    )
     seeds = [options.seed + i for i in range(options.seeds)]
     bar = progress if progress is not None else _progress(options.progress)
     by_env: dict[str, list[Row]] = {env_id: [] for env_id in options.envs}  # srl's agents, then SAC, PPO
@@ -523,7 +526,7 @@ def reference_costs(rows: Sequence[Row], reference: int) -> dict[tuple[str, str,
     return {
         (row.env_id, e.start_set, e.start.index): e.cost
         for row in rows
-        if row.controller == "mpc" and row.horizon == reference
+        if row.controller == REFERENCE_AGENT and row.horizon == reference
         for _, e in row.episodes
     }
 
@@ -744,7 +747,7 @@ def figure(summary: dict[str, Any], path: Path) -> None:
             ax.plot(steps, [r["paper"]["median_ratio_percent"] for r in line], "-o", color=colour, label=algo)
             ax.plot(steps, [r["held-out"]["median_ratio_percent"] for r in line], "--o", color=colour, mfc="none")
         for r in rows:
-            if r["horizon"] is None or r["controller"] == "mpc":
+            if r["horizon"] is None or r["controller"] == REFERENCE_AGENT:
                 continue
             name = f"{r['controller']} N={r['horizon']}"
             colour = by_name.setdefault(name, next(colours))

@@ -29,6 +29,7 @@ import numpy as np
 
 from common.config.assembly import CRITIC_LAYOUTS, CriticLayout
 from common.config.settings import Settings
+from common.math.agents import AGENT_ROWS, REFERENCE_AGENT, learns
 from tools.experiment.grid import Start
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
@@ -55,8 +56,8 @@ def plan_fleets(agents: Sequence[str], horizons: Sequence[int], critics: Sequenc
     """One MPC fleet per horizon (J_mpc) and one fleet per (agent, horizon, critic) of the rest."""
     tasks = []
     for horizon in horizons:
-        tasks.append(FleetTask("mpc", horizon, "per-robot"))
-        tasks += [FleetTask(agent, horizon, critic) for agent in agents if agent != "mpc" for critic in critics]
+        tasks.append(FleetTask(REFERENCE_AGENT, horizon, "per-robot"))
+        tasks += [FleetTask(agent, horizon, critic) for agent in agents if learns(agent) for critic in critics]
     return tasks
 
 
@@ -82,10 +83,10 @@ def run_fleet_task(base: dict[str, Any], task: FleetTask, starts: list[list[floa
 
 def fleet_marks(results: Sequence[dict[str, Any]], starts: Sequence[Start]) -> dict[str, Any]:
     """Per (agent, N, critic): J / J_mpc per start, median, better than MPC, parked."""
-    mpc = {r["horizon"]: r["costs"] for r in results if r["agent"] == "mpc"}
+    mpc = {r["horizon"]: r["costs"] for r in results if r["agent"] == REFERENCE_AGENT}
     groups = []
     for r in results:
-        if r["agent"] == "mpc":
+        if r["agent"] == REFERENCE_AGENT:
             continue
         ratios = [100.0 * j / jm for j, jm in zip(r["costs"], mpc[r["horizon"]], strict=True)]
         groups.append(
@@ -103,7 +104,9 @@ def fleet_marks(results: Sequence[dict[str, Any]], starts: Sequence[Start]) -> d
             }
         )
     mpc_parked = {
-        r["horizon"]: sum(d <= PARK_TOLERANCE_M for d in r["final_distances"]) for r in results if r["agent"] == "mpc"
+        r["horizon"]: sum(d <= PARK_TOLERANCE_M for d in r["final_distances"])
+        for r in results
+        if r["agent"] == REFERENCE_AGENT
     }
     return {
         "starts": [[s.x, s.y, s.alpha] for s in starts],
@@ -115,7 +118,6 @@ def fleet_marks(results: Sequence[dict[str, Any]], starts: Sequence[Start]) -> d
 
 def fleet_markdown(marks: dict[str, Any], command: str) -> str:
     """The summary table and the per-start table per horizon."""
-    names = {"rlq": "RL-Q", "rlqv": "RL-QV", "rlqv+": "RL-QV+"}
     groups = marks["groups"]
     lines = [
         f"`{command}`",
@@ -125,7 +127,7 @@ def fleet_markdown(marks: dict[str, Any], command: str) -> str:
     ]
     for g in groups:
         lines.append(
-            f"| {names.get(g['agent'], g['agent'])} | {g['horizon']} | {g['critic']} | "
+            f"| {AGENT_ROWS[g['agent']].title} | {g['horizon']} | {g['critic']} | "
             f"{g['median_ratio_percent']:.1f} % | {g['better_than_mpc']}/{g['robots']} | {g['parked']}/{g['robots']} |"
         )
     robots = len(marks["starts"])
@@ -135,7 +137,7 @@ def fleet_markdown(marks: dict[str, Any], command: str) -> str:
     horizons = list(dict.fromkeys(g["horizon"] for g in groups))
     columns = {h: [g for g in groups if g["horizon"] == h] for h in horizons}
     header = "".join(
-        f" N = {h}: J_mpc |" + "".join(f" {names.get(g['agent'], g['agent'])} {g['critic']} |" for g in columns[h])
+        f" N = {h}: J_mpc |" + "".join(f" {AGENT_ROWS[g['agent']].title} {g['critic']} |" for g in columns[h])
         for h in horizons
     )
     lines += ["", "J / J_mpc per start (%):", "", "| start (x, y) |" + header]
@@ -178,7 +180,7 @@ def cmd_fleet(args: Any, base: Settings, starts: Sequence[Start], command: str) 
 
     agents, horizons = parse_agents(args.agents), parse_horizons(args.horizons)
     critics = parse_critics(args.critic)
-    if not any(a != "mpc" for a in agents):
+    if not any(learns(a) for a in agents):
         raise ValueError("--agents: a fleet experiment compares learning agents with MPC; name rlq, rlqv or rlqv+")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stderr)
     marks = run_fleet_experiment(base, starts, agents, horizons, critics, args.workers)

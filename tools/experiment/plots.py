@@ -21,9 +21,11 @@ import numpy as np
 from matplotlib.colors import TwoSlopeNorm
 from matplotlib.tri import Triangulation
 
+from common.math.agents import AGENT_ROWS
 from tools.experiment.marks import TIE_PERCENT
 
-TITLES = {"rlq": "RL-Q", "rlqv": "RL-QV", "rlqv+": "RL-QV+ (complemented)"}
+# the learning agents, in the table's order (the plots are of J / J_MPC)
+TITLES = {name: row.title for name, row in AGENT_ROWS.items() if row.learns}
 
 
 def _triangulation(x: np.ndarray, y: np.ndarray) -> Triangulation | None:

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from common.math.agents import REFERENCE_AGENT, learns
 from common.math.parking import MAX_SIGN_CHANGES, SPAN_M, WINDOW_S
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
@@ -20,10 +21,10 @@ from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 # -- analysis ---------------------------------------------------------------------------
 def ratio_table(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """``J_agent / J_mpc * 100 %`` for every non-MPC run whose start has an MPC run at its N."""
-    mpc = {(r["horizon"], r["start_index"]): r["accumulated_cost"] for r in rows if r["agent"] == "mpc"}
+    mpc = {(r["horizon"], r["start_index"]): r["accumulated_cost"] for r in rows if r["agent"] == REFERENCE_AGENT}
     table = []
     for r in rows:
-        if r["agent"] == "mpc" or (r["horizon"], r["start_index"]) not in mpc:
+        if r["agent"] == REFERENCE_AGENT or (r["horizon"], r["start_index"]) not in mpc:
             continue
         reference = mpc[(r["horizon"], r["start_index"])]
         ratio = 100.0 * r["accumulated_cost"] / reference if reference > 0 else float("nan")
@@ -71,7 +72,7 @@ def group_summary(
                 "solve_ms_max": float(max(r["solve_ms_max"] for r in runs)),
                 "critic_timeouts": int(sum(r.get("critic_timeouts", 0) for r in runs)),
             }
-            if agent != "mpc" and marks.size:
+            if learns(agent) and marks.size:
                 entry.update(
                     {
                         "ratios": int(marks.size),
@@ -213,7 +214,7 @@ def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[
         writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
         writer.writeheader()
         for r in rows:
-            ratio = by_run.get(r["run_id"], 100.0 if r["agent"] == "mpc" else None)
+            ratio = by_run.get(r["run_id"], 100.0 if r["agent"] == REFERENCE_AGENT else None)
             writer.writerow(
                 {
                     **{k: r.get(k) for k in CSV_COLUMNS},

@@ -81,7 +81,7 @@ class ZenohRunner:
         # Episode ids must increase (the critic starts a fresh learner on a newer one).
         self.episode_id = max(new_episode_id(), self.episode_id + 1)
         plant = ZenohPlant(settings, self.bus, self.episode_id)
-        if settings.actor.agent == "mpc":
+        if not learns(settings.actor.agent):
             # MPC has no critic: nothing to send to the learner (inproc fits nothing either).
             critic = local_critic(settings, learn=False)
             return run_episode(settings, actor=actor, plant=plant, critic=critic), {}

@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from common.math.agents import learns
 from common.math.loop import Episode
 
 
@@ -125,7 +126,7 @@ def _plot_learning(ax_w: plt.Axes, ax_res: plt.Axes, episode: Episode, times: np
         ax_res.semilogy(times[: len(residuals)], residuals[:, 1], lw=1.2, label="V fit")
         ax_res.legend(loc="best", fontsize=8)
     else:
-        text = "no fits (agent mpc)" if episode.agent == "mpc" else "TD residuals not recorded"
+        text = f"no fits (agent {episode.agent})" if not learns(episode.agent) else "TD residuals not recorded"
         ax_res.text(0.5, 0.5, text, ha="center", va="center", transform=ax_res.transAxes)
     ax_res.set_xlabel("t [s]")
     ax_res.set_title("TD residual 1/2 sum e^2 of each fit")
