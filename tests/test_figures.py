@@ -106,7 +106,7 @@ def test_the_path_is_the_readme_run_and_the_parked_circle_is_the_codes() -> None
     assert data.states[0, :2].tolist() == [2.0, 2.0]
     assert data.target_radius == FINAL_DISTANCE_M
     assert data.arrival_radius is not None and data.arrival_radius < data.target_radius
-    assert not data.parked, "3 s from (2, 2) at 0.22 m/s cannot be at the target: the verdict is computed"
+    assert not data.at_target, "3 s from (2, 2) at 0.22 m/s cannot be at the target: the verdict is computed"
     assert data.final_distance > 2.0
 
 

@@ -44,9 +44,9 @@ def test_a_shuffle_near_the_target_is_not_at_rest() -> None:
     assert metrics.sign_changes == 99  # 100 actions of alternating sign in the last 10 s
     assert metrics.span == pytest.approx(0.012)
     assert metrics.median_speed == pytest.approx(0.12)
-    assert not metrics.at_rest and not metrics.parked
+    assert not metrics.at_rest and not metrics.at_target
     resting = parking(states[:201] + [[0.02, 0.0, 0.0]] * 150, actions[:200] + [[0.0, 0.0]] * 150, delta)
-    assert resting.sign_changes == 0 and resting.span == 0.0 and resting.at_rest and resting.parked
+    assert resting.sign_changes == 0 and resting.span == 0.0 and resting.at_rest and resting.at_target
     assert resting.final_distance == pytest.approx(0.02)
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-# what a parked robot must meet (docs/experiment.md)
+# what a robot at the target must meet (docs/concepts.md, "Parked, at rest, at target")
 FINAL_DISTANCE_M = 0.05  # true final distance to the target [m]
 SPAN_M = 0.05  # span of the true position over the last window [m]
 MAX_SIGN_CHANGES = 5  # sign changes of v over the last window
@@ -68,8 +68,9 @@ class Parking:
         return self.span <= SPAN_M and self.sign_changes <= MAX_SIGN_CHANGES
 
     @property
-    def parked(self) -> bool:
-        """Within ``FINAL_DISTANCE_M`` of the target and at rest."""
+    def at_target(self) -> bool:
+        """Within ``FINAL_DISTANCE_M`` of the target and at rest: "at target" of docs/concepts.md
+        ("parked" is the looser 0.25 m of the experiment's tables)."""
         return self.final_distance <= FINAL_DISTANCE_M and self.at_rest
 
 

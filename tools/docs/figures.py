@@ -105,7 +105,7 @@ class PathData:
     sampling_time: float
     target_radius: float  # common.math.parking.FINAL_DISTANCE_M: srl bench parking's bound
     arrival_radius: float | None  # actor.arrival_position_tolerance (None: the arrival rule is off)
-    parked: bool  # common.math.parking.Parking.parked: within target_radius and at rest
+    at_target: bool  # common.math.parking.Parking.at_target: within target_radius and at rest
 
     @property
     def steps(self) -> int:
@@ -137,7 +137,7 @@ def run_path(run: EpisodeRun = EpisodeRun()) -> PathData:
         sampling_time=delta,
         target_radius=FINAL_DISTANCE_M,
         arrival_radius=settings.actor.arrival_position_tolerance if settings.actor.arrival else None,
-        parked=parking(states, np.array(episode.actions), delta).parked,
+        at_target=parking(states, np.array(episode.actions), delta).at_target,
     )
 
 
@@ -254,7 +254,7 @@ def path_figure(data: PathData) -> Figure:
         f"J = {data.accumulated_cost:.2f} over {data.steps} steps ({data.steps * data.sampling_time:g} s)",
         fontsize=12,
     )
-    verdict = "and at rest: within" if data.parked else "and not at rest within"
+    verdict = "and at rest: within" if data.at_target else "and not at rest within"
     arrival = (
         f"The arrival rule stops it inside {data.arrival_radius:g} m (actor.arrival_position_tolerance)."
         if data.arrival_radius is not None
