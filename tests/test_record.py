@@ -436,6 +436,30 @@ def test_srl_plot_reads_back_the_episode_that_plot_episode_draws(tmp_path: Path)
     assert replayed.accumulated_cost == episode.accumulated_cost
 
 
+@pytest.mark.slow
+def test_a_recorded_episode_keeps_each_solve_time_after_the_robot_arrives(tmp_path: Path) -> None:
+    """record_episode (srl run --record, the live view's figure): the status of a step that solved
+    carries its solve time, that of a step the arrival rule held at rest none (NaN): a robot that
+    arrives within the run keeps the solve times of its drive."""
+    from common.config.assembly import run_episode
+    from common.config.settings import Settings
+    from tools.recording.record import MemorySink, Recorder, RosMapping, record_episode
+
+    settings = Settings.load(actor={"agent": "rlqv", "jit": False}, episode={"start": [2.0, 2.0], "duration": 20.0})
+    episode = run_episode(settings)
+    assert 0 < episode.held.count(True) < episode.steps, "the run must both drive and arrive"
+    sink = MemorySink()
+    record_episode(Recorder(sink, 0.1, clock="steps"), episode, "tb3_0", origin_ns=0)
+    ros = RosMapping()
+    solve_ms = [
+        ros.store.deserialize_cdr(data, kind).solve_ms for _, kind, data in sink.samples["/tb3_0/srl/actor_status"]
+    ]
+    assert len(solve_ms) == episode.steps
+    assert [math.isnan(ms) for ms in solve_ms] == episode.held
+    solved = [ms for ms in solve_ms if not math.isnan(ms)]
+    np.testing.assert_allclose(solved, np.array(episode.solve_seconds) * 1e3, rtol=1e-12)
+
+
 @pytest.mark.integration
 def test_lower_priority_lowers_every_thread_and_the_threads_started_after() -> None:
     """common.process.runtime.lower_priority (the recorder's nice +10): the threads already running (a

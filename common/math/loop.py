@@ -160,7 +160,8 @@ class Episode:
     saturated_commands: int | None = None
     actions: list[np.ndarray] = field(default_factory=list)
     costs: list[float] = field(default_factory=list)
-    solve_seconds: list[float] = field(default_factory=list)
+    solve_seconds: list[float] = field(default_factory=list)  # the steps that solved (not held at rest)
+    held: list[bool] = field(default_factory=list)  # per step: held by the arrival rule (no solve)
     solver_failures: int = 0
     # the learning, one row per step (bounded by the episode's length): the weights the actor
     # used at step k, and the TD residuals (Q, V) of the fit after step k (nan: no fit / unknown)
@@ -261,7 +262,9 @@ def run_algorithm1(
             episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
             episode.actions.append(step.action)
             episode.costs.append(cost)
-            if step.status != "arrived":  # held by the arrival rule: no solve to time
+            held_at_rest = step.status == "arrived"
+            episode.held.append(held_at_rest)
+            if not held_at_rest:  # held by the arrival rule: no solve to time
                 episode.solve_seconds.append(step.solve_seconds)
             episode.states.append(next_state)
             _record_truth(episode, plant)

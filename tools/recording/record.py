@@ -272,6 +272,20 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
+class MemorySink:
+    """A :class:`Sink` that keeps every sample in memory, ``(t_ns, ros_type, data)`` per topic: for
+    a short episode only (tests, the live view's figure in tools/docs/live_view.py)."""
+
+    def __init__(self) -> None:
+        self.samples: dict[str, list[tuple[int, str, bytes]]] = {}
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        self.samples.setdefault(topic, []).append((t_ns, ros_type, data))
+
+    def close(self) -> None:
+        pass
+
+
 @functools.lru_cache(maxsize=4096)  # a fleet's ids, bounded whatever names arrive
 def ros_name(robot: str) -> str:
     """A robot id as a ROS 2 name chunk (letters, digits, underscores): ``rlqv+-N12-s000`` ->
@@ -842,7 +856,12 @@ def record_episode(recorder: Recorder, episode: Episode, robot: str, origin_ns: 
     recorder.begin(robot, episode_id, origin_ns)
     recorder.target(origin_ns)
     version, previous = 0, None
-    solves = list(episode.solve_seconds) if len(episode.solve_seconds) == episode.steps else []
+    # step k's solve time, where it solved (a step the arrival rule held has none)
+    held = episode.held if len(episode.held) == episode.steps else [False] * episode.steps
+    solves: list[float | None] = [None] * episode.steps
+    if len(episode.solve_seconds) == held.count(False):
+        times = iter(episode.solve_seconds)
+        solves = [None if rest else next(times) for rest in held]
     for k in range(episode.steps):
         t_ns = origin_ns + k * delta
         recorder.state(robot, episode_id, episode.states[k], t_ns)  # clock "steps": state k at origin + k delta
@@ -855,8 +874,9 @@ def record_episode(recorder: Recorder, episode: Episode, robot: str, origin_ns: 
                 recorder.weights(robot, episode_id, version, k - 1, *weights, residuals, 0, t_ns)
         recorder.transition(robot, episode_id, k, episode.states[k], episode.actions[k], episode.costs[k], t_ns)
         counters = {"steps": float(k), "weights_version": float(version)}
-        if solves:
-            counters["solve_ms_last"] = solves[k] * 1e3
+        solve = solves[k]
+        if solve is not None:
+            counters["solve_ms_last"] = solve * 1e3
         if version:
             counters["staleness_steps"] = 0.0  # in process the critic is synchronous
         recorder.status(robot, counters, t_ns)
