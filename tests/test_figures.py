@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib.image
+import numpy as np
 import pytest
 
 from common.contracts import keys
@@ -242,3 +243,32 @@ def test_the_common_floors_drawn_are_the_architecture_tests() -> None:
     from tests.test_architecture import COMMON_FLOORS
 
     assert tuple(name for name, _ in figures.COMMON_FLOORS) == COMMON_FLOORS
+
+
+# -- the live view: the layout srl view ships, drawn from the messages it serves -----------------
+def test_the_live_views_panels_tile_the_layout_in_its_order() -> None:
+    from tools.docs.live_view import ROBOT, panels
+    from tools.recording.view import foxglove_layout
+
+    found = panels(json.loads(foxglove_layout([ROBOT]))["content"])
+    assert [p.kind for p in found] == ["ThreeDee", "Plot", "Plot", "Plot", "Plot"]
+    assert sum(p.box[2] * p.box[3] for p in found) == pytest.approx(1.0)
+    scene, *plots = found
+    assert scene.box[0] == 0.0 and all(p.box[0] == pytest.approx(scene.box[2]) for p in plots)
+    assert [p.box[1] for p in plots] == sorted((p.box[1] for p in plots), reverse=True), "plots top to bottom"
+
+
+def test_the_live_view_reads_the_layouts_series_from_the_recorders_messages() -> None:
+    from tools.docs.live_view import LiveViewError, view_data
+
+    data = view_data(duration=2.0)
+    times, costs = data.series("/tb3_0/srl/transition.stage_cost")
+    assert len(costs) == 20 and times[0] == 0.0 and np.all(costs > 0)
+    _, first = data.series("/tb3_0/srl/critic_weights.q_weights[0]")
+    assert np.all(np.isfinite(first))
+    assert data.last("/tb3_0/path").poses, "the path the 3D panel draws"
+    # negative controls: a series the recorder's messages do not have is refused by name
+    with pytest.raises(LiveViewError, match="no field 'no_such_field'"):
+        data.series("/tb3_0/srl/transition.no_such_field")
+    with pytest.raises(LiveViewError, match="serves no /tb3_0/nothing"):
+        data.series("/tb3_0/nothing.x")

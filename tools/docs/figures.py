@@ -14,12 +14,15 @@ reference are not this module's to change.)
   deadlines against the fleet's size, one actor host against one actor process per robot;
 * ``actor-solve-time.png``: ``srl bench actor`` (docs/benchmarks/data/actor.json): the actor's
   solve time at N = 12 per agent and weight set, median and p99, against the SLSQP baseline;
+* ``live-view.png``: the Foxglove layout ``srl view`` ships, drawn with the messages it would
+  serve for that same run (tools/docs/live_view.py);
 * ``architecture.png``: the processes, the keys between them (read from
   :mod:`common.contracts.keys`, so a renamed key renames its arrow) and the floors of the code.
 
 The style is fixed (matplotlib's defaults, the Agg backend, a fixed size and dpi, no software
 version or date in the PNG's metadata), so a rerun on the same machine and matplotlib writes the
 same bytes; the episode is deterministic and built without the JIT (the same numbers, no C build).
+The live view alone differs from run to run: its actor panel plots the solve times as measured.
 """
 
 from __future__ import annotations
@@ -773,11 +776,18 @@ def _architecture(args: argparse.Namespace, root: Path) -> Figure:
     return architecture_figure()
 
 
+def _live_view(args: argparse.Namespace, root: Path) -> Figure:
+    from tools.docs.live_view import draw
+
+    return draw(args.duration)
+
+
 FIGURES: tuple[FigureSpec, ...] = (
     FigureSpec("parking-path", _path, "the README's first run in the goal frame"),
     FigureSpec("fleet-scaling", _fleet, "srl bench fleet: CPU and missed deadlines against robots"),
     FigureSpec("actor-solve-time", _actor, "srl bench actor: solve time at N = 12"),
     FigureSpec("architecture", _architecture, "processes, keys and floors"),
+    FigureSpec("live-view", _live_view, "srl view's Foxglove layout with the README's first run"),
 )
 
 
@@ -813,7 +823,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--duration",
         type=float,
         default=EpisodeRun.duration,
-        help=f"the parking path's episode [s] (default: {EpisodeRun.duration:g}, the README's)",
+        help=f"the parking path's and the live view's episode [s] (default: {EpisodeRun.duration:g}, the README's)",
     )
     return parser
 
