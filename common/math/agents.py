@@ -1,11 +1,12 @@
 """The paper's agents, one row each: their names, what each objective is made of and what it learns.
 
 Settings (``actor.agent``), the command line's choices and help, the actor's objective
-(common/math/actor_search.py), the benchmarks, the experiment's tables and plots and the docs
-(docs/concepts.md) all read :data:`AGENT_ROWS`; nothing else names an agent's
-properties. ``mpc`` minimizes the stage costs alone (no critic); ``rlq`` stacks learned
-Q-critics; ``rlqv`` adds the learned value critic at the horizon end; ``rlqv+`` is rlqv
-complemented with the stage costs (the paper's Remark on the complemented stack).
+(common/math/actor_search.py), the benchmarks, the experiment's tables and plots and the
+generated Variants page (docs/reference/variants.md) all read :data:`AGENT_ROWS`; nothing else names
+an agent's properties. A new agent is a row (docs/extending.md). ``mpc`` minimizes the stage
+costs alone (no critic); ``rlq`` stacks learned Q-critics; ``rlqv`` adds the learned value critic
+at the horizon end; ``rlqv+`` is rlqv complemented with the stage costs (the paper's Remark on
+the complemented stack).
 """
 
 from __future__ import annotations

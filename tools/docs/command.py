@@ -35,6 +35,7 @@ def generated_files(srl: argparse.ArgumentParser, root: Path = ROOT) -> dict[Pat
         Path("docs/reference/cli.md"): reference.cli_page(srl),
         Path("docs/reference/messages.md"): reference.messages_page(),
         Path("docs/reference/keys.md"): reference.keys_page(),
+        Path("docs/reference/variants.md"): reference.variants_page(),
     }
     for name, text in benchmarks.pages(root / BENCHMARK_DATA).items():
         files[Path("docs/benchmarks") / name] = text

@@ -539,3 +539,97 @@ def keys_page() -> str:
 
 def _message_link(schema: type[BaseModel]) -> str:
     return f"[{schema.__name__}](messages.md#{anchor(schema.__name__)})"
+
+
+# -- the variants: one table each -----------------------------------------------------------
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(row) + " |" for row in rows]
+
+
+def variants_page() -> str:
+    """Every table a variant of srl is a row of, with its rows as the code has them now
+    (docs/extending.md says how to add one)."""
+    from common.config.settings import METHODS
+    from common.contracts.ros_wire import POSE_SOURCES
+    from common.math.agents import AGENT_ROWS, REFERENCE_AGENT
+    from common.math.plant_models import PLANT_MODELS
+
+    def yes(flag: bool) -> str:
+        return "yes" if flag else ""
+
+    lines = [
+        GENERATED,
+        "",
+        "# Variants",
+        "",
+        "Each variant of srl (an agent, a simulated plant model, a localization source, a method) is",
+        "one row of one table in the code; the settings, the command line's choices and these pages",
+        "read it from there. [Extending srl](../extending.md) says how to add a row.",
+        "",
+        "## Agents",
+        "",
+        "`common/math/agents.py` `AGENT_ROWS`: the setting `actor.agent`, `--agent`, `--agents`. "
+        f"`{REFERENCE_AGENT}` is the reference every other is measured against (`J / J_MPC`).",
+        "",
+        *_table(
+            ["agent", "title", "Q-critics", "value critic", "stage costs", "the paper's", "objective"],
+            [
+                [
+                    code(name),
+                    cell(row.title),
+                    yes(row.q_critics),
+                    yes(row.value_critic),
+                    cell(row.stage_costs),
+                    yes(row.paper),
+                    code(row.objective),
+                ]
+                for name, row in AGENT_ROWS.items()
+            ],
+        ),
+        "",
+        "Stage costs: `each` once per stage, `remaining` `N - i` times at stage `i`, `none` not at all.",
+        "",
+        "## Simulated plant models",
+        "",
+        "`common/math/plant_models.py` `PLANT_MODELS`: the setting `plant.model`, `--model`.",
+        "",
+        *_table(["model", "what it simulates"], [[code(name), cell(what)] for name, what in PLANT_MODELS.items()]),
+        "",
+        "## Localization sources",
+        "",
+        "`common/contracts/ros_wire.py` `POSE_SOURCES`: the setting `bridge.pose_source` (besides `odom`, the",
+        "wheel odometry alone). The QoS is the one the usual publisher declares.",
+        "",
+        *_table(
+            ["source", "ROS type", "usual topic", "QoS depth", "transient local"],
+            [
+                [code(name), code(row.ros_type), code(row.topic), str(row.depth), yes(row.transient_local)]
+                for name, row in POSE_SOURCES.items()
+            ],
+        ),
+        "",
+        "## Methods",
+        "",
+        "`common/config/settings.py` `METHODS`: `--method` of `srl experiment` and the Gymnasium policies; "
+        "what a method sets on top of the settings.",
+        "",
+        *_table(
+            ["method", "sets"],
+            [
+                [
+                    code(name),
+                    cell(
+                        ", ".join(
+                            f"{section}.{key} = {value}"
+                            for section, values in row.items()
+                            for key, value in values.items()
+                        )
+                        or "nothing: the settings as configured"
+                    ),
+                ]
+                for name, row in METHODS.items()
+            ],
+        ),
+    ]
+    return "\n".join(lines) + "\n"
