@@ -248,3 +248,25 @@ def test_a_step_recovered_late_is_fitted_but_never_labels_the_weights_older() ->
         actor.sent(s)
     assert actor.resting and actor.newest == 8
     assert recovered[0].trained_step == 8  # what the actor counts its staleness from: 0 steps stale
+
+
+def test_a_restored_critic_still_never_labels_the_weights_older() -> None:
+    """The label's floor (Learner.fitted) is in the checkpoint: a critic restarted mid-run that
+    then fits a transition recovered late labels it with the newest step it had fitted before,
+    not the late one (and a checkpoint written before the floor was kept restores it as -1)."""
+    run = robot_run(leave=0)
+    late = 5
+    learner = CriticLearner(settings())
+    for s in run:
+        if s.step != late:
+            learner.take(message("r1", s))
+    state = learner.state()
+    assert state["learners"]["r1"]["fitted"] == 8
+    restored = CriticLearner(settings())
+    restored.restore(state)
+    recovered = restored.take(message("r1", run[late]))
+    assert len(recovered) == 1 and recovered[0].trained_step == 8
+    del state["learners"]["r1"]["fitted"]  # an older checkpoint: the late step labels its fit
+    older = CriticLearner(settings())
+    older.restore(state)
+    assert [w.trained_step for w in older.take(message("r1", run[late]))] == [late]

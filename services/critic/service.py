@@ -428,6 +428,7 @@ class CriticLearner:
             learners[robot] = {
                 "episode": learner.episode,
                 "newest": learner.newest,
+                "fitted": learner.fitted,
                 "q_weights": learner.critic.q_weights.tolist(),
                 "v_weights": learner.critic.v_weights.tolist(),
                 **active_sets(learner.critic),
@@ -473,6 +474,7 @@ class CriticLearner:
                     learner.replay.add(Sample(int(row[0]), np.array(row[1:4]), np.array(row[4:6]), float(row[6])))
                 learner.seen = StepRuns(entry["seen"])
                 learner.newest = int(entry["newest"])
+                learner.fitted = int(entry.get("fitted", -1))  # absent from checkpoints written before it was kept
                 learners[robot] = learner
             version = int(payload["version"])
             if pool is not None:
