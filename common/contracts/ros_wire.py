@@ -113,17 +113,23 @@ MAP_FRAME = "map"
 
 @dataclass(frozen=True)
 class PoseSource:
-    """A localization source's ROS type, conventional topic and publisher QoS."""
+    """A localization source's ROS type, conventional topic and publisher QoS, and how the robot
+    bridge (services/robot_bridge/bridge.py) takes its fixes. ``map_to_odom``: a fix is the
+    ``map -> odom`` transform itself (one of the robot's transforms on ``/tf``), else the robot's
+    pose in the map, composed with the odometry at its stamp. ``streams``: fixes come at a rate,
+    moving or not; else only after motion (AMCL), so a quiet source is not a stale one."""
 
     ros_type: str
     topic: str
     depth: int
     transient_local: bool
+    map_to_odom: bool = False
+    streams: bool = True
 
 
 POSE_SOURCES: dict[str, PoseSource] = {
-    "tf": PoseSource(TF_MESSAGE, "tf", 100, False),
-    "pose_with_covariance": PoseSource(POSE_WITH_COVARIANCE, "amcl_pose", 1, True),
+    "tf": PoseSource(TF_MESSAGE, "tf", 100, False, map_to_odom=True),
+    "pose_with_covariance": PoseSource(POSE_WITH_COVARIANCE, "amcl_pose", 1, True, streams=False),
     "odometry": PoseSource(ODOMETRY, "odometry/filtered", QOS_DEPTH, False),
     "pose_stamped": PoseSource(POSE_STAMPED, "mocap/pose", QOS_DEPTH, False),
 }

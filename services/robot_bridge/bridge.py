@@ -56,7 +56,7 @@ from pydantic import ValidationError
 from common.config.settings import Settings
 from common.contracts import ros_wire
 from common.contracts.messages import MAX_POSITION, Action, PlantState
-from common.contracts.ros_wire import ODOM_FRAME, Odometry, PoseFix, pose_topic
+from common.contracts.ros_wire import ODOM_FRAME, POSE_SOURCES, Odometry, PoseFix, pose_topic
 from common.math.dynamics import unwrap_heading
 from common.math.frames import Pose2D, clamp_command, to_goal_frame, wrap_angle, yaw_from_quaternion
 from common.math.localization import CorrectionBlend, OdomHistory, correction, motion
@@ -127,12 +127,14 @@ class RobotBridge:
         # localization (bridge.pose_source): the map -> odom correction and when it is stale
         bridge = settings.bridge
         self.pose_source = bridge.pose_source
-        self.localized = bridge.pose_source != "odom"
+        # its row (common/contracts/ros_wire.py POSE_SOURCES); None: odometry alone (odom)
+        self.source = POSE_SOURCES.get(bridge.pose_source)
+        self.localized = self.source is not None
         self.pose_topic = pose_topic(bridge)
         self.odom_frame = f"{bridge.namespace}/{ODOM_FRAME}" if bridge.namespace else ODOM_FRAME
         self.pose_timeout = bridge.pose_timeout
         self.stale_distance, self.stale_angle = bridge.pose_stale_distance, bridge.pose_stale_angle
-        self.streaming = bridge.pose_source != "pose_with_covariance"  # AMCL's pose: only after motion
+        self.streaming = self.source is None or self.source.streams  # AMCL's pose: only after motion
         self.blend = CorrectionBlend(bridge.pose_blend_time)
         self.correction: Pose2D | None = None  # the map -> odom correction of the newest localized state
         self.history = OdomHistory()
@@ -245,9 +247,9 @@ class RobotBridge:
     # -- localization ---------------------------------------------------------------------
     def on_localization(self, fix: PoseFix, received: float) -> None:
         """A fix of the localization source: the ``map -> odom`` correction it implies."""
-        if not self.localized:
+        if self.source is None:  # odometry alone: not localized
             return
-        if self.pose_source == "tf" and fix.child_frame_id.lstrip("/") != self.odom_frame:
+        if self.source.map_to_odom and fix.child_frame_id.lstrip("/") != self.odom_frame:
             return  # /tf carries every transform of the robot: only map -> odom is ours
         try:
             yaw = yaw_from_quaternion(*fix.orientation)
@@ -270,7 +272,7 @@ class RobotBridge:
                     "robot_bridge: localized by %s on %s in frame %s", self.pose_source, self.pose_topic, fix.frame_id
                 )
             pose = Pose2D(fix.x, fix.y, yaw)
-            if self.pose_source != "tf" and self.history.latest() is None:
+            if not self.source.map_to_odom and self.history.latest() is None:
                 # a fix before any odometry (AMCL's transient-local pose comes at once): fused with
                 # the first odometry sample
                 self.pending_fix = (fix.stamp_ns, pose, received)
@@ -281,7 +283,7 @@ class RobotBridge:
         """A fix's correction (lock held): ``/tf``'s map -> odom as it is, else the fix composed
         with the odometry at its stamp."""
         self.pending_fix = None
-        if self.pose_source == "tf":
+        if self.source is not None and self.source.map_to_odom:
             target, at = pose, self.history.latest()
         else:
             at = self.history.at(stamp_ns)

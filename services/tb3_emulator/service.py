@@ -441,7 +441,7 @@ class _Localizer:
             sigma_xy, sigma_theta = self.config.noise
             noise = self.rng.normal(0.0, 1.0, 3) * np.array([sigma_xy, sigma_xy, sigma_theta])
             fix = Pose2D(truth.x + noise[0], truth.y + noise[1], truth.theta + noise[2])
-            if self.config.source == "tf":
+            if self.source.map_to_odom:  # /tf: the map -> odom transform, not a pose
                 self.map_to_odom = correction(fix, odom)  # AMCL's map -> odom from its estimate
             else:
                 message = PoseFix(
@@ -463,7 +463,7 @@ class _Localizer:
                 self._put(payload, stamp)
                 published.append("localization_published")
         if (
-            self.config.source == "tf"
+            self.source.map_to_odom
             and self.map_to_odom is not None
             and (self.tf_at is None or now - self.tf_at >= 1.0 / self.config.rate - 1e-9)
         ):

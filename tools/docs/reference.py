@@ -602,9 +602,17 @@ def variants_page() -> str:
         "wheel odometry alone). The QoS is the one the usual publisher declares.",
         "",
         *_table(
-            ["source", "ROS type", "usual topic", "QoS depth", "transient local"],
+            ["source", "ROS type", "usual topic", "QoS depth", "transient local", "fix is", "fixes come"],
             [
-                [code(name), code(row.ros_type), code(row.topic), str(row.depth), yes(row.transient_local)]
+                [
+                    code(name),
+                    code(row.ros_type),
+                    code(row.topic),
+                    str(row.depth),
+                    yes(row.transient_local),
+                    "map -> odom" if row.map_to_odom else "the pose in the map",
+                    "at a rate" if row.streams else "after motion",
+                ]
                 for name, row in POSE_SOURCES.items()
             ],
         ),
