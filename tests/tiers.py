@@ -22,10 +22,10 @@ parallel pytest-xdist workers (``--dist worksteal``: each worker starts on a run
 order, and a worker that runs out takes tests from another's queue, so the long files of
 real-time runs do not leave workers idle). Phase 2 runs the ``timing`` tests :data:`TIMING_WORKERS` at a
 time (``--dist worksteal``): each of them mostly waits on real time (services at ``delta``,
-partitions, lossy links; all of them together use about half a core), so side by side they still get
-the CPU their deadlines need, which they would not beside phase 1's CPU-bound tests. Where the
-actor's tick thread cannot run SCHED_FIFO (:func:`realtime_allowed`: not root, a low rtprio limit)
-it shares the cores with ordinary threads, and the phase runs :data:`TIMING_WORKERS_WITHOUT_RT` at a time.
+partitions, lossy links), so two side by side still get the CPU their deadlines need, which they
+would not beside phase 1's CPU-bound tests. Not more than two: a fleet's timing test alone takes most
+of a core, and four at a time on two cores (as root, the actor's tick at SCHED_FIFO) made three of
+them miss in one CI run (a deadline, a stop 0.13 s late, 49 of 60 steps after a router restart).
 ``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one. The last line counts both phases as pytest
 does; the exit code is non-zero if either phase failed. Before phase 1 the runner compiles the
 documented commands' actor problems into the run's JIT cache (:data:`WARM_PROBLEMS`). After each
@@ -60,8 +60,7 @@ from typing import Any
 import pytest
 
 WORKERS = 4  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
-TIMING_WORKERS = 4  # the timing tests side by side: each mostly waits on real time ...
-TIMING_WORKERS_WITHOUT_RT = 2  # ... but two where the actor's tick cannot run SCHED_FIFO (realtime_allowed)
+TIMING_WORKERS = 2  # the timing tests side by side, one per core (with or without SCHED_FIFO)
 RT_PRIORITY = 10  # actor.realtime_priority in common/config/srl.toml
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
@@ -349,8 +348,7 @@ def realtime_allowed() -> bool:
 def main(extra: list[str]) -> int:
     """The two phases, each on ``extra`` (paths; none: the whole suite)."""
     workers = int(os.environ.get("SRL_TEST_WORKERS", WORKERS))
-    default_timing = TIMING_WORKERS if realtime_allowed() else TIMING_WORKERS_WITHOUT_RT
-    timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", default_timing))
+    timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", TIMING_WORKERS))
     phases = [
         ("parallel", ["-n", str(workers), "--dist", "worksteal", "-m", "not timing", *extra]),
         (
