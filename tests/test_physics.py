@@ -16,7 +16,8 @@ import pytest
 
 from common.config.settings import Settings
 from common.math import physics
-from common.math.physics import PhysicsBot, burger_mjcf, simulated_robot, velocity_gains
+from common.math.physics import PhysicsBot, burger_mjcf, velocity_gains
+from common.math.plant_models import simulated_robot
 from common.math.turtlebot import RobotPlant, TurtleBot
 
 ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
@@ -177,7 +178,7 @@ def test_the_emulated_turtlebot3_can_be_the_physics_robot(settings: Settings) ->
 
     model = Tb3Model(
         Pose2D(0.0, 0.0, 0.0), 0.22, 2.84, 0.0, 0.0, (0.0, 0.0), 0, 0.0,
-        params=settings.turtlebot_params(), physics=settings.physics_params(),
+        model="physics", params=settings.turtlebot_params(), physics=settings.physics_params(),
     )  # fmt: skip
     assert model.kind == "physics" and isinstance(model.robot, PhysicsBot)
     model.command(0.2, 0.0, now=0.0)

@@ -308,7 +308,9 @@ def test_emulator_with_the_actuator_model_reports_odometry_and_keeps_the_truth()
 
     settings = Settings.load(actuator={"slip": 0.1, "imu_heading": False})
     params = settings.turtlebot_params()
-    model = Tb3Model(Pose2D(1.0, 2.0, 0.3), 0.22, 2.84, 0.0, 0.0, (0.0, 0.0), 0, now=0.0, params=params)
+    model = Tb3Model(
+        Pose2D(1.0, 2.0, 0.3), 0.22, 2.84, 0.0, 0.0, (0.0, 0.0), 0, 0.0, "actuator", params, settings.physics_params()
+    )
     oracle = TurtleBot(dataclasses.replace(params, v_max=0.22, omega_max=2.84), np.array([1.0, 2.0, 0.3]))
     for k, (v, omega) in enumerate([(0.2, 0.0), (0.22, 2.84), (-0.1, 0.5), (0.0, 0.0)]):
         model.command(v, omega, 0.5 * k)

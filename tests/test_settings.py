@@ -292,12 +292,11 @@ def test_the_plant_models_are_one_table_that_the_settings_and_the_command_lines_
     """common.math.plant_models.PLANT_MODELS, one row per model: the settings accept exactly its
     names, and every command-line option that chooses a plant model offers exactly them."""
     import argparse
-    from typing import get_args
 
-    from common.math.plant_models import PLANT_MODELS, PlantModel
+    from common.math.plant_models import BUILT_IN_PLANT_MODELS, PLANT_MODELS
     from tools.cli import build_parser
 
-    assert tuple(PLANT_MODELS) == get_args(PlantModel) == ("ideal", "actuator", "physics")
+    assert tuple(PLANT_MODELS) == BUILT_IN_PLANT_MODELS == ("ideal", "actuator", "physics")
     for name in PLANT_MODELS:
         assert Settings.load(plant={"model": name}).plant.model == name
     with pytest.raises(ValidationError):

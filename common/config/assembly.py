@@ -24,7 +24,7 @@ from common.math.critic import DoubleCritic, PooledLearner
 from common.math.dynamics import Plant
 from common.math.localization import SIM_NOISE, SIM_SOURCES, LocalizedPlant, SimLocalization
 from common.math.loop import CriticPort, Episode, ExactPlant, LocalCritic, PoolPort, run_algorithm1
-from common.math.physics import simulated_robot
+from common.math.plant_models import simulated_robot
 from common.math.stats import summarize
 from common.math.turtlebot import RobotPlant
 from common.system.jit import default_jit_cache

@@ -28,7 +28,7 @@ from common.math.agents import Agent, agents_text
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
 from common.math.physics import PhysicsParams
-from common.math.plant_models import PlantModel, plant_models_text
+from common.math.plant_models import plant_model_row, plant_models_text
 from common.math.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
@@ -81,10 +81,16 @@ class PlantSettings(_Section):
     sampling_time: float = Field(gt=0, description="delta [s]")
     v_max: float = Field(gt=0, description="[m/s]")
     omega_max: float = Field(gt=0, description="[rad/s]")
-    model: PlantModel = Field(description=plant_models_text())
+    model: str = Field(description=plant_models_text())
     realtime_priority: int = Field(
         default=10, ge=0, le=99, description="the state loop under SCHED_FIFO at this priority, if allowed (0 = off)"
     )
+
+    @field_validator("model")
+    @classmethod
+    def _is_a_plant_model(cls, name: str) -> str:
+        plant_model_row(name)  # a row of common/math/plant_models.py (built in or registered)
+        return name
 
     @field_validator("sampling_time", "v_max", "omega_max")
     @classmethod

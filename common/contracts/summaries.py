@@ -15,7 +15,6 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
 from common.math.agents import Agent
-from common.math.plant_models import PlantModel
 
 
 class _Summary(BaseModel):
@@ -61,7 +60,7 @@ class EpisodeSummary(_Summary):
     final_distance: float
     solve_ms: Quantiles
     solver_failures: int
-    plant_model: Literal[PlantModel, "robot"] = Field(
+    plant_model: str = Field(
         description="the simulated plant's model (settings plant.model); robot: a robot behind the bridge"
     )
     truth: TrueView | None = Field(description="None: the plant does not know the truth, only odometry is known")
@@ -205,9 +204,7 @@ class PlantSummary(_Summary):
 
     service: Literal["plant"] = "plant"
     mode: Literal["realtime", "lockstep"]
-    plant_model: PlantModel = Field(
-        description="plant.model: the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3"
-    )
+    plant_model: str = Field(description="plant.model (common/math/plant_models.py)")
     final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended, as the robot reported it")
     true_final_state: list[float] = Field(description="[x m, y m, alpha rad]: where it truly was")
     saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
@@ -266,7 +263,7 @@ class EmulatorSummary(_Summary):
     localization: str | None = Field(
         default=None, description="the localization it publishes (a bridge.pose_source), None: odometry only"
     )
-    model: PlantModel = Field(description="the unicycle, the TurtleBot3 model or the MuJoCo TurtleBot3")
+    model: str = Field(description="the emulated robot's plant.model (common/math/plant_models.py)")
     final_pose: list[float] = Field(description="[x m, y m, theta rad] in the odom frame: the truth")
     final_odometry: list[float] = Field(description="[x m, y m, theta rad]: what its odometry reported")
     saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")

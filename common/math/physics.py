@@ -50,8 +50,7 @@ from typing import Any
 import numpy as np
 
 from common.math.dynamics import FloatArray
-from common.math.plant_models import PLANT_MODELS
-from common.math.turtlebot import Burger, TurtleBot, TurtleBotParams
+from common.math.turtlebot import Burger, TurtleBotParams
 
 # turtlebot3_description/urdf/turtlebot3_burger.urdf (ROBOTIS), in base_footprint's frame
 BASE_HEIGHT = 0.010  # base_joint: base_link 0.010 m above base_footprint
@@ -335,18 +334,4 @@ class PhysicsBot(Burger):
         self.odometry = np.array([x + delta_s * math.cos(mid), y + delta_s * math.sin(mid), theta + delta_theta])
 
 
-def simulated_robot(
-    model: str, params: TurtleBotParams, physics: PhysicsParams, pose: FloatArray
-) -> TurtleBot | PhysicsBot | None:
-    """The simulated TurtleBot3 of ``plant.model`` at rest at ``pose``: the actuator model
-    (:class:`common.math.turtlebot.TurtleBot`), the MuJoCo one, or None for the ideal unicycle."""
-    if model == "actuator":
-        return TurtleBot(params, pose)
-    if model == "physics":
-        return PhysicsBot(params, physics, pose)
-    if model != "ideal":
-        raise ValueError(f"unknown plant model {model!r} ({', '.join(PLANT_MODELS)})")
-    return None
-
-
-__all__ = ["PhysicsBot", "PhysicsParams", "breakaway_speed", "burger_mjcf", "simulated_robot", "velocity_gains"]
+__all__ = ["PhysicsBot", "PhysicsParams", "breakaway_speed", "burger_mjcf", "velocity_gains"]

@@ -259,21 +259,58 @@ class TurtleBot(Burger):
 
 
 class SimulatedRobot(Protocol):
-    """A simulated TurtleBot3: :class:`TurtleBot` (the actuator model) or
-    :class:`common.math.physics.PhysicsBot` (the MuJoCo one)."""
+    """A simulated robot, what every consumer calls (a plant model's row builds one,
+    common/math/plant_models.py): :class:`TurtleBot` (the actuator model),
+    :class:`common.math.physics.PhysicsBot` (the MuJoCo one), or a user's model. plant_sim and
+    the in-process plant command it and let it run (:meth:`command`, :meth:`advance`, or both:
+    :meth:`step`); the emulator also reads :attr:`params` (the firmware's conversion),
+    :attr:`applied` and :attr:`velocity` (its odometry's twist)."""
 
     @property
-    def odometry(self) -> FloatArray: ...
+    def params(self) -> TurtleBotParams:
+        """The constants it was built with (the emulator converts a cmd_vel with them)."""
+        ...
 
     @property
-    def true_pose(self) -> FloatArray: ...
+    def odometry(self) -> FloatArray:
+        """[x m, y m, theta rad]: the pose it reports."""
+        ...
 
     @property
-    def saturated_commands(self) -> int: ...
+    def true_pose(self) -> FloatArray:
+        """[x m, y m, theta rad]: where it is."""
+        ...
 
-    def reset(self, pose: FloatArray) -> None: ...
+    @property
+    def applied(self) -> tuple[float, float]:
+        """(v, omega) of the newest command, as the robot took it (after its firmware)."""
+        ...
 
-    def step(self, action: FloatArray, duration: float) -> FloatArray: ...
+    @property
+    def velocity(self) -> tuple[float, float]:
+        """(v, omega) it moves at now, as its encoders measure it."""
+        ...
+
+    @property
+    def saturated_commands(self) -> int:
+        """Commands it could not follow (a wheel beyond its speed limit)."""
+        ...
+
+    def reset(self, pose: FloatArray) -> None:
+        """At rest at ``pose``, its odometry from there."""
+        ...
+
+    def command(self, v: float, omega: float) -> tuple[float, float]:
+        """A new cmd_vel, held until the next; the (v, omega) it takes of it."""
+        ...
+
+    def advance(self, duration: float) -> None:
+        """Hold the current command for ``duration`` seconds."""
+        ...
+
+    def step(self, action: FloatArray, duration: float) -> FloatArray:
+        """:meth:`command` ``action``, :meth:`advance` ``duration``; the odometry after."""
+        ...
 
 
 class RobotPlant:

@@ -30,8 +30,8 @@ from common.contracts.keys import PLANT_RESET, PLANT_STEP, STATE
 from common.contracts.messages import Action, PlantState, ResetRequest, StepRequest
 from common.contracts.summaries import PlantSummary
 from common.math.dynamics import exact_step
-from common.math.physics import PhysicsBot, simulated_robot
-from common.math.turtlebot import TurtleBot
+from common.math.plant_models import simulated_robot
+from common.math.turtlebot import SimulatedRobot
 from common.net.provenance import ActionGate, SourceGate
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.runtime import realtime_priority
@@ -152,7 +152,7 @@ class SimulatedPlant:
         self.next_step = 0
         self._last_reply: tuple[tuple[int, int], PlantState] | None = None
 
-    def _new_robot(self) -> TurtleBot | PhysicsBot | None:
+    def _new_robot(self) -> SimulatedRobot | None:
         s = self.settings
         return simulated_robot(s.plant.model, s.turtlebot_params(), s.physics_params(), self.state)
 

@@ -144,8 +144,9 @@ def main(args: argparse.Namespace) -> int:
         (args.noise[0], args.noise[1]),
         args.seed,
         time.monotonic(),
-        params=None if robot_model == "ideal" else settings.turtlebot_params(),
-        physics=settings.physics_params() if robot_model == "physics" else None,
+        model=robot_model,
+        params=settings.turtlebot_params(),
+        physics=settings.physics_params(),
     )
     source = args.localization or ("none" if bridge.pose_source == "odom" else bridge.pose_source)
     if not (args.localization_rate > 0 and all(c >= 0 for c in (*args.localization_noise, *args.localization_update))):

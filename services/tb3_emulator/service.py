@@ -79,20 +79,20 @@ from common.contracts.ros_wire import (
 )
 from common.math.frames import Pose2D, quaternion_from_yaw
 from common.math.localization import compose, correction, inverse, motion
-from common.math.physics import PhysicsBot, PhysicsParams
-from common.math.turtlebot import TurtleBot, TurtleBotParams, cmd_vel_to_wheels
+from common.math.physics import PhysicsParams
+from common.math.plant_models import plant_model_row
+from common.math.turtlebot import SimulatedRobot, TurtleBot, TurtleBotParams, cmd_vel_to_wheels
 from common.system.clock import Ticker
 
 log = logging.getLogger(__name__)
 
 
 class Tb3Model:
-    """The emulated robot (:class:`common.math.turtlebot.TurtleBot`) in the odom frame, on a clock.
-
-    ``params`` None: the ideal robot (the OpenCR command path, then the exact unicycle, its
-    odometry the truth); else the actuator model (``--model actuator``: saturation, deadband,
-    lag, slip, encoder odometry), or with ``physics`` the MuJoCo Burger (``--model physics``).
-    Commands reach the wheels after ``latency``."""
+    """The emulated robot in the odom frame, on a clock: the robot of plant model ``model``
+    (common/math/plant_models.py; ``--model``), built from ``params`` (``[actuator]``, its speed
+    limits replaced by ``v_max`` and ``omega_max``) and ``physics``. A model with no robot of its
+    own (``ideal``) is the OpenCR command path in front of the exact unicycle, its odometry the
+    truth. Commands reach the robot after ``latency``."""
 
     def __init__(
         self,
@@ -104,19 +104,21 @@ class Tb3Model:
         noise: tuple[float, float],
         seed: int,
         now: float,
+        model: str = "ideal",
         params: TurtleBotParams | None = None,
         physics: PhysicsParams | None = None,
     ) -> None:
-        self.ideal = params is None
-        self.kind = "ideal" if params is None else "physics" if physics is not None else "actuator"
-        if params is None:  # the firmware's conversion and limits, the wheels ideal
-            params = dataclasses.replace(TurtleBotParams.ideal(v_max, omega_max), quantize=True)
-        else:
-            params = dataclasses.replace(params, v_max=v_max, omega_max=omega_max)
         start = np.array([pose.x, pose.y, pose.theta], dtype=float)
-        self.robot: TurtleBot | PhysicsBot = (
-            TurtleBot(params, start) if physics is None else PhysicsBot(params, physics, start)
-        )
+        build = plant_model_row(model).build
+        self.ideal = build is None
+        self.kind = model
+        self.robot: SimulatedRobot
+        if build is None:  # the firmware's conversion and limits, the wheels ideal
+            self.robot = TurtleBot(dataclasses.replace(TurtleBotParams.ideal(v_max, omega_max), quantize=True), start)
+        else:
+            if params is None or physics is None:
+                raise ValueError(f"the emulated {model!r} robot needs the [actuator] and [physics] settings")
+            self.robot = build(dataclasses.replace(params, v_max=v_max, omega_max=omega_max), physics, start)
         self.latency, self.cmd_timeout = latency, cmd_timeout
         self.noise = noise
         self.rng = np.random.default_rng(seed)

@@ -39,7 +39,7 @@ from common.math.frames import wrap_angle
 from common.math.localization import SIM_SOURCES
 from common.math.parking import FINAL_DISTANCE_M, MAX_SIGN_CHANGES, SPAN_M, WINDOW_S, distance_to_target, parking
 from common.math.physics import breakaway_speed
-from common.math.plant_models import PLANT_MODELS, PlantModel
+from common.math.plant_models import PLANT_MODELS
 from tools.bench.meta import run_info
 from tools.experiment.grid import grid_starts
 
@@ -53,7 +53,7 @@ PLANT_NAMES = (*PLANT_MODELS, "slipping")
 SLIPPING = 0.25  # the slipping robot: the actuator model with [actuator] slip 0.25 (odometry 25 % long)
 METHOD_NAMES = ",".join(METHODS)  # paper (the robot settings off) and robot (srl.toml's)
 SECONDS = 35.0
-ParkingPlant = Literal[PlantModel, "slipping"]  # slipping: the actuator model on a slippery floor
+ParkingPlant = str  # a plant model (common/math/plant_models.py), or slipping: the actuator model on a slippery floor
 Method = Literal["paper", "robot"]
 Localization = Literal["none", "amcl", "mocap"]
 LOCALIZATIONS = ("none", *SIM_SOURCES)

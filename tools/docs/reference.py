@@ -594,7 +594,7 @@ def variants_page() -> str:
         "",
         "`common/math/plant_models.py` `PLANT_MODELS`: the setting `plant.model`, `--model`.",
         "",
-        *_table(["model", "what it simulates"], [[code(name), cell(what)] for name, what in PLANT_MODELS.items()]),
+        *_table(["model", "what it simulates"], [[code(name), cell(row.what)] for name, row in PLANT_MODELS.items()]),
         "",
         "## Localization sources",
         "",
