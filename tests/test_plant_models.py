@@ -1,22 +1,23 @@
 """A plant model is one row (common/math/plant_models.py): a class that satisfies
 :class:`common.math.turtlebot.SimulatedRobot`, registered, runs wherever a plant model runs --
-the settings, the in-process episode (``srl run``, the experiment), plant_sim and the TurtleBot3
-emulator -- with no change to srl's modules. The model here is defined in this file, as a user's
-would be in theirs."""
+the settings, the in-process episode (``srl run``, the experiment), plant_sim, the TurtleBot3
+emulator, and through ``SRL_PLUGINS`` every process of ``srl run`` and ``srl up`` -- with no
+change to srl's modules. The model is examples/lagged_unicycle.py, a user's file."""
 
 from __future__ import annotations
 
-import math
+import json
+import subprocess
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from common.config.settings import Settings
-from common.math.dynamics import FloatArray, exact_step
+from common.math.dynamics import FloatArray
 from common.math.frames import Pose2D
-from common.math.physics import PhysicsParams
 from common.math.plant_models import (
     BUILT_IN_PLANT_MODELS,
     PLANT_MODELS,
@@ -24,62 +25,18 @@ from common.math.plant_models import (
     register_plant_model,
     simulated_robot,
 )
-from common.math.turtlebot import SimulatedRobot, TurtleBotParams
+from common.process.plugins import PluginError, load_plugins
+from examples import lagged_unicycle
+from examples.lagged_unicycle import NAME, LaggedUnicycle
 
-NAME = "lagged_unicycle"
-LAG = 0.3  # [s] the body velocity follows the command with this time constant
-SUBSTEP = 0.005  # [s]
-ODOMETRY_SCALE = 1.05  # its odometry overstates the distance by 5 %
-
-
-class LaggedUnicycle:
-    """A user's model: a unicycle whose (v, omega) follow the command with a first-order lag,
-    clamped to the settings' speed limits, its odometry 5 % long."""
-
-    def __init__(self, params: TurtleBotParams, pose: FloatArray) -> None:
-        self.params = params
-        self.saturated_commands = 0
-        self.reset(pose)
-
-    def reset(self, pose: FloatArray) -> None:
-        self.true_pose = np.asarray(pose, dtype=float).copy()
-        self.odometry = self.true_pose.copy()
-        self.applied = (0.0, 0.0)
-        self.moving = np.zeros(2)
-
-    @property
-    def velocity(self) -> tuple[float, float]:
-        return float(self.moving[0]), float(self.moving[1])
-
-    def command(self, v: float, omega: float) -> tuple[float, float]:
-        limits = (self.params.v_max, self.params.omega_max)
-        clamped = tuple(min(max(c, -m), m) for c, m in zip((v, omega), limits, strict=True))
-        self.saturated_commands += clamped != (v, omega)
-        self.applied = (clamped[0], clamped[1])
-        return self.applied
-
-    def advance(self, duration: float) -> None:
-        steps = max(1, math.ceil(duration / SUBSTEP - 1e-9))
-        h = duration / steps
-        keep = math.exp(-h / LAG)
-        for _ in range(steps):
-            self.moving = np.asarray(self.applied) + (self.moving - np.asarray(self.applied)) * keep
-            self.true_pose = exact_step(self.true_pose, self.moving, h)
-            self.odometry = exact_step(self.odometry, self.moving * np.array([ODOMETRY_SCALE, 1.0]), h)
-
-    def step(self, action: FloatArray, duration: float) -> FloatArray:
-        self.command(float(action[0]), float(action[1]))
-        self.advance(duration)
-        return self.odometry.copy()
-
-
-def build_lagged(params: TurtleBotParams, physics: PhysicsParams, pose: FloatArray) -> SimulatedRobot:
-    return LaggedUnicycle(params, pose)
+ROOT = Path(__file__).resolve().parents[1]
+PLUGIN = "examples/lagged_unicycle.py"
+build_lagged = lagged_unicycle.build
 
 
 @pytest.fixture
 def registered() -> Iterator[str]:
-    register_plant_model(NAME, "a unicycle with a lag (tests/test_plant_models.py)", build_lagged)
+    lagged_unicycle.register()  # what SRL_PLUGINS does in each process
     try:
         yield NAME
     finally:
@@ -183,3 +140,62 @@ def test_the_built_in_rows_build_what_they_name() -> None:
     args = (settings.turtlebot_params(), settings.physics_params(), np.zeros(3))
     assert simulated_robot("ideal", *args) is None  # the exact unicycle: no robot model
     assert type(simulated_robot("actuator", *args)).__name__ == "TurtleBot"
+
+
+def test_srl_plugins_loads_each_file_once_and_refuses_a_bad_one_with_one_line(tmp_path: Path) -> None:
+    try:
+        assert load_plugins(f" {ROOT / PLUGIN} ,") == [str(ROOT / PLUGIN)]
+        assert plant_model_row(NAME).build is not None
+        assert load_plugins(str(ROOT / PLUGIN)) == [str(ROOT / PLUGIN)]  # again: nothing registered twice
+    finally:
+        PLANT_MODELS.pop(NAME, None)
+    assert load_plugins(None) == [] and load_plugins("") == []
+    no_register = tmp_path / "no_register.py"
+    no_register.write_text("X = 1\n")
+    broken = tmp_path / "broken.py"
+    broken.write_text("import not_a_module_anywhere\n")
+    failing = tmp_path / "failing.py"
+    failing.write_text("def register():\n    raise RuntimeError('no licence')\n")
+    for entry, says in [
+        (str(tmp_path / "absent.py"), "no file"),
+        (str(no_register), "has no register"),
+        (str(broken), "cannot import .*ModuleNotFoundError"),
+        (str(failing), "register\\(\\) failed: RuntimeError: no licence"),
+        ("not_a_module_anywhere", "cannot import 'not_a_module_anywhere'"),
+    ]:
+        with pytest.raises(PluginError, match=says) as refused:
+            load_plugins(entry)
+        assert "\n" not in str(refused.value)
+
+
+def srl_with(*args: str, plugins: str = PLUGIN, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    """``srl ARGS`` with the model chosen and ``SRL_PLUGINS=plugins`` ("": none)."""
+    from tests.harness import srl
+
+    return srl(*args, env={"SRL_PLANT__MODEL": NAME, "SRL_PLUGINS": plugins}, timeout=timeout)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_srl_run_and_srl_up_run_the_plugins_model_in_every_process() -> None:
+    """``SRL_PLUGINS``: ``srl run`` (in process) and ``srl up`` (plant_sim, the critic and the actor
+    as processes, in lockstep, which reproduces the in-process run bit for bit) run the user's
+    model; without the plugin the same command is refused with one line."""
+    common = ["--agent", "mpc", "--horizon", "6", "--no-jit", "--start", "1,0.5", "--duration", "3", "--json"]
+    local = srl_with("run", *common)
+    assert local.returncode == 0, local.stderr[-2000:]
+    in_process = json.loads(local.stdout.strip().splitlines()[-1])
+    assert in_process["plant_model"] == NAME and in_process["truth"] is not None
+    from tests.harness import free_port
+
+    distributed = srl_with("up", "--mode", "lockstep", "--router", f"tcp/127.0.0.1:{free_port()}", *common)
+    assert distributed.returncode == 0, distributed.stderr[-2000:]
+    up = json.loads(distributed.stdout.strip().splitlines()[-1])
+    assert up["plant_model"] == NAME
+    assert up["accumulated_cost"] == in_process["accumulated_cost"]  # the same model, the same run
+    assert up["final_state"] == in_process["final_state"]
+    refused = srl_with("run", *common, plugins="")
+    assert refused.returncode == 2 and f"unknown plant model '{NAME}'" in refused.stderr
+    assert len([line for line in refused.stderr.splitlines() if line.startswith("srl: error")]) == 1
+    bad = srl_with("run", *common, plugins="examples/absent.py")
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith("srl: error: SRL_PLUGINS: no file")

@@ -499,6 +499,13 @@ def entry(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[st
     """
     import os
 
+    from common.process.plugins import VARIABLE, PluginError, load_plugins
+
+    try:
+        load_plugins(os.environ.get(VARIABLE))  # before the parser: its choices offer the plugins' rows
+    except PluginError as error:
+        print(f"srl: error: {error}", file=sys.stderr)
+        raise SystemExit(2) from None
     try:
         code: int | str | None = main(build_parser(), argv)
     except SystemExit as done:
