@@ -24,6 +24,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from common.contracts.pose_sources import pose_source_names, pose_sources_text
 from common.math.agents import Agent, agents_text
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
@@ -409,10 +410,7 @@ class BridgeSettings(_Section):
     robot_endpoint: str = Field(description="'' = the robot is on srl's router; else its Zenoh endpoint")
     discovery_timeout: float = Field(gt=0, description="[s] auto cmd_type: wait this long for the robot's tokens")
     # The state's pose (services/robot_bridge/bridge.py, docs/turtlebot-localization.md)
-    pose_source: Literal["odom", "tf", "pose_with_covariance", "odometry", "pose_stamped"] = Field(
-        description="the state's pose: odom (odometry only), tf (odom corrected by map -> odom on /tf), "
-        "pose_with_covariance (AMCL), odometry (an EKF's nav_msgs/Odometry), pose_stamped (motion capture)"
-    )
+    pose_source: str = Field(description="the state's pose: " + pose_sources_text())
     pose_topic: str = Field(
         pattern=rf"^(|{_ROS_NAME})$",
         description="the localization topic; '' = the source's usual one "
@@ -438,6 +436,14 @@ class BridgeSettings(_Section):
     robot_connect_timeout: float = Field(
         gt=0, description="[s] wait this long for the robot's router to accept the bridge (a robot boots slowly)"
     )
+
+    @field_validator("pose_source")
+    @classmethod
+    def _is_a_pose_source(cls, name: str) -> str:
+        names = pose_source_names()  # common/contracts/pose_sources.py
+        if name not in names:
+            raise ValueError(f"unknown pose source {name!r} ({', '.join(names)})")
+        return name
 
     @field_validator("namespace", mode="before")
     @classmethod

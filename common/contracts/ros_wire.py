@@ -62,15 +62,36 @@ import xxhash
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
+from common.contracts.pose_sources import (  # the localization sources' table and the types it names
+    ODOMETRY as ODOMETRY,
+)
+from common.contracts.pose_sources import (
+    ODOMETRY_ONLY as ODOMETRY_ONLY,
+)
+from common.contracts.pose_sources import (
+    POSE_SOURCES as POSE_SOURCES,
+)
+from common.contracts.pose_sources import (
+    POSE_STAMPED as POSE_STAMPED,
+)
+from common.contracts.pose_sources import (
+    POSE_WITH_COVARIANCE as POSE_WITH_COVARIANCE,
+)
+from common.contracts.pose_sources import (
+    QOS_DEPTH as QOS_DEPTH,
+)
+from common.contracts.pose_sources import (
+    TF_MESSAGE as TF_MESSAGE,
+)
+from common.contracts.pose_sources import (
+    PoseSource as PoseSource,
+)
+
 Distro = Literal["humble", "jazzy"]
 Profile = Literal["rmw_zenoh", "ros2dds"]
 
 TWIST = "geometry_msgs/msg/Twist"
 TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
-ODOMETRY = "nav_msgs/msg/Odometry"
-POSE_WITH_COVARIANCE = "geometry_msgs/msg/PoseWithCovarianceStamped"
-POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
-TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 CMD_TYPES = {"twist": TWIST, "twist_stamped": TWIST_STAMPED}
 # What a TurtleBot3 subscribes to by default: turtlebot3_bringup's burger.yaml sets
 # enable_stamped_cmd_vel false on Humble and true on Jazzy.
@@ -85,7 +106,6 @@ TB3_ODOM_NODE = "diff_drive_controller"  # publishes odom
 ODOM_FRAME = "odom"
 BASE_FRAME = "base_footprint"
 BRIDGE_NODE = "srl_robot_bridge"
-QOS_DEPTH = 10  # the TurtleBot3's rclcpp::QoS(rclcpp::KeepLast(10)) on cmd_vel and odom
 
 ATTACHMENT_SIZE = 33  # the compact format
 GID_SIZE = 16
@@ -102,42 +122,12 @@ _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*(/[A-Za-z][A-Za-z0-9_]*)*$")
 _STORES = {"humble": Stores.ROS2_HUMBLE, "jazzy": Stores.ROS2_JAZZY}
 DECODE_ERRORS = (SerdeError, ValueError, IndexError, TypeError, UnicodeDecodeError)
 
-# A localization source (bridge.pose_source, docs/turtlebot-localization.md): its ROS type, its
-# conventional topic, and the QoS its usual publisher declares. nav2_amcl publishes ``amcl_pose``
-# reliable, transient local, KeepLast(1) (amcl_node.cpp: ``rclcpp::QoS(rclcpp::KeepLast(1))
-# .transient_local().reliable()``); tf2_ros's listener subscribes ``/tf`` KeepLast(100), reliable,
-# volatile (``DynamicListenerQoS``); robot_localization's ``odometry/filtered`` and a motion-capture
-# ``PoseStamped`` are plain sensor streams (reliable, volatile, KeepLast(10)).
 MAP_FRAME = "map"
-
-
-@dataclass(frozen=True)
-class PoseSource:
-    """A localization source's ROS type, conventional topic and publisher QoS, and how the robot
-    bridge (services/robot_bridge/bridge.py) takes its fixes. ``map_to_odom``: a fix is the
-    ``map -> odom`` transform itself (one of the robot's transforms on ``/tf``), else the robot's
-    pose in the map, composed with the odometry at its stamp. ``streams``: fixes come at a rate,
-    moving or not; else only after motion (AMCL), so a quiet source is not a stale one."""
-
-    ros_type: str
-    topic: str
-    depth: int
-    transient_local: bool
-    map_to_odom: bool = False
-    streams: bool = True
-
-
-POSE_SOURCES: dict[str, PoseSource] = {
-    "tf": PoseSource(TF_MESSAGE, "tf", 100, False, map_to_odom=True),
-    "pose_with_covariance": PoseSource(POSE_WITH_COVARIANCE, "amcl_pose", 1, True, streams=False),
-    "odometry": PoseSource(ODOMETRY, "odometry/filtered", QOS_DEPTH, False),
-    "pose_stamped": PoseSource(POSE_STAMPED, "mocap/pose", QOS_DEPTH, False),
-}
 
 
 def pose_topic(bridge: Any) -> str:
     """The localization topic of ``bridge`` settings: ``pose_topic``, or the source's usual one."""
-    if bridge.pose_source == "odom":
+    if bridge.pose_source == ODOMETRY_ONLY:
         return str(bridge.odom_topic)
     return str(bridge.pose_topic or POSE_SOURCES[bridge.pose_source].topic)
 

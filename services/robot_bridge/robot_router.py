@@ -33,7 +33,7 @@ from pydantic import SecretStr
 
 from common.config.settings import BridgeSettings, Settings, TransportSettings
 from common.contracts.keys import advanced_pattern
-from common.contracts.ros_wire import ADMIN, POSE_SOURCES, RosGraph, pose_topic
+from common.contracts.ros_wire import ADMIN, ODOMETRY_ONLY, POSE_SOURCES, RosGraph, pose_topic
 from common.net.certs import write_tls_material
 from common.net.security import (
     Rule,
@@ -203,7 +203,7 @@ def robot_rules(graph: RosGraph, bridge: BridgeSettings) -> dict[str, list[Rule]
     graph_tokens = f"@/*/{ADMIN}/**" if graph.profile == "ros2dds" else f"{ADMIN}/{graph.domain_id}/**"
     everything = ("**", f"{ADMIN}/**", "@/**")
     localization: list[Rule] = []
-    if bridge.pose_source != "odom":
+    if bridge.pose_source != ODOMETRY_ONLY:
         located = topic_keys(pose_topic(bridge))
         localization = read(located)
         if POSE_SOURCES[bridge.pose_source].transient_local:

@@ -36,6 +36,7 @@ from common.config.settings import BridgeSettings
 from common.contracts import ros_wire
 from common.contracts.ros_wire import (
     ODOMETRY,
+    ODOMETRY_ONLY,
     POSE_SOURCES,
     TWIST,
     TWIST_STAMPED,
@@ -106,7 +107,7 @@ class RosLink:
                     )
                 )
             )
-        if self.bridge.pose_source != "odom":
+        if self.bridge.pose_source != ODOMETRY_ONLY:
             self._subscribe_localization()
         if self.bridge.cmd_type == "auto":
             pattern = self.graph.discovery_pattern(self.bridge.cmd_vel_topic)

@@ -148,7 +148,7 @@ def main(args: argparse.Namespace) -> int:
         params=settings.turtlebot_params(),
         physics=settings.physics_params(),
     )
-    source = args.localization or ("none" if bridge.pose_source == "odom" else bridge.pose_source)
+    source = args.localization or ("none" if bridge.pose_source == ros_wire.ODOMETRY_ONLY else bridge.pose_source)
     if not (args.localization_rate > 0 and all(c >= 0 for c in (*args.localization_noise, *args.localization_update))):
         raise UsageError("tb3-emulator: --localization-rate must be > 0, its noise and update >= 0")
     localization = (

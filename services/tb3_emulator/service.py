@@ -183,15 +183,6 @@ class Tb3Model:
         return pose, velocity
 
 
-# The ROS node that publishes each localization source (its liveliness token's node name).
-LOCALIZATION_NODES = {
-    "tf": "amcl",
-    "pose_with_covariance": "amcl",
-    "odometry": "ekf_filter_node",
-    "pose_stamped": "mocap",
-}
-
-
 @dataclasses.dataclass(frozen=True)
 class LocalizationConfig:
     """What localization the emulator publishes (``--localization`` and its options)."""
@@ -204,12 +195,13 @@ class LocalizationConfig:
 
 
 class FixRule:
-    """When a localization fix is due: AMCL-like (``pose_with_covariance``, ``tf``) at the first
-    call and then after the true pose moved ``update`` (distance or angle) since the last fix;
-    streaming (``odometry``, ``pose_stamped``) every ``1 / rate`` seconds."""
+    """When a localization fix is due: for a source whose publisher updates after motion (its
+    row's ``after_motion``: AMCL's ``pose_with_covariance`` and ``tf``) at the first call and then
+    after the true pose moved ``update`` (distance or angle) since the last fix; else every
+    ``1 / rate`` seconds."""
 
     def __init__(self, config: LocalizationConfig) -> None:
-        self.sparse = config.source in ("pose_with_covariance", "tf")
+        self.sparse = ros_wire.POSE_SOURCES[config.source].after_motion
         self.update, self.period = config.update, 1.0 / config.rate
         self.last_pose: Pose2D | None = None
         self.last_at: float | None = None
@@ -397,7 +389,7 @@ class _Localizer:
         self.rule = FixRule(config)
         self.rng = np.random.default_rng(model.rng.integers(2**32))  # its own stream, seeded by --seed
         self.key = graph.data_key(config.topic, self.source.ros_type)
-        node = LOCALIZATION_NODES[config.source]
+        node = ros_wire.POSE_SOURCES[config.source].node
         if graph.profile == "rmw_zenoh":
             tokens = [
                 graph.node_token(zid, 30, node),

@@ -551,7 +551,7 @@ def variants_page() -> str:
     """Every table a variant of srl is a row of, with its rows as the code has them now
     (docs/extending.md says how to add one)."""
     from common.config.settings import METHODS
-    from common.contracts.ros_wire import POSE_SOURCES
+    from common.contracts.pose_sources import POSE_SOURCES
     from common.math.agents import AGENT_ROWS, REFERENCE_AGENT
     from common.math.plant_models import PLANT_MODELS
 
@@ -598,11 +598,20 @@ def variants_page() -> str:
         "",
         "## Localization sources",
         "",
-        "`common/contracts/ros_wire.py` `POSE_SOURCES`: the setting `bridge.pose_source` (besides `odom`, the",
+        "`common/contracts/pose_sources.py` `POSE_SOURCES`: the setting `bridge.pose_source` (besides `odom`, the",
         "wheel odometry alone). The QoS is the one the usual publisher declares.",
         "",
         *_table(
-            ["source", "ROS type", "usual topic", "QoS depth", "transient local", "fix is", "fixes come"],
+            [
+                "source",
+                "ROS type",
+                "usual topic",
+                "QoS depth",
+                "transient local",
+                "fix is",
+                "fixes come",
+                "published by",
+            ],
             [
                 [
                     code(name),
@@ -612,6 +621,7 @@ def variants_page() -> str:
                     yes(row.transient_local),
                     "map -> odom" if row.map_to_odom else "the pose in the map",
                     "at a rate" if row.streams else "after motion",
+                    code(row.node) + (" (new fix after motion)" if row.after_motion else ""),
                 ]
                 for name, row in POSE_SOURCES.items()
             ],

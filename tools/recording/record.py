@@ -70,6 +70,7 @@ import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from common.contracts.pose_sources import ODOMETRY_ONLY
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
 from tools.recording.cdr import Vector, odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr, weights_cdr
@@ -957,7 +958,7 @@ def robot_frames(bridge: Any, message: Any) -> PoseFrames:
     correction = getattr(message, "map_to_odom", None)
     return PoseFrames(
         goal=Pose2D(*(float(c) for c in bridge.goal)),
-        localized=getattr(bridge, "pose_source", "odom") != "odom",
+        localized=getattr(bridge, "pose_source", ODOMETRY_ONLY) != ODOMETRY_ONLY,
         map_to_odom=None if correction is None else Pose2D(*(float(c) for c in correction)),
     )
 
