@@ -3,35 +3,79 @@
 from __future__ import annotations
 
 import argparse
-from typing import get_args
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from common.config.arguments import add_settings_arguments
-from common.config.settings import ActorSettings
+from common.config.settings import ActorSettings, Settings
 from common.math.agents import (
     AGENT_ROWS,
     AGENTS,
     PAPER_AGENTS,
     REFERENCE_AGENT,
+    AgentRow,
     agent_row,
     fit_due,
     learns,
     parse_agents,
     parse_horizons,
+    register_agent,
     stage_cost_weights,
     uses_value_critic,
 )
 
+ACTOR = ActorSettings.model_validate(Settings.load().actor.model_dump()).model_dump()  # the packaged [actor]
+
 
 def test_settings_and_command_line_take_the_agents_from_one_place() -> None:
-    assert get_args(ActorSettings.model_fields["agent"].annotation) == AGENTS
+    assert AGENTS == tuple(AGENT_ROWS) == ("mpc", "rlq", "rlqv", "rlqv+")
+    for agent in AGENTS:
+        assert ActorSettings.model_validate(ACTOR | {"agent": agent}).agent == agent
+    with pytest.raises(ValidationError, match=r"unknown agent 'dqn' \(mpc, rlq, rlqv, rlqv\+\)"):
+        ActorSettings.model_validate(ACTOR | {"agent": "dqn"})
     parser = argparse.ArgumentParser()
     add_settings_arguments(parser, ["agent"])
     (action,) = [a for a in parser._actions if a.dest == "agent"]
     assert tuple(action.choices or ()) == AGENTS
     assert set(PAPER_AGENTS) <= set(AGENTS)
+
+
+def test_a_registered_agent_is_a_setting_a_choice_and_the_objective_its_row_says() -> None:
+    """A user's agent is a row (register_agent, from a plugin: common/process/plugins.py): MPC with
+    the value critic at the horizon end. The settings take it, the command line offers it, and the
+    actor's objective is its row's: the MPC stage costs plus Jhat(s_N; v)."""
+    from common.math.actor_problem import ActorProblem
+    from common.math.actor_search import objective
+
+    row = AgentRow("MPC+V", False, True, "each", False, "sum_i delta r(s_i, u_i) + Jhat(s_N; v)")
+    register_agent("mpcv", row)
+    try:
+        assert ActorSettings.model_validate(ACTOR | {"agent": "mpcv"}).agent == "mpcv"
+        parser = argparse.ArgumentParser()
+        add_settings_arguments(parser, ["agent"])
+        (action,) = [a for a in parser._actions if a.dest == "agent"]
+        assert "mpcv" in (action.choices or ()) and learns("mpcv") and parse_agents("mpcv,mpc") == ("mpcv", "mpc")
+        with pytest.raises(ValueError, match="exists already"):
+            register_agent("mpcv", row)
+        rng = np.random.default_rng(3)
+        states = [rng.normal(size=3) for _ in range(4)]
+        actions = [rng.normal(size=2) for _ in range(3)]
+        w, v = rng.normal(size=15), rng.normal(size=6)
+        values = {}
+        for agent in ("mpc", "mpcv"):
+            problem = ActorProblem(
+                agent, 4, sampling_time=0.1, cost_diag=(1.0, 10.0, 1.0, 0.01, 0.01), v_max=0.22, omega_max=2.84
+            )
+            values[agent] = float(objective(problem, states, actions, w, v))
+        from common.math.features import phi_v
+
+        assert values["mpcv"] - values["mpc"] == pytest.approx(float(v @ phi_v(states[-1])), rel=1e-12)
+    finally:
+        del AGENT_ROWS["mpcv"]  # the other tests of this process see srl's rows only
+    with pytest.raises(ValueError, match="a-z 0-9"):
+        register_agent("MPC V", row)
 
 
 def test_what_each_agent_learns() -> None:

@@ -18,7 +18,7 @@ from typing import Any, NoReturn, get_args
 from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
-from common.config.settings import MAX_HORIZON, WORKSPACE_HALF_WIDTH, Settings, parse_start
+from common.config.settings import MAX_HORIZON, TABLE_SETTINGS, WORKSPACE_HALF_WIDTH, Settings, parse_start
 
 log = logging.getLogger(__name__)
 
@@ -203,7 +203,10 @@ def _start_arg(text: str) -> tuple[float, ...]:
 
 # The packaged defaults, shown in every option's help (the settings file is the one source).
 def _choices(section: str, name: str) -> tuple[str, ...]:
-    """The values a setting's ``Literal`` allows: the settings model is their one definition."""
+    """The values a setting allows: the rows of its table (TABLE_SETTINGS, read when the parser is
+    built: a plugin's rows too), else its ``Literal``: the settings model is their one definition."""
+    if (section, name) in TABLE_SETTINGS:
+        return TABLE_SETTINGS[(section, name)][1]()
     section_model = Settings.model_fields[section].annotation
     assert section_model is not None
     return tuple(str(v) for v in get_args(section_model.model_fields[name].annotation))

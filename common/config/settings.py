@@ -12,6 +12,7 @@ import math
 import os
 import re
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -25,14 +26,34 @@ from pydantic_settings import (
 )
 
 from common.contracts.pose_sources import pose_source_names, pose_sources_text
-from common.math.agents import Agent, agents_text
+from common.math.agents import Agent, agent_names, agents_text
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
 from common.math.physics import PhysicsParams
-from common.math.plant_models import plant_model_row, plant_models_text
+from common.math.plant_models import PLANT_MODELS, plant_models_text
 from common.math.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
+# The settings whose values are the rows of a table, each its one definition (a row registered
+# by a plugin, common/process/plugins.py, is a value too): what the validators accept, what the
+# command lines offer (common/config/arguments.py) and what the docs list.
+TABLE_SETTINGS: dict[tuple[str, str], tuple[str, Callable[[], tuple[str, ...]]]] = {
+    ("actor", "agent"): ("agent", agent_names),  # common/math/agents.py AGENT_ROWS
+    ("plant", "model"): ("plant model", lambda: tuple(PLANT_MODELS)),  # common/math/plant_models.py
+    ("bridge", "pose_source"): ("pose source", pose_source_names),  # common/contracts/pose_sources.py
+}
+
+
+def table_value(section: str, name: str, value: str) -> str:
+    """``value`` if it names a row of the table behind ``section.name``; else ValueError (one line
+    naming the rows)."""
+    what, names = TABLE_SETTINGS[(section, name)]
+    known = names()
+    if value not in known:
+        raise ValueError(f"unknown {what} {value!r} ({', '.join(known)})")
+    return value
+
+
 # The actor's horizon bound. The JIT build (code generation + gcc -O3) grows with N: N = 100
 # builds in ~35 s with a 0.6 GB peak (gcc included, 2 cores); N = 10000 runs gcc past 8.9 GB of
 # memory (docs/benchmarks/). The paper uses N = 6 and 12.
@@ -90,8 +111,7 @@ class PlantSettings(_Section):
     @field_validator("model")
     @classmethod
     def _is_a_plant_model(cls, name: str) -> str:
-        plant_model_row(name)  # a row of common/math/plant_models.py (built in or registered)
-        return name
+        return table_value("plant", "model", name)
 
     @field_validator("sampling_time", "v_max", "omega_max")
     @classmethod
@@ -204,6 +224,12 @@ class CriticSettings(_Section):
 
 class ActorSettings(_Section):
     agent: Agent = Field(description=agents_text())
+
+    @field_validator("agent")
+    @classmethod
+    def _is_an_agent(cls, name: str) -> str:
+        return table_value("actor", "agent", name)
+
     horizon: int = Field(description="N, 2 .. MAX_HORIZON")
     predictor: Literal["euler", "rk4"]
     solver: Literal["fatrop", "ipopt"]
@@ -440,10 +466,7 @@ class BridgeSettings(_Section):
     @field_validator("pose_source")
     @classmethod
     def _is_a_pose_source(cls, name: str) -> str:
-        names = pose_source_names()  # common/contracts/pose_sources.py
-        if name not in names:
-            raise ValueError(f"unknown pose source {name!r} ({', '.join(names)})")
-        return name
+        return table_value("bridge", "pose_source", name)
 
     @field_validator("namespace", mode="before")
     @classmethod

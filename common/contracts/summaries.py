@@ -12,9 +12,17 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, TypeAdapter
 
-from common.math.agents import Agent
+from common.math.agents import agent_row
+
+
+def _known_agent(name: str) -> str:
+    agent_row(name)  # a row of common/math/agents.py (built in or registered): else one line naming them
+    return name
+
+
+AgentName = Annotated[str, AfterValidator(_known_agent)]
 
 
 class _Summary(BaseModel):
@@ -50,7 +58,7 @@ class EpisodeSummary(_Summary):
     view (what it reported: a robot's odometry); ``truth``: where it really was, or None when
     only the odometry is known (a real robot)."""
 
-    agent: Agent
+    agent: AgentName
     horizon: int
     steps: int
     episode_seconds: float
@@ -82,7 +90,7 @@ class RealtimeActorSummary(_Summary):
 
     service: Literal["actor"] = "actor"
     mode: Literal["realtime"] = "realtime"
-    agent: Agent
+    agent: AgentName
     horizon: int
     episode_id: int
     steps: int

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.math.agents import AGENTS, Agent
+from common.math.agents import Agent, agent_row
 from common.math.arrival import ArrivalRule
 from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.math.features import feature_index_pairs
@@ -77,8 +77,7 @@ class ActorProblem:
     newton_iterations: int = 20
 
     def __post_init__(self) -> None:
-        if self.agent not in AGENTS:
-            raise ValueError(f"unknown agent {self.agent!r}; choose one of {', '.join(AGENTS)}")
+        agent_row(self.agent)  # an unknown agent: one line naming the known ones
         if self.horizon < 2:
             raise ValueError(f"horizon N must be >= 2 (N - 1 >= 1 actions), got {self.horizon}")
         if not (np.isfinite(self.sampling_time) and self.sampling_time > 0):

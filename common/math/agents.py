@@ -3,7 +3,8 @@
 Settings (``actor.agent``), the command line's choices and help, the actor's objective
 (common/math/actor_search.py), the benchmarks, the experiment's tables and plots and the
 generated Variants page (docs/reference/variants.md) all read :data:`AGENT_ROWS`; nothing else names
-an agent's properties. A new agent is a row (docs/extending.md). ``mpc`` minimizes the stage
+an agent's properties. A new agent is a row (docs/extending.md): here, or from the user's own
+file with :func:`register_agent` (``SRL_PLUGINS``, common/process/plugins.py). ``mpc`` minimizes the stage
 costs alone (no critic); ``rlq`` stacks learned Q-critics; ``rlqv`` adds the learned value critic
 at the horizon end; ``rlqv+`` is rlqv complemented with the stage costs (the paper's Remark on
 the complemented stack).
@@ -11,10 +12,12 @@ the complemented stack).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Literal
 
-Agent = Literal["mpc", "rlq", "rlqv", "rlqv+"]
+Agent = str  # a name of AGENT_ROWS (built in or registered)
+_NAME = re.compile(r"^[a-z][a-z0-9_+]{0,31}$")
 
 # How the stage cost delta r(s_i, u_i) enters the stacked objective at stage i = 1 .. N - 1:
 # "each" once per stage (MPC), "remaining" (N - i) times (the complemented stack), "none" not at all.
@@ -50,20 +53,35 @@ AGENT_ROWS: dict[Agent, AgentRow] = {
         "RL-QV+", True, True, "remaining", False, "sum_i [Qhat(s_i, u_i; w) + (N - i) delta r(s_i, u_i)] + Jhat(s_N; v)"
     ),
 }
-AGENTS: tuple[Agent, ...] = get_args(Agent)
-assert tuple(AGENT_ROWS) == AGENTS, "one row per name of Agent"
+AGENTS: tuple[Agent, ...] = tuple(AGENT_ROWS)  # srl's own rows (agent_names(): with the registered ones)
 # the paper's comparison (rlqv+ is ours to add with --agents)
 PAPER_AGENTS: tuple[Agent, ...] = tuple(name for name, row in AGENT_ROWS.items() if row.paper)
 # the agent every other is measured against (J / J_MPC in the experiment's tables and plots)
 REFERENCE_AGENT: Agent = "mpc"
 
 
+def agent_names() -> tuple[Agent, ...]:
+    """Every agent's name: srl's rows, then those registered in this process."""
+    return tuple(AGENT_ROWS)
+
+
 def agent_row(agent: str) -> AgentRow:
     """The row of ``agent``; an unknown name is a one-line ValueError naming the known ones."""
     try:
-        return AGENT_ROWS[agent]  # type: ignore[index]
+        return AGENT_ROWS[agent]
     except KeyError:
-        raise ValueError(f"unknown agent {agent!r}; choose one of {', '.join(AGENTS)}") from None
+        raise ValueError(f"unknown agent {agent!r}; choose one of {', '.join(AGENT_ROWS)}") from None
+
+
+def register_agent(name: str, row: AgentRow) -> None:
+    """Add an agent: ``actor.agent = name`` then minimizes ``row``'s objective in every consumer of
+    this process (the actor, the critic, the experiment, the benchmarks). A name that is taken, or
+    not 1-32 of a-z 0-9 _ + starting with a letter, raises ValueError."""
+    if not _NAME.match(name):
+        raise ValueError(f"agent name {name!r}: 1-32 of a-z 0-9 _ +, starting with a letter")
+    if name in AGENT_ROWS:
+        raise ValueError(f"agent {name!r} exists already")
+    AGENT_ROWS[name] = row
 
 
 def learns(agent: str) -> bool:
@@ -100,12 +118,13 @@ def fit_due(step: int, update_every: int) -> bool:
 def parse_agents(text: str, option: str = "--agents") -> tuple[Agent, ...]:
     """``"mpc, rlqv,rlqv"`` -> ``("mpc", "rlqv")``: comma-separated, each once, in order."""
     names = tuple(dict.fromkeys(a.strip() for a in str(text).split(",") if a.strip()))
-    unknown = [a for a in names if a not in AGENTS]
+    known = agent_names()
+    unknown = [a for a in names if a not in known]
     if unknown:
-        raise ValueError(f"{option}: unknown agent(s) {', '.join(unknown)}; choose from {', '.join(AGENTS)}")
+        raise ValueError(f"{option}: unknown agent(s) {', '.join(unknown)}; choose from {', '.join(known)}")
     if not names:
-        raise ValueError(f"{option}: at least one of {', '.join(AGENTS)} (comma-separated), got {text!r}")
-    return tuple(a for agent in names for a in AGENTS if a == agent)
+        raise ValueError(f"{option}: at least one of {', '.join(known)} (comma-separated), got {text!r}")
+    return names
 
 
 def parse_horizons(text: str, option: str = "--horizons", allow_empty: bool = False) -> tuple[int, ...]:

@@ -32,8 +32,9 @@ from pydantic import BaseModel, ConfigDict
 from common.config.arguments import UsageError
 from common.config.assembly import build_actor, local_critic, localized_plant, run_episode
 from common.config.settings import METHODS, Settings, with_method
+from common.contracts.summaries import AgentName
 from common.math.actor import StackedActor
-from common.math.agents import Agent, learns, parse_agents, parse_horizons
+from common.math.agents import learns, parse_agents, parse_horizons
 from common.math.arrival import WheelDeadband
 from common.math.frames import wrap_angle
 from common.math.localization import SIM_SOURCES
@@ -73,7 +74,7 @@ class ParkingRow(_Model):
     method: Method  # paper: the paper's actor; robot: with the arrival rule, wheel box, convex critics
     plant: ParkingPlant
     localization: str = ODOMETRY_ONLY  # the pose the actor saw: "odometry only", "amcl", "mocap"
-    agent: Agent
+    agent: AgentName
     horizon: int
     start: tuple[float, float, float]
     steps: int

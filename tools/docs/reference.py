@@ -181,7 +181,7 @@ def setting_rows() -> Iterator[tuple[str, str, FieldInfo, Any, str]]:
 
 
 def settings_page() -> str:
-    from common.config.settings import Settings
+    from common.config.settings import TABLE_SETTINGS, Settings
 
     lines = [
         GENERATED,
@@ -212,7 +212,12 @@ def settings_page() -> str:
         for row_section, name, field, default, note in rows:
             if row_section != section:
                 continue
-            bounds = ", ".join([type_text(field.annotation), *constraints(field.metadata)])
+            if (section, name) in TABLE_SETTINGS:  # a table's rows (a plugin may add more: docs/extending.md)
+                bounds = (
+                    " | ".join(json.dumps(v) for v in TABLE_SETTINGS[(section, name)][1]()) + " (the rows of its table)"
+                )
+            else:
+                bounds = ", ".join([type_text(field.annotation), *constraints(field.metadata)])
             description = field.description or note
             if note and len(_UNIT.sub("", description).strip()) < 20:  # a bare unit: the file's note says more
                 description = note

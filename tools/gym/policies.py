@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from common.config.assembly import build_actor, local_critic
 from common.config.settings import Settings, with_method
 from common.math.actor_problem import ActorStep
-from common.math.agents import AGENTS, learns
+from common.math.agents import agent_row, learns
 from common.math.critic import Sample
 from common.math.features import stage_cost
 
@@ -44,8 +44,7 @@ def policy_settings(settings: Settings | None, agent: str, horizon: int, method:
     critics as fitted: ``METHODS``' row, as ``srl experiment paper`` runs it), ``"robot"``: the
     ``[actor]`` settings as configured (as ``srl run``). Raises ValueError for an unknown agent or
     method, or a horizon the actor refuses."""
-    if agent not in AGENTS:
-        raise ValueError(f"unknown agent {agent!r}; choose one of {', '.join(AGENTS)}")
+    agent_row(agent)  # an unknown agent: one line naming the known ones
     chosen = with_method(settings if settings is not None else Settings.load(), method, agent=agent, horizon=horizon)
     return Settings.model_validate(chosen.model_dump())  # the horizon is the user's: validated
 
