@@ -199,3 +199,23 @@ def test_srl_run_and_srl_up_run_the_plugins_model_in_every_process() -> None:
     assert len([line for line in refused.stderr.splitlines() if line.startswith("srl: error")]) == 1
     bad = srl_with("run", *common, plugins="examples/absent.py")
     assert bad.returncode == 2 and bad.stderr.strip().splitlines()[-1].startswith("srl: error: SRL_PLUGINS: no file")
+
+
+def test_the_gymnasium_environment_runs_the_users_model(registered: str) -> None:
+    """``gymnasium.make("srl/Unicycle-v0", model=NAME)``: the user's model behind srl's
+    environment, which passes Gymnasium's checker; its observations are the model's odometry."""
+    import gymnasium
+    from gymnasium.utils.env_checker import check_env
+
+    import tools.gym  # noqa: F401  (registers srl's ids)
+
+    env = gymnasium.make("srl/Unicycle-v0", model=registered)
+    check_env(env.unwrapped, skip_render_check=True)
+    first, _ = env.reset(options={"start": (1.0, -0.5, 0.3)})
+    np.testing.assert_array_equal(first, (1.0, -0.5, 0.3))
+    actions = [np.array([0.2, 0.5]), np.array([0.22, -1.0]), np.array([0.1, 0.0])]
+    observations = [env.step(action)[0] for action in actions]
+    settings = env.unwrapped.settings  # type: ignore[attr-defined]
+    expected = oracle(settings, np.array([1.0, -0.5, 0.3]), actions, settings.plant.sampling_time)
+    np.testing.assert_array_equal(np.array(observations), np.array(expected))
+    env.close()
