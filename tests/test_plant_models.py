@@ -7,6 +7,7 @@ change to srl's modules. The model is examples/lagged_unicycle.py, a user's file
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -168,11 +169,11 @@ def test_srl_plugins_loads_each_file_once_and_refuses_a_bad_one_with_one_line(tm
         assert "\n" not in str(refused.value)
 
 
-def srl_with(*args: str, plugins: str = PLUGIN, timeout: float = 240) -> subprocess.CompletedProcess[str]:
-    """``srl ARGS`` with the model chosen and ``SRL_PLUGINS=plugins`` ("": none)."""
+def srl_with(*args: str, plugins: str = PLUGIN, timeout: float = 240, **env: str) -> subprocess.CompletedProcess[str]:
+    """``srl ARGS`` with the model chosen, ``SRL_PLUGINS=plugins`` ("": none) and ``env``."""
     from tests.harness import srl
 
-    return srl(*args, env={"SRL_PLANT__MODEL": NAME, "SRL_PLUGINS": plugins}, timeout=timeout)
+    return srl(*args, env={"SRL_PLANT__MODEL": NAME, "SRL_PLUGINS": plugins, **env}, timeout=timeout)
 
 
 @pytest.mark.integration
@@ -219,3 +220,26 @@ def test_the_gymnasium_environment_runs_the_users_model(registered: str) -> None
     expected = oracle(settings, np.array([1.0, -0.5, 0.3]), actions, settings.plant.sampling_time)
     np.testing.assert_array_equal(np.array(observations), np.array(expected))
     env.close()
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_the_paper_experiment_runs_a_plugins_model_and_agent_in_its_spawned_workers(tmp_path: Path) -> None:
+    """``srl experiment paper`` spreads its runs over spawned worker processes, each a fresh
+    interpreter: they load ``SRL_PLUGINS`` as every srl process does, so the user's plant model
+    and the user's agent (examples/mpc_with_value.py) run there, J / J_MPC and all."""
+    import csv
+
+    plugins = f"{PLUGIN},examples/mpc_with_value.py"
+    grid = ["--grid", "1", "--duration", "2", "--horizons", "6", "--agents", "mpc,mpcv", "--workers", "2"]
+    out = tmp_path / "paper"
+    run = srl_with(
+        "experiment", "paper", "--plant", NAME, *grid, "--no-plots", "--no-progress", "--out", str(out),
+        plugins=plugins, SRL_ACTOR__JIT="false",
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    rows = list(csv.DictReader((out / "runs.csv").open()))
+    assert sorted({r["agent"] for r in rows}) == ["mpc", "mpcv"] and len(rows) == 2
+    assert all(math.isfinite(float(r["accumulated_cost"])) for r in rows)
+    summary = (out / "summary.md").read_text()
+    assert f"plant {NAME}" in summary and "| mpcv | 6 | 1 |" in summary  # J / J_mpc of the user's agent

@@ -2,9 +2,11 @@
 
 ``SRL_PLUGINS`` is a comma-separated list of Python files (``path/to/model.py``) and importable
 modules (``mypackage.srl_models``). Every srl process (the ``srl`` command, ``python -m
-services.<name>``) imports each one, in order, before it builds its command line, and calls its
+services.<name>``, the experiment's worker processes) imports each one, in order, before it
+builds its command line, and calls its
 ``register()``: that is where a plugin adds its rows (a plant model:
-:func:`common.math.plant_models.register_plant_model`). The processes ``srl up`` starts inherit
+:func:`common.math.plant_models.register_plant_model`, an agent:
+:func:`common.math.agents.register_agent`). The processes ``srl up`` starts inherit
 the variable, so a model registered this way runs in every service. A plugin that cannot be
 imported, has no ``register()``, or whose ``register()`` raises stops the process with one line
 (:class:`PluginError`) before anything starts.
@@ -68,6 +70,15 @@ def load_plugins(value: str | None) -> list[str]:
         _LOADED.add(entry)
         loaded.append(entry)
     return loaded
+
+
+def load_from_environment() -> list[str]:
+    """:func:`load_plugins` of ``SRL_PLUGINS``: what every srl process does first
+    (common.process.runtime.entry), and each worker process srl spawns (the experiment's: a
+    spawned interpreter starts afresh and inherits the variable)."""
+    import os
+
+    return load_plugins(os.environ.get(VARIABLE))
 
 
 _LOADED: set[str] = set()

@@ -499,10 +499,10 @@ def entry(build_parser: Callable[[], argparse.ArgumentParser], argv: Sequence[st
     """
     import os
 
-    from common.process.plugins import VARIABLE, PluginError, load_plugins
+    from common.process.plugins import PluginError, load_from_environment
 
     try:
-        load_plugins(os.environ.get(VARIABLE))  # before the parser: its choices offer the plugins' rows
+        load_from_environment()  # before the parser: its choices offer the plugins' rows
     except PluginError as error:
         print(f"srl: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 from common.config.settings import Settings
 from common.math.agents import PAPER_AGENTS, REFERENCE_AGENT
 from common.math.parking import parking
+from common.process.plugins import load_from_environment
 from common.system.jit import srl_cache
 from tools.experiment.grid import STARTS, Start, make_starts
 from tools.experiment.marks import PARK_TOLERANCE_M
@@ -492,7 +493,8 @@ def _run_jobs(
 
     task = bar.add_task(f"{len(jobs)} trainings in {options.workers} processes", total=len(jobs))
     context = multiprocessing.get_context("spawn")  # torch's state never forked
-    with ProcessPoolExecutor(max_workers=min(options.workers, len(jobs)), mp_context=context) as pool:
+    workers = min(options.workers, len(jobs))  # each loads SRL_PLUGINS afresh, as every srl process
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=load_from_environment) as pool:
         futures = [pool.submit(train_and_evaluate, job, options, base, starts) for job in jobs]
         results = []
         for future in futures:

@@ -30,6 +30,7 @@ import numpy as np
 from common.config.assembly import CRITIC_LAYOUTS, CriticLayout
 from common.config.settings import Settings
 from common.math.agents import AGENT_ROWS, REFERENCE_AGENT, learns
+from common.process.plugins import load_from_environment
 from tools.experiment.grid import Start
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
@@ -165,7 +166,8 @@ def run_fleet_experiment(
     points = [[s.x, s.y, s.alpha] for s in starts]
     count = min(len(tasks), workers or multiprocessing.cpu_count())
     results = []
-    with ProcessPoolExecutor(count, mp_context=multiprocessing.get_context("spawn")) as pool:
+    context = multiprocessing.get_context("spawn")  # each worker loads SRL_PLUGINS afresh
+    with ProcessPoolExecutor(count, mp_context=context, initializer=load_from_environment) as pool:
         futures = [pool.submit(run_fleet_task, data, task, points) for task in tasks]
         for task, future in zip(tasks, futures, strict=True):
             result = future.result()

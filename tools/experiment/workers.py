@@ -18,6 +18,7 @@ import numpy as np
 
 from common.config.settings import Settings
 from common.math.agents import learns
+from common.process.plugins import load_from_environment
 from tools.experiment.grid import RunSpec, run_settings
 
 
@@ -159,6 +160,7 @@ def worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:
     # SystemExit so that ``finally`` blocks (the runner's close) and atexit still run.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    load_from_environment()  # a spawned interpreter: the parent's plugins' rows (SRL_PLUGINS), loaded again
     logging.basicConfig(
         level=logging.WARNING,
         format=f"%(asctime)s %(levelname)s [worker {config.slot}] %(name)s: %(message)s",
