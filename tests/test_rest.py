@@ -270,3 +270,34 @@ def test_a_restored_critic_still_never_labels_the_weights_older() -> None:
     older = CriticLearner(settings())
     older.restore(state)
     assert [w.trained_step for w in older.take(message("r1", run[late]))] == [late]
+
+
+@pytest.mark.parametrize("arrival", [True, False])
+def test_the_lockstep_port_reports_the_residuals_of_the_fit_on_each_step(arrival: bool) -> None:
+    """As the in-process critic (LocalCritic.last_residuals), the lockstep port over Zenoh says the
+    TD residuals of the fit on the step it just recorded: those its weights message carried, once
+    the weights trained on that step are held; nan on a step with no fit (a robot at rest)."""
+    own = Settings.load(critic={"checkpoint": ""}, actor={"arrival": arrival}, transport={"robot": "r1"})
+
+    class ResidualInbox(FakeInbox):
+        def wait_trained(self, step: int, timeout: float) -> bool:
+            self.waited.append(step)
+            self.held = HeldWeights(
+                self.held.q, self.held.v, self.held.version + 1, step, 0.0, (step + 0.5, step + 0.25)
+            )
+            return True
+
+    inbox = ResidualInbox()
+    port = ZenohCriticPort(own, FakeBus(), inbox, episode=1, sync=True)  # type: ignore[arg-type]
+    port.reset()
+    residuals = []
+    for s in robot_run():
+        port.record(s)
+        residuals.append(port.last_residuals)
+    fitted = set(inbox.waited)
+    assert fitted and len(fitted) < len(residuals) if arrival else fitted
+    for s, (q, v) in zip(robot_run(), residuals, strict=True):
+        if s.step in fitted:
+            assert (q, v) == (s.step + 0.5, s.step + 0.25)
+        else:
+            assert np.isnan(q) and np.isnan(v)

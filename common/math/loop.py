@@ -32,6 +32,8 @@ class CriticPort(Protocol):
     the robot acts on at its next step (a pooled critic may have fitted since its record, on
     another robot's)."""
 
+    last_residuals: tuple[float, float]  # the TD residuals (Q, V) of a fit after the last record; nan: none
+
     def reset(self) -> tuple[np.ndarray, np.ndarray]: ...
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]: ...
@@ -259,7 +261,7 @@ def run_algorithm1(
             cost = delta * float(stage_cost(state, step.action, r_diag))
             next_state = plant.apply(step.action, delta)  # line 5: apply u_1
             critic.record(Sample(k, state, step.action, cost))  # line 6: update critic
-            episode.td_residuals.append(getattr(critic, "last_residuals", (float("nan"), float("nan"))))
+            episode.td_residuals.append(critic.last_residuals)
             episode.actions.append(step.action)
             episode.costs.append(cost)
             held_at_rest = step.status == "arrived"

@@ -12,6 +12,7 @@ The lockstep actor (services/actor/service.py) and the experiment's workers
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ class HeldWeights:
     version: int
     trained_step: int
     received_at: float
+    residuals: tuple[float, float] = (math.nan, math.nan)  # the fit's TD residuals (Q, V); nan: initial
 
 
 class WeightsInbox:
@@ -150,6 +152,7 @@ class WeightsInbox:
                 message.version,
                 message.trained_step,
                 time.monotonic(),
+                (message.q_residual, message.v_residual),
             )
             self.bus.count("weights_accepted")
             self.cond.notify_all()
@@ -226,6 +229,9 @@ class ZenohCriticPort:
         self.staleness: list[int] = []
         self.timeouts = 0
         self.fits = FitsDue(arrival_tolerances(settings))  # none on a robot held at rest
+        # the TD residuals (Q, V) of the fit on the step just recorded, once its weights are held
+        # (as common.math.loop.LocalCritic's); nan: no fit on it, or its weights not here yet
+        self.last_residuals = (math.nan, math.nan)
 
     def new_episode(self, settings: Settings, episode: int) -> None:
         """The same port (one cached transition publisher for the process's life) for a new
@@ -265,6 +271,7 @@ class ZenohCriticPort:
                 self.inbox.current().version,
             )
         held = self.inbox.current()
+        self.last_residuals = held.residuals if needs_fit and held.trained_step == sample.step else (math.nan, math.nan)
         # staleness of the weights the NEXT step will use: ideally trained on this step (at rest:
         # on the newest step the critic fits)
         self.staleness.append(self.fits.newest - held.trained_step)
