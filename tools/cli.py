@@ -25,7 +25,8 @@ from common.process.runtime import main as runtime_main
 DESCRIPTION = """srl: stacked RL-QV (actor, critic, plant) as Zenoh services, and the tools around them.
 
 Settings come from common/config/srl.toml, overridden by --config FILE (or SRL_CONFIG), by
-SRL_<SECTION>__<NAME> environment variables and by the flags of each subcommand.
+SRL_<SECTION>__<NAME> environment variables and by the flags of each subcommand. SRL_PLUGINS
+(files or modules, comma-separated) adds your own agents and plant models (docs/extending.md).
 Start with:  srl run            (one episode in this process)
              srl up             (router + every service as processes, a live status line)
 """
