@@ -388,6 +388,7 @@ def _drive(
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.timing  # the watchdog's stop within its timeout: a latency bound (tests/tiers.py)
+@pytest.mark.alone  # within one odometry period and 50 ms: another test's processes on the cores break it
 @pytest.mark.parametrize(
     ("profile", "distro", "emulator_cmd", "expected"),
     [

@@ -16,7 +16,7 @@ process, no socket, seconds in all; the edit-test loop. Under ``--fast`` the gua
 whose code started a process behind Python's back (C's ``system()``): the children's resource usage
 of the test process grew.
 
-``python -m tests.tiers`` (``./srl test`` without arguments): the whole suite in two phases.
+``python -m tests.tiers`` (``./srl test`` without arguments): the whole suite in phases.
 Phase 1 runs every test not marked ``timing`` on ``SRL_TEST_WORKERS`` (default :data:`WORKERS`)
 parallel pytest-xdist workers (``--dist worksteal``: each worker starts on a run of whole files, in
 order, and a worker that runs out takes tests from another's queue, so the long files of
@@ -26,8 +26,11 @@ partitions, lossy links), so two side by side still get the CPU their deadlines 
 would not beside phase 1's CPU-bound tests. Not more than two: a fleet's timing test alone takes most
 of a core, and four at a time on two cores (as root, the actor's tick at SCHED_FIFO) made three of
 them miss in one CI run (a deadline, a stop 0.13 s late, 49 of 60 steps after a router restart).
-``SRL_TEST_TIMING_WORKERS=1`` runs them alone, one by one. The last line counts both phases as pytest
-does; the exit code is non-zero if either phase failed. Before phase 1 the runner compiles the
+A timing test marked ``alone`` too (its bound leaves no room for another test's processes on the
+cores: the robot bridge's stop within its watchdog's timeout plus one odometry period) runs in a
+third phase, one at a time. ``SRL_TEST_TIMING_WORKERS=1`` runs every timing test alone, one by one.
+The last line counts every phase as pytest
+does; the exit code is non-zero if any phase failed. Before phase 1 the runner compiles the
 documented commands' actor problems into the run's JIT cache (:data:`WARM_PROBLEMS`). After each
 phase the runner prints its total CPU (tests' processes and their children: services, ``srl``
 commands, the C compiler) and the tests that took the most: on a machine of two cores the suite's
@@ -64,7 +67,7 @@ TIMING_WORKERS = 2  # the timing tests side by side, one per core (with or witho
 RT_PRIORITY = 10  # actor.realtime_priority in common/config/srl.toml
 BACKSTOP_S = 60  # past a test's timeout: faulthandler ends a test stuck in C code
 TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (main)
-JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by both phases (tests/conftest.py)
+JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by every phase (tests/conftest.py)
 CPU_LOG = "SRL_TEST_CPU_LOG"  # a directory where each test process writes its tests' CPU seconds (the runner's table)
 CPU_TABLE_ROWS = 15
 # The actor problems compiled into the run's JIT cache before phase 1 (srl build): those that the
@@ -346,7 +349,7 @@ def realtime_allowed() -> bool:
 
 
 def main(extra: list[str]) -> int:
-    """The two phases, each on ``extra`` (paths; none: the whole suite)."""
+    """The phases, each on ``extra`` (paths; none: the whole suite)."""
     workers = int(os.environ.get("SRL_TEST_WORKERS", WORKERS))
     timing = int(os.environ.get("SRL_TEST_TIMING_WORKERS", TIMING_WORKERS))
     phases = [
@@ -354,9 +357,14 @@ def main(extra: list[str]) -> int:
         (
             ("timing, alone", ["-p", "no:xdist", "-m", "timing", *extra])
             if timing <= 1
-            else (f"timing, {timing} at a time", ["-n", str(timing), "--dist", "worksteal", "-m", "timing", *extra])
+            else (
+                f"timing, {timing} at a time",
+                ["-n", str(timing), "--dist", "worksteal", "-m", "timing and not alone", *extra],
+            )
         ),
     ]
+    if timing > 1:  # the tests whose bound assumes the machine to themselves: after, one at a time
+        phases.append(("timing, alone", ["-p", "no:xdist", "-m", "timing and alone", *extra]))
     code, seconds = 0, 0.0
     total: dict[str, int] = {}
     done: list[str] = []
