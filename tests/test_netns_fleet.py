@@ -149,6 +149,9 @@ def strictly_increasing(values: list[int]) -> bool:
     return all(b > a for a, b in itertools.pairwise(values))
 
 
+# six robots on three hosts keep their deadlines on the two cores only without another test's
+# processes beside them (one CI run beside the status-line test: 2-4 missed per robot at load 4.3)
+@pytest.mark.alone
 def test_fleet_across_three_hosts_with_linked_routers_survives_a_partition() -> None:
     load_before = "/".join(f"{x:.1f}" for x in os.getloadavg())
     with Topology(roles=("a", "d", "c")) as topo:

@@ -27,8 +27,8 @@ would not beside phase 1's CPU-bound tests. Not more than two: a fleet's timing 
 of a core, and four at a time on two cores (as root, the actor's tick at SCHED_FIFO) made three of
 them miss in one CI run (a deadline, a stop 0.13 s late, 49 of 60 steps after a router restart).
 A timing test marked ``alone`` too (its bound leaves no room for another test's processes on the
-cores: the robot bridge's stop within its watchdog's timeout plus one odometry period) runs in a
-third phase, one at a time. ``SRL_TEST_TIMING_WORKERS=1`` runs every timing test alone, one by one.
+cores: the robot bridge's stop within its watchdog's timeout plus one odometry period; six robots'
+deadlines on three emulated hosts) runs in a third phase, one at a time. ``SRL_TEST_TIMING_WORKERS=1`` runs every timing test alone, one by one.
 The last line counts every phase as pytest
 does; the exit code is non-zero if any phase failed. Before phase 1 the runner compiles the
 documented commands' actor problems into the run's JIT cache (:data:`WARM_PROBLEMS`). After each
