@@ -24,6 +24,7 @@ from common.config.arguments import (
 from common.contracts.summaries import format_status_line
 from tools.commands.run import fmt_state, truth_lines
 from tools.commands.view import VIEW_PORT
+from tools.launch.plants import LAUNCH_PLANTS, launch_plant_help
 
 NAME = "up"
 HELP = "router + every service as separate processes, one run"
@@ -40,10 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_bridge_arguments(parser)
     parser.add_argument(
         "--plant",
-        choices=["sim", "robot", "physics"],
+        choices=list(LAUNCH_PLANTS),
         default="sim",
-        help="sim: plant_sim (plant.model); physics: plant_sim with the MuJoCo TurtleBot3 (plant.model = physics); "
-        "robot: robot_bridge + tb3-emulator of plant.model (or the robot at --robot-endpoint) (default: sim)",
+        help=f"{launch_plant_help()} (default: sim)",
     )
     add_mode_argument(parser)
     parser.add_argument(

@@ -559,6 +559,7 @@ def variants_page() -> str:
     from common.contracts.pose_sources import POSE_SOURCES
     from common.math.agents import AGENT_ROWS, REFERENCE_AGENT
     from common.math.plant_models import PLANT_MODELS
+    from tools.launch.plants import LAUNCH_PLANTS
 
     def yes(flag: bool) -> str:
         return "yes" if flag else ""
@@ -568,7 +569,8 @@ def variants_page() -> str:
         "",
         "# Variants",
         "",
-        "Each variant of srl (an agent, a simulated plant model, a localization source, a method) is",
+        "Each variant of srl (an agent, a simulated plant model, what `srl up` starts as the plant, a",
+        "localization source, a method) is",
         "one row of one table in the code; the settings, the command line's choices and these pages",
         "read it from there. [Extending srl](../extending.md) says how to add a row.",
         "",
@@ -600,6 +602,18 @@ def variants_page() -> str:
         "`common/math/plant_models.py` `PLANT_MODELS`: the setting `plant.model`, `--model`.",
         "",
         *_table(["model", "what it simulates"], [[code(name), cell(row.what)] for name, row in PLANT_MODELS.items()]),
+        "",
+        "## What `srl up` starts as the plant",
+        "",
+        "`tools/launch/plants.py` `LAUNCH_PLANTS`: `srl up --plant`, with or without `--robots`.",
+        "",
+        *_table(
+            ["plant", "starts", "behind the robot bridge", "sets plant.model"],
+            [
+                [code(name), cell(row.what), yes(row.behind_bridge), code(row.model) if row.model else ""]
+                for name, row in LAUNCH_PLANTS.items()
+            ],
+        ),
         "",
         "## Localization sources",
         "",

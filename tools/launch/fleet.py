@@ -41,6 +41,7 @@ from common.contracts.summaries import CriticSummary, RealtimeActorSummary
 from common.math.fleet import circle_starts, split_evenly
 from common.net.transport import zenoh_config
 from common.process.runtime import fleet_hosts
+from tools.launch.plants import launch_plant, with_launch_plant
 from tools.launch.supervisor import (
     Child,
     Logins,
@@ -48,7 +49,6 @@ from tools.launch.supervisor import (
     StopSignals,
     Supervisor,
     free_loopback_endpoint,
-    physics_plant,
     router_reachable,
     said,
     write_child_summaries,
@@ -605,8 +605,7 @@ def run_fleet(
     not read the transitions and weights a recording carries)."""
     if layout not in LAYOUTS:
         raise ValueError(f"unknown layout {layout!r} ({' or '.join(LAYOUTS)})")
-    if plant not in ("sim", "physics", "robot"):
-        raise ValueError(f"unknown plant {plant!r} (sim, physics or robot)")
+    bridged = launch_plant(plant).behind_bridge
     if not 1 <= actor_hosts <= len(robots):
         raise ValueError(f"{actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
     if secure and record is not None:
@@ -616,8 +615,7 @@ def run_fleet(
     router = router or free_loopback_endpoint()
     settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
     env = fleet_environment(pooled)
-    if plant == "physics":  # the plant host (or each plant_sim) steps one MuJoCo TurtleBot3 per robot
-        settings = physics_plant(settings, env)
+    settings = with_launch_plant(settings, env, plant)  # physics: one MuJoCo TurtleBot3 per robot
     common = fleet_args(settings_args, router)
     ids = ",".join(robots)
     started = time.monotonic()
@@ -643,7 +641,7 @@ def run_fleet(
                 recorder = supervisor.spawn("recorder", ["record", str(record), "--clock", "wall", *common])
                 supervisor.wait_for("recorder", said(recorder, "srl record: recording"), timeout=30)
             starts = circle_starts(len(robots), circle)
-            if plant == "robot":  # emulated or real TurtleBot3s behind bridges
+            if bridged:  # emulated or real TurtleBot3s behind bridges
                 from tools.launch.fleet_robot import spawn_robot_plants
 
                 ros = spawn_robot_plants(
@@ -662,7 +660,7 @@ def run_fleet(
                 spawn_sim_plants(supervisor, common, robots, layout, circle, login.get("plant"))
             supervisor.spawn("critic", ["critic", *common, f"--robots={ids}"], login.get("critic"))
             wait_fleet_alive(supervisor, settings, robots, "plant")
-            if plant == "robot":
+            if bridged:
                 from tools.launch.fleet_robot import wait_fleet_odometry
 
                 wait_fleet_odometry(supervisor, settings, ros)
@@ -675,7 +673,7 @@ def run_fleet(
                     supervisor.check()
         finally:
             signals.cleaning = True
-            if plant == "robot":
+            if bridged:
                 from tools.launch.fleet_robot import stop_bridges
 
                 stop_bridges(supervisor, robots, layout)
@@ -738,7 +736,7 @@ def run_fleet(
         )
     if count_messages:  # over the same span as the CPU: [count, bytes] of each kind
         summary["messages"] = measures.messages
-    if plant == "robot":
+    if bridged:
         from tools.launch.fleet_robot import robot_fleet_summary
 
         summary["robot_plant"] = robot_fleet_summary(supervisor, settings, robots, layout)

@@ -20,6 +20,7 @@ from common.config.arguments import (
 from common.config.settings import Settings
 from common.math.fleet import ROS_FLEET_PREFIX
 from tools.commands.view import VIEW_PORT
+from tools.launch.plants import launch_plant
 
 LAYOUTS = ("host", "process")
 
@@ -68,13 +69,12 @@ def beside_commands(args: argparse.Namespace, router: str, default_router: str) 
 
 def cmd_up_fleet(args: argparse.Namespace, settings: Settings, settings_args: list[str], summary_dir: Path) -> int:
     """``srl up --robots``: the fleet's run, a status line a second, the per-robot table, ``--json``."""
-    robots = fleet_robots(args, ROS_FLEET_PREFIX if args.plant == "robot" else "robot")
+    bridged = launch_plant(args.plant).behind_bridge  # the parser's choices are the rows
+    robots = fleet_robots(args, ROS_FLEET_PREFIX if bridged else "robot")
     assert robots is not None
-    if args.plant not in ("sim", "physics", "robot"):
-        raise UsageError("--robots runs --plant sim, physics or robot")
     endpoints: dict[str, str] = {}
     bridge_args: list[str] = []
-    if args.plant == "robot":
+    if bridged:
         from common.config.arguments import bridge_argv
 
         if settings.bridge.namespace:

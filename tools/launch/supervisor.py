@@ -127,13 +127,6 @@ class StopSignals:
             raise Stopped(self.received)
 
 
-def physics_plant(settings: Settings, env: dict[str, str]) -> Settings:
-    """``--plant physics``: plant_sim (or the plant host) with the MuJoCo TurtleBot3; every child
-    sees it through ``env``, and the settings returned say it to this process."""
-    env["SRL_PLANT__MODEL"] = "physics"
-    return settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": "physics"})})
-
-
 def contract_summary(child: Child, contract: TypeAdapter[T]) -> T:
     """A child's JSON summary read through its contract; one line if it has none or does not fit."""
     raw = child.summary()

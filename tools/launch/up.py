@@ -44,6 +44,7 @@ from common.contracts.summaries import (
 from common.math.frames import Pose2D, to_goal_frame
 from common.net.transport import zenoh_config
 from services.robot_bridge.robot_router import RobotLogins, robot_router_reachable
+from tools.launch.plants import launch_plant, with_launch_plant
 from tools.launch.supervisor import (
     CHILD_SUMMARIES,
     Child,
@@ -56,7 +57,6 @@ from tools.launch.supervisor import (
     contract_summary,
     free_loopback_endpoint,
     optional_summary,
-    physics_plant,
     router_reachable,
     said,
     state_probe,
@@ -65,7 +65,6 @@ from tools.launch.supervisor import (
 )
 
 log = logging.getLogger(__name__)
-PLANTS = ("sim", "robot", "physics")
 
 
 @dataclass(frozen=True)
@@ -198,17 +197,14 @@ def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
             open_for_writing(options.record).close()
         except RecordingError as error:
             raise ValueError(str(error)) from None
-    if options.plant not in PLANTS:
-        raise ValueError(f"unknown plant {options.plant!r} (sim, robot or physics)")
-    if options.plant == "robot" and options.mode != "realtime":
+    if launch_plant(options.plant).behind_bridge and options.mode != "realtime":
         raise ValueError(
-            "--plant robot runs in real time only: lockstep steps plant_sim through its "
+            f"--plant {options.plant} runs in real time only: lockstep steps plant_sim through its "
             "plant/step queryable, and a robot cannot be stepped; use --mode realtime"
         )
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
-    if options.plant == "physics":
-        settings = physics_plant(settings, env)
+    settings = with_launch_plant(settings, env, options.plant)
     started = time.monotonic()
     with StopSignals() as signals:
         supervisor = Supervisor(options.settings_args, env, quiet=options.quiet, signals=signals)
@@ -218,7 +214,8 @@ def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
 def _run_up(
     settings: Settings, options: UpOptions, supervisor: Supervisor, started: float, signals: StopSignals
 ) -> dict[str, Any]:
-    mode, plant, record, view_port = options.mode, options.plant, options.record, options.view_port
+    mode, record, view_port = options.mode, options.record, options.view_port
+    bridged = launch_plant(options.plant).behind_bridge
     common_args = [*options.settings_args]
     robot_args = [*options.settings_args, *options.bridge_args]
     logins = Logins.create(settings.transport, lockstep=mode == "lockstep") if options.secure else None
@@ -242,7 +239,7 @@ def _run_up(
         for name, argv, ready in observers:
             child = supervisor.spawn(name, argv)
             supervisor.wait_for(name, said(child, ready), timeout=30)
-        if plant in ("sim", "physics"):
+        if not bridged:
             supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
         else:
             robot_endpoint = settings.bridge.robot_endpoint
@@ -271,11 +268,11 @@ def _run_up(
             )
         supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
         # the bridge is alive once it reaches the robot's router, which it waits for (a robot boots slowly)
-        plant_timeout = 60 + (settings.bridge.robot_connect_timeout if plant == "robot" else 0)
+        plant_timeout = 60 + (settings.bridge.robot_connect_timeout if bridged else 0)
         supervisor.wait_for(
-            "plant" if plant != "robot" else "robot_bridge", alive_probe(settings, "plant"), timeout=plant_timeout
+            "robot_bridge" if bridged else "plant", alive_probe(settings, "plant"), timeout=plant_timeout
         )
-        if plant == "robot":
+        if bridged:
             supervisor.wait_for(
                 f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
                 f"{settings.bridge.profile}, {settings.bridge.ros_distro}, domain "
@@ -342,7 +339,7 @@ def merged_summary(settings: Settings, options: UpOptions, supervisor: Superviso
     }
     merged = actor_summary.to_json_dict()
     merged.pop("transitions_tail", None)  # kept in actor.json
-    if plant == "robot":
+    if launch_plant(plant).behind_bridge:
         bridge = others.get("robot_bridge")
         merged["bridge"] = None if bridge is None else bridge.to_json_dict()
         if "tb3_emulator" in supervisor.children:
