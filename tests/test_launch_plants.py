@@ -34,16 +34,17 @@ def test_a_rows_model_goes_to_every_child_and_to_this_process() -> None:
     assert physics.plant.model == "physics" and env == {"SRL_PLANT__MODEL": "physics"}
     for name, row in LAUNCH_PLANTS.items():  # a row without a model leaves the settings' own
         if row.model is None:
-            assert with_launch_plant(settings, env := {}, name) is settings and env == {}
+            untouched: dict[str, str] = {}
+            assert with_launch_plant(settings, untouched, name) is settings and untouched == {}
 
 
-class Started(Exception):
+class StartedError(Exception):
     """The launcher got past its checks and would start processes now."""
 
 
 def test_lockstep_is_refused_for_every_plant_behind_the_bridge(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     def no_processes(*args: object, **kwargs: object) -> None:
-        raise Started
+        raise StartedError
 
     monkeypatch.setattr("tools.launch.up.Supervisor", no_processes)
     # a row of the test's own: the launcher reads behind_bridge, not the name "robot"
@@ -54,7 +55,7 @@ def test_lockstep_is_refused_for_every_plant_behind_the_bridge(monkeypatch: pyte
             run_up(settings, UpOptions(settings_args=[], mode="lockstep", plant=name, duration=1.0))
     # negative controls: a simulator in lockstep, and a robot in real time, get past the checks
     for name, mode in (("sim", "lockstep"), ("rosbot", "realtime")):
-        with pytest.raises(Started):
+        with pytest.raises(StartedError):
             run_up(settings, UpOptions(settings_args=[], mode=mode, plant=name, duration=1.0))
     # a name no row has: one line, before anything starts
     with pytest.raises(ValueError, match="unknown plant 'nowhere'"):
