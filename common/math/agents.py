@@ -12,12 +12,12 @@ the complemented stack).
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 from typing import Literal
 
+from common.math.rows import add_row
+
 Agent = str  # a name of AGENT_ROWS (built in or registered)
-_NAME = re.compile(r"^[a-z][a-z0-9_+]{0,31}$")
 
 # How the stage cost delta r(s_i, u_i) enters the stacked objective at stage i = 1 .. N - 1:
 # "each" once per stage (MPC), "remaining" (N - i) times (the complemented stack), "none" not at all.
@@ -77,11 +77,7 @@ def register_agent(name: str, row: AgentRow) -> None:
     """Add an agent: ``actor.agent = name`` then minimizes ``row``'s objective in every consumer of
     this process (the actor, the critic, the experiment, the benchmarks). A name that is taken, or
     not 1-32 of a-z 0-9 _ + starting with a letter, raises ValueError."""
-    if not _NAME.match(name):
-        raise ValueError(f"agent name {name!r}: 1-32 of a-z 0-9 _ +, starting with a letter")
-    if name in AGENT_ROWS:
-        raise ValueError(f"agent {name!r} exists already")
-    AGENT_ROWS[name] = row
+    add_row(AGENT_ROWS, "agent", name, row, extra="+")
 
 
 def learns(agent: str) -> bool:

@@ -15,12 +15,12 @@ and runs it through every consumer.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from common.math.dynamics import FloatArray
+from common.math.rows import add_row
 from common.math.turtlebot import SimulatedRobot, TurtleBot, TurtleBotParams
 
 if TYPE_CHECKING:
@@ -29,7 +29,6 @@ if TYPE_CHECKING:
 # what a row builds: the robot at rest at ``pose`` from the settings' [actuator] and [physics]
 # constants (a model reads those it needs)
 RobotFactory = Callable[[TurtleBotParams, "PhysicsParams", FloatArray], SimulatedRobot]
-_NAME = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 
 
 @dataclass(frozen=True)
@@ -39,6 +38,11 @@ class PlantModelRow:
 
     what: str
     build: RobotFactory | None
+
+    @property
+    def exact(self) -> bool:
+        """No robot model: the exact unicycle, which a host of many robots steps as one array."""
+        return self.build is None
 
 
 def _actuator(params: TurtleBotParams, physics: PhysicsParams, pose: FloatArray) -> SimulatedRobot:
@@ -72,11 +76,7 @@ def register_plant_model(name: str, what: str, build: RobotFactory) -> None:
     every consumer of this process. A name that is taken, or not 1-32 of a-z 0-9 _ starting with
     a letter, raises ValueError. Command lines list the models registered when their parser is
     built."""
-    if not _NAME.match(name):
-        raise ValueError(f"plant model name {name!r}: 1-32 of a-z 0-9 _, starting with a letter")
-    if name in PLANT_MODELS:
-        raise ValueError(f"plant model {name!r} exists already")
-    PLANT_MODELS[name] = PlantModelRow(what, build)
+    add_row(PLANT_MODELS, "plant model", name, PlantModelRow(what, build))
 
 
 def simulated_robot(

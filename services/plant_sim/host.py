@@ -34,6 +34,7 @@ from common.contracts.keys import ACTION, STATE
 from common.contracts.messages import Action, PlantState
 from common.contracts.summaries import PlantSummary
 from common.math.dynamics import exact_steps
+from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread
 from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, state_ticks
 
@@ -95,7 +96,7 @@ class FleetPlant:
         self.robots = robots
         self.bounds = np.array([settings.plant.v_max, settings.plant.omega_max])
         self.lock = threading.Lock()
-        self.ideal = settings.plant.model == "ideal"
+        self.ideal = plant_model_row(settings.plant.model).exact
         self.states = np.array(starts, dtype=float).reshape(len(robots), 3)
         self.held = np.zeros((len(robots), 2))
         self.seq = np.zeros(len(robots), dtype=np.int64)

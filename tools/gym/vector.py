@@ -26,6 +26,7 @@ from common.config.assembly import build_plant
 from common.config.settings import Settings, start_state
 from common.math.dynamics import Plant, exact_steps
 from common.math.features import stage_cost
+from common.math.plant_models import plant_model_row
 from tools.gym.envs import FloatArray, StartDistribution, action_box, env_settings, observation_box
 
 MAX_ROBOTS = 100_000  # far beyond what one core steps usefully (python -m tools.gym.bench)
@@ -60,7 +61,7 @@ class SrlVectorEnv(VectorEnv[FloatArray, FloatArray, FloatArray]):
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.low, self.high = self.single_action_space.low, self.single_action_space.high
-        self.ideal = self.settings.plant.model == "ideal"
+        self.ideal = plant_model_row(self.settings.plant.model).exact
         self.plants: list[Plant] = [] if self.ideal else [build_plant(self.settings) for _ in range(num_envs)]
         self.rngs = [seeding.np_random(None)[0] for _ in range(num_envs)]
         self.states: FloatArray = np.zeros((num_envs, 3))
