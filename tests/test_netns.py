@@ -380,11 +380,16 @@ def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(metho
         # the newest step the critic fits of those sent before the link came back (a robot that
         # parked in the partition sends transitions its critic does not fit: common.math.critic.at_rest)
         live_edge = fitted_edge([t for t in system.records("transition") if t["t"] <= restored])
+        # "after the partition" counts from the moment the link starts to come back (restore_started):
+        # the critic may catch up to the live edge within restore's own ~0.15 s, and a robot at rest
+        # by then gets no later fit (one CI run waited 20 s for weights after `restored` in vain)
         first_after = system.observer.wait_record(
-            lambda r: r.get("kind") == "weights" and r["t"] > restored, CATCH_UP_S, "weights after the partition"
+            lambda r: r.get("kind") == "weights" and r["t"] > restore_started,
+            CATCH_UP_S,
+            "weights after the partition",
         )
         at_edge = system.observer.wait_record(
-            lambda r: r.get("kind") == "weights" and r["t"] > restored and r["trained_step"] >= live_edge,
+            lambda r: r.get("kind") == "weights" and r["t"] > restore_started and r["trained_step"] >= live_edge,
             CATCH_UP_S,
             f"weights trained on step {live_edge} (the newest it fits of those sent before the link came back)",
         )
@@ -433,8 +438,8 @@ def test_critic_partition_actor_runs_on_last_weights_and_critic_catches_up(metho
         *loop_rows(summary),
         (
             "catch-up",
-            f"first weights {first_after['t'] - restored:.2f} s after the link came back; trained on the "
-            f"live edge (step {live_edge}) after {at_edge['t'] - restored:.2f} s; all {total} transitions "
+            f"first weights {first_after['t'] - restore_started:.2f} s after the link came back; trained on "
+            f"the live edge (step {live_edge}) after {at_edge['t'] - restore_started:.2f} s; all {total} transitions "
             f"at the critic {final:.1f} s after the actor's end",
         ),
         (
