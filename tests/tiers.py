@@ -30,10 +30,10 @@ deadlines (2-4 missed per robot against 2, at load 4.3 on 2 cores). One at a tim
 minutes more. ``SRL_TEST_TIMING_WORKERS=2`` runs them two at a time on a quicker machine; the tests
 marked ``alone`` too (the two above) then run after the others, one at a time, in a third phase.
 The last line counts every phase as pytest does; the exit code is non-zero if any phase failed.
-Before phase 1 the runner compiles the documented commands' actor problems into the run's JIT
-cache (:data:`WARM_PROBLEMS`). After each phase the runner prints its total CPU (tests' processes and their children: services, ``srl``
-commands, the C compiler) and the tests that took the most: on a machine of two cores the suite's
-time is its CPU over the cores.
+Before phase 1 the runner compiles the documented commands' actor problems into the run's JIT cache
+(:data:`WARM_PROBLEMS`). After each phase the runner prints its total CPU (tests' processes and
+their children: services, ``srl`` commands, the C compiler) and the tests that took the most: on a
+machine of two cores the suite's time is its CPU over the cores.
 
 Every test has a time limit (pytest-timeout, ``timeout`` in pyproject.toml; a longer one with
 ``@pytest.mark.timeout(SECONDS)``): past it the test fails with its stack. A test stuck where
