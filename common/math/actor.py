@@ -365,9 +365,7 @@ class StackedActor:
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
         memory, counters = self.memory, self.memory.counters
         if memory.arrival is not None and memory.arrival.update(state):
-            # Arrived: exactly zero, no solve. The plan is void: resuming starts cold.
-            memory.previous_x = memory.earlier_x = None
-            counters.arrived_steps += 1
+            memory.held_at_rest()  # exactly zero, no solve
             return ActorStep(
                 action=np.zeros(ACTION_DIM),
                 plan=np.zeros((self.problem.horizon - 1, ACTION_DIM)),

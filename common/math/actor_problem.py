@@ -237,3 +237,9 @@ class ActorMemory:
         self.fresh = 0
         if self.arrival is not None:
             self.arrival.reset()
+
+    def held_at_rest(self) -> None:
+        """A step at which the arrival rule holds the robot (it said "arrived" and the state is
+        within its tolerances): exactly zero, no solve; the plans are void (resuming starts cold)."""
+        self.previous_x = self.earlier_x = None
+        self.counters.arrived_steps += 1

@@ -88,7 +88,9 @@ class FitResult:
     on_bound: np.ndarray | None = None
 
 
-def at_rest(previous: Sample | None, sample: Sample, tolerances: ArrivalTolerances | None) -> bool:
+def at_rest(
+    previous: Sample | None, sample: Sample, tolerances: ArrivalTolerances | None, inner: bool | None = None
+) -> bool:
     """``sample`` is a robot held at rest by the arrival rule (common/math/arrival.py): the step
     after ``previous``, the same state, inside the rule's INNER tolerances (where the rule holds a
     robot whatever it said before), and both held actions exactly zero. Its critic enters it into
@@ -97,7 +99,9 @@ def at_rest(previous: Sample | None, sample: Sample, tolerances: ArrivalToleranc
     first transition after the robot moves (another state) is fitted on the whole replay, rests
     included. Between the inner and the outer tolerances a zero command may be the wheel deadband's
     on a solve that has not arrived: there every due fit is made, so the next solve sees new
-    weights. ``tolerances`` None (no arrival rule, the paper's method): never at rest."""
+    weights. ``tolerances`` None (no arrival rule, the paper's method): never at rest. ``inner``:
+    whether the state is inside the inner tolerances, when the caller has computed it (an actor
+    host, for a tick group at once); None: computed here."""
     # scalar comparisons, cheapest first: an actor host runs this at every robot's tick, where
     # numpy's any / array_equal on 2- and 3-vectors cost ~10 times as much
     if tolerances is None or previous is None or sample.step != previous.step + 1:
@@ -108,7 +112,9 @@ def at_rest(previous: Sample | None, sample: Sample, tolerances: ArrivalToleranc
     state, earlier = sample.state, previous.state
     if len(state) != 3 or len(earlier) != 3 or state[0] != earlier[0] or state[1] != earlier[1]:
         return False
-    return bool(state[2] == earlier[2]) and arrival_update(False, state, tolerances)
+    if state[2] != earlier[2]:
+        return False
+    return arrival_update(False, state, tolerances) if inner is None else inner
 
 
 class FitsDue:
@@ -126,9 +132,10 @@ class FitsDue:
         self.newest = -1
         self.resting = False  # the last sample sent was at rest
 
-    def sent(self, sample: Sample) -> bool:
-        """``sample`` goes to the critic: True when the critic fits on it (when one is due)."""
-        self.resting = at_rest(self.previous, sample, self.tolerances)
+    def sent(self, sample: Sample, inner: bool | None = None) -> bool:
+        """``sample`` goes to the critic: True when the critic fits on it (when one is due).
+        ``inner``: as :func:`at_rest`'s."""
+        self.resting = at_rest(self.previous, sample, self.tolerances, inner)
         self.previous = sample
         if not self.resting:
             self.newest = sample.step

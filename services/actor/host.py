@@ -39,7 +39,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from common.config.assembly import arrival_rule, build_actor
+from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
 from common.contracts.fleet_summary import FleetActorSummary, fleet_view
 from common.contracts.fleet_summary import robot_summary as robot_view
@@ -48,12 +48,15 @@ from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
+from common.math.arrival import within_arrival
+from common.math.dynamics import ACTION_DIM
+from common.math.features import stage_cost_rows
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
-from services.actor.realtime import Counts, RealtimeActor, Steps
+from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps
 
 log = logging.getLogger(__name__)
 
@@ -136,12 +139,77 @@ class RobotActor:
     def reset(self) -> None:
         self.memory.forget()
 
+    def hold_at_rest(self) -> None:
+        """A step the arrival rule holds at rest, decided by :class:`RestCheck`: the memory as
+        :meth:`step` leaves it there (common.math.actor.StackedActor.step). The rule itself
+        stays as it is: arrived, its approach forgotten when it arrived."""
+        self.memory.held_at_rest()
+
     def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray, hurry: bool = False) -> ActorStep:
         held = self.shared.swap_memory(self.memory)
         try:
             return self.shared.step(state, q_weights, v_weights, hurry)
         finally:
             self.memory = self.shared.swap_memory(held)
+
+
+class RestCheck:
+    """Which robots of a tick group their actor's arrival rule holds at rest at this tick,
+    decided for the group at once as arrays: the outer tolerances (still arrived), the inner ones
+    (what the critic fits, common.math.critic.at_rest) and the stage costs of a zero command, for
+    every robot whose last step said "arrived" and whose newest state is fresh and from the one
+    live plant. Each such robot's tick is then :meth:`RealtimeActor.rest_tick
+    <services.actor.realtime.RealtimeActor.rest_tick>`: no step, its bookkeeping only. The
+    decision and the values are those of the robot's own step, bit for bit
+    (``tests/test_host_rest.py``). A host of actors without an arrival rule rests no robot."""
+
+    def __init__(self, settings: Settings, loops: Sequence[RealtimeActor]) -> None:
+        self.loops = loops
+        self.tolerances = arrival_tolerances(settings)
+        self.r_diag = settings.cost.r_diag
+        self.delta = settings.plant.sampling_time
+
+    def __call__(self, members: Sequence[int], now: float) -> dict[int, AtRest]:
+        tolerances = self.tolerances
+        if tolerances is None:
+            return {}
+        picked: list[int] = []
+        helds = []
+        for i in members:
+            loop = self.loops[i]
+            actor = loop.actor
+            if not isinstance(actor, RobotActor) or not actor.arrived or loop.plant_gate.conflict:
+                continue
+            held = loop.latest
+            if held is None or now - held[1] > loop.stale_after:
+                continue
+            picked.append(i)
+            helds.append(held)
+        if not picked:
+            return {}
+        states = np.array([held[0].state for held in helds])
+        zero = np.zeros((len(picked), ACTION_DIM))
+        stays = within_arrival(states, tolerances, tolerances.hysteresis)
+        inner = within_arrival(states, tolerances)
+        costs = self.delta * stage_cost_rows(states, zero, self.r_diag)
+        truths = [held[0].true_state for held in helds]
+        known = [j for j, truth in enumerate(truths) if truth is not None]
+        true_costs: list[float | None] = [None] * len(picked)
+        if known:
+            true_states = np.array([truths[j] for j in known])
+            for j, cost in zip(
+                known, self.delta * stage_cost_rows(true_states, zero[: len(known)], self.r_diag), strict=True
+            ):
+                true_costs[j] = float(cost)
+        rests = {}
+        for j, i in enumerate(picked):
+            if stays[j]:
+                actor = self.loops[i].actor
+                assert isinstance(actor, RobotActor)
+                rests[i] = AtRest(
+                    helds[j], states[j], float(costs[j]), true_costs[j], bool(inner[j]), actor.hold_at_rest
+                )
+        return rests
 
 
 class Outbox(Generic[M]):
@@ -249,8 +317,12 @@ class HostScheduler:
         budget: float = 1.0,
         group: int = 1,
         outboxes: Sequence[Outbox[Any]] = (),
+        rests: Callable[[Sequence[int], float], dict[int, AtRest]] | None = None,
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
+        # which robots of a tick group are served at rest (RestCheck; None: every tick a step)
+        self.rests = rests
+        self.group = group
         # the robots' actions and transitions, sent per group (none: each robot sends its own)
         self.outboxes = tuple(outboxes)
         self.clock = clock
@@ -286,6 +358,7 @@ class HostScheduler:
         rounds, pending_gc = 0, -1
         count = len(self.loops)
         group_due, group_start = -1.0, 0.0  # the due time of the group being served, when it began
+        resting: dict[int, AtRest] = {}  # its robots served at rest (RestCheck)
         try:
             while not self.stop.is_set():
                 due, i = heap[0]
@@ -308,6 +381,7 @@ class HostScheduler:
                 now = self.clock()
                 if due != group_due:
                     group_due, group_start = due, now
+                    resting = {} if self.rests is None else self.rests(self.members(i, due), now)
                 missed = ticker.missed
                 k = ticker.serve(now)
                 if ticker.missed != missed and now - self.warned >= 1.0:
@@ -327,7 +401,9 @@ class HostScheduler:
                 self.over_budget += over
                 # late: the group began late (its later ticks wait for the earlier ones by design)
                 late = group_start - due > HURRY_FRACTION * self.period
-                loop.tick(k, now, hurry=over or late)  # the lighter solve
+                rest = resting.pop(i, None)
+                if rest is None or not loop.rest_tick(k, now, rest):
+                    loop.tick(k, now, hurry=over or late)  # the lighter solve
                 spent = self.clock() - now
                 slot = self.served % count
                 self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
@@ -352,6 +428,12 @@ class HostScheduler:
         for loop, ticker in zip(self.loops, self.tickers, strict=True):  # on the way out: stop every robot
             loop.send(ticker.index, (0.0, 0.0), -1)
         self.flush()
+
+    def members(self, i: int, due: float) -> list[int]:
+        """The robots of robot ``i``'s tick group whose next tick is due at ``due`` (a robot that
+        skipped ticks is due at another time: served as a group of its own)."""
+        first = i - i % self.group
+        return [j for j in range(first, min(first + self.group, len(self.loops))) if self.tickers[j].next_due == due]
 
     def flush(self) -> None:
         for box in self.outboxes:
@@ -434,6 +516,7 @@ def run_host(
         budget=settings.actor.host_cpu_budget,
         group=settings.actor.host_tick_group,
         outboxes=(outbox, transitions),
+        rests=RestCheck(settings, loops),
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:

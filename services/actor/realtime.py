@@ -28,6 +28,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -44,7 +45,7 @@ from common.math.features import stage_cost
 from common.math.stats import Window
 from common.net.provenance import RefusalRun, SequenceGuard, SourceGate
 from common.system.clock import Ticker
-from services.actor.ports import WeightsInbox
+from services.actor.ports import HeldWeights, WeightsInbox
 
 log = logging.getLogger(__name__)
 # A state's seq may run at most this far ahead of the last accepted one of its plant session
@@ -53,6 +54,7 @@ log = logging.getLogger(__name__)
 MAX_SEQ_JUMP = 10_000
 PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
 RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
+ZERO_ACTION = (0.0, 0.0)
 
 
 class Counts(Protocol):
@@ -78,6 +80,19 @@ class Steps(Protocol):
     ) -> ActorStep: ...
 
     def reset(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class AtRest:
+    """One robot's tick at rest, decided with its tick group's as arrays (services/actor/host.py
+    RestCheck): its actor's arrival rule holds it and still will at ``state``."""
+
+    held: tuple[PlantState, float]  # the newest accepted state it was decided on, and when it came
+    state: np.ndarray  # that state
+    cost: float  # delta r(state, 0)
+    true_cost: float | None  # delta r(true state, 0); None: the state carries no truth
+    inner: bool  # inside the arrival rule's inner tolerances (common.math.critic.at_rest)
+    hold: Callable[[], None]  # leaves the actor's memory as its step at rest does
 
 
 class RealtimeActor:
@@ -123,6 +138,7 @@ class RealtimeActor:
         self.latencies = Window()
         self.staleness_steps = Window()
         self.staleness_ms = Window()
+        self.learns = learns(settings.actor.agent)
         self.fits = FitsDue(arrival_tolerances(settings))  # what the critic fits of what this loop sends
         self.accumulated_cost = 0.0
         self.tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)  # what a replay must hold
@@ -265,14 +281,11 @@ class RealtimeActor:
         self.actor.reset()  # the plan no longer matches the robot
 
     def _step(self, k: int, tick: float, held: tuple[PlantState, float], hurry: bool) -> None:
-        message, received = held
+        message = held[0]
         state = np.array(message.state)
         if self.start_state is None:
             self.start_state = state  # the robot's own start, whatever was requested
-        if message.true_state is None:
-            self.truth_known = False
-        elif self.true_start is None:
-            self.true_start = message.true_state
+        self._note_truth(message)
         weights = self.inbox.current()
         step = self.actor.step(state, weights.q, weights.v, hurry)  # the arrival rule acts inside (exactly zero)
         arrived = step.status == "arrived"
@@ -284,24 +297,77 @@ class RealtimeActor:
                 "commanding zero velocity" if arrived else "resuming",
             )
         self.arrived = arrived
-        self.arrived_steps += arrived
         action = (float(step.action[0]), float(step.action[1]))
         self.send(k, action, message.seq)
         done = self.clock()
-        # transport/loop latency: state arrival -> action out, minus the solve itself
-        self.latencies.append(max(0.0, done - max(received, tick) - step.solve_seconds))
-        cost = self.delta * float(stage_cost(state, step.action, self.settings.cost.r_diag))
-        self.accumulated_cost += cost
+        r_diag = self.settings.cost.r_diag
+        cost = self.delta * float(stage_cost(state, step.action, r_diag))
+        true_cost = None
         if message.true_state is not None:
-            true_state = np.array(message.true_state)
-            self.true_accumulated_cost += self.delta * float(
-                stage_cost(true_state, step.action, self.settings.cost.r_diag)
+            true_cost = self.delta * float(stage_cost(np.array(message.true_state), step.action, r_diag))
+        self._record(k, tick, held, state, action, cost, true_cost, weights, step.solve_seconds, done)
+
+    def rest_tick(self, k: int, tick: float, rest: AtRest) -> bool:
+        """Tick ``k`` of a robot its actor's arrival rule holds at rest, decided with its tick
+        group's (services/actor/host.py RestCheck): exactly zero, no solve, the cost and the
+        arrival test already computed as arrays; everything else as :meth:`tick` does it. False,
+        and nothing done, when the state it was decided on is no longer the newest or is stale,
+        or a second plant appeared (the caller then serves a whole :meth:`tick`)."""
+        with self.lock:
+            held = self.latest
+        if held is not rest.held or self.plant_gate.conflict or tick - held[1] > self.stale_after:
+            return False
+        try:
+            self._note_truth(held[0])
+            weights = self.inbox.current()
+            rest.hold()
+            self.send(k, ZERO_ACTION, held[0].seq)
+            done = self.clock()
+            self._record(
+                k, tick, held, rest.state, ZERO_ACTION, rest.cost, rest.true_cost, weights, 0.0, done, rest.inner
             )
+        except Exception:  # as tick: never let one bad tick end the loop that keeps the robot safe
+            self.counts.count("tick_errors")
+            log.exception("actor tick %d failed; commanding zero velocity", k)
+            self.stop_robot(k)
+        self.last_step = k
+        return True
+
+    def _note_truth(self, message: PlantState) -> None:
+        if message.true_state is None:
+            self.truth_known = False
+        elif self.true_start is None:
+            self.true_start = message.true_state
+
+    def _record(
+        self,
+        k: int,
+        tick: float,
+        held: tuple[PlantState, float],
+        state: np.ndarray,
+        action: tuple[float, float],
+        cost: float,
+        true_cost: float | None,
+        weights: HeldWeights,
+        solve_seconds: float,
+        done: float,
+        inner: bool | None = None,
+    ) -> None:
+        """What a step leaves once its action is out (at ``done``): its transition, its cost and
+        statistics. ``inner``: the state is inside the arrival rule's inner tolerances, when the
+        caller knows it (common.math.critic.at_rest)."""
+        received = held[1]
+        self.arrived_steps += self.arrived
+        # transport/loop latency: state arrival -> action out, minus the solve itself
+        self.latencies.append(max(0.0, done - max(received, tick) - solve_seconds))
+        self.accumulated_cost += cost
+        if true_cost is not None:
+            self.true_accumulated_cost += true_cost
         # the step fresh weights would be trained on: the previous one (ideally), or, while the
         # robot rests (the critic fits no transition of a robot at rest), the newest one fitted
         resting = self.fits.resting
         due = self.fits.newest if resting else k - 1
-        self.fits.sent(Sample(k, state, np.array(action), cost))  # the values the transition carries
+        self.fits.sent(Sample(k, state, np.array(action), cost), inner)  # the values the transition carries
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         self.publish_transition(
             Transition(
@@ -320,7 +386,7 @@ class RealtimeActor:
             self.published_steps[-1][1] = k
         else:
             self.published_steps.append([k, k])
-        if learns(self.settings.actor.agent):
+        if self.learns:
             self.staleness_steps.append(due - weights.trained_step)
             slot = weights.trained_step % PUBLISH_TIMES_KEPT
             # at rest, the weights' age in time grows with the rest: not a delay of the critic's

@@ -1,0 +1,237 @@
+"""An actor host serves the robots its arrival rule holds at rest as arrays (services/actor/host.py
+RestCheck, RealtimeActor.rest_tick): the same actions, transitions and summaries as each robot's
+own step, bit for bit; only the work differs."""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
+from common.config.settings import Settings
+from common.contracts.messages import Action, PlantState, Transition
+from common.math.actor_problem import ActorMemory
+from common.math.arrival import arrival_update, within_arrival
+from common.math.dynamics import exact_step
+from common.math.features import stage_cost, stage_cost_rows
+from common.net.provenance import SourceGate
+from services.actor.host import HostScheduler, RestCheck, RobotActor
+from services.actor.ports import WeightsInbox
+from services.actor.realtime import AtRest, RealtimeActor
+from tests.harness import FakeCounts
+
+DELTA = 0.1
+TICKS = 70
+
+
+def test_the_group_arrival_test_is_each_robots_own_including_its_edges() -> None:
+    tolerances = arrival_tolerances(Settings.load())
+    assert tolerances is not None
+    rng = np.random.default_rng(3)
+    edge = tolerances.position / math.sqrt(2.0)  # on the position tolerance's circle
+    turns = 2.0 * math.pi * rng.integers(-40, 40, 400)
+    states = np.vstack(
+        [
+            rng.uniform(-0.06, 0.06, (2000, 3)) * [1.0, 1.0, 4.0],
+            np.column_stack([np.full(400, edge), np.full(400, edge), turns + rng.uniform(-0.2, 0.2, 400)]),
+            np.column_stack([np.zeros(400), np.zeros(400), turns + np.pi * rng.choice([-1.0, 1.0], 400)]),
+            [[math.nan, 0.0, 0.0], [0.0, math.inf, 0.0], [0.0, 0.0, -math.inf]],
+        ]
+    )
+    for arrived, scale in ((False, 1.0), (True, tolerances.hysteresis)):
+        ours = within_arrival(states, tolerances, scale)
+        theirs = [arrival_update(arrived, state, tolerances) for state in states]
+        assert ours.tolist() == theirs
+    assert 0 < within_arrival(states, tolerances).sum() < len(states)  # both answers occur
+
+
+def test_the_stage_cost_of_many_rows_is_each_rows_bit_for_bit() -> None:
+    rng = np.random.default_rng(4)
+    r_diag = Settings.load().cost.r_diag
+    states, actions = rng.normal(size=(500, 3)) * 3.0, rng.normal(size=(500, 2))
+    rows = stage_cost_rows(states, actions, r_diag)
+    assert [float(c) for c in rows] == [float(stage_cost(s, a, r_diag)) for s, a in zip(states, actions, strict=True)]
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 10.0
+        self.on_sleep: Any = None
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> bool:
+        self.now += seconds
+        if self.on_sleep is not None:
+            self.on_sleep()
+        return False
+
+
+# Robot a and d are parked (d like a real robot: no truth), b is parked, pushed between the inner
+# and the outer tolerances, then pushed out of them (its actor resumes), c drives in from 0.25 m.
+STARTS = {
+    "a": (0.01, -0.005, 0.02),
+    "b": (0.02, 0.01, 0.05),
+    "c": (0.25, 0.15, 0.0),
+    "d": (-0.012, 0.004, -0.03),
+}
+PUSHES = {("b", 15): (0.04, 0.0, 0.05), ("b", 30): (0.2, 0.1, 0.3)}
+
+
+def run_host(rest: bool) -> tuple[list[Action], list[Any], list[dict[str, Any]], int]:
+    """The four robots on one built actor, a fake plant and a fake clock, for :data:`TICKS`
+    periods; ``rest``: with the host's RestCheck. What the host sent (each transition with what
+    the robot's loop then knew of its critic's fits, and its actor's memory), each robot's
+    summary, and the robot ticks served at rest."""
+    settings = Settings.load(actor={"jit": False, "host_tick_group": 2})
+    shared = build_actor(settings)
+    fake = FakeClock()
+    actions: list[Action] = []
+    transitions: list[Any] = []
+    loops: list[RealtimeActor] = []
+    truths = {}
+
+    def sent(transition: Transition) -> None:
+        loop = next(loop for loop in loops if loop.robot == transition.robot)
+        actor = loop.actor
+        assert isinstance(actor, RobotActor) and actor.memory.arrival is not None
+        arrival = actor.memory.arrival
+        memory = (
+            actor.counters.arrived_steps,
+            actor.counters.solves,
+            arrival.arrived,
+            arrival.arrivals,
+            arrival.docked,
+        )
+        transitions.append((transition, loop.fits.resting, loop.fits.newest, memory))
+
+    for robot, start in STARTS.items():
+        own = settings.model_copy(update={"transport": settings.transport.model_copy(update={"robot": robot})})
+        counts = FakeCounts()
+        critic = SourceGate("critic")
+        critic.update("c1", True)
+        inbox = WeightsInbox(own, counts, critic)  # type: ignore[arg-type]
+        actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
+        loop = RealtimeActor(own, actor, inbox, actions.append, sent, counts, 7, clock=fake.clock)
+        inbox.reset(7)
+        loop.plant_gate.update("p1", True)
+        loops.append(loop)
+        truths[robot] = np.array(start)
+    seq = [0]
+    last = [fake.now]
+
+    def plant() -> None:  # every robot moved by its last action since the last wake-up, then published
+        elapsed = fake.now - last[0]
+        last[0] = fake.now
+        seq[0] += 1
+        held = {a.robot: np.array(a.action) for a in actions}
+        for loop in loops:
+            robot = loop.robot
+            truths[robot] = exact_step(truths[robot], held.get(robot, np.zeros(2)), elapsed)
+            push = PUSHES.get((robot, int((fake.now - 10.0) / DELTA)))
+            if push is not None:
+                truths[robot] = np.array(push)
+            state = tuple(float(c) for c in truths[robot])
+            message = PlantState(
+                robot=robot,
+                episode=0,
+                seq=seq[0],
+                stamp_ns=0,
+                state=state,  # type: ignore[arg-type]
+                source="sim",
+                true_state=None if robot == "d" else state,  # type: ignore[arg-type]
+            )
+            loop.on_state(message, "p1", fake.now)
+
+    plant()
+    fake.on_sleep = plant
+    served = [0]
+    check = RestCheck(settings, loops)
+
+    def counted(members: Any, now: float) -> dict[int, AtRest]:
+        rests = check(members, now)
+        served[0] += len(rests)
+        return rests
+
+    scheduler = HostScheduler(
+        loops,  # type: ignore[arg-type]
+        DELTA,
+        threading.Event(),
+        clock=fake.clock,
+        sleep=fake.sleep,
+        group=2,
+        rests=counted if rest else None,
+    )
+    scheduler.run(end=fake.now + TICKS * DELTA, manual_gc=False)
+    return actions, transitions, [loop.summary() for loop in loops], served[0]
+
+
+TIMING = ("loop", "solve_ms", "latency_ms", "staleness_ms")
+
+
+def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do() -> None:
+    rested, step = run_host(rest=True), run_host(rest=False)
+    assert step[3] == 0 and rested[3] > TICKS  # the rest path served many ticks, the other none
+    for ours, theirs in zip(rested[0], step[0], strict=True):
+        assert (ours.robot, ours.step, ours.action, ours.state_seq) == (
+            theirs.robot,
+            theirs.step,
+            theirs.action,
+            theirs.state_seq,
+        )
+    assert rested[1] == step[1]  # every transition, every field: state, action, cost; fits, memory
+    for ours_summary, theirs_summary in zip(rested[2], step[2], strict=True):
+        ours_view = {k: v for k, v in ours_summary.items() if k not in TIMING}
+        theirs_view = {k: v for k, v in theirs_summary.items() if k not in TIMING}
+        assert ours_view == theirs_view
+    by_robot = dict(zip(STARTS, rested[2], strict=True))
+    # what the scenario says happened: c drove in and rests, b left its rest and came back, d has no truth
+    sent = [t for t, *_ in rested[1]]
+    assert [t.action for t in sent if t.robot == "c"][-5:] == [(0.0, 0.0)] * 5
+    assert math.hypot(*by_robot["c"]["final_state"][:2]) < 0.03
+    assert by_robot["d"]["truth"] is None and by_robot["a"]["truth"] is not None
+    moving = [t.step for t in sent if t.robot == "b" and t.action != (0.0, 0.0)]
+    assert moving and min(moving) > 25  # b rested through its push between the tolerances
+    between = [resting for t, resting, *_ in rested[1] if t.robot == "b" and 17 <= t.step < 28]
+    assert between and not any(between)  # at rest there, but outside the inner tolerances: fitted
+
+
+@pytest.mark.parametrize("conflict", [False, True])
+def test_a_robot_decided_at_rest_is_stepped_whole_when_its_state_changed_or_a_second_plant_came(
+    conflict: bool,
+) -> None:
+    """Between the group's decision and the robot's tick, a newer state came (or a second plant):
+    the rest tick refuses (False, nothing sent) and the host serves a whole tick instead."""
+    settings = Settings.load(actor={"jit": False})
+    fake = FakeClock()
+    sent: list[Any] = []
+    counts = FakeCounts()
+    critic = SourceGate("critic")
+    inbox = WeightsInbox(settings, counts, critic)  # type: ignore[arg-type]
+    loop = RealtimeActor(
+        settings,
+        RobotActor(build_actor(settings), ActorMemory()),
+        inbox,
+        sent.append,
+        sent.append,
+        counts,
+        7,
+        clock=fake.clock,
+    )
+    loop.plant_gate.update("p1", True)
+    state = PlantState(robot="robot1", episode=0, seq=1, stamp_ns=0, state=(0.0, 0.0, 0.0), source="sim")
+    loop.on_state(state, "p1", fake.now)
+    decided = loop.latest
+    assert decided is not None
+    if conflict:
+        loop.plant_gate.update("p2", True)
+    else:
+        loop.on_state(state.model_copy(update={"seq": 2}), "p1", fake.now)
+    rest = AtRest(decided, np.zeros(3), 0.0, None, True, lambda: None)
+    assert loop.rest_tick(0, fake.now, rest) is False
+    assert sent == [] and loop.steps == 0
