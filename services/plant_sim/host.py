@@ -7,7 +7,8 @@ the whole fleet is one numpy step (:func:`common.math.dynamics.exact_steps`); th
 (``plant.model = actuator | physics``) step one :class:`SimulatedPlant` per robot. Each robot
 keeps what one plant_sim keeps: only its live actor session's actions, in order
 (:class:`~common.net.provenance.ActionGate`), the watchdog (zero velocity after
-``action_timeout_steps * delta`` without a fresh action, and at once when its actor vanishes),
+``action_timeout_steps * delta`` without a fresh action, tested for every robot at once at each
+state tick, :func:`~services.plant_sim.service.due_watchdogs`; and at once when its actor vanishes),
 one plant per robot (a second plant of any robot of the list refuses to start), and the truth
 beside the reported state. Robots start on a circle around the target (common/math/fleet.py).
 
@@ -36,7 +37,7 @@ from common.contracts.summaries import PlantSummary
 from common.math.dynamics import exact_steps
 from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread
-from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, state_ticks
+from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, due_watchdogs, state_ticks
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,9 @@ class FleetPlant:
         self.states = np.array(starts, dtype=float).reshape(len(robots), 3)
         self.held = np.zeros((len(robots), 2))
         self.seq = np.zeros(len(robots), dtype=np.int64)
+        # when each robot's held action arrived (NaN: holding zero): its RobotIntake's, for the
+        # watchdogs of every robot at once (service.due_watchdogs)
+        self.arrivals = np.full(len(robots), np.nan)
         self.plants: list[SimulatedPlant] = []
         if not self.ideal:
             for robot, start in zip(robots, self.states, strict=True):
@@ -177,7 +181,8 @@ class RobotIntake(ActionIntake):
         def reject(what: str, why: str) -> None:
             bus.reject(what, f"robot {robot}: {why}")
 
-        super().__init__(hold, reject, bus.count)  # the host's counts: the robot's in a host of one
+        # the host's counts: the robot's in a host of one; its action's arrival in the plant's array
+        super().__init__(hold, reject, bus.count, plant.arrivals, index)
 
     def on_action(self, message: Action, source: str | None) -> None:
         now = self.take(message, source)
@@ -228,8 +233,8 @@ def run_plant_host(
     log.info("plant host ready: %d robots (%s)", len(robots), settings.plant.model)
     timeout = action_timeout(settings)
     for now, elapsed in state_ticks(settings, bus, stop, duration):
-        for intake in intakes:
-            intake.watchdog(now, timeout)
+        for i in due_watchdogs(plant.arrivals, now, timeout):
+            intakes[i].watchdog(now, timeout)
         messages = plant.advance(elapsed, None if sync is None else sync.due(now))
         due = [message for message in messages if message is not None]
         publish_states(due)

@@ -18,6 +18,7 @@ Every applied action is clamped to the robot's limits; messages are validated by
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -78,22 +79,37 @@ class ActionIntake:
 
     ``hold`` takes the action to hold (it clamps it to the robot's limits), ``reject`` a refusal
     (what, why), ``count`` (optional) each of ``actions_applied``, ``actor_lost_stops`` and
-    ``watchdog_stops`` as it happens; the same counts are kept as attributes."""
+    ``watchdog_stops`` as it happens; the same counts are kept as attributes. ``arrivals``,
+    ``index``: where it keeps when the held action arrived (NaN: holding zero), element ``index``
+    of an array of many robots' (a plant host's: :func:`due_watchdogs` reads them all at once)."""
 
     def __init__(
         self,
         hold: Callable[[Any], None],
         reject: Callable[[str, str], None],
         count: Callable[[str], None] | None = None,
+        arrivals: np.ndarray | None = None,
+        index: int = 0,
     ) -> None:
         self.hold, self.reject, self.count = hold, reject, count
         self.gate = ActionGate(SourceGate("actor"))
         self.lock = threading.Lock()
-        self.at: float | None = None  # when the held action arrived (None: holding zero)
+        self.arrivals = np.full(1, math.nan) if arrivals is None else arrivals
+        self.index = index
         self.applied = 0
         self.refused = 0
         self.watchdog_stops = 0
         self.actor_lost_stops = 0
+
+    @property
+    def at(self) -> float | None:
+        """When the held action arrived (None: holding zero)."""
+        at = float(self.arrivals[self.index])
+        return None if math.isnan(at) else at
+
+    @at.setter
+    def at(self, value: float | None) -> None:
+        self.arrivals[self.index] = math.nan if value is None else value
 
     def _counted(self, name: str) -> None:
         if self.count is not None:
@@ -133,6 +149,15 @@ class ActionIntake:
                 self._counted("watchdog_stops")
                 self.at = None  # stopped: zero until the next fresh action
                 self.hold((0.0, 0.0))
+
+
+def due_watchdogs(arrivals: np.ndarray, now: float, timeout: float) -> np.ndarray:
+    """The robots whose held action is older than ``timeout`` at ``now`` (:meth:`ActionIntake.watchdog`'s
+    test, the same arithmetic, for all robots at once; NaN, holding zero, is never due): each
+    one's own watchdog then decides under its lock (an action may have come since)."""
+    with np.errstate(invalid="ignore"):
+        due: np.ndarray = np.flatnonzero((now - arrivals) > timeout)
+    return due
 
 
 class SimulatedPlant:
