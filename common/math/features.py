@@ -99,11 +99,11 @@ def stage_cost_rows(states: np.ndarray, actions: np.ndarray, cost_diag: Any) -> 
     summed in the same order."""
     states, actions = np.asarray(states, dtype=float), np.asarray(actions, dtype=float)
     n = states.shape[1]
+    z = np.hstack([states, actions])
+    terms = np.asarray(cost_diag[: z.shape[1]], dtype=float) * z * z  # (c_i z_i) z_i, as stage_cost's
     total: np.ndarray = np.zeros(states.shape[0])
-    for i in range(n):
-        total = total + cost_diag[i] * states[:, i] * states[:, i]
-    for i in range(actions.shape[1]):
-        total = total + cost_diag[n + i] * actions[:, i] * actions[:, i]
+    for i in range(n + actions.shape[1]):  # summed from 0, in stage_cost's order
+        total += terms[:, i]
     return total
 
 

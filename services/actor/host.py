@@ -189,8 +189,7 @@ class RestCheck:
             return {}
         states = np.array([held[0].state for held in helds])
         zero = np.zeros((len(picked), ACTION_DIM))
-        stays = within_arrival(states, tolerances, tolerances.hysteresis)
-        inner = within_arrival(states, tolerances)
+        stays, inner = within_arrival(states, tolerances, (tolerances.hysteresis, 1.0))
         costs = self.delta * stage_cost_rows(states, zero, self.r_diag)
         truths = [held[0].true_state for held in helds]
         known = [j for j, truth in enumerate(truths) if truth is not None]
