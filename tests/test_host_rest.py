@@ -82,9 +82,10 @@ STARTS = {
 PUSHES = {("b", 15): (0.04, 0.0, 0.05), ("b", 30): (0.2, 0.1, 0.3)}
 
 
-def run_host(rest: bool) -> tuple[list[Action], list[Any], list[dict[str, Any]], int]:
+def run_host(rest: bool, arrays_from: int = 1) -> tuple[list[Action], list[Any], list[dict[str, Any]], int]:
     """The four robots on one built actor, a fake plant and a fake clock, for :data:`TICKS`
-    periods; ``rest``: with the host's RestCheck. What the host sent (each transition with what
+    periods; ``rest``: with the host's RestCheck (deciding groups of ``arrays_from`` robots or more
+    as arrays). What the host sent (each transition with what
     the robot's loop then knew of its critic's fits, and its actor's memory), each robot's
     summary, and the robot ticks served at rest."""
     settings = Settings.load(actor={"jit": False, "host_tick_group": 2})
@@ -150,7 +151,7 @@ def run_host(rest: bool) -> tuple[list[Action], list[Any], list[dict[str, Any]],
     plant()
     fake.on_sleep = plant
     served = [0]
-    check = RestCheck(settings, loops)
+    check = RestCheck(settings, loops, arrays_from)
 
     def counted(members: Any, now: float) -> dict[int, AtRest]:
         rests = check(members, now)
@@ -173,9 +174,17 @@ def run_host(rest: bool) -> tuple[list[Action], list[Any], list[dict[str, Any]],
 TIMING = ("loop", "solve_ms", "latency_ms", "staleness_ms")
 
 
-def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do() -> None:
-    rested, step = run_host(rest=True), run_host(rest=False)
-    assert step[3] == 0 and rested[3] > TICKS  # the rest path served many ticks, the other none
+@pytest.mark.parametrize("arrays_from", [1, 3])  # every group as arrays; groups of two robot by robot
+def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do(arrays_from: int) -> None:
+    rested, step = run_host(rest=True, arrays_from=arrays_from), run_host(rest=False)
+    # the rest path served exactly the ticks whose step found the robot arrived after an arrived step
+    held: dict[str, bool] = {}
+    expected = 0
+    for transition, _, _, memory in step[1]:
+        arrived = memory[2]
+        expected += arrived and held.get(transition.robot, False)
+        held[transition.robot] = arrived
+    assert step[3] == 0 and rested[3] == expected > TICKS
     for ours, theirs in zip(rested[0], step[0], strict=True):
         assert (ours.robot, ours.step, ours.action, ours.state_seq) == (
             theirs.robot,

@@ -48,9 +48,9 @@ from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
-from common.math.arrival import within_arrival
+from common.math.arrival import arrival_update, within_arrival
 from common.math.dynamics import ACTION_DIM
-from common.math.features import stage_cost_rows
+from common.math.features import stage_cost, stage_cost_rows
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
@@ -78,6 +78,10 @@ TRANSITIONS_PER_SAMPLE = 100
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.
 PRIME_WAIT_S = 3.0
+# A tick group with at least this many robots at rest is decided as arrays (RestCheck); a smaller
+# one robot by robot with the same functions as the step: numpy's ~10 calls cost ~50 us whatever
+# the rows, the scalar test ~12 us a robot (one robot's actor: the scalar test).
+REST_ARRAYS_FROM = 4
 
 
 def robot_settings(settings: Settings, robot: str) -> Settings:
@@ -161,13 +165,16 @@ class RestCheck:
     live plant. Each such robot's tick is then :meth:`RealtimeActor.rest_tick
     <services.actor.realtime.RealtimeActor.rest_tick>`: no step, its bookkeeping only. The
     decision and the values are those of the robot's own step, bit for bit
-    (``tests/test_host_rest.py``). A host of actors without an arrival rule rests no robot."""
+    (``tests/test_host_rest.py``); a group of fewer than ``arrays_from`` such robots is decided
+    robot by robot with the step's own functions (:data:`REST_ARRAYS_FROM`). A host of actors
+    without an arrival rule rests no robot."""
 
-    def __init__(self, settings: Settings, loops: Sequence[RealtimeActor]) -> None:
+    def __init__(self, settings: Settings, loops: Sequence[RealtimeActor], arrays_from: int = REST_ARRAYS_FROM) -> None:
         self.loops = loops
         self.tolerances = arrival_tolerances(settings)
         self.r_diag = settings.cost.r_diag
         self.delta = settings.plant.sampling_time
+        self.arrays_from = arrays_from
 
     def __call__(self, members: Sequence[int], now: float) -> dict[int, AtRest]:
         tolerances = self.tolerances
@@ -188,26 +195,31 @@ class RestCheck:
         if not picked:
             return {}
         states = np.array([held[0].state for held in helds])
-        zero = np.zeros((len(picked), ACTION_DIM))
-        stays, inner = within_arrival(states, tolerances, (tolerances.hysteresis, 1.0))
-        costs = self.delta * stage_cost_rows(states, zero, self.r_diag)
         truths = [held[0].true_state for held in helds]
-        known = [j for j, truth in enumerate(truths) if truth is not None]
+        zero = np.zeros((len(picked), ACTION_DIM))
         true_costs: list[float | None] = [None] * len(picked)
-        if known:
-            true_states = np.array([truths[j] for j in known])
-            for j, cost in zip(
-                known, self.delta * stage_cost_rows(true_states, zero[: len(known)], self.r_diag), strict=True
-            ):
-                true_costs[j] = float(cost)
+        if len(picked) >= self.arrays_from:
+            stays, inner = within_arrival(states, tolerances, (tolerances.hysteresis, 1.0))
+            costs = (self.delta * stage_cost_rows(states, zero, self.r_diag)).tolist()
+            known = [j for j, truth in enumerate(truths) if truth is not None]
+            if known:
+                true_states = np.array([truths[j] for j in known])
+                rows = self.delta * stage_cost_rows(true_states, zero[: len(known)], self.r_diag)
+                for j, cost in zip(known, rows.tolist(), strict=True):
+                    true_costs[j] = cost
+        else:  # a few robots: the robot's own scalar functions cost less than numpy's calls
+            stays = [arrival_update(True, state, tolerances) for state in states]
+            inner = [arrival_update(False, state, tolerances) for state in states]
+            costs = [self.delta * float(stage_cost(state, zero[0], self.r_diag)) for state in states]
+            for j, truth in enumerate(truths):
+                if truth is not None:
+                    true_costs[j] = self.delta * float(stage_cost(np.array(truth), zero[0], self.r_diag))
         rests = {}
         for j, i in enumerate(picked):
             if stays[j]:
                 actor = self.loops[i].actor
                 assert isinstance(actor, RobotActor)
-                rests[i] = AtRest(
-                    helds[j], states[j], float(costs[j]), true_costs[j], bool(inner[j]), actor.hold_at_rest
-                )
+                rests[i] = AtRest(helds[j], states[j], costs[j], true_costs[j], bool(inner[j]), actor.hold_at_rest)
         return rests
 
 
