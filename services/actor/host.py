@@ -48,9 +48,9 @@ from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
-from common.math.arrival import arrival_update, within_arrival
+from common.math.arrival import within_arrival
 from common.math.dynamics import ACTION_DIM
-from common.math.features import stage_cost, stage_cost_rows
+from common.math.features import stage_cost_rows
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
@@ -78,9 +78,9 @@ TRANSITIONS_PER_SAMPLE = 100
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.
 PRIME_WAIT_S = 3.0
-# A tick group with at least this many robots at rest is decided as arrays (RestCheck); a smaller
-# one robot by robot with the same functions as the step: numpy's ~10 calls cost ~50 us whatever
-# the rows, the scalar test ~12 us a robot (one robot's actor: the scalar test).
+# A tick group with at least this many robots at rest is served at rest as arrays (RestCheck); a
+# smaller one takes its steps: numpy's ~10 calls cost ~50 us whatever the rows, a step at rest
+# ~30 us (one robot's actor, a host of one, takes its steps at rest as before).
 REST_ARRAYS_FROM = 4
 
 
@@ -165,9 +165,8 @@ class RestCheck:
     live plant. Each such robot's tick is then :meth:`RealtimeActor.rest_tick
     <services.actor.realtime.RealtimeActor.rest_tick>`: no step, its bookkeeping only. The
     decision and the values are those of the robot's own step, bit for bit
-    (``tests/test_host_rest.py``); a group of fewer than ``arrays_from`` such robots is decided
-    robot by robot with the step's own functions (:data:`REST_ARRAYS_FROM`). A host of actors
-    without an arrival rule rests no robot."""
+    (``tests/test_host_rest.py``); a group of fewer than ``arrays_from`` such robots takes its
+    steps (:data:`REST_ARRAYS_FROM`). A host of actors without an arrival rule rests no robot."""
 
     def __init__(self, settings: Settings, loops: Sequence[RealtimeActor], arrays_from: int = REST_ARRAYS_FROM) -> None:
         self.loops = loops
@@ -192,28 +191,20 @@ class RestCheck:
                 continue
             picked.append(i)
             helds.append(held)
-        if not picked:
+        if not picked or len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
             return {}
         states = np.array([held[0].state for held in helds])
         truths = [held[0].true_state for held in helds]
         zero = np.zeros((len(picked), ACTION_DIM))
+        stays, inner = within_arrival(states, tolerances, (tolerances.hysteresis, 1.0))
+        costs = (self.delta * stage_cost_rows(states, zero, self.r_diag)).tolist()
         true_costs: list[float | None] = [None] * len(picked)
-        if len(picked) >= self.arrays_from:
-            stays, inner = within_arrival(states, tolerances, (tolerances.hysteresis, 1.0))
-            costs = (self.delta * stage_cost_rows(states, zero, self.r_diag)).tolist()
-            known = [j for j, truth in enumerate(truths) if truth is not None]
-            if known:
-                true_states = np.array([truths[j] for j in known])
-                rows = self.delta * stage_cost_rows(true_states, zero[: len(known)], self.r_diag)
-                for j, cost in zip(known, rows.tolist(), strict=True):
-                    true_costs[j] = cost
-        else:  # a few robots: the robot's own scalar functions cost less than numpy's calls
-            stays = [arrival_update(True, state, tolerances) for state in states]
-            inner = [arrival_update(False, state, tolerances) for state in states]
-            costs = [self.delta * float(stage_cost(state, zero[0], self.r_diag)) for state in states]
-            for j, truth in enumerate(truths):
-                if truth is not None:
-                    true_costs[j] = self.delta * float(stage_cost(np.array(truth), zero[0], self.r_diag))
+        known = [j for j, truth in enumerate(truths) if truth is not None]
+        if known:
+            true_states = np.array([truths[j] for j in known])
+            rows = self.delta * stage_cost_rows(true_states, zero[: len(known)], self.r_diag)
+            for j, cost in zip(known, rows.tolist(), strict=True):
+                true_costs[j] = cost
         rests = {}
         for j, i in enumerate(picked):
             if stays[j]:
@@ -527,7 +518,10 @@ def run_host(
         budget=settings.actor.host_cpu_budget,
         group=settings.actor.host_tick_group,
         outboxes=(outbox, transitions),
-        rests=RestCheck(settings, loops),
+        # a host whose groups never reach REST_ARRAYS_FROM robots (one robot's) asks for no rests
+        rests=RestCheck(settings, loops)
+        if min(len(robots), settings.actor.host_tick_group) >= REST_ARRAYS_FROM
+        else None,
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:
