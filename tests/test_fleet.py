@@ -169,7 +169,7 @@ class FakeLoop:
     hurried: list[bool] = field(default_factory=list)  # the scheduler's hurry at each tick
     hurried_work: float | None = None  # a hurried tick's time (None: as any other)
 
-    def tick(self, k: int, tick: float, hurry: bool = False) -> None:
+    def tick(self, k: int, tick: float, hurry: bool = False, rest: Any = None) -> None:
         self.served.append((self.robot, k, tick))
         self.hurried.append(hurry)
         self.fake.now += self.hurried_work if hurry and self.hurried_work is not None else self.work
@@ -277,7 +277,7 @@ def test_a_hosts_actions_leave_as_one_round_per_tick_group_or_once_the_first_has
     def acting(loop: FakeLoop) -> Any:
         ticking, put = loop.tick, send(loop.robot)
 
-        def tick(k: int, t: float, hurry: bool = False) -> None:
+        def tick(k: int, t: float, hurry: bool = False, rest: Any = None) -> None:
             ticking(k, t, hurry)
             put(k, (0.1, 0.0), k)
             following.put(f"{loop.robot}/{k}")

@@ -1,5 +1,5 @@
 """An actor host serves the robots its arrival rule holds at rest as arrays (services/actor/host.py
-RestCheck, RealtimeActor.rest_tick): the same actions, transitions and summaries as each robot's
+RestCheck, RealtimeActor.tick with an AtRest): the same actions, transitions and summaries as each robot's
 own step, bit for bit; only the work differs."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
 from common.contracts.messages import Action, PlantState, Transition
 from common.math.actor_problem import ActorMemory
-from common.math.arrival import arrival_update, within_arrival
+from common.math.arrival import arrival_masks, arrival_update
 from common.math.dynamics import exact_step
 from common.math.features import stage_cost, stage_cost_rows
 from common.net.provenance import SourceGate
@@ -42,7 +42,7 @@ def test_the_group_arrival_test_is_each_robots_own_including_its_edges() -> None
             [[math.nan, 0.0, 0.0], [0.0, math.inf, 0.0], [0.0, 0.0, -math.inf]],
         ]
     )
-    inner, outer = within_arrival(states, tolerances, (1.0, tolerances.hysteresis))
+    inner, outer = arrival_masks(states, tolerances)
     for arrived, ours in ((False, inner), (True, outer)):
         assert ours.tolist() == [arrival_update(arrived, state, tolerances) for state in states]
     assert 0 < inner.sum() < outer.sum() < len(states)  # every answer occurs
@@ -209,37 +209,40 @@ def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do
     assert between and not any(between)  # at rest there, but outside the inner tolerances: fitted
 
 
-@pytest.mark.parametrize("conflict", [False, True])
-def test_a_robot_decided_at_rest_is_stepped_whole_when_its_state_changed_or_a_second_plant_came(
-    conflict: bool,
+@pytest.mark.parametrize("change", ["newer state", "second plant", "none"])
+def test_a_robot_decided_at_rest_takes_its_step_when_its_state_changed_and_stops_for_a_second_plant(
+    change: str,
 ) -> None:
-    """Between the group's decision and the robot's tick, a newer state came (or a second plant):
-    the rest tick refuses (False, nothing sent) and the host serves a whole tick instead."""
+    """Between the group's decision and the robot's tick a newer state came: the tick is a step
+    (a solve, the newer state answered); a second plant came: zero, no transition, as any tick;
+    nothing changed (the control): the tick is served at rest."""
     settings = Settings.load(actor={"jit": False})
     fake = FakeClock()
     sent: list[Any] = []
     counts = FakeCounts()
     critic = SourceGate("critic")
     inbox = WeightsInbox(settings, counts, critic)  # type: ignore[arg-type]
-    loop = RealtimeActor(
-        settings,
-        RobotActor(build_actor(settings), ActorMemory()),
-        inbox,
-        sent.append,
-        sent.append,
-        counts,
-        7,
-        clock=fake.clock,
-    )
+    actor = RobotActor(build_actor(settings), ActorMemory())
+    loop = RealtimeActor(settings, actor, inbox, sent.append, sent.append, counts, 7, clock=fake.clock)
     loop.plant_gate.update("p1", True)
-    state = PlantState(robot="robot1", episode=0, seq=1, stamp_ns=0, state=(0.0, 0.0, 0.0), source="sim")
+    state = PlantState(robot="robot1", episode=0, seq=1, stamp_ns=0, state=(0.5, 0.2, 0.0), source="sim")
     loop.on_state(state, "p1", fake.now)
     decided = loop.latest
     assert decided is not None
-    if conflict:
+    if change == "second plant":
         loop.plant_gate.update("p2", True)
-    else:
+    elif change == "newer state":
         loop.on_state(state.model_copy(update={"seq": 2}), "p1", fake.now)
-    rest = AtRest(decided, np.zeros(3), 0.0, None, True, lambda: None)
-    assert loop.rest_tick(0, fake.now, rest) is False
-    assert sent == [] and loop.steps == 0
+    held: list[bool] = []
+    rest = AtRest(decided, np.array(decided[0].state), 0.25, None, False, lambda: held.append(True))
+    loop.tick(0, fake.now, rest=rest)
+    actions = [m for m in sent if isinstance(m, Action)]
+    transitions = [m for m in sent if isinstance(m, Transition)]
+    assert len(actions) == 1
+    if change == "newer state":
+        assert not held and actor.counters.solves == 1 and actions[0].state_seq == 2 and len(transitions) == 1
+    elif change == "second plant":
+        assert not held and actor.counters.solves == 0 and actions[0].state_seq == -1 and transitions == []
+    else:
+        assert held and actor.counters.solves == 0 and actions[0].action == (0.0, 0.0)
+        assert transitions[0].cost == 0.25 and actions[0].state_seq == 1

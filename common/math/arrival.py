@@ -59,24 +59,23 @@ def arrival_update(arrived: bool, state: np.ndarray, tolerances: ArrivalToleranc
     return distance <= scale * tolerances.position and heading <= scale * tolerances.heading
 
 
-def within_arrival(
-    states: np.ndarray, tolerances: ArrivalTolerances, scales: tuple[float, ...] = (1.0,)
-) -> list[np.ndarray]:
-    """:func:`arrival_update`'s test for many states ``(G, 3)`` at once, one mask per scale of
-    the inner tolerances (the outer ones: ``tolerances.hysteresis``): inside both and finite.
-    The heading error is wrapped exactly as :func:`heading_error` (``math.remainder``): ``fmod``
-    is exact, and so is moving its result by one turn (Sterbenz)."""
+def arrival_masks(states: np.ndarray, tolerances: ArrivalTolerances) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`arrival_update`'s test for many states ``(G, 3)`` at once: inside the inner
+    tolerances (arrive), and inside the outer ones (stay arrived); a non-finite state is in
+    neither. The heading error is wrapped exactly as :func:`heading_error` (``math.remainder``):
+    ``fmod`` is exact, and so is moving its result by one turn (Sterbenz)."""
     states = np.asarray(states, dtype=float)
     turn = 2.0 * math.pi
-    with np.errstate(invalid="ignore"):  # a non-finite state is never inside: NaN compares False
+    with np.errstate(invalid="ignore"):  # NaN compares False
         wrapped = np.fmod(states[:, 2], turn)
         heading = np.abs(wrapped - turn * (wrapped > math.pi) + turn * (wrapped < -math.pi))
         distance = np.hypot(states[:, 0], states[:, 1])
         finite = np.isfinite(states).all(axis=1)
-        return [
+        inner, outer = (
             (distance <= scale * tolerances.position) & (heading <= scale * tolerances.heading) & finite
-            for scale in scales
-        ]
+            for scale in (1.0, tolerances.hysteresis)
+        )
+    return inner, outer
 
 
 class ArrivalRule:

@@ -48,7 +48,7 @@ from common.contracts.messages import Action, Transition
 from common.contracts.summaries import RealtimeActorSummary, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
-from common.math.arrival import within_arrival
+from common.math.arrival import arrival_masks
 from common.math.dynamics import ACTION_DIM
 from common.math.features import stage_cost_rows
 from common.net.transport import Bus, bus_status, start_status_thread
@@ -143,12 +143,6 @@ class RobotActor:
     def reset(self) -> None:
         self.memory.forget()
 
-    def hold_at_rest(self) -> None:
-        """A step the arrival rule holds at rest, decided by :class:`RestCheck`: the memory as
-        :meth:`step` leaves it there (common.math.actor.StackedActor.step). The rule itself
-        stays as it is: arrived, its approach forgotten when it arrived."""
-        self.memory.held_at_rest()
-
     def step(self, state: np.ndarray, q_weights: np.ndarray, v_weights: np.ndarray, hurry: bool = False) -> ActorStep:
         held = self.shared.swap_memory(self.memory)
         try:
@@ -162,8 +156,9 @@ class RestCheck:
     decided for the group at once as arrays: the outer tolerances (still arrived), the inner ones
     (what the critic fits, common.math.critic.at_rest) and the stage costs of a zero command, for
     every robot whose last step said "arrived" and whose newest state is fresh and from the one
-    live plant. Each such robot's tick is then :meth:`RealtimeActor.rest_tick
-    <services.actor.realtime.RealtimeActor.rest_tick>`: no step, its bookkeeping only. The
+    live plant. Each such robot's tick is then :meth:`RealtimeActor.tick
+    <services.actor.realtime.RealtimeActor.tick>` with its :class:`~services.actor.realtime.AtRest`:
+    no step, its bookkeeping only (the arrival rule itself stays arrived). The
     decision and the values are those of the robot's own step, bit for bit
     (``tests/test_host_rest.py``); a group of fewer than ``arrays_from`` such robots takes its
     steps (:data:`REST_ARRAYS_FROM`). A host of actors without an arrival rule rests no robot."""
@@ -173,44 +168,41 @@ class RestCheck:
         self.tolerances = arrival_tolerances(settings)
         self.r_diag = settings.cost.r_diag
         self.delta = settings.plant.sampling_time
-        self.arrays_from = arrays_from
+        self.arrays_from = max(1, arrays_from)
 
     def __call__(self, members: Sequence[int], now: float) -> dict[int, AtRest]:
         tolerances = self.tolerances
         if tolerances is None:
             return {}
+        # the robots whose last step said "arrived" (their newest state's freshness and plant are
+        # checked at their tick, RealtimeActor.tick, as for any tick)
         picked: list[int] = []
         helds = []
+        actors: list[RobotActor] = []
         for i in members:
             loop = self.loops[i]
-            actor = loop.actor
-            if not isinstance(actor, RobotActor) or not actor.arrived or loop.plant_gate.conflict:
-                continue
-            held = loop.latest
-            if held is None or now - held[1] > loop.stale_after:
-                continue
-            picked.append(i)
-            helds.append(held)
-        if not picked or len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
+            held, actor = loop.latest, loop.actor
+            if held is not None and isinstance(actor, RobotActor) and actor.arrived:
+                picked.append(i)
+                helds.append(held)
+                actors.append(actor)
+        if len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
             return {}
         states = np.array([held[0].state for held in helds])
-        truths = [held[0].true_state for held in helds]
-        zero = np.zeros((len(picked), ACTION_DIM))
-        stays, inner = within_arrival(states, tolerances, (tolerances.hysteresis, 1.0))
-        costs = (self.delta * stage_cost_rows(states, zero, self.r_diag)).tolist()
+        known = [j for j, held in enumerate(helds) if held[0].true_state is not None]
+        truths = np.array([helds[j][0].true_state for j in known]).reshape(len(known), 3)
+        inner, stays = arrival_masks(states, tolerances)
+        # the stage costs of a zero command, of the reported states and then of the true ones
+        both = np.vstack([states, truths])
+        costs = (self.delta * stage_cost_rows(both, np.zeros((len(both), ACTION_DIM)), self.r_diag)).tolist()
         true_costs: list[float | None] = [None] * len(picked)
-        known = [j for j, truth in enumerate(truths) if truth is not None]
-        if known:
-            true_states = np.array([truths[j] for j in known])
-            rows = self.delta * stage_cost_rows(true_states, zero[: len(known)], self.r_diag)
-            for j, cost in zip(known, rows.tolist(), strict=True):
-                true_costs[j] = cost
+        for j, cost in zip(known, costs[len(picked) :], strict=True):
+            true_costs[j] = cost
         rests = {}
         for j, i in enumerate(picked):
             if stays[j]:
-                actor = self.loops[i].actor
-                assert isinstance(actor, RobotActor)
-                rests[i] = AtRest(helds[j], states[j], costs[j], true_costs[j], bool(inner[j]), actor.hold_at_rest)
+                hold = actors[j].memory.held_at_rest
+                rests[i] = AtRest(helds[j], states[j], costs[j], true_costs[j], bool(inner[j]), hold)
         return rests
 
 
@@ -403,9 +395,7 @@ class HostScheduler:
                 self.over_budget += over
                 # late: the group began late (its later ticks wait for the earlier ones by design)
                 late = group_start - due > HURRY_FRACTION * self.period
-                rest = resting.pop(i, None)
-                if rest is None or not loop.rest_tick(k, now, rest):
-                    loop.tick(k, now, hurry=over or late)  # the lighter solve
+                loop.tick(k, now, hurry=over or late, rest=resting.pop(i, None))  # hurry: the lighter solve
                 spent = self.clock() - now
                 slot = self.served % count
                 self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])

@@ -227,10 +227,12 @@ class RealtimeActor:
             log.warning("plant liveliness lost: commanding zero velocity until its state returns")
 
     # -- the loop ---------------------------------------------------------------------------
-    def tick(self, k: int, tick: float, hurry: bool = False) -> None:
+    def tick(self, k: int, tick: float, hurry: bool = False, rest: AtRest | None = None) -> None:
         """The work of tick ``k`` (due at ``tick``): an action (zero when it must) and, after a
         solve, one transition. ``hurry``: an actor host serves this tick late (the lighter solve,
-        StackedActor.step)."""
+        StackedActor.step). ``rest``: the host's tick group found the robot held at rest
+        (services/actor/host.py RestCheck): no step, when the state it was decided on is still
+        the newest (else a step, as without it)."""
         with self.lock:
             held = self.latest
         if self.plant_gate.conflict:
@@ -241,7 +243,10 @@ class RealtimeActor:
             self.stop_robot(k)
         else:
             try:
-                self._step(k, tick, held, hurry)
+                if rest is not None and rest.held is held:
+                    self._rest(k, tick, rest)
+                else:
+                    self._step(k, tick, held, hurry)
             except Exception:  # never let one bad tick end the loop that keeps the robot safe
                 self.counts.count("tick_errors")
                 log.exception("actor tick %d failed; commanding zero velocity", k)
@@ -307,31 +312,17 @@ class RealtimeActor:
             true_cost = self.delta * float(stage_cost(np.array(message.true_state), step.action, r_diag))
         self._record(k, tick, held, state, action, cost, true_cost, weights, step.solve_seconds, done)
 
-    def rest_tick(self, k: int, tick: float, rest: AtRest) -> bool:
-        """Tick ``k`` of a robot its actor's arrival rule holds at rest, decided with its tick
-        group's (services/actor/host.py RestCheck): exactly zero, no solve, the cost and the
-        arrival test already computed as arrays; everything else as :meth:`tick` does it. False,
-        and nothing done, when the state it was decided on is no longer the newest or is stale,
-        or a second plant appeared (the caller then serves a whole :meth:`tick`)."""
-        with self.lock:
-            held = self.latest
-        if held is not rest.held or self.plant_gate.conflict or tick - held[1] > self.stale_after:
-            return False
-        try:
-            self._note_truth(held[0])
-            weights = self.inbox.current()
-            rest.hold()
-            self.send(k, ZERO_ACTION, held[0].seq)
-            done = self.clock()
-            self._record(
-                k, tick, held, rest.state, ZERO_ACTION, rest.cost, rest.true_cost, weights, 0.0, done, rest.inner
-            )
-        except Exception:  # as tick: never let one bad tick end the loop that keeps the robot safe
-            self.counts.count("tick_errors")
-            log.exception("actor tick %d failed; commanding zero velocity", k)
-            self.stop_robot(k)
-        self.last_step = k
-        return True
+    def _rest(self, k: int, tick: float, rest: AtRest) -> None:
+        """A tick at rest: exactly zero, no solve; the arrival test and the costs are the tick
+        group's (RestCheck), everything else as :meth:`_step` does it."""
+        self._note_truth(rest.held[0])
+        weights = self.inbox.current()
+        rest.hold()
+        self.send(k, ZERO_ACTION, rest.held[0].seq)
+        done = self.clock()
+        self._record(
+            k, tick, rest.held, rest.state, ZERO_ACTION, rest.cost, rest.true_cost, weights, 0.0, done, rest.inner
+        )
 
     def _note_truth(self, message: PlantState) -> None:
         if message.true_state is None:
