@@ -296,6 +296,7 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
     JSON lines; each robot's actions counted by the id of the session that sent them (in the summary)."""
     import zenoh
 
+    from common.contracts.columns import decode_batch
     from common.contracts.keys import (
         ACTION,
         ACTION_BATCH,
@@ -313,7 +314,6 @@ def observe_fleet(router: str, connect_timeout: float) -> int:
         ServiceStatus,
         Transition,
         decode,
-        decode_batch,
     )
     from common.process.runtime import SignalWatch
 

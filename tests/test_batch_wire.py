@@ -14,14 +14,9 @@ from typing import Any
 
 import pytest
 
+from common.contracts.columns import HEADER, batch_payloads, columns_of, decode_batch, encode_columns
 from common.contracts.keys import WEIGHTS, WEIGHTS_BATCH, batch_of, every_robot
-from common.contracts.messages import (
-    MAX_PAYLOAD_BYTES,
-    CriticWeights,
-    MessageError,
-    batch_payloads,
-    decode_batch,
-)
+from common.contracts.messages import MAX_PAYLOAD_BYTES, CriticWeights, MessageError
 
 
 @contextlib.contextmanager
@@ -82,30 +77,45 @@ def test_a_round_is_split_into_batches_within_the_message_bound_and_comes_back_i
     assert list(batch_payloads([])) == []
 
 
+def one_batch(*sent: CriticWeights) -> bytes:
+    (payload,) = batch_payloads(list(sent))
+    return payload
+
+
 @pytest.mark.parametrize(
     ("payload", "says"),
     [
-        (b'[{"robot": 1}]', "item 0.robot"),
-        (b"{}", "payload: Input should be a valid array"),
-        (b"[1, 2", "Invalid JSON"),
-        (b"[" + b" " * MAX_PAYLOAD_BYTES + b"]", "exceeds"),
+        (lambda good: good[:-3], r"bytes, 2 rows need"),  # truncated
+        (lambda good: good + b"\0" * 8, r"bytes, 2 rows need"),  # trailing bytes
+        (lambda good: b"{}", "shorter than a header"),
+        (lambda good: b"[" + b" " * MAX_PAYLOAD_BYTES + b"]", "exceeds"),
+        (lambda good: b"JSON" + good[4:], "not a columnar batch"),
+        (lambda good: good[:4] + b"\x02" + good[5:], "format version 2"),
+        (lambda good: good[:6] + b"\x02" + good[7:], "a batch of another schema"),
+        (lambda good: good.replace(b"r1\nr2", b"r1\nr!"), r"item 1\.robot"),
+        (lambda good: good.replace(b"r1\nr2", b"r1\xffr2"), "ASCII"),
     ],
 )
-def test_a_bad_batch_is_refused_whole_with_one_line(payload: bytes, says: str) -> None:
+def test_a_bad_batch_is_refused_whole_with_one_line(payload: Any, says: str) -> None:
+    good = one_batch(weights("r1"), weights("r2"))
+    assert len(decode_batch(CriticWeights, good)) == 2
     with pytest.raises(MessageError, match=says) as refused:
-        decode_batch(CriticWeights, payload)
+        decode_batch(CriticWeights, payload(good))
     assert "\n" not in str(refused.value)
 
 
 def test_one_bad_item_refuses_the_batch_and_names_it() -> None:
-    good = weights("r1").encode()
-    nan = weights("r2").encode().replace(b'"q_weights":[0.0', b'"q_weights":[NaN')
-    assert nan != weights("r2").encode()
+    columns = columns_of(CriticWeights, [weights("r1"), weights("r2")])
+    columns.arrays["q_weights"] = columns.arrays["q_weights"].copy()
+    columns.arrays["q_weights"][1, 0] = float("nan")
+    (nan,) = encode_columns(columns)
     with pytest.raises(MessageError, match=r"item 1\.q_weights\.0"):
-        decode_batch(CriticWeights, b"[" + good + b"," + nan + b"]")
-    other_version = weights("r2").encode().replace(b'"schema_version":1', b'"schema_version":2')
-    with pytest.raises(MessageError, match=r"item 1\.schema_version"):
-        decode_batch(CriticWeights, b"[" + good + b"," + other_version + b"]")
+        decode_batch(CriticWeights, nan)
+    good = one_batch(weights("r1"), weights("r2"))
+    other_version = good[:5] + b"\x02" + good[6:]
+    assert HEADER.unpack_from(other_version)[2] == 2
+    with pytest.raises(MessageError, match=r"schema_version"):
+        decode_batch(CriticWeights, other_version)
 
 
 @pytest.mark.integration
@@ -162,7 +172,9 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
         assert writer.counters["batches_published"] == 2
         assert reader.counters["received.critic/weights"] == 5 + 6  # per robot subscription + the wildcard's
         # a malformed batch, and one with a bad item: refused whole, counted, nobody called
-        bad = b"[" + weights("b1", 7).encode() + b',{"robot": "b2"}]'
+        columns = columns_of(CriticWeights, [weights("b1", 7), weights("b2", 8)])
+        columns.arrays["version"] = columns.arrays["version"] * 0  # b2's version 0: below 1
+        (bad,) = encode_columns(columns)
         raw.put(WEIGHTS_BATCH.pattern, bad)
         raw.put(WEIGHTS_BATCH.pattern, b"not json")
         wait_until(lambda: reader.counters["rejected.critic/weights"] == 2, 10, "both refusals")
@@ -226,7 +238,8 @@ def test_a_hosts_transition_cache_holds_as_many_periods_of_every_robot_as_a_robo
         cost=1.2345678901234567e-300,
     )
     assert len(list(batch_payloads([longest] * TRANSITIONS_PER_SAMPLE))) == 1
-    assert len(list(batch_payloads([longest] * 4 * TRANSITIONS_PER_SAMPLE))) > 1  # the check can fail
+    assert len(list(batch_payloads([longest] * 8 * TRANSITIONS_PER_SAMPLE))) > 1  # the check can fail
+    assert len(longest.encode()) < 640
     assert transition_rounds(50, 10) == 5 and transition_rounds(1, 10) == 1 and transition_rounds(7, 10) == 1
     assert transition_rounds(300, 300) == 3  # a group of 300: three samples a round at most
 

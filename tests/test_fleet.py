@@ -105,7 +105,7 @@ def test_the_fleet_plant_holds_each_robots_action_clamped_and_reports_every_robo
     starts = np.array(circle_starts(3, 1.5))
     plant = FleetPlant(settings, robots, starts)
     plant.hold(1, (5.0, -9.0))  # beyond the limits: clamped
-    messages = plant.advance(0.1)
+    messages = list(plant.advance(0.1).items())
     assert [m.robot for m in messages] == robots and [m.seq for m in messages] == [1, 1, 1]
     assert messages[0].state == tuple(starts[0]) and messages[2].state == tuple(starts[2])  # held at zero
     expected = exact_step(starts[1], np.array([0.22, -2.84]), 0.1)
@@ -792,8 +792,9 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
     split a fleet across processes or hosts (docs/fleets.md); each robot's
     weights come from its own shard, and a robot of neither shard is learned by none."""
+    from common.contracts.columns import decode_batch
     from common.contracts.keys import STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH
-    from common.contracts.messages import CriticWeights, ServiceStatus, decode_batch
+    from common.contracts.messages import CriticWeights, ServiceStatus
     from tests.harness import Proc, free_port, open_session, random_transitions, wait_until
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

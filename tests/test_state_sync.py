@@ -90,16 +90,15 @@ def test_the_phase_is_the_least_delay_of_the_window_only() -> None:
     assert sync.due(opens + 0.001)[0]
 
 
-def test_the_fleet_plant_builds_messages_only_for_the_robots_due() -> None:
+def test_the_fleet_plant_sends_only_the_robots_due() -> None:
     settings = Settings.load()
     robots = ["r1", "r2", "r3"]
     plant = FleetPlant(settings, robots, np.array(circle_starts(3, 1.5)))
     plant.hold(0, (0.2, 0.0))
-    messages = plant.advance(0.1, np.array([False, True, False]))
-    assert [m is not None for m in messages] == [False, True, False]
-    assert messages[1] is not None and messages[1].robot == "r2"
-    every = plant.advance(0.1)
-    assert all(m is not None for m in every)
+    due = plant.advance(0.1, np.array([False, True, False]))
+    assert due.robots == ["r2"] and [m.robot for m in due.items()] == ["r2"]
+    every = list(plant.advance(0.1).items())
+    assert [m.robot for m in every] == robots
     first, (x0, _, heading) = every[0], circle_starts(3, 1.5)[0]
-    assert first is not None and first.seq == 2  # robot 1 moved on while not published
+    assert first.seq == 2  # robot 1 moved on while not published
     assert first.state[0] == pytest.approx(x0 + 0.2 * 0.2 * np.cos(heading))

@@ -70,8 +70,8 @@ class Service(Generic[M, R]):
 
 @dataclass(frozen=True)
 class Batch(Generic[M]):
-    """Many robots' messages of ``topic`` in one sample: a JSON array of the topic's messages (each
-    validated as one, common.contracts.messages.decode_batch), on the topic's key with the robot
+    """Many robots' messages of ``topic`` in one sample: the topic's messages as columns (each row
+    validated as a message is, common.contracts.columns), on the topic's key with the robot
     chunk :data:`BATCH_CHUNK`. A service that serves many robots sends what it has for them in one
     round as one sample (common.net.transport.Bus.round_publisher): a sample's cost in Zenoh and in
     the receiving process is mostly per sample, not per byte (docs/fleets.md). A receiver gets

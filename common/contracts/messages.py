@@ -7,11 +7,10 @@ Units are in the field descriptions; states are in the goal frame (heading unwra
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Sequence
-from functools import cache
+from collections.abc import Callable
 from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 SCHEMA_VERSION: Literal[1] = 1
 MAX_PAYLOAD_BYTES = 64 * 1024  # nothing we send comes close; bigger is refused unparsed
@@ -64,37 +63,6 @@ def _validated(what: str, item: str, validate: Callable[[bytes], T], payload: by
 def decode(schema: type[M], payload: bytes) -> M:
     """Parse and validate; any problem (size, JSON, schema, version, NaN) -> MessageError."""
     return _validated(schema.__name__, "", schema.model_validate_json, payload)
-
-
-def batch_payloads(messages: Sequence[Message]) -> Iterator[bytes]:
-    """``messages`` as JSON arrays of their encodings (a batch, common.contracts.keys.Batch), each
-    array within :data:`MAX_PAYLOAD_BYTES` (as many as it takes); a message too big alone raises
-    MessageError (none of ours comes close)."""
-    parts: list[bytes] = []
-    size = 2  # the brackets
-    for message in messages:
-        encoded = message.encode()
-        if len(encoded) + 2 > MAX_PAYLOAD_BYTES:
-            raise MessageError(f"{type(message).__name__}: {len(encoded)} bytes do not fit a batch")
-        if parts and size + 1 + len(encoded) > MAX_PAYLOAD_BYTES:
-            yield b"[" + b",".join(parts) + b"]"
-            parts, size = [], 2
-        size += len(encoded) + (1 if parts else 0)
-        parts.append(encoded)
-    if parts:
-        yield b"[" + b",".join(parts) + b"]"
-
-
-@cache
-def _batch_adapter(schema: type[M]) -> TypeAdapter[list[M]]:
-    return TypeAdapter(list[schema])  # type: ignore[valid-type]  # a schema known at run time
-
-
-def decode_batch(schema: type[M], payload: bytes) -> list[M]:
-    """A batch: a JSON array of ``schema`` messages, each validated as :func:`decode` validates one,
-    the whole within :data:`MAX_PAYLOAD_BYTES`. One bad item refuses the batch (MessageError
-    naming it): a sender that writes one bad item is not trusted with the others."""
-    return _validated(f"{schema.__name__} batch", "item ", _batch_adapter(schema).validate_json, payload)
 
 
 class PlantState(Message):

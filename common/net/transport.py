@@ -21,6 +21,7 @@ import zenoh
 import zenoh.ext
 
 from common.config.settings import TransportSettings
+from common.contracts.columns import Columns, batch_payloads, check_columns, decode_columns, encode_columns
 from common.contracts.keys import (
     Service,
     Topic,
@@ -32,7 +33,7 @@ from common.contracts.keys import (
     liveliness_key,
     robot_of,
 )
-from common.contracts.messages import Message, MessageError, batch_payloads, decode, decode_batch
+from common.contracts.messages import Message, MessageError, decode
 from common.net.provenance import QUIET_REFUSALS, PlantConflictError, SourceGate, yields_to
 from common.net.security import check_network_exposure, tls_entries, zenoh_entries
 
@@ -240,7 +241,9 @@ class Bus:
         self._keep.append(publisher)
         return publisher
 
-    def round_publisher(self, topic: Topic[M], batches: bool = True, cache: int = 0) -> Callable[[Sequence[M]], None]:
+    def round_publisher(
+        self, topic: Topic[M], batches: bool = True, cache: int = 0
+    ) -> Callable[[Sequence[M] | Columns[M]], None]:
         """Puts rounds of many robots' messages on ``topic``: with ``batches`` (a service that
         serves many robots) and a topic that has a batch form, every round as batches
         (common.contracts.keys.Batch: one sample per 64 KiB of them,
@@ -249,20 +252,34 @@ class Bus:
         subscriptions may each run in a thread of their own, and two paths would lose their order.
         Every receiver gets each message as if it had come alone (:meth:`subscribe`). ``cache > 0``:
         the publisher (of the batches, or of each robot's key) is an advanced one that keeps its
-        last ``cache`` samples (:meth:`publisher`): a batch sample counts as one."""
+        last ``cache`` samples (:meth:`publisher`): a batch sample counts as one. A round is its
+        messages, or their columns (common.contracts.columns.Columns: a host's arrays, checked
+        as a receiver checks them before anything is sent)."""
         batch = batch_of(topic) if batches else None
         batched = None if batch is None else self._declare_publisher(batch.pattern, cache)
         singles: dict[str, Callable[[M], None]] = {}
 
-        def publish(messages: Sequence[M]) -> None:
-            for message in messages:
-                if not isinstance(message, topic.schema):
-                    raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
-            if batched is not None:
-                for payload in batch_payloads(messages):
-                    batched.put(payload)
-                    self.count("batches_published")
-                return
+        def publish(round_: Sequence[M] | Columns[M]) -> None:
+            if isinstance(round_, Columns):
+                if round_.schema is not topic.schema:
+                    raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {round_.schema.__name__}")
+                check_columns(round_)
+                if batched is not None:
+                    for payload in encode_columns(round_):
+                        batched.put(payload)
+                        self.count("batches_published")
+                    return
+                messages: Sequence[M] = list(round_.items())
+            else:
+                messages = round_
+                for message in messages:
+                    if not isinstance(message, topic.schema):
+                        raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
+                if batched is not None:
+                    for payload in batch_payloads(messages):
+                        batched.put(payload)
+                        self.count("batches_published")
+                    return
             for message in messages:
                 robot = getattr(message, "robot")  # noqa: B009  # every topic's schema names its robot
                 single = singles.get(robot)
@@ -364,7 +381,7 @@ class Bus:
 
         def on_batch(sample: zenoh.Sample) -> None:
             try:
-                items = decode_batch(topic.schema, sample.payload.to_bytes())
+                columns = decode_columns(topic.schema, sample.payload.to_bytes())
             except MessageError as error:
                 self.reject(name, str(error))
                 return
@@ -372,8 +389,7 @@ class Bus:
             targets = self._batch_targets.get(pattern)
             if targets is None:
                 targets = self._batch_targets[pattern] = {}
-            for item in items:
-                robot = getattr(item, "robot")  # noqa: B009  # every batch item names its robot
+            for row, robot in enumerate(columns.robots):
                 deliveries = targets.get(robot)  # a robot's routes are matched once, not per item
                 if deliveries is None:
                     if len(targets) >= BATCH_ROBOTS_KEPT:  # bounded whatever robot ids senders invent
@@ -381,8 +397,10 @@ class Bus:
                     concrete = zenoh.KeyExpr(topic.key(robot))
                     routes = self._batch_routes[pattern]
                     deliveries = targets[robot] = [d for k, d in routes if k.intersects(concrete)]
-                for each in deliveries:
-                    each(item, source)
+                if deliveries:  # a message is built for the robots served here only
+                    item = columns.item(row)
+                    for each in deliveries:
+                        each(item, source)
 
         if first:
             self._keep.append(self._declare_subscriber(pattern, self._callback(on_batch, threaded), recover))
@@ -428,14 +446,14 @@ class Bus:
                 if batch is None or key != batch.pattern:
                     hand(decode_sample(topic, key, reply.ok.payload.to_bytes()))
                     return
-                items = decode_batch(topic.schema, reply.ok.payload.to_bytes())
+                columns = decode_columns(topic.schema, reply.ok.payload.to_bytes())
             except MessageError as error:
                 self.reject(name, str(error))
                 return
-            for item in items:
-                robot_key = zenoh.KeyExpr(topic.key(getattr(item, "robot")))  # noqa: B009  # every item names its robot
+            for row, robot in enumerate(columns.robots):
+                robot_key = zenoh.KeyExpr(topic.key(robot))
                 if any(expression.intersects(robot_key) for expression in expressions):
-                    hand(item)
+                    hand(columns.item(row))
 
         def on_end() -> None:
             with lock:

@@ -72,8 +72,9 @@ HURRY_FRACTION = 0.05
 # its actions arrive (services/plant_sim/host.py StateSync) and opens its window SYNC_MARGIN_S
 # (5 ms) early: a wait well inside that margin keeps every robot's newest state in the window.
 ACTION_WAIT_S = 0.002
-# A lower bound on the transitions one batch sample holds: an encoded Transition is under 640
-# bytes (tests/test_batch_wire.py checks a worst case), the sample's bound is 64 KiB.
+# A lower bound on the transitions one batch sample holds: a Transition's row of a columnar batch
+# is at most 153 bytes, its JSON under 640 (tests/test_batch_wire.py checks a worst case); the
+# sample's bound is 64 KiB.
 TRANSITIONS_PER_SAMPLE = 100
 # How long a host waits for its robots' first states to prime their plans (prime_plans) before
 # its first tick: a plant started with it (srl up, compose) publishes within a second.

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from common.config.settings import Settings
+from common.contracts.columns import Columns, choice_code, columns_of
 from common.contracts.fleet_summary import FleetPlantSummary, PlantRow
 from common.contracts.keys import ACTION, STATE
 from common.contracts.messages import Action, PlantState
@@ -41,6 +42,7 @@ from services.plant_sim.service import ActionIntake, SimulatedPlant, action_time
 
 log = logging.getLogger(__name__)
 
+SIM_SOURCE = choice_code(PlantState, "source", "sim")  # a simulator's states in a round's columns
 SYNC_WINDOW = 50  # a robot's phase is learned from its last this many actions (5 s at delta = 0.1 s)
 SYNC_MIN_ACTIONS = 5  # before that many, every state tick publishes the robot's state
 SYNC_MARGIN_S = 0.005  # the publishing window opens this long before one state period ahead of the tick
@@ -123,33 +125,36 @@ class FleetPlant:
             if not self.ideal:
                 self.plants[index].hold(clamped)
 
-    def advance(self, duration: float, due: np.ndarray | None = None) -> list[PlantState | None]:
-        """Every robot ``duration`` seconds on; their new state messages, in robot order (None for
-        a robot not ``due`` a publication: its state moved on all the same)."""
+    def advance(self, duration: float, due: np.ndarray | None = None) -> Columns[PlantState]:
+        """Every robot ``duration`` seconds on; the states of the robots ``due`` a publication (all:
+        None), in robot order, as one round's columns (a robot not due moved on all the same).
+        The ideal unicycle's round is the fleet's arrays: no message is built per robot."""
         stamp = time.monotonic_ns()
         with self.lock:
             if not self.ideal:
-                messages: list[PlantState | None] = [plant.advance(duration) for plant in self.plants]
-                return messages if due is None else [m if d else None for m, d in zip(messages, due, strict=True)]
+                messages = [plant.advance(duration) for plant in self.plants]
+                chosen = messages if due is None else [m for m, d in zip(messages, due, strict=True) if d]
+                return columns_of(PlantState, chosen)
             self.states = exact_steps(self.states, self.held, duration)
             self.seq += 1
-            states, seqs = self.states.tolist(), self.seq.tolist()
-        wanted = [True] * len(self.robots) if due is None else due.tolist()
-        return [
-            PlantState(
-                robot=robot,
-                episode=0,
-                seq=seq,
-                stamp_ns=stamp,
-                state=(s[0], s[1], s[2]),
-                source="sim",
-                true_state=(s[0], s[1], s[2]),
-                saturated_commands=0,
-            )
-            if publish
-            else None
-            for robot, s, seq, publish in zip(self.robots, states, seqs, wanted, strict=True)
-        ]
+            rows = np.arange(len(self.robots)) if due is None else np.flatnonzero(due)
+            states, seqs = self.states[rows], self.seq[rows]  # copies: the next step moves on
+        count = len(rows)
+        robots = self.robots if count == len(self.robots) else [self.robots[i] for i in rows.tolist()]
+        return Columns(
+            PlantState,
+            robots,
+            {
+                "episode": np.zeros(count, dtype=np.int64),
+                "seq": seqs,
+                "stamp_ns": np.full(count, stamp, dtype=np.int64),
+                "state": states,
+                "source": np.full(count, SIM_SOURCE, dtype=np.int64),
+                "true_state": states,
+                "saturated_commands": np.zeros(count, dtype=np.int64),
+                "map_to_odom": np.full((count, 3), np.nan),  # absent
+            },
+        )
 
     def saturated_commands(self, index: int) -> int:
         """Commands of robot ``index`` a wheel could not follow (the ideal unicycle has no wheels: 0)."""
@@ -235,12 +240,10 @@ def run_plant_host(
     for now, elapsed in state_ticks(settings, bus, stop, duration):
         for i in due_watchdogs(plant.arrivals, now, timeout):
             intakes[i].watchdog(now, timeout)
-        messages = plant.advance(elapsed, None if sync is None else sync.due(now))
-        due = [message for message in messages if message is not None]
-        publish_states(due)
-        published = len(due)
-        bus.count("states_published", published)
-        bus.count("states_held_back", len(messages) - published)
+        round_ = plant.advance(elapsed, None if sync is None else sync.due(now))
+        publish_states(round_)
+        bus.count("states_published", len(round_))
+        bus.count("states_held_back", len(robots) - len(round_))
     return PlantHostRun(robots, np.asarray(starts, dtype=float).reshape(len(robots), 3), plant, intakes)
 
 

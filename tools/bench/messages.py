@@ -18,9 +18,9 @@ common/net/transport.py):
   - ``threaded``: the same wire, the handler on a thread of its own (``Bus.subscribe(threaded=True)``,
     what ``srl record``'s wildcards do);
   - ``batched``: one message per tick holding every robot's, as srl's plant host sends its states and
-    a fleet's critic its weights (common.contracts.keys.Batch): a JSON array of the same encoded
-    messages (``batch_payloads``), each validated by the same schema on arrival (``decode_batch``),
-    here on a key of the benchmark's own.
+    a fleet's critic its weights (common.contracts.keys.Batch): the same messages as columns
+    (``batch_payloads``), each row validated as the schema validates a message on arrival
+    (``decode_batch``), here on a key of the benchmark's own.
 
   The CPU of each process over the run (/proc: user + system, every thread), divided by the robot
   messages sent, is its cost per robot message; the subscriber's count of what it validated must
@@ -157,7 +157,7 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
     ``limit`` seconds); print the count."""
     import threading
 
-    from common.contracts.messages import decode_batch
+    from common.contracts.columns import decode_batch
     from common.net.transport import Bus
 
     topic = topic_of(kind)
@@ -195,7 +195,7 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
 def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, period: float) -> None:
     """``robots`` robots' messages every ``period`` for ``seconds``: "sending" at the start, then the
     number of robot messages sent."""
-    from common.contracts.messages import batch_payloads
+    from common.contracts.columns import batch_payloads
     from common.net.transport import Bus
 
     topic = topic_of(kind)

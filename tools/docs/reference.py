@@ -12,6 +12,7 @@ import ast
 import inspect
 import io
 import json
+import math
 import re
 import tokenize
 import tomllib
@@ -392,7 +393,8 @@ def messages_page() -> str:
         docstring(messages.__doc__),
         "",
         f"Schema version: **{messages.SCHEMA_VERSION}** (every message's `schema_version`; a message of another",
-        "version is refused). A payload is JSON, one object, at most "
+        "version is refused). A payload is JSON, one object (a batch, `srl/@batch/...`, is binary: "
+        "[columnar batches](#columnar-batches)), at most "
         f"{messages.MAX_PAYLOAD_BYTES} bytes; anything bigger is refused unparsed.",
         "Physical bounds every message keeps: positions within "
         f"{number(messages.MAX_POSITION)} m, headings within {number(messages.MAX_HEADING)} rad (unwrapped),",
@@ -419,7 +421,38 @@ def messages_page() -> str:
             "```",
             "",
         ]
-    return "\n".join(lines)
+    return "\n".join(lines + columnar_section())
+
+
+def columnar_section() -> list[str]:
+    """The columnar batch format (common/contracts/columns.py): its layout, and the columns of
+    every schema a batch carries, from the code that encodes and checks them."""
+    from common.contracts import columns
+
+    lines = ["## Columnar batches", "", docstring(columns.__doc__), ""]
+    for schema, schema_code in columns.SCHEMA_CODES.items():
+        lines += [f"### {schema.__name__} batch", "", f"Schema code **{schema_code}**.", ""]
+        rows = []
+        for column in columns.layout(schema):
+            bounds = []
+            if column.kind == "choice":
+                bounds.append(", ".join(f"{i} = {name}" for i, name in enumerate(column.choices)))
+            else:
+                pairs = list(zip(column.lower, column.upper, strict=True))
+                named = len(set(pairs)) > 1  # bounds per number, else one for all
+                for index, (lower, upper) in enumerate(pairs if named else pairs[:1]):
+                    each = ["finite"] if column.kind == "float" else []
+                    if lower > -math.inf:
+                        low = number(int(lower) if column.kind == "int" else lower)
+                        each.append(f"{'>' if column.strict_lower else '>='} {low}")
+                    if upper < math.inf:
+                        each.append(f"<= {number(upper)}")
+                    bounds.append((f"[{index}] " if named else "") + " ".join(each))
+            dtype = "float64" if column.kind == "float" else "int64"
+            absent = "yes" if column.optional else "no"
+            rows.append([f"`{column.name}`", dtype, str(column.width), cell("; ".join(bounds) or "any"), absent])
+        lines += [*_table(["Column", "Type", "Width", "Each number", "May be absent"], rows), ""]
+    return lines
 
 
 # -- keys -----------------------------------------------------------------------------------
@@ -501,7 +534,7 @@ def keys_page() -> str:
         if isinstance(value, keys.Topic):
             kind, schema = "topic (put/subscribe)", _message_link(value.schema)
         elif isinstance(value, keys.Batch):
-            kind, schema = "batch (put/subscribe)", f"JSON array of {_message_link(value.schema)}"
+            kind, schema = "batch (put/subscribe)", f"[columns](messages.md#columnar-batches) of {_message_link(value.schema)}"
         elif isinstance(value, keys.Service):
             kind = "queryable (get/reply)"
             schema = f"query {_message_link(value.request)}, reply {_message_link(value.reply)}"
