@@ -19,6 +19,7 @@ from common.contracts.columns import (
     SCHEMA_CODES,
     Columns,
     batch_payloads,
+    batch_rows,
     columns_of,
     decode_batch,
     decode_columns,
@@ -225,6 +226,8 @@ def test_a_batch_holds_one_schema_and_64_bit_integers_only() -> None:
     with pytest.raises(MessageError, match="beyond 64 bits"):
         list(batch_payloads([action.model_copy(update={"step": 2**63})]))
     (payload,) = batch_payloads([action])
+    assert batch_rows(payload) == 1 and batch_rows(next(batch_payloads([action] * 7))) == 7  # a counter's view
+    assert batch_rows(action.encode()) is None and batch_rows(b"SRLC") is None
     with pytest.raises(MessageError, match="a batch of another schema"):
         decode_columns(Transition, payload)
 

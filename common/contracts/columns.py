@@ -347,6 +347,15 @@ def check_columns(columns: Columns[Any], what: str | None = None) -> None:
         _check(what, column, values.reshape(-1))
 
 
+def batch_rows(payload: bytes) -> int | None:
+    """The rows a batch's header announces, unchecked (a counter's view of a sample); None: no
+    columnar batch's header."""
+    if len(payload) < HEADER.size:
+        return None
+    magic, version, _, _, _, rows, _ = HEADER.unpack_from(payload)
+    return int(rows) if magic == MAGIC and version == FORMAT_VERSION else None
+
+
 def choice_code(schema: type[Message], field: str, name: str) -> int:
     """The number a batch carries for ``name`` in ``schema``'s choice ``field`` (its index)."""
     column = next(c for c in layout(schema) if c.name == field)

@@ -16,7 +16,6 @@ and memory of every srl process are read from /proc over the run itself (after s
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import re
@@ -34,6 +33,7 @@ import zenoh
 from pydantic import TypeAdapter
 
 from common.config.settings import Settings
+from common.contracts.columns import batch_rows
 from common.contracts.fleet_summary import FleetActorSummary, FleetView, fleet_view
 from common.contracts.keys import BATCH_CHUNK, STATUS
 from common.contracts.messages import ServiceStatus
@@ -187,10 +187,8 @@ class MessageCounter:
         def on_batch(sample: Any) -> None:
             kind = message_kind(str(sample.key_expr))
             payload = sample.payload.to_bytes()
-            try:
-                items = len(json.loads(payload))
-            except (ValueError, TypeError):
-                items = 1  # not a batch srl would send: one sample, counted as one
+            # not a batch srl would send: one sample, counted as one
+            items = batch_rows(payload) or 1
             with self.lock:
                 count = self.counts.setdefault(kind, [0, 0])
                 count[0] += items
