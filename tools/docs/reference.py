@@ -534,7 +534,8 @@ def keys_page() -> str:
         if isinstance(value, keys.Topic):
             kind, schema = "topic (put/subscribe)", _message_link(value.schema)
         elif isinstance(value, keys.Batch):
-            kind, schema = "batch (put/subscribe)", f"[columns](messages.md#columnar-batches) of {_message_link(value.schema)}"
+            columns = "[columns](messages.md#columnar-batches)"
+            kind, schema = "batch (put/subscribe)", f"{columns} of {_message_link(value.schema)}"
         elif isinstance(value, keys.Service):
             kind = "queryable (get/reply)"
             schema = f"query {_message_link(value.request)}, reply {_message_link(value.reply)}"
