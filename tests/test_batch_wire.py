@@ -106,8 +106,7 @@ def test_a_bad_batch_is_refused_whole_with_one_line(payload: Any, says: str) -> 
 
 def test_one_bad_item_refuses_the_batch_and_names_it() -> None:
     columns = columns_of(CriticWeights, [weights("r1"), weights("r2")])
-    columns.arrays["q_weights"] = columns.arrays["q_weights"].copy()
-    columns.arrays["q_weights"][1, 0] = float("nan")
+    columns.field("q_weights")[1, 0] = float("nan")
     (nan,) = encode_columns(columns)
     with pytest.raises(MessageError, match=r"item 1\.q_weights\.0"):
         decode_batch(CriticWeights, nan)
@@ -173,7 +172,7 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
         assert reader.counters["received.critic/weights"] == 5 + 6  # per robot subscription + the wildcard's
         # a malformed batch, and one with a bad item: refused whole, counted, nobody called
         columns = columns_of(CriticWeights, [weights("b1", 7), weights("b2", 8)])
-        columns.arrays["version"] = columns.arrays["version"] * 0  # b2's version 0: below 1
+        columns.field("version")[1] = 0  # b2's version 0: below 1
         (bad,) = encode_columns(columns)
         raw.put(WEIGHTS_BATCH.pattern, bad)
         raw.put(WEIGHTS_BATCH.pattern, b"not json")

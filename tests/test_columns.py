@@ -103,19 +103,24 @@ def page_layout() -> dict[str, tuple[int, list[tuple[str, str, int]]]]:
 
 
 def read_from_page(payload: bytes, name: str) -> list[dict[str, Any]]:
-    """A batch as the page describes it: the header, the manifest, the padding, the columns."""
+    """A batch as the page describes it: the header, the manifest, the padding, the int64 block,
+    the float64 block (each row the columns of its type, in the table's order)."""
     code, columns = page_layout()[name]
     magic, fmt, schema_version, got_code, reserved, rows, size = struct.unpack_from("<4sBBBBII", payload, 0)
     assert (magic, fmt, got_code, reserved) == (b"SRLC", 1, code, 0)
     robots = payload[16 : 16 + size].decode("ascii").split("\n")
     offset = 16 + size + (-size % 8)
     rows_out: list[dict[str, Any]] = [{"schema_version": schema_version, "robot": r} for r in robots]
-    for column, kind, width in columns:
-        letter = "q" if kind == "int64" else "d"
-        numbers = struct.unpack_from(f"<{rows * width}{letter}", payload, offset)
-        offset += 8 * rows * width
+    for kind, letter in (("int64", "q"), ("float64", "d")):
+        of_kind = [(column, width) for column, k, width in columns if k == kind]
+        row_width = sum(width for _, width in of_kind)
+        numbers = struct.unpack_from(f"<{rows * row_width}{letter}", payload, offset)
+        offset += 8 * rows * row_width
         for i in range(rows):
-            rows_out[i][column] = numbers[i * width : (i + 1) * width]
+            at = i * row_width
+            for column, width in of_kind:
+                rows_out[i][column] = numbers[at : at + width]
+                at += width
     assert offset == len(payload)
     return rows_out
 
@@ -154,7 +159,7 @@ def perturbed(message: Message, rng: random.Random) -> tuple[dict[str, Any], Col
     values = message.model_dump()
     columns = columns_of(schema, [message])
     column = rng.choice(layout(schema))
-    array = columns.arrays[column.name] = columns.arrays[column.name].copy()
+    array = columns.field(column.name)  # a view: writing it writes the batch
     if column.kind == "choice":
         code = rng.choice([-1, 0, 1, 2])
         array[0] = code

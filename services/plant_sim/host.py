@@ -141,18 +141,18 @@ class FleetPlant:
             states, seqs = self.states[rows], self.seq[rows]  # copies: the next step moves on
         count = len(rows)
         robots = self.robots if count == len(self.robots) else [self.robots[i] for i in rows.tolist()]
-        return Columns(
+        return Columns.of(
             PlantState,
             robots,
             {
-                "episode": np.zeros(count, dtype=np.int64),
+                "episode": 0,
                 "seq": seqs,
-                "stamp_ns": np.full(count, stamp, dtype=np.int64),
+                "stamp_ns": stamp,
                 "state": states,
-                "source": np.full(count, SIM_SOURCE, dtype=np.int64),
+                "source": SIM_SOURCE,
                 "true_state": states,
-                "saturated_commands": np.zeros(count, dtype=np.int64),
-                "map_to_odom": np.full((count, 3), np.nan),  # absent
+                "saturated_commands": 0,
+                "map_to_odom": np.nan,  # absent
             },
         )
 
