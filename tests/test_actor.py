@@ -6,9 +6,11 @@ The oracle objective is written out here in numpy from the stacked objectives of
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -299,6 +301,64 @@ def test_a_build_directory_is_named_by_its_process(tmp_path, monkeypatch) -> Non
         assert os.path.basename(os.getcwd()).startswith(f"srl-jit-{os.getpid()}-")
         assert compiler.split()[0].startswith(os.getcwd())
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_build_directory_written_to_while_it_is_removed_is_still_removed(tmp_path) -> None:
+    """A compiler that a signal is stopping may create a file while its build directory is being
+    removed: one pass of rmtree then leaves the directory (the control below), the removal used by
+    the build and by srl up's stop tries again until it is gone."""
+    import shutil
+    import threading
+
+    from common.system.jit import remove_build_directory
+
+    def busy(directory: Path, stop: threading.Event) -> threading.Thread:
+        directory.mkdir()
+        for i in range(200):
+            (directory / f"part{i}.c").write_text("int x;")
+
+        def write() -> None:
+            for i in range(400):
+                if stop.is_set():
+                    return
+                with contextlib.suppress(OSError):  # the directory is gone: that writer is done
+                    (directory / f"late{i}.o").write_text("x")
+                time.sleep(0.0005)
+
+        thread = threading.Thread(target=write)
+        thread.start()
+        return thread
+
+    left = 0
+    for attempt in range(10):  # the same race ten times for each removal
+        stop = threading.Event()
+        once, retried = tmp_path / f"once{attempt}", tmp_path / f"retried{attempt}"
+        writers = [busy(once, stop), busy(retried, stop)]
+        shutil.rmtree(once, ignore_errors=True)
+        left += once.exists()
+        assert remove_build_directory(str(retried)) and not retried.exists()
+        stop.set()
+        for writer in writers:
+            writer.join()
+    assert left > 0, "one pass never lost the race: the test cannot tell the removals apart"
+
+
+def test_a_signal_during_the_build_setup_leaves_no_directory(tmp_path, monkeypatch) -> None:
+    """KeyboardInterrupt (Ctrl-C) at the last step of jit_directory's setup, before the build
+    starts: the directory, the working directory and the environment are as before."""
+    import common.system.jit as jit
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    before, environment = os.getcwd(), dict(os.environ)
+
+    def interrupted() -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(jit, "_SigintKeeper", interrupted)
+    with pytest.raises(KeyboardInterrupt), jit.jit_directory():
+        pass
+    assert list(tmp_path.iterdir()) == []
+    assert os.getcwd() == before and dict(os.environ) == environment
 
 
 @pytest.mark.parametrize("agent", ["mpc", "rlq", "rlqv", "rlqv+"])

@@ -381,7 +381,9 @@ def columns_of(schema: type[M], messages: Sequence[M]) -> Columns[M]:
         name = column.name
         for row, message in zip(ints, messages, strict=True):
             value = getattr(message, name)
-            row.append(column.choices.index(value) if column.kind == "choice" else INT_ABSENT if value is None else value)
+            row.append(
+                column.choices.index(value) if column.kind == "choice" else INT_ABSENT if value is None else value
+            )
     for column, _ in laid.float_columns:
         name, absent = column.name, [math.nan] * column.width
         for row, message in zip(floats, messages, strict=True):

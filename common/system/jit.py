@@ -189,8 +189,7 @@ def remove_orphan_build_directories(parent: str | None = None) -> int:
                 continue
         except OSError:
             continue
-        shutil.rmtree(entry.path, ignore_errors=True)
-        removed += not os.path.exists(entry.path)
+        removed += remove_build_directory(entry.path)
     return removed
 
 
@@ -238,39 +237,46 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
 
     remove_orphan_build_directories()
     previous = os.getcwd()
-    path = tempfile.mkdtemp(prefix=f"{BUILD_PREFIX}{os.getpid()}-")
-    wrapper = os.path.join(path, "cc.sh")
-    with open(wrapper, "w") as file:
-        file.write(_JIT_WRAPPER)
-    os.chmod(wrapper, 0o700)
-    signals = os.path.join(path, "SIGNALS")
     main = threading.current_thread() is threading.main_thread()
-    fd = os.open(signals, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NONBLOCK, 0o600)
-    old_fd = signal.set_wakeup_fd(fd, warn_on_full_buffer=False) if main else -1
     owner = os.environ.get("SRL_JIT_OWNER")
-    os.environ["SRL_JIT_OWNER"] = str(os.getpid())
+    cache_before = os.environ.get("SRL_JIT_CACHE")
     cache_directory = jit_cache_directory(cache)
-    cache_before = os.environ.pop("SRL_JIT_CACHE", None)
-    if cache_directory is not None:
-        os.environ["SRL_JIT_CACHE"] = cache_directory
-        if refresh:
-            os.environ["SRL_JIT_CACHE_REFRESH"] = "1"
-    os.chdir(path)
-    compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
-    keeper = _SigintKeeper() if main else None
-    os.environ.pop("SRL_JIT_KEEPER", None)  # this process's keeper only, never one inherited
-    if keeper is not None and keeper.running:
-        os.environ["SRL_JIT_KEEPER"] = "1"  # the wrapper waits for the keeper before gcc starts
+    # what the setup has done so far, undone in the finally whatever it had reached: a signal
+    # (KeyboardInterrupt) may come at any line after the directory exists
+    fd, old_fd, keeper = -1, -1, None
+    path = tempfile.mkdtemp(prefix=f"{BUILD_PREFIX}{os.getpid()}-")
     try:
-        yield compiler
-    except Exception as error:
-        raise _build_signal(signals, error) from error
+        wrapper = os.path.join(path, "cc.sh")
+        with open(wrapper, "w") as file:
+            file.write(_JIT_WRAPPER)
+        os.chmod(wrapper, 0o700)
+        signals = os.path.join(path, "SIGNALS")
+        fd = os.open(signals, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_NONBLOCK, 0o600)
+        if main:
+            old_fd = signal.set_wakeup_fd(fd, warn_on_full_buffer=False)
+        os.environ["SRL_JIT_OWNER"] = str(os.getpid())
+        os.environ.pop("SRL_JIT_CACHE", None)
+        if cache_directory is not None:
+            os.environ["SRL_JIT_CACHE"] = cache_directory
+            if refresh:
+                os.environ["SRL_JIT_CACHE_REFRESH"] = "1"
+        os.chdir(path)
+        compiler = f"{wrapper} {'gcc' if shutil.which('gcc') else 'cc'}"
+        keeper = _SigintKeeper() if main else None
+        os.environ.pop("SRL_JIT_KEEPER", None)  # this process's keeper only, never one inherited
+        if keeper is not None and keeper.running:
+            os.environ["SRL_JIT_KEEPER"] = "1"  # the wrapper waits for the keeper before gcc starts
+        try:
+            yield compiler
+        except Exception as error:
+            raise _build_signal(signals, error) from error
     finally:
         if keeper is not None:
             keeper.stop()
-        if main:
+        if main and fd >= 0:
             signal.set_wakeup_fd(old_fd)
-        os.close(fd)
+        if fd >= 0:
+            os.close(fd)
         os.chdir(previous)
         if owner is None:
             os.environ.pop("SRL_JIT_OWNER", None)
@@ -281,9 +287,27 @@ def jit_directory(cache: str = "", refresh: bool = False) -> Iterator[str]:
         os.environ.pop("SRL_JIT_KEEPER", None)
         if cache_before is not None:
             os.environ["SRL_JIT_CACHE"] = cache_before
-        shutil.rmtree(path, ignore_errors=True)
+        remove_build_directory(path)
         if cache_directory is not None:
             prune_jit_cache(cache_directory)
+
+
+REMOVE_TRIES = 40  # remove_build_directory: attempts, REMOVE_PAUSE_S apart (2 s in all)
+REMOVE_PAUSE_S = 0.05
+
+
+def remove_build_directory(path: str) -> bool:
+    """Remove a build directory, again while something still writes into it: a compiler that a
+    signal is stopping may create a file while the tree is being removed, which leaves the
+    directory behind after one pass. Tries :data:`REMOVE_TRIES` times; True if it is gone."""
+    for attempt in range(REMOVE_TRIES):
+        shutil.rmtree(path, ignore_errors=True)
+        if not os.path.lexists(path):
+            return True
+        if attempt + 1 < REMOVE_TRIES:
+            time.sleep(REMOVE_PAUSE_S)
+    log.warning("JIT build directory %s could not be removed", path)
+    return False
 
 
 KEEPER_POLL_SECONDS = 0.001  # _SigintKeeper: how soon SIGINT is heard again after system() ignores it
