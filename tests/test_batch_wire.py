@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from common.contracts.columns import HEADER, batch_payloads, columns_of, decode_batch, encode_columns
+from common.contracts.columns import HEADER, batch_payloads, columns_of, decode_batch, decode_columns, encode_columns
 from common.contracts.keys import WEIGHTS, WEIGHTS_BATCH, batch_of, every_robot
 from common.contracts.messages import MAX_PAYLOAD_BYTES, CriticWeights, MessageError
 
@@ -104,6 +104,23 @@ def test_a_bad_batch_is_refused_whole_with_one_line(payload: Any, says: str) -> 
     assert "\n" not in str(refused.value)
 
 
+def test_a_receiver_counts_the_batches_a_session_skipped_and_those_it_repeated() -> None:
+    """common.net.transport.BatchSequence over the header's sequence numbers, per session: a
+    session's first batch counts nothing skipped (sent before this receiver came), a gap counts
+    the batches in it, one at or before the last counts as repeated (a recovered one)."""
+    from common.net.transport import BatchSequence
+
+    order = BatchSequence()
+    assert order.seen("a", 7) == (0, False)
+    assert order.seen("a", 8) == (0, False)
+    assert order.seen("a", 11) == (2, False)
+    assert order.seen("a", 9) == (0, True) and order.seen("a", 11) == (0, True)
+    assert order.seen("b", 1) == (0, False) and order.seen("a", 12) == (0, False)
+    (first,) = batch_payloads([weights("r1")])
+    (second,) = encode_columns(columns_of(CriticWeights, [weights("r1")]), iter([5]))
+    assert decode_columns(CriticWeights, first).seq == 1 and decode_columns(CriticWeights, second).seq == 5
+
+
 def test_one_bad_item_refuses_the_batch_and_names_it() -> None:
     columns = columns_of(CriticWeights, [weights("r1"), weights("r2")])
     columns.field("q_weights")[1, 0] = float("nan")
@@ -169,6 +186,7 @@ def test_a_round_reaches_each_robots_subscription_once_with_its_source_and_a_bad
         assert [v for v, _ in got["*"]] == [1, 2, 3, 4, 5, 6]
         assert len(raw_batch) == 2 and len(raw_single) == 1
         assert writer.counters["batches_published"] == 2
+        assert not any(name.startswith("batches_missed") for name in reader.counters)
         assert reader.counters["received.critic/weights"] == 5 + 6  # per robot subscription + the wildcard's
         # a malformed batch, and one with a bad item: refused whole, counted, nobody called
         columns = columns_of(CriticWeights, [weights("b1", 7), weights("b2", 8)])

@@ -106,10 +106,11 @@ def read_from_page(payload: bytes, name: str) -> list[dict[str, Any]]:
     """A batch as the page describes it: the header, the manifest, the padding, the int64 block,
     the float64 block (each row the columns of its type, in the table's order)."""
     code, columns = page_layout()[name]
-    magic, fmt, schema_version, got_code, reserved, rows, size = struct.unpack_from("<4sBBBBII", payload, 0)
-    assert (magic, fmt, got_code, reserved) == (b"SRLC", 1, code, 0)
-    robots = payload[16 : 16 + size].decode("ascii").split("\n")
-    offset = 16 + size + (-size % 8)
+    header = struct.unpack_from("<4sBBBBIIQQ", payload, 0)
+    magic, fmt, schema_version, got_code, reserved, rows, size, seq, stamp = header
+    assert (magic, fmt, got_code, reserved) == (b"SRLC", 1, code, 0) and seq >= 1 and stamp > 0
+    robots = payload[32 : 32 + size].decode("ascii").split("\n")
+    offset = 32 + size + (-size % 8)
     rows_out: list[dict[str, Any]] = [{"schema_version": schema_version, "robot": r} for r in robots]
     for kind, letter in (("int64", "q"), ("float64", "d")):
         of_kind = [(column, width) for column, k, width in columns if k == kind]

@@ -17,7 +17,9 @@ A payload, every number little-endian:
 | 7 | 0 (reserved) |
 | 8-11 | `n`, the rows (unsigned 32-bit, at least 1) |
 | 12-15 | `m`, the manifest's bytes (unsigned 32-bit) |
-| 16 to 16 + `m` | the manifest: the rows' robot ids, ASCII, joined by a newline |
+| 16-23 | the batch's sequence number: its publisher's batches count 1, 2, 3, ... (unsigned 64-bit) |
+| 24-31 | the stamp: when it was sent, the sender's monotonic clock [ns] (unsigned 64-bit) |
+| 32 to 32 + `m` | the manifest: the rows' robot ids, ASCII, joined by a newline |
 | then | zero bytes up to a multiple of 8 |
 | then | the int64 block: `n` rows, each the schema's int64 columns in its table's order |
 | then | the float64 block: `n` rows, each the schema's float64 columns in its table's order |
@@ -36,9 +38,11 @@ is encoded). tests/test_columns.py decodes batches with what the reference page 
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import struct
+import time
 import types
 import typing
 from collections.abc import Callable, Iterator, Sequence
@@ -62,8 +66,9 @@ from common.contracts.messages import (
 
 MAGIC = b"SRLC"
 FORMAT_VERSION = 1  # this layout; the messages' own version is SCHEMA_VERSION
-# magic, format version, schema version, schema code, reserved (0), rows, manifest bytes
-HEADER = struct.Struct("<4sBBBBII")
+# magic, format version, schema version, schema code, reserved (0), rows, manifest bytes, the
+# sender's batch sequence number, its stamp [ns]
+HEADER = struct.Struct("<4sBBBBIIQQ")
 INT_ABSENT = -(2**63)  # an optional integer that is absent (no field takes it: all are >= -1)
 # one row per schema a batch may carry: its code in the header (a batch of another schema is refused)
 SCHEMA_CODES: dict[type[Message], int] = {PlantState: 1, Action: 2, Transition: 3, CriticWeights: 4}
@@ -256,6 +261,7 @@ class Columns(Generic[M]):
         self.schema = schema
         self.robots = list(robots)
         self.ints, self.floats = ints, floats
+        self.seq, self.stamp_ns = 0, 0  # a decoded batch's header (0: not sent)
         self._rows: tuple[list[list[int]], list[list[float]]] | None = None  # as Python values (item)
 
     @classmethod
@@ -385,13 +391,13 @@ def columns_of(schema: type[M], messages: Sequence[M]) -> Columns[M]:
                 column.choices.index(value) if column.kind == "choice" else INT_ABSENT if value is None else value
             )
     for column, _ in laid.float_columns:
-        name, absent = column.name, [math.nan] * column.width
-        for row, message in zip(floats, messages, strict=True):
-            value = getattr(message, name)
+        absent = [math.nan] * column.width
+        for numbers, message in zip(floats, messages, strict=True):
+            vector = getattr(message, column.name)
             if column.scalar:
-                row.append(value)
+                numbers.append(vector)
             else:
-                row.extend(absent if value is None else value)
+                numbers.extend(absent if vector is None else vector)
     try:
         int_block = np.array(ints, dtype=np.int64).reshape(len(messages), laid.ints)
     except OverflowError:
@@ -400,9 +406,11 @@ def columns_of(schema: type[M], messages: Sequence[M]) -> Columns[M]:
     return Columns(schema, [m.robot for m in messages], int_block, float_block)  # type: ignore[attr-defined]  # every batch schema names its robot
 
 
-def encode_columns(columns: Columns[Any]) -> Iterator[bytes]:
+def encode_columns(columns: Columns[Any], sequence: Iterator[int] | None = None) -> Iterator[bytes]:
     """``columns`` as payloads, each within :data:`MAX_PAYLOAD_BYTES` (as many as it takes), rows
-    in order. The blocks are written as they are: :func:`check_columns` is what checks them."""
+    in order, each numbered by ``sequence`` (a publisher's count; None: 1, 2, ...) and stamped
+    when encoded. The blocks are written as they are: :func:`check_columns` is what checks them."""
+    numbers = itertools.count(1) if sequence is None else sequence
     schema = columns.schema
     code = SCHEMA_CODES[schema]
     row_bytes = _row_bytes(schema)
@@ -417,7 +425,17 @@ def encode_columns(columns: Columns[Any]) -> Iterator[bytes]:
         manifest = "\n".join(columns.robots[start:end]).encode()
         yield b"".join(
             (
-                HEADER.pack(MAGIC, FORMAT_VERSION, SCHEMA_VERSION, code, 0, end - start, len(manifest)),
+                HEADER.pack(
+                    MAGIC,
+                    FORMAT_VERSION,
+                    SCHEMA_VERSION,
+                    code,
+                    0,
+                    end - start,
+                    len(manifest),
+                    next(numbers),
+                    time.monotonic_ns(),
+                ),
                 manifest,
                 b"\0" * _pad(len(manifest)),
                 np.ascontiguousarray(columns.ints[start:end], dtype="<i8").tobytes(),
@@ -494,7 +512,7 @@ def batch_rows(payload: bytes) -> int | None:
     columnar batch's header."""
     if len(payload) < HEADER.size:
         return None
-    magic, version, _, _, _, rows, _ = HEADER.unpack_from(payload)
+    magic, version, _, _, _, rows, *_ = HEADER.unpack_from(payload)
     return int(rows) if magic == MAGIC and version == FORMAT_VERSION else None
 
 
@@ -513,7 +531,7 @@ def decode_columns(schema: type[M], payload: bytes) -> Columns[M]:
         raise MessageError(f"{what}: payload of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
     if len(payload) < HEADER.size:
         raise MessageError(f"{what}: payload: {len(payload)} bytes, shorter than a header")
-    magic, version, schema_version, code, reserved, rows, manifest_size = HEADER.unpack_from(payload)
+    magic, version, schema_version, code, reserved, rows, manifest_size, seq, stamp = HEADER.unpack_from(payload)
     if magic != MAGIC:
         raise MessageError(f"{what}: payload: not a columnar batch")
     if version != FORMAT_VERSION or reserved != 0:
@@ -538,4 +556,5 @@ def decode_columns(schema: type[M], payload: bytes) -> Columns[M]:
     floats = np.frombuffer(payload, dtype="<f8", count=rows * laid.floats, offset=at).reshape(rows, laid.floats)
     decoded = Columns(schema, robots, ints, floats)
     check_columns(decoded, what)
+    decoded.seq, decoded.stamp_ns = seq, stamp
     return decoded

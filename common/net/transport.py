@@ -9,6 +9,7 @@ the robot's key, and as the items of batches, each handed over as if it had come
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import threading
@@ -21,7 +22,7 @@ import zenoh
 import zenoh.ext
 
 from common.config.settings import TransportSettings
-from common.contracts.columns import Columns, batch_payloads, check_columns, decode_columns, encode_columns
+from common.contracts.columns import Columns, check_columns, columns_of, decode_columns, encode_columns
 from common.contracts.keys import (
     Service,
     Topic,
@@ -257,6 +258,7 @@ class Bus:
         as a receiver checks them before anything is sent)."""
         batch = batch_of(topic) if batches else None
         batched = None if batch is None else self._declare_publisher(batch.pattern, cache)
+        numbers = itertools.count(1)  # the batches' sequence numbers (a receiver counts gaps: BatchSequence)
         singles: dict[str, Callable[[M], None]] = {}
 
         def publish(round_: Sequence[M] | Columns[M]) -> None:
@@ -265,7 +267,7 @@ class Bus:
                     raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {round_.schema.__name__}")
                 check_columns(round_)
                 if batched is not None:
-                    for payload in encode_columns(round_):
+                    for payload in encode_columns(round_, numbers):
                         batched.put(payload)
                         self.count("batches_published")
                     return
@@ -276,7 +278,7 @@ class Bus:
                     if not isinstance(message, topic.schema):
                         raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
                 if batched is not None:
-                    for payload in batch_payloads(messages):
+                    for payload in encode_columns(columns_of(topic.schema, messages), numbers):
                         batched.put(payload)
                         self.count("batches_published")
                     return
@@ -379,6 +381,8 @@ class Bus:
             self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), (zenoh.KeyExpr(key), deliver))
             self._batch_targets = {}  # the routes changed: every robot's deliveries again
 
+        order = BatchSequence()
+
         def on_batch(sample: zenoh.Sample) -> None:
             try:
                 columns = decode_columns(topic.schema, sample.payload.to_bytes())
@@ -386,6 +390,11 @@ class Bus:
                 self.reject(name, str(error))
                 return
             source = source_of(sample)
+            missed, repeated = order.seen(source, columns.seq)
+            if missed:
+                self.count(f"batches_missed.{name}", missed)
+            if repeated:
+                self.count(f"batches_repeated.{name}")
             targets = self._batch_targets.get(pattern)
             if targets is None:
                 targets = self._batch_targets[pattern] = {}
@@ -629,6 +638,31 @@ def bus_status(bus: Bus, extra: Callable[[], dict[str, float]]) -> Callable[[], 
         return merged
 
     return counters
+
+
+class BatchSequence:
+    """The batches of one batch key as they arrive, per sending session (the header's sequence
+    number, common.contracts.columns): ``seen`` says how many of a session's batches were skipped
+    before this one (lost on the way, or sent before this subscriber came: a session's first
+    batch counts none) and whether it is one already passed (a recovered or repeated one). Kept
+    for at most :data:`SOURCES_KEPT` sessions (forgotten all at once past it)."""
+
+    SOURCES_KEPT = 64
+
+    def __init__(self) -> None:
+        self.last: dict[str | None, int] = {}
+
+    def seen(self, source: str | None, seq: int) -> tuple[int, bool]:
+        last = self.last.get(source)
+        if last is None:
+            if len(self.last) >= self.SOURCES_KEPT:
+                self.last.clear()
+            self.last[source] = seq
+            return 0, False
+        if seq <= last:
+            return 0, True
+        self.last[source] = seq
+        return seq - last - 1, False
 
 
 def start_status_thread(
