@@ -296,69 +296,67 @@ class Columns(Generic[M]):
         are read as Python values once per batch, on the first call."""
         if self._rows is None:
             self._rows = (self.ints.tolist(), self.floats.tolist())
-        ints, floats = self._rows[0][row], self._rows[1][row]
-        values: dict[str, Any] = {"schema_version": SCHEMA_VERSION, "robot": self.robots[row]}
-        for name, value in _readers(self.schema):
-            values[name] = value(ints, floats)
-        return _built(self.schema, values)
+        return _builder(self.schema)(self.robots[row], self._rows[0][row], self._rows[1][row])  # type: ignore[no-any-return]
 
     def items(self) -> Iterator[M]:
         return (self.item(row) for row in range(len(self)))
 
 
-Reader = Callable[[list[int], list[float]], Any]
-_READERS: dict[type[Message], tuple[tuple[str, Reader], ...]] = {}
+_BUILDERS: dict[type[Message], Callable[[str, list[int], list[float]], Any]] = {}
 
 
-def _reader(column: Column, start: int) -> Reader:
-    """How a field's value is read from its row's Python values."""
-    end = start + column.width
-    if column.kind == "choice":
-        return lambda ints, floats: column.choices[ints[start]]
-    if column.kind == "int":
+def _builder(schema: type[Message]) -> Callable[[str, list[int], list[float]], Any]:
+    """``build(robot, ints, floats)``: a message of ``schema`` from one row's Python values (its
+    blocks' ``tolist()`` rows), built as pydantic's ``model_construct`` builds one (its own
+    generic path costs ~8 us a message, a loop over per-field readers ~4 us; this function,
+    written once per schema from its layout, ~2 us): the fields set are those present, as
+    decoding the message's JSON sets them. tests/test_columns.py checks every schema's messages
+    equal their validated selves, fields set included."""
+    found = _BUILDERS.get(schema)
+    if found is not None:
+        return found
+    laid = spans(schema)
+    starts = {c.name: ("i", start) for c, start in laid.int_columns}
+    starts.update({c.name: ("f", start) for c, start in laid.float_columns})
+    fields = [f"'schema_version': {SCHEMA_VERSION}", "'robot': robot"]
+    absent = []
+    namespace: dict[str, Any] = {"ABSENT": INT_ABSENT, "new": object.__new__, "put": object.__setattr__}
+    for index, column in enumerate(layout(schema)):
+        block, start = starts[column.name]
+        numbers = [f"{block}[{start + k}]" for k in range(column.width)]
+        if column.kind == "choice":
+            namespace[f"choices{index}"] = column.choices
+            value = f"choices{index}[{numbers[0]}]"
+        elif column.kind == "int":
+            value = f"(None if {numbers[0]} == ABSENT else {numbers[0]})" if column.optional else numbers[0]
+        elif column.scalar:
+            value = numbers[0]
+        else:
+            value = f"({', '.join(numbers)},)"
+            if column.optional:  # absent: every number NaN (checked), so the first is
+                value = f"(None if {numbers[0]} != {numbers[0]} else {value})"
+        fields.append(f"{column.name!r}: {value}")
         if column.optional:
-            return lambda ints, floats: None if ints[start] == INT_ABSENT else ints[start]
-        return lambda ints, floats: ints[start]
-    if column.scalar:
-        return lambda ints, floats: floats[start]
-    if column.optional:  # absent: every number NaN (checked), so the first is
-        return lambda ints, floats: None if floats[start] != floats[start] else tuple(floats[start:end])
-    return lambda ints, floats: tuple(floats[start:end])
-
-
-def _readers(schema: type[Message]) -> tuple[tuple[str, Reader], ...]:
-    """The fields' readers, in the schema's field order (the order its JSON has them)."""
-    found = _READERS.get(schema)
-    if found is None:
-        laid = spans(schema)
-        where = {c.name: _reader(c, start) for c, start in (*laid.int_columns, *laid.float_columns)}
-        found = _READERS[schema] = tuple((c.name, where[c.name]) for c in layout(schema))
-    return found
-
-
-_FIELDS: dict[type[Message], frozenset[str]] = {}
-_OPTIONAL: dict[type[Message], tuple[str, ...]] = {}
-
-
-def _optional_fields(schema: type[Message]) -> tuple[str, ...]:
-    return tuple(c.name for c in layout(schema) if c.optional)
-
-
-def _built(schema: type[M], values: dict[str, Any]) -> M:
-    """A message of ``values`` that were validated as columns, built as pydantic's
-    ``model_construct`` builds one (its own path costs ~8 us a message, this ~1 us): the fields
-    set are those present, as decoding the message's JSON would set them. tests/test_columns.py
-    checks every schema's messages equal their validated selves, field by field."""
-    message = schema.__new__(schema)
-    object.__setattr__(message, "__dict__", values)
-    every = _FIELDS.get(schema)
-    if every is None:
-        every = _FIELDS[schema] = frozenset(schema.model_fields)
-    absent = [k for k in _OPTIONAL.setdefault(schema, _optional_fields(schema)) if values[k] is None]
-    object.__setattr__(message, "__pydantic_fields_set__", set(every.difference(absent) if absent else every))
-    object.__setattr__(message, "__pydantic_extra__", None)
-    object.__setattr__(message, "__pydantic_private__", None)
-    return message
+            absent.append(f"    if values[{column.name!r}] is None:\n        fields.discard({column.name!r})")
+    namespace["SCHEMA"], namespace["EVERY"] = schema, frozenset(schema.model_fields)
+    source = "\n".join(
+        [
+            "def build(robot, i, f):",
+            f"    values = {{{', '.join(fields)}}}",
+            "    message = new(SCHEMA)",
+            "    put(message, '__dict__', values)",
+            "    fields = set(EVERY)",
+            *absent,
+            "    put(message, '__pydantic_fields_set__', fields)",
+            "    put(message, '__pydantic_extra__', None)",
+            "    put(message, '__pydantic_private__', None)",
+            "    return message",
+        ]
+    )
+    exec(source, namespace)  # our own source, from the schema's layout
+    built: Callable[[str, list[int], list[float]], Any] = namespace["build"]
+    _BUILDERS[schema] = built
+    return built
 
 
 def batch_payloads(messages: Sequence[Message]) -> Iterator[bytes]:
