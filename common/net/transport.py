@@ -265,23 +265,18 @@ class Bus:
             if isinstance(round_, Columns):
                 if round_.schema is not topic.schema:
                     raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {round_.schema.__name__}")
-                check_columns(round_)
-                if batched is not None:
-                    for payload in encode_columns(round_, numbers):
-                        batched.put(payload)
-                        self.count("batches_published")
-                    return
-                messages: Sequence[M] = list(round_.items())
+                check_columns(round_)  # built from a host's arrays: checked as a message would be
             else:
-                messages = round_
-                for message in messages:
+                for message in round_:
                     if not isinstance(message, topic.schema):
                         raise TypeError(f"{topic.pattern} carries {topic.schema.__name__}, not {type(message)}")
-                if batched is not None:
-                    for payload in encode_columns(columns_of(topic.schema, messages), numbers):
-                        batched.put(payload)
-                        self.count("batches_published")
-                    return
+            if batched is not None:
+                columns = round_ if isinstance(round_, Columns) else columns_of(topic.schema, round_)
+                for payload in encode_columns(columns, numbers):
+                    batched.put(payload)
+                    self.count("batches_published")
+                return
+            messages = list(round_.items()) if isinstance(round_, Columns) else round_
             for message in messages:
                 robot = getattr(message, "robot")  # noqa: B009  # every topic's schema names its robot
                 single = singles.get(robot)
