@@ -560,108 +560,252 @@ def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whate
         assert bus._callback(print, threaded=False).indirect is False
 
 
-def feed_on_a_fake_bus(monkeypatch: pytest.MonkeyPatch) -> tuple[Any, list[tuple[str, Any, dict[str, Any]]]]:
-    """A recorder's Feed on a bus that only notes its subscriptions (key, handler, options), writing
-    to a sink that keeps nothing: no Zenoh, no file."""
+class FakeSample:
+    """What an Inbox reads of a Zenoh sample: its payload, key and (no) timestamp."""
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key_expr, self.timestamp = key, None
+        # a new bytes object per call, as Zenoh makes one (the backlog test counts what it holds)
+        self.payload = type("Payload", (), {"to_bytes": lambda _: bytes(bytearray(payload))})()
+
+
+class KeptSink:
+    """A sink that keeps (topic, data, t_ns) of every write; ``fail`` makes every write raise it."""
+
+    def __init__(self) -> None:
+        self.written: list[tuple[str, bytes, int]] = []
+        self.fail: Exception | None = None
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        if self.fail is not None:
+            raise self.fail
+        self.written.append((topic, data, t_ns))
+
+    def close(self) -> None:
+        pass
+
+
+def feed_on_a_fake_bus(monkeypatch: pytest.MonkeyPatch, settings: Any = None) -> tuple[Any, dict[str, Any], KeptSink]:
+    """A recorder's Feed on a Bus whose Zenoh session only notes its subscriptions (key -> the put
+    that Zenoh would call, and whether it recovers), writing to a :class:`KeptSink`: no Zenoh, no
+    file."""
     from common.config.settings import Settings
     from common.net.transport import Bus
     from tools.recording.record import Feed, Recorder
 
-    subscribed: list[tuple[str, Any, dict[str, Any]]] = []
+    subscribed: dict[str, Any] = {}
 
-    class FakeBus:
-        def subscribe(self, topic: Any, key: str, handler: Any, **options: Any) -> None:
-            subscribed.append((key, handler, options))
-
+    class Session:
         def close(self) -> None:
             pass
 
-    class NoSink:
-        def write(self, *args: Any) -> None:
+    class Subscriber:
+        def undeclare(self) -> None:
             pass
 
-        def close(self) -> None:
-            pass
+    def declare(self: Bus, key: str, callback: Any, recover: bool) -> Subscriber:
+        subscribed[key] = (callback, recover)
+        return Subscriber()
 
-    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: FakeBus()))
-    return Feed(Settings.load(), Recorder(NoSink(), 0.1)), subscribed
+    monkeypatch.setattr(Bus, "_callback", lambda self, handler, threaded=None: (handler, threaded))
+    monkeypatch.setattr(Bus, "_declare_subscriber", declare)
+    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: cls(Session(), service)))
+    sink = KeptSink()
+    return Feed(settings or Settings.load(), Recorder(sink, 0.1)), subscribed, sink
 
 
-def test_the_recorder_takes_every_robots_samples_on_threads_of_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
-    feed, subscribed = feed_on_a_fake_bus(monkeypatch)
+def fleet_state(robot: str, seq: int = 1) -> Any:
+    from common.contracts.messages import PlantState
+
+    position = (0.1 * seq, 0.2, 0.3)
+    return PlantState(robot=robot, episode=1, seq=seq, stamp_ns=seq, state=position, source="sim",
+                      true_state=position, saturated_commands=0)  # fmt: skip
+
+
+def fleet_transition(robot: str, step: int) -> Any:
+    from common.contracts.messages import Transition
+
+    return Transition(robot=robot, episode=1, step=step, state=(0.1 * step, 0.2, 0.3), action=(0.1, 0.2), cost=0.5)
+
+
+def one_batch(messages: list[Any]) -> bytes:
+    """``messages`` as one columnar batch (the payload srl's hosts send)."""
+    from common.contracts.columns import batch_payloads
+
+    (payload,) = batch_payloads(messages)
+    return payload
+
+
+def put(subscribed: dict[str, Any], key: str, payload: bytes) -> None:
+    """Zenoh hands ``payload`` on ``key`` to the subscription of ``key`` (a robot's, or a batch key)."""
+    pattern = key if key in subscribed else re.sub(r"^srl/[^/@]+/", "srl/*/", key)
+    (callback, threaded), _ = subscribed[pattern]
+    assert threaded is False  # on Zenoh's thread: a put is an append
+    callback(FakeSample(key, payload))
+
+
+def test_the_recorder_takes_every_robots_samples_and_srls_batches_of_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Feed: a subscription on every robot's key and one on the batch key of each topic that has
+    a batch form; transitions (the actor's advanced publishers) with their history."""
+    from common.contracts.keys import BATCHES, STATE, STATUS, TRANSITION, WEIGHTS, every_robot
+
+    feed, subscribed, _ = feed_on_a_fake_bus(monkeypatch)
     feed.close()
-    from common.contracts.keys import STATE, STATUS, TRANSITION, WEIGHTS, every_robot
+    keys = [every_robot(STATE), every_robot(TRANSITION), every_robot(WEIGHTS), every_robot(STATUS, service="actor")]
+    batches = [BATCHES[topic.pattern].pattern for topic in (STATE, TRANSITION, WEIGHTS)]
+    assert sorted(subscribed) == sorted(keys + batches)
+    recovering = {key for key, (_, recover) in subscribed.items() if recover}
+    assert recovering == {every_robot(TRANSITION), BATCHES[TRANSITION.pattern].pattern}
 
-    robots = [every_robot(STATE), every_robot(TRANSITION), every_robot(WEIGHTS)]
-    assert [key for key, _, _ in subscribed] == [*robots, every_robot(STATUS, service="actor")]
-    assert all(options.get("threaded") is True for _, _, options in subscribed)
+
+def test_a_batch_is_recorded_as_its_rows_would_be_one_by_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Feed: the rows of a columnar batch (states, then transitions) are written byte for byte as
+    the same messages arriving one by one on their robots' keys are, in the order they came."""
+    import common.net.transport as transport
+    import tools.recording.record as record
+    from common.config.settings import Settings
+    from common.contracts.keys import STATE, STATE_BATCH, TRANSITION, TRANSITION_BATCH
+
+    monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
+    monkeypatch.setattr(transport.time, "time_ns", lambda: 1_700_000_000 * 10**9)  # every arrival's stamp
+    robots = [f"robot{i}" for i in range(5)]
+    states = [fleet_state(robot, seq) for seq, robot in enumerate(robots, 1)]
+    # robot bridges' states beside the simulator's: localized (map -> odom), and by odometry only
+    bridged = {"source": "robot", "true_state": None, "saturated_commands": None}
+    states[1] = states[1].model_copy(update=bridged | {"map_to_odom": (0.5, -0.25, 0.1)})
+    states[3] = states[3].model_copy(update=bridged)
+    transitions = [fleet_transition(robot, 3) for robot in robots]
+    settings = Settings.load()  # robots localized on a map, their goal away from its origin
+    bridge = settings.bridge.model_copy(update={"pose_source": "tf", "goal": (1.0, 0.5, 0.2)})
+    settings = settings.model_copy(update={"bridge": bridge})
+    written = []
+    for batched in (False, True):
+        feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch, settings)
+        time.sleep(0.2)  # the writer's first (empty) round is done: it waits for close
+        if batched:
+            put(subscribed, STATE_BATCH.pattern, one_batch(states))
+            put(subscribed, TRANSITION_BATCH.pattern, one_batch(transitions))
+        else:
+            for state in states:
+                put(subscribed, STATE.key(state.robot), state.encode())
+            for transition in transitions:
+                put(subscribed, TRANSITION.key(transition.robot), transition.encode())
+        feed.close()
+        assert feed.received == 10 and feed.errors == 0 and feed.dropped == 0
+        written.append(sink.written)
+    # the reference: the recorder called with each message's fields, as srl run's recording is
+    direct = record.Recorder(KeptSink(), 0.1)
+    direct.gather_tf()
+    now_ns = transport.time.time_ns()
+    for m in states:
+        direct.state(m.robot, m.episode, m.state, now_ns, record.robot_frames(bridge, m.source, m.map_to_odom))
+    for m in transitions:
+        direct.transition(m.robot, m.episode, m.step, m.state, m.action, m.cost, now_ns)
+    direct.flush_tf()
+    assert written[0] == written[1] == direct.sink.written  # type: ignore[attr-defined]  # a KeptSink
+    topics = [topic for topic, _, _ in written[1]]
+    assert topics[0] == "/target" and topics[1:6] == [f"/{robot}/odom" for robot in robots]
+    assert topics[6:8] == ["/robot0/cmd_vel", "/robot0/srl/transition"] and topics[-1] == "/tf"
 
 
 def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_writes_the_rest_at_close(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Feed: Zenoh's threads append, the writer takes everything waiting every BATCH_SECONDS. At
-    most QUEUE_LIMIT samples wait (the rest are counted as dropped); close writes what waits at
-    once, without waiting out the pause."""
+    most QUEUE_LIMIT rows wait: a sample, or a whole batch, that would pass it is counted as
+    dropped; close writes what waits at once, without waiting out the pause."""
     import tools.recording.record as record
-    from common.contracts.keys import STATE, every_robot
+    from common.contracts.keys import STATE, STATE_BATCH
 
-    applied: list[Any] = []
     monkeypatch.setattr(record, "QUEUE_LIMIT", 4)
     monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
-    monkeypatch.setattr(record.Feed, "_apply", lambda self, kind, message, now_ns: applied.append((kind, message)))
-    feed, subscribed = feed_on_a_fake_bus(monkeypatch)
-    handlers = {key: handler for key, handler, _ in subscribed}
+    feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
     time.sleep(0.3)  # the writer's first batch (nothing yet) is done: it waits BATCH_SECONDS
+    put(subscribed, STATE_BATCH.pattern, one_batch([fleet_state("a"), fleet_state("b")]))
     for i in range(10):
-        handlers[every_robot(STATE)](i)
-    assert feed.dropped == 6 and applied == []
+        put(subscribed, STATE.key(f"robot{i}"), fleet_state(f"robot{i}").encode())
+    assert feed.dropped == 8 and sink.written == [] and feed.inbox.waiting == 4
+    put(subscribed, STATE_BATCH.pattern, one_batch([fleet_state("c")]))
+    assert feed.dropped == 9
     started = time.monotonic()
     feed.close()
     assert time.monotonic() - started < 5.0
-    assert applied == [("state", i) for i in range(4)] and feed.received == 4
+    odometry = [topic for topic, _, _ in sink.written if topic.endswith("/odom")]
+    assert odometry == ["/a/odom", "/b/odom", "/robot0/odom", "/robot1/odom"] and feed.received == 4
+    assert feed.inbox.waiting == 0
 
 
-def test_the_recorders_backlog_is_bounded_in_memory_by_the_samples_it_holds() -> None:
-    """QUEUE_LIMIT bounds the writer's backlog in samples; the decoded messages a fleet sends at
-    every step (states with their truth, transitions, critic weights), measured as they wait, keep
+def test_a_malformed_sample_is_refused_and_counted_before_the_writer_and_the_rest_is_written(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Feed: a sample that does not decode (a batch with one NaN row, a message on another robot's
+    key) is counted as rejected on the bus and never written; what came beside it is."""
+    import tools.recording.record as record
+    from common.contracts.keys import STATE, STATE_BATCH
+
+    monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
+    feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
+    good = one_batch([fleet_state("a"), fleet_state("b")])
+    nan = good.replace(struct.pack("<d", 0.2), struct.pack("<d", math.nan), 1)
+    assert nan != good
+    put(subscribed, STATE_BATCH.pattern, nan)
+    put(subscribed, STATE.key("b"), fleet_state("a").encode())  # robot a's state on robot b's key
+    put(subscribed, STATE.key("c"), fleet_state("c").encode())
+    feed.close()
+    assert feed.bus.counters["rejected.state"] == 2 and feed.received == 1 and feed.errors == 0
+    assert [topic for topic, _, _ in sink.written if topic.endswith("/odom")] == ["/c/odom"]
+
+
+def test_the_recorders_backlog_is_bounded_in_memory_by_the_rows_it_holds(monkeypatch: pytest.MonkeyPatch) -> None:
+    """QUEUE_LIMIT bounds the writer's backlog in rows; the samples a fleet sends at every step
+    (states with their truth, transitions, critic weights), each alone on its robot's key (a
+    message's bytes: the most a row can take) or in batches of 100, measured as they wait, keep
     it under 512 MB at the limit (an actor's status, once a second, is under 4 KB)."""
     import tracemalloc
-    from collections import deque
 
     import tools.recording.record as record
-    from common.contracts.messages import CriticWeights, PlantState, ServiceStatus, Transition
+    from common.contracts.keys import BATCHES, STATE, STATUS, TRANSITION, WEIGHTS
+    from common.contracts.messages import CriticWeights, ServiceStatus
 
-    def state(i: int) -> PlantState:
-        position = (0.1 * i, 0.2, 0.3)
-        return PlantState(robot=f"robot{i}", episode=1, seq=i, stamp_ns=i, state=position, source="sim",
-                          true_state=position, saturated_commands=0)  # fmt: skip
-
-    def transition(i: int) -> Transition:
-        return Transition(robot=f"robot{i}", episode=1, step=i, state=(0.1 * i, 0.2, 0.3), action=(0.1, 0.2), cost=0.5)
-
-    def weights(i: int) -> CriticWeights:
+    def weights(robot: str, i: int) -> CriticWeights:
         q, v = tuple(0.5 * i + j for j in range(15)), tuple(0.25 * i + j for j in range(6))
-        return CriticWeights(robot=f"robot{i}", episode=1, version=i + 1, trained_step=i, q_weights=q, v_weights=v,
+        return CriticWeights(robot=robot, episode=1, version=i + 1, trained_step=i, q_weights=q, v_weights=v,
                              q_residual=0.1, v_residual=0.2, pairs=29)  # fmt: skip
 
-    def status(i: int) -> ServiceStatus:
+    def status(robot: str, i: int) -> ServiceStatus:
         counters = {f"counter_{j}": float(i + j) for j in range(24)}
-        return ServiceStatus(robot=f"robot{i}", service="actor", stamp_ns=i, counters=counters)
+        return ServiceStatus(robot=robot, service="actor", stamp_ns=i, counters=counters)
 
+    monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
+    feed, subscribed, _ = feed_on_a_fake_bus(monkeypatch)
+    time.sleep(0.3)  # the writer waits BATCH_SECONDS: what is put waits
+    robots = [f"robot{i}" for i in range(2000)]
+    samples: dict[tuple[str, bool], list[tuple[str, bytes]]] = {}
+    for topic, make in ((STATE, fleet_state), (TRANSITION, fleet_transition), (WEIGHTS, weights)):
+        messages = [make(robot, i) for i, robot in enumerate(robots)]
+        samples[topic.pattern, False] = [(topic.key(m.robot), m.encode()) for m in messages]
+        batch = BATCHES[topic.pattern].pattern
+        samples[topic.pattern, True] = [(batch, one_batch(messages[i : i + 100])) for i in range(0, 2000, 100)]
+    statuses = [status(robot, i) for i, robot in enumerate(robots)]
+    samples[STATUS.pattern, False] = [(STATUS.key(m.robot, service="actor"), m.encode()) for m in statuses]
     sizes = {}
-    for kind, make in (("state", state), ("transition", transition), ("weights", weights), ("status", status)):
-        waiting: deque[tuple[str, Any, int]] = deque()
-        tracemalloc.start()
-        try:
-            before = tracemalloc.get_traced_memory()[0]
-            for i in range(2000):
-                waiting.append((kind, make(i), time.time_ns()))
-            sizes[kind] = (tracemalloc.get_traced_memory()[0] - before) / len(waiting)
-        finally:
-            tracemalloc.stop()
-    steps = [sizes[kind] for kind in ("state", "transition", "weights")]  # each robot's, at every step
-    assert all(200 < size < 2_600 for size in steps) and sizes["status"] < 4_000, sizes
+    try:
+        for kind, putting in samples.items():
+            waiting = feed.inbox.waiting
+            tracemalloc.start()
+            try:
+                before = tracemalloc.get_traced_memory()[0]
+                for key, payload in putting:
+                    put(subscribed, key, payload)
+                sizes[kind] = (tracemalloc.get_traced_memory()[0] - before) / len(robots)
+            finally:
+                tracemalloc.stop()
+            assert feed.inbox.waiting == waiting + len(robots)
+    finally:
+        feed.inbox.limit = 0  # nothing more is taken in; close writes what waits
+        feed.close()
+    steps = [size for (pattern, _), size in sizes.items() if pattern != STATUS.pattern]  # each robot's, every step
+    assert all(20 < size < 2_600 for size in steps) and sizes[STATUS.pattern, False] < 4_000, sizes
     # statuses come once a second per robot, against 20 and more of the others
     assert record.QUEUE_LIMIT * max(steps) < 512e6, sizes
 
@@ -688,25 +832,28 @@ def test_a_recorder_that_cannot_write_its_file_counts_every_sample_and_says_why_
     monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Feed: a file that cannot be written (RecordingError from the sink, a full disk) does not
-    end the recording; every sample it could not write is counted in ``errors`` and the reason
-    is logged once, not once per sample; a bad sample is still logged with its own line."""
+    end the recording; every row it could not write is counted in ``errors`` and the reason is
+    logged once, not once per row; a row that fails otherwise is still logged with its own line."""
     import logging
 
     import tools.recording.record as record
-    from common.contracts.keys import STATE, every_robot
-
-    def apply(self: Any, kind: str, message: Any, now_ns: int) -> None:
-        if message == "bad":
-            raise ValueError("a malformed sample")
-        raise record.RecordingError("cannot write /x.mcap: [Errno 28] No space left on device")
+    from common.contracts.keys import STATE, STATE_BATCH
 
     monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
-    monkeypatch.setattr(record.Feed, "_apply", apply)
-    feed, subscribed = feed_on_a_fake_bus(monkeypatch)
-    handlers = {key: handler for key, handler, _ in subscribed}
+    feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
+    failing = record.Recorder.state
+
+    def state(self: Any, robot: str, *args: Any) -> None:
+        if robot == "bad":
+            raise ValueError("a malformed sample")
+        failing(self, robot, *args)
+
+    monkeypatch.setattr(record.Recorder, "state", state)
+    sink.fail = record.RecordingError("cannot write /x.mcap: [Errno 28] No space left on device")
     with caplog.at_level(logging.ERROR, logger=record.log.name):
-        for message in (1, 2, "bad", 3):
-            handlers[every_robot(STATE)](message)
+        put(subscribed, STATE_BATCH.pattern, one_batch([fleet_state("a"), fleet_state("bad")]))
+        for robot in ("b", "c"):
+            put(subscribed, STATE.key(robot), fleet_state(robot).encode())
         feed.close()
     assert feed.errors == 4 and feed.received == 0
     full = [r for r in caplog.records if "No space left" in r.getMessage()]

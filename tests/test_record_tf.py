@@ -20,7 +20,6 @@ from mcap.reader import make_reader
 from rosbags.typesys import Stores, get_typestore
 
 from common.config.settings import Settings
-from common.contracts.messages import PlantState
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
 from tests.test_record import check_rosbag2_layout, read
@@ -365,18 +364,17 @@ def test_a_localized_robot_chains_map_odom_base_when_the_correction_is_known(cor
 
 def test_the_feed_takes_a_robots_goal_from_the_bridge_settings_and_a_simulated_plants_as_odom() -> None:
     bridge = Settings.load(bridge={"goal": [1.0, -2.0, 0.5]}).bridge
-    sim = PlantState(robot="r", episode=0, seq=0, stamp_ns=0, state=(1.0, 2.0, 0.0), source="sim")
-    robot = sim.model_copy(update={"source": "robot"})
-    assert robot_frames(bridge, sim) == SIMULATED
-    assert robot_frames(bridge, robot).goal == Pose2D(1.0, -2.0, 0.5)
-    assert robot_frames(bridge, robot).map_to_odom is None  # the state carries no correction
+    assert robot_frames(bridge, "sim", None) == SIMULATED
+    assert robot_frames(bridge, "robot", None).goal == Pose2D(1.0, -2.0, 0.5)
+    assert robot_frames(bridge, "robot", None).map_to_odom is None  # the state carries no correction
     # a localizing bridge whose state carries its map -> odom correction: map -> odom on /tf
     localizing = SimpleNamespace(goal=(0.0, 0.0, 0.0), pose_source="pose_with_covariance")
-    corrected = SimpleNamespace(source="robot", map_to_odom=(0.5, -0.25, 0.1))
-    frames = robot_frames(localizing, corrected)
+    frames = robot_frames(localizing, "robot", (0.5, -0.25, 0.1))
     assert frames == PoseFrames(goal=Pose2D(0.0, 0.0, 0.0), localized=True, map_to_odom=Pose2D(0.5, -0.25, 0.1))
     assert frames.root == "map" and frames.pose_frame == "goal"
-    odometry_only = robot_frames(SimpleNamespace(goal=(0.0, 0.0, 0.0), pose_source="odom"), robot)
+    # a batch's row without a correction has NaN in its place: none
+    assert robot_frames(localizing, "robot", (math.nan,) * 3).map_to_odom is None
+    odometry_only = robot_frames(SimpleNamespace(goal=(0.0, 0.0, 0.0), pose_source="odom"), "robot", None)
     assert odometry_only == SIMULATED and odometry_only.pose_frame == "odom"
 
 

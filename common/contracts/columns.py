@@ -301,6 +301,13 @@ class Columns(Generic[M]):
     def items(self) -> Iterator[M]:
         return (self.item(row) for row in range(len(self)))
 
+    def take(self, rows: Sequence[int]) -> Columns[M]:
+        """The rows ``rows`` (in that order) as a batch of their own, with this one's header."""
+        chosen = list(rows)
+        taken = Columns(self.schema, [self.robots[row] for row in chosen], self.ints[chosen], self.floats[chosen])
+        taken.seq, taken.stamp_ns = self.seq, self.stamp_ns
+        return taken
+
 
 _BUILDERS: dict[type[Message], Callable[[str, list[int], list[float]], Any]] = {}
 

@@ -4,7 +4,8 @@ The only module of ``common`` that imports zenoh; the math never does. Every sub
 decodes with the schema of its :class:`~common.contracts.keys.Topic`; a payload that does not decode
 is counted under ``rejected.<topic>`` and logged (rate-limited), and never reaches the handler. A
 topic with a batch form (:class:`~common.contracts.keys.Batch`) reaches a subscriber both ways: on
-the robot's key, and as the items of batches, each handed over as if it had come alone.
+the robot's key, and as the items of batches, each handed over as if it had come alone; or, to a
+consumer that takes them in bulk (:class:`Inbox`: a recorder), as columns, decoded on its thread.
 """
 
 from __future__ import annotations
@@ -14,15 +15,22 @@ import json
 import logging
 import threading
 import time
-from collections import Counter
-from collections.abc import Callable, Sequence
+from collections import Counter, deque
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 import zenoh
 import zenoh.ext
 
 from common.config.settings import TransportSettings
-from common.contracts.columns import Columns, check_columns, columns_of, decode_columns, encode_columns
+from common.contracts.columns import (
+    Columns,
+    batch_rows,
+    check_columns,
+    columns_of,
+    decode_columns,
+    encode_columns,
+)
 from common.contracts.keys import (
     Service,
     Topic,
@@ -339,6 +347,18 @@ class Bus:
         self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), recover))
         if batch is not None:
             self._route_batches(topic, key, deliver, name, threaded, recover)
+
+    def raw_subscriber(
+        self, key: str, handler: Callable[[zenoh.Sample], None], recover: bool = False, threaded: bool | None = None
+    ) -> None:
+        """``handler`` gets the samples on ``key`` as Zenoh delivers them, undecoded, for as long as
+        the bus lives (an :class:`Inbox` decodes them later, on its consumer's thread); ``recover``
+        and ``threaded`` as in :meth:`subscribe`."""
+        self._keep.append(self._declare_subscriber(key, self._callback(handler, threaded), recover))
+
+    def inbox(self, limit: int) -> Inbox:
+        """Samples that wait for a consumer that takes them in bulk, at most ``limit`` rows (:class:`Inbox`)."""
+        return Inbox(self, limit)
 
     def _declare_subscriber(self, key: str, callback: Any, recover: bool) -> Any:
         """A subscriber on ``key``; ``recover``: an advanced one, with history and recovery (:meth:`subscribe`)."""
@@ -658,6 +678,110 @@ class BatchSequence:
             return 0, True
         self.last[source] = seq
         return seq - last - 1, False
+
+
+class Inbox:
+    """Samples of some topics waiting, in arrival order, for one consumer that takes them in bulk
+    (:meth:`take`): a recorder's writer, which wakes a few times a second. Zenoh's threads only
+    append a sample's bytes (no Python thread per subscription, nothing decoded on them); the
+    consumer decodes what waits in one go, on its own thread. A topic with a batch form comes as
+    columns (common.contracts.columns): a batch's rows of the robots the key includes, and a
+    message that came alone on its robot's key as a batch of one row; any other topic as messages.
+
+    What a decoded sample would do on :meth:`Bus.subscribe` it does here: a malformed one is
+    counted under ``rejected.<name>`` and logged, never handed over; a message on another robot's
+    key is refused; a batch's skipped and repeated sequence numbers are counted
+    (``batches_missed.<name>``, ``batches_repeated.<name>``); the rows handed over are counted
+    under ``received.<name>``. At most ``limit`` rows wait: the rest are counted in
+    :attr:`dropped` (the consumer is behind), never silently lost."""
+
+    def __init__(self, bus: Bus, limit: int) -> None:
+        self.bus = bus
+        self.limit = limit
+        self.waiting = 0  # rows put and not yet taken
+        self.dropped = 0  # rows refused because ``limit`` waited
+        self._lock = threading.Lock()  # put runs on several of Zenoh's threads
+        # (reader, name, rows, payload, key, source, arrival [ns]), oldest first
+        self._samples: deque[tuple[Callable[[bytes, str, str | None], Any], str, int, bytes, str, str | None, int]]
+        self._samples = deque()
+
+    def subscribe(self, topic: Topic[M], key: str, what: str | None = None, recover: bool = False) -> None:
+        """Take ``topic``'s samples on ``key`` (a wildcard takes every robot's) and, with a batch
+        form, its batches' rows of the robots ``key`` includes; ``recover`` as in :meth:`Bus.subscribe`."""
+        bus = self.bus
+        name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
+        batch = batch_of(topic)
+
+        def alone(payload: bytes, sample_key: str, source: str | None) -> Any:
+            message = decode_sample(topic, sample_key, payload)
+            return message if batch is None else columns_of(topic.schema, [message])
+
+        self._declare(name, key, alone, lambda payload: 1, recover)
+        if batch is None:
+            return
+        wanted = zenoh.KeyExpr(key)
+        order = BatchSequence()
+        chosen: dict[str, bool] = {}  # robot -> whether ``key`` includes its key (bounded below)
+
+        def rows(payload: bytes, sample_key: str, source: str | None) -> Columns[M]:
+            columns = decode_columns(topic.schema, payload)
+            missed, repeated = order.seen(source, columns.seq)
+            if missed:
+                bus.count(f"batches_missed.{name}", missed)
+            if repeated:
+                bus.count(f"batches_repeated.{name}")
+            mine = []
+            for row, robot in enumerate(columns.robots):
+                included = chosen.get(robot)
+                if included is None:
+                    if len(chosen) >= BATCH_ROBOTS_KEPT:
+                        chosen.clear()
+                    included = chosen[robot] = wanted.intersects(zenoh.KeyExpr(topic.key(robot)))
+                if included:
+                    mine.append(row)
+            return columns if len(mine) == len(columns) else columns.take(mine)
+
+        self._declare(name, batch.pattern, rows, lambda payload: batch_rows(payload) or 1, recover)
+
+    def _declare(
+        self,
+        name: str,
+        key: str,
+        reader: Callable[[bytes, str, str | None], Any],
+        rows_of: Callable[[bytes], int],
+        recover: bool,
+    ) -> None:
+        samples, lock = self._samples, self._lock
+
+        def put(sample: zenoh.Sample) -> None:
+            payload = sample.payload.to_bytes()
+            rows = rows_of(payload)
+            with lock:
+                if self.waiting + rows > self.limit:
+                    self.dropped += rows
+                    return
+                self.waiting += rows
+                samples.append((reader, name, rows, payload, str(sample.key_expr), source_of(sample), time.time_ns()))
+
+        # on Zenoh's thread: a put is an append, and a Python thread per subscription would only
+        # contend with the consumer for the interpreter
+        self.bus.raw_subscriber(key, put, recover, threaded=False)
+
+    def take(self) -> Iterator[tuple[Any, int]]:
+        """What waits, oldest first, as ``(columns or message, arrival [ns])``; a sample that does
+        not decode is counted and logged (:meth:`Bus.reject`) and passed over."""
+        samples, lock, bus = self._samples, self._lock, self.bus
+        while samples:
+            reader, name, rows, payload, key, source, arrived_ns = samples.popleft()
+            with lock:
+                self.waiting -= rows
+            try:
+                taken = reader(payload, key, source)
+            except MessageError as error:
+                bus.reject(name, str(error))
+                continue
+            bus.count(f"received.{name}", len(taken) if isinstance(taken, Columns) else 1)
+            yield taken, arrived_ns
 
 
 def start_status_thread(

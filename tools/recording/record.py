@@ -70,6 +70,7 @@ import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from common.contracts.columns import Columns
 from common.contracts.pose_sources import ODOMETRY_ONLY
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
@@ -947,86 +948,86 @@ def yield_cpu_to_the_loop() -> None:
     lower_priority(OBSERVER_NICENESS, "the recorder")
 
 
-def robot_frames(bridge: Any, message: Any) -> PoseFrames:
-    """The frames of a state message (:class:`PoseFrames`): a robot bridge's (``source`` "robot")
-    goal is ``bridge.goal`` of these settings (``srl up`` hands the recorder the bridge's), in
-    ``map`` when ``bridge.pose_source`` localizes, with the ``map -> odom`` correction when the
-    state carries one (a ``map_to_odom`` field, (x [m], y [m], theta [rad])); a simulated plant's
-    goal frame is its odom frame."""
-    if getattr(message, "source", "sim") != "robot":
+def robot_frames(bridge: Any, source: str, correction: Sequence[float] | None) -> PoseFrames:
+    """The frames of a state (:class:`PoseFrames`) from its ``source`` and its ``map_to_odom``
+    ``correction`` (x [m], y [m], theta [rad]; None, or NaN, when it carries none): a robot
+    bridge's (``source`` "robot") goal is ``bridge.goal`` of these settings (``srl up`` hands the
+    recorder the bridge's), in ``map`` when ``bridge.pose_source`` localizes, with the
+    ``map -> odom`` correction when the state carries one; a simulated plant's goal frame is its
+    odom frame."""
+    if source != "robot":
         return SIMULATED
-    correction = getattr(message, "map_to_odom", None)
+    corrected = correction is not None and all(math.isfinite(c) for c in correction)
     return PoseFrames(
         goal=Pose2D(*(float(c) for c in bridge.goal)),
         localized=getattr(bridge, "pose_source", ODOMETRY_ONLY) != ODOMETRY_ONLY,
-        map_to_odom=None if correction is None else Pose2D(*(float(c) for c in correction)),
+        map_to_odom=Pose2D(*(float(c) for c in correction)) if corrected and correction is not None else None,
     )
 
 
 class Feed:
     """Subscribes to every robot's state, transitions, critic weights and actor status
-    (``srl/*/...``) and hands them, in arrival order, to a :class:`Recorder` on its own writer
-    thread: Zenoh's callbacks only enqueue, so a slow disk never holds up the system."""
+    (``srl/*/...`` and srl's batches of them) and hands them, in arrival order, to a
+    :class:`Recorder` on its own writer thread. Zenoh's threads only queue a sample's bytes
+    (:class:`common.net.transport.Inbox`, at most :data:`QUEUE_LIMIT` rows): the writer decodes
+    what waits a few times a second and writes a batch's rows from its columns, building no
+    message per robot. A slow disk never holds up the system."""
 
     def __init__(self, settings: Any, recorder: Recorder) -> None:
         import threading
 
         from common.contracts.keys import STATE, STATUS, TRANSITION, WEIGHTS, every_robot
+        from common.contracts.messages import CriticWeights, PlantState, ServiceStatus, Transition
         from common.net.transport import Bus
 
         self.recorder = recorder
         recorder.gather_tf()  # the writer takes states many at a time: their /tf in few messages
         self.bridge = settings.bridge  # a robot's goal and pose source (robot_frames)
-        # the samples waiting for the writer: a deque, whose append and popleft need no lock (a
-        # queue.Queue's put and get take ~3.4 us a sample under its lock and condition)
-        self.pending: deque[tuple[str, Any, int]] = deque()
         self.closing = threading.Event()
-        self.dropped = 0
-        self.received = 0
-        self.errors = 0
+        self.received = 0  # rows written
+        self.errors = 0  # rows not written (a bad sample, a file that cannot be written)
         self.failure = ""  # the last reason the file could not be written (said once)
+        self.writes: dict[type, Callable[[Any, int], None]] = {
+            PlantState: self._states,
+            Transition: self._transitions,
+            CriticWeights: self._weights,
+            ServiceStatus: self._status,
+        }
         self.bus = Bus.open(settings.transport, "recorder")
-        self.writer = threading.Thread(target=self._drain, name="recorder-writer", daemon=True)
-        self.writer.start()
-        # four wildcards that take every robot's samples: each handler in a thread of its own
-        # (Bus._callback), which takes what queued while it ran in one go
-        bus = self.bus
-        bus.subscribe(STATE, every_robot(STATE), lambda m: self._put("state", m), threaded=True)
+        self.inbox = self.bus.inbox(QUEUE_LIMIT)
+        self.inbox.subscribe(STATE, every_robot(STATE))
         # transitions from the actor's advanced publisher: a recorder that joins late still gets
         # its cached history (duplicates are dropped by step, Recorder.transition)
-        transitions = every_robot(TRANSITION)
-        bus.subscribe(TRANSITION, transitions, lambda m: self._put("transition", m), recover=True, threaded=True)
-        bus.subscribe(WEIGHTS, every_robot(WEIGHTS), lambda m: self._put("weights", m), threaded=True)
-        bus.subscribe(STATUS, every_robot(STATUS, service="actor"), lambda m: self._put("status", m), threaded=True)
+        self.inbox.subscribe(TRANSITION, every_robot(TRANSITION), recover=True)
+        self.inbox.subscribe(WEIGHTS, every_robot(WEIGHTS))
+        self.inbox.subscribe(STATUS, every_robot(STATUS, service="actor"))
+        self.writer = threading.Thread(target=self._drain, name="recorder-writer", daemon=True)
+        self.writer.start()
 
-    def _put(self, kind: str, message: Any) -> None:
-        """A sample for the writer (Zenoh's threads), counted as dropped while :data:`QUEUE_LIMIT`
-        wait (the writer is behind)."""
-        if len(self.pending) >= QUEUE_LIMIT:
-            self.dropped += 1
-        else:
-            self.pending.append((kind, message, time.time_ns()))
+    @property
+    def dropped(self) -> int:
+        """Rows the writer was too far behind to take (counted, not written)."""
+        return self.inbox.dropped
 
     def _drain(self) -> None:
         """Write in batches: everything waiting, then a pause of :data:`BATCH_SECONDS`, so the
         writer wakes a few times a second rather than once per sample beside the actor's tick;
         after :meth:`close`, what waits is written and the writer ends."""
-        pending = self.pending
         while True:
             closing = self.closing.is_set()  # before the batch: nothing put before close is left
-            while pending:
-                kind, message, now_ns = pending.popleft()
-                self.received += self._guarded(kind, self._apply, kind, message, now_ns)
+            for taken, now_ns in self.inbox.take():
+                schema = taken.schema if isinstance(taken, Columns) else type(taken)
+                self.writes[schema](taken, now_ns)
             self._guarded("/tf", self.recorder.flush_tf)  # the batch's /tf out before the pause
             if closing:
                 return
             self.closing.wait(BATCH_SECONDS)
 
-    def _guarded(self, kind: str, write: Callable[..., None], *args: Any) -> bool:
-        """``write(*args)`` (one sample of ``kind``, or the batch's /tf); True if it was written.
-        A failure is counted in ``errors`` and does not end the recording: a bad sample is logged
+    def _guarded(self, kind: str, write: Callable[..., object], *args: Any) -> bool:
+        """``write(*args)`` (one row of ``kind``, or the batch's /tf); True if it was written.
+        A failure is counted in ``errors`` and does not end the recording: a bad row is logged
         with its traceback, a file that cannot be written (:class:`RecordingError`, a full disk)
-        once per reason, not once per sample. Nothing is built per sample but the call."""
+        once per reason, not once per row. Nothing is built per row but the call."""
         try:
             write(*args)
             return True
@@ -1040,18 +1041,41 @@ class Feed:
             log.exception("recorder: cannot record a %s sample", kind)
         return False
 
-    def _apply(self, kind: str, m: Any, now_ns: int) -> None:
-        r = self.recorder
-        if kind == "state":
-            r.state(m.robot, m.episode, m.state, now_ns, robot_frames(self.bridge, m))
-        elif kind == "transition":
-            r.transition(m.robot, m.episode, m.step, m.state, m.action, m.cost, now_ns)
-        elif kind == "weights":
+    def _rows(self, kind: str, write: Callable[..., object], *columns: Sequence[Any]) -> None:
+        """``write`` of each row (the i-th of every column), guarded row by row."""
+        guarded = self._guarded
+        self.received += sum(guarded(kind, write, *row) for row in zip(*columns, strict=True))
+
+    def _states(self, columns: Columns[Any], now_ns: int) -> None:
+        from common.contracts.columns import choice_code
+        from common.contracts.messages import PlantState
+
+        sources = columns.field("source").tolist()
+        frames: Sequence[PoseFrames] = [SIMULATED] * len(columns)
+        robot = choice_code(PlantState, "source", "robot")
+        if robot in sources:
+            corrections = columns.field("map_to_odom").tolist()
+            frames = [
+                robot_frames(self.bridge, "robot" if code == robot else "sim", correction)
+                for code, correction in zip(sources, corrections, strict=True)
+            ]
+        episodes, states = columns.field("episode").tolist(), columns.field("state").tolist()
+        self._rows("state", self.recorder.state, columns.robots, episodes, states, [now_ns] * len(columns), frames)
+
+    def _transitions(self, columns: Columns[Any], now_ns: int) -> None:
+        fields = [columns.field(name).tolist() for name in ("episode", "step", "state", "action", "cost")]
+        self._rows("transition", self.recorder.transition, columns.robots, *fields, [now_ns] * len(columns))
+
+    def _weights(self, columns: Columns[Any], now_ns: int) -> None:
+        def write(m: Any) -> None:
             residuals = (m.q_residual, m.v_residual)
             fit = (m.version, m.trained_step, m.q_weights, m.v_weights, residuals, m.pairs)
-            r.weights(m.robot, m.episode, *fit, now_ns)
-        elif kind == "status":
-            r.status(m.robot, dict(m.counters), now_ns)
+            self.recorder.weights(m.robot, m.episode, *fit, now_ns)
+
+        self._rows("weights", write, list(columns.items()))
+
+    def _status(self, message: Any, now_ns: int) -> None:
+        self._rows("status", self.recorder.status, [message.robot], [dict(message.counters)], [now_ns])
 
     def close(self) -> None:
         """Stop receiving, write what is queued, close the sink (the file is complete after this)."""
