@@ -8,6 +8,7 @@ is read from ROS messages, not from the bridge's word.
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import signal
@@ -355,6 +356,12 @@ class RobotWatch:
     def applied(self) -> tuple[float, float]:
         with self.lock:
             return (self.odom[-1][1].v, self.odom[-1][1].omega) if self.odom else (math.nan, math.nan)
+
+    def stops_before(self, t: float) -> int:
+        """How often the robot's odometry went from moving to standing still before ``t``."""
+        with self.lock:
+            twists = [(odom.v, odom.omega) for at, odom in self.odom if at < t]
+        return sum(1 for before, now in itertools.pairwise(twists) if before != (0.0, 0.0) and now == (0.0, 0.0))
 
     def first_stop_after(self, t: float) -> float | None:
         with self.lock:
@@ -717,7 +724,10 @@ def test_killing_the_actor_stops_the_robot() -> None:
         c.wait_alive("actor", timeout=120)
         wait_until(lambda: abs(watch.applied()[0]) > 0.05, 60, "the actor to drive the robot")
         time.sleep(1.0)
-        assert watch.applied() != (0.0, 0.0)
+        # driving when the actor is killed: a loaded machine may starve the actor past the
+        # bridge's watchdog for a moment (the robot stops, counted, and drives on with the next
+        # action); each such stop the odometry shows is counted below
+        wait_until(lambda: watch.applied() != (0.0, 0.0), 10, "the robot to drive")
         actor.stop(signal.SIGKILL)
         killed = time.monotonic()
         wait_until(lambda: watch.first_stop_after(killed) is not None, 5, "the robot to stop")
@@ -727,7 +737,7 @@ def test_killing_the_actor_stops_the_robot() -> None:
         assert watch.applied() == (0.0, 0.0)
         assert c.procs["bridge"].stop() == 0
         counters = c.procs["bridge"].summary()["counters"]
-    assert counters["actor_lost_stops"] == 1
+    assert counters["actor_lost_stops"] == 1 + watch.stops_before(killed)
 
 
 def _run_up(*argv: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
