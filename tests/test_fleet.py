@@ -22,7 +22,7 @@ import pytest
 
 from common.config.assembly import arrival_rule, build_actor, local_critic
 from common.config.settings import Settings
-from common.contracts.fleet_summary import PARKED_WITHIN_M
+from common.contracts.summaries import PARKED_WITHIN_M
 from common.math.actor_problem import ActorCounters, ActorMemory
 from common.math.dynamics import exact_step, exact_steps
 from common.math.fleet import FleetError, circle_starts, parse_robots

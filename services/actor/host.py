@@ -41,11 +41,10 @@ import numpy as np
 
 from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
-from common.contracts.fleet_summary import FleetActorSummary, fleet_view
-from common.contracts.fleet_summary import robot_summary as robot_view
 from common.contracts.keys import ACTION, STATE, TRANSITION
 from common.contracts.messages import Action, Transition
-from common.contracts.summaries import RealtimeActorSummary, format_status_line
+from common.contracts.summaries import FleetActorSummary, RealtimeActorSummary, fleet_view, format_status_line
+from common.contracts.summaries import robot_summary as robot_view
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.arrival import arrival_masks
@@ -571,6 +570,6 @@ def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: 
 
 
 def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl actor`` of one robot prints (common.contracts.fleet_summary.robot_summary)."""
+    """What ``srl actor`` of one robot prints (common.contracts.summaries.robot_summary)."""
     host = FleetActorSummary.model_validate(summary)
     return robot_view(host.robots, dict(host.per_robot), host.counters)

@@ -31,10 +31,9 @@ import numpy as np
 
 from common.config.settings import Settings
 from common.contracts.columns import Columns, choice_code, columns_of
-from common.contracts.fleet_summary import FleetPlantSummary, PlantRow
 from common.contracts.keys import ACTION, STATE
 from common.contracts.messages import Action, PlantState
-from common.contracts.summaries import PlantSummary
+from common.contracts.summaries import FleetPlantSummary, PlantRow, PlantSummary
 from common.math.dynamics import exact_steps
 from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread

@@ -45,12 +45,11 @@ from typing import Any
 
 from common.config.arguments import UsageError
 from common.config.settings import BridgeSettings, Settings, TransportSettings
-from common.contracts.fleet_summary import FleetBridgeSummary
-from common.contracts.fleet_summary import robot_summary as robot_view
 from common.contracts.keys import ACTION, STATE, liveliness_key
 from common.contracts.messages import Action, PlantState
 from common.contracts.ros_wire import RosGraph
-from common.contracts.summaries import BridgeSummary
+from common.contracts.summaries import BridgeSummary, FleetBridgeSummary
+from common.contracts.summaries import robot_summary as robot_view
 from common.net.provenance import SourceGate
 from common.net.security import SecurityError
 from common.net.transport import Bus, bus_status, start_status_thread
@@ -301,6 +300,6 @@ def bridge_summary(
 
 
 def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl robot-bridge`` of one robot prints (common.contracts.fleet_summary.robot_summary)."""
+    """What ``srl robot-bridge`` of one robot prints (common.contracts.summaries.robot_summary)."""
     host = FleetBridgeSummary.model_validate(summary)
     return robot_view(host.robots, dict(host.per_robot), host.counters)

@@ -47,7 +47,7 @@ from matplotlib.patches import Circle, FancyArrowPatch, FancyBboxPatch, Rectangl
 from matplotlib.ticker import FuncFormatter
 
 from common.contracts import keys
-from common.contracts.fleet_summary import PARKED_WITHIN_M
+from common.contracts.summaries import PARKED_WITHIN_M
 
 ROOT = Path(__file__).resolve().parents[2]
 IMAGES = Path("docs/img")

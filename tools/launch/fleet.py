@@ -34,10 +34,9 @@ from pydantic import TypeAdapter
 
 from common.config.settings import Settings
 from common.contracts.columns import batch_rows
-from common.contracts.fleet_summary import FleetActorSummary, FleetView, fleet_view
 from common.contracts.keys import BATCH_CHUNK, STATUS
 from common.contracts.messages import ServiceStatus
-from common.contracts.summaries import CriticSummary, RealtimeActorSummary
+from common.contracts.summaries import CriticSummary, FleetActorSummary, FleetView, RealtimeActorSummary, fleet_view
 from common.math.fleet import circle_starts, split_evenly
 from common.net.transport import zenoh_config
 from common.process.runtime import fleet_hosts

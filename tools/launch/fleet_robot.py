@@ -24,10 +24,9 @@ import zenoh
 from pydantic import TypeAdapter
 
 from common.config.settings import Settings
-from common.contracts.fleet_summary import FleetBridgeSummary
 from common.contracts.keys import STATE
 from common.contracts.messages import PlantState
-from common.contracts.summaries import BridgeSummary, EmulatorSummary
+from common.contracts.summaries import BridgeSummary, EmulatorSummary, FleetBridgeSummary
 from common.math.frames import Pose2D, to_goal_frame
 from common.net.transport import zenoh_config
 from services.robot_bridge.robot_router import RobotLogins, robot_router_reachable
