@@ -872,3 +872,29 @@ def test_a_session_changed_twice_in_a_row_takes_the_second_change_too() -> None:
         "print(session_priority(10, 'first'), session_priority(12, 'second'), nice())\n"
     )
     assert output_of(script, own_session=True).split() == ["True", "True", "12"]
+
+
+def test_a_fleets_steps_are_stamped_by_their_step_however_many_robots() -> None:
+    """Recorder.step_time: a robot's step k is stamped origin + k delta (its origin fixed by its
+    first message), however late it arrives, in a fleet of more robots than a fixed number of
+    remembered origins (64 were kept in all: from the 65th robot on, each step took its arrival
+    time). The origins stay bounded: a few episodes per robot."""
+    import tools.recording.record as record
+
+    sink = KeptSink()
+    recorder = record.Recorder(sink, 0.1)
+    robots = [f"robot{i}" for i in range(300)]
+    start = 1_700_000_000 * 10**9
+    for step in range(3):
+        for i, robot in enumerate(robots):
+            late = (i % 7) * 3_000_000 * step  # arrival jitter, growing with the step
+            recorder.transition(robot, 1, step, (1.0, 2.0, 0.3), (0.1, 0.0), 0.5, start + step * DELTA_NS + late)
+    stamps: dict[str, list[int]] = {}
+    for topic, _, t_ns in sink.written:
+        if topic.endswith("/srl/transition"):
+            stamps.setdefault(topic, []).append(t_ns)
+    assert len(stamps) == 300
+    assert all(times == [start, start + DELTA_NS, start + 2 * DELTA_NS] for times in stamps.values()), stamps
+    for episode in range(2, 30):  # episodes come and go: what is remembered stays bounded
+        recorder.transition("robot0", episode, 0, (1.0, 2.0, 0.3), (0.1, 0.0), 0.5, start)
+    assert len(recorder.origins) <= record.ORIGINS_PER_ROBOT * len(robots)

@@ -657,7 +657,9 @@ class _Track:
     pose_frame: str = ODOM_FRAME  # of the newest state (PoseFrames.pose_frame)
 
 
-ORIGINS_KEPT = 64  # (robot, episode) origins remembered: bounded however many episodes pass
+# (robot, episode) origins remembered per robot heard (Recorder.step_time): every robot of a fleet
+# keeps its own, and they stay bounded however many episodes pass
+ORIGINS_PER_ROBOT = 4
 
 
 class Recorder:
@@ -726,7 +728,7 @@ class Recorder:
         """``origin + step delta`` of the robot's episode; the origin fixed by its first message."""
         key = (robot, episode)
         if key not in self.origins:
-            if len(self.origins) >= ORIGINS_KEPT:
+            if len(self.origins) >= ORIGINS_PER_ROBOT * max(1, len(self.tracks)):
                 del self.origins[next(iter(self.origins))]
             self.origins[key] = now_ns - step * self.delta_ns
         return self.origins[key] + step * self.delta_ns
