@@ -131,6 +131,11 @@ def decode_sample(topic: Topic[M], key: str, payload: bytes) -> M:
     return message
 
 
+def counter_name(topic: Topic[Any]) -> str:
+    """The part of ``topic``'s key its counters are named by (``received.<name>``, ``rejected.<name>``)."""
+    return topic.pattern.split("/", 2)[-1].replace("{service}", "*")
+
+
 def source_of(sample: zenoh.Sample) -> str | None:
     """The id of the session that published ``sample`` (its Zenoh timestamp's id; None if unstamped)."""
     stamp = sample.timestamp
@@ -320,7 +325,7 @@ class Bus:
         ``with_source``: the handler is called as ``handler(message, source)``, ``source`` the id
         of the session that published the sample (its Zenoh timestamp's id; None if unstamped),
         to be checked against the live identities (:meth:`watch_identities`)."""
-        name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
+        name = what or counter_name(topic)
 
         def deliver(message: M, source: str | None) -> None:
             self.count(f"received.{name}")
@@ -396,20 +401,15 @@ class Bus:
             self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), (zenoh.KeyExpr(key), deliver))
             self._batch_targets = {}  # the routes changed: every robot's deliveries again
 
-        order = BatchSequence()
+        read = BatchReader(self, topic, name)
 
         def on_batch(sample: zenoh.Sample) -> None:
+            source = source_of(sample)
             try:
-                columns = decode_columns(topic.schema, sample.payload.to_bytes())
+                columns = read(sample.payload.to_bytes(), source)
             except MessageError as error:
                 self.reject(name, str(error))
                 return
-            source = source_of(sample)
-            missed, repeated = order.seen(source, columns.seq)
-            if missed:
-                self.count(f"batches_missed.{name}", missed)
-            if repeated:
-                self.count(f"batches_repeated.{name}")
             targets = self._batch_targets.get(pattern)
             if targets is None:
                 targets = self._batch_targets[pattern] = {}
@@ -680,6 +680,26 @@ class BatchSequence:
         return seq - last - 1, False
 
 
+class BatchReader:
+    """The batches of one batch key as one receiver reads them: decoded and checked
+    (:func:`~common.contracts.columns.decode_columns`, MessageError if refused), each sending
+    session's skipped and repeated batches counted on the bus (``batches_missed.<name>``,
+    ``batches_repeated.<name>``, :class:`BatchSequence`)."""
+
+    def __init__(self, bus: Bus, topic: Topic[M], name: str) -> None:
+        self.bus, self.schema, self.name = bus, topic.schema, name
+        self.order = BatchSequence()
+
+    def __call__(self, payload: bytes, source: str | None) -> Columns[Any]:
+        columns = decode_columns(self.schema, payload)
+        missed, repeated = self.order.seen(source, columns.seq)
+        if missed:
+            self.bus.count(f"batches_missed.{self.name}", missed)
+        if repeated:
+            self.bus.count(f"batches_repeated.{self.name}")
+        return columns
+
+
 class Inbox:
     """Samples of some topics waiting, in arrival order, for one consumer that takes them in bulk
     (:meth:`take`): a recorder's writer, which wakes a few times a second. Zenoh's threads only
@@ -709,7 +729,7 @@ class Inbox:
         """Take ``topic``'s samples on ``key`` (a wildcard takes every robot's) and, with a batch
         form, its batches' rows of the robots ``key`` includes; ``recover`` as in :meth:`Bus.subscribe`."""
         bus = self.bus
-        name = what or topic.pattern.split("/", 2)[-1].replace("{service}", "*")
+        name = what or counter_name(topic)
         batch = batch_of(topic)
 
         def alone(payload: bytes, sample_key: str, source: str | None) -> Any:
@@ -720,16 +740,11 @@ class Inbox:
         if batch is None:
             return
         wanted = zenoh.KeyExpr(key)
-        order = BatchSequence()
+        read = BatchReader(bus, topic, name)
         chosen: dict[str, bool] = {}  # robot -> whether ``key`` includes its key (bounded below)
 
         def rows(payload: bytes, sample_key: str, source: str | None) -> Columns[M]:
-            columns = decode_columns(topic.schema, payload)
-            missed, repeated = order.seen(source, columns.seq)
-            if missed:
-                bus.count(f"batches_missed.{name}", missed)
-            if repeated:
-                bus.count(f"batches_repeated.{name}")
+            columns = read(payload, source)
             mine = []
             for row, robot in enumerate(columns.robots):
                 included = chosen.get(robot)
