@@ -13,13 +13,14 @@ import pytest
 
 from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
+from common.contracts.columns import Columns, check_columns, decode_columns, encode_columns
 from common.contracts.messages import Action, PlantState, Transition
 from common.math.actor_problem import ActorMemory
 from common.math.arrival import arrival_masks, arrival_update
 from common.math.dynamics import exact_step
 from common.math.features import stage_cost, stage_cost_rows
 from common.net.provenance import SourceGate
-from services.actor.host import HostScheduler, RestCheck, RobotActor
+from services.actor.host import HostScheduler, Outbox, RestCheck, RobotActor
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import AtRest, RealtimeActor
 from tests.harness import FakeCounts
@@ -82,12 +83,17 @@ STARTS = {
 PUSHES = {("b", 15): (0.04, 0.0, 0.05), ("b", 30): (0.2, 0.1, 0.3)}
 
 
-def run_host(rest: bool, arrays_from: int = 1) -> tuple[list[Action], list[Any], list[dict[str, Any]], int]:
+def run_host(
+    rest: bool, arrays_from: int = 1, outboxes: bool = False, rows: bool = False
+) -> tuple[list[Action], list[Any], list[dict[str, Any]], int]:
     """The four robots on one built actor, a fake plant and a fake clock, for :data:`TICKS`
     periods; ``rest``: with the host's RestCheck (deciding groups of ``arrays_from`` robots or more
     as arrays). What the host sent (each transition with what
     the robot's loop then knew of its critic's fits, and its actor's memory), each robot's
-    summary, and the robot ticks served at rest."""
+    summary, and the robot ticks served at rest. ``outboxes``: what the robots send goes in
+    rounds, as an actor host sends them (services/actor/host.py Outbox: a round of messages, or
+    with ``rows`` (ticks at rest put rows) a batch of columns, each sent encoded and decoded as on
+    the wire); the fourth value is then the rounds sent as columns."""
     settings = Settings.load(actor={"jit": False, "host_tick_group": 2})
     shared = build_actor(settings)
     fake = FakeClock()
@@ -95,6 +101,21 @@ def run_host(rest: bool, arrays_from: int = 1) -> tuple[list[Action], list[Any],
     transitions: list[Any] = []
     loops: list[RealtimeActor] = []
     truths = {}
+    column_rounds = [0]
+
+    def wire(deliver: Any) -> Any:
+        def send(round_: Any) -> None:
+            if isinstance(round_, Columns):
+                column_rounds[0] += 1
+                check_columns(round_)
+                for payload in encode_columns(round_):
+                    for message in decode_columns(round_.schema, payload).items():
+                        deliver(message)
+            else:
+                for message in round_:
+                    deliver(message)
+
+        return send
 
     def sent(transition: Transition) -> None:
         loop = next(loop for loop in loops if loop.robot == transition.robot)
@@ -110,6 +131,14 @@ def run_host(rest: bool, arrays_from: int = 1) -> tuple[list[Action], list[Any],
         )
         transitions.append((transition, loop.fits.resting, loop.fits.newest, memory))
 
+    boxes = (
+        (
+            Outbox(wire(actions.append), clock=fake.clock, schema=Action),
+            Outbox(wire(sent), wait=None, schema=Transition),
+        )
+        if outboxes
+        else None
+    )
     for robot, start in STARTS.items():
         own = settings.model_copy(update={"transport": settings.transport.model_copy(update={"robot": robot})})
         counts = FakeCounts()
@@ -117,7 +146,11 @@ def run_host(rest: bool, arrays_from: int = 1) -> tuple[list[Action], list[Any],
         critic.update("c1", True)
         inbox = WeightsInbox(own, counts, critic)  # type: ignore[arg-type]
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
-        loop = RealtimeActor(own, actor, inbox, actions.append, sent, counts, 7, clock=fake.clock)
+        if boxes is None:
+            loop = RealtimeActor(own, actor, inbox, actions.append, sent, counts, 7, clock=fake.clock)
+        else:
+            loop = RealtimeActor(own, actor, inbox, boxes[0].put, boxes[1].put, counts, 7, clock=fake.clock)
+            loop.rest_rows = boxes if rows else None
         inbox.reset(7)
         loop.plant_gate.update("p1", True)
         loops.append(loop)
@@ -166,9 +199,10 @@ def run_host(rest: bool, arrays_from: int = 1) -> tuple[list[Action], list[Any],
         sleep=fake.sleep,
         group=2,
         rests=counted if rest else None,
+        outboxes=() if boxes is None else boxes,
     )
     scheduler.run(end=fake.now + TICKS * DELTA, manual_gc=False)
-    return actions, transitions, [loop.summary() for loop in loops], served[0]
+    return actions, transitions, [loop.summary() for loop in loops], column_rounds[0] if outboxes else served[0]
 
 
 TIMING = ("loop", "solve_ms", "latency_ms", "staleness_ms")
@@ -207,6 +241,27 @@ def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do
     assert moving and min(moving) > 25  # b rested through its push between the tolerances
     between = [resting for t, resting, *_ in rested[1] if t.robot == "b" and 17 <= t.step < 28]
     assert between and not any(between)  # at rest there, but outside the inner tolerances: fitted
+
+
+def test_an_actor_host_sends_the_ticks_at_rest_as_rows_of_its_rounds_bit_for_bit() -> None:
+    """The host's rounds (services/actor/host.py Outbox): ticks at rest put rows, no message built;
+    what the plant and the critic decode is what every robot's own steps send, in the same order
+    (each transition with what its loop then knew), and the summaries are theirs."""
+    rows, steps = run_host(rest=True, outboxes=True, rows=True), run_host(rest=False, outboxes=True)
+    assert rows[3] > TICKS and steps[3] == 0  # rounds went as columns; the steps' never did
+    assert len(rows[0]) == len(steps[0])
+    for ours, theirs in zip(rows[0], steps[0], strict=True):
+        assert (ours.robot, ours.step, ours.action, ours.state_seq) == (
+            theirs.robot,
+            theirs.step,
+            theirs.action,
+            theirs.state_seq,
+        )
+    assert rows[1] == steps[1]
+    for ours_summary, theirs_summary in zip(rows[2], steps[2], strict=True):
+        assert {k: v for k, v in ours_summary.items() if k not in TIMING} == {
+            k: v for k, v in theirs_summary.items() if k not in TIMING
+        }
 
 
 @pytest.mark.parametrize("change", ["newer state", "second plant", "none"])

@@ -301,6 +301,20 @@ class Columns(Generic[M]):
     def items(self) -> Iterator[M]:
         return (self.item(row) for row in range(len(self)))
 
+    @classmethod
+    def joined(cls, schema: type[M], parts: Sequence[Columns[M]]) -> Columns[M]:
+        """``parts`` (batches of ``schema``) as one batch, their rows in order (a round a host
+        put together from several runs of rows)."""
+        if len(parts) == 1:
+            return parts[0]
+        laid = spans(schema)
+        return cls(
+            schema,
+            [robot for part in parts for robot in part.robots],
+            np.vstack([part.ints for part in parts]).reshape(-1, laid.ints),
+            np.vstack([part.floats for part in parts]).reshape(-1, laid.floats),
+        )
+
     def take(self, rows: Sequence[int]) -> Columns[M]:
         """The rows ``rows`` (in that order) as a batch of their own, with this one's header."""
         chosen = list(rows)

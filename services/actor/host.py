@@ -41,8 +41,9 @@ import numpy as np
 
 from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
+from common.contracts.columns import Columns, columns_of, layout
 from common.contracts.keys import ACTION, STATE, TRANSITION
-from common.contracts.messages import Action, Transition
+from common.contracts.messages import Action, Message, PlantState, Transition
 from common.contracts.summaries import FleetActorSummary, RealtimeActorSummary, fleet_view, format_status_line
 from common.contracts.summaries import robot_summary as robot_view
 from common.math.actor import StackedActor
@@ -59,7 +60,7 @@ from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps
 
 log = logging.getLogger(__name__)
 
-M = TypeVar("M")
+M = TypeVar("M", bound=Message)
 
 # A tick served more than this fraction of a period after its due time is solved in a hurry
 # (StackedActor.step: the warm polish only, no search and no vertex search): a host behind its
@@ -169,6 +170,9 @@ class RestCheck:
         self.r_diag = settings.cost.r_diag
         self.delta = settings.plant.sampling_time
         self.arrays_from = max(1, arrays_from)
+        # per robot, the last decision and the (state, true state) it was made on: a robot at rest
+        # reports the same state tick after tick, and the decision is a function of it alone
+        self.decided: dict[int, tuple[Any, Any, np.ndarray, bool, bool, float, float | None]] = {}
 
     def __call__(self, members: Sequence[int], now: float) -> dict[int, AtRest]:
         tolerances = self.tolerances
@@ -188,22 +192,47 @@ class RestCheck:
                 actors.append(actor)
         if len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
             return {}
-        states = np.array([held[0].state for held in helds])
-        known = [j for j, held in enumerate(helds) if held[0].true_state is not None]
-        truths = np.array([helds[j][0].true_state for j in known]).reshape(len(known), 3)
-        inner, stays = arrival_masks(states, tolerances)
+        decided = self.decided
+        new = []
+        for j, i in enumerate(picked):
+            known = decided.get(i)
+            message = helds[j][0]
+            if known is None or known[0] != message.state or known[1] != message.true_state:
+                new.append(j)
+        if new:
+            self._decide([picked[j] for j in new], [helds[j][0] for j in new])
+        rests = {}
+        for j, i in enumerate(picked):
+            _, _, state, inner, stays, cost, true_cost = decided[i]
+            if stays:
+                rests[i] = AtRest(helds[j], state, cost, true_cost, inner, actors[j].memory.held_at_rest)
+        return rests
+
+    def _decide(self, robots: list[int], messages: list[PlantState]) -> None:
+        """The decisions for ``robots`` at their newest states, as arrays: the outer tolerances (still
+        arrived), the inner ones and the stage costs of a zero command."""
+        assert self.tolerances is not None
+        states = np.array([message.state for message in messages])
+        known = [j for j, message in enumerate(messages) if message.true_state is not None]
+        truths = np.array([messages[j].true_state for j in known]).reshape(len(known), 3)
+        inner, stays = arrival_masks(states, self.tolerances)
         # the stage costs of a zero command, of the reported states and then of the true ones
         both = np.vstack([states, truths])
         costs = (self.delta * stage_cost_rows(both, np.zeros((len(both), ACTION_DIM)), self.r_diag)).tolist()
-        true_costs: list[float | None] = [None] * len(picked)
-        for j, cost in zip(known, costs[len(picked) :], strict=True):
+        true_costs: list[float | None] = [None] * len(robots)
+        for j, cost in zip(known, costs[len(robots) :], strict=True):
             true_costs[j] = cost
-        rests = {}
-        for j, i in enumerate(picked):
-            if stays[j]:
-                hold = actors[j].memory.held_at_rest
-                rests[i] = AtRest(helds[j], states[j], costs[j], true_costs[j], bool(inner[j]), hold)
-        return rests
+        for j, i in enumerate(robots):
+            message = messages[j]
+            self.decided[i] = (
+                message.state,
+                message.true_state,
+                states[j],
+                bool(inner[j]),
+                bool(stays[j]),
+                costs[j],
+                true_costs[j],
+            )
 
 
 class Outbox(Generic[M]):
@@ -212,40 +241,86 @@ class Outbox(Generic[M]):
     :class:`HostScheduler` flushes it when a tick group is served and before it sleeps, and, when
     ``wait`` is given, earlier once the oldest message has waited that long (the actions:
     :data:`ACTION_WAIT_S`). Used by the scheduler's thread only (every robot's messages are put
-    at its ticks). ``what`` names the messages in the log."""
+    at its ticks). ``what`` names the messages in the log.
+
+    A robot's tick puts a message (:meth:`put`) or, at rest, a row of ``schema`` (:meth:`put_row`:
+    its fields' values in the schema's order, common.contracts.columns.layout, no message
+    built); a round holds both in the order put, and goes as the messages when it holds only
+    messages, else as one batch of columns (checked by the sender as a receiver checks it)."""
 
     def __init__(
         self,
-        send: Callable[[list[M]], None],
+        send: Callable[[Sequence[M] | Columns[M]], None],
         what: str = "actions",
         clock: Callable[[], float] = time.monotonic,
         wait: float | None = ACTION_WAIT_S,
+        schema: type[M] | None = None,
     ) -> None:
         self.send, self.what, self.clock, self.wait = send, what, clock, wait
-        self.pending: list[M] = []
+        self.schema = schema
+        self.fields = () if schema is None else tuple(column.name for column in layout(schema))
+        self.pending: list[M | Columns[M]] = []
+        self.row_robots: list[str] = []  # the open run of rows: its robots and their values
+        self.rows: list[tuple[Any, ...]] = []
         self.since = 0.0  # when the oldest pending message was put
         self.failed_rounds = 0
 
     def put(self, message: M) -> None:
-        if not self.pending:
+        if self.rows:
+            self._close_rows()
+        elif not self.pending:
             self.since = self.clock()
         self.pending.append(message)
 
+    def put_row(self, robot: str, values: tuple[Any, ...]) -> None:
+        """A message's worth of ``robot``: ``values``, one per field of ``schema`` in its order."""
+        if not self.pending and not self.rows:
+            self.since = self.clock()
+        self.row_robots.append(robot)
+        self.rows.append(values)
+
+    def _close_rows(self) -> None:
+        assert self.schema is not None, "an outbox of rows names their schema"
+        columns = dict(zip(self.fields, (np.asarray(column) for column in zip(*self.rows, strict=True)), strict=True))
+        self.pending.append(Columns.of(self.schema, self.row_robots, columns))
+        self.row_robots, self.rows = [], []
+
     def overdue(self, now: float) -> bool:
-        return self.wait is not None and bool(self.pending) and now - self.since >= self.wait
+        return self.wait is not None and bool(self.pending or self.rows) and now - self.since >= self.wait
 
     def flush(self) -> None:
         """Send what is pending. A send that fails is logged and counted (``failed_rounds``), and
         the scheduler goes on: the robots whose actions it held stop by their plant's watchdog,
         as they would if those actions had been lost on the way; a round of transitions lost is
         a gap in the critic's replay, as a transition lost on the way is."""
+        if self.rows:
+            self._close_rows()
         if self.pending:
             pending, self.pending = self.pending, []
             try:
-                self.send(pending)
+                self.send(self._round(pending))
             except Exception:  # a failed round must not end the loop that keeps every robot safe
                 self.failed_rounds += 1
                 log.exception("actor host: a round of %d %s could not be sent", len(pending), self.what)
+
+    def _round(self, pending: list[M | Columns[M]]) -> Sequence[M] | Columns[M]:
+        """The messages, or (rows among them) one batch of all of them in order."""
+        if not any(isinstance(part, Columns) for part in pending):
+            return pending  # type: ignore[return-value]  # only messages
+        assert self.schema is not None
+        parts: list[Columns[M]] = []
+        messages: list[M] = []
+        for part in pending:
+            if isinstance(part, Columns):
+                if messages:
+                    parts.append(columns_of(self.schema, messages))
+                    messages = []
+                parts.append(part)
+            else:
+                messages.append(part)
+        if messages:
+            parts.append(columns_of(self.schema, messages))
+        return Columns.joined(self.schema, parts)
 
 
 def transition_rounds(robots: int, group: int) -> int:
@@ -462,17 +537,20 @@ def run_host(
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
     batches = len(robots) > 1
-    outbox = Outbox(bus.round_publisher(ACTION, batches=batches))
+    outbox = Outbox(bus.round_publisher(ACTION, batches=batches), schema=Action)
     # a host of one robot: the robot's advanced publisher (transition_cache of its transitions)
     cache = settings.transport.transition_cache
     cache *= transition_rounds(len(robots), settings.actor.host_tick_group) if batches else 1
-    transitions = Outbox(bus.round_publisher(TRANSITION, batches=batches, cache=cache), "transitions", wait=None)
+    transitions = Outbox(
+        bus.round_publisher(TRANSITION, batches=batches, cache=cache), "transitions", wait=None, schema=Transition
+    )
     for robot in robots:
         own = robot_settings(settings, robot)
         count = RobotCounts(robot, "actor", forward=bus.reject)
         inbox = wire_weights(own, bus)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
         loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id(), outbox.put, transitions.put)
+        loop.rest_rows = (outbox, transitions)  # a tick at rest puts rows, builds no message
         # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
         # forged state just before a tick cannot displace the live plant's newest
         bus.subscribe(STATE, STATE.key(robot), loop.on_state, with_source=True)

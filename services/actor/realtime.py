@@ -95,6 +95,14 @@ class AtRest:
     hold: Callable[[], None]  # leaves the actor's memory as its step at rest does
 
 
+class RowSink(Protocol):
+    """Where a tick at rest puts its action and its transition as rows of their schema, no
+    message built (services/actor/host.py Outbox.put_row): ``values`` are the message's fields
+    but ``robot``, in the schema's order (common.contracts.columns.layout)."""
+
+    def put_row(self, robot: str, values: tuple[Any, ...]) -> None: ...
+
+
 class RealtimeActor:
     """One robot's real-time actor. Feed it states (:meth:`on_state`), plant identities and
     tokens; a scheduler (services/actor/host.py HostScheduler, of one robot or many) calls
@@ -159,6 +167,9 @@ class RealtimeActor:
         self.true_accumulated_cost = 0.0
         self.ticker: Ticker | None = None
         self.last_step = -1
+        # an actor host's outboxes of actions and transitions, which ticks at rest fill with rows
+        # (None: every tick builds its messages)
+        self.rest_rows: tuple[RowSink, RowSink] | None = None
 
     # -- inputs (Zenoh's threads) ---------------------------------------------------------
     def on_plant_identity(self, zid: str, alive: bool) -> None:
@@ -318,10 +329,25 @@ class RealtimeActor:
         self._note_truth(rest.held[0])
         weights = self.inbox.current()
         rest.hold()
-        self.send(k, ZERO_ACTION, rest.held[0].seq)
+        rows = self.rest_rows
+        if rows is None:
+            self.send(k, ZERO_ACTION, rest.held[0].seq)
+        else:  # Action's fields
+            rows[0].put_row(self.robot, (self.episode_id, k, time.monotonic_ns(), ZERO_ACTION, rest.held[0].seq))
         done = self.clock()
         self._record(
-            k, tick, rest.held, rest.state, ZERO_ACTION, rest.cost, rest.true_cost, weights, 0.0, done, rest.inner
+            k,
+            tick,
+            rest.held,
+            rest.state,
+            ZERO_ACTION,
+            rest.cost,
+            rest.true_cost,
+            weights,
+            0.0,
+            done,
+            rest.inner,
+            None if rows is None else rows[1],
         )
 
     def _note_truth(self, message: PlantState) -> None:
@@ -343,10 +369,11 @@ class RealtimeActor:
         solve_seconds: float,
         done: float,
         inner: bool | None = None,
+        rows: RowSink | None = None,
     ) -> None:
         """What a step leaves once its action is out (at ``done``): its transition, its cost and
         statistics. ``inner``: the state is inside the arrival rule's inner tolerances, when the
-        caller knows it (common.math.critic.at_rest)."""
+        caller knows it (common.math.critic.at_rest). ``rows``: the transition goes there as a row."""
         received = held[1]
         self.arrived_steps += self.arrived
         # transport/loop latency: state arrival -> action out, minus the solve itself
@@ -360,16 +387,19 @@ class RealtimeActor:
         due = self.fits.newest if resting else k - 1
         self.fits.sent(Sample(k, state, np.array(action), cost), inner)  # the values the transition carries
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
-        self.publish_transition(
-            Transition(
-                robot=self.robot,
-                episode=self.episode_id,
-                step=k,
-                state=(float(state[0]), float(state[1]), float(state[2])),
-                action=action,
-                cost=cost,
+        if rows is not None:  # Transition's fields
+            rows.put_row(self.robot, (self.episode_id, k, state, action, cost))
+        else:
+            self.publish_transition(
+                Transition(
+                    robot=self.robot,
+                    episode=self.episode_id,
+                    step=k,
+                    state=(float(state[0]), float(state[1]), float(state[2])),
+                    action=action,
+                    cost=cost,
+                )
             )
-        )
         slot = k % PUBLISH_TIMES_KEPT
         self.published_step[slot], self.published_at[slot] = k, self.clock()
         self.tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
