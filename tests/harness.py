@@ -291,3 +291,38 @@ def random_transitions(
         for k in range(steps)
         for robot in robots
     ]
+
+
+class FakeSample:
+    """What an Inbox reads of a Zenoh sample: its payload, key and (no) timestamp."""
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key_expr, self.timestamp = key, None
+        # a new bytes object per call, as Zenoh makes one (the backlog test counts what it holds)
+        self.payload = type("Payload", (), {"to_bytes": lambda _: bytes(bytearray(payload))})()
+
+
+def buses_on_a_fake_session(monkeypatch: Any) -> dict[str, Any]:
+    """Every :class:`~common.net.transport.Bus` opened from here on (``Bus.open``) is on a Zenoh
+    session that only notes its subscriptions: the dict returned maps a subscribed key to the
+    callback Zenoh would call with a sample and whether it recovers. No Zenoh, no thread."""
+    from common.net.transport import Bus
+
+    subscribed: dict[str, Any] = {}
+
+    class Session:
+        def close(self) -> None:
+            pass
+
+    class Subscriber:
+        def undeclare(self) -> None:
+            pass
+
+    def declare(self: Bus, key: str, callback: Any, recover: bool) -> Subscriber:
+        subscribed[key] = (callback, recover)
+        return Subscriber()
+
+    monkeypatch.setattr(Bus, "_callback", lambda self, handler, threaded=None: (handler, threaded))
+    monkeypatch.setattr(Bus, "_declare_subscriber", declare)
+    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: cls(Session(), service)))
+    return subscribed

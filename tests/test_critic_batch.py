@@ -8,9 +8,10 @@ at most its window and checkpoints the active sets, so a restored critic fits on
 from __future__ import annotations
 
 import copy
-import queue
 import threading
 import time
+from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,8 @@ import scipy.optimize
 
 import common.math.critic
 from common.config.settings import Settings
+from common.contracts.columns import batch_payloads
+from common.contracts.keys import TRANSITION, TRANSITION_BATCH
 from common.contracts.messages import Transition
 from common.math.critic import (
     DoubleCritic,
@@ -29,9 +32,10 @@ from common.math.critic import (
     fit_gram,
     update_many,
 )
+from common.net.transport import Bus, Inbox
 from common.system.checkpoint import atomic_write_json
-from services.critic.service import CriticLearner, load_checkpoint, take_batch
-from tests.harness import random_transitions
+from services.critic.service import CriticLearner, Row, collect, load_checkpoint
+from tests.harness import FakeSample, buses_on_a_fake_session, random_transitions
 
 BOUNDS = (0.0, 100.0)
 
@@ -234,32 +238,123 @@ def transition(robot: str, step: int = 0) -> Transition:
     return Transition(robot=robot, episode=1, step=step, state=(1.0, 0.0, 0.0), action=(0.0, 0.0), cost=0.1)
 
 
-def test_a_batch_takes_what_waits_and_no_more_without_a_window() -> None:
-    inbox: queue.Queue[Transition] = queue.Queue()
-    for robot in "bc":
-        inbox.put(transition(robot))
-    late = threading.Timer(0.05, inbox.put, args=(transition("d"),))
+def critic_intake(monkeypatch: pytest.MonkeyPatch, limit: int = 1000) -> tuple[Inbox, Callable[..., None]]:
+    """A critic's intake (common.net.transport.Inbox, every robot's transitions, as
+    services/critic/service.py subscribes them) on a Bus whose Zenoh session is fake, and
+    ``put(*messages)``, which hands a message to its robot's key's subscription as Zenoh would
+    (several: one batch of them on the batch key)."""
+    subscribed = buses_on_a_fake_session(monkeypatch)
+    bus = Bus.open(Settings.load().transport, "critic")
+    intake = bus.inbox(limit)
+    intake.subscribe(TRANSITION, TRANSITION.pattern.format(robot="*"), recover=True)
+
+    def put(*messages: Transition) -> None:
+        if len(messages) == 1:
+            key, payload = TRANSITION.key(messages[0].robot), messages[0].encode()
+        else:
+            key, payload = TRANSITION_BATCH.pattern, one_batch(list(messages))
+        pattern = key if key in subscribed else TRANSITION.pattern.format(robot="*")
+        (callback, _), recover = subscribed[pattern]
+        assert recover  # the history the actors' publishers cache
+        callback(FakeSample(key, payload))
+
+    return intake, put
+
+
+def one_batch(messages: list[Transition]) -> bytes:
+    (payload,) = batch_payloads(messages)
+    return payload
+
+
+def test_a_batch_takes_what_waits_and_no_more_without_a_window(monkeypatch: pytest.MonkeyPatch) -> None:
+    intake, put = critic_intake(monkeypatch)
+    put(transition("a"))
+    put(transition("b"), transition("c"))  # a batch's rows and a message alone: one path
+    late = threading.Timer(0.05, put, args=(transition("d"),))
     late.start()
     try:
-        assert [t.robot for t in take_batch(transition("a"), inbox, 0.0, robots=4)] == ["a", "b", "c"]
+        assert intake.wait(0.0)
+        assert [t.robot for t in collect(intake, deque(), 0.0, robots=4)] == ["a", "b", "c"]
     finally:
         late.join()
-    assert inbox.qsize() == 1
+    assert intake.waiting == 1  # d waits for the next batch
+    assert [t.robot for t in collect(intake, deque(), 0.0, robots=4)] == ["d"]
 
 
 @pytest.mark.timing
-def test_a_batch_window_collects_until_every_robot_is_in_or_the_window_ends() -> None:
-    inbox: queue.Queue[Transition] = queue.Queue()
-    feeder = threading.Thread(target=lambda: [time.sleep(0.01) or inbox.put(transition(r)) for r in "bcd"], daemon=True)
+def test_a_batch_window_collects_until_every_robot_is_in_or_the_window_ends(monkeypatch: pytest.MonkeyPatch) -> None:
+    intake, put = critic_intake(monkeypatch)
+    recovered: deque[Transition] = deque([transition("e")])  # an answer of the actors' caches: taken too
+    feeder = threading.Thread(target=lambda: [time.sleep(0.01) or put(transition(r)) for r in "bcd"], daemon=True)
+    put(transition("a"))
     feeder.start()
     started = time.monotonic()
-    batch = take_batch(transition("a"), inbox, 1.0, robots=4)
-    assert [t.robot for t in batch] == ["a", "b", "c", "d"]
+    batch = collect(intake, recovered, 1.0, robots=5)
+    assert [t.robot for t in batch] == ["a", "e", "b", "c", "d"]
     assert time.monotonic() - started < 0.5  # every robot heard from is in: no wait for the window
     feeder.join()
+    put(transition("a", 1))
     started = time.monotonic()
-    batch = take_batch(transition("a", 1), inbox, 0.05, robots=4)  # nobody else comes
+    batch = collect(intake, recovered, 0.05, robots=4)  # nobody else comes
     assert [t.robot for t in batch] == ["a"] and 0.04 <= time.monotonic() - started < 0.5
+
+
+def test_a_critic_of_many_robots_takes_each_batch_once_and_only_its_robots_rows(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``srl critic --robots`` subscribes every robot's key: its intake holds ONE subscription of
+    the batch key (one per robot decoded each batch once per robot: 64 % of a core at rest with
+    100 robots), and takes a batch's rows of its robots once, those of other robots never."""
+    subscribed = buses_on_a_fake_session(monkeypatch)
+    declared: list[str] = []
+    declare = Bus._declare_subscriber
+    monkeypatch.setattr(
+        Bus, "_declare_subscriber", lambda self, key, *args: declared.append(key) or declare(self, key, *args)
+    )
+    intake = Bus.open(Settings.load().transport, "critic").inbox(1000)
+    intake.subscribe(TRANSITION, [TRANSITION.key(robot) for robot in "abc"], recover=True)
+    assert declared.count(TRANSITION_BATCH.pattern) == 1 and len(declared) == 4
+    with pytest.raises(ValueError, match="give every key at once"):
+        intake.subscribe(TRANSITION, TRANSITION.key("d"))
+    (callback, _), _ = subscribed[TRANSITION_BATCH.pattern]
+    callback(FakeSample(TRANSITION_BATCH.pattern, one_batch([transition(r) for r in "axbyc"])))
+    assert intake.waiting == 5  # the sample's rows, counted once
+    assert [t.robot for t in collect(intake, deque(), 0.0, robots=3)] == ["a", "b", "c"]
+
+
+def test_the_intake_wakes_its_consumer_for_what_comes_and_for_what_it_is_told(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    intake, put = critic_intake(monkeypatch)
+    assert not intake.wait(0.0)  # nothing came
+    put(transition("a"))
+    assert intake.wait(0.0)
+    assert [t.robot for t in collect(intake, deque(), 0.0, robots=1)] == ["a"]
+    assert not intake.wait(0.0)  # taken: nothing new
+    intake.wake()  # the critic's own (HistoryRecovery's answers)
+    assert intake.wait(0.0)
+    assert collect(intake, deque(), 0.0, robots=1) == [] and not intake.wait(0.0)
+
+
+def test_a_batchs_rows_train_the_critic_as_its_messages_do_bit_for_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The critic takes a batch's rows (services/critic/service.py Row, no message built): its
+    learners, replays, weights and counts are those the same transitions as messages make, a
+    robot at rest included."""
+    stream = random_transitions(40, ("a", "b", "c"), seed=5)
+    rest = Transition(robot="d", episode=1, step=0, state=(0.004, -0.003, 0.01), action=(0.0, 0.0), cost=1e-7)
+    stream += [rest.model_copy(update={"step": k}) for k in range(40)]
+    intake, put = critic_intake(monkeypatch, limit=len(stream))
+    for first in range(0, len(stream), 7):
+        put(*stream[first : first + 7])
+    rows = collect(intake, deque(), 0.0, robots=4)
+    assert all(isinstance(row, Row) for row in rows) and len(rows) == len(stream)
+    by_rows, by_messages = CriticLearner(settings()), CriticLearner(settings())
+    by_messages.version = by_rows.version  # versions start from the clock
+    weights_of_rows = [by_rows.take(row) for row in rows]
+    weights_of_messages = [by_messages.take(message) for message in stream]
+    assert weights_of_rows == weights_of_messages and any(weights_of_rows)
+    assert by_rows.state() == by_messages.state()
+    assert by_rows.fits_at_rest == by_messages.fits_at_rest > 30  # d rested
 
 
 def test_the_checkpoint_keeps_the_active_sets_and_refuses_bad_ones(tmp_path: Path) -> None:

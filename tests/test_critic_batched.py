@@ -238,7 +238,7 @@ def test_the_service_publishes_the_same_weights_batched_as_one_robot_at_a_time(r
         expected = [w for t in stream for w in alone.take(t)]
     batched = CriticLearner(settings)
     got = []
-    for start in range(0, len(stream), 12):  # a batch holds one fleet step, as take_batch collects it
+    for start in range(0, len(stream), 12):  # a batch holds one fleet step, as collect() takes it
         for t in stream[start : start + 12]:
             assert batched.take(t, defer=True) == []
         got += batched.flush()

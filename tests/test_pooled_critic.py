@@ -352,6 +352,9 @@ class AliveProbe:
     def __init__(self) -> None:
         self.calls: list[str] = []
 
+    def inbox(self, limit: int) -> AliveProbe:
+        return self  # its subscriptions are the bus's
+
     def subscribe(self, *args: object, **kwargs: object) -> None:
         self.calls.append("subscribe")
 

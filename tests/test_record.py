@@ -30,7 +30,7 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 
 from tests import harness
-from tests.harness import ROOT, Proc, free_port, open_session, wait_until
+from tests.harness import ROOT, FakeSample, Proc, buses_on_a_fake_session, free_port, open_session, wait_until
 
 DELTA_NS = 100_000_000  # delta = 0.1 s
 
@@ -560,15 +560,6 @@ def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whate
         assert bus._callback(print, threaded=False).indirect is False
 
 
-class FakeSample:
-    """What an Inbox reads of a Zenoh sample: its payload, key and (no) timestamp."""
-
-    def __init__(self, key: str, payload: bytes) -> None:
-        self.key_expr, self.timestamp = key, None
-        # a new bytes object per call, as Zenoh makes one (the backlog test counts what it holds)
-        self.payload = type("Payload", (), {"to_bytes": lambda _: bytes(bytearray(payload))})()
-
-
 class KeptSink:
     """A sink that keeps (topic, data, t_ns) of every write; ``fail`` makes every write raise it."""
 
@@ -590,26 +581,9 @@ def feed_on_a_fake_bus(monkeypatch: pytest.MonkeyPatch, settings: Any = None) ->
     that Zenoh would call, and whether it recovers), writing to a :class:`KeptSink`: no Zenoh, no
     file."""
     from common.config.settings import Settings
-    from common.net.transport import Bus
     from tools.recording.record import Feed, Recorder
 
-    subscribed: dict[str, Any] = {}
-
-    class Session:
-        def close(self) -> None:
-            pass
-
-    class Subscriber:
-        def undeclare(self) -> None:
-            pass
-
-    def declare(self: Bus, key: str, callback: Any, recover: bool) -> Subscriber:
-        subscribed[key] = (callback, recover)
-        return Subscriber()
-
-    monkeypatch.setattr(Bus, "_callback", lambda self, handler, threaded=None: (handler, threaded))
-    monkeypatch.setattr(Bus, "_declare_subscriber", declare)
-    monkeypatch.setattr(Bus, "open", classmethod(lambda cls, transport, service: cls(Session(), service)))
+    subscribed = buses_on_a_fake_session(monkeypatch)
     sink = KeptSink()
     return Feed(settings or Settings.load(), Recorder(sink, 0.1)), subscribed, sink
 

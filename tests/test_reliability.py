@@ -271,12 +271,12 @@ def critic_joining_late(robots: list[str], asks_again: bool, monkeypatch: pytest
     import threading
 
     from common.contracts.keys import TRANSITION, TRANSITION_BATCH
-    from common.net.transport import Bus
+    from common.net.transport import Bus, Inbox
     from services.critic import service
 
-    subscribe = Bus.subscribe
+    subscribe = Inbox.subscribe  # the critic's intake
     monkeypatch.setattr(
-        Bus, "subscribe", lambda self, *args, **kwargs: subscribe(self, *args, **{**kwargs, "recover": False})
+        Inbox, "subscribe", lambda self, *args, **kwargs: subscribe(self, *args, **{**kwargs, "recover": False})
     )
     if not asks_again:
         monkeypatch.setattr(Bus, "history", lambda *args, **kwargs: None)

@@ -713,35 +713,50 @@ class Inbox:
     key is refused; a batch's skipped and repeated sequence numbers are counted
     (``batches_missed.<name>``, ``batches_repeated.<name>``); the rows handed over are counted
     under ``received.<name>``. At most ``limit`` rows wait: the rest are counted in
-    :attr:`dropped` (the consumer is behind), never silently lost."""
+    :attr:`dropped` (the consumer is behind), never silently lost.
+
+    A consumer that answers what comes (the critic) sleeps in :meth:`wait`, which returns once a
+    sample was put (or :meth:`wake` was called) since the last :meth:`take` began."""
 
     def __init__(self, bus: Bus, limit: int) -> None:
         self.bus = bus
         self.limit = limit
         self.waiting = 0  # rows put and not yet taken
         self.dropped = 0  # rows refused because ``limit`` waited
+        self._ready = threading.Event()  # something was put since the last take began
+        self._batches: set[str] = set()  # the batch keys subscribed (once each)
         self._lock = threading.Lock()  # put runs on several of Zenoh's threads
         # (reader, name, rows, payload, key, source, arrival [ns]), oldest first
         self._samples: deque[tuple[Callable[[bytes, str, str | None], Any], str, int, bytes, str, str | None, int]]
         self._samples = deque()
 
-    def subscribe(self, topic: Topic[M], key: str, what: str | None = None, recover: bool = False) -> None:
-        """Take ``topic``'s samples on ``key`` (a wildcard takes every robot's) and, with a batch
-        form, its batches' rows of the robots ``key`` includes; ``recover`` as in :meth:`Bus.subscribe`."""
+    def subscribe(
+        self, topic: Topic[M], keys: str | Sequence[str], what: str | None = None, recover: bool = False
+    ) -> None:
+        """Take ``topic``'s samples on ``keys`` (one key or several; a wildcard takes every
+        robot's) and, with a batch form, its batches' rows of the robots the keys include, from
+        ONE subscription of the batch key (a topic's batches are subscribed once per inbox: a
+        second call for the topic is a ValueError); ``recover`` as in :meth:`Bus.subscribe`."""
         bus = self.bus
         name = what or counter_name(topic)
         batch = batch_of(topic)
+        keys = [keys] if isinstance(keys, str) else list(keys)
+        if batch is not None:
+            if batch.pattern in self._batches:
+                raise ValueError(f"{batch.pattern} is subscribed by this inbox already: give every key at once")
+            self._batches.add(batch.pattern)
 
         def alone(payload: bytes, sample_key: str, source: str | None) -> Any:
             message = decode_sample(topic, sample_key, payload)
             return message if batch is None else columns_of(topic.schema, [message])
 
-        self._declare(name, key, alone, lambda payload: 1, recover)
+        for key in keys:
+            self._declare(name, key, alone, lambda payload: 1, recover)
         if batch is None:
             return
-        wanted = zenoh.KeyExpr(key)
+        wanted = [zenoh.KeyExpr(key) for key in keys]
         read = BatchReader(bus, topic, name)
-        chosen: dict[str, bool] = {}  # robot -> whether ``key`` includes its key (bounded below)
+        chosen: dict[str, bool] = {}  # robot -> whether a key includes its key (bounded below)
 
         def rows(payload: bytes, sample_key: str, source: str | None) -> Columns[M]:
             columns = read(payload, source)
@@ -751,7 +766,8 @@ class Inbox:
                 if included is None:
                     if len(chosen) >= BATCH_ROBOTS_KEPT:
                         chosen.clear()
-                    included = chosen[robot] = wanted.intersects(zenoh.KeyExpr(topic.key(robot)))
+                    concrete = zenoh.KeyExpr(topic.key(robot))
+                    included = chosen[robot] = any(key.intersects(concrete) for key in wanted)
                 if included:
                     mine.append(row)
             return columns if len(mine) == len(columns) else columns.take(mine)
@@ -777,15 +793,26 @@ class Inbox:
                     return
                 self.waiting += rows
                 samples.append((reader, name, rows, payload, str(sample.key_expr), source_of(sample), time.time_ns()))
+            self._ready.set()
 
         # on Zenoh's thread: a put is an append, and a Python thread per subscription would only
         # contend with the consumer for the interpreter
         self.bus.raw_subscriber(key, put, recover, threaded=False)
 
+    def wait(self, timeout: float) -> bool:
+        """Sleep until a sample was put since the last :meth:`take` began (at once if one was),
+        at most ``timeout`` seconds; False: none was."""
+        return self._ready.wait(timeout)
+
+    def wake(self) -> None:
+        """End a :meth:`wait` (the consumer has something of its own to take)."""
+        self._ready.set()
+
     def take(self) -> Iterator[tuple[Any, int]]:
         """What waits, oldest first, as ``(columns or message, arrival [ns])``; a sample that does
         not decode is counted and logged (:meth:`Bus.reject`) and passed over."""
         samples, lock, bus = self._samples, self._lock, self.bus
+        self._ready.clear()  # a sample put from here on is taken now, or wakes the next wait
         while samples:
             reader, name, rows, payload, key, source, arrived_ns = samples.popleft()
             with lock:

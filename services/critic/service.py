@@ -44,25 +44,26 @@ import base64
 import logging
 import math
 import os
-import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
+from common.contracts.columns import Columns
 from common.contracts.keys import TRANSITION, WEIGHTS
 from common.contracts.messages import CriticWeights, Transition
 from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
 from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, at_rest, load_solver, update_many
 from common.math.stats import Window
-from common.net.transport import Bus, bus_status, start_status_thread
+from common.net.transport import Bus, Inbox, bus_status, start_status_thread
 from common.process.runtime import session_priority
 from common.system.checkpoint import (
     CheckpointError,
@@ -79,6 +80,56 @@ SEEN_SLACK = 100  # steps seen beyond the retention (at most as many again) befo
 CHECKPOINT_SCHEMA = 2
 READABLE_SCHEMAS = (1, 2)
 MAX_BATCH = 1000  # transitions taken from the inbox at once (then one checkpoint for all of them)
+# transitions that may wait for the critic (~200 s of a 100-robot fleet, ~30 MB of batches): past
+# it, rows are counted as dropped (transitions_dropped), a gap in their robots' replays
+INTAKE_LIMIT = 200_000
+
+
+class TransitionRow(Protocol):
+    """A transition as the critic takes it: a :class:`~common.contracts.messages.Transition`
+    message, or a row of a batch (:class:`Row`)."""
+
+    @property
+    def robot(self) -> str: ...
+
+    @property
+    def episode(self) -> int: ...
+
+    @property
+    def step(self) -> int: ...
+
+    @property
+    def state(self) -> Any: ...
+
+    @property
+    def action(self) -> Any: ...
+
+    @property
+    def cost(self) -> float: ...
+
+
+@dataclass(frozen=True, slots=True)
+class Row:
+    """One transition of a batch, read from its columns (validated as the batch was decoded): no
+    message built; ``state`` and ``action`` are rows of the batch's own arrays."""
+
+    robot: str
+    episode: int
+    step: int
+    state: np.ndarray
+    action: np.ndarray
+    cost: float
+
+
+def transition_rows(columns: Columns[Transition]) -> list[Row]:
+    """A batch's transitions as rows: its states and actions copied once, as two arrays (a
+    replay keeps rows of them, not of the payload), its integers and costs as Python values."""
+    states, actions = np.array(columns.field("state")), np.array(columns.field("action"))
+    episodes, steps = columns.field("episode").tolist(), columns.field("step").tolist()
+    costs = columns.field("cost").tolist()
+    return [
+        Row(robot, episodes[i], steps[i], states[i], actions[i], costs[i]) for i, robot in enumerate(columns.robots)
+    ]
 
 
 @dataclass
@@ -115,7 +166,7 @@ class HistoryRecovery:
         self.asked: dict[str, tuple[int, range]] = {}  # what the query out asks for
         self.queries = 0
 
-    def need(self, first: Transition, missing: range) -> None:
+    def need(self, first: TransitionRow, missing: range) -> None:
         """``first`` is the first transition of its robot this critic got, ``missing`` the steps before it it needs."""
         with self.lock:
             self.waiting[first.robot] = (first.episode, missing)
@@ -163,9 +214,9 @@ def checkpoint_path(settings: Settings) -> Path | None:
     )
 
 
-def replay_sample(message: Transition) -> Sample:
-    """A transition as its robot's replay holds it."""
-    return Sample(message.step, np.array(message.state), np.array(message.action), message.cost)
+def replay_sample(message: TransitionRow) -> Sample:
+    """A transition as its robot's replay holds it (a batch's row: its own arrays, not copied)."""
+    return Sample(message.step, np.asarray(message.state, float), np.asarray(message.action, float), message.cost)
 
 
 class CriticLearner:
@@ -248,7 +299,7 @@ class CriticLearner:
             pairs=pairs,
         )
 
-    def confirm(self, message: Transition) -> CriticWeights | None:
+    def confirm(self, message: TransitionRow) -> CriticWeights | None:
         """The first transition of a robot read from the checkpoint: the same run continues
         (the weights held are re-published, under a new version) or a new one starts fresh."""
         if message.robot not in self.pending:
@@ -265,7 +316,7 @@ class CriticLearner:
         trained = learner.replay.samples[-1].step if len(learner.replay) else -1
         return self._message(message.robot, learner, trained, 0.0, 0.0, 0)
 
-    def missing_before(self, message: Transition) -> range:
+    def missing_before(self, message: TransitionRow) -> range:
         """Steps of ``message``'s episode before it that this critic does not hold, for the first
         transition it hears of a robot since it started: empty when the stream starts where the
         critic is (step 0 of a new run, or the step after its checkpoint's newest). The steps a
@@ -292,7 +343,7 @@ class CriticLearner:
         """A checkpoint's learner is in use: resumed on request, or continued within its run."""
         return bool(self.continued) or (self.resume and self.loaded)
 
-    def resting(self, batch: Sequence[Transition]) -> list[bool]:
+    def resting(self, batch: Sequence[TransitionRow]) -> list[bool]:
         """Per transition of ``batch``, taken in order: will :meth:`take` find its robot at rest
         (:func:`~common.math.critic.at_rest` after the sample before it: the robot's previous one
         in the batch, else its replay's newest) and fit nothing? Never for the pooled learner,
@@ -311,11 +362,11 @@ class CriticLearner:
             before[key] = sample
         return resting
 
-    def on_transition(self, message: Transition, fit: bool = True) -> CriticWeights | None:
+    def on_transition(self, message: TransitionRow, fit: bool = True) -> CriticWeights | None:
         """:meth:`take`, and of what it returns the weights for the message's robot."""
         return next((w for w in self.take(message, fit) if w.robot == message.robot), None)
 
-    def take(self, message: Transition, fit: bool = True, defer: bool = False) -> list[CriticWeights]:
+    def take(self, message: TransitionRow, fit: bool = True, defer: bool = False) -> list[CriticWeights]:
         """Into the robot's replay; fitted and the weights returned when a fit is due (and
         ``fit``: False when a newer transition of the robot, due a fit too, is already waiting;
         pooled: when the batch's end will fit, :meth:`flush`). Per robot: its weights; pooled:
@@ -348,7 +399,7 @@ class CriticLearner:
         if message.robot in self.due:  # its fit left to the batch's end is made first, on the replay as it was
             self.outgoing += self._fit_due()
         newest = learner.replay.newest
-        sample = replay_sample(message)
+        sample = replay_sample(message)  # a batch's row: a view of its arrays, nothing copied
         learner.replay.add(sample)
         if self.pool is not None:
             if not self.pool.count(message.step):
@@ -506,24 +557,30 @@ class CriticLearner:
         return messages
 
 
-def take_batch(first: Transition, inbox: queue.Queue[Transition], window: float, robots: int) -> list[Transition]:
-    """``first`` and what waits in ``inbox`` (at most MAX_BATCH); with a ``window`` [s], also what
-    comes within it after ``first``, until a transition of each of the ``robots`` heard from is in."""
-    batch, heard = [first], {first.robot}
+def drain(intake: Inbox, recovered: deque[Transition]) -> list[TransitionRow]:
+    """What waits: the intake's batches as rows (a message alone on its robot's key is a batch of
+    one row), then what the actors' caches answered (:class:`HistoryRecovery`)."""
+    batch: list[TransitionRow] = []
+    for columns, _ in intake.take():
+        batch += transition_rows(columns)
+    while recovered:
+        batch.append(recovered.popleft())
+    return batch
+
+
+def collect(intake: Inbox, recovered: deque[Transition], window: float, robots: int) -> list[TransitionRow]:
+    """What waits (:func:`drain`); with a ``window`` [s], also what comes within it, until a
+    transition of each of the ``robots`` heard from is in."""
+    batch = drain(intake, recovered)
+    if window <= 0 or not batch:
+        return batch
+    heard = {message.robot for message in batch}
     end = time.monotonic() + window
-    while len(batch) < MAX_BATCH:
-        try:
-            message = inbox.get_nowait()
-        except queue.Empty:
-            wait = end - time.monotonic()
-            if wait <= 0 or len(heard) >= robots:
-                break
-            try:
-                message = inbox.get(timeout=wait)
-            except queue.Empty:
-                break
-        batch.append(message)
-        heard.add(message.robot)
+    while len(heard) < robots and (left := end - time.monotonic()) > 0:
+        if intake.wait(left):
+            more = drain(intake, recovered)
+            batch += more
+            heard.update(message.robot for message in more)
     return batch
 
 
@@ -574,7 +631,9 @@ def restore_active_sets(critic: DoubleCritic, entry: dict[str, Any], owner: str)
         setattr(critic, name, on_bound)
 
 
-def coalesced_fits(batch: list[Transition], update_every: int, resting: Sequence[bool] | None = None) -> set[int]:
+def coalesced_fits(
+    batch: Sequence[TransitionRow], update_every: int, resting: Sequence[bool] | None = None
+) -> set[int]:
     """Indices of the batch's transitions whose due fit a later transition of the same robot and
     episode, also fitted, makes redundant. ``resting``: per transition, whether its learner will
     not fit it although due (a robot held at rest, :meth:`CriticLearner.resting`): such a
@@ -625,7 +684,10 @@ def run(
     writer = None if path is None else CheckpointWriter(path, checkpoint_seconds.append)
     batches = Window()  # transitions taken per batch
     waiting = Window()  # transitions waiting when a batch began: the critic's backlog
-    inbox: queue.Queue[Transition] = queue.Queue()
+    # the transitions' samples wait as bytes (Zenoh's threads only queue them); the loop decodes
+    # what waits as columns and takes their rows
+    intake = bus.inbox(INTAKE_LIMIT)
+    recovered: deque[Transition] = deque()  # what the actors' caches answered (HistoryRecovery)
     sends: list[Callable[[Sequence[CriticWeights]], None]] = []  # declared at the first round
 
     def publish(round_: list[CriticWeights]) -> None:
@@ -645,7 +707,11 @@ def run(
         bus.count("history_queries")
         bus.history(TRANSITION, [TRANSITION.key(robot) for robot in robots], answer, done)
 
-    recovery = HistoryRecovery(ask, inbox.put)
+    def put_recovered(message: Transition) -> None:
+        recovered.append(message)
+        intake.wake()
+
+    recovery = HistoryRecovery(ask, put_recovered)
 
     if restored and learner.resume:  # asked to start from them: the actor may use them from step 0
         publish(list(learner.current_weights()))
@@ -659,8 +725,7 @@ def run(
         if robots
         else [TRANSITION.pattern.format(robot=settings.critic.robots)]
     )
-    for key in keys:
-        bus.subscribe(TRANSITION, key, inbox.put, recover=True)
+    intake.subscribe(TRANSITION, keys, recover=True)  # the batch key once, whatever the robots
     # the critic of every robot it serves (a fleet's actors accept weights only from a live critic
     # of their own robot: srl/<robot>/alive/critic/<zid>)
     for robot in robots or [settings.transport.robot]:
@@ -671,6 +736,7 @@ def run(
             "transitions_received": learner.received,
             "duplicates": learner.duplicates,
             "too_old": learner.too_old,
+            "transitions_dropped": intake.dropped,
         },
     )
     start_status_thread(bus, [(settings.transport.robot, own)], settings.transport.status_period, stop)
@@ -684,17 +750,10 @@ def run(
     )
     end = None if duration is None else time.monotonic() + duration
     written, dirty = -math.inf, False  # the last checkpoint write; accepted transitions since
-    while not stop.is_set() and (end is None or time.monotonic() < end):
-        try:
-            message = inbox.get(timeout=0.05)
-        except queue.Empty:
-            continue
-        waiting.append(1 + inbox.qsize())
-        # Every transition waiting is taken in one batch (a fleet sends one per robot per step):
-        # every robot due a fit is fitted at the batch's end, all in one stacked solve, then ONE
-        # checkpoint holds them all, then the batch's weights go out. One robot alone gives
-        # batches of one: a fit per transition due, as without batching.
-        batch = take_batch(message, inbox, settings.critic.batch_window, len(learner.learners))
+
+    def take_one_batch(batch: list[TransitionRow], dirty: bool, written: float) -> tuple[bool, float]:
+        """One batch into the learner, its fits made, its checkpoint written when due and its
+        weights published; ``dirty``, ``written``: accepted since the last checkpoint, and when."""
         before = learner.accepted
         outgoing: list[CriticWeights] = []
         # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
@@ -725,6 +784,28 @@ def run(
             writer.submit(learner.state())
             written, dirty = time.monotonic(), False
         publish(outgoing)
+        return dirty, written
+
+    dropped, warned = 0, -math.inf  # rows the intake refused, as last counted; when last said
+    while not stop.is_set() and (end is None or time.monotonic() < end):
+        if not intake.wait(0.05):
+            continue
+        backlog = intake.waiting + len(recovered)
+        # Every transition waiting is taken in one go (a fleet sends one per robot per step), in
+        # batches of at most MAX_BATCH: every robot due a fit is fitted at a batch's end, all in
+        # one stacked solve, then ONE checkpoint holds them all, then the batch's weights go out.
+        # One robot alone gives batches of one: a fit per transition due, as without batching.
+        taken = collect(intake, recovered, settings.critic.batch_window, len(learner.learners))
+        if intake.dropped > dropped:
+            bus.count("transitions_dropped", intake.dropped - dropped)
+            dropped = intake.dropped
+            if time.monotonic() - warned >= 10.0:
+                warned = time.monotonic()
+                log.warning("critic: behind by %d transitions: %d dropped so far", INTAKE_LIMIT, dropped)
+        if taken:
+            waiting.append(backlog)
+        for first in range(0, len(taken), MAX_BATCH):
+            dirty, written = take_one_batch(taken[first : first + MAX_BATCH], dirty, written)
 
     if writer is not None:
         if dirty:  # what came after the last periodic write
