@@ -208,6 +208,23 @@ def run_host(
 TIMING = ("loop", "solve_ms", "latency_ms", "staleness_ms")
 
 
+def assert_sent_alike(ours: tuple[Any, ...], theirs: tuple[Any, ...]) -> None:
+    """Two of :func:`run_host`'s runs sent the same: every action (but its stamp), every
+    transition (every field: state, action, cost; with the fits and memory its loop then knew),
+    in the same order, and each robot's summary but its timings."""
+    assert len(ours[0]) == len(theirs[0])
+    for mine, other in zip(ours[0], theirs[0], strict=True):
+        assert (mine.robot, mine.step, mine.action, mine.state_seq) == (
+            other.robot,
+            other.step,
+            other.action,
+            other.state_seq,
+        )
+    assert ours[1] == theirs[1]
+    for mine, other in zip(ours[2], theirs[2], strict=True):
+        assert {k: v for k, v in mine.items() if k not in TIMING} == {k: v for k, v in other.items() if k not in TIMING}
+
+
 @pytest.mark.parametrize("arrays_from", [1, 3])  # groups of two: as arrays; their steps (too few)
 def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do(arrays_from: int) -> None:
     rested, step = run_host(rest=True, arrays_from=arrays_from), run_host(rest=False)
@@ -219,18 +236,7 @@ def test_robots_at_rest_served_as_arrays_send_and_report_what_their_own_steps_do
         expected += arrived and held.get(transition.robot, False)
         held[transition.robot] = arrived
     assert step[3] == 0 and rested[3] == (expected if arrays_from <= 2 else 0) and expected > TICKS
-    for ours, theirs in zip(rested[0], step[0], strict=True):
-        assert (ours.robot, ours.step, ours.action, ours.state_seq) == (
-            theirs.robot,
-            theirs.step,
-            theirs.action,
-            theirs.state_seq,
-        )
-    assert rested[1] == step[1]  # every transition, every field: state, action, cost; fits, memory
-    for ours_summary, theirs_summary in zip(rested[2], step[2], strict=True):
-        ours_view = {k: v for k, v in ours_summary.items() if k not in TIMING}
-        theirs_view = {k: v for k, v in theirs_summary.items() if k not in TIMING}
-        assert ours_view == theirs_view
+    assert_sent_alike(rested, step)
     by_robot = dict(zip(STARTS, rested[2], strict=True))
     # what the scenario says happened: c drove in and rests, b left its rest and came back, d has no truth
     sent = [t for t, *_ in rested[1]]
@@ -249,19 +255,7 @@ def test_an_actor_host_sends_the_ticks_at_rest_as_rows_of_its_rounds_bit_for_bit
     (each transition with what its loop then knew), and the summaries are theirs."""
     rows, steps = run_host(rest=True, outboxes=True, rows=True), run_host(rest=False, outboxes=True)
     assert rows[3] > TICKS and steps[3] == 0  # rounds went as columns; the steps' never did
-    assert len(rows[0]) == len(steps[0])
-    for ours, theirs in zip(rows[0], steps[0], strict=True):
-        assert (ours.robot, ours.step, ours.action, ours.state_seq) == (
-            theirs.robot,
-            theirs.step,
-            theirs.action,
-            theirs.state_seq,
-        )
-    assert rows[1] == steps[1]
-    for ours_summary, theirs_summary in zip(rows[2], steps[2], strict=True):
-        assert {k: v for k, v in ours_summary.items() if k not in TIMING} == {
-            k: v for k, v in theirs_summary.items() if k not in TIMING
-        }
+    assert_sent_alike(rows, steps)
 
 
 @pytest.mark.parametrize("change", ["newer state", "second plant", "none"])
