@@ -4,12 +4,15 @@ every robot's action arrival picks exactly the robots whose own watchdog stops t
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
+import pytest
 
 from common.config.settings import Settings
+from common.contracts.columns import columns_of
 from common.contracts.messages import Action
-from services.plant_sim.host import FleetPlant, RobotIntake
+from services.plant_sim.host import ActionRounds, FleetPlant, RobotIntake, StateSync
 from services.plant_sim.service import due_watchdogs
 from tests.harness import FakeCounts
 
@@ -47,3 +50,75 @@ def test_a_plant_hosts_watchdog_stops_the_robots_due_and_leaves_the_others_drivi
     assert [intake.at is None for intake in intakes] == [False, True, False, True]
     assert counts.counters["watchdog_stops"] == 2
     assert due_watchdogs(plant.arrivals, now + 0.1, TIMEOUT).tolist() == []  # stopped: zero held, none due
+
+
+def test_a_sync_of_many_actions_at_once_is_each_ones_own() -> None:
+    """StateSync.actions (a batch's admitted actions as arrays) leaves what StateSync.action of
+    each in turn leaves: phases, counts, newest steps and arrivals, a restart (a step at or before
+    the newest) and a robot twice included."""
+    rng = np.random.default_rng(11)
+    together, alone = StateSync(6, 0.1, 0.02), StateSync(6, 0.1, 0.02)
+    now = 100.0
+    for k in range(80):
+        indices = sorted(rng.choice(6, size=int(rng.integers(1, 7)), replace=False).tolist())
+        if k % 13 == 5:
+            indices.append(indices[0])  # a robot twice in one batch
+        steps = [k if rng.random() > 0.1 else int(rng.integers(0, k + 1)) for _ in indices]
+        now += float(rng.uniform(0.0, 0.1))
+        together.actions(indices, steps, now)
+        for index, step in zip(indices, steps, strict=True):
+            alone.action(index, step, now)
+    for name in ("offsets", "count", "step", "at"):
+        assert np.array_equal(getattr(together, name), getattr(alone, name)), name
+    assert (together.count < 80).any()  # restarts happened
+
+
+def test_a_batch_of_actions_is_taken_as_each_robots_intake_takes_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ActionRounds: the rows of an actor host's batch through each robot's gate, held, timed and
+    counted as arrays; what each robot's intake makes of its action alone, refusals included (a
+    second actor session, a step out of order, a robot this host does not serve), and the
+    watchdog afterwards."""
+    settings = Settings.load()
+    robots = [f"r{i}" for i in range(5)]
+
+    def host() -> tuple[FleetPlant, list[RobotIntake], StateSync, FakeCounts]:
+        plant = FleetPlant(settings, robots, np.zeros((5, 3)))
+        counts, sync, lock = FakeCounts(), StateSync(5, 0.1, 0.02), threading.Lock()
+        intakes = [RobotIntake(plant, i, counts, sync, lock) for i in range(5)]  # type: ignore[arg-type]
+        for intake in intakes:
+            intake.gate.gate.update("actor1", True)
+        return plant, intakes, sync, counts
+
+    clock = iter(np.arange(50.0, 60.0, 0.01).tolist())
+    monkeypatch.setattr("time.monotonic", lambda: next(clock))
+    batches = []
+    for k in range(1, 6):
+        rows = [
+            Action(robot=r, episode=1, step=k, stamp_ns=0, action=(0.05 * k, -0.3 * k), state_seq=k) for r in robots
+        ]
+        rows[1] = rows[1].model_copy(update={"step": 1})  # r1's step out of order after the first
+        rows.append(Action(robot="elsewhere", episode=1, step=k, stamp_ns=0, action=(0.1, 0.1), state_seq=k))
+        batches.append((rows, "actor2" if k == 3 else "actor1"))  # k = 3: another actor session's
+    plant, intakes, sync, counts = host()
+    rounds = ActionRounds(plant, intakes, counts.count, sync)
+    for rows, source in batches:
+        rounds(columns_of(Action, rows), source)
+    clock = iter(np.arange(50.0, 60.0, 0.01).tolist())
+    theirs, their_intakes, their_sync, their_counts = host()
+    for rows, source in batches:
+        now = next(clock)
+        for message in rows:
+            if message.robot in robots:
+                monkeypatch.setattr("time.monotonic", lambda now=now: now)
+                their_intakes[robots.index(message.robot)].on_action(message, source)
+    assert np.array_equal(plant.held, theirs.held) and np.array_equal(plant.arrivals, theirs.arrivals)
+    assert [(i.applied, i.refused) for i in intakes] == [(i.applied, i.refused) for i in their_intakes]
+    assert [(i.applied, i.refused) for i in intakes] == [(4, 1), (1, 4), (4, 1), (4, 1), (4, 1)]
+    assert counts.counters == their_counts.counters and counts.counters["actions_applied"] == 17
+    for name in ("offsets", "count", "step", "at"):
+        assert np.array_equal(getattr(sync, name), getattr(their_sync, name)), name
+    assert plant.held[0].tolist() == [min(0.25, settings.plant.v_max), max(-1.5, -settings.plant.omega_max)]  # clamped
+    now = float(np.nanmax(plant.arrivals)) + 1.0
+    for i in due_watchdogs(plant.arrivals, now, TIMEOUT):
+        intakes[i].watchdog(now, TIMEOUT)
+    assert (plant.held == 0.0).all() and [i.watchdog_stops for i in intakes] == [1] * 5

@@ -17,7 +17,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any, TypeVar
+from typing import Any, Generic, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -361,6 +361,58 @@ class Bus:
         and ``threaded`` as in :meth:`subscribe`."""
         self._keep.append(self._declare_subscriber(key, self._callback(handler, threaded), recover))
 
+    def subscribe_columns(
+        self,
+        topic: Topic[M],
+        keys: Sequence[str],
+        handler: Callable[[Columns[M], str | None], None],
+        what: str | None = None,
+        threaded: bool | None = None,
+    ) -> None:
+        """``topic``'s samples on ``keys`` as columns, one call of ``handler(columns, source)`` per
+        sample: a batch's rows of the robots the keys include (from one subscription of the batch
+        key, decoded and checked once: :class:`BatchReader`), a message alone on its robot's key as
+        a batch of one row. A consumer that takes a batch as arrays (a plant host's actions) has
+        one path for both. Refusals and counts as :meth:`subscribe`'s (``received.<name>`` per row);
+        ``threaded`` as there."""
+        name = what or counter_name(topic)
+        batch = batch_of(topic)
+        if batch is None:
+            raise TypeError(f"{topic.pattern} has no batch form")
+
+        def call(columns: Columns[M], source: str | None) -> None:
+            if not len(columns):
+                return
+            self.count(f"received.{name}", len(columns))
+            try:
+                handler(columns, source)
+            except Exception:  # a handler bug must not kill zenoh's callback thread silently
+                self.count(f"handler_errors.{name}")
+                log.exception("%s: handler for %s failed", self.service, name)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                message = decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            call(columns_of(topic.schema, [message]), source_of(sample))
+
+        read, included = BatchReader(self, topic, name), Included(topic, keys)
+
+        def on_batch(sample: zenoh.Sample) -> None:
+            source = source_of(sample)
+            try:
+                columns = read(sample.payload.to_bytes(), source)
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            call(included(columns), source)
+
+        for key in keys:
+            self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), False))
+        self._keep.append(self._declare_subscriber(batch.pattern, self._callback(on_batch, threaded), False))
+
     def inbox(self, limit: int) -> Inbox:
         """Samples that wait for a consumer that takes them in bulk, at most ``limit`` rows (:class:`Inbox`)."""
         return Inbox(self, limit)
@@ -700,6 +752,30 @@ class BatchReader:
         return columns
 
 
+class Included(Generic[M]):
+    """A batch's rows of the robots whose key one of ``keys`` (wildcards allowed) includes, in
+    order (the batch itself when every row is); each robot's answer is remembered (at most
+    BATCH_ROBOTS_KEPT, whatever robot ids senders invent)."""
+
+    def __init__(self, topic: Topic[M], keys: Sequence[str]) -> None:
+        self.topic = topic
+        self.wanted = [zenoh.KeyExpr(key) for key in keys]
+        self.chosen: dict[str, bool] = {}
+
+    def __call__(self, columns: Columns[M]) -> Columns[M]:
+        chosen, mine = self.chosen, []
+        for row, robot in enumerate(columns.robots):
+            included = chosen.get(robot)
+            if included is None:
+                if len(chosen) >= BATCH_ROBOTS_KEPT:
+                    chosen.clear()
+                concrete = zenoh.KeyExpr(self.topic.key(robot))
+                included = chosen[robot] = any(key.intersects(concrete) for key in self.wanted)
+            if included:
+                mine.append(row)
+        return columns if len(mine) == len(columns) else columns.take(mine)
+
+
 class Inbox:
     """Samples of some topics waiting, in arrival order, for one consumer that takes them in bulk
     (:meth:`take`): a recorder's writer, which wakes a few times a second. Zenoh's threads only
@@ -754,23 +830,10 @@ class Inbox:
             self._declare(name, key, alone, lambda payload: 1, recover)
         if batch is None:
             return
-        wanted = [zenoh.KeyExpr(key) for key in keys]
-        read = BatchReader(bus, topic, name)
-        chosen: dict[str, bool] = {}  # robot -> whether a key includes its key (bounded below)
+        read, included = BatchReader(bus, topic, name), Included(topic, keys)
 
         def rows(payload: bytes, sample_key: str, source: str | None) -> Columns[M]:
-            columns = read(payload, source)
-            mine = []
-            for row, robot in enumerate(columns.robots):
-                included = chosen.get(robot)
-                if included is None:
-                    if len(chosen) >= BATCH_ROBOTS_KEPT:
-                        chosen.clear()
-                    concrete = zenoh.KeyExpr(topic.key(robot))
-                    included = chosen[robot] = any(key.intersects(concrete) for key in wanted)
-                if included:
-                    mine.append(row)
-            return columns if len(mine) == len(columns) else columns.take(mine)
+            return included(read(payload, source))
 
         self._declare(name, batch.pattern, rows, lambda payload: batch_rows(payload) or 1, recover)
 

@@ -81,6 +81,24 @@ class StateSync:
             self.step[index] = step
             self.at[index] = now
 
+    def actions(self, indices: list[int], steps: list[int], now: float) -> None:
+        """:meth:`action` of robots ``indices`` with ``steps``, all arrived at ``now``, as arrays
+        (a robot twice: one by one, in order)."""
+        if len(set(indices)) < len(indices):
+            for index, step in zip(indices, steps, strict=True):
+                self.action(index, step, now)
+            return
+        rows, numbers = np.array(indices, dtype=np.intp), np.array(steps, dtype=np.int64)
+        with self.lock:
+            again = rows[numbers <= self.step[rows]]  # a new episode or actor: its phase is learned again
+            if len(again):
+                self.offsets[again] = np.inf
+                self.count[again] = 0
+            self.offsets[rows, self.count[rows] % SYNC_WINDOW] = now - numbers * self.delta
+            self.count[rows] += 1
+            self.step[rows] = numbers
+            self.at[rows] = now
+
     def due(self, now: float) -> np.ndarray:
         """For every robot: publish its state at the state tick ``now``?"""
         with self.lock:
@@ -123,6 +141,15 @@ class FleetPlant:
             self.held[index] = clamped
             if not self.ideal:
                 self.plants[index].hold(clamped)
+
+    def hold_many(self, indices: list[int], actions: np.ndarray) -> None:
+        """:meth:`hold` of robots ``indices``, ``actions`` ``(len(indices), 2)``, in order."""
+        clamped = np.clip(np.asarray(actions, dtype=float), -self.bounds, self.bounds)
+        with self.lock:
+            self.held[indices] = clamped
+            if not self.ideal:
+                for index, action in zip(indices, clamped, strict=True):
+                    self.plants[index].hold(action)
 
     def advance(self, duration: float, due: np.ndarray | None = None) -> Columns[PlantState]:
         """Every robot ``duration`` seconds on; the states of the robots ``due`` a publication (all:
@@ -173,9 +200,18 @@ class FleetPlant:
 
 class RobotIntake(ActionIntake):
     """One robot's actions into the fleet plant, as one plant_sim takes them (its gate, its
-    watchdog clock, its counters), each admitted one also timing its actor's phase (``sync``)."""
+    watchdog clock, its counters), each admitted one also timing its actor's phase (``sync``).
+    ``lock``: the host's, shared by every robot's intake (:class:`ActionRounds` takes a batch's
+    actions under it)."""
 
-    def __init__(self, plant: FleetPlant, index: int, bus: Bus, sync: StateSync | None = None) -> None:
+    def __init__(
+        self,
+        plant: FleetPlant,
+        index: int,
+        bus: Bus,
+        sync: StateSync | None = None,
+        lock: threading.Lock | None = None,
+    ) -> None:
         self.index, self.sync = index, sync
         self.robot = robot = plant.robots[index]
 
@@ -186,12 +222,47 @@ class RobotIntake(ActionIntake):
             bus.reject(what, f"robot {robot}: {why}")
 
         # the host's counts: the robot's in a host of one; its action's arrival in the plant's array
-        super().__init__(hold, reject, bus.count, plant.arrivals, index)
+        super().__init__(hold, reject, bus.count, plant.arrivals, index, lock)
 
     def on_action(self, message: Action, source: str | None) -> None:
         now = self.take(message, source)
         if now is not None and self.sync is not None:
             self.sync.action(self.index, message.step, now)
+
+
+class ActionRounds:
+    """A plant host's actions, a sample (an actor host's tick group, or one robot's action) at a
+    time as columns (Bus.subscribe_columns): each row through its robot's gate, in order, under
+    the host's intake lock (that of every :class:`RobotIntake`, so no watchdog or lost actor
+    interleaves), then the admitted ones held, their arrivals noted and their actors' phases
+    timed as arrays. What each robot's intake does with its action alone, bit for bit
+    (``tests/test_plant_host.py``), with no message built and no call per robot but the gate's."""
+
+    def __init__(
+        self, plant: FleetPlant, intakes: list[RobotIntake], count: Callable[[str, int], None], sync: StateSync | None
+    ) -> None:
+        self.plant, self.intakes, self.count, self.sync = plant, intakes, count, sync
+        self.index = {robot: i for i, robot in enumerate(plant.robots)}
+        self.lock = intakes[0].lock if intakes else threading.Lock()
+
+    def __call__(self, columns: Columns[Action], source: str | None) -> None:
+        now = time.monotonic()
+        episodes, steps = columns.field("episode").tolist(), columns.field("step").tolist()
+        indices: list[int] = []
+        rows: list[int] = []
+        with self.lock:
+            for row, robot in enumerate(columns.robots):
+                i = self.index.get(robot)
+                if i is not None and self.intakes[i].admitted(episodes[row], steps[row], source, now):
+                    indices.append(i)
+                    rows.append(row)
+            if not indices:
+                return
+            self.plant.hold_many(indices, columns.field("action")[rows])
+            self.plant.arrivals[indices] = now
+        self.count("actions_applied", len(indices))
+        if self.sync is not None:
+            self.sync.actions(indices, [steps[row] for row in rows], now)
 
 
 @dataclass
@@ -225,10 +296,13 @@ def run_plant_host(
     publish_states = bus.round_publisher(STATE, batches=len(robots) > 1)
     period = 1.0 / settings.transport.state_rate
     sync = StateSync(len(robots), settings.plant.sampling_time, period) if synced else None
-    intakes = [RobotIntake(plant, i, bus, sync) for i in range(len(robots))]
+    lock = threading.Lock()  # every robot's intake's: a batch of actions is taken under it
+    intakes = [RobotIntake(plant, i, bus, sync, lock) for i in range(len(robots))]
     for robot, intake in zip(robots, intakes, strict=True):
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
-        bus.subscribe(ACTION, ACTION.key(robot), intake.on_action, with_source=True)
+    bus.subscribe_columns(
+        ACTION, [ACTION.key(robot) for robot in robots], ActionRounds(plant, intakes, bus.count, sync)
+    )
     bus.declare_sole_plants(robots)
     rows = [(robot, plant_status(plant, intake)) for robot, intake in zip(robots, intakes, strict=True)]
     if len(robots) == 1:  # the host's counters are its one robot's (refused actions: srl up's live line)

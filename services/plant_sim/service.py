@@ -90,10 +90,11 @@ class ActionIntake:
         count: Callable[[str], None] | None = None,
         arrivals: np.ndarray | None = None,
         index: int = 0,
+        lock: threading.Lock | None = None,
     ) -> None:
         self.hold, self.reject, self.count = hold, reject, count
         self.gate = ActionGate(SourceGate("actor"))
-        self.lock = threading.Lock()
+        self.lock = lock or threading.Lock()  # a plant host's robots share one (its batch intake)
         self.arrivals = np.full(1, math.nan) if arrivals is None else arrivals
         self.index = index
         self.applied = 0
@@ -122,16 +123,23 @@ class ActionIntake:
         """An action from session ``source``: held if admitted; when it arrived (None: refused)."""
         now = time.monotonic()
         with self.lock:
-            refusal = self.gate.admit(message.episode, message.step, source, now)
-            if refusal is not None:
-                self.refused += 1
-                self.reject(*refusal)
+            if not self.admitted(message.episode, message.step, source, now):
                 return None
             self.hold(message.action)
             self.at = now
-            self.applied += 1
         self._counted("actions_applied")
         return now
+
+    def admitted(self, episode: int, step: int, source: str | None, now: float) -> bool:
+        """Under :attr:`lock`: does the gate admit the action (counted as applied: the caller holds
+        it and sets :attr:`at` before the lock is released)? A refusal is counted and reported."""
+        refusal = self.gate.admit(episode, step, source, now)
+        if refusal is not None:
+            self.refused += 1
+            self.reject(*refusal)
+            return False
+        self.applied += 1
+        return True
 
     def on_actor_identity(self, zid: str, alive: bool) -> None:
         with self.lock:
