@@ -329,23 +329,9 @@ class Bus:
 
         def deliver(message: M, source: str | None) -> None:
             self.count(f"received.{name}")
-            try:
-                if with_source:
-                    handler(message, source)
-                else:
-                    handler(message)
-            except Exception:  # a handler bug must not kill zenoh's callback thread silently
-                self.count(f"handler_errors.{name}")
-                log.exception("%s: handler for %s failed", self.service, name)
+            self._handle(name, handler, *((message, source) if with_source else (message,)))
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                message = decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())
-            except MessageError as error:
-                self.reject(name, str(error))
-                return
-            deliver(message, source_of(sample))
-
+        on_sample = self._message_reader(topic, name, deliver)
         batch = batch_of(topic)
         if batch is not None and recover and self._batch_recovers.get(batch.pattern) is False:
             raise ValueError(f"{batch.pattern} is subscribed without recovery in this process: ask for it first")
@@ -380,35 +366,17 @@ class Bus:
         if batch is None:
             raise TypeError(f"{topic.pattern} has no batch form")
 
+        included = Included(topic, keys)
+
         def call(columns: Columns[M], source: str | None) -> None:
-            if not len(columns):
-                return
-            self.count(f"received.{name}", len(columns))
-            try:
-                handler(columns, source)
-            except Exception:  # a handler bug must not kill zenoh's callback thread silently
-                self.count(f"handler_errors.{name}")
-                log.exception("%s: handler for %s failed", self.service, name)
+            if len(columns):
+                self.count(f"received.{name}", len(columns))
+                self._handle(name, handler, columns, source)
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            try:
-                message = decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())
-            except MessageError as error:
-                self.reject(name, str(error))
-                return
-            call(columns_of(topic.schema, [message]), source_of(sample))
-
-        read, included = BatchReader(self, topic, name), Included(topic, keys)
-
-        def on_batch(sample: zenoh.Sample) -> None:
-            source = source_of(sample)
-            try:
-                columns = read(sample.payload.to_bytes(), source)
-            except MessageError as error:
-                self.reject(name, str(error))
-                return
-            call(included(columns), source)
-
+        on_sample = self._message_reader(
+            topic, name, lambda message, source: call(columns_of(topic.schema, [message]), source)
+        )
+        on_batch = self._batch_reader(topic, name, lambda columns, source: call(included(columns), source))
         for key in keys:
             self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), False))
         self._keep.append(self._declare_subscriber(batch.pattern, self._callback(on_batch, threaded), False))
@@ -453,15 +421,7 @@ class Bus:
             self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), (zenoh.KeyExpr(key), deliver))
             self._batch_targets = {}  # the routes changed: every robot's deliveries again
 
-        read = BatchReader(self, topic, name)
-
-        def on_batch(sample: zenoh.Sample) -> None:
-            source = source_of(sample)
-            try:
-                columns = read(sample.payload.to_bytes(), source)
-            except MessageError as error:
-                self.reject(name, str(error))
-                return
+        def route(columns: Columns[M], source: str | None) -> None:
             targets = self._batch_targets.get(pattern)
             if targets is None:
                 targets = self._batch_targets[pattern] = {}
@@ -479,7 +439,52 @@ class Bus:
                         each(item, source)
 
         if first:
+            on_batch = self._batch_reader(topic, name, route)
             self._keep.append(self._declare_subscriber(pattern, self._callback(on_batch, threaded), recover))
+
+    def _handle(self, name: str, handler: Callable[..., None], *args: Any) -> None:
+        """``handler(*args)`` on a subscription's behalf: a handler bug is counted and logged, and
+        never kills Zenoh's callback thread silently."""
+        try:
+            handler(*args)
+        except Exception:
+            self.count(f"handler_errors.{name}")
+            log.exception("%s: handler for %s failed", self.service, name)
+
+    def _message_reader(
+        self, topic: Topic[M], name: str, deliver: Callable[[M, str | None], None]
+    ) -> Callable[[zenoh.Sample], None]:
+        """A subscription's callback for ``topic``'s messages alone: each decoded (one that does not
+        decode is refused, counted under ``rejected.<name>``) and delivered with its source."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                message = decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            deliver(message, source_of(sample))
+
+        return on_sample
+
+    def _batch_reader(
+        self, topic: Topic[M], name: str, deliver: Callable[[Columns[M], str | None], None]
+    ) -> Callable[[zenoh.Sample], None]:
+        """A subscription's callback for ``topic``'s batch key: each batch read once
+        (:class:`BatchReader`: decoded, checked, its sender's gaps counted; a bad one refused and
+        counted) and delivered as columns with its source."""
+        read = BatchReader(self, topic, name)
+
+        def on_batch(sample: zenoh.Sample) -> None:
+            source = source_of(sample)
+            try:
+                columns = read(sample.payload.to_bytes(), source)
+            except MessageError as error:
+                self.reject(name, str(error))
+                return
+            deliver(columns, source)
+
+        return on_batch
 
     def history(
         self,
