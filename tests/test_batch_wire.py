@@ -351,3 +351,34 @@ def test_a_history_whose_query_cannot_be_sent_still_ends_once() -> None:
     assert session.asked == ["srl/a/transition/@adv/**", "srl/b/transition/@adv/**"] and ended == []
     session.handlers[0].drop()  # the first query, sent, ends later
     assert ended == [1]
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("batches", [True, False], ids=["critic-of-a-fleet", "critic-of-one-robot"])
+def test_an_actor_gets_the_critics_newest_weights_it_missed_from_the_critics_cache(batches: bool) -> None:
+    """Weights a link dropped (a congested router link after a partition: seen in
+    tests/test_netns_fleet.py) are not sent again for a robot at rest, whose critic fits nothing
+    more. The critic's weights publisher keeps its last rounds (WEIGHTS_CACHE) and an actor's
+    weights subscription (wire_weights) recovers what it missed: here an actor that subscribes
+    after the critic's last round for its robot, which no later round names, still holds it."""
+    from common.config.settings import Settings
+    from services.actor.host import robot_settings
+    from services.actor.ports import wire_weights
+    from services.critic.service import WEIGHTS_CACHE
+    from tests.harness import wait_until
+
+    with router_and_buses("critic") as (_, reader, writer, _opened):
+        robot = "w1"
+        writer.declare_alive(robot)
+        send = writer.round_publisher(WEIGHTS, batches=batches, cache=WEIGHTS_CACHE)
+        now = time.time_ns() // 1000
+        for n in range(3):  # the robot's fits, then it comes to rest: no more rounds name it
+            send([weights(robot, now + n, q0=float(n))])
+        if batches:
+            send([weights("w2", now + 10)])  # later rounds of the fleet's other robots
+        time.sleep(0.3)
+        inbox = wire_weights(robot_settings(Settings.load(), robot), reader)
+        inbox.reset(0)
+        inbox.published(now + 10)
+        wait_until(lambda: inbox.current().version == now + 2, 10, "the critic's newest weights for w1")
+        assert float(inbox.current().q[0]) == 2.0

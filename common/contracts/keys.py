@@ -102,7 +102,8 @@ STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
 ACTION_BATCH = Batch(ACTION)
 # the states a plant host publishes at one state tick (a host of many robots)
 STATE_BATCH = Batch(STATE)
-# the weights of one fit round of a critic of a robot list (a fleet's), of every robot it fitted
+# the weights of one fit round of a critic of a robot list (a fleet's), of every robot it fitted,
+# sent through an advanced publisher whose cache keeps its last rounds (an actor recovers what it missed)
 WEIGHTS_BATCH = Batch(WEIGHTS)
 # an actor host's transitions of one tick group (a host of many robots), sent through an advanced
 # publisher whose cache keeps transport.transition_cache periods of them (a late critic recovers)

@@ -26,10 +26,11 @@ expression must INCLUDE the message's key expression. In srl's terms:
   declarations and queries anywhere in srl's key space (:data:`DISCOVERY`). They carry no data
   it may not see: a query reaches a session only through a queryable it was allowed to declare.
 
-Zenoh-ext's advanced publisher (the actor's transition cache) and advanced subscriber (the
-critic's recovery) use ``<key>/@adv/...`` for their cache queryable, heartbeats and liveliness
-tokens, and the cache answers with replies on ``<key>`` itself: :func:`advanced_publish` and
-:func:`advanced_read` grant exactly that.
+Zenoh-ext's advanced publishers (the actor's transition cache, the critic's weights cache) and
+advanced subscribers (the critic's recovery of transitions, the actor's of weights) use
+``<key>/@adv/...`` for their cache queryable, heartbeats and liveliness tokens, and the cache
+answers with replies on ``<key>`` itself: :func:`advanced_publish` and :func:`advanced_read`
+grant exactly that.
 """
 
 from __future__ import annotations
@@ -201,13 +202,18 @@ def _robot_rules(robot: str, *, lockstep: bool) -> dict[str, list[Rule]]:
             *advanced_publish(key(TRANSITION.pattern)),
             *advanced_publish(TRANSITION_BATCH.pattern),  # an actor host's (a host of many robots)
             # states and weights come on the robot's key or in batches (common.contracts.keys.Batch)
-            *read(key(STATE.pattern), STATE_BATCH.pattern, key(WEIGHTS.pattern), WEIGHTS_BATCH.pattern),
+            *read(key(STATE.pattern), STATE_BATCH.pattern),
+            # weights with recovery from the critic's cache (services.actor.ports.wire_weights)
+            *advanced_read(key(WEIGHTS.pattern)),
+            *advanced_read(WEIGHTS_BATCH.pattern),
             *(query(key(PLANT_STEP.pattern), key(PLANT_RESET.pattern)) if lockstep else []),
             *token(*own("actor")),
             *watch(*alive),
         ],
         "critic": [
-            *publish(key(WEIGHTS.pattern), WEIGHTS_BATCH.pattern, key(STATUS.pattern, "critic")),
+            *publish(key(STATUS.pattern, "critic")),
+            *advanced_publish(key(WEIGHTS.pattern)),
+            *advanced_publish(WEIGHTS_BATCH.pattern),  # a critic of a robot list's
             # the critic subscribes to every robot's transitions (srl/*/transition): the rule
             # must include that wildcard; it still publishes weights for this robot only
             *advanced_read(key(TRANSITION.pattern, robot="*")),

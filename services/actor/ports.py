@@ -284,10 +284,13 @@ class ZenohCriticPort:
 
 def wire_weights(settings: Settings, bus: Bus) -> WeightsInbox:
     """One robot's weights inbox on the bus (``settings.transport.robot``'s keys): weights only
-    from the live critic session of that robot (its identity watched, common.net.provenance)."""
+    from the live critic session of that robot (its identity watched, common.net.provenance).
+    Subscribed with recovery: weights a congested link dropped are fetched from the critic's
+    cache (services.critic.service.WEIGHTS_CACHE), so a robot at rest, for which no fit comes,
+    never keeps weights older than the critic's last for it."""
     robot = settings.transport.robot
     critic_gate = SourceGate("critic")
     bus.watch_identities(robot, "critic", critic_gate)
     inbox = WeightsInbox(settings, bus, critic_gate)
-    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True)
+    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True, recover=True)
     return inbox

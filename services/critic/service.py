@@ -83,6 +83,13 @@ MAX_BATCH = 1000  # transitions taken from the inbox at once (then one checkpoin
 # transitions that may wait for the critic (~200 s of a 100-robot fleet, ~30 MB of batches): past
 # it, rows are counted as dropped (transitions_dropped), a gap in their robots' replays
 INTAKE_LIMIT = 200_000
+# weights rounds (a batch for a critic of a robot list, else one robot's message) the critic's
+# advanced publisher keeps: an actor's subscriber that misses one (a congested router link drops
+# samples, seen after a partition) detects the gap by sequence number or heartbeat and fetches it
+# from this cache. Only the newest weights matter, so the cache need reach back only as far as a
+# gap takes to be seen (heartbeats every RECOVERY_HEARTBEAT_S): 64 rounds are >= 6 s of a fleet
+# fitting every tick, ~1.3 MB at 100 robots.
+WEIGHTS_CACHE = 64
 
 
 class TransitionRow(Protocol):
@@ -694,7 +701,9 @@ def run(
         """A round's weights: batches for a critic of a robot list, else each on its robot's key."""
         if round_:
             if not sends:  # a critic of a robot list sends every round as a batch
-                sends.append(bus.round_publisher(WEIGHTS, batches=robots is not None and len(robots) > 1))
+                sends.append(
+                    bus.round_publisher(WEIGHTS, batches=robots is not None and len(robots) > 1, cache=WEIGHTS_CACHE)
+                )
             sends[0](round_)
             bus.count("weights_published", len(round_))
 
