@@ -262,10 +262,10 @@ def test_a_hosts_transition_cache_holds_as_many_periods_of_every_robot_as_a_robo
 
 
 def test_history_recovery_asks_once_for_every_robot_waiting_and_again_for_those_that_came_later() -> None:
-    """services.critic.service.HistoryRecovery: one query out at a time, for every robot waiting
+    """common.net.history.HistoryRecovery: one query out at a time, for every robot waiting
     when it is asked; a robot that starts waiting while it is out is asked for next; what comes
     back goes to the inbox only if it is a missing step of the robot's episode."""
-    from services.critic.service import HistoryRecovery
+    from common.net.history import HistoryRecovery
     from tests.harness import random_transitions
 
     asked: list[tuple[list[str], Any, Any]] = []

@@ -63,6 +63,7 @@ from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
 from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, at_rest, load_solver, update_many
 from common.math.stats import Window
+from common.net.history import HistoryRecovery
 from common.net.transport import Bus, Inbox, bus_status, start_status_thread
 from common.process.runtime import session_priority
 from common.system.checkpoint import (
@@ -149,64 +150,6 @@ class Learner:
     # the step the last weights published were labelled trained on: a fit never labels older (a
     # transition recovered late, after newer ones were fitted, is fitted with the whole replay)
     fitted: int = -1
-
-
-class HistoryRecovery:
-    """The robots whose transitions start later than the critic needs, recovered from the actors'
-    caches (:meth:`Bus.history`): one query at a time, for every robot waiting when it is asked,
-    so a critic that restarts beside a fleet asks an actor host's batch cache (its robots' last
-    ``transport.transition_cache`` periods, srl/@batch/transition) once, not once per robot. A
-    robot that starts waiting while a query is out is asked for in the next one (the answer of
-    one asked before it may have passed its steps over). What comes back goes to ``put`` if it is
-    a missing step of a waiting robot's episode. ``ask(robots, handler, done)`` is the query;
-    ``done`` is called once when it ends. Thread-safe: ``need`` runs on the critic's loop, the
-    answers on Zenoh's threads."""
-
-    def __init__(
-        self,
-        ask: Callable[[list[str], Callable[[Transition], None], Callable[[], None]], None],
-        put: Callable[[Transition], None],
-    ) -> None:
-        self.ask, self.put = ask, put
-        self.lock = threading.Lock()
-        self.waiting: dict[str, tuple[int, range]] = {}  # robot -> (episode, its missing steps)
-        self.asked: dict[str, tuple[int, range]] = {}  # what the query out asks for
-        self.queries = 0
-
-    def need(self, first: TransitionRow, missing: range) -> None:
-        """``first`` is the first transition of its robot this critic got, ``missing`` the steps before it it needs."""
-        with self.lock:
-            self.waiting[first.robot] = (first.episode, missing)
-            if self.asked:
-                return  # asked for in the next query, when this one ends
-        self._next()
-
-    def _next(self) -> None:
-        with self.lock:
-            self.asked = dict(self.waiting)
-            if not self.asked:
-                return
-            self.queries += 1
-        log.info(
-            "critic: asking the actors' caches for the missing steps of %d robots (%s)",
-            len(self.asked),
-            ", ".join(f"{robot} {steps.start}-{steps.stop - 1}" for robot, (_, steps) in list(self.asked.items())[:5])
-            + (", ..." if len(self.asked) > 5 else ""),
-        )
-        self.ask(list(self.asked), self._answer, self._done)
-
-    def _answer(self, message: Transition) -> None:
-        wanted = self.waiting.get(message.robot)
-        if wanted is not None and message.episode == wanted[0] and message.step in wanted[1]:
-            self.put(message)
-
-    def _done(self) -> None:
-        with self.lock:
-            for robot, wanted in self.asked.items():
-                if self.waiting.get(robot) == wanted:  # not waiting for more since it was asked
-                    del self.waiting[robot]
-            self.asked = {}
-        self._next()
 
 
 def checkpoint_path(settings: Settings) -> Path | None:

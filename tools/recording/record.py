@@ -929,6 +929,9 @@ def describe(sink: McapSink | SplitSink) -> str:
 # ~400 MB.
 QUEUE_LIMIT = 200_000
 DROPPED_NOTE = "; {count} dropped (writer behind)"  # in srl record's summary line (dropped_by_writer reads it)
+# a robot's transitions held while its missing first steps are asked for (Feed): ~100 s at delta
+# 0.1 s, far beyond the history query's 10 s bound; past it they are written as they are
+HOLD_LIMIT = 1000
 BATCH_SECONDS = 0.2  # the writer's pause between batches (a real-time system: ~10 states + 2 steps each)
 OBSERVER_NICENESS = 10  # srl record / srl view yield the CPU to the loop they watch
 
@@ -967,6 +970,12 @@ def robot_frames(bridge: Any, source: str, correction: Sequence[float] | None) -
     )
 
 
+@dataclass(frozen=True)
+class _StreamStart:
+    robot: str
+    episode: int
+
+
 class Feed:
     """Subscribes to every robot's state, transitions, critic weights and actor status
     (``srl/*/...`` and srl's batches of them) and hands them, in arrival order, to a
@@ -980,6 +989,7 @@ class Feed:
 
         from common.contracts.keys import STATE, STATUS, TRANSITION, WEIGHTS, every_robot
         from common.contracts.messages import CriticWeights, PlantState, ServiceStatus, Transition
+        from common.net.history import HistoryRecovery
         from common.net.transport import Bus
 
         self.recorder = recorder
@@ -999,8 +1009,13 @@ class Feed:
         self.inbox = self.bus.inbox(QUEUE_LIMIT)
         self.inbox.subscribe(STATE, every_robot(STATE))
         # transitions from the actor's advanced publisher: a recorder that joins late still gets
-        # its cached history (duplicates are dropped by step, Recorder.transition)
+        # its cached history (duplicates are dropped by step, Recorder.transition); a robot whose
+        # stream still starts after step 0 is held while the caches are asked for the rest
         self.inbox.subscribe(TRANSITION, every_robot(TRANSITION), recover=True)
+        self.started: dict[str, int] = {}  # robot -> the episode whose transitions it began
+        self.held: dict[str, list[tuple[Any, ...]]] = {}  # robot -> rows waiting for their first steps
+        self.recovered: deque[Transition] = deque()  # what the caches answered (Zenoh's threads)
+        self.recovery = HistoryRecovery(self._ask, self.recovered.append, who="recorder")
         self.inbox.subscribe(WEIGHTS, every_robot(WEIGHTS))
         self.inbox.subscribe(STATUS, every_robot(STATUS, service="actor"))
         self.writer = threading.Thread(target=self._drain, name="recorder-writer", daemon=True)
@@ -1020,6 +1035,7 @@ class Feed:
             for taken, now_ns in self.inbox.take():
                 schema = taken.schema if isinstance(taken, Columns) else type(taken)
                 self.writes[schema](taken, now_ns)
+            self._release(everything=closing)
             self._guarded("/tf", self.recorder.flush_tf)  # the batch's /tf out before the pause
             if closing:
                 return
@@ -1065,8 +1081,59 @@ class Feed:
         self._rows("state", self.recorder.state, columns.robots, episodes, states, [now_ns] * len(columns), frames)
 
     def _transitions(self, columns: Columns[Any], now_ns: int) -> None:
+        """A batch's transitions, written in step order per robot: a robot's first transition of an
+        episode after step 0 (the subscription's history came too late, or not at all) holds its
+        robot's rows while the actors' caches are asked for the steps before it (:meth:`_release`)."""
         fields = [columns.field(name).tolist() for name in ("episode", "step", "state", "action", "cost")]
-        self._rows("transition", self.recorder.transition, columns.robots, *fields, [now_ns] * len(columns))
+        rows = list(zip(columns.robots, *fields, [now_ns] * len(columns), strict=True))
+        if self.held or any(self.started.get(robot) != episode for robot, episode, *_ in rows):
+            rows = [row for row in rows if not self._hold(row)]
+        if rows:
+            self._rows("transition", self.recorder.transition, *zip(*rows, strict=True))
+
+    def _hold(self, row: tuple[Any, ...]) -> bool:
+        """Whether ``row`` (robot, episode, step, state, action, cost, now_ns) waits for its robot's first steps."""
+        robot, episode, step, *_, now_ns = row
+        held = self.held.get(robot)
+        if held is not None and held[0][1] == episode:
+            held.append(row)
+            return True
+        if self.started.get(robot) == episode:
+            return False
+        self.started[robot] = episode
+        if step <= 0:
+            return False
+        self.recorder.step_time(robot, episode, step, now_ns)  # its origin, as writing the row would fix it
+        self.held[robot] = [row]
+        self.recovery.need(_StreamStart(robot, episode), range(step))
+        return True
+
+    def _ask(self, robots: list[str], answer: Callable[[Any], None], done: Callable[[], None]) -> None:
+        from common.contracts.keys import TRANSITION
+
+        try:
+            self.bus.history(TRANSITION, [TRANSITION.key(robot) for robot in robots], answer, done)
+        except Exception as error:  # a closed session: the query has ended (done was called)
+            log.debug("recorder: history query not sent: %s", error)
+
+    def _release(self, everything: bool = False) -> None:
+        """Write the held robots whose first steps are no longer asked for (or that hold
+        :data:`HOLD_LIMIT` rows; ``everything``: all of them, at close): what the caches answered
+        and the live rows, in step order, each step once."""
+        done = [
+            robot
+            for robot, rows in self.held.items()
+            if everything or len(rows) >= HOLD_LIMIT or not self.recovery.pending(robot)
+        ]  # decided before the answers are taken: those of a query that ended are all in
+        while self.recovered:
+            m = self.recovered.popleft()
+            held = self.held.get(m.robot)
+            if held is not None and held[0][1] == m.episode:
+                held.append((m.robot, m.episode, m.step, m.state, m.action, m.cost, held[0][-1]))
+        for robot in done:
+            steps = {row[2]: row for row in reversed(self.held.pop(robot))}  # the first of each step
+            rows = sorted(steps.values(), key=lambda row: row[2])
+            self._rows("transition", self.recorder.transition, *zip(*rows, strict=True))
 
     def _weights(self, columns: Columns[Any], now_ns: int) -> None:
         def write(m: Any) -> None:
