@@ -7,6 +7,7 @@ batch's source; a batch with one bad item is refused whole and counted."""
 from __future__ import annotations
 
 import contextlib
+import json
 import threading
 import time
 from collections.abc import Iterator
@@ -355,30 +356,58 @@ def test_a_history_whose_query_cannot_be_sent_still_ends_once() -> None:
 
 @pytest.mark.integration
 @pytest.mark.parametrize("batches", [True, False], ids=["critic-of-a-fleet", "critic-of-one-robot"])
-def test_an_actor_gets_the_critics_newest_weights_it_missed_from_the_critics_cache(batches: bool) -> None:
+def test_an_actor_recovers_the_weights_a_link_dropped_and_no_earlier_runs_weights(batches: bool) -> None:
     """Weights a link dropped (a congested router link after a partition: seen in
     tests/test_netns_fleet.py) are not sent again for a robot at rest, whose critic fits nothing
     more. The critic's weights publisher keeps its last rounds (WEIGHTS_CACHE) and an actor's
-    weights subscription (wire_weights) recovers what it missed: here an actor that subscribes
-    after the critic's last round for its robot, which no later round names, still holds it."""
+    weights subscription (wire_weights) asks for what it missed (``MISSED``): here the router
+    drops the critic's second round (Zenoh's downsampling), and the actor still holds it within
+    seconds. An actor that subscribes later gets none of the earlier rounds (they are an earlier
+    run's)."""
+    import zenoh
+
     from common.config.settings import Settings
+    from common.net.transport import MISSED_QUERY_PERIOD, Bus
     from services.actor.host import robot_settings
     from services.actor.ports import wire_weights
     from services.critic.service import WEIGHTS_CACHE
-    from tests.harness import wait_until
+    from tests.harness import client_config, free_port, open_session, wait_until
 
-    with router_and_buses("critic") as (_, reader, writer, _opened):
-        robot = "w1"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = client_config(endpoint)
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("connect/endpoints", "[]")
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    # the router forwards one weights put per 100 s on each key: the second round is dropped
+    keys = [WEIGHTS_BATCH.pattern, every_robot(WEIGHTS)]
+    rules = [{"key_expr": key, "freq": 0.01} for key in keys]
+    config.insert_json5("downsampling", json.dumps([{"messages": ["put"], "flows": ["egress"], "rules": rules}]))
+    router = zenoh.open(config)
+    opened: list[Any] = []
+    try:
+        reader = Bus(open_session(endpoint, 30, "the router"), "actor")
+        writer = Bus(zenoh.open(client_config(endpoint)), "critic")
+        opened += [reader, writer]
+        robot, now = "w1", time.time_ns() // 1000
         writer.declare_alive(robot)
         send = writer.round_publisher(WEIGHTS, batches=batches, cache=WEIGHTS_CACHE)
-        now = time.time_ns() // 1000
-        for n in range(3):  # the robot's fits, then it comes to rest: no more rounds name it
-            send([weights(robot, now + n, q0=float(n))])
-        if batches:
-            send([weights("w2", now + 10)])  # later rounds of the fleet's other robots
-        time.sleep(0.3)
         inbox = wire_weights(robot_settings(Settings.load(), robot), reader)
         inbox.reset(0)
         inbox.published(now + 10)
-        wait_until(lambda: inbox.current().version == now + 2, 10, "the critic's newest weights for w1")
-        assert float(inbox.current().q[0]) == 2.0
+        time.sleep(0.5)  # the subscription and the critic's identity known
+        send([weights(robot, now)])
+        wait_until(lambda: inbox.current().version == now, 10, "the critic's first weights")
+        send([weights(robot, now + 1, q0=1.0)])  # dropped by the router, then the robot rests: no more
+        started = time.monotonic()
+        wait_until(lambda: inbox.current().version == now + 1, 10, "the dropped weights, recovered")
+        assert float(inbox.current().q[0]) == 1.0
+        assert time.monotonic() - started < 5 * MISSED_QUERY_PERIOD.total_seconds()
+        late = Bus(zenoh.open(client_config(endpoint)), "actor")
+        opened.append(late)
+        other = wire_weights(robot_settings(Settings.load(), robot), late)
+        time.sleep(3 * MISSED_QUERY_PERIOD.total_seconds())
+        assert late.counters["received.critic/weights"] == 0 and other.current().version == 0
+    finally:
+        for bus in reversed(opened):
+            bus.close()
+        router.close()

@@ -17,7 +17,8 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any, Generic, TypeVar
+from datetime import timedelta
+from typing import Any, Generic, Literal, TypeVar
 
 import zenoh
 import zenoh.ext
@@ -50,6 +51,14 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 R = TypeVar("R", bound=Message)
 RECOVERY_HEARTBEAT_S = 0.5  # advanced publishers announce their last sequence number this often
+# What a subscription recovers from advanced publishers' caches (Bus.subscribe): nothing (False);
+# their history, then every sample it misses (True); or only the samples it misses after the
+# first it gets from a publisher, asked for every MISSED_QUERY_PERIOD (MISSED: an actor's
+# weights, where the history of a critic's earlier runs is nobody's)
+MISSED: Literal["missed"] = "missed"
+Recover = bool | Literal["missed"]
+RECOVERY_RANK: dict[Recover, int] = {False: 0, MISSED: 1, True: 2}
+MISSED_QUERY_PERIOD = timedelta(seconds=1)
 # After declaring its identity, a plant waits this long for the identity of a plant that started
 # at the same moment (both passed the check before declaring): a liveliness token reaches the
 # router's other subscribers in about 1.5 ms on loopback, and a few hundred ms on a loaded
@@ -162,7 +171,7 @@ class Bus:
         self._batch_routes: dict[str, tuple[tuple[zenoh.KeyExpr, Callable[[Any, str | None], None]], ...]] = {}
         # batch pattern -> robot id -> the deliveries of its items (emptied when the routes change)
         self._batch_targets: dict[str, dict[str, list[Callable[[Any, str | None], None]]]] = {}
-        self._batch_recovers: dict[str, bool] = {}  # batch key -> subscribed with recovery
+        self._batch_recovers: dict[str, Recover] = {}  # batch key -> its first subscription's recovery
         # Our own threads (status): ended and joined by close(), before the session goes, so
         # none is inside Zenoh or pydantic when the interpreter finalizes.
         self.closing = threading.Event()
@@ -310,7 +319,7 @@ class Bus:
         key: str,
         handler: Callable[..., None],
         what: str | None = None,
-        recover: bool = False,
+        recover: Recover = False,
         with_source: bool = False,
         threaded: bool | None = None,
     ) -> None:
@@ -320,7 +329,9 @@ class Bus:
         ``recover``: a Zenoh advanced subscriber that fetches the history cached by advanced
         publishers (also of publishers that appear later) and recovers samples it missed, as
         detected by their sequence numbers and heartbeats. The handler may then see a sample
-        more than once (history overlapping what it got live): it must be idempotent.
+        more than once (history overlapping what it got live): it must be idempotent. ``MISSED``:
+        no history; from a publisher's first sample on, what it misses is asked for every
+        :data:`MISSED_QUERY_PERIOD` (a lost last sample too).
 
         ``with_source``: the handler is called as ``handler(message, source)``, ``source`` the id
         of the session that published the sample (its Zenoh timestamp's id; None if unstamped),
@@ -333,14 +344,16 @@ class Bus:
 
         on_sample = self._message_reader(topic, name, deliver)
         batch = batch_of(topic)
-        if batch is not None and recover and self._batch_recovers.get(batch.pattern) is False:
-            raise ValueError(f"{batch.pattern} is subscribed without recovery in this process: ask for it first")
+        first = self._batch_recovers.get(batch.pattern, recover) if batch is not None else recover
+        if batch is not None and RECOVERY_RANK[first] < RECOVERY_RANK[recover]:
+            had = "without recovery" if not first else f"with recovery {first!r}"
+            raise ValueError(f"{batch.pattern} is subscribed {had} in this process: ask for {recover!r} first")
         self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), recover))
         if batch is not None:
             self._route_batches(topic, key, deliver, name, threaded, recover)
 
     def raw_subscriber(
-        self, key: str, handler: Callable[[zenoh.Sample], None], recover: bool = False, threaded: bool | None = None
+        self, key: str, handler: Callable[[zenoh.Sample], None], recover: Recover = False, threaded: bool | None = None
     ) -> None:
         """``handler`` gets the samples on ``key`` as Zenoh delivers them, undecoded, for as long as
         the bus lives (an :class:`Inbox` decodes them later, on its consumer's thread); ``recover``
@@ -385,10 +398,16 @@ class Bus:
         """Samples that wait for a consumer that takes them in bulk, at most ``limit`` rows (:class:`Inbox`)."""
         return Inbox(self, limit)
 
-    def _declare_subscriber(self, key: str, callback: Any, recover: bool) -> Any:
-        """A subscriber on ``key``; ``recover``: an advanced one, with history and recovery (:meth:`subscribe`)."""
+    def _declare_subscriber(self, key: str, callback: Any, recover: Recover) -> Any:
+        """A subscriber on ``key``; ``recover``: an advanced one, with history and recovery, or
+        (``MISSED``) recovery alone (:meth:`subscribe`)."""
         if not recover:
             return self.session.declare_subscriber(key, callback)
+        if recover == MISSED:
+            # the binding takes a timedelta (a float is a TypeError), its stub says float
+            period: Any = MISSED_QUERY_PERIOD
+            recovery = zenoh.ext.RecoveryConfig(heartbeat=None, periodic_queries=period)
+            return zenoh.ext.declare_advanced_subscriber(self.session, key, callback, recovery=recovery)
         return zenoh.ext.declare_advanced_subscriber(
             self.session,
             key,
@@ -404,7 +423,7 @@ class Bus:
         deliver: Callable[[M, str | None], None],
         name: str,
         threaded: bool | None,
-        recover: bool,
+        recover: Recover,
     ) -> None:
         """The items of ``topic``'s batches whose robot key ``key`` includes go to ``deliver``, with
         the batch's source: one Zenoh subscription per batch key and bus (the first subscriber's

@@ -27,7 +27,7 @@ from common.contracts.messages import CriticWeights, Message, PlantState, ResetR
 from common.math.agents import fit_due, learns
 from common.math.critic import FitsDue, Sample
 from common.net.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
-from common.net.transport import Bus
+from common.net.transport import MISSED, Bus
 
 log = logging.getLogger(__name__)
 # A critic's versions start at its host's wall clock in microseconds when it starts and then
@@ -55,7 +55,8 @@ class HeldWeights:
 class WeightsInbox:
     """Newest accepted critic weights of the current episode (thread-safe).
 
-    Weights are accepted only: from the live critic session when a ``gate`` is given
+    Weights are accepted only once the actor has an episode (:meth:`reset`; earlier ones are
+    counted as ``weights_before_start``): from the live critic session when a ``gate`` is given
     (its identity token, common.net.provenance), for the current episode, newer than the held
     version of the same critic session (a new session -- a restarted critic -- resynchronizes),
     within the configured weight box (else the last good weights are kept), and trained on a
@@ -111,6 +112,11 @@ class WeightsInbox:
             )
             return
         with self.cond:
+            if self.episode < 0:
+                # no episode yet (the actor is starting): weights of the critic's earlier run still
+                # in flight, for nobody here; counted, not refused
+                self.bus.count("weights_before_start")
+                return
             if message.episode != self.episode:
                 self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
                 return
@@ -285,12 +291,13 @@ class ZenohCriticPort:
 def wire_weights(settings: Settings, bus: Bus) -> WeightsInbox:
     """One robot's weights inbox on the bus (``settings.transport.robot``'s keys): weights only
     from the live critic session of that robot (its identity watched, common.net.provenance).
-    Subscribed with recovery: weights a congested link dropped are fetched from the critic's
-    cache (services.critic.service.WEIGHTS_CACHE), so a robot at rest, for which no fit comes,
-    never keeps weights older than the critic's last for it."""
+    Subscribed with recovery of what it misses (``MISSED``: no history, so none of the critic's
+    earlier runs): weights a congested link dropped are fetched from the critic's cache
+    (services.critic.service.WEIGHTS_CACHE), so a robot at rest, for which no fit comes, never
+    keeps weights older than the critic's last for it."""
     robot = settings.transport.robot
     critic_gate = SourceGate("critic")
     bus.watch_identities(robot, "critic", critic_gate)
     inbox = WeightsInbox(settings, bus, critic_gate)
-    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True, recover=True)
+    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True, recover=MISSED)
     return inbox
