@@ -274,9 +274,9 @@ def test_history_recovery_asks_once_for_every_robot_waiting_and_again_for_those_
     recovery = HistoryRecovery(lambda robots, answer, done: asked.append((robots, answer, done)), inbox.append)
     stream = random_transitions(10, ("a", "b", "c"))
     step = {(t.robot, t.step): t for t in stream}
-    recovery.need(step[("a", 6)], range(0, 6))
-    recovery.need(step[("b", 6)], range(0, 6))  # while the first query is out
-    recovery.need(step[("c", 6)], range(3, 6))
+    recovery.need(step[("a", 6)].robot, step[("a", 6)].episode, range(0, 6))
+    recovery.need(step[("b", 6)].robot, step[("b", 6)].episode, range(0, 6))  # while the first query is out
+    recovery.need(step[("c", 6)].robot, step[("c", 6)].episode, range(3, 6))
     assert [robots for robots, _, _ in asked] == [["a"]]
     _, answer, done = asked[0]
     for t in stream:  # the cache holds every robot's steps 0-9

@@ -335,24 +335,6 @@ def test_inbox_refuses_another_episode_and_an_old_version() -> None:
     assert bus.counters["rejected.critic/weights"] == 3 and bus.counters["weights_accepted"] == 1
 
 
-def test_an_inbox_before_its_first_episode_takes_nothing_and_refuses_nothing() -> None:
-    """The critic's cached weights of earlier runs, fetched as a starting actor subscribes
-    (wire_weights recovers from the critic's cache), come before the actor has an episode: counted
-    as weights_before_start, neither held nor refused; from the first episode on, another
-    episode's weights are refused as before."""
-    bus, gate = FakeBus(), SourceGate("critic")
-    gate.update(CRITIC, True)
-    inbox = WeightsInbox(Settings.load(), bus, gate)  # type: ignore[arg-type]
-    before = inbox.current()
-    for episode in (EPISODE - 1, EPISODE):
-        inbox.offer(_weights(_now_us(), value=2.0, episode=episode), CRITIC)
-    assert inbox.current() is before and bus.counters["weights_before_start"] == 2
-    assert bus.counters["rejected.critic/weights"] == 0 and not bus.reasons
-    inbox.reset(EPISODE)
-    inbox.offer(_weights(_now_us(), episode=EPISODE - 1), CRITIC)
-    assert bus.counters["rejected.critic/weights"] == 1 and bus.counters["weights_before_start"] == 2
-
-
 def test_a_new_critic_session_resynchronizes_versions() -> None:
     """A restarted critic (a new session, maybe with a clock behind the old one's) is followed
     at once instead of being refused until its versions pass the old session's."""

@@ -13,21 +13,10 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from typing import Protocol
 
 from common.contracts.messages import Transition
 
 log = logging.getLogger(__name__)
-
-
-class StreamStart(Protocol):
-    """The first transition a consumer heard of a robot: a message or a batch's row."""
-
-    @property
-    def robot(self) -> str: ...
-
-    @property
-    def episode(self) -> int: ...
 
 
 class HistoryRecovery:
@@ -54,10 +43,11 @@ class HistoryRecovery:
         self.asked: dict[str, tuple[int, range]] = {}  # what the query out asks for
         self.queries = 0
 
-    def need(self, first: StreamStart, missing: range) -> None:
-        """``first`` is the first transition of its robot the consumer got, ``missing`` the steps before it it needs."""
+    def need(self, robot: str, episode: int, missing: range) -> None:
+        """The first transition the consumer got of ``robot`` is of ``episode``; ``missing``: the
+        steps before it that it needs."""
         with self.lock:
-            self.waiting[first.robot] = (first.episode, missing)
+            self.waiting[robot] = (episode, missing)
             if self.asked:
                 return  # asked for in the next query, when this one ends
         self._next()

@@ -344,10 +344,11 @@ class Bus:
 
         on_sample = self._message_reader(topic, name, deliver)
         batch = batch_of(topic)
-        first = self._batch_recovers.get(batch.pattern, recover) if batch is not None else recover
-        if batch is not None and RECOVERY_RANK[first] < RECOVERY_RANK[recover]:
-            had = "without recovery" if not first else f"with recovery {first!r}"
-            raise ValueError(f"{batch.pattern} is subscribed {had} in this process: ask for {recover!r} first")
+        if batch is not None:
+            first = self._batch_recovers.get(batch.pattern, recover)
+            if RECOVERY_RANK[first] < RECOVERY_RANK[recover]:
+                had = "without recovery" if not first else f"with recovery {first!r}"
+                raise ValueError(f"{batch.pattern} is subscribed {had} in this process: ask for {recover!r} first")
         self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), recover))
         if batch is not None:
             self._route_batches(topic, key, deliver, name, threaded, recover)

@@ -55,8 +55,7 @@ class HeldWeights:
 class WeightsInbox:
     """Newest accepted critic weights of the current episode (thread-safe).
 
-    Weights are accepted only once the actor has an episode (:meth:`reset`; earlier ones are
-    counted as ``weights_before_start``): from the live critic session when a ``gate`` is given
+    Weights are accepted only: from the live critic session when a ``gate`` is given
     (its identity token, common.net.provenance), for the current episode, newer than the held
     version of the same critic session (a new session -- a restarted critic -- resynchronizes),
     within the configured weight box (else the last good weights are kept), and trained on a
@@ -112,11 +111,6 @@ class WeightsInbox:
             )
             return
         with self.cond:
-            if self.episode < 0:
-                # no episode yet (the actor is starting): weights of the critic's earlier run still
-                # in flight, for nobody here; counted, not refused
-                self.bus.count("weights_before_start")
-                return
             if message.episode != self.episode:
                 self.bus.reject("critic/weights", f"episode {message.episode} is not {self.episode}")
                 return

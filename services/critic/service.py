@@ -724,7 +724,7 @@ def run(
                 heard.add(message.robot)
                 missing = learner.missing_before(message)
                 if missing:
-                    recovery.need(message, missing)
+                    recovery.need(message.robot, message.episode, missing)
             outgoing += learner.take(message, fit=not defer and index not in superseded, defer=True)
         outgoing += learner.flush()
         batches.append(len(batch))

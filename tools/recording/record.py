@@ -970,12 +970,6 @@ def robot_frames(bridge: Any, source: str, correction: Sequence[float] | None) -
     )
 
 
-@dataclass(frozen=True)
-class _StreamStart:
-    robot: str
-    episode: int
-
-
 class Feed:
     """Subscribes to every robot's state, transitions, critic weights and actor status
     (``srl/*/...`` and srl's batches of them) and hands them, in arrival order, to a
@@ -1105,7 +1099,7 @@ class Feed:
             return False
         self.recorder.step_time(robot, episode, step, now_ns)  # its origin, as writing the row would fix it
         self.held[robot] = [row]
-        self.recovery.need(_StreamStart(robot, episode), range(step))
+        self.recovery.need(robot, episode, range(step))
         return True
 
     def _ask(self, robots: list[str], answer: Callable[[Any], None], done: Callable[[], None]) -> None:
