@@ -9,6 +9,7 @@ import pytest
 
 from common.config.settings import Settings
 from common.math.fleet import circle_starts
+from common.system.clock import STATE_SYNC_MARGIN_S, aligned_start, tick_phase_offset
 from services.plant_sim.host import SYNC_MIN_ACTIONS, SYNC_WINDOW, FleetPlant, StateSync
 
 DELTA, PERIOD = 0.1, 0.02  # the actor's delta, the state period (50 Hz)
@@ -17,14 +18,14 @@ T0 = 0.0137  # the actor's tick 0 (another phase than the plant's)
 
 
 def simulate(
-    delays: dict[int, float], steps: int = 40, default_delay: float = 0.0012
+    delays: dict[int, float], steps: int = 40, default_delay: float = 0.0012, t0: float = T0
 ) -> tuple[list[float], list[float]]:
-    """One robot: its actor's tick k at T0 + k delta, its action of step k arriving ``delays[k]``
+    """One robot: its actor's tick k at t0 + k delta, its action of step k arriving ``delays[k]``
     (else ``default_delay``) later. The state ticks up to the last tick, and which of them
     published (the actions that arrived by a state tick are taken in first)."""
     sync = StateSync(1, DELTA, PERIOD)
-    arrivals = sorted((T0 + k * DELTA + delays.get(k, default_delay), k) for k in range(steps))
-    grid = [GRID0 + j * PERIOD for j in range(int((T0 + steps * DELTA) / PERIOD))]
+    arrivals = sorted((t0 + k * DELTA + delays.get(k, default_delay), k) for k in range(steps))
+    grid = [GRID0 + j * PERIOD for j in range(int((t0 + steps * DELTA) / PERIOD))]
     published, a = [], 0
     for tick in grid:
         while a < len(arrivals) and arrivals[a][0] <= tick:
@@ -54,6 +55,36 @@ def test_an_on_time_actor_reads_the_state_it_would_read_with_every_state_publish
     assert [t for t in grid if t < T0 + (SYNC_MIN_ACTIONS - 1) * DELTA] == [
         t for t in published if t < T0 + (SYNC_MIN_ACTIONS - 1) * DELTA
     ]
+
+
+@pytest.mark.parametrize("transport", [0.0002, 0.002])  # a state's way from the plant to the actor
+def test_an_actor_host_aligned_to_the_states_gets_one_state_a_period_the_newest(transport: float) -> None:
+    """An actor host starts its ticks where the states' grid, as they arrive, puts them one state
+    each period (services/actor/host.py run_host: common.system.clock.aligned_start); a tick
+    as a state arrives gets two every period (the control)."""
+    offset = tick_phase_offset(DELTA, 5, PERIOD)  # 5 tick groups: the default host of 50 robots
+    assert offset == pytest.approx((PERIOD + STATE_SYNC_MARGIN_S) / 2)
+    newest = GRID0 + 7 * PERIOD + transport  # the newest state's arrival when the host starts
+    t0 = aligned_start(newest + 0.0003, newest, offset, PERIOD)
+    assert newest + 0.0003 <= t0 < newest + 0.0003 + PERIOD
+    learned = T0 + (SYNC_MIN_ACTIONS + 1) * DELTA
+    for start, per_period in ((t0, {1}), (GRID0 + transport, {2})):
+        grid, published = simulate({}, t0=start)
+        counts = {sum(1 for t in published if start + (k - 1) * DELTA < t <= start + k * DELTA) for k in range(8, 39)}
+        assert counts == per_period, (start, counts)
+        for k in range(8, 39):  # and the newest state at each tick is the one of every state published
+            tick = start + k * DELTA
+            assert tick > learned and newest_before(published, tick) == newest_before(grid, tick), k
+
+
+def test_the_tick_phase_keeps_every_group_as_far_as_it_can_from_a_states_arrival() -> None:
+    centre = STATE_SYNC_MARGIN_S / 2
+    for groups, least in ((1, 0.0075), (5, 0.0075), (10, 0.005), (15, 0.0033)):
+        offset = tick_phase_offset(DELTA, groups, PERIOD)
+        gaps = [(offset + g * DELTA / groups - centre) % PERIOD for g in range(groups)]
+        assert min(min(gap, PERIOD - gap) for gap in gaps) >= least - 1e-9, groups
+    assert tick_phase_offset(DELTA, 5, DELTA) == 0.0  # states no faster than ticks: nothing to place
+    assert aligned_start(3.0, None, 0.0125, PERIOD) == 3.0  # no state yet: now
 
 
 def test_a_late_action_gets_every_state_tick_until_it_arrives_and_does_not_move_the_phase() -> None:

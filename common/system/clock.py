@@ -71,3 +71,43 @@ class Ticker:
             self.missed += 1  # woke up late: this tick's deadline is missed all the same
             self.late += 1
         return self.last_tick
+
+
+STATE_SYNC_MARGIN_S = 0.005
+"""A plant host that learned a robot's tick phase from its actions (services/plant_sim/host.py
+``StateSync``) publishes the robot's state from one state period and this margin before the tick
+it estimates, until the action comes. The estimate is late by the action's least delay, so the
+margin keeps the last state before the real tick in the window; the window is then longer than a
+state period, and a tick that falls within about the margin after a state tick gets two states a
+period (:func:`tick_phase_offset` keeps an actor host's ticks out of there)."""
+
+
+def tick_phase_offset(period: float, phases: int, state_period: float, margin: float = STATE_SYNC_MARGIN_S) -> float:
+    """Where in a plant's state period [0, ``state_period``), after a state arrived, an actor
+    host of ``phases`` tick phases ``period / phases`` apart best puts its first: as far as can
+    be, for its nearest phase, from ``margin / 2`` after a state's arrival, the middle of the
+    stretch where a tick gets two states a period (:data:`STATE_SYNC_MARGIN_S`). Phases one state
+    period apart (the default: 5 of 0.1 s at 50 Hz) all land mid-way, ``(state_period + margin) / 2``.
+    ``state_period`` 0 or not below ``period`` (states no faster than ticks): 0."""
+    if not 0.0 < state_period < period or phases < 1:
+        return 0.0
+    spacing = period / phases
+    centre = margin / 2.0
+    candidates = 200
+
+    def nearest(offset: float) -> float:
+        gaps = [((offset + g * spacing - centre) % state_period) for g in range(phases)]
+        return min(min(gap, state_period - gap) for gap in gaps)
+
+    offsets = [i * state_period / candidates for i in range(candidates)]
+    return max(offsets, key=lambda o: (round(nearest(o), 9), -o))
+
+
+def aligned_start(now: float, newest_state: float | None, offset: float, state_period: float) -> float:
+    """The first time at or after ``now`` that is ``offset`` after a state arrival on the grid of
+    ``newest_state`` (its arrival time) and ``state_period``; ``now`` when no state has come."""
+    if newest_state is None or state_period <= 0.0:
+        return now
+    first = newest_state + offset
+    periods = -(-(now - first) // state_period)  # ceil
+    return first + max(0.0, periods) * state_period

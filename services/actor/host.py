@@ -14,7 +14,9 @@ buffers are the actor's own, rewritten before every solve: nothing leaks from on
 next, ``tests/test_fleet.py`` checks the actions against one actor per robot, bit for bit).
 
 Scheduling: robot ``i`` of ``K`` ticks at ``t0 + i delta / K + k delta`` (phases spread over the
-period, so the work is too), and :class:`HostScheduler` serves the robot whose tick is due first
+period, so the work is too; ``t0`` placed in the plant's state period where a plant host that
+syncs its states to the ticks sends each robot one state a period:
+:func:`common.system.clock.tick_phase_offset`), and :class:`HostScheduler` serves the robot whose tick is due first
 (earliest deadline first; ties by robot order): no robot waits for more than the others' work due
 before its own. A tick served more than a quarter period late is a missed deadline, as for one
 actor (common/system/clock.py); a tick more than a period late is skipped, counted as missed, and the
@@ -54,7 +56,7 @@ from common.math.features import stage_cost_rows
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
-from common.system.clock import LATE_FRACTION, Ticker
+from common.system.clock import LATE_FRACTION, Ticker, aligned_start, tick_phase_offset
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
 from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps
 
@@ -69,8 +71,8 @@ M = TypeVar("M", bound=Message)
 HURRY_FRACTION = 0.05
 # An actor host's actions leave in rounds (Outbox): those of one tick group together, or
 # sooner once the oldest has waited this long. A plant host learns each robot's phase from when
-# its actions arrive (services/plant_sim/host.py StateSync) and opens its window SYNC_MARGIN_S
-# (5 ms) early: a wait well inside that margin keeps every robot's newest state in the window.
+# its actions arrive (services/plant_sim/host.py StateSync) and opens its window STATE_SYNC_MARGIN_S
+# (5 ms, common/system/clock.py) early: a wait well inside that margin keeps every robot's newest state in the window.
 ACTION_WAIT_S = 0.002
 # A lower bound on the transitions one batch sample holds: a Transition's row of a columnar batch
 # is at most 153 bytes, its JSON under 640 (tests/test_batch_wire.py checks a worst case); the
@@ -387,6 +389,7 @@ class HostScheduler:
         group: int = 1,
         outboxes: Sequence[Outbox[Any]] = (),
         rests: Callable[[Sequence[int], float], dict[int, AtRest]] | None = None,
+        start: float | None = None,
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
         # which robots of a tick group are served at rest (RestCheck; None: every tick a step)
@@ -396,7 +399,7 @@ class HostScheduler:
         self.outboxes = tuple(outboxes)
         self.clock = clock
         self.sleep = sleep or stop.wait
-        start = clock()
+        start = clock() if start is None else start
         count = len(loops)
         groups = -(-count // group)  # the robots' ticks in this many phases of the period
         self.tickers = [RobotTicker(period, start + (i // group) * period / groups) for i in range(count)]
@@ -579,9 +582,18 @@ def run_host(
     log.info("actor host: %d of %d robots primed in %.1f s", primed, len(robots), time.monotonic() - started)
     gc.collect()
     gc.freeze()
+    period, groups = settings.plant.sampling_time, -(-len(robots) // settings.actor.host_tick_group)
+    state_period = 1.0 / settings.transport.state_rate
+    arrivals = [loop.latest[1] for loop in loops if loop.latest is not None]
+    start = aligned_start(
+        time.monotonic(),
+        max(arrivals, default=None),
+        tick_phase_offset(period, groups, state_period),
+        state_period,
+    )
     scheduler = HostScheduler(
         loops,
-        settings.plant.sampling_time,
+        period,
         stop,
         budget=settings.actor.host_cpu_budget,
         group=settings.actor.host_tick_group,
@@ -590,6 +602,7 @@ def run_host(
         rests=RestCheck(settings, loops)
         if min(len(robots), settings.actor.host_tick_group) >= REST_ARRAYS_FROM
         else None,
+        start=start,
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:

@@ -37,6 +37,7 @@ from common.contracts.summaries import FleetPlantSummary, PlantRow, PlantSummary
 from common.math.dynamics import exact_steps
 from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread
+from common.system.clock import STATE_SYNC_MARGIN_S
 from services.plant_sim.service import ActionIntake, SimulatedPlant, action_timeout, due_watchdogs, state_ticks
 
 log = logging.getLogger(__name__)
@@ -44,7 +45,6 @@ log = logging.getLogger(__name__)
 SIM_SOURCE = choice_code(PlantState, "source", "sim")  # a simulator's states in a round's columns
 SYNC_WINDOW = 50  # a robot's phase is learned from its last this many actions (5 s at delta = 0.1 s)
 SYNC_MIN_ACTIONS = 5  # before that many, every state tick publishes the robot's state
-SYNC_MARGIN_S = 0.005  # the publishing window opens this long before one state period ahead of the tick
 
 
 class StateSync:
@@ -55,7 +55,7 @@ class StateSync:
     solve and the transport, never before; so the least ``arrival - k delta`` of a robot's last
     :data:`SYNC_WINDOW` actions is ``T0`` plus the shortest such delay (~1 ms), on this process's
     clock alone (no clock of another host is read), and the next tick is due at about that plus
-    ``(k + 1) delta``. From one state period and :data:`SYNC_MARGIN_S` before that, until the
+    ``(k + 1) delta``. From one state period and :data:`STATE_SYNC_MARGIN_S` before that, until the
     robot's next action arrives, every state tick publishes the robot's state. So the newest
     state at an on-time tick is the same one it would be with every state tick published (the
     last one before the tick), and a late actor gets every state tick until it acts. A robot
@@ -104,7 +104,7 @@ class StateSync:
         with self.lock:
             synced = (self.count >= SYNC_MIN_ACTIONS) & (now - self.at < 2.0 * self.delta)
             next_tick = self.offsets.min(axis=1) + (self.step + 1) * self.delta
-            due: np.ndarray = ~synced | (now > next_tick - self.period - SYNC_MARGIN_S)
+            due: np.ndarray = ~synced | (now > next_tick - self.period - STATE_SYNC_MARGIN_S)
             return due
 
 
