@@ -584,6 +584,9 @@ def run_host(
     gc.freeze()
     period, groups = settings.plant.sampling_time, -(-len(robots) // settings.actor.host_tick_group)
     state_period = 1.0 / settings.transport.state_rate
+    # two state periods idle first: a state that came during the solves above waited for the GIL
+    # to be taken in, and its arrival time is late by as much, off the states' grid
+    stop.wait(2.0 * state_period)
     arrivals = [loop.latest[1] for loop in loops if loop.latest is not None]
     start = aligned_start(
         time.monotonic(),
