@@ -335,6 +335,11 @@ def transition_rounds(robots: int, group: int) -> int:
     return groups * -(-min(group, robots) // TRANSITIONS_PER_SAMPLE)
 
 
+def tick_groups(robots: int, group: int) -> int:
+    """The phases of the period a host's ``robots`` tick in, ``group`` robots to a phase."""
+    return -(-robots // group)
+
+
 class RobotTicker(Ticker):
     """One robot's ticks in a host: tick ``k`` due at ``start + (k + 1) period`` (as
     :class:`~common.system.clock.Ticker`), served by :class:`HostScheduler` instead of slept to."""
@@ -401,7 +406,7 @@ class HostScheduler:
         self.sleep = sleep or stop.wait
         start = clock() if start is None else start
         count = len(loops)
-        groups = -(-count // group)  # the robots' ticks in this many phases of the period
+        groups = tick_groups(count, group)
         self.tickers = [RobotTicker(period, start + (i // group) * period / groups) for i in range(count)]
         for loop, ticker in zip(loops, self.tickers, strict=True):
             loop.ticker = ticker
@@ -582,7 +587,7 @@ def run_host(
     log.info("actor host: %d of %d robots primed in %.1f s", primed, len(robots), time.monotonic() - started)
     gc.collect()
     gc.freeze()
-    period, groups = settings.plant.sampling_time, -(-len(robots) // settings.actor.host_tick_group)
+    period, groups = settings.plant.sampling_time, tick_groups(len(robots), settings.actor.host_tick_group)
     state_period = 1.0 / settings.transport.state_rate
     # two state periods idle first: a state that came during the solves above waited for the GIL
     # to be taken in, and its arrival time is late by as much, off the states' grid
