@@ -80,12 +80,12 @@ STARTS = {
     "c": (0.25, 0.15, 0.0),
     "d": (-0.012, 0.004, -0.03),
 }
-PUSHES = {("b", 15): (0.04, 0.0, 0.05), ("b", 30): (0.2, 0.1, 0.3)}
+PUSHES = {("b", 15): (0.04, 0.0, 0.05), ("b", 30): (0.2, 0.1, 0.3), ("d", 20): (0.1, 0.05, 0.1)}
 
 
 def run_host(
-    rest: bool, arrays_from: int = 1, outboxes: bool = False, rows: bool = False
-) -> tuple[list[Action], list[Any], list[dict[str, Any]], int]:
+    rest: bool, arrays_from: int = 1, outboxes: bool = False, rows: bool = False, pull: bool = False
+) -> tuple[list[Action], list[Any], list[dict[str, Any]], int, HostScheduler, list[float]]:
     """The four robots on one built actor, a fake plant and a fake clock, for :data:`TICKS`
     periods; ``rest``: with the host's RestCheck (deciding groups of ``arrays_from`` robots or more
     as arrays). What the host sent (each transition with what
@@ -93,7 +93,9 @@ def run_host(
     summary, and the robot ticks served at rest. ``outboxes``: what the robots send goes in
     rounds, as an actor host sends them (services/actor/host.py Outbox: a round of messages, or
     with ``rows`` (ticks at rest put rows) a batch of columns, each sent encoded and decoded as on
-    the wire); the fourth value is then the rounds sent as columns."""
+    the wire); the fourth value is then the rounds sent as columns. ``pull``: robots at rest tick
+    with the first group (HostScheduler's ``pull``). Then the scheduler, and the times the host's
+    thread woke."""
     settings = Settings.load(actor={"jit": False, "host_tick_group": 2})
     shared = build_actor(settings)
     fake = FakeClock()
@@ -182,7 +184,13 @@ def run_host(
             loop.on_state(message, "p1", fake.now)
 
     plant()
-    fake.on_sleep = plant
+    woke: list[float] = []
+
+    def wake() -> None:
+        woke.append(fake.now)
+        plant()
+
+    fake.on_sleep = wake
     served = [0]
     check = RestCheck(settings, loops, arrays_from)
 
@@ -200,9 +208,11 @@ def run_host(
         group=2,
         rests=counted if rest else None,
         outboxes=() if boxes is None else boxes,
+        pull=pull,
     )
     scheduler.run(end=fake.now + TICKS * DELTA, manual_gc=False)
-    return actions, transitions, [loop.summary() for loop in loops], column_rounds[0] if outboxes else served[0]
+    summaries = [loop.summary() for loop in loops]
+    return actions, transitions, summaries, column_rounds[0] if outboxes else served[0], scheduler, woke
 
 
 TIMING = ("loop", "solve_ms", "latency_ms", "staleness_ms")
@@ -256,6 +266,39 @@ def test_an_actor_host_sends_the_ticks_at_rest_as_rows_of_its_rounds_bit_for_bit
     rows, steps = run_host(rest=True, outboxes=True, rows=True), run_host(rest=False, outboxes=True)
     assert rows[3] > TICKS and steps[3] == 0  # rounds went as columns; the steps' never did
     assert_sent_alike(rows, steps)
+
+
+def test_robots_at_rest_tick_with_the_first_group_once_a_period_and_send_what_their_own_steps_do() -> None:
+    """HostScheduler's ``pull``: the robots of the second group (c drives in and comes to rest, d
+    is parked) tick with the first group once at rest, early and never late. Each robot sends
+    the same steps, actions and transitions (state, action, cost, the fits and memory its loop
+    then knew) as its own steps at its own phase (only which state sample answered may differ:
+    the plant publishes when the host wakes), and once every robot rests the host wakes once a
+    period instead of once per group."""
+    pulled, own = run_host(rest=True, pull=True), run_host(rest=False)
+    scheduler, woke = pulled[4], pulled[5]
+    assert scheduler.pulled > TICKS // 2 and own[4].pulled == 0
+
+    def values(message: Any) -> list[float]:
+        return [*getattr(message, "state", ()), *message.action, getattr(message, "cost", 0.0)]
+
+    # the fake plant integrates between the thread's wake-ups, fewer with pull: a moving robot's
+    # states differ in the last bits (exact_step over one interval or two), nothing more
+    for robot in STARTS:
+        actions = [[a for a in run[0] if a.robot == robot] for run in (pulled, own)]
+        transitions = [[t for t in run[1] if t[0].robot == robot] for run in (pulled, own)]
+        assert len(actions[0]) == len(actions[1]) > TICKS - 2 and len(transitions[0]) == len(transitions[1])
+        for m, o in [*zip(*actions, strict=True), *((a[0], b[0]) for a, b in zip(*transitions, strict=True))]:
+            assert m.step == o.step and np.allclose(values(m), values(o), rtol=0, atol=1e-12), (robot, m, o)
+        assert [t[1:] for t in transitions[0]] == [t[1:] for t in transitions[1]]  # the fits and memory then known
+    for mine, other in zip(pulled[2], own[2], strict=True):
+        assert mine["loop"]["missed_deadlines"] == 0 and mine["loop"]["late_ticks"] == 0
+        assert mine["steps"] == other["steps"] and mine["transition_steps"] == other["transition_steps"]
+        assert mine["loop"]["jitter_ms"]["max"] < 1e-6  # early ticks and the ticks after them not counted
+    # the last 20 periods, every robot at rest (b's second push is at tick 30): one wake-up each
+    last = [t for t in woke if t > woke[-1] - 20 * DELTA + 1e-9]
+    assert len(last) == 20, len(last)
+    assert len([t for t in own[5] if t > own[5][-1] - 20 * DELTA + 1e-9]) == 40  # two groups
 
 
 @pytest.mark.parametrize("change", ["newer state", "second plant", "none"])

@@ -380,6 +380,14 @@ class HostScheduler:
     critic needs (docs/fleets.md).
     ``group`` (``actor.host_tick_group``): robots ``i // group`` share a phase of the period and are
     served back to back, one wake-up per group; a group is late (hurried) when its first tick is.
+    ``pull``: robots at rest tick with the first group. The phases spread the solves over the
+    period; a robot at rest solves nothing, yet each group tick costs every process a wake-up and
+    a round of samples (docs/notes/at-rest-per-group.md). So when the first group is served, every
+    robot of another group whose last tick was at rest and whose next tick is due within a period
+    is asked again (``rests``); those still at rest are served then, early (never late, their
+    step index unchanged), in the same rounds. A robot that moves is served at its own phase
+    again. A tick served early, and the tick after one, add no sample to the period and jitter
+    windows: those measure the deadlines of the robot's own phase.
     ``clock`` and ``sleep`` (``sleep(seconds) -> True`` to stop) are injectable, as for Ticker."""
 
     def __init__(
@@ -395,10 +403,15 @@ class HostScheduler:
         outboxes: Sequence[Outbox[Any]] = (),
         rests: Callable[[Sequence[int], float], dict[int, AtRest]] | None = None,
         start: float | None = None,
+        pull: bool = False,
     ) -> None:
         self.loops, self.period, self.stop = loops, period, stop
         # which robots of a tick group are served at rest (RestCheck; None: every tick a step)
         self.rests = rests
+        self.pull = pull and rests is not None
+        self.rested = [False] * len(loops)  # the robot's last tick was at rest
+        self.early = [False] * len(loops)  # the robot's last tick was served early (pulled)
+        self.pulled = 0  # ticks served early, with the first group
         self.group = group
         # the robots' actions and transitions, sent per group (none: each robot sends its own)
         self.outboxes = tuple(outboxes)
@@ -438,6 +451,8 @@ class HostScheduler:
         resting: dict[int, AtRest] = {}  # its robots served at rest (RestCheck)
         try:
             while not self.stop.is_set():
+                while heap[0][0] != self.tickers[heap[0][1]].next_due:  # a tick already served early
+                    heapq.heappop(heap)
                 due, i = heap[0]
                 if end is not None and due >= end:  # the run ends when its first unserved tick is due:
                     self.flush()  # what answers the last ticks (the critic's weights) comes in meanwhile
@@ -471,22 +486,23 @@ class HostScheduler:
                         now - self.started,
                         ticker.missed,
                     )
-                if previous is not None:
+                if previous is not None and not self.early[i]:
                     loop.periods.append(now - previous)
                     loop.jitter.append(abs(now - previous - self.period))
                 over = self.spent_sum > self.budget
                 self.over_budget += over
                 # late: the group began late (its later ticks wait for the earlier ones by design)
                 late = group_start - due > HURRY_FRACTION * self.period
-                loop.tick(k, now, hurry=over or late, rest=resting.pop(i, None))  # hurry: the lighter solve
-                spent = self.clock() - now
-                slot = self.served % count
-                self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
-                self.spent[slot] = spent
+                rest = resting.pop(i, None)
+                loop.tick(k, now, hurry=over or late, rest=rest)  # hurry: the lighter solve
+                self.rested[i], self.early[i] = rest is not None, False
+                self._spent(now)
                 heapq.heappush(heap, (ticker.next_due, i))
                 # the group is served (the next tick due is another phase's): its actions and
                 # its transitions go out, a round each; or its first action has waited long enough
                 if heap[0][0] != due:
+                    if self.pull and i < self.group:
+                        self._pull_rests(due, heap)
                     self.flush()
                 elif self.outboxes:
                     flushed_at = self.clock()
@@ -503,6 +519,38 @@ class HostScheduler:
         for loop, ticker in zip(self.loops, self.tickers, strict=True):  # on the way out: stop every robot
             loop.send(ticker.index, (0.0, 0.0), -1)
         self.flush()
+
+    def _spent(self, now: float) -> None:
+        """A tick begun at ``now`` is done: its time enters the last round's (the budget's)."""
+        spent = self.clock() - now
+        slot = self.served % len(self.loops)
+        self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
+        self.spent[slot] = spent
+
+    def _pull_rests(self, due: float, heap: list[tuple[float, int]]) -> None:
+        """The first group, due at ``due``, is served: serve now the robots of the other groups
+        still at rest whose next tick is due within a period (``pull``)."""
+        candidates = [
+            j
+            for j in range(self.group, len(self.loops))
+            if self.rested[j] and due < self.tickers[j].next_due < due + self.period
+        ]
+        if not candidates:
+            return
+        assert self.rests is not None
+        now = self.clock()
+        resting = self.rests(candidates, now)
+        for j in candidates:
+            rest = resting.get(j)
+            if rest is None:
+                continue
+            ticker, now = self.tickers[j], self.clock()
+            self.loops[j].tick(ticker.serve(now), now, rest=rest)
+            self.rested[j], self.early[j] = True, True
+            self._spent(now)
+            heapq.heappush(heap, (ticker.next_due, j))  # its entry at its own phase is now stale
+            self.served += 1
+            self.pulled += 1
 
     def members(self, i: int, due: float) -> list[int]:
         """The robots of robot ``i``'s tick group whose next tick is due at ``due`` (a robot that
@@ -611,6 +659,7 @@ def run_host(
         if min(len(robots), settings.actor.host_tick_group) >= REST_ARRAYS_FROM
         else None,
         start=start,
+        pull=True,  # robots at rest tick with the first group: one group tick a period at rest
     )
     try:
         with realtime_priority(settings.actor.realtime_priority, "actor host") as priority:
@@ -630,6 +679,7 @@ def run_host(
         bus,
         {
             "ticks_over_budget": float(scheduler.over_budget),
+            "ticks_pulled_at_rest": float(scheduler.pulled),
             "realtime_priority": float(priority),
             "failed_action_rounds": float(outbox.failed_rounds),
             "failed_transition_rounds": float(transitions.failed_rounds),
