@@ -84,7 +84,13 @@ PUSHES = {("b", 15): (0.04, 0.0, 0.05), ("b", 30): (0.2, 0.1, 0.3), ("d", 20): (
 
 
 def run_host(
-    rest: bool, arrays_from: int = 1, outboxes: bool = False, rows: bool = False, pull: bool = False
+    rest: bool,
+    arrays_from: int = 1,
+    outboxes: bool = False,
+    rows: bool = False,
+    pull: bool = False,
+    starts: dict[str, tuple[float, float, float]] = STARTS,
+    group: int = 2,
 ) -> tuple[list[Action], list[Any], list[dict[str, Any]], int, HostScheduler, list[float]]:
     """The four robots on one built actor, a fake plant and a fake clock, for :data:`TICKS`
     periods; ``rest``: with the host's RestCheck (deciding groups of ``arrays_from`` robots or more
@@ -95,8 +101,8 @@ def run_host(
     with ``rows`` (ticks at rest put rows) a batch of columns, each sent encoded and decoded as on
     the wire); the fourth value is then the rounds sent as columns. ``pull``: robots at rest tick
     with the first group (HostScheduler's ``pull``). Then the scheduler, and the times the host's
-    thread woke."""
-    settings = Settings.load(actor={"jit": False, "host_tick_group": 2})
+    thread woke. ``starts`` and ``group``: other robots, another tick group."""
+    settings = Settings.load(actor={"jit": False, "host_tick_group": group})
     shared = build_actor(settings)
     fake = FakeClock()
     actions: list[Action] = []
@@ -141,7 +147,7 @@ def run_host(
         if outboxes
         else None
     )
-    for robot, start in STARTS.items():
+    for robot, start in starts.items():
         own = settings.model_copy(update={"transport": settings.transport.model_copy(update={"robot": robot})})
         counts = FakeCounts()
         critic = SourceGate("critic")
@@ -205,7 +211,7 @@ def run_host(
         threading.Event(),
         clock=fake.clock,
         sleep=fake.sleep,
-        group=2,
+        group=group,
         rests=counted if rest else None,
         outboxes=() if boxes is None else boxes,
         pull=pull,
@@ -299,6 +305,20 @@ def test_robots_at_rest_tick_with_the_first_group_once_a_period_and_send_what_th
     last = [t for t in woke if t > woke[-1] - 20 * DELTA + 1e-9]
     assert len(last) == 20, len(last)
     assert len([t for t in own[5] if t > own[5][-1] - 20 * DELTA + 1e-9]) == 40  # two groups
+
+
+def test_a_robot_at_rest_by_its_steps_is_pulled_too() -> None:
+    """c drives in while e and f, of its group, are parked and pulled: at its own phase c is then
+    alone, too few for RestCheck (fewer than 2), and rests by its steps. It is pulled all the
+    same, so the fleet at rest wakes its host once a period."""
+    parked = {"e": (0.01, 0.01, 0.0), "f": (-0.01, 0.0, 0.01)}
+    order = ("a", "b", "d", "c", "e", "f")  # groups of 3: (a, b, d) and (c, e, f)
+    starts = {robot: {**STARTS, **parked}[robot] for robot in order}
+    pulled = run_host(rest=True, pull=True, arrays_from=2, starts=starts, group=3)
+    scheduler, woke = pulled[4], pulled[5]
+    last = [t for t in woke if t > woke[-1] - 20 * DELTA + 1e-9]
+    assert len(last) == 20, len(last)
+    assert scheduler.pulled > TICKS // 2
 
 
 @pytest.mark.parametrize("change", ["newer state", "second plant", "none"])

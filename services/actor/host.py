@@ -383,11 +383,11 @@ class HostScheduler:
     ``pull``: robots at rest tick with the first group. The phases spread the solves over the
     period; a robot at rest solves nothing, yet each group tick costs every process a wake-up and
     a round of samples (docs/notes/at-rest-per-group.md). So when the first group is served, every
-    robot of another group whose last tick was at rest and whose next tick is due within a period
-    is asked again (``rests``); those still at rest are served then, early (never late, their
-    step index unchanged), in the same rounds. A robot that moves is served at its own phase
-    again. A tick served early, and the tick after one, add no sample to the period and jitter
-    windows: those measure the deadlines of the robot's own phase.
+    robot of another group whose last tick was at rest (served so, or a step that said "arrived")
+    and whose next tick is due within a period is asked again (``rests``); those still at rest are
+    served then, early (never late, their step index unchanged), in the same rounds. A robot that
+    moves is served at its own phase again. A tick served early, and the tick after one, add no
+    sample to the period and jitter windows: those measure the deadlines of the robot's own phase.
     ``clock`` and ``sleep`` (``sleep(seconds) -> True`` to stop) are injectable, as for Ticker."""
 
     def __init__(
@@ -495,7 +495,10 @@ class HostScheduler:
                 late = group_start - due > HURRY_FRACTION * self.period
                 rest = resting.pop(i, None)
                 loop.tick(k, now, hurry=over or late, rest=rest)  # hurry: the lighter solve
-                self.rested[i], self.early[i] = rest is not None, False
+                # at rest: served so, or by its step (a group left with too few robots at rest for
+                # RestCheck takes its steps; pulled all the same, or it wakes the host every period)
+                self.rested[i] = rest is not None or (self.pull and loop.arrived)
+                self.early[i] = False
                 self._spent(now)
                 heapq.heappush(heap, (ticker.next_due, i))
                 # the group is served (the next tick due is another phase's): its actions and
