@@ -109,5 +109,4 @@ def aligned_start(now: float, newest_state: float | None, offset: float, state_p
     if newest_state is None or state_period <= 0.0:
         return now
     first = newest_state + offset
-    periods = -(-(now - first) // state_period)  # ceil
-    return first + max(0.0, periods) * state_period
+    return first + -(-(now - first) // state_period) * state_period  # ceil: the first at or after now

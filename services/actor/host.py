@@ -383,8 +383,8 @@ class HostScheduler:
     ``pull``: robots at rest tick with the first group. The phases spread the solves over the
     period; a robot at rest solves nothing, yet each group tick costs every process a wake-up and
     a round of samples (docs/notes/at-rest-per-group.md). So when the first group is served, every
-    robot of another group whose last tick was at rest (served so, or a step that said "arrived")
-    and whose next tick is due within a period is asked again (``rests``); those still at rest are
+    robot of another group whose arrival rule holds it (its last tick served at rest, or a step
+    that said "arrived") and whose next tick is due within a period is asked again (``rests``); those still at rest are
     served then, early (never late, their step index unchanged), in the same rounds. A robot that
     moves is served at its own phase again. A tick served early, and the tick after one, add no
     sample to the period and jitter windows: those measure the deadlines of the robot's own phase.
@@ -409,7 +409,6 @@ class HostScheduler:
         # which robots of a tick group are served at rest (RestCheck; None: every tick a step)
         self.rests = rests
         self.pull = pull and rests is not None
-        self.rested = [False] * len(loops)  # the robot's last tick was at rest
         self.early = [False] * len(loops)  # the robot's last tick was served early (pulled)
         self.pulled = 0  # ticks served early, with the first group
         self.group = group
@@ -493,11 +492,7 @@ class HostScheduler:
                 self.over_budget += over
                 # late: the group began late (its later ticks wait for the earlier ones by design)
                 late = group_start - due > HURRY_FRACTION * self.period
-                rest = resting.pop(i, None)
-                loop.tick(k, now, hurry=over or late, rest=rest)  # hurry: the lighter solve
-                # at rest: served so, or by its step (a group left with too few robots at rest for
-                # RestCheck takes its steps; pulled all the same, or it wakes the host every period)
-                self.rested[i] = rest is not None or (self.pull and loop.arrived)
+                loop.tick(k, now, hurry=over or late, rest=resting.pop(i, None))  # hurry: the lighter solve
                 self.early[i] = False
                 self._spent(now)
                 heapq.heappush(heap, (ticker.next_due, i))
@@ -532,11 +527,14 @@ class HostScheduler:
 
     def _pull_rests(self, due: float, heap: list[tuple[float, int]]) -> None:
         """The first group, due at ``due``, is served: serve now the robots of the other groups
-        still at rest whose next tick is due within a period (``pull``)."""
+        still at rest whose next tick is due within a period (``pull``). A robot is asked when its
+        arrival rule holds it (``arrived``), whether its last tick was served at rest or was a step:
+        a group left with too few robots at rest for RestCheck takes its steps, and its robots must
+        be pulled all the same, or they wake the host every period."""
         candidates = [
             j
             for j in range(self.group, len(self.loops))
-            if self.rested[j] and due < self.tickers[j].next_due < due + self.period
+            if self.loops[j].arrived and due < self.tickers[j].next_due < due + self.period
         ]
         if not candidates:
             return
@@ -549,7 +547,7 @@ class HostScheduler:
                 continue
             ticker, now = self.tickers[j], self.clock()
             self.loops[j].tick(ticker.serve(now), now, rest=rest)
-            self.rested[j], self.early[j] = True, True
+            self.early[j] = True
             self._spent(now)
             heapq.heappush(heap, (ticker.next_due, j))  # its entry at its own phase is now stale
             self.served += 1
