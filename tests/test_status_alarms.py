@@ -91,6 +91,7 @@ def test_a_monitor_without_an_actor_status_shows_nothing() -> None:
 
 
 @pytest.mark.integration
+@pytest.mark.timing  # the statuses' arrival 0.1-0.4 s apart: a real-time bound, run alone
 def test_one_status_loop_sends_every_robots_status_spread_over_the_period() -> None:
     """One status loop for one robot and for a host of K (here 2): each robot's status once a
     period, one robot every period / K (never both in one burst), NaN counters left out; nothing
