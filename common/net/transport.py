@@ -64,6 +64,7 @@ MISSED_QUERY_PERIOD = timedelta(seconds=1)
 # router's other subscribers in about 1.5 ms on loopback, and a few hundred ms on a loaded
 # host or a slow link; 0.3 s delays a plant's start only once.
 PLANT_SETTLE_S = 0.3
+STATUS_WAKES = 10  # a status loop wakes at most this often a period (start_status_thread)
 # The robots a bus remembers the batch deliveries of, per batch key (Bus._route_batches): a fleet's
 # robots, many times over; past it the memory is emptied and matched anew.
 BATCH_ROBOTS_KEPT = 4096
@@ -925,9 +926,12 @@ def start_status_thread(
     ``period``, until stop or until the bus closes (which joins the thread, so it is never left
     inside Zenoh). One service of one robot and a host of K robots run the same loop.
 
-    * Spread over the period: one robot's status every ``period / K``. A host's K in one burst
-      would hold the GIL from its tick thread for all of them; one at a time holds it for one
-      robot's (tens of microseconds).
+    * Spread over the period in at most :data:`STATUS_WAKES` bursts: K <= 10 robots one at a time
+      every ``period / K``; more, ``ceil(K / 10)`` at a time every ``period / 10``. A host's K in
+      one burst would hold the GIL from its tick thread for all of them (100 robots: ~4 ms); a
+      wake per robot costs each process a thread switch per robot (at 100 robots at rest, 1 Hz
+      statuses one at a time cost ~0.03 ms of CPU per robot tick, docs/notes/at-rest-per-group.md),
+      and puts due together leave in one Zenoh batch (``transport.express`` false).
     * Sent whether or not anyone subscribes: gating them on Zenoh's matching status saved no
       measurable CPU and was in doubt across linked routers (docs/notes/status-on-demand.md).
       Counted: ``statuses_published``.
@@ -938,29 +942,32 @@ def start_status_thread(
 
     service = bus.service
     publishers = [(robot, counters, bus.publisher(STATUS, robot, service=service)) for robot, counters in rows]
-    gap = period / max(1, len(publishers))
+    wakes = max(1, min(len(publishers), STATUS_WAKES))
+    bursts = [publishers[i * len(publishers) // wakes : (i + 1) * len(publishers) // wakes] for i in range(wakes)]
+    gap = period / wakes
 
     def loop() -> None:
         while True:
-            for robot, counters, publish in publishers:
+            for burst in bursts:
                 if bus.closing.wait(gap) or stop.is_set():
                     return
-                values = counters()
-                if on_status is not None:
-                    on_status(values)
-                try:
-                    publish(
-                        ServiceStatus(
-                            robot=robot,
-                            service=service,
-                            stamp_ns=time.monotonic_ns(),
-                            counters={k: v for k, v in values.items() if v == v and abs(v) != float("inf")},
+                for robot, counters, publish in burst:
+                    values = counters()
+                    if on_status is not None:
+                        on_status(values)
+                    try:
+                        publish(
+                            ServiceStatus(
+                                robot=robot,
+                                service=service,
+                                stamp_ns=time.monotonic_ns(),
+                                counters={k: v for k, v in values.items() if v == v and abs(v) != float("inf")},
+                            )
                         )
-                    )
-                except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
-                    log.debug("%s status: %s", service, error)
-                    return
-                bus.count("statuses_published")
+                    except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
+                        log.debug("%s status: %s", service, error)
+                        return
+                bus.count("statuses_published", len(burst))
 
     thread = threading.Thread(target=loop, name=f"{service}-status", daemon=True)
     thread.start()
