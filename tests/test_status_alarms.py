@@ -143,3 +143,64 @@ def test_one_status_loop_sends_every_robots_status_spread_over_the_period() -> N
     assert all(0.1 <= gap <= 0.4 for gap in gaps), gaps  # period / K = 0.2 s apart, not a burst
     assert all("bad" not in status.counters for _, status in seen)
     assert [status.counters["steps"] for _, status in seen if status.robot == "st_b"][:3] == [1.0, 2.0, 3.0]
+
+
+class _Closing:
+    """A bus's ``closing`` event that never sleeps: each wait is noted; after ``waits`` it says closed."""
+
+    def __init__(self, waits: int, log: list[tuple[str, object]]) -> None:
+        self.left, self.log = waits, log
+
+    def wait(self, gap: float) -> bool:
+        self.log.append(("wake", gap))
+        self.left -= 1
+        return self.left < 0
+
+
+class _StatusBus:
+    """What start_status_thread uses of a Bus, with puts noted in order beside the wakes."""
+
+    service = "plant"
+
+    def __init__(self, waits: int) -> None:
+        self.log: list[tuple[str, object]] = []
+        self.closing = _Closing(waits, self.log)
+        self.counters: dict[str, int] = {}
+        self.thread: object = None
+
+    def publisher(self, topic: object, robot: str, **chunks: str):  # type: ignore[no-untyped-def]
+        return lambda message: self.log.append(("put", message.robot))
+
+    def count(self, name: str, amount: int = 1) -> None:
+        self.counters[name] = self.counters.get(name, 0) + amount
+
+    def adopt(self, thread: object) -> None:
+        self.thread = thread
+
+
+@pytest.mark.parametrize(("robots", "wakes", "most"), [(25, 10, 3), (10, 10, 1), (3, 3, 1)])
+def test_a_status_loop_wakes_at_most_ten_times_a_period(robots: int, wakes: int, most: int) -> None:
+    """K <= 10 robots: one status a wake, period / K apart; more: every robot's status once a
+    period in 10 wakes of ceil(K / 10) (puts due together leave in one Zenoh batch)."""
+    import threading
+
+    from common.net.transport import start_status_thread
+
+    names = [f"r{i}" for i in range(robots)]
+    bus = _StatusBus(waits=2 * wakes)
+    start_status_thread(bus, [(r, lambda: {"steps": 1.0}) for r in names], 1.0, threading.Event())  # type: ignore[arg-type]
+    assert isinstance(bus.thread, threading.Thread)
+    bus.thread.join(5)
+    gaps = [gap for what, gap in bus.log if what == "wake"]
+    assert gaps == [pytest.approx(1.0 / wakes)] * (2 * wakes + 1)  # the last wake: closed
+    bursts: list[list[object]] = []
+    for what, item in bus.log:
+        if what == "wake":
+            bursts.append([])
+        else:
+            bursts[-1].append(item)
+    period = [robot for burst in bursts[:wakes] for robot in burst]
+    assert period == names  # every robot once a period, in order
+    assert [robot for burst in bursts[wakes : 2 * wakes] for robot in burst] == names
+    assert max(len(burst) for burst in bursts) == most
+    assert bus.counters["statuses_published"] == 2 * robots

@@ -930,7 +930,7 @@ def start_status_thread(
       every ``period / K``; more, ``ceil(K / 10)`` at a time every ``period / 10``. A host's K in
       one burst would hold the GIL from its tick thread for all of them (100 robots: ~4 ms); a
       wake per robot costs each process a thread switch per robot (at 100 robots at rest, 1 Hz
-      statuses one at a time cost ~0.03 ms of CPU per robot tick, docs/notes/at-rest-per-group.md),
+      statuses one at a time cost ~0.04 ms of CPU per robot tick, docs/notes/status-on-demand.md),
       and puts due together leave in one Zenoh batch (``transport.express`` false).
     * Sent whether or not anyone subscribes: gating them on Zenoh's matching status saved no
       measurable CPU and was in doubt across linked routers (docs/notes/status-on-demand.md).
