@@ -540,3 +540,27 @@ def test_the_architecture_pages_map_of_the_code_is_the_code(tmp_path: Path) -> N
         "common/math/brand_new.py is not on the map",
         "services/actor/host.py is on the map but not in the code",
     ]
+
+
+def test_the_headlines_fleet_row_says_each_sizes_cpu_at_rest_and_one_robot_in_the_singular() -> None:
+    """The README's fleet figure (tools/docs/benchmarks.py headline_table) from a benchmark's rows:
+    per size its missed deadlines, jitter, robots at target and CPU per robot tick, with the CPU at
+    rest when every robot arrived (left out when not: NaN); the baseline rows stay on the page."""
+    from tools.docs.benchmarks import headline_table
+
+    def row(robots: int, rest: float, layout: str = "host") -> dict[str, object]:
+        return {
+            "robots": robots,
+            "layout": layout,
+            "fleet": {"missed_deadlines": 0, "jitter_p99_ms": 1.5, "parked": robots, "at_target": robots},
+            "cpu_ms_per_robot_tick": 0.3,
+            "cpu_phases": {"at_rest": {"cpu_ms_per_robot_tick": rest}},
+        }
+
+    fleet = {"seconds": 30.0, "recorded": True, "rows": [row(1, 6.4), row(8, 9.0, "process"), row(100, float("nan"))]}
+    table = headline_table({"fleet": fleet}, None)
+    line = next(text for text in table.splitlines() if text.startswith("| Fleet on one machine"))
+    assert "`srl record` attached" in line
+    assert "1 robot: 0 missed, jitter p99 1.50 ms, 1 at target, 0.30 ms CPU per robot tick (at rest 6.40);" in line
+    assert "100 robots: 0 missed, jitter p99 1.50 ms, 100 at target, 0.30 ms CPU per robot tick |" in line
+    assert "9.00" not in line  # the baseline of one process per robot: on the benchmark's page

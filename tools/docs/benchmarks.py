@@ -668,6 +668,15 @@ def index_page(data: dict[str, dict[str, Any]]) -> str:
 
 
 # -- the README's headline table --------------------------------------------------------------
+def _fleet_cpu_text(row: dict[str, Any]) -> str:
+    """A fleet row's CPU for the headline: over the run, and at rest when every robot arrived."""
+    if row.get("cpu_ms_per_robot_tick") is None:
+        return ""
+    rest = ((row.get("cpu_phases") or {}).get("at_rest") or {}).get("cpu_ms_per_robot_tick")
+    at_rest = "" if rest is None or rest != rest else f" (at rest {rest:.2f})"
+    return f", {row['cpu_ms_per_robot_tick']:.2f} ms CPU per robot tick{at_rest}"
+
+
 def headline_table(data: dict[str, dict[str, Any]], paper_summary: dict[str, Any] | None) -> str:
     """Today's headline figures: the actor's step at N = 12, the paper experiment's ratios, a fleet."""
     lines = ["| Figure | Value | Source |", "|---|---|---|"]
@@ -704,14 +713,11 @@ def headline_table(data: dict[str, dict[str, Any]], paper_summary: dict[str, Any
     fleet = data.get("fleet")
     if fleet:
         values = [
-            f"{row['robots']} robots: {row['fleet']['missed_deadlines']} missed, jitter p99 "
-            f"{row['fleet']['jitter_p99_ms']:.2f} ms, {row['fleet'].get('at_target', row['fleet']['parked'])} "
+            f"{row['robots']} robot{'s' if row['robots'] != 1 else ''}: {row['fleet']['missed_deadlines']} missed, "
+            f"jitter p99 {row['fleet']['jitter_p99_ms']:.2f} ms, "
+            f"{row['fleet'].get('at_target', row['fleet']['parked'])} "
             + ("at target" if "at_target" in row["fleet"] else "parked")
-            + (
-                ""
-                if row.get("cpu_ms_per_robot_tick") is None
-                else f", {row['cpu_ms_per_robot_tick']:.2f} ms CPU per robot tick"
-            )
+            + _fleet_cpu_text(row)
             for row in fleet.get("rows", [])
             if "error" not in row and row.get("layout", "host") == "host"  # the baseline rows are on the page
         ]

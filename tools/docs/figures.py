@@ -381,7 +381,8 @@ def fleet_figure(data: dict[str, Any]) -> Figure:
     ax_tick.set_title("CPU per robot tick [ms]")
     ax_tick.set_ylim(bottom=0)
     ax_missed.set_title("missed deadlines [% of robot ticks]")
-    ax_missed.set_ylim(bottom=-1.0)
+    # from -1 so that a zero shows above the axis; to at least 1 % so that all zeros are not drawn on the top edge
+    ax_missed.set_ylim(-1.0, max(1.0, ax_missed.get_ylim()[1]))
     sizes = sorted({p.robots for p in points})
     for ax in (ax_cpu, ax_tick, ax_missed):
         ax.set_xscale("log")
