@@ -715,7 +715,7 @@ def headline_table(data: dict[str, dict[str, Any]], paper_summary: dict[str, Any
         values = [
             f"{row['robots']} robot{'s' if row['robots'] != 1 else ''}: {row['fleet']['missed_deadlines']} missed, "
             f"jitter p99 {row['fleet']['jitter_p99_ms']:.2f} ms, "
-            f"{row['fleet'].get('at_target', row['fleet']['parked'])} "
+            f"{row['fleet'].get('at_target', row['fleet'].get('parked'))} "
             + ("at target" if "at_target" in row["fleet"] else "parked")
             + _fleet_cpu_text(row)
             for row in fleet.get("rows", [])
