@@ -20,7 +20,10 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
+from typing import TypeVar
 
+T = TypeVar("T")
 MAX_ROBOTS = 1000  # one host; far beyond what 2 cores serve at delta = 0.1 s (docs/fleets.md)
 _ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")  # one key chunk, as common/contracts/keys.py requires
 # one ROS name segment (a robot's namespace, ``tb3_1``): a letter, then letters, digits, _
@@ -89,8 +92,9 @@ def host_count(option: str, size: int, cores: int, flag: str = "--actor-hosts") 
     return hosts
 
 
-def split_evenly(robots: list[str], hosts: int) -> list[list[str]]:
-    """``robots`` in ``hosts`` contiguous shares, as even as can be (the first ones one larger)."""
+def split_evenly(robots: Sequence[T], hosts: int) -> list[list[T]]:
+    """``robots`` in ``hosts`` contiguous shares, as even as can be (the first ones one larger):
+    a fleet's robots over its actor hosts, a host's status publishers over a period's wakes."""
     if not 1 <= hosts <= max(len(robots), 1):
         raise FleetError(f"{hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
     size, extra = divmod(len(robots), hosts)

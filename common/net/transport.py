@@ -44,6 +44,7 @@ from common.contracts.keys import (
     robot_of,
 )
 from common.contracts.messages import Message, MessageError, decode
+from common.math.fleet import split_evenly
 from common.net.provenance import QUIET_REFUSALS, PlantConflictError, SourceGate, yields_to
 from common.net.security import check_network_exposure, tls_entries, zenoh_entries
 
@@ -942,31 +943,27 @@ def start_status_thread(
 
     service = bus.service
     publishers = [(robot, counters, bus.publisher(STATUS, robot, service=service)) for robot, counters in rows]
-    wakes = max(1, min(len(publishers), STATUS_WAKES))
-    bursts = [publishers[i * len(publishers) // wakes : (i + 1) * len(publishers) // wakes] for i in range(wakes)]
-    gap = period / wakes
+    bursts = split_evenly(publishers, max(1, min(len(publishers), STATUS_WAKES)))
+    gap = period / len(bursts)
+
+    def send(robot: str, counters: Callable[[], dict[str, float]], publish: Callable[[ServiceStatus], None]) -> bool:
+        """One robot's status out; False once the session closed under us (shutdown: nothing to report to)."""
+        values = counters()
+        if on_status is not None:
+            on_status(values)
+        finite = {k: v for k, v in values.items() if v == v and abs(v) != float("inf")}
+        try:
+            publish(ServiceStatus(robot=robot, service=service, stamp_ns=time.monotonic_ns(), counters=finite))
+        except zenoh.ZError as error:
+            log.debug("%s status: %s", service, error)
+            return False
+        return True
 
     def loop() -> None:
         while True:
             for burst in bursts:
-                if bus.closing.wait(gap) or stop.is_set():
+                if bus.closing.wait(gap) or stop.is_set() or not all(send(*row) for row in burst):
                     return
-                for robot, counters, publish in burst:
-                    values = counters()
-                    if on_status is not None:
-                        on_status(values)
-                    try:
-                        publish(
-                            ServiceStatus(
-                                robot=robot,
-                                service=service,
-                                stamp_ns=time.monotonic_ns(),
-                                counters={k: v for k, v in values.items() if v == v and abs(v) != float("inf")},
-                            )
-                        )
-                    except zenoh.ZError as error:  # the session closed under us at shutdown: nothing to report to
-                        log.debug("%s status: %s", service, error)
-                        return
                 bus.count("statuses_published", len(burst))
 
     thread = threading.Thread(target=loop, name=f"{service}-status", daemon=True)

@@ -673,7 +673,7 @@ def _fleet_cpu_text(row: dict[str, Any]) -> str:
     if row.get("cpu_ms_per_robot_tick") is None:
         return ""
     rest = ((row.get("cpu_phases") or {}).get("at_rest") or {}).get("cpu_ms_per_robot_tick")
-    at_rest = "" if rest is None or rest != rest else f" (at rest {rest:.2f})"
+    at_rest = "" if rest is None or not math.isfinite(rest) else f" (at rest {rest:.2f})"
     return f", {row['cpu_ms_per_robot_tick']:.2f} ms CPU per robot tick{at_rest}"
 
 
