@@ -411,3 +411,47 @@ def test_an_actor_recovers_the_weights_a_link_dropped_and_no_earlier_runs_weight
         for bus in reversed(opened):
             bus.close()
         router.close()
+
+
+def test_a_batch_item_whose_handler_fails_is_counted_and_the_batchs_other_items_still_arrive() -> None:
+    """``Bus._route_batches`` on a bus whose session is a fake (no router): a batch of four items,
+    the handler of one robot raising. That item is counted under ``handler_errors`` and logged;
+    the other items reach their subscriptions in order, each subscription's items counted under
+    ``received`` once the batch is routed. The negative control: without the failing robot,
+    nothing is counted as an error."""
+    from types import SimpleNamespace
+
+    from common.net.transport import Bus
+
+    declared: dict[str, Any] = {}
+
+    class Session:
+        def declare_subscriber(self, key: str, callback: Any) -> Any:
+            declared[key] = callback
+            return SimpleNamespace(undeclare=lambda: None)
+
+    bus = Bus(Session(), "actor")  # type: ignore[arg-type]  # a fake session: what the bus calls of one
+    bus._callback = lambda handler, threaded=None: handler  # type: ignore[method-assign]  # no Zenoh handler
+    got: list[tuple[str, int, str | None]] = []
+
+    def handler(message: CriticWeights, source: str | None) -> None:
+        if message.robot == "b2":
+            raise RuntimeError("a handler's bug")
+        got.append((message.robot, message.version, source))
+
+    for robot in ("b1", "b2", "b3"):
+        bus.subscribe(WEIGHTS, WEIGHTS.key(robot), handler, with_source=True)
+    on_batch = declared[WEIGHTS_BATCH.pattern]
+    stamp = SimpleNamespace(get_id=lambda: "z1")
+
+    def deliver(*messages: CriticWeights) -> None:
+        (payload,) = encode_columns(columns_of(CriticWeights, list(messages)))
+        on_batch(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload), timestamp=stamp))
+
+    deliver(weights("b1", 1), weights("b2", 2), weights("b9", 3), weights("b3", 4))
+    assert got == [("b1", 1, "z1"), ("b3", 4, "z1")]  # b9: nobody here subscribed to it
+    assert bus.counters["handler_errors.critic/weights"] == 1
+    assert bus.counters["received.critic/weights"] == 3
+    deliver(weights("b3", 5), weights("b1", 6))
+    assert got[2:] == [("b3", 5, "z1"), ("b1", 6, "z1")]
+    assert bus.counters["handler_errors.critic/weights"] == 1 and bus.counters["received.critic/weights"] == 5

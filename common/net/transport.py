@@ -17,6 +17,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any, Generic, Literal, TypeVar
 
@@ -153,6 +154,17 @@ def source_of(sample: zenoh.Sample) -> str | None:
     return None if stamp is None else str(stamp.get_id())
 
 
+@dataclass(frozen=True)
+class _Route:
+    """A subscription that batch items may go to: its key, its counters' name, its handler (called
+    with the item's source too when ``with_source``)."""
+
+    key: zenoh.KeyExpr
+    name: str
+    handler: Callable[..., None]
+    with_source: bool
+
+
 class Bus:
     """One Zenoh session of one service, with counters shared by all its handlers."""
 
@@ -168,11 +180,11 @@ class Bus:
         self._last_warning: dict[str, float] = {}
         self._keep: list[Any] = []  # declared entities live as long as the bus
         self._queriers: dict[tuple[str, float], Any] = {}
-        # batch key -> the subscriptions its items go to, as (their key, their delivery): one
+        # batch key -> the subscriptions its items go to (_Route): one
         # Zenoh subscription per batch key, however many robots subscribe (_route_batches)
-        self._batch_routes: dict[str, tuple[tuple[zenoh.KeyExpr, Callable[[Any, str | None], None]], ...]] = {}
-        # batch pattern -> robot id -> the deliveries of its items (emptied when the routes change)
-        self._batch_targets: dict[str, dict[str, list[Callable[[Any, str | None], None]]]] = {}
+        self._batch_routes: dict[str, tuple[_Route, ...]] = {}
+        # batch pattern -> robot id -> the routes of its items (emptied when the routes change)
+        self._batch_targets: dict[str, dict[str, tuple[_Route, ...]]] = {}
         self._batch_recovers: dict[str, Recover] = {}  # batch key -> its first subscription's recovery
         # Our own threads (status): ended and joined by close(), before the session goes, so
         # none is inside Zenoh or pydantic when the interpreter finalizes.
@@ -339,6 +351,7 @@ class Bus:
         of the session that published the sample (its Zenoh timestamp's id; None if unstamped),
         to be checked against the live identities (:meth:`watch_identities`)."""
         name = what or counter_name(topic)
+        route = _Route(zenoh.KeyExpr(key), name, handler, with_source)
 
         def deliver(message: M, source: str | None) -> None:
             self.count(f"received.{name}")
@@ -353,7 +366,7 @@ class Bus:
                 raise ValueError(f"{batch.pattern} is subscribed {had} in this process: ask for {recover!r} first")
         self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), recover))
         if batch is not None:
-            self._route_batches(topic, key, deliver, name, threaded, recover)
+            self._route_batches(topic, route, threaded, recover)
 
     def raw_subscriber(
         self, key: str, handler: Callable[[zenoh.Sample], None], recover: Recover = False, threaded: bool | None = None
@@ -419,49 +432,63 @@ class Bus:
             recovery=zenoh.ext.RecoveryConfig(heartbeat=True, periodic_queries=None),
         )
 
-    def _route_batches(
-        self,
-        topic: Topic[M],
-        key: str,
-        deliver: Callable[[M, str | None], None],
-        name: str,
-        threaded: bool | None,
-        recover: Recover,
-    ) -> None:
-        """The items of ``topic``'s batches whose robot key ``key`` includes go to ``deliver``, with
-        the batch's source: one Zenoh subscription per batch key and bus (the first subscriber's
-        ``threaded`` says where its handler runs, its ``recover`` whether the batches' history and
-        missed samples are fetched: a later subscription may not ask for a recovery the first did
-        not), each batch decoded once and its items handed to every subscription of their robot
-        (an item of a robot nobody here subscribed to is not ours, and is passed over)."""
+    def _route_batches(self, topic: Topic[M], route: _Route, threaded: bool | None, recover: Recover) -> None:
+        """The items of ``topic``'s batches whose robot ``route``'s key includes go to its handler,
+        with the batch's source: one Zenoh subscription per batch key and bus (the first
+        subscriber's ``threaded`` says where its handler runs, its ``recover`` whether the batches'
+        history and missed samples are fetched: a later subscription may not ask for a recovery
+        the first did not), each batch decoded once and its items handed to every subscription of
+        their robot (an item of a robot nobody here subscribed to is not ours, and is passed over).
+        A batch's items are counted (``received.<name>``) before any handler runs, once per batch,
+        and each handler call is guarded as :meth:`_handle` guards one: a failing item is counted
+        and logged, and the batch's other items are still delivered."""
         batch = batch_of(topic)
         assert batch is not None
         pattern = batch.pattern
         with self._lock:
             first = pattern not in self._batch_routes
             self._batch_recovers.setdefault(pattern, recover)
-            self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), (zenoh.KeyExpr(key), deliver))
+            self._batch_routes[pattern] = (*self._batch_routes.get(pattern, ()), route)
             self._batch_targets = {}  # the routes changed: every robot's deliveries again
 
-        def route(columns: Columns[M], source: str | None) -> None:
+        def deliveries_of(robot: str, targets: dict[str, tuple[_Route, ...]]) -> tuple[_Route, ...]:
+            if len(targets) >= BATCH_ROBOTS_KEPT:  # bounded whatever robot ids senders invent
+                targets.clear()
+            concrete = zenoh.KeyExpr(topic.key(robot))
+            found = targets[robot] = tuple(r for r in self._batch_routes[pattern] if r.key.intersects(concrete))
+            return found
+
+        def on_columns(columns: Columns[M], source: str | None) -> None:
             targets = self._batch_targets.get(pattern)
             if targets is None:
                 targets = self._batch_targets[pattern] = {}
+            chosen = []  # (row, its routes): a robot's routes are matched once, not per item
             for row, robot in enumerate(columns.robots):
-                deliveries = targets.get(robot)  # a robot's routes are matched once, not per item
-                if deliveries is None:
-                    if len(targets) >= BATCH_ROBOTS_KEPT:  # bounded whatever robot ids senders invent
-                        targets.clear()
-                    concrete = zenoh.KeyExpr(topic.key(robot))
-                    routes = self._batch_routes[pattern]
-                    deliveries = targets[robot] = [d for k, d in routes if k.intersects(concrete)]
-                if deliveries:  # a message is built for the robots served here only
-                    item = columns.item(row)
-                    for each in deliveries:
-                        each(item, source)
+                routes = targets.get(robot)
+                if routes is None:
+                    routes = deliveries_of(robot, targets)
+                if routes:
+                    chosen.append((row, routes))
+            if not chosen:
+                return
+            received = Counter(r.name for _, routes in chosen for r in routes)
+            with self._lock:
+                for name, amount in received.items():
+                    self.counters[f"received.{name}"] += amount
+            for row, routes in chosen:
+                item = columns.item(row)  # a message is built for the robots served here only
+                for r in routes:
+                    try:
+                        if r.with_source:
+                            r.handler(item, source)
+                        else:
+                            r.handler(item)
+                    except Exception:
+                        self.count(f"handler_errors.{r.name}")
+                        log.exception("%s: handler for %s failed", self.service, r.name)
 
         if first:
-            on_batch = self._batch_reader(topic, name, route)
+            on_batch = self._batch_reader(topic, route.name, on_columns)
             self._keep.append(self._declare_subscriber(pattern, self._callback(on_batch, threaded), recover))
 
     def _handle(self, name: str, handler: Callable[..., None], *args: Any) -> None:
