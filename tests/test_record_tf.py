@@ -487,6 +487,57 @@ def test_the_hot_messages_packed_by_hand_are_the_cdr_rosbags_writes(frame: str) 
         weights_cdr(0, frame, 0, 1, 0, np.zeros(14), np.zeros(6), (0.0, 0.0), 0)
 
 
+@pytest.mark.parametrize("frame", ["", "odom", "goal", "tb3_0/base_footprint"])
+def test_many_messages_packed_at_once_are_the_messages_packed_one_by_one(
+    frame: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The numpy packers of a batch (``*_rows``, srl record's writer) give each row the bytes of
+    the message packed alone (``*_cdr``, which the test above compares with rosbags): frame names
+    that leave every alignment, stamps past 2^53 ns, any values; a value its field cannot hold is
+    refused, never wrapped around."""
+    import struct
+
+    from tools.recording import cdr
+
+    rng = np.random.default_rng(len(frame) + 1)
+    rows = 50
+    t_ns = rng.integers(0, 2 * 10**18, rows)
+    states, actions = rng.normal(size=(rows, 3)) * 10, rng.normal(size=(rows, 2))
+    episodes, steps = rng.integers(0, 2**63, rows), rng.integers(0, 2**32, rows)
+    values = rng.normal(size=(rows, 7)) * 10
+    poses = cdr.planar_rows(states[:, 0], states[:, 1], states[:, 2])
+    odometry = cdr.odometry_rows(t_ns, frame, "base_footprint", poses, actions)
+    commands = cdr.twist_stamped_rows(t_ns, frame, actions)
+    samples = cdr.transition_rows(t_ns, frame, episodes, steps, values)
+    for i in range(rows):
+        t, (v, omega) = int(t_ns[i]), map(float, actions[i])
+        assert odometry[i] == cdr.odometry_cdr(t, frame, "base_footprint", states[i], (v, omega))
+        assert commands[i] == cdr.twist_stamped_cdr(t, frame, v, omega)
+        assert samples[i] == cdr.transition_cdr(t, frame, int(episodes[i]), int(steps[i]), values[i].tolist())
+    # the paths of many robots at once: each as its own path (RosMapping.path_cdr, compared with rosbags)
+    ros = RosMapping()
+    for count in (0, 1, 2, 120):
+        stamps = rng.integers(0, 2 * 10**18, (3, count))
+        tables = rng.normal(size=(3, count, 3))
+        paths = cdr.path_rows(
+            t_ns[:3], frame, "odom", stamps, cdr.planar_rows(*tables.reshape(-1, 3).T).reshape(3, count, 7)
+        )
+        for i in range(3):
+            assert paths[i] == ros.path_cdr(int(t_ns[i]), frame, stamps[i], tables[i], ["odom"] * count)
+    # /tf: a few transforms one by one, many with numpy; the same bytes either way
+    moves = [(int(t_ns[i]), frame, f"r{i}/base" + "x" * (i % 9), Pose2D(*states[i])) for i in range(rows)]
+    templates = [cdr.transform_template(parent, child) for _, parent, child, _ in moves]
+    planar = [cdr.planar(*map(float, state)) for state in states]
+    assert rows > cdr.TF_BY_NUMPY and cdr.tf_message(t_ns.tolist(), templates, planar) == cdr.tf_cdr(moves)
+    few = [cdr.tf_message(t_ns[:n].tolist(), templates[:n], planar[:n]) for n in range(1, cdr.TF_BY_NUMPY + 1)]
+    monkeypatch.setattr(cdr, "TF_BY_NUMPY", 0)
+    assert few == [cdr.tf_message(t_ns[:n].tolist(), templates[:n], planar[:n]) for n in range(1, len(few) + 1)]
+    with pytest.raises(ValueError, match="4294967296 does not fit a CDR uint32 field"):
+        cdr.transition_rows(t_ns[:2], frame, episodes[:2], np.array([1, 2**32]), values[:2])
+    with pytest.raises(struct.error):
+        cdr.transition_cdr(int(t_ns[0]), frame, 0, 2**32, values[0].tolist())
+
+
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full")
 def test_a_full_disk_met_by_a_full_chunk_stops_the_writes_at_the_next_message(tmp_path: Path) -> None:
     """A write the writer makes between two of srl's flushes (a chunk that fills up, a buffered
