@@ -682,6 +682,97 @@ def test_a_batch_is_recorded_as_its_rows_would_be_one_by_one(monkeypatch: pytest
     assert topics[6:8] == ["/robot0/cmd_vel", "/robot0/srl/transition"] and topics[-1] == "/tf"
 
 
+@pytest.mark.parametrize("clock", ["wall", "steps"])
+@pytest.mark.parametrize("gathered", [1, 5, 256])
+def test_the_recorder_writes_a_batch_of_many_robots_as_it_writes_their_rows_one_by_one(
+    clock: str, gathered: int
+) -> None:
+    """Recorder.states / Recorder.transitions (srl record's writer, a fleet's batches) write the
+    samples Recorder.state / Recorder.transition write for the same rows one by one (srl run):
+    every topic's messages, bytes, log times and order, and the late steps counted. A mixed fleet:
+    several robots (ids that need renaming), robot bridges localized on a map away from their goal
+    (one with its map -> odom correction in every state, one in every other), a robot's new
+    episode, a step that comes twice in a batch and one that comes late, paths, /tf gathered in
+    messages of at most ``gathered`` transforms; a row whose step its message cannot hold is
+    refused alone, the rest of its batch written."""
+    from types import SimpleNamespace
+
+    import tools.recording.record as record
+
+    class Sink:
+        def __init__(self) -> None:
+            self.topics: dict[str, list[tuple[str, bytes, int]]] = {}
+
+        def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+            self.topics.setdefault(topic, []).append((ros_type, data, t_ns))
+
+        def close(self) -> None:
+            pass
+
+    bridge = SimpleNamespace(goal=(1.0, 0.5, 0.2), pose_source="tf")
+    robots = ["tb3_0", "tb3_1", "rlqv+-N12-s003", "bridge_a", "bridge_b"]
+    bridged = np.array([robot.startswith("bridge") for robot in robots])
+    rng = np.random.default_rng(11)
+    by_rows, batched = record.Recorder(Sink(), 0.1, clock), record.Recorder(Sink(), 0.1, clock)  # type: ignore[arg-type]
+    for recorder in (by_rows, batched):
+        recorder.gather_tf(gathered)
+    refused: list[Exception] = []
+    episodes = dict.fromkeys(robots, 1)
+    for k in range(23):
+        now_ns = 1_700_000_000 * 10**9 + k * DELTA_NS + int(rng.integers(0, 30_000_000))
+        states = rng.normal(0, 2, (len(robots), 3))
+        corrections = np.full((len(robots), 3), np.nan)
+        corrections[3] = (0.5, -0.25, 0.1 + 0.01 * k)
+        if k % 2:
+            corrections[4] = (-0.3, 0.2, -2.9)
+        for robot, state, source, correction in zip(robots, states, bridged, corrections, strict=True):
+            frames = record.robot_frames(bridge, "robot" if source else "sim", tuple(correction))
+            by_rows.state(robot, 1, state, now_ns, frames)
+        frames_of_rows = record.robot_frame_rows(bridge, bridged, corrections)
+        taken = batched.states(robots, np.ones(len(robots)), states, now_ns, frames_of_rows, refused.append)
+        assert taken == len(robots)
+        if k == 12:
+            episodes["tb3_1"] = 2  # a new episode: its steps from 0 again
+        steps = [(robot, episodes[robot], k if episodes[robot] == 1 else k - 12) for robot in robots]
+        if k == 15:
+            steps += [("tb3_0", 1, 15), ("tb3_1", 2, 1)]  # twice in the batch, and late
+        actions, costs = rng.normal(0, 0.2, (len(steps), 2)), rng.uniform(0, 1, len(steps))
+        moves = np.vstack([states, states[:2]])[: len(steps)]
+        for (robot, episode, step), state, action, cost in zip(steps, moves, actions, costs, strict=True):
+            by_rows.transition(robot, episode, step, state, action, cost, now_ns)
+        names, episode_column, step_column = (list(column) for column in zip(*steps, strict=True))
+        if k == 20:  # a step no uint32 holds: that row alone is refused
+            names.insert(1, "bad")
+            episode_column.insert(1, 1)
+            step_column.insert(1, 2**32)
+            moves, actions, costs = (np.insert(c, 1, c[0], axis=0) for c in (moves, actions, costs))
+        columns = (np.array(episode_column), np.array(step_column), moves, actions, costs)
+        taken = batched.transitions(names, *columns, now_ns, refused.append)
+        assert taken == len(steps)
+        if k % 2:
+            by_rows.flush_tf()
+            batched.flush_tf()
+    for recorder in (by_rows, batched):
+        recorder.close()
+    assert [str(error) for error in refused] == ["4294967296 does not fit a CDR uint32 field (0 to 4294967295)"]
+    rows, batches = by_rows.sink.topics, batched.sink.topics  # type: ignore[attr-defined]
+    assert rows == batches and by_rows.late == batched.late == 2
+    paths = {topic: len(rows[topic]) for topic in ("/tb3_0/path", "/tb3_1/path", "/bridge_a/path")}
+    assert paths == {"/tb3_0/path": 3, "/tb3_1/path": 4, "/bridge_a/path": 3}  # steps 0, 10, 20; a new episode
+    assert {ros_type for messages in rows.values() for ros_type, _, _ in messages} >= {
+        record.ODOMETRY,
+        record.TWIST_STAMPED,
+        record.TRANSITION,
+        record.PATH,
+        record.TF_MESSAGE,
+        record.POSE_STAMPED,
+    }
+    transforms = sum(len(by_rows.ros.deserialize(data, record.TF_MESSAGE).transforms) for _, data, _ in rows["/tf"])
+    assert transforms == 23 * 5 + 23 + 11 + 5 * 3  # a base per state, the two map -> odom, each robot's goal
+    if gathered != 5:  # a message per state, or per flush (every other batch, and at close)
+        assert len(rows["/tf"]) == (23 * 5 if gathered == 1 else 12)
+
+
 def test_the_recorders_writer_keeps_a_bounded_backlog_counts_what_it_drops_and_writes_the_rest_at_close(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -915,4 +1006,4 @@ def test_a_robot_heard_first_after_step_0_is_held_until_the_caches_answer_then_w
         direct.transition(m.robot, m.episode, m.step, m.state, m.action, m.cost, 0)
     robot_a = [entry for entry in sink.written if entry[0].startswith("/a/")]
     assert robot_a == [entry for entry in direct.sink.written if entry[0].startswith("/a/")]  # type: ignore[attr-defined]
-    assert feed.errors == 0 and sum(track.late for track in feed.recorder.tracks.values()) == 0
+    assert feed.errors == 0 and feed.recorder.late == 0

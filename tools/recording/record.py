@@ -61,7 +61,7 @@ import re
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Literal, Protocol
 
@@ -74,7 +74,22 @@ from common.contracts.columns import Columns
 from common.contracts.pose_sources import ODOMETRY_ONLY
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
-from tools.recording.cdr import Vector, odometry_cdr, tf_cdr, transition_cdr, twist_stamped_cdr, weights_cdr
+from tools.recording.cdr import (
+    Vector,
+    odometry_cdr,
+    odometry_rows,
+    path_rows,
+    planar,
+    planar_rows,
+    sin_cos,
+    tf_message,
+    transform_template,
+    transition_cdr,
+    transition_rows,
+    twist_stamped_cdr,
+    twist_stamped_rows,
+    weights_cdr,
+)
 
 log = logging.getLogger(__name__)
 
@@ -168,67 +183,40 @@ class RosMapping:
 
     def path_cdr(self, t_ns: int, frame: str, stamps: np.ndarray, table: np.ndarray, frames: Sequence[str]) -> bytes:
         """``nav_msgs/Path`` of the poses ``table`` (rows x, y, alpha), stamped ``stamps`` [ns] in
-        ``frames`` (one each), the path stamped ``t_ns`` in ``frame``, as CDR: the bytes :meth:`cdr`
-        gives for the same message, written with numpy (a path of :data:`PATH_POSES` poses every
-        second per robot would be most of a recorder's CPU through rosbags' per-field serializer). The layout is
-        :class:`tools.recording.cdr.CdrLayout`'s. Poses in more than one frame go through :meth:`cdr`."""
+        ``frames`` (one each), the path stamped ``t_ns`` in ``frame``, as CDR (:meth:`path_poses_cdr`)."""
+        table = np.asarray(table, dtype=float).reshape(-1, 3)
+        return self.path_poses_cdr(t_ns, frame, stamps, planar_rows(table[:, 0], table[:, 1], table[:, 2]), frames)
+
+    def path_poses_cdr(
+        self, t_ns: int, frame: str, stamps: np.ndarray, poses: np.ndarray, frames: Sequence[str]
+    ) -> bytes:
+        """``nav_msgs/Path`` of ``poses`` (rows of :func:`tools.recording.cdr.planar_rows`) as CDR:
+        the bytes :meth:`cdr` gives for the same message, packed with numpy
+        (:func:`tools.recording.cdr.path_rows`: a path of :data:`PATH_POSES` poses every second per
+        robot would be most of a recorder's CPU through rosbags' per-field serializer). Poses in
+        more than one frame go through :meth:`cdr`."""
         distinct = set(frames)
         if len(distinct) > 1:
-            message = self.types[PATH](
+            t = self.types
+            message = t[PATH](
                 header=self.header(t_ns, frame),
                 poses=[
-                    self.types[POSE_STAMPED](header=self.header(int(stamp), f), pose=self.pose(pose))
-                    for stamp, pose, f in zip(stamps, table, frames, strict=True)
+                    t[POSE_STAMPED](
+                        header=self.header(int(stamp), f),
+                        pose=t["geometry_msgs/msg/Pose"](
+                            position=t["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                            orientation=t["geometry_msgs/msg/Quaternion"](*(float(q) for q in p[3:7])),
+                        ),
+                    )
+                    for stamp, p, f in zip(stamps, poses, frames, strict=True)
                 ],
             )
             return self.cdr(message, PATH)
-        own = distinct.pop().encode() + b"\0" if distinct else b"\0"
-        head = frame.encode() + b"\0"
-        count = len(table)
-        alpha = table[:, 2]
-        values = np.column_stack(
-            (
-                table[:, 0],
-                table[:, 1],
-                np.zeros(count),
-                np.zeros(count),
-                np.zeros(count),
-                np.sin(alpha / 2),
-                np.cos(alpha / 2),
-            )
-        )
-        string = len(own)
-
-        def align(offset: int, size: int) -> int:
-            return -(-offset // size) * size
-
-        start = align(12 + len(head), 4) + 4  # after the header and the sequence's length
-        # a pose's doubles end 8-aligned, so every pose after the first starts 8-aligned: the
-        # first may be padded differently (by where the header left it), the others alike
-        first_doubles = align(start + 12 + string, 8) - start
-        rest_doubles = align(12 + string, 8)
-        sizes = ([first_doubles + 56] + [rest_doubles + 56] * (count - 1)) if count else []
-        out = np.zeros(4 + start + sum(sizes), dtype=np.uint8)
-        out[:4] = (0, 1, 0, 0)  # CDR_LE encapsulation
-        payload = out[4:]
-        sec, nanosec = divmod(int(t_ns), 1_000_000_000)
-        payload[:12] = np.frombuffer(np.array([sec, nanosec, len(head)], dtype="<u4").tobytes(), np.uint8)
-        payload[12 : 12 + len(head)] = np.frombuffer(head, np.uint8)
-        payload[start - 4 : start] = np.frombuffer(np.uint32(count).astype("<u4").tobytes(), np.uint8)
-
-        def fill(block: np.ndarray, rows: slice, doubles_at: int) -> None:
-            secs, nanos = np.divmod(stamps[rows], 1_000_000_000)
-            fields = np.column_stack((secs, nanos, np.full(len(secs), string))).astype("<u4")
-            block[:, :12] = fields.view(np.uint8).reshape(-1, 12)
-            block[:, 12 : 12 + string] = np.frombuffer(own, np.uint8)
-            block[:, doubles_at:] = np.ascontiguousarray(values[rows], dtype="<f8").view(np.uint8).reshape(-1, 56)
-
-        if count:
-            fill(payload[start : start + sizes[0]].reshape(1, -1), slice(0, 1), first_doubles)
-            if count > 1:
-                rest = payload[start + sizes[0] :].reshape(count - 1, rest_doubles + 56)
-                fill(rest, slice(1, None), rest_doubles)
-        return out.tobytes()
+        own = distinct.pop() if distinct else ""
+        count = len(stamps)
+        return path_rows(
+            np.array([t_ns]), frame, own, np.reshape(stamps, (1, count)), np.reshape(poses, (1, count, 7))
+        )[0]
 
     def deserialize(self, data: bytes, ros_type: str) -> Any:
         return self.store.deserialize_cdr(data, ros_type)
@@ -607,63 +595,205 @@ def base_frame(robot: str) -> str:
     return f"{ros_name(robot)}/{BASE_FRAME}"
 
 
-class PathBuffer:
-    """A path's newest ``size`` poses, oldest first: stamps [ns] and ``(x, y, alpha)`` in
-    preallocated arrays used as a ring (bounded, and no list of tuples to convert per path),
-    and the frame of each."""
-
-    def __init__(self, size: int) -> None:
-        self.size = size
-        self.stamps = np.zeros(size, dtype=np.int64)
-        self.table = np.zeros((size, 3))
-        self.frames: deque[str] = deque(maxlen=size)
-        self.count = 0  # poses ever appended
-
-    def __len__(self) -> int:
-        return min(self.count, self.size)
-
-    def append(self, t_ns: int, state: Vector, frame: str) -> None:
-        slot = self.count % self.size
-        self.stamps[slot] = t_ns
-        self.table[slot] = state[:3]
-        self.frames.append(frame)
-        self.count += 1
-
-    def ordered(self) -> tuple[np.ndarray, np.ndarray]:
-        """(stamps, poses) of the kept poses, oldest first."""
-        if self.count <= self.size:
-            return self.stamps[: self.count], self.table[: self.count]
-        order = np.roll(np.arange(self.size), -(self.count % self.size))
-        return self.stamps[order], self.table[order]
+POSE_FRAMES = (ODOM_FRAME, GOAL_FRAME)  # the pose frames (PoseFrames.pose_frame) by their code in Tracks
 
 
-@dataclass
-class _Track:
-    """What the mapping remembers of one robot: bounded (the path's last poses, one episode).
+@dataclass(frozen=True)
+class FrameRows:
+    """The :class:`PoseFrames` of a batch's states, one row each: the goal ``g`` (x, y, theta),
+    whether the robot is localized, and its ``map -> odom`` correction (NaN where none is known)."""
+
+    goal: np.ndarray
+    localized: np.ndarray
+    map_to_odom: np.ndarray
+
+    def take(self, rows: slice | np.ndarray) -> FrameRows:
+        return FrameRows(self.goal[rows], self.localized[rows], self.map_to_odom[rows])
+
+
+class Tracks:
+    """What the recorder remembers of each robot, in arrays of a row (slot) per robot heard, so a
+    batch of many robots reads and updates them with a few array operations: bounded by the robots
+    (a path's last :data:`PATH_POSES` poses, one episode's steps and cost), the arrays doubled as
+    robots come. With each robot its topics and its base's ``/tf`` templates, made once.
 
     The actor's episode (transitions) and the plant's (states) are counted apart: a robot bridge
     numbers its states in its own episodes, whatever the actor's are."""
 
-    episode: int = -1  # of the newest transition
-    last_step: int = -1
-    accumulated_cost: float = 0.0
-    action: tuple[float, float] = (0.0, 0.0)
-    # the path's poses: (t_ns, x, y, alpha) and their frame (RosMapping.path_cdr serializes them at once)
-    path: PathBuffer = field(default_factory=lambda: PathBuffer(PATH_POSES))
-    late: int = 0  # transitions that came after a later step (dropped: one per step, in order)
-    state_episode: int = -1  # of the newest state
-    states_seen: int = 0  # states of that episode (clock "steps": state n at origin + n delta)
-    tf_sent: int = 0  # /tf messages of this robot (the goal transform every GOAL_EVERY)
-    pose_frame: str = ODOM_FRAME  # of the newest state (PoseFrames.pose_frame)
+    def __init__(self) -> None:
+        self.slots: dict[str, int] = {}
+        self.topics: list[tuple[str, str, str, str]] = []  # /<robot>/odom, cmd_vel, srl/transition, path
+        self.base_frames: list[str] = []  # <robot>/base_footprint
+        self.base_ids: list[tuple[int, int]] = []  # bases' rows, as Python numbers (one robot's state)
+        # every transform template (tools.recording.cdr.transform_template) a pending /tf refers to by index:
+        # odom -> goal, map -> goal, map -> odom, then each robot's base from odom and from map
+        self.templates = [transform_template(parent, child) for parent, child in TF_FIXED]
+        self.size = 0
+        self._allocate(16)
 
+    def _allocate(self, capacity: int) -> None:
+        def grown(old: np.ndarray | None, fill: float | int, dtype: Any, *shape: int) -> np.ndarray:
+            new = np.full((capacity, *shape), fill, dtype=dtype)
+            if old is not None:
+                new[: self.size] = old[: self.size]
+            return new
+
+        get = self.__dict__.get
+        self.episode = grown(get("episode"), -1, np.int64)  # of the newest transition
+        self.last_step = grown(get("last_step"), -1, np.int64)
+        self.accumulated = grown(get("accumulated"), 0.0, float)  # J of the episode's steps written
+        self.action = grown(get("action"), 0.0, float, 2)  # the newest step's (odometry's twist)
+        self.state_episode = grown(get("state_episode"), -1, np.int64)  # of the newest state
+        self.states_seen = grown(get("states_seen"), 0, np.int64)  # of that episode (clock "steps")
+        self.tf_sent = grown(get("tf_sent"), 0, np.int64)  # states on /tf (the goal every GOAL_EVERY)
+        self.pose_frame = grown(get("pose_frame"), 0, np.int8)  # of the newest state (POSE_FRAMES)
+        self.bases = grown(get("bases"), 0, np.int64, 2)  # its base's templates: from odom, from map
+        # the path: every PATH_STRIDE-th step's pose (planar_rows), stamp and frame, a ring per robot
+        self.path_count = grown(get("path_count"), 0, np.int64)  # poses appended in the episode
+        self.path_stamps = grown(get("path_stamps"), 0, np.int64, PATH_POSES)
+        self.path_poses = grown(get("path_poses"), 0.0, float, PATH_POSES, 7)
+        self.path_frames = grown(get("path_frames"), 0, np.int8, PATH_POSES)
+
+    def slot(self, robot: str) -> int:
+        """The robot's slot, a new one if it is heard first."""
+        slot = self.slots.get(robot)
+        if slot is None:
+            self._add(robot)
+            slot = self.slots[robot]
+        return slot
+
+    def renew(self, slots: int | np.ndarray, episodes: int | np.ndarray) -> None:
+        """The robots (``slots``) begin transition episodes ``episodes``: no step, cost or path yet."""
+        self.episode[slots], self.last_step[slots] = episodes, -1
+        self.accumulated[slots], self.action[slots], self.path_count[slots] = 0.0, 0.0, 0
+
+    def of(self, robots: Sequence[str]) -> np.ndarray:
+        """The robots' slots, a new one for each robot heard first."""
+        found = list(map(self.slots.get, robots))
+        if None in found:
+            for robot in robots:
+                if robot not in self.slots:
+                    self._add(robot)
+            found = list(map(self.slots.get, robots))
+        return np.array(found, dtype=np.intp)
+
+    def _add(self, robot: str) -> None:
+        name, base = ros_name(robot), base_frame(robot)  # first: a robot that cannot be named gets no slot
+        bases = [transform_template(parent, base) for parent in (ODOM_FRAME, MAP_FRAME)]
+        if self.size == len(self.episode):
+            self._allocate(2 * self.size)
+        slot = self.size
+        ids = (len(self.templates), len(self.templates) + 1)
+        self.bases[slot] = ids
+        self.base_ids.append(ids)
+        self.base_frames.append(base)
+        self.templates += bases
+        self.topics.append((f"/{name}/odom", f"/{name}/cmd_vel", f"/{name}/srl/transition", f"/{name}/path"))
+        self.slots[robot] = slot
+        self.size += 1
+
+
+# the transforms every robot's /tf may carry besides its base (Tracks.templates, first)
+TF_FIXED = ((ODOM_FRAME, GOAL_FRAME), (MAP_FRAME, GOAL_FRAME), (MAP_FRAME, ODOM_FRAME))
+ODOM_GOAL, MAP_GOAL, MAP_ODOM = range(3)
 
 # (robot, episode) origins remembered per robot heard (Recorder.step_time): every robot of a fleet
 # keeps its own, and they stay bounded however many episodes pass
 ORIGINS_PER_ROBOT = 4
 
+Failed = Callable[[Exception], None]  # told each row a batch could not write, and why
+
+
+def _raise(error: Exception) -> None:
+    raise error
+
+
+def _part(column: Any, rows: slice) -> Any:
+    """A batch's column (an array, FrameRows or None) at ``rows``."""
+    if column is None:
+        return None
+    return column.take(rows) if isinstance(column, FrameRows) else column[rows]
+
+
+def runs(robots: Sequence[str]) -> list[slice]:
+    """``robots``' rows in consecutive runs in which no robot comes twice: a robot's row is
+    written after its rows before it (its step, its path), so each run is written whole, in order."""
+    if len(set(robots)) == len(robots):
+        return [slice(0, len(robots))]
+    cuts, start = [], 0
+    seen: set[str] = set()
+    for row, robot in enumerate(robots):
+        if robot in seen:
+            cuts.append(slice(start, row))
+            seen, start = set(), row
+        seen.add(robot)
+    return [*cuts, slice(start, len(robots))]
+
+
+def groups(*codes: np.ndarray) -> list[tuple[tuple[int, ...], np.ndarray | slice]]:
+    """The rows of each combination of ``codes``' values (frames, lengths): all rows (a slice)
+    when they agree, as they mostly do."""
+    if len(codes[0]) <= 1 or all((column == column[0]).all() for column in codes):
+        return [(tuple(int(column[0]) if len(column) else 0 for column in codes), slice(None))]
+    distinct, inverse = np.unique(np.stack(codes, axis=1).astype(np.int64), axis=0, return_inverse=True)
+    return [(tuple(d), np.flatnonzero(inverse.reshape(-1) == k)) for k, d in enumerate(distinct.tolist())]
+
+
+def in_rows(count: int, parts: Sequence[tuple[np.ndarray | slice, list[bytes]]]) -> list[bytes]:
+    """The messages of :func:`groups`' parts (rows, their messages) back in their rows' order."""
+    if len(parts) == 1 and len(parts[0][1]) == count:  # every row (each row is in one part)
+        return parts[0][1]
+    out = [b""] * count
+    for rows, messages in parts:
+        for row, message in zip(np.arange(count)[rows].tolist(), messages, strict=True):
+            out[row] = message
+    return out
+
+
+@dataclass
+class _StatePlan:
+    """What a run of states writes, worked out before anything changes (Recorder.states)."""
+
+    slots: np.ndarray
+    episodes: np.ndarray
+    seen: np.ndarray  # each row's count of states before it in its episode
+    t_ns: np.ndarray
+    origins: dict[tuple[str, int], int]  # fixed by these rows
+    codes: np.ndarray  # pose frames
+    odometry: list[bytes]
+    transforms: np.ndarray  # rows x 3: which of (map -> odom, base, goal) the state puts on /tf
+    ids: np.ndarray  # rows x 3: their templates (Tracks.templates)
+    poses: np.ndarray  # rows x 3 x 7: their poses (planar_rows)
+
+
+@dataclass
+class _StepPlan:
+    """What a run of transitions writes, worked out before anything changes (Recorder.transitions)."""
+
+    slots: np.ndarray
+    episodes: np.ndarray
+    steps: np.ndarray
+    t_ns: np.ndarray
+    origins: dict[tuple[str, int], int]
+    new: np.ndarray  # rows that begin an episode of their robot
+    kept: np.ndarray  # the rows written (the others come at or after a step written: late)
+    accumulated: np.ndarray  # J after each kept row
+    actions: np.ndarray
+    codes: np.ndarray  # the kept rows' pose frames
+    commands: list[bytes]
+    samples: list[bytes]
+    path_poses: np.ndarray  # the kept rows' poses (planar_rows)
+
 
 class Recorder:
-    """srl's messages -> ROS 2 messages on a :class:`Sink`; one :class:`_Track` per robot.
+    """srl's messages -> ROS 2 messages on a :class:`Sink`; what it remembers per robot in :class:`Tracks`.
+
+    States and steps are written in batches of many robots (:meth:`states`, :meth:`transitions`:
+    srl record's writer hands them a fleet's samples as they came, columns and all), their
+    messages packed with numpy (:mod:`tools.recording.cdr`), so what is left per message is the
+    sink's write. One state or step (:meth:`state`, :meth:`transition`: srl run's recording) is
+    written by the same rules without arrays, whose cost would be most of a single row's;
+    tests/test_record.py checks the two write the same samples.
 
     Not thread-safe: one thread calls it (:class:`tools.recording.record.Feed`'s writer, or ``srl run``)."""
 
@@ -672,11 +802,13 @@ class Recorder:
         self.ros = RosMapping()
         self.delta_ns = round(sampling_time * 1e9)
         self.clock = clock
-        self.tracks: dict[str, _Track] = {}
+        self.tracks = Tracks()
         self.origins: dict[tuple[str, int], int] = {}
         self.target_sent = False
+        self.late = 0  # transitions that came at or before a step written (dropped, Recorder.transitions)
         self.tf_gathered = 1  # transforms per /tf message at most (gather_tf)
-        self.tf_pending: list[tuple[int, str, str, Pose2D]] = []
+        # transforms waiting for /tf, oldest first: (stamp [ns], template (Tracks.templates), pose (planar))
+        self.tf_pending: list[tuple[int, int, Sequence[float]]] = []
 
     def gather_tf(self, limit: int = TF_GATHERED) -> None:
         """From now on the transforms of many states go out as one ``/tf`` message (each with its
@@ -691,34 +823,16 @@ class Recorder:
         """The pending transforms as one ``/tf`` message, logged at the newest of their stamps."""
         if self.tf_pending:
             pending, self.tf_pending = self.tf_pending, []
-            t_ns = max(stamp for stamp, _, _, _ in pending)
-            self._write_cdr(TF_TOPIC, TF_MESSAGE, tf_cdr(pending), t_ns)
+            stamps, ids, poses = zip(*pending, strict=True)
+            templates = self.tracks.templates
+            data = tf_message(stamps, [templates[i] for i in ids], poses)
+            self._write_cdr(TF_TOPIC, TF_MESSAGE, data, max(stamps))
 
     def _write(self, topic: str, ros_type: str, message: Any, t_ns: int) -> None:
         self.sink.write(topic, ros_type, self.ros.definition(ros_type), self.ros.cdr(message, ros_type), t_ns)
 
     def _write_cdr(self, topic: str, ros_type: str, data: bytes, t_ns: int) -> None:
         self.sink.write(topic, ros_type, self.ros.definition(ros_type), data, t_ns)
-
-    def _robot(self, robot: str) -> _Track:
-        """The robot's track, made at its first message (not one per call, as setdefault would)."""
-        track = self.tracks.get(robot)
-        if track is None:
-            track = self.tracks[robot] = _Track()
-        return track
-
-    def _track(self, robot: str, episode: int) -> _Track:
-        """The robot's step stream, reset by a new episode of its transitions."""
-        track = self._robot(robot)
-        if episode != track.episode:  # a new episode: its own cost and path
-            self.tracks[robot] = track = _Track(
-                episode=episode,
-                state_episode=track.state_episode,
-                states_seen=track.states_seen,
-                tf_sent=track.tf_sent,
-                pose_frame=track.pose_frame,
-            )
-        return track
 
     def begin(self, robot: str, episode: int, origin_ns: int) -> None:
         """Place step 0 of the robot's episode at ``origin_ns`` (an episode that ran in process)."""
@@ -727,11 +841,31 @@ class Recorder:
     def step_time(self, robot: str, episode: int, step: int, now_ns: int) -> int:
         """``origin + step delta`` of the robot's episode; the origin fixed by its first message."""
         key = (robot, episode)
-        if key not in self.origins:
-            if len(self.origins) >= ORIGINS_PER_ROBOT * max(1, len(self.tracks)):
+        origin = self.origins.get(key)
+        if origin is None:
+            origin = now_ns - step * self.delta_ns
+            self._remember({key: origin})
+        return origin + step * self.delta_ns
+
+    def _origins(
+        self, robots: Sequence[str], episodes: np.ndarray, steps: np.ndarray, now_ns: np.ndarray
+    ) -> tuple[np.ndarray, dict[tuple[str, int], int]]:
+        """Each row's origin (:meth:`step_time`), and those its row fixes (not yet remembered)."""
+        keys = list(zip(robots, episodes.tolist(), strict=True))
+        found = list(map(self.origins.get, keys))
+        fixed: dict[tuple[str, int], int] = {}
+        if None in found:
+            for row, (key, origin) in enumerate(zip(keys, found, strict=True)):
+                if origin is None:
+                    found[row] = fixed[key] = int(now_ns[row]) - int(steps[row]) * self.delta_ns
+        return np.array(found, dtype=np.int64), fixed
+
+    def _remember(self, origins: dict[tuple[str, int], int]) -> None:
+        """Keep ``origins``, forgetting the oldest beyond :data:`ORIGINS_PER_ROBOT` per robot heard."""
+        for key, origin in origins.items():
+            if len(self.origins) >= ORIGINS_PER_ROBOT * max(1, self.tracks.size):
                 del self.origins[next(iter(self.origins))]
-            self.origins[key] = now_ns - step * self.delta_ns
-        return self.origins[key] + step * self.delta_ns
+            self.origins[key] = origin
 
     def target(self, t_ns: int, frame: str = ODOM_FRAME) -> None:
         """The target pose: the origin of the goal frame (once), in ``frame`` (the goal frame's name)."""
@@ -740,32 +874,206 @@ class Recorder:
             message = self.ros.types[POSE_STAMPED](header=self.ros.header(t_ns, frame), pose=self.ros.pose(IDENTITY))
             self._write(TARGET_TOPIC, POSE_STAMPED, message, t_ns)
 
-    def state(self, robot: str, episode: int, state: Vector, now_ns: int, frames: PoseFrames = SIMULATED) -> None:
-        """A state the robot reported: ``/<robot>/odom`` (twist: the action it holds) and ``/tf``
-        (:meth:`tf`)."""
-        track = self._robot(robot)
-        if episode != track.state_episode:
-            track.state_episode, track.states_seen = episode, 0
-        t_ns = self.step_time(robot, episode, track.states_seen, now_ns) if self.clock == "steps" else now_ns
-        track.states_seen += 1
-        track.pose_frame = frames.pose_frame
-        self.target(t_ns, track.pose_frame)
-        odometry = odometry_cdr(t_ns, track.pose_frame, BASE_FRAME, state, track.action)
-        self._write_cdr(f"/{ros_name(robot)}/odom", ODOMETRY, odometry, t_ns)
-        self.tf(robot, track, state, frames, t_ns)
+    def _in_runs(
+        self,
+        plan: Callable[..., Any],
+        write: Callable[[Any, Failed], int],
+        failed: Failed,
+        robots: list[str],
+        *columns: Any,
+    ) -> int:
+        """``write(plan(...))`` of each :func:`runs` of the rows, in order; the rows taken (written,
+        or dropped as late). A run that cannot be planned (a value its message cannot hold) is
+        written row by row, so a bad row costs only itself: handed to ``failed`` with why, as is
+        every row the sink refuses. ``plan`` changes nothing (but the robots' slots); ``write``
+        hands its failures to ``failed``."""
+        taken = 0
+        for run in runs(robots):
+            try:
+                planned = plan(robots[run], *(_part(column, run) for column in columns))
+            except Exception as error:
+                if run.stop - run.start == 1:
+                    failed(error)
+                    continue
+                for row in range(run.start, run.stop):
+                    one = slice(row, row + 1)
+                    taken += self._in_runs(plan, write, failed, robots[one], *(_part(c, one) for c in columns))
+                continue
+            taken += write(planned, failed)
+        return taken
 
-    def tf(self, robot: str, track: _Track, state: Vector, frames: PoseFrames, t_ns: int) -> None:
-        """``/tf`` of one state: the robot's base (and ``map -> odom``, :meth:`PoseFrames.transforms`),
-        with ``<root> -> goal`` in the first and every :data:`GOAL_EVERY`-th message of the robot, so
-        a live view that joins late sees the target within a second."""
-        moves = frames.transforms(state, base_frame(robot))
-        if track.tf_sent % GOAL_EVERY == 0:
-            moves.append((frames.root, GOAL_FRAME, frames.goal))
-        track.tf_sent += 1
-        self.tf_pending += [(t_ns, *move) for move in moves]
-        if len(self.tf_pending) >= self.tf_gathered:  # without gather_tf: at once, one message per state
+    # -- states -----------------------------------------------------------------------
+    def state(self, robot: str, episode: int, state: Vector, now_ns: int, frames: PoseFrames = SIMULATED) -> None:
+        """A state the robot reported, as :meth:`states` writes a row of them (one robot: no
+        arrays, whose cost would be most of a row's)."""
+        tracks = self.tracks
+        slot = tracks.slot(robot)
+        seen = tracks.states_seen.item(slot) if tracks.state_episode.item(slot) == episode else 0
+        t_ns = self.step_time(robot, episode, seen, now_ns) if self.clock == "steps" else now_ns
+        tracks.state_episode[slot], tracks.states_seen[slot] = episode, seen + 1
+        frame = frames.pose_frame
+        tracks.pose_frame[slot] = POSE_FRAMES.index(frame)
+        self.target(t_ns, frame)
+        action = (tracks.action.item(slot, 0), tracks.action.item(slot, 1))
+        self._write_cdr(tracks.topics[slot][0], ODOMETRY, odometry_cdr(t_ns, frame, BASE_FRAME, state, action), t_ns)
+        base, bases, pending = tracks.base_frames[slot], tracks.base_ids[slot], self.tf_pending
+        for parent, child, pose in frames.transforms(state, base):
+            template = bases[parent == MAP_FRAME] if child == base else TF_FIXED.index((parent, child))
+            pending.append((t_ns, template, planar(pose.x, pose.y, pose.theta)))
+        sent = tracks.tf_sent.item(slot)
+        if sent % GOAL_EVERY == 0:
+            goal = frames.goal
+            pending.append((t_ns, TF_FIXED.index((frames.root, GOAL_FRAME)), planar(goal.x, goal.y, goal.theta)))
+        tracks.tf_sent[slot] = sent + 1
+        if len(pending) >= self.tf_gathered:  # without gather_tf: at once, one message per state
             self.flush_tf()
 
+    def states(
+        self,
+        robots: Sequence[str],
+        episodes: np.ndarray,
+        states: np.ndarray,
+        now_ns: int | np.ndarray,
+        frames: FrameRows | None = None,
+        failed: Failed = _raise,
+    ) -> int:
+        """States the robots reported, a row each (goal-frame x, y, alpha), arrived at ``now_ns``
+        (one for all, or one each): ``/<robot>/odom`` (twist: the action it holds) and ``/tf``
+        (``<robot>/base_footprint`` and ``map -> odom``: :meth:`PoseFrames.transforms`; ``<root> ->
+        goal`` in the robot's first and every :data:`GOAL_EVERY`-th, so a live view that joins
+        late sees the target within a second); ``frames`` None: simulated plants'. Stamped on
+        arrival, or (clock "steps") the robot's n-th state of an episode at ``origin + n delta``.
+        Returns the rows written (the others were handed to ``failed``, :meth:`_in_runs`)."""
+        arrived = np.broadcast_to(np.asarray(now_ns, dtype=np.int64), (len(robots),))
+        numbers = (np.asarray(episodes, dtype=np.int64), np.asarray(states, dtype=float), arrived)
+        return self._in_runs(self._plan_states, self._write_states, failed, list(robots), *numbers, frames)
+
+    def _plan_states(
+        self, robots: list[str], episodes: np.ndarray, states: np.ndarray, now_ns: np.ndarray, frames: FrameRows | None
+    ) -> _StatePlan:
+        tracks, count = self.tracks, len(robots)
+        slots = tracks.of(robots)
+        seen = np.where(tracks.state_episode[slots] == episodes, tracks.states_seen[slots], 0)
+        origins: dict[tuple[str, int], int] = {}
+        t_ns = now_ns.copy()
+        if self.clock == "steps":
+            starts, origins = self._origins(robots, episodes, seen, now_ns)
+            t_ns = starts + seen * self.delta_ns
+        poses = planar_rows(states[:, 0], states[:, 1], states[:, 2])
+        transforms = np.zeros((count, 3), dtype=bool)  # map -> odom, base, goal
+        transforms[:, 1] = True
+        transforms[:, 2] = tracks.tf_sent[slots] % GOAL_EVERY == 0
+        ids = np.empty((count, 3), dtype=np.int64)
+        moves = np.zeros((count, 3, 7))
+        moves[:, 1] = poses
+        moves[:, 2, 6] = 1.0  # the goal: the identity, unless a robot's (below)
+        ids[:, 0], ids[:, 2] = MAP_ODOM, ODOM_GOAL
+        ids[:, 1] = tracks.bases[slots, 0]
+        codes = np.zeros(count, dtype=np.int8)
+        if frames is not None:
+            codes = self._frames(frames, states, slots, transforms, ids, moves)
+        action = tracks.action[slots]
+        parts = [
+            (rows, odometry_rows(t_ns[rows], POSE_FRAMES[code], BASE_FRAME, poses[rows], action[rows]))
+            for (code,), rows in groups(codes)
+        ]
+        odometry = in_rows(count, parts)
+        return _StatePlan(slots, episodes, seen, t_ns, origins, codes, odometry, transforms, ids, moves)
+
+    def _frames(
+        self,
+        frames: FrameRows,
+        states: np.ndarray,
+        slots: np.ndarray,
+        transforms: np.ndarray,
+        ids: np.ndarray,
+        moves: np.ndarray,
+    ) -> np.ndarray:
+        """The transforms of states whose goal frame is not their odom frame (:class:`PoseFrames`)
+        into ``transforms``, ``ids`` and ``moves``; their pose frames' codes."""
+        goal, localized = frames.goal, frames.localized
+        identity = (goal == 0.0).all(axis=1)
+        corrected = localized & np.isfinite(frames.map_to_odom).all(axis=1)
+        pose = states.copy()
+        placed = ~identity  # g (+) s
+        if placed.any():
+            g, s = goal[placed], states[placed]
+            sin, cos = sin_cos(g[:, 2])
+            pose[placed] = np.column_stack(
+                (g[:, 0] + cos * s[:, 0] - sin * s[:, 1], g[:, 1] + sin * s[:, 0] + cos * s[:, 1], s[:, 2] + g[:, 2])
+            )
+        if corrected.any():  # the base in odom: to_goal_frame(pose, C)
+            c, p = frames.map_to_odom[corrected], pose[corrected]
+            sin, cos = sin_cos(c[:, 2])
+            dx, dy = p[:, 0] - c[:, 0], p[:, 1] - c[:, 1]
+            pose[corrected] = np.column_stack((cos * dx + sin * dy, -sin * dx + cos * dy, p[:, 2] - c[:, 2]))
+            moves[corrected, 0] = planar_rows(c[:, 0], c[:, 1], c[:, 2])
+            transforms[:, 0] = corrected
+        moved = placed | corrected
+        if moved.any():
+            p = pose[moved]
+            moves[moved, 1] = planar_rows(p[:, 0], p[:, 1], p[:, 2])
+        ids[:, 1] = self.tracks.bases[slots, (localized & ~corrected).astype(np.intp)]  # from map: no odom
+        ids[:, 2] = np.where(localized, MAP_GOAL, ODOM_GOAL)
+        goals = transforms[:, 2]
+        moves[goals, 2] = planar_rows(goal[goals, 0], goal[goals, 1], goal[goals, 2])
+        return np.where(localized | ~identity, 1, 0).astype(np.int8)  # goal, else odom
+
+    def _write_states(self, plan: _StatePlan, failed: Failed) -> int:
+        tracks = self.tracks
+        slots, count = plan.slots, len(plan.slots)
+        tracks.state_episode[slots] = plan.episodes
+        tracks.states_seen[slots] = plan.seen + 1
+        tracks.pose_frame[slots] = plan.codes
+        self._remember(plan.origins)
+        stamps = plan.t_ns.tolist()
+        refused: list[int] = []
+        if not self.target_sent:
+            try:
+                self.target(stamps[0], POSE_FRAMES[plan.codes[0]])
+            except Exception as error:
+                refused.append(0)
+                failed(error)
+        write, definition, topics = self.sink.write, self.ros.definition(ODOMETRY), tracks.topics
+        for row, (slot, data, t_ns) in enumerate(zip(slots.tolist(), plan.odometry, stamps, strict=True)):
+            if refused and refused[-1] == row:
+                continue
+            try:
+                write(topics[slot][0], ODOMETRY, definition, data, t_ns)
+            except Exception as error:
+                refused.append(row)
+                failed(error)
+        transforms = plan.transforms
+        if refused:
+            transforms = transforms.copy()
+            transforms[refused] = False
+            slots = np.delete(slots, refused)
+        tracks.tf_sent[slots] += 1
+        self._gather(transforms, np.broadcast_to(plan.t_ns[:, None], transforms.shape), plan.ids, plan.poses, failed)
+        return count - len(refused)
+
+    def _gather(
+        self, transforms: np.ndarray, stamps: np.ndarray, ids: np.ndarray, poses: np.ndarray, failed: Failed
+    ) -> None:
+        """The states' ``transforms`` (rows x 3, in their rows' order) onto the pending ``/tf``,
+        a message written whenever :attr:`tf_gathered` are pending at the end of a state."""
+        ends = np.cumsum(transforms.sum(axis=1))  # each state's last transform, counted from 1
+        moves = list(
+            zip(stamps[transforms].tolist(), ids[transforms].tolist(), poses[transforms].tolist(), strict=True)
+        )
+        start = 0
+        while start < len(moves):
+            row = int(np.searchsorted(ends, max(start + 1, start + self.tf_gathered - len(self.tf_pending))))
+            end = int(ends[row]) if row < len(ends) else len(moves)
+            self.tf_pending += moves[start:end]
+            start = end
+            if row < len(ends):
+                try:
+                    self.flush_tf()
+                except Exception as error:
+                    failed(error)
+
+    # -- steps ------------------------------------------------------------------------
     def transition(
         self,
         robot: str,
@@ -776,36 +1084,198 @@ class Recorder:
         cost: float,
         now_ns: int,
     ) -> bool:
-        """One step: ``/<robot>/cmd_vel`` and ``/<robot>/srl/transition``; the path every
-        :data:`PATH_EVERY` steps. False (nothing written) for a step at or before one written."""
+        """One step, as :meth:`transitions` writes a row of them (one robot: no arrays); False
+        (nothing written) for a step at or before one written."""
+        tracks = self.tracks
+        slot = tracks.slot(robot)
         t_ns = self.step_time(robot, episode, step, now_ns)
-        track = self._track(robot, episode)
-        if step <= track.last_step:
-            track.late += 1
+        if tracks.episode.item(slot) != episode:  # a new episode: its own steps, cost and path
+            tracks.renew(slot, episode)
+        if step <= tracks.last_step.item(slot):
+            self.late += 1
             return False
-        track.last_step = step
-        track.accumulated_cost += float(cost)
-        track.action = (float(action[0]), float(action[1]))
-        self.target(t_ns, track.pose_frame)
-        name = ros_name(robot)
-        command = twist_stamped_cdr(t_ns, BASE_FRAME, *track.action)
-        self._write_cdr(f"/{name}/cmd_vel", TWIST_STAMPED, command, t_ns)
-        values = (*(float(c) for c in state[:3]), *track.action, float(cost), track.accumulated_cost)
-        sample = transition_cdr(t_ns, track.pose_frame, episode, step, values)
-        self._write_cdr(f"/{name}/srl/transition", TRANSITION, sample, t_ns)
+        accumulated = tracks.accumulated.item(slot) + float(cost)
+        v, omega = float(action[0]), float(action[1])
+        tracks.last_step[slot], tracks.accumulated[slot], tracks.action[slot] = step, accumulated, (v, omega)
+        code = tracks.pose_frame.item(slot)
+        self.target(t_ns, POSE_FRAMES[code])
+        topics = tracks.topics[slot]
+        self._write_cdr(topics[1], TWIST_STAMPED, twist_stamped_cdr(t_ns, BASE_FRAME, v, omega), t_ns)
+        x, y, alpha = float(state[0]), float(state[1]), float(state[2])
+        values = (x, y, alpha, v, omega, float(cost), accumulated)
+        sample = transition_cdr(t_ns, POSE_FRAMES[code], episode, step, values)
+        self._write_cdr(topics[2], TRANSITION, sample, t_ns)
         if step % PATH_STRIDE == 0:
-            track.path.append(t_ns, state, track.pose_frame)
+            at = tracks.path_count.item(slot) % PATH_POSES
+            tracks.path_stamps[slot, at], tracks.path_poses[slot, at] = t_ns, planar(x, y, alpha)
+            tracks.path_frames[slot, at], tracks.path_count[slot] = code, tracks.path_count.item(slot) + 1
         if step % PATH_EVERY == 0:
             self.path(robot, t_ns)
         return True
 
-    def path(self, robot: str, t_ns: int) -> None:
-        track = self.tracks.get(robot)
-        if track is not None and len(track.path):
-            stamps, table = track.path.ordered()
-            data = self.ros.path_cdr(t_ns, track.pose_frame, stamps, table, track.path.frames)
-            self._write_cdr(f"/{ros_name(robot)}/path", PATH, data, t_ns)
+    def transitions(
+        self,
+        robots: Sequence[str],
+        episodes: np.ndarray,
+        steps: np.ndarray,
+        states: np.ndarray,
+        actions: np.ndarray,
+        costs: np.ndarray,
+        now_ns: int | np.ndarray,
+        failed: Failed = _raise,
+    ) -> int:
+        """Steps, a row each (s_k, u_k, c_k), arrived at ``now_ns`` (one for all, or one each) and
+        stamped ``origin + k delta``: ``/<robot>/cmd_vel`` and ``/<robot>/srl/transition``; the
+        path every :data:`PATH_EVERY` steps. A robot's rows are written in their order, a step at
+        or before one written dropped (counted in :attr:`late`). Returns the rows taken (written,
+        or dropped as late; the others were handed to ``failed``, :meth:`_in_runs`)."""
+        arrived = np.broadcast_to(np.asarray(now_ns, dtype=np.int64), (len(robots),))
+        numbers = [np.asarray(column, dtype=np.int64) for column in (episodes, steps)]
+        numbers += [np.asarray(column, dtype=float) for column in (states, actions, costs)]
+        return self._in_runs(self._plan_steps, self._write_steps, failed, list(robots), *numbers, arrived)
 
+    def _plan_steps(
+        self,
+        robots: list[str],
+        episodes: np.ndarray,
+        steps: np.ndarray,
+        states: np.ndarray,
+        actions: np.ndarray,
+        costs: np.ndarray,
+        now_ns: np.ndarray,
+    ) -> _StepPlan:
+        tracks = self.tracks
+        slots = tracks.of(robots)
+        starts, origins = self._origins(robots, episodes, steps, now_ns)
+        t_ns = starts + steps * self.delta_ns
+        new = tracks.episode[slots] != episodes
+        kept = np.flatnonzero(steps > np.where(new, -1, tracks.last_step[slots]))
+        accumulated = np.where(new, 0.0, tracks.accumulated[slots])[kept] + costs[kept]
+        codes = tracks.pose_frame[slots[kept]]
+        stamps, state, action = t_ns[kept], states[kept, :3], actions[kept, :2]
+        values = np.column_stack((state, action, costs[kept], accumulated))
+        commands = twist_stamped_rows(stamps, BASE_FRAME, action)
+        parts = [
+            (
+                rows,
+                transition_rows(stamps[rows], POSE_FRAMES[code], episodes[kept][rows], steps[kept][rows], values[rows]),
+            )
+            for (code,), rows in groups(codes)
+        ]
+        samples = in_rows(len(kept), parts)
+        strided = steps[kept] % PATH_STRIDE == 0
+        path_poses = planar_rows(state[strided, 0], state[strided, 1], state[strided, 2])
+        plan = (slots, episodes, steps, t_ns, origins, new, kept, accumulated, action, codes, commands, samples)
+        return _StepPlan(*plan, path_poses)
+
+    def _write_steps(self, plan: _StepPlan, failed: Failed) -> int:
+        tracks, kept = self.tracks, plan.kept
+        self._remember(plan.origins)
+        self.late += len(plan.slots) - len(kept)
+        if plan.new.any():  # a new episode: its own steps, cost and path
+            tracks.renew(plan.slots[plan.new], plan.episodes[plan.new])
+        slots, steps, t_ns = plan.slots[kept], plan.steps[kept], plan.t_ns[kept]
+        tracks.last_step[slots] = steps
+        tracks.accumulated[slots] = plan.accumulated
+        tracks.action[slots] = plan.actions
+        if not len(kept):
+            return len(plan.slots)
+        stamps = t_ns.tolist()
+        refused: list[int] = []
+        if not self.target_sent:
+            try:
+                self.target(stamps[0], POSE_FRAMES[plan.codes[0]])
+            except Exception as error:
+                refused.append(0)
+                failed(error)
+        write, topics = self.sink.write, tracks.topics
+        twist, transition = self.ros.definition(TWIST_STAMPED), self.ros.definition(TRANSITION)
+        rows = zip(slots.tolist(), plan.commands, plan.samples, stamps, strict=True)
+        for row, (slot, command, sample, stamp) in enumerate(rows):
+            if refused and refused[-1] == row:
+                continue
+            try:
+                names = topics[slot]
+                write(names[1], TWIST_STAMPED, twist, command, stamp)
+                write(names[2], TRANSITION, transition, sample, stamp)
+            except Exception as error:
+                refused.append(row)
+                failed(error)
+        strided = np.flatnonzero(steps % PATH_STRIDE == 0)
+        written = np.ones(len(kept), dtype=bool)
+        written[refused] = False
+        appended = strided[written[strided]]
+        if len(appended):  # onto the robots' rings
+            ring = slots[appended]
+            at = tracks.path_count[ring] % PATH_POSES
+            tracks.path_stamps[ring, at] = t_ns[appended]
+            tracks.path_poses[ring, at] = plan.path_poses[written[strided]]
+            tracks.path_frames[ring, at] = plan.codes[appended]
+            tracks.path_count[ring] += 1
+        due = np.flatnonzero(written & (steps % PATH_EVERY == 0))
+        if len(due):
+            refused += self._write_paths(slots[due], t_ns[due], due, failed)
+        return len(plan.slots) - len(set(refused))
+
+    # -- the path ---------------------------------------------------------------------
+    def path(self, robot: str, t_ns: int) -> None:
+        """``/<robot>/path``: its newest poses, stamped ``t_ns`` (nothing before its first)."""
+        slot = self.tracks.slots.get(robot)
+        if slot is not None and self.tracks.path_count[slot]:
+            self._write_paths(np.array([slot]), np.array([t_ns]), np.zeros(1, dtype=np.intp), _raise)
+
+    def _write_paths(self, slots: np.ndarray, t_ns: np.ndarray, rows: np.ndarray, failed: Failed) -> list[int]:
+        """Each robot's path (``slots``, each with poses), stamped ``t_ns``; the ``rows`` of those
+        that were not written (handed to ``failed``)."""
+        try:
+            messages = self._paths(slots, t_ns)
+        except Exception as error:
+            for _ in rows:
+                failed(error)
+            return rows.tolist()
+        refused: list[int] = []
+        write, definition, topics = self.sink.write, self.ros.definition(PATH), self.tracks.topics
+        for row, slot, data, stamp in zip(rows.tolist(), slots.tolist(), messages, t_ns.tolist(), strict=True):
+            try:
+                write(topics[slot][3], PATH, definition, data, stamp)
+            except Exception as error:
+                refused.append(row)
+                failed(error)
+        return refused
+
+    def _paths(self, slots: np.ndarray, t_ns: np.ndarray) -> list[bytes]:
+        """The robots' paths as CDR, those of the same length and frames packed together
+        (:func:`tools.recording.cdr.path_rows`); a path whose poses are in more than one frame (a
+        robot localized mid-path) through rosbags (:meth:`RosMapping.path_poses_cdr`)."""
+        tracks = self.tracks
+        counts = tracks.path_count[slots]
+        lengths = np.minimum(counts, PATH_POSES)
+        parts = []
+        for (length,), alike in groups(lengths):
+            ring = slots[alike][:, None]
+            at = (counts[alike][:, None] - length + np.arange(length)) % PATH_POSES  # oldest first
+            stamps, poses, frames = (
+                tracks.path_stamps[ring, at],
+                tracks.path_poses[ring, at],
+                tracks.path_frames[ring, at],
+            )
+            own = np.where((frames == frames[:, :1]).all(axis=1), frames[:, 0], -1)  # -1: in more than one
+            heads = tracks.pose_frame[slots[alike]]
+            times = t_ns[alike]
+            for (head, mine), rows in groups(heads, own):
+                if mine >= 0:
+                    packed = path_rows(times[rows], POSE_FRAMES[head], POSE_FRAMES[mine], stamps[rows], poses[rows])
+                else:
+                    packed = [
+                        self.ros.path_poses_cdr(int(t), POSE_FRAMES[head], s, p, [POSE_FRAMES[f] for f in f_row])
+                        for t, s, p, f_row in zip(
+                            times[rows], stamps[rows], poses[rows], frames[rows].tolist(), strict=True
+                        )
+                    ]
+                parts.append((np.arange(len(slots))[alike][rows], packed))
+        return in_rows(len(slots), parts)
+
+    # -- the critic and the actor ---------------------------------------------------------
     def weights(
         self,
         robot: str,
@@ -826,10 +1296,11 @@ class Recorder:
 
     def status(self, robot: str, counters: dict[str, float], now_ns: int) -> None:
         """``/<robot>/srl/actor_status`` from the actor's status counters (NaN where absent)."""
-        track = self.tracks.get(robot)
+        slot = self.tracks.slots.get(robot)
         t_ns = now_ns
-        if self.clock == "steps" and track is not None and track.last_step >= 0:
-            t_ns = self.step_time(robot, track.episode, track.last_step, now_ns)
+        if self.clock == "steps" and slot is not None and self.tracks.last_step.item(slot) >= 0:
+            episode, step = self.tracks.episode.item(slot), self.tracks.last_step.item(slot)
+            t_ns = self.step_time(robot, episode, step, now_ns)
 
         def value(name: str) -> float:
             return float(counters.get(name, math.nan))
@@ -968,6 +1439,16 @@ def robot_frames(bridge: Any, source: str, correction: Sequence[float] | None) -
         localized=getattr(bridge, "pose_source", ODOMETRY_ONLY) != ODOMETRY_ONLY,
         map_to_odom=Pose2D(*(float(c) for c in correction)) if corrected and correction is not None else None,
     )
+
+
+def robot_frame_rows(bridge: Any, robot: np.ndarray, corrections: np.ndarray) -> FrameRows:
+    """:func:`robot_frames` of a batch's states, one row each: ``robot`` says which came from a
+    robot bridge, ``corrections`` their ``map_to_odom`` (rows of NaN where none)."""
+    goal = np.zeros((len(robot), 3))
+    goal[robot] = [float(c) for c in bridge.goal]
+    localized = robot & (getattr(bridge, "pose_source", ODOMETRY_ONLY) != ODOMETRY_ONLY)
+    known = robot & np.isfinite(corrections).all(axis=1)
+    return FrameRows(goal, localized, np.where(known[:, None], corrections, math.nan))
 
 
 class Feed:
@@ -1201,7 +1682,7 @@ def cmd_record(args: Any) -> int:
     recorder = Recorder(sink, settings.plant.sampling_time, clock=args.clock)
     ready = f"srl record: recording srl/* (every robot) from {settings.transport.router} to {sink.path}; Ctrl-C ends it"
     feed = Feed.run(settings, recorder, "record", args, lambda: ready)
-    late = sum(t.late for t in recorder.tracks.values())
+    late = recorder.late
     extra = DROPPED_NOTE.format(count=feed.dropped) if feed.dropped else ""
     extra += f"; {late} late transitions skipped" if late else ""
     print(f"srl record: {describe(sink)}{extra}", flush=True)
