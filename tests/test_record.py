@@ -898,7 +898,8 @@ def test_a_recorder_that_cannot_write_its_file_counts_every_sample_and_says_why_
 ) -> None:
     """Feed: a file that cannot be written (RecordingError from the sink, a full disk) does not
     end the recording; every row it could not write is counted in ``errors`` and the reason is
-    logged once, not once per row; a row that fails otherwise is still logged with its own line."""
+    logged once, not once per row; a row that fails otherwise (here: a robot whose frames cannot
+    be named) is still logged with its own line, and costs only itself, not its batch."""
     import logging
 
     import tools.recording.record as record
@@ -906,14 +907,14 @@ def test_a_recorder_that_cannot_write_its_file_counts_every_sample_and_says_why_
 
     monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
     feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
-    failing = record.Recorder.state
+    naming = record.base_frame
 
-    def state(self: Any, robot: str, *args: Any) -> None:
+    def base_frame(robot: str) -> str:
         if robot == "bad":
             raise ValueError("a malformed sample")
-        failing(self, robot, *args)
+        return naming(robot)
 
-    monkeypatch.setattr(record.Recorder, "state", state)
+    monkeypatch.setattr(record, "base_frame", base_frame)
     sink.fail = record.RecordingError("cannot write /x.mcap: [Errno 28] No space left on device")
     with caplog.at_level(logging.ERROR, logger=record.log.name):
         put(subscribed, STATE_BATCH.pattern, one_batch([fleet_state("a"), fleet_state("bad")]))

@@ -56,6 +56,7 @@ import glob
 import json
 import logging
 import math
+import operator
 import os
 import re
 import time
@@ -1517,22 +1518,26 @@ class Feed:
             self.closing.wait(BATCH_SECONDS)
 
     def _guarded(self, kind: str, write: Callable[..., object], *args: Any) -> bool:
-        """``write(*args)`` (one row of ``kind``, or the batch's /tf); True if it was written.
-        A failure is counted in ``errors`` and does not end the recording: a bad row is logged
-        with its traceback, a file that cannot be written (:class:`RecordingError`, a full disk)
-        once per reason, not once per row. Nothing is built per row but the call."""
+        """``write(*args)`` (one row of ``kind``, or the batch's /tf); True if it was written, else
+        :meth:`_failed`. Nothing is built per row but the call."""
         try:
             write(*args)
             return True
-        except RecordingError as error:
-            self.errors += 1
+        except Exception as error:
+            self._failed(kind, error)
+        return False
+
+    def _failed(self, kind: str, error: Exception) -> None:
+        """A row of ``kind`` not written: counted in ``errors``, and the recording goes on. A bad row
+        is logged with its traceback, a file that cannot be written (:class:`RecordingError`, a
+        full disk) once per reason, not once per row."""
+        self.errors += 1
+        if isinstance(error, RecordingError):
             if str(error) != self.failure:
                 self.failure = str(error)
                 log.error("recorder: %s", error)
-        except Exception:
-            self.errors += 1
-            log.exception("recorder: cannot record a %s sample", kind)
-        return False
+        else:
+            log.error("recorder: cannot record a %s sample", kind, exc_info=error)
 
     def _rows(self, kind: str, write: Callable[..., object], *columns: Sequence[Any]) -> None:
         """``write`` of each row (the i-th of every column), guarded row by row."""
@@ -1540,31 +1545,35 @@ class Feed:
         self.received += sum(guarded(kind, write, *row) for row in zip(*columns, strict=True))
 
     def _states(self, columns: Columns[Any], now_ns: int) -> None:
+        """A batch's states, written at once (Recorder.states)."""
         from common.contracts.columns import choice_code
         from common.contracts.messages import PlantState
 
-        sources = columns.field("source").tolist()
-        frames: Sequence[PoseFrames] = [SIMULATED] * len(columns)
-        robot = choice_code(PlantState, "source", "robot")
-        if robot in sources:
-            corrections = columns.field("map_to_odom").tolist()
-            frames = [
-                robot_frames(self.bridge, "robot" if code == robot else "sim", correction)
-                for code, correction in zip(sources, corrections, strict=True)
-            ]
-        episodes, states = columns.field("episode").tolist(), columns.field("state").tolist()
-        self._rows("state", self.recorder.state, columns.robots, episodes, states, [now_ns] * len(columns), frames)
+        robot = columns.field("source") == choice_code(PlantState, "source", "robot")
+        frames = robot_frame_rows(self.bridge, robot, columns.field("map_to_odom")) if robot.any() else None
+        episodes, states = columns.field("episode"), columns.field("state")
+        failed = functools.partial(self._failed, "state")
+        self.received += self.recorder.states(columns.robots, episodes, states, now_ns, frames, failed)
 
     def _transitions(self, columns: Columns[Any], now_ns: int) -> None:
-        """A batch's transitions, written in step order per robot: a robot's first transition of an
-        episode after step 0 (the subscription's history came too late, or not at all) holds its
-        robot's rows while the actors' caches are asked for the steps before it (:meth:`_release`)."""
-        fields = [columns.field(name).tolist() for name in ("episode", "step", "state", "action", "cost")]
-        rows = list(zip(columns.robots, *fields, [now_ns] * len(columns), strict=True))
-        if self.held or any(self.started.get(robot) != episode for robot, episode, *_ in rows):
-            rows = [row for row in rows if not self._hold(row)]
-        if rows:
-            self._rows("transition", self.recorder.transition, *zip(*rows, strict=True))
+        """A batch's transitions, written at once (Recorder.transitions), in step order per robot: a
+        robot's first transition of an episode after step 0 (the subscription's history came too
+        late, or not at all) holds its robot's rows while the actors' caches are asked for the
+        steps before it (:meth:`_release`)."""
+        robots, episodes = columns.robots, columns.field("episode")
+        if self.held or any(map(operator.ne, map(self.started.get, robots), episodes.tolist())):
+            fields = [columns.field(name).tolist() for name in ("episode", "step", "state", "action", "cost")]
+            rows = zip(robots, *fields, [now_ns] * len(columns), strict=True)
+            columns = columns.take([row for row, values in enumerate(rows) if not self._hold(values)])
+        if len(columns):
+            steps = [columns.field(name) for name in ("episode", "step", "state", "action", "cost")]
+            self._write_steps(columns.robots, steps, now_ns)
+
+    def _write_steps(self, robots: Sequence[str], columns: Sequence[Any], now_ns: int | np.ndarray) -> None:
+        """Recorder.transitions of ``columns`` (episodes, steps, states, actions, costs)."""
+        episodes, steps, states, actions, costs = columns
+        failed = functools.partial(self._failed, "transition")
+        self.received += self.recorder.transitions(robots, episodes, steps, states, actions, costs, now_ns, failed)
 
     def _hold(self, row: tuple[Any, ...]) -> bool:
         """Whether ``row`` (robot, episode, step, state, action, cost, now_ns) waits for its robot's first steps."""
@@ -1605,10 +1614,13 @@ class Feed:
             held = self.held.get(m.robot)
             if held is not None and held[0][1] == m.episode:
                 held.append((m.robot, m.episode, m.step, m.state, m.action, m.cost, held[0][-1]))
+        rows: list[tuple[Any, ...]] = []
         for robot in done:
-            steps = {row[2]: row for row in reversed(self.held.pop(robot))}  # the first of each step
-            rows = sorted(steps.values(), key=lambda row: row[2])
-            self._rows("transition", self.recorder.transition, *zip(*rows, strict=True))
+            firsts = {row[2]: row for row in reversed(self.held.pop(robot))}  # the first of each step
+            rows += sorted(firsts.values(), key=lambda row: row[2])
+        if rows:
+            robots, *columns, arrivals = zip(*rows, strict=True)
+            self._write_steps(robots, [np.array(column) for column in columns], np.array(arrivals))
 
     def _weights(self, columns: Columns[Any], now_ns: int) -> None:
         def write(m: Any) -> None:
