@@ -129,6 +129,9 @@ class CdrMessage:
 
     def one(self, *numbers: Any) -> bytes:
         """One message: every number of its value fields, in the layout's order."""
+        if len(self.pieces) == 2 and self.pieces[0][2] == 2 and not self.tail:  # a stamp, a frame, the rest
+            (head, _, _), (frame, _, _) = self.pieces
+            return self.whole.pack(head, numbers[0], numbers[1], frame, *numbers[2:])
         args: list[Any] = []
         for constant, first, end in self.pieces:
             args.append(constant)
