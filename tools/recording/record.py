@@ -1020,6 +1020,18 @@ class Recorder:
         moves[goals, 2] = planar_rows(goal[goals, 0], goal[goals, 1], goal[goals, 2])
         return np.where(localized | ~identity, 1, 0).astype(np.int8)  # goal, else odom
 
+    def _target_first(self, t_ns: int, code: int, failed: Failed) -> list[int]:
+        """The target before a batch's first row, once a recording (:meth:`target`): ``[0]`` when
+        it could not be written (that row is refused with it, ``failed`` told why), else ``[]``."""
+        if self.target_sent:
+            return []
+        try:
+            self.target(t_ns, POSE_FRAMES[code])
+        except Exception as error:
+            failed(error)
+            return [0]
+        return []
+
     def _write_states(self, plan: _StatePlan, failed: Failed) -> int:
         tracks = self.tracks
         slots, count = plan.slots, len(plan.slots)
@@ -1028,13 +1040,7 @@ class Recorder:
         tracks.pose_frame[slots] = plan.codes
         self._remember(plan.origins)
         stamps = plan.t_ns.tolist()
-        refused: list[int] = []
-        if not self.target_sent:
-            try:
-                self.target(stamps[0], POSE_FRAMES[plan.codes[0]])
-            except Exception as error:
-                refused.append(0)
-                failed(error)
+        refused = self._target_first(stamps[0], plan.codes[0], failed)
         write, definition, topics = self.sink.write, self.ros.definition(ODOMETRY), tracks.topics
         for row, (slot, data, t_ns) in enumerate(zip(slots.tolist(), plan.odometry, stamps, strict=True)):
             if refused and refused[-1] == row:
@@ -1182,13 +1188,7 @@ class Recorder:
         if not len(kept):
             return len(plan.slots)
         stamps = t_ns.tolist()
-        refused: list[int] = []
-        if not self.target_sent:
-            try:
-                self.target(stamps[0], POSE_FRAMES[plan.codes[0]])
-            except Exception as error:
-                refused.append(0)
-                failed(error)
+        refused = self._target_first(stamps[0], plan.codes[0], failed)
         write, topics = self.sink.write, tracks.topics
         twist, transition = self.ros.definition(TWIST_STAMPED), self.ros.definition(TRANSITION)
         rows = zip(slots.tolist(), plan.commands, plan.samples, stamps, strict=True)
