@@ -13,7 +13,16 @@ import scipy.optimize
 from scipy.optimize import minimize
 
 import common.math.critic
-from common.math.critic import DoubleCritic, Replay, Sample, bounded_lstsq, consecutive_pairs, td_fit
+from common.math.critic import (
+    DoubleCritic,
+    Replay,
+    Sample,
+    append_each,
+    bounded_lstsq,
+    consecutive_pairs,
+    newest_values,
+    td_fit,
+)
 from common.math.features import quadratic_features
 
 
@@ -265,6 +274,29 @@ def test_replay_clear() -> None:
     replay.clear()
     assert len(replay) == 0
     replay.add(_sample(0))  # the same step is fine after a clear (new episode)
+
+
+def test_append_each_is_add_of_each_and_refuses_a_step_add_would_insert() -> None:
+    rng = np.random.default_rng(8)
+    replays, alone = [Replay(4) for _ in range(5)], [Replay(4) for _ in range(5)]
+    for step in range(9):
+        values = rng.normal(size=(5, 5))
+        costs = rng.uniform(0, 1, 5).tolist()
+        append_each(replays, [step] * 5, costs, values)
+        for i, replay in enumerate(alone):
+            replay.add(Sample(step, values[i, :3], values[i, 3:], costs[i]))
+        for mine, theirs in zip(replays, alone, strict=True):
+            assert mine.table().tolist() == theirs.table().tolist()
+            assert np.array_equal(mine.rows, theirs.rows) and (mine.start, len(mine)) == (theirs.start, len(theirs))
+    steps, values = newest_values(replays)
+    assert steps.tolist() == [8] * 5 and values.tolist() == [r.table()[-1, 1:6].tolist() for r in alone]
+    with pytest.raises(ValueError, match="not after"):
+        append_each(replays[:1], [8], [0.0], np.zeros((1, 5)))
+    assert replays[0].last == 8 and replays[0].table().tolist() == alone[0].table().tolist()  # nothing written
+    other = Replay(4)
+    other.add(Sample(0, np.zeros(2), np.zeros(1), 0.0))  # another shape: a list of samples, no rows
+    with pytest.raises(ValueError, match="one by one"):
+        append_each([other], [1], [0.0], np.zeros((1, 5)))
 
 
 # -- LQ oracle ----------------------------------------------------------------------------

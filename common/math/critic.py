@@ -413,82 +413,130 @@ def td_fit(
 class Replay:
     """The last ``capacity`` samples of ONE episode, kept in step order.
 
-    Beside the samples it keeps their TD rows as arrays, each computed once when its sample
-    enters: ring buffers of the steps, the costs and ``phi_Q`` then ``phi_V`` side by side
-    (:func:`_phi_qv_rows`, the same products, so the same bits). A fit builds its design from
-    them (:func:`kept_designs`) with no Python loop over samples. A sample's state and action
-    are read when it enters (the replay holds them as values)."""
+    The unicycle's samples (a state of :data:`STATE_DIM` numbers, an action of
+    :data:`ACTION_DIM`) are kept as ring arrays only: the steps, the costs, each sample's
+    ``(x, y, alpha, v, omega)`` and its TD row (``phi_Q`` then ``phi_V`` side by side,
+    :func:`_phi_qv_rows`'s products, so the same bits), each row computed once when its sample
+    enters. A fit builds its design from them (:func:`kept_designs`) with no Python loop over
+    samples; :attr:`samples` and :attr:`newest` are read back from them (copies). A sample of
+    another shape turns the replay into a list of its samples, with no rows (:attr:`kept`
+    False: designs come from the samples) until it is cleared."""
 
     def __init__(self, capacity: int) -> None:
         if capacity < 2:
             raise ValueError(f"replay size M must be >= 2 (one TD pair), got {capacity}")
         self.capacity = capacity
-        self._samples: deque[Sample] = deque(maxlen=capacity)
         self.steps = np.zeros(capacity, dtype=np.int64)  # ring slot -> step
         self.costs = np.zeros(capacity)
         self.rows = np.zeros((capacity, QV_FEATURES))  # ring slot -> phi_Q, phi_V of its sample
         self.values = np.zeros((capacity, STATE_DIM + ACTION_DIM))  # ring slot -> its (x, y, alpha, v, omega)
         self.start = 0  # the ring slot of the oldest sample
-        self.kept = True  # every sample's row is in the ring (False: a sample of another shape)
+        self.count = 0  # samples in the rings
+        self.last = -1  # the newest sample's step (while one is held)
+        self._others: deque[Sample] | None = None  # every sample, once one is of another shape
+        self.kept = True  # every sample is in the rings, its TD row too (False: one of another shape)
 
     def __len__(self) -> int:
-        return len(self._samples)
+        return self.count if self._others is None else len(self._others)
 
     @property
     def max_pairs(self) -> int:
         """The most TD pairs its design can have: ``capacity - 1``."""
         return self.capacity - 1
 
+    def _order(self) -> np.ndarray:
+        """The ring slots of the samples held, oldest first."""
+        return (self.start + np.arange(self.count)) % self.capacity
+
     @property
     def samples(self) -> list[Sample]:
-        return list(self._samples)
+        """The samples held, in step order (from the rings: copies)."""
+        if self._others is not None:
+            return list(self._others)
+        order = self._order()
+        steps, costs, values = self.steps[order].tolist(), self.costs[order].tolist(), self.values[order]
+        return [Sample(step, values[i, :STATE_DIM], values[i, STATE_DIM:], costs[i]) for i, step in enumerate(steps)]
 
     @property
     def newest(self) -> Sample | None:
         """The sample of the highest step (None: empty)."""
-        return self._samples[-1] if self._samples else None
+        if self._others is not None:
+            return self._others[-1] if self._others else None
+        return self._sample((self.start + self.count - 1) % self.capacity) if self.count else None
+
+    def _sample(self, slot: int) -> Sample:
+        z = self.values[slot].copy()
+        return Sample(int(self.steps[slot]), z[:STATE_DIM], z[STATE_DIM:], float(self.costs[slot]))
 
     def clear(self) -> None:
-        self._samples.clear()
-        self.start, self.kept = 0, True
+        self.start, self.count, self.last, self._others, self.kept = 0, 0, -1, None, True
 
     def add(self, sample: Sample) -> None:
         """Insert in step order; a duplicate step replaces nothing and raises."""
-        if self._samples and sample.step <= self._samples[-1].step:
-            if any(s.step == sample.step for s in self._samples):
-                raise ValueError(f"step {sample.step} is already in the replay")
-            # Late arrival (out of order): insert where it belongs, then trim the oldest.
-            items = sorted([*self._samples, sample], key=lambda s: s.step)[-self.capacity :]
-            self._samples = deque(items, maxlen=self.capacity)
-            self.start, self.kept = 0, True
-            for slot, item in enumerate(items):
-                self._keep(slot, item)
-            return
-        slot = (self.start + len(self._samples)) % self.capacity  # full: the oldest's slot
-        if len(self._samples) == self.capacity:
-            self.start = (self.start + 1) % self.capacity
-        self._samples.append(sample)
-        self._keep(slot, sample)
-
-    def _keep(self, slot: int, sample: Sample) -> None:
-        self.steps[slot], self.costs[slot] = sample.step, sample.cost
         state, action = np.asarray(sample.state, dtype=float), np.asarray(sample.action, dtype=float)
-        if state.shape != (3,) or action.shape != (2,):
-            self.kept = False  # not the unicycle's (s, u): designs come from the samples
+        if self._others is None and (state.shape != (STATE_DIM,) or action.shape != (ACTION_DIM,)):
+            self._others = deque(self.samples, maxlen=self.capacity)  # not the unicycle's (s, u): no rows
+            self.kept = False
+        if self._others is not None:
+            self._add_other(sample)
             return
         z = np.concatenate([state, action])
-        self.values[slot] = z
-        np.multiply(z[_QV_LEFT], z[_QV_RIGHT], out=self.rows[slot])
+        if self.count and sample.step <= self.last:
+            order = self._order()
+            steps = self.steps[order]
+            if np.any(steps == sample.step):
+                raise ValueError(f"step {sample.step} is already in the replay")
+            # Late arrival (out of order): inserted where it belongs, then the oldest trimmed; the
+            # rings rewritten from slot 0
+            at = int(np.searchsorted(steps, sample.step))
+            steps = np.insert(steps, at, sample.step)[-self.capacity :]
+            costs = np.insert(self.costs[order], at, sample.cost)[-self.capacity :]
+            values = np.insert(self.values[order], at, z, axis=0)[-self.capacity :]
+            self.start, self.count = 0, len(steps)
+            self.steps[: self.count], self.costs[: self.count], self.values[: self.count] = steps, costs, values
+            np.multiply(values[:, _QV_LEFT], values[:, _QV_RIGHT], out=self.rows[: self.count])
+            return
+        self.append(int(sample.step), sample.cost, z, z[_QV_LEFT] * z[_QV_RIGHT])
+
+    def append(self, step: int, cost: float, values: np.ndarray, row: np.ndarray) -> None:
+        """The sample of ``step``, after the newest held, into the next ring slot (full: the
+        oldest's): its ``values`` ``(x, y, alpha, v, omega)``, its ``cost`` and its TD ``row``,
+        the products :func:`_phi_qv_rows` makes of them (:func:`append_each` computes many at
+        once). A step not after the newest, or a replay that keeps no rows: ValueError."""
+        if not self.kept:
+            raise ValueError("a replay of samples of another shape takes them one by one (Replay.add)")
+        if self.count and step <= self.last:
+            raise ValueError(f"step {step} is not after the replay's newest, {self.last}")
+        slot = (self.start + self.count) % self.capacity
+        if self.count == self.capacity:
+            self.start = (self.start + 1) % self.capacity
+        else:
+            self.count += 1
+        self.last = step
+        self.steps[slot], self.costs[slot] = step, cost
+        self.values[slot], self.rows[slot] = values, row
+
+    def _add_other(self, sample: Sample) -> None:
+        others = self._others
+        assert others is not None
+        if others and sample.step <= others[-1].step:
+            if any(s.step == sample.step for s in others):
+                raise ValueError(f"step {sample.step} is already in the replay")
+            # late arrival (out of order): inserted where it belongs, then the oldest trimmed
+            others = self._others = deque(sorted([*others, sample], key=lambda s: s.step), maxlen=self.capacity)
+        else:
+            others.append(sample)
+        self.last = others[-1].step
 
     def table(self) -> np.ndarray:
         """Its samples as rows ``(step, x, y, alpha, v, omega, cost)`` in step order, ``(n, 7)``
         (a checkpoint's replay): from the ring arrays, no Python loop over samples."""
-        if not self.kept:
+        if self._others is not None:
             return np.array(
-                [[s.step, *np.asarray(s.state, float), *np.asarray(s.action, float), s.cost] for s in self._samples],
+                [[s.step, *np.asarray(s.state, float), *np.asarray(s.action, float), s.cost] for s in self._others],
                 dtype=float,
             ).reshape(-1, 2 + STATE_DIM + ACTION_DIM)
-        order = (self.start + np.arange(len(self._samples))) % self.capacity
+        order = self._order()
         return np.column_stack((self.steps[order], self.values[order], self.costs[order])).astype(float)
 
     def replays(self) -> list[Replay]:
@@ -505,7 +553,28 @@ class Replay:
 
     def sample_streams(self) -> list[Sequence[Sample]]:
         """Its samples as the streams of :func:`padded_designs`: one."""
-        return [self._samples]
+        return [self.samples]
+
+
+def append_each(replays: Sequence[Replay], steps: Sequence[int], costs: Sequence[float], values: np.ndarray) -> None:
+    """One sample into each of ``replays``, in order, after its newest: ``replays[i]`` takes step
+    ``steps[i]`` of ``values[i]`` = ``(x, y, alpha, v, omega)`` and ``costs[i]``, as
+    :meth:`Replay.add` would; their TD rows are one product over all (elementwise: the same
+    bits as each alone). What :meth:`Replay.append` refuses raises its ValueError (the replays
+    before it have taken theirs)."""
+    if len(replays) != len(steps) or len(steps) != len(costs) or values.shape != (len(steps), STATE_DIM + ACTION_DIM):
+        raise ValueError(f"{len(replays)} replays for {len(steps)} steps, {len(costs)} costs, values {values.shape}")
+    rows = values[:, _QV_LEFT] * values[:, _QV_RIGHT]
+    for i, replay in enumerate(replays):
+        replay.append(steps[i], costs[i], values[i], rows[i])
+
+
+def newest_values(replays: Sequence[Replay]) -> tuple[np.ndarray, np.ndarray]:
+    """Each replay's newest sample as ``(steps (R,), values (R, 5))``, ``(x, y, alpha, v, omega)``
+    rows (every replay holds a sample and keeps rows: :attr:`Replay.kept`)."""
+    steps = np.array([replay.last for replay in replays], dtype=np.int64)
+    values = np.array([replay.values[(replay.start + replay.count - 1) % replay.capacity] for replay in replays])
+    return steps, values.reshape(len(replays), STATE_DIM + ACTION_DIM)
 
 
 def stream_design(streams: Iterable[Sequence[Sample]], features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
