@@ -15,7 +15,7 @@ from common.config.assembly import local_critic
 from common.config.settings import Settings
 from common.contracts.messages import Transition
 from common.math.arrival import ArrivalTolerances
-from common.math.critic import FitsDue, Sample, at_rest
+from common.math.critic import FitsDue, Sample, at_rest, at_rest_rows
 from services.actor.ports import HeldWeights, ZenohCriticPort
 from services.critic.service import CriticLearner, coalesced_fits
 from tests.test_realtime_actor import DELTA, FakeStep, Loop, weights
@@ -78,6 +78,31 @@ def message(robot: str, s: Sample) -> Transition:
 
 def settings(arrival: bool = True) -> Settings:
     return Settings.load(critic={"checkpoint": ""}, actor={"arrival": arrival})
+
+
+def test_at_rest_rows_is_at_rest_of_each_row() -> None:
+    tolerances = ArrivalTolerances(0.03, 0.1, 1.5)
+    rng = np.random.default_rng(7)
+    count = 4000
+    previous = rng.choice([0.0, 0.01, -0.02, 0.029999, 0.03, 0.2], size=(count, 5))
+    previous[:, 2] = rng.choice([0.0, 0.1, -0.1, 0.0999, 2 * np.pi, 2 * np.pi + 0.05, -np.pi], size=count)
+    values = previous.copy()
+    changed = rng.random(count) < 0.2
+    values[changed, rng.integers(0, 5, changed.sum())] += 1e-12  # a state or an action apart by a hair
+    previous_steps = rng.integers(0, 5, count)
+    steps = previous_steps + rng.choice([1, 1, 1, 2, 0], size=count)
+    got = at_rest_rows(previous_steps, previous, steps, values, tolerances)
+    expected = [
+        at_rest(
+            Sample(int(previous_steps[i]), previous[i, :3], previous[i, 3:], 0.0),
+            Sample(int(steps[i]), values[i, :3], values[i, 3:], 0.0),
+            tolerances,
+        )
+        for i in range(count)
+    ]
+    assert got.tolist() == expected
+    assert 0 < sum(expected) < count  # both answers occur
+    assert not at_rest_rows(previous_steps, previous, steps, values, None).any()
 
 
 @pytest.mark.parametrize("arrival", [True, False])

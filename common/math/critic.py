@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from common.math.agents import fit_due
-from common.math.arrival import ArrivalTolerances, arrival_update
+from common.math.arrival import ArrivalTolerances, arrival_masks, arrival_update
 from common.math.dynamics import ACTION_DIM, STATE_DIM
 from common.math.features import (
     Q_FEATURES,
@@ -115,6 +115,30 @@ def at_rest(
     if state[2] != earlier[2]:
         return False
     return arrival_update(False, state, tolerances) if inner is None else inner
+
+
+def at_rest_rows(
+    previous_steps: np.ndarray,
+    previous: np.ndarray,
+    steps: np.ndarray,
+    values: np.ndarray,
+    tolerances: ArrivalTolerances | None,
+) -> np.ndarray:
+    """:func:`at_rest` of many samples at once: row ``i`` is sample ``(steps[i], values[i])``
+    after ``(previous_steps[i], previous[i])``, each ``values`` row ``(x, y, alpha, v, omega)``.
+    The same comparisons: the step after, both actions exactly zero, the state exactly equal,
+    then the inner tolerances (:func:`~common.math.arrival.arrival_masks`, :func:`arrival_update`'s
+    test for many states)."""
+    if tolerances is None:
+        return np.zeros(len(steps), dtype=bool)
+    rest: np.ndarray = np.asarray(steps) == np.asarray(previous_steps) + 1
+    # the state and the action exactly as before, and the action zero: both actions zero
+    rest &= np.logical_and.reduce(values == previous, axis=1)
+    rest &= np.logical_and.reduce(values[:, STATE_DIM:] == 0, axis=1)
+    candidates = np.flatnonzero(rest)
+    if candidates.size:
+        rest[candidates] = arrival_masks(values[candidates, :STATE_DIM], tolerances)[0]
+    return rest
 
 
 class FitsDue:
