@@ -34,7 +34,7 @@ from common.math.critic import (
 )
 from common.net.transport import Bus, Inbox
 from common.system.checkpoint import atomic_write_json
-from services.critic.service import CriticLearner, Row, collect, load_checkpoint
+from services.critic.service import CriticLearner, collect, drain, load_checkpoint
 from tests.harness import FakeSample, buses_on_a_fake_session, random_transitions
 
 BOUNDS = (0.0, 100.0)
@@ -274,11 +274,11 @@ def test_a_batch_takes_what_waits_and_no_more_without_a_window(monkeypatch: pyte
     late.start()
     try:
         assert intake.wait(0.0)
-        assert [t.robot for t in collect(intake, deque(), 0.0, robots=4)] == ["a", "b", "c"]
+        assert collect(intake, deque(), 0.0, robots=4).robots == ["a", "b", "c"]
     finally:
         late.join()
     assert intake.waiting == 1  # d waits for the next batch
-    assert [t.robot for t in collect(intake, deque(), 0.0, robots=4)] == ["d"]
+    assert collect(intake, deque(), 0.0, robots=4).robots == ["d"]
 
 
 @pytest.mark.timing
@@ -290,13 +290,23 @@ def test_a_batch_window_collects_until_every_robot_is_in_or_the_window_ends(monk
     feeder.start()
     started = time.monotonic()
     batch = collect(intake, recovered, 1.0, robots=5)
-    assert [t.robot for t in batch] == ["a", "e", "b", "c", "d"]
+    assert batch.robots == ["a", "e", "b", "c", "d"]
     assert time.monotonic() - started < 0.5  # every robot heard from is in: no wait for the window
     feeder.join()
     put(transition("a", 1))
     started = time.monotonic()
     batch = collect(intake, recovered, 0.05, robots=4)  # nobody else comes
-    assert [t.robot for t in batch] == ["a"] and 0.04 <= time.monotonic() - started < 0.5
+    assert batch.robots == ["a"] and 0.04 <= time.monotonic() - started < 0.5
+
+
+def test_a_recovered_transition_a_batch_cannot_hold_is_refused_as_the_intake_refuses_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    intake, put = critic_intake(monkeypatch)
+    put(transition("a"))
+    recovered = deque([transition("b", 2**63), transition("c", 3)])  # a step beyond 64 bits
+    batch = drain(intake, recovered)
+    assert batch.robots == ["a", "c"] and batch.field("step").tolist() == [0, 3] and not recovered
 
 
 def test_a_critic_of_many_robots_takes_each_batch_once_and_only_its_robots_rows(
@@ -319,7 +329,7 @@ def test_a_critic_of_many_robots_takes_each_batch_once_and_only_its_robots_rows(
     (callback, _), _ = subscribed[TRANSITION_BATCH.pattern]
     callback(FakeSample(TRANSITION_BATCH.pattern, one_batch([transition(r) for r in "axbyc"])))
     assert intake.waiting == 5  # the sample's rows, counted once
-    assert [t.robot for t in collect(intake, deque(), 0.0, robots=3)] == ["a", "b", "c"]
+    assert collect(intake, deque(), 0.0, robots=3).robots == ["a", "b", "c"]
 
 
 def test_the_intake_wakes_its_consumer_for_what_comes_and_for_what_it_is_told(
@@ -329,32 +339,32 @@ def test_the_intake_wakes_its_consumer_for_what_comes_and_for_what_it_is_told(
     assert not intake.wait(0.0)  # nothing came
     put(transition("a"))
     assert intake.wait(0.0)
-    assert [t.robot for t in collect(intake, deque(), 0.0, robots=1)] == ["a"]
+    assert collect(intake, deque(), 0.0, robots=1).robots == ["a"]
     assert not intake.wait(0.0)  # taken: nothing new
     intake.wake()  # the critic's own (HistoryRecovery's answers)
     assert intake.wait(0.0)
-    assert collect(intake, deque(), 0.0, robots=1) == [] and not intake.wait(0.0)
+    assert len(collect(intake, deque(), 0.0, robots=1)) == 0 and not intake.wait(0.0)
 
 
-def test_a_batchs_rows_train_the_critic_as_its_messages_do_bit_for_bit(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The critic takes a batch's rows (services/critic/service.py Row, no message built): its
-    learners, replays, weights and counts are those the same transitions as messages make, a
-    robot at rest included."""
+def test_a_batch_trains_the_critic_as_its_messages_do_bit_for_bit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The critic takes a batch as its columns (CriticLearner.take_batch, no message built): its
+    learners, replays, weights and counts are those the same transitions as messages make, one
+    by one, a robot at rest included."""
     stream = random_transitions(40, ("a", "b", "c"), seed=5)
     rest = Transition(robot="d", episode=1, step=0, state=(0.004, -0.003, 0.01), action=(0.0, 0.0), cost=1e-7)
     stream += [rest.model_copy(update={"step": k}) for k in range(40)]
     intake, put = critic_intake(monkeypatch, limit=len(stream))
     for first in range(0, len(stream), 7):
         put(*stream[first : first + 7])
-    rows = collect(intake, deque(), 0.0, robots=4)
-    assert all(isinstance(row, Row) for row in rows) and len(rows) == len(stream)
-    by_rows, by_messages = CriticLearner(settings()), CriticLearner(settings())
-    by_messages.version = by_rows.version  # versions start from the clock
-    weights_of_rows = [by_rows.take(row) for row in rows]
-    weights_of_messages = [by_messages.take(message) for message in stream]
-    assert weights_of_rows == weights_of_messages and any(weights_of_rows)
-    assert by_rows.state() == by_messages.state()
-    assert by_rows.fits_at_rest == by_messages.fits_at_rest > 30  # d rested
+    batch = collect(intake, deque(), 0.0, robots=4)
+    assert len(batch) == len(stream)
+    by_batch, by_messages = CriticLearner(settings()), CriticLearner(settings())
+    by_messages.version = by_batch.version  # versions start from the clock
+    weights_of_batch = by_batch.take_batch(batch)
+    weights_of_messages = [w for message in stream for w in by_messages.take(message)]
+    assert weights_of_batch == weights_of_messages and weights_of_batch
+    assert by_batch.state() == by_messages.state()
+    assert by_batch.fits_at_rest == by_messages.fits_at_rest > 30  # d rested
 
 
 def test_the_checkpoint_keeps_the_active_sets_and_refuses_bad_ones(tmp_path: Path) -> None:

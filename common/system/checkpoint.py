@@ -219,6 +219,11 @@ class StepRuns:
     def __len__(self) -> int:
         return self._count
 
+    @property
+    def last(self) -> int | None:
+        """The highest step held (None: none)."""
+        return self._lasts[-1] if self._lasts else None
+
     def __iter__(self) -> Iterator[int]:
         for first, last in zip(self._firsts, self._lasts, strict=True):
             yield from range(first, last + 1)

@@ -46,7 +46,7 @@ import math
 import os
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,12 +56,24 @@ import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
-from common.contracts.columns import Columns
+from common.contracts.columns import Columns, columns_of, spans
 from common.contracts.keys import TRANSITION, WEIGHTS
-from common.contracts.messages import CriticWeights, Transition
+from common.contracts.messages import CriticWeights, MessageError, Transition
 from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
-from common.math.critic import DoubleCritic, PooledLearner, Replay, Sample, at_rest, load_solver, update_many
+from common.math.critic import (
+    DoubleCritic,
+    PooledLearner,
+    Replay,
+    Sample,
+    append_each,
+    at_rest,
+    at_rest_rows,
+    load_solver,
+    newest_values,
+    update_many,
+)
+from common.math.dynamics import STATE_DIM
 from common.math.stats import Window
 from common.net.history import HistoryRecovery
 from common.net.transport import Bus, Inbox, bus_status, start_status_thread
@@ -119,7 +131,7 @@ class TransitionRow(Protocol):
 @dataclass(frozen=True, slots=True)
 class Row:
     """One transition of a batch, read from its columns (validated as the batch was decoded): no
-    message built; ``state`` and ``action`` are rows of the batch's own arrays."""
+    message built; ``state`` and ``action`` are rows of the batch's arrays."""
 
     robot: str
     episode: int
@@ -129,15 +141,10 @@ class Row:
     cost: float
 
 
-def transition_rows(columns: Columns[Transition]) -> list[Row]:
-    """A batch's transitions as rows: its states and actions copied once, as two arrays (a
-    replay keeps rows of them, not of the payload), its integers and costs as Python values."""
-    states, actions = np.array(columns.field("state")), np.array(columns.field("action"))
-    episodes, steps = columns.field("episode").tolist(), columns.field("step").tolist()
-    costs = columns.field("cost").tolist()
-    return [
-        Row(robot, episodes[i], steps[i], states[i], actions[i], costs[i]) for i, robot in enumerate(columns.robots)
-    ]
+def no_transitions() -> Columns[Transition]:
+    """A batch of no transitions."""
+    laid = spans(Transition)
+    return Columns(Transition, [], np.empty((0, laid.ints), dtype=np.int64), np.empty((0, laid.floats)))
 
 
 @dataclass
@@ -199,6 +206,7 @@ class CriticLearner:
         self.resume = settings.critic.resume
         self.pending: set[str] = set()  # robots read from a checkpoint, their run not yet confirmed
         self.continued: set[str] = set()  # robots whose checkpointed learner continued (same run)
+        self.heard: set[str] = set()  # robots whose transitions :meth:`take_batch` took since the start
         self.loaded = False  # a checkpoint was restored
         # Seen steps kept per episode: enough to recognise anything the publisher's cache can
         # still deliver again.
@@ -263,7 +271,7 @@ class CriticLearner:
                 self._new_pooled_run()
             return None  # on_transition starts the new run (fresh, or resumed weights)
         self.continued.add(message.robot)
-        trained = learner.replay.samples[-1].step if len(learner.replay) else -1
+        trained = learner.replay.last if len(learner.replay) else -1
         return self._message(message.robot, learner, trained, 0.0, 0.0, 0)
 
     def missing_before(self, message: TransitionRow) -> range:
@@ -311,6 +319,129 @@ class CriticLearner:
             resting.append(at_rest(previous, sample, self.rest))
             before[key] = sample
         return resting
+
+    def take_batch(
+        self,
+        batch: Columns[Transition],
+        coalesce: bool = False,
+        continued: Callable[[CriticWeights], None] | None = None,
+        missing: Callable[[str, int, range], None] | None = None,
+    ) -> list[CriticWeights]:
+        """A batch of transitions, rows in order: each row as :meth:`take` takes it, then
+        :meth:`flush` -- the same decisions, counts, replays, fits, weights and versions -- and
+        the weights to publish. A robot's first row since the start (:attr:`heard`) calls
+        ``missing(robot, episode, steps)`` with the steps before it that this critic lacks
+        (:meth:`missing_before`), when any; a learner read from the checkpoint that continues its
+        run calls ``continued`` with its weights (:meth:`confirm`). ``coalesce``
+        (critic.coalesce_fits): a robot due a fit again later in the batch is fitted once, on its
+        newest transition (:func:`coalesced_fits`); pooled, the fit due is made once, at the end.
+
+        The common rows are taken as arrays (:meth:`_common_rows`): the only row of its robot in
+        the batch, of its episode, a step after its learner's newest, and no fit to make (none
+        due, or the robot at rest). The rest go through :meth:`take` one by one, in order: a
+        robot's first row or its checkpoint's continuation, a new or stale episode, a duplicate,
+        a late or too old step, a robot with several rows, a fit due; every row of the pooled
+        learner. The two kinds touch different robots and a common row makes no fit, uses no
+        version and publishes nothing, so taking the common rows first changes nothing."""
+        robots = batch.robots
+        episodes, steps, costs = (batch.field(name).tolist() for name in ("episode", "step", "cost"))
+        values = np.hstack([batch.field("state"), batch.field("action")])  # (x, y, alpha, v, omega) rows
+        repeated: set[str] = set()  # robots with several rows in the batch
+        if len(set(robots)) < len(robots):
+            repeated = {robot for robot, count in Counter(robots).items() if count > 1}
+        common = set(self._common_rows(robots, episodes, steps, values, costs, repeated))
+        rare = [i for i in range(len(robots)) if i not in common]
+        rows = {
+            i: Row(robots[i], episodes[i], steps[i], values[i, :STATE_DIM], values[i, STATE_DIM:], costs[i])
+            for i in rare
+        }
+        superseded: set[int] = set()
+        if coalesce and repeated:  # only a robot with several rows in the batch has a fit made redundant
+            mine = [i for i in rare if robots[i] in repeated]
+            taken = [rows[i] for i in mine]
+            update_every = self.settings.critic.update_every
+            superseded = {mine[k] for k in coalesced_fits(taken, update_every, self.resting(taken))}
+        defer = coalesce and self.pool is not None
+        outgoing: list[CriticWeights] = []
+        for index in rare:
+            row = rows[index]
+            weights = self.confirm(row)
+            if weights is not None and continued is not None:
+                continued(weights)
+            if row.robot not in self.heard:
+                self.heard.add(row.robot)
+                steps_missing = self.missing_before(row)
+                if steps_missing and missing is not None:
+                    missing(row.robot, row.episode, steps_missing)
+            outgoing += self.take(row, fit=not defer and index not in superseded, defer=True)
+        return outgoing + self.flush()
+
+    def _common_rows(
+        self,
+        robots: list[str],
+        episodes: list[int],
+        steps: list[int],
+        values: np.ndarray,
+        costs: list[float],
+        repeated: set[str],
+    ) -> list[int]:
+        """Takes the batch's common rows (:meth:`take_batch`) as arrays; which rows they were, in order.
+
+        A common row's robot has one row in the batch, was heard before, is not waiting to confirm
+        a checkpoint's run nor for a fit left to :meth:`flush`, and its learner (a per-robot one,
+        of the row's episode) holds only earlier steps: its newest, its seen steps, its replay's
+        (not empty, keeping rows). Such a row is accepted (neither a duplicate nor too old) and
+        appended to the replay; it is taken here when it needs no fit: none due, or the robot at
+        rest (:func:`at_rest_rows`). :meth:`take` would do exactly that, counts included."""
+        if self.pool is not None:
+            return []
+        learners, pending, heard, waiting = self.learners, self.pending, self.heard, self.due
+        update_every = self.settings.critic.update_every
+        picked: list[int] = []  # rows it may take ...
+        chosen: list[Learner] = []  # ... their learners
+        due: list[int] = []  # ... and of those the ones due a fit (positions in picked)
+        for i, robot in enumerate(robots):
+            learner = learners.get(robot)
+            if learner is None or robot in pending or robot not in heard or robot in repeated or robot in waiting:
+                continue
+            step, replay, seen_last = steps[i], learner.replay, learner.seen.last
+            if (
+                episodes[i] != learner.episode
+                or step <= learner.newest
+                or (seen_last is not None and seen_last >= step)
+                or not replay.count
+                or replay.last >= step
+                or not replay.kept
+            ):
+                continue
+            if step % update_every == 0:  # fit_due
+                due.append(len(picked))
+            picked.append(i)
+            chosen.append(learner)
+        if due:  # taken only at rest
+            replays = [chosen[k].replay for k in due]
+            previous_steps, previous = newest_values(replays)
+            rows = [picked[k] for k in due]
+            rest = at_rest_rows(previous_steps, previous, np.array([steps[i] for i in rows]), values[rows], self.rest)
+            moving = {due[k] for k in np.flatnonzero(~rest).tolist()}
+            if moving:
+                picked = [i for k, i in enumerate(picked) if k not in moving]
+                chosen = [learner for k, learner in enumerate(chosen) if k not in moving]
+            self.fits_at_rest += len(due) - len(moving)
+        if not picked:
+            return picked
+        taken_steps = [steps[i] for i in picked]
+        append_each([learner.replay for learner in chosen], taken_steps, [costs[i] for i in picked], values[picked])
+        limit = self.retention + min(SEEN_SLACK, self.retention)
+        for learner, newest in zip(chosen, taken_steps, strict=True):
+            learner.newest = newest
+            seen = learner.seen
+            seen.add(newest)
+            if len(seen) > limit:  # pruned often: flat memory
+                seen.keep_after(newest - self.retention)
+        self.received += len(picked)
+        self.accepted += len(picked)
+        return picked
 
     def on_transition(self, message: TransitionRow, fit: bool = True) -> CriticWeights | None:
         """:meth:`take`, and of what it returns the weights for the message's robot."""
@@ -502,36 +633,38 @@ class CriticLearner:
         """The weights held for every robot, as new versions (to re-publish after a restore)."""
         messages = []
         for robot, learner in self.learners.items():
-            trained = learner.replay.samples[-1].step if len(learner.replay) else -1
+            trained = learner.replay.last if len(learner.replay) else -1
             messages.append(self._message(robot, learner, trained, 0.0, 0.0, 0))
         return messages
 
 
-def drain(intake: Inbox, recovered: deque[Transition]) -> list[TransitionRow]:
-    """What waits: the intake's batches as rows (a message alone on its robot's key is a batch of
-    one row), then what the actors' caches answered (:class:`HistoryRecovery`)."""
-    batch: list[TransitionRow] = []
-    for columns, _ in intake.take():
-        batch += transition_rows(columns)
+def drain(intake: Inbox, recovered: deque[Transition]) -> Columns[Transition]:
+    """What waits, as one batch: the intake's batches (a message alone on its robot's key is a
+    batch of one row), then what the actors' caches answered (:class:`HistoryRecovery`)."""
+    parts: list[Columns[Transition]] = [columns for columns, _ in intake.take()]
     while recovered:
-        batch.append(recovered.popleft())
-    return batch
+        message = recovered.popleft()
+        try:
+            parts.append(columns_of(Transition, [message]))
+        except MessageError as error:  # as the intake refuses it live: an integer beyond a batch's 64 bits
+            log.warning("critic: a recovered transition refused: %s", error)
+    return Columns.joined(Transition, parts) if parts else no_transitions()
 
 
-def collect(intake: Inbox, recovered: deque[Transition], window: float, robots: int) -> list[TransitionRow]:
+def collect(intake: Inbox, recovered: deque[Transition], window: float, robots: int) -> Columns[Transition]:
     """What waits (:func:`drain`); with a ``window`` [s], also what comes within it, until a
     transition of each of the ``robots`` heard from is in."""
     batch = drain(intake, recovered)
-    if window <= 0 or not batch:
+    if window <= 0 or not len(batch):
         return batch
-    heard = {message.robot for message in batch}
+    parts, heard = [batch], set(batch.robots)
     end = time.monotonic() + window
     while len(heard) < robots and (left := end - time.monotonic()) > 0:
         if intake.wait(left):
             more = drain(intake, recovered)
-            batch += more
-            heard.update(message.robot for message in more)
-    return batch
+            parts.append(more)
+            heard.update(more.robots)
+    return Columns.joined(Transition, parts)
 
 
 REPLAY_PACKING = "<f8"  # a replay in a checkpoint: base64 of little-endian float64 rows of 7 numbers
@@ -650,8 +783,6 @@ def run(
             sends[0](round_)
             bus.count("weights_published", len(round_))
 
-    heard: set[str] = set()  # robots heard since the start
-
     # a robot whose stream starts later than this critic needs (its subscription's history came
     # too late, or not at all): what the actors' caches hold of the missing steps goes to the
     # inbox, as if it had come in time
@@ -703,30 +834,18 @@ def run(
     end = None if duration is None else time.monotonic() + duration
     written, dirty = -math.inf, False  # the last checkpoint write; accepted transitions since
 
-    def take_one_batch(batch: list[TransitionRow], dirty: bool, written: float) -> tuple[bool, float]:
+    def continuing(weights: CriticWeights) -> None:
+        log.info("critic: continuing %s's episode %d from the checkpoint", weights.robot, weights.episode)
+        publish([weights])
+
+    def take_one_batch(batch: Columns[Transition], dirty: bool, written: float) -> tuple[bool, float]:
         """One batch into the learner, its fits made, its checkpoint written when due and its
         weights published; ``dirty``, ``written``: accepted since the last checkpoint, and when."""
         before = learner.accepted
-        outgoing: list[CriticWeights] = []
         # critic.coalesce_fits: a critic that fell behind (a batch holds several transitions of a
         # robot) fits each robot once, on its newest: its actor uses only the newest weights anyway.
         # Pooled, the fit due in the batch is made once, at its end, on all of it.
-        # (only a robot with several transitions in the batch can have a fit made redundant)
-        repeats = settings.critic.coalesce_fits and len({m.robot for m in batch}) < len(batch)
-        superseded = coalesced_fits(batch, settings.critic.update_every, learner.resting(batch)) if repeats else set()
-        defer = settings.critic.coalesce_fits and learner.pool is not None
-        for index, message in enumerate(batch):
-            continued = learner.confirm(message)
-            if continued is not None:
-                log.info("critic: continuing %s's episode %d from the checkpoint", message.robot, message.episode)
-                publish([continued])
-            if message.robot not in heard:
-                heard.add(message.robot)
-                missing = learner.missing_before(message)
-                if missing:
-                    recovery.need(message.robot, message.episode, missing)
-            outgoing += learner.take(message, fit=not defer and index not in superseded, defer=True)
-        outgoing += learner.flush()
+        outgoing = learner.take_batch(batch, settings.critic.coalesce_fits, continuing, recovery.need)
         batches.append(len(batch))
         dirty = dirty or learner.accepted > before
         if dirty and writer is not None and time.monotonic() - written >= settings.critic.checkpoint_period:
@@ -754,10 +873,11 @@ def run(
             if time.monotonic() - warned >= 10.0:
                 warned = time.monotonic()
                 log.warning("critic: behind by %d transitions: %d dropped so far", INTAKE_LIMIT, dropped)
-        if taken:
+        if len(taken):
             waiting.append(backlog)
         for first in range(0, len(taken), MAX_BATCH):
-            dirty, written = take_one_batch(taken[first : first + MAX_BATCH], dirty, written)
+            part = taken if len(taken) <= MAX_BATCH else taken.take(range(first, min(first + MAX_BATCH, len(taken))))
+            dirty, written = take_one_batch(part, dirty, written)
 
     if writer is not None:
         if dirty:  # what came after the last periodic write
