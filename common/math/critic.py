@@ -61,6 +61,7 @@ from common.math.features import (
 
 Features = Callable[[np.ndarray, np.ndarray], np.ndarray]
 QV_FEATURES = Q_FEATURES + V_FEATURES  # a TD row: phi_Q(s, u), then phi_V(s)
+ENTRY = 2 + STATE_DIM + ACTION_DIM  # a replay's entry: (step, x, y, alpha, v, omega, cost)
 # The products of z = (s, u) that make a TD row: phi_Q's pairs over z, then phi_V's over s = z[:3]
 # (common/math/features.py): row = z[_QV_LEFT] * z[_QV_RIGHT], the products _phi_qv_rows makes.
 _QV_LEFT, _QV_RIGHT = (
@@ -438,22 +439,24 @@ class Replay:
     """The last ``capacity`` samples of ONE episode, kept in step order.
 
     The unicycle's samples (a state of :data:`STATE_DIM` numbers, an action of
-    :data:`ACTION_DIM`) are kept as ring arrays only: the steps, the costs, each sample's
-    ``(x, y, alpha, v, omega)`` and its TD row (``phi_Q`` then ``phi_V`` side by side,
-    :func:`_phi_qv_rows`'s products, so the same bits), each row computed once when its sample
-    enters. A fit builds its design from them (:func:`kept_designs`) with no Python loop over
-    samples; :attr:`samples` and :attr:`newest` are read back from them (copies). A sample of
-    another shape turns the replay into a list of its samples, with no rows (:attr:`kept`
-    False: designs come from the samples) until it is cleared."""
+    :data:`ACTION_DIM`) are kept as ring arrays only: the steps, each sample's entry ``(step, x,
+    y, alpha, v, omega, cost)`` (the checkpoint's row: :meth:`table` is two slices of the ring)
+    and its TD row (``phi_Q`` then ``phi_V`` side by side, :func:`_phi_qv_rows`'s products, so
+    the same bits), each row computed once when its sample enters. A fit builds its design
+    from them (:func:`kept_designs`) with no Python loop over samples; :attr:`samples` and
+    :attr:`newest` are read back from them (copies). A sample of another shape turns the replay
+    into a list of its samples, with no rows (:attr:`kept` False: designs come from the
+    samples) until it is cleared."""
 
     def __init__(self, capacity: int) -> None:
         if capacity < 2:
             raise ValueError(f"replay size M must be >= 2 (one TD pair), got {capacity}")
         self.capacity = capacity
         self.steps = np.zeros(capacity, dtype=np.int64)  # ring slot -> step
-        self.costs = np.zeros(capacity)
+        self.entries = np.zeros((capacity, ENTRY))  # ring slot -> (step, x, y, alpha, v, omega, cost)
+        self.values = self.entries[:, 1:-1]  # ring slot -> (x, y, alpha, v, omega), a view
+        self.costs = self.entries[:, -1]  # ring slot -> cost, a view
         self.rows = np.zeros((capacity, QV_FEATURES))  # ring slot -> phi_Q, phi_V of its sample
-        self.values = np.zeros((capacity, STATE_DIM + ACTION_DIM))  # ring slot -> its (x, y, alpha, v, omega)
         self.start = 0  # the ring slot of the oldest sample
         self.count = 0  # samples in the rings
         self.last = -1  # the newest sample's step (while one is held)
@@ -504,7 +507,8 @@ class Replay:
         if self._others is not None:
             self._add_other(sample)
             return
-        z = np.concatenate([state, action])
+        entry = np.concatenate([[sample.step], state, action, [sample.cost]])
+        z = entry[1:-1]
         if self.count and sample.step <= self.last:
             order = self._order()
             steps = self.steps[order]
@@ -514,19 +518,19 @@ class Replay:
             # rings rewritten from slot 0
             at = int(np.searchsorted(steps, sample.step))
             steps = np.insert(steps, at, sample.step)[-self.capacity :]
-            costs = np.insert(self.costs[order], at, sample.cost)[-self.capacity :]
-            values = np.insert(self.values[order], at, z, axis=0)[-self.capacity :]
+            entries = np.insert(self.entries[order], at, entry, axis=0)[-self.capacity :]
             self.start, self.count = 0, len(steps)
-            self.steps[: self.count], self.costs[: self.count], self.values[: self.count] = steps, costs, values
-            np.multiply(values[:, _QV_LEFT], values[:, _QV_RIGHT], out=self.rows[: self.count])
+            self.steps[: self.count], self.entries[: self.count] = steps, entries
+            np.multiply(entries[:, 1:-1][:, _QV_LEFT], entries[:, 1:-1][:, _QV_RIGHT], out=self.rows[: self.count])
             return
-        self.append(int(sample.step), sample.cost, z, z[_QV_LEFT] * z[_QV_RIGHT])
+        self.append(int(sample.step), entry, z[_QV_LEFT] * z[_QV_RIGHT])
 
-    def append(self, step: int, cost: float, values: np.ndarray, row: np.ndarray) -> None:
+    def append(self, step: int, entry: np.ndarray, row: np.ndarray) -> None:
         """The sample of ``step``, after the newest held, into the next ring slot (full: the
-        oldest's): its ``values`` ``(x, y, alpha, v, omega)``, its ``cost`` and its TD ``row``,
-        the products :func:`_phi_qv_rows` makes of them (:func:`append_each` computes many at
-        once). A step not after the newest, or a replay that keeps no rows: ValueError."""
+        oldest's): its ``entry`` ``(step, x, y, alpha, v, omega, cost)`` and its TD ``row``, the
+        products :func:`_phi_qv_rows` makes of its ``(x, y, alpha, v, omega)``
+        (:func:`append_each` computes many at once). A step not after the newest, or a replay
+        that keeps no rows: ValueError."""
         if not self.kept:
             raise ValueError("a replay of samples of another shape takes them one by one (Replay.add)")
         if self.count and step <= self.last:
@@ -537,8 +541,7 @@ class Replay:
         else:
             self.count += 1
         self.last = step
-        self.steps[slot], self.costs[slot] = step, cost
-        self.values[slot], self.rows[slot] = values, row
+        self.steps[slot], self.entries[slot], self.rows[slot] = step, entry, row
 
     def _add_other(self, sample: Sample) -> None:
         others = self._others
@@ -560,8 +563,10 @@ class Replay:
                 [[s.step, *np.asarray(s.state, float), *np.asarray(s.action, float), s.cost] for s in self._others],
                 dtype=float,
             ).reshape(-1, 2 + STATE_DIM + ACTION_DIM)
-        order = self._order()
-        return np.column_stack((self.steps[order], self.values[order], self.costs[order])).astype(float)
+        start, end = self.start, self.start + self.count
+        if end <= self.capacity:
+            return self.entries[start:end].copy()
+        return np.concatenate((self.entries[start:], self.entries[: end - self.capacity]))
 
     def replays(self) -> list[Replay]:
         """Its streams as :func:`kept_designs` takes them: itself."""
@@ -588,9 +593,11 @@ def append_each(replays: Sequence[Replay], steps: Sequence[int], costs: Sequence
     before it have taken theirs)."""
     if len(replays) != len(steps) or len(steps) != len(costs) or values.shape != (len(steps), STATE_DIM + ACTION_DIM):
         raise ValueError(f"{len(replays)} replays for {len(steps)} steps, {len(costs)} costs, values {values.shape}")
+    entries = np.empty((len(steps), ENTRY))
+    entries[:, 0], entries[:, 1:-1], entries[:, -1] = steps, values, costs
     rows = values[:, _QV_LEFT] * values[:, _QV_RIGHT]
     for i, replay in enumerate(replays):
-        replay.append(steps[i], costs[i], values[i], rows[i])
+        replay.append(steps[i], entries[i], rows[i])
 
 
 def newest_values(replays: Sequence[Replay]) -> tuple[np.ndarray, np.ndarray]:
