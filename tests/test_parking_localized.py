@@ -129,6 +129,26 @@ def test_the_arrival_rule_applies_the_deadband_only_when_given_one() -> None:
     assert raised[0] == pytest.approx(DEADBAND.breakaway * DEADBAND.wheel_radius)
 
 
+def test_a_robot_the_deadband_holds_between_the_tolerances_has_arrived_and_solves_no_more() -> None:
+    """Between the inner and the outer tolerances a command that moves no wheel is sent as zero
+    (as parked as it can be told): the rule then says "arrived", so the actor holds zero without a
+    solve until the robot leaves the outer tolerances, instead of solving every step a command it
+    cannot follow (3 of 300 robots of a fleet stood so, 3.6 cm off, solving for 80 s). The negative
+    controls: a command that moves a wheel, and one the deadband raises (outside the outer
+    tolerances), leave the rule not arrived."""
+    creep, near = np.array([0.002, 0.01]), np.array([0.035, 0.01, -0.02])  # 0.036 m: between
+    rule = ArrivalRule(TOLERANCES, DEADBAND)
+    assert not rule.update(near)  # not inside the inner tolerances: not arrived by position
+    np.testing.assert_array_equal(rule.last_word(np.array([0.1, 0.0]), near), [0.1, 0.0])
+    assert not rule.arrived  # a command that moves: still on its way
+    rule.last_word(creep, FAR)
+    assert not rule.arrived  # raised to breakaway out there: still on its way
+    np.testing.assert_array_equal(rule.last_word(creep, near), [0.0, 0.0])
+    assert rule.arrived and rule.arrivals == 1
+    assert rule.update(near)  # held: the next step is "arrived", no solve
+    assert not rule.update(np.array([0.05, 0.0, 0.0]))  # beyond the outer tolerance: on its way again
+
+
 # -- the simulated localization ---------------------------------------------------------------
 
 

@@ -123,7 +123,8 @@ class ArrivalRule:
     def last_word(self, action: np.ndarray, state: np.ndarray) -> np.ndarray:
         """The command to send for the solved ``action`` at ``state``: the in-place turn while the
         turn-first phase lasts (:meth:`turn_command`), the docking manoeuvre once the approach
-        shuffles (:meth:`dock_command`), then through :func:`deadband_action`."""
+        shuffles (:meth:`dock_command`), then through :func:`deadband_action`; a command the
+        deadband makes zero inside the outer tolerances leaves the robot arrived."""
         turn = self.turn_command(state)
         if turn is not None:
             self.turn_first_steps += 1
@@ -134,9 +135,20 @@ class ArrivalRule:
                 self.docking_steps += 1
                 action = dock
         if self.deadband is not None:
-            action = deadband_action(action, state, self.deadband, self.tolerances)
+            solved, action = action, deadband_action(action, state, self.deadband, self.tolerances)
+            if action is not solved and solved.any() and not action.any():
+                self._parked()
         self._count_reversal(action, state)
         return action
+
+    def _parked(self) -> None:
+        """The deadband made the solved command zero inside the outer tolerances: the robot is as
+        parked as it can be told, so it has arrived (held at zero, no solve, until it leaves the
+        outer tolerances), rather than solving a command it cannot follow at every step."""
+        if not self.arrived:
+            self.arrivals += 1
+        self.arrived = True
+        self._forget_approach()
 
     def turn_command(self, state: np.ndarray) -> np.ndarray | None:
         """The turn-first phase of this goal (:class:`TurnFirst`): decided at the first command

@@ -98,11 +98,12 @@ def at_rest(
     the replay but does not fit on it (nor publishes weights): while the rule holds the robot its
     actor solves nothing and uses no weights, so a fit would only move weights nobody uses. The
     first transition after the robot moves (another state) is fitted on the whole replay, rests
-    included. Between the inner and the outer tolerances a zero command may be the wheel deadband's
-    on a solve that has not arrived: there every due fit is made, so the next solve sees new
-    weights. ``tolerances`` None (no arrival rule, the paper's method): never at rest. ``inner``:
-    whether the state is inside the inner tolerances, when the caller has computed it (an actor
-    host, for a tick group at once); None: computed here."""
+    included. Between the inner and the outer tolerances a zero command may be a robot passing
+    through, or the wheel deadband's (then the rule holds the robot: ArrivalRule.last_word); the
+    critic cannot tell them apart, so there every due fit is made. ``tolerances`` None (no arrival
+    rule, the paper's method): never at rest. ``inner``: whether the state is inside the inner
+    tolerances, when the caller has computed it (an actor host, for a tick group at once); None:
+    computed here."""
     # scalar comparisons, cheapest first: an actor host runs this at every robot's tick, where
     # numpy's any / array_equal on 2- and 3-vectors cost ~10 times as much
     if tolerances is None or previous is None or sample.step != previous.step + 1:
