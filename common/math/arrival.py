@@ -113,12 +113,18 @@ class ArrivalRule:
 
     def update(self, state: np.ndarray) -> bool:
         arrived = arrival_update(self.arrived, state, self.tolerances)
-        if arrived and not self.arrived:
-            self.arrivals += 1
-        if arrived:  # a resumed approach starts with the actor again
-            self._forget_approach()
+        if arrived:
+            self._arrive()
         self.arrived = arrived
         return arrived
+
+    def _arrive(self) -> None:
+        """The robot is (still) arrived: counted when it was not; a resumed approach starts with
+        the actor again."""
+        if not self.arrived:
+            self.arrivals += 1
+        self.arrived = True
+        self._forget_approach()
 
     def last_word(self, action: np.ndarray, state: np.ndarray) -> np.ndarray:
         """The command to send for the solved ``action`` at ``state``: the in-place turn while the
@@ -136,19 +142,12 @@ class ArrivalRule:
                 action = dock
         if self.deadband is not None:
             solved, action = action, deadband_action(action, state, self.deadband, self.tolerances)
+            # made zero inside the outer tolerances: as parked as it can be told, so arrived (held
+            # at zero without a solve until it leaves them), not solving a command it cannot follow
             if action is not solved and solved.any() and not action.any():
-                self._parked()
+                self._arrive()
         self._count_reversal(action, state)
         return action
-
-    def _parked(self) -> None:
-        """The deadband made the solved command zero inside the outer tolerances: the robot is as
-        parked as it can be told, so it has arrived (held at zero, no solve, until it leaves the
-        outer tolerances), rather than solving a command it cannot follow at every step."""
-        if not self.arrived:
-            self.arrivals += 1
-        self.arrived = True
-        self._forget_approach()
 
     def turn_command(self, state: np.ndarray) -> np.ndarray | None:
         """The turn-first phase of this goal (:class:`TurnFirst`): decided at the first command
