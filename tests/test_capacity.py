@@ -12,7 +12,7 @@ import pytest
 
 from tests.harness import srl
 from tools.bench.capacity import component, fit_line, model
-from tools.launch.fleet import message_kind
+from tools.launch.measure import message_kind
 
 
 def test_services_map_to_components_and_keys_to_message_kinds() -> None:
@@ -105,7 +105,7 @@ def test_bad_options_are_refused_in_one_line() -> None:
 
 
 def test_the_rss_series_is_bounded_and_its_growth_starts_after_warm_up() -> None:
-    from tools.launch.fleet import RSS_POINTS, RssSeries
+    from tools.launch.measure import RSS_POINTS, RssSeries
 
     series = RssSeries()
     for second in range(0, 3600):  # an hour, one call a second: the series stays bounded

@@ -507,9 +507,13 @@ def test_srl_up_shows_a_status_line_keeps_json_off_the_console_and_starts_a_fres
     assert "(fresh critic; --resume to restore)" in second[0].stdout  # not "restored" by an earlier run
     assert json.loads((second[1] / "critic.json").read_text())["restored"] is False
     merged = json.loads(resumed[0].stdout.splitlines()[-1])
-    assert merged["critic_restored"] is True
+    assert merged["critic"]["restored"] is True
+    # one summary whatever the size: the robot's own figures at the top, beside them the per-robot
+    # table and the run's CPU that a fleet's summary has (tools/launch/up.py run_summary)
+    assert merged["robots"] == ["h5up"] and [row["robot"] for row in merged["fleet"]["rows"]] == ["h5up"]
+    assert merged["fleet"]["steps"] == merged["steps"] and merged["cpu_percent"] > 0 and merged["processes"] == 4
     assert merged["plant_model"] == "ideal" and "(plant ideal: the states above" in first[0].stdout  # the model's name
-    assert merged["critic_checkpoint"].endswith("critic-h5up.json") or "h5up" in merged["critic_checkpoint"]
+    assert merged["critic"]["checkpoint"].endswith("critic-h5up.json") or "h5up" in merged["critic"]["checkpoint"]
     print(
         f"\nfigures: srl up --duration 4: {len(status)} status lines, stdout {len(first[0].stdout)} B, "
         f"stderr {len(first[0].stderr)} B (before: 9 KB of JSON); second run restored "

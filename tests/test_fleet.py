@@ -30,6 +30,7 @@ from common.math.loop import ExactPlant, run_algorithm1
 from common.math.stats import Window
 from services.actor.host import HostScheduler, RobotActor, RobotTicker
 from services.plant_sim.host import FleetPlant
+from tests.harness import free_port, srl
 
 # -- robot lists and starts -----------------------------------------------------------------
 
@@ -477,7 +478,7 @@ def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole
 @pytest.mark.timing  # staleness <= 5 steps: a latency bound
 @pytest.mark.parametrize("layout", ["host", "process"])
 def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: str) -> None:
-    from tools.launch.fleet import run_fleet
+    from tools.launch.up import run_fleet
 
     settings = Settings.load()
     summary = run_fleet(settings, [], ["fa", "fb", "fc"], 8.0, layout=layout, quiet=True)
@@ -496,10 +497,29 @@ def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: 
     assert summary["rss_mb"] > 0 and summary["cpu_percent"] > 0
 
 
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_fleet_of_one_prints_the_one_robot_summary_and_a_fleets_figures() -> None:
+    """``srl up --robots 1`` is the same launcher as ``srl up`` (tools/launch/up.py): it prints the
+    one robot's summary (steps, J, final state, critic), and its JSON has the fleet's figures too."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    done = srl("up", "--robots", "1", "--duration", "4", "--no-jit", "--router", router, "--json", timeout=180)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    summary = json.loads(lines[-1])
+    assert lines[0].startswith("srl up: realtime run, plant sim, agent rlqv"), done.stdout
+    assert any(line.startswith("  accumulated J") or "accumulated J" in line for line in lines), done.stdout
+    assert any(line.startswith("  critic ") for line in lines) and not any("robots reporting" in x for x in lines)
+    assert summary["robots"] == ["robot1"] and summary["layout"] == "host" and summary["steps"] >= 20
+    assert [row["robot"] for row in summary["fleet"]["rows"]] == ["robot1"]
+    assert summary["fleet"]["steps"] == summary["steps"] and summary["critic"]["transitions_received"] > 0
+    assert summary["processes"] == 4 and summary["cpu_percent"] > 0
+
+
 def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
     """The rest mark: made at the first read with every robot arrived, never moved; a robot that
     leaves the tolerance later shows in ``fewest_arrived``. The phases add up to the run."""
-    from tools.launch.fleet import FleetMeasures, RssSeries, rest_mark
+    from tools.launch.measure import RssSeries, RunMeasures, rest_mark
 
     mark = rest_mark(None, 1.0, {"actor": 0.4, "plant": 0.1}, 2, 3)
     assert mark is None  # 2 of 3 arrived: the robots still drive
@@ -511,7 +531,7 @@ def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
     )
     assert rest_mark(mark, 3.0, {"actor": 1.1, "plant": 0.6}, 2, 3) is mark  # one robot left the tolerance
     assert (mark.at, mark.fewest_arrived) == (2.0, 2)
-    measures = FleetMeasures({"actor": 3.0, "plant": 0.5}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0, mark)
+    measures = RunMeasures({"actor": 3.0, "plant": 0.5}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0, mark)
     phases = measures.phases()
     assert phases is not None
     assert phases["driving"]["seconds"] == 2.0 and phases["at_rest"]["seconds"] == 4.0
@@ -521,7 +541,7 @@ def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
     whole = measures.fields(2)["cpu_percent"] * 6.0  # the run's CPU is the phases' together
     assert whole == pytest.approx(phases["driving"]["cpu_percent"] * 2.0 + phases["at_rest"]["cpu_percent"] * 4.0)
     # negative control: without a mark (not every robot arrived) there are no phases
-    unsplit = FleetMeasures({"actor": 3.0}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0)
+    unsplit = RunMeasures({"actor": 3.0}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0)
     assert unsplit.phases() is None and unsplit.fields(1)["cpu_phases"] is None
 
 
@@ -530,7 +550,7 @@ def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
 def test_a_fleet_that_parks_reports_its_cpu_while_driving_and_at_rest() -> None:
     """Two robots from 0.3 m park within a few seconds of a 10 s run: the summary splits the run's
     CPU where every robot has first reported itself arrived, and ``srl up`` prints both."""
-    from tools.launch.fleet import format_fleet_summary, run_fleet
+    from tools.launch.up import format_fleet_summary, run_fleet
 
     summary = run_fleet(Settings.load(), [], ["ra", "rb"], 10.0, quiet=True, circle=0.3)
     assert summary["fleet"]["parked"] == 2
@@ -556,7 +576,7 @@ def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside
     """``srl up --robots K --plant physics``: the plant host steps one MuJoCo TurtleBot3 per robot
     (lag, deadband, slip, odometry); the actors see odometry, the summary keeps the truth beside
     it. Negative control: the ideal unicycle's odometry IS the truth."""
-    from tools.launch.fleet import format_fleet_summary, run_fleet
+    from tools.launch.up import format_fleet_summary, run_fleet
 
     settings = Settings.load()
     finals: dict[str, dict[str, Any]] = {}
@@ -589,7 +609,7 @@ def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(
     the router: here both drive on learned weights, nothing is refused, and no secret is left."""
     import tempfile
 
-    from tools.launch.fleet import format_fleet_summary, run_fleet
+    from tools.launch.up import format_fleet_summary, run_fleet
 
     # a temporary directory of its own: tests running beside it write their own srl-secure-*
     private = tmp_path / "tmp"
@@ -691,7 +711,7 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
 
 @pytest.mark.integration
 def test_the_cpu_of_zenohs_threads_is_read_by_their_names() -> None:
-    from tools.launch.fleet import ZENOH_THREAD, ZenohCpu, cpu_of
+    from tools.launch.measure import ZENOH_THREAD, ZenohCpu, cpu_of
 
     assert all(ZENOH_THREAD.match(name) for name in ("rx-0", "tx-12", "app-0", "acc-0", "net-3"))
     assert not any(ZENOH_THREAD.match(name) for name in ("python", "rx", "rx-", "srl-rx-0", "rx-0x", "tx-1-a"))
@@ -733,7 +753,7 @@ time.sleep(10)
 
 @pytest.mark.integration
 def test_the_cpu_of_zenohs_threads_keeps_threads_that_started_and_ended_and_time_below_a_clock_tick() -> None:
-    from tools.launch.fleet import ZenohCpu
+    from tools.launch.measure import ZenohCpu
 
     def threads(pid: int, count: int) -> None:
         deadline = time.monotonic() + 5.0
@@ -877,7 +897,7 @@ def test_actor_hosts_auto_is_one_below_fifty_robots_else_one_per_core_and_bad_va
     which ``srl actor --hosts`` shares)."""
     from common.config.arguments import UsageError
     from common.process.runtime import usable_cores
-    from tools.launch.fleet import actor_hosts
+    from tools.launch.up import actor_hosts
 
     cores = usable_cores()
     assert actor_hosts("auto", 8) == 1 and actor_hosts("auto", 49) == 1

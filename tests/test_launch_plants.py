@@ -11,9 +11,8 @@ import pytest
 from common.config.settings import Settings
 from tools.cli import build_parser
 from tools.launch import plants
-from tools.launch.fleet import run_fleet
 from tools.launch.plants import LAUNCH_PLANTS, LaunchPlant, launch_plant, with_launch_plant
-from tools.launch.up import UpOptions, run_up
+from tools.launch.up import UpOptions, run_fleet, run_up
 
 
 def test_the_command_line_offers_every_row_and_refuses_another(capsys: pytest.CaptureFixture[str]) -> None:

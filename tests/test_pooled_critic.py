@@ -383,7 +383,7 @@ def test_the_critic_loads_its_solver_before_it_is_alive(monkeypatch: pytest.Monk
 @pytest.mark.timing  # staleness <= 5 steps: a latency bound
 def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() -> None:
     """The real services (srl up --robots 3 --critic pooled): one learner, every robot served."""
-    from tools.launch.fleet import run_fleet
+    from tools.launch.up import run_fleet
 
     summary = run_fleet(Settings.load(), [], ["pa", "pb", "pc"], 8.0, quiet=True, pooled=True)
     critic, fleet = summary["critic"], summary["fleet"]

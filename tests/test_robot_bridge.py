@@ -775,7 +775,7 @@ def test_up_with_the_emulated_robot() -> None:
     assert emulator["counters"].get("nonfinite_commands", 0) == 0
     assert emulator["counters"].get("rejected_no_attachment", 0) == 0
     assert emulator["applied"] == [0.0, 0.0]  # stopped at the end
-    assert summary["transitions_received"] == summary["steps"]
+    assert summary["critic"]["transitions_received"] == summary["steps"]
 
 
 def test_the_up_summary_says_what_the_robots_pose_is() -> None:

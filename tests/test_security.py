@@ -641,8 +641,8 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["secure"] is True and set(summary["services"]) == {"router", "plant", "critic", "actor"}
     assert summary["steps"] >= (45 if mode == "realtime" else 50)
-    assert summary["transitions_received"] >= summary["steps"]
-    assert summary["weights_version"] > 0 and summary["critic_weights_published"] >= summary["steps"] - 1
+    assert summary["critic"]["transitions_received"] >= summary["steps"]
+    assert summary["weights_version"] > 0 and summary["critic"]["weights_published"] >= summary["steps"] - 1
     if mode == "lockstep":  # the synchronous critic's weights came through every step
         assert summary["critic_timeouts"] == 0 and summary["staleness_steps"]["max"] == 0
     assert [d.name.startswith("srl-secure-") for d in credential_dirs] == [True]
@@ -654,7 +654,7 @@ def test_srl_up_secure_runs_and_removes_its_credentials(tmp_path: Path, mode: st
         assert reset_replies == [], "real time: the router let the actor role reset the plant"
     print(
         f"\nfigures: srl up --secure --mode {mode}: {summary['steps']} steps, weights version "
-        f"{summary['weights_version']}, {summary['transitions_received']} transitions at the critic; "
+        f"{summary['weights_version']}, {summary['critic']['transitions_received']} transitions at the critic; "
         f"the actor role's plant/reset query got {len(reset_replies)} replies"
     )
 

@@ -17,7 +17,7 @@ from common.contracts.keys import STATUS
 from common.contracts.messages import ServiceStatus
 from common.contracts.summaries import format_status_line
 from tests.harness import cluster, wait_until
-from tools.launch.up import StatusMonitor
+from tools.launch.measure import status_monitor
 
 QUIET = {"x": 0.5, "y": 0.0, "alpha": 0.0, "steps": 10.0, "plant_sources": 1.0}
 
@@ -42,7 +42,7 @@ def test_the_monitor_merges_the_plant_refusals_into_the_actor_status() -> None:
     robot = "st_m"
     with cluster(robot=robot) as c:
         assert c.session is not None
-        monitor = StatusMonitor(Settings.load(transport={"router": c.endpoint, "robot": robot}))
+        monitor = status_monitor(Settings.load(transport={"router": c.endpoint, "robot": robot}))
         try:
             publishers = {
                 service: c.session.declare_publisher(STATUS.key(robot, service=service))
@@ -76,7 +76,7 @@ def test_a_monitor_without_an_actor_status_shows_nothing() -> None:
     robot = "st_n"
     with cluster(robot=robot) as c:
         assert c.session is not None
-        monitor = StatusMonitor(Settings.load(transport={"router": c.endpoint, "robot": robot}))
+        monitor = status_monitor(Settings.load(transport={"router": c.endpoint, "robot": robot}))
         try:
             publisher = c.session.declare_publisher(STATUS.key(robot, service="plant"))
             for _ in range(20):

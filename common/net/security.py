@@ -157,7 +157,7 @@ def role_rules(robots: str | Sequence[str], *, lockstep: bool) -> dict[str, list
 
     A fleet (several ids): each rule grants its keys for every robot of the fleet (one host
     process serves many robots under one login), and the monitor -- the read-only observer whose
-    readiness probes and status lines cover the whole fleet (tools/launch/fleet.py) -- may also watch
+    readiness probes and status lines cover the whole fleet (tools/launch/up.py) -- may also watch
     every robot's liveliness and read every robot's status and state (``srl/*/alive/...``,
     ``srl/*/status/*``, ``srl/*/state``)."""
     ids = [robots] if isinstance(robots, str) else list(robots)

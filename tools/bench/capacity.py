@@ -1,8 +1,8 @@
 """``srl bench capacity``: what one robot costs each component, and what a large fleet needs.
 
 Runs the simulated fleet (``srl up --robots K``, host layout: router, plant host, critic, actor
-hosts) at a few sizes, real time, with a counter subscribed to ``srl/**`` (tools/launch/fleet.py's
-:class:`~tools.launch.fleet.MessageCounter`). From each run: every process's CPU over the run (from
+hosts) at a few sizes, real time, with a counter subscribed to ``srl/**`` (tools/launch/measure.py's
+:class:`~tools.launch.measure.MessageCounter`). From each run: every process's CPU over the run (from
 /proc) and every message kind's count and bytes. A straight line through the sizes (least
 squares) splits each component's CPU into a fixed part and a part per robot; messages per robot
 and second are the counts over robots and seconds (their spread over the sizes is printed too).

@@ -12,7 +12,7 @@ that CPU per robot per sampling interval, their total resident memory, and the m
 average before and after. Targets (PASS/FAIL) at 50, 100 and 300 robots, the soak's (RSS
 growth <= 2 % at 50 robots over 600 s and more), and with ``--record`` a complete recording (its
 writer dropped nothing). Every run is bounded (start-up timeouts, then
-``--seconds``) and every process is stopped after it (tools/launch/fleet.py). ``--record``: every
+``--seconds``) and every process is stopped after it (tools/launch/up.py). ``--record``: every
 row with ``srl record`` attached for the whole run (a subscriber to every robot's keys, as a user
 records a fleet), its file in a temporary directory removed after the row.
 """
@@ -32,8 +32,8 @@ from common.config.arguments import UsageError
 from common.config.settings import Settings
 from common.math.fleet import FleetError, parse_robots
 from tools.bench.meta import run_info
-from tools.launch.fleet import actor_hosts, run_fleet
 from tools.launch.supervisor import ServiceDiedError
+from tools.launch.up import actor_hosts, run_fleet
 
 TARGETS: dict[int, dict[str, float]] = {
     50: {"missed_deadlines": 0, "latency_p99_ms": 20.0, "staleness_p99_steps": 1.0},

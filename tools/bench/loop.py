@@ -50,8 +50,8 @@ def run_loop_benchmark(args: argparse.Namespace, settings: Settings, settings_ar
         "latency_ms": summary.get("latency_ms"),
         "staleness_steps": summary.get("staleness_steps"),
         "staleness_ms": summary.get("staleness_ms"),
-        "critic_fit_ms": summary.get("critic_fit_ms"),
-        "transitions_received": summary.get("transitions_received"),
+        "critic_fit_ms": summary["critic"]["fit_ms"],
+        "transitions_received": summary["critic"]["transitions_received"],
         "resources": summary.get("resources"),
         # other work on the machine disturbs real-time numbers: say how much there was
         "machine": {"cpus": os.cpu_count(), "load_before": list(load_before), "load_after": list(load_after)},

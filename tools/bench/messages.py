@@ -278,7 +278,7 @@ class _Child:
 
 def one_run(router: tuple[str, int], kind: str, way: str, robots: int, seconds: float, period: float) -> dict[str, Any]:
     """One run over the wire: CPU per robot message of each process, and what arrived."""
-    from tools.launch.fleet import cpu_of
+    from tools.launch.measure import cpu_of
 
     endpoint, router_pid = router
     here = [sys.executable, "-m", "tools.bench.messages"]

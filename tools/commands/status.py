@@ -32,11 +32,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """The actor's status line once a second, from a monitor session, until Ctrl-C or --seconds."""
-    from tools.launch.up import StatusMonitor
+    from tools.launch.measure import status_monitor
 
     settings = settings_from_args(args)
     with stop_on_signals() as stop:
-        monitor = connect_with_retry(lambda: StatusMonitor(settings), settings, "status", args.connect_timeout, stop)
+        monitor = connect_with_retry(lambda: status_monitor(settings), settings, "status", args.connect_timeout, stop)
         try:
             started, shown, first_version = time.monotonic(), 0, []  # type: ignore[var-annotated]
             end = None if args.seconds is None else started + args.seconds

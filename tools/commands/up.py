@@ -1,11 +1,12 @@
-"""``srl up``: the router and every service as separate processes, one run (tools/launch/up.py),
-or a fleet with ``--robots`` (tools/launch/fleet_cli.py); a live status line and the merged summary."""
+"""``srl up``: the router and every service as separate processes, one run of the robot of the
+settings or of a fleet (``--robots``), both by tools/launch/up.py; a live status line and the summary."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -15,16 +16,22 @@ from common.config.arguments import (
     COMMAND_SETTINGS,
     UsageError,
     add_bridge_arguments,
+    add_circle_argument,
     add_mode_argument,
+    add_robot_endpoints_argument,
+    add_robots_argument,
     add_settings_arguments,
     bridge_argv,
+    fleet_robots,
+    ros_fleet_endpoints,
     settings_argv,
     settings_from_args,
 )
-from common.contracts.summaries import format_status_line
+from common.config.settings import Settings
+from common.math.fleet import ROS_FLEET_PREFIX
 from tools.commands.run import fmt_state, truth_lines
 from tools.commands.view import VIEW_PORT
-from tools.launch.plants import LAUNCH_PLANTS, launch_plant_help
+from tools.launch.plants import LAUNCH_PLANTS, LAYOUTS, launch_plant, launch_plant_help
 
 NAME = "up"
 HELP = "router + every service as separate processes, one run"
@@ -35,8 +42,6 @@ DESCRIPTION = (
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from tools.launch.fleet_cli import add_fleet_arguments
-
     add_settings_arguments(parser, COMMAND_SETTINGS[NAME])
     add_bridge_arguments(parser)
     parser.add_argument(
@@ -83,28 +88,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from tools.launch.supervisor import ServiceDiedError, Stopped, tls_endpoint
-    from tools.launch.up import UpOptions, run_up
+    from tools.launch.supervisor import ServiceDiedError, Stopped, local_router_endpoint, tls_endpoint
+    from tools.launch.up import UpOptions, actor_hosts, check_options, format_fleet_summary, run_up
 
     settings = settings_from_args(args)
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
-    if args.robots is None and args.critic is not None:
-        raise UsageError("--critic per-robot|pooled chooses a fleet's critic: give --robots K too")
-    if args.robots is not None:  # a fleet: tools/launch/fleet.py (docs/fleets.md)
-        from tools.launch.fleet_cli import cmd_up_fleet
+    robots, endpoints, bridge_args = fleet_of(args, settings)
+    if robots is None:
+        router = settings.transport.router
+        if args.secure:  # the same address over mutual TLS (tools/launch/supervisor.py Logins)
+            router = tls_endpoint(router) or router
+        listens = f"srl up: the router listens on {router}"
+    else:  # a fleet's router: a free port unless given (docs/fleets.md)
+        router = local_router_endpoint(settings.transport.router, given=args.router is not None)
+        default_router = Settings.load(args.config).transport.router  # where srl record and srl view look
+        if args.view is not None:
+            why = "" if args.router is not None else f": {default_router} is taken"
+            again = "" if router == default_router else f" (with `--router {router}`{why})"
+            raise UsageError(
+                f"--view does not start with --robots yet: run the fleet without it{again} and, beside "
+                f"it, {beside_commands(args, router, default_router)} (both carry every robot)"
+            )
+        listens = f"srl up: the fleet's router listens on {router}; beside it: " + beside_commands(
+            args, router, default_router
+        )
 
-        return cmd_up_fleet(args, settings, settings_argv(args), summary_dir)
-    router = settings.transport.router
-    if args.secure:  # the same address over mutual TLS (tools/launch/supervisor.py Logins)
-        router = tls_endpoint(router) or router
-    print(f"srl up: the router listens on {router}", file=sys.stderr, flush=True)
-    started = time.monotonic()
-
-    first_version: list[float] = []
-
-    def show_status(counters: dict[str, float]) -> None:
-        line = format_status_line(counters, time.monotonic() - started, first_version)
+    def show(line: str) -> None:
         print(f"srl up {line}", file=sys.stderr, flush=True)
 
     options = UpOptions(
@@ -113,13 +123,25 @@ def main(args: argparse.Namespace) -> int:
         plant=args.plant,
         duration=settings.episode.duration,
         sync_critic=args.mode == "lockstep",
-        bridge_args=bridge_argv(args),
+        bridge_args=bridge_args,
         secure=args.secure,
-        on_status=show_status,
+        on_status=show,
         summary_dir=summary_dir,
         record=args.record,
         view_port=args.view,
+        robots=robots,
+        layout=args.layout,
+        circle=args.circle,
+        actor_hosts=1 if robots is None else actor_hosts(str(args.actor_hosts), len(robots)),
+        pooled=settings.critic.pooled if args.critic is None else args.critic == "pooled",
+        robot_endpoints=endpoints,
+        router=None if robots is None else router,
     )
+    try:  # a run that cannot be is one line, before anything is said or started
+        check_options(options, robots or [settings.transport.robot])
+    except ValueError as error:
+        raise UsageError(str(error)) from error
+    print(listens, file=sys.stderr, flush=True)
     try:
         summary = run_up(settings, options)
     except Stopped as stopped:  # SIGINT, SIGTERM, SIGHUP: everything was stopped, credentials removed
@@ -130,10 +152,79 @@ def main(args: argparse.Namespace) -> int:
     except (TimeoutError, ValueError) as error:
         raise UsageError(str(error)) from error
     summary.pop("trajectory", None)
-    print(format_up_summary(summary))
+    # one robot (the settings' or a fleet of one): its own summary; a fleet: a row per robot
+    print(format_up_summary(summary) if len(summary["robots"]) == 1 else format_fleet_summary(summary))
     if args.json:
         print(json.dumps(summary))
     return 0
+
+
+def fleet_of(args: argparse.Namespace, settings: Settings) -> tuple[list[str] | None, dict[str, str], list[str]]:
+    """``--robots``' fleet (None: the robot of the settings), the real robots' endpoints and the
+    bridges' flags; one line (UsageError) for fleet options without a fleet or a namespace with one."""
+    if args.robots is None:
+        if args.critic is not None:
+            raise UsageError("--critic per-robot|pooled chooses a fleet's critic: give --robots K too")
+        if getattr(args, "robot_endpoints", None):
+            raise UsageError("--robot-endpoints is for a fleet: give --robots K too (one robot: --robot-endpoint)")
+        return None, {}, bridge_argv(args)
+    bridged = launch_plant(args.plant).behind_bridge  # the parser's choices are the rows
+    robots = fleet_robots(args, ROS_FLEET_PREFIX if bridged else "robot")
+    assert robots is not None
+    if not bridged:
+        if getattr(args, "robot_endpoints", None):
+            raise UsageError("--robot-endpoints is for --plant robot")
+        return robots, {}, bridge_argv(args)
+    if settings.bridge.namespace:
+        raise UsageError(
+            f"bridge.namespace {settings.bridge.namespace!r} with --robots: each robot's namespace is its id"
+        )
+    endpoints = ros_fleet_endpoints(args, robots, settings.bridge.robot_endpoint)
+    # each robot's namespace and endpoint are the fleet's own (tools/launch/fleet_robot.py)
+    flags = [a for a in bridge_argv(args) if a.split("=", 1)[0] not in ("--namespace", "--robot-endpoint")]
+    return robots, endpoints, flags
+
+
+def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
+    """``srl up``'s fleet options (docs/fleets.md)."""
+    add_robots_argument(
+        parser,
+        f"a fleet (real time; with --plant robot each robot's id is its ROS namespace, K: {ROS_FLEET_PREFIX}1.."
+        f"{ROS_FLEET_PREFIX}K): ",
+    )
+    add_robot_endpoints_argument(parser)
+    parser.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        default="host",
+        help="with --robots: host = one actor and one plant process for every robot; "
+        "process = one actor and one plant_sim per robot (default: host)",
+    )
+    add_circle_argument(parser)
+    parser.add_argument(
+        "--actor-hosts",
+        default="auto",
+        metavar="H|auto",
+        help="with --robots (host layout): split the robots over H actor hosts; auto = 1 below 50 robots, "
+        "else one per core (default: auto)",
+    )
+    parser.add_argument(
+        "--critic",
+        choices=("per-robot", "pooled"),
+        help="with --robots: a learner per robot, or one pooled learner trained on every robot's transitions "
+        "(default: setting critic.pooled, false: per-robot)",
+    )
+
+
+def beside_commands(args: argparse.Namespace, router: str, default_router: str) -> str:
+    """The exact ``srl record`` and ``srl view`` commands that join this fleet: ``--router`` when
+    the fleet's router is not where they look by default, ``--config`` when one was given."""
+    flags = "" if router == default_router else f" --router {router}"
+    if args.config is not None:
+        flags += f" --config {shlex.quote(str(args.config))}"
+    record = shlex.quote(str(args.record)) if getattr(args, "record", None) is not None else "FILE.mcap"
+    port = f" --port {args.view}" if getattr(args, "view", None) not in (None, VIEW_PORT) else ""
+    return f"`srl record {record}{flags}`, `srl view{port}{flags}`"
 
 
 def default_runs_dir() -> Path:
@@ -174,14 +265,15 @@ def format_up_summary(summary: dict[str, Any]) -> str:
     # what the robot's pose is: odometry drifts with wheel slip (docs/turtlebot-localization.md)
     if summary.get("bridge"):
         lines.append(f"  localization   {summary['bridge'].get('localization', 'odometry only')}")
+    critic = summary.get("critic") or {}
     lines.append(
-        f"  critic         {summary.get('transitions_received')} transitions received, "
+        f"  critic         {critic.get('transitions_received')} transitions received, "
         f"actor used weights version {summary.get('weights_version')}"
     )
-    if summary.get("critic_checkpoint"):
+    if critic.get("checkpoint"):
         lines.append(
-            f"  checkpoint     {summary['critic_checkpoint']} "
-            f"({'restored' if summary.get('critic_restored') else 'fresh critic; --resume to restore'})"
+            f"  checkpoint     {critic['checkpoint']} "
+            f"({'restored' if critic.get('restored') else 'fresh critic; --resume to restore'})"
         )
     if summary.get("summary_dir"):
         lines.append(f"  summaries      {summary['summary_dir']}/<service>.json")

@@ -1,19 +1,22 @@
-"""``srl up --robots K --plant robot``: a fleet of ROS 2 robots behind robot bridges (docs/fleets.md).
+"""``srl up --plant robot``: ROS 2 robots behind robot bridges (docs/robot.md, docs/fleets.md).
 
-Each robot's srl id is its ROS namespace (common/math/fleet.py ``ros_fleet``; ``--robots K`` names
-them ``tb3_1`` .. ``tb3_K``). Without endpoints, K emulated TurtleBot3s are started, each under
-its namespace and as its own Zenoh router on a free loopback port (as a real robot runs
-``rmw_zenohd``; under ``--secure`` secured as the one robot's, :func:`spawn_robot_plants`), from
-distinct starts on the fleet's circle. With ``--robot-endpoints`` /
-``--robot-endpoint`` no emulator is started: the bridges talk to the real robots there.
+The robot of the settings (``srl up --plant robot``) is named, placed and reached as its settings
+say (``bridge.namespace``, ``episode.start``, ``bridge.robot_endpoint``). In a fleet each robot's
+srl id is its ROS namespace (common/math/fleet.py ``ros_fleet``; ``--robots K`` names them
+``tb3_1`` .. ``tb3_K``). Without endpoints, the robots are emulated TurtleBot3s, each under its
+namespace and as its own Zenoh router on a free loopback port (as a real robot runs ``rmw_zenohd``;
+under ``--secure`` secured, :func:`spawn_robot_plants`), a fleet's from distinct starts on its
+circle. With ``--robot-endpoints`` / ``--robot-endpoint`` no emulator is started: the bridges talk
+to the real robots there.
 Layout ``host``: one bridge host for every robot (services/robot_bridge/host.py); ``process``:
-one ``srl robot-bridge`` per robot. tools/launch/fleet.py starts the rest (router, critic, actors)
-exactly as for a simulated fleet.
+one ``srl robot-bridge`` per robot. tools/launch/up.py starts the rest (router, critic, actors)
+exactly as for simulated robots.
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import threading
 import time
@@ -32,12 +35,10 @@ from common.net.transport import zenoh_config
 from services.robot_bridge.robot_router import RobotLogins, robot_router_reachable
 from tools.launch.supervisor import Supervisor, free_loopback_endpoint, tls_endpoint
 
+log = logging.getLogger(__name__)
+
 EMULATOR_READY_S = 30.0  # [s] an emulator's router answers (as srl up --plant robot waits)
 ODOMETRY_READY_S = 60.0  # [s] every robot's first state through its bridge
-
-
-def bridge_names(robots: list[str], layout: str) -> list[str]:
-    return ["robot_bridge"] if layout == "host" else [f"robot_bridge-{robot}" for robot in robots]
 
 
 def spawn_robot_plants(
@@ -45,44 +46,44 @@ def spawn_robot_plants(
     settings: Settings,
     common: list[str],
     robots: list[str],
-    starts: list[tuple[float, float, float]],
+    starts: list[tuple[float, float, float]] | None,
     endpoints: dict[str, str],
     bridge_args: list[str],
     layout: str,
     login: dict[str, str] | None = None,
     robot_secrets: Path | None = None,
 ) -> dict[str, str]:
-    """The emulated robots (for robots without an endpoint) and the bridge(s); robot -> endpoint.
-    ``login``: the bridges' login environment (the plant role's, ``--secure``). ``robot_secrets``
-    (``--secure``): a directory for the emulated robots' router credentials; each emulated robot's
-    own router is then secured as ``srl up --plant robot --secure`` secures the one robot's
-    (tools/launch/up.py; docs/security.md, "The robot's own router"): ``tls/``, a login and the
-    robot's access rules for its namespace, from ONE set of credentials
-    (services/robot_bridge/robot_router.py ``RobotLogins``), since one bridge host logs in to every
-    robot with one ``bridge.robot_*``. Real robots' routers are as their owners configured them."""
+    """The emulated robots (for robots without an endpoint) and the bridge(s) (children named
+    ``robot_bridge``...: stopped first); robot -> endpoint. ``starts`` None: the robot of the settings, its
+    namespace, start and endpoint (``bridge.robot_endpoint``) the settings' (``srl up --plant robot``);
+    else a fleet, each robot's namespace its id, emulated from its start. ``login``: the bridges'
+    login environment (the plant role's, ``--secure``). ``robot_secrets`` (``--secure``): a directory
+    for the emulated robots' router credentials; each emulated robot's own router is then secured
+    (docs/security.md, "The robot's own router"): ``tls/``, a login and the robot's access rules
+    for its namespace, from ONE set of credentials (services/robot_bridge/robot_router.py
+    ``RobotLogins``), since one bridge host logs in to every robot with one ``bridge.robot_*``. Real
+    robots' routers are as their owners configured them."""
+    own = starts is None  # the robot of the settings: named by the user's flags, not the fleet's
     fleet = dict(endpoints)
+    if own and settings.bridge.robot_endpoint:
+        fleet[robots[0]] = settings.bridge.robot_endpoint
     emulated = [robot for robot in robots if not fleet.get(robot)]
     robot_logins = RobotLogins.create(robot_secrets) if robot_secrets is not None and emulated else None
     emulator_env = None if robot_logins is None else robot_logins.emulator_environment
     if robot_logins is not None:  # the robot's credentials go to the bridges only
         login = {**(login or {}), **robot_logins.bridge_environment}
-    for robot, start in zip(robots, starts, strict=True):
+    for i, robot in enumerate(robots):
         if fleet.get(robot):
             continue  # a real robot: it is where it is
         endpoint = free_loopback_endpoint()
         fleet[robot] = endpoint = endpoint if robot_logins is None else tls_endpoint(endpoint) or endpoint
+        where = [] if starts is None else [f"--namespace={robot}", "--start=" + ",".join(repr(c) for c in starts[i])]
         supervisor.spawn(
-            f"tb3_emulator-{robot}",
-            [
-                "tb3-emulator",
-                *common,
-                *bridge_args,
-                f"--namespace={robot}",
-                f"--listen={endpoint}",
-                "--start=" + ",".join(repr(c) for c in start),
-            ],
+            "tb3_emulator" if own else f"tb3_emulator-{robot}",
+            ["tb3-emulator", *common, *bridge_args, *where, f"--listen={endpoint}"],
             emulator_env,
         )
+        log.info("the emulated robot's Zenoh router: %s (robot %s)", endpoint, robot)
     for robot in emulated:  # reachable as its bridge reaches it (with the login, if any)
         probe = (
             settings.bridge.model_copy(update={"robot_endpoint": fleet[robot]})
@@ -94,7 +95,12 @@ def spawn_robot_plants(
             functools.partial(robot_router_reachable, probe, settings.transport),
             timeout=EMULATOR_READY_S,
         )
-    if layout == "host":
+    if own:
+        (robot,) = robots
+        supervisor.spawn(
+            "robot_bridge", ["robot-bridge", *common, *bridge_args, f"--robot-endpoint={fleet[robot]}"], login
+        )
+    elif layout == "host":
         spec = ",".join(f"{robot}={fleet[robot]}" for robot in robots)
         supervisor.spawn(
             "robot_bridge",
@@ -118,7 +124,7 @@ def spawn_robot_plants(
     return fleet
 
 
-def wait_fleet_odometry(supervisor: Supervisor, settings: Settings, fleet: dict[str, str]) -> None:
+def wait_odometry(supervisor: Supervisor, settings: Settings, fleet: dict[str, str]) -> None:
     """Until every robot's state came through its bridge; the robots still silent are named."""
     seen: set[str] = set()
     lock = threading.Lock()
@@ -132,7 +138,9 @@ def wait_fleet_odometry(supervisor: Supervisor, settings: Settings, fleet: dict[
             seen.add(robot)
 
     session = zenoh.open(zenoh_config(settings.transport))
-    subscriber = session.declare_subscriber(STATE.pattern.format(robot="*"), on_state)
+    # one robot's own key: a secured router grants the monitor role that robot's keys, not srl/*
+    robot = next(iter(fleet)) if len(fleet) == 1 else "*"
+    subscriber = session.declare_subscriber(STATE.pattern.format(robot=robot), on_state)
     try:
         deadline = time.monotonic() + ODOMETRY_READY_S
         while time.monotonic() < deadline:
@@ -149,13 +157,6 @@ def wait_fleet_odometry(supervisor: Supervisor, settings: Settings, fleet: dict[
     finally:
         subscriber.undeclare()
         session.close()
-
-
-def stop_bridges(supervisor: Supervisor, robots: list[str], layout: str) -> None:
-    """The bridges first, so that their last zero reaches the robots (as srl up --plant robot)."""
-    for name in bridge_names(robots, layout):
-        if name in supervisor.children:
-            supervisor.stop_one(name)
 
 
 def robot_fleet_summary(supervisor: Supervisor, settings: Settings, robots: list[str], layout: str) -> dict[str, Any]:

@@ -1,6 +1,5 @@
-"""What ``srl up --plant`` starts as the robot's plant: one row per choice, read by ``srl up`` and
-``srl up --robots`` (tools/launch/up.py, tools/launch/fleet.py), their command line and the
-Variants page (``srl docs``).
+"""What ``srl up --plant`` starts as the robots' plant: one row per choice, read by ``srl up`` (one
+robot and a fleet, tools/launch/up.py), its command line and the Variants page (``srl docs``).
 
 A row says whether the plant is a robot behind the robot bridge (a ROS 2 TurtleBot3: the
 emulator unless ``bridge.robot_endpoint`` names a real one; real time only, a robot cannot be
@@ -24,6 +23,10 @@ class LaunchPlant:
     behind_bridge: bool
     model: str | None = None
 
+
+# how a fleet's robots are laid out in processes (``srl up --layout``): ``host``, one host of every
+# robot per service (actor hosts: --actor-hosts); ``process``, one plant and one actor per robot
+LAYOUTS = ("host", "process")
 
 LAUNCH_PLANTS: dict[str, LaunchPlant] = {
     "sim": LaunchPlant("plant_sim of plant.model", behind_bridge=False),

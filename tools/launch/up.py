@@ -1,30 +1,45 @@
-"""``srl up``: the router and every service as separate child processes, one run.
+"""``srl up``: the router and every service as child processes, one run, for one robot or a fleet.
 
-The children are started, watched and stopped by tools/launch/supervisor.py. While the actor runs,
-its 1 Hz status (``srl/<robot>/status/actor``) is handed to ``on_status`` (``srl up`` prints a
-status line). The actor defines the end of the run: when it exits, the others are stopped
-(SIGINT, then SIGKILL after a grace period). If any child dies first, everything is stopped and
-``srl up`` exits non-zero naming it. Each child's JSON summary is written to
-``<summary_dir>/<name>.json``.
+One launcher for every size (docs/fleets.md). The robots of a run are either **the robot of the
+settings** (``transport.robot`` at ``episode.start``, named to each child by the user's own flags:
+``srl up``) or **a fleet** (``UpOptions.robots``: ``srl up --robots K``), started evenly on a circle
+around the target (common/math/fleet.py) and named to each child by the launcher
+(:func:`robot_flags`). Everything else is the same code: the router, the observers (``srl record``,
+``srl view``), the plants (a plant host, one ``plant-sim`` per robot, or robots behind bridges),
+the critic, the actor host(s), the watch (:func:`tools.launch.measure.measure_run`: a status line a
+second, CPU and memory from /proc) and one summary (:func:`run_summary`).
+
+Layouts of a fleet: ``host`` (the default): ONE actor host per core from 50 robots
+(``--actor-hosts``), ONE plant host and the critic, whatever the fleet's size; ``process`` (the
+baseline of ``srl bench fleet``): one ``plant-sim`` and one ``actor`` per robot.
+
+The children are started, watched and stopped by tools/launch/supervisor.py. The actors define the
+end of the run: when they exit, the others are stopped (SIGINT, then SIGKILL after a grace period).
+If any child dies first, everything is stopped and ``srl up`` exits non-zero naming it. Each child's
+JSON summary is written to ``<summary_dir>/<name>.json``.
 
 ``--plant physics`` is ``plant-sim`` with ``plant.model = "physics"`` (the MuJoCo TurtleBot3,
-common/math/physics.py) for every child. ``--plant robot`` starts ``robot-bridge`` (and
-``tb3-emulator``, of ``plant.model``, unless a robot endpoint is configured) instead of
-``plant-sim``; the bridge is stopped (and has commanded zero velocity) before everything else. The
-emulator runs as the robot's own Zenoh router on a free loopback port (as a real robot runs
-``rmw_zenohd``) and the bridge talks to it there: when srl's router dies, the
-bridge still reaches the robot and stops it (the actor's liveliness token vanishes from the
-bridge's srl session within milliseconds).
+common/math/physics.py) for every child. ``--plant robot`` starts robot bridges (and TurtleBot3
+emulators, of ``plant.model``, for the robots without a robot endpoint: tools/launch/fleet_robot.py)
+instead of plants; the bridges are stopped (and have commanded zero velocity) before everything
+else. Each emulated robot runs as its own Zenoh router on a free loopback port (as a real robot runs
+``rmw_zenohd``) and its bridge talks to it there: when srl's router dies, the bridge still reaches
+the robot and stops it (the actor's liveliness token vanishes from the bridge's srl session within
+milliseconds).
+
+Lockstep (the paper's Algorithm 1 through the services: ``plant/step`` queries, the critic
+synchronous with ``sync_critic``) runs the robot of the settings only: a fleet's robots, and a robot
+behind a bridge, move in real time.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
-import logging
 import math
 import os
+import shutil
 import signal
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -38,13 +53,19 @@ from common.config.settings import Settings
 from common.contracts.summaries import (
     ACTOR_SUMMARY,
     CriticSummary,
+    FleetActorSummary,
+    FleetView,
     LockstepActorSummary,
     RealtimeActorSummary,
+    fleet_view,
+    format_status_line,
 )
+from common.math.fleet import circle_starts, split_evenly
 from common.math.frames import Pose2D, to_goal_frame
 from common.net.transport import zenoh_config
-from services.robot_bridge.robot_router import RobotLogins, robot_router_reachable
-from tools.launch.plants import launch_plant, with_launch_plant
+from common.process.runtime import fleet_hosts
+from tools.launch.measure import RobotStatuses, RunMeasures, measure_run
+from tools.launch.plants import LAYOUTS, launch_plant, with_launch_plant
 from tools.launch.supervisor import (
     CHILD_SUMMARIES,
     Child,
@@ -53,92 +74,381 @@ from tools.launch.supervisor import (
     ServiceDiedError,
     StopSignals,
     Supervisor,
-    alive_probe,
     contract_summary,
     free_loopback_endpoint,
     optional_summary,
     router_reachable,
     said,
-    state_probe,
     tls_endpoint,
     write_child_summaries,
 )
 
-log = logging.getLogger(__name__)
+# settings flags a fleet sets per child itself (the router is fresh, robots and starts its own)
+OWN_FLAGS = ("--router", "--robot", "--start", "--duration")
+FLEET_TRANSITION_CACHE = 600  # transitions per robot kept for a late critic (60 s at delta = 0.1 s)
+# [s] the slowest start seen here: 100 robots' subscriptions and tokens on a loaded 2-core machine
+READY_TIMEOUT = 120.0
 
 
 @dataclass(frozen=True)
 class UpOptions:
     """One ``srl up`` run, as :func:`run_up` takes it.
 
-    ``plant``: ``sim`` (plant_sim), ``physics`` (plant_sim with the MuJoCo TurtleBot3) or ``robot``
-    (the robot bridge, and the TurtleBot3 emulator unless ``settings.bridge.robot_endpoint`` names a
-    real robot; real time only: a robot cannot be stepped by a lockstep query).
-    ``sync_critic``: the lockstep actor waits for the weights trained on the previous step.
-    ``settings_args``: the settings flags every child gets; ``bridge_args``: the bridge and
-    emulator's own. ``secure``: fresh logins per role and mutual TLS (:class:`Logins`).
-    ``on_status``: handed the actor's status counters once a second. ``record``: an ``srl record``
-    child writes every robot to this MCAP file; ``view_port``: an ``srl view`` child serves the run
-    to Foxglove on that loopback port."""
+    ``plant``: a row of tools/launch/plants.py (``sim``, ``physics``, ``robot``: the robot bridge,
+    and the TurtleBot3 emulator unless a robot endpoint names a real robot; real time only: a robot
+    cannot be stepped by a lockstep query). ``sync_critic``: the lockstep actor waits for the weights
+    trained on the previous step. ``settings_args``: the settings flags every child gets;
+    ``bridge_args``: the bridges' and emulators' own. ``secure``: fresh logins per role and mutual TLS
+    (:class:`Logins`). ``on_status``: handed ``srl up``'s status line once a second (one robot: its
+    actor's status, tools/launch/measure.py; a fleet: every robot's). ``record``: an ``srl record``
+    child writes every robot to this MCAP file for the whole run (subscribed before the first state);
+    ``view_port``: an ``srl view`` child serves the run to Foxglove on that loopback port. Neither
+    runs with ``secure`` (the read-only monitor role may not read the transitions and weights).
+
+    The fleet: ``robots`` (None: the robot of the settings), its ``layout``, the ``circle`` [m] its
+    robots start on, ``actor_hosts`` (host layout), one ``pooled`` critic learner or one per robot,
+    the ``robot_endpoints`` of real robots (``plant="robot"``; the others are emulated),
+    ``count_messages`` (every robot message routed, by kind: ``srl bench capacity``) and the
+    ``router`` endpoint (default: the settings' for the robot of the settings, else a free loopback
+    port, so that fleets side by side never meet)."""
 
     settings_args: list[str]
-    mode: str
-    plant: str
-    duration: float
+    mode: str = "realtime"
+    plant: str = "sim"
+    duration: float = 30.0
     sync_critic: bool = False
     quiet: bool = False
     bridge_args: list[str] = field(default_factory=list)
     secure: bool = False
-    on_status: Callable[[dict[str, float]], None] | None = None
+    on_status: Callable[[str], None] | None = None
     summary_dir: Path | None = None
     record: Path | None = None
     view_port: int | None = None
-
-
-class StatusMonitor:
-    """The actor's newest 1 Hz status (``srl/<robot>/status/actor``), seen from a monitor session,
-    with the plant's refusal counters (``srl/<robot>/status/plant``: the bridge's refused and
-    resynchronized actions) merged in under ``plant.``."""
-
-    def __init__(self, settings: Settings) -> None:
-        from common.contracts.keys import STATUS
-        from common.contracts.messages import ServiceStatus
-
-        self.actor: dict[str, float] | None = None
-        self.plant: dict[str, float] = {}
-        self.seen = 0
-        self.session = zenoh.open(zenoh_config(settings.transport))
-
-        def on_sample(sample: Any) -> None:
-            try:
-                status = ServiceStatus.model_validate_json(sample.payload.to_bytes())
-            except ValueError:
-                return  # the actor's own schema: a bad one is not ours to report
-            if status.service == "actor":
-                self.actor = dict(status.counters)
-                self.seen += 1
-            else:  # only what says whether actions are being refused: the line stays short
-                self.plant = {
-                    f"plant.{k}": v
-                    for k, v in status.counters.items()
-                    if k.startswith("rejected.action") or k == "action_resyncs"
-                }
-
-        robot = settings.transport.robot
-        self.subscribers = [
-            self.session.declare_subscriber(STATUS.key(robot, service=service), on_sample)
-            for service in ("actor", "plant")
-        ]
+    robots: list[str] | None = None
+    layout: str = "host"
+    circle: float = 1.5
+    actor_hosts: int = 1
+    pooled: bool = False
+    robot_endpoints: dict[str, str] = field(default_factory=dict)
+    count_messages: bool = False
+    router: str | None = None
 
     @property
-    def latest(self) -> dict[str, float] | None:
-        return None if self.actor is None else {**self.actor, **self.plant}
+    def fleet(self) -> bool:
+        """Robots named by the launcher (``--robots``), not the robot of the settings."""
+        return self.robots is not None
 
-    def close(self) -> None:
-        for subscriber in self.subscribers:
-            with contextlib.suppress(zenoh.ZError):
-                subscriber.undeclare()
-        self.session.close()
+
+def actor_hosts(option: str, size: int) -> int:
+    """``--actor-hosts``: a number, or ``auto`` (common.process.runtime.fleet_hosts)."""
+    return fleet_hosts(option, size, "--actor-hosts")
+
+
+def host_shares(robots: list[str], hosts: int) -> dict[str, list[str]]:
+    """The robots of each actor host (common.math.fleet.split_evenly): ``actor`` alone, else
+    ``actor-1`` .. ``actor-H`` (one per core: one host's solves run in one thread)."""
+    shares = split_evenly(robots, hosts)
+    return {"actor": shares[0]} if hosts == 1 else {f"actor-{h + 1}": share for h, share in enumerate(shares)}
+
+
+def exit_code(code: int | None) -> int | None:
+    """A child's exit code, its stop by our SIGINT counted as a clean end (0)."""
+    return 0 if code == -signal.SIGINT else code
+
+
+def robot_flags(options: UpOptions, robots: list[str]) -> list[str]:
+    """How a host child (plant, critic, actor of every robot) is told its robots: nothing for the
+    robot of the settings (the user's flags name it and its start), ``--robots`` for a fleet."""
+    return [f"--robots={','.join(robots)}"] if options.fleet else []
+
+
+def run_arguments(options: UpOptions, router: str) -> list[str]:
+    """Every child's settings flags: the user's; a fleet's without those it sets per child, and its router."""
+    if not options.fleet:
+        return list(options.settings_args)
+    return [a for a in options.settings_args if a.split("=", 1)[0] not in OWN_FLAGS] + [f"--router={router}"]
+
+
+def run_environment(options: UpOptions) -> dict[str, str]:
+    """Every child's environment: this process's; a fleet's with the settings it runs its critic and
+    actors with (an ``SRL_`` variable the user set wins) and one BLAS thread per process."""
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    if not options.fleet:
+        return env
+    # one checkpoint write a second (all learners in each), not one per batch: a big fleet's critic
+    # would spend its time writing
+    env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
+    env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
+    env.setdefault("SRL_CRITIC__BATCH_WINDOW", "0.02")  # ~20 robots' fits in one stacked solve at 100 robots
+    # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
+    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second here) and
+    # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
+    # over the first 5 minutes: a fleet's memory would grow for that long
+    env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
+    env["SRL_CRITIC__POOLED"] = "true" if options.pooled else "false"
+    # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for a BLAS to
+    # start threads, which spin on a busy machine and slow every fit. OPENBLAS_NUM_THREADS is already
+    # in this process's environment (tools/__init__.py); the children's other BLAS libraries too:
+    for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(variable, "1")
+    return env
+
+
+def check_options(options: UpOptions, robots: list[str]) -> None:
+    """One line (ValueError) for a run that cannot be, before anything starts."""
+    if options.secure and (options.record is not None or options.view_port is not None):
+        raise ValueError(
+            "--record and --view do not run with --secure yet: the read-only monitor role may read "
+            "only states and status, not the transitions and weights a recording carries"
+        )
+    if options.secure and options.count_messages:
+        raise ValueError("counting every message needs to read srl/**, which no role may do with secure")
+    if options.record is not None:  # a bad path is one line now, before anything starts
+        from tools.recording.record import RecordingError, open_for_writing
+
+        try:
+            open_for_writing(options.record).close()
+        except RecordingError as error:
+            raise ValueError(str(error)) from None
+    if options.mode != "realtime":
+        if launch_plant(options.plant).behind_bridge:
+            raise ValueError(
+                f"--plant {options.plant} runs in real time only: lockstep steps plant_sim through its "
+                "plant/step queryable, and a robot cannot be stepped; use --mode realtime"
+            )
+        if options.fleet:
+            raise ValueError("--robots runs in real time only: lockstep steps the one robot of the settings")
+    if options.layout not in LAYOUTS:
+        raise ValueError(f"unknown layout {options.layout!r} ({' or '.join(LAYOUTS)})")
+    if not 1 <= options.actor_hosts <= len(robots):
+        raise ValueError(f"{options.actor_hosts} actor hosts for {len(robots)} robots: 1 to one per robot")
+
+
+def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
+    """Start everything, run the actors' episode or ``duration``, stop everything; the run's summary
+    (:func:`run_summary`).
+
+    ``secure``: fresh random credentials for every role in a private temporary directory
+    (0700, files 0600, removed at exit); the router authenticates users and enforces the role
+    rules of common/net/security.py (plant/step and plant/reset in lockstep only) for every robot
+    of the run, each child logs in as its role, this supervisor as ``monitor``.
+    A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
+    fresh private CA and one certificate per role in the same directory (common/net/certs.py).
+    Each emulated robot's own router is secured as a robot's should be (docs/security.md): mutual
+    TLS from a CA of its own, a login and access rules (services/robot_bridge/robot_router.py);
+    only the bridges get those credentials.
+
+    The recorder (``--clock steps`` in lockstep) and the view start before the plants and stop
+    after everything but the router, so they see it all. A fleet's critic checkpoints into a
+    directory of the run's own, removed at its end; the robot of the settings' where the settings say.
+
+    SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
+    """
+    robots = list(options.robots) if options.robots is not None else [settings.transport.robot]
+    check_options(options, robots)
+    router = options.router or (free_loopback_endpoint() if options.fleet else settings.transport.router)
+    settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
+    env = run_environment(options)
+    settings = with_launch_plant(settings, env, options.plant)  # physics: one MuJoCo TurtleBot3 per robot
+    common = run_arguments(options, router)
+    started = time.monotonic()
+    with StopSignals() as signals:
+        supervisor = Supervisor(common, env, quiet=options.quiet, signals=signals)
+        measures = _run(settings, options, supervisor, env, common, robots, started, signals)
+        signals.raise_if_received()
+    return run_summary(settings, options, supervisor, robots, started, measures)
+
+
+def _run(
+    settings: Settings,
+    options: UpOptions,
+    supervisor: Supervisor,
+    env: dict[str, str],
+    common: list[str],
+    robots: list[str],
+    started: float,
+    signals: StopSignals,
+) -> RunMeasures:
+    bridged = launch_plant(options.plant).behind_bridge
+    logins: Logins | None = None
+    scratch: Path | None = None
+    try:
+        if options.fleet:  # made while the signals are watched: a signal from here on still removes it
+            scratch = Path(tempfile.mkdtemp(prefix="srl-fleet-"))
+            # the critic's checkpoint is written as in any run (its cost is part of the fleet's), but here
+            env["SRL_CRITIC__CHECKPOINT"] = str(scratch / "critic-{robot}-{agent}-N{horizon}.json")
+        login: dict[str, dict[str, str]] = {}  # role -> its login environment
+        if options.secure:
+            logins = Logins.create(
+                settings.transport, lockstep=options.mode == "lockstep", robots=robots if options.fleet else None
+            )
+            login = logins.environment
+            common = logins.argv(common)
+            # this supervisor's own probes and status lines log in as the read-only monitor
+            settings = settings.model_copy(update={"transport": logins.monitor})
+        supervisor.spawn("router", ["router", *common], login.get("router"))
+        supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
+        spawn_observers(supervisor, options, common)  # subscribed before the first state is published
+        if bridged:  # emulated or real TurtleBot3s behind bridges
+            from tools.launch.fleet_robot import spawn_robot_plants
+
+            endpoints = spawn_robot_plants(
+                supervisor,
+                settings,
+                common,
+                robots,
+                None if not options.fleet else circle_starts(len(robots), options.circle),
+                options.robot_endpoints,
+                options.bridge_args,
+                options.layout,
+                login.get("plant"),
+                None if logins is None else logins.directory / "robot",  # removed with the run's logins
+            )
+        else:
+            spawn_sim_plants(supervisor, options, common, robots, login.get("plant"))
+        supervisor.spawn("critic", ["critic", *common, *robot_flags(options, robots)], login.get("critic"))
+        # a bridge is alive once it reaches its robot's router, which it waits for (a robot boots slowly)
+        plant_timeout = READY_TIMEOUT + (settings.bridge.robot_connect_timeout if bridged else 0)
+        wait_alive(supervisor, settings, robots, "plant", plant_timeout)
+        if bridged:
+            from tools.launch.fleet_robot import wait_odometry
+
+            wait_odometry(supervisor, settings, endpoints)
+        wait_alive(supervisor, settings, robots, "critic", READY_TIMEOUT)
+        actors = spawn_actors(supervisor, options, common, robots, login.get("actor"))
+        # measured from when every robot is served
+        wait_alive(supervisor, settings, robots, "actor", READY_TIMEOUT, until_ended=actors)
+        measures = measure_run(
+            supervisor,
+            settings,
+            actors,
+            options.duration,
+            robots,
+            status_lines(options, started),
+            options.count_messages,
+            one=not options.fleet,
+        )
+        for actor in actors:
+            if actor.process.returncode != 0:
+                raise ServiceDiedError(actor.name, actor.process.returncode, actor.stderr_tail[-10:])
+        return measures
+    finally:
+        signals.cleaning = True  # a signal from here on is remembered, never raised mid-cleanup
+        for name in [name for name in supervisor.children if name.startswith("robot_bridge")]:
+            supervisor.stop_one(name)  # first, so that their last zero reaches the robots
+        supervisor.stop_all()
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
+        if logins is not None:
+            logins.remove()
+
+
+def spawn_observers(supervisor: Supervisor, options: UpOptions, common: list[str]) -> None:
+    """``srl record`` (step clock in lockstep) and ``srl view``, each ready before this returns."""
+    observers = []
+    if options.record is not None:
+        clock = "steps" if options.mode == "lockstep" else "wall"
+        observers.append(
+            ("recorder", ["record", str(options.record), "--clock", clock, *common], "srl record: recording")
+        )
+    if options.view_port is not None:
+        observers.append(("view", ["view", "--port", str(options.view_port), *common], "srl view: serving"))
+    for name, argv, ready in observers:
+        child = supervisor.spawn(name, argv)
+        supervisor.wait_for(name, said(child, ready), timeout=30)
+
+
+def spawn_sim_plants(
+    supervisor: Supervisor, options: UpOptions, common: list[str], robots: list[str], login: dict[str, str] | None
+) -> None:
+    """The simulated robots: one plant host for all (``host``: the robot of the settings at its
+    start, or a fleet evenly on the circle, common.math.fleet.circle_starts) or a plant_sim each
+    (``process``)."""
+    if options.layout == "host":
+        fleet = [*robot_flags(options, robots), f"--circle={options.circle!r}"] if options.fleet else []
+        supervisor.spawn("plant", ["plant-sim", "--mode", options.mode, *common, *fleet], login)
+        return
+    for robot, start in zip(robots, circle_starts(len(robots), options.circle), strict=True):
+        supervisor.spawn(
+            f"plant-{robot}",
+            ["plant-sim", *common, f"--robot={robot}", "--start=" + ",".join(repr(c) for c in start)],
+            login,
+        )
+
+
+def spawn_actors(
+    supervisor: Supervisor, options: UpOptions, common: list[str], robots: list[str], login: dict[str, str] | None
+) -> list[Child]:
+    """The actors: ``actor_hosts`` hosts (``host``) or one per robot (``process``); in real time each
+    runs ``duration`` seconds, in lockstep one episode."""
+    run = ["--mode", options.mode]
+    if options.mode == "realtime":
+        run += ["--run-seconds", repr(options.duration)]
+    if options.sync_critic:
+        run.append("--sync-critic")
+    if options.layout == "host":
+        return [
+            supervisor.spawn(name, ["actor", *common, *robot_flags(options, share), *run], login)
+            for name, share in host_shares(robots, options.actor_hosts).items()
+        ]
+    return [supervisor.spawn(f"actor-{robot}", ["actor", *common, f"--robot={robot}", *run], login) for robot in robots]
+
+
+def _alive_robots(session: Any, robots: list[str], service: str) -> set[str]:
+    # one robot's own key: a secured router grants the monitor role that robot's keys, not srl/*
+    robot = robots[0] if len(robots) == 1 else "*"
+    replies = session.liveliness().get(f"srl/{robot}/alive/{service}", timeout=2.0)
+    return {str(reply.ok.key_expr).split("/")[1] for reply in replies if reply.ok is not None}
+
+
+def wait_alive(
+    supervisor: Supervisor,
+    settings: Settings,
+    robots: list[str],
+    service: str,
+    timeout: float,
+    until_ended: list[Child] | None = None,
+) -> None:
+    """Until every robot's ``service`` token is live (bounded by ``timeout`` s), or one of the children
+    ``until_ended`` (the actors: a short run may be over before its token is seen) has ended."""
+    ending = until_ended or []
+    session = zenoh.open(zenoh_config(settings.transport))
+    try:
+        wanted, deadline = set(robots), time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            supervisor.check(allowed_to_exit={child.name for child in ending})
+            if any(child.process.poll() is not None for child in ending):
+                return
+            if wanted <= _alive_robots(session, robots, service):
+                return
+            time.sleep(0.05)
+        what = service if len(robots) == 1 else f"{service} of {len(robots)} robots"
+        raise TimeoutError(f"{what} not ready after {timeout:.0f} s")
+    finally:
+        session.close()
+
+
+def status_lines(options: UpOptions, started: float) -> Callable[[float, RobotStatuses], None] | None:
+    """``options.on_status`` fed a line: the robot of the settings' actor status each time a new one
+    came (common.contracts.summaries.format_status_line), a fleet's every second."""
+    on_status = options.on_status
+    if on_status is None:
+        return None
+    shown = [0]  # statuses seen (one robot) or whole seconds shown (a fleet)
+    first_version: list[float] = []
+
+    def show(elapsed: float, statuses: RobotStatuses) -> None:
+        if not options.fleet:
+            latest = statuses.latest
+            if statuses.seen > shown[0] and latest is not None:
+                shown[0] = statuses.seen
+                on_status(format_status_line(latest, time.monotonic() - started, first_version))
+        elif int(elapsed) > shown[0]:
+            shown[0] = int(elapsed)
+            on_status(statuses.line(elapsed, len(options.robots or ())))
+
+    return show
 
 
 def emulator_truth(emulator: dict[str, Any] | None, settings: Settings) -> dict[str, Any] | None:
@@ -158,220 +468,216 @@ def emulator_truth(emulator: dict[str, Any] | None, settings: Settings) -> dict[
     }
 
 
-def write_summaries(directory: Path, children: dict[str, Child], merged: dict[str, Any]) -> None:
-    """Each child's JSON summary line to ``<name>.json`` and the merged one to ``summary.json``."""
-    write_child_summaries(directory, children)
-    (directory / "summary.json").write_text(json.dumps(merged, indent=1) + "\n")
+ActorSummary = RealtimeActorSummary | LockstepActorSummary
 
 
-def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
-    """Start everything, run one actor episode/duration, stop everything; the merged summary.
-
-    The emulated robot is its own Zenoh router (``--listen`` on a free loopback port) and the
-    bridge its client, so the bridge's path to the robot does not go through srl's router.
-
-    ``secure``: fresh random credentials for every role in a private temporary directory
-    (0700, files 0600, removed at exit); the router authenticates users and enforces the role
-    rules of common/net/security.py (plant/step and plant/reset in lockstep only), each child logs in
-    as its role, this supervisor as ``monitor``.
-    A ``tcp/`` router endpoint becomes ``tls/`` on the same address, with mutual TLS from a
-    fresh private CA and one certificate per role in the same directory (common/net/certs.py).
-    The emulated robot's own router is secured as a robot's should be (docs/security.md): mutual
-    TLS from a CA of its own, a login and access rules (services/robot_bridge/robot_router.py);
-    only the bridge gets those credentials.
-
-    The recorder (``--clock steps`` in lockstep) and the view start before the plant and stop
-    after everything but the router, so they see it all.
-
-    SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
-    """
-    if options.secure and (options.record is not None or options.view_port is not None):
-        raise ValueError(
-            "--record and --view do not run with --secure yet: the read-only monitor role may read "
-            "only states and status, not the transitions and weights a recording carries"
-        )
-    if options.record is not None:  # a bad path is one line now, before anything starts
-        from tools.recording.record import RecordingError, open_for_writing
-
-        try:
-            open_for_writing(options.record).close()
-        except RecordingError as error:
-            raise ValueError(str(error)) from None
-    if launch_plant(options.plant).behind_bridge and options.mode != "realtime":
-        raise ValueError(
-            f"--plant {options.plant} runs in real time only: lockstep steps plant_sim through its "
-            "plant/step queryable, and a robot cannot be stepped; use --mode realtime"
-        )
-    env = dict(os.environ)
-    env.setdefault("PYTHONUNBUFFERED", "1")
-    settings = with_launch_plant(settings, env, options.plant)
-    started = time.monotonic()
-    with StopSignals() as signals:
-        supervisor = Supervisor(options.settings_args, env, quiet=options.quiet, signals=signals)
-        return _run_up(settings, options, supervisor, started, signals)
+def actor_summaries(
+    supervisor: Supervisor, options: UpOptions, robots: list[str]
+) -> tuple[dict[str, ActorSummary], list[dict[str, float]]]:
+    """Each robot's actor summary, and each actor process's own counters (a host's: its tick
+    thread's priority), from the actor processes of either layout."""
+    if not options.fleet:  # an actor of the robot of the settings prints its own summary
+        summary = contract_summary(supervisor.children["actor"], ACTOR_SUMMARY)
+        return {robots[0]: summary}, [dict(summary.counters)]
+    if options.layout == "host":
+        per_robot: dict[str, ActorSummary] = {}
+        process_counters = []
+        for name in host_shares(robots, options.actor_hosts):
+            host_summary = FleetActorSummary.model_validate(supervisor.children[name].summary())
+            per_robot.update(host_summary.per_robot)
+            process_counters.append(host_summary.counters)
+        return per_robot, process_counters
+    each = {
+        robot: RealtimeActorSummary.model_validate(supervisor.children[f"actor-{robot}"].summary()) for robot in robots
+    }
+    return dict(each), [summary.counters for summary in each.values()]
 
 
-def _run_up(
-    settings: Settings, options: UpOptions, supervisor: Supervisor, started: float, signals: StopSignals
+def run_summary(
+    settings: Settings,
+    options: UpOptions,
+    supervisor: Supervisor,
+    robots: list[str],
+    started: float,
+    measures: RunMeasures,
 ) -> dict[str, Any]:
-    mode, record, view_port = options.mode, options.record, options.view_port
-    bridged = launch_plant(options.plant).behind_bridge
-    common_args = [*options.settings_args]
-    robot_args = [*options.settings_args, *options.bridge_args]
-    logins = Logins.create(settings.transport, lockstep=mode == "lockstep") if options.secure else None
-    role: dict[str, dict[str, str]] = {}  # child -> its login environment
-    if logins is not None:
-        users = {"plant": "plant", "robot_bridge": "plant", "critic": "critic", "actor": "actor", "router": "router"}
-        role = {name: logins.environment[user] for name, user in users.items()}
-        common_args, robot_args = logins.argv(common_args), logins.argv(robot_args)
-        # this supervisor's own probes log in as the read-only monitor
-        settings = settings.model_copy(update={"transport": logins.monitor})
-    try:
-        supervisor.spawn("router", ["router", *common_args], role.get("router"))
-        supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
-        observers = []  # srl record / srl view: subscribed before the first state is published
-        if record is not None:
-            clock = "steps" if mode == "lockstep" else "wall"
-            argv = ["record", str(record), "--clock", clock, *common_args]
-            observers.append(("recorder", argv, "srl record: recording"))
-        if view_port is not None:
-            observers.append(("view", ["view", "--port", str(view_port), *common_args], "srl view: serving"))
-        for name, argv, ready in observers:
-            child = supervisor.spawn(name, argv)
-            supervisor.wait_for(name, said(child, ready), timeout=30)
-        if not bridged:
-            supervisor.spawn("plant", ["plant-sim", "--mode", mode, *common_args], role.get("plant"))
-        else:
-            robot_endpoint = settings.bridge.robot_endpoint
-            bridge_env = role.get("robot_bridge")
-            if not robot_endpoint:  # the emulated robot runs its own Zenoh router, as a real one does
-                robot_endpoint = free_loopback_endpoint()
-                emulator_env: dict[str, str] | None = None
-                probe_bridge = settings.bridge.model_copy(update={"robot_endpoint": robot_endpoint})
-                if logins is not None:  # secured as a robot should be: TLS, login, access rules
-                    robot_endpoint = tls_endpoint(robot_endpoint) or robot_endpoint
-                    robot_logins = RobotLogins.create(logins.directory / "robot")
-                    emulator_env = robot_logins.emulator_environment
-                    bridge_env = {**(bridge_env or {}), **robot_logins.bridge_environment}
-                    probe_bridge = robot_logins.bridge(settings.bridge, robot_endpoint)
-                supervisor.spawn(
-                    "tb3_emulator", ["tb3-emulator", *robot_args, "--listen", robot_endpoint], emulator_env
-                )
-                log.info("the emulated robot's Zenoh router: %s", robot_endpoint)
-                supervisor.wait_for(
-                    f"the emulated robot's router ({robot_endpoint})",
-                    lambda: robot_router_reachable(probe_bridge, settings.transport),
-                    timeout=30,
-                )
-            supervisor.spawn(
-                "robot_bridge", ["robot-bridge", *robot_args, f"--robot-endpoint={robot_endpoint}"], bridge_env
-            )
-        supervisor.spawn("critic", ["critic", *common_args], role.get("critic"))
-        # the bridge is alive once it reaches the robot's router, which it waits for (a robot boots slowly)
-        plant_timeout = 60 + (settings.bridge.robot_connect_timeout if bridged else 0)
-        supervisor.wait_for(
-            "robot_bridge" if bridged else "plant", alive_probe(settings, "plant"), timeout=plant_timeout
-        )
-        if bridged:
-            supervisor.wait_for(
-                f"the robot's odometry (srl/{settings.transport.robot}/state from the bridge; "
-                f"{settings.bridge.profile}, {settings.bridge.ros_distro}, domain "
-                f"{settings.bridge.domain_id}, namespace '{settings.bridge.namespace}')",
-                state_probe(settings),
-                timeout=60,
-            )
-        supervisor.wait_for("critic", alive_probe(settings, "critic"), timeout=60)
-        actor_args = ["actor", "--mode", mode, *common_args]
-        if mode == "realtime":
-            actor_args += ["--run-seconds", str(options.duration)]
-        if options.sync_critic:
-            actor_args.append("--sync-critic")
-        actor = supervisor.spawn("actor", actor_args, role.get("actor"))
-        on_status = options.on_status
-        status = StatusMonitor(settings) if on_status is not None else None
-        try:
-            shown = 0
-            while actor.process.poll() is None:
-                supervisor.check(allowed_to_exit={"actor"})
-                if on_status is not None and status is not None and status.seen > shown and status.latest is not None:
-                    shown = status.seen
-                    on_status(status.latest)
-                time.sleep(0.05)
-        finally:
-            if status is not None:
-                status.close()
-        if actor.process.returncode != 0:
-            raise ServiceDiedError("actor", actor.process.returncode, actor.stderr_tail[-10:])
-    finally:
-        signals.cleaning = True  # a signal from here on is remembered, never raised mid-cleanup
-        if "robot_bridge" in supervisor.children:  # first, so that its last zero reaches the robot
-            supervisor.stop_one("robot_bridge")
-        supervisor.stop_all()
-        if logins is not None:
-            logins.remove()
-    signals.raise_if_received()
-    return merged_summary(settings, options, supervisor, started)
-
-
-def merged_summary(settings: Settings, options: UpOptions, supervisor: Supervisor, started: float) -> dict[str, Any]:
-    """The run's summary: the actor's, with the critic's and the other children's figures merged in;
-    each child's own written to ``options.summary_dir``. A child that did not end cleanly raises."""
-    mode, plant, record, view_port = options.mode, options.plant, options.record, options.view_port
+    """The run's one summary, whatever its size: the run (mode, plant, robots, security, router), the
+    critic's figures (``critic``), the CPU and memory measured, and ``fleet``: the per-robot table
+    (robots in real time). A run of one robot carries that robot's actor summary at the top level
+    (steps, J, start and final state, loop, staleness), and, behind a bridge, the bridge's and the
+    emulator's. Each child's own summary is written to ``options.summary_dir``. A child that did not
+    end cleanly raises :class:`ServiceDiedError`."""
     for name, child in supervisor.children.items():
-        code = child.process.returncode
-        if name != "actor" and code not in (0, -signal.SIGINT):
-            raise ServiceDiedError(name, code, child.stderr_tail[-10:])
-    # the children's summaries through their contracts (common/contracts/summaries.py): a service that
-    # printed none, or one that does not fit, is said here, not met later as a missing key
-    actor_summary = contract_summary(supervisor.children["actor"], ACTOR_SUMMARY)
-    critic_summary = contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
-    # the others as far as they printed one (the router's may be cut by its bounded close)
+        if exit_code(child.process.returncode) != 0:
+            raise ServiceDiedError(name, child.process.returncode, child.stderr_tail[-10:])
+    critic = contract_summary(supervisor.children["critic"], TypeAdapter(CriticSummary))
+    per_robot, process_counters = actor_summaries(supervisor, options, robots)
+    realtime = {robot: s for robot, s in per_robot.items() if isinstance(s, RealtimeActorSummary)}
+    ticks = sum(s.steps for s in realtime.values())
+    hurried = sum(s.counters.get("hurried_solves", 0.0) for s in realtime.values())
+    summary: dict[str, Any] = {
+        "mode": options.mode,
+        "plant": options.plant,
+        "plant_model": settings.plant.model,  # the simulated robot's model (the truth line names it)
+        "robots": robots,
+        "seconds": options.duration,
+        "run_seconds": measures.ran,  # the span over which CPU was measured
+        "secure": options.secure,
+        # a tcp/ router runs secured as tls/ on the same address (Logins)
+        "router": (tls_endpoint(settings.transport.router) if options.secure else None) or settings.transport.router,
+        "agent": settings.actor.agent,
+        "horizon": settings.actor.horizon,
+        "critic": {
+            "transitions_received": critic.transitions_received,
+            "weights_published": critic.weights_published,
+            "fit_ms": critic.fit_ms.to_json_dict(),
+            "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
+            "checkpoint": critic.checkpoint,
+            "restored": critic.restored,
+            "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
+            "waiting_transitions": None
+            if critic.waiting_transitions is None
+            else critic.waiting_transitions.to_json_dict(),
+            "fits_coalesced": critic.fits_coalesced,
+            "fits_at_rest": critic.fits_at_rest,
+            "pooled": critic.pooled,
+        },
+        **measures.fields(len(supervisor.children)),
+        "wall_seconds": time.monotonic() - started,
+        "services": {name: child.process.pid for name, child in supervisor.children.items()},
+        "exit_codes": {name: exit_code(child.process.returncode) for name, child in supervisor.children.items()},
+    }
+    if realtime:
+        summary["fleet"] = fleet_view(realtime).to_json_dict()
+        # how the actor processes ticked: how many had their tick thread real-time
+        # (actor.realtime_priority), and the share of ticks solved in a hurry (late or over budget)
+        summary["actor_ticks"] = {
+            "processes": len(process_counters),
+            "realtime": sum(counters.get("realtime_priority", 0.0) > 0 for counters in process_counters),
+            "hurried_percent": 100.0 * hurried / ticks if ticks else 0.0,
+        }
+    if options.fleet:
+        summary.update(
+            {
+                "layout": options.layout,
+                "circle_radius_m": options.circle,
+                "actor_hosts": options.actor_hosts if options.layout == "host" else len(robots),
+            }
+        )
+    if len(robots) == 1:  # the one robot's own summary, at the top level
+        (robot_summary,) = per_robot.values()
+        own = robot_summary.to_json_dict()
+        own.pop("transitions_tail", None)  # kept in the actor's own summary file
+        summary = {**own, **summary}
+    if not options.fleet:
+        summary.update(child_summaries(settings, supervisor, {"critic": critic, "actor": per_robot[robots[0]]}))
+    if options.record is not None:
+        summary["recording"] = str(options.record)
+        summary["recorder"] = next(
+            (line for line in supervisor.children["recorder"].stdout_lines if line.startswith("srl record:")), None
+        )
+    if options.view_port is not None:
+        summary["view"] = supervisor.children["view"].summary()
+    if options.count_messages:  # over the same span as the CPU: [count, bytes] of each kind
+        summary["messages"] = measures.messages
+    if options.fleet and launch_plant(options.plant).behind_bridge:
+        from tools.launch.fleet_robot import robot_fleet_summary
+
+        summary["robot_plant"] = robot_fleet_summary(supervisor, settings, robots, options.layout)
+    if options.summary_dir is not None:
+        write_child_summaries(options.summary_dir, supervisor.children)
+        summary["summary_dir"] = str(options.summary_dir)
+        summary["per_robot_final"] = {robot: s.final_state for robot, s in realtime.items()}
+        (options.summary_dir / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
+
+
+def child_summaries(
+    settings: Settings, supervisor: Supervisor, read: dict[str, CriticSummary | ActorSummary]
+) -> dict[str, Any]:
+    """The robot of the settings' other children's figures: each one's resources, the bridge's and the
+    emulator's summaries (with the emulator's true final pose) as far as they printed one (the
+    router's may be cut by its bounded close); one that does not fit its contract raises. ``read``:
+    the summaries already read (the critic's, the actor's)."""
     others: dict[str, OtherSummary] = {
         name: summary
         for name, child in supervisor.children.items()
         if name in CHILD_SUMMARIES
         and (summary := optional_summary(child, TypeAdapter(CHILD_SUMMARIES[name]))) is not None
     }
-    parsed: dict[str, OtherSummary | CriticSummary | RealtimeActorSummary | LockstepActorSummary] = {
-        "actor": actor_summary,
-        "critic": critic_summary,
-        **others,
+    parsed: dict[str, OtherSummary | CriticSummary | ActorSummary] = {**read, **others}
+    found: dict[str, Any] = {
+        "resources": {name: parsed[name].resources if name in parsed else None for name in supervisor.children}
     }
-    merged = actor_summary.to_json_dict()
-    merged.pop("transitions_tail", None)  # kept in actor.json
-    if launch_plant(plant).behind_bridge:
+    if "robot_bridge" in supervisor.children:
         bridge = others.get("robot_bridge")
-        merged["bridge"] = None if bridge is None else bridge.to_json_dict()
-        if "tb3_emulator" in supervisor.children:
-            emulator = others.get("tb3_emulator")
-            merged["emulator"] = None if emulator is None else emulator.to_json_dict()
-            merged["emulator_truth"] = None if emulator is None else emulator_truth(merged["emulator"], settings)
-    merged.update(
-        {
-            "services": {name: child.process.pid for name, child in supervisor.children.items()},
-            "exit_codes": {name: child.process.returncode for name, child in supervisor.children.items()},
-            "mode": mode,
-            "plant": plant,
-            "plant_model": settings.plant.model,  # the simulated robot's model (the truth line names it)
-            "secure": options.secure,
-            "router": settings.transport.router,
-            "transitions_received": critic_summary.transitions_received,
-            "critic_weights_published": critic_summary.weights_published,
-            "critic_fit_ms": critic_summary.fit_ms.to_json_dict(),
-            "critic_checkpoint": critic_summary.checkpoint,
-            "critic_restored": critic_summary.restored,
-            "wall_seconds": time.monotonic() - started,
-            "resources": {name: parsed[name].resources if name in parsed else None for name in supervisor.children},
-        }
-    )
-    if record is not None:
-        merged["recording"] = str(record)
-        merged["recorder"] = next(
-            (line for line in supervisor.children["recorder"].stdout_lines if line.startswith("srl record:")), None
+        found["bridge"] = None if bridge is None else bridge.to_json_dict()
+    if "tb3_emulator" in supervisor.children:
+        emulator = others.get("tb3_emulator")
+        found["emulator"] = None if emulator is None else emulator.to_json_dict()
+        found["emulator_truth"] = None if emulator is None else emulator_truth(found["emulator"], settings)
+    return found
+
+
+def run_fleet(
+    settings: Settings, settings_args: list[str], robots: list[str], duration: float, **fleet: Any
+) -> dict[str, Any]:
+    """A fleet's run (:func:`run_up` with ``robots``): the options of :class:`UpOptions` by name."""
+    return run_up(settings, UpOptions(settings_args, duration=duration, robots=list(robots), **fleet))
+
+
+def format_fleet_summary(summary: dict[str, Any]) -> str:
+    """A fleet's summary as ``srl up --robots`` prints it: a row per robot, the fleet's figures."""
+    view = FleetView.model_validate(summary["fleet"])
+    lines = [
+        f"srl up --robots {len(summary['robots'])} ({summary['layout']} layout): {summary['seconds']:.0f} s, "
+        f"{summary['agent']} N = {summary['horizon']}, starts on a {summary['circle_radius_m']} m circle"
+        + (", MuJoCo TurtleBot3s (final m: their true pose)" if summary.get("plant") == "physics" else ""),
+        f"  {'robot':<12} {'steps':>5} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'staleness p99/max':>17} "
+        f"{'final m':>8} parked",
+    ]
+    if summary.get("secure"):
+        lines.insert(
+            1,
+            "  security       user/password login per role + access rules at the router for every robot"
+            + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""),
         )
-    if view_port is not None:
-        merged["view"] = supervisor.children["view"].summary()
-    if options.summary_dir is not None:
-        merged["summary_dir"] = str(options.summary_dir)
-        write_summaries(options.summary_dir, supervisor.children, merged)
-    return merged
+        if summary.get("robot_plant"):
+            from tools.launch.fleet_robot import robot_router_line
+
+            lines.insert(2, robot_router_line(summary["robot_plant"]))
+    for row in view.rows:
+        lines.append(
+            f"  {row.robot:<12} {row.steps:>5} {row.missed_deadlines:>6} {row.jitter_p99_ms:>8.2f}ms "
+            f"{row.latency_p99_ms:>9.2f}ms {row.staleness_p99_steps:>8.0f}/{row.staleness_max_steps:<8.0f} "
+            f"{row.final_distance_m:>8.3f} {'yes' if row.parked else 'no'}"
+        )
+    lines.append(
+        f"  fleet: {view.robots} robots, parked {view.parked}, missed deadlines {view.missed_deadlines}, "
+        f"jitter p99 {view.jitter_p99_ms:.2f} ms, latency p99 {view.latency_p99_ms:.2f} ms (worst robot), "
+        f"staleness p99/max {view.staleness_p99_steps:.0f}/{view.staleness_max_steps:.0f} steps, "
+        f"CPU {summary['cpu_percent']:.0f} %, RSS {summary['rss_mb']:.0f} MB in {summary['processes']} processes"
+    )
+    phases = summary.get("cpu_phases")
+    if phases:
+        drive, rest = phases["driving"], phases["at_rest"]
+        lines.append(
+            f"  CPU while the robots drove {drive['cpu_percent']:.0f} % ({drive['seconds']:.1f} s), "
+            f"once every robot had arrived {rest['cpu_percent']:.0f} % ({rest['seconds']:.1f} s: no solve, no fit"
+            + (
+                f"; at times only {rest['fewest_arrived']} of {len(summary['robots'])} arrived)"
+                if rest["fewest_arrived"] < len(summary["robots"])
+                else ")"
+            )
+        )
+    if summary.get("actor_ticks"):
+        ticks = summary["actor_ticks"]
+        lines.append(
+            f"  actor ticks: real-time (SCHED_FIFO) in {ticks['realtime']} of {ticks['processes']} actor processes, "
+            f"{ticks['hurried_percent']:.1f} % solved in a hurry (served late or over the host's CPU budget)"
+        )
+    if summary.get("robot_plant"):
+        from tools.launch.fleet_robot import format_robot_lines
+
+        lines += format_robot_lines(summary["robot_plant"])
+    return "\n".join(lines)
