@@ -514,6 +514,8 @@ def test_a_fleet_of_one_prints_the_one_robot_summary_and_a_fleets_figures() -> N
     assert [row["robot"] for row in summary["fleet"]["rows"]] == ["robot1"]
     assert summary["fleet"]["steps"] == summary["steps"] and summary["critic"]["transitions_received"] > 0
     assert summary["processes"] == 4 and summary["cpu_percent"] > 0
+    # its critic's checkpoint was the run's own, removed with it: not offered to resume from
+    assert summary["critic"]["checkpoint"] is None and not any(x.startswith("  checkpoint") for x in lines)
 
 
 def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:

@@ -532,7 +532,8 @@ def run_summary(
             "weights_published": critic.weights_published,
             "fit_ms": critic.fit_ms.to_json_dict(),
             "checkpoint_ms": critic.checkpoint_ms.to_json_dict(),
-            "checkpoint": critic.checkpoint,
+            # a fleet's checkpoints are the run's own, removed at its end: nothing to resume from
+            "checkpoint": None if options.fleet else critic.checkpoint,
             "restored": critic.restored,
             "batch_transitions": None if critic.batch_transitions is None else critic.batch_transitions.to_json_dict(),
             "waiting_transitions": None
