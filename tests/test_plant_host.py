@@ -12,7 +12,7 @@ import pytest
 from common.config.settings import Settings
 from common.contracts.columns import columns_of
 from common.contracts.messages import Action
-from services.plant_sim.host import ActionRounds, FleetPlant, RobotIntake, StateSync
+from services.plant_sim.host import ActionRounds, FleetPlant, RobotIntake, StateSync, plant_tick
 from services.plant_sim.service import due_watchdogs
 from tests.harness import FakeCounts
 
@@ -122,3 +122,65 @@ def test_a_batch_of_actions_is_taken_as_each_robots_intake_takes_its_own(monkeyp
     for i in due_watchdogs(plant.arrivals, now, TIMEOUT):
         intakes[i].watchdog(now, TIMEOUT)
     assert (plant.held == 0.0).all() and [i.watchdog_stops for i in intakes] == [1] * 5
+
+
+def test_a_quiet_state_tick_advances_and_publishes_nothing_and_still_runs_the_watchdogs() -> None:
+    """plant_tick: a tick at which no robot's state is due (StateSync) and every ideal robot holds
+    zero is quiet (None: nothing advanced, nothing published); one robot moving, one robot due, no
+    sync (every state published) or a TurtleBot3 model each make it a full tick. Skipping the
+    quiet ticks leaves every robot where advancing at every tick leaves it, bit for bit, and a
+    watchdog due on a quiet tick stops its robot all the same."""
+    settings = Settings.load()
+    robots = [f"r{i}" for i in range(3)]
+    starts = np.array([[1.0, 0.5, 0.3], [-0.7, 0.2, -1.0], [0.1, -0.4, 2.0]])
+    delta, period = settings.plant.sampling_time, 1.0 / settings.transport.state_rate
+
+    def host(model: str = "ideal") -> tuple[FleetPlant, list[RobotIntake], StateSync]:
+        own = settings.model_copy(update={"plant": settings.plant.model_copy(update={"model": model})})
+        plant = FleetPlant(own, robots, starts.copy())
+        sync = StateSync(3, delta, period)
+        counts, lock = FakeCounts(), threading.Lock()
+        intakes = [RobotIntake(plant, i, counts, sync, lock) for i in range(3)]  # type: ignore[arg-type]
+        for k in range(10):  # every robot's actor acted at the steps' phase: the states are synced
+            sync.actions([0, 1, 2], [k, k, k], 100.0 + k * delta)
+        return plant, intakes, sync
+
+    plant, intakes, sync = host()
+    after = 100.0 + 9 * delta  # the last action came at 100.9; the next tick is due at 101.0
+    quiet = after + 0.02  # 101.0 - period - margin = 100.975: not yet due
+    assert not sync.due(quiet).any() and sync.due(after + 0.08).all()
+    assert plant_tick(plant, intakes, sync, quiet, period, 10.0) is None
+    assert np.array_equal(plant.states, starts) and plant.seq.tolist() == [0, 0, 0]
+    # a full tick: the robots due, or one moving, or every state wanted, or a TurtleBot3 model
+    due = plant_tick(plant, intakes, sync, after + 0.08, period, 10.0)
+    assert due is not None and len(due) == 3
+    plant.hold(1, (0.1, 0.2))
+    moving = plant_tick(plant, intakes, sync, quiet, period, 10.0)
+    assert moving is not None and len(moving) == 0  # advanced, no state due
+    assert not np.array_equal(plant.states[1], starts[1]) and plant.seq.tolist() == [2, 2, 2]
+    plant.hold(1, (0.0, 0.0))
+    assert plant_tick(plant, intakes, None, quiet, period, 10.0) is not None
+    turtlebots, their_intakes, their_sync = host("actuator")
+    assert plant_tick(turtlebots, their_intakes, their_sync, quiet, period, 10.0) is not None
+
+    # skipping the quiet ticks moves no robot another way than advancing at each of them
+    skipping, every = host()[0], host()[0]
+    rng = np.random.default_rng(3)
+    for tick in range(200):
+        action = rng.uniform(-0.2, 0.2, 2) if tick % 40 < 10 else np.zeros(2)  # drive, then rest
+        for plant_ in (skipping, every):
+            plant_.hold(tick % 3, action)
+        if not skipping.still():  # as plant_tick decides with no robot due
+            skipping.advance(period)
+        every.advance(period)
+    assert np.array_equal(skipping.states, every.states) and not np.array_equal(every.states, starts)
+
+    # a watchdog due on a quiet tick: the robot's zero is held, its stop counted
+    plant, intakes, sync = host()
+    for intake in intakes:
+        intake.gate.gate.update("actor1", True)
+    message = Action(robot="r2", episode=1, step=20, stamp_ns=0, action=(0.0, 0.0), state_seq=-1)
+    assert intakes[2].take(message, "actor1") is not None
+    plant.arrivals[2] = quiet - 1.0
+    assert plant_tick(plant, intakes, sync, quiet, period, 0.5) is None
+    assert [intake.watchdog_stops for intake in intakes] == [0, 0, 1]

@@ -16,6 +16,8 @@ A robot whose actor drives it has its state published only at the state ticks ju
 actor's next tick (``transport.state_sync``, :class:`StateSync`): its actor reads one state per
 ``delta``, so at a state rate of ``n / delta`` all but one of every ``n`` states would go unread
 (at 50 Hz and ``delta = 0.1`` s, four of every five, through the router for every robot).
+A state tick at which no robot's state is due and no robot moves (the ideal unicycle, every robot
+holding zero: a fleet at rest) is quiet: its watchdogs run, nothing else (:func:`plant_tick`).
 """
 
 from __future__ import annotations
@@ -182,6 +184,13 @@ class FleetPlant:
             },
         )
 
+    def still(self) -> bool:
+        """No robot moves over a state tick: the ideal unicycle, every robot holding zero (its exact
+        step is then the identity). A TurtleBot3 model is never still here: its wheels' lag and
+        its odometry run on after a zero command."""
+        with self.lock:
+            return self.ideal and not self.held.any()
+
     def saturated_commands(self, index: int) -> int:
         """Commands of robot ``index`` a wheel could not follow (the ideal unicycle has no wheels: 0)."""
         robot = None if self.ideal else self.plants[index].robot
@@ -311,13 +320,37 @@ def run_plant_host(
     log.info("plant host ready: %d robots (%s)", len(robots), settings.plant.model)
     timeout = action_timeout(settings)
     for now, elapsed in state_ticks(settings, bus, stop, duration):
-        for i in due_watchdogs(plant.arrivals, now, timeout):
-            intakes[i].watchdog(now, timeout)
-        round_ = plant.advance(elapsed, None if sync is None else sync.due(now))
+        round_ = plant_tick(plant, intakes, sync, now, elapsed, timeout)
+        if round_ is None:  # quiet: nothing moved, nothing due
+            bus.count("states_held_back", len(robots))
+            bus.count("quiet_ticks")
+            continue
         publish_states(round_)
         bus.count("states_published", len(round_))
         bus.count("states_held_back", len(robots) - len(round_))
     return PlantHostRun(robots, np.asarray(starts, dtype=float).reshape(len(robots), 3), plant, intakes)
+
+
+def plant_tick(
+    plant: FleetPlant,
+    intakes: list[RobotIntake],
+    sync: StateSync | None,
+    now: float,
+    elapsed: float,
+    timeout: float,
+) -> Columns[PlantState] | None:
+    """One state tick at ``now``, ``elapsed`` s after the previous: the watchdogs due, then every
+    robot advanced and the round of states due (``sync`` None: every robot's). None: a quiet tick,
+    no robot's state due (``sync``) and none moving (:meth:`FleetPlant.still`): nothing is
+    advanced (a still robot's step is the identity) and nothing published. A fleet at rest whose
+    actor hosts tick in one or two phases a period wakes to publish at one or two of the
+    period's state ticks; the others cost the watchdogs' test alone."""
+    for i in due_watchdogs(plant.arrivals, now, timeout):
+        intakes[i].watchdog(now, timeout)
+    due = None if sync is None else sync.due(now)
+    if due is not None and not due.any() and plant.still():
+        return None
+    return plant.advance(elapsed, due)
 
 
 def fleet_plant_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: float) -> dict[str, Any]:
