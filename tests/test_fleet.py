@@ -478,10 +478,10 @@ def test_a_tick_served_over_a_quarter_period_late_is_a_missed_deadline_and_whole
 @pytest.mark.timing  # staleness <= 5 steps: a latency bound
 @pytest.mark.parametrize("layout", ["host", "process"])
 def test_a_fleet_of_three_gets_actions_approaches_and_reports_per_robot(layout: str) -> None:
-    from tools.launch.up import run_fleet
+    from tools.launch.up import UpOptions, run_up
 
     settings = Settings.load()
-    summary = run_fleet(settings, [], ["fa", "fb", "fc"], 8.0, layout=layout, quiet=True)
+    summary = run_up(settings, UpOptions([], duration=8.0, robots=["fa", "fb", "fc"], layout=layout, quiet=True))
     fleet = summary["fleet"]
     assert fleet["robots"] == 3 and [row["robot"] for row in fleet["rows"]] == ["fa", "fb", "fc"]
     for row in fleet["rows"]:
@@ -552,9 +552,9 @@ def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
 def test_a_fleet_that_parks_reports_its_cpu_while_driving_and_at_rest() -> None:
     """Two robots from 0.3 m park within a few seconds of a 10 s run: the summary splits the run's
     CPU where every robot has first reported itself arrived, and ``srl up`` prints both."""
-    from tools.launch.up import format_fleet_summary, run_fleet
+    from tools.launch.up import UpOptions, format_fleet_summary, run_up
 
-    summary = run_fleet(Settings.load(), [], ["ra", "rb"], 10.0, quiet=True, circle=0.3)
+    summary = run_up(Settings.load(), UpOptions([], duration=10.0, robots=["ra", "rb"], quiet=True, circle=0.3))
     assert summary["fleet"]["parked"] == 2
     phases = summary["cpu_phases"]
     assert phases is not None, summary
@@ -578,12 +578,15 @@ def test_a_fleet_of_physics_robots_drives_mujoco_turtlebots_with_odometry_beside
     """``srl up --robots K --plant physics``: the plant host steps one MuJoCo TurtleBot3 per robot
     (lag, deadband, slip, odometry); the actors see odometry, the summary keeps the truth beside
     it. Negative control: the ideal unicycle's odometry IS the truth."""
-    from tools.launch.up import format_fleet_summary, run_fleet
+    from tools.launch.up import UpOptions, format_fleet_summary, run_up
 
     settings = Settings.load()
     finals: dict[str, dict[str, Any]] = {}
     for plant in ("physics", "sim"):
-        summary = run_fleet(settings, [], ["pa", "pb"], 8.0, quiet=True, plant=plant, summary_dir=tmp_path / plant)
+        summary = run_up(
+            settings,
+            UpOptions([], duration=8.0, robots=["pa", "pb"], quiet=True, plant=plant, summary_dir=tmp_path / plant),
+        )
         assert summary["plant"] == plant
         rows = summary["fleet"]["rows"]
         assert [row["robot"] for row in rows] == ["pa", "pb"]
@@ -611,7 +614,7 @@ def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(
     the router: here both drive on learned weights, nothing is refused, and no secret is left."""
     import tempfile
 
-    from tools.launch.up import format_fleet_summary, run_fleet
+    from tools.launch.up import UpOptions, format_fleet_summary, run_up
 
     # a temporary directory of its own: tests running beside it write their own srl-secure-*
     private = tmp_path / "tmp"
@@ -619,7 +622,9 @@ def test_a_secure_fleet_logs_every_service_in_and_every_robot_learns(
     monkeypatch.setenv("TMPDIR", str(private))
     monkeypatch.setattr(tempfile, "tempdir", str(private))
     before = {p.name for p in Path(tempfile.gettempdir()).glob("srl-secure-*")}
-    summary = run_fleet(Settings.load(), [], ["sa", "sb"], 8.0, quiet=True, secure=True, summary_dir=tmp_path)
+    summary = run_up(
+        Settings.load(), UpOptions([], duration=8.0, robots=["sa", "sb"], quiet=True, secure=True, summary_dir=tmp_path)
+    )
     assert summary["secure"] is True and summary["router"].startswith("tls/")
     assert "mutual TLS" in format_fleet_summary(summary)
     actors = json.loads((tmp_path / "actor.json").read_text())["per_robot"]

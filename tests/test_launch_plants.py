@@ -12,7 +12,7 @@ from common.config.settings import Settings
 from tools.cli import build_parser
 from tools.launch import plants
 from tools.launch.plants import LAUNCH_PLANTS, LaunchPlant, launch_plant, with_launch_plant
-from tools.launch.up import UpOptions, run_fleet, run_up
+from tools.launch.up import UpOptions, run_up
 
 
 def test_the_command_line_offers_every_row_and_refuses_another(capsys: pytest.CaptureFixture[str]) -> None:
@@ -60,4 +60,4 @@ def test_lockstep_is_refused_for_every_plant_behind_the_bridge(monkeypatch: pyte
     with pytest.raises(ValueError, match="unknown plant 'nowhere'"):
         run_up(settings, UpOptions(settings_args=[], mode="realtime", plant="nowhere", duration=1.0))
     with pytest.raises(ValueError, match="unknown plant 'nowhere'"):
-        run_fleet(settings, [], ["r1"], 1.0, plant="nowhere", summary_dir=tmp_path)
+        run_up(settings, UpOptions([], duration=1.0, robots=["r1"], plant="nowhere", summary_dir=tmp_path))

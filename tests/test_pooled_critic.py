@@ -383,9 +383,9 @@ def test_the_critic_loads_its_solver_before_it_is_alive(monkeypatch: pytest.Monk
 @pytest.mark.timing  # staleness <= 5 steps: a latency bound
 def test_a_fleet_with_a_pooled_critic_gets_the_pools_weights_and_approaches() -> None:
     """The real services (srl up --robots 3 --critic pooled): one learner, every robot served."""
-    from tools.launch.up import run_fleet
+    from tools.launch.up import UpOptions, run_up
 
-    summary = run_fleet(Settings.load(), [], ["pa", "pb", "pc"], 8.0, quiet=True, pooled=True)
+    summary = run_up(Settings.load(), UpOptions([], duration=8.0, robots=["pa", "pb", "pc"], quiet=True, pooled=True))
     critic, fleet = summary["critic"], summary["fleet"]
     assert critic["pooled"] is True
     # one fit per fleet step (~80 in 8 s), its weights to each of the 3 robots

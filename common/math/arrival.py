@@ -142,9 +142,10 @@ class ArrivalRule:
                 action = dock
         if self.deadband is not None:
             solved, action = action, deadband_action(action, state, self.deadband, self.tolerances)
-            # made zero inside the outer tolerances: as parked as it can be told, so arrived (held
-            # at zero without a solve until it leaves them), not solving a command it cannot follow
-            if action is not solved and solved.any() and not action.any():
+            # made zero inside the outer tolerances (a command that was not zero is now zero): as
+            # parked as it can be told, so arrived (held at zero without a solve until it leaves
+            # them), not solving a command it cannot follow
+            if solved.any() and not action.any():
                 self._arrive()
         self._count_reversal(action, state)
         return action

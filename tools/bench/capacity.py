@@ -28,8 +28,10 @@ import numpy as np
 
 from common.config.arguments import UsageError
 from common.config.settings import Settings
+from common.math.fleet import parse_robots
 from tools.bench.fleet import actor_hosts, measured_run, robot_counts, run_header
 from tools.bench.meta import run_info
+from tools.launch.up import UpOptions
 
 COMPONENTS = ("router", "plant", "critic", "actor")
 FLEETS = (1_000, 10_000)
@@ -115,9 +117,15 @@ def run_capacity_benchmark(args: argparse.Namespace, settings: Settings, setting
         raise UsageError(f"--host-cores {args.host_cores}: at least 1")
     rows: list[dict[str, Any]] = []
     for size in sizes:
-        row = measured_run(
-            settings, settings_argv, size, args.seconds, actor_hosts=actor_hosts("auto", size), count_messages=True
+        options = UpOptions(
+            settings_argv,
+            duration=args.seconds,
+            robots=parse_robots(str(size)),
+            quiet=True,
+            actor_hosts=actor_hosts("auto", size),
+            count_messages=True,
         )
+        row = measured_run(settings, options)
         rows.append(row)
         print(format_row(row), flush=True)
     if not any("error" not in row for row in rows):

@@ -33,7 +33,7 @@ from common.config.settings import Settings
 from common.math.fleet import FleetError, parse_robots
 from tools.bench.meta import run_info
 from tools.launch.supervisor import ServiceDiedError
-from tools.launch.up import actor_hosts, run_fleet
+from tools.launch.up import UpOptions, actor_hosts, run_up
 
 TARGETS: dict[int, dict[str, float]] = {
     50: {"missed_deadlines": 0, "latency_p99_ms": 20.0, "staleness_p99_steps": 1.0},
@@ -111,19 +111,19 @@ def checks(row: dict[str, Any]) -> dict[str, bool]:
     return result
 
 
-def measured_run(
-    settings: Settings, settings_argv: list[str], size: int, seconds: float, **options: Any
-) -> dict[str, Any]:
-    """One bench row: ``run_fleet`` of ``size`` robots for ``seconds`` (``options``: its keyword
-    arguments), the machine's load before and after; a run that fails is a row with its error."""
+def measured_run(settings: Settings, options: UpOptions) -> dict[str, Any]:
+    """One bench row: the fleet run of ``options`` (:func:`run_up`; ``options.robots`` its robots),
+    the machine's load before and after; a run that fails is a row with its error."""
+    assert options.robots is not None, "a bench row is a fleet's run"
+    size = len(options.robots)
     load_before = os.getloadavg()
     started = time.monotonic()
     try:
-        summary = run_fleet(settings, settings_argv, parse_robots(str(size)), seconds, quiet=True, **options)
+        summary = run_up(settings, options)
     except (ServiceDiedError, TimeoutError, ValueError) as error:
         summary = {"error": str(error), "wall_seconds": time.monotonic() - started}
-    row = {"layout": options.get("layout", "host"), **summary, "robots": size, "cpus": os.cpu_count()}
-    recording = options.get("record")
+    row = {"layout": options.layout, **summary, "robots": size, "cpus": os.cpu_count()}
+    recording = options.record
     if recording is not None:
         from tools.recording.record import dropped_by_writer
 
@@ -172,7 +172,16 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
         with tempfile.TemporaryDirectory(prefix="srl-bench-fleet-") as scratch:
             recording = Path(scratch) / f"fleet-{size}.mcap" if record else None
             row = measured_run(
-                settings, settings_argv, size, args.seconds, layout=layout, actor_hosts=split, record=recording
+                settings,
+                UpOptions(
+                    settings_argv,
+                    duration=args.seconds,
+                    robots=parse_robots(str(size)),
+                    quiet=True,
+                    layout=layout,
+                    actor_hosts=split,
+                    record=recording,
+                ),
             )
         row["targets"] = {name: "PASS" if ok else "FAIL" for name, ok in checks(row).items()}
         rows.append(row)

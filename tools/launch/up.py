@@ -435,17 +435,18 @@ def status_lines(options: UpOptions, started: float) -> Callable[[float, RobotSt
     on_status = options.on_status
     if on_status is None:
         return None
-    shown = [0]  # statuses seen (one robot) or whole seconds shown (a fleet)
+    shown = 0  # statuses seen (one robot) or whole seconds shown (a fleet)
     first_version: list[float] = []
 
     def show(elapsed: float, statuses: RobotStatuses) -> None:
+        nonlocal shown
         if not options.fleet:
             latest = statuses.latest
-            if statuses.seen > shown[0] and latest is not None:
-                shown[0] = statuses.seen
+            if statuses.seen > shown and latest is not None:
+                shown = statuses.seen
                 on_status(format_status_line(latest, time.monotonic() - started, first_version))
-        elif int(elapsed) > shown[0]:
-            shown[0] = int(elapsed)
+        elif int(elapsed) > shown:
+            shown = int(elapsed)
             on_status(statuses.line(elapsed, len(options.robots or ())))
 
     return show
@@ -618,13 +619,6 @@ def child_summaries(
         found["emulator"] = None if emulator is None else emulator.to_json_dict()
         found["emulator_truth"] = None if emulator is None else emulator_truth(found["emulator"], settings)
     return found
-
-
-def run_fleet(
-    settings: Settings, settings_args: list[str], robots: list[str], duration: float, **fleet: Any
-) -> dict[str, Any]:
-    """A fleet's run (:func:`run_up` with ``robots``): the options of :class:`UpOptions` by name."""
-    return run_up(settings, UpOptions(settings_args, duration=duration, robots=list(robots), **fleet))
 
 
 def format_fleet_summary(summary: dict[str, Any]) -> str:
