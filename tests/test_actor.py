@@ -37,8 +37,7 @@ def make_actor(agent: str, horizon: int, **kwargs) -> StackedActor:
         horizon,
         sampling_time=DELTA,
         cost_diag=tuple(R_DIAG),
-        v_max=V_MAX,
-        omega_max=OMEGA_MAX,
+        action_max=(V_MAX, OMEGA_MAX),
         **kwargs,
     )
     return StackedActor(problem)
@@ -417,8 +416,11 @@ def test_step_rejects_weights_split_wrongly() -> None:
         {"agent": "dqn"},
         {"cost_diag": (1.0, 10.0, 1.0, 0.01)},
         {"cost_diag": (1.0, -10.0, 1.0, 0.01, 0.01)},
-        {"v_max": 0.0},
-        {"omega_max": -1.0},
+        {"action_max": (0.0, OMEGA_MAX)},
+        {"action_max": (V_MAX, -1.0)},
+        {"action_max": (V_MAX,)},
+        {"action_max": (V_MAX, OMEGA_MAX, 1.0)},
+        {"system": "no_such_system"},
         {"predictor": "midpoint"},
         {"solver": "snopt"},
         {"bound_push": 0.0},
@@ -429,7 +431,7 @@ def test_step_rejects_weights_split_wrongly() -> None:
 def test_bad_actor_problem_raises(changes: dict) -> None:
     args = {
         "agent": "rlqv", "horizon": 4, "sampling_time": DELTA, "cost_diag": tuple(R_DIAG),
-        "v_max": V_MAX, "omega_max": OMEGA_MAX, **changes,
+        "action_max": (V_MAX, OMEGA_MAX), **changes,
     }  # fmt: skip
     with pytest.raises(ValueError):
         ActorProblem(**args)
@@ -628,7 +630,7 @@ def test_the_alternatives_descent_only_descends_and_reports_the_objective_of_its
     # and the value reported for an end is the hand-written objective of its actions.
     from common.math.actor_search import search_graph
 
-    problem = ActorProblem("rlqv+", 5, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, multistart=True, jit=False)
+    problem = ActorProblem("rlqv+", 5, DELTA, tuple(R_DIAG), (V_MAX, OMEGA_MAX), multistart=True, jit=False)
     graph = search_graph(problem)
     bounds = np.array([V_MAX, OMEGA_MAX])
     rng = np.random.default_rng(8)
@@ -650,7 +652,7 @@ def test_the_polish_reaches_the_solvers_minimum_from_the_same_start() -> None:
     from common.math.actor_search import NEWTON_TOLERANCE, search_graph
 
     actor = make_actor("rlqv", 6)  # fatrop: the oracle
-    graph = search_graph(ActorProblem("rlqv", 6, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, multistart=True, jit=False))
+    graph = search_graph(ActorProblem("rlqv", 6, DELTA, tuple(R_DIAG), (V_MAX, OMEGA_MAX), multistart=True, jit=False))
     rng = np.random.default_rng(9)
     stationary = same = 0
     for w, v_w, state in indefinite_problems(7, 20):
@@ -813,7 +815,7 @@ def test_a_polish_that_ends_short_goes_on_and_then_falls_back_to_the_solver() ->
 )
 def test_bad_multistart_settings_raise(changes: dict) -> None:
     with pytest.raises(ValueError):
-        ActorProblem("rlqv", 4, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, **changes)
+        ActorProblem("rlqv", 4, DELTA, tuple(R_DIAG), (V_MAX, OMEGA_MAX), **changes)
 
 
 @pytest.mark.parametrize(("agent", "horizon"), [("rlq", 6), ("rlqv+", 6), ("rlqv+", 12)])

@@ -66,7 +66,7 @@ def test_a_registered_agent_is_a_setting_a_choice_and_the_objective_its_row_says
         values = {}
         for agent in ("mpc", "mpcv"):
             problem = ActorProblem(
-                agent, 4, sampling_time=0.1, cost_diag=(1.0, 10.0, 1.0, 0.01, 0.01), v_max=0.22, omega_max=2.84
+                agent, 4, sampling_time=0.1, cost_diag=(1.0, 10.0, 1.0, 0.01, 0.01), action_max=(0.22, 2.84)
             )
             values[agent] = float(objective(problem, states, actions, w, v))
         from common.math.features import phi_v
@@ -118,7 +118,7 @@ def test_each_row_is_the_objective_the_actor_minimizes() -> None:
     }
     assert set(paper) == set(AGENT_ROWS)
     for agent, expected in paper.items():
-        problem = ActorProblem(agent, horizon, sampling_time=delta, cost_diag=diag, v_max=0.22, omega_max=2.84)
+        problem = ActorProblem(agent, horizon, sampling_time=delta, cost_diag=diag, action_max=(0.22, 2.84))
         got = float(objective(problem, states, actions, w, v))
         assert got == pytest.approx(expected, rel=1e-12), agent
         row = AGENT_ROWS[agent]

@@ -123,8 +123,7 @@ def test_numpy_objective_matches_stagewise_loop(agent: str, horizon: int) -> Non
         horizon=horizon,
         sampling_time=settings.plant.sampling_time,
         cost_diag=tuple(settings.cost.r_diag),
-        v_max=settings.plant.v_max,
-        omega_max=settings.plant.omega_max,
+        action_max=(settings.plant.v_max, settings.plant.omega_max),
     )
     rng = np.random.default_rng(horizon)
     for weights in (initial_weights(settings), learned_weights(settings)):

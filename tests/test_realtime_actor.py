@@ -375,7 +375,7 @@ def test_the_arrival_rule_holds_the_robot_with_zero_and_the_loop_says_so() -> No
 
     t = Loop(agent="mpc")
     actor = StackedActor(
-        ActorProblem("mpc", 4, DELTA, (1.0, 10.0, 1.0, 0.01, 0.01), 0.22, 2.84, jit=False),
+        ActorProblem("mpc", 4, DELTA, (1.0, 10.0, 1.0, 0.01, 0.01), (0.22, 2.84), jit=False),
         arrival=ArrivalRule(ArrivalTolerances(0.03, 0.1, 1.5)),
     )
     t.loop.actor = actor

@@ -23,7 +23,9 @@ RIM = min(WHEEL_MAX * RADIUS, V_MAX, OMEGA_MAX * HALF_TRACK)  # 0.22 m/s
 
 def wheel_actor(agent: str, horizon: int, **kwargs) -> StackedActor:
     kwargs.setdefault("jit", False)
-    problem = ActorProblem(agent, horizon, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, wheel_speed_max=WHEEL_MAX, **kwargs)
+    problem = ActorProblem(
+        agent, horizon, DELTA, tuple(R_DIAG), (V_MAX, OMEGA_MAX), wheel_speed_max=WHEEL_MAX, **kwargs
+    )
     return StackedActor(problem)
 
 
@@ -69,8 +71,8 @@ def test_wheel_box_holds_in_closed_loop_with_indefinite_weights() -> None:
 
 def test_a_wheel_box_that_never_binds_solves_the_papers_problem() -> None:
     """Where the optimum lies inside the diamond, the wheel-speed variables change nothing."""
-    paper = StackedActor(ActorProblem("mpc", 6, DELTA, tuple(R_DIAG), 0.1, 1.0, jit=False))
-    wide = StackedActor(ActorProblem("mpc", 6, DELTA, tuple(R_DIAG), 0.1, 1.0, jit=False, wheel_speed_max=1e3))
+    paper = StackedActor(ActorProblem("mpc", 6, DELTA, tuple(R_DIAG), (0.1, 1.0), jit=False))
+    wide = StackedActor(ActorProblem("mpc", 6, DELTA, tuple(R_DIAG), (0.1, 1.0), jit=False, wheel_speed_max=1e3))
     assert wide.problem.wheel_rim_speed == pytest.approx(0.08)  # min(33, 0.1, 1.0 x 0.08)
     for state in (np.array([0.005, 0.0, 0.0]), np.array([0.01, -0.004, 0.05])):
         a, b = paper.step(state, np.zeros(15), np.zeros(6)), wide.step(state, np.zeros(15), np.zeros(6))
@@ -105,7 +107,7 @@ def test_nearest_psd_weights_is_the_eigenvalue_clipped_quadratic() -> None:
 def test_the_actor_commands_exactly_zero_once_arrived_and_resumes_beyond_the_outer_tolerance() -> None:
     tolerances = ArrivalTolerances(position=0.03, heading=0.1, hysteresis=1.5)
     actor = StackedActor(
-        ActorProblem("mpc", 6, DELTA, tuple(R_DIAG), V_MAX, OMEGA_MAX, jit=False), arrival=ArrivalRule(tolerances)
+        ActorProblem("mpc", 6, DELTA, tuple(R_DIAG), (V_MAX, OMEGA_MAX), jit=False), arrival=ArrivalRule(tolerances)
     )
     zeros_q, zeros_v = np.zeros(15), np.zeros(6)
     assert actor.step(np.array([0.5, 0.0, 0.0]), zeros_q, zeros_v).status == "success"

@@ -28,13 +28,10 @@ from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, 
 from common.math.actor_search import NEWTON_TOLERANCE, REPORT, fresh_starts
 from common.math.agents import learns
 from common.math.arrival import ArrivalRule
-from common.math.dynamics import ACTION_DIM, STATE_DIM
-from common.math.features import Q_FEATURES, V_FEATURES
 from common.math.stats import all_finite
 
 log = logging.getLogger(__name__)
 
-STAGE = STATE_DIM + ACTION_DIM  # entries of one stage (s_i, u_i) in the decision vector
 # With no plan yet (the first step of an episode) the tick runs this many times at once: the
 # alternatives, fresh starts, descend COLD_ROUNDS x multistart_iterations iterations before the
 # first answer, as a global search from scratch would.
@@ -87,6 +84,10 @@ class StackedActor:
     def __init__(self, problem: ActorProblem, arrival: ArrivalRule | None = None) -> None:
         self.problem = problem
         self.memory = ActorMemory(arrival=arrival)
+        system = problem.dynamics  # its dimensions: the state, the action and the critics' features
+        self._n_s, self._n_u = system.state_dim, system.action_dim
+        self._stage = self._n_s + self._n_u  # entries of one stage (s_i, u_i) in the decision vector
+        self._q_features, self._v_features = system.q_features, system.v_features
         # A list to append every tick's TickRecord to (srl bench actor's phase split); None: none kept.
         self.recorder: list[TickRecord] | None = None
         # The compiled functions: they must live as long as the buffers below read from them.
@@ -94,7 +95,7 @@ class StackedActor:
         lbx, ubx, n_g = built.lbx, built.ubx, built.n_g
         self._n_x = lbx.size
         self._x0 = np.zeros(self._n_x)
-        self._params = np.zeros(Q_FEATURES + V_FEATURES)
+        self._params = np.zeros(self._q_features + self._v_features)
         self._lbx_np = lbx
         self._ubx_np = ubx
         self._zeros_g = np.zeros(n_g)
@@ -103,11 +104,11 @@ class StackedActor:
         self._f_out = np.zeros(1)
         solver_inputs = (self._x0, self._params, lbx, ubx, self._zeros_g, self._zeros_g, self._zeros_x, self._zeros_g)
         self._buffer, self._evaluate = _bind(built.solver, solver_inputs, (self._x_out, self._f_out))
-        self._action_bounds = np.array([problem.v_max, problem.omega_max])
+        self._action_bounds = np.array(problem.action_max)
         self._decision_bounds = np.array(problem.decision_bounds)
         # The warm-start merit of the paper's actor: (s_1, actions, weights) -> cost.
-        self._merit_state = np.zeros(STATE_DIM)
-        self._merit_actions = np.zeros((problem.horizon - 1, ACTION_DIM))  # row-major = u_1, u_2, ...
+        self._merit_state = np.zeros(self._n_s)
+        self._merit_actions = np.zeros((problem.horizon - 1, self._n_u))  # row-major = u_1, u_2, ...
         self._merit_out = np.zeros(1)
         self._merit_buffer, self._evaluate_merit = _bind(
             built.merit, (self._merit_state, self._merit_actions, self._params), (self._merit_out,)
@@ -118,11 +119,11 @@ class StackedActor:
     def _setup_tick(self, tick: Any) -> None:
         """The tick's zero-copy buffers (actor_search.TICK_INPUTS, TICK_OUTPUTS) and the fresh starts."""
         p = self.problem
-        n_z, count = ACTION_DIM * (p.horizon - 1), p.multistart_starts
+        n_z, count = self._n_u * (p.horizon - 1), p.multistart_starts
         values, masks = fresh_starts(p, FRESH_ROWS)
         # the table twice over: the rows a tick takes (memory.fresh onwards, modulo its length) are one slice
         self._fresh_values, self._fresh_masks = np.vstack([values, values]), np.vstack([masks, masks])
-        self._tick_state = np.zeros(STATE_DIM)
+        self._tick_state = np.zeros(self._n_s)
         self._warm = np.zeros((2, self._n_x))  # rows: the previous plan, the earlier one (CasADi's columns)
         self._alternatives = np.zeros((count, n_z))
         self._fresh = np.zeros((count, n_z))
@@ -130,7 +131,7 @@ class StackedActor:
         self._ages = np.zeros(count)
         self._flags = np.zeros(3)  # has an earlier plan, search, shift
         self._tick_x = np.zeros(self._n_x)
-        self._tick_plan = np.zeros((p.horizon - 1, ACTION_DIM))
+        self._tick_plan = np.zeros((p.horizon - 1, self._n_u))
         self._tick_f = np.zeros(1)
         self._tick_stationarity = np.zeros(1)
         self._kept = np.zeros((count, n_z))
@@ -207,7 +208,8 @@ class StackedActor:
             memory.fresh = count
             self._ages[:] = 0.0
             self._warm[:] = 0.0
-            self._warm[0, 0::STAGE], self._warm[0, 1::STAGE], self._warm[0, 2::STAGE] = state  # standing still
+            for k in range(self._n_s):  # standing still
+                self._warm[0, k :: self._stage] = state[k]
             self._flags[:] = (0.0, 1.0, 0.0)
             rounds = COLD_ROUNDS
         else:
@@ -271,7 +273,7 @@ class StackedActor:
         phases["solver"] += 1
         if np.all(np.isfinite(x)):
             self._x0[:] = x
-            self._x0[:STATE_DIM] = state
+            self._x0[: self._n_s] = state
         else:
             self._warm_guess(state)
         started = time.perf_counter()
@@ -291,20 +293,20 @@ class StackedActor:
         x0, memory = self._x0, self.memory
         if memory.previous_x is None:
             x0[:] = 0.0
-            for k in range(STATE_DIM):
-                x0[k::STAGE] = state[k]
+            for k in range(self._n_s):
+                x0[k :: self._stage] = state[k]
         else:
             self._shift_into(x0, memory.previous_x)
             if memory.earlier_x is not None:
                 self._merit_state[:] = state
                 if self._merit_of(memory.earlier_x) < self._merit_of(x0):
                     x0[:] = memory.earlier_x
-        x0[:STATE_DIM] = state
+        x0[: self._n_s] = state
 
     def _solve(self) -> tuple[bool, str, np.ndarray, float]:
         """One solve from ``self._x0``: (success, status, solution, objective)."""
-        self._lbx_np[:STATE_DIM] = self._x0[:STATE_DIM]
-        self._ubx_np[:STATE_DIM] = self._x0[:STATE_DIM]
+        self._lbx_np[: self._n_s] = self._x0[: self._n_s]
+        self._ubx_np[: self._n_s] = self._x0[: self._n_s]
         try:
             self._evaluate()
             return True, "success", self._x_out.copy(), float(self._f_out[0])
@@ -315,12 +317,11 @@ class StackedActor:
                 status += f" (error: {str(error).strip().splitlines()[-1]})"
             return False, status, self._x0.copy(), float("nan")
 
-    @staticmethod
-    def _shift_into(out: np.ndarray, x: np.ndarray) -> None:
+    def _shift_into(self, out: np.ndarray, x: np.ndarray) -> None:
         """``out`` = ``x`` shifted by one stage, its last held action and state repeated."""
-        out[:-STAGE] = x[STAGE:]
-        out[-STAGE:-STATE_DIM] = x[-STAGE:-STATE_DIM]
-        out[-STATE_DIM:] = x[-STATE_DIM:]
+        out[: -self._stage] = x[self._stage :]
+        out[-self._stage : -self._n_s] = x[-self._stage : -self._n_s]
+        out[-self._n_s :] = x[-self._n_s :]
 
     def _merit_of(self, x: np.ndarray) -> float:
         """The objective of ``x``'s actions along a rollout from ``self._merit_state``."""
@@ -331,7 +332,7 @@ class StackedActor:
     def _decisions_of(self, x: np.ndarray) -> np.ndarray:
         """The per-stage decision variables of a decision vector, one row per stage (a view):
         the held actions, or with the wheel box on the wheels' rim speeds."""
-        return x[:-STATE_DIM].reshape(-1, STAGE)[:, STATE_DIM:]
+        return x[: -self._n_s].reshape(-1, self._stage)[:, self._n_s :]
 
     def _plan_of(self, x: np.ndarray) -> np.ndarray:
         """The held actions (v, omega) of a decision vector, one row per stage, inside the
@@ -358,27 +359,30 @@ class StackedActor:
         state = np.asarray(state, dtype=float)
         q_weights = np.asarray(q_weights, dtype=float)
         v_weights = np.asarray(v_weights, dtype=float)
-        if state.shape != (STATE_DIM,) or not all_finite(state):
-            raise ValueError(f"state must be {STATE_DIM} finite numbers, got {state}")
-        for name, weights, size in (("q_weights", q_weights, Q_FEATURES), ("v_weights", v_weights, V_FEATURES)):
+        if state.shape != (self._n_s,) or not all_finite(state):
+            raise ValueError(f"state must be {self._n_s} finite numbers, got {state}")
+        for name, weights, size in (
+            ("q_weights", q_weights, self._q_features),
+            ("v_weights", v_weights, self._v_features),
+        ):
             if weights.shape != (size,) or not all_finite(weights):
                 raise ValueError(f"{name} must be {size} finite numbers, got shape {weights.shape}")
         memory, counters = self.memory, self.memory.counters
         if memory.arrival is not None and memory.arrival.update(state):
             memory.held_at_rest()  # exactly zero, no solve
             return ActorStep(
-                action=np.zeros(ACTION_DIM),
-                plan=np.zeros((self.problem.horizon - 1, ACTION_DIM)),
+                action=np.zeros(self._n_u),
+                plan=np.zeros((self.problem.horizon - 1, self._n_u)),
                 objective=float("nan"),
                 success=True,
                 solve_seconds=time.perf_counter() - started,
                 status="arrived",
             )
         if self.problem.convex_critics and learns(self.problem.agent):
-            q_weights = nearest_psd_weights(q_weights, STATE_DIM + ACTION_DIM)
-            v_weights = nearest_psd_weights(v_weights, STATE_DIM)
-        self._params[:Q_FEATURES] = q_weights
-        self._params[Q_FEATURES:] = v_weights
+            q_weights = nearest_psd_weights(q_weights, self._n_s + self._n_u)
+            v_weights = nearest_psd_weights(v_weights, self._n_s)
+        self._params[: self._q_features] = q_weights
+        self._params[self._q_features :] = v_weights
         planned: np.ndarray | None = None
         if self.problem.multistart:
             hurried = hurry and memory.previous_x is not None
@@ -404,11 +408,11 @@ class StackedActor:
             if memory.previous_x is not None:
                 fallback = np.empty(self._n_x)
                 self._shift_into(fallback, memory.previous_x)
-                fallback[-ACTION_DIM - STATE_DIM : -STATE_DIM] = 0.0
+                fallback[-self._n_u - self._n_s : -self._n_s] = 0.0
                 plan = self._plan_of(fallback)
                 memory.earlier_x, memory.previous_x = memory.previous_x, fallback
             else:
-                plan = np.zeros((self.problem.horizon - 1, ACTION_DIM))
+                plan = np.zeros((self.problem.horizon - 1, self._n_u))
             objective = float("nan")
         elapsed = time.perf_counter() - started
         counters.solves += 1

@@ -25,9 +25,7 @@ import casadi as ca
 import numpy as np
 
 from common.math.actor_problem import ActorProblem
-from common.math.actor_search import objective, search_graph
-from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
-from common.math.features import Q_FEATURES, V_FEATURES
+from common.math.actor_search import objective, predictor, search_graph
 from common.system.jit import build_with_jit, compiler_available
 
 log = logging.getLogger(__name__)
@@ -48,7 +46,7 @@ class ActorFunctions:
     tick: ca.Function | None
     lbx: np.ndarray
     ubx: np.ndarray
-    n_g: int  # equality constraints: STATE_DIM per held action
+    n_g: int  # equality constraints: state_dim per held action
 
 
 def build(problem: ActorProblem) -> ActorFunctions:
@@ -56,13 +54,14 @@ def build(problem: ActorProblem) -> ActorFunctions:
     present (common/system/jit.py), else interpreted (the same problem, slower solves)."""
     p = problem
     n_act = p.horizon - 1
-    step = PREDICTORS[p.predictor]
-    w = ca.SX.sym("w", Q_FEATURES)
-    v = ca.SX.sym("v", V_FEATURES)  # the critics' weights: actor_search.scaled_objective's order
-    states = [ca.SX.sym(f"s{i + 1}", STATE_DIM) for i in range(p.horizon)]
+    step = predictor(p)
+    n_s, n_u = p.state_dim, p.action_dim
+    w = ca.SX.sym("w", p.dynamics.q_features)
+    v = ca.SX.sym("v", p.dynamics.v_features)  # the critics' weights: actor_search.scaled_objective's order
+    states = [ca.SX.sym(f"s{i + 1}", n_s) for i in range(p.horizon)]
     # The decision variables of each stage: the held action u_i itself, or with the wheel
     # box on, the wheels' rim speeds d_i, boxed by simple bounds, and u_i = T d_i.
-    decisions = [ca.SX.sym(f"u{i + 1}", ACTION_DIM) for i in range(n_act)]
+    decisions = [ca.SX.sym(f"u{i + 1}", n_u) for i in range(n_act)]
     to_action = ca.DM(p.action_matrix)
     actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
 
@@ -92,11 +91,11 @@ def build(problem: ActorProblem) -> ActorFunctions:
     inf = float("inf")
     lbx, ubx = [], []
     for _ in range(n_act):
-        lbx += [-inf] * STATE_DIM + [-b for b in bounds]
-        ubx += [inf] * STATE_DIM + bounds
-    lbx += [-inf] * STATE_DIM
-    ubx += [inf] * STATE_DIM
-    n_g = STATE_DIM * n_act
+        lbx += [-inf] * n_s + [-b for b in bounds]
+        ubx += [inf] * n_s + bounds
+    lbx += [-inf] * n_s
+    ubx += [inf] * n_s
+    n_g = n_s * n_act
 
     # error_on_fail: a failed solve raises, so a successful step never builds the stats
     # dict (~20 us, 3 % of a solve); a step reads the stats only after a failure.

@@ -15,9 +15,10 @@ import numpy as np
 
 from common.math.agents import Agent, agent_row
 from common.math.arrival import ArrivalRule
-from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
 from common.math.features import feature_index_pairs
+from common.math.integrators import PREDICTORS
 from common.math.stats import Window
+from common.math.systems import System, system_row
 
 
 @dataclass(frozen=True)
@@ -27,9 +28,8 @@ class ActorProblem:
     agent: Agent
     horizon: int  # N: N - 1 held actions, N predicted states
     sampling_time: float
-    cost_diag: tuple[float, ...]  # diag(R), length 5
-    v_max: float
-    omega_max: float
+    cost_diag: tuple[float, ...]  # diag(R) over (s, u): the system's state_dim + action_dim
+    action_max: tuple[float, ...]  # the box |u_i| <= action_max[i]: the unicycle's (v_max, omega_max)
     predictor: str = "euler"
     solver: str = "fatrop"
     jit: bool = True
@@ -75,19 +75,22 @@ class ActorProblem:
     # (~8 us each at N = 12), each skipped once the projected gradient is below
     # actor_search.NEWTON_TOLERANCE; the solver (fatrop) only where they end short of it.
     newton_iterations: int = 20
+    # The sampled system (a row of common/math/systems.py SYSTEMS): its model is the predictor's,
+    # its dimensions the problem's.
+    system: str = "unicycle"
 
     def __post_init__(self) -> None:
         agent_row(self.agent)  # an unknown agent: one line naming the known ones
+        system = system_row(self.system)  # an unknown system: one line naming the known ones
+        n, m = system.state_dim, system.action_dim
         if self.horizon < 2:
             raise ValueError(f"horizon N must be >= 2 (N - 1 >= 1 actions), got {self.horizon}")
         if not (np.isfinite(self.sampling_time) and self.sampling_time > 0):
             raise ValueError(f"sampling_time must be a positive number, got {self.sampling_time}")
-        if len(self.cost_diag) != STATE_DIM + ACTION_DIM or not all(np.isfinite(c) and c >= 0 for c in self.cost_diag):
-            raise ValueError(f"cost_diag must be 5 finite non-negative numbers, got {self.cost_diag}")
-        for name in ("v_max", "omega_max"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number, got {value}")
+        if len(self.cost_diag) != n + m or not all(np.isfinite(c) and c >= 0 for c in self.cost_diag):
+            raise ValueError(f"cost_diag must be {n + m} finite non-negative numbers, got {self.cost_diag}")
+        if len(self.action_max) != m or not all(np.isfinite(b) and b > 0 for b in self.action_max):
+            raise ValueError(f"action_max must be {m} positive numbers (one per action), got {self.action_max}")
         if self.predictor not in PREDICTORS:
             raise ValueError(f"unknown predictor {self.predictor!r}; choose one of {sorted(PREDICTORS)}")
         if self.solver not in ("fatrop", "ipopt"):
@@ -108,10 +111,35 @@ class ActorProblem:
             raise ValueError(f"newton_iterations must be 1..50, got {self.newton_iterations}")
         if not (np.isfinite(self.wheel_speed_max) and self.wheel_speed_max >= 0):
             raise ValueError(f"wheel_speed_max must be >= 0 (0 = no wheel box), got {self.wheel_speed_max}")
+        if self.wheel_speed_max > 0 and not system.wheeled:
+            raise ValueError(f"the wheel box (wheel_speed_max > 0) is a wheeled robot's; {self.system} has no wheels")
         for name in ("wheel_radius", "wheel_separation"):
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
+
+    @property
+    def dynamics(self) -> System:
+        """The system's row: its model, dimensions and box (common/math/systems.py)."""
+        return system_row(self.system)
+
+    @property
+    def state_dim(self) -> int:
+        return len(system_row(self.system).states)
+
+    @property
+    def action_dim(self) -> int:
+        return len(self.action_max)
+
+    @property
+    def v_max(self) -> float:
+        """A wheeled robot's speed bound [m/s]: ``action_max[0]``."""
+        return self.action_max[0]
+
+    @property
+    def omega_max(self) -> float:
+        """A wheeled robot's turning-rate bound [rad/s]: ``action_max[1]``."""
+        return self.action_max[1]
 
     @property
     def wheel_box(self) -> bool:
@@ -136,14 +164,14 @@ class ActorProblem:
         or with the wheel box on, d = the wheels' rim speeds (right, left), v = (r + l) / 2,
         omega = (r - l) / separation. Linear, so the problem keeps its stage-wise structure."""
         if not self.wheel_box:
-            return np.eye(ACTION_DIM)
+            return np.eye(self.action_dim)
         return np.array([[0.5, 0.5], [1.0 / self.wheel_separation, -1.0 / self.wheel_separation]])
 
     @property
     def decision_bounds(self) -> list[float]:
         """The box on one stage's decision variables: the wheels' rim speeds with the wheel box
-        on (:attr:`wheel_rim_speed` each), else ``(v_max, omega_max)``."""
-        return [self.wheel_rim_speed] * ACTION_DIM if self.wheel_box else [self.v_max, self.omega_max]
+        on (:attr:`wheel_rim_speed` each), else :attr:`action_max` (the unicycle's ``(v_max, omega_max)``)."""
+        return [self.wheel_rim_speed] * 2 if self.wheel_box else list(self.action_max)
 
 
 @functools.cache
@@ -180,7 +208,7 @@ class ActorStep:
     """What one actor step produced. ``action`` is always finite and within bounds."""
 
     action: np.ndarray
-    plan: np.ndarray  # (N-1, 2) held actions, u_1 first
+    plan: np.ndarray  # (N-1, action_dim) held actions, u_1 first
     objective: float  # nan: no solution (a failed solve, or "arrived": no solve)
     success: bool
     solve_seconds: float

@@ -38,6 +38,7 @@ u_1 first): the held actions, or with the wheel box on, the wheels' rim speeds.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,8 +47,8 @@ import numpy as np
 
 from common.math.actor_problem import ActorProblem
 from common.math.agents import agent_row
-from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
-from common.math.features import Q_FEATURES, V_FEATURES, phi_q, phi_v, stage_cost
+from common.math.features import phi_q, phi_v, stage_cost
+from common.math.integrators import PREDICTORS
 
 # The polish is done when the largest entry of the projected gradient (in z) is at most this.
 NEWTON_TOLERANCE = 1e-6
@@ -94,6 +95,16 @@ REPORT = (
 )
 
 
+def predictor(problem: ActorProblem) -> Callable[[Any, Any, float], Any]:
+    """The problem's predictor of its system: ``(s, u, delta) -> s'`` (numpy or CasADi)."""
+    integrate, rhs = PREDICTORS[problem.predictor], problem.dynamics.rhs
+
+    def step(state: Any, action: Any, h: float) -> Any:
+        return integrate(rhs, state, action, h)
+
+    return step
+
+
 def objective(problem: ActorProblem, states: list[Any], actions: list[Any], w: Any, v: Any) -> Any:
     """The agent's stacked objective over N states and N - 1 actions (docs/concepts.md):
 
@@ -126,18 +137,18 @@ def scaled_objective(problem: ActorProblem) -> tuple[Any, Any, Any, Any, ca.Func
     of the scaled stage decisions ``z``: (z, s, the weights' symbol, the objective, the function
     (z, s) -> the decision vector of the rollout, stage-wise as the solver's ``s_1 d_1 .. s_N``)."""
     p = problem
-    n_act, step = p.horizon - 1, PREDICTORS[p.predictor]
-    z = ca.SX.sym("z", ACTION_DIM * n_act)
-    state = ca.SX.sym("s", STATE_DIM)
-    weights = ca.SX.sym("p", Q_FEATURES + V_FEATURES)
+    n_act, step, m, q_features = p.horizon - 1, predictor(p), p.action_dim, p.dynamics.q_features
+    z = ca.SX.sym("z", m * n_act)
+    state = ca.SX.sym("s", p.state_dim)
+    weights = ca.SX.sym("p", q_features + p.dynamics.v_features)
     scale = ca.DM(p.decision_bounds)
-    decisions = [z[ACTION_DIM * i : ACTION_DIM * (i + 1)] * scale for i in range(n_act)]
+    decisions = [z[m * i : m * (i + 1)] * scale for i in range(n_act)]
     to_action = ca.DM(p.action_matrix)
     actions = [ca.mtimes(to_action, d_i) for d_i in decisions] if p.wheel_box else decisions
     rollout = [state]
     for u_i in actions:
         rollout.append(step(rollout[-1], u_i, p.sampling_time))
-    cost = objective(p, rollout, actions, weights[:Q_FEATURES], weights[Q_FEATURES:])
+    cost = objective(p, rollout, actions, weights[:q_features], weights[q_features:])
     stages: list[Any] = []
     for s_i, d_i in zip(rollout[:-1], decisions, strict=True):
         stages += [s_i, d_i]
@@ -323,7 +334,7 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
         ca.MX.sym("z", n),
         ca.MX.sym("f"),
         ca.MX.sym("k"),
-        ca.MX.sym("s", STATE_DIM),
+        ca.MX.sym("s", p.state_dim),
         ca.MX.sym("w", n_w),
     )
     # -- the polish: up to newton_iterations; once the iterate is stationary the rest only pass it on
@@ -438,8 +449,9 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
     )
 
     # -- the tick
-    n_x = STATE_DIM * p.horizon + ACTION_DIM * (p.horizon - 1)
-    stage = STATE_DIM + ACTION_DIM
+    n_s, m = p.state_dim, p.action_dim
+    n_x = n_s * p.horizon + m * (p.horizon - 1)
+    stage = n_s + m
     warm = ca.MX.sym("warm", n_x, 2)
     given, fresh, masks = (
         ca.MX.sym("alternatives", n, count),
@@ -451,15 +463,15 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
     bounds = ca.DM(np.tile(p.decision_bounds, p.horizon - 1))
 
     def scaled(x: Any) -> Any:  # the decision vector's stage decisions, scaled to [-1, 1]
-        return ca.reshape(ca.reshape(x[:-STATE_DIM], stage, p.horizon - 1)[STATE_DIM:, :], n, 1) / bounds
+        return ca.reshape(ca.reshape(x[:-n_s], stage, p.horizon - 1)[n_s:, :], n, 1) / bounds
 
     def shifted(z_any: Any) -> Any:  # one interval on: the last held decisions repeated
-        return ca.vertcat(z_any[ACTION_DIM:, :], z_any[-ACTION_DIM:, :])
+        return ca.vertcat(z_any[m:, :], z_any[-m:, :])
 
     def plan_of(z_any: Any) -> Any:  # the held actions (v, omega), one column per stage, inside both boxes
-        decisions = ca.reshape(ca.fmin(ca.fmax(z_any, -1.0), 1.0) * bounds, ACTION_DIM, p.horizon - 1)
+        decisions = ca.reshape(ca.fmin(ca.fmax(z_any, -1.0), 1.0) * bounds, m, p.horizon - 1)
         actions = ca.mtimes(ca.DM(p.action_matrix), decisions) if p.wheel_box else decisions
-        limits = ca.DM([p.v_max, p.omega_max])
+        limits = ca.DM(list(p.action_max))
         return ca.fmin(ca.fmax(actions, -ca.repmat(limits, 1, p.horizon - 1)), ca.repmat(limits, 1, p.horizon - 1))
 
     previous, earlier = scaled(warm[:, 0]), scaled(warm[:, 1])
@@ -517,33 +529,33 @@ def search_graph(problem: ActorProblem) -> SearchGraph:
 def fresh_starts(problem: ActorProblem, rows: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """The table the alternatives are renewed from, in turn: (values, masks), each ``(rows, n_z)``;
     a renewed alternative is ``masks * values + (1 - masks) * answer``. The first rows are whole
-    plans -- standing still, full speed ahead and back, turning either way, ahead and back in
-    turn, both ways -- then, alternately, one of those and a random vertex of the box scaled by
-    0.3-1, half of the random ones only on 1-6 entries of the answer (a perturbation of the
-    answer, as an iterated local search takes). Seeded: a run never depends on another."""
+    plans -- standing still, each action at either bound alone (the unicycle: full speed ahead
+    and back, turning either way), the first action's bounds in turn, both ways -- then,
+    alternately, one of those and a random vertex of the box scaled by 0.3-1, half of the random
+    ones only on 1-6 entries of the answer (a perturbation of the answer, as an iterated local
+    search takes). Seeded: a run never depends on another."""
     p = problem
-    n_act = p.horizon - 1
-    n = ACTION_DIM * n_act
-    if p.wheel_box:  # both wheels at the rim speed: straight; opposite: turning in place
-        speed, turn = p.wheel_rim_speed, 2.0 * p.wheel_rim_speed / p.wheel_separation
-    else:
-        speed, turn = p.v_max, p.omega_max
+    n_act, m = p.horizon - 1, p.action_dim
+    n = m * n_act
+    # the wheel box: both wheels at the rim speed (straight) or opposite (turning in place)
+    rim = p.wheel_rim_speed if p.wheel_box else 0.0
+    extremes = (rim, 2.0 * rim / p.wheel_separation) if p.wheel_box else p.action_max
     to_decision = np.linalg.inv(p.action_matrix)
     bounds = np.array(p.decision_bounds)
 
-    def held(*actions: tuple[float, float]) -> np.ndarray:
+    def held(*actions: tuple[float, ...]) -> np.ndarray:
         stages = [np.clip(to_decision @ np.array(actions[i % len(actions)]) / bounds, -1.0, 1.0) for i in range(n_act)]
         return np.concatenate(stages)
 
-    whole = [
-        held((0.0, 0.0)),
-        held((speed, 0.0)),
-        held((-speed, 0.0)),
-        held((0.0, turn)),
-        held((0.0, -turn)),
-        held((speed, 0.0), (-speed, 0.0)),
-        held((-speed, 0.0), (speed, 0.0)),
-    ]
+    def only(i: int, value: float) -> tuple[float, ...]:  # action i at value, the others zero
+        return tuple(value if j == i else 0.0 for j in range(m))
+
+    # standing still; each action at either bound alone (the unicycle: ahead, back, turning either
+    # way); the first action's bounds in turn, both ways
+    whole = [held(only(0, 0.0))]
+    for i, extreme in enumerate(extremes):
+        whole += [held(only(i, extreme)), held(only(i, -extreme))]
+    whole += [held(only(0, extremes[0]), only(0, -extremes[0])), held(only(0, -extremes[0]), only(0, extremes[0]))]
     rng = np.random.default_rng(seed)
     values, masks = list(whole), [np.ones(n) for _ in whole]
     while len(values) < rows:

@@ -39,6 +39,7 @@ design, built by the same code: :func:`stream_design`).
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -50,8 +51,7 @@ from common.math.agents import fit_due
 from common.math.arrival import ArrivalTolerances, arrival_masks, arrival_update
 from common.math.dynamics import ACTION_DIM, STATE_DIM
 from common.math.features import (
-    Q_FEATURES,
-    V_FEATURES,
+    dim_of_features,
     feature_index_pairs,
     phi_q,
     phi_q_rows,
@@ -60,14 +60,16 @@ from common.math.features import (
 )
 
 Features = Callable[[np.ndarray, np.ndarray], np.ndarray]
-QV_FEATURES = Q_FEATURES + V_FEATURES  # a TD row: phi_Q(s, u), then phi_V(s)
-ENTRY = 2 + STATE_DIM + ACTION_DIM  # a replay's entry: (step, x, y, alpha, v, omega, cost)
-# The products of z = (s, u) that make a TD row: phi_Q's pairs over z, then phi_V's over s = z[:3]
-# (common/math/features.py): row = z[_QV_LEFT] * z[_QV_RIGHT], the products _phi_qv_rows makes.
-_QV_LEFT, _QV_RIGHT = (
-    np.array(column, dtype=np.intp)
-    for column in zip(*feature_index_pairs(STATE_DIM + ACTION_DIM), *feature_index_pairs(STATE_DIM), strict=True)
-)
+
+
+@functools.cache
+def qv_products(state_dim: int, action_dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """The products of ``z = (s, u)`` that make a TD row (phi_Q(s, u), then phi_V(s)): phi_Q's
+    pairs over ``z``, then phi_V's over ``s = z[:state_dim]`` (common/math/features.py): a row is
+    ``z[left] * z[right]``, the products :func:`_phi_qv_rows` makes."""
+    pairs = zip(*feature_index_pairs(state_dim + action_dim), *feature_index_pairs(state_dim), strict=True)
+    left, right = (np.array(column, dtype=np.intp) for column in pairs)
+    return left, right
 
 
 @dataclass(frozen=True)
@@ -439,9 +441,10 @@ def td_fit(
 class Replay:
     """The last ``capacity`` samples of ONE episode, kept in step order.
 
-    The unicycle's samples (a state of :data:`STATE_DIM` numbers, an action of
-    :data:`ACTION_DIM`) are kept as ring arrays only: the steps, each sample's entry ``(step, x,
-    y, alpha, v, omega, cost)`` (the checkpoint's row: :meth:`table` is two slices of the ring)
+    Samples of its system's shape (a state of ``state_dim`` numbers, an action of ``action_dim``;
+    the unicycle's 3 and 2 by default) are kept as ring arrays only: the steps, each sample's entry
+    ``(step, s, u, cost)`` (the unicycle's ``(step, x, y, alpha, v, omega, cost)``: the
+    checkpoint's row, :meth:`table` is two slices of the ring)
     and its TD row (``phi_Q`` then ``phi_V`` side by side, :func:`_phi_qv_rows`'s products, so
     the same bits), each row computed once when its sample enters. A fit builds its design
     from them (:func:`kept_designs`) with no Python loop over samples; :attr:`samples` and
@@ -449,15 +452,17 @@ class Replay:
     into a list of its samples, with no rows (:attr:`kept` False: designs come from the
     samples) until it is cleared."""
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, state_dim: int = STATE_DIM, action_dim: int = ACTION_DIM) -> None:
         if capacity < 2:
             raise ValueError(f"replay size M must be >= 2 (one TD pair), got {capacity}")
         self.capacity = capacity
+        self.state_dim, self.action_dim = state_dim, action_dim
+        self.left, self.right = qv_products(state_dim, action_dim)  # a TD row: z[left] * z[right]
         self.steps = np.zeros(capacity, dtype=np.int64)  # ring slot -> step
-        self.entries = np.zeros((capacity, ENTRY))  # ring slot -> (step, x, y, alpha, v, omega, cost)
-        self.values = self.entries[:, 1:-1]  # ring slot -> (x, y, alpha, v, omega), a view
+        self.entries = np.zeros((capacity, 2 + state_dim + action_dim))  # ring slot -> (step, s, u, cost)
+        self.values = self.entries[:, 1:-1]  # ring slot -> (s, u), a view
         self.costs = self.entries[:, -1]  # ring slot -> cost, a view
-        self.rows = np.zeros((capacity, QV_FEATURES))  # ring slot -> phi_Q, phi_V of its sample
+        self.rows = np.zeros((capacity, self.left.size))  # ring slot -> phi_Q, phi_V of its sample
         self.start = 0  # the ring slot of the oldest sample
         self.count = 0  # samples in the rings
         self.last = -1  # the newest sample's step (while one is held)
@@ -483,7 +488,8 @@ class Replay:
             return list(self._others)
         order = self._order()
         steps, costs, values = self.steps[order].tolist(), self.costs[order].tolist(), self.values[order]
-        return [Sample(step, values[i, :STATE_DIM], values[i, STATE_DIM:], costs[i]) for i, step in enumerate(steps)]
+        n = self.state_dim
+        return [Sample(step, values[i, :n], values[i, n:], costs[i]) for i, step in enumerate(steps)]
 
     @property
     def newest(self) -> Sample | None:
@@ -494,7 +500,7 @@ class Replay:
 
     def _sample(self, slot: int) -> Sample:
         z = self.values[slot].copy()
-        return Sample(int(self.steps[slot]), z[:STATE_DIM], z[STATE_DIM:], float(self.costs[slot]))
+        return Sample(int(self.steps[slot]), z[: self.state_dim], z[self.state_dim :], float(self.costs[slot]))
 
     def clear(self) -> None:
         self.start, self.count, self.last, self._others, self.kept = 0, 0, -1, None, True
@@ -502,8 +508,8 @@ class Replay:
     def add(self, sample: Sample) -> None:
         """Insert in step order; a duplicate step replaces nothing and raises."""
         state, action = np.asarray(sample.state, dtype=float), np.asarray(sample.action, dtype=float)
-        if self._others is None and (state.shape != (STATE_DIM,) or action.shape != (ACTION_DIM,)):
-            self._others = deque(self.samples, maxlen=self.capacity)  # not the unicycle's (s, u): no rows
+        if self._others is None and (state.shape != (self.state_dim,) or action.shape != (self.action_dim,)):
+            self._others = deque(self.samples, maxlen=self.capacity)  # not its system's (s, u): no rows
             self.kept = False
         if self._others is not None:
             self._add_other(sample)
@@ -522,9 +528,9 @@ class Replay:
             entries = np.insert(self.entries[order], at, entry, axis=0)[-self.capacity :]
             self.start, self.count = 0, len(steps)
             self.steps[: self.count], self.entries[: self.count] = steps, entries
-            np.multiply(entries[:, 1:-1][:, _QV_LEFT], entries[:, 1:-1][:, _QV_RIGHT], out=self.rows[: self.count])
+            np.multiply(entries[:, 1:-1][:, self.left], entries[:, 1:-1][:, self.right], out=self.rows[: self.count])
             return
-        self.append(int(sample.step), entry, z[_QV_LEFT] * z[_QV_RIGHT])
+        self.append(int(sample.step), entry, z[self.left] * z[self.right])
 
     def append(self, step: int, entry: np.ndarray, row: np.ndarray) -> None:
         """The sample of ``step``, after the newest held, into the next ring slot (full: the
@@ -563,7 +569,7 @@ class Replay:
             return np.array(
                 [[s.step, *np.asarray(s.state, float), *np.asarray(s.action, float), s.cost] for s in self._others],
                 dtype=float,
-            ).reshape(-1, 2 + STATE_DIM + ACTION_DIM)
+            ).reshape(-1, self.entries.shape[1])
         start, end = self.start, self.start + self.count
         if end <= self.capacity:
             return self.entries[start:end].copy()
@@ -592,11 +598,14 @@ def append_each(replays: Sequence[Replay], steps: Sequence[int], costs: Sequence
     :meth:`Replay.add` would; their TD rows are one product over all (elementwise: the same
     bits as each alone). What :meth:`Replay.append` refuses raises its ValueError (the replays
     before it have taken theirs)."""
-    if len(replays) != len(steps) or len(steps) != len(costs) or values.shape != (len(steps), STATE_DIM + ACTION_DIM):
+    width = replays[0].values.shape[1] if replays else values.shape[-1]  # every replay of one system
+    if len(replays) != len(steps) or len(steps) != len(costs) or values.shape != (len(steps), width):
         raise ValueError(f"{len(replays)} replays for {len(steps)} steps, {len(costs)} costs, values {values.shape}")
-    entries = np.empty((len(steps), ENTRY))
+    if not replays:
+        return
+    entries = np.empty((len(steps), 2 + width))
     entries[:, 0], entries[:, 1:-1], entries[:, -1] = steps, values, costs
-    rows = values[:, _QV_LEFT] * values[:, _QV_RIGHT]
+    rows = values[:, replays[0].left] * values[:, replays[0].right]
     for i, replay in enumerate(replays):
         replay.append(steps[i], entries[i], rows[i])
 
@@ -606,7 +615,7 @@ def newest_values(replays: Sequence[Replay]) -> tuple[np.ndarray, np.ndarray]:
     rows (every replay holds a sample and keeps rows: :attr:`Replay.kept`)."""
     steps = np.array([replay.last for replay in replays], dtype=np.int64)
     values = np.array([replay.values[(replay.start + replay.count - 1) % replay.capacity] for replay in replays])
-    return steps, values.reshape(len(replays), STATE_DIM + ACTION_DIM)
+    return steps, values.reshape(len(replays), replays[0].values.shape[1] if replays else STATE_DIM + ACTION_DIM)
 
 
 def stream_design(streams: Iterable[Sequence[Sample]], features: Features) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -670,10 +679,13 @@ def kept_designs(
     order, then zero rows up to ``rows`` (None: the most pairs of any). The same arrays, bit for
     bit, with no loop over samples: every stream's ring read in step order at once, its pairs
     found by comparing neighbouring steps, their rows copied into place. None when a replay
-    keeps no rows (:attr:`Replay.kept`) or the streams differ in capacity: then
+    keeps no rows (:attr:`Replay.kept`) or the streams differ in capacity or system: then
     :func:`padded_designs` builds them from the samples."""
     streams = [replay for design in designs for replay in design]
-    if not streams or not all(r.kept and r.capacity == streams[0].capacity for r in streams):
+    width = streams[0].rows.shape[1] if streams else 0  # every stream of one system
+    if not streams or not all(
+        r.kept and r.capacity == streams[0].capacity and r.rows.shape[1] == width for r in streams
+    ):
         return None
     capacity = streams[0].capacity
     owner = np.repeat(np.arange(len(designs)), [len(design) for design in designs])
@@ -694,13 +706,13 @@ def kept_designs(
     following_source = now_source.copy()
     now_source[target] = stream * capacity + ring[stream, first]
     following_source[target] = stream * capacity + ring[stream, first + 1]
-    features = np.concatenate([*(r.rows for r in streams), np.zeros((1, QV_FEATURES))])
+    features = np.concatenate([*(r.rows for r in streams), np.zeros((1, width))])
     now, following = np.take(features, now_source, axis=0), np.take(features, following_source, axis=0)
     costs = np.take(np.concatenate([*(r.costs for r in streams), np.zeros(1)]), now_source)
     shape = (len(designs), rows)
     return (
-        now.reshape(*shape, QV_FEATURES),
-        following.reshape(*shape, QV_FEATURES),
+        now.reshape(*shape, width),
+        following.reshape(*shape, width),
         costs.reshape(shape),
         pairs.tolist(),
     )
@@ -711,9 +723,10 @@ class PooledReplay:
     stream), one design over all of them (pairs only within a stream). Memory: at most
     ``capacity`` samples per robot held."""
 
-    def __init__(self, capacity: int) -> None:
-        Replay(capacity)  # the same check of M
+    def __init__(self, capacity: int, state_dim: int = STATE_DIM, action_dim: int = ACTION_DIM) -> None:
+        Replay(capacity, state_dim, action_dim)  # the same checks
         self.capacity = capacity
+        self.state_dim, self.action_dim = state_dim, action_dim
         self.streams: dict[str, Replay] = {}
 
     def __len__(self) -> int:
@@ -728,12 +741,12 @@ class PooledReplay:
         """The robot's replay (created empty on first use)."""
         replay = self.streams.get(robot)
         if replay is None:
-            replay = self.streams[robot] = Replay(self.capacity)
+            replay = self.streams[robot] = Replay(self.capacity, self.state_dim, self.action_dim)
         return replay
 
     def restart(self, robot: str) -> Replay:
         """The robot starts a new episode: its stream starts empty (the others keep theirs)."""
-        replay = self.streams[robot] = Replay(self.capacity)
+        replay = self.streams[robot] = Replay(self.capacity, self.state_dim, self.action_dim)
         return replay
 
     def add(self, robot: str, sample: Sample) -> None:
@@ -783,6 +796,11 @@ class DoubleCritic:
         for name, w in (("q", self.q_weights), ("v", self.v_weights)):
             if not np.all(np.isfinite(w)):
                 raise ValueError(f"initial {name} weights must be finite")
+        # the system's dimensions, told by the weights: phi_V(s) is s's quadratic, phi_Q(s, u) (s, u)'s
+        self.state_dim = dim_of_features(self.v_weights.size)
+        self.action_dim = dim_of_features(self.q_weights.size) - self.state_dim
+        if self.action_dim < 1:
+            raise ValueError(f"{self.q_weights.size} Q weights and {self.v_weights.size} V weights: no (s, u) has both")
         self.discount = discount
         self.ridge = ridge
         self.bounds = bounds
@@ -804,7 +822,7 @@ class DoubleCritic:
     def fit_separately(self, now: np.ndarray, following: np.ndarray, costs: np.ndarray) -> CriticUpdate:
         """Both critics by :func:`td_fit`, one after the other (no ridge: the minimum-norm change)."""
         args = (self.discount, self.ridge, self.bounds)
-        q = Q_FEATURES
+        q = self.q_weights.size
         q_fit = td_fit(_columns(now, 0, q), _columns(following, 0, q), costs, self.q_weights, *args, self.q_on_bound)
         v_fit = td_fit(_columns(now, q), _columns(following, q), costs, self.v_weights, *args, self.v_on_bound)
         return self.accept(q_fit, v_fit)
@@ -840,10 +858,19 @@ def update_many(
     (:func:`kept_designs`); ``rebuild``: from their samples (:func:`padded_designs`, the same
     arrays: the reference the kept rows are tested against)."""
     results: list[CriticUpdate | None] = [None] * len(critics)
-    groups: dict[tuple[float, float, tuple[float, float] | None, int], list[int]] = {}
+    # one stacked solve per shape: (beta, lambda, box, rows, phi_Q's and phi_V's lengths)
+    groups: dict[tuple[float, float, tuple[float, float] | None, int, int, int], list[int]] = {}
     for i, (critic, replay) in enumerate(zip(critics, replays, strict=True)):
         if critic.ridge > 0:
-            groups.setdefault((critic.discount, critic.ridge, critic.bounds, replay.max_pairs), []).append(i)
+            shape = (
+                critic.discount,
+                critic.ridge,
+                critic.bounds,
+                replay.max_pairs,
+                critic.q_weights.size,
+                critic.v_weights.size,
+            )
+            groups.setdefault(shape, []).append(i)
         else:
             kept = None if rebuild else kept_designs([replay.replays()], None)
             if kept is None:
@@ -852,7 +879,7 @@ def update_many(
                 results[i] = critic.fit_separately(kept[0][0], kept[1][0], kept[2][0])
             else:  # no pair: the empty design of stream_design
                 results[i] = critic.fit_separately(np.empty((0, 0)), np.empty((0, 0)), np.empty(0))
-    for (discount, ridge, bounds, rows), group in groups.items():
+    for (discount, ridge, bounds, rows, q, _), group in groups.items():
         kept = None if rebuild else kept_designs([replays[i].replays() for i in group], rows)
         now, following, costs, pairs = kept or padded_designs(
             [replays[i].sample_streams() for i in group], rows, _phi_qv_rows
@@ -874,7 +901,7 @@ def update_many(
             following,
             costs,
             np.array([np.concatenate([c.q_weights, c.v_weights]) for c in fitted]),
-            [slice(0, Q_FEATURES), slice(Q_FEATURES, now.shape[2])],
+            [slice(0, q), slice(q, now.shape[2])],
             discount,
             ridge,
             bounds,
@@ -882,15 +909,15 @@ def update_many(
         )
         finite = np.isfinite(weights)
         q_finite, v_finite = (
-            finite[:, :Q_FEATURES].all(axis=1).tolist(),
-            finite[:, Q_FEATURES:].all(axis=1).tolist(),
+            finite[:, :q].all(axis=1).tolist(),
+            finite[:, q:].all(axis=1).tolist(),
         )
         q_residuals, v_residuals = residuals[:, 0].tolist(), residuals[:, 1].tolist()
         for n, (k, critic) in enumerate(zip(members, fitted, strict=True)):
-            q_bound, v_bound = (None, None) if bounds is None else (on_bound[n, :Q_FEATURES], on_bound[n, Q_FEATURES:])
+            q_bound, v_bound = (None, None) if bounds is None else (on_bound[n, :q], on_bound[n, q:])
             results[group[k]] = critic.accept_checked(
-                FitResult(weights[n, :Q_FEATURES], q_residuals[n], pairs[k], q_bound),
-                FitResult(weights[n, Q_FEATURES:], v_residuals[n], pairs[k], v_bound),
+                FitResult(weights[n, :q], q_residuals[n], pairs[k], q_bound),
+                FitResult(weights[n, q:], v_residuals[n], pairs[k], v_bound),
                 q_finite[n],
                 v_finite[n],
             )
@@ -898,7 +925,7 @@ def update_many(
 
 
 def _phi_qv_rows(states: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """phi_Q's Q_FEATURES columns, then phi_V's."""
+    """phi_Q's columns, then phi_V's."""
     return np.hstack([phi_q_rows(states, actions), phi_v_rows(states)])
 
 
@@ -924,7 +951,7 @@ class PooledLearner:
         if robots is not None and robots < 1:
             raise ValueError(f"a pool needs at least one robot, got {robots}")
         self.critic = critic
-        self.replay = PooledReplay(capacity)
+        self.replay = PooledReplay(capacity, critic.state_dim, critic.action_dim)
         self.update_every = update_every
         self.robots = robots
         self.due = 0  # transitions due a fit since the last fit

@@ -10,11 +10,12 @@ integral :func:`exact_step`, the plant. The heading is never wrapped: it stays c
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
+
+from common.math.integrators import euler, rk4
 
 FloatArray = NDArray[np.float64]
 STATE_DIM = 3
@@ -39,21 +40,13 @@ def unicycle_rhs(state: Any, action: Any) -> Any:
 
 
 def euler_step(state: Any, action: Any, sampling_time: float) -> Any:
-    """The paper's predictor, eq. (Euler): ``s + delta f(s, u)``."""
-    return state + sampling_time * unicycle_rhs(state, action)
+    """The paper's predictor, eq. (Euler), for the unicycle: ``s + delta f(s, u)``."""
+    return euler(unicycle_rhs, state, action, sampling_time)
 
 
 def rk4_step(state: Any, action: Any, sampling_time: float) -> Any:
-    """Classic fourth-order Runge-Kutta over one held interval (optional predictor)."""
-    h = sampling_time
-    k1 = unicycle_rhs(state, action)
-    k2 = unicycle_rhs(state + h / 2 * k1, action)
-    k3 = unicycle_rhs(state + h / 2 * k2, action)
-    k4 = unicycle_rhs(state + h * k3, action)
-    return state + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-
-
-PREDICTORS: dict[str, Callable[[Any, Any, float], Any]] = {"euler": euler_step, "rk4": rk4_step}
+    """Classic fourth-order Runge-Kutta over one held interval, for the unicycle."""
+    return rk4(unicycle_rhs, state, action, sampling_time)
 
 
 def exact_step(state: FloatArray, action: FloatArray, duration: float) -> FloatArray:

@@ -9,6 +9,7 @@ The functions are dimension-generic and accept numpy arrays or CasADi symbols.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,15 @@ from common.math.dynamics import ACTION_DIM, STATE_DIM, is_symbolic
 def feature_count(dim: int) -> int:
     """Number of products ``z_i z_j`` with ``i >= j`` of a vector of length ``dim``."""
     return dim * (dim + 1) // 2
+
+
+def dim_of_features(count: int) -> int:
+    """The ``dim`` with ``feature_count(dim) == count`` (a critic's weights tell its vector's
+    length); ValueError when ``count`` is no such number (1, 3, 6, 10, 15, 21, ...)."""
+    dim = round((math.isqrt(8 * count + 1) - 1) / 2) if count > 0 else 0
+    if dim < 1 or feature_count(dim) != count:
+        raise ValueError(f"{count} weights are no quadratic's (1, 3, 6, 10, 15, 21, ... for a vector of 1, 2, 3, ...)")
+    return dim
 
 
 Q_FEATURES = feature_count(STATE_DIM + ACTION_DIM)  # phi_Q(s, u): 15 for the unicycle

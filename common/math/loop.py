@@ -20,8 +20,9 @@ from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory
 from common.math.arrival import ArrivalTolerances
 from common.math.critic import DoubleCritic, PooledLearner, Sample, at_rest
-from common.math.dynamics import Plant, exact_step
+from common.math.dynamics import Plant
 from common.math.features import stage_cost
+from common.math.systems import UNICYCLE, System
 
 log = logging.getLogger(__name__)
 
@@ -42,19 +43,21 @@ class CriticPort(Protocol):
 
 
 class ExactPlant:
-    """The simulated robot in process: exact sample-and-hold integration (the paper's plant).
+    """A simulated system in process (the unicycle by default: the paper's plant): its exact
+    sample-and-hold where known, else its fixed-step integration (:meth:`System.step`).
 
     It reports the true state and has no wheels to saturate."""
 
-    def __init__(self) -> None:
-        self.state = np.zeros(3)
+    def __init__(self, system: System = UNICYCLE) -> None:
+        self.system = system
+        self.state = np.zeros(system.state_dim)
 
     def reset(self, state: np.ndarray) -> np.ndarray:
         self.state = np.asarray(state, dtype=float).copy()
         return self.state.copy()
 
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
-        self.state = exact_step(self.state, action, duration)
+        self.state = self.system.step(self.state, action, duration)
         return self.state.copy()
 
     @property

@@ -58,11 +58,11 @@ from common.config.settings import Settings, with_method
 from common.math.actor import StackedActor, TickRecord
 from common.math.actor_nlp import compiled
 from common.math.actor_problem import PHASES, ActorCounters, ActorProblem
-from common.math.actor_search import REPORT, descent_function, scaled_objective, search_graph
+from common.math.actor_search import REPORT, descent_function, predictor, scaled_objective, search_graph
 from common.math.agents import AGENTS, REFERENCE_AGENT, agent_row, learns, stage_cost_weights
 from common.math.agents import parse_agents as parse_agent_names
 from common.math.agents import parse_horizons as parse_horizon_numbers
-from common.math.dynamics import ACTION_DIM, PREDICTORS, STATE_DIM
+from common.math.dynamics import ACTION_DIM, STATE_DIM
 from common.math.features import feature_count, feature_index_pairs
 from common.math.loop import ExactPlant
 from common.math.stats import summarize
@@ -253,7 +253,7 @@ class NumpyObjective:
         self.use_q = row.q_critics
         self.use_v = row.value_critic
         self.euler = problem.predictor == "euler"
-        self._step = PREDICTORS[problem.predictor]
+        self._step = predictor(problem)
         limits = np.array([problem.v_max, problem.omega_max])
         self.bounds = Bounds(np.tile(-limits, self.n_actions), np.tile(limits, self.n_actions), keep_feasible=True)
 

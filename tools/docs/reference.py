@@ -593,6 +593,7 @@ def variants_page() -> str:
     from common.contracts.pose_sources import POSE_SOURCES
     from common.math.agents import AGENT_ROWS, REFERENCE_AGENT
     from common.math.plant_models import PLANT_MODELS
+    from common.math.systems import SYSTEMS
     from tools.launch.plants import LAUNCH_PLANTS
 
     def yes(flag: bool) -> str:
@@ -630,6 +631,26 @@ def variants_page() -> str:
         ),
         "",
         "Stage costs: `each` once per stage, `remaining` `N - i` times at stage `i`, `none` not at all.",
+        "",
+        "## Systems",
+        "",
+        "`common/math/systems.py` `SYSTEMS`: the sampled system the actor's problem (`ActorProblem.system`), the",
+        "critics' features and the in-process plant are sized and built from. Its goal is the origin of its state.",
+        "",
+        *_table(
+            ["system", "what", "state", "action", "box", "plant's step"],
+            [
+                [
+                    code(name),
+                    cell(row.what),
+                    cell(", ".join(row.states)),
+                    cell(", ".join(row.actions)),
+                    cell(", ".join(f"{bound:g}" for bound in row.action_max)),
+                    "exact" if row.exact_step is not None else f"{row.substeps} RK4 steps",
+                ]
+                for name, row in SYSTEMS.items()
+            ],
+        ),
         "",
         "## Simulated plant models",
         "",
