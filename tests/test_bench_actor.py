@@ -67,7 +67,7 @@ def _settings(agent: str, horizon: int, jit: bool = False, solver: str = "fatrop
 
 def _loop_objective(agent: str, horizon: int, settings: Settings, q, v, state, plan) -> float:
     """The actor's objective written as the paper states it, stage by stage."""
-    delta, r_diag = settings.plant.sampling_time, settings.cost.r_diag
+    delta, r_diag = settings.plant.sampling_time, settings.r_diag
     states = [np.asarray(state, float)]
     for u in plan:
         states.append(euler_step(states[-1], u, delta))
@@ -122,7 +122,7 @@ def test_numpy_objective_matches_stagewise_loop(agent: str, horizon: int) -> Non
         agent=agent,
         horizon=horizon,
         sampling_time=settings.plant.sampling_time,
-        cost_diag=tuple(settings.cost.r_diag),
+        cost_diag=tuple(settings.r_diag),
         action_max=(settings.plant.v_max, settings.plant.omega_max),
     )
     rng = np.random.default_rng(horizon)

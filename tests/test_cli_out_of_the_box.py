@@ -115,6 +115,7 @@ def test_options_a_command_ignores_are_refused_in_one_line(command: str, flag: s
 def test_children_get_only_the_flags_their_command_takes() -> None:
     given = [
         "--config=c.toml",
+        "--system=unicycle",
         "--agent=mpc",
         "--horizon=6",
         "--solver=ipopt",

@@ -36,5 +36,5 @@ def test_agent_parks_from_a_corner(agent: str, start: tuple[float, float]) -> No
     for k in range(0, episode.steps, 37):
         np.testing.assert_allclose(exact_step(states[k], actions[k], 0.1), states[k + 1], atol=1e-12)
     chi = np.hstack([states[:-1], actions])  # (s_k, u_k) per step
-    expected_cost = 0.1 * float(np.sum(chi**2 @ np.array(settings.cost.r_diag)))  # sum_k delta chi^T R chi
+    expected_cost = 0.1 * float(np.sum(chi**2 @ np.array(settings.r_diag)))  # sum_k delta chi^T R chi
     assert episode.accumulated_cost == pytest.approx(expected_cost, rel=1e-12)

@@ -1077,7 +1077,7 @@ def test_a_robot_hurried_at_every_step_parks_as_the_unhurried_one(start: tuple[f
         critic = local_critic(settings)
         state = np.array([*start, settings.start_state()[2]])
         runs[hurry] = (
-            run_algorithm1(port, [plant], [critic], [state], 300, 0.1, tuple(settings.cost.r_diag))[0],  # type: ignore[arg-type]
+            run_algorithm1(port, [plant], [critic], [state], 300, 0.1, tuple(settings.r_diag))[0],  # type: ignore[arg-type]
             actor.counters,
         )
     (hurried, counters), (plain, _) = runs["hurried"], runs[None]

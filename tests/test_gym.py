@@ -22,7 +22,7 @@ from common.math.loop import Episode
 from tests.harness import cluster
 from tools.experiment.grid import make_starts
 from tools.gym.bench import measure
-from tools.gym.envs import ENV_MODELS, SrlEnv, StartDistribution, normalized_actions
+from tools.gym.envs import ENV_MODELS, SrlEnv, StartDistribution, normalized_actions, system_envs
 from tools.gym.policies import SrlPolicy, policy_settings
 from tools.gym.vector import SrlVectorEnv
 
@@ -44,7 +44,8 @@ def test_make_finds_the_ids_through_the_module_prefix_and_after_the_import() -> 
     assert env.spec is not None and env.spec.id == "srl/Unicycle-v0"
     for env_id, model in ENV_MODELS.items():
         assert gymnasium.make(env_id).unwrapped.settings.plant.model == model
-    assert sorted(ENV_MODELS) == sorted(i for i in gymnasium.registry if i.startswith(f"{tools.gym.NAMESPACE}/")), (
+    ids = sorted([*ENV_MODELS, *system_envs()])  # the robot's, and one per other system
+    assert ids == sorted(i for i in gymnasium.registry if i.startswith(f"{tools.gym.NAMESPACE}/")), (
         "every srl id registered, none else"
     )
 
@@ -105,7 +106,7 @@ def test_the_turtlebot_reports_its_odometry_and_the_truth_beside_it() -> None:
 def test_reward_is_minus_the_stage_cost_of_the_clipped_action_and_bad_actions_move_nothing() -> None:
     env = SrlEnv()
     obs, _ = env.reset(options={"start": (1.0, 2.0, 0.5)})
-    r_diag = env.settings.cost.r_diag
+    r_diag = env.settings.r_diag
     _, reward, _, _, info = env.step(np.array([5.0, -9.0]))  # beyond the box: clipped
     clipped = np.array([0.22, -2.84])
     assert -reward == info["cost"] == 0.1 * float(stage_cost(obs, clipped, r_diag))

@@ -51,7 +51,7 @@ def test_the_group_arrival_test_is_each_robots_own_including_its_edges() -> None
 
 def test_the_stage_cost_of_many_rows_is_each_rows_bit_for_bit() -> None:
     rng = np.random.default_rng(4)
-    r_diag = Settings.load().cost.r_diag
+    r_diag = Settings.load().r_diag
     states, actions = rng.normal(size=(500, 3)) * 3.0, rng.normal(size=(500, 2))
     rows = stage_cost_rows(states, actions, r_diag)
     assert [float(c) for c in rows] == [float(stage_cost(s, a, r_diag)) for s, a in zip(states, actions, strict=True)]

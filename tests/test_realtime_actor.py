@@ -354,7 +354,7 @@ def test_the_summary_reports_the_truth_only_when_the_plant_sends_it() -> None:
     sim.publish_state = publish_with_truth  # type: ignore[method-assign]
     sim.run(5)
     summary = sim.loop.summary()
-    r = sim.settings.cost.r_diag
+    r = sim.settings.r_diag
     # FakeActor drives at v = -0.1 (x > 0), omega = 0: chi = (0.9, 0.4, 0.1, -0.1, 0)
     stage = r[0] * 0.81 + r[1] * 0.16 + r[2] * 0.01 + r[3] * 0.01
     assert summary["truth"]["accumulated_cost"] == pytest.approx(5 * DELTA * stage, rel=1e-12)

@@ -29,7 +29,8 @@ def test_load_reads_packaged_toml() -> None:
     assert s.plant.sampling_time == RAW["plant"]["sampling_time"]
     assert s.plant.v_max == RAW["plant"]["v_max"]
     assert s.plant.omega_max == RAW["plant"]["omega_max"]
-    assert list(s.cost.r_diag) == RAW["cost"]["r_diag"]
+    assert list(s.cost.r_diag) == RAW["cost"]["r_diag"] == []  # the system's own:
+    assert s.r_diag == (1.0, 10.0, 1.0, 0.01, 0.01) and s.plant.system == RAW["plant"]["system"] == "unicycle"
     assert s.critic.replay_size == RAW["critic"]["replay_size"]
     assert s.critic.ridge == RAW["critic"]["ridge"]
     assert s.critic.discount_rate == RAW["critic"]["discount_rate"]
@@ -37,7 +38,8 @@ def test_load_reads_packaged_toml() -> None:
     assert s.actor.horizon == RAW["actor"]["horizon"]
     assert s.actor.solver == RAW["actor"]["solver"]
     assert s.episode.duration == RAW["episode"]["duration"]
-    assert list(s.episode.start) == RAW["episode"]["start"]
+    assert list(s.episode.start) == RAW["episode"]["start"] == []  # the system's own: (2, 2) heading away
+    assert np.array_equal(s.start_state(), [2.0, 2.0, math.atan2(2.0, 2.0)])
     # every key of the file is a setting, and every setting comes from the file
     dumped = s.model_dump(mode="json")
     assert set(dumped) == set(RAW)
@@ -58,7 +60,8 @@ def test_derived_quantities() -> None:
 def test_initial_weights_from_stage_cost() -> None:
     s = Settings.load(critic={"q_init": "stage_cost", "v_init": "stage_cost"})
     delta = s.plant.sampling_time
-    r = RAW["cost"]["r_diag"]
+    r = list(s.r_diag)  # srl.toml's [] is the system's own: the robot's (1, 10, 1, 0.01, 0.01)
+    assert r == [1.0, 10.0, 1.0, 0.01, 0.01]
     np.testing.assert_allclose(s.initial_q_weights(), delta * np.array([*r, *[0.0] * 10]), rtol=1e-15)
     np.testing.assert_allclose(s.initial_v_weights(), delta * np.array([*r[:3], 0.0, 0.0, 0.0]), rtol=1e-15)
 
@@ -184,9 +187,17 @@ def test_start_state_rejects_bad(bad) -> None:
 def test_parse_start() -> None:
     assert parse_start("1,2") == (1.0, 2.0)
     assert parse_start("-1.5, 2e-1, 3") == (-1.5, 0.2, 3.0)
-    for bad in ("1,nan", "1", "1,2,3,4", "a,b", "", "1,inf"):
+    for bad in ("1,nan", "a,b", "", "1,inf"):
         with pytest.raises(ValueError):
             parse_start(bad)
+    # how many numbers a start has is the system's: the robot's settings refuse what a cart-pole's take
+    for count in (1, 4):
+        start = parse_start(",".join(["0.1"] * count))
+        with pytest.raises(ValidationError, match="X,Y or X,Y,ALPHA"):
+            Settings.load(episode={"start": start})
+    assert Settings.load(plant={"system": "cartpole"}, episode={"start": parse_start("0.1,0.1,0.1,0.1")})
+    with pytest.raises(ValidationError, match=r"episode\.start: 4 numbers, cartpole's state"):
+        Settings.load(plant={"system": "cartpole"}, episode={"start": parse_start("1,2")})
 
 
 # -- the CLI ------------------------------------------------------------------------------
@@ -264,10 +275,10 @@ def test_cli_run_json_contract(capsys: pytest.CaptureFixture[str], monkeypatch: 
     (episode,) = captured
     states, actions = np.array(episode.states), np.array(episode.actions)
     assert states.shape == (11, 3) and actions.shape == (10, 2)
-    x0, y0 = RAW["episode"]["start"]
+    x0, y0 = 2.0, 2.0  # srl.toml's start and R are [], the robot's own: (2, 2) heading away, (1, 10, 1, ...)
     np.testing.assert_allclose(states[0], [x0, y0, math.atan2(y0, x0)], rtol=1e-15)
     delta = RAW["plant"]["sampling_time"]
-    r = np.array(RAW["cost"]["r_diag"])
+    r = np.array([1.0, 10.0, 1.0, 0.01, 0.01])
     chi = np.hstack([states[:-1], actions])
     assert cost == pytest.approx(float(np.sum(delta * (chi**2 @ r))), rel=1e-12)
     for k in range(10):

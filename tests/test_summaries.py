@@ -204,7 +204,7 @@ def test_a_summary_on_the_actuator_plant_reports_the_truth_beside_the_odometry()
     assert summary.truth.final_state == [float(c) for c in truth[-1]]
     # 10 % slip: the true pose is not what the robot reports
     assert np.hypot(*(np.array(summary.truth.final_state[:2]) - np.array(summary.final_state[:2]))) > 0.01
-    r = settings.cost.r_diag
+    r = settings.r_diag
     true_j = sum(0.1 * _stage(s, u, r) for s, u in zip(truth[:-1], episode.actions, strict=True))
     assert summary.truth.accumulated_cost == pytest.approx(true_j, rel=1e-12)
     assert summary.truth.accumulated_cost != pytest.approx(summary.accumulated_cost, rel=1e-6)

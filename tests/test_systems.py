@@ -5,6 +5,7 @@ stabilizes it, with no change to srl's modules."""
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterator
 from typing import Any
@@ -20,6 +21,8 @@ from common.math.features import quadratic_weights_for_diag
 from common.math.loop import ExactPlant, LocalCritic, run_algorithm1
 from common.math.systems import (
     BUILT_IN_SYSTEMS,
+    PENDULUM_LENGTH,
+    PENDULUM_MASS,
     SYSTEMS,
     UNICYCLE,
     System,
@@ -59,14 +62,15 @@ def registered() -> Iterator[System]:
 
 def test_the_unicycle_row_is_the_paper_robot_and_the_settings_defaults() -> None:
     settings = Settings.load()
-    assert BUILT_IN_SYSTEMS == ("unicycle",) and system_row("unicycle") is UNICYCLE
+    assert BUILT_IN_SYSTEMS == ("unicycle", "dynamic_unicycle", "pendulum", "cartpole", "two_tank")
+    assert system_row("unicycle") is UNICYCLE and settings.system is UNICYCLE
     assert (UNICYCLE.state_dim, UNICYCLE.action_dim, UNICYCLE.q_features, UNICYCLE.v_features) == (3, 2, 15, 6)
     rng = np.random.default_rng(0)
     for _ in range(20):
         state, action = rng.normal(size=3), rng.normal(size=2)
         assert np.array_equal(UNICYCLE.rhs(state, action), unicycle_rhs(state, action))
         assert np.array_equal(UNICYCLE.step(state, action, DELTA), exact_step(state, action, DELTA))
-    assert UNICYCLE.cost_diag == tuple(settings.cost.r_diag)
+    assert UNICYCLE.cost_diag == tuple(settings.r_diag)
     assert UNICYCLE.action_max == (settings.plant.v_max, settings.plant.omega_max)
     assert np.array_equal(np.array(UNICYCLE.start), settings.start_state())
     assert UNICYCLE.distance(np.array([0.03, 0.04, 2.0])) == pytest.approx(0.05)  # the heading aside
@@ -98,8 +102,8 @@ def test_a_system_name_is_checked_and_never_replaces_a_row(registered: System) -
         register_system("unicycle", DOUBLE_INTEGRATOR)
     with pytest.raises(ValueError, match="1-32 of"):
         register_system("Double Integrator", DOUBLE_INTEGRATOR)
-    with pytest.raises(ValueError, match=r"unknown system 'pendulum' \(unicycle, double_integrator\)"):
-        system_row("pendulum")
+    with pytest.raises(ValueError, match=r"unknown system 'pendulum9' \(unicycle, .*, two_tank, double_integrator\)"):
+        system_row("pendulum9")
     assert system_row(NAME) is registered
 
 
@@ -170,3 +174,209 @@ def test_algorithm1_stabilizes_the_users_own_system_in_process(registered: Syste
     assert np.array(episode.states).shape == (121, 2)
     fitted = not np.array_equal(episode.q_weights[-1], episode.q_weights[0])
     assert fitted == (agent != "mpc") and episode.q_weights[-1].shape == (6,) and episode.v_weights[-1].shape == (3,)
+
+
+# -- the built-in systems, through srl run -----------------------------------------------------
+
+
+def run_json(*argv: str, capsys: pytest.CaptureFixture[str]) -> dict[str, Any]:
+    from tools.cli import main
+
+    assert main(["run", *argv, "--no-jit", "--json"]) == 0
+    return dict(json.loads(capsys.readouterr().out.strip().splitlines()[-1]))
+
+
+@pytest.mark.parametrize(
+    ("system", "agent"),
+    [("pendulum", "rlqv"), ("cartpole", "rlqv"), ("two_tank", "rlqv"), ("dynamic_unicycle", "mpc")],
+)
+def test_srl_run_stabilizes_each_built_in_system_from_its_start(
+    system: str, agent: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """30 s from the row's start, the settings' actor and critic (RL-QV, N = 12): the summary says
+    how close, in the system's own terms. The dynamic robot with MPC: RL-QV and RL-Q end 0.06 m
+    from its target (docs/reference/variants.md)."""
+    row = system_row(system)
+    summary = run_json("--system", system, "--agent", agent, capsys=capsys)
+    assert summary["system"] == system and summary["steps"] == 300
+    assert summary["start_state"] == list(row.start)
+    assert len(summary["final_state"]) == row.state_dim
+    assert summary["final_distance"] == row.distance(np.array(summary["final_state"]))
+    assert summary["final_distance"] < row.stabilized
+    assert summary["settings"]["cost"]["r_diag"] == list(row.cost_diag)  # the row's own, [] in srl.toml
+
+
+def test_a_start_of_the_wrong_size_and_the_services_are_refused_in_one_line(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from tools.cli import main
+
+    cases = [
+        (["run", "--system", "cartpole", "--start", "1,2"], "episode.start: 4 numbers, cartpole's state"),
+        (["run", "--system", "pendulum", "--transport", "zenoh"], "system pendulum runs in process"),
+        (["run", "--system", "pendulum", "--plot", "p.png"], "--plot: carries the robot's pose"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    monkeypatch.setenv("SRL_PLANT__SYSTEM", "two_tank")
+    for argv in (
+        ["actor", "--connect-timeout", "1"],
+        ["critic", "--connect-timeout", "1"],
+        ["up", "--duration", "1"],
+        ["experiment", "fleet", "--grid", "1"],
+    ):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "system two_tank runs in process" in err and err.count("\n") == 1, err
+    from tools.gym.envs import env_settings
+
+    # an environment's id names its system: the variable does not turn the robot's into two tanks
+    assert env_settings(None, "ideal").plant.system == "unicycle"
+
+
+@pytest.mark.parametrize("name", BUILT_IN_SYSTEMS)
+def test_each_rows_model_is_one_function_for_numpy_and_casadi(name: str) -> None:
+    """The actor predicts with the CasADi graph of the same ``f`` the plant integrates in numpy."""
+    import casadi as ca
+
+    row = system_row(name)
+    s, u = ca.SX.sym("s", row.state_dim), ca.SX.sym("u", row.action_dim)
+    graph = ca.Function("f", [s, u], [row.rhs(s, u)])
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        state, action = rng.normal(size=row.state_dim), rng.normal(size=row.action_dim)
+        numeric = row.rhs(state, action)
+        assert numeric.shape == (row.state_dim,)
+        np.testing.assert_allclose(np.array(graph(state, action)).ravel(), numeric, rtol=1e-12, atol=1e-12)
+    assert np.all(row.rhs(np.zeros(row.state_dim), np.zeros(row.action_dim)) == 0.0)  # the goal is at rest
+
+
+def test_the_pendulums_torque_holds_it_up_to_28_degrees_and_no_further() -> None:
+    row = system_row("pendulum")
+    hold = PENDULUM_MASS * 9.81 * PENDULUM_LENGTH / 2  # [N m] to hold it horizontal
+    limit = math.asin(row.action_max[0] / hold)
+    assert math.degrees(limit) == pytest.approx(28.4, abs=0.1)
+    for theta, falls in ((0.9 * limit, False), (1.1 * limit, True)):
+        accel = row.rhs(np.array([theta, 0.0]), np.array([-row.action_max[0]]))[1]
+        assert (accel > 0) == falls
+
+
+def test_srl_run_runs_a_registered_system(registered: System, capsys: pytest.CaptureFixture[str]) -> None:
+    """The command line offers the row registered in this process (as SRL_PLUGINS registers one
+    before the parser is built) and runs it with its own box, cost and start."""
+    summary = run_json("--system", NAME, "--duration", "12", capsys=capsys)
+    assert summary["system"] == NAME and summary["start_state"] == [1.0, 0.0]
+    assert summary["final_distance"] < registered.stabilized
+
+
+@pytest.mark.integration
+def test_the_example_system_runs_through_srl_plugins() -> None:
+    """examples/double_integrator.py, a user's file named in SRL_PLUGINS: ``srl run --system
+    double_integrator`` stabilizes it; without the plugin the name is refused with one line."""
+    from tests.harness import srl
+
+    argv = ["run", "--system", NAME, "--duration", "12", "--no-jit", "--json"]
+    done = srl(*argv, env={"SRL_PLUGINS": "examples/double_integrator.py"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    assert summary["system"] == NAME and summary["final_distance"] < DOUBLE_INTEGRATOR.stabilized
+    refused = srl(*argv, env={"SRL_PLUGINS": ""})
+    assert refused.returncode == 2 and "invalid choice: 'double_integrator'" in refused.stderr
+
+
+# -- Gymnasium ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", [name for name in BUILT_IN_SYSTEMS if name != "unicycle"])
+def test_each_systems_gymnasium_environment_passes_both_checkers(name: str) -> None:
+    """``srl/<System>-v0``: Gymnasium's checker (and, through ``make``, its passive checker) on the
+    system's own spaces; a step's reward is minus its stage cost, a given start is the state."""
+    import warnings
+
+    import gymnasium
+    from gymnasium.utils.env_checker import check_env
+
+    import tools.gym  # noqa: F401 - registers the ids
+    from tools.gym.envs import system_env_id
+
+    row = system_row(name)
+    env = gymnasium.make(system_env_id(name))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped, skip_render_check=True)
+    assert not [w for w in caught if "infinity" not in str(w.message) and "normalized" not in str(w.message)]
+    assert env.observation_space.shape == (row.state_dim,)
+    assert env.action_space.high.tolist() == list(row.action_max)
+    state, _ = env.reset(seed=3)
+    box = np.array(row.start_box or [abs(c) for c in row.start])
+    assert state.shape == (row.state_dim,) and np.all(np.abs(state) <= box)
+    start = np.array(row.start)
+    state, _ = env.reset(options={"start": start})
+    assert np.array_equal(state, start)
+    action = np.array(row.action_max) / 2
+    following, reward, terminated, truncated, info = env.step(action)
+    r = np.array(row.cost_diag)
+    assert reward == -info["cost"] and info["cost"] == pytest.approx(
+        DELTA * float(r @ np.concatenate([start, action]) ** 2)
+    )
+    np.testing.assert_array_equal(following, row.step(start, action, DELTA))
+    assert not terminated and not truncated
+    with pytest.raises(ValueError, match=f"a start is {row.state_dim} finite numbers"):
+        env.reset(options={"start": [1.0] * (row.state_dim + 1)})
+
+
+def test_the_gymnasium_environment_runs_a_registered_system(registered: System) -> None:
+    from gymnasium.utils.env_checker import check_env
+
+    from tools.gym.envs import SrlEnv
+
+    env = SrlEnv(system=NAME, starts="box")
+    check_env(env, skip_render_check=True)
+    state, _ = env.reset(seed=1)
+    assert state.shape == (2,) and env.action_space.shape == (1,)
+
+
+# -- the experiment -------------------------------------------------------------------------------
+
+
+def test_the_starts_of_another_system_span_its_start_box_and_never_the_goal() -> None:
+    from tools.experiment.grid import make_starts
+
+    pendulum = system_row("pendulum")
+    lattice = make_starts("paper", 3, 2.0, 0, pendulum)
+    assert [s.values for s in lattice] == [
+        (theta, omega) for omega in (-0.5, 0.0, 0.5) for theta in (-0.4, 0.0, 0.4) if (theta, omega) != (0.0, 0.0)
+    ]
+    assert math.isnan(lattice[0].alpha) and (lattice[0].x, lattice[0].y) == (-0.4, -0.5)  # runs.csv's columns
+    held_out = make_starts("held-out", 3, 2.0, 7, system_row("cartpole"))
+    assert len(held_out) == 9 and all(len(s.values) == 4 and s.values[2:] == (0.0, 0.0) for s in held_out)
+    assert all(abs(s.values[0]) <= 0.5 and abs(s.values[1]) <= 0.2 for s in held_out)
+    assert held_out == make_starts("held-out", 3, 2.0, 7, system_row("cartpole"))  # seeded
+
+
+@pytest.mark.integration
+def test_srl_experiment_paper_runs_another_system(tmp_path: Any) -> None:
+    """``srl experiment paper --system pendulum``: its starts, J/J_mpc per agent and N, how many
+    stabilized, the claims, the figures; ``--extent`` (the robot's) and the Zenoh transport refused."""
+    from tests.harness import srl
+
+    out = tmp_path / "pendulum"
+    argv = ["experiment", "paper", "--system", "pendulum", "--grid", "2", "--horizons", "6", "--agents", "mpc,rlqv"]
+    done = srl(*argv, "--duration", "10", "--workers", "1", "--no-progress", "--out", str(out),
+               env={"SRL_ACTOR__JIT": "false"}, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["experiment"]["system"] == "pendulum" and summary["runs_completed"] == 8
+    assert summary["park_tolerance_m"] == system_row("pendulum").stabilized
+    rlqv = next(g for g in summary["groups"] if g["agent"] == "rlqv")
+    assert rlqv["ratios"] == 4 and rlqv["parked"] <= 4 and math.isfinite(rlqv["median_ratio_percent"])
+    markdown = (out / "summary.md").read_text()
+    assert "system pendulum" in markdown and "| stabilized |" in markdown and "--system=pendulum" in markdown
+    assert {"ratio_N6.png", "trajectories.png"} <= set(summary["plots"])
+    states = np.load(out / "trajectories.npz")["states"]
+    assert states.shape == (8, 101, 2)
+    for extra, says in ((["--extent", "1"], "--extent"), (["--transport", "zenoh"], "--transport")):
+        refused = srl(*argv, *extra, "--out", str(tmp_path / "no"), timeout=120)
+        assert refused.returncode == 2 and says in refused.stderr and "runs in process" in refused.stderr

@@ -242,7 +242,7 @@ ACTOR_FLAGS = ("agent", "horizon", "solver", "predictor", "no_jit")
 EPISODE_FLAGS = ("start", "duration")
 ALL_FLAGS = (*TRANSPORT_FLAGS, *ACTOR_FLAGS, *EPISODE_FLAGS)
 COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
-    "run": ALL_FLAGS,
+    "run": (*ALL_FLAGS, "system"),
     "up": (*ALL_FLAGS, "resume"),
     # the in-process benchmarks set their agents and N themselves (--agents, --horizons)
     "bench actor": ("config", "solver", "predictor", "no_jit"),
@@ -273,6 +273,12 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
             metavar="FILE",
             help="a TOML file overriding common/config/srl.toml (any subset; also SRL_CONFIG) (default: none)",
         )
+    if "system" in flags:
+        parser.add_argument(
+            "--system",
+            choices=_choices("plant", "system"),
+            help=f"the sampled system to control (docs/reference/variants.md) {_default('plant', 'system')}",
+        )
     if "agent" in flags:
         parser.add_argument(
             "--agent",
@@ -291,8 +297,9 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
             "--start",
             type=_start_arg,
             metavar="X,Y[,ALPHA]",
-            help="start in the goal frame [m, m, rad]; X,Y heads away from the target, "
-            f"e.g. --start -1.2,0.7 {_default('episode', 'start')}",
+            help="start in the goal frame [m, m, rad]; X,Y heads away from the target, e.g. --start "
+            "-1.2,0.7; another system than the robot: its whole state, comma-separated "
+            "(default: the system's own, the robot's 2,2)",
         )
     if "duration" in flags:
         parser.add_argument(
@@ -333,7 +340,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
         )
 
 
-SETTINGS_FLAGS = ("config", "agent", "horizon", "start", "duration", "solver", "predictor", "router", "robot")
+SETTINGS_FLAGS = ("config", "system", "agent", "horizon", "start", "duration", "solver", "predictor", "router", "robot")
 
 
 def settings_argv(args: argparse.Namespace) -> list[str]:
@@ -359,7 +366,7 @@ def child_argv(argv: list[str]) -> list[str]:
     takes = COMMAND_SETTINGS.get(argv[0]) if argv else None
     if takes is None:
         return argv
-    known = {f"--{n.replace('_', '-')}" for n in (*ALL_FLAGS, "resume")}
+    known = {f"--{n.replace('_', '-')}" for n in (*ALL_FLAGS, "resume", "system")}
     return [a for a in argv if a.split("=", 1)[0] not in known or a.split("=", 1)[0][2:].replace("-", "_") in takes]
 
 
@@ -402,7 +409,10 @@ def bridge_argv(args: argparse.Namespace) -> list[str]:
     ]
 
 
-def settings_from_args(args: argparse.Namespace) -> Settings:
+def settings_from_args(args: argparse.Namespace, any_system: bool = False) -> Settings:
+    """The settings of a command line (flags > ``SRL_*`` > ``--config`` > srl.toml); UsageError (one
+    line) for invalid ones, and, unless ``any_system`` (``srl run``), for a system other than the
+    robot: the other commands carry the robot's pose (:meth:`Settings.robot_only`)."""
     overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}, "transport": {}, "bridge": {}}
     for name in BRIDGE_FLAGS:
         if getattr(args, name, None) is not None:
@@ -413,6 +423,8 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
     for name in ("agent", "horizon", "solver", "predictor"):
         if getattr(args, name, None) is not None:
             overrides["actor"][name] = getattr(args, name)
+    if getattr(args, "system", None) is not None:
+        overrides["plant"] = {"system": args.system}
     if getattr(args, "no_jit", False):
         overrides["actor"]["jit"] = False
     if getattr(args, "resume", False):
@@ -430,8 +442,13 @@ def settings_from_args(args: argparse.Namespace) -> Settings:
         raise UsageError(f"invalid settings: {error} (check the SRL_* environment variables)") from error
     except (FileNotFoundError, ValueError) as error:
         raise UsageError(str(error)) from error
-    x, y = settings.episode.start[:2]
-    if max(abs(x), abs(y)) > WORKSPACE_HALF_WIDTH:
+    if not any_system:
+        try:
+            settings.robot_only(f"srl {getattr(args, 'command', None) or 'this command'}")
+        except ValueError as error:
+            raise UsageError(str(error)) from error
+    x, y = settings.start_state()[:2]
+    if settings.system.wheeled and max(abs(x), abs(y)) > WORKSPACE_HALF_WIDTH:
         log.warning(
             "start (%g, %g) m is more than %g m from the target: outside any workspace the robot "
             "could park in (the paper's starts are within 2 m)",

@@ -34,7 +34,7 @@ def arrival_tolerances(settings: Settings) -> ArrivalTolerances | None:
     """The arrival rule's tolerances, or None (``actor.arrival = false``, the paper's): also what
     the critic needs to know a robot held at rest (common.math.critic.at_rest)."""
     a = settings.actor
-    if not a.arrival:
+    if not a.arrival or not settings.system.wheeled:  # the rule parks a wheeled robot (x, y, alpha)
         return None
     return ArrivalTolerances(a.arrival_position_tolerance, a.arrival_heading_tolerance, a.arrival_hysteresis)
 
@@ -91,8 +91,8 @@ def build_actor(settings: Settings) -> StackedActor:
             agent=a.agent,
             horizon=a.horizon,
             sampling_time=p.sampling_time,
-            cost_diag=tuple(settings.cost.r_diag),
-            action_max=(p.v_max, p.omega_max),
+            cost_diag=tuple(settings.r_diag),
+            action_max=settings.action_max,
             predictor=a.predictor,
             solver=a.solver,
             jit=a.jit,
@@ -101,7 +101,7 @@ def build_actor(settings: Settings) -> StackedActor:
             tolerance=a.tolerance,
             mu_init=a.mu_init,
             bound_push=a.bound_push,
-            wheel_speed_max=a.wheel_speed_max,
+            wheel_speed_max=a.wheel_speed_max if settings.system.wheeled else 0.0,  # a wheeled robot's
             wheel_radius=a.wheel_radius,
             wheel_separation=a.wheel_separation,
             convex_critics=a.convex_critics,
@@ -111,16 +111,18 @@ def build_actor(settings: Settings) -> StackedActor:
             multistart_margin=a.multistart_margin,
             multistart_flips=a.multistart_flips,
             newton_iterations=a.newton_iterations,
+            system=settings.plant.system,
         ),
         arrival=arrival_rule(settings),
     )
 
 
 def build_plant(settings: Settings) -> ExactPlant | RobotPlant:
-    """The in-process simulated robot of ``plant.model``: the exact unicycle or the TurtleBot3."""
+    """The in-process simulated plant of ``plant.model``: the system's own model (``ideal``: the exact
+    unicycle, or another system's step) or the TurtleBot3."""
     p = settings.plant
     robot = simulated_robot(p.model, settings.turtlebot_params(), settings.physics_params(), np.zeros(3))
-    return ExactPlant() if robot is None else RobotPlant(robot)
+    return ExactPlant(settings.system) if robot is None else RobotPlant(robot)
 
 
 def localized_plant(settings: Settings, localization: str, noise: tuple[float, float] | None = None) -> Plant:
@@ -173,7 +175,7 @@ def run_episode(
         [settings.start_state()],
         settings.steps,
         settings.plant.sampling_time,
-        tuple(settings.cost.r_diag),
+        tuple(settings.r_diag),
         stop=stop,
     )
     return episode
@@ -224,7 +226,7 @@ def run_fleet_episode(
         [np.asarray(start, dtype=float) for start in starts],
         settings.steps,
         settings.plant.sampling_time,
-        tuple(settings.cost.r_diag),
+        tuple(settings.r_diag),
         memories=[ActorMemory(arrival=arrival_rule(settings)) for _ in starts],
         stop=stop,
     )
@@ -243,10 +245,11 @@ def episode_summary(episode: Episode, settings: Settings) -> dict[str, Any]:
             "accumulated_cost": episode.accumulated_cost,
             "start_state": [float(c) for c in episode.states[0]],
             "final_state": [float(c) for c in final],
-            "final_distance": float(np.hypot(final[0], final[1])),
+            "final_distance": settings.system.distance(final),
             "solve_ms": summarize(episode.solve_seconds, scale=1e3),
             "solver_failures": episode.solver_failures,
             "plant_model": settings.plant.model,
+            "system": settings.plant.system,
             "truth": None if truth is None else truth.model_dump(),
             "saturated_commands": episode.saturated_commands,
             "settings": settings.as_dict(),
@@ -259,10 +262,10 @@ def true_view(episode: Episode, settings: Settings) -> TrueView | None:
     if not episode.truth_known:
         return None
     first, final = episode.true_states[0], episode.true_states[-1]
-    cost = episode.true_accumulated_cost(settings.plant.sampling_time, tuple(settings.cost.r_diag))
+    cost = episode.true_accumulated_cost(settings.plant.sampling_time, tuple(settings.r_diag))
     return TrueView(
         start_state=[float(c) for c in first],
         final_state=[float(c) for c in final],
-        final_distance=float(np.hypot(final[0], final[1])),
+        final_distance=settings.system.distance(final),
         accumulated_cost=float(cost if cost is not None else np.nan),
     )

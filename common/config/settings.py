@@ -30,7 +30,8 @@ from common.math.agents import Agent, agent_names, agents_text
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
 from common.math.physics import PhysicsParams
-from common.math.plant_models import PLANT_MODELS, plant_models_text
+from common.math.plant_models import PLANT_MODELS, plant_model_row, plant_models_text
+from common.math.systems import SYSTEMS, System, system_row, systems_text
 from common.math.turtlebot import TurtleBotParams
 
 DEFAULT_CONFIG = Path(__file__).with_name("srl.toml")
@@ -41,6 +42,7 @@ TABLE_SETTINGS: dict[tuple[str, str], tuple[str, Callable[[], tuple[str, ...]]]]
     ("actor", "agent"): ("agent", agent_names),  # common/math/agents.py AGENT_ROWS
     ("plant", "model"): ("plant model", lambda: tuple(PLANT_MODELS)),  # common/math/plant_models.py
     ("bridge", "pose_source"): ("pose source", pose_source_names),  # common/contracts/pose_sources.py
+    ("plant", "system"): ("system", lambda: tuple(SYSTEMS)),  # common/math/systems.py
 }
 
 
@@ -104,6 +106,7 @@ class PlantSettings(_Section):
     v_max: float = Field(gt=0, description="[m/s]")
     omega_max: float = Field(gt=0, description="[rad/s]")
     model: str = Field(description=plant_models_text())
+    system: str = Field(default="unicycle", description=systems_text())
     realtime_priority: int = Field(
         default=10, ge=0, le=99, description="the state loop under SCHED_FIFO at this priority, if allowed (0 = off)"
     )
@@ -112,6 +115,11 @@ class PlantSettings(_Section):
     @classmethod
     def _is_a_plant_model(cls, name: str) -> str:
         return table_value("plant", "model", name)
+
+    @field_validator("system")
+    @classmethod
+    def _is_a_system(cls, name: str) -> str:
+        return table_value("plant", "system", name)
 
     @field_validator("sampling_time", "v_max", "omega_max")
     @classmethod
@@ -155,7 +163,7 @@ class PhysicsSettings(_Section):
 
 
 class CostSettings(_Section):
-    r_diag: tuple[float, float, float, float, float] = Field(description="diag(R) over (x,y,alpha,v,omega)")
+    r_diag: tuple[float, ...] = Field(description="diag(R) over (s, u); [] = the system's own")
 
     @field_validator("r_diag")
     @classmethod
@@ -328,18 +336,13 @@ class ActorSettings(_Section):
 
 class EpisodeSettings(_Section):
     duration: float = Field(gt=0, description="[s]")
-    start: tuple[float, float] | tuple[float, float, float]
+    start: tuple[float, ...] = Field(description="the start state; [] = the system's own")
 
     @field_validator("start")
     @classmethod
     def _finite_start(cls, v: tuple[float, ...]) -> tuple[float, ...]:
         if not all(math.isfinite(c) for c in v):
             raise ValueError(f"start must be finite numbers, got {v}")
-        if max(abs(v[0]), abs(v[1])) > MAX_START:
-            raise ValueError(
-                f"start ({v[0]:g}, {v[1]:g}) m is beyond the {MAX_START:g} m every state message "
-                "allows (common/contracts/messages.py): the paper's starts are within 2 m of the target"
-            )
         return v
 
 
@@ -542,7 +545,65 @@ class Settings(BaseSettings):
 
         return cls.model_validate(_FromFiles(**overrides).model_dump())
 
+    @model_validator(mode="after")
+    def _fits_the_system(self) -> Settings:
+        """The settings a system's row sizes -- the stage cost's weights, the start, the simulated
+        model -- fit the system (common/math/systems.py)."""
+        system, name = system_row(self.plant.system), self.plant.system
+        n, m = system.state_dim, system.action_dim
+        r_diag, start = self.cost.r_diag, self.episode.start
+        if r_diag and len(r_diag) != n + m:
+            raise ValueError(
+                f"cost.r_diag: {n + m} numbers over {name}'s (s, u) = ({', '.join(system.states + system.actions)}), "
+                f"or [] for its own; got {len(r_diag)}"
+            )
+        if start and system.wheeled:
+            start_state(start)  # X,Y or X,Y,ALPHA
+            if max(abs(start[0]), abs(start[1])) > MAX_START:
+                raise ValueError(
+                    f"episode.start ({start[0]:g}, {start[1]:g}) m is beyond the {MAX_START:g} m every state "
+                    "message allows (common/contracts/messages.py): the paper's starts are within 2 m of the target"
+                )
+        elif start and len(start) != n:
+            raise ValueError(
+                f"episode.start: {n} numbers, {name}'s state ({', '.join(system.states)}); got {len(start)}"
+            )
+        if not system.wheeled and not plant_model_row(self.plant.model).exact:
+            raise ValueError(
+                f"plant.model {self.plant.model!r} simulates a TurtleBot3, a wheeled robot; system {name!r} "
+                "is simulated by its own model: plant.model = ideal"
+            )
+        return self
+
     # -- derived quantities, in the paper's terms ------------------------------------
+    @property
+    def system(self) -> System:
+        """The sampled system's row (``plant.system``, common/math/systems.py)."""
+        return system_row(self.plant.system)
+
+    def robot_only(self, what: str) -> Settings:
+        """These settings, for ``what`` that serves the robot only (the services' wire, a recording,
+        the experiment: the unicycle's pose and (v, omega)); ValueError (one line) for another system."""
+        if not self.system.wheeled:
+            name = self.plant.system
+            raise ValueError(
+                f"{what}: carries the robot's pose and (v, omega); system {name} runs in process "
+                f"(srl run --system {name})"
+            )
+        return self
+
+    @property
+    def r_diag(self) -> tuple[float, ...]:
+        """diag(R) of the stage cost over (s, u): ``cost.r_diag``, or the system's own ([])."""
+        return self.cost.r_diag or self.system.cost_diag
+
+    @property
+    def action_max(self) -> tuple[float, ...]:
+        """The box of the held actions: a wheeled robot's ``(plant.v_max, plant.omega_max)``, another
+        system's its row's."""
+        system = self.system
+        return (self.plant.v_max, self.plant.omega_max) if system.wheeled else system.action_max
+
     @property
     def discount(self) -> float:
         """beta = exp(-gamma delta)."""
@@ -553,7 +614,11 @@ class Settings(BaseSettings):
         return max(1, round(self.episode.duration / self.plant.sampling_time))
 
     def start_state(self) -> np.ndarray:
-        return start_state(self.episode.start)
+        """``episode.start`` (or the system's own, []) as the state: a wheeled robot's X,Y heads away
+        from the target (:func:`start_state`)."""
+        system = self.system
+        start = self.episode.start or system.start
+        return start_state(start) if system.wheeled else np.array(start, dtype=float)
 
     def _initial_scale(self, kind: str) -> float:
         """``stage_cost``: delta (one interval's cost); ``discounted_stage_cost``: delta / (1 - beta),
@@ -566,12 +631,14 @@ class Settings(BaseSettings):
 
     def initial_q_weights(self) -> np.ndarray:
         if isinstance(self.critic.q_init, str):
-            return self._initial_scale(self.critic.q_init) * quadratic_weights_for_diag(self.cost.r_diag)
+            return self._initial_scale(self.critic.q_init) * quadratic_weights_for_diag(self.r_diag)
         return np.array(self.critic.q_init, dtype=float)
 
     def initial_v_weights(self) -> np.ndarray:
         if isinstance(self.critic.v_init, str):
-            return self._initial_scale(self.critic.v_init) * quadratic_weights_for_diag(self.cost.r_diag[:3])
+            return self._initial_scale(self.critic.v_init) * quadratic_weights_for_diag(
+                self.r_diag[: self.system.state_dim]
+            )
         return np.array(self.critic.v_init, dtype=float)
 
     def turtlebot_params(self) -> TurtleBotParams:
@@ -599,8 +666,10 @@ class Settings(BaseSettings):
         return PhysicsParams(**self.physics.model_dump())
 
     def as_dict(self) -> dict[str, Any]:
-        """Every constant used, plus the derived discount, for printing with each result."""
+        """Every constant used, plus the derived discount, for printing with each result: the stage
+        cost's weights as used (``cost.r_diag`` [] is the system's own)."""
         data = self.model_dump(mode="json")
+        data["cost"]["r_diag"] = list(self.r_diag)
         data["derived"] = {"discount_beta": self.discount, "steps": self.steps}
         return data
 
@@ -629,10 +698,12 @@ def start_state(start: tuple[float, ...] | list[float]) -> np.ndarray:
 
 
 def parse_start(text: str) -> tuple[float, ...]:
-    """Parse the CLI form ``X,Y`` or ``X,Y,ALPHA``."""
+    """Parse the CLI form: finite numbers, comma-separated (a wheeled robot's ``X,Y`` or
+    ``X,Y,ALPHA``, another system's whole state; the settings check the count against the system)."""
     try:
         values = tuple(float(part) for part in text.split(","))
     except ValueError as error:
-        raise ValueError(f"a start is X,Y or X,Y,ALPHA in numbers, got {text!r}") from error
-    start_state(values)  # validates count and finiteness
+        raise ValueError(f"a start is numbers, comma-separated (the robot's X,Y or X,Y,ALPHA), got {text!r}") from error
+    if not all(math.isfinite(c) for c in values):
+        raise ValueError(f"a start is finite numbers, got {text!r}")
     return values

@@ -77,6 +77,7 @@ class EpisodeSummary(_Summary):
     plant_model: str = Field(
         description="the simulated plant's model (settings plant.model); robot: a robot behind the bridge"
     )
+    system: str = Field(default="unicycle", description="the sampled system (settings plant.system)")
     truth: TrueView | None = Field(description="None: the plant does not know the truth, only odometry is known")
     saturated_commands: int | None = Field(
         description="commands with a wheel beyond its speed limit (None: not known, a real robot)"

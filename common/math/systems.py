@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from common.math.dynamics import FloatArray, exact_step, is_symbolic, unicycle_rhs
+from common.math.dynamics import FloatArray, exact_step, heading_away_from_target, is_symbolic, unicycle_rhs
 from common.math.features import feature_count
 from common.math.integrators import Rhs, rk4_substeps
 from common.math.rows import add_row
@@ -42,6 +42,15 @@ def vector(*entries: Any) -> Any:
     return np.array(entries, dtype=float)
 
 
+def ca_or_np(*values: Any) -> Any:
+    """The module whose ``sin``, ``cos``, ... take ``values``: casadi for a CasADi symbol, else numpy."""
+    if any(is_symbolic(value) for value in values):
+        import casadi as ca
+
+        return ca
+    return np
+
+
 def state_norm(state: FloatArray) -> float:
     """The Euclidean norm of the state: how far from the goal (the origin) a system is."""
     return float(np.linalg.norm(state))
@@ -49,7 +58,7 @@ def state_norm(state: FloatArray) -> float:
 
 def position_distance(state: FloatArray) -> float:
     """A wheeled robot's distance to its target: ``hypot(x, y)``, whatever its heading."""
-    return float(math.hypot(state[0], state[1]))
+    return float(np.hypot(state[0], state[1]))
 
 
 @dataclass(frozen=True)
@@ -78,6 +87,9 @@ class System:
     distance: Callable[[FloatArray], float] = state_norm
     stabilized: float = 0.05
     substeps: int = 10
+    # Where episodes start when drawn (Gymnasium's resets: uniform in the box |s_i| <= start_box[i])
+    # and the experiment's starts (a lattice over its first two entries); () = |start_i| each.
+    start_box: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         n, m = len(self.states), len(self.actions)
@@ -95,6 +107,10 @@ class System:
             raise ValueError(f"stabilized: a positive distance, got {self.stabilized}")
         if not 1 <= self.substeps <= 1000:
             raise ValueError(f"substeps: 1 to 1000 RK4 steps per held interval, got {self.substeps}")
+        if self.start_box and (
+            len(self.start_box) != n or not all(math.isfinite(w) and w >= 0 for w in self.start_box)
+        ):
+            raise ValueError(f"start_box: {n} half-widths >= 0, got {self.start_box}")
 
     @property
     def state_dim(self) -> int:
@@ -114,6 +130,16 @@ class System:
         """phi_V(s)'s length: 6 for the unicycle."""
         return feature_count(self.state_dim)
 
+    @property
+    def box_of_starts(self) -> FloatArray:
+        """:attr:`start_box`'s half-widths (``|start_i|`` each when not given)."""
+        return np.array(self.start_box or [abs(c) for c in self.start], dtype=float)
+
+    def draw_start(self, rng: np.random.Generator) -> FloatArray:
+        """A start drawn uniformly in :attr:`start_box` (``rng``: the caller's, seeded)."""
+        box = self.box_of_starts
+        return np.asarray(rng.uniform(-box, box), dtype=float)
+
     def step(self, state: FloatArray, action: FloatArray, duration: float) -> FloatArray:
         """The state after ``duration`` seconds of ``action`` held from ``state``: exact where known,
         else ``substeps`` RK4 steps."""
@@ -130,14 +156,121 @@ UNICYCLE = System(
     rhs=unicycle_rhs,
     action_max=(0.22, 2.84),  # the TurtleBot3 Burger's; the settings' plant.v_max, plant.omega_max
     cost_diag=(1.0, 10.0, 1.0, 0.01, 0.01),
-    start=(2.0, 2.0, math.atan2(2.0, 2.0)),  # heading turned away from the target
+    start=(2.0, 2.0, heading_away_from_target(2.0, 2.0)),  # srl.toml's [2, 2]: heading away from the target
     exact_step=exact_step,
     wheeled=True,
     distance=position_distance,
     stabilized=0.05,
 )
 
-SYSTEMS: dict[str, System] = {"unicycle": UNICYCLE}
+# -- the built-in systems beside the robot (regelum-control's presets, docs/reference/variants.md)
+
+G = 9.81  # [m/s^2]
+PENDULUM_MASS, PENDULUM_LENGTH = 0.127, 0.337  # [kg], [m]: a uniform rod on a motor's shaft
+
+
+def pendulum_rhs(state: Any, action: Any) -> Any:
+    """A rod hinged at one end, driven at the hinge: ``theta`` from upright; its weight at half its
+    length, its inertia ``m l^2 / 3``: ``theta'' = (m g l / 2 sin theta + tau) / (m l^2 / 3)``."""
+    m, length = PENDULUM_MASS, PENDULUM_LENGTH
+    sin = ca_or_np(state, action).sin
+    return vector(state[1], (m * G * length / 2 * sin(state[0]) + action[0]) / (m * length**2 / 3))
+
+
+CART_MASS, POLE_MASS, POLE_HALF_LENGTH = 1.0, 0.1, 0.5  # [kg], [kg], [m]: the classic cart-pole's
+
+
+def cartpole_rhs(state: Any, action: Any) -> Any:
+    """The classic cart-pole (Barto, Sutton and Anderson, 1983; Gymnasium's CartPole), its force
+    continuous: the cart at ``x``, the pole ``theta`` from upright."""
+    lib = ca_or_np(state, action)
+    theta, x_dot, theta_dot, force = state[1], state[2], state[3], action[0]
+    sin, cos = lib.sin(theta), lib.cos(theta)
+    total = CART_MASS + POLE_MASS
+    push = (force + POLE_MASS * POLE_HALF_LENGTH * theta_dot**2 * sin) / total
+    theta_acc = (G * sin - cos * push) / (POLE_HALF_LENGTH * (4.0 / 3.0 - POLE_MASS * cos**2 / total))
+    x_acc = push - POLE_MASS * POLE_HALF_LENGTH * theta_acc * cos / total
+    return vector(x_dot, theta_dot, x_acc, theta_acc)
+
+
+# The two-tank system (regelum-control's preset), its time constants a tenth of the preset's
+# (18.4 s, 24.4 s), so that a horizon of a second sees the levels move: pumped inflow into tank 1,
+# tank 1 into tank 2, tank 2's outflow, and a level term K3 h2^2. Written as deviations from the
+# levels (h1, h2) = (0.368, 0.4) held by the pump at p = 0.283.
+TANK_TIME = (1.84, 2.44)  # [s]
+TANK_GAINS = (1.3, 1.0, 0.2)  # K1, K2, K3
+TANK_LEVELS = (0.368, 0.4)  # [m]: the goal
+
+
+def two_tank_rhs(state: Any, action: Any) -> Any:
+    """The levels' deviations ``(e1, e2)`` from :data:`TANK_LEVELS` under the pump's deviation ``u``
+    from its holding rate: ``tau1 e1' = -e1 + K1 u``, ``tau2 e2' = -e2 + K2 e1 + K3 (e2^2 + 2 h2 e2)``
+    (at the goal, ``h2 = K2 h1 + K3 h2^2`` and ``h1 = K1 p``)."""
+    (tau1, tau2), (k1, k2, k3), h2 = TANK_TIME, TANK_GAINS, TANK_LEVELS[1]
+    e1, e2 = state[0], state[1]
+    return vector((-e1 + k1 * action[0]) / tau1, (-e2 + k2 * e1 + k3 * (e2 * e2 + 2.0 * h2 * e2)) / tau2)
+
+
+ROBOT_MASS, ROBOT_INERTIA = 10.0, 1.0  # [kg], [kg m^2]
+
+
+def dynamic_unicycle_rhs(state: Any, action: Any) -> Any:
+    """The three-wheel robot with its dynamics: a force ``F`` along its heading and a torque ``M``
+    about its centre accelerate its speed ``v`` and turning rate ``omega``."""
+    lib = ca_or_np(state, action)
+    alpha, v, omega = state[2], state[3], state[4]
+    return vector(v * lib.cos(alpha), v * lib.sin(alpha), omega, action[0] / ROBOT_MASS, action[1] / ROBOT_INERTIA)
+
+
+PENDULUM = System(
+    what="an inverted pendulum driven by a torque too weak to hold it beyond 28 degrees",
+    states=("theta [rad]", "omega [rad/s]"),
+    actions=("tau [N m]",),
+    rhs=pendulum_rhs,
+    action_max=(0.1,),
+    cost_diag=(10.0, 1.0, 1.0),
+    start=(0.4, 0.0),
+    start_box=(0.4, 0.5),
+)
+CARTPOLE = System(
+    what="the classic cart-pole: a pole balanced on a cart pushed along a line",
+    states=("x [m]", "theta [rad]", "x_dot [m/s]", "theta_dot [rad/s]"),
+    actions=("F [N]",),
+    rhs=cartpole_rhs,
+    action_max=(10.0,),
+    cost_diag=(1.0, 10.0, 0.1, 0.1, 0.01),
+    start=(0.5, 0.2, 0.0, 0.0),
+)
+TWO_TANK = System(
+    what="two tanks in series filled by a pump, both levels held at a goal",
+    states=("e1 [m]", "e2 [m]"),
+    actions=("u [pump rate]",),
+    rhs=two_tank_rhs,
+    action_max=(0.283,),
+    cost_diag=(10.0, 10.0, 1.0),
+    start=(-0.2, -0.2),
+    stabilized=0.01,
+)
+DYNAMIC_UNICYCLE = System(
+    what="the three-wheel robot with its dynamics: pushed by a force and turned by a torque",
+    states=("x [m]", "y [m]", "alpha [rad]", "v [m/s]", "omega [rad/s]"),
+    actions=("F [N]", "M [N m]"),
+    rhs=dynamic_unicycle_rhs,
+    action_max=(10.0, 2.0),
+    cost_diag=(1.0, 10.0, 1.0, 0.1, 0.1, 0.01, 0.01),
+    start=(1.0, 1.0, math.atan2(1.0, 1.0), 0.0, 0.0),
+    start_box=(1.0, 1.0, 0.0, 0.0, 0.0),  # at rest, heading along x, anywhere in the square
+    distance=position_distance,
+    stabilized=0.05,
+)
+
+SYSTEMS: dict[str, System] = {
+    "unicycle": UNICYCLE,
+    "dynamic_unicycle": DYNAMIC_UNICYCLE,
+    "pendulum": PENDULUM,
+    "cartpole": CARTPOLE,
+    "two_tank": TWO_TANK,
+}
 BUILT_IN_SYSTEMS = tuple(SYSTEMS)
 
 

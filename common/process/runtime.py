@@ -143,6 +143,10 @@ def serve(settings: Settings, service: str, connect_timeout: float, body: Callab
     ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line."""
     from common.net.transport import Bus
 
+    try:
+        settings.robot_only(f"srl {service}")  # the wire's states and actions are the robot's
+    except ValueError as error:
+        raise UsageError(str(error)) from error
     stop = service_stop()
     bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:

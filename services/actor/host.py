@@ -169,7 +169,7 @@ class RestCheck:
     def __init__(self, settings: Settings, loops: Sequence[RealtimeActor], arrays_from: int = REST_ARRAYS_FROM) -> None:
         self.loops = loops
         self.tolerances = arrival_tolerances(settings)
-        self.r_diag = settings.cost.r_diag
+        self.r_diag = settings.r_diag
         self.delta = settings.plant.sampling_time
         self.arrays_from = max(1, arrays_from)
         # per robot, the last decision and the (state, true state) it was made on: a robot at rest

@@ -316,7 +316,7 @@ class RealtimeActor:
         action = (float(step.action[0]), float(step.action[1]))
         self.send(k, action, message.seq)
         done = self.clock()
-        r_diag = self.settings.cost.r_diag
+        r_diag = self.settings.r_diag
         cost = self.delta * float(stage_cost(state, step.action, r_diag))
         true_cost = None
         if message.true_state is not None:

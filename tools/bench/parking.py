@@ -241,7 +241,7 @@ def parking_row(
     critic = local_critic(settings, learn=learns(settings.actor.agent))
     plant = localized_plant(settings, localization, noise)
     episode = run_episode(settings, actor=actor, plant=plant, critic=critic)
-    delta, r_diag = settings.plant.sampling_time, tuple(settings.cost.r_diag)
+    delta, r_diag = settings.plant.sampling_time, tuple(settings.r_diag)
     true_states = episode.true_states if episode.truth_known else episode.states
     metrics = parking(true_states, episode.actions, delta)
     true_cost = episode.true_accumulated_cost(delta, r_diag)

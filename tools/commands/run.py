@@ -17,6 +17,7 @@ from common.config.arguments import (
     settings_argv,
     settings_from_args,
 )
+from common.math.systems import UNICYCLE, System, system_row
 from common.process.runtime import SignalledError, stop_on_signals
 
 NAME = "run"
@@ -58,7 +59,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     from common.config.assembly import episode_summary, run_episode
 
-    settings = settings_from_args(args)
+    settings = settings_from_args(args, any_system=True)
+    if not settings.system.wheeled:
+        given = [flag for flag, used in (("--transport zenoh", args.transport == "zenoh"),
+                                         ("--record", args.record), ("--plot", args.plot)) if used]  # fmt: skip
+        if given:
+            try:
+                settings.robot_only(" and ".join(given))
+            except ValueError as error:
+                raise UsageError(str(error)) from error
     recorder = None
     if args.record is not None and args.transport == "inproc":  # opened now: a bad path fails before the run
         from tools.recording.record import RecordingError, episode_recorder
@@ -140,11 +149,20 @@ def main(args: argparse.Namespace) -> int:
 def format_run_summary(summary: dict[str, Any]) -> str:
     s = summary["settings"]
     solve = summary["solve_ms"]
+    system = system_row(s["plant"]["system"])
+    if system.wheeled:
+        title, far = "", f"distance to target {summary['final_distance']:.3f} m"
+    else:
+        held = summary["final_distance"] < system.stabilized
+        title = f", system {s['plant']['system']}"
+        far = f"distance to the goal {summary['final_distance']:.4f}: " + (
+            f"stabilized (< {system.stabilized:g})" if held else f"not stabilized (>= {system.stabilized:g})"
+        )
     lines = [
-        f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}",
-        f"  start          {fmt_state(summary['start_state'])}",
-        f"  final state    {fmt_state(summary['final_state'])}   distance to target {summary['final_distance']:.3f} m",
-        *truth_lines(summary),
+        f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}{title}",
+        f"  start          {fmt_state(summary['start_state'], system)}",
+        f"  final state    {fmt_state(summary['final_state'], system)}   {far}",
+        *(truth_lines(summary) if system.wheeled else []),
         f"  steps          {summary['steps']} x delta = {s['plant']['sampling_time']} s "
         f"({summary['episode_seconds']:.1f} s episode)",
         f"  accumulated J  {summary['accumulated_cost']:.4f}",
@@ -180,5 +198,12 @@ def truth_lines(summary: dict[str, Any]) -> list[str]:
     ]
 
 
-def fmt_state(state: Sequence[float]) -> str:
-    return f"x = {state[0]:+.3f} m, y = {state[1]:+.3f} m, alpha = {state[2]:+.3f} rad"
+def fmt_state(state: Sequence[float], system: System = UNICYCLE) -> str:
+    """``x = +1.000 m, ...``: each entry by its name and unit in the system's row."""
+    if system.wheeled:
+        return f"x = {state[0]:+.3f} m, y = {state[1]:+.3f} m, alpha = {state[2]:+.3f} rad"
+    parts = []
+    for name, value in zip(system.states, state, strict=True):
+        label, _, unit = name.partition(" [")
+        parts.append(f"{label} = {value:+.3f}" + (f" {unit.rstrip(']')}" if unit else ""))
+    return ", ".join(parts)

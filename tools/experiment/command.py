@@ -17,6 +17,7 @@ from typing import Any
 from common.config.settings import METHODS, Settings
 from common.math.agents import AGENTS, PAPER_AGENTS, parse_agents, parse_horizons
 from common.math.plant_models import PLANT_MODELS
+from common.math.systems import SYSTEMS
 from tools.experiment.grid import STARTS, make_starts
 from tools.experiment.options import DEFAULT_HORIZONS, ExperimentOptions
 from tools.experiment.output import experiment_settings
@@ -24,6 +25,7 @@ from tools.experiment.report import summary_markdown
 from tools.experiment.runner import run_experiment
 
 NAME = "experiment"
+DEFAULT_EXTENT = 2.0  # [m] the paper's starts, within 2 m of the target
 HELP = "the paper's experiment: grid of starts, cost ratios, plots; SAC and PPO beside it"
 
 
@@ -36,8 +38,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "the extra srl[baselines]) trained on srl's Gymnasium environments, beside srl's agents on the paper's "
         "and the held-out starts (docs/gym.md)",
     )
+    parser.add_argument(
+        "--system",
+        choices=tuple(SYSTEMS),
+        help="paper: the sampled system (plant.system; docs/reference/variants.md): another than the robot runs "
+        "in process, its starts over its start box (default: the settings', the robot)",
+    )
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
-    parser.add_argument("--extent", type=float, default=2.0, help="starts over [-E, E]^2 [m] (default 2)")
+    parser.add_argument(
+        "--extent", type=float, help=f"the robot's starts over [-E, E]^2 [m] (default {DEFAULT_EXTENT:g})"
+    )
     parser.add_argument(
         "--starts",
         choices=STARTS,
@@ -143,9 +153,14 @@ def _load_settings(args: argparse.Namespace) -> Settings:
     overrides: dict[str, Any] = json.loads(json.dumps(METHODS[args.method]))  # the method's row, a copy
     if args.duration is not None:
         overrides["episode"] = {"duration": args.duration}
-    overrides["plant"] = {"model": args.plant}
+    overrides["plant"] = {"model": args.plant} | ({"system": args.system} if args.system else {})
     try:
-        return Settings.load(args.config, **overrides)
+        settings = Settings.load(args.config, **overrides)
+        if args.which != "paper" or args.transport != "inproc" or args.record or args.localization != "none":
+            settings.robot_only(f"srl experiment {args.which} with --transport, --record or --localization")
+        if args.extent is not None:
+            settings.robot_only("--extent (another system's starts span its start box)")
+        return settings
     except ValidationError as error:
         problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())
         raise ValueError(f"invalid settings: {problems}") from error
@@ -157,14 +172,19 @@ def main(args: argparse.Namespace) -> int:
     try:
         if args.grid < 1:
             raise ValueError(f"--grid must be >= 1, got {args.grid}")
-        if not (math.isfinite(args.extent) and args.extent > 0):
+        if args.extent is not None and not (math.isfinite(args.extent) and args.extent > 0):
             raise ValueError(f"--extent must be a positive number, got {args.extent}")
         if args.localization != "none" and (args.transport != "inproc" or args.which == "fleet"):
             raise ValueError("--localization is for `srl experiment paper --transport inproc` (the in-process plant)")
         if args.workers < 0:
             raise ValueError(f"--workers must be >= 0 (0 = every core), got {args.workers}")
         if args.which == "baselines":
+            if args.extent is None:
+                args.extent = DEFAULT_EXTENT
             return _cmd_baselines(args)
+        base = _load_settings(args)
+        if args.extent is None:  # the robot's default; another system's starts span its start box
+            args.extent = DEFAULT_EXTENT
         options = ExperimentOptions(
             grid=args.grid,
             extent=args.extent,
@@ -180,8 +200,7 @@ def main(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             record=args.record,
         )
-        options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args))
-        base = _load_settings(args)
+        options.command = "srl experiment " + " ".join(shlex.quote(a) for a in _argv_of(args, base))
         if args.which == "fleet":
             return _cmd_fleet(args, base)
     except ValueError as error:
@@ -290,12 +309,15 @@ def _cmd_baselines(args: argparse.Namespace) -> int:
     return 0
 
 
-def _argv_of(args: argparse.Namespace) -> list[str]:
-    """A re-runnable command line for the summary (what was given, defaults spelled out)."""
+def _argv_of(args: argparse.Namespace, base: Settings | None = None) -> list[str]:
+    """A re-runnable command line for the summary (what was given, defaults spelled out; another
+    system than the robot named, with no --extent)."""
+    robot = base is None or base.system.wheeled
     argv = [
         args.which,
+        *([] if robot or base is None else [f"--system={base.plant.system}"]),
         f"--grid={args.grid}",
-        f"--extent={args.extent:g}",
+        *([f"--extent={args.extent:g}"] if robot else []),
         f"--starts={args.starts}",
         f"--seed={args.seed}",
         f"--agents={args.agents}",

@@ -1,7 +1,9 @@
 """The paper's grid of starts and the runs planned on it (pure: no processes, no transport).
 
-A start is turned away from the target (``alpha_0 = atan2(y_0, x_0)``, ``pi`` at the centre);
-a run is one (start, agent, horizon); its settings are the base settings with those three set.
+A robot's start is turned away from the target (``alpha_0 = atan2(y_0, x_0)``, ``pi`` at the
+centre); another system's starts span its row's start box (common/math/systems.py) on its first two
+state entries, the others zero (:func:`system_starts`). A run is one (start, agent, horizon); its
+settings are the base settings with those three set.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 
 from common.config.settings import Settings
 from common.math.dynamics import heading_away_from_target
+from common.math.systems import UNICYCLE, System
 
 STARTS = ("paper", "held-out")  # the paper's grid, or random starts it never saw
 
@@ -23,10 +26,50 @@ STARTS = ("paper", "held-out")  # the paper's grid, or random starts it never sa
 # -- the grid of starts -----------------------------------------------------------------
 @dataclass(frozen=True)
 class Start:
+    """A robot's start ``(x, y, alpha)``; another system's whole start is :attr:`state`, and ``x``,
+    ``y``, ``alpha`` are its first three entries (nan where it has fewer: runs.csv's columns)."""
+
     index: int
     x: float
     y: float
-    alpha: float  # turned away from the target: atan2(y, x), pi at the centre
+    alpha: float  # a robot's: turned away from the target, atan2(y, x), pi at the centre
+    state: tuple[float, ...] = ()  # another system's start (the robot's: empty, (x, y, alpha))
+
+    @property
+    def values(self) -> tuple[float, ...]:
+        """The start state: :attr:`state`, or the robot's ``(x, y, alpha)``."""
+        return self.state or (self.x, self.y, self.alpha)
+
+
+def system_start(index: int, state: Sequence[float]) -> Start:
+    """Another system's start ``state`` as a :class:`Start`."""
+    values = tuple(float(c) for c in state)
+    first = [*values[:3], *[math.nan] * (3 - min(3, len(values)))]
+    return Start(index, first[0], first[1], first[2], values)
+
+
+def system_starts(system: System, kind: str, k: int, seed: int) -> list[Start]:
+    """Another system's ``k x k`` starts over its start box's first two entries (the others zero):
+    ``paper``, the lattice, corners included, but not its centre, the goal; ``held-out``, one
+    seeded start in each cell, as for the robot. A system of one state: ``k * k`` starts along it."""
+    if kind not in STARTS:
+        raise ValueError(f"unknown set of starts {kind!r}; choose one of {', '.join(STARTS)}")
+    box, n = system.box_of_starts, system.state_dim
+    axes = min(2, n)
+    points = k * k if axes == 1 else k
+    widths = box[:axes]
+    if kind == "paper":
+        ticks = [np.linspace(-w, w, points) if points > 1 else np.zeros(1) for w in widths]
+        ticks = [np.where(np.abs(t) < 1e-12 * max(w, 1e-300), 0.0, t) for t, w in zip(ticks, widths, strict=True)]
+        grid = [(t,) for t in ticks[0]] if axes == 1 else [(a, b) for b in ticks[1] for a in ticks[0]]
+    else:
+        rng = np.random.default_rng(seed)
+        edges = [np.linspace(-w, w, points + 1) for w in widths]
+        cells = [(i,) for i in range(points)] if axes == 1 else [(c, r) for r in range(points) for c in range(points)]
+        grid = [tuple(rng.uniform(edges[a][cell[a]], edges[a][cell[a] + 1]) for a in range(axes)) for cell in cells]
+    # the goal itself is no start: every agent's J is 0 there (the lattice's centre, k odd)
+    points_off_goal = [point for point in grid if any(point)]
+    return [system_start(i, [*point, *[0.0] * (n - axes)]) for i, point in enumerate(points_off_goal)]
 
 
 def _start(index: int, x: float, y: float) -> Start:
@@ -67,7 +110,11 @@ def held_out_starts(k: int, extent: float, seed: int) -> list[Start]:
     return starts
 
 
-def make_starts(kind: str, k: int, extent: float, seed: int) -> list[Start]:
+def make_starts(kind: str, k: int, extent: float, seed: int, system: System = UNICYCLE) -> list[Start]:
+    """The starts of ``kind`` for ``system``: the robot's over ``[-extent, extent]^2``, another
+    system's over its start box (:func:`system_starts`; ``extent`` is the robot's)."""
+    if not system.wheeled:
+        return system_starts(system, kind, k, seed)
     if kind == "paper":
         return grid_starts(k, extent)
     if kind == "held-out":
@@ -101,5 +148,5 @@ def run_settings(base: dict[str, Any], spec: RunSpec) -> Settings:
     """The settings of one run: the resolved base with this run's agent, horizon and start."""
     data = json.loads(json.dumps(base))  # a deep copy of plain JSON data
     data["actor"].update(agent=spec.agent, horizon=spec.horizon)
-    data["episode"]["start"] = [spec.start.x, spec.start.y, spec.start.alpha]
+    data["episode"]["start"] = list(spec.start.values)
     return Settings.model_validate(data)

@@ -42,9 +42,11 @@ OUTPUT_FILES = (
 def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome: Outcome) -> dict[str, Any]:
     rows = sorted_rows(outcome.rows, options.agents, options.horizons)
     ratios = ratio_table(rows)
-    groups = group_summary(rows, options.agents, options.horizons, ratios)
+    system = base.system
+    tolerance = PARK_TOLERANCE_M if system.wheeled else system.stabilized  # parked, or stabilized
+    groups = group_summary(rows, options.agents, options.horizons, ratios, tolerance)
     duels = [d for h in options.horizons if (d := head_to_head(rows, "rlqv", "rlq", h)) is not None]
-    write_runs_csv(out / "runs.csv", rows, ratios)
+    write_runs_csv(out / "runs.csv", rows, ratios, tolerance)
     write_trajectories(out / "trajectories.npz", rows, outcome.arrays)
     summary: dict[str, Any] = {
         "experiment": {
@@ -59,6 +61,7 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
             "duration": base.episode.duration,
             "steps": base.steps,
             "command": options.command,
+            "system": base.plant.system,
         },
         "status": "interrupted" if outcome.interrupted else ("failed" if outcome.error else "complete"),
         "interrupted": outcome.interrupted,
@@ -71,7 +74,7 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
         "cpu_count": os.cpu_count(),
         "git": git_commit(),
         "finished_at": datetime.now(UTC).isoformat(timespec="seconds"),
-        "park_tolerance_m": PARK_TOLERANCE_M,
+        "park_tolerance_m": tolerance,
         "tie_percent": TIE_PERCENT,
         "groups": groups,
         "head_to_head": duels,
@@ -90,7 +93,9 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
 
         for horizon in options.horizons:
             path = out / f"ratio_N{horizon}.png"
-            if plot_ratio_contours([t for t in ratios if t["horizon"] == horizon], horizon, options.extent, path):
+            if plot_ratio_contours(
+                [t for t in ratios if t["horizon"] == horizon], horizon, options.extent, path, system
+            ):
                 summary["plots"].append(path.name)
         plot_trajectory_overview(
             rows,
@@ -99,7 +104,8 @@ def write_outputs(out: Path, options: ExperimentOptions, base: Settings, outcome
             options.horizons,
             options.extent,
             out / "trajectories.png",
-            PARK_TOLERANCE_M,
+            tolerance,
+            system,
         )
         summary["plots"].append("trajectories.png")
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=True) + "\n")

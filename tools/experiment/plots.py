@@ -22,10 +22,22 @@ from matplotlib.colors import TwoSlopeNorm
 from matplotlib.tri import Triangulation
 
 from common.math.agents import AGENT_ROWS
+from common.math.systems import UNICYCLE, System
 from tools.experiment.marks import TIE_PERCENT
 
 # the learning agents, in the table's order (the plots are of J / J_MPC)
 TITLES = {name: row.title for name, row in AGENT_ROWS.items() if row.learns}
+
+
+def plane(system: System, extent: float) -> tuple[tuple[str, str], tuple[float, float]]:
+    """The figures' plane: the state's first two entries' names and half-widths (the robot's
+    ``x [m]``, ``y [m]`` over ``extent``; another system's over its start box)."""
+    if system.wheeled:
+        return ("x [m]", "y [m]"), (extent, extent)
+    box = system.box_of_starts
+    names = (*system.states[:2], "")[:2]
+    widths = (float(box[0]) or 1.0, float(box[1]) if len(box) > 1 and box[1] > 0 else 1.0)
+    return (names[0], names[1]), widths
 
 
 def _triangulation(x: np.ndarray, y: np.ndarray) -> Triangulation | None:
@@ -39,8 +51,12 @@ def _triangulation(x: np.ndarray, y: np.ndarray) -> Triangulation | None:
     return tri if len(tri.triangles) else None
 
 
-def plot_ratio_contours(ratios: Sequence[dict[str, Any]], horizon: int, extent: float, path: Path) -> bool:
-    """One figure for one horizon; returns False (and writes nothing) without any ratio."""
+def plot_ratio_contours(
+    ratios: Sequence[dict[str, Any]], horizon: int, extent: float, path: Path, system: System = UNICYCLE
+) -> bool:
+    """One figure for one horizon, over the start's first two entries (the robot's position;
+    another system's start box); returns False (and writes nothing) without any ratio."""
+    (x_name, y_name), (x_limit, y_limit) = plane(system, extent)
     agents = [a for a in TITLES if any(t["agent"] == a for t in ratios)]
     if not agents:
         return False
@@ -71,11 +87,12 @@ def plot_ratio_contours(ratios: Sequence[dict[str, Any]], horizon: int, extent: 
                 f"{zi:.0f}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=7, zorder=4
             )
         ax.plot(0, 0, "*", ms=14, color="gold", markeredgecolor="k", zorder=5)
-        ax.set_xlim(-extent * 1.08, extent * 1.08)
-        ax.set_ylim(-extent * 1.08, extent * 1.08)
-        ax.set_aspect("equal")
-        ax.set_xlabel("x0 [m]")
-        ax.set_ylabel("y0 [m]")
+        ax.set_xlim(-x_limit * 1.08, x_limit * 1.08)
+        ax.set_ylim(-y_limit * 1.08, y_limit * 1.08)
+        if system.wheeled:
+            ax.set_aspect("equal")
+        ax.set_xlabel("x0 [m]" if system.wheeled else f"{x_name} at the start")
+        ax.set_ylabel("y0 [m]" if system.wheeled else f"{y_name} at the start")
         beat = int(np.sum(z < 100.0 - TIE_PERCENT))
         ax.set_title(
             f"J_{TITLES[agent]} / J_MPC x 100 %, N = {horizon}\n"
@@ -99,7 +116,11 @@ def plot_trajectory_overview(
     extent: float,
     path: Path,
     tolerance: float = 0.25,
+    system: System = UNICYCLE,
 ) -> None:
+    """Every run's path over the state's first two entries, one panel per (N, agent); a robot's
+    with its start heading, within ``tolerance`` of the goal blue (parked, or stabilized), else red."""
+    (x_name, y_name), (x_limit, y_limit) = plane(system, extent)
     fig, axes = plt.subplots(
         len(horizons),
         len(agents),
@@ -108,7 +129,6 @@ def plot_trajectory_overview(
         sharex=True,
         sharey=True,
     )
-    limit = extent * 1.25
     for i, horizon in enumerate(horizons):
         for j, agent in enumerate(agents):
             ax = axes[i][j]
@@ -116,8 +136,11 @@ def plot_trajectory_overview(
             for r in runs:
                 states = arrays[r["run_id"]]["states"]
                 parked = r["final_distance"] <= tolerance
-                ax.plot(states[:, 0], states[:, 1], lw=0.9, alpha=0.8, color="tab:blue" if parked else "tab:red")
-                ax.plot(states[0, 0], states[0, 1], "o", ms=3, color="tab:green")
+                ys = states[:, 1] if states.shape[1] > 1 else np.zeros(len(states))
+                ax.plot(states[:, 0], ys, lw=0.9, alpha=0.8, color="tab:blue" if parked else "tab:red")
+                ax.plot(states[0, 0], ys[0], "o", ms=3, color="tab:green")
+                if not system.wheeled:
+                    continue
                 ax.arrow(
                     states[0, 0],
                     states[0, 1],
@@ -128,18 +151,26 @@ def plot_trajectory_overview(
                     length_includes_head=True,
                 )
             ax.plot(0, 0, "*", ms=12, color="gold", markeredgecolor="k", zorder=5)
-            ax.add_patch(plt.Rectangle((-extent, -extent), 2 * extent, 2 * extent, fill=False, ls=":", color="gray"))
-            ax.set_xlim(-limit, limit)
-            ax.set_ylim(-limit, limit)
-            ax.set_aspect("equal")
+            box = plt.Rectangle((-x_limit, -y_limit), 2 * x_limit, 2 * y_limit, fill=False, ls=":", color="gray")
+            ax.add_patch(box)
+            if system.wheeled:
+                ax.set_xlim(-x_limit * 1.25, x_limit * 1.25)
+                ax.set_ylim(-y_limit * 1.25, y_limit * 1.25)
+                ax.set_aspect("equal")
             ax.grid(True, alpha=0.3)
             parked = sum(r["final_distance"] <= tolerance for r in runs)
-            ax.set_title(f"{agent}, N = {horizon}: parked {parked}/{len(runs)}", fontsize=10)
+            word = "parked" if system.wheeled else "stabilized"
+            ax.set_title(f"{agent}, N = {horizon}: {word} {parked}/{len(runs)}", fontsize=10)
             if i == len(horizons) - 1:
-                ax.set_xlabel("x [m]")
+                ax.set_xlabel(x_name)
             if j == 0:
-                ax.set_ylabel("y [m]")
-    fig.suptitle(f"Trajectories (green: start and heading; blue: parked within {tolerance:g} m, red: not)", fontsize=11)
+                ax.set_ylabel(y_name)
+    fig.suptitle(
+        f"Trajectories (green: start and heading; blue: parked within {tolerance:g} m, red: not)"
+        if system.wheeled
+        else f"Trajectories (green: start; blue: stabilized within {tolerance:g}, red: not)",
+        fontsize=11,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

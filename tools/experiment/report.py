@@ -15,6 +15,7 @@ import numpy as np
 
 from common.math.agents import REFERENCE_AGENT, learns
 from common.math.parking import MAX_SIGN_CHANGES, SPAN_M, WINDOW_S
+from common.math.systems import System, system_row
 from tools.experiment.marks import PARK_TOLERANCE_M, TIE_PERCENT
 
 
@@ -45,8 +46,14 @@ def ratio_table(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def group_summary(
-    rows: Sequence[dict[str, Any]], agents: Sequence[str], horizons: Sequence[int], ratios: Sequence[dict[str, Any]]
+    rows: Sequence[dict[str, Any]],
+    agents: Sequence[str],
+    horizons: Sequence[int],
+    ratios: Sequence[dict[str, Any]],
+    tolerance: float = PARK_TOLERANCE_M,
 ) -> list[dict[str, Any]]:
+    """Each (agent, N): its runs' J, marks, and how many ended within ``tolerance`` of the goal
+    ("parked": the robot's 0.25 m; another system's ``stabilized`` distance)."""
     groups = []
     for horizon in horizons:
         for agent in agents:
@@ -56,7 +63,7 @@ def group_summary(
             costs = np.array([r["accumulated_cost"] for r in runs])
             marks = np.array([t["ratio_percent"] for t in ratios if t["agent"] == agent and t["horizon"] == horizon])
             marks = marks[np.isfinite(marks)]
-            parked = sum(r["final_distance"] <= PARK_TOLERANCE_M for r in runs)
+            parked = sum(r["final_distance"] <= tolerance for r in runs)
             at_rest = sum(int(r.get("at_rest", 0)) for r in runs)
             entry: dict[str, Any] = {
                 "agent": agent,
@@ -92,7 +99,7 @@ def head_to_head(rows: Sequence[dict[str, Any]], first: str, second: str, horizo
     """Starts where ``first`` has a lower J than ``second`` at ``horizon``."""
     a = {r["start_index"]: r["accumulated_cost"] for r in rows if r["agent"] == first and r["horizon"] == horizon}
     b = {r["start_index"]: r["accumulated_cost"] for r in rows if r["agent"] == second and r["horizon"] == horizon}
-    common_starts = sorted(set(a) & set(b))
+    common_starts = sorted(i for i in set(a) & set(b) if b[i] > 0)  # J = 0: a start at the goal, no ratio
     if not common_starts:
         return None
     wins = sum(100.0 * a[i] / b[i] < 100.0 - TIE_PERCENT for i in common_starts)
@@ -208,7 +215,13 @@ def sorted_rows(rows: Iterable[dict[str, Any]], agents: Sequence[str], horizons:
     )
 
 
-def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[dict[str, Any]]) -> None:
+def write_runs_csv(
+    path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[dict[str, Any]], tolerance: float = PARK_TOLERANCE_M
+) -> None:
+    """One row per run (``parked``: within ``tolerance``, as :func:`group_summary`); another system
+    than the robot has its first three state entries in the robot's columns (``start_x``,
+    ``start_y``, ``start_alpha``, ``final_*``; nan where it has fewer), its whole states in
+    trajectories.npz."""
     by_run = {t["run_id"]: t["ratio_percent"] for t in ratios}
     with path.open("w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=CSV_COLUMNS)
@@ -220,7 +233,7 @@ def write_runs_csv(path: Path, rows: Sequence[dict[str, Any]], ratios: Sequence[
                     **{k: r.get(k) for k in CSV_COLUMNS},
                     **{k: "" if r.get(k) is None else repr(float(r[k])) for k in CSV_COLUMNS[-2:]},
                     "ratio_to_mpc_percent": "" if ratio is None else repr(float(ratio)),
-                    "parked": int(r["final_distance"] <= PARK_TOLERANCE_M),
+                    "parked": int(r["final_distance"] <= tolerance),
                     **{
                         k: repr(float(r[k]))
                         for k in (
@@ -342,15 +355,27 @@ def _fmt_init(value: str | list[float]) -> str:
     return value if isinstance(value, str) else "[" + ", ".join(f"{w:.4g}" for w in value) + "]"
 
 
+def starts_box(system: System) -> str:
+    """``theta in [-0.4, 0.4], omega in [-0.5, 0.5]``: the start box's first two entries, by name."""
+    box = system.box_of_starts
+    return " and ".join(
+        f"{name.partition(' [')[0]} in [-{width:g}, {width:g}]"
+        for name, width in zip(system.states[:2], box[:2], strict=False)
+    )
+
+
 def _fmt_ratio(v: float | None) -> str:
     return "—" if v is None or not math.isfinite(v) else f"{v:.1f} %"
 
 
 def summary_markdown(summary: dict[str, Any]) -> str:
     e, s = summary["experiment"], summary["settings"]
+    name = e.get("system", "unicycle")
+    system = system_row(name)
     lines = [
         f"# srl experiment paper — {e['starts']} starts, transport {e['transport']}, plant {s['plant']['model']}"
-        + (f", pose {e['localization']}" if e.get("localization", "none") != "none" else ""),
+        + (f", pose {e['localization']}" if e.get("localization", "none") != "none" else "")
+        + ("" if system.wheeled else f", system {name}"),
         "",
     ]
     status = (
@@ -363,7 +388,11 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         f"* status: {status}, {summary['runs_completed']}/{summary['runs_planned']} runs",
         f"* starts: {e['grid']} x {e['grid']} "
         + ("lattice" if e["starts"] == "paper" else f"stratified-jittered (seed {e['seed']})")
-        + f" over [-{e['extent']:g}, {e['extent']:g}]^2, heading turned away from the target (pi at the centre)",
+        + (
+            f" over [-{e['extent']:g}, {e['extent']:g}]^2, heading turned away from the target (pi at the centre)"
+            if system.wheeled
+            else f" over {starts_box(system)}, the other entries 0 (runs.csv: the first three entries)"
+        ),
         f"* agents {', '.join(e['agents'])}; horizons N = {', '.join(str(h) for h in e['horizons'])}; "
         f"episode {e['duration']:g} s = {e['steps']} steps of delta = {s['plant']['sampling_time']} s; "
         "every RL run learns online from the initial weights (no pretraining)",
@@ -374,14 +403,23 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         f"ridge lambda = {s['critic']['ridge']}, weight bounds = {s['critic']['weight_bounds'] or 'none'}, "
         f"initial weights q = {_fmt_init(s['critic']['q_init'])}, v = {_fmt_init(s['critic']['v_init'])}, "
         f"solver {s['actor']['solver']}, predictor {s['actor']['predictor']} (all in config.toml)",
-        f"* parked = final distance to the target <= {summary['park_tolerance_m']} m; better than MPC = "
-        f"J/J_mpc < {100 - summary['tie_percent']:g} % (within {summary['tie_percent']:g} % of 100 % is a tie: "
-        f"the solver tolerance alone moves J that much); at rest = over the last {WINDOW_S:g} s the position "
-        f"spans <= {SPAN_M:g} m and v (|v| >= 0.01 m/s) changes sign at most {MAX_SIGN_CHANGES} times "
-        "(no chatter)",
+        (
+            f"* parked = final distance to the target <= {summary['park_tolerance_m']} m; "
+            if system.wheeled
+            else f"* stabilized = final distance to the goal <= {summary['park_tolerance_m']:g}; "
+        )
+        + f"better than MPC = J/J_mpc < {100 - summary['tie_percent']:g} % (within {summary['tie_percent']:g} % "
+        "of 100 % is a tie: the solver tolerance alone moves J that much); "
+        + (
+            f"at rest = over the last {WINDOW_S:g} s the position spans <= {SPAN_M:g} m and v (|v| >= 0.01 m/s) "
+            f"changes sign at most {MAX_SIGN_CHANGES} times (no chatter)"
+            if system.wheeled
+            else f"at rest = over the last {WINDOW_S:g} s every state within {summary['park_tolerance_m']:g} "
+            "of the goal"
+        ),
         "",
         "| agent | N | runs | median J | median J/J_mpc | better than MPC | ties | min J/J_mpc | max J/J_mpc "
-        "| parked | at rest | solver failures |",
+        f"| {'parked' if system.wheeled else 'stabilized'} | at rest | solver failures |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for g in summary["groups"]:

@@ -235,7 +235,7 @@ def _progress(enabled: bool) -> Any:
 def run_experiment(options: ExperimentOptions, base: Settings) -> tuple[int, dict[str, Any]]:
     """Everything ``srl experiment paper`` does after parsing: (exit code, summary)."""
     base = experiment_settings(base)
-    starts = make_starts(options.starts, options.grid, options.extent, options.seed)
+    starts = make_starts(options.starts, options.grid, options.extent, options.seed, base.system)
     specs = plan_runs(starts, options.agents, options.horizons)
     recorder = None
     if options.record is not None:  # created now: a bad path fails before the first run

@@ -5,6 +5,7 @@ services (``zenoh``, tools/experiment/services.py)."""
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import sys
 import time
@@ -18,6 +19,7 @@ import numpy as np
 
 from common.config.settings import Settings
 from common.math.agents import learns
+from common.math.parking import WINDOW_S
 from common.process.plugins import load_from_environment
 from tools.experiment.grid import RunSpec, run_settings
 
@@ -108,13 +110,13 @@ def run_one(
     started = time.perf_counter()
     episode, extra = runner.run(settings, actor)
     wall = time.perf_counter() - started
-    final = episode.final_state
+    final, system = episode.final_state, settings.system
     solve = summarize(episode.solve_seconds, scale=1e3)
     # "at rest" beside "parked": no chatter over the last 10 s, on the true states where
-    # the plant knows them
-    rest = parking(
-        episode.true_states if episode.truth_known else episode.states, episode.actions, settings.plant.sampling_time
-    )
+    # the plant knows them (another system: held within its tolerance over the last 10 s)
+    path = episode.true_states if episode.truth_known else episode.states
+    rest = parking(path, episode.actions, settings.plant.sampling_time) if system.wheeled else held(path, settings)
+    first = [*(float(c) for c in final[:3]), *[math.nan] * (3 - min(3, len(final)))]  # runs.csv's columns
     row = {
         "run_id": spec.run_id,
         "agent": spec.agent,
@@ -124,15 +126,13 @@ def run_one(
         "start_y": spec.start.y,
         "start_alpha": spec.start.alpha,
         "accumulated_cost": episode.accumulated_cost,
-        "final_x": float(final[0]),
-        "final_y": float(final[1]),
-        "final_alpha": float(final[2]),
-        "final_distance": float(np.hypot(final[0], final[1])),
+        "final_x": first[0],
+        "final_y": first[1],
+        "final_alpha": first[2],
+        "final_distance": system.distance(final),
         # the truth beside what the robot reported, where the plant knows it (equal on the ideal plant)
-        "true_accumulated_cost": episode.true_accumulated_cost(
-            settings.plant.sampling_time, tuple(settings.cost.r_diag)
-        ),
-        "true_final_distance": float(np.hypot(*episode.true_states[-1][:2])) if episode.truth_known else None,
+        "true_accumulated_cost": episode.true_accumulated_cost(settings.plant.sampling_time, tuple(settings.r_diag)),
+        "true_final_distance": system.distance(episode.true_states[-1]) if episode.truth_known else None,
         "at_rest": int(rest.at_rest),
         "last_span_m": rest.span,
         "sign_changes": rest.sign_changes,
@@ -152,6 +152,25 @@ def run_one(
         "costs": np.asarray(episode.costs, dtype=float),
     }
     return {"row": row, "arrays": arrays}
+
+
+@dataclass(frozen=True)
+class Held:
+    """A system other than the robot "at rest" (the row's ``at_rest``, ``last_span_m``,
+    ``sign_changes`` as :class:`~common.math.parking.Parking` gives a robot's)."""
+
+    at_rest: bool
+    span: float  # the largest distance to the goal over the last window
+    sign_changes: int = 0
+
+
+def held(states: list[np.ndarray], settings: Settings) -> Held:
+    """At rest: over the last :data:`~common.math.parking.WINDOW_S` seconds every state within the
+    system's ``stabilized`` distance of its goal."""
+    system = settings.system
+    last = states[-max(1, round(WINDOW_S / settings.plant.sampling_time)) :]
+    span = max(system.distance(state) for state in last)
+    return Held(span < system.stabilized, span)
 
 
 def worker_main(config: WorkerConfig, tasks: Any, results: Any) -> None:

@@ -46,6 +46,7 @@ from common.config.assembly import build_plant
 from common.config.settings import Settings, start_state
 from common.math.dynamics import Plant
 from common.math.features import stage_cost
+from common.math.systems import SYSTEMS, system_row
 from tools.experiment.grid import STARTS, make_starts
 
 FloatArray = NDArray[np.float64]
@@ -55,6 +56,19 @@ ENV_MODELS: Final[dict[str, str]] = {
     "srl/TurtleBot3-v0": "actuator",
     "srl/TurtleBot3Physics-v0": "physics",
 }
+
+
+def system_env_id(name: str) -> str:
+    """The Gymnasium id of a system other than the robot: ``srl/Pendulum-v0``, ``srl/TwoTank-v0``."""
+    return "srl/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"
+
+
+def system_envs() -> dict[str, str]:
+    """env id -> system, for every row of common/math/systems.py but the robot's (whose ids are
+    :data:`ENV_MODELS`), built in or registered when asked."""
+    return {system_env_id(name): name for name, row in SYSTEMS.items() if not row.wheeled}
+
+
 START_KINDS: Final[tuple[str, ...]] = (*STARTS, "disc")
 
 
@@ -83,6 +97,10 @@ class StartDistribution:
                 raise ValueError("a list of starts needs at least one start")
         self.points: FloatArray = np.array(points, dtype=float).reshape(-1, 3)
 
+    def given(self, start: Sequence[float]) -> FloatArray:
+        """A start the caller gives: ``(x, y)`` (heading away from the target) or ``(x, y, alpha)``."""
+        return start_state(list(start))
+
     def draw(self, rng: np.random.Generator) -> FloatArray:
         """One start ``(x, y, alpha)``, drawn with ``rng``."""
         if self.kind == "disc":
@@ -92,23 +110,58 @@ class StartDistribution:
         return self.points[int(rng.integers(len(self.points)))].copy()
 
 
-def env_settings(settings: Settings | None, model: str) -> Settings:
-    """``settings`` (default: the packaged srl.toml and ``SRL_*``) with ``plant.model = model``."""
+class SystemStarts:
+    """Where the episodes of a system other than the robot start: ``"box"``, drawn uniformly in its
+    row's start box (:meth:`common.math.systems.System.draw_start`), or a sequence of whole states
+    drawn uniformly."""
+
+    def __init__(self, system: str, starts: str | Sequence[Sequence[float]] = "box") -> None:
+        self.system = system_row(system)
+        self.kind = starts if isinstance(starts, str) else "given"
+        if isinstance(starts, str):
+            if starts not in ("box", "paper"):  # "paper": SrlEnv's default, the robot's grid: here the box
+                raise ValueError(f"starts of system {system}: 'box' or a list of its states, got {starts!r}")
+            self.points: FloatArray = np.zeros((0, self.system.state_dim))
+        else:
+            self.points = np.array([self.given(start) for start in starts], dtype=float).reshape(
+                -1, self.system.state_dim
+            )
+            if not len(self.points):
+                raise ValueError("a list of starts needs at least one start")
+
+    def given(self, start: Sequence[float]) -> FloatArray:
+        """A whole state of the system, finite; ValueError (one line) otherwise."""
+        state = np.asarray(start, dtype=float)
+        if state.shape != (self.system.state_dim,) or not np.all(np.isfinite(state)):
+            raise ValueError(f"a start is {self.system.state_dim} finite numbers ({', '.join(self.system.states)})")
+        return state
+
+    def draw(self, rng: np.random.Generator) -> FloatArray:
+        if self.kind == "given":
+            return self.points[int(rng.integers(len(self.points)))].copy()
+        return self.system.draw_start(rng)
+
+
+def env_settings(settings: Settings | None, model: str, system: str = "unicycle") -> Settings:
+    """``settings`` (default: the packaged srl.toml and ``SRL_*``) with ``plant.model = model`` and
+    ``plant.system = system`` (an id's own, whatever ``SRL_PLANT__SYSTEM`` says)."""
     base = settings if settings is not None else Settings.load()
     data = base.model_dump()
-    data["plant"]["model"] = model
+    data["plant"]["model"], data["plant"]["system"] = model, system
+    if base.plant.system != system:  # the start and cost of another system are not this one's
+        data["episode"]["start"], data["cost"]["r_diag"] = (), ()
     return Settings.model_validate(data)
 
 
 def action_box(settings: Settings) -> spaces.Box[np.float64]:
-    """``(v, omega)`` within the robot's limits, float64 (the actor's actions, unrounded)."""
-    high = np.array([settings.plant.v_max, settings.plant.omega_max], dtype=np.float64)
+    """The held action within its box (the robot's ``(v, omega)`` limits), float64 (unrounded)."""
+    high = np.array(settings.action_max, dtype=np.float64)
     return spaces.Box[np.float64](low=-high, high=high, dtype=np.float64)
 
 
-def observation_box() -> spaces.Box[np.float64]:
-    """``(x, y, alpha)``: unbounded (the heading is continuous), float64."""
-    return spaces.Box[np.float64](low=-np.inf, high=np.inf, shape=(3,), dtype=np.float64)
+def observation_box(dim: int = 3) -> spaces.Box[np.float64]:
+    """The state (the robot's ``(x, y, alpha)``): unbounded (the heading is continuous), float64."""
+    return spaces.Box[np.float64](low=-np.inf, high=np.inf, shape=(dim,), dtype=np.float64)
 
 
 def checked_action(action: Any, box: spaces.Box[np.float64]) -> FloatArray:
@@ -116,7 +169,7 @@ def checked_action(action: Any, box: spaces.Box[np.float64]) -> FloatArray:
     ValueError for another shape or a non-finite value (no NaN reaches a robot)."""
     u = np.asarray(action, dtype=np.float64)
     if u.shape != box.shape:
-        raise ValueError(f"an action is (v, omega) of shape {box.shape}, got shape {u.shape}")
+        raise ValueError(f"an action is of shape {box.shape} (the robot's (v, omega)), got shape {u.shape}")
     if not np.all(np.isfinite(u)):
         raise ValueError(f"action {u.tolist()} is not finite; nothing was applied")
     clipped: FloatArray = np.clip(u, box.low, box.high)
@@ -139,16 +192,24 @@ class SrlEnv(gymnasium.Env[FloatArray, FloatArray]):
         held_out_seed: int = 0,
         settings: Settings | None = None,
         plant: Plant | None = None,
+        system: str = "unicycle",
     ) -> None:
-        self.settings = env_settings(settings, model)
+        self.settings = env_settings(settings, model, system)
+        self.system = system_row(system)
         self.plant: Plant = plant if plant is not None else build_plant(self.settings)
-        self.starts = StartDistribution(starts, grid, extent, held_out_seed)
+        # the robot's starts: the experiment's grids, a disc or given ones; another system's: drawn
+        # in its row's start box (SystemStarts), or given
+        self.starts: StartDistribution | SystemStarts = (
+            StartDistribution(starts, grid, extent, held_out_seed)
+            if self.system.wheeled
+            else SystemStarts(system, starts)
+        )
         self.delta = self.settings.plant.sampling_time
         self.max_steps = self.settings.steps
-        self.r_diag = tuple(self.settings.cost.r_diag)
+        self.r_diag = tuple(self.settings.r_diag)
         self.box = action_box(self.settings)
         self.action_space = self.box
-        self.observation_space = observation_box()
+        self.observation_space = observation_box(self.system.state_dim)
         self.state: FloatArray | None = None
         self.steps = 0
 
@@ -157,7 +218,7 @@ class SrlEnv(gymnasium.Env[FloatArray, FloatArray]):
     ) -> tuple[FloatArray, dict[str, Any]]:
         super().reset(seed=seed)
         given = (options or {}).get("start")
-        start = start_state(given) if given is not None else self.starts.draw(self.np_random)
+        start = self.starts.draw(self.np_random) if given is None else self.starts.given(given)
         self.state = np.asarray(self.plant.reset(start), dtype=np.float64)
         self.steps = 0
         return self.state.copy(), {"true_state": self._truth()}

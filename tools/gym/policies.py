@@ -67,7 +67,7 @@ class SrlPolicy:
         self.actor = build_actor(self.settings)
         self.critic = local_critic(self.settings, learn=learn and learns(agent))
         self.delta = self.settings.plant.sampling_time
-        self.r_diag = tuple(self.settings.cost.r_diag)
+        self.r_diag = tuple(self.settings.r_diag)
         self.steps = 0
         self.last: ActorStep | None = None  # the newest solve: its plan, objective, status, time
         self.reset()

@@ -55,7 +55,7 @@ class SrlVectorEnv(VectorEnv[FloatArray, FloatArray, FloatArray]):
         self.starts = StartDistribution(starts, grid, extent, held_out_seed)
         self.delta = self.settings.plant.sampling_time
         self.max_steps = self.settings.steps
-        self.r_diag = tuple(self.settings.cost.r_diag)
+        self.r_diag = tuple(self.settings.r_diag)
         self.single_action_space = action_box(self.settings)
         self.single_observation_space = observation_box()
         self.action_space = batch_space(self.single_action_space, num_envs)

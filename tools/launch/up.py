@@ -247,6 +247,7 @@ def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
     """
     robots = list(options.robots) if options.robots is not None else [settings.transport.robot]
     check_options(options, robots)
+    settings.robot_only("srl up")  # before anything starts: every service would refuse it
     router = options.router or (free_loopback_endpoint() if options.fleet else settings.transport.router)
     settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
     env = run_environment(options)
