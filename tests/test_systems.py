@@ -30,6 +30,7 @@ from common.math.systems import (
     system_row,
     vector,
 )
+from tools.experiment.report import read_runs_csv
 
 NAME = "double_integrator"
 DELTA = 0.1
@@ -214,7 +215,7 @@ def test_a_start_of_the_wrong_size_and_the_services_are_refused_in_one_line(
     cases = [
         (["run", "--system", "cartpole", "--start", "1,2"], "episode.start: 4 numbers, cartpole's state"),
         (["run", "--system", "pendulum", "--transport", "zenoh"], "system pendulum runs in process"),
-        (["run", "--system", "pendulum", "--plot", "p.png"], "--plot: carries the robot's pose"),
+        (["run", "--system", "pendulum", "--record", "p.mcap"], "--record: carries the robot's pose"),
     ]
     for argv, message in cases:
         assert main(argv) == 2
@@ -263,12 +264,17 @@ def test_the_pendulums_torque_holds_it_up_to_28_degrees_and_no_further() -> None
         assert (accel > 0) == falls
 
 
-def test_srl_run_runs_a_registered_system(registered: System, capsys: pytest.CaptureFixture[str]) -> None:
+def test_srl_run_runs_a_registered_system(
+    registered: System, capsys: pytest.CaptureFixture[str], tmp_path: Any
+) -> None:
     """The command line offers the row registered in this process (as SRL_PLUGINS registers one
-    before the parser is built) and runs it with its own box, cost and start."""
-    summary = run_json("--system", NAME, "--duration", "12", capsys=capsys)
+    before the parser is built) and runs it with its own box, cost and start; --plot draws its
+    states and actions by their names."""
+    figure = tmp_path / "run.png"
+    summary = run_json("--system", NAME, "--duration", "12", "--plot", str(figure), capsys=capsys)
     assert summary["system"] == NAME and summary["start_state"] == [1.0, 0.0]
     assert summary["final_distance"] < registered.stabilized
+    assert summary["plot"] == str(figure) and figure.stat().st_size > 10_000
 
 
 @pytest.mark.integration
@@ -284,6 +290,26 @@ def test_the_example_system_runs_through_srl_plugins() -> None:
     assert summary["system"] == NAME and summary["final_distance"] < DOUBLE_INTEGRATOR.stabilized
     refused = srl(*argv, env={"SRL_PLUGINS": ""})
     assert refused.returncode == 2 and "invalid choice: 'double_integrator'" in refused.stderr
+
+
+@pytest.mark.integration
+def test_the_experiment_runs_the_users_system_in_its_worker_processes(tmp_path: Any) -> None:
+    """SRL_PLUGINS reaches the experiment's workers (spawned interpreters): the user's system runs
+    there as a built-in one does."""
+    from tests.harness import srl
+
+    out = tmp_path / "di"
+    plugin = {"SRL_PLUGINS": "examples/double_integrator.py", "SRL_ACTOR__JIT": "false"}
+    done = srl("experiment", "paper", "--system", NAME, "--grid", "2", "--horizons", "6", "--agents", "mpc,rlqv",
+               "--duration", "12", "--workers", "2", "--no-progress", "--no-plots", "--out", str(out),
+               env=plugin, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["experiment"]["system"] == NAME and summary["runs_completed"] == 8
+    assert all(g["parked"] == g["runs"] for g in summary["groups"])  # every run stabilized within 0.05
+    # its start box spans p only (v's width is 0): 2 x 2 starts along p, none twice
+    starts = sorted({(r["start_x"], r["start_y"]) for r in read_runs_csv(out / "runs.csv")})
+    assert starts == [(p, 0.0) for p in np.linspace(-1.0, 1.0, 4)]
 
 
 # -- Gymnasium ------------------------------------------------------------------------------

@@ -61,8 +61,9 @@ def main(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(args, any_system=True)
     if not settings.system.wheeled:
-        given = [flag for flag, used in (("--transport zenoh", args.transport == "zenoh"),
-                                         ("--record", args.record), ("--plot", args.plot)) if used]  # fmt: skip
+        given = [
+            flag for flag, used in (("--transport zenoh", args.transport == "zenoh"), ("--record", args.record)) if used
+        ]
         if given:
             try:
                 settings.robot_only(" and ".join(given))
@@ -132,7 +133,7 @@ def main(args: argparse.Namespace) -> int:
     if args.plot:
         from tools.recording.plots import plot_episode
 
-        plot_episode(episode, settings.plant.sampling_time, args.plot)
+        plot_episode(episode, settings.plant.sampling_time, args.plot, settings.system)
         summary["plot"] = str(args.plot)
     if args.record is not None:
         summary["recording"] = str(args.record)

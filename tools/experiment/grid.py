@@ -51,13 +51,17 @@ def system_start(index: int, state: Sequence[float]) -> Start:
 def system_starts(system: System, kind: str, k: int, seed: int) -> list[Start]:
     """Another system's ``k x k`` starts over its start box's first two entries (the others zero):
     ``paper``, the lattice, corners included, but not its centre, the goal; ``held-out``, one
-    seeded start in each cell, as for the robot. A system of one state: ``k * k`` starts along it."""
+    seeded start in each cell, as for the robot. Where the box spans one of the two (a system of
+    one state, or a start box of width 0 on the other): ``k * k`` starts along it."""
     if kind not in STARTS:
         raise ValueError(f"unknown set of starts {kind!r}; choose one of {', '.join(STARTS)}")
     box, n = system.box_of_starts, system.state_dim
-    axes = min(2, n)
+    spanned = [i for i in range(min(2, n)) if box[i] > 0]  # the first two entries the box spans
+    if not spanned:
+        raise ValueError(f"system {system.what!r}: its start box spans neither of its first two entries")
+    axes = len(spanned)
     points = k * k if axes == 1 else k
-    widths = box[:axes]
+    widths = box[spanned]
     if kind == "paper":
         ticks = [np.linspace(-w, w, points) if points > 1 else np.zeros(1) for w in widths]
         ticks = [np.where(np.abs(t) < 1e-12 * max(w, 1e-300), 0.0, t) for t, w in zip(ticks, widths, strict=True)]
@@ -67,9 +71,14 @@ def system_starts(system: System, kind: str, k: int, seed: int) -> list[Start]:
         edges = [np.linspace(-w, w, points + 1) for w in widths]
         cells = [(i,) for i in range(points)] if axes == 1 else [(c, r) for r in range(points) for c in range(points)]
         grid = [tuple(rng.uniform(edges[a][cell[a]], edges[a][cell[a] + 1]) for a in range(axes)) for cell in cells]
-    # the goal itself is no start: every agent's J is 0 there (the lattice's centre, k odd)
-    points_off_goal = [point for point in grid if any(point)]
-    return [system_start(i, [*point, *[0.0] * (n - axes)]) for i, point in enumerate(points_off_goal)]
+    starts: list[Start] = []
+    for point in grid:
+        if any(point):  # the goal itself is no start: every agent's J is 0 there (the lattice's centre)
+            state = [0.0] * n
+            for axis, value in zip(spanned, point, strict=True):
+                state[axis] = float(value)
+            starts.append(system_start(len(starts), state))
+    return starts
 
 
 def _start(index: int, x: float, y: float) -> Start:

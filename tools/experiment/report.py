@@ -361,6 +361,7 @@ def starts_box(system: System) -> str:
     return " and ".join(
         f"{name.partition(' [')[0]} in [-{width:g}, {width:g}]"
         for name, width in zip(system.states[:2], box[:2], strict=False)
+        if width > 0  # the entries the lattice spans (tools/experiment/grid.py system_starts)
     )
 
 

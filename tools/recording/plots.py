@@ -12,24 +12,35 @@ import numpy as np
 
 from common.math.agents import learns
 from common.math.loop import Episode
+from common.math.systems import UNICYCLE, System
 
 
-def plot_episode(episode: Episode, sampling_time: float, path: Path) -> None:
-    """One figure of a run: the path in the goal frame (left, full height); the controls and
-    the costs (top); the critic's weights and TD residuals over time (bottom): the learning."""
+def plot_episode(episode: Episode, sampling_time: float, path: Path, system: System = UNICYCLE) -> None:
+    """One figure of a run: the robot's path in the goal frame (another system: its states over
+    time) (left, full height); the controls and the costs (top); the critic's weights and TD
+    residuals over time (bottom): the learning."""
     states = np.array(episode.states)
     times = np.arange(episode.steps) * sampling_time
     fig = plt.figure(figsize=(15, 8.5))
     grid = fig.add_gridspec(2, 3, width_ratios=(1.25, 1, 1))
     ax_xy = fig.add_subplot(grid[:, 0])
-    plot_path(ax_xy, states)
-    ax_xy.set_title(f"{episode.agent}, N = {episode.horizon}: path (goal frame)")
+    if system.wheeled:
+        plot_path(ax_xy, states)
+        ax_xy.set_title(f"{episode.agent}, N = {episode.horizon}: path (goal frame)")
+    else:
+        for column, name in enumerate(system.states):
+            ax_xy.plot(np.arange(len(states)) * sampling_time, states[:, column], lw=1.4, label=name)
+        ax_xy.axhline(0.0, color="k", lw=0.6)
+        ax_xy.set_xlabel("t [s]")
+        ax_xy.legend(loc="best", fontsize=8)
+        ax_xy.grid(True, alpha=0.3)
+        ax_xy.set_title(f"{episode.agent}, N = {episode.horizon}: the state (goal: 0)")
 
     ax_u = fig.add_subplot(grid[0, 1])
     if episode.actions:
         actions = np.array(episode.actions)
-        ax_u.step(times, actions[:, 0], where="post", lw=1.3, label="v [m/s]")
-        ax_u.step(times, actions[:, 1], where="post", lw=1.3, label="omega [rad/s]")
+        for column, name in enumerate(system.actions):
+            ax_u.step(times, actions[:, column], where="post", lw=1.3, label=name)
     ax_u.axhline(0.0, color="k", lw=0.6)
     ax_u.set_xlabel("t [s]")
     ax_u.set_title("controls (held for delta)")
