@@ -301,7 +301,7 @@ def test_the_experiment_runs_the_users_system_in_its_worker_processes(tmp_path: 
     out = tmp_path / "di"
     plugin = {"SRL_PLUGINS": "examples/double_integrator.py", "SRL_ACTOR__JIT": "false"}
     done = srl("experiment", "paper", "--system", NAME, "--grid", "2", "--horizons", "6", "--agents", "mpc,rlqv",
-               "--duration", "12", "--workers", "2", "--no-progress", "--no-plots", "--out", str(out),
+               "--duration", "12", "--workers", "1", "--no-progress", "--no-plots", "--out", str(out),
                env=plugin, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())

@@ -593,7 +593,7 @@ def variants_page() -> str:
     from common.contracts.pose_sources import POSE_SOURCES
     from common.math.agents import AGENT_ROWS, REFERENCE_AGENT
     from common.math.plant_models import PLANT_MODELS
-    from common.math.systems import SYSTEMS
+    from common.math.systems import SYSTEMS, state_norm
     from tools.launch.plants import LAUNCH_PLANTS
 
     def yes(flag: bool) -> str:
@@ -634,11 +634,13 @@ def variants_page() -> str:
         "",
         "## Systems",
         "",
-        "`common/math/systems.py` `SYSTEMS`: the sampled system the actor's problem (`ActorProblem.system`), the",
-        "critics' features and the in-process plant are sized and built from. Its goal is the origin of its state.",
+        "`common/math/systems.py` `SYSTEMS`: the setting `plant.system`, `--system` (`srl run`, `srl experiment",
+        "paper`), Gymnasium's `srl/<System>-v0` (the robot's: `srl/Unicycle-v0`). The actor's problem, the critics'",
+        "features and the in-process plant are sized and built from the row; its goal is the origin of its state.",
+        "A system other than the robot (not wheeled) runs in process only: the services carry the robot's pose.",
         "",
         *_table(
-            ["system", "what", "state", "action", "box", "plant's step"],
+            ["system", "what", "state", "action", "box", "start", "stabilized", "plant's step"],
             [
                 [
                     code(name),
@@ -646,6 +648,8 @@ def variants_page() -> str:
                     cell(", ".join(row.states)),
                     cell(", ".join(row.actions)),
                     cell(", ".join(f"{bound:g}" for bound in row.action_max)),
+                    cell(", ".join(f"{value:.3g}" for value in row.start)),
+                    f"< {row.stabilized:g}" + (" m from the target" if row.distance is not state_norm else " (norm)"),
                     "exact" if row.exact_step is not None else f"{row.substeps} RK4 steps",
                 ]
                 for name, row in SYSTEMS.items()
