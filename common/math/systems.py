@@ -1,7 +1,8 @@
 """The sampled systems srl controls, one row each: everything the method needs to know of a plant
-(docs/concepts.md): its state and action (names, so dimensions), the model ``ds/dt = f(s, u)``
-(numpy or CasADi, one code), the box of the held actions, the stage cost's default weights, the
-default start, and what "stabilized" means. The goal is the origin of the state: a system is
+(docs/extending.md, "Your own sampled system"; the table: docs/reference/variants.md): its state
+and action (names, so dimensions), the model ``ds/dt = f(s, u)`` (numpy or CasADi, one code), the
+box of the held actions, the stage cost's default weights, the default start, and what
+"stabilized" means. The goal is the origin of the state: a system is
 written in its goal's coordinates, as the paper writes the robot in the goal frame.
 
 The actor's problem (common/math/actor_problem.py ``ActorProblem.system``) is built from its row:
