@@ -21,24 +21,28 @@ import pytest
 
 from common.config.settings import Settings
 from common.math import physics
+from common.math.systems import SYSTEMS
 from tools.cli import main as srl
 from tools.experiment.baselines import (
     DEFAULT_BUDGETS,
+    DEFAULT_ENVS,
     DEFAULT_SEEDS,
     QUICK_BUDGETS,
     ZOO,
     BaselineOptions,
     Row,
+    evaluation_starts,
     hyperparameters,
     parse_budgets,
     parse_envs,
     parse_hyper,
     run_baselines,
+    system_environments,
     table_markdown,
     train,
 )
 from tools.experiment.output import experiment_settings
-from tools.gym.envs import ENV_MODELS, normalized_actions
+from tools.gym.envs import ENV_MODELS, normalized_actions, system_envs
 
 # MuJoCo (srl/TurtleBot3Physics-v0), imported here, outside any test: its first import runs a
 # process (GLFW's version probe); as tests/test_gym.py
@@ -232,3 +236,63 @@ def test_trainings_in_worker_processes_give_the_same_table_as_one_after_another(
             np.array_equal(a.actions, b.actions) for (_, a), (_, b) in zip(one.episodes, other.episodes, strict=True)
         )
     assert [r["paper"] for r in parallel["rows"]] == [r["paper"] for r in summary["rows"]]
+
+
+# -- another system's environment ------------------------------------------------------------
+@pytest.mark.needs_baselines
+@pytest.mark.parametrize("env_id", sorted(system_envs()))
+def test_each_systems_environment_passes_stable_baselines3s_checker(env_id: str) -> None:
+    from stable_baselines3.common.env_checker import check_env
+
+    for env in (gymnasium.make(env_id), normalized_actions(gymnasium.make(env_id))):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            check_env(env, warn=True)
+        others = [str(w.message) for w in caught if not any(r in str(w.message) for r in RECOMMENDATIONS)]
+        assert not others, others
+
+
+@pytest.mark.needs_baselines
+@pytest.mark.slow
+@pytest.mark.integration  # srl's actor (J_mpc) is JIT-built with the C compiler
+def test_sac_and_ppo_train_on_every_other_system_beside_srls_agents(tmp_path: Path) -> None:
+    """A tiny training of each on each built-in system's environment: its starts are the lattice
+    over the system's start box (the goal left out), its actions of the system's size and in its
+    box, "parked" is stabilized in the system's terms, and every J is the sum of the costs the
+    environment gives for the episode's actions, again."""
+    envs = tuple(sorted(system_envs()))
+    base = experiment_settings(Settings.load(episode={"duration": 2.0}))
+    options = replace(TINY, envs=envs, grid=2, agents=("mpc",), out=tmp_path)
+    summary, rows = run_baselines(options, base)
+    for env_id in envs:
+        system = SYSTEMS[system_envs()[env_id]]
+        labels = [(r.controller, r.budget) for r in rows if r.env_id == env_id]
+        assert labels == [("mpc", None), ("sac", 150), ("sac", 300), ("ppo", 150), ("ppo", 300)], env_id
+        starts = evaluation_starts(2, 2.0, 0, system_envs()[env_id])
+        assert starts["paper"] and all(any(s.values) for s in starts["paper"])  # never the goal itself
+        assert summary["tolerances"][env_id] == system.stabilized
+        env = gymnasium.make(env_id, settings=base)
+        for row in (r for r in rows if r.env_id == env_id):
+            assert len(row.episodes) == sum(len(points) for points in starts.values()), row.label
+            for _, e in row.episodes:
+                assert e.actions.shape == (20, system.action_dim), row.label
+                assert np.all(np.abs(e.actions) <= np.array(system.action_max)), row.label
+                assert e.parked == (e.final_distance <= system.stabilized)
+                env.reset(options={"start": e.start.values})
+                costs = [env.step(action)[4]["cost"] for action in e.actions]
+                assert costs == e.costs.tolist() and float(np.sum(costs)) == e.cost, row.label
+    mpc = [r for r in summary["rows"] if r["controller"] == "mpc"]
+    assert [r["paper"]["median_ratio_percent"] for r in mpc] == [100.0] * len(envs)  # the reference
+    assert "Another system: parked is stabilized" in (tmp_path / "baselines.md").read_text()
+    assert "start box" in summary["training_starts"]
+
+
+def test_system_names_the_environment_of_baselines(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert system_environments("pendulum") == ("srl/Pendulum-v0",)
+    assert system_environments("unicycle") == DEFAULT_ENVS
+    assert parse_envs("Cartpole-v0,srl/TwoTank-v0") == ("srl/Cartpole-v0", "srl/TwoTank-v0")
+    flags = ["--system", "pendulum", "--envs", "Unicycle-v0", "--out", str(tmp_path / "out")]
+    assert srl(["experiment", "baselines", *flags]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "--system or --envs, not both" in error and len(error.splitlines()) == 1, error
+    assert not (tmp_path / "out").exists()

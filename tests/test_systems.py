@@ -5,9 +5,11 @@ stabilizes it, with no change to srl's modules."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -26,10 +28,13 @@ from common.math.systems import (
     SYSTEMS,
     UNICYCLE,
     System,
+    gymnasium_id,
+    name_and_unit,
     register_system,
     system_row,
     vector,
 )
+from tests.harness import ROOT
 from tools.experiment.report import read_runs_csv
 
 NAME = "double_integrator"
@@ -325,10 +330,9 @@ def test_each_systems_gymnasium_environment_passes_both_checkers(name: str) -> N
     from gymnasium.utils.env_checker import check_env
 
     import tools.gym  # noqa: F401 - registers the ids
-    from tools.gym.envs import system_env_id
 
     row = system_row(name)
-    env = gymnasium.make(system_env_id(name))
+    env = gymnasium.make(gymnasium_id(name))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         check_env(env.unwrapped, skip_render_check=True)
@@ -406,3 +410,75 @@ def test_srl_experiment_paper_runs_another_system(tmp_path: Any) -> None:
     for extra, says in ((["--extent", "1"], "--extent"), (["--transport", "zenoh"], "--transport")):
         refused = srl(*argv, *extra, "--out", str(tmp_path / "no"), timeout=120)
         assert refused.returncode == 2 and says in refused.stderr and "runs in process" in refused.stderr
+
+
+# -- the systems' pages (tools/docs/systems.py) ------------------------------------------------
+def test_every_built_in_system_has_a_page_with_its_box_and_its_kept_results() -> None:
+    from tools.docs.systems import data_dir, pages
+
+    found = pages(ROOT)
+    assert sorted(found) == sorted(Path("docs/reference/systems") / f"{name}.md" for name in BUILT_IN_SYSTEMS)
+    for name in BUILT_IN_SYSTEMS:
+        page, system = found[Path("docs/reference/systems") / f"{name}.md"], SYSTEMS[name]
+        for entry in (*system.states, *system.actions, f"< {system.stabilized:g}", f"`{gymnasium_id(name)}`"):
+            assert entry in page, (name, entry)
+        summary = json.loads((ROOT / data_dir(name) / "summary.json").read_text())
+        assert summary["experiment"].get("system", "unicycle") == name  # the kept results are the system's
+        assert f"`{summary['experiment']['command']}`" in page and "| rlqv | 12 | " in page
+        assert ("exact" in page) == (system.exact_step is not None)
+
+
+def test_a_pages_step_error_is_the_integrators_and_small() -> None:
+    from tools.docs.systems import plant_step, step_error
+
+    for name in ("pendulum", "cartpole", "two_tank", "dynamic_unicycle"):
+        error = step_error(SYSTEMS[name])
+        assert 0 < error < 1e-5, (name, error)  # RK4 over a tenth of a second, in 10 steps
+        assert f"{error:.1e}" in plant_step(SYSTEMS[name])
+    coarse = dataclasses.replace(SYSTEMS["pendulum"], substeps=1)  # the negative control: one RK4 step
+    assert step_error(coarse) > 100 * step_error(SYSTEMS["pendulum"])
+
+
+def test_srl_docs_systems_keeps_each_experiments_summary_and_figures(tmp_path: Path) -> None:
+    from tools.docs.systems import KEPT, run_experiments
+
+    calls = []
+
+    def fake_srl(argv: list[str]) -> int:  # what srl experiment paper writes, without running it
+        calls.append(argv)
+        out = Path(argv[argv.index("--out") + 1])
+        out.mkdir()
+        for name in (*KEPT, "runs.csv", "summary.md", "trajectories.npz"):
+            (out / name).write_text(f"{name} of call {len(calls)}")
+        return 0
+
+    written = run_experiments(tmp_path, fake_srl)
+    others = [name for name in BUILT_IN_SYSTEMS if not SYSTEMS[name].wheeled]
+    assert [argv[argv.index("--system") + 1] for argv in calls] == others
+    assert sorted(written) == sorted(f"docs/paper/systems/{n}/{k}" for n in others for k in KEPT)
+    assert not (tmp_path / "docs/paper/systems/pendulum/summary.md").exists()  # never a page of its own
+    assert not any(Path(argv[argv.index("--out") + 1]).exists() for argv in calls)  # the scratch removed
+    before = (tmp_path / "docs/paper/systems/pendulum/summary.json").read_text()
+    with pytest.raises(RuntimeError, match="cartpole exited 3"):  # pendulum ran, cartpole failed: nothing kept
+        run_experiments(tmp_path, lambda argv: 3 if "cartpole" in argv else fake_srl(argv), ("pendulum", "cartpole"))
+    assert (tmp_path / "docs/paper/systems/pendulum/summary.json").read_text() == before
+
+
+def test_srl_docs_refuses_systems_with_check(capsys: pytest.CaptureFixture[str]) -> None:
+    from tools.cli import main
+
+    assert main(["docs", "--check", "--systems"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "does not go with --check" in error and len(error.splitlines()) == 1
+
+
+def test_a_problem_and_a_system_refuse_a_bad_box_or_cost_in_the_same_words() -> None:
+    assert name_and_unit("x [m]") == ("x", "m") and name_and_unit("h") == ("h", "")
+    for field, bad in (("action_max", (0.22,)), ("cost_diag", (1.0, 1.0))):
+        problem = {"agent": "mpc", "horizon": 4, "sampling_time": 0.1, "cost_diag": UNICYCLE.cost_diag}
+        problem |= {"action_max": UNICYCLE.action_max, field: bad}
+        with pytest.raises(ValueError) as from_problem:
+            ActorProblem(**problem)
+        with pytest.raises(ValueError) as from_row:
+            dataclasses.replace(UNICYCLE, **{field: bad})
+        assert str(from_problem.value) == str(from_row.value) and str(from_row.value).startswith(f"{field}: ")

@@ -18,7 +18,7 @@ from common.math.arrival import ArrivalRule
 from common.math.features import feature_index_pairs
 from common.math.integrators import PREDICTORS
 from common.math.stats import Window
-from common.math.systems import System, system_row
+from common.math.systems import System, check_box_and_cost, system_row
 
 
 @dataclass(frozen=True)
@@ -87,10 +87,7 @@ class ActorProblem:
             raise ValueError(f"horizon N must be >= 2 (N - 1 >= 1 actions), got {self.horizon}")
         if not (np.isfinite(self.sampling_time) and self.sampling_time > 0):
             raise ValueError(f"sampling_time must be a positive number, got {self.sampling_time}")
-        if len(self.cost_diag) != n + m or not all(np.isfinite(c) and c >= 0 for c in self.cost_diag):
-            raise ValueError(f"cost_diag must be {n + m} finite non-negative numbers, got {self.cost_diag}")
-        if len(self.action_max) != m or not all(np.isfinite(b) and b > 0 for b in self.action_max):
-            raise ValueError(f"action_max must be {m} positive numbers (one per action), got {self.action_max}")
+        check_box_and_cost(self.action_max, self.cost_diag, n, m)
         if self.predictor not in PREDICTORS:
             raise ValueError(f"unknown predictor {self.predictor!r}; choose one of {sorted(PREDICTORS)}")
         if self.solver not in ("fatrop", "ipopt"):

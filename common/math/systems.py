@@ -18,7 +18,7 @@ A new system is a row: :func:`register_system` from the user's own file, or a ro
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -62,6 +62,21 @@ def position_distance(state: FloatArray) -> float:
     return float(np.hypot(state[0], state[1]))
 
 
+def name_and_unit(entry: str) -> tuple[str, str]:
+    """A state's or action's name with its unit, ``"x [m]"``, as ``("x", "m")``; ``("h", "")`` for ``"h"``."""
+    name, _, unit = entry.partition(" [")
+    return name, unit.removesuffix("]")
+
+
+def check_box_and_cost(action_max: Sequence[float], cost_diag: Sequence[float], n: int, m: int) -> None:
+    """ValueError (one line) unless ``action_max`` is ``m`` positive numbers and ``cost_diag``
+    ``n + m`` finite numbers >= 0: a system's row and an actor's problem keep the same rule."""
+    if len(action_max) != m or not all(math.isfinite(b) and b > 0 for b in action_max):
+        raise ValueError(f"action_max: {m} positive numbers (one per action), got {tuple(action_max)}")
+    if len(cost_diag) != n + m or not all(math.isfinite(c) and c >= 0 for c in cost_diag):
+        raise ValueError(f"cost_diag: {n + m} finite numbers >= 0 (states, then actions), got {tuple(cost_diag)}")
+
+
 @dataclass(frozen=True)
 class System:
     """One sampled system (a row of :data:`SYSTEMS`).
@@ -96,10 +111,7 @@ class System:
         n, m = len(self.states), len(self.actions)
         if n < 1 or m < 1:
             raise ValueError(f"a system has at least one state and one action, got {n} and {m}")
-        if len(self.action_max) != m or not all(math.isfinite(b) and b > 0 for b in self.action_max):
-            raise ValueError(f"action_max: {m} positive numbers (one per action), got {self.action_max}")
-        if len(self.cost_diag) != n + m or not all(math.isfinite(c) and c >= 0 for c in self.cost_diag):
-            raise ValueError(f"cost_diag: {n + m} finite numbers >= 0 (states, then actions), got {self.cost_diag}")
+        check_box_and_cost(self.action_max, self.cost_diag, n, m)
         if len(self.start) != n or not all(math.isfinite(c) for c in self.start):
             raise ValueError(f"start: {n} finite numbers, got {self.start}")
         if self.wheeled and (n, m) != (3, 2):
@@ -135,6 +147,14 @@ class System:
     def box_of_starts(self) -> FloatArray:
         """:attr:`start_box`'s half-widths (``|start_i|`` each when not given)."""
         return np.array(self.start_box or [abs(c) for c in self.start], dtype=float)
+
+    def state_labels(self) -> list[tuple[str, str]]:
+        """Each state entry's ``(name, unit)``: ``"x [m]"`` is ``("x", "m")``, ``"h"`` is ``("h", "")``."""
+        return [name_and_unit(entry) for entry in self.states]
+
+    def action_labels(self) -> list[tuple[str, str]]:
+        """Each action entry's ``(name, unit)``."""
+        return [name_and_unit(entry) for entry in self.actions]
 
     def draw_start(self, rng: np.random.Generator) -> FloatArray:
         """A start drawn uniformly in :attr:`start_box` (``rng``: the caller's, seeded)."""
@@ -281,6 +301,12 @@ def system_row(name: str) -> System:
     if row is None:
         raise ValueError(f"unknown system {name!r} ({', '.join(SYSTEMS)})")
     return row
+
+
+def gymnasium_id(name: str) -> str:
+    """The system's Gymnasium id (tools/gym/envs.py): ``srl/Pendulum-v0``, ``srl/TwoTank-v0``; the
+    robot's is ``srl/Unicycle-v0``, beside its TurtleBot3 plants' ids."""
+    return "srl/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"
 
 
 def register_system(name: str, system: System) -> None:

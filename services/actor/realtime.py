@@ -124,6 +124,7 @@ class RealtimeActor:
         self.settings = settings
         self.robot = settings.transport.robot
         self.delta = settings.plant.sampling_time
+        self.r_diag = settings.r_diag  # diag(R), resolved once (the system's own if [])
         # A state older than this at a tick means the plant is silent: command zero. The last
         # state seen at t0 is then stale at the first tick after t0 + (n - 1) delta, i.e. the zero
         # goes out within n delta of the state stopping (n = action_timeout_steps >= 2).
@@ -316,7 +317,7 @@ class RealtimeActor:
         action = (float(step.action[0]), float(step.action[1]))
         self.send(k, action, message.seq)
         done = self.clock()
-        r_diag = self.settings.r_diag
+        r_diag = self.r_diag
         cost = self.delta * float(stage_cost(state, step.action, r_diag))
         true_cost = None
         if message.true_state is not None:

@@ -203,8 +203,7 @@ def fmt_state(state: Sequence[float], system: System = UNICYCLE) -> str:
     """``x = +1.000 m, ...``: each entry by its name and unit in the system's row."""
     if system.wheeled:
         return f"x = {state[0]:+.3f} m, y = {state[1]:+.3f} m, alpha = {state[2]:+.3f} rad"
-    parts = []
-    for name, value in zip(system.states, state, strict=True):
-        label, _, unit = name.partition(" [")
-        parts.append(f"{label} = {value:+.3f}" + (f" {unit.rstrip(']')}" if unit else ""))
-    return ", ".join(parts)
+    return ", ".join(
+        f"{label} = {value:+.3f}" + (f" {unit}" if unit else "")
+        for (label, unit), value in zip(system.state_labels(), state, strict=True)
+    )

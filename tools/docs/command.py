@@ -16,7 +16,7 @@ import re
 import sys
 from pathlib import Path
 
-from tools.docs import benchmarks, reference
+from tools.docs import benchmarks, reference, systems
 
 ROOT = Path(__file__).resolve().parents[2]
 BENCHMARK_DATA = Path("docs/benchmarks/data")
@@ -37,6 +37,7 @@ def generated_files(srl: argparse.ArgumentParser, root: Path = ROOT) -> dict[Pat
         Path("docs/reference/keys.md"): reference.keys_page(),
         Path("docs/reference/variants.md"): reference.variants_page(),
     }
+    files.update(systems.pages(root))
     for name, text in benchmarks.pages(root / BENCHMARK_DATA).items():
         files[Path("docs/benchmarks") / name] = text
     changelog = root / "CHANGELOG.md"
@@ -94,14 +95,19 @@ NAME = "docs"
 HELP = "write the generated documentation pages (reference, benchmarks, README headline)"
 DESCRIPTION = (
     "Write the documentation pages generated from the code: docs/reference/*.md (settings, CLI, wire\n"
-    "messages, keys), docs/benchmarks/*.md (from docs/benchmarks/data/*.json), docs/changelog.md and the\n"
-    "README's headline table. --check writes nothing and exits 1 naming every stale file."
+    "messages, keys, a page per built-in system), docs/benchmarks/*.md (from docs/benchmarks/data/*.json),\n"
+    "docs/changelog.md and the README's headline table. --check writes nothing and exits 1 naming every\n"
+    "stale file; --systems first runs `srl experiment paper --system S` for each built-in system but the\n"
+    "robot (about 20 s each on 2 cores) and keeps its summary and figures in docs/paper/systems/S/."
 )
 
 
 def main(args: argparse.Namespace) -> int:
     """``srl docs [--check]``: the exit code."""
     root = Path(args.root) if args.root else ROOT
+    if args.check and args.systems:
+        print("srl docs: error: --systems writes the systems' results; it does not go with --check", file=sys.stderr)
+        return 2
     if args.check:
         stale = stale_files(args.srl_parser, root)
         for path in stale:
@@ -109,7 +115,12 @@ def main(args: argparse.Namespace) -> int:
         if not stale:
             print(f"srl docs: {len(generated_files(args.srl_parser, root))} generated files are current")
         return 1 if stale else 0
-    written = write(args.srl_parser, root)
+    kept = []
+    if args.systems:
+        from tools.cli import main as srl
+
+        kept = systems.run_experiments(root, srl)
+    written = kept + write(args.srl_parser, root)
     print(f"srl docs: wrote {len(written)} files" + "".join(f"\n  {p}" for p in written))
     return 0
 
@@ -119,6 +130,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--check",
         action="store_true",
         help="write nothing; exit 1 if a generated file differs from what srl docs writes",
+    )
+    parser.add_argument(
+        "--systems",
+        action="store_true",
+        help="first run the paper's experiment on each built-in system but the robot and keep its results "
+        "(docs/paper/systems/)",
     )
     parser.add_argument(
         "--root", metavar="DIR", help="the repository to generate in (default: the checkout srl runs from)"

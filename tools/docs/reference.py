@@ -593,7 +593,7 @@ def variants_page() -> str:
     from common.contracts.pose_sources import POSE_SOURCES
     from common.math.agents import AGENT_ROWS, REFERENCE_AGENT
     from common.math.plant_models import PLANT_MODELS
-    from common.math.systems import SYSTEMS, state_norm
+    from common.math.systems import BUILT_IN_SYSTEMS, SYSTEMS, state_norm
     from tools.launch.plants import LAUNCH_PLANTS
 
     def yes(flag: bool) -> str:
@@ -638,12 +638,13 @@ def variants_page() -> str:
         "paper`), Gymnasium's `srl/<System>-v0` (the robot's: `srl/Unicycle-v0`). The actor's problem, the critics'",
         "features and the in-process plant are sized and built from the row; its goal is the origin of its state.",
         "A system other than the robot (not wheeled) runs in process only: the services carry the robot's pose.",
+        "A built-in system's page gives its model, cost, bounds and starts, and its results in the paper's experiment.",
         "",
         *_table(
             ["system", "what", "state", "action", "box", "start", "stabilized", "plant's step"],
             [
                 [
-                    code(name),
+                    f"[`{name}`](systems/{name}.md)" if name in BUILT_IN_SYSTEMS else code(name),
                     cell(row.what),
                     cell(", ".join(row.states)),
                     cell(", ".join(row.actions)),

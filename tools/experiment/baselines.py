@@ -1,7 +1,8 @@
 """``srl experiment baselines``: SAC and PPO (stable-baselines3) against srl's agents, on one task
 and one cost (docs/gym.md, "Train SAC on it, compare with stacked RL-QV").
 
-For each environment (``srl/Unicycle-v0``, ``srl/TurtleBot3-v0``; tools/gym/envs.py), algorithm
+For each environment (``srl/Unicycle-v0``, ``srl/TurtleBot3-v0``, or another system's, e.g.
+``srl/Pendulum-v0``; tools/gym/envs.py), algorithm
 and seed, ONE training runs to the largest budget of environment steps; the policy is copied at
 every budget on the way (the learning curve: the model "at 10^4 steps" is the one the longer run
 had after 10^4 steps). Each copy acts deterministically (the mean action) from every start of the
@@ -20,7 +21,11 @@ hyperparams/sac.yml and ppo.yml): the closest task there, a low-dimensional stat
 point under a quadratic stage cost, continuous actions, time-limited episodes. SAC and PPO act
 through :func:`tools.gym.envs.normalized_actions` (``[-1, 1]^2``) and train on starts uniform in
 the disc of radius ``extent * sqrt(2)``, which covers the square of both grids: neither grid's
-starts are training starts.
+starts are training starts. Another system's train on starts uniform in its start box and are
+evaluated on the lattice ``srl experiment paper --system`` makes over it (tools/experiment/grid.py
+system_starts; the held-out set one seeded start per cell); "parked" there is "stabilized" in
+the system's terms (its row's distance below its ``stabilized``), "at rest" held so over the
+last 10 s (tools/experiment/workers.py held).
 """
 
 from __future__ import annotations
@@ -48,16 +53,23 @@ from numpy.typing import NDArray
 from common.config.settings import Settings
 from common.math.agents import PAPER_AGENTS, REFERENCE_AGENT
 from common.math.parking import parking
+from common.math.systems import System, gymnasium_id, system_row
 from common.process.plugins import load_from_environment
 from common.system.jit import srl_cache
 from tools.experiment.grid import STARTS, Start, make_starts
 from tools.experiment.marks import PARK_TOLERANCE_M
-from tools.gym.envs import ENV_MODELS, normalized_actions  # importing tools.gym registers the srl/ ids
+from tools.experiment.workers import held
+from tools.gym.envs import (
+    ENV_MODELS,
+    env_settings,
+    normalized_actions,
+    system_envs,
+)  # registers the srl/ ids
 from tools.gym.policies import SrlPolicy
 
 FloatArray = NDArray[np.float64]
 ALGOS: Final[tuple[str, ...]] = ("sac", "ppo")
-DEFAULT_ENVS: Final[tuple[str, ...]] = ("Unicycle-v0", "TurtleBot3-v0")
+DEFAULT_ENVS: Final[tuple[str, ...]] = ("srl/Unicycle-v0", "srl/TurtleBot3-v0")
 # Up to 5 times the RL Zoo's budget for SAC on Pendulum-v1 (2 x 10^4) and its budget for PPO (10^5):
 # SAC takes 17-20 ms a step on one core here, so the 6 SAC trainings to 10^5 take 1.5-2.5 h on 2 workers
 DEFAULT_BUDGETS: Final[tuple[int, ...]] = (10_000, 30_000, 100_000)
@@ -128,9 +140,22 @@ def parse_choices(text: str, choices: Sequence[str], what: str) -> tuple[str, ..
     return values
 
 
+def env_system(env_id: str) -> str:
+    """The sampled system of an environment id: the robot's (``unicycle``) or another's row."""
+    return system_envs().get(env_id, "unicycle")
+
+
+def system_environments(system: str) -> tuple[str, ...]:
+    """``--system S``'s environments: the robot's defaults (:data:`DEFAULT_ENVS`), another system's own id."""
+    if system_row(system).wheeled:
+        return DEFAULT_ENVS
+    return (gymnasium_id(system),)
+
+
 def parse_envs(text: str) -> tuple[str, ...]:
-    """Environment names with or without the ``srl/`` namespace -> full ids."""
-    names = tuple(name.removeprefix("srl/") for name in ENV_MODELS)
+    """Environment names with or without the ``srl/`` namespace -> full ids: the robot's
+    (:data:`ENV_MODELS`) and every other system's (``Pendulum-v0``, ...)."""
+    names = tuple(name.removeprefix("srl/") for name in (*ENV_MODELS, *system_envs()))
     return tuple(f"srl/{name}" for name in parse_choices(text.replace("srl/", ""), names, "environment"))
 
 
@@ -184,13 +209,17 @@ class Snapshot:
 
 
 def training_env(env_id: str, settings: Settings, extent: float, seed: int, n_envs: int) -> Any:
-    """``n_envs`` copies of ``env_id`` in ``[-1, 1]^2`` actions, starting uniformly in the disc of
-    radius ``extent * sqrt(2)`` (the square of the grids inside it), seeded ``seed + i``."""
+    """``n_envs`` copies of ``env_id`` in ``[-1, 1]^m`` actions, starting uniformly in the disc of
+    radius ``extent * sqrt(2)`` (the square of the grids inside it; another system: in its start
+    box), seeded ``seed + i``."""
     from stable_baselines3.common.env_util import make_vec_env
 
+    where: dict[str, Any] = {"starts": "box"}
+    if settings.system.wheeled:
+        where = {"starts": "disc", "extent": extent * math.sqrt(2.0)}
+
     def make() -> gymnasium.Env[Any, Any]:
-        env = gymnasium.make(env_id, starts="disc", extent=extent * math.sqrt(2.0), settings=settings)
-        return normalized_actions(env)
+        return normalized_actions(gymnasium.make(env_id, settings=settings, **where))
 
     return make_vec_env(make, n_envs=n_envs, seed=seed)
 
@@ -293,7 +322,8 @@ class Episode:
     start_set: str
     start: Start
     cost: float  # J = sum of the environment's c_k
-    final_distance: float  # [m] of the observed final state (as the experiment's "parked")
+    final_distance: float  # of the observed final state to the goal, in the system's terms ([m]: the robot)
+    tolerance: float  # "parked" (another system: stabilized) at a final distance up to this
     at_rest: bool  # common/math/parking.py, on the true states where the plant knows them
     solves: int  # the actor's solves (srl's agents; 0 for a trained policy)
     costs: FloatArray = field(repr=False)
@@ -301,12 +331,12 @@ class Episode:
 
     @property
     def parked(self) -> bool:
-        return self.final_distance <= PARK_TOLERANCE_M
+        return self.final_distance <= self.tolerance
 
 
 def episode(env: gymnasium.Env[Any, Any], controller: Controller, start_set: str, start: Start) -> Episode:
     """Run ``controller`` from ``start`` until the environment truncates the episode."""
-    obs, info = env.reset(options={"start": (start.x, start.y, start.alpha)})
+    obs, info = env.reset(options={"start": start.values})
     controller.reset()
     task: Any = env.unwrapped  # the SrlEnv: its action box and delta
     actor = getattr(controller, "actor", None)
@@ -322,12 +352,15 @@ def episode(env: gymnasium.Env[Any, Any], controller: Controller, start_set: str
         costs.append(info["cost"])
         done = terminated or truncated
     known = all(t is not None for t in truths)
-    rest = parking(np.array(truths if known else states, dtype=float), actions, task.delta)
+    path = np.array(truths if known else states, dtype=float)
+    system = task.system
+    rest = parking(path, actions, task.delta) if system.wheeled else held(list(path), task.settings)
     return Episode(
         start_set,
         start,
         float(np.sum(costs)),
-        float(math.hypot(*states[-1][:2])),
+        system.distance(states[-1]),
+        tolerance(system),
         bool(rest.at_rest),
         _solves(actor) - solves_before,
         np.asarray(costs, dtype=np.float64),
@@ -342,9 +375,16 @@ def _solves(actor: Any) -> int:
     return int(counters.solves)
 
 
-def evaluation_starts(grid: int, extent: float, seed: int) -> dict[str, list[Start]]:
-    """The paper's grid and the held-out grid, as ``srl experiment paper`` makes them."""
-    return {kind: make_starts(kind, grid, extent, seed) for kind in STARTS}
+def tolerance(system: System) -> float:
+    """ "Parked": the robot's final distance up to :data:`PARK_TOLERANCE_M`, another system's up to
+    its row's ``stabilized`` (the tolerance ``srl experiment paper --system`` reports)."""
+    return PARK_TOLERANCE_M if system.wheeled else system.stabilized
+
+
+def evaluation_starts(grid: int, extent: float, seed: int, system: str = "unicycle") -> dict[str, list[Start]]:
+    """The paper's grid and the held-out grid, as ``srl experiment paper`` makes them (another
+    system: over its start box)."""
+    return {kind: make_starts(kind, grid, extent, seed, system_row(system)) for kind in STARTS}
 
 
 def evaluate(
@@ -385,9 +425,8 @@ class Row:
 
 
 def env_settings_for(base: Settings, env_id: str) -> Settings:
-    data = base.model_dump()
-    data["plant"]["model"] = ENV_MODELS[env_id]
-    return Settings.model_validate(data)
+    """``base`` with the environment's plant model and system (tools/gym/envs.py env_settings)."""
+    return env_settings(base, ENV_MODELS.get(env_id, "ideal"), env_system(env_id))
 
 
 def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None) -> tuple[dict[str, Any], list[Row]]:
@@ -396,8 +435,9 @@ def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None
     use_torch()
     started = datetime.now(UTC)
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    starts = evaluation_starts(options.grid, options.extent, options.seed)
-    per_model = sum(len(points) for points in starts.values())
+    starts = {
+        env: evaluation_starts(options.grid, options.extent, options.seed, env_system(env)) for env in options.envs
+    }
     reference = options.horizons[0]
     srl_runs = list(
         dict.fromkeys([(REFERENCE_AGENT, reference), *((a, n) for n in options.horizons for a in options.agents)])
@@ -410,10 +450,11 @@ def run_baselines(options: BaselineOptions, base: Settings, progress: Any = None
             settings = env_settings_for(base, env_id)
             env = gymnasium.make(env_id, settings=settings)
             # srl's agents first: J_mpc is every row's reference
+            per_model = sum(len(points) for points in starts[env_id].values())
             task = bar.add_task(f"{env_id}: srl's agents", total=len(srl_runs) * per_model)
             for agent, horizon in srl_runs:
                 policy = SrlPolicy(agent, horizon, settings=settings, method=options.method)
-                episodes, wall, cpu = evaluate(env, policy, starts, partial(bar.advance, task))
+                episodes, wall, cpu = evaluate(env, policy, starts[env_id], partial(bar.advance, task))
                 row = Row(env_id, agent, horizon, None, settings.steps, 1, wall, cpu)
                 row.episodes = [(0, e) for e in episodes]
                 by_env[env_id].append(row)
@@ -481,13 +522,13 @@ def train_and_evaluate(
 
 
 def _run_jobs(
-    jobs: list[Job], options: BaselineOptions, base: Settings, starts: dict[str, list[Start]], bar: Any
+    jobs: list[Job], options: BaselineOptions, base: Settings, starts: dict[str, dict[str, list[Start]]], bar: Any
 ) -> list[Evaluated]:
     """Every job, in order: here one after another (``workers`` 1, with the progress bar), else in
     ``workers`` processes side by side (each job's numbers are its own: the same either way, seeded;
     the bar then counts finished trainings)."""
     if options.workers <= 1 or len(jobs) <= 1:
-        return [train_and_evaluate(job, options, base, starts, bar) for job in jobs]
+        return [train_and_evaluate(job, options, base, starts[job.env_id], bar) for job in jobs]
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
@@ -495,7 +536,7 @@ def _run_jobs(
     context = multiprocessing.get_context("spawn")  # torch's state never forked
     workers = min(options.workers, len(jobs))  # each loads SRL_PLUGINS afresh, as every srl process
     with ProcessPoolExecutor(max_workers=workers, mp_context=context, initializer=load_from_environment) as pool:
-        futures = [pool.submit(train_and_evaluate, job, options, base, starts) for job in jobs]
+        futures = [pool.submit(train_and_evaluate, job, options, base, starts[job.env_id]) for job in jobs]
         results = []
         for future in futures:
             results.append(future.result())
@@ -614,12 +655,23 @@ def summarize(
         "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(options).items()},
         "reference": f"MPC at N = {reference}, the paper's method, from the same start",
         "park_tolerance_m": PARK_TOLERANCE_M,
+        "tolerances": {env: tolerance(system_row(env_system(env))) for env in options.envs},
         "hyperparameters": {a: hyperparameters(a, options.hyper) for a in options.algos},
         "hyperparameter_source": {a: ZOO_SOURCE.format(algo=a) for a in options.algos},
-        "training_starts": f"uniform in the disc of radius {options.extent * math.sqrt(2.0):.3f} m",
+        "training_starts": "; ".join(
+            f"{env.removeprefix('srl/')}: " + training_starts(env_system(env), options.extent) for env in options.envs
+        ),
         "rows": [row_summary(row, records) for row, records in zip(rows, per_row, strict=True)],
         "episodes": [record for records in per_row for record in records],
     }
+
+
+def training_starts(system: str, extent: float) -> str:
+    """Where the trainings' episodes start, in words."""
+    row = system_row(system)
+    if row.wheeled:
+        return f"uniform in the disc of radius {extent * math.sqrt(2.0):.3f} m"
+    return "uniform in the start box |s| <= (" + ", ".join(f"{w:g}" for w in row.box_of_starts) + ")"
 
 
 def machine() -> dict[str, Any]:
@@ -683,7 +735,7 @@ def notes_markdown(summary: dict[str, Any]) -> str:
                 f"300-step episodes) over J of {summary['reference']}; the median over starts and seeds.",
                 f"* parked: final distance to the target <= {summary['park_tolerance_m']} m; parked at rest: "
                 "parked, and no chatter over the last 10 s (common/math/parking.py), as `srl experiment paper` "
-                "judges a run; counted over starts x seeds.",
+                "judges a run; counted over starts x seeds." + _stabilized_note(summary),
                 "* env steps: SAC / PPO, consumed in training (one run per seed, its policy copied at each budget; "
                 "PPO in whole rollouts); srl's agents: one 300-step episode per start, learning inside it from the "
                 "initial critic weights, plus the actor's solves over the known model "
@@ -708,6 +760,19 @@ def notes_markdown(summary: dict[str, Any]) -> str:
             ]
         ).rstrip()
         + "\n"
+    )
+
+
+def _stabilized_note(summary: dict[str, Any]) -> str:
+    """What "parked" means on the other systems' environments (none: nothing)."""
+    robot = set(ENV_MODELS)
+    others = {env: value for env, value in summary.get("tolerances", {}).items() if env not in robot}
+    if not others:
+        return ""
+    named = ", ".join(f"{env.removeprefix('srl/')} {value:g}" for env, value in others.items())
+    return (
+        f" Another system: parked is stabilized (its distance to the goal, in its own terms, at most {named}), "
+        "at rest held within it over the last 10 s."
     )
 
 

@@ -42,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--system",
         choices=tuple(SYSTEMS),
         help="paper: the sampled system (plant.system; docs/reference/variants.md): another than the robot runs "
-        "in process, its starts over its start box (default: the settings', the robot)",
+        "in process, its starts over its start box; baselines: its Gymnasium environment, e.g. srl/Pendulum-v0 "
+        "(default: the settings', the robot)",
     )
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
     parser.add_argument(
@@ -113,9 +114,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     baselines.add_argument(
         "--envs",
-        default="Unicycle-v0,TurtleBot3-v0",
         help="baselines: comma-separated Gymnasium ids (srl/ optional), of Unicycle-v0,TurtleBot3-v0,"
-        "TurtleBot3Physics-v0 (default: Unicycle-v0,TurtleBot3-v0)",
+        "TurtleBot3Physics-v0 and the other systems' (Pendulum-v0, ...) (default: Unicycle-v0,TurtleBot3-v0; "
+        "--system S: S's)",
     )
     baselines.add_argument(
         "--budgets",
@@ -260,9 +261,15 @@ def _cmd_baselines(args: argparse.Namespace) -> int:
     seeds = args.seeds if args.seeds is not None else (1 if args.quick else bl.DEFAULT_SEEDS)
     if seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {seeds}")
+    if args.system is not None and args.envs is not None:
+        raise ValueError("experiment baselines: --system names the environment; give --system or --envs, not both")
+    envs = bl.parse_envs(args.envs) if args.envs is not None else bl.DEFAULT_ENVS
+    if args.system is not None:
+        envs = bl.system_environments(args.system)
+        args.system = None  # the environments carry the system; the base settings stay the robot's
     options = bl.BaselineOptions(
         algos=bl.parse_choices(args.algos, bl.ALGOS, "algorithm"),
-        envs=bl.parse_envs(args.envs),
+        envs=envs,
         budgets=bl.parse_budgets(args.budgets)
         if args.budgets
         else (bl.QUICK_BUDGETS if args.quick else bl.DEFAULT_BUDGETS),

@@ -59,18 +59,9 @@ def system_starts(system: System, kind: str, k: int, seed: int) -> list[Start]:
     spanned = [i for i in range(min(2, n)) if box[i] > 0]  # the first two entries the box spans
     if not spanned:
         raise ValueError(f"system {system.what!r}: its start box spans neither of its first two entries")
-    axes = len(spanned)
-    points = k * k if axes == 1 else k
-    widths = box[spanned]
-    if kind == "paper":
-        ticks = [np.linspace(-w, w, points) if points > 1 else np.zeros(1) for w in widths]
-        ticks = [np.where(np.abs(t) < 1e-12 * max(w, 1e-300), 0.0, t) for t, w in zip(ticks, widths, strict=True)]
-        grid = [(t,) for t in ticks[0]] if axes == 1 else [(a, b) for b in ticks[1] for a in ticks[0]]
-    else:
-        rng = np.random.default_rng(seed)
-        edges = [np.linspace(-w, w, points + 1) for w in widths]
-        cells = [(i,) for i in range(points)] if axes == 1 else [(c, r) for r in range(points) for c in range(points)]
-        grid = [tuple(rng.uniform(edges[a][cell[a]], edges[a][cell[a] + 1]) for a in range(axes)) for cell in cells]
+    points = k * k if len(spanned) == 1 else k
+    widths = [float(w) for w in box[spanned]]
+    grid = lattice(points, widths) if kind == "paper" else jittered(points, widths, np.random.default_rng(seed))
     starts: list[Start] = []
     for point in grid:
         if any(point):  # the goal itself is no start: every agent's J is 0 there (the lattice's centre)
@@ -79,6 +70,25 @@ def system_starts(system: System, kind: str, k: int, seed: int) -> list[Start]:
                 state[axis] = float(value)
             starts.append(system_start(len(starts), state))
     return starts
+
+
+def lattice(points: int, widths: Sequence[float]) -> list[tuple[float, ...]]:
+    """``points`` per axis over ``[-w, w]`` for each of one or two half-widths ``w``, corners
+    included (one point: the centre), the first axis fastest; the centre exactly 0, not 1e-17."""
+    ticks = [np.linspace(-w, w, points) if points > 1 else np.zeros(1) for w in widths]
+    ticks = [np.where(np.abs(t) < 1e-12 * max(w, 1e-300), 0.0, t) for t, w in zip(ticks, widths, strict=True)]
+    return [(float(t),) for t in ticks[0]] if len(ticks) == 1 else [(a, b) for b in ticks[1] for a in ticks[0]]
+
+
+def jittered(points: int, widths: Sequence[float], rng: np.random.Generator) -> list[tuple[float, ...]]:
+    """The box cut into ``points`` equal cells per axis, one point drawn uniformly in each
+    (stratified jitter), in :func:`lattice`'s order, the first axis drawn first in each cell."""
+    edges = [np.linspace(-w, w, points + 1) for w in widths]
+    axes = range(len(widths))
+    cells = (
+        [(i,) for i in range(points)] if len(widths) == 1 else [(c, r) for r in range(points) for c in range(points)]
+    )
+    return [tuple(float(rng.uniform(edges[a][cell[a]], edges[a][cell[a] + 1])) for a in axes) for cell in cells]
 
 
 def _start(index: int, x: float, y: float) -> Start:
@@ -93,9 +103,7 @@ def grid_starts(k: int, extent: float) -> list[Start]:
     """
     if k < 1 or not (math.isfinite(extent) and extent > 0):
         raise ValueError(f"a grid needs k >= 1 and a positive extent, got k = {k}, extent = {extent}")
-    ticks = np.linspace(-extent, extent, k) if k > 1 else np.zeros(1)
-    ticks = np.where(np.abs(ticks) < 1e-12 * extent, 0.0, ticks)  # the centre exactly, not 1e-17
-    return [_start(row * k + col, x, y) for row, y in enumerate(ticks) for col, x in enumerate(ticks)]
+    return [_start(index, x, y) for index, (x, y) in enumerate(lattice(k, (extent, extent)))]
 
 
 def held_out_starts(k: int, extent: float, seed: int) -> list[Start]:
@@ -108,15 +116,8 @@ def held_out_starts(k: int, extent: float, seed: int) -> list[Start]:
     """
     if k < 1 or not (math.isfinite(extent) and extent > 0):
         raise ValueError(f"a grid needs k >= 1 and a positive extent, got k = {k}, extent = {extent}")
-    rng = np.random.default_rng(seed)
-    edges = np.linspace(-extent, extent, k + 1)
-    starts = []
-    for row in range(k):
-        for col in range(k):
-            x = rng.uniform(edges[col], edges[col + 1])
-            y = rng.uniform(edges[row], edges[row + 1])
-            starts.append(_start(row * k + col, x, y))
-    return starts
+    points = jittered(k, (extent, extent), np.random.default_rng(seed))
+    return [_start(index, x, y) for index, (x, y) in enumerate(points)]
 
 
 def make_starts(kind: str, k: int, extent: float, seed: int, system: System = UNICYCLE) -> list[Start]:

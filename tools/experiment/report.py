@@ -359,8 +359,8 @@ def starts_box(system: System) -> str:
     """``theta in [-0.4, 0.4], omega in [-0.5, 0.5]``: the start box's first two entries, by name."""
     box = system.box_of_starts
     return " and ".join(
-        f"{name.partition(' [')[0]} in [-{width:g}, {width:g}]"
-        for name, width in zip(system.states[:2], box[:2], strict=False)
+        f"{label} in [-{width:g}, {width:g}]"
+        for (label, _), width in zip(system.state_labels()[:2], box[:2], strict=False)
         if width > 0  # the entries the lattice spans (tools/experiment/grid.py system_starts)
     )
 
@@ -419,8 +419,26 @@ def summary_markdown(summary: dict[str, Any]) -> str:
             "of the goal"
         ),
         "",
+        *results_lines(summary),
+    ]
+    if e["transport"] == "zenoh":
+        timeouts = sum(g["critic_timeouts"] for g in summary["groups"])
+        lines += ["", f"Zenoh lockstep with the synchronous critic: {timeouts} critic timeouts."]
+    lines += [
+        "",
+        "Files: runs.csv (one row per run), trajectories.npz, config.toml (use with --config), "
+        "settings.json, summary.json, " + ", ".join(summary.get("plots", [])) + ".",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def results_lines(summary: dict[str, Any]) -> list[str]:
+    """The results of a summary as markdown lines: the table of J/J_mpc per agent and horizon,
+    RL-QV against RL-Q start by start, and the paper's claims (summary.md; the systems' pages)."""
+    wheeled = system_row(summary["experiment"].get("system", "unicycle")).wheeled
+    lines = [
         "| agent | N | runs | median J | median J/J_mpc | better than MPC | ties | min J/J_mpc | max J/J_mpc "
-        f"| {'parked' if system.wheeled else 'stabilized'} | at rest | solver failures |",
+        f"| {'parked' if wheeled else 'stabilized'} | at rest | solver failures |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for g in summary["groups"]:
@@ -442,12 +460,4 @@ def summary_markdown(summary: dict[str, Any]) -> str:
         lines += ["", "The paper's claims on these numbers:", ""]
         for c in summary["claims"]:
             lines.append(f"* **{'holds' if c['holds'] else 'does not hold'}** — {c['claim']}: {c['detail']}")
-    if e["transport"] == "zenoh":
-        timeouts = sum(g["critic_timeouts"] for g in summary["groups"])
-        lines += ["", f"Zenoh lockstep with the synchronous critic: {timeouts} critic timeouts."]
-    lines += [
-        "",
-        "Files: runs.csv (one row per run), trajectories.npz, config.toml (use with --config), "
-        "settings.json, summary.json, " + ", ".join(summary.get("plots", [])) + ".",
-    ]
-    return "\n".join(lines) + "\n"
+    return lines

@@ -46,7 +46,7 @@ from common.config.assembly import build_plant
 from common.config.settings import Settings, start_state
 from common.math.dynamics import Plant
 from common.math.features import stage_cost
-from common.math.systems import SYSTEMS, system_row
+from common.math.systems import SYSTEMS, gymnasium_id, system_row
 from tools.experiment.grid import STARTS, make_starts
 
 FloatArray = NDArray[np.float64]
@@ -58,15 +58,10 @@ ENV_MODELS: Final[dict[str, str]] = {
 }
 
 
-def system_env_id(name: str) -> str:
-    """The Gymnasium id of a system other than the robot: ``srl/Pendulum-v0``, ``srl/TwoTank-v0``."""
-    return "srl/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"
-
-
 def system_envs() -> dict[str, str]:
     """env id -> system, for every row of common/math/systems.py but the robot's (whose ids are
     :data:`ENV_MODELS`), built in or registered when asked."""
-    return {system_env_id(name): name for name, row in SYSTEMS.items() if not row.wheeled}
+    return {gymnasium_id(name): name for name, row in SYSTEMS.items() if not row.wheeled}
 
 
 START_KINDS: Final[tuple[str, ...]] = (*STARTS, "disc")

@@ -80,12 +80,15 @@ class SrlPolicy:
         self.last = None
 
     def act(self, observation: Any) -> FloatArray:
-        """The action ``(v, omega)`` for the observed state ``(x, y, alpha)``, after which the
-        critic has learned from this step. Raises ValueError for a state that is not 3 finite
-        numbers (the actor never solves from one)."""
+        """The action (the robot's ``(v, omega)``) for the observed state (the robot's ``(x, y,
+        alpha)``; another system's whole state), after which the critic has learned from this
+        step. Raises ValueError for a state that is not the system's size of finite numbers (the
+        actor never solves from one)."""
         state = np.asarray(observation, dtype=np.float64)
-        if state.shape != (3,) or not np.all(np.isfinite(state)):
-            raise ValueError(f"an observation is (x, y, alpha): 3 finite numbers, got {state.tolist()}")
+        system = self.settings.system
+        if state.shape != (system.state_dim,) or not np.all(np.isfinite(state)):
+            names = ", ".join(label for label, _ in system.state_labels())
+            raise ValueError(f"an observation is ({names}): {system.state_dim} finite numbers, got {state.tolist()}")
         step = self.actor.step(state, self.q_weights, self.v_weights)  # Algorithm 1, line 4
         cost = self.delta * float(stage_cost(state, step.action, self.r_diag))
         self.q_weights, self.v_weights = self.critic.record(Sample(self.steps, state, step.action, cost))  # line 6
