@@ -114,7 +114,7 @@ def test_the_command_refuses_bad_options_before_any_training(
 
 # -- the second checker -------------------------------------------------------------------
 @pytest.mark.needs_baselines
-@pytest.mark.parametrize("env_id", sorted(ENV_MODELS))
+@pytest.mark.parametrize("env_id", [*sorted(ENV_MODELS), *sorted(system_envs())])
 def test_each_environment_passes_stable_baselines3s_checker(env_id: str) -> None:
     from stable_baselines3.common.env_checker import check_env
 
@@ -239,19 +239,6 @@ def test_trainings_in_worker_processes_give_the_same_table_as_one_after_another(
 
 
 # -- another system's environment ------------------------------------------------------------
-@pytest.mark.needs_baselines
-@pytest.mark.parametrize("env_id", sorted(system_envs()))
-def test_each_systems_environment_passes_stable_baselines3s_checker(env_id: str) -> None:
-    from stable_baselines3.common.env_checker import check_env
-
-    for env in (gymnasium.make(env_id), normalized_actions(gymnasium.make(env_id))):
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            check_env(env, warn=True)
-        others = [str(w.message) for w in caught if not any(r in str(w.message) for r in RECOMMENDATIONS)]
-        assert not others, others
-
-
 @pytest.mark.needs_baselines
 @pytest.mark.slow
 @pytest.mark.integration  # srl's actor (J_mpc) is JIT-built with the C compiler

@@ -75,14 +75,21 @@ def stamp_ns(header: Any) -> int:
 
 
 def check_steps(
-    topics: dict[str, list[tuple[int, Any]]], robot: str, states: np.ndarray, r_diag: list[float], total: float
+    topics: dict[str, list[tuple[int, Any]]],
+    robot: str,
+    states: np.ndarray,
+    r_diag: list[float],
+    total: float,
+    said: str | None = None,
 ) -> None:
     """One action and one transition per step, delta apart in sim time, the values of the run
     (its states; its costs recomputed as delta r(s_k, u_k) from them and the recorded actions)."""
     steps = len(states) - 1
     transitions = topics[f"/{robot}/srl/transition"]
     commands = topics[f"/{robot}/cmd_vel"]
-    assert len(transitions) == len(commands) == steps
+    recorded = [m.step for _, m in transitions]
+    missing = sorted(set(range(steps)) - set(recorded))
+    assert len(transitions) == len(commands) == steps, f"/{robot}: steps {missing} of {steps} not recorded; {said}"
     actions = np.array([[m.twist.linear.x, m.twist.angular.z] for _, m in commands])
     chi = np.hstack([states[:-1], actions])
     costs = 0.1 * (chi**2) @ np.array(r_diag)
@@ -145,7 +152,8 @@ def test_srl_run_and_srl_up_record_the_runs_trajectory_and_srl_plot_draws_it(tmp
         info = check_rosbag2_layout(path)
         topics = read(path)
         # the lockstep services reproduce the in-process run bit for bit: both match its --json
-        check_steps(topics, robot, states, summary["settings"]["cost"]["r_diag"], summary["accumulated_cost"])
+        said = up_summary["recorder"] if name == "up.mcap" else None  # srl record's summary line
+        check_steps(topics, robot, states, summary["settings"]["cost"]["r_diag"], summary["accumulated_cost"], said)
         assert info["message_count"] > 0 and topics["/target"][0][1].pose.position.x == 0.0
         weights = topics[f"/{robot}/srl/critic_weights"]
         assert [m.version for _, m in weights] == sorted({m.version for _, m in weights}), "versions increase"
@@ -372,7 +380,13 @@ def test_srl_up_with_the_robot_records_its_odometry_and_srl_plot_replays_it(tmp_
     topics = read(path)
     transitions, odometry = topics["/tb/srl/transition"], topics["/tb/odom"]
     assert len(transitions) == len(topics["/tb/cmd_vel"]) == summary["steps"]
-    assert np.all(np.diff([t for t, _ in transitions]) == DELTA_NS)
+    # each transition at origin + k delta, and exactly the steps the actor published: on a loaded
+    # machine a tick may publish none (a skipped tick, a stale-state stop: the critic sees a gap,
+    # never a false pair), and the recording then has the same gap, never one of its own
+    steps = np.array([m.step for _, m in transitions])
+    assert np.all(np.diff([t for t, _ in transitions]) == DELTA_NS * np.diff(steps))
+    published = [k for first, last in summary["transition_steps"] for k in range(first, last + 1)]
+    assert steps.tolist() == published, (summary["transition_steps"], summary["loop"], summary["stale_state_stops"])
     assert len(odometry) > len(transitions)  # the robot's odometry rate (20 Hz) over the 10 Hz loop
     times = [t for t, _ in odometry]
     assert times == sorted(times)
@@ -1008,3 +1022,68 @@ def test_a_robot_heard_first_after_step_0_is_held_until_the_caches_answer_then_w
     robot_a = [entry for entry in sink.written if entry[0].startswith("/a/")]
     assert robot_a == [entry for entry in direct.sink.written if entry[0].startswith("/a/")]  # type: ignore[attr-defined]
     assert feed.errors == 0 and feed.recorder.late == 0
+
+
+def test_steps_a_held_robot_never_got_are_counted_and_said_not_silently_left_out(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A robot heard first at step 3 whose actors' caches answer only step 2: steps 0 and 1 are
+    written nowhere, and the recorder says so (its count, srl record's summary line, a warning)."""
+    import tools.recording.record as record
+    from common.contracts.keys import TRANSITION
+    from common.net.transport import Bus
+
+    monkeypatch.setattr(record, "BATCH_SECONDS", 0.05)
+    asked: list[tuple[list[str], Any, Any]] = []
+    monkeypatch.setattr(
+        Bus, "history", lambda self, topic, keys, handler, done=None: asked.append((keys, handler, done))
+    )
+    feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
+    put(subscribed, TRANSITION.key("a"), fleet_transition("a", 3).encode())
+    wait_until(lambda: len(asked) == 1, 5, "the caches asked")
+    _, answer, done = asked[0]
+    answer(fleet_transition("a", 2))
+    done()
+    wait_until(lambda: feed.received == 2, 5, "robot a's steps 2 and 3")
+    with caplog.at_level("WARNING", logger=record.__name__):
+        feed.close()
+    assert feed.unreceived == 2 and "a: 2 of its first 4 steps never came" in caplog.text
+    assert (
+        record.UNRECEIVED_NOTE.format(count=2)
+        == "; 2 steps never received (before a robot's first, not in the actors' caches)"
+    )
+    steps = [t for topic, _, t in sink.written if topic == "/a/srl/transition"]
+    assert len(steps) == 2
+
+
+def test_the_inbox_settles_before_a_recorder_closes() -> None:
+    """On Ctrl-C a recorder takes what is still coming: it closes once nothing came for ``quiet``
+    seconds, and at most ``longest`` after it was asked, however long the samples keep coming."""
+    import threading
+
+    from common.net.transport import Inbox
+
+    inbox = Inbox(None, 10)  # type: ignore[arg-type]  # settle needs no bus
+    inbox.last_put = time.monotonic() - 10.0  # long quiet: at once
+    started = time.monotonic()
+    assert inbox.settle(0.2, 1.0) and time.monotonic() - started < 0.1
+    stop = threading.Event()
+
+    def arriving(until: float) -> None:  # a sample every 20 ms until ``until``
+        while not stop.is_set() and time.monotonic() < until:
+            inbox.last_put = time.monotonic()
+            time.sleep(0.02)
+
+    for lasting, quiet, longest in ((0.3, 0.15, 2.0), (10.0, 0.15, 0.6)):
+        stop.clear()
+        started = time.monotonic()
+        feeder = threading.Thread(target=arriving, args=(started + lasting,))
+        feeder.start()
+        went_quiet = inbox.settle(quiet, longest)
+        took = time.monotonic() - started
+        stop.set()
+        feeder.join()
+        if lasting < longest:  # the samples stopped: quiet after the last one
+            assert went_quiet and lasting + quiet - 0.05 <= took < lasting + quiet + 0.5, took
+        else:  # they go on: no longer than ``longest``
+            assert not went_quiet and longest - 0.05 <= took < longest + 0.5, took

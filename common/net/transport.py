@@ -853,6 +853,7 @@ class Inbox:
         self.limit = limit
         self.waiting = 0  # rows put and not yet taken
         self.dropped = 0  # rows refused because ``limit`` waited
+        self.last_put = time.monotonic()  # when the newest sample came (or the inbox was made)
         self._ready = threading.Event()  # something was put since the last take began
         self._batches: set[str] = set()  # the batch keys subscribed (once each)
         self._lock = threading.Lock()  # put runs on several of Zenoh's threads
@@ -910,11 +911,26 @@ class Inbox:
                     return
                 self.waiting += rows
                 samples.append((reader, name, rows, payload, str(sample.key_expr), source_of(sample), time.time_ns()))
+                self.last_put = time.monotonic()
             self._ready.set()
 
         # on Zenoh's thread: a put is an append, and a Python thread per subscription would only
         # contend with the consumer for the interpreter
         self.bus.raw_subscriber(key, put, recover, threaded=False)
+
+    def settle(self, quiet: float, longest: float) -> bool:
+        """Before the subscriptions close: sleep until no sample has come for ``quiet`` seconds, at
+        most ``longest`` seconds, so that what the publishers sent just before they stopped (still
+        on its way through the router) is taken too. True: it went quiet."""
+        deadline = time.monotonic() + longest
+        while True:
+            now = time.monotonic()
+            left = quiet - (now - self.last_put)
+            if left <= 0:
+                return True
+            if now >= deadline:
+                return False
+            time.sleep(min(left, deadline - now))
 
     def wait(self, timeout: float) -> bool:
         """Sleep until a sample was put since the last :meth:`take` began (at once if one was),

@@ -203,6 +203,7 @@ class Child:
     stdout_lines: list[str] = field(default_factory=list)
     stderr_tail: list[str] = field(default_factory=list)
     threads: list[threading.Thread] = field(default_factory=list)
+    observer: bool = False  # srl record, srl view: stopped after every service, so they see the last messages
 
     def summary(self) -> dict[str, Any] | None:
         for line in reversed(self.stdout_lines):
@@ -250,7 +251,7 @@ class Supervisor:
         self.signals = signals  # checked by every check(): a stop signal ends the run there
         self.children: dict[str, Child] = {}
 
-    def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None) -> Child:
+    def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None, observer: bool = False) -> Child:
         from common.config.arguments import child_argv
 
         command = [sys.executable, "-m", "tools.cli", *child_argv(argv)]
@@ -263,7 +264,7 @@ class Supervisor:
             env={**self.env, **(env or {}), "SRL_PARENT_PID": str(os.getpid())},
             start_new_session=True,  # our Ctrl-C is forwarded by us, in order
         )
-        child = Child(name, process)
+        child = Child(name, process, observer=observer)
         echo = None if self.quiet else sys.stderr
         # stdout holds the JSON summary (kilobytes): kept, not echoed; stderr holds the logs
         for stream, sink, keep, shown in (
@@ -314,11 +315,14 @@ class Supervisor:
 
     def stop_all(self) -> None:
         """SIGINT every service still running (newest first) and wait for them, SIGKILL after the
-        grace; the router last, once nobody is left to say goodbye through it (a router closing
-        under its clients' last messages can outlast the grace). Then the JIT build directories
-        of processes that are gone (a child killed mid-build) are removed."""
-        services = [c for c in reversed(list(self.children.values())) if c.name != "router"]
-        self._stop_group(services)
+        grace; then the observers (:attr:`Child.observer`: a recorder still subscribed while the
+        services' last messages come through); the router last, once nobody is left to say
+        goodbye through it (a router closing under its clients' last messages can outlast the
+        grace). Then the JIT build directories of processes that are gone (a child killed
+        mid-build) are removed."""
+        newest_first = list(reversed(list(self.children.values())))
+        self._stop_group([c for c in newest_first if c.name != "router" and not c.observer])
+        self._stop_group([c for c in newest_first if c.observer])
         self._stop_group([c for c in self.children.values() if c.name == "router"])
         for child in self.children.values():
             for thread in child.threads:

@@ -356,7 +356,7 @@ def spawn_observers(supervisor: Supervisor, options: UpOptions, common: list[str
     if options.view_port is not None:
         observers.append(("view", ["view", "--port", str(options.view_port), *common], "srl view: serving"))
     for name, argv, ready in observers:
-        child = supervisor.spawn(name, argv)
+        child = supervisor.spawn(name, argv, observer=True)
         supervisor.wait_for(name, said(child, ready), timeout=30)
 
 

@@ -1400,6 +1400,11 @@ def describe(sink: McapSink | SplitSink) -> str:
 # waiting sample holds 1.3-2 KB (a decoded message; tests/test_record.py measures them): at most
 # ~400 MB.
 QUEUE_LIMIT = 200_000
+# On Ctrl-C the recorder keeps receiving until nothing has come for this long (at most the second):
+# srl up stops it after the services, whose last messages may still be on their way through the router.
+SETTLE_QUIET_S = 0.25
+SETTLE_LONGEST_S = 1.0
+UNRECEIVED_NOTE = "; {count} steps never received (before a robot's first, not in the actors' caches)"
 DROPPED_NOTE = "; {count} dropped (writer behind)"  # in srl record's summary line (dropped_by_writer reads it)
 # a robot's transitions held while its missing first steps are asked for (Feed): ~100 s at delta
 # 0.1 s, far beyond the history query's 10 s bound; past it they are written as they are
@@ -1474,6 +1479,7 @@ class Feed:
         self.closing = threading.Event()
         self.received = 0  # rows written
         self.errors = 0  # rows not written (a bad sample, a file that cannot be written)
+        self.unreceived = 0  # steps before a held robot's first that neither came nor were recovered
         self.failure = ""  # the last reason the file could not be written (said once)
         self.writes: dict[type, Callable[[Any, int], None]] = {
             PlantState: self._states,
@@ -1617,6 +1623,15 @@ class Feed:
         rows: list[tuple[Any, ...]] = []
         for robot in done:
             firsts = {row[2]: row for row in reversed(self.held.pop(robot))}  # the first of each step
+            missing = max(firsts) + 1 - len(firsts)  # of steps 0 .. the newest held
+            if missing:  # said, never silently left out: srl record's summary line counts them
+                self.unreceived += missing
+                log.warning(
+                    "recorder: %s: %d of its first %d steps never came and were not recovered",
+                    robot,
+                    missing,
+                    max(firsts) + 1,
+                )
             rows += sorted(firsts.values(), key=lambda row: row[2])
         if rows:
             robots, *columns, arrivals = zip(*rows, strict=True)
@@ -1634,7 +1649,10 @@ class Feed:
         self._rows("status", self.recorder.status, [message.robot], [dict(message.counters)], [now_ns])
 
     def close(self) -> None:
-        """Stop receiving, write what is queued, close the sink (the file is complete after this)."""
+        """Take what is still coming (:data:`SETTLE_QUIET_S` without a sample, at most
+        :data:`SETTLE_LONGEST_S`), stop receiving, write what is queued, close the sink (the file
+        is complete after this)."""
+        self.inbox.settle(SETTLE_QUIET_S, SETTLE_LONGEST_S)
         self.bus.close()
         self.closing.set()
         self.writer.join()
@@ -1697,6 +1715,7 @@ def cmd_record(args: Any) -> int:
     late = recorder.late
     extra = DROPPED_NOTE.format(count=feed.dropped) if feed.dropped else ""
     extra += f"; {late} late transitions skipped" if late else ""
+    extra += UNRECEIVED_NOTE.format(count=feed.unreceived) if feed.unreceived else ""
     print(f"srl record: {describe(sink)}{extra}", flush=True)
     return 0
 
