@@ -219,7 +219,6 @@ def test_a_start_of_the_wrong_size_and_the_services_are_refused_in_one_line(
 
     cases = [
         (["run", "--system", "cartpole", "--start", "1,2"], "episode.start: 4 numbers, cartpole's state"),
-        (["run", "--system", "pendulum", "--transport", "zenoh"], "system pendulum runs in process"),
         (["run", "--system", "pendulum", "--record", "p.mcap"], "--record: carries the robot's pose"),
     ]
     for argv, message in cases:
@@ -227,9 +226,9 @@ def test_a_start_of_the_wrong_size_and_the_services_are_refused_in_one_line(
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
     monkeypatch.setenv("SRL_PLANT__SYSTEM", "two_tank")
-    for argv in (
+    for argv in (  # the real-time hosts carry the robot's pose (the lockstep services any system's)
         ["actor", "--connect-timeout", "1"],
-        ["critic", "--connect-timeout", "1"],
+        ["plant-sim", "--connect-timeout", "1"],
         ["up", "--duration", "1"],
         ["experiment", "fleet", "--grid", "1"],
     ):
@@ -482,3 +481,76 @@ def test_a_problem_and_a_system_refuse_a_bad_box_or_cost_in_the_same_words() -> 
         with pytest.raises(ValueError) as from_row:
             dataclasses.replace(UNICYCLE, **{field: bad})
         assert str(from_problem.value) == str(from_row.value) and str(from_row.value).startswith(f"{field}: ")
+
+
+# -- another system through the lockstep services (srl up --mode lockstep --system) ---------------
+@pytest.mark.integration
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["pendulum", "dynamic_unicycle"])  # one action; two
+def test_the_lockstep_services_run_another_system_as_in_process_bit_for_bit(name: str) -> None:
+    """``srl run --transport zenoh`` is ``srl up --mode lockstep``: a router, the plant, the critic
+    and the actor, each a process, carrying the system's messages (common/contracts/wire.py).
+    Its states, costs and J are the in-process run's, to the last bit."""
+    from tests.harness import free_port, srl
+
+    argv = ["run", "--system", name, "--duration", "3", "--no-jit", "--json", "--trajectory"]
+    local = srl(*argv)
+    assert local.returncode == 0, local.stderr[-2000:]
+    remote = srl(*argv, "--transport", "zenoh", "--router", f"tcp/127.0.0.1:{free_port()}", timeout=240)
+    assert remote.returncode == 0, remote.stderr[-3000:]
+    one, other = (json.loads(done.stdout.strip().splitlines()[-1]) for done in (local, remote))
+    assert other["transport"] == "zenoh" and other["system"] == name
+    assert other["trajectory"] == one["trajectory"] and len(one["trajectory"][0]) == SYSTEMS[name].state_dim
+    assert other["accumulated_cost"] == one["accumulated_cost"] and other["final_distance"] == one["final_distance"]
+    assert f"system {name}" in remote.stdout and "distance to the goal" in remote.stdout
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_srl_up_lockstep_runs_a_users_system_and_says_how_close_it_came(tmp_path: Path) -> None:
+    """examples/double_integrator.py through SRL_PLUGINS in every service process: ``srl up --mode
+    lockstep --system double_integrator`` stabilizes it and says so in its own terms."""
+    from tests.harness import free_port, srl
+
+    env = {"SRL_PLUGINS": "examples/double_integrator.py", "SRL_ACTOR__JIT": "false"}
+    done = srl(
+        "up", "--mode", "lockstep", "--system", NAME, "--duration", "12", "--json", "--router",
+        f"tcp/127.0.0.1:{free_port()}", "--robot", "di1", "--summary-dir", str(tmp_path / "up"),
+        env=env, timeout=240,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    assert summary["system"] == NAME and summary["steps"] == 120
+    assert summary["final_distance"] < DOUBLE_INTEGRATOR.stabilized
+    assert summary["critic"]["transitions_received"] == 120  # every transition reached the off-board critic
+    assert summary["weights_version"] > 1  # and its fits came back
+    assert f"stabilized (< {DOUBLE_INTEGRATOR.stabilized:g})" in done.stderr + done.stdout
+    assert "p = " in done.stderr + done.stdout  # the state by its names
+
+
+@pytest.mark.integration
+def test_what_carries_the_robots_pose_refuses_another_system_in_one_line(tmp_path: Path) -> None:
+    from tests.harness import free_port, srl
+
+    router = f"tcp/127.0.0.1:{free_port()}"
+    for extra, says in (
+        ([], "srl up --mode realtime"),
+        (["--mode", "lockstep", "--record", str(tmp_path / "r.mcap")], "--record"),
+        (["--robots", "2"], "--robots"),
+        (["--plant", "robot"], "--plant robot"),
+    ):
+        refused = srl("up", "--system", "pendulum", "--duration", "1", "--router", router, *extra, timeout=60)
+        errors = [line for line in refused.stderr.splitlines() if "error" in line.lower()]
+        assert refused.returncode == 2 and len(errors) == 1, (extra, refused.stderr[-2000:])
+        assert says in errors[0] and "srl up --mode lockstep --system pendulum" in errors[0], errors[0]
+        assert "Traceback" not in refused.stderr
+
+
+def test_another_systems_critic_keeps_a_checkpoint_of_its_own() -> None:
+    """The robot's checkpoint is never read (nor set aside) by another system's critic."""
+    from services.critic.service import checkpoint_path
+
+    robot = checkpoint_path(Settings.load())
+    pendulum = checkpoint_path(Settings.load(plant={"system": "pendulum"}))
+    assert robot is not None and pendulum is not None and pendulum != robot
+    assert pendulum.name == robot.stem + "-pendulum" + robot.suffix

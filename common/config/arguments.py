@@ -243,7 +243,7 @@ EPISODE_FLAGS = ("start", "duration")
 ALL_FLAGS = (*TRANSPORT_FLAGS, *ACTOR_FLAGS, *EPISODE_FLAGS)
 COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "run": (*ALL_FLAGS, "system"),
-    "up": (*ALL_FLAGS, "resume"),
+    "up": (*ALL_FLAGS, "resume", "system"),
     # the in-process benchmarks set their agents and N themselves (--agents, --horizons)
     "bench actor": ("config", "solver", "predictor", "no_jit"),
     "bench parking": ("config", "solver", "predictor", "no_jit"),
@@ -251,10 +251,11 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "bench bridge": ALL_FLAGS,
     "bench fleet": ("config", *ACTOR_FLAGS),  # robots, routers and starts are the fleet's own
     "bench capacity": ("config", *ACTOR_FLAGS),  # the same fleets as bench fleet
-    "actor": ALL_FLAGS,
+    # another system than the robot: in lockstep (actor, plant-sim) and the critic
+    "actor": (*ALL_FLAGS, "system"),
     "router": TRANSPORT_FLAGS,
-    "plant-sim": (*TRANSPORT_FLAGS, "start"),  # where the simulated robot starts
-    "critic": (*TRANSPORT_FLAGS, "agent", "horizon", "resume"),  # the stack names its checkpoint
+    "plant-sim": (*TRANSPORT_FLAGS, "start", "system"),  # where the simulated robot starts
+    "critic": (*TRANSPORT_FLAGS, "agent", "horizon", "resume", "system"),  # the stack names its checkpoint
     "robot-bridge": TRANSPORT_FLAGS,
     "tb3-emulator": (*TRANSPORT_FLAGS, "start"),  # default initial pose
     "status": TRANSPORT_FLAGS,
@@ -411,8 +412,9 @@ def bridge_argv(args: argparse.Namespace) -> list[str]:
 
 def settings_from_args(args: argparse.Namespace, any_system: bool = False) -> Settings:
     """The settings of a command line (flags > ``SRL_*`` > ``--config`` > srl.toml); UsageError (one
-    line) for invalid ones, and, unless ``any_system`` (``srl run``), for a system other than the
-    robot: the other commands carry the robot's pose (:meth:`Settings.robot_only`)."""
+    line) for invalid ones, and, unless ``any_system`` (``srl run``, ``srl up`` and the services in
+    lockstep, the critic), for a system other than the robot: the other commands carry the robot's
+    pose (:meth:`Settings.robot_only`)."""
     overrides: dict[str, dict[str, Any]] = {"actor": {}, "episode": {}, "transport": {}, "bridge": {}}
     for name in BRIDGE_FLAGS:
         if getattr(args, name, None) is not None:

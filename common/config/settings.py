@@ -26,6 +26,7 @@ from pydantic_settings import (
 )
 
 from common.contracts.pose_sources import pose_source_names, pose_sources_text
+from common.contracts.wire import Wire, wire
 from common.math.agents import Agent, agent_names, agents_text
 from common.math.dynamics import heading_away_from_target
 from common.math.features import quadratic_weights_for_diag
@@ -581,6 +582,11 @@ class Settings(BaseSettings):
         """The sampled system's row (``plant.system``, common/math/systems.py)."""
         return system_row(self.plant.system)
 
+    @property
+    def wire(self) -> Wire:
+        """The messages and topics of the system (common/contracts/wire.py): the robot's are srl's own."""
+        return wire(self.plant.system)
+
     def robot_only(self, what: str) -> Settings:
         """These settings, for ``what`` that serves the robot only (the services' wire, a recording,
         the experiment: the unicycle's pose and (v, omega)); ValueError (one line) for another system."""
@@ -588,7 +594,7 @@ class Settings(BaseSettings):
             name = self.plant.system
             raise ValueError(
                 f"{what}: carries the robot's pose and (v, omega); system {name} runs in process "
-                f"(srl run --system {name})"
+                f"(srl run --system {name}) and in lockstep (srl up --mode lockstep --system {name})"
             )
         return self
 

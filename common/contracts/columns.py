@@ -24,6 +24,9 @@ A payload, every number little-endian:
 | then | the int64 block: `n` rows, each the schema's int64 columns in its table's order |
 | then | the float64 block: `n` rows, each the schema's float64 columns in its table's order |
 
+A batch of a system other than the robot (common.contracts.wire) names it first: its manifest's
+first line is `@` and the system's name, before the robot ids (`n + 1` lines).
+
 A column of width `w` is `w` numbers of each row. An optional field is absent in a row where all
 its numbers are NaN (a float64 column) or -2**63 (an int64 column); a choice (a field of a few
 names) is the name's index in its list. The payload is exactly that long: no byte before,
@@ -433,15 +436,17 @@ def encode_columns(columns: Columns[Any], sequence: Iterator[int] | None = None)
     schema = columns.schema
     code = SCHEMA_CODES[schema]
     row_bytes = _row_bytes(schema)
+    system = batch_system(schema)
+    named = [] if system is None else [SYSTEM_MARK + system]  # the manifest's first line
     start, count = 0, len(columns)
     while start < count:
-        size, end = HEADER.size + 8, start  # the header and the manifest's padding, at most
+        size, end = HEADER.size + 8 + sum(len(line) + 1 for line in named), start  # with the padding, at most
         while end < count and size + len(columns.robots[end]) + 1 + row_bytes <= MAX_PAYLOAD_BYTES:
             size += len(columns.robots[end]) + 1 + row_bytes
             end += 1
         if end == start:
             raise MessageError(f"{schema.__name__}: a row does not fit a batch")
-        manifest = "\n".join(columns.robots[start:end]).encode()
+        manifest = "\n".join([*named, *columns.robots[start:end]]).encode()
         yield b"".join(
             (
                 HEADER.pack(
@@ -462,6 +467,19 @@ def encode_columns(columns: Columns[Any], sequence: Iterator[int] | None = None)
             )
         )
         start = end
+
+
+SYSTEM_MARK = "@"  # a manifest's first line "@<system>": no robot id begins so
+
+
+def batch_system(schema: type[Message]) -> str | None:
+    """The system a schema's batches name first in their manifest: one made for a system other
+    than the robot (common.contracts.wire; its ``system`` field a choice of that one name)."""
+    field = schema.model_fields.get("system")
+    if field is None:
+        return None
+    (name,) = get_args(field.annotation)
+    return str(name)
 
 
 def _refuse(what: str, row: int, name: str, why: str) -> MessageError:
@@ -560,14 +578,20 @@ def decode_columns(schema: type[M], payload: bytes) -> Columns[M]:
     if code != SCHEMA_CODES[schema]:
         raise MessageError(f"{what}: payload: a batch of another schema (code {code})")
     laid = spans(schema)
-    body = HEADER.size + manifest_size + _pad(manifest_size)
-    expected = body + rows * _row_bytes(schema)
-    if rows == 0 or len(payload) != expected:
-        raise MessageError(f"{what}: payload: {len(payload)} bytes, {rows} rows need {expected}")
     try:
         robots = payload[HEADER.size : HEADER.size + manifest_size].decode("ascii").split("\n")
     except UnicodeDecodeError:
         raise MessageError(f"{what}: manifest: robot ids are ASCII") from None
+    system = batch_system(schema)  # named before the sizes: another system's batch is said to be one
+    named = robots[0][len(SYSTEM_MARK) :] if robots[0].startswith(SYSTEM_MARK) else None
+    if named != system:
+        raise MessageError(f"{what}: manifest: a batch of system {named or 'unicycle'}, not {system or 'unicycle'}")
+    if system is not None:
+        robots = robots[1:]
+    body = HEADER.size + manifest_size + _pad(manifest_size)
+    expected = body + rows * _row_bytes(schema)
+    if rows == 0 or len(payload) != expected:
+        raise MessageError(f"{what}: payload: {len(payload)} bytes, {rows} rows need {expected}")
     if len(robots) != rows:
         raise MessageError(f"{what}: manifest: {len(robots)} robot ids for {rows} rows")
     ints = np.frombuffer(payload, dtype="<i8", count=rows * laid.ints, offset=body).reshape(rows, laid.ints)

@@ -121,8 +121,10 @@ SERVICES = ("actor", "critic", "plant", "router")
 
 
 def batch_of(topic: Topic[M]) -> Batch[M] | None:
-    """The batch form of ``topic``, if its messages may also come in batches (:class:`Batch`)."""
-    return BATCHES.get(topic.pattern)
+    """The batch form of ``topic``, if its messages may also come in batches (:class:`Batch`):
+    on the same key, carrying the topic's own schema (another system's, common.contracts.wire)."""
+    found = BATCHES.get(topic.pattern)
+    return found if found is None or found.topic == topic else Batch(topic)
 
 
 BATCHES: dict[str, Batch[Any]] = {

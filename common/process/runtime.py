@@ -138,15 +138,24 @@ def stop_on_signals() -> Iterator[SignalStop]:
         yield stop
 
 
-def serve(settings: Settings, service: str, connect_timeout: float, body: Callable[..., dict[str, Any]]) -> int:
+def serve(
+    settings: Settings,
+    service: str,
+    connect_timeout: float,
+    body: Callable[..., dict[str, Any]],
+    any_system: bool = False,
+) -> int:
     """The one life cycle of a service process: signals, parent watch, session (with retry),
-    ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line."""
+    ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line.
+    ``any_system``: the service carries any system's messages (settings.wire: the lockstep actor
+    and plant, the critic); else the robot's only, and another system is refused in one line."""
     from common.net.transport import Bus
 
-    try:
-        settings.robot_only(f"srl {service}")  # the wire's states and actions are the robot's
-    except ValueError as error:
-        raise UsageError(str(error)) from error
+    if not any_system:
+        try:
+            settings.robot_only(f"srl {service}")  # the real-time hosts' arrays are the robot's pose
+        except ValueError as error:
+            raise UsageError(str(error)) from error
     stop = service_stop()
     bus = connect_with_retry(lambda: Bus.open(settings.transport, service), settings, service, connect_timeout, stop)
     try:

@@ -22,8 +22,8 @@ import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
-from common.contracts.keys import PLANT_RESET, PLANT_STEP, TRANSITION, WEIGHTS, Service
-from common.contracts.messages import CriticWeights, Message, PlantState, ResetRequest, StepRequest, Transition
+from common.contracts.keys import Service
+from common.contracts.messages import CriticWeights, Message, PlantState
 from common.math.agents import fit_due, learns
 from common.math.critic import FitsDue, Sample
 from common.net.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
@@ -198,23 +198,23 @@ class ZenohPlant:
 
     def reset(self, state: np.ndarray) -> np.ndarray:
         self.step_index = 0
-        reply = self._query(
-            PLANT_RESET,
-            ResetRequest(
-                robot=self.robot, episode=self.episode, state=(float(state[0]), float(state[1]), float(state[2]))
-            ),
+        wire = self.settings.wire
+        request = wire.reset_request(
+            **wire.named, robot=self.robot, episode=self.episode, state=tuple(float(c) for c in state)
         )
-        return self._keep_truth(reply)
+        return self._keep_truth(self._query(wire.PLANT_RESET, request))
 
     def apply(self, action: np.ndarray, duration: float) -> np.ndarray:
-        request = StepRequest(
+        wire = self.settings.wire
+        request = wire.step_request(
+            **wire.named,
             robot=self.robot,
             episode=self.episode,
             step=self.step_index,
-            action=(float(action[0]), float(action[1])),
+            action=tuple(float(c) for c in action),
             duration=duration,
         )
-        reply = self._query(PLANT_STEP, request)
+        reply = self._query(wire.PLANT_STEP, request)
         self.step_index += 1
         return self._keep_truth(reply)
 
@@ -225,7 +225,7 @@ class ZenohCriticPort:
     def __init__(self, settings: Settings, bus: Bus, inbox: WeightsInbox, episode: int, sync: bool) -> None:
         self.settings, self.bus, self.inbox, self.episode, self.sync = settings, bus, inbox, episode, sync
         self.robot = settings.transport.robot
-        self.publish = bus.publisher(TRANSITION, self.robot, cache=settings.transport.transition_cache)
+        self.publish = bus.publisher(settings.wire.TRANSITION, self.robot, cache=settings.transport.transition_cache)
         self.staleness: list[int] = []
         self.timeouts = 0
         self.fits = FitsDue(arrival_tolerances(settings))  # none on a robot held at rest
@@ -247,13 +247,15 @@ class ZenohCriticPort:
 
     def record(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
         self.inbox.published(sample.step)
+        wire = self.settings.wire
         self.publish(
-            Transition(
+            wire.transition(
+                **wire.named,
                 robot=self.robot,
                 episode=self.episode,
                 step=sample.step,
-                state=(float(sample.state[0]), float(sample.state[1]), float(sample.state[2])),
-                action=(float(sample.action[0]), float(sample.action[1])),
+                state=tuple(float(c) for c in sample.state),
+                action=tuple(float(c) for c in sample.action),
                 cost=float(sample.cost),
             )
         )
@@ -293,5 +295,6 @@ def wire_weights(settings: Settings, bus: Bus) -> WeightsInbox:
     critic_gate = SourceGate("critic")
     bus.watch_identities(robot, "critic", critic_gate)
     inbox = WeightsInbox(settings, bus, critic_gate)
-    bus.subscribe(WEIGHTS, WEIGHTS.key(robot), inbox.offer, with_source=True, recover=MISSED)
+    weights = settings.wire.WEIGHTS  # the robot's, or another system's
+    bus.subscribe(weights, weights.key(robot), inbox.offer, with_source=True, recover=MISSED)
     return inbox

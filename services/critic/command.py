@@ -39,7 +39,7 @@ def main(args: argparse.Namespace) -> int:
     from services.critic.service import run
 
     robots = fleet_robots(args)
-    settings = settings_from_args(args)
+    settings = settings_from_args(args, any_system=True)  # it fits any system's transitions (settings.wire)
     if args.pooled:
         settings = settings.model_copy(update={"critic": settings.critic.model_copy(update={"pooled": True})})
 
@@ -48,4 +48,5 @@ def main(args: argparse.Namespace) -> int:
         "critic",
         args.connect_timeout,
         lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds, robots),
+        any_system=True,
     )

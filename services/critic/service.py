@@ -57,7 +57,6 @@ import numpy as np
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
 from common.contracts.columns import Columns, columns_of, spans
-from common.contracts.keys import TRANSITION, WEIGHTS
 from common.contracts.messages import CriticWeights, MessageError, Transition
 from common.contracts.summaries import CriticSummary
 from common.math.agents import fit_due
@@ -73,7 +72,6 @@ from common.math.critic import (
     newest_values,
     update_many,
 )
-from common.math.dynamics import STATE_DIM
 from common.math.stats import Window
 from common.net.history import HistoryRecovery
 from common.net.transport import Bus, Inbox, bus_status, start_status_thread
@@ -141,10 +139,10 @@ class Row:
     cost: float
 
 
-def no_transitions() -> Columns[Transition]:
-    """A batch of no transitions."""
-    laid = spans(Transition)
-    return Columns(Transition, [], np.empty((0, laid.ints), dtype=np.int64), np.empty((0, laid.floats)))
+def no_transitions(schema: type[Transition] = Transition) -> Columns[Transition]:
+    """A batch of no transitions (of ``schema``: the robot's, or another system's)."""
+    laid = spans(schema)
+    return Columns(schema, [], np.empty((0, laid.ints), dtype=np.int64), np.empty((0, laid.floats)))
 
 
 @dataclass
@@ -163,12 +161,15 @@ def checkpoint_path(settings: Settings) -> Path | None:
     template = settings.critic.checkpoint
     if not template:
         return None
-    # per robot AND per stack: a run of another agent or horizon never starts from this one's critic
-    return Path(
+    # per robot AND per stack: a run of another agent or horizon never starts from this one's critic;
+    # and per system: another system's critic (its weights of other sizes) never reads the robot's
+    path = Path(
         os.path.expanduser(
             template.format(robot=settings.transport.robot, agent=settings.actor.agent, horizon=settings.actor.horizon)
         )
     )
+    system = settings.plant.system
+    return path if settings.system.wheeled else path.with_name(f"{path.stem}-{system}{path.suffix}")
 
 
 def replay_sample(message: TransitionRow) -> Sample:
@@ -225,7 +226,9 @@ class CriticLearner:
         pool = pool or self.pool
         if pool is not None:
             return Learner(episode, pool.replay.restart(robot), pool.critic, StepRuns())
-        return Learner(episode, Replay(self.settings.critic.replay_size), self._fresh_critic(), StepRuns())
+        system = self.settings.system
+        replay = Replay(self.settings.critic.replay_size, system.state_dim, system.action_dim)
+        return Learner(episode, replay, self._fresh_critic(), StepRuns())
 
     def initial_weights(self, robot: str, episode: int) -> CriticWeights:
         learner = self._fresh(robot, episode)
@@ -245,7 +248,9 @@ class CriticLearner:
         """``version``: the pool's one version for all its robots (None: a new one)."""
         if version is None:
             self.version += 1
-        return CriticWeights(
+        wire = self.settings.wire
+        return wire.weights(
+            **wire.named,
             robot=robot,
             episode=learner.episode,
             version=self.version if version is None else version,
@@ -345,16 +350,16 @@ class CriticLearner:
         version and publishes nothing, so taking the common rows first changes nothing."""
         robots = batch.robots
         episodes, steps, costs = (batch.field(name).tolist() for name in ("episode", "step", "cost"))
-        values = np.hstack([batch.field("state"), batch.field("action")])  # (x, y, alpha, v, omega) rows
+        values = np.hstack(
+            [batch.field("state"), batch.field("action")]
+        )  # (s, u) rows: the robot's (x, y, alpha, v, omega)
+        n = batch.field("state").shape[1]
         repeated: set[str] = set()  # robots with several rows in the batch
         if len(set(robots)) < len(robots):
             repeated = {robot for robot, count in Counter(robots).items() if count > 1}
         common = set(self._common_rows(robots, episodes, steps, values, costs, repeated))
         rare = [i for i in range(len(robots)) if i not in common]
-        rows = {
-            i: Row(robots[i], episodes[i], steps[i], values[i, :STATE_DIM], values[i, STATE_DIM:], costs[i])
-            for i in rare
-        }
+        rows = {i: Row(robots[i], episodes[i], steps[i], values[i, :n], values[i, n:], costs[i]) for i in rare}
         superseded: set[int] = set()
         if coalesce and repeated:  # only a robot with several rows in the batch has a fit made redundant
             mine = [i for i in rare if robots[i] in repeated]
@@ -599,11 +604,14 @@ class CriticLearner:
                     raise CheckpointError(f"{robot}: non-finite weights")
                 learner.critic.q_weights, learner.critic.v_weights = q, v
                 restore_active_sets(learner.critic, entry, robot)
-                rows = entry["replay"] if schema == 1 else unpack_rows(entry["replay"], robot)
+                n, m = self.settings.system.state_dim, self.settings.system.action_dim
+                rows = entry["replay"] if schema == 1 else unpack_rows(entry["replay"], robot, n + m + 2)
                 for row in rows:
-                    if len(row) != 7 or not all(np.isfinite(row)):
+                    if len(row) != n + m + 2 or not all(np.isfinite(row)):
                         raise CheckpointError(f"{robot}: bad replay row {row}")
-                    learner.replay.add(Sample(int(row[0]), np.array(row[1:4]), np.array(row[4:6]), float(row[6])))
+                    learner.replay.add(
+                        Sample(int(row[0]), np.array(row[1 : 1 + n]), np.array(row[1 + n : 1 + n + m]), float(row[-1]))
+                    )
                 learner.seen = StepRuns(entry["seen"])
                 learner.newest = int(entry["newest"])
                 learner.fitted = int(entry.get("fitted", -1))  # absent from checkpoints written before it was kept
@@ -638,46 +646,50 @@ class CriticLearner:
         return messages
 
 
-def drain(intake: Inbox, recovered: deque[Transition]) -> Columns[Transition]:
-    """What waits, as one batch: the intake's batches (a message alone on its robot's key is a
-    batch of one row), then what the actors' caches answered (:class:`HistoryRecovery`)."""
+def drain(intake: Inbox, recovered: deque[Transition], schema: type[Transition] = Transition) -> Columns[Transition]:
+    """What waits, as one batch of ``schema`` (the robot's transitions, or another system's): the
+    intake's batches (a message alone on its robot's key is a batch of one row), then what the
+    actors' caches answered (:class:`HistoryRecovery`)."""
     parts: list[Columns[Transition]] = [columns for columns, _ in intake.take()]
     while recovered:
         message = recovered.popleft()
         try:
-            parts.append(columns_of(Transition, [message]))
+            parts.append(columns_of(schema, [message]))
         except MessageError as error:  # as the intake refuses it live: an integer beyond a batch's 64 bits
             log.warning("critic: a recovered transition refused: %s", error)
-    return Columns.joined(Transition, parts) if parts else no_transitions()
+    return Columns.joined(schema, parts) if parts else no_transitions(schema)
 
 
-def collect(intake: Inbox, recovered: deque[Transition], window: float, robots: int) -> Columns[Transition]:
+def collect(
+    intake: Inbox, recovered: deque[Transition], window: float, robots: int, schema: type[Transition] = Transition
+) -> Columns[Transition]:
     """What waits (:func:`drain`); with a ``window`` [s], also what comes within it, until a
     transition of each of the ``robots`` heard from is in."""
-    batch = drain(intake, recovered)
+    batch = drain(intake, recovered, schema)
     if window <= 0 or not len(batch):
         return batch
     parts, heard = [batch], set(batch.robots)
     end = time.monotonic() + window
     while len(heard) < robots and (left := end - time.monotonic()) > 0:
         if intake.wait(left):
-            more = drain(intake, recovered)
+            more = drain(intake, recovered, schema)
             parts.append(more)
             heard.update(more.robots)
-    return Columns.joined(Transition, parts)
+    return Columns.joined(schema, parts)
 
 
-REPLAY_PACKING = "<f8"  # a replay in a checkpoint: base64 of little-endian float64 rows of 7 numbers
+REPLAY_PACKING = "<f8"  # a replay in a checkpoint: base64 of little-endian float64 rows (the robot's: 7 numbers)
 
 
 def pack_rows(table: np.ndarray) -> str:
-    """A replay's rows ``(step, x, y, alpha, v, omega, cost)`` for the checkpoint: base64 of their
+    """A replay's rows ``(step, s, u, cost)`` (the robot's ``(step, x, y, alpha, v, omega, cost)``) for
+    the checkpoint: base64 of their
     float64 bytes (:data:`REPLAY_PACKING`), exact, and ~20 times cheaper to write and read than
     a JSON number each (a fleet's critic writes every learner's replay once a second)."""
     return base64.b64encode(np.ascontiguousarray(table, dtype=REPLAY_PACKING).tobytes()).decode("ascii")
 
 
-def unpack_rows(text: object, owner: str) -> list[list[float]]:
+def unpack_rows(text: object, owner: str, width: int = 7) -> list[list[float]]:
     """:func:`pack_rows` back into rows; CheckpointError if it is not such a packing."""
     if not isinstance(text, str):
         raise CheckpointError(f"{owner}: the replay is not a packed table")
@@ -685,9 +697,9 @@ def unpack_rows(text: object, owner: str) -> list[list[float]]:
         data = base64.b64decode(text.encode("ascii"), validate=True)
     except (ValueError, UnicodeEncodeError) as error:
         raise CheckpointError(f"{owner}: the replay is not base64: {error}") from None
-    if len(data) % (7 * 8):
-        raise CheckpointError(f"{owner}: a packed replay of {len(data)} bytes is not rows of 7 numbers")
-    rows: list[list[float]] = np.frombuffer(data, dtype=REPLAY_PACKING).reshape(-1, 7).tolist()
+    if len(data) % (width * 8):
+        raise CheckpointError(f"{owner}: a packed replay of {len(data)} bytes is not rows of {width} numbers")
+    rows: list[list[float]] = np.frombuffer(data, dtype=REPLAY_PACKING).reshape(-1, width).tolist()
     return rows
 
 
@@ -770,6 +782,7 @@ def run(
     # the transitions' samples wait as bytes (Zenoh's threads only queue them); the loop decodes
     # what waits as columns and takes their rows
     intake = bus.inbox(INTAKE_LIMIT)
+    wire = settings.wire  # the robot's messages, or another system's
     recovered: deque[Transition] = deque()  # what the actors' caches answered (HistoryRecovery)
     sends: list[Callable[[Sequence[CriticWeights]], None]] = []  # declared at the first round
 
@@ -778,7 +791,9 @@ def run(
         if round_:
             if not sends:  # a critic of a robot list sends every round as a batch
                 sends.append(
-                    bus.round_publisher(WEIGHTS, batches=robots is not None and len(robots) > 1, cache=WEIGHTS_CACHE)
+                    bus.round_publisher(
+                        wire.WEIGHTS, batches=robots is not None and len(robots) > 1, cache=WEIGHTS_CACHE
+                    )
                 )
             sends[0](round_)
             bus.count("weights_published", len(round_))
@@ -788,7 +803,7 @@ def run(
     # inbox, as if it had come in time
     def ask(robots: list[str], answer: Callable[[Transition], None], done: Callable[[], None]) -> None:
         bus.count("history_queries")
-        bus.history(TRANSITION, [TRANSITION.key(robot) for robot in robots], answer, done)
+        bus.history(wire.TRANSITION, [wire.TRANSITION.key(robot) for robot in robots], answer, done)
 
     def put_recovered(message: Transition) -> None:
         recovered.append(message)
@@ -804,11 +819,11 @@ def run(
     # one id), with the history the actors' publishers cache (recovery after a restart or a
     # partition).
     keys = (
-        [TRANSITION.key(robot) for robot in robots]
+        [wire.TRANSITION.key(robot) for robot in robots]
         if robots
-        else [TRANSITION.pattern.format(robot=settings.critic.robots)]
+        else [wire.TRANSITION.pattern.format(robot=settings.critic.robots)]
     )
-    intake.subscribe(TRANSITION, keys, recover=True)  # the batch key once, whatever the robots
+    intake.subscribe(wire.TRANSITION, keys, recover=True)  # the batch key once, whatever the robots
     # the critic of every robot it serves (a fleet's actors accept weights only from a live critic
     # of their own robot: srl/<robot>/alive/critic/<zid>)
     for robot in robots or [settings.transport.robot]:
@@ -866,7 +881,7 @@ def run(
         # batches of at most MAX_BATCH: every robot due a fit is fitted at a batch's end, all in
         # one stacked solve, then ONE checkpoint holds them all, then the batch's weights go out.
         # One robot alone gives batches of one: a fit per transition due, as without batching.
-        taken = collect(intake, recovered, settings.critic.batch_window, len(learner.learners))
+        taken = collect(intake, recovered, settings.critic.batch_window, len(learner.learners), wire.transition)
         if intake.dropped > dropped:
             bus.count("transitions_dropped", intake.dropped - dropped)
             dropped = intake.dropped

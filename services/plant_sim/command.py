@@ -46,11 +46,12 @@ def main(args: argparse.Namespace) -> int:
     if args.mode == "lockstep" and robots is None:
         from services.plant_sim.service import run
 
-        return serve(
-            settings_from_args(args),
+        return serve(  # any system's lockstep plant (settings.wire); real time: the robot's host
+            settings_from_args(args, any_system=True),
             "plant",
             args.connect_timeout,
             lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
+            any_system=True,
         )
     return serve(
         settings_from_args(args),

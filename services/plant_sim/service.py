@@ -27,10 +27,8 @@ from typing import Any
 import numpy as np
 
 from common.config.settings import Settings
-from common.contracts.keys import PLANT_RESET, PLANT_STEP, STATE
 from common.contracts.messages import Action, PlantState, ResetRequest, StepRequest
 from common.contracts.summaries import PlantSummary
-from common.math.dynamics import exact_step
 from common.math.plant_models import simulated_robot
 from common.math.turtlebot import SimulatedRobot
 from common.net.provenance import ActionGate, SourceGate
@@ -174,13 +172,14 @@ class SimulatedPlant:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.robot_id = settings.transport.robot
-        self.bounds = np.array([settings.plant.v_max, settings.plant.omega_max])
+        self.system, self.wire = settings.system, settings.wire  # the robot's, or another system's
+        self.bounds = np.array(settings.action_max)
         self.lock = threading.Lock()
         self.episode = 0
         self.state = settings.start_state()  # the true state (ideal: also the reported one)
         # the TurtleBot3 (actuator or physics model) whose odometry is reported (None: ideal)
         self.robot = self._new_robot()
-        self.held = np.zeros(2)
+        self.held = np.zeros(self.system.action_dim)
         self.seq = 0
         self.next_step = 0
         self._last_reply: tuple[tuple[int, int], PlantState] | None = None
@@ -197,14 +196,15 @@ class SimulatedPlant:
     def _message(self) -> PlantState:
         self.seq += 1
         reported, true = self.reported, self.state
-        return PlantState(
+        return self.wire.state(
+            **self.wire.named,
             robot=self.robot_id,
             episode=self.episode,
             seq=self.seq,
             stamp_ns=time.monotonic_ns(),
-            state=(float(reported[0]), float(reported[1]), float(reported[2])),
+            state=tuple(float(c) for c in reported),
             source="sim",
-            true_state=(float(true[0]), float(true[1]), float(true[2])),
+            true_state=tuple(float(c) for c in true),
             saturated_commands=0 if self.robot is None else self.robot.saturated_commands,
         )
 
@@ -215,13 +215,13 @@ class SimulatedPlant:
             self.robot.command(float(self.held[0]), float(self.held[1]))
 
     def _integrate(self, duration: float) -> None:
-        if self.robot is None:
-            self.state = exact_step(self.state, self.held, duration)
+        if self.robot is None:  # the exact sample-and-hold (another system: its row's step)
+            self.state = self.system.step(self.state, self.held, duration)
         else:
             self.robot.advance(duration)
             self.state = self.robot.true_pose.copy()
 
-    def clamp(self, action: tuple[float, float]) -> np.ndarray:
+    def clamp(self, action: tuple[float, ...]) -> np.ndarray:
         return np.clip(np.asarray(action, dtype=float), -self.bounds, self.bounds)
 
     def reset(self, request: ResetRequest) -> PlantState:
@@ -230,7 +230,7 @@ class SimulatedPlant:
             self.state = np.asarray(request.state, dtype=float)
             if self.robot is not None:  # at rest at the start, odometry from there, slip re-seeded
                 self.robot = self._new_robot()
-            self.held = np.zeros(2)
+            self.held = np.zeros(self.system.action_dim)
             self.next_step = 0
             self._last_reply = None
             return self._message()
@@ -270,9 +270,9 @@ def run(settings: Settings, bus: Bus, stop: threading.Event, duration: float | N
     # one plant per robot: a second simulator (or a bridge) for the same robot would
     # make the actor follow one robot's states while commanding another
     bus.refuse_other_plant(robot)
-    publish_state = bus.publisher(STATE, robot)
-    bus.serve(PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
-    bus.serve(PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
+    publish_state = bus.publisher(settings.wire.STATE, robot)
+    bus.serve(settings.wire.PLANT_RESET, robot, lambda r: _publish(publish_state, plant.reset(r)))
+    bus.serve(settings.wire.PLANT_STEP, robot, lambda r: _publish(publish_state, plant.step(r)))
     bus.declare_sole_plant(robot)  # and a plant started at the same moment: one of the two yields
     start_status_thread(
         bus, [(robot, bus_status(bus, lambda: {"seq": plant.seq}))], settings.transport.status_period, stop

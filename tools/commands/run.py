@@ -60,15 +60,11 @@ def main(args: argparse.Namespace) -> int:
     from common.config.assembly import episode_summary, run_episode
 
     settings = settings_from_args(args, any_system=True)
-    if not settings.system.wheeled:
-        given = [
-            flag for flag, used in (("--transport zenoh", args.transport == "zenoh"), ("--record", args.record)) if used
-        ]
-        if given:
-            try:
-                settings.robot_only(" and ".join(given))
-            except ValueError as error:
-                raise UsageError(str(error)) from error
+    if not settings.system.wheeled and args.record:  # --transport zenoh: the lockstep services, any system's
+        try:
+            settings.robot_only("--record")
+        except ValueError as error:
+            raise UsageError(str(error)) from error
     recorder = None
     if args.record is not None and args.transport == "inproc":  # opened now: a bad path fails before the run
         from tools.recording.record import RecordingError, episode_recorder
@@ -151,14 +147,8 @@ def format_run_summary(summary: dict[str, Any]) -> str:
     s = summary["settings"]
     solve = summary["solve_ms"]
     system = system_row(s["plant"]["system"])
-    if system.wheeled:
-        title, far = "", f"distance to target {summary['final_distance']:.3f} m"
-    else:
-        held = summary["final_distance"] < system.stabilized
-        title = f", system {s['plant']['system']}"
-        far = f"distance to the goal {summary['final_distance']:.4f}: " + (
-            f"stabilized (< {system.stabilized:g})" if held else f"not stabilized (>= {system.stabilized:g})"
-        )
+    title = "" if system.wheeled else f", system {s['plant']['system']}"
+    far = how_far(summary["final_distance"], system)
     lines = [
         f"srl run: agent {summary['agent']}, N = {summary['horizon']}, transport {summary['transport']}{title}",
         f"  start          {fmt_state(summary['start_state'], system)}",
@@ -182,21 +172,30 @@ def format_run_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def truth_lines(summary: dict[str, Any]) -> list[str]:
+def truth_lines(summary: dict[str, Any], system: System = UNICYCLE) -> list[str]:
     """The true view beside the robot's own (start, final state, J are what it reported)."""
     if "truth" not in summary:
         return []
     truth = summary["truth"]
     saturated = summary.get("saturated_commands")
-    wheels = "" if saturated is None else f"   commands beyond a wheel's limit {saturated}"
+    wheels = "" if saturated is None or not system.wheeled else f"   commands beyond a wheel's limit {saturated}"
     if truth is None:
         return ["  truth          unknown: a real robot, only its odometry is known (the states above)" + wheels]
     return [
-        f"  true final     {fmt_state(truth['final_state'])}   distance to target {truth['final_distance']:.3f} m"
+        f"  true final     {fmt_state(truth['final_state'], system)}   {how_far(truth['final_distance'], system)}"
         f"   (plant {summary.get('plant_model', 'sim')}: the states above are what the robot reported)",
         f"  true J         {truth['accumulated_cost']:.4f} (on the true states; "
         f"the accumulated J is on the reported ones){wheels}",
     ]
+
+
+def how_far(distance: float, system: System) -> str:
+    """The final distance in the system's terms: the robot's to its target in metres, another's
+    to its goal, and whether that is stabilized."""
+    if system.wheeled:
+        return f"distance to target {distance:.3f} m"
+    held = "stabilized (<" if distance < system.stabilized else "not stabilized (>="
+    return f"distance to the goal {distance:.4f}: {held} {system.stabilized:g})"
 
 
 def fmt_state(state: Sequence[float], system: System = UNICYCLE) -> str:

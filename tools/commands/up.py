@@ -29,7 +29,8 @@ from common.config.arguments import (
 )
 from common.config.settings import Settings
 from common.math.fleet import ROS_FLEET_PREFIX
-from tools.commands.run import fmt_state, truth_lines
+from common.math.systems import system_row
+from tools.commands.run import fmt_state, how_far, truth_lines
 from tools.commands.view import VIEW_PORT
 from tools.launch.plants import LAUNCH_PLANTS, LAYOUTS, launch_plant, launch_plant_help
 
@@ -91,7 +92,7 @@ def main(args: argparse.Namespace) -> int:
     from tools.launch.supervisor import ServiceDiedError, Stopped, local_router_endpoint, tls_endpoint
     from tools.launch.up import UpOptions, actor_hosts, check_options, format_fleet_summary, run_up
 
-    settings = settings_from_args(args)
+    settings = settings_from_args(args, any_system=True)  # another system: in lockstep only (run_up says)
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
     robots, endpoints, bridge_args = fleet_of(args, settings)
@@ -138,7 +139,7 @@ def main(args: argparse.Namespace) -> int:
         router=None if robots is None else router,
     )
     try:  # a run that cannot be is one line, before anything is said or started
-        check_options(options, robots or [settings.transport.robot])
+        check_options(options, robots or [settings.transport.robot], settings)
     except ValueError as error:
         raise UsageError(str(error)) from error
     print(listens, file=sys.stderr, flush=True)
@@ -249,10 +250,13 @@ def format_up_summary(summary: dict[str, Any]) -> str:
                 "robot's access rules (services/robot_bridge/robot_router.py)"
             )
     lines.append(f"  steps          {summary.get('steps')}   accumulated J {summary.get('accumulated_cost', 0):.4f}")
+    system = system_row(summary.get("system", "unicycle"))
     if summary.get("start_state"):
-        lines.append(f"  start          {fmt_state(summary['start_state'])} (the robot's first state)")
+        whose = "the robot's" if system.wheeled else "its"
+        lines.append(f"  start          {fmt_state(summary['start_state'], system)} ({whose} first state)")
     if summary.get("final_state"):
-        lines.append(f"  final state    {fmt_state(summary['final_state'])}")
+        far = "" if system.wheeled else "   " + how_far(summary["final_distance"], system)
+        lines.append(f"  final state    {fmt_state(summary['final_state'], system)}{far}")
     emulated = summary.get("emulator_truth")
     if emulated:  # the bridge carries only odometry; the emulator behind it knows the truth
         lines.append(
@@ -261,7 +265,7 @@ def format_up_summary(summary: dict[str, Any]) -> str:
             f"commands beyond a wheel's limit {emulated['saturated_commands']})"
         )
     else:
-        lines.extend(truth_lines(summary))
+        lines.extend(truth_lines(summary, system))
     # what the robot's pose is: odometry drifts with wheel slip (docs/turtlebot-localization.md)
     if summary.get("bridge"):
         lines.append(f"  localization   {summary['bridge'].get('localization', 'odometry only')}")

@@ -116,10 +116,10 @@ def main(args: argparse.Namespace) -> int:
             print(f"srl docs: {len(generated_files(args.srl_parser, root))} generated files are current")
         return 1 if stale else 0
     kept = []
-    if args.systems:
-        from tools.cli import main as srl
+    if args.systems:  # the experiments through the command line this srl parsed (args.srl_parser)
+        from common.process.runtime import main as run_command
 
-        kept = systems.run_experiments(root, srl)
+        kept = systems.run_experiments(root, lambda argv: run_command(args.srl_parser, argv))
     written = kept + write(args.srl_parser, root)
     print(f"srl docs: wrote {len(written)} files" + "".join(f"\n  {p}" for p in written))
     return 0

@@ -421,7 +421,34 @@ def messages_page() -> str:
             "```",
             "",
         ]
-    return "\n".join(lines + columnar_section())
+    return "\n".join(lines + systems_section() + columnar_section())
+
+
+def systems_section() -> list[str]:
+    """Another system's messages (common/contracts/wire.py): what differs from the robot's, and
+    every built-in system's sizes, from the schemas :func:`~common.contracts.wire.wire` makes."""
+    from common.contracts import wire
+    from common.math.systems import BUILT_IN_SYSTEMS, SYSTEMS
+
+    def width(schema: Any, name: str) -> int:
+        return len(schema.model_fields[name].annotation.__args__)
+
+    lines = ["## Another system's messages", "", docstring(wire.__doc__), ""]
+    lines += ["| system | `state` | `action` | `q_weights` | `v_weights` |", "|---|---|---|---|---|"]
+    for name in BUILT_IN_SYSTEMS:
+        if SYSTEMS[name].wheeled:
+            continue
+        made = wire.wire(name)
+        lines.append(
+            f"| [`{name}`](systems/{name}.md) | {width(made.state, 'state')} | {width(made.action, 'action')} | "
+            f"{len_of(made.weights, 'q_weights')} | {len_of(made.weights, 'v_weights')} |"
+        )
+    return [*lines, ""]
+
+
+def len_of(schema: Any, name: str) -> int:
+    """A fixed-length tuple field's length (its ``max_length``)."""
+    return next(m.max_length for m in schema.model_fields[name].metadata if getattr(m, "max_length", None))
 
 
 def columnar_section() -> list[str]:
@@ -637,7 +664,8 @@ def variants_page() -> str:
         "`common/math/systems.py` `SYSTEMS`: the setting `plant.system`, `--system` (`srl run`, `srl experiment",
         "paper`), Gymnasium's `srl/<System>-v0` (the robot's: `srl/Unicycle-v0`). The actor's problem, the critics'",
         "features and the in-process plant are sized and built from the row; its goal is the origin of its state.",
-        "A system other than the robot (not wheeled) runs in process only: the services carry the robot's pose.",
+        "A system other than the robot (not wheeled) runs in process and in lockstep over Zenoh (`srl up --mode",
+        "lockstep --system`); the real-time hosts, the robot bridge and recordings carry the robot's pose.",
         "A built-in system's page gives its model, cost, bounds and starts, and its results in the paper's experiment.",
         "",
         *_table(

@@ -100,8 +100,12 @@ def box_rows(name: str, system: System) -> list[list[str]]:
         [
             "run it",
             f"`srl run --system {name}`, `srl experiment paper --system {name}`, "
-            f"`srl experiment baselines --system {name}`, Gymnasium `{gymnasium_id(name)}`"
-            + ("; the services, `srl up` and the robots" if system.wheeled else ""),
+            f"`srl experiment baselines --system {name}`, Gymnasium `{gymnasium_id(name)}`, "
+            + (
+                "the services, `srl up` and the robots"
+                if system.wheeled
+                else f"`srl up --mode lockstep --system {name}`"
+            ),
         ],
     ]
 

@@ -195,8 +195,22 @@ def run_environment(options: UpOptions) -> dict[str, str]:
     return env
 
 
-def check_options(options: UpOptions, robots: list[str]) -> None:
+def check_options(options: UpOptions, robots: list[str], settings: Settings) -> None:
     """One line (ValueError) for a run that cannot be, before anything starts."""
+    if not settings.system.wheeled:  # another system: the lockstep services (the real-time ones carry the pose)
+        robot_only = [
+            flag
+            for flag, used in (
+                ("--mode realtime", options.mode != "lockstep"),
+                (f"--plant {options.plant}", launch_plant(options.plant) != launch_plant("sim")),  # a TurtleBot3's
+                ("--robots", options.fleet),
+                ("--record", options.record is not None),
+                ("--view", options.view_port is not None),
+            )
+            if used
+        ]
+        if robot_only:
+            settings.robot_only("srl up " + " ".join(robot_only))
     if options.secure and (options.record is not None or options.view_port is not None):
         raise ValueError(
             "--record and --view do not run with --secure yet: the read-only monitor role may read "
@@ -246,8 +260,8 @@ def run_up(settings: Settings, options: UpOptions) -> dict[str, Any]:
     SIGINT, SIGTERM and SIGHUP stop everything as Ctrl-C does, then raise :class:`Stopped`.
     """
     robots = list(options.robots) if options.robots is not None else [settings.transport.robot]
-    check_options(options, robots)
-    settings.robot_only("srl up")  # before anything starts: every service would refuse it
+    check_options(options, robots, settings)
+
     router = options.router or (free_loopback_endpoint() if options.fleet else settings.transport.router)
     settings = settings.model_copy(update={"transport": settings.transport.model_copy(update={"router": router})})
     env = run_environment(options)
