@@ -311,3 +311,27 @@ def test_the_zenoh_environment_is_the_in_process_one_bit_for_bit() -> None:
                 assert got[-1][3] is True
         finally:
             remote.close()
+
+
+@pytest.mark.integration
+def test_another_systems_zenoh_environment_is_its_in_process_one_bit_for_bit() -> None:
+    """The cart-pole's lockstep plant_sim as an environment: its messages sized and named by the
+    system (common/contracts/wire.py), its episode the in-process one."""
+    from tools.gym.zenoh_env import ZenohEnv
+
+    actions = np.random.default_rng(4).uniform(-12.0, 12.0, (50, 1))  # beyond the box: clipped alike
+    local = SrlEnv(system="cartpole")
+    with cluster(robot="gym1") as c:
+        c.start("plant", "plant-sim", "--mode", "lockstep", "--system", "cartpole")
+        c.wait_alive("plant")
+        remote = ZenohEnv(robot="gym1", router=c.endpoint, system="cartpole")
+        try:
+            got, expected = [remote.reset(seed=6)], [local.reset(seed=6)]
+            for action in actions:
+                got.append(remote.step(action))
+                expected.append(local.step(action))
+            assert got[0][0].shape == (4,)
+            for k, (a, b) in enumerate(zip(got, expected, strict=True)):
+                assert a[0].tolist() == b[0].tolist() and a[1:-1] == b[1:-1], k
+        finally:
+            remote.close()

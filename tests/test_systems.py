@@ -388,7 +388,8 @@ def test_the_starts_of_another_system_span_its_start_box_and_never_the_goal() ->
 @pytest.mark.integration
 def test_srl_experiment_paper_runs_another_system(tmp_path: Any) -> None:
     """``srl experiment paper --system pendulum``: its starts, J/J_mpc per agent and N, how many
-    stabilized, the claims, the figures; ``--extent`` (the robot's) and the Zenoh transport refused."""
+    stabilized, the claims, the figures; over the Zenoh transport the same runs; ``--extent`` (the
+    robot's) and ``--record`` refused."""
     from tests.harness import srl
 
     out = tmp_path / "pendulum"
@@ -406,7 +407,13 @@ def test_srl_experiment_paper_runs_another_system(tmp_path: Any) -> None:
     assert {"ratio_N6.png", "trajectories.png"} <= set(summary["plots"])
     states = np.load(out / "trajectories.npz")["states"]
     assert states.shape == (8, 101, 2)
-    for extra, says in ((["--extent", "1"], "--extent"), (["--transport", "zenoh"], "--transport")):
+    # over the lockstep services (a router, a plant and a critic per worker): the same runs, bit for bit
+    zenoh = srl(*argv, "--duration", "10", "--workers", "1", "--no-progress", "--out", str(tmp_path / "zenoh"),
+                "--transport", "zenoh", env={"SRL_ACTOR__JIT": "false"}, timeout=300)  # fmt: skip
+    assert zenoh.returncode == 0, zenoh.stderr[-2000:]
+    costs = [[row["accumulated_cost"] for row in read_runs_csv(d / "runs.csv")] for d in (out, tmp_path / "zenoh")]
+    assert costs[0] == costs[1] and len(costs[0]) == 8
+    for extra, says in ((["--extent", "1"], "--extent"), (["--record", str(tmp_path / "r.mcap")], "--record")):
         refused = srl(*argv, *extra, "--out", str(tmp_path / "no"), timeout=120)
         assert refused.returncode == 2 and says in refused.stderr and "runs in process" in refused.stderr
 

@@ -35,7 +35,7 @@ def main(args: argparse.Namespace) -> int:
 
     from common.net.transport import zenoh_config
 
-    settings = settings_from_args(args)
+    settings = settings_from_args(args, any_system=True)  # it routes whatever system the keys carry
     stop = service_stop()  # signals (bounded) and srl up's death
     try:
         session = zenoh.open(zenoh_config(settings.transport, router=True))

@@ -41,8 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--system",
         choices=tuple(SYSTEMS),
-        help="paper: the sampled system (plant.system; docs/reference/variants.md): another than the robot runs "
-        "in process, its starts over its start box; baselines: its Gymnasium environment, e.g. srl/Pendulum-v0 "
+        help="paper: the sampled system (plant.system; docs/reference/variants.md): another than the robot's "
+        "starts span its start box; baselines: its Gymnasium environment, e.g. srl/Pendulum-v0 "
         "(default: the settings', the robot)",
     )
     parser.add_argument("--grid", type=int, default=5, help="K: K x K starts (default 5: the paper's 25)")
@@ -157,8 +157,18 @@ def _load_settings(args: argparse.Namespace) -> Settings:
     overrides["plant"] = {"model": args.plant} | ({"system": args.system} if args.system else {})
     try:
         settings = Settings.load(args.config, **overrides)
-        if args.which != "paper" or args.transport != "inproc" or args.record or args.localization != "none":
-            settings.robot_only(f"srl experiment {args.which} with --transport, --record or --localization")
+        # another system: the paper's experiment, in process or over the lockstep services
+        robot_only = [
+            flag
+            for flag, used in (
+                (f"srl experiment {args.which}", args.which != "paper"),
+                ("--record", args.record is not None),
+                (f"--localization {args.localization}", args.localization != "none"),
+            )
+            if used
+        ]
+        if robot_only:
+            settings.robot_only(" with ".join(robot_only))
         if args.extent is not None:
             settings.robot_only("--extent (another system's starts span its start box)")
         return settings

@@ -52,14 +52,14 @@ class ZenohRunner:
     """This worker as the actor of robot ``config.robot``, the actor service's lockstep code."""
 
     def __init__(self, base: Settings) -> None:
-        from common.contracts.keys import WEIGHTS
         from common.net.transport import Bus
         from services.actor.ports import WeightsInbox
 
         self.robot = base.transport.robot
         self.bus = Bus.open(base.transport, "actor")
         self.inbox = WeightsInbox(base, self.bus)  # initial weights depend on cost and delta only
-        self.bus.subscribe(WEIGHTS, WEIGHTS.key(self.robot), self.inbox.offer)
+        weights = base.wire.WEIGHTS  # the robot's, or another system's (common/contracts/wire.py)
+        self.bus.subscribe(weights, weights.key(self.robot), self.inbox.offer)
         self.bus.declare_alive(self.robot)
         self.bus.wait_alive(self.robot, "plant", timeout=60.0)
         self.bus.wait_alive(self.robot, "critic", timeout=60.0)

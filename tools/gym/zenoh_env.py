@@ -10,11 +10,13 @@ and actions and states cross the wire as JSON numbers written to round-trip (pyd
 shortest repr of a binary64), so an episode is the in-process one bit for bit
 (tests/test_gym.py). Observation, action, reward and episode are :class:`SrlEnv`'s.
 
-The plant_sim's own settings choose its plant (``plant.model``); give this environment the same
-settings (``model`` and ``settings`` as the plant_sim's) so that its limits and cost are that
-robot's. ``robot`` and ``router`` default to ``transport.robot`` and ``transport.router``; the
-environment waits up to ``timeout`` seconds for the router and for the robot's plant to be alive
-(one ``TimeoutError`` line saying what to start otherwise). Each reset starts a new episode id;
+The plant_sim's own settings choose its plant (``plant.model``, ``plant.system``); give this
+environment the same settings (``model``, ``system`` and ``settings`` as the plant_sim's) so that
+its limits and cost are that plant's: another system's lockstep plant (``srl plant-sim --mode
+lockstep --system pendulum``) is ``ZenohEnv(system="pendulum")``. ``robot`` and ``router``
+default to ``transport.robot`` and ``transport.router``; the environment waits up to ``timeout``
+seconds for the router and for the robot's plant to be alive (one ``TimeoutError`` line saying
+what to start otherwise). Each reset starts a new episode id;
 :meth:`ZenohEnv.close` closes the Zenoh session.
 """
 
@@ -46,8 +48,9 @@ class ZenohEnv(SrlEnv):
         held_out_seed: int = 0,
         settings: Settings | None = None,
         timeout: float = 10.0,
+        system: str = "unicycle",
     ) -> None:
-        base = env_settings(settings, model)
+        base = env_settings(settings, model, system)
         data = base.model_dump()
         data["transport"].update({k: v for k, v in (("robot", robot), ("router", router)) if v is not None})
         settings = Settings.model_validate(data)
@@ -66,7 +69,7 @@ class ZenohEnv(SrlEnv):
             time.sleep(0.1)
         self.episode_id = new_episode_id()
         self.zenoh_plant = ZenohPlant(settings, self.bus, self.episode_id)
-        super().__init__(model, starts, grid, extent, held_out_seed, settings, plant=self.zenoh_plant)
+        super().__init__(model, starts, grid, extent, held_out_seed, settings, plant=self.zenoh_plant, system=system)
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
