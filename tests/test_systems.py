@@ -445,13 +445,16 @@ def test_a_pages_step_error_is_the_integrators_and_small() -> None:
     assert step_error(coarse) > 100 * step_error(SYSTEMS["pendulum"])
 
 
-def test_srl_docs_systems_keeps_each_experiments_summary_and_figures(tmp_path: Path) -> None:
+def test_srl_docs_systems_keeps_each_experiments_summary_and_figures(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from tools.docs.systems import KEPT, run_experiments
 
     calls = []
 
     def fake_srl(argv: list[str]) -> int:  # what srl experiment paper writes, without running it
         calls.append(argv)
+        print(f"# srl experiment paper ... results in {argv[-1]}/")  # its own output, kept back
         out = Path(argv[argv.index("--out") + 1])
         out.mkdir()
         for name in (*KEPT, "runs.csv", "summary.md", "trajectories.npz"):
@@ -459,14 +462,23 @@ def test_srl_docs_systems_keeps_each_experiments_summary_and_figures(tmp_path: P
         return 0
 
     written = run_experiments(tmp_path, fake_srl)
+    said = capsys.readouterr()
+    assert "results in" not in said.out + said.err and "srl docs: srl experiment paper --system pendulum: " in said.err
     others = [name for name in BUILT_IN_SYSTEMS if not SYSTEMS[name].wheeled]
     assert [argv[argv.index("--system") + 1] for argv in calls] == others
     assert sorted(written) == sorted(f"docs/paper/systems/{n}/{k}" for n in others for k in KEPT)
     assert not (tmp_path / "docs/paper/systems/pendulum/summary.md").exists()  # never a page of its own
     assert not any(Path(argv[argv.index("--out") + 1]).exists() for argv in calls)  # the scratch removed
     before = (tmp_path / "docs/paper/systems/pendulum/summary.json").read_text()
-    with pytest.raises(RuntimeError, match="cartpole exited 3"):  # pendulum ran, cartpole failed: nothing kept
-        run_experiments(tmp_path, lambda argv: 3 if "cartpole" in argv else fake_srl(argv), ("pendulum", "cartpole"))
+
+    def failing(argv: list[str]) -> int:
+        if "cartpole" in argv:
+            print("srl experiment: error: no cores left")
+            return 3
+        return fake_srl(argv)
+
+    with pytest.raises(RuntimeError, match="cartpole exited 3: srl experiment: error: no cores left"):
+        run_experiments(tmp_path, failing, ("pendulum", "cartpole"))  # pendulum ran, cartpole failed: nothing kept
     assert (tmp_path / "docs/paper/systems/pendulum/summary.json").read_text() == before
 
 

@@ -119,7 +119,11 @@ def main(args: argparse.Namespace) -> int:
     if args.systems:  # the experiments through the command line this srl parsed (args.srl_parser)
         from common.process.runtime import main as run_command
 
-        kept = systems.run_experiments(root, lambda argv: run_command(args.srl_parser, argv))
+        try:
+            kept = systems.run_experiments(root, lambda argv: run_command(args.srl_parser, argv))
+        except RuntimeError as error:
+            print(f"srl docs: error: {error}; nothing kept", file=sys.stderr)
+            return 1
     written = kept + write(args.srl_parser, root)
     print(f"srl docs: wrote {len(written)} files" + "".join(f"\n  {p}" for p in written))
     return 0

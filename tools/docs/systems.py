@@ -6,9 +6,13 @@ pages show (the summary and the figures); ``srl docs`` writes the pages."""
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import shutil
+import sys
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -166,14 +170,21 @@ def run_experiments(root: Path, run: Callable[[list[str]], int], names: tuple[st
     """``srl experiment paper --system NAME`` for each system but the robot (``run``: the CLI's
     main), each into a temporary directory removed after; once all have run (so that each names
     the commit it ran, not a tree its forerunner changed, and a failure changes nothing), what the
-    pages show is kept under :data:`SYSTEM_DATA`. The paths written."""
+    pages show is kept under :data:`SYSTEM_DATA`. The paths written. Each experiment's own output
+    (its summary, the directory it names, soon removed) is kept back: one line each on stderr says
+    it ran; a failure is a RuntimeError naming the experiment and its last line."""
     chosen = names if names is not None else tuple(n for n in BUILT_IN_SYSTEMS if not SYSTEMS[n].wheeled)
     written = []
     with tempfile.TemporaryDirectory(prefix="srl-docs-") as scratch:
         for name in chosen:
-            code = run(["experiment", "paper", "--system", name, "--no-progress", "--out", f"{scratch}/{name}"])
+            argv = ["experiment", "paper", "--system", name, "--no-progress", "--out", f"{scratch}/{name}"]
+            said, started = io.StringIO(), time.monotonic()
+            with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+                code = run(argv)
             if code != 0:
-                raise RuntimeError(f"srl experiment paper --system {name} exited {code}")
+                last = (said.getvalue().strip().splitlines() or [""])[-1]
+                raise RuntimeError(f"srl {' '.join(argv[:4])} exited {code}: {last}")
+            print(f"srl docs: srl {' '.join(argv[:4])}: {time.monotonic() - started:.1f} s", file=sys.stderr)
         for name in chosen:
             target = root / SYSTEM_DATA / name
             target.mkdir(parents=True, exist_ok=True)
