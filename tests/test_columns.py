@@ -20,6 +20,7 @@ from common.contracts.columns import (
     Columns,
     batch_payloads,
     batch_rows,
+    batch_system,
     columns_of,
     decode_batch,
     decode_columns,
@@ -47,7 +48,8 @@ def samples(count: int, seed: int = 3) -> dict[type[Message], list[Message]]:
     def vec(n: int, scale: float = 5.0) -> tuple[float, ...]:
         return tuple(rng.uniform(-scale, scale) for _ in range(n))
 
-    out: dict[type[Message], list[Message]] = {schema: [] for schema in SCHEMA_CODES}
+    # srl's own schemas (another system's, made by common.contracts.wire in this process, share their codes)
+    out: dict[type[Message], list[Message]] = {schema: [] for schema in SCHEMA_CODES if batch_system(schema) is None}
     for i in range(count):
         robot = rng.choice(["r", "robot", "tb3_-"]) + str(i)
         out[PlantState].append(

@@ -587,16 +587,19 @@ class Settings(BaseSettings):
         """The messages and topics of the system (common/contracts/wire.py): the robot's are srl's own."""
         return wire(self.plant.system)
 
-    def robot_only(self, what: str) -> Settings:
+    def robot_only(self, what: str, *uses: tuple[str, bool]) -> Settings:
         """These settings, for ``what`` that serves the robot only (the services' wire, a recording,
-        the experiment: the unicycle's pose and (v, omega)); ValueError (one line) for another system."""
-        if not self.system.wheeled:
-            name = self.plant.system
-            raise ValueError(
-                f"{what}: carries the robot's pose and (v, omega); system {name} runs in process "
-                f"(srl run --system {name}) and in lockstep (srl up --mode lockstep --system {name})"
-            )
-        return self
+        the experiment: the unicycle's pose and (v, omega)); ValueError (one line) for another system.
+        ``uses``: (flag, used) pairs, of which only the used ones serve the robot only: refused,
+        named after ``what``, when one is used (none given: ``what`` itself is)."""
+        flags = [flag for flag, used in uses if used]
+        if self.system.wheeled or (uses and not flags):
+            return self
+        name = self.plant.system
+        raise ValueError(
+            f"{' '.join([what, *flags])}: carries the robot's pose and (v, omega); system {name} runs in process "
+            f"(srl run --system {name}) and in lockstep (srl up --mode lockstep --system {name})"
+        )
 
     @property
     def r_diag(self) -> tuple[float, ...]:

@@ -168,8 +168,8 @@ def checkpoint_path(settings: Settings) -> Path | None:
             template.format(robot=settings.transport.robot, agent=settings.actor.agent, horizon=settings.actor.horizon)
         )
     )
-    system = settings.plant.system
-    return path if settings.system.wheeled else path.with_name(f"{path.stem}-{system}{path.suffix}")
+    system = settings.plant.system  # the robot's file is the unicycle's; every other row's its own
+    return path if system == "unicycle" else path.with_name(f"{path.stem}-{system}{path.suffix}")
 
 
 def replay_sample(message: TransitionRow) -> Sample:
@@ -350,10 +350,9 @@ class CriticLearner:
         version and publishes nothing, so taking the common rows first changes nothing."""
         robots = batch.robots
         episodes, steps, costs = (batch.field(name).tolist() for name in ("episode", "step", "cost"))
-        values = np.hstack(
-            [batch.field("state"), batch.field("action")]
-        )  # (s, u) rows: the robot's (x, y, alpha, v, omega)
-        n = batch.field("state").shape[1]
+        states = batch.field("state")
+        values = np.hstack([states, batch.field("action")])  # (s, u) rows: the robot's (x, y, alpha, v, omega)
+        n = states.shape[1]
         repeated: set[str] = set()  # robots with several rows in the batch
         if len(set(robots)) < len(robots):
             repeated = {robot for robot, count in Counter(robots).items() if count > 1}

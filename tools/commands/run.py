@@ -60,9 +60,9 @@ def main(args: argparse.Namespace) -> int:
     from common.config.assembly import episode_summary, run_episode
 
     settings = settings_from_args(args, any_system=True)
-    if not settings.system.wheeled and args.record:  # --transport zenoh: the lockstep services, any system's
+    if args.record:  # --transport zenoh: the lockstep services, any system's
         try:
-            settings.robot_only("--record")
+            settings.robot_only("srl run", ("--record", True))
         except ValueError as error:
             raise UsageError(str(error)) from error
     recorder = None

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from common.config.settings import Settings
 from common.math.features import feature_count
 from common.math.systems import BUILT_IN_SYSTEMS, SYSTEMS, System, gymnasium_id
 from tools.docs.reference import GENERATED, cell, code, first_paragraph
@@ -28,12 +29,16 @@ from tools.experiment.report import results_lines
 SYSTEM_DATA = Path("docs/paper/systems")  # NAME/: what each built-in system's page shows
 ROBOT_DATA = Path("docs/paper/paper-grid")  # the robot's: the paper's experiment
 KEPT = ("summary.json", "trajectories.png", "ratio_N12.png", "ratio_N6.png")  # of an experiment's output
-SAMPLING_TIME = 0.1  # [s]: delta, srl.toml's plant.sampling_time (the pages' step error is over it)
 
 
 def data_dir(name: str) -> Path:
     """Where ``name``'s experiment output is kept (relative to the repository)."""
     return ROBOT_DATA if name == "unicycle" else SYSTEM_DATA / name
+
+
+def sampling_time() -> float:
+    """[s] delta of srl.toml (``plant.sampling_time``): the pages' step error is over it."""
+    return Settings.load().plant.sampling_time
 
 
 def step_error(system: System, draws: int = 32) -> float:
@@ -42,11 +47,11 @@ def step_error(system: System, draws: int = 32) -> float:
     and actions in the action box: the integrator's error the page states."""
     rng = np.random.default_rng(0)
     finer = replace(system, substeps=16 * system.substeps)
-    worst = 0.0
+    worst, delta = 0.0, sampling_time()
     for _ in range(draws):
         state = system.draw_start(rng)
         action = rng.uniform(-1.0, 1.0, system.action_dim) * np.array(system.action_max)
-        step, fine = system.step(state, action, SAMPLING_TIME), finer.step(state, action, SAMPLING_TIME)
+        step, fine = system.step(state, action, delta), finer.step(state, action, delta)
         worst = max(worst, float(np.max(np.abs(step - fine))))
     return worst
 
@@ -55,7 +60,7 @@ def plant_step(system: System) -> str:
     if system.exact_step is not None:
         return "exact: the closed form of the held interval"
     return (
-        f"{system.substeps} RK4 steps per held interval; over delta = {SAMPLING_TIME:g} s they differ from "
+        f"{system.substeps} RK4 steps per held interval; over delta = {sampling_time():g} s they differ from "
         f"{16 * system.substeps} steps by at most {step_error(system):.1e} (32 seeded states of the start box, "
         "actions in the box)"
     )

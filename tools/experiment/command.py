@@ -158,19 +158,13 @@ def _load_settings(args: argparse.Namespace) -> Settings:
     try:
         settings = Settings.load(args.config, **overrides)
         # another system: the paper's experiment, in process or over the lockstep services
-        robot_only = [
-            flag
-            for flag, used in (
-                (f"srl experiment {args.which}", args.which != "paper"),
-                ("--record", args.record is not None),
-                (f"--localization {args.localization}", args.localization != "none"),
-            )
-            if used
-        ]
-        if robot_only:
-            settings.robot_only(" with ".join(robot_only))
-        if args.extent is not None:
-            settings.robot_only("--extent (another system's starts span its start box)")
+        settings.robot_only(
+            "srl experiment",
+            (args.which, args.which != "paper"),
+            ("--record", args.record is not None),
+            (f"--localization {args.localization}", args.localization != "none"),
+            ("--extent (another system's starts span its start box)", args.extent is not None),
+        )
         return settings
     except ValidationError as error:
         problems = "; ".join(f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in error.errors())

@@ -197,20 +197,14 @@ def run_environment(options: UpOptions) -> dict[str, str]:
 
 def check_options(options: UpOptions, robots: list[str], settings: Settings) -> None:
     """One line (ValueError) for a run that cannot be, before anything starts."""
-    if not settings.system.wheeled:  # another system: the lockstep services (the real-time ones carry the pose)
-        robot_only = [
-            flag
-            for flag, used in (
-                ("--mode realtime", options.mode != "lockstep"),
-                (f"--plant {options.plant}", launch_plant(options.plant) != launch_plant("sim")),  # a TurtleBot3's
-                ("--robots", options.fleet),
-                ("--record", options.record is not None),
-                ("--view", options.view_port is not None),
-            )
-            if used
-        ]
-        if robot_only:
-            settings.robot_only("srl up " + " ".join(robot_only))
+    settings.robot_only(  # another system: the lockstep services (the real-time ones carry the pose)
+        "srl up",
+        ("--mode realtime", options.mode != "lockstep"),
+        (f"--plant {options.plant}", launch_plant(options.plant) != launch_plant("sim")),  # a TurtleBot3's
+        ("--robots", options.fleet),
+        ("--record", options.record is not None),
+        ("--view", options.view_port is not None),
+    )
     if options.secure and (options.record is not None or options.view_port is not None):
         raise ValueError(
             "--record and --view do not run with --secure yet: the read-only monitor role may read "
