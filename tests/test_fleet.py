@@ -165,6 +165,7 @@ class FakeLoop:
     periods: Window = field(default_factory=Window)
     jitter: Window = field(default_factory=Window)
     ticker: Any = None
+    zero: tuple[float, ...] = (0.0, 0.0)  # the system's zero action, sent on the way out
     sent: list[tuple[int, tuple[float, float]]] = field(default_factory=list)
     counters: ActorCounters = field(default_factory=ActorCounters)
     hurried: list[bool] = field(default_factory=list)  # the scheduler's hurry at each tick

@@ -184,3 +184,41 @@ def test_a_quiet_state_tick_advances_and_publishes_nothing_and_still_runs_the_wa
     plant.arrivals[2] = quiet - 1.0
     assert plant_tick(plant, intakes, sync, quiet, period, 0.5) is None
     assert [intake.watchdog_stops for intake in intakes] == [0, 0, 1]
+
+
+def test_another_systems_plant_waits_for_its_first_action_then_steps_by_its_row_and_stops_at_its_zero() -> None:
+    """A plant host of another system (the pendulum, which a zero torque does not hold up): each
+    robot stays at its start until its first action (its run begins with its actor's), then moves
+    by its row's step, bit for bit; a round is the system's states (a batch of the system's own,
+    as the actor reads it); an action beyond the row's box is clamped to it; the watchdog holds
+    the system's zero (one torque)."""
+    from common.contracts.columns import decode_columns, encode_columns
+
+    settings = Settings.load(plant={"system": "pendulum"})
+    row, wire = settings.system, settings.wire
+    starts = np.array([[0.4, 0.0], [-0.2, 0.1]])
+    plant = FleetPlant(settings, ["p0", "p1"], starts.copy())
+    counts, lock = FakeCounts(), threading.Lock()
+    intakes = [RobotIntake(plant, i, counts, None, lock) for i in range(2)]  # type: ignore[arg-type]
+    period = 1.0 / settings.transport.state_rate
+    assert plant.still()  # nothing moves before the first action
+    waiting = plant_tick(plant, intakes, None, 100.0, period, 10.0)
+    assert waiting is not None and np.array_equal(waiting.field("state"), starts)
+    (payload,) = encode_columns(waiting)
+    decoded = decode_columns(wire.state, payload)
+    assert [item.system for item in decoded.items()] == ["pendulum", "pendulum"]
+    assert [list(item.state) for item in decoded.items()] == starts.tolist()
+
+    plant.hold(0, (5.0,))  # beyond the row's box: clamped to 0.1 N m
+    assert plant.held[0].tolist() == [row.action_max[0]] and not plant.still()
+    moved = plant_tick(plant, intakes, None, 100.0 + period, period, 10.0)
+    assert moved is not None
+    assert np.array_equal(plant.states[0], row.step(starts[0], np.array(row.action_max), period))
+    assert np.array_equal(plant.states[1], starts[1])  # still waiting for its first action
+
+    intakes[1].gate.gate.update("actor1", True)
+    action = wire.action(system="pendulum", robot="p1", episode=1, step=0, stamp_ns=0, action=(0.05,), state_seq=-1)
+    assert intakes[1].take(action, "actor1") is not None
+    plant.arrivals[1] = 99.0  # its action is older than the timeout at the next tick
+    plant_tick(plant, intakes, None, 100.0 + 2 * period, period, 0.5)
+    assert [intake.watchdog_stops for intake in intakes] == [0, 1] and plant.held[1].tolist() == [0.0]

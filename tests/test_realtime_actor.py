@@ -432,3 +432,55 @@ def test_a_host_primes_every_robot_whose_state_comes_in_time_and_starts_without_
     started = time.monotonic()
     assert prime_plans([Loop().loop], stop, wait=10.0) == 0
     assert time.monotonic() - started < 1.0
+
+
+def test_another_systems_loop_sends_the_systems_messages_and_reports_in_its_terms() -> None:
+    """The real-time loop of another system (the two tanks: two levels, one pump): its actions
+    and transitions are the system's messages (common/contracts/wire.py), of its sizes and naming
+    it; a stop is its zero (one number); the status and the summary say the distance to the goal
+    in the system's terms (no pose)."""
+    from common.math.features import stage_cost
+
+    settings = Settings.load(plant={"system": "two_tank"}, transport={"robot": "fk"})
+    wire, row = settings.wire, settings.system
+    fake, counts = FakeClock(), FakeCounts()
+    actions: list[Any] = []
+    transitions: list[Any] = []
+    gate = SourceGate("critic")
+    gate.update("c1", True)
+    inbox = WeightsInbox(settings, counts, gate)  # type: ignore[arg-type]
+
+    class Pump:
+        counters = ActorCounters()
+
+        def step(self, state: np.ndarray, q: np.ndarray, v: np.ndarray, hurry: bool = False) -> FakeStep:
+            return FakeStep(np.array([0.1]))
+
+        def reset(self) -> None:
+            pass
+
+    loop = RealtimeActor(settings, Pump(), inbox, actions.append, transitions.append, counts, 7, clock=fake.clock)
+    inbox.reset(7)
+    loop.plant_gate.update(PLANT, True)
+    seq = [0]
+
+    def publish(_: FakeClock) -> None:
+        seq[0] += 1
+        message = wire.state(
+            system="two_tank", robot="fk", episode=0, seq=seq[0], stamp_ns=0, state=(-0.2, -0.1), source="sim"
+        )
+        loop.on_state(message, PLANT)
+
+    fake.on_sleep = publish
+    serve(loop, fake, 5.5)
+    assert [a.action for a in actions] == [(0.1,)] * 5 + [(0.0,)]  # then its zero on the way out
+    assert all(isinstance(m, wire.action) and m.system == "two_tank" for m in actions)
+    assert [t.state for t in transitions] == [(-0.2, -0.1)] * 5
+    expected = DELTA * float(stage_cost(np.array([-0.2, -0.1]), np.array([0.1]), settings.r_diag))
+    assert [t.cost for t in transitions] == [expected] * 5
+    distance = row.distance(np.array([-0.2, -0.1]))
+    status = loop.status()
+    assert status["distance"] == distance and "x" not in status
+    summary = loop.summary()
+    assert summary["system"] == "two_tank" and summary["final_distance"] == distance
+    assert summary["start_state"] == [-0.2, -0.1] and summary["transitions_tail"][-1] == [4, -0.2, -0.1, 0.1, expected]

@@ -226,10 +226,10 @@ def test_a_start_of_the_wrong_size_and_the_services_are_refused_in_one_line(
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
     monkeypatch.setenv("SRL_PLANT__SYSTEM", "two_tank")
-    for argv in (  # the real-time hosts carry the robot's pose (the lockstep services any system's)
-        ["actor", "--connect-timeout", "1"],
-        ["plant-sim", "--connect-timeout", "1"],
-        ["up", "--duration", "1"],
+    for argv in (  # a fleet's hosts carry the robot's pose (the services of one robot any system's)
+        ["actor", "--robots", "2", "--connect-timeout", "1"],
+        ["plant-sim", "--robots", "2", "--connect-timeout", "1"],
+        ["up", "--robots", "2", "--router", "tcp/127.0.0.1:7447", "--duration", "1"],  # no free port sought
         ["experiment", "fleet", "--grid", "1"],
     ):
         assert main(argv) == 2, argv
@@ -548,20 +548,46 @@ def test_srl_up_lockstep_runs_a_users_system_and_says_how_close_it_came(tmp_path
 
 
 @pytest.mark.integration
+@pytest.mark.slow
+def test_srl_up_in_real_time_runs_a_users_system_from_its_start_and_stabilizes_it(tmp_path: Path) -> None:
+    """``srl up --system double_integrator`` (real time, the default; the row from SRL_PLUGINS in
+    every service process): the plant waits at the start for the actor's first action (a system a
+    zero action does not hold would be gone before its actor is built), the actor ticks on time,
+    every transition reaches the critic, and the run ends stabilized, said in the system's terms."""
+    from tests.harness import free_port, srl
+
+    env = {"SRL_PLUGINS": "examples/double_integrator.py", "SRL_ACTOR__JIT": "false"}
+    done = srl(
+        "up", "--system", NAME, "--duration", "12", "--json", "--router", f"tcp/127.0.0.1:{free_port()}",
+        "--robot", "di2", "--summary-dir", str(tmp_path / "up"), env=env, timeout=240,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    assert summary["mode"] == "realtime" and summary["system"] == NAME
+    assert summary["start_state"] == list(DOUBLE_INTEGRATOR.start)  # it waited for its actor
+    assert summary["loop"]["missed_deadlines"] == 0, summary["loop"]
+    assert summary["final_distance"] < DOUBLE_INTEGRATOR.stabilized, summary["final_state"]
+    assert summary["truth"]["final_distance"] == summary["final_distance"]  # the simulator's truth
+    assert summary["critic"]["transitions_received"] == summary["steps"] >= 100
+    assert summary["weights_version"] > 1
+    assert f"stabilized (< {DOUBLE_INTEGRATOR.stabilized:g})" in done.stderr + done.stdout
+
+
+@pytest.mark.integration
 def test_what_carries_the_robots_pose_refuses_another_system_in_one_line(tmp_path: Path) -> None:
     from tests.harness import free_port, srl
 
     router = f"tcp/127.0.0.1:{free_port()}"
     for extra, says in (
-        ([], "srl up --mode realtime"),
         (["--mode", "lockstep", "--record", str(tmp_path / "r.mcap")], "--record"),
         (["--robots", "2"], "--robots"),
         (["--plant", "robot"], "--plant robot"),
+        (["--plant", "physics"], "--plant physics"),
     ):
         refused = srl("up", "--system", "pendulum", "--duration", "1", "--router", router, *extra, timeout=60)
         errors = [line for line in refused.stderr.splitlines() if "error" in line.lower()]
         assert refused.returncode == 2 and len(errors) == 1, (extra, refused.stderr[-2000:])
-        assert says in errors[0] and "srl up --mode lockstep --system pendulum" in errors[0], errors[0]
+        assert says in errors[0] and "srl up --system pendulum" in errors[0], errors[0]
         assert "Traceback" not in refused.stderr
 
 

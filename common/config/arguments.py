@@ -251,7 +251,7 @@ COMMAND_SETTINGS: dict[str, tuple[str, ...]] = {
     "bench bridge": ALL_FLAGS,
     "bench fleet": ("config", *ACTOR_FLAGS),  # robots, routers and starts are the fleet's own
     "bench capacity": ("config", *ACTOR_FLAGS),  # the same fleets as bench fleet
-    # another system than the robot: in lockstep (actor, plant-sim) and the critic
+    # another system than the robot: the services of one robot (actor, plant-sim, critic)
     "actor": (*ALL_FLAGS, "system"),
     "router": TRANSPORT_FLAGS,
     "plant-sim": (*TRANSPORT_FLAGS, "start", "system"),  # where the simulated robot starts

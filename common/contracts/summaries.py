@@ -18,9 +18,11 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, TypeAdapter
 
 from common.math.agents import agent_row
+from common.math.systems import system_row
 
 
 def _known_agent(name: str) -> str:
@@ -102,8 +104,12 @@ class RealtimeActorSummary(_Summary):
     episode_id: int
     steps: int
     accumulated_cost: float
+    system: str = Field(default="unicycle", description="the sampled system (settings plant.system)")
     start_state: list[float] | None = Field(description="the first state the robot reported (its own start)")
     final_state: list[float] | None = Field(description="the last state the robot reported (its odometry)")
+    final_distance: float | None = Field(
+        default=None, description="the final state's distance to the goal, in the system's terms (None: no state)"
+    )
     truth: TrueView | None = Field(description="None: the plant sent no truth (a real robot): only odometry is known")
     saturated_commands: int | None = Field(description="from the plant, if it knows (a simulator)")
     weights_version: int
@@ -186,6 +192,8 @@ def format_status_line(c: dict[str, float], elapsed: float, first_version: list[
     pose = ""
     if all(k in c for k in ("x", "y", "alpha")):
         pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {math.hypot(c['x'], c['y']):.2f} m"
+    elif "distance" in c:  # another system: its distance to the goal (services/actor/realtime.py status)
+        pose = f"  distance to the goal {c['distance']:.4f}"
     version = c.get("weights_version", -1.0)
     if not first_version and version > 0:
         first_version.append(version)
@@ -366,14 +374,11 @@ def _worst(values: list[float]) -> float:
 
 
 def robot_row(robot: str, summary: RealtimeActorSummary) -> RobotRow:
-    if summary.truth is not None:
-        distance = summary.truth.final_distance
-    elif summary.final_state is not None:
-        distance = math.hypot(summary.final_state[0], summary.final_state[1])
-    else:
-        distance = math.nan
-    own = math.hypot(summary.final_state[0], summary.final_state[1]) if summary.final_state is not None else math.nan
-    last = summary.transitions_tail[-1] if summary.transitions_tail else None  # k, x, y, alpha, v, omega, r
+    system = system_row(summary.system)
+    own = math.nan if summary.final_state is None else system.distance(np.array(summary.final_state))
+    distance = own if summary.truth is None else summary.truth.final_distance
+    last = summary.transitions_tail[-1] if summary.transitions_tail else None  # k, state, action, r
+    n, m = system.state_dim, system.action_dim
     return RobotRow(
         robot=robot,
         steps=summary.steps,
@@ -388,7 +393,7 @@ def robot_row(robot: str, summary: RealtimeActorSummary) -> RobotRow:
         final_distance_m=distance,
         parked=math.isfinite(distance) and distance <= PARKED_WITHIN_M,
         own_final_distance_m=own,
-        at_rest=last is not None and last[4] == 0.0 and last[5] == 0.0,
+        at_rest=last is not None and not any(last[1 + n : 1 + n + m]),
     )
 
 

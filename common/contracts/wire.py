@@ -13,8 +13,8 @@ fields, but
 Their batches are columns as the robot's are (common.contracts.columns derives every layout from
 the schema, ``system`` a choice of one name), so a batch of another system's size or name is
 refused whole (a batch of another system names it first in its manifest). :func:`wire` makes a
-system's once. The lockstep services (plant, actor) and the critic carry any system's messages
-(``srl up --mode lockstep --system NAME``); the real-time hosts and the robot bridge the robot's."""
+system's once. The services (plant, actor, critic) carry any system's messages (``srl up --system
+NAME``, real time and lockstep); the robot bridge, a recording and a live view the robot's."""
 
 from __future__ import annotations
 
@@ -22,9 +22,10 @@ import functools
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import Field, create_model
 
-from common.contracts.columns import SCHEMA_CODES
+from common.contracts.columns import SCHEMA_CODES, choice_code
 from common.contracts.keys import ACTION, PLANT_RESET, PLANT_STEP, STATE, TRANSITION, WEIGHTS, Service, Topic
 from common.contracts.messages import (
     Action,
@@ -69,6 +70,12 @@ class Wire:
         """The fields every message of this wire takes beside its own: ``{"system": NAME}``, or
         none for the robot's (``wire.transition(**wire.named, robot=..., ...)``)."""
         return {} if self.system == "unicycle" else {"system": self.system}
+
+    def named_columns(self, schema: type[Message]) -> dict[str, Any]:
+        """:attr:`named` as a batch of ``schema`` carries it (``system``: the choice's code), and the
+        robot's own fields absent (NaN): what ``Columns.of`` takes beside a round's own fields."""
+        columns: dict[str, Any] = {field: np.nan for field in ROBOT_ONLY if field in schema.model_fields}
+        return columns | {field: choice_code(schema, field, name) for field, name in self.named.items()}
 
 
 ROBOT_WIRE = Wire(

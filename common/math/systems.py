@@ -24,7 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from common.math.dynamics import FloatArray, exact_step, heading_away_from_target, is_symbolic, unicycle_rhs
+from common.math.dynamics import (
+    FloatArray,
+    exact_step,
+    exact_steps,
+    heading_away_from_target,
+    is_symbolic,
+    unicycle_rhs,
+)
 from common.math.features import feature_count
 from common.math.integrators import Rhs, rk4_substeps
 from common.math.rows import add_row
@@ -86,10 +93,11 @@ class System:
     ``|u_i| <= action_max[i]`` (a wheeled robot's come from the settings' ``plant.v_max`` and
     ``plant.omega_max``). ``cost_diag``: the default ``diag(R)`` of the stage cost ``r(s, u) =
     (s, u)^T R (s, u)``. ``start``: the default start. ``exact_step``: the exact sample-and-hold,
-    where known. ``wheeled``: the actions are a differential drive's ``(v,
-    omega)`` and the state its pose ``(x, y, alpha)``: the wheel box, the arrival rule and the robot
-    bridge serve only such a system. ``distance``: how far a state is from the goal, in the system's
-    own terms; ``stabilized``: the distance under which it is."""
+    where known (``exact_steps``: the same for many states at once, as arrays). ``wheeled``: the
+    actions are a differential drive's ``(v, omega)`` and the state its pose ``(x, y, alpha)``: the
+    wheel box, the arrival rule and the robot bridge serve only such a system. ``distance``: how
+    far a state is from the goal, in the system's own terms; ``stabilized``: the distance under
+    which it is."""
 
     what: str
     states: tuple[str, ...]
@@ -99,6 +107,7 @@ class System:
     cost_diag: tuple[float, ...]
     start: tuple[float, ...]
     exact_step: ExactStep | None = None
+    exact_steps: ExactStep | None = None  # exact_step of many at once, (K, n) and (K, m) arrays
     wheeled: bool = False
     distance: Callable[[FloatArray], float] = state_norm
     stabilized: float = 0.05
@@ -169,6 +178,21 @@ class System:
             return np.asarray(self.exact_step(state, action, duration), dtype=float)
         return np.asarray(rk4_substeps(self.rhs, state, action, duration, self.substeps), dtype=float)
 
+    def steps(self, states: FloatArray, actions: FloatArray, duration: float) -> FloatArray:
+        """:meth:`step` of many: ``states`` ``(K, n)``, ``actions`` ``(K, m)`` -> ``(K, n)`` (a plant
+        host's round): :attr:`exact_steps` as arrays where the row has it, else each row's step."""
+        states, actions = np.asarray(states, dtype=float), np.asarray(actions, dtype=float)
+        if self.exact_steps is not None:
+            return np.asarray(self.exact_steps(states, actions, duration), dtype=float)
+        stepped = [self.step(state, action, duration) for state, action in zip(states, actions, strict=True)]
+        return np.array(stepped, dtype=float).reshape(states.shape)
+
+    @property
+    def still_at_zero(self) -> bool:
+        """A zero action holds every state where it is (``f(s, 0) = 0``): a wheeled robot's zero
+        ``(v, omega)``. A plant host skips the step of such a system whose actions are all zero."""
+        return self.wheeled
+
 
 UNICYCLE = System(
     what="the paper's three-wheel robot, kinematic: a unicycle driven by (v, omega), eq. (3w-robot)",
@@ -179,6 +203,7 @@ UNICYCLE = System(
     cost_diag=(1.0, 10.0, 1.0, 0.01, 0.01),
     start=(2.0, 2.0, heading_away_from_target(2.0, 2.0)),  # srl.toml's [2, 2]: heading away from the target
     exact_step=exact_step,
+    exact_steps=exact_steps,
     wheeled=True,
     distance=position_distance,
     stabilized=0.05,

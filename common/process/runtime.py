@@ -147,13 +147,14 @@ def serve(
 ) -> int:
     """The one life cycle of a service process: signals, parent watch, session (with retry),
     ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line.
-    ``any_system``: the service carries any system's messages (settings.wire: the lockstep actor
-    and plant, the critic); else the robot's only, and another system is refused in one line."""
+    ``any_system``: the service carries any system's messages (settings.wire: one robot's actor
+    and plant, the critic); else the robot's only (a fleet's hosts), and another system is refused
+    in one line."""
     from common.net.transport import Bus
 
     if not any_system:
         try:
-            settings.robot_only(f"srl {service}")  # the real-time hosts' arrays are the robot's pose
+            settings.robot_only(f"srl {service}")  # a fleet's starts and summaries are the robot's
         except ValueError as error:
             raise UsageError(str(error)) from error
     stop = service_stop()

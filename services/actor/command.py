@@ -63,11 +63,10 @@ def main(args: argparse.Namespace) -> int:
         return code or worst
     if args.hosts != "1":
         raise UsageError("--hosts splits the robots of --robots over processes: give --robots too")
-    lockstep = args.mode == "lockstep"  # any system's (settings.wire); real time: the robot's host
-    return serve(
-        settings_from_args(args, any_system=lockstep),
+    return serve(  # one robot's actor: any system's (settings.wire); a fleet's (--robots): the robot's
+        settings_from_args(args, any_system=True),
         "actor",
         args.connect_timeout,
         lambda settings, bus, stop: run(settings, bus, args.mode, stop, args.run_seconds, args.sync_critic),
-        any_system=lockstep,
+        any_system=True,
     )

@@ -44,14 +44,12 @@ import numpy as np
 from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
 from common.contracts.columns import Columns, columns_of, layout
-from common.contracts.keys import ACTION, STATE, TRANSITION
 from common.contracts.messages import Action, Message, PlantState, Transition
 from common.contracts.summaries import FleetActorSummary, RealtimeActorSummary, fleet_view, format_status_line
 from common.contracts.summaries import robot_summary as robot_view
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.arrival import arrival_masks
-from common.math.dynamics import ACTION_DIM
 from common.math.features import stage_cost_rows
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
@@ -109,13 +107,13 @@ def wire_realtime(
     newest, judged at the robot's tick). ``publish_action``, ``publish_transition``: where its
     actions and transitions go instead of their own keys (an actor host's outboxes,
     services/actor/host.py Outbox)."""
-    robot = settings.transport.robot
+    robot, wire = settings.transport.robot, settings.wire
     loop = RealtimeActor(
         settings,
         actor,
         inbox,
-        publish_action or bus.publisher(ACTION, robot),
-        publish_transition or bus.publisher(TRANSITION, robot, cache=settings.transport.transition_cache),
+        publish_action or bus.publisher(wire.ACTION, robot),
+        publish_transition or bus.publisher(wire.TRANSITION, robot, cache=settings.transport.transition_cache),
         counters,
         episode_id,
     )
@@ -171,6 +169,7 @@ class RestCheck:
         self.tolerances = arrival_tolerances(settings)
         self.r_diag = settings.r_diag
         self.delta = settings.plant.sampling_time
+        self.system = settings.system
         self.arrays_from = max(1, arrays_from)
         # per robot, the last decision and the (state, true state) it was made on: a robot at rest
         # reports the same state tick after tick, and the decision is a function of it alone
@@ -216,11 +215,14 @@ class RestCheck:
         assert self.tolerances is not None
         states = np.array([message.state for message in messages])
         known = [j for j, message in enumerate(messages) if message.true_state is not None]
-        truths = np.array([messages[j].true_state for j in known]).reshape(len(known), 3)
+        n = self.system.state_dim
+        truths = np.array([messages[j].true_state for j in known]).reshape(len(known), n)
         inner, stays = arrival_masks(states, self.tolerances)
         # the stage costs of a zero command, of the reported states and then of the true ones
         both = np.vstack([states, truths])
-        costs = (self.delta * stage_cost_rows(both, np.zeros((len(both), ACTION_DIM)), self.r_diag)).tolist()
+        costs = (
+            self.delta * stage_cost_rows(both, np.zeros((len(both), self.system.action_dim)), self.r_diag)
+        ).tolist()
         true_costs: list[float | None] = [None] * len(robots)
         for j, cost in zip(known, costs[len(robots) :], strict=True):
             true_costs[j] = cost
@@ -515,7 +517,7 @@ class HostScheduler:
             if manual_gc:
                 gc.enable()
         for loop, ticker in zip(self.loops, self.tickers, strict=True):  # on the way out: stop every robot
-            loop.send(ticker.index, (0.0, 0.0), -1)
+            loop.send(ticker.index, loop.zero, -1)
         self.flush()
 
     def _spent(self, now: float) -> None:
@@ -594,12 +596,16 @@ def run_host(
     counts: list[RobotCounts] = []
     inboxes: list[WeightsInbox] = []
     batches = len(robots) > 1
-    outbox = Outbox(bus.round_publisher(ACTION, batches=batches), schema=Action)
+    wire = settings.wire  # the system's messages (the robot's: srl's own)
+    outbox = Outbox(bus.round_publisher(wire.ACTION, batches=batches), schema=wire.action)
     # a host of one robot: the robot's advanced publisher (transition_cache of its transitions)
     cache = settings.transport.transition_cache
     cache *= transition_rounds(len(robots), settings.actor.host_tick_group) if batches else 1
     transitions = Outbox(
-        bus.round_publisher(TRANSITION, batches=batches, cache=cache), "transitions", wait=None, schema=Transition
+        bus.round_publisher(wire.TRANSITION, batches=batches, cache=cache),
+        "transitions",
+        wait=None,
+        schema=wire.transition,
     )
     for robot in robots:
         own = robot_settings(settings, robot)
@@ -610,7 +616,7 @@ def run_host(
         loop.rest_rows = (outbox, transitions)  # a tick at rest puts rows, builds no message
         # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
         # forged state just before a tick cannot displace the live plant's newest
-        bus.subscribe(STATE, STATE.key(robot), loop.on_state, with_source=True)
+        bus.subscribe(wire.STATE, wire.STATE.key(robot), loop.on_state, with_source=True)
         loops.append(loop)
         counts.append(count)
         inboxes.append(inbox)

@@ -54,7 +54,6 @@ log = logging.getLogger(__name__)
 MAX_SEQ_JUMP = 10_000
 PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
 RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
-ZERO_ACTION = (0.0, 0.0)
 
 
 class Counts(Protocol):
@@ -123,6 +122,11 @@ class RealtimeActor:
     ) -> None:
         self.settings = settings
         self.robot = settings.transport.robot
+        # the system's messages (common/contracts/wire.py: the robot's are srl's own) and its zero
+        self.system, self.wire = settings.system, settings.wire
+        self.zero = (0.0,) * self.system.action_dim
+        self.named = self.wire.named  # the fields every message takes beside its own ({} for the robot)
+        self.named_row = tuple(self.wire.named_columns(self.wire.action).values())  # a row's leading fields
         self.delta = settings.plant.sampling_time
         self.r_diag = settings.r_diag  # diag(R), resolved once (the system's own if [])
         # A state older than this at a tick means the plant is silent: command zero. The last
@@ -164,7 +168,7 @@ class RealtimeActor:
         self.start_state: np.ndarray | None = None
         # the truth, when the plant sends it with every state (a simulator; never a real robot)
         self.truth_known = True
-        self.true_start: tuple[float, float, float] | None = None
+        self.true_start: tuple[float, ...] | None = None
         self.true_accumulated_cost = 0.0
         self.ticker: Ticker | None = None
         self.last_step = -1
@@ -280,10 +284,11 @@ class RealtimeActor:
         self.counts.count("primed_solves")
         return True
 
-    def send(self, k: int, action: tuple[float, float], state_seq: int) -> None:
+    def send(self, k: int, action: tuple[float, ...], state_seq: int) -> None:
         """Publish the action held over interval ``k`` (answering state ``state_seq``, -1: none)."""
         self.publish_action(
-            Action(
+            self.wire.action(
+                **self.named,
                 robot=self.robot,
                 episode=self.episode_id,
                 step=k,
@@ -294,7 +299,7 @@ class RealtimeActor:
         )
 
     def stop_robot(self, k: int) -> None:
-        self.send(k, (0.0, 0.0), -1)
+        self.send(k, self.zero, -1)
         self.actor.reset()  # the plan no longer matches the robot
 
     def _step(self, k: int, tick: float, held: tuple[PlantState, float], hurry: bool) -> None:
@@ -314,7 +319,7 @@ class RealtimeActor:
                 "commanding zero velocity" if arrived else "resuming",
             )
         self.arrived = arrived
-        action = (float(step.action[0]), float(step.action[1]))
+        action = tuple(np.asarray(step.action, dtype=float).tolist())
         self.send(k, action, message.seq)
         done = self.clock()
         r_diag = self.r_diag
@@ -332,16 +337,17 @@ class RealtimeActor:
         rest.hold()
         rows = self.rest_rows
         if rows is None:
-            self.send(k, ZERO_ACTION, rest.held[0].seq)
+            self.send(k, self.zero, rest.held[0].seq)
         else:  # Action's fields
-            rows[0].put_row(self.robot, (self.episode_id, k, time.monotonic_ns(), ZERO_ACTION, rest.held[0].seq))
+            values = (self.episode_id, k, time.monotonic_ns(), self.zero, rest.held[0].seq)
+            rows[0].put_row(self.robot, (*self.named_row, *values))
         done = self.clock()
         self._record(
             k,
             tick,
             rest.held,
             rest.state,
-            ZERO_ACTION,
+            self.zero,
             rest.cost,
             rest.true_cost,
             weights,
@@ -363,7 +369,7 @@ class RealtimeActor:
         tick: float,
         held: tuple[PlantState, float],
         state: np.ndarray,
-        action: tuple[float, float],
+        action: tuple[float, ...],
         cost: float,
         true_cost: float | None,
         weights: HeldWeights,
@@ -389,21 +395,22 @@ class RealtimeActor:
         self.fits.sent(Sample(k, state, np.array(action), cost), inner)  # the values the transition carries
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         if rows is not None:  # Transition's fields
-            rows.put_row(self.robot, (self.episode_id, k, state, action, cost))
+            rows.put_row(self.robot, (*self.named_row, self.episode_id, k, state, action, cost))
         else:
             self.publish_transition(
-                Transition(
+                self.wire.transition(
+                    **self.named,
                     robot=self.robot,
                     episode=self.episode_id,
                     step=k,
-                    state=(float(state[0]), float(state[1]), float(state[2])),
+                    state=tuple(state.tolist()),
                     action=action,
                     cost=cost,
                 )
             )
         slot = k % PUBLISH_TIMES_KEPT
         self.published_step[slot], self.published_at[slot] = k, self.clock()
-        self.tail.append([k, float(state[0]), float(state[1]), float(state[2]), *action, cost])
+        self.tail.append([k, *state.tolist(), *action, cost])
         if self.published_steps and self.published_steps[-1][1] == k - 1:
             self.published_steps[-1][1] = k
         else:
@@ -431,11 +438,8 @@ class RealtimeActor:
         solves = self.actor.counters.solve_seconds
         with self.lock:
             shown = self.latest
-        pose = shown[0].state if shown is not None else (float("nan"),) * 3  # nan: left out
         return {
-            "x": pose[0],
-            "y": pose[1],
-            "alpha": pose[2],
+            **self.where(None if shown is None else shown[0].state),
             "accumulated_cost": self.accumulated_cost,
             "steps": self.steps,
             "missed_deadlines": self.ticker.missed if self.ticker is not None else 0,
@@ -453,6 +457,14 @@ class RealtimeActor:
             "arrived_steps": float(self.arrived_steps),
         }
 
+    def where(self, state: Any) -> dict[str, float]:
+        """The status's view of ``state`` (None: nan, left out): a wheeled robot's pose ``x``, ``y``,
+        ``alpha``; another system's ``distance`` to its goal (common/math/systems.py)."""
+        if self.system.wheeled:
+            x, y, alpha = (math.nan,) * 3 if state is None else state
+            return {"x": x, "y": y, "alpha": alpha}
+        return {"distance": math.nan if state is None else self.system.distance(np.array(state))}
+
     def truth(self, last: PlantState | None) -> TrueView | None:
         """The true view, if every state the loop used carried the truth (None: odometry only)."""
         if not self.truth_known or self.true_start is None or last is None or last.true_state is None:
@@ -461,7 +473,7 @@ class RealtimeActor:
         return TrueView(
             start_state=list(self.true_start),
             final_state=list(final),
-            final_distance=float(np.hypot(final[0], final[1])),
+            final_distance=self.system.distance(np.array(final)),
             accumulated_cost=self.true_accumulated_cost,
         )
 
@@ -474,11 +486,13 @@ class RealtimeActor:
             {
                 "agent": self.settings.actor.agent,
                 "horizon": self.settings.actor.horizon,
+                "system": self.settings.plant.system,
                 "episode_id": self.episode_id,
                 "steps": self.steps,
                 "accumulated_cost": self.accumulated_cost,
                 "start_state": None if self.start_state is None else [float(c) for c in self.start_state],
                 "final_state": None if last is None else [float(c) for c in last.state],
+                "final_distance": None if last is None else self.system.distance(np.array(last.state)),
                 "truth": None if truth is None else truth.model_dump(),
                 "saturated_commands": None if last is None else last.saturated_commands,
                 "weights_version": self.inbox.current().version,

@@ -43,10 +43,11 @@ def main(args: argparse.Namespace) -> int:
     """Real time: a plant host of the robot list, or of the one robot (``transport.robot``);
     lockstep: the one robot's queryable plant."""
     robots = fleet_robots(args)
-    if args.mode == "lockstep" and robots is None:
+    one = robots is None  # one robot's plant: any system's (settings.wire); a fleet's: the robot's
+    if args.mode == "lockstep" and one:
         from services.plant_sim.service import run
 
-        return serve(  # any system's lockstep plant (settings.wire); real time: the robot's host
+        return serve(
             settings_from_args(args, any_system=True),
             "plant",
             args.connect_timeout,
@@ -54,10 +55,11 @@ def main(args: argparse.Namespace) -> int:
             any_system=True,
         )
     return serve(
-        settings_from_args(args),
+        settings_from_args(args, any_system=one),
         "plant",
         args.connect_timeout,
         lambda settings, bus, stop: host(settings, bus, stop, args, robots),
+        any_system=one,
     )
 
 

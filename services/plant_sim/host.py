@@ -3,7 +3,9 @@
 Real time only. One timer at ``transport.state_rate``; each period every robot is advanced with
 its newest action held and its state published: the states of one period as one batch on
 ``srl/@batch/state`` (common.contracts.keys.Batch; a host of one robot on ``srl/<robot>/state``). The ideal unicycle of
-the whole fleet is one numpy step (:func:`common.math.dynamics.exact_steps`); the TurtleBot3 models
+the whole fleet is one numpy step (:func:`common.math.dynamics.exact_steps`), another sampled
+system (``plant.system``) its row's step (:meth:`common.math.systems.System.steps`), its messages
+the system's (common/contracts/wire.py); the TurtleBot3 models
 (``plant.model = actuator | physics``) step one :class:`SimulatedPlant` per robot. Each robot
 keeps what one plant_sim keeps: only its live actor session's actions, in order
 (:class:`~common.net.provenance.ActionGate`), the watchdog (zero velocity after
@@ -33,10 +35,8 @@ import numpy as np
 
 from common.config.settings import Settings
 from common.contracts.columns import Columns, choice_code, columns_of
-from common.contracts.keys import ACTION, STATE
 from common.contracts.messages import Action, PlantState
 from common.contracts.summaries import FleetPlantSummary, PlantRow, PlantSummary
-from common.math.dynamics import exact_steps
 from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.system.clock import STATE_SYNC_MARGIN_S
@@ -44,7 +44,6 @@ from services.plant_sim.service import ActionIntake, SimulatedPlant, action_time
 
 log = logging.getLogger(__name__)
 
-SIM_SOURCE = choice_code(PlantState, "source", "sim")  # a simulator's states in a round's columns
 SYNC_WINDOW = 50  # a robot's phase is learned from its last this many actions (5 s at delta = 0.1 s)
 SYNC_MIN_ACTIONS = 5  # before that many, every state tick publishes the robot's state
 
@@ -111,16 +110,25 @@ class StateSync:
 
 
 class FleetPlant:
-    """K robots' states (transport-free). ``plant.model = ideal``: one (K, 3) array stepped at
-    once; otherwise one :class:`SimulatedPlant` (a TurtleBot3 model) per robot."""
+    """K robots' states (transport-free). ``plant.model = ideal``: one (K, n) array of the
+    system's states stepped at once; otherwise one :class:`SimulatedPlant` (a TurtleBot3 model)
+    per robot."""
 
     def __init__(self, settings: Settings, robots: list[str], starts: np.ndarray) -> None:
         self.robots = robots
-        self.bounds = np.array([settings.plant.v_max, settings.plant.omega_max])
+        self.system, self.wire = settings.system, settings.wire
+        self.bounds = np.array(settings.action_max)
         self.lock = threading.Lock()
         self.ideal = plant_model_row(settings.plant.model).exact
-        self.states = np.array(starts, dtype=float).reshape(len(robots), 3)
-        self.held = np.zeros((len(robots), 2))
+        self.states = np.array(starts, dtype=float).reshape(len(robots), self.system.state_dim)
+        self.held = np.zeros((len(robots), self.system.action_dim))
+        # A system that a zero action does not hold (a pendulum falls) waits at its start for its
+        # first action: its run begins with its actor's, not while the actor is being built.
+        self.waiting = None if self.system.still_at_zero else np.ones(len(robots), dtype=bool)
+        # a round's columns beside the states: the system's name, a simulator's source
+        self.named = self.wire.named_columns(self.wire.state) | {
+            "source": choice_code(self.wire.state, "source", "sim")
+        }
         self.seq = np.zeros(len(robots), dtype=np.int64)
         # when each robot's held action arrived (NaN: holding zero): its RobotIntake's, for the
         # watchdogs of every robot at once (service.due_watchdogs)
@@ -136,19 +144,23 @@ class FleetPlant:
                 )
                 self.plants.append(SimulatedPlant(own))
 
-    def hold(self, index: int, action: tuple[float, float] | np.ndarray) -> None:
+    def hold(self, index: int, action: tuple[float, ...] | np.ndarray) -> None:
         """The newest action of robot ``index`` (clamped to the robot's limits), held until the next."""
         clamped = np.clip(np.asarray(action, dtype=float), -self.bounds, self.bounds)
         with self.lock:
             self.held[index] = clamped
+            if self.waiting is not None:
+                self.waiting[index] = False
             if not self.ideal:
                 self.plants[index].hold(clamped)
 
     def hold_many(self, indices: list[int], actions: np.ndarray) -> None:
-        """:meth:`hold` of robots ``indices``, ``actions`` ``(len(indices), 2)``, in order."""
+        """:meth:`hold` of robots ``indices``, ``actions`` ``(len(indices), m)``, in order."""
         clamped = np.clip(np.asarray(actions, dtype=float), -self.bounds, self.bounds)
         with self.lock:
             self.held[indices] = clamped
+            if self.waiting is not None:
+                self.waiting[indices] = False
             if not self.ideal:
                 for index, action in zip(indices, clamped, strict=True):
                     self.plants[index].hold(action)
@@ -162,33 +174,39 @@ class FleetPlant:
             if not self.ideal:
                 messages = [plant.advance(duration) for plant in self.plants]
                 chosen = messages if due is None else [m for m, d in zip(messages, due, strict=True) if d]
-                return columns_of(PlantState, chosen)
-            self.states = exact_steps(self.states, self.held, duration)
+                return columns_of(self.wire.state, chosen)
+            if self.waiting is None or not self.waiting.any():
+                self.states = self.system.steps(self.states, self.held, duration)
+            else:  # the robots waiting for their first action stay at their starts
+                moving = ~self.waiting
+                self.states[moving] = self.system.steps(self.states[moving], self.held[moving], duration)
             self.seq += 1
             rows = np.arange(len(self.robots)) if due is None else np.flatnonzero(due)
             states, seqs = self.states[rows], self.seq[rows]  # copies: the next step moves on
         count = len(rows)
         robots = self.robots if count == len(self.robots) else [self.robots[i] for i in rows.tolist()]
         return Columns.of(
-            PlantState,
+            self.wire.state,
             robots,
             {
+                **self.named,
                 "episode": 0,
                 "seq": seqs,
                 "stamp_ns": stamp,
                 "state": states,
-                "source": SIM_SOURCE,
                 "true_state": states,
                 "saturated_commands": 0,
-                "map_to_odom": np.nan,  # absent
             },
         )
 
     def still(self) -> bool:
         """No robot moves over a state tick: the ideal unicycle, every robot holding zero (its exact
-        step is then the identity). A TurtleBot3 model is never still here: its wheels' lag and
+        step is then the identity); another system only while every robot waits for its first
+        action (``System.still_at_zero``). A TurtleBot3 model is never still here: its wheels' lag and
         its odometry run on after a zero command."""
         with self.lock:
+            if self.waiting is not None:
+                return self.ideal and bool(self.waiting.all())
             return self.ideal and not self.held.any()
 
     def saturated_commands(self, index: int) -> int:
@@ -231,7 +249,7 @@ class RobotIntake(ActionIntake):
             bus.reject(what, f"robot {robot}: {why}")
 
         # the host's counts: the robot's in a host of one; its action's arrival in the plant's array
-        super().__init__(hold, reject, bus.count, plant.arrivals, index, lock)
+        super().__init__(hold, reject, bus.count, plant.arrivals, index, lock, plant.system.action_dim)
 
     def on_action(self, message: Action, source: str | None) -> None:
         now = self.take(message, source)
@@ -302,15 +320,16 @@ def run_plant_host(
     for robot in robots:  # one plant per robot, before declaring
         bus.refuse_other_plant(robot)
     # the states of one state tick in one round, as one batch (common.contracts.keys.Batch)
-    publish_states = bus.round_publisher(STATE, batches=len(robots) > 1)
+    publish_states = bus.round_publisher(settings.wire.STATE, batches=len(robots) > 1)
     period = 1.0 / settings.transport.state_rate
     sync = StateSync(len(robots), settings.plant.sampling_time, period) if synced else None
     lock = threading.Lock()  # every robot's intake's: a batch of actions is taken under it
     intakes = [RobotIntake(plant, i, bus, sync, lock) for i in range(len(robots))]
     for robot, intake in zip(robots, intakes, strict=True):
         bus.watch_identities(robot, "actor", intake.gate.gate, intake.on_actor_identity)
+    actions = settings.wire.ACTION
     bus.subscribe_columns(
-        ACTION, [ACTION.key(robot) for robot in robots], ActionRounds(plant, intakes, bus.count, sync)
+        actions, [actions.key(robot) for robot in robots], ActionRounds(plant, intakes, bus.count, sync)
     )
     bus.declare_sole_plants(robots)
     rows = [(robot, plant_status(plant, intake)) for robot, intake in zip(robots, intakes, strict=True)]
@@ -328,7 +347,7 @@ def run_plant_host(
         publish_states(round_)
         bus.count("states_published", len(round_))
         bus.count("states_held_back", len(robots) - len(round_))
-    return PlantHostRun(robots, np.asarray(starts, dtype=float).reshape(len(robots), 3), plant, intakes)
+    return PlantHostRun(robots, np.array(starts, dtype=float).reshape(len(robots), -1), plant, intakes)
 
 
 def plant_tick(

@@ -79,7 +79,9 @@ class ActionIntake:
     (what, why), ``count`` (optional) each of ``actions_applied``, ``actor_lost_stops`` and
     ``watchdog_stops`` as it happens; the same counts are kept as attributes. ``arrivals``,
     ``index``: where it keeps when the held action arrived (NaN: holding zero), element ``index``
-    of an array of many robots' (a plant host's: :func:`due_watchdogs` reads them all at once)."""
+    of an array of many robots' (a plant host's: :func:`due_watchdogs` reads them all at once).
+    ``action_dim``: the system's actions (a stop holds ``action_dim`` zeros; the robot's
+    ``(v, omega)``: 2)."""
 
     def __init__(
         self,
@@ -89,8 +91,10 @@ class ActionIntake:
         arrivals: np.ndarray | None = None,
         index: int = 0,
         lock: threading.Lock | None = None,
+        action_dim: int = 2,
     ) -> None:
         self.hold, self.reject, self.count = hold, reject, count
+        self.zero = np.zeros(action_dim)  # what a stop holds: the system's zero action
         self.gate = ActionGate(SourceGate("actor"))
         self.lock = lock or threading.Lock()  # a plant host's robots share one (its batch intake)
         self.arrivals = np.full(1, math.nan) if arrivals is None else arrivals
@@ -143,7 +147,7 @@ class ActionIntake:
         with self.lock:
             if not alive and self.gate.lost(zid, time.monotonic()):  # the followed actor is gone: stop at once
                 self.at = None
-                self.hold((0.0, 0.0))
+                self.hold(self.zero)
                 self.actor_lost_stops += 1
                 self._counted("actor_lost_stops")
 
@@ -154,7 +158,7 @@ class ActionIntake:
                 self.watchdog_stops += 1
                 self._counted("watchdog_stops")
                 self.at = None  # stopped: zero until the next fresh action
-                self.hold((0.0, 0.0))
+                self.hold(self.zero)
 
 
 def due_watchdogs(arrivals: np.ndarray, now: float, timeout: float) -> np.ndarray:

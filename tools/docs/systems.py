@@ -113,7 +113,7 @@ def box_rows(name: str, system: System) -> list[list[str]]:
             + (
                 "the services, `srl up` and the robots"
                 if system.wheeled
-                else f"`srl up --mode lockstep --system {name}`"
+                else f"`srl up --system {name}` (real time; `--mode lockstep`)"
             ),
         ],
     ]

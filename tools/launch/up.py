@@ -197,9 +197,8 @@ def run_environment(options: UpOptions) -> dict[str, str]:
 
 def check_options(options: UpOptions, robots: list[str], settings: Settings) -> None:
     """One line (ValueError) for a run that cannot be, before anything starts."""
-    settings.robot_only(  # another system: the lockstep services (the real-time ones carry the pose)
+    settings.robot_only(  # another system: the services of one robot, its own plant (plant_sim)
         "srl up",
-        ("--mode realtime", options.mode != "lockstep"),
         (f"--plant {options.plant}", launch_plant(options.plant) != launch_plant("sim")),  # a TurtleBot3's
         ("--robots", options.fleet),
         ("--record", options.record is not None),
