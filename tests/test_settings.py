@@ -35,7 +35,7 @@ def test_load_reads_packaged_toml() -> None:
     assert s.critic.ridge == RAW["critic"]["ridge"]
     assert s.critic.discount_rate == RAW["critic"]["discount_rate"]
     assert s.actor.agent == RAW["actor"]["agent"]
-    assert s.actor.horizon == RAW["actor"]["horizon"]
+    assert RAW["actor"]["horizon"] == 0 and s.actor.horizon == 12  # the system's own: the robot's N = 12
     assert s.actor.solver == RAW["actor"]["solver"]
     assert s.episode.duration == RAW["episode"]["duration"]
     assert list(s.episode.start) == RAW["episode"]["start"] == []  # the system's own: (2, 2) heading away
@@ -263,7 +263,7 @@ def test_cli_run_json_contract(capsys: pytest.CaptureFixture[str], monkeypatch: 
         assert key in summary, key
     assert set(summary["solve_ms"]) >= {"median", "p99", "max"}
     assert summary["agent"] == "mpc"
-    assert summary["horizon"] == RAW["actor"]["horizon"]
+    assert summary["horizon"] == 12  # the robot's own (srl.toml: 0, the system's)
     assert summary["steps"] == 10
     assert summary["solver_failures"] == 0
     assert summary["settings"]["actor"]["agent"] == "mpc"
@@ -326,3 +326,22 @@ def test_the_plant_models_are_one_table_that_the_settings_and_the_command_lines_
     found = choices(build_parser())
     assert {"srl experiment ['--plant']", "srl tb3-emulator ['--model']"} <= set(found), found
     assert all(offered == list(PLANT_MODELS) for offered in found.values()), found
+
+
+def test_a_horizon_of_zero_is_the_systems_own_and_a_named_one_wins(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``actor.horizon = 0`` (srl.toml's) is the row's N: the robot's 12, the dynamic robot's 20,
+    whether the system comes from a flag or the environment; an N given anywhere wins, and 0 given
+    anywhere is the system's own again. Every reader sees the N the run takes."""
+    from common.math.systems import SYSTEMS
+
+    assert SYSTEMS["unicycle"].horizon == 12 and SYSTEMS["dynamic_unicycle"].horizon == 20
+    assert Settings.load().actor.horizon == 12
+    assert Settings.load(plant={"system": "dynamic_unicycle"}).actor.horizon == 20
+    assert Settings.load(plant={"system": "dynamic_unicycle"}, actor={"horizon": 6}).actor.horizon == 6
+    monkeypatch.setenv("SRL_PLANT__SYSTEM", "dynamic_unicycle")
+    assert Settings.load().actor.horizon == 20
+    monkeypatch.setenv("SRL_ACTOR__HORIZON", "8")
+    assert Settings.load().actor.horizon == 8
+    assert Settings.load(actor={"horizon": 0}).actor.horizon == 20
+    with pytest.raises(ValueError, match=r"the horizon N must be 2 \.\. 100"):
+        Settings.load(actor={"horizon": 1})

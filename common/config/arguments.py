@@ -291,7 +291,8 @@ def add_settings_arguments(parser: argparse.ArgumentParser, flags: Sequence[str]
             "--horizon",
             type=int,
             metavar="N",
-            help=f"N (N - 1 held actions), 2..{MAX_HORIZON} {_default('actor', 'horizon')}",
+            help=f"N (N - 1 held actions), 2..{MAX_HORIZON}, or 0 for the system's own (default: the "
+            "system's own, the robot's 12; actor.horizon)",
         )
     if "start" in flags:
         parser.add_argument(

@@ -546,6 +546,20 @@ class Settings(BaseSettings):
 
         return cls.model_validate(_FromFiles(**overrides).model_dump())
 
+    @model_validator(mode="before")
+    @classmethod
+    def _systems_horizon(cls, data: Any) -> Any:
+        """``actor.horizon = 0``: the system's own N (its row's ``horizon``; the robot's 12), so every
+        reader of the settings sees the N a run takes. An unknown system is left to its field's check."""
+        if not isinstance(data, dict) or not isinstance(data.get("actor"), dict):
+            return data
+        actor, plant = data["actor"], data.get("plant")
+        if str(actor.get("horizon")) != "0":
+            return data
+        name = plant.get("system", "unicycle") if isinstance(plant, dict) else getattr(plant, "system", "unicycle")
+        row = SYSTEMS.get(str(name))
+        return data if row is None else {**data, "actor": {**actor, "horizon": row.horizon}}
+
     @model_validator(mode="after")
     def _fits_the_system(self) -> Settings:
         """The settings a system's row sizes -- the stage cost's weights, the start, the simulated

@@ -112,6 +112,9 @@ class System:
     distance: Callable[[FloatArray], float] = state_norm
     stabilized: float = 0.05
     substeps: int = 10
+    # The actor's horizon N the system's runs take unless the settings name one (actor.horizon = 0):
+    # its look-ahead must span the time the system takes to answer (the dynamic robot: 2 s)
+    horizon: int = 12
     # Where episodes start when drawn (Gymnasium's resets: uniform in the box |s_i| <= start_box[i])
     # and the experiment's starts (a lattice over its first two entries); () = |start_i| each.
     start_box: tuple[float, ...] = ()
@@ -127,6 +130,8 @@ class System:
             raise ValueError(f"a wheeled system's state is (x, y, alpha) and its action (v, omega), got {n} and {m}")
         if not (math.isfinite(self.stabilized) and self.stabilized > 0):
             raise ValueError(f"stabilized: a positive distance, got {self.stabilized}")
+        if not 2 <= self.horizon <= 100:
+            raise ValueError(f"horizon: N of 2 to 100 (N - 1 held actions), got {self.horizon}")
         if not 1 <= self.substeps <= 1000:
             raise ValueError(f"substeps: 1 to 1000 RK4 steps per held interval, got {self.substeps}")
         if self.start_box and (
@@ -308,6 +313,7 @@ DYNAMIC_UNICYCLE = System(
     start_box=(1.0, 1.0, 0.0, 0.0, 0.0),  # at rest, heading along x, anywhere in the square
     distance=position_distance,
     stabilized=0.05,
+    horizon=20,  # at N = 12 (1.2 s) RL-QV ends 0.07 m away in 20 s; MPC 0.05 m (docs/reference/systems)
 )
 
 SYSTEMS: dict[str, System] = {

@@ -93,6 +93,7 @@ def box_rows(name: str, system: System) -> list[list[str]]:
         ["model", f"`ds/dt = f(s, u)`, `{system.rhs.__name__}` in `common/math/systems.py`: {cell(model)}"],
         ["the plant's step", plant_step(system)],
         ["the actor's model", "`actor.predictor` over the same f: `euler` (default) or `rk4`, one step per delta"],
+        ["horizon", f"N = {system.horizon} unless the settings name one (`actor.horizon = 0` takes it; `--horizon N`)"],
         ["stage cost", stage_cost(system)],
         [
             "critics",
