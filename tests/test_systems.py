@@ -225,10 +225,10 @@ def test_a_start_of_the_wrong_size_and_the_services_are_refused_in_one_line(
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
     monkeypatch.setenv("SRL_PLANT__SYSTEM", "two_tank")
-    for argv in (  # a fleet's hosts carry the robot's pose (the services of one robot any system's)
-        ["actor", "--robots", "2", "--connect-timeout", "1"],
-        ["plant-sim", "--robots", "2", "--connect-timeout", "1"],
-        ["up", "--robots", "2", "--router", "tcp/127.0.0.1:7447", "--duration", "1"],  # no free port sought
+    for argv in (  # a TurtleBot3's services carry the robot's pose (plant_sim, actor and critic any system's)
+        ["robot-bridge", "--connect-timeout", "1"],
+        ["tb3-emulator", "--connect-timeout", "1"],
+        ["up", "--plant", "robot", "--duration", "1"],
         ["experiment", "fleet", "--grid", "1"],
     ):
         assert main(argv) == 2, argv
@@ -572,6 +572,42 @@ def test_srl_up_in_real_time_runs_a_users_system_from_its_start_and_stabilizes_i
     assert f"stabilized (< {DOUBLE_INTEGRATOR.stabilized:g})" in done.stderr + done.stdout
 
 
+def test_a_fleet_of_another_system_starts_at_its_start_and_in_its_start_box() -> None:
+    """fleet_starts: the robot's fleet on the circle; another system's first robot at the row's
+    start, the others drawn in its start box, the same every call."""
+    from common.math.fleet import circle_starts, fleet_starts
+
+    assert fleet_starts(UNICYCLE, 4, 1.5) == circle_starts(4, 1.5)
+    row = system_row("pendulum")
+    starts = fleet_starts(row, 5, 1.5)
+    assert starts[0] == row.start and len(set(starts)) == 5 and starts == fleet_starts(row, 5, 9.0)
+    assert all(len(s) == 2 and all(abs(c) <= w for c, w in zip(s, row.box_of_starts, strict=True)) for s in starts)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_srl_up_runs_a_fleet_of_another_system_in_one_plant_host_and_one_actor_host(tmp_path: Path) -> None:
+    """``srl up --system pendulum --robots 3``: one plant host and one actor host of three
+    pendulums (the same hosts as the robots'), each from its own start; every one stabilized with
+    no deadline missed, every transition at the critic, the table saying so in the system's terms."""
+    from tests.harness import free_port, srl
+
+    done = srl(
+        "up", "--system", "pendulum", "--robots", "3", "--duration", "12", "--json", "--router",
+        f"tcp/127.0.0.1:{free_port()}", "--summary-dir", str(tmp_path / "up"), timeout=240,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads(done.stdout.strip().splitlines()[-1])
+    fleet = summary["fleet"]
+    assert summary["system"] == "pendulum" and fleet["robots"] == 3
+    assert fleet["missed_deadlines"] == 0 and fleet["parked"] == 3, fleet["rows"]
+    assert all(row["final_distance_m"] < system_row("pendulum").stabilized for row in fleet["rows"])
+    assert summary["critic"]["transitions_received"] == fleet["steps"]
+    finals = summary["per_robot_final"]
+    assert all(len(state) == 2 for state in finals.values())
+    assert "system pendulum from its start and its start box" in done.stdout + done.stderr
+
+
 @pytest.mark.integration
 def test_what_carries_the_robots_pose_refuses_another_system_in_one_line(tmp_path: Path) -> None:
     from tests.harness import free_port, srl
@@ -579,7 +615,6 @@ def test_what_carries_the_robots_pose_refuses_another_system_in_one_line(tmp_pat
     router = f"tcp/127.0.0.1:{free_port()}"
     for extra, says in (
         (["--mode", "lockstep", "--record", str(tmp_path / "r.mcap")], "--record"),
-        (["--robots", "2"], "--robots"),
         (["--plant", "robot"], "--plant robot"),
         (["--plant", "physics"], "--plant physics"),
     ):

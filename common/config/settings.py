@@ -612,7 +612,7 @@ class Settings(BaseSettings):
         name = self.plant.system
         raise ValueError(
             f"{' '.join([what, *flags])}: carries the robot's pose and (v, omega); system {name} runs in process "
-            f"(srl run --system {name}) and as the services of one robot (srl up --system {name})"
+            f"(srl run --system {name}) and as services (srl up --system {name})"
         )
 
     @property

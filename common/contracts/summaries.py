@@ -348,7 +348,9 @@ class FleetView(_Summary):
     staleness_p99_steps: float = Field(description="worst robot")
     staleness_max_steps: float = Field(description="worst robot")
     solver_failures: int
-    parked: int = Field(description=f"robots ending within {PARKED_WITHIN_M} m of the target")
+    parked: int = Field(
+        description=f"robots ending within {PARKED_WITHIN_M} m of the target (another system's: stabilized)"
+    )
     at_target: int = Field(
         default=0, description=f"robots whose own final state is within {AT_TARGET_M} m of the target, at rest"
     )
@@ -391,7 +393,8 @@ def robot_row(robot: str, summary: RealtimeActorSummary) -> RobotRow:
         solver_failures=summary.solver_failures,
         stale_state_stops=summary.stale_state_stops,
         final_distance_m=distance,
-        parked=math.isfinite(distance) and distance <= PARKED_WITHIN_M,
+        # a wheeled robot within PARKED_WITHIN_M of its target; another system stabilized (its row's)
+        parked=math.isfinite(distance) and distance <= (PARKED_WITHIN_M if system.wheeled else system.stabilized),
         own_final_distance_m=own,
         at_rest=last is not None and not any(last[1 + n : 1 + n + m]),
     )

@@ -14,7 +14,8 @@ Their batches are columns as the robot's are (common.contracts.columns derives e
 the schema, ``system`` a choice of one name), so a batch of another system's size or name is
 refused whole (a batch of another system names it first in its manifest). :func:`wire` makes a
 system's once. The services (plant, actor, critic) carry any system's messages (``srl up --system
-NAME``, real time and lockstep); the robot bridge, a recording and a live view the robot's."""
+NAME``, real time and lockstep, a fleet too); the robot bridge, a recording and a live view the
+robot's."""
 
 from __future__ import annotations
 

@@ -5,7 +5,8 @@ Pure: strings and numbers in, ids and states out (no settings, no transport).
 * :func:`parse_robots` -- ``--robots r1,r2,...`` (explicit ids) or ``--robots K`` (``robot1`` ..
   ``robotK``); a repeated or malformed id is refused with one line (:class:`FleetError`).
 * :func:`circle_starts` -- distinct starts on a circle around the target, each turned away from
-  it (the paper's ``alpha_0 = atan2(y_0, x_0)``), so every robot has the same parking task.
+  it (the paper's ``alpha_0 = atan2(y_0, x_0)``), so every robot has the same parking task;
+  :func:`fleet_starts` -- those for a wheeled robot, another system's in its start box.
 * :func:`host_count` and :func:`split_evenly` -- over how many actor host processes a fleet's
   robots go (a number, or ``auto``: one below :data:`AUTO_SPLIT_FROM` robots, else one per core:
   one host's solves run in one thread) and which robots each serves (contiguous, even shares).
@@ -22,6 +23,10 @@ import math
 import re
 from collections.abc import Sequence
 from typing import TypeVar
+
+import numpy as np
+
+from common.math.systems import System
 
 T = TypeVar("T")
 MAX_ROBOTS = 1000  # one host; far beyond what 2 cores serve at delta = 0.1 s (docs/fleets.md)
@@ -75,6 +80,18 @@ def circle_starts(count: int, radius: float) -> list[tuple[float, float, float]]
             (radius * math.cos(theta), radius * math.sin(theta), math.atan2(math.sin(theta), math.cos(theta)))
         )
     return starts
+
+
+def fleet_starts(system: System, count: int, radius: float) -> Sequence[tuple[float, ...]]:
+    """Where ``count`` simulated robots of ``system`` start: a wheeled robot's on the circle of
+    ``radius`` (:func:`circle_starts`); another system's first at its row's start, the others drawn
+    uniformly in its start box (seeded: the same starts every run; ``radius`` is the robot's)."""
+    if not system.wheeled:
+        if count < 1:
+            raise FleetError("a fleet has at least one robot")
+        rng = np.random.default_rng(0)
+        return [system.start, *(tuple(system.draw_start(rng).tolist()) for _ in range(count - 1))]
+    return circle_starts(count, radius)
 
 
 def host_count(option: str, size: int, cores: int, flag: str = "--actor-hosts") -> int:

@@ -147,14 +147,14 @@ def serve(
 ) -> int:
     """The one life cycle of a service process: signals, parent watch, session (with retry),
     ``body(settings, bus, stop)``, the session closed, the summary as the last stdout line.
-    ``any_system``: the service carries any system's messages (settings.wire: one robot's actor
-    and plant, the critic); else the robot's only (a fleet's hosts), and another system is refused
-    in one line."""
+    ``any_system``: the service carries any system's messages (settings.wire: the actor, the
+    simulated plant, the critic); else the robot's only (the robot bridge, the TurtleBot3
+    emulator), and another system is refused in one line."""
     from common.net.transport import Bus
 
     if not any_system:
         try:
-            settings.robot_only(f"srl {service}")  # a fleet's starts and summaries are the robot's
+            settings.robot_only(f"srl {service}")  # ROS 2's odom and cmd_vel are the robot's
         except ValueError as error:
             raise UsageError(str(error)) from error
     stop = service_stop()

@@ -53,17 +53,18 @@ def main(args: argparse.Namespace) -> int:
 
         try:
             code = serve(
-                settings_from_args(args),
+                settings_from_args(args, any_system=True),
                 "actor",
                 args.connect_timeout,
                 lambda settings, bus, stop: run_host(settings, bus, share, stop, args.run_seconds),
+                any_system=True,
             )
         finally:
             worst = children.stop() if children is not None else 0
         return code or worst
     if args.hosts != "1":
         raise UsageError("--hosts splits the robots of --robots over processes: give --robots too")
-    return serve(  # one robot's actor: any system's (settings.wire); a fleet's (--robots): the robot's
+    return serve(  # any system's actor (settings.wire)
         settings_from_args(args, any_system=True),
         "actor",
         args.connect_timeout,

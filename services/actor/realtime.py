@@ -319,7 +319,7 @@ class RealtimeActor:
                 "commanding zero velocity" if arrived else "resuming",
             )
         self.arrived = arrived
-        action = tuple(np.asarray(step.action, dtype=float).tolist())
+        action = tuple(step.action.tolist())
         self.send(k, action, message.seq)
         done = self.clock()
         r_diag = self.r_diag
@@ -393,6 +393,7 @@ class RealtimeActor:
         resting = self.fits.resting
         due = self.fits.newest if resting else k - 1
         self.fits.sent(Sample(k, state, np.array(action), cost), inner)  # the values the transition carries
+        values = state.tolist()
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         if rows is not None:  # Transition's fields
             rows.put_row(self.robot, (*self.named_row, self.episode_id, k, state, action, cost))
@@ -403,14 +404,14 @@ class RealtimeActor:
                     robot=self.robot,
                     episode=self.episode_id,
                     step=k,
-                    state=tuple(state.tolist()),
+                    state=tuple(values),
                     action=action,
                     cost=cost,
                 )
             )
         slot = k % PUBLISH_TIMES_KEPT
         self.published_step[slot], self.published_at[slot] = k, self.clock()
-        self.tail.append([k, *state.tolist(), *action, cost])
+        self.tail.append([k, *values, *action, cost])
         if self.published_steps and self.published_steps[-1][1] == k - 1:
             self.published_steps[-1][1] = k
         else:

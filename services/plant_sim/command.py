@@ -43,8 +43,7 @@ def main(args: argparse.Namespace) -> int:
     """Real time: a plant host of the robot list, or of the one robot (``transport.robot``);
     lockstep: the one robot's queryable plant."""
     robots = fleet_robots(args)
-    one = robots is None  # one robot's plant: any system's (settings.wire); a fleet's: the robot's
-    if args.mode == "lockstep" and one:
+    if args.mode == "lockstep" and robots is None:
         from services.plant_sim.service import run
 
         return serve(
@@ -54,19 +53,19 @@ def main(args: argparse.Namespace) -> int:
             lambda settings, bus, stop: run(settings, bus, stop, args.run_seconds),
             any_system=True,
         )
-    return serve(
-        settings_from_args(args, any_system=one),
+    return serve(  # a plant host of any system (settings.wire)
+        settings_from_args(args, any_system=True),
         "plant",
         args.connect_timeout,
         lambda settings, bus, stop: host(settings, bus, stop, args, robots),
-        any_system=one,
+        any_system=True,
     )
 
 
 def host(
     settings: Settings, bus: Bus, stop: threading.Event, args: argparse.Namespace, robots: list[str] | None
 ) -> dict[str, Any]:
-    from common.math.fleet import circle_starts
+    from common.math.fleet import fleet_starts
     from services.plant_sim.host import fleet_plant_summary, plant_summary, run_plant_host
 
     if robots is None:  # one robot, from its start, its states at every state tick (srl.toml: state_sync)
@@ -75,7 +74,7 @@ def host(
             settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced=False
         )
         return plant_summary(run, settings, bus)
-    starts = np.array(circle_starts(len(robots), args.circle))
+    starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
     return fleet_plant_summary(
         run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced=settings.transport.state_sync),
         settings,

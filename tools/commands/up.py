@@ -111,9 +111,9 @@ def main(args: argparse.Namespace) -> int:
                 f"--view does not start with --robots yet: run the fleet without it{again} and, beside "
                 f"it, {beside_commands(args, router, default_router)} (both carry every robot)"
             )
-        listens = f"srl up: the fleet's router listens on {router}; beside it: " + beside_commands(
-            args, router, default_router
-        )
+        listens = f"srl up: the fleet's router listens on {router}"
+        if settings.system.wheeled:  # a recording and a live view carry the robot's pose
+            listens += "; beside it: " + beside_commands(args, router, default_router)
 
     def show(line: str) -> None:
         print(f"srl up {line}", file=sys.stderr, flush=True)

@@ -664,8 +664,8 @@ def variants_page() -> str:
         "`common/math/systems.py` `SYSTEMS`: the setting `plant.system`, `--system` (`srl run`, `srl experiment",
         "paper`), Gymnasium's `srl/<System>-v0` (the robot's: `srl/Unicycle-v0`). The actor's problem, the critics'",
         "features and the in-process plant are sized and built from the row; its goal is the origin of its state.",
-        "A system other than the robot (not wheeled) runs in process and as the services of one robot over Zenoh",
-        "(`srl up --system`, real time or lockstep); a fleet, the robot bridge and recordings carry the robot's pose.",
+        "A system other than the robot (not wheeled) runs in process and as services over Zenoh (`srl up --system`,",
+        "real time or lockstep, `--robots K`); the robot bridge and recordings carry the robot's pose.",
         "A built-in system's page gives its model, cost, bounds and starts, and its results in the paper's experiment.",
         "",
         *_table(

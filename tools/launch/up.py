@@ -60,8 +60,9 @@ from common.contracts.summaries import (
     fleet_view,
     format_status_line,
 )
-from common.math.fleet import circle_starts, split_evenly
+from common.math.fleet import circle_starts, fleet_starts, split_evenly
 from common.math.frames import Pose2D, to_goal_frame
+from common.math.systems import system_row
 from common.net.transport import zenoh_config
 from common.process.runtime import fleet_hosts
 from tools.launch.measure import RobotStatuses, RunMeasures, measure_run
@@ -197,10 +198,9 @@ def run_environment(options: UpOptions) -> dict[str, str]:
 
 def check_options(options: UpOptions, robots: list[str], settings: Settings) -> None:
     """One line (ValueError) for a run that cannot be, before anything starts."""
-    settings.robot_only(  # another system: the services of one robot, its own plant (plant_sim)
+    settings.robot_only(  # another system: the simulated plant, no recording or view
         "srl up",
         (f"--plant {options.plant}", launch_plant(options.plant) != launch_plant("sim")),  # a TurtleBot3's
-        ("--robots", options.fleet),
         ("--record", options.record is not None),
         ("--view", options.view_port is not None),
     )
@@ -314,7 +314,7 @@ def _run(
                 None if logins is None else logins.directory / "robot",  # removed with the run's logins
             )
         else:
-            spawn_sim_plants(supervisor, options, common, robots, login.get("plant"))
+            spawn_sim_plants(supervisor, options, common, robots, login.get("plant"), settings)
         supervisor.spawn("critic", ["critic", *common, *robot_flags(options, robots)], login.get("critic"))
         # a bridge is alive once it reaches its robot's router, which it waits for (a robot boots slowly)
         plant_timeout = READY_TIMEOUT + (settings.bridge.robot_connect_timeout if bridged else 0)
@@ -368,16 +368,21 @@ def spawn_observers(supervisor: Supervisor, options: UpOptions, common: list[str
 
 
 def spawn_sim_plants(
-    supervisor: Supervisor, options: UpOptions, common: list[str], robots: list[str], login: dict[str, str] | None
+    supervisor: Supervisor,
+    options: UpOptions,
+    common: list[str],
+    robots: list[str],
+    login: dict[str, str] | None,
+    settings: Settings,
 ) -> None:
     """The simulated robots: one plant host for all (``host``: the robot of the settings at its
-    start, or a fleet evenly on the circle, common.math.fleet.circle_starts) or a plant_sim each
-    (``process``)."""
+    start, or a fleet where common.math.fleet.fleet_starts puts it: evenly on the circle, another
+    system's in its start box) or a plant_sim each (``process``)."""
     if options.layout == "host":
         fleet = [*robot_flags(options, robots), f"--circle={options.circle!r}"] if options.fleet else []
         supervisor.spawn("plant", ["plant-sim", "--mode", options.mode, *common, *fleet], login)
         return
-    for robot, start in zip(robots, circle_starts(len(robots), options.circle), strict=True):
+    for robot, start in zip(robots, fleet_starts(settings.system, len(robots), options.circle), strict=True):
         supervisor.spawn(
             f"plant-{robot}",
             ["plant-sim", *common, f"--robot={robot}", "--start=" + ",".join(repr(c) for c in start)],
@@ -536,6 +541,7 @@ def run_summary(
         "router": (tls_endpoint(settings.transport.router) if options.secure else None) or settings.transport.router,
         "agent": settings.actor.agent,
         "horizon": settings.actor.horizon,
+        "system": settings.plant.system,
         "critic": {
             "transitions_received": critic.transitions_received,
             "weights_published": critic.weights_published,
@@ -632,12 +638,19 @@ def child_summaries(
 def format_fleet_summary(summary: dict[str, Any]) -> str:
     """A fleet's summary as ``srl up --robots`` prints it: a row per robot, the fleet's figures."""
     view = FleetView.model_validate(summary["fleet"])
+    system = system_row(summary.get("system", "unicycle"))
+    where = (  # a wheeled robot's fleet on the circle; another system's in its start box (fleet_starts)
+        f"starts on a {summary['circle_radius_m']} m circle"
+        if system.wheeled
+        else f"system {summary['system']} from its start and its start box, parked: "
+        f"stabilized (< {system.stabilized:g})"
+    )
     lines = [
         f"srl up --robots {len(summary['robots'])} ({summary['layout']} layout): {summary['seconds']:.0f} s, "
-        f"{summary['agent']} N = {summary['horizon']}, starts on a {summary['circle_radius_m']} m circle"
+        f"{summary['agent']} N = {summary['horizon']}, {where}"
         + (", MuJoCo TurtleBot3s (final m: their true pose)" if summary.get("plant") == "physics" else ""),
         f"  {'robot':<12} {'steps':>5} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'staleness p99/max':>17} "
-        f"{'final m':>8} parked",
+        f"{'final m' if system.wheeled else 'final':>8} parked",
     ]
     if summary.get("secure"):
         lines.insert(
