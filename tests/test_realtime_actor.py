@@ -484,3 +484,9 @@ def test_another_systems_loop_sends_the_systems_messages_and_reports_in_its_term
     summary = loop.summary()
     assert summary["system"] == "two_tank" and summary["final_distance"] == distance
     assert summary["start_state"] == [-0.2, -0.1] and summary["transitions_tail"][-1] == [4, -0.2, -0.1, 0.1, expected]
+    # a tick's batch rows are positional: the system's code first, then the message's own fields,
+    # checked against the schema's columns once (a row in another order is refused, not misread)
+    code = wire.named_columns(wire.action)["system"]
+    assert loop.action_head == (code,) and loop.transition_head == (code,)
+    with pytest.raises(TypeError, match="batch columns"):
+        loop._row_head(wire.action, ("step", "episode", "stamp_ns", "action", "state_seq"))

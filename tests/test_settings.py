@@ -345,3 +345,15 @@ def test_a_horizon_of_zero_is_the_systems_own_and_a_named_one_wins(monkeypatch: 
     assert Settings.load(actor={"horizon": 0}).actor.horizon == 20
     with pytest.raises(ValueError, match=r"the horizon N must be 2 \.\. 100"):
         Settings.load(actor={"horizon": 1})
+
+
+def test_a_horizon_of_zero_in_a_section_given_as_its_model_is_the_systems_own_too() -> None:
+    """A caller building ``Settings`` from sections passes models, not dicts: ``horizon = 0`` in an
+    ``ActorSettings`` is the system's own N as it is in a file (it stayed 0 before)."""
+    s = Settings.load(plant={"system": "dynamic_unicycle"})
+    dumped = s.model_dump()
+    built = Settings(**{**dumped, "actor": s.actor.model_copy(update={"horizon": 0}), "plant": s.plant})
+    assert built.actor.horizon == 20
+    robot = Settings.load()
+    unnamed = robot.actor.model_copy(update={"horizon": 0})
+    assert Settings(**{**robot.model_dump(), "actor": unnamed}).actor.horizon == 12

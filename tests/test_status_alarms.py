@@ -204,3 +204,24 @@ def test_a_status_loop_wakes_at_most_ten_times_a_period(robots: int, wakes: int,
     assert [robot for burst in bursts[wakes : 2 * wakes] for robot in burst] == names
     assert max(len(burst) for burst in bursts) == most
     assert bus.counters["statuses_published"] == 2 * robots
+
+
+def test_a_status_says_how_far_its_robot_is_in_the_robots_metres_or_the_systems_terms() -> None:
+    """One reading of a status's distance (``status_distance``) for the one robot's line and the
+    fleet's: the robot's pose gives hypot(x, y) in m, another system's status its ``distance``."""
+    import threading
+
+    from common.contracts.summaries import status_distance
+    from tools.launch.measure import RobotStatuses
+
+    robot, system = {**QUIET, "x": 3.0, "y": -4.0}, {"steps": 10.0, "distance": 0.0123}
+    assert status_distance(robot) == (5.0, "m") and status_distance(system) == (0.0123, "")
+    assert status_distance({"steps": 1.0}) is None  # no state yet
+    assert "distance 5.00 m" in format_status_line(robot, 1.0, [])
+    line = format_status_line(system, 1.0, [])
+    assert "distance to the goal 0.0123" in line and " x " not in line
+    fleet = object.__new__(RobotStatuses)  # its table alone, without the monitor's session
+    fleet.actors, fleet.lock = {"a": robot, "b": {**QUIET, "x": 0.3, "y": 0.4}}, threading.Lock()
+    assert "distance max 5.00 m," in fleet.line(1.0, 2)
+    fleet.actors = {"a": system, "b": {"distance": 0.5}}
+    assert "distance max 0.50," in fleet.line(1.0, 2)

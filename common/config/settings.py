@@ -494,6 +494,13 @@ class BridgeSettings(_Section):
         return v
 
 
+def _as_dict(section: Any) -> dict[str, Any] | None:
+    """A settings section as a dict: a dict as it is, a model dumped, anything else None."""
+    if isinstance(section, BaseModel):
+        return section.model_dump()
+    return section if isinstance(section, dict) else None
+
+
 class Settings(BaseSettings):
     """All constants of a run. Build with :meth:`load`."""
 
@@ -550,14 +557,15 @@ class Settings(BaseSettings):
     @classmethod
     def _systems_horizon(cls, data: Any) -> Any:
         """``actor.horizon = 0``: the system's own N (its row's ``horizon``; the robot's 12), so every
-        reader of the settings sees the N a run takes. An unknown system is left to its field's check."""
-        if not isinstance(data, dict) or not isinstance(data.get("actor"), dict):
+        reader of the settings sees the N a run takes. A section may come as a dict (the files, the
+        flags) or as its model (a caller's ``Settings(actor=ActorSettings(...))``); an unknown
+        system is left to its field's check."""
+        if not isinstance(data, dict):
             return data
-        actor, plant = data["actor"], data.get("plant")
-        if str(actor.get("horizon")) != "0":
+        actor, plant = (_as_dict(data.get(name)) for name in ("actor", "plant"))
+        if actor is None or str(actor.get("horizon")) != "0":
             return data
-        name = plant.get("system", "unicycle") if isinstance(plant, dict) else getattr(plant, "system", "unicycle")
-        row = SYSTEMS.get(str(name))
+        row = SYSTEMS.get(str((plant or {}).get("system", "unicycle")))
         return data if row is None else {**data, "actor": {**actor, "horizon": row.horizon}}
 
     @model_validator(mode="after")

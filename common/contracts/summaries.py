@@ -16,6 +16,7 @@ layouts are judged by one definition); with K = 1 it prints its robot's own summ
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -183,17 +184,26 @@ class CriticSummary(_Summary):
     resources: dict[str, Any] | None = None
 
 
+def status_distance(c: Mapping[str, float]) -> tuple[float, str] | None:
+    """How far an actor's status says its robot is from the goal, and the unit: the robot's pose
+    (x, y, alpha) gives hypot(x, y) in "m"; another system's status carries its ``distance`` in the
+    system's terms (unit ""). None: the status has neither (no state yet)."""
+    if all(k in c for k in ("x", "y", "alpha")):
+        return math.hypot(c["x"], c["y"]), "m"
+    return (c["distance"], "") if "distance" in c else None
+
+
 def format_status_line(c: dict[str, float], elapsed: float, first_version: list[float]) -> str:
     """One line of the actor's 1 Hz status (``srl/<robot>/status/actor``).
 
     Weight versions are microsecond clock values (they never go back across critic restarts);
     shown is how many versions the actor moved on since this line first saw one, and how many
     steps old the weights it used were (staleness)."""
-    pose = ""
-    if all(k in c for k in ("x", "y", "alpha")):
-        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {math.hypot(c['x'], c['y']):.2f} m"
-    elif "distance" in c:  # another system: its distance to the goal (services/actor/realtime.py status)
-        pose = f"  distance to the goal {c['distance']:.4f}"
+    pose, far = "", status_distance(c)
+    if far is not None and far[1]:
+        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {far[0]:.2f} m"
+    elif far is not None:
+        pose = f"  distance to the goal {far[0]:.4f}"
     version = c.get("weights_version", -1.0)
     if not first_version and version > 0:
         first_version.append(version)
@@ -377,7 +387,7 @@ def _worst(values: list[float]) -> float:
 
 def robot_row(robot: str, summary: RealtimeActorSummary) -> RobotRow:
     system = system_row(summary.system)
-    own = math.nan if summary.final_state is None else system.distance(np.array(summary.final_state))
+    own = math.nan if summary.final_state is None else system.distance(np.asarray(summary.final_state, dtype=float))
     distance = own if summary.truth is None else summary.truth.final_distance
     last = summary.transitions_tail[-1] if summary.transitions_tail else None  # k, state, action, r
     n, m = system.state_dim, system.action_dim

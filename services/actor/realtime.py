@@ -35,7 +35,8 @@ import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
-from common.contracts.messages import Action, PlantState, Transition
+from common.contracts.columns import layout
+from common.contracts.messages import Action, Message, PlantState, Transition
 from common.contracts.summaries import RealtimeActorSummary, TrueView
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorStep
@@ -126,7 +127,8 @@ class RealtimeActor:
         self.system, self.wire = settings.system, settings.wire
         self.zero = (0.0,) * self.system.action_dim
         self.named = self.wire.named  # the fields every message takes beside its own ({} for the robot)
-        self.named_row = tuple(self.wire.named_columns(self.wire.action).values())  # a row's leading fields
+        self.action_head = self._row_head(self.wire.action, ("episode", "step", "stamp_ns", "action", "state_seq"))
+        self.transition_head = self._row_head(self.wire.transition, ("episode", "step", "state", "action", "cost"))
         self.delta = settings.plant.sampling_time
         self.r_diag = settings.r_diag  # diag(R), resolved once (the system's own if [])
         # A state older than this at a tick means the plant is silent: command zero. The last
@@ -177,6 +179,17 @@ class RealtimeActor:
         self.rest_rows: tuple[RowSink, RowSink] | None = None
 
     # -- inputs (Zenoh's threads) ---------------------------------------------------------
+    def _row_head(self, schema: type[Message], own: tuple[str, ...]) -> tuple[Any, ...]:
+        """A tick's row of ``schema`` (``Outbox.put_row``) is positional, its values in the order of
+        the schema's columns: the wire's named columns (another system's ``system`` code), then
+        ``own``. Returns the named columns' values; a schema whose columns are in another order is
+        refused here, once, not misread in a batch."""
+        head = self.wire.named_columns(schema)
+        fields = tuple(column.name for column in layout(schema))
+        if fields != (*head, *own):
+            raise TypeError(f"{schema.__name__}'s batch columns are {fields}, a tick's row {(*head, *own)}")
+        return tuple(head.values())
+
     def on_plant_identity(self, zid: str, alive: bool) -> None:
         with self.lock:
             self.order.forget(set(self.plant_gate.sources()))
@@ -340,7 +353,7 @@ class RealtimeActor:
             self.send(k, self.zero, rest.held[0].seq)
         else:  # Action's fields
             values = (self.episode_id, k, time.monotonic_ns(), self.zero, rest.held[0].seq)
-            rows[0].put_row(self.robot, (*self.named_row, *values))
+            rows[0].put_row(self.robot, (*self.action_head, *values))
         done = self.clock()
         self._record(
             k,
@@ -396,7 +409,7 @@ class RealtimeActor:
         values = state.tolist()
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         if rows is not None:  # Transition's fields
-            rows.put_row(self.robot, (*self.named_row, self.episode_id, k, state, action, cost))
+            rows.put_row(self.robot, (*self.transition_head, self.episode_id, k, state, action, cost))
         else:
             self.publish_transition(
                 self.wire.transition(

@@ -92,7 +92,7 @@ def main(args: argparse.Namespace) -> int:
     from tools.launch.supervisor import ServiceDiedError, Stopped, local_router_endpoint, tls_endpoint
     from tools.launch.up import UpOptions, actor_hosts, check_options, format_fleet_summary, run_up
 
-    settings = settings_from_args(args, any_system=True)  # another system: one robot, plant_sim (check_options)
+    settings = settings_from_args(args, any_system=True)  # what serves the robot only: check_options
     run_name = time.strftime("up-%Y%m%d-%H%M%S", time.gmtime()) + f"-{os.getpid()}"
     summary_dir = args.summary_dir or default_runs_dir() / run_name
     robots, endpoints, bridge_args = fleet_of(args, settings)

@@ -24,6 +24,7 @@ from common.config.settings import Settings
 from common.contracts.columns import batch_rows
 from common.contracts.keys import BATCH_CHUNK, STATUS
 from common.contracts.messages import ServiceStatus
+from common.contracts.summaries import status_distance
 from common.net.transport import zenoh_config
 from tools.launch.supervisor import Child, Supervisor
 
@@ -280,13 +281,12 @@ class RobotStatuses:
         """A fleet's status line: robots reporting and arrived, the farthest, the sums of the alarms."""
         with self.lock:
             seen = list(self.actors.values())
-        # a robot's distance to its target [m]; another system's to its goal (its status's "distance")
-        poses = [math.hypot(c["x"], c["y"]) for c in seen if "x" in c and "y" in c]
-        distances = poses or [c["distance"] for c in seen if "distance" in c]
+        far = [d for d in map(status_distance, seen) if d is not None]
+        unit = f" {far[0][1]}" if far and far[0][1] else ""
         return (
             f"{elapsed:5.1f} s: {len(seen)}/{robots} robots reporting, "
             f"arrived {sum(c.get('arrived', 0.0) > 0 for c in seen)}, "
-            f"distance max {max(distances, default=math.nan):.2f}{' m' if poses else ''}, "
+            f"distance max {max((d for d, _ in far), default=math.nan):.2f}{unit}, "
             f"missed deadlines {sum(c.get('missed_deadlines', 0.0) for c in seen):.0f}, "
             f"staleness max {max((c.get('staleness_steps', 0.0) for c in seen), default=0.0):.0f}, "
             f"solver failures {sum(c.get('solver_failures', 0.0) for c in seen):.0f}"
