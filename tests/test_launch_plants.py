@@ -61,3 +61,33 @@ def test_lockstep_is_refused_for_every_plant_behind_the_bridge(monkeypatch: pyte
         run_up(settings, UpOptions(settings_args=[], mode="realtime", plant="nowhere", duration=1.0))
     with pytest.raises(ValueError, match="unknown plant 'nowhere'"):
         run_up(settings, UpOptions([], duration=1.0, robots=["r1"], plant="nowhere", summary_dir=tmp_path))
+
+
+def test_the_plant_host_sends_states_as_its_actors_read_them_and_every_state_tick_to_a_live_view(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """srl up's plant host sends a robot's state just before its actor's tick (transport.state_sync),
+    one robot as a fleet's; with --view, every state tick (the view draws them), unless the user's
+    environment names state_sync (every child inherits it)."""
+    from tools.launch.up import spawn_sim_plants
+
+    class Spawned:
+        def __init__(self) -> None:
+            self.env: dict[str, dict[str, str] | None] = {}
+
+        def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None, observer: bool = False) -> None:
+            self.env[name] = env
+
+    def plant_env(options: UpOptions, robots: list[str]) -> dict[str, str]:
+        spawned = Spawned()
+        spawn_sim_plants(spawned, options, [], robots, {"SRL_LOGIN": "plant"}, Settings.load())  # type: ignore[arg-type]
+        return spawned.env["plant"] or {}
+
+    monkeypatch.delenv("SRL_TRANSPORT__STATE_SYNC", raising=False)
+    assert Settings.load().transport.state_sync
+    assert plant_env(UpOptions([]), ["tb3_0"]) == {"SRL_LOGIN": "plant"}  # the settings' sync
+    assert plant_env(UpOptions([], robots=["a", "b"]), ["a", "b"]) == {"SRL_LOGIN": "plant"}
+    viewed = plant_env(UpOptions([], view_port=8765), ["tb3_0"])
+    assert viewed == {"SRL_LOGIN": "plant", "SRL_TRANSPORT__STATE_SYNC": "false"}
+    monkeypatch.setenv("SRL_TRANSPORT__STATE_SYNC", "true")
+    assert plant_env(UpOptions([], view_port=8765), ["tb3_0"]) == {"SRL_LOGIN": "plant"}

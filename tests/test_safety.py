@@ -198,6 +198,10 @@ def test_realtime_plant_sim_applies_actions_of_the_live_actor_session_only() -> 
             time.sleep(0.2)
             after_foreign = states[-1].state
             drive(actor, 3, range(10))  # the live actor: applied
+            # the plant sends a driven robot's state just before its actor's next tick (state_sync):
+            # the newest seen may predate the last actions; the one after them shows where it is
+            acted = time.monotonic_ns()
+            wait_until(lambda: states[-1].stamp_ns > acted, 2, "a state after the live actor's actions")
             moved = math.dist(states[-1].state[:2], after_foreign[:2])
             for token in tokens:  # the actor session's tokens vanish: the robot stops at once
                 token.undeclare()

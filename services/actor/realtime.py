@@ -178,7 +178,6 @@ class RealtimeActor:
         # (None: every tick builds its messages)
         self.rest_rows: tuple[RowSink, RowSink] | None = None
 
-    # -- inputs (Zenoh's threads) ---------------------------------------------------------
     def _row_head(self, schema: type[Message], own: tuple[str, ...]) -> tuple[Any, ...]:
         """A tick's row of ``schema`` (``Outbox.put_row``) is positional, its values in the order of
         the schema's columns: the wire's named columns (another system's ``system`` code), then
@@ -190,6 +189,7 @@ class RealtimeActor:
             raise TypeError(f"{schema.__name__}'s batch columns are {fields}, a tick's row {(*head, *own)}")
         return tuple(head.values())
 
+    # -- inputs (Zenoh's threads) ---------------------------------------------------------
     def on_plant_identity(self, zid: str, alive: bool) -> None:
         with self.lock:
             self.order.forget(set(self.plant_gate.sources()))

@@ -68,15 +68,14 @@ def host(
     from common.math.fleet import fleet_starts
     from services.plant_sim.host import fleet_plant_summary, plant_summary, run_plant_host
 
-    if robots is None:  # one robot, from its start, its states at every state tick (srl.toml: state_sync)
+    synced = settings.transport.state_sync  # a host of one robot as of K: its states as its actor reads them
+    if robots is None:  # one robot, from its start
         one = [settings.transport.robot]
-        run = run_plant_host(
-            settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced=False
-        )
+        run = run_plant_host(settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced)
         return plant_summary(run, settings, bus)
     starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
     return fleet_plant_summary(
-        run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced=settings.transport.state_sync),
+        run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced),
         settings,
         bus,
         args.circle,

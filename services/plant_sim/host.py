@@ -313,9 +313,8 @@ def run_plant_host(
 ) -> PlantHostRun:
     """Simulate ``robots`` from ``starts`` in real time until ``stop`` or ``duration``: one robot
     (``srl plant-sim``) or a fleet (``--robots``) alike. ``synced``: each robot's states only at the
-    state ticks just before its actor's (:class:`StateSync`; a fleet's, ``transport.state_sync``);
-    else every state tick (one robot's plant-sim: a live view or any reader of the robot's key
-    gets them at ``state_rate``)."""
+    state ticks just before its actor's (:class:`StateSync`, ``transport.state_sync``, one robot's
+    as a fleet's); else every state tick, at ``state_rate`` (``srl up --view``: the view draws them)."""
     plant = FleetPlant(settings, robots, starts)
     for robot in robots:  # one plant per robot, before declaring
         bus.refuse_other_plant(robot)

@@ -380,7 +380,11 @@ def spawn_sim_plants(
     system's in its start box) or a plant_sim each (``process``)."""
     if options.layout == "host":
         fleet = [*robot_flags(options, robots), f"--circle={options.circle!r}"] if options.fleet else []
-        supervisor.spawn("plant", ["plant-sim", "--mode", options.mode, *common, *fleet], login)
+        env = login
+        if options.view_port is not None and "SRL_TRANSPORT__STATE_SYNC" not in os.environ:
+            # a live view draws every state tick (transport.state_rate), not only those its actor reads
+            env = {**(login or {}), "SRL_TRANSPORT__STATE_SYNC": "false"}
+        supervisor.spawn("plant", ["plant-sim", "--mode", options.mode, *common, *fleet], env)
         return
     for robot, start in zip(robots, fleet_starts(settings.system, len(robots), options.circle), strict=True):
         supervisor.spawn(
