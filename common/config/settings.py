@@ -185,7 +185,7 @@ class CriticSettings(_Section):
     checkpoint: str = Field(description="checkpoint file ({robot}, {agent}, {horizon}); empty = none")
     resume: bool = Field(default=False, description="restore the checkpoint of an earlier run at start")
     checkpoint_period: float = Field(
-        default=0.0, ge=0, le=3600, description="[s] at most one checkpoint write this often; 0 = after every batch"
+        default=1.0, ge=0, le=3600, description="[s] at most one checkpoint write this often; 0 = after every batch"
     )
     coalesce_fits: bool = Field(
         default=False, description="fit each robot once per batch, on its newest transition (a fleet's critic)"

@@ -177,13 +177,10 @@ def run_environment(options: UpOptions) -> dict[str, str]:
     env.setdefault("PYTHONUNBUFFERED", "1")
     if not options.fleet:
         return env
-    # one checkpoint write a second (all learners in each), not one per batch: a big fleet's critic
-    # would spend its time writing
-    env.setdefault("SRL_CRITIC__CHECKPOINT_PERIOD", "1.0")
     env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
     env.setdefault("SRL_CRITIC__BATCH_WINDOW", "0.02")  # ~20 robots' fits in one stacked solve at 100 robots
     # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
-    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second here) and
+    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second: checkpoint_period) and
     # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
     # over the first 5 minutes: a fleet's memory would grow for that long
     env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
