@@ -4,6 +4,7 @@ child through the environment."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -68,26 +69,24 @@ def test_the_plant_host_sends_states_as_its_actors_read_them_and_every_state_tic
 ) -> None:
     """srl up's plant host sends a robot's state just before its actor's tick (transport.state_sync),
     one robot as a fleet's; with --view, every state tick (the view draws them), unless the user's
-    environment names state_sync (every child inherits it)."""
-    from tools.launch.up import spawn_sim_plants
+    environment names state_sync (every child inherits it). What the children are given is what
+    their settings read."""
+    from tools.launch.up import run_environment
 
-    class Spawned:
-        def __init__(self) -> None:
-            self.env: dict[str, dict[str, str] | None] = {}
-
-        def spawn(self, name: str, argv: list[str], env: dict[str, str] | None = None, observer: bool = False) -> None:
-            self.env[name] = env
-
-    def plant_env(options: UpOptions, robots: list[str]) -> dict[str, str]:
-        spawned = Spawned()
-        spawn_sim_plants(spawned, options, [], robots, {"SRL_LOGIN": "plant"}, Settings.load())  # type: ignore[arg-type]
-        return spawned.env["plant"] or {}
+    def state_sync(options: UpOptions) -> bool:
+        env = run_environment(options)
+        with monkeypatch.context() as child:
+            for name in [name for name in os.environ if name.startswith("SRL_")]:
+                child.delenv(name)
+            for name, value in env.items():
+                if name.startswith("SRL_"):
+                    child.setenv(name, value)
+            return Settings.load().transport.state_sync
 
     monkeypatch.delenv("SRL_TRANSPORT__STATE_SYNC", raising=False)
-    assert Settings.load().transport.state_sync
-    assert plant_env(UpOptions([]), ["tb3_0"]) == {"SRL_LOGIN": "plant"}  # the settings' sync
-    assert plant_env(UpOptions([], robots=["a", "b"]), ["a", "b"]) == {"SRL_LOGIN": "plant"}
-    viewed = plant_env(UpOptions([], view_port=8765), ["tb3_0"])
-    assert viewed == {"SRL_LOGIN": "plant", "SRL_TRANSPORT__STATE_SYNC": "false"}
+    assert state_sync(UpOptions([]))  # the settings' sync, one robot
+    assert state_sync(UpOptions([], robots=["a", "b"]))  # and a fleet
+    assert not state_sync(UpOptions([], view_port=8765))
+    assert not state_sync(UpOptions([], robots=["a", "b"], view_port=8765))
     monkeypatch.setenv("SRL_TRANSPORT__STATE_SYNC", "true")
-    assert plant_env(UpOptions([], view_port=8765), ["tb3_0"]) == {"SRL_LOGIN": "plant"}
+    assert state_sync(UpOptions([], view_port=8765))  # the user's word wins

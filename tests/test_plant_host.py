@@ -222,3 +222,45 @@ def test_another_systems_plant_waits_for_its_first_action_then_steps_by_its_row_
     plant.arrivals[1] = 99.0  # its action is older than the timeout at the next tick
     plant_tick(plant, intakes, None, 100.0 + 2 * period, period, 0.5)
     assert [intake.watchdog_stops for intake in intakes] == [0, 1] and plant.held[1].tolist() == [0.0]
+
+
+def test_a_plant_host_of_one_prints_its_robots_row_of_the_hosts_summary_with_the_process_counters() -> None:
+    """One summary type: a plant host's rows are PlantSummary, and a host of one robot prints its
+    row (counters: the process's with the robot's own), the type ``srl plant-sim`` always printed."""
+    from common.contracts.summaries import FleetPlantSummary, PlantSummary
+    from services.plant_sim.host import PlantHostRun, one_robot_summary, plant_host_summary
+
+    settings = Settings.load()
+
+    class FakeBus:
+        def __init__(self, counters: dict[str, int]) -> None:
+            self.counters = counters
+
+    def host_run(robots: list[str]) -> PlantHostRun:
+        starts = np.array([[1.0 + i, 1.0, 0.5] for i in range(len(robots))])
+        plant = FleetPlant(settings, robots, starts)
+        counts = FakeCounts()
+        intakes = [RobotIntake(plant, i, counts) for i in range(len(robots))]  # type: ignore[arg-type]
+        for i, intake in enumerate(intakes):
+            intake.gate.gate.update("actor1", True)
+            for step in range(i + 1):  # robot i: i + 1 actions applied
+                message = Action(robot=robots[i], episode=1, step=step, stamp_ns=0, action=(0.1, 0.0), state_seq=-1)
+                assert intake.take(message, "actor1") is not None
+        return PlantHostRun(robots, starts, plant, intakes)
+
+    two = plant_host_summary(host_run(["a", "b"]), settings, FakeBus({"states_published": 9}), 1.5)  # type: ignore[arg-type]
+    host = FleetPlantSummary.model_validate(two)
+    assert [row.counters["actions_applied"] for row in host.per_robot.values()] == [1, 2]
+    assert host.per_robot["b"].start_state == [2.0, 1.0, 0.5] and host.per_robot["b"].mode == "realtime"
+
+    one = one_robot_summary(plant_host_summary(host_run(["a"]), settings, FakeBus({"states_published": 9}), 1.5))  # type: ignore[arg-type]
+    own = PlantSummary.model_validate(one)
+    assert own.start_state == own.final_state == [1.0, 1.0, 0.5]  # not advanced: its actions only held
+    assert own.counters == {
+        "states_published": 9,
+        "actions_applied": 1,
+        "actions_refused": 0,
+        "watchdog_stops": 0,
+        "actor_lost_stops": 0,
+    }
+    assert own.plant_model == settings.plant.model and own.service == "plant"

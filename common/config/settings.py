@@ -191,11 +191,11 @@ class CriticSettings(_Section):
         default=False, description="fit each robot once per batch, on its newest transition (a fleet's critic)"
     )
     batch_window: float = Field(
-        default=0.0,
+        default=0.02,
         ge=0,
         le=1.0,
         allow_inf_nan=False,
-        description="[s] a batch collects transitions this long after its first (a fleet's critic); 0 = what waits",
+        description="[s] a batch collects transitions this long after its first (until every robot is in)",
     )
     robots: str = Field(default="*", description="whose transitions to learn from: * = every robot, or one id")
     pooled: bool = Field(default=False, description="one learner trained on every robot's transitions (a fleet's)")

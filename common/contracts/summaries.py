@@ -184,11 +184,14 @@ class CriticSummary(_Summary):
     resources: dict[str, Any] | None = None
 
 
+POSE_KEYS = ("x", "y", "alpha")  # a robot's pose in an actor's status
+
+
 def status_distance(c: Mapping[str, float]) -> tuple[float, str] | None:
     """How far an actor's status says its robot is from the goal, and the unit: the robot's pose
     (x, y, alpha) gives hypot(x, y) in "m"; another system's status carries its ``distance`` in the
     system's terms (unit ""). None: the status has neither (no state yet)."""
-    if all(k in c for k in ("x", "y", "alpha")):
+    if all(k in c for k in POSE_KEYS):
         return math.hypot(c["x"], c["y"]), "m"
     return (c["distance"], "") if "distance" in c else None
 
@@ -200,8 +203,8 @@ def format_status_line(c: dict[str, float], elapsed: float, first_version: list[
     shown is how many versions the actor moved on since this line first saw one, and how many
     steps old the weights it used were (staleness)."""
     pose, far = "", status_distance(c)
-    if far is not None and far[1]:
-        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {far[0]:.2f} m"
+    if far is not None and all(k in c for k in POSE_KEYS):
+        pose = f"  x {c['x']:+.2f} y {c['y']:+.2f} alpha {c['alpha']:+.2f}  distance {far[0]:.2f} {far[1]}"
     elif far is not None:
         pose = f"  distance to the goal {far[0]:.4f}"
     version = c.get("weights_version", -1.0)
@@ -233,15 +236,22 @@ def format_alarms(c: dict[str, float]) -> str:
 
 
 class PlantSummary(_Summary):
-    """The simulated plant (services/plant_sim/service.py)."""
+    """A simulated robot (services/plant_sim): what ``srl plant-sim`` of one robot prints, and each
+    robot's row of a plant host's summary (:class:`FleetPlantSummary`; one robot's is its row with
+    the process's counters, :func:`robot_summary`)."""
 
     service: Literal["plant"] = "plant"
     mode: Literal["realtime", "lockstep"]
     plant_model: str = Field(description="plant.model (common/math/plant_models.py)")
+    start_state: list[float] | None = Field(
+        default=None, description="[x m, y m, alpha rad] where it started; None: lockstep (each reset places it)"
+    )
     final_state: list[float] = Field(description="[x m, y m, alpha rad] when it ended, as the robot reported it")
     true_final_state: list[float] = Field(description="[x m, y m, alpha rad]: where it truly was")
     saturated_commands: int = Field(description="commands with a wheel beyond its speed limit (actuator model)")
-    counters: dict[str, int]
+    counters: dict[str, int] = Field(
+        description="the robot's actions applied, refused; watchdog, actor-lost stops (one robot: its process's too)"
+    )
     resources: dict[str, Any] | None = None
 
 
@@ -429,27 +439,15 @@ def fleet_view(per_robot: dict[str, RealtimeActorSummary]) -> FleetView:
     )
 
 
-class PlantRow(_Summary):
-    """One robot of a plant host."""
-
-    start_state: list[float]
-    final_state: list[float] = Field(description="[x m, y m, alpha rad] as the robot reported it")
-    true_final_state: list[float]
-    actions_applied: int
-    actions_refused: int
-    watchdog_stops: int
-    actor_lost_stops: int
-
-
 class FleetPlantSummary(_Summary):
-    """What ``srl plant-sim --robots`` prints."""
+    """What a plant host of many robots prints (``srl plant-sim --robots``): each robot's own summary."""
 
     service: str = "plant"
     layout: str = "host"
     robots: list[str]
     plant_model: str
     circle_radius_m: float
-    per_robot: dict[str, PlantRow]
+    per_robot: dict[str, PlantSummary]
     missed_ticks: int
     counters: dict[str, float]
     resources: dict[str, Any] | None = None
@@ -471,7 +469,7 @@ class FleetBridgeSummary(_Summary):
 def robot_summary(robots: list[str], per_robot: dict[str, Any], counters: dict[str, float]) -> dict[str, Any]:
     """What a host of ONE robot prints as its service of one robot always did: the robot's own
     summary (an entry of ``per_robot``, re-validated as its own type), its counters the process's
-    ``counters`` and the robot's. The actor's and the bridge's (services/*/host.py)."""
+    ``counters`` and the robot's. The actor's, the plant's and the bridge's (services/*/host.py)."""
     [robot] = robots
     own = per_robot[robot]
     values = own.to_json_dict()

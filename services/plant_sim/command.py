@@ -66,17 +66,13 @@ def host(
     settings: Settings, bus: Bus, stop: threading.Event, args: argparse.Namespace, robots: list[str] | None
 ) -> dict[str, Any]:
     from common.math.fleet import fleet_starts
-    from services.plant_sim.host import fleet_plant_summary, plant_summary, run_plant_host
+    from services.plant_sim.host import one_robot_summary, plant_host_summary, run_plant_host
 
     synced = settings.transport.state_sync  # a host of one robot as of K: its states as its actor reads them
-    if robots is None:  # one robot, from its start
+    if robots is None:  # one robot, from its start: its row of the host's summary
         one = [settings.transport.robot]
         run = run_plant_host(settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced)
-        return plant_summary(run, settings, bus)
+        return one_robot_summary(plant_host_summary(run, settings, bus, args.circle))
     starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
-    return fleet_plant_summary(
-        run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced),
-        settings,
-        bus,
-        args.circle,
-    )
+    run = run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced)
+    return plant_host_summary(run, settings, bus, args.circle)

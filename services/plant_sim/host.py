@@ -36,7 +36,7 @@ import numpy as np
 from common.config.settings import Settings
 from common.contracts.columns import Columns, choice_code, columns_of
 from common.contracts.messages import Action, PlantState
-from common.contracts.summaries import FleetPlantSummary, PlantRow, PlantSummary
+from common.contracts.summaries import FleetPlantSummary, PlantSummary, robot_summary
 from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.system.clock import STATE_SYNC_MARGIN_S
@@ -371,21 +371,28 @@ def plant_tick(
     return plant.advance(elapsed, due)
 
 
-def fleet_plant_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: float) -> dict[str, Any]:
-    """What ``srl plant-sim --robots`` prints."""
+def plant_host_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: float) -> dict[str, Any]:
+    """What a plant host prints (:class:`FleetPlantSummary`, whatever the number of robots): each
+    robot's own :class:`PlantSummary` and the process's counters; a host of one robot prints its
+    robot's (:func:`one_robot_summary`)."""
     return FleetPlantSummary(
         robots=run.robots,
         plant_model=settings.plant.model,
         circle_radius_m=radius,
         per_robot={
-            robot: PlantRow(
+            robot: PlantSummary(
+                mode="realtime",
+                plant_model=settings.plant.model,
                 start_state=[float(c) for c in run.starts[i]],
                 final_state=run.plant.reported(i),
                 true_final_state=run.plant.truth(i),
-                actions_applied=run.intakes[i].applied,
-                actions_refused=run.intakes[i].refused,
-                watchdog_stops=run.intakes[i].watchdog_stops,
-                actor_lost_stops=run.intakes[i].actor_lost_stops,
+                saturated_commands=run.plant.saturated_commands(i),
+                counters={
+                    "actions_applied": run.intakes[i].applied,
+                    "actions_refused": run.intakes[i].refused,
+                    "watchdog_stops": run.intakes[i].watchdog_stops,
+                    "actor_lost_stops": run.intakes[i].actor_lost_stops,
+                },
             )
             for i, robot in enumerate(run.robots)
         },
@@ -394,20 +401,10 @@ def fleet_plant_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius:
     ).to_json_dict()
 
 
-def plant_summary(run: PlantHostRun, settings: Settings, bus: Bus) -> dict[str, Any]:
-    """What ``srl plant-sim`` (one robot, real time) prints: its robot's view of the host's run."""
-    if len(run.robots) != 1:
-        raise ValueError(f"a plant summary of one robot, not {len(run.robots)}")
-    return PlantSummary.model_validate(
-        {
-            "mode": "realtime",
-            "plant_model": settings.plant.model,
-            "final_state": run.plant.reported(0),
-            "true_final_state": run.plant.truth(0),
-            "saturated_commands": run.plant.saturated_commands(0),
-            "counters": dict(bus.counters),
-        }
-    ).to_json_dict()
+def one_robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
+    """What ``srl plant-sim`` of one robot prints (common.contracts.summaries.robot_summary)."""
+    host = FleetPlantSummary.model_validate(summary)
+    return robot_summary(host.robots, dict(host.per_robot), host.counters)
 
 
 def plant_status(plant: FleetPlant, intake: RobotIntake) -> Callable[[], dict[str, float]]:

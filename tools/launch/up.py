@@ -171,25 +171,26 @@ def run_arguments(options: UpOptions, router: str) -> list[str]:
 
 
 def run_environment(options: UpOptions) -> dict[str, str]:
-    """Every child's environment: this process's; a fleet's with the settings it runs its critic and
-    actors with (an ``SRL_`` variable the user set wins) and one BLAS thread per process."""
+    """Every child's environment: this process's, with the settings a run of this kind takes (an
+    ``SRL_`` variable the user set wins): a live view's every state tick, a fleet's critic and
+    transition caches; one BLAS thread per process."""
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
-    if not options.fleet:
-        return env
-    env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
-    env.setdefault("SRL_CRITIC__BATCH_WINDOW", "0.02")  # ~20 robots' fits in one stacked solve at 100 robots
-    # each actor keeps this many transitions per robot for a late critic (Zenoh's publisher cache):
-    # 60 s at delta = 0.1 s covers a critic's restart (it checkpoints every second: checkpoint_period) and
-    # partitions up to a minute; the single robot's 3000 would hold ~0.6 MB per robot, filled
-    # over the first 5 minutes: a fleet's memory would grow for that long
-    env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
-    env["SRL_CRITIC__POOLED"] = "true" if options.pooled else "false"
     # one BLAS thread per process: a pooled fit (25 robots: ~750 rows) is big enough for a BLAS to
     # start threads, which spin on a busy machine and slow every fit. OPENBLAS_NUM_THREADS is already
     # in this process's environment (tools/__init__.py); the children's other BLAS libraries too:
     for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env.setdefault(variable, "1")
+    if options.view_port is not None:
+        # a live view draws every state tick (transport.state_rate), not only those its actor reads
+        env.setdefault("SRL_TRANSPORT__STATE_SYNC", "false")
+    if options.fleet:
+        env.setdefault("SRL_CRITIC__COALESCE_FITS", "true")  # a critic behind fits each robot's newest only
+        # each actor host keeps this many transitions per robot for a late critic (Zenoh's publisher
+        # cache): 60 s covers a critic's restart (it checkpoints every second) and partitions up to a
+        # minute; the settings' 3000 would hold ~0.6 MB per robot, filled over the first 5 minutes
+        env.setdefault("SRL_TRANSPORT__TRANSITION_CACHE", str(FLEET_TRANSITION_CACHE))
+        env["SRL_CRITIC__POOLED"] = "true" if options.pooled else "false"
     return env
 
 
@@ -377,11 +378,7 @@ def spawn_sim_plants(
     system's in its start box) or a plant_sim each (``process``)."""
     if options.layout == "host":
         fleet = [*robot_flags(options, robots), f"--circle={options.circle!r}"] if options.fleet else []
-        env = login
-        if options.view_port is not None and "SRL_TRANSPORT__STATE_SYNC" not in os.environ:
-            # a live view draws every state tick (transport.state_rate), not only those its actor reads
-            env = {**(login or {}), "SRL_TRANSPORT__STATE_SYNC": "false"}
-        supervisor.spawn("plant", ["plant-sim", "--mode", options.mode, *common, *fleet], env)
+        supervisor.spawn("plant", ["plant-sim", "--mode", options.mode, *common, *fleet], login)
         return
     for robot, start in zip(robots, fleet_starts(settings.system, len(robots), options.circle), strict=True):
         supervisor.spawn(
