@@ -505,3 +505,82 @@ def test_fleet_on_one_shared_robot_router_keeps_robots_apart(tmp_path: Path) -> 
         assert math.hypot(*emulator["final_pose"][:2]) < math.hypot(x, y) - 0.5  # it drove toward the target
     assert results["tb3_9"]["counters"].get("cmd_received", 0) == 0  # not in the fleet: never commanded
     assert results["tb3_9"]["final_pose"] == pytest.approx([0.8, 0.8, 0.8])
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_one_robot_of_a_simulated_fleet_swapped_for_a_robot_behind_a_bridge(tmp_path: Path) -> None:
+    """A fleet's robot m3 is a TurtleBot3 (emulated) behind a robot bridge, its robots m1 and m2 in
+    a plant host: one actor host and one critic serve all three, unchanged. The bridge takes m3's
+    actions out of the actor host's batches and publishes its states on m3's own keys; the plant
+    host takes only its own robots' actions and refuses none for m3. Every robot approaches."""
+    from tests.harness import Proc, wait_until
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = ["--router", endpoint]
+    started: list[Proc] = []
+
+    def start(name: str, *argv: str) -> Proc:
+        started.append(Proc(name, list(argv)))
+        return started[-1]
+
+    def alive(session: zenoh.Session, key: str) -> bool:
+        if any(p.process.poll() is not None for p in started):
+            failed = next(p for p in started if p.process.poll() is not None)
+            raise AssertionError(f"{failed.name} exited: {failed.stderr[-10:]}")
+        return any(r.ok is not None for r in session.liveliness().get(key, timeout=0.5))
+
+    try:
+        start("router", "router", *router)
+        session = open_session(endpoint, 30, "the router")
+        try:
+            plant = start("plant", "plant-sim", *router, "--mode", "realtime", "--robots=m1,m2")
+            emulator = start("emulator", "tb3-emulator", *router, "--robot=m3", "--start=1.0,-1.0")
+            bridge = start("bridge", "robot-bridge", *router, "--robot=m3")
+            critic = start("critic", "critic", *router, "--robots=m1,m2,m3")
+            for robot in ("m1", "m2", "m3"):
+                wait_until(lambda r=robot: alive(session, f"srl/{r}/alive/plant"), 60, f"{robot}'s plant")
+            wait_until(lambda: alive(session, "srl/m1/alive/critic"), 60, "the critic")
+            actor = start(
+                "actor",
+                "actor",
+                *router,
+                "--mode",
+                "realtime",
+                "--robots=m1,m2,m3",
+                "--agent",
+                "mpc",
+                "--run-seconds",
+                "12",
+            )
+            actor.process.wait(timeout=180)
+        finally:
+            session.close()
+        assert actor.process.returncode == 0, actor.stderr[-10:]
+        for proc in (plant, bridge, emulator, critic):
+            assert proc.stop() == 0, (proc.name, proc.stderr[-10:])
+    finally:
+        for proc in reversed(started):
+            proc.stop()
+    actors = actor.summary()["per_robot"]
+    np.testing.assert_allclose(actors["m3"]["start_state"][:2], [1.0, -1.0], atol=0.02)  # its actor saw ITS robot
+    for robot in ("m1", "m2", "m3"):
+        start_distance = math.hypot(*actors[robot]["start_state"][:2])
+        assert actors[robot]["steps"] >= 80 and actors[robot]["final_distance"] < start_distance - 0.8, actors[robot]
+    emulated = emulator.summary()
+    truly = math.hypot(*emulated["final_pose"][:2])  # where the emulated robot truly is
+    print(
+        "\nfigures: final distances "
+        + ", ".join(f"{r} {actors[r]['final_distance']:.3f} m" for r in actors)
+        + f"; m3 truly {truly:.3f} m"
+    )
+    assert truly < math.hypot(1.0, -1.0) - 0.8 and emulated["applied"] == [0.0, 0.0], emulated
+    counters = bridge.summary()["counters"]
+    assert counters["actions_applied"] >= actors["m3"]["steps"] - 2, counters
+    hosted = plant.summary()
+    assert sorted(hosted["per_robot"]) == ["m1", "m2"]
+    for robot in ("m1", "m2"):
+        row = hosted["per_robot"][robot]["counters"]
+        assert row["actions_applied"] >= actors[robot]["steps"] - 2 and row["actions_refused"] == 0, row
+    assert not any(name.startswith("rejected.") for name in hosted["counters"]), hosted["counters"]
+    assert critic.summary()["transitions_received"] >= sum(actors[r]["steps"] for r in actors) - 6
