@@ -227,8 +227,8 @@ def test_another_systems_plant_waits_for_its_first_action_then_steps_by_its_row_
 def test_a_plant_host_of_one_prints_its_robots_row_of_the_hosts_summary_with_the_process_counters() -> None:
     """One summary type: a plant host's rows are PlantSummary, and a host of one robot prints its
     row (counters: the process's with the robot's own), the type ``srl plant-sim`` always printed."""
-    from common.contracts.summaries import FleetPlantSummary, PlantSummary
-    from services.plant_sim.host import PlantHostRun, one_robot_summary, plant_host_summary
+    from common.contracts.summaries import PlantSummary, robot_summary
+    from services.plant_sim.host import PlantHostRun, plant_host_summary
 
     settings = Settings.load()
 
@@ -248,13 +248,12 @@ def test_a_plant_host_of_one_prints_its_robots_row_of_the_hosts_summary_with_the
                 assert intake.take(message, "actor1") is not None
         return PlantHostRun(robots, starts, plant, intakes)
 
-    two = plant_host_summary(host_run(["a", "b"]), settings, FakeBus({"states_published": 9}), 1.5)  # type: ignore[arg-type]
-    host = FleetPlantSummary.model_validate(two)
+    host = plant_host_summary(host_run(["a", "b"]), settings, FakeBus({"states_published": 9}), 1.5)  # type: ignore[arg-type]
     assert [row.counters["actions_applied"] for row in host.per_robot.values()] == [1, 2]
     assert host.per_robot["b"].start_state == [2.0, 1.0, 0.5] and host.per_robot["b"].mode == "realtime"
 
-    one = one_robot_summary(plant_host_summary(host_run(["a"]), settings, FakeBus({"states_published": 9}), 1.5))  # type: ignore[arg-type]
-    own = PlantSummary.model_validate(one)
+    alone = plant_host_summary(host_run(["a"]), settings, FakeBus({"states_published": 9}), 1.5)  # type: ignore[arg-type]
+    own = PlantSummary.model_validate(robot_summary(alone.robots, dict(alone.per_robot), alone.counters))
     assert own.start_state == own.final_state == [1.0, 1.0, 0.5]  # not advanced: its actions only held
     assert own.counters == {
         "states_published": 9,

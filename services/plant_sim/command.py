@@ -65,14 +65,16 @@ def main(args: argparse.Namespace) -> int:
 def host(
     settings: Settings, bus: Bus, stop: threading.Event, args: argparse.Namespace, robots: list[str] | None
 ) -> dict[str, Any]:
+    from common.contracts.summaries import robot_summary
     from common.math.fleet import fleet_starts
-    from services.plant_sim.host import one_robot_summary, plant_host_summary, run_plant_host
+    from services.plant_sim.host import plant_host_summary, run_plant_host
 
     synced = settings.transport.state_sync  # a host of one robot as of K: its states as its actor reads them
     if robots is None:  # one robot, from its start: its row of the host's summary
         one = [settings.transport.robot]
         run = run_plant_host(settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced)
-        return one_robot_summary(plant_host_summary(run, settings, bus, args.circle))
+        host = plant_host_summary(run, settings, bus, args.circle)
+        return robot_summary(host.robots, dict(host.per_robot), host.counters)
     starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
     run = run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced)
-    return plant_host_summary(run, settings, bus, args.circle)
+    return plant_host_summary(run, settings, bus, args.circle).to_json_dict()

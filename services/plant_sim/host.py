@@ -36,7 +36,7 @@ import numpy as np
 from common.config.settings import Settings
 from common.contracts.columns import Columns, choice_code, columns_of
 from common.contracts.messages import Action, PlantState
-from common.contracts.summaries import FleetPlantSummary, PlantSummary, robot_summary
+from common.contracts.summaries import FleetPlantSummary, PlantSummary
 from common.math.plant_models import plant_model_row
 from common.net.transport import Bus, bus_status, start_status_thread
 from common.system.clock import STATE_SYNC_MARGIN_S
@@ -371,10 +371,10 @@ def plant_tick(
     return plant.advance(elapsed, due)
 
 
-def plant_host_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: float) -> dict[str, Any]:
-    """What a plant host prints (:class:`FleetPlantSummary`, whatever the number of robots): each
-    robot's own :class:`PlantSummary` and the process's counters; a host of one robot prints its
-    robot's (:func:`one_robot_summary`)."""
+def plant_host_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: float) -> FleetPlantSummary:
+    """What a plant host prints, whatever the number of robots: each robot's own
+    :class:`PlantSummary` and the process's counters; a host of one robot prints its robot's
+    (common.contracts.summaries.robot_summary)."""
     return FleetPlantSummary(
         robots=run.robots,
         plant_model=settings.plant.model,
@@ -398,13 +398,7 @@ def plant_host_summary(run: PlantHostRun, settings: Settings, bus: Bus, radius: 
         },
         missed_ticks=int(bus.counters.get("missed_ticks", 0)),
         counters={k: float(v) for k, v in bus.counters.items()},
-    ).to_json_dict()
-
-
-def one_robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl plant-sim`` of one robot prints (common.contracts.summaries.robot_summary)."""
-    host = FleetPlantSummary.model_validate(summary)
-    return robot_summary(host.robots, dict(host.per_robot), host.counters)
+    )
 
 
 def plant_status(plant: FleetPlant, intake: RobotIntake) -> Callable[[], dict[str, float]]:
