@@ -253,7 +253,7 @@ def test_a_plant_host_of_one_prints_its_robots_row_of_the_hosts_summary_with_the
     assert host.per_robot["b"].start_state == [2.0, 1.0, 0.5] and host.per_robot["b"].mode == "realtime"
 
     alone = plant_host_summary(host_run(["a"]), settings, FakeBus({"states_published": 9}), 1.5)  # type: ignore[arg-type]
-    own = PlantSummary.model_validate(robot_summary(alone.robots, dict(alone.per_robot), alone.counters))
+    own = PlantSummary.model_validate(robot_summary(alone))
     assert own.start_state == own.final_state == [1.0, 1.0, 0.5]  # not advanced: its actions only held
     assert own.counters == {
         "states_published": 9,

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Protocol
 
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, TypeAdapter
@@ -466,12 +466,26 @@ class FleetBridgeSummary(_Summary):
     resources: dict[str, Any] | None = None
 
 
-def robot_summary(robots: list[str], per_robot: dict[str, Any], counters: dict[str, float]) -> dict[str, Any]:
+class HostSummary(Protocol):
+    """A host's summary (:class:`FleetActorSummary`, :class:`FleetPlantSummary`,
+    :class:`FleetBridgeSummary`): its robots, each one's own summary, the process's counters."""
+
+    @property
+    def robots(self) -> list[str]: ...
+
+    @property
+    def per_robot(self) -> Mapping[str, _Summary]: ...
+
+    @property
+    def counters(self) -> dict[str, float]: ...
+
+
+def robot_summary(host: HostSummary) -> dict[str, Any]:
     """What a host of ONE robot prints as its service of one robot always did: the robot's own
-    summary (an entry of ``per_robot``, re-validated as its own type), its counters the process's
-    ``counters`` and the robot's. The actor's, the plant's and the bridge's (services/*/host.py)."""
-    [robot] = robots
-    own = per_robot[robot]
+    summary (its entry of ``host.per_robot``, re-validated as its own type), its counters the
+    process's and the robot's. The actor's, the plant's and the bridge's (services/*/host.py)."""
+    [robot] = host.robots
+    own = host.per_robot[robot]
     values = own.to_json_dict()
-    values["counters"] = counters | values["counters"]
+    values["counters"] = host.counters | values["counters"]
     return dict(type(own).model_validate(values).to_json_dict())

@@ -56,7 +56,7 @@ def main(args: argparse.Namespace) -> int:
                 settings_from_args(args, any_system=True),
                 "actor",
                 args.connect_timeout,
-                lambda settings, bus, stop: run_host(settings, bus, share, stop, args.run_seconds),
+                lambda settings, bus, stop: run_host(settings, bus, share, stop, args.run_seconds).to_json_dict(),
                 any_system=True,
             )
         finally:

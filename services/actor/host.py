@@ -46,7 +46,6 @@ from common.config.settings import Settings
 from common.contracts.columns import Columns, columns_of, layout
 from common.contracts.messages import Action, Message, PlantState, Transition
 from common.contracts.summaries import FleetActorSummary, RealtimeActorSummary, fleet_view, format_status_line
-from common.contracts.summaries import robot_summary as robot_view
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
 from common.math.arrival import arrival_masks
@@ -580,7 +579,7 @@ def robot_status(loop: RealtimeActor, count: RobotCounts) -> Callable[[], dict[s
 
 def run_host(
     settings: Settings, bus: Bus, robots: list[str], stop: threading.Event, duration: float | None
-) -> dict[str, Any]:
+) -> FleetActorSummary:
     """The real-time loops of ``robots`` in this process, over one Zenoh session."""
     started = time.monotonic()
     # built once for every robot (one compiled problem per agent, N)
@@ -711,7 +710,7 @@ def prime_plans(loops: list[RealtimeActor], stop: threading.Event, wait: float) 
     return len(loops) - len(pending)
 
 
-def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: dict[str, float]) -> dict[str, Any]:
+def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: dict[str, float]) -> FleetActorSummary:
     """What ``srl actor --robots`` prints: every robot's own summary, the fleet's view, and the
     process's counters with ``host``'s (:class:`FleetActorSummary`, whatever the number of robots)."""
     per_robot = {
@@ -722,10 +721,4 @@ def host_summary(robots: list[str], loops: list[RealtimeActor], bus: Bus, host: 
         per_robot=per_robot,
         fleet=fleet_view(per_robot),
         counters={k: float(v) for k, v in bus.counters.items()} | host,
-    ).to_json_dict()
-
-
-def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl actor`` of one robot prints (common.contracts.summaries.robot_summary)."""
-    host = FleetActorSummary.model_validate(summary)
-    return robot_view(host.robots, dict(host.per_robot), host.counters)
+    )

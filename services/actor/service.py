@@ -27,12 +27,12 @@ from typing import Any
 from common.config.assembly import build_actor, episode_summary, run_episode
 from common.config.settings import Settings
 from common.contracts.messages import MessageError
-from common.contracts.summaries import LockstepActorSummary
+from common.contracts.summaries import LockstepActorSummary, robot_summary
 from common.math.actor import StackedActor
 from common.math.agents import learns
 from common.math.stats import summarize
 from common.net.transport import Bus
-from services.actor.host import robot_summary, run_host
+from services.actor.host import run_host
 from services.actor.ports import WeightsInbox, ZenohCriticPort, ZenohPlant, new_episode_id, wire_weights
 
 log = logging.getLogger(__name__)

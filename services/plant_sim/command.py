@@ -74,7 +74,7 @@ def host(
         one = [settings.transport.robot]
         run = run_plant_host(settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced)
         host = plant_host_summary(run, settings, bus, args.circle)
-        return robot_summary(host.robots, dict(host.per_robot), host.counters)
+        return robot_summary(host)
     starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
     run = run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced)
     return plant_host_summary(run, settings, bus, args.circle).to_json_dict()

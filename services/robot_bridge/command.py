@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from services.robot_bridge.host import robot_summary, run_bridge_host
+    from common.contracts.summaries import robot_summary
+    from services.robot_bridge.host import run_bridge_host
 
     settings = settings_from_args(args)
     robots = fleet_robots(args, ROS_FLEET_PREFIX)
@@ -63,7 +64,7 @@ def main(args: argparse.Namespace) -> int:
         namespaces = None
 
     def body(settings: Settings, bus: Bus, stop: threading.Event) -> dict[str, Any]:
-        summary = run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces)
-        return summary if robots is not None else robot_summary(summary)
+        host = run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces)
+        return host.to_json_dict() if robots is not None else robot_summary(host)
 
     return serve(settings, "plant", args.connect_timeout, body)

@@ -49,7 +49,6 @@ from common.contracts.keys import ACTION, STATE, liveliness_key
 from common.contracts.messages import Action, PlantState
 from common.contracts.ros_wire import RosGraph
 from common.contracts.summaries import BridgeSummary, FleetBridgeSummary
-from common.contracts.summaries import robot_summary as robot_view
 from common.net.provenance import SourceGate
 from common.net.security import SecurityError
 from common.net.transport import Bus, bus_status, start_status_thread
@@ -197,7 +196,7 @@ def run_bridge_host(
     stop: threading.Event,
     duration: float | None,
     namespaces: dict[str, str] | None = None,
-) -> dict[str, Any]:
+) -> FleetBridgeSummary:
     """Serve every robot of ``fleet`` (robot id -> its endpoint, '' = srl's router) until ``stop``
     or ``duration``. ``namespaces``: each robot's ROS namespace (default: its id; one robot's
     ``srl robot-bridge``: ``bridge.namespace``, which may be none). The host's
@@ -263,7 +262,7 @@ def run_bridge_host(
             for unit in units
         },
         counters=process,
-    ).to_json_dict()
+    )
 
 
 def unit_status(unit: BridgeUnit) -> Callable[[], dict[str, float]]:
@@ -297,9 +296,3 @@ def bridge_summary(
             "counters": counters,
         }
     )
-
-
-def robot_summary(summary: dict[str, Any]) -> dict[str, Any]:
-    """What ``srl robot-bridge`` of one robot prints (common.contracts.summaries.robot_summary)."""
-    host = FleetBridgeSummary.model_validate(summary)
-    return robot_view(host.robots, dict(host.per_robot), host.counters)

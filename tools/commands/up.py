@@ -181,7 +181,7 @@ def fleet_of(args: argparse.Namespace, settings: Settings) -> tuple[list[str] | 
             f"bridge.namespace {settings.bridge.namespace!r} with --robots: each robot's namespace is its id"
         )
     endpoints = ros_fleet_endpoints(args, robots, settings.bridge.robot_endpoint)
-    # each robot's namespace and endpoint are the fleet's own (tools/launch/fleet_robot.py)
+    # each robot's namespace and endpoint are the fleet's own (tools/launch/bridged.py)
     flags = [a for a in bridge_argv(args) if a.split("=", 1)[0] not in ("--namespace", "--robot-endpoint")]
     return robots, endpoints, flags
 

@@ -20,7 +20,7 @@ JSON summary is written to ``<summary_dir>/<name>.json``.
 
 ``--plant physics`` is ``plant-sim`` with ``plant.model = "physics"`` (the MuJoCo TurtleBot3,
 common/math/physics.py) for every child. ``--plant robot`` starts robot bridges (and TurtleBot3
-emulators, of ``plant.model``, for the robots without a robot endpoint: tools/launch/fleet_robot.py)
+emulators, of ``plant.model``, for the robots without a robot endpoint: tools/launch/bridged.py)
 instead of plants; the bridges are stopped (and have commanded zero velocity) before everything
 else. Each emulated robot runs as its own Zenoh router on a free loopback port (as a real robot runs
 ``rmw_zenohd``) and its bridge talks to it there: when srl's router dies, the bridge still reaches
@@ -297,7 +297,7 @@ def _run(
         supervisor.wait_for("router", lambda: router_reachable(settings), timeout=30)
         spawn_observers(supervisor, options, common)  # subscribed before the first state is published
         if bridged:  # emulated or real TurtleBot3s behind bridges
-            from tools.launch.fleet_robot import spawn_robot_plants
+            from tools.launch.bridged import spawn_robot_plants
 
             endpoints = spawn_robot_plants(
                 supervisor,
@@ -318,7 +318,7 @@ def _run(
         plant_timeout = READY_TIMEOUT + (settings.bridge.robot_connect_timeout if bridged else 0)
         wait_alive(supervisor, settings, robots, "plant", plant_timeout)
         if bridged:
-            from tools.launch.fleet_robot import wait_odometry
+            from tools.launch.bridged import wait_odometry
 
             wait_odometry(supervisor, settings, endpoints)
         wait_alive(supervisor, settings, robots, "critic", READY_TIMEOUT)
@@ -595,7 +595,7 @@ def run_summary(
     if options.count_messages:  # over the same span as the CPU: [count, bytes] of each kind
         summary["messages"] = measures.messages
     if options.fleet and launch_plant(options.plant).behind_bridge:
-        from tools.launch.fleet_robot import robot_fleet_summary
+        from tools.launch.bridged import robot_fleet_summary
 
         summary["robot_plant"] = robot_fleet_summary(supervisor, settings, robots, options.layout)
     if options.summary_dir is not None:
@@ -657,7 +657,7 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
             + (", mutual TLS" if str(summary.get("router", "")).startswith("tls/") else ""),
         )
         if summary.get("robot_plant"):
-            from tools.launch.fleet_robot import robot_router_line
+            from tools.launch.bridged import robot_router_line
 
             lines.insert(2, robot_router_line(summary["robot_plant"]))
     for row in view.rows:
@@ -691,7 +691,7 @@ def format_fleet_summary(summary: dict[str, Any]) -> str:
             f"{ticks['hurried_percent']:.1f} % solved in a hurry (served late or over the host's CPU budget)"
         )
     if summary.get("robot_plant"):
-        from tools.launch.fleet_robot import format_robot_lines
+        from tools.launch.bridged import format_robot_lines
 
         lines += format_robot_lines(summary["robot_plant"])
     return "\n".join(lines)
