@@ -73,8 +73,7 @@ def host(
     if robots is None:  # one robot, from its start: its row of the host's summary
         one = [settings.transport.robot]
         run = run_plant_host(settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced)
-        host = plant_host_summary(run, settings, bus, args.circle)
-        return robot_summary(host)
+        return robot_summary(plant_host_summary(run, settings, bus, args.circle))
     starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
     run = run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced)
     return plant_host_summary(run, settings, bus, args.circle).to_json_dict()

@@ -200,8 +200,8 @@ def run_bridge_host(
     """Serve every robot of ``fleet`` (robot id -> its endpoint, '' = srl's router) until ``stop``
     or ``duration``. ``namespaces``: each robot's ROS namespace (default: its id; one robot's
     ``srl robot-bridge``: ``bridge.namespace``, which may be none). The host's
-    :class:`FleetBridgeSummary`, whatever the number of robots (:func:`robot_summary`: one robot's
-    own)."""
+    :class:`FleetBridgeSummary`, whatever the number of robots (one robot's own:
+    common.contracts.summaries.robot_summary)."""
     if settings.transport.secure and not all(fleet.values()):
         # srl's access rules cover srl's keys: a robot's ROS 2 traffic on srl's secured router
         # would be refused, and the bridge would wait for odometry that never comes
