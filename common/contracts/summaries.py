@@ -479,6 +479,15 @@ class HostSummary(Protocol):
     @property
     def counters(self) -> dict[str, float]: ...
 
+    def to_json_dict(self) -> dict[str, Any]: ...
+
+
+def printed_summary(host: HostSummary, fleet: bool) -> dict[str, Any]:
+    """What a host's command prints: started with ``--robots`` (``fleet``), the host's whole summary
+    (every robot's row and the process's counters); else its one robot's own summary
+    (:func:`robot_summary`), as a service of one robot always printed."""
+    return host.to_json_dict() if fleet else robot_summary(host)
+
 
 def robot_summary(host: HostSummary) -> dict[str, Any]:
     """What a host of ONE robot prints as its service of one robot always did: the robot's own

@@ -14,7 +14,7 @@ from common.config.arguments import (
     fleet_robots,
     settings_from_args,
 )
-from common.math.fleet import split_evenly
+from common.math.fleet import AUTO_HOSTS_HELP, split_evenly
 from common.process.runtime import fleet_hosts, serve
 from services.actor.split import fork_shares
 
@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="H|auto",
         default="1",
         help="with --robots: split the robots over H actor host processes started by this command, "
-        "auto = one per core from 50 robots (a host's solves use one core; default: 1)",
+        f"{AUTO_HOSTS_HELP} (a host's solves use one core; default: 1)",
     )
     parser.set_defaults(func=main)
 
@@ -49,6 +49,7 @@ def main(args: argparse.Namespace) -> int:
     if robots is not None:
         share, children = fork_shares(split_evenly(robots, fleet_hosts(args.hosts, len(robots), "--hosts")))
         # below here: one host per process, of its own share (a child returns from here too)
+        from common.contracts.summaries import printed_summary
         from services.actor.host import run_host
 
         try:
@@ -56,7 +57,9 @@ def main(args: argparse.Namespace) -> int:
                 settings_from_args(args, any_system=True),
                 "actor",
                 args.connect_timeout,
-                lambda settings, bus, stop: run_host(settings, bus, share, stop, args.run_seconds).to_json_dict(),
+                lambda settings, bus, stop: printed_summary(
+                    run_host(settings, bus, share, stop, args.run_seconds), True
+                ),
                 any_system=True,
             )
         finally:

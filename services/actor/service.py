@@ -27,7 +27,7 @@ from typing import Any
 from common.config.assembly import build_actor, episode_summary, run_episode
 from common.config.settings import Settings
 from common.contracts.messages import MessageError
-from common.contracts.summaries import LockstepActorSummary, robot_summary
+from common.contracts.summaries import LockstepActorSummary, printed_summary
 from common.math.actor import StackedActor
 from common.math.agents import learns
 from common.math.stats import summarize
@@ -45,7 +45,7 @@ def run(
     if mode == "lockstep":
         actor = build_actor(settings)  # built once, before the loop starts
         return _run_lockstep(settings, bus, actor, wire_weights(settings, bus), sync_critic)
-    return robot_summary(run_host(settings, bus, [settings.transport.robot], stop, duration))
+    return printed_summary(run_host(settings, bus, [settings.transport.robot], stop, duration), False)
 
 
 def _run_lockstep(

@@ -65,15 +65,14 @@ def main(args: argparse.Namespace) -> int:
 def host(
     settings: Settings, bus: Bus, stop: threading.Event, args: argparse.Namespace, robots: list[str] | None
 ) -> dict[str, Any]:
-    from common.contracts.summaries import robot_summary
+    from common.contracts.summaries import printed_summary
     from common.math.fleet import fleet_starts
     from services.plant_sim.host import plant_host_summary, run_plant_host
 
     synced = settings.transport.state_sync  # a host of one robot as of K: its states as its actor reads them
     if robots is None:  # one robot, from its start: its row of the host's summary
-        one = [settings.transport.robot]
-        run = run_plant_host(settings, bus, one, np.array([settings.start_state()]), stop, args.run_seconds, synced)
-        return robot_summary(plant_host_summary(run, settings, bus, args.circle))
-    starts = np.array(fleet_starts(settings.system, len(robots), args.circle))
-    run = run_plant_host(settings, bus, robots, starts, stop, args.run_seconds, synced)
-    return plant_host_summary(run, settings, bus, args.circle).to_json_dict()
+        fleet, starts = [settings.transport.robot], np.array([settings.start_state()])
+    else:
+        fleet, starts = robots, np.array(fleet_starts(settings.system, len(robots), args.circle))
+    run = run_plant_host(settings, bus, fleet, starts, stop, args.run_seconds, synced)
+    return printed_summary(plant_host_summary(run, settings, bus, args.circle), robots is not None)

@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from common.contracts.summaries import robot_summary
+    from common.contracts.summaries import printed_summary
     from services.robot_bridge.host import run_bridge_host
 
     settings = settings_from_args(args)
@@ -64,7 +64,8 @@ def main(args: argparse.Namespace) -> int:
         namespaces = None
 
     def body(settings: Settings, bus: Bus, stop: threading.Event) -> dict[str, Any]:
-        host = run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces)
-        return host.to_json_dict() if robots is not None else robot_summary(host)
+        return printed_summary(
+            run_bridge_host(settings, bus, fleet, stop, args.run_seconds, namespaces), robots is not None
+        )
 
     return serve(settings, "plant", args.connect_timeout, body)
