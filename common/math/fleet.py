@@ -8,8 +8,8 @@ Pure: strings and numbers in, ids and states out (no settings, no transport).
   it (the paper's ``alpha_0 = atan2(y_0, x_0)``), so every robot has the same parking task;
   :func:`fleet_starts` -- those for a wheeled robot, another system's in its start box.
 * :func:`host_count` and :func:`split_evenly` -- over how many actor host processes a fleet's
-  robots go (a number, or ``auto``: one below :data:`AUTO_SPLIT_FROM` robots, else one per core:
-  one host's solves run in one thread) and which robots each serves (contiguous, even shares).
+  robots go (a number, or ``auto``: one up to :data:`AUTO_ONE_HOST_UP_TO` robots, else one per
+  core: one host's solves run in one thread) and which robots each serves (contiguous, even shares).
 * :func:`ros_fleet` -- several ROS 2 robots (``--plant robot``): each srl robot id IS its robot's
   ROS namespace (``tb3_1`` <-> ``/tb3_1/odom``, ``/tb3_1/cmd_vel``), and each robot's Zenoh
   endpoint (its own router, or one shared by all). A robot id that is no ROS namespace, an
@@ -38,7 +38,14 @@ _ENDPOINT = re.compile(r"^[a-z][a-z0-9]*/\S+$")
 ROS_FLEET_PREFIX = "tb3_"  # ``--robots K --plant robot``: tb3_1 .. tb3_K, as TurtleBot3 multi-robot launches name them
 
 
-AUTO_SPLIT_FROM = 50  # robots: from here "auto" gives one actor host per core (the solves of one host use one)
+# "auto": one actor host up to this many robots, else one per core (the solves of one host use one
+# core). Up to here one host is on time and cheaper: every round of the fleet is one batch a
+# period, where two hosts send two and wake every other process twice (2 cores, rlqv N = 12,
+# srl record attached, 40 s runs: 100 robots on one host 0 missed deadlines in 3 of 3 runs and
+# 0.21-0.24 ms of CPU per robot tick at rest, 0.72-0.76 driving; on two 0.25-0.34 and 0.98-1.08;
+# 150 robots on one host missed 11 and 33 deadlines, on two none).
+AUTO_ONE_HOST_UP_TO = 100
+AUTO_HOSTS_HELP = f"auto = one up to {AUTO_ONE_HOST_UP_TO} robots, else one per core"
 
 
 class FleetError(ValueError):
@@ -96,10 +103,10 @@ def fleet_starts(system: System, count: int, radius: float) -> Sequence[tuple[fl
 
 def host_count(option: str, size: int, cores: int, flag: str = "--actor-hosts") -> int:
     """How many actor host processes serve ``size`` robots: ``option`` is a number (1 to one per
-    robot) or ``auto`` (one below :data:`AUTO_SPLIT_FROM` robots, else one per core of ``cores``).
+    robot) or ``auto`` (one up to :data:`AUTO_ONE_HOST_UP_TO` robots, else one per core of ``cores``).
     ``flag`` names the option in the one-line refusal."""
     if option == "auto":
-        return 1 if size < AUTO_SPLIT_FROM else max(1, min(cores, size))
+        return 1 if size <= AUTO_ONE_HOST_UP_TO else max(1, min(cores, size))
     try:
         hosts = int(option)
     except ValueError:

@@ -18,6 +18,7 @@ from common.config.arguments import (
 )
 from common.config.settings import METHODS
 from common.math.agents import AGENTS
+from common.math.fleet import AUTO_HOSTS_HELP
 
 NAME = "bench"
 HELP = "benchmarks that print a table (and JSON)"
@@ -105,8 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--actor-hosts",
         default="auto",
         metavar="H|auto",
-        help="actor processes of the host layout: a number, or auto = 1 below 50 robots, else one per core "
-        "(default: auto)",
+        help=f"actor processes of the host layout: a number, or {AUTO_HOSTS_HELP} (default: auto)",
     )
     fleet_bench.add_argument(
         "--record",

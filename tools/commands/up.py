@@ -28,7 +28,7 @@ from common.config.arguments import (
     settings_from_args,
 )
 from common.config.settings import Settings
-from common.math.fleet import ROS_FLEET_PREFIX
+from common.math.fleet import AUTO_HOSTS_HELP, ROS_FLEET_PREFIX
 from common.math.systems import system_row
 from tools.commands.run import fmt_state, how_far, truth_lines
 from tools.commands.view import VIEW_PORT
@@ -206,8 +206,7 @@ def add_fleet_arguments(parser: argparse.ArgumentParser) -> None:
         "--actor-hosts",
         default="auto",
         metavar="H|auto",
-        help="with --robots (host layout): split the robots over H actor hosts; auto = 1 below 50 robots, "
-        "else one per core (default: auto)",
+        help=f"with --robots (host layout): split the robots over H actor hosts; {AUTO_HOSTS_HELP} (default: auto)",
     )
     parser.add_argument(
         "--critic",
