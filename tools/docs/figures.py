@@ -366,9 +366,9 @@ def fleet_figure(data: dict[str, Any]) -> Figure:
                     f"{p.missed_deadlines} of\n{p.robot_ticks} ticks",
                     (p.robots, 100.0 * p.missed_deadlines / p.robot_ticks),
                     textcoords="offset points",
-                    xytext=(-10, -6),
+                    xytext=(-6, 8),  # above its point: below it would cover the smaller fleets' zeros
                     ha="right",
-                    va="top",
+                    va="bottom",
                     fontsize=8,
                 )
     if cpus:
