@@ -900,7 +900,7 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
             proc.stop()
 
 
-def test_actor_hosts_auto_is_one_up_to_a_hundred_robots_else_one_per_core_and_bad_values_are_refused() -> None:
+def test_actor_hosts_auto_is_one_up_to_fifty_robots_else_one_per_core_and_bad_values_are_refused() -> None:
     """``--actor-hosts`` of ``srl up --robots`` and ``srl bench fleet`` (one rule, common.process.runtime.fleet_hosts,
     which ``srl actor --hosts`` shares)."""
     from common.config.arguments import UsageError
@@ -908,8 +908,8 @@ def test_actor_hosts_auto_is_one_up_to_a_hundred_robots_else_one_per_core_and_ba
     from tools.launch.up import actor_hosts
 
     cores = usable_cores()
-    assert actor_hosts("auto", 8) == 1 and actor_hosts("auto", 50) == 1 and actor_hosts("auto", 100) == 1
-    assert actor_hosts("auto", 101) == min(cores, 101) and actor_hosts("auto", 300) == min(cores, 300)
+    assert actor_hosts("auto", 8) == 1 and actor_hosts("auto", 50) == 1
+    assert actor_hosts("auto", 51) == min(cores, 51) and actor_hosts("auto", 100) == min(cores, 100)
     assert actor_hosts("3", 8) == 3
     for bad, size in (("0", 8), ("9", 8), ("two", 8), ("", 8)):
         with pytest.raises(UsageError, match="--actor-hosts"):

@@ -39,12 +39,13 @@ ROS_FLEET_PREFIX = "tb3_"  # ``--robots K --plant robot``: tb3_1 .. tb3_K, as Tu
 
 
 # "auto": one actor host up to this many robots, else one per core (the solves of one host use one
-# core). Up to here one host is on time and cheaper: every round of the fleet is one batch a
-# period, where two hosts send two and wake every other process twice (2 cores, rlqv N = 12,
-# srl record attached, 40 s runs: 100 robots on one host 0 missed deadlines in 3 of 3 runs and
-# 0.21-0.24 ms of CPU per robot tick at rest, 0.72-0.76 driving; on two 0.25-0.34 and 0.98-1.08;
-# 150 robots on one host missed 11 and 33 deadlines, on two none).
-AUTO_ONE_HOST_UP_TO = 100
+# core). One host is cheaper (a fleet's rounds are one batch a period, where two hosts send two
+# and wake every other process twice), but its margin shrinks with its robots: on 2 cores, rlqv
+# N = 12, srl record attached, 50 robots on one host solve 1.6 % of ticks in a hurry; 100 robots
+# on one host 14-16 % (on two 1-5 %), at 20-25 % less CPU, and missed 1 deadline in 1 of 10 runs
+# (on two: none in 9); 150 on one host missed 11-33 a run. A default serves every agent and
+# horizon, so it keeps the margin; --actor-hosts 1 takes the cheaper layout.
+AUTO_ONE_HOST_UP_TO = 50
 AUTO_HOSTS_HELP = f"auto = one up to {AUTO_ONE_HOST_UP_TO} robots, else one per core"
 
 

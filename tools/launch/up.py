@@ -9,7 +9,7 @@ around the target (common/math/fleet.py) and named to each child by the launcher
 the critic, the actor host(s), the watch (:func:`tools.launch.measure.measure_run`: a status line a
 second, CPU and memory from /proc) and one summary (:func:`run_summary`).
 
-Layouts of a fleet: ``host`` (the default): ONE actor host up to 100 robots, else one per core
+Layouts of a fleet: ``host`` (the default): ONE actor host up to 50 robots, else one per core
 (``--actor-hosts``, common.math.fleet.AUTO_ONE_HOST_UP_TO), ONE plant host and the critic,
 whatever the fleet's size; ``process`` (the baseline of ``srl bench fleet``): one ``plant-sim``
 and one ``actor`` per robot.
