@@ -325,11 +325,87 @@ def test_a_late_subscriber_with_recovery_gets_a_batch_publishers_history_item_by
             writer.subscribe(TRANSITION, TRANSITION.key("t2"), on, recover=True)
 
 
+@pytest.mark.integration
+def test_a_robots_own_transition_key_carries_its_transitions_only_while_an_outsider_subscribes() -> None:
+    """srl reads transitions only in batches (Batch.on_demand): a host of one robot sends them in
+    batches too, srl's subscriptions of robots' keys take the batch key alone, and a robot's own
+    key (``srl/<robot>/transition``, the public contract) carries its transitions only while a
+    subscriber outside srl matches it (Zenoh's matching status): that robot's, each once, none
+    once it has gone; a host's robots' first ones too. A transition sent on its robot's key alone
+    would reach nobody: refused."""
+    import zenoh
+
+    from common.contracts.keys import TRANSITION
+    from common.net.transport import decode_sample
+    from tests.harness import client_config, random_transitions, wait_until
+
+    with router_and_buses("actor") as (endpoint, reader, writer, opened):
+        with pytest.raises(ValueError, match="only in batches"):
+            writer.publisher(TRANSITION, "t1")
+        lock = threading.Lock()
+        in_srl: list[tuple[str, int]] = []
+        outside: list[tuple[str, int]] = []
+
+        def srl_got(message: Any) -> None:
+            with lock:
+                in_srl.append((message.robot, message.step))
+
+        def outsider_got(sample: Any) -> None:
+            message = decode_sample(TRANSITION, str(sample.key_expr), sample.payload.to_bytes())
+            with lock:
+                outside.append((message.robot, message.step))
+
+        reader.subscribe(TRANSITION, every_robot(TRANSITION), srl_got)
+        send = writer.round_publisher(TRANSITION, batches=False, cache=5)  # a host of one robot's flag
+        stream = iter(random_transitions(400, ("t1", "t2")))
+
+        def send_rounds(count: int) -> None:
+            for _ in range(count):
+                send([next(stream), next(stream)])
+                time.sleep(0.02)
+
+        send_rounds(10)
+        wait_until(lambda: len(in_srl) == 20, 10, "srl's subscription gets the batches")
+        assert writer.counters["on_demand.transition"] == 0  # srl's own subscription matches no robot's key
+        session = zenoh.open(client_config(endpoint))
+        opened.append(session)
+        subscriber = session.declare_subscriber(TRANSITION.key("t1"), outsider_got)
+        deadline = time.monotonic() + 10
+        while not outside and time.monotonic() < deadline:
+            send_rounds(1)
+        send_rounds(10)
+        time.sleep(0.3)
+        with lock:
+            steps = [step for robot, step in outside]
+            assert {robot for robot, _ in outside} == {"t1"} and len(steps) >= 10
+            assert steps == list(range(steps[0], steps[-1] + 1))  # each once, in order, none lost
+        assert writer.counters["on_demand.transition"] == len(steps)
+        subscriber.undeclare()
+        time.sleep(0.5)  # the router tells the writer nobody matches any more
+        before = writer.counters["on_demand.transition"]
+        send_rounds(10)
+        time.sleep(0.3)
+        assert writer.counters["on_demand.transition"] == before and len(outside) == len(steps)
+        with lock:  # srl got every round once, through the batches alone
+            assert sorted(in_srl) == sorted(
+                {(robot, step) for robot in ("t1", "t2") for step in range(len(in_srl) // 2)}
+            )
+            assert len(in_srl) == len(set(in_srl))
+        # a host's robots' keys are declared when it starts: a subscriber already there gets the first
+        session.declare_subscriber(TRANSITION.key("t9"), outsider_got)
+        time.sleep(0.3)
+        first = writer.round_publisher(TRANSITION, robots=["t9"])
+        time.sleep(0.3)  # an actor host's start: its build, its first state
+        first(random_transitions(1, ("t9",)))
+        wait_until(lambda: ("t9", 0) in outside, 5, "t9's first transition")
+
+
 def test_a_history_whose_query_cannot_be_sent_still_ends_once() -> None:
     """``Bus.history``: ``done`` is called once when every query has ended; a query the session
     refuses (it is closed) has ended, and so have those after it: the caller hears the error and
-    ``done``, and a critic's HistoryRecovery is free to ask again."""
-    from common.contracts.keys import TRANSITION
+    ``done``, and a critic's HistoryRecovery is free to ask again. A topic read only in batches
+    (transitions: Batch.on_demand) asks the batch publishers' caches alone."""
+    from common.contracts.keys import TRANSITION, WEIGHTS
     from common.net.transport import Bus
 
     class Refusing:
@@ -346,12 +422,17 @@ def test_a_history_whose_query_cannot_be_sent_still_ends_once() -> None:
     session = Refusing()
     ended: list[int] = []
     with pytest.raises(RuntimeError, match="session closed"):
-        Bus(session, "critic").history(  # type: ignore[arg-type]
-            TRANSITION, [TRANSITION.key(r) for r in ("a", "b", "c")], lambda m: None, lambda: ended.append(1)
+        Bus(session, "actor").history(  # type: ignore[arg-type]
+            WEIGHTS, [WEIGHTS.key(r) for r in ("a", "b", "c")], lambda m: None, lambda: ended.append(1)
         )
-    assert session.asked == ["srl/a/transition/@adv/**", "srl/b/transition/@adv/**"] and ended == []
+    assert session.asked == ["srl/a/critic/weights/@adv/**", "srl/b/critic/weights/@adv/**"] and ended == []
     session.handlers[0].drop()  # the first query, sent, ends later
     assert ended == [1]
+    session = Refusing()
+    Bus(session, "critic").history(  # type: ignore[arg-type]
+        TRANSITION, [TRANSITION.key(r) for r in ("a", "b", "c")], lambda m: None, lambda: ended.append(2)
+    )
+    assert session.asked == ["srl/@batch/transition/@adv/**"]
 
 
 @pytest.mark.integration

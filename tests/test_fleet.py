@@ -820,8 +820,8 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
     """``srl critic --robots``: a shard subscribes to its robots' transitions only, so two critics
     split a fleet across processes or hosts (docs/fleets.md); each robot's
     weights come from its own shard, and a robot of neither shard is learned by none."""
-    from common.contracts.columns import decode_batch
-    from common.contracts.keys import STATUS, TRANSITION, WEIGHTS, WEIGHTS_BATCH
+    from common.contracts.columns import batch_payloads, decode_batch
+    from common.contracts.keys import STATUS, TRANSITION_BATCH, WEIGHTS, WEIGHTS_BATCH
     from common.contracts.messages import CriticWeights, ServiceStatus
     from tests.harness import Proc, free_port, open_session, random_transitions, wait_until
 
@@ -868,21 +868,19 @@ def test_critics_shard_a_fleet_by_robot_each_learning_only_its_own() -> None:
         batches = session.declare_subscriber(WEIGHTS_BATCH.pattern, on_batch)
         statuses = session.declare_subscriber(STATUS.pattern.format(robot="*", service="critic"), on_status)
         sent = random_transitions(20, robots=("s1", "s2", "s3", "s4"))
-        # as the actors publish them: a cached advanced publisher per robot, so a shard recovers
-        # what a loaded machine's router dropped (a plain put of 80 samples in a burst lost 27 of
-        # shard a's 40 in one CI run, 2026-11-25)
-        publishers = {
-            robot: zenoh.ext.declare_advanced_publisher(
-                session,
-                TRANSITION.key(robot),
-                cache=zenoh.ext.CacheConfig(64),
-                sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
-                publisher_detection=True,
-            )
-            for robot in ("s1", "s2", "s3", "s4")
-        }
-        for transition in sent:
-            publishers[transition.robot].put(transition.encode())
+        # as the actor hosts publish them: on the batch key (Batch.on_demand), through a cached
+        # advanced publisher, so a shard recovers what a loaded machine's router dropped (a plain
+        # put of 80 samples in a burst lost 27 of shard a's 40 in one CI run, 2026-11-25)
+        publisher = zenoh.ext.declare_advanced_publisher(
+            session,
+            TRANSITION_BATCH.pattern,
+            cache=zenoh.ext.CacheConfig(64),
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=0.5, sporadic_heartbeat=None),
+            publisher_detection=True,
+        )
+        for step in range(0, len(sent), 4):  # a round: every robot's step
+            (payload,) = batch_payloads(sent[step : step + 4])
+            publisher.put(payload)
         wait_until(lambda: {"s1", "s2", "s3"} <= set(fits), 30, "weights of every served robot")
         wait_until(lambda: received.get("a", 0) >= 40 and received.get("b", 0) >= 20, 30, "all at their shards")
         subscriber.undeclare()

@@ -21,6 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from common.config.settings import Settings
+from common.contracts.columns import columns_of, encode_columns
+from common.contracts.keys import TRANSITION_BATCH
 from common.contracts.messages import (
     MAX_PAYLOAD_BYTES,
     Action,
@@ -171,17 +173,13 @@ def _rogue_payload(rng: random.Random, key: str, now_us: int, episode: int) -> b
         )
     if key == "action":
         return _dumps({"robot": "fz", "episode": 0, "step": 0, "stamp_ns": 0, "action": [bad, bad], "state_seq": 0})
-    if key == "transition":
-        return _dumps(
-            {
-                "robot": "fz",
-                "episode": 0,
-                "step": 0,
-                "state": [0.0, 0.0, 0.0],
-                "action": [0.0, 0.0],
-                "cost": bad if kind != 3 else -1.0,
-            }
+    if key == "transition":  # the critic reads transitions in batches alone (Batch.on_demand): a batch's columns
+        columns = columns_of(
+            Transition, [Transition(robot="fz", episode=0, step=0, state=(0, 0, 0), action=(0, 0), cost=0)]
         )
+        columns.floats[:, -1] = bad if kind != 3 else -1.0  # the cost
+        (payload,) = encode_columns(columns)  # written as it is: the receiver checks
+        return payload
     weights = {
         "robot": "fz",
         "episode": episode,
@@ -375,8 +373,11 @@ def test_live_fuzz_every_key_for_ten_seconds() -> None:
         assert c.session is not None
         c.session.declare_subscriber("srl/fz/action", lambda s: _record_action(s, actions, episodes))
         wait_until(lambda: bool(episodes), 30, "the actor's first action")
-        publishers = {
-            k: c.session.declare_publisher(f"srl/fz/{k}", congestion_control=zenoh.CongestionControl.BLOCK)
+        publishers = {  # each on the key its service reads (transitions: the batch key alone)
+            k: c.session.declare_publisher(
+                TRANSITION_BATCH.pattern if k == "transition" else f"srl/fz/{k}",
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
             for k in keys
         }
         started = time.monotonic()

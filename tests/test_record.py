@@ -634,25 +634,27 @@ def put(subscribed: dict[str, Any], key: str, payload: bytes) -> None:
 
 def test_the_recorder_takes_every_robots_samples_and_srls_batches_of_them(monkeypatch: pytest.MonkeyPatch) -> None:
     """Feed: a subscription on every robot's key and one on the batch key of each topic that has
-    a batch form; transitions (the actor's advanced publishers) with their history."""
+    a batch form; transitions (the actors' advanced publishers) on their batch key alone (srl's
+    hosts send them only in batches: Batch.on_demand), with their history."""
     from common.contracts.keys import BATCHES, STATE, STATUS, TRANSITION, WEIGHTS, every_robot
 
     feed, subscribed, _ = feed_on_a_fake_bus(monkeypatch)
     feed.close()
-    keys = [every_robot(STATE), every_robot(TRANSITION), every_robot(WEIGHTS), every_robot(STATUS, service="actor")]
+    keys = [every_robot(STATE), every_robot(WEIGHTS), every_robot(STATUS, service="actor")]
     batches = [BATCHES[topic.pattern].pattern for topic in (STATE, TRANSITION, WEIGHTS)]
     assert sorted(subscribed) == sorted(keys + batches)
     recovering = {key for key, (_, recover) in subscribed.items() if recover}
-    assert recovering == {every_robot(TRANSITION), BATCHES[TRANSITION.pattern].pattern}
+    assert recovering == {BATCHES[TRANSITION.pattern].pattern}
 
 
 def test_a_batch_is_recorded_as_its_rows_would_be_one_by_one(monkeypatch: pytest.MonkeyPatch) -> None:
     """Feed: the rows of a columnar batch (states, then transitions) are written byte for byte as
-    the same messages arriving one by one on their robots' keys are, in the order they came."""
+    the same messages arriving one by one (states on their robots' keys, transitions in batches of
+    one, as an actor host of one robot sends them) are, in the order they came."""
     import common.net.transport as transport
     import tools.recording.record as record
     from common.config.settings import Settings
-    from common.contracts.keys import STATE, STATE_BATCH, TRANSITION, TRANSITION_BATCH
+    from common.contracts.keys import STATE, STATE_BATCH, TRANSITION_BATCH
 
     monkeypatch.setattr(record, "BATCH_SECONDS", 30.0)
     monkeypatch.setattr(transport.time, "time_ns", lambda: 1_700_000_000 * 10**9)  # every arrival's stamp
@@ -677,7 +679,7 @@ def test_a_batch_is_recorded_as_its_rows_would_be_one_by_one(monkeypatch: pytest
             for state in states:
                 put(subscribed, STATE.key(state.robot), state.encode())
             for transition in transitions:
-                put(subscribed, TRANSITION.key(transition.robot), transition.encode())
+                put(subscribed, TRANSITION_BATCH.pattern, one_batch([transition]))
         feed.close()
         assert feed.received == 10 and feed.errors == 0 and feed.dropped == 0
         written.append(sink.written)
@@ -862,8 +864,13 @@ def test_the_recorders_backlog_is_bounded_in_memory_by_the_rows_it_holds(monkeyp
     samples: dict[tuple[str, bool], list[tuple[str, bytes]]] = {}
     for topic, make in ((STATE, fleet_state), (TRANSITION, fleet_transition), (WEIGHTS, weights)):
         messages = [make(robot, i) for i, robot in enumerate(robots)]
-        samples[topic.pattern, False] = [(topic.key(m.robot), m.encode()) for m in messages]
         batch = BATCHES[topic.pattern].pattern
+        # alone: on its robot's key, or (read only in batches: Batch.on_demand) a batch of one
+        alone = [
+            (batch, one_batch([m])) if BATCHES[topic.pattern].on_demand else (topic.key(m.robot), m.encode())
+            for m in messages
+        ]
+        samples[topic.pattern, False] = alone
         samples[topic.pattern, True] = [(batch, one_batch(messages[i : i + 100])) for i in range(0, 2000, 100)]
     statuses = [status(robot, i) for i, robot in enumerate(robots)]
     samples[STATUS.pattern, False] = [(STATUS.key(m.robot, service="actor"), m.encode()) for m in statuses]
@@ -1002,7 +1009,7 @@ def test_a_robot_heard_first_after_step_0_is_held_until_the_caches_answer_then_w
     )
     feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
     put(subscribed, TRANSITION_BATCH.pattern, one_batch([fleet_transition("a", 3), fleet_transition("b", 0)]))
-    put(subscribed, TRANSITION.key("a"), fleet_transition("a", 4).encode())
+    put(subscribed, TRANSITION_BATCH.pattern, one_batch([fleet_transition("a", 4)]))
     wait_until(lambda: feed.received == 1, 5, "robot b's step 0 written")
     time.sleep(0.3)  # several of the writer's rounds
     assert not [topic for topic, _, _ in sink.written if topic.startswith("/a/")]  # held
@@ -1030,7 +1037,7 @@ def test_steps_a_held_robot_never_got_are_counted_and_said_not_silently_left_out
     """A robot heard first at step 3 whose actors' caches answer only step 2: steps 0 and 1 are
     written nowhere, and the recorder says so (its count, srl record's summary line, a warning)."""
     import tools.recording.record as record
-    from common.contracts.keys import TRANSITION
+    from common.contracts.keys import TRANSITION_BATCH
     from common.net.transport import Bus
 
     monkeypatch.setattr(record, "BATCH_SECONDS", 0.05)
@@ -1039,7 +1046,7 @@ def test_steps_a_held_robot_never_got_are_counted_and_said_not_silently_left_out
         Bus, "history", lambda self, topic, keys, handler, done=None: asked.append((keys, handler, done))
     )
     feed, subscribed, sink = feed_on_a_fake_bus(monkeypatch)
-    put(subscribed, TRANSITION.key("a"), fleet_transition("a", 3).encode())
+    put(subscribed, TRANSITION_BATCH.pattern, one_batch([fleet_transition("a", 3)]))
     wait_until(lambda: len(asked) == 1, 5, "the caches asked")
     _, answer, done = asked[0]
     answer(fleet_transition("a", 2))

@@ -190,8 +190,8 @@ class FakeBus:
     def __init__(self) -> None:
         self.sent: list[Any] = []
 
-    def publisher(self, topic: Any, robot: str, cache: int = 0) -> Any:
-        return self.sent.append
+    def round_publisher(self, topic: Any, batches: bool = True, cache: int = 0, robots: Any = ()) -> Any:
+        return self.sent.extend
 
     def count(self, name: str, amount: int = 1) -> None:
         pass

@@ -17,6 +17,7 @@ import zenoh
 
 from common.config.assembly import run_episode
 from common.config.settings import Settings
+from common.contracts.keys import TRANSITION_BATCH
 from common.contracts.messages import Action, CriticWeights, ServiceStatus
 from tests.harness import ROOT, Proc, cluster, free_port, srl, wait_until
 
@@ -248,8 +249,10 @@ def test_malformed_messages_are_rejected_counted_and_survived() -> None:
         sent: dict[str, int] = {}
         for key, bad in BAD_BY_KEY.items():
             # BLOCK: the 70 kB payload must not make zenoh drop the samples after it (the
-            # default DROP congestion control may, under load) - every one must arrive.
-            publisher = c.session.declare_publisher(f"srl/fz/{key}", congestion_control=zenoh.CongestionControl.BLOCK)
+            # default DROP congestion control may, under load) - every one must arrive. The
+            # critic reads transitions on the batch key alone (Batch.on_demand): sent there.
+            where = TRANSITION_BATCH.pattern if key == "transition" else f"srl/fz/{key}"
+            publisher = c.session.declare_publisher(where, congestion_control=zenoh.CongestionControl.BLOCK)
             for payload in [*GARBAGE, *bad]:
                 publisher.put(payload)
             sent[key] = len(GARBAGE) + len(bad)

@@ -75,9 +75,16 @@ class Batch(Generic[M]):
     chunk :data:`BATCH_CHUNK`. A service that serves many robots sends what it has for them in one
     round as one sample (common.net.transport.Bus.round_publisher): a sample's cost in Zenoh and in
     the receiving process is mostly per sample, not per byte (docs/fleets.md). A receiver gets
-    each item as if it had come on its robot's key (common.net.transport.Bus.subscribe)."""
+    each item as if it had come on its robot's key (common.net.transport.Bus.subscribe).
+
+    ``on_demand``: only srl's hosts send the topic (no robot bridge, no outside client may), so
+    they send it only in batches, a host of one robot too, and srl's services read only the batch
+    key; a robot's own key carries its messages only while someone outside srl subscribes to it
+    (Zenoh's matching status: common.net.transport.OnDemand). Without it, a robot's own key is
+    also an input (a robot bridge publishes its states there), which srl's services subscribe."""
 
     topic: Topic[M]
+    on_demand: bool = False
 
     @property
     def pattern(self) -> str:
@@ -95,6 +102,7 @@ BATCH_CHUNK = "@batch"
 
 STATE = Topic("srl/{robot}/state", PlantState)
 ACTION = Topic("srl/{robot}/action", Action)
+# sent by srl only while a subscriber outside srl matches it; srl's critic reads the batches (TRANSITION_BATCH)
 TRANSITION = Topic("srl/{robot}/transition", Transition)
 WEIGHTS = Topic("srl/{robot}/critic/weights", CriticWeights)
 STATUS = Topic("srl/{robot}/status/{service}", ServiceStatus)
@@ -105,9 +113,10 @@ STATE_BATCH = Batch(STATE)
 # the weights of one fit round of a critic of a robot list (a fleet's), of every robot it fitted,
 # sent through an advanced publisher whose cache keeps its last rounds (an actor recovers what it missed)
 WEIGHTS_BATCH = Batch(WEIGHTS)
-# an actor host's transitions of one tick group (a host of many robots), sent through an advanced
-# publisher whose cache keeps transport.transition_cache periods of them (a late critic recovers)
-TRANSITION_BATCH = Batch(TRANSITION)
+# an actor host's transitions of one tick group (every actor host's, one robot's too), sent through
+# an advanced publisher whose cache keeps transport.transition_cache periods of them (a late critic
+# recovers); a robot's own transition key only for outside subscribers (Batch.on_demand)
+TRANSITION_BATCH = Batch(TRANSITION, on_demand=True)
 PLANT_STEP = Service("srl/{robot}/plant/step", StepRequest, PlantState)
 PLANT_RESET = Service("srl/{robot}/plant/reset", ResetRequest, PlantState)
 
@@ -124,7 +133,7 @@ def batch_of(topic: Topic[M]) -> Batch[M] | None:
     """The batch form of ``topic``, if its messages may also come in batches (:class:`Batch`):
     on the same key, carrying the topic's own schema (another system's, common.contracts.wire)."""
     found = BATCHES.get(topic.pattern)
-    return found if found is None or found.topic == topic else Batch(topic)
+    return found if found is None or found.topic == topic else Batch(topic, found.on_demand)
 
 
 BATCHES: dict[str, Batch[Any]] = {
@@ -133,6 +142,17 @@ BATCHES: dict[str, Batch[Any]] = {
     WEIGHTS.pattern: WEIGHTS_BATCH,
     TRANSITION.pattern: TRANSITION_BATCH,
 }
+
+
+def unasked_patterns() -> list[str]:
+    """The keys srl's services put samples on whether or not anyone outside subscribes: every
+    topic's, of every robot (``srl/*/...``), but a topic's sent on demand (:class:`Batch`
+    ``on_demand``), and the batch keys. What an observer of srl's traffic subscribes to: ``srl/**``
+    would match every robot's on-demand keys and so make srl send them."""
+    topics: tuple[Topic[Any], ...] = (STATE, ACTION, TRANSITION, WEIGHTS, STATUS)
+    asked = {pattern for pattern, batch in BATCHES.items() if batch.on_demand}
+    every = [topic.pattern.format(robot="*", service="*") for topic in topics if topic.pattern not in asked]
+    return [*every, f"srl/{BATCH_CHUNK}/**"]
 
 
 def every_robot(topic: Topic[M], **chunks: str) -> str:

@@ -96,23 +96,22 @@ def wire_realtime(
     inbox: WeightsInbox,
     counters: Counts,
     episode_id: int,
-    publish_action: Callable[[Action], None] | None = None,
-    publish_transition: Callable[[Transition], None] | None = None,
+    publish_action: Callable[[Action], None],
+    publish_transition: Callable[[Transition], None],
 ) -> RealtimeActor:
     """One robot's real-time loop on the bus (``settings.transport.robot``'s keys): its action and
     transition publishers, the plant's session identities and liveliness watched. Provenance
     first: the caller subscribes the states after this, so the live plant sessions are known
     before the first state is judged (one actor: a callback per state; the actor host: the
     newest, judged at the robot's tick). ``publish_action``, ``publish_transition``: where its
-    actions and transitions go instead of their own keys (an actor host's outboxes,
-    services/actor/host.py Outbox)."""
-    robot, wire = settings.transport.robot, settings.wire
+    actions and transitions go (the host's outboxes, :class:`Outbox`)."""
+    robot = settings.transport.robot
     loop = RealtimeActor(
         settings,
         actor,
         inbox,
-        publish_action or bus.publisher(wire.ACTION, robot),
-        publish_transition or bus.publisher(wire.TRANSITION, robot, cache=settings.transport.transition_cache),
+        publish_action,
+        publish_transition,
         counters,
         episode_id,
     )
@@ -597,11 +596,11 @@ def run_host(
     batches = len(robots) > 1
     wire = settings.wire  # the system's messages (the robot's: srl's own)
     outbox = Outbox(bus.round_publisher(wire.ACTION, batches=batches), schema=wire.action)
-    # a host of one robot: the robot's advanced publisher (transition_cache of its transitions)
-    cache = settings.transport.transition_cache
-    cache *= transition_rounds(len(robots), settings.actor.host_tick_group) if batches else 1
+    # transitions go in batches, a host of one robot's too (common.contracts.keys.Batch.on_demand),
+    # through an advanced publisher whose cache keeps transition_cache periods of rounds
+    cache = settings.transport.transition_cache * transition_rounds(len(robots), settings.actor.host_tick_group)
     transitions = Outbox(
-        bus.round_publisher(wire.TRANSITION, batches=batches, cache=cache),
+        bus.round_publisher(wire.TRANSITION, batches=batches, cache=cache, robots=robots),
         "transitions",
         wait=None,
         schema=wire.transition,

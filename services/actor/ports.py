@@ -15,6 +15,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +24,7 @@ import numpy as np
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
 from common.contracts.keys import Service
-from common.contracts.messages import CriticWeights, Message, PlantState
+from common.contracts.messages import CriticWeights, Message, PlantState, Transition
 from common.math.agents import fit_due, learns
 from common.math.critic import FitsDue, Sample
 from common.net.provenance import RESYNC_AFTER, RESYNC_WITHIN_S, RefusalRun, SourceGate
@@ -225,7 +226,11 @@ class ZenohCriticPort:
     def __init__(self, settings: Settings, bus: Bus, inbox: WeightsInbox, episode: int, sync: bool) -> None:
         self.settings, self.bus, self.inbox, self.episode, self.sync = settings, bus, inbox, episode, sync
         self.robot = settings.transport.robot
-        self.publish = bus.publisher(settings.wire.TRANSITION, self.robot, cache=settings.transport.transition_cache)
+        # in batches of one (srl reads transitions only in batches: common.contracts.keys.Batch.on_demand)
+        send = bus.round_publisher(
+            settings.wire.TRANSITION, cache=settings.transport.transition_cache, robots=[self.robot]
+        )
+        self.publish: Callable[[Transition], None] = lambda transition: send([transition])
         self.staleness: list[int] = []
         self.timeouts = 0
         self.fits = FitsDue(arrival_tolerances(settings))  # none on a robot held at rest

@@ -12,9 +12,10 @@ common/net/transport.py):
   turn, ``each, threaded, batched, each, ...`` (``--rounds`` rounds), so a change of the machine's
   load hits all:
 
-  - ``each``: srl's wire today, one message per robot on its own key (``srl/<robot>/state``) through
-    :class:`~common.net.transport.Bus` (``Bus.publisher``, ``Bus.subscribe`` on ``srl/*/state``), the
-    subscriber's handler on Zenoh's network thread (``transport.callback_threads = false``);
+  - ``each``: one message per robot on its own key (``srl/<robot>/state``), what a robot bridge and
+    an outside client send and read, decoded and checked as :class:`~common.net.transport.Bus` does
+    (``decode_sample``, a raw subscription of ``srl/*/state``), the subscriber's handler on Zenoh's
+    network thread (``transport.callback_threads = false``);
   - ``threaded``: the same wire, the handler on a thread of its own (``Bus.subscribe(threaded=True)``,
     what ``srl record``'s wildcards do);
   - ``batched``: one message per tick holding every robot's, as srl's plant host sends its states and
@@ -158,7 +159,7 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
     import threading
 
     from common.contracts.columns import decode_batch
-    from common.net.transport import Bus
+    from common.net.transport import Bus, decode_sample
 
     topic = topic_of(kind)
     bus = Bus.open(_transport(router), "bench")
@@ -169,7 +170,12 @@ def _subscriber(router: str, kind: str, way: str, limit: float) -> None:
             count[0] += 1
 
     if way in ("each", "threaded"):
-        bus.subscribe(topic, topic.pattern.format(robot="*"), one, threaded=way == "threaded")
+        # a raw subscription: srl's services read some kinds only in batches (Batch.on_demand)
+        bus.raw_subscriber(
+            topic.pattern.format(robot="*"),
+            lambda sample: one(decode_sample(topic, str(sample.key_expr), sample.payload.to_bytes())),
+            threaded=way == "threaded",
+        )
     else:
 
         def many(sample: Any) -> None:
@@ -200,8 +206,8 @@ def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, pe
 
     topic = topic_of(kind)
     bus = Bus.open(_transport(router), "bench")
-    if way != "batched":
-        sends = [bus.publisher(topic, f"robot{i + 1}") for i in range(robots)]
+    if way != "batched":  # each robot's key, as a robot bridge or an outside client publishes it
+        sends = [bus.session.declare_publisher(topic.key(f"robot{i + 1}"), express=bus.express) for i in range(robots)]
     else:
         batch = bus.session.declare_publisher(BATCH_KEY, express=bus.express)  # undeclared with the session
     time.sleep(1.0)  # the subscriber's interest reaches this session
@@ -211,7 +217,7 @@ def _publisher(router: str, kind: str, way: str, robots: int, seconds: float, pe
         messages = [sample_message(kind, i, tick) for i in range(robots)]
         if way != "batched":
             for send, message in zip(sends, messages, strict=True):
-                send(message)
+                send.put(message.encode())
         else:
             for payload in batch_payloads(messages):
                 batch.put(payload)

@@ -559,7 +559,9 @@ def keys_page() -> str:
     definitions = key_definitions(keys)
     for name, value in definitions:
         if isinstance(value, keys.Topic):
-            kind, schema = "topic (put/subscribe)", _message_link(value.schema)
+            batch = keys.batch_of(value)
+            kind = "topic (subscribe, on demand)" if batch is not None and batch.on_demand else "topic (put/subscribe)"
+            schema = _message_link(value.schema)
         elif isinstance(value, keys.Batch):
             columns = "[columns](messages.md#columnar-batches)"
             kind, schema = "batch (put/subscribe)", f"{columns} of {_message_link(value.schema)}"

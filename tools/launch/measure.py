@@ -22,7 +22,7 @@ import zenoh
 
 from common.config.settings import Settings
 from common.contracts.columns import batch_rows
-from common.contracts.keys import BATCH_CHUNK, STATUS
+from common.contracts.keys import STATUS, unasked_patterns
 from common.contracts.messages import ServiceStatus
 from common.contracts.summaries import status_distance
 from common.net.transport import zenoh_config
@@ -126,11 +126,12 @@ def message_kind(key: str) -> str:
 
 
 class MessageCounter:
-    """Every robot message routed during a run (``srl/**`` and the batches, ``srl/@batch/**``),
-    counted (and its bytes) by kind: what ``srl bench capacity`` reports per robot and second. A
-    batch counts its items, each a robot's message, and its bytes; ``batches`` counts the batch
-    samples themselves. It is one more subscriber of everything: the router delivers each sample
-    once more to it (said wherever its figures are shown)."""
+    """Every robot message routed during a run (common.contracts.keys.unasked_patterns: each
+    topic's robot keys and the batches, ``srl/@batch/**``; not ``srl/**``, which would make srl
+    send the keys it sends on demand), counted (and its bytes) by kind: what ``srl bench capacity``
+    reports per robot and second. A batch counts its items, each a robot's message, and its bytes;
+    ``batches`` counts the batch samples themselves. It is one more subscriber of everything: the
+    router delivers each sample once more to it (said wherever its figures are shown)."""
 
     def __init__(self, settings: Settings) -> None:
         self.counts: dict[str, list[int]] = {}
@@ -157,8 +158,9 @@ class MessageCounter:
                 count[1] += len(payload)
                 self.batches[kind] = self.batches.get(kind, 0) + 1
 
-        self.subscriber = self.session.declare_subscriber("srl/**", on_sample)
-        self.batch_subscriber = self.session.declare_subscriber(f"srl/{BATCH_CHUNK}/**", on_batch)
+        *robots_keys, batches = unasked_patterns()
+        self.subscribers = [self.session.declare_subscriber(key, on_sample) for key in robots_keys]
+        self.subscribers.append(self.session.declare_subscriber(batches, on_batch))
 
     def snapshot(self) -> dict[str, list[int]]:
         with self.lock:
@@ -166,8 +168,8 @@ class MessageCounter:
 
     def close(self) -> None:
         with contextlib.suppress(zenoh.ZError):
-            self.subscriber.undeclare()
-            self.batch_subscriber.undeclare()
+            for subscriber in self.subscribers:
+                subscriber.undeclare()
         self.session.close()
 
 
