@@ -666,9 +666,10 @@ def test_a_critic_behind_fits_each_robot_once_per_batch_on_its_newest_transition
 @pytest.mark.integration
 @pytest.mark.slow
 def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_up(tmp_path: Path) -> None:
-    """``srl bench fleet --record`` in miniature: one host row and one baseline row, each with srl
-    record attached, bounded, and nothing of it left behind: no srl process (its children are in its
-    own session: none may outlive it), no recording, no scratch directory."""
+    """``srl bench fleet --record --outside`` in miniature: one host row and one baseline row, each
+    with srl record and an outside subscriber of every robot's transition key attached, bounded,
+    and nothing of it left behind: no srl process (its children are in its own session: none may
+    outlive it), no recording, no scratch directory."""
     done = subprocess.run(
         [
             sys.executable,
@@ -683,6 +684,7 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
             "--seconds",
             "5",
             "--record",
+            "--outside",
             "--json",
         ],
         capture_output=True,
@@ -704,6 +706,9 @@ def test_the_fleet_bench_prints_host_and_baseline_rows_with_the_load_and_cleans_
         assert row["recorder"].startswith("srl record: recorded ") and row["recording_mb"] > 0, row["recorder"]
         assert "(2 robots: robot1, robot2)" in row["recorder"]  # both robots in the recording
         assert row["recorder_dropped"] == 0, row["recorder"]  # the writer kept up: nothing lost
+        # the outsider got the robots' transitions on their own keys (srl sends them while it subscribes),
+        # each once: 5 s of 10 steps a second per robot at most, from when both robots were served
+        assert 2 * 20 <= row["outside_received"] <= 2 * 55, row["outside_received"]
         # CPU per robot per tick: all processes' CPU over the run, per robot per delta
         assert row["cpu_ms_per_robot_tick"] == pytest.approx(row["cpu_percent"] / 100 * 0.1 * 1e3 / 2)
         # of it, Zenoh's runtime threads: most of a router's CPU (Zenoh's own work), a part of every other's

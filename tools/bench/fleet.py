@@ -167,6 +167,7 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
     plan = sorted([(n, "host") for n in hosts] + [(n, "process") for n in baseline])
     rows: list[dict[str, Any]] = []
     record = bool(getattr(args, "record", False))
+    outside = bool(getattr(args, "outside", False))
     for size, layout in plan:
         split = actor_hosts(args.actor_hosts, size) if layout == "host" else 1
         with tempfile.TemporaryDirectory(prefix="srl-bench-fleet-") as scratch:
@@ -181,12 +182,13 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
                     layout=layout,
                     actor_hosts=split,
                     record=recording,
+                    outside=outside,
                 ),
             )
         row["targets"] = {name: "PASS" if ok else "FAIL" for name, ok in checks(row).items()}
         rows.append(row)
         print(format_row(row), flush=True)
-    result = {**run_header(settings, args.seconds), "recorded": record, "rows": rows}
+    result = {**run_header(settings, args.seconds), "recorded": record, "outside": outside, "rows": rows}
     print(format_table(result))
     if args.json:
         print(json.dumps({**result, "run": run_info()}))
@@ -217,6 +219,8 @@ def format_row(row: dict[str, Any]) -> str:
         said = (row.get("recorder") or "").split(" on ", 1)[0].removeprefix("srl record: ")
         dropped = f", {row['recorder_dropped']} dropped" if row.get("recorder_dropped") else ""
         targets += f"; {said or 'srl record said nothing'}{dropped} ({row['recording_mb']:.1f} MB)"
+    if row.get("outside_received") is not None:  # --outside: what the outside subscriber got
+        targets += f"; outside subscriber: {row['outside_received']:,} transitions"
     return (
         f"{row['robots']:>6} {layout:<10} {f['missed_deadlines']:>6} {f['jitter_p99_ms']:>8.2f}ms "
         f"{f['latency_p99_ms']:>9.2f}ms {f['staleness_p99_steps']:>6.0f}/{f['staleness_max_steps']:<6.0f} "
@@ -233,6 +237,7 @@ def format_table(result: dict[str, Any]) -> str:
         f"srl bench fleet: {result['seconds']:.0f} s real time per row, {result['agent']} N = {result['horizon']}, "
         f"starts on a 1.5 m circle, {result['cpus']} CPUs"
         + (", srl record attached to every row" if result.get("recorded") else "")
+        + (", an outside subscriber of every robot's transition key on every row" if result.get("outside") else "")
         + "; jitter, latency, staleness: worst robot; "
         "at target: robots whose own final state is within 0.05 m of the target, at rest (last command zero); "
         "worst m: the farthest robot by its own state; "

@@ -114,6 +114,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="every row with an srl record process attached for the whole run, writing every robot to an MCAP "
         "file in a temporary directory removed after the row (its CPU and memory count with the fleet's)",
     )
+    fleet_bench.add_argument(
+        "--outside",
+        action="store_true",
+        help="every row with a client outside srl subscribed to every robot's own transition key "
+        "(srl/*/transition), which srl then sends besides its batches; its count in the row (its own CPU not "
+        "counted: it is not srl's)",
+    )
     add_seconds_argument(fleet_bench, 30.0, "real-time run per row [s] (default: 30)")
     capacity = kind(
         "capacity", "a fleet's cost per robot and component (CPU, messages), and what 1,000 and 10,000 need"

@@ -14,7 +14,7 @@ import os
 import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,7 +22,7 @@ import zenoh
 
 from common.config.settings import Settings
 from common.contracts.columns import batch_rows
-from common.contracts.keys import STATUS, unasked_patterns
+from common.contracts.keys import STATUS, TRANSITION, every_robot, unasked_patterns
 from common.contracts.messages import ServiceStatus
 from common.contracts.summaries import status_distance
 from common.net.transport import zenoh_config
@@ -125,15 +125,21 @@ def message_kind(key: str) -> str:
     return "/".join(key.split("/")[2:]) or key
 
 
+OUTSIDE_KEYS = (every_robot(TRANSITION),)  # an outside client's subscription (srl bench fleet --outside)
+
+
 class MessageCounter:
     """Every robot message routed during a run (common.contracts.keys.unasked_patterns: each
     topic's robot keys and the batches, ``srl/@batch/**``; not ``srl/**``, which would make srl
     send the keys it sends on demand), counted (and its bytes) by kind: what ``srl bench capacity``
     reports per robot and second. A batch counts its items, each a robot's message, and its bytes;
     ``batches`` counts the batch samples themselves. It is one more subscriber of everything: the
-    router delivers each sample once more to it (said wherever its figures are shown)."""
+    router delivers each sample once more to it (said wherever its figures are shown).
 
-    def __init__(self, settings: Settings) -> None:
+    ``keys``: these keys' samples alone, each counted as one message (:data:`OUTSIDE_KEYS`: an
+    outside client of every robot's own transition key, which srl sends for it on demand)."""
+
+    def __init__(self, settings: Settings, keys: Sequence[str] = ()) -> None:
         self.counts: dict[str, list[int]] = {}
         self.batches: dict[str, int] = {}
         self.lock = threading.Lock()
@@ -158,6 +164,9 @@ class MessageCounter:
                 count[1] += len(payload)
                 self.batches[kind] = self.batches.get(kind, 0) + 1
 
+        if keys:
+            self.subscribers = [self.session.declare_subscriber(key, on_sample) for key in keys]
+            return
         *robots_keys, batches = unasked_patterns()
         self.subscribers = [self.session.declare_subscriber(key, on_sample) for key in robots_keys]
         self.subscribers.append(self.session.declare_subscriber(batches, on_batch))
@@ -356,6 +365,7 @@ class RunMeasures:
     ran: float  # [s] the span over which CPU was measured
     zenoh_ran: float  # [s] the span over which the Zenoh threads' CPU was (sampled less often)
     rest: RestMark | None = None  # None: not every robot arrived while every actor ran
+    outside_received: int | None = None  # what the outside subscriber received (``outside``)
 
     def zenoh_percent(self, seconds: float) -> float:
         return 100.0 * seconds / self.zenoh_ran if self.zenoh_ran > 0 else math.nan
@@ -404,14 +414,18 @@ def measure_run(
     show: Callable[[float, RobotStatuses], None] | None,
     count_messages: bool,
     one: bool = False,
+    outside: bool = False,
 ) -> RunMeasures:
     """Watch the run until every actor has ended: CPU, memory and messages sampled while every
     actor still runs (a reaped process has no /proc entry), and the :class:`RestMark` (from the
     robots' statuses, once a second each). ``show`` is handed the seconds since every robot was
     ready and the statuses every :data:`WATCH_S` (``srl up``'s status line); ``one``: the one robot
-    of ``robots`` is watched with its plant's refusal counters (:class:`RobotStatuses`)."""
+    of ``robots`` is watched with its plant's refusal counters (:class:`RobotStatuses`);
+    ``outside``: a client that is not srl's subscribes to :data:`OUTSIDE_KEYS` for the run (srl
+    then sends every robot's transitions on its own key too), and counts what it receives."""
     pids = {name: child.process.pid for name, child in supervisor.children.items()}
     counter = MessageCounter(settings) if count_messages else None
+    outsider = MessageCounter(settings, OUTSIDE_KEYS) if outside else None
     ready = time.monotonic()
     cpu_before, zenoh_cpu = cpu_of(pids), ZenohCpu(pids)
     monitor = RobotStatuses(settings, robots[0] if one else None)
@@ -445,6 +459,18 @@ def measure_run(
         monitor.close()
         if counter is not None:
             counter.close()
+        received = None
+        if outsider is not None:
+            received = sum(count for count, _ in outsider.snapshot().values())
+            outsider.close()
     return RunMeasures(
-        cpu_seconds, zenoh_seconds, memory, rss_series, messages, sampled - ready, zenoh_sampled - ready, rest
+        cpu_seconds,
+        zenoh_seconds,
+        memory,
+        rss_series,
+        messages,
+        sampled - ready,
+        zenoh_sampled - ready,
+        rest,
+        received,
     )

@@ -110,7 +110,8 @@ class UpOptions:
     The fleet: ``robots`` (None: the robot of the settings), its ``layout``, the ``circle`` [m] its
     robots start on, ``actor_hosts`` (host layout), one ``pooled`` critic learner or one per robot,
     the ``robot_endpoints`` of real robots (``plant="robot"``; the others are emulated),
-    ``count_messages`` (every robot message routed, by kind: ``srl bench capacity``) and the
+    ``count_messages`` (every robot message routed, by kind: ``srl bench capacity``), an
+    ``outside`` client of every robot's transition key (``srl bench fleet --outside``) and the
     ``router`` endpoint (default: the settings' for the robot of the settings, else a free loopback
     port, so that fleets side by side never meet)."""
 
@@ -133,6 +134,7 @@ class UpOptions:
     pooled: bool = False
     robot_endpoints: dict[str, str] = field(default_factory=dict)
     count_messages: bool = False
+    outside: bool = False
     router: str | None = None
 
     @property
@@ -335,6 +337,7 @@ def _run(
             status_lines(options, started),
             options.count_messages,
             one=not options.fleet,
+            outside=options.outside,
         )
         for actor in actors:
             if actor.process.returncode != 0:
@@ -595,6 +598,8 @@ def run_summary(
         summary["view"] = supervisor.children["view"].summary()
     if options.count_messages:  # over the same span as the CPU: [count, bytes] of each kind
         summary["messages"] = measures.messages
+    if options.outside:
+        summary["outside_received"] = measures.outside_received
     if options.fleet and launch_plant(options.plant).behind_bridge:
         from tools.launch.bridged import robot_fleet_summary
 
