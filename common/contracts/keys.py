@@ -144,14 +144,20 @@ BATCHES: dict[str, Batch[Any]] = {
 }
 
 
+def on_demand(topic: Topic[M]) -> bool:
+    """Whether srl reads ``topic`` only in batches and sends a robot's own key of it only on
+    demand (:class:`Batch` ``on_demand``)."""
+    batch = batch_of(topic)
+    return batch is not None and batch.on_demand
+
+
 def unasked_patterns() -> list[str]:
     """The keys srl's services put samples on whether or not anyone outside subscribes: every
     topic's, of every robot (``srl/*/...``), but a topic's sent on demand (:class:`Batch`
     ``on_demand``), and the batch keys. What an observer of srl's traffic subscribes to: ``srl/**``
     would match every robot's on-demand keys and so make srl send them."""
     topics: tuple[Topic[Any], ...] = (STATE, ACTION, TRANSITION, WEIGHTS, STATUS)
-    asked = {pattern for pattern, batch in BATCHES.items() if batch.on_demand}
-    every = [topic.pattern.format(robot="*", service="*") for topic in topics if topic.pattern not in asked]
+    every = [topic.pattern.format(robot="*", service="*") for topic in topics if not on_demand(topic)]
     return [*every, f"srl/{BATCH_CHUNK}/**"]
 
 

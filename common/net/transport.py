@@ -43,6 +43,7 @@ from common.contracts.keys import (
     identity_of,
     identity_pattern,
     liveliness_key,
+    on_demand,
     robot_of,
 )
 from common.contracts.messages import Message, MessageError, decode
@@ -180,7 +181,6 @@ class Bus:
         self._lock = threading.Lock()
         self._last_warning: dict[str, float] = {}
         self._keep: list[Any] = []  # declared entities live as long as the bus
-        self._matching: dict[str, Any] = {}  # the publishers of matching_publisher, by key
         self._queriers: dict[tuple[str, float], Any] = {}
         # batch key -> the subscriptions its items go to (_Route): one
         # Zenoh subscription per batch key, however many robots subscribe (_route_batches)
@@ -253,11 +253,8 @@ class Bus:
         srl's services read only in batches (common.contracts.keys.Batch.on_demand) is a
         ValueError: on the robot's own key its messages would reach nobody of srl
         (:meth:`round_publisher` sends them)."""
-        batch = batch_of(topic)
-        if batch is not None and batch.on_demand:
-            raise ValueError(
-                f"srl reads {topic.pattern} only in batches ({batch.pattern}): send it with round_publisher"
-            )
+        if on_demand(topic):
+            raise ValueError(f"srl reads {topic.pattern} only in batches: send it with round_publisher")
         publisher = self._declare_publisher(topic.key(robot, **chunks), cache)
 
         def publish(message: M) -> None:
@@ -305,15 +302,9 @@ class Bus:
 
         A topic that srl reads only in batches (common.contracts.keys.Batch.on_demand) goes in
         batches whatever ``batches`` says, and each robot's messages also on its own key while an
-        outside subscriber matches it (:class:`OnDemand`): ``robots``' keys are declared at once,
-        so that a subscriber already there gets their first messages too (a key first declared
-        with a robot's first round hears of its match only after that round)."""
-        batch = batch_of(topic)
-        on_demand = OnDemand(self, topic) if batch is not None and batch.on_demand else None
-        if on_demand is not None:
-            on_demand.declare(robots)
-        if not batches and on_demand is None:
-            batch = None
+        outside subscriber matches it (:class:`OnDemand`; ``robots``: those known now)."""
+        own_keys = OnDemand(self, topic, robots) if on_demand(topic) else None
+        batch = batch_of(topic) if batches or own_keys is not None else None
         batched = None if batch is None else self._declare_publisher(batch.pattern, cache)
         numbers = itertools.count(1)  # the batches' sequence numbers (a receiver counts gaps: BatchSequence)
         singles: dict[str, Callable[[M], None]] = {}
@@ -332,8 +323,8 @@ class Bus:
                 for payload in encode_columns(columns, numbers):
                     batched.put(payload)
                     self.count("batches_published")
-                if on_demand is not None:
-                    on_demand.send(columns)
+                if own_keys is not None:
+                    own_keys.send(columns)
                 return
             messages = list(round_.items()) if isinstance(round_, Columns) else round_
             for message in messages:
@@ -345,17 +336,13 @@ class Bus:
 
         return publish
 
-    def matching_publisher(self, key: str, on_change: Callable[[bool], None]) -> None:
-        """A plain publisher on ``key`` that lives as long as the bus, put through
-        :meth:`put_matching`; ``on_change(matching)`` on Zenoh's thread whenever whether some
-        subscriber matches ``key`` changes (Zenoh's matching status)."""
+    def matching_publisher(self, key: str, on_change: Callable[[bool], None]) -> Callable[[bytes], None]:
+        """A plain put of payloads on ``key``, for as long as the bus lives; ``on_change(matching)``
+        on Zenoh's thread whenever whether some subscriber matches ``key`` changes (Zenoh's
+        matching status)."""
         publisher = self._declare_publisher(key, 0)
-        self._matching[key] = publisher
         self._keep.append(publisher.declare_matching_listener(lambda status: on_change(status.matching)))
-
-    def put_matching(self, key: str, payload: bytes) -> None:
-        """Put ``payload`` through the publisher of :meth:`matching_publisher` on ``key``."""
-        self._matching[key].put(payload)
+        return publisher.put  # type: ignore[no-any-return]
 
     @property
     def zid(self) -> str:
@@ -399,7 +386,7 @@ class Bus:
             if RECOVERY_RANK[first] < RECOVERY_RANK[recover]:
                 had = "without recovery" if not first else f"with recovery {first!r}"
                 raise ValueError(f"{batch.pattern} is subscribed {had} in this process: ask for {recover!r} first")
-        if batch is None or not batch.on_demand:  # an on-demand topic's own keys carry nothing for srl
+        if not on_demand(topic):  # an on-demand topic's own keys carry nothing for srl
             self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), recover))
         if batch is not None:
             self._route_batches(topic, route, threaded, recover)
@@ -442,7 +429,7 @@ class Bus:
             topic, name, lambda message, source: call(columns_of(topic.schema, [message]), source)
         )
         on_batch = self._batch_reader(topic, name, lambda columns, source: call(included(columns), source))
-        for key in [] if batch.on_demand else keys:
+        for key in [] if on_demand(topic) else keys:
             self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), False))
         self._keep.append(self._declare_subscriber(batch.pattern, self._callback(on_batch, threaded), False))
 
@@ -593,7 +580,7 @@ class Bus:
         name = topic.pattern.split("/", 2)[-1]
         wanted = [keys] if isinstance(keys, str) else list(keys)
         batch = batch_of(topic)
-        selectors = [] if batch is not None and batch.on_demand else [advanced_pattern(key) for key in wanted]
+        selectors = [] if on_demand(topic) else [advanced_pattern(key) for key in wanted]
         if batch is not None:
             selectors.append(advanced_pattern(batch.pattern))
         expressions = [zenoh.KeyExpr(key) for key in wanted]
@@ -874,30 +861,33 @@ class OnDemand(Generic[M]):
     match is an outside client (a viewer, a logger, someone's own tool); a round that nobody
     outside asks for costs a set comparison. Counted: ``on_demand.<topic>`` per message put."""
 
-    def __init__(self, bus: Bus, topic: Topic[M]) -> None:
+    def __init__(self, bus: Bus, topic: Topic[M], robots: Sequence[str]) -> None:
         self.bus, self.topic = bus, topic
         self.name = f"on_demand.{counter_name(topic)}"
-        self.keys: dict[str, str] = {}  # robot -> its key, for every robot with a publisher
+        self.puts: dict[str, Callable[[bytes], None]] = {}  # robot -> the put on its key
         self.matched: set[str] = set()  # the robots whose key some subscriber matches (Zenoh's thread)
+        # the robots known now get their keys at once: a subscriber already there gets their first
+        # messages (a key declared with a robot's first round hears of its match only after it)
+        self.declare(robots)
 
     def declare(self, robots: Sequence[str]) -> None:
         """A publisher on each of ``robots``' keys that has none yet, whose matches are followed."""
         for robot in robots:
-            if robot not in self.keys:
-                self.keys[robot] = self.topic.key(robot)
-                self.bus.matching_publisher(self.keys[robot], functools.partial(self._matching, robot))
+            if robot not in self.puts:
+                self.puts[robot] = self.bus.matching_publisher(
+                    self.topic.key(robot), functools.partial(self._matching, robot)
+                )
 
     def send(self, columns: Columns[M]) -> None:
         """Put each row of ``columns`` (a round, as sent in batches) on its robot's key if matched."""
-        keys = self.keys
-        if not keys.keys() >= set(columns.robots):
+        if not self.puts.keys() >= set(columns.robots):
             self.declare(columns.robots)
         matched = self.matched
         if not matched:
             return
         for row, robot in enumerate(columns.robots):
             if robot in matched:
-                self.bus.put_matching(keys[robot], columns.item(row).encode())
+                self.puts[robot](columns.item(row).encode())
                 self.bus.count(self.name)
 
     def _matching(self, robot: str, matching: bool) -> None:
@@ -958,7 +948,7 @@ class Inbox:
             message = decode_sample(topic, sample_key, payload)
             return message if batch is None else columns_of(topic.schema, [message])
 
-        for key in [] if batch is not None and batch.on_demand else keys:
+        for key in [] if on_demand(topic) else keys:
             self._declare(name, key, alone, lambda payload: 1, recover)
         if batch is None:
             return
