@@ -151,14 +151,23 @@ def on_demand(topic: Topic[M]) -> bool:
     return batch is not None and batch.on_demand
 
 
-def unasked_patterns() -> list[str]:
-    """The keys srl's services put samples on whether or not anyone outside subscribes: every
-    topic's, of every robot (``srl/*/...``), but a topic's sent on demand (:class:`Batch`
-    ``on_demand``), and the batch keys. What an observer of srl's traffic subscribes to: ``srl/**``
-    would match every robot's on-demand keys and so make srl send them."""
+@dataclass(frozen=True)
+class Unasked:
+    """The keys srl's services put samples on whether or not anyone outside subscribes
+    (:func:`unasked_patterns`): ``robot_keys``, every topic's of every robot (``srl/*/...``) but
+    the on-demand ones, each sample a robot's message; ``batches``, the batch keys, each sample
+    many robots' rows."""
+
+    robot_keys: tuple[str, ...]
+    batches: str
+
+
+def unasked_patterns() -> Unasked:
+    """What an observer of srl's traffic subscribes to: ``srl/**`` would match every robot's keys
+    of the topics sent on demand (:class:`Batch` ``on_demand``) and so make srl send them."""
     topics: tuple[Topic[Any], ...] = (STATE, ACTION, TRANSITION, WEIGHTS, STATUS)
-    every = [topic.pattern.format(robot="*", service="*") for topic in topics if not on_demand(topic)]
-    return [*every, f"srl/{BATCH_CHUNK}/**"]
+    every = tuple(topic.pattern.format(robot="*", service="*") for topic in topics if not on_demand(topic))
+    return Unasked(every, f"srl/{BATCH_CHUNK}/**")
 
 
 def every_robot(topic: Topic[M], **chunks: str) -> str:

@@ -38,13 +38,11 @@ _ENDPOINT = re.compile(r"^[a-z][a-z0-9]*/\S+$")
 ROS_FLEET_PREFIX = "tb3_"  # ``--robots K --plant robot``: tb3_1 .. tb3_K, as TurtleBot3 multi-robot launches name them
 
 
-# "auto": one actor host up to this many robots, else one per core (the solves of one host use one
-# core). One host is cheaper (a fleet's rounds are one batch a period, where two hosts send two
-# and wake every other process twice), but its margin shrinks with its robots: on 2 cores, rlqv
-# N = 12, srl record attached, 50 robots on one host solve 1.6 % of ticks in a hurry; 100 robots
-# on one host 14-16 % (on two 1-5 %), at 20-25 % less CPU, and missed 1 deadline in 1 of 10 runs
-# (on two: none in 9); 150 on one host missed 11-33 a run. A default serves every agent and
-# horizon, so it keeps the margin; --actor-hosts 1 takes the cheaper layout.
+# "auto": one actor host up to this many robots, else one per core (a host's solves use one core).
+# One host is cheaper (one batch a period, one wake of every other process), but the robots of a
+# host share its tick thread, so its margin for deadlines shrinks as they grow; a default serves
+# every agent and horizon and keeps the margin (the runs behind the number: CHANGELOG.md);
+# --actor-hosts 1 takes the cheaper layout.
 AUTO_ONE_HOST_UP_TO = 50
 AUTO_HOSTS_HELP = f"auto = one up to {AUTO_ONE_HOST_UP_TO} robots, else one per core"
 

@@ -167,9 +167,9 @@ class MessageCounter:
         if keys:
             self.subscribers = [self.session.declare_subscriber(key, on_sample) for key in keys]
             return
-        *robots_keys, batches = unasked_patterns()
-        self.subscribers = [self.session.declare_subscriber(key, on_sample) for key in robots_keys]
-        self.subscribers.append(self.session.declare_subscriber(batches, on_batch))
+        unasked = unasked_patterns()
+        self.subscribers = [self.session.declare_subscriber(key, on_sample) for key in unasked.robot_keys]
+        self.subscribers.append(self.session.declare_subscriber(unasked.batches, on_batch))
 
     def snapshot(self) -> dict[str, list[int]]:
         with self.lock:
