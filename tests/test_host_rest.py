@@ -21,6 +21,7 @@ from common.math.dynamics import exact_step
 from common.math.features import stage_cost, stage_cost_rows
 from common.net.provenance import SourceGate
 from services.actor.host import HostScheduler, Outbox, RestCheck, RobotActor
+from services.actor.ledger import Ledger
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import AtRest, RealtimeActor
 from tests.harness import FakeCounts
@@ -137,7 +138,8 @@ def run_host(
             arrival.arrivals,
             arrival.docked,
         )
-        transitions.append((transition, loop.fits.resting, loop.fits.newest, memory))
+        fits = (bool(loop.ledger.resting[loop.row]), int(loop.ledger.newest[loop.row]))
+        transitions.append((transition, *fits, memory))
 
     boxes = (
         (
@@ -147,7 +149,11 @@ def run_host(
         if outboxes
         else None
     )
-    for robot, start in starts.items():
+    system = settings.system
+    ledger = Ledger(
+        len(starts), system.state_dim, system.action_dim, settings.critic.replay_size, arrival_tolerances(settings)
+    )
+    for row, (robot, start) in enumerate(starts.items()):
         own = settings.model_copy(update={"transport": settings.transport.model_copy(update={"robot": robot})})
         counts = FakeCounts()
         critic = SourceGate("critic")
@@ -155,10 +161,13 @@ def run_host(
         inbox = WeightsInbox(own, counts, critic)  # type: ignore[arg-type]
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
         if boxes is None:
-            loop = RealtimeActor(own, actor, inbox, actions.append, sent, counts, 7, clock=fake.clock)
+            loop = RealtimeActor(
+                own, actor, inbox, actions.append, sent, counts, 7, clock=fake.clock, ledger=ledger, row=row
+            )
         else:
-            loop = RealtimeActor(own, actor, inbox, boxes[0].put, boxes[1].put, counts, 7, clock=fake.clock)
-            loop.rest_rows = boxes if rows else None
+            publish = (boxes[0].put, boxes[1].put)
+            loop = RealtimeActor(own, actor, inbox, *publish, counts, 7, clock=fake.clock, ledger=ledger, row=row)
+            loop.rest_columns = boxes if rows else None
         inbox.reset(7)
         loop.plant_gate.update("p1", True)
         loops.append(loop)

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from common.config.settings import Settings
+from common.contracts.columns import Columns, decode_columns, encode_columns
 from common.contracts.messages import Action, CriticWeights, PlantState, Transition
 from common.math.actor_problem import ActorCounters
 from common.net.provenance import RESYNC_AFTER, SourceGate
@@ -484,9 +485,13 @@ def test_another_systems_loop_sends_the_systems_messages_and_reports_in_its_term
     summary = loop.summary()
     assert summary["system"] == "two_tank" and summary["final_distance"] == distance
     assert summary["start_state"] == [-0.2, -0.1] and summary["transitions_tail"][-1] == [4, -0.2, -0.1, 0.1, expected]
-    # a tick's batch rows are positional: the system's code first, then the message's own fields,
-    # checked against the schema's columns once (a row in another order is refused, not misread)
-    code = wire.named_columns(wire.action)["system"]
-    assert loop.action_head == (code,) and loop.transition_head == (code,)
-    with pytest.raises(TypeError, match="batch columns"):
-        loop._row_head(wire.action, ("step", "episode", "stamp_ns", "action", "state_seq"))
+    # ticks at rest put columns by name (services/actor/realtime.py rest_ticks): beside the message's
+    # own fields, the system's code, so the batch decodes as the system's messages
+    own = {"episode": 7, "step": 3, "stamp_ns": 5, "action": np.zeros((1, 1)), "state_seq": 2}
+    batch = Columns.of(wire.action, ["fk"], loop.named_columns[0] | own)
+    (decoded,) = decode_columns(wire.action, next(iter(encode_columns(batch)))).items()
+    assert isinstance(decoded, wire.action) and decoded.system == "two_tank" and decoded.action == (0.0,)
+    own = {"episode": 7, "step": 3, "state": np.array([[-0.2, -0.1]]), "action": np.zeros((1, 1)), "cost": 0.5}
+    batch = Columns.of(wire.transition, ["fk"], loop.named_columns[1] | own)
+    (decoded,) = decode_columns(wire.transition, next(iter(encode_columns(batch)))).items()
+    assert isinstance(decoded, wire.transition) and decoded.system == "two_tank" and decoded.state == (-0.2, -0.1)

@@ -69,13 +69,104 @@ class Window:
 
     def values(self) -> np.ndarray:
         """The values in the window, oldest first (a copy)."""
-        if self.count < self._data.size:
-            return self._data[: self.count].copy()
-        return np.concatenate((self._data[self._next :], self._data[: self._next]))
+        return _ring_values(self._data, self.count, self._next)
 
     def summary(self, scale: float = 1.0) -> dict[str, float]:
         """As :func:`summarize` of the window, but ``max`` of the whole run."""
-        result = summarize(self.values(), scale)
-        if self.count:
-            result["max"] = self.maximum * scale
-        return result
+        return _window_summary(self.values(), self.count, self.maximum, scale)
+
+
+def _ring_values(data: np.ndarray, count: int, slot: int) -> np.ndarray:
+    """A ring's values, oldest first (a copy): ``count`` written, the next at ``slot``."""
+    if count < data.size:
+        return data[:count].copy()
+    return np.concatenate((data[slot:], data[:slot]))
+
+
+def _window_summary(values: np.ndarray, count: int, maximum: float, scale: float) -> dict[str, float]:
+    result = summarize(values, scale)
+    if count:
+        result["max"] = maximum * scale
+    return result
+
+
+class WindowRows:
+    """``count`` windows (:class:`Window`) as the rows of one block, so that a host of many
+    robots appends one value to each of many rows as one array operation
+    (:meth:`append_rows`). :meth:`row` is one row with a :class:`Window`'s interface; a value
+    appended either way is the same value in the same row, and a row's summary is a
+    :class:`Window`'s of the same values, bit for bit."""
+
+    def __init__(self, count: int, size: int = WINDOW) -> None:
+        if size < 1 or count < 1:
+            raise ValueError("window rows hold at least one row of one value")
+        self.data = np.full((count, size), math.nan)  # written through at once, as a Window's
+        self.size = size
+        self.next = np.zeros(count, dtype=np.intp)
+        self.count = np.zeros(count, dtype=np.int64)
+        self.maximum = np.full(count, -math.inf)
+        self.last = np.full(count, math.nan)
+
+    def row(self, i: int) -> WindowRow:
+        return WindowRow(self, i)
+
+    def append(self, i: int, value: float) -> None:
+        """One value to row ``i`` (skipped when not finite), as :meth:`Window.append`."""
+        if not math.isfinite(value):
+            return
+        value = float(value)
+        slot = int(self.next[i])
+        self.data[i, slot] = value
+        self.next[i] = 0 if slot + 1 == self.size else slot + 1
+        self.count[i] += 1
+        if value > self.maximum[i]:
+            self.maximum[i] = value
+        self.last[i] = value
+
+    def append_rows(self, rows: np.ndarray, values: np.ndarray) -> None:
+        """``values[j]`` to row ``rows[j]``, the rows distinct; the values that are not finite are
+        skipped, as :meth:`append` skips them."""
+        finite = np.isfinite(values)
+        if not finite.all():
+            rows, values = rows[finite], values[finite]
+        slots = self.next[rows]
+        self.data[rows, slots] = values
+        slots += 1
+        slots[slots == self.size] = 0
+        self.next[rows] = slots
+        self.count[rows] += 1
+        self.maximum[rows] = np.maximum(self.maximum[rows], values)
+        self.last[rows] = values
+
+
+class WindowRow:
+    """Row ``i`` of a :class:`WindowRows`, read and appended as a :class:`Window`."""
+
+    def __init__(self, rows: WindowRows, i: int) -> None:
+        self.rows, self.i = rows, i
+
+    def append(self, value: float) -> None:
+        self.rows.append(self.i, value)
+
+    @property
+    def count(self) -> int:
+        return int(self.rows.count[self.i])
+
+    @property
+    def maximum(self) -> float:
+        return float(self.rows.maximum[self.i])
+
+    @property
+    def last(self) -> float:
+        return float(self.rows.last[self.i])
+
+    def __len__(self) -> int:
+        return min(self.count, self.rows.size)
+
+    def values(self) -> np.ndarray:
+        """The values in the row's window, oldest first (a copy)."""
+        return _ring_values(self.rows.data[self.i], self.count, int(self.rows.next[self.i]))
+
+    def summary(self, scale: float = 1.0) -> dict[str, float]:
+        """As :meth:`Window.summary`."""
+        return _window_summary(self.values(), self.count, self.maximum, scale)

@@ -43,7 +43,7 @@ import numpy as np
 
 from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
-from common.contracts.columns import Columns, columns_of, layout
+from common.contracts.columns import Columns, columns_of
 from common.contracts.messages import Action, Message, PlantState, Transition
 from common.contracts.summaries import FleetActorSummary, RealtimeActorSummary, fleet_view, format_status_line
 from common.math.actor import StackedActor
@@ -54,8 +54,9 @@ from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker, aligned_start, tick_phase_offset
+from services.actor.ledger import Ledger
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
-from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps
+from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps, rest_ticks
 
 log = logging.getLogger(__name__)
 
@@ -98,13 +99,16 @@ def wire_realtime(
     episode_id: int,
     publish_action: Callable[[Action], None],
     publish_transition: Callable[[Transition], None],
+    ledger: Ledger | None = None,
+    row: int = 0,
 ) -> RealtimeActor:
     """One robot's real-time loop on the bus (``settings.transport.robot``'s keys): its action and
     transition publishers, the plant's session identities and liveliness watched. Provenance
     first: the caller subscribes the states after this, so the live plant sessions are known
     before the first state is judged (one actor: a callback per state; the actor host: the
     newest, judged at the robot's tick). ``publish_action``, ``publish_transition``: where its
-    actions and transitions go (the host's outboxes, :class:`Outbox`)."""
+    actions and transitions go (the host's outboxes, :class:`Outbox`); ``ledger``, ``row``: where
+    it keeps its records (its host's ledger; None: one of its own)."""
     robot = settings.transport.robot
     loop = RealtimeActor(
         settings,
@@ -114,6 +118,8 @@ def wire_realtime(
         publish_transition,
         counters,
         episode_id,
+        ledger=ledger,
+        row=row,
     )
     bus.watch_identities(robot, "plant", loop.plant_gate, loop.on_plant_identity)
     bus.watch_alive(robot, "plant", loop.on_plant_token)
@@ -245,10 +251,10 @@ class Outbox(Generic[M]):
     :data:`ACTION_WAIT_S`). Used by the scheduler's thread only (every robot's messages are put
     at its ticks). ``what`` names the messages in the log.
 
-    A robot's tick puts a message (:meth:`put`) or, at rest, a row of ``schema`` (:meth:`put_row`:
-    its fields' values in the schema's order, common.contracts.columns.layout, no message
-    built); a round holds both in the order put, and goes as the messages when it holds only
-    messages, else as one batch of columns (checked by the sender as a receiver checks it)."""
+    A robot's tick puts a message (:meth:`put`); the ticks a host serves at rest put theirs as
+    columns of ``schema`` (:meth:`put_columns`, no message built); a round holds both in the
+    order put, and goes as the messages when it holds only messages, else as one batch of columns
+    (checked by the sender as a receiver checks it)."""
 
     def __init__(
         self,
@@ -260,43 +266,31 @@ class Outbox(Generic[M]):
     ) -> None:
         self.send, self.what, self.clock, self.wait = send, what, clock, wait
         self.schema = schema
-        self.fields = () if schema is None else tuple(column.name for column in layout(schema))
         self.pending: list[M | Columns[M]] = []
-        self.row_robots: list[str] = []  # the open run of rows: its robots and their values
-        self.rows: list[tuple[Any, ...]] = []
         self.since = 0.0  # when the oldest pending message was put
         self.failed_rounds = 0
 
     def put(self, message: M) -> None:
-        if self.rows:
-            self._close_rows()
-        elif not self.pending:
+        if not self.pending:
             self.since = self.clock()
         self.pending.append(message)
 
-    def put_row(self, robot: str, values: tuple[Any, ...]) -> None:
-        """A message's worth of ``robot``: ``values``, one per field of ``schema`` in its order."""
-        if not self.pending and not self.rows:
+    def put_columns(self, robots: Sequence[str], fields: dict[str, Any]) -> None:
+        """A message of ``schema`` for each of ``robots``, as ``Columns.of`` takes them: one array
+        (or one value for every row) per field."""
+        assert self.schema is not None, "an outbox of columns names their schema"
+        if not self.pending:
             self.since = self.clock()
-        self.row_robots.append(robot)
-        self.rows.append(values)
-
-    def _close_rows(self) -> None:
-        assert self.schema is not None, "an outbox of rows names their schema"
-        columns = dict(zip(self.fields, (np.asarray(column) for column in zip(*self.rows, strict=True)), strict=True))
-        self.pending.append(Columns.of(self.schema, self.row_robots, columns))
-        self.row_robots, self.rows = [], []
+        self.pending.append(Columns.of(self.schema, robots, fields))
 
     def overdue(self, now: float) -> bool:
-        return self.wait is not None and bool(self.pending or self.rows) and now - self.since >= self.wait
+        return self.wait is not None and bool(self.pending) and now - self.since >= self.wait
 
     def flush(self) -> None:
         """Send what is pending. A send that fails is logged and counted (``failed_rounds``), and
         the scheduler goes on: the robots whose actions it held stop by their plant's watchdog,
         as they would if those actions had been lost on the way; a round of transitions lost is
         a gap in the critic's replay, as a transition lost on the way is."""
-        if self.rows:
-            self._close_rows()
         if self.pending:
             pending, self.pending = self.pending, []
             try:
@@ -423,6 +417,7 @@ class HostScheduler:
         for loop, ticker in zip(loops, self.tickers, strict=True):
             loop.ticker = ticker
         self.served = 0
+        self.rounds_due, self.manual_gc = 0, False  # rounds served since the last collection (run)
         self.started = start
         self.warned = -1e9
         self.budget = budget * period
@@ -445,9 +440,10 @@ class HostScheduler:
         heap = [(ticker.next_due, i) for i, ticker in enumerate(self.tickers)]
         heapq.heapify(heap)
         rounds, pending_gc = 0, -1
-        count = len(self.loops)
+        self.rounds_due, self.manual_gc = 0, manual_gc
         group_due, group_start = -1.0, 0.0  # the due time of the group being served, when it began
         resting: dict[int, AtRest] = {}  # its robots served at rest (RestCheck)
+        deferred: list[tuple[int, AtRest, float | None]] = []  # the first group's, served with those pulled
         try:
             while not self.stop.is_set():
                 while heap[0][0] != self.tickers[heap[0][1]].next_due:  # a tick already served early
@@ -467,48 +463,45 @@ class HostScheduler:
                     if self.sleep(wait):
                         break
                 heapq.heappop(heap)
-                loop, ticker = self.loops[i], self.tickers[i]
-                previous = ticker.last_tick if ticker.index else None
                 now = self.clock()
                 if due != group_due:
                     group_due, group_start = due, now
                     resting = {} if self.rests is None else self.rests(self.members(i, due), now)
-                missed = ticker.missed
-                k = ticker.serve(now)
-                if ticker.missed != missed and now - self.warned >= 1.0:
-                    self.warned = now
-                    log.warning(
-                        "robot %s: tick %d served %.1f ms late (%.1f s into the run; missed deadlines %d)",
-                        loop.robot,
-                        k,
-                        1e3 * (now - due),
-                        now - self.started,
-                        ticker.missed,
-                    )
-                if previous is not None and not self.early[i]:
-                    loop.periods.append(now - previous)
-                    loop.jitter.append(abs(now - previous - self.period))
                 over = self.spent_sum > self.budget
-                self.over_budget += over
-                # late: the group began late (its later ticks wait for the earlier ones by design)
-                late = group_start - due > HURRY_FRACTION * self.period
-                loop.tick(k, now, hurry=over or late, rest=resting.pop(i, None))  # hurry: the lighter solve
-                self.early[i] = False
-                self._spent(now)
-                heapq.heappush(heap, (ticker.next_due, i))
+                rest = resting.pop(i, None)
+                if rest is not None:  # it and the robots after it due now and at rest: served at once
+                    run: list[tuple[int, AtRest, float | None]] = [(i, rest, due)]
+                    while heap and heap[0][0] == due and heap[0][1] in resting:
+                        j = heapq.heappop(heap)[1]
+                        run.append((j, resting.pop(j), due))
+                    self.over_budget += over * len(run)
+                    if self.pull and i < self.group:  # with the robots pulled, once the group's others are served
+                        deferred += run
+                    else:
+                        self._serve_rests(run, now, heap)
+                else:
+                    self.over_budget += over
+                    k = self._serve(i, now, due)
+                    # late: the group began late (its later ticks wait for the earlier ones by design)
+                    late = group_start - due > HURRY_FRACTION * self.period
+                    self.loops[i].tick(k, now, hurry=over or late)  # hurry: the lighter solve
+                    self._spent(now)
+                    self._count(1)
+                    heapq.heappush(heap, (self.tickers[i].next_due, i))
                 # the group is served (the next tick due is another phase's): its actions and
                 # its transitions go out, a round each; or its first action has waited long enough
-                if heap[0][0] != due:
+                if not heap or heap[0][0] != due:
                     if self.pull and i < self.group:
-                        self._pull_rests(due, heap)
+                        self._pull_rests(due, heap, deferred)
+                        deferred = []
                     self.flush()
                 elif self.outboxes:
                     flushed_at = self.clock()
                     for box in self.outboxes:
                         if box.overdue(flushed_at):
                             box.flush()
-                self.served += 1
-                if manual_gc and self.served % count == 0:
+                while self.rounds_due:  # a round of every robot served: its young garbage collected
+                    self.rounds_due -= 1
                     pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
                     rounds += 1
         finally:
@@ -518,40 +511,109 @@ class HostScheduler:
             loop.send(ticker.index, loop.zero, -1)
         self.flush()
 
-    def _spent(self, now: float) -> None:
-        """A tick begun at ``now`` is done: its time enters the last round's (the budget's)."""
-        spent = self.clock() - now
-        slot = self.served % len(self.loops)
-        self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
-        self.spent[slot] = spent
+    def _serve(self, i: int, now: float, due: float | None = None) -> int:
+        """Robot ``i``'s next tick is served at ``now`` (``due``: at its own phase; None: early,
+        pulled): its index ``k``, its ticker's accounting and its loop's period and jitter."""
+        loop, ticker = self.loops[i], self.tickers[i]
+        previous = ticker.last_tick if ticker.index else None
+        missed = ticker.missed
+        k = ticker.serve(now)
+        if ticker.missed != missed and now - self.warned >= 1.0:
+            self.warned = now
+            log.warning(
+                "robot %s: tick %d served %.1f ms late (%.1f s into the run; missed deadlines %d)",
+                loop.robot,
+                k,
+                1e3 * (now - (now if due is None else due)),
+                now - self.started,
+                ticker.missed,
+            )
+        if due is not None and previous is not None and not self.early[i]:
+            loop.periods.append(now - previous)
+            loop.jitter.append(abs(now - previous - self.period))
+        self.early[i] = due is None
+        return k
 
-    def _pull_rests(self, due: float, heap: list[tuple[float, int]]) -> None:
-        """The first group, due at ``due``, is served: serve now the robots of the other groups
-        still at rest whose next tick is due within a period (``pull``). A robot is asked when its
-        arrival rule holds it (``arrived``), whether its last tick was served at rest or was a step:
-        a group left with too few robots at rest for RestCheck takes its steps, and its robots must
-        be pulled all the same, or they wake the host every period."""
+    def _serve_rests(
+        self, run: list[tuple[int, AtRest, float | None]], now: float, heap: list[tuple[float, int]]
+    ) -> None:
+        """The robots of ``run``, ``(robot, rest, due)`` (``due`` as :meth:`_serve`'s), served at
+        ``now`` at their rests, in order: those still ready (RealtimeActor.ready_at_rest) together,
+        as arrays (services.actor.realtime.rest_ticks), any other by its own tick (a step, or a
+        stop); then each robot's next tick on the ``heap``."""
+        ready: list[RealtimeActor] = []
+        ks: list[int] = []
+        rests: list[AtRest] = []
+        for i, rest, due in run:
+            loop, k = self.loops[i], self._serve(i, now, due)
+            if loop.ready_at_rest(rest, now):
+                ready.append(loop)
+                ks.append(k)
+                rests.append(rest)
+                continue
+            self._rest_ticks(ready, ks, now, rests)
+            ready, ks, rests = [], [], []
+            loop.tick(k, now, rest=rest)
+        self._rest_ticks(ready, ks, now, rests)
+        self._spent(now, len(run))
+        self._count(len(run))
+        tickers = self.tickers
+        for i, _, _ in run:  # an entry at its own phase, if it was pulled, is now stale
+            heapq.heappush(heap, (tickers[i].next_due, i))
+
+    def _rest_ticks(self, loops: list[RealtimeActor], ks: list[int], now: float, rests: list[AtRest]) -> None:
+        if not loops:
+            return
+        try:
+            rest_ticks(loops, ks, now, rests)
+        except Exception:  # never let one bad tick end the loop that keeps every robot safe
+            log.exception("actor host: %d ticks at rest failed; commanding zero velocity", len(loops))
+            for loop, k in zip(loops, ks, strict=True):
+                loop.counts.count("tick_errors")
+                loop.stop_robot(k)
+                loop.last_step = k
+
+    def _spent(self, now: float, ticks: int = 1) -> None:
+        """``ticks`` ticks begun at ``now`` are done: their time, shared, enters the last round's
+        (the budget's)."""
+        spent = (self.clock() - now) / ticks
+        count = len(self.loops)
+        for served in range(self.served, self.served + ticks):
+            slot = served % count
+            self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
+            self.spent[slot] = spent
+
+    def _count(self, ticks: int) -> None:
+        """``ticks`` more served; each round of every robot's tick is due a young collection (when
+        the run collects by hand)."""
+        count = len(self.loops)
+        before, self.served = self.served, self.served + ticks
+        if self.manual_gc:
+            self.rounds_due += self.served // count - before // count
+
+    def _pull_rests(
+        self, due: float, heap: list[tuple[float, int]], deferred: list[tuple[int, AtRest, float | None]]
+    ) -> None:
+        """The first group, due at ``due``, is served but its robots at rest (``deferred``): serve
+        them now, and with them, at once, the robots of the other groups still at rest whose next
+        tick is due within a period (``pull``). A robot is asked when its arrival rule holds it
+        (``arrived``), whether its last tick was served at rest or was a step: a group left with
+        too few robots at rest for RestCheck takes its steps, and its robots must be pulled all
+        the same, or they wake the host every period."""
         candidates = [
             j
             for j in range(self.group, len(self.loops))
             if self.loops[j].arrived and due < self.tickers[j].next_due < due + self.period
         ]
-        if not candidates:
-            return
-        assert self.rests is not None
         now = self.clock()
-        resting = self.rests(candidates, now)
-        for j in candidates:
-            rest = resting.get(j)
-            if rest is None:
-                continue
-            ticker, now = self.tickers[j], self.clock()
-            self.loops[j].tick(ticker.serve(now), now, rest=rest)
-            self.early[j] = True
-            self._spent(now)
-            heapq.heappush(heap, (ticker.next_due, j))  # its entry at its own phase is now stale
-            self.served += 1
-            self.pulled += 1
+        pulled: list[tuple[int, AtRest, float | None]] = []
+        if candidates:
+            assert self.rests is not None
+            resting = self.rests(candidates, now)
+            pulled = [(j, resting[j], None) for j in candidates if j in resting]
+        if deferred or pulled:
+            self._serve_rests(deferred + pulled, now, heap)
+        self.pulled += len(pulled)
 
     def members(self, i: int, due: float) -> list[int]:
         """The robots of robot ``i``'s tick group whose next tick is due at ``due`` (a robot that
@@ -605,13 +667,17 @@ def run_host(
         wait=None,
         schema=wire.transition,
     )
-    for robot in robots:
+    system = settings.system
+    replay, tolerances = settings.critic.replay_size, arrival_tolerances(settings)
+    ledger = Ledger(len(robots), system.state_dim, system.action_dim, replay, tolerances)
+    for row, robot in enumerate(robots):
         own = robot_settings(settings, robot)
         count = RobotCounts(robot, "actor", forward=bus.reject)
         inbox = wire_weights(own, bus)
         actor = RobotActor(shared, ActorMemory(arrival=arrival_rule(own)))
-        loop = wire_realtime(own, bus, actor, inbox, count, new_episode_id(), outbox.put, transitions.put)
-        loop.rest_rows = (outbox, transitions)  # a tick at rest puts rows, builds no message
+        episode = new_episode_id()
+        loop = wire_realtime(own, bus, actor, inbox, count, episode, outbox.put, transitions.put, ledger, row)
+        loop.rest_columns = (outbox, transitions)  # ticks at rest put columns, build no message
         # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
         # forged state just before a tick cannot displace the live plant's newest
         bus.subscribe(wire.STATE, wire.STATE.key(robot), loop.on_state, with_source=True)

@@ -41,6 +41,7 @@ MAX_VERSION_AHEAD_US = 5_000_000
 # Weights beyond the critic's box are refused; without a box (critic.weight_bounds = []) this
 # is the bound: far above any fit of ours (docs/concepts.md), far below where the objective overflows.
 MAX_ABS_WEIGHT_UNBOXED = 1e6
+PUBLISHED, TRAINED = 0, 1  # the columns of a WeightsInbox's marks
 
 
 @dataclass
@@ -62,6 +63,11 @@ class WeightsInbox:
     within the configured weight box (else the last good weights are kept), and trained on a
     step the actor has already published (``published_step``): a forged far-future version or
     trained step can neither lock out the real critic nor falsify the staleness figures.
+
+    The published step and the held weights' trained step are a row of ``marks`` (columns
+    :data:`PUBLISHED`, :data:`TRAINED`): its own, or its loop's row of its host's
+    (:meth:`bind`), which a host's ticks at rest read and write for many robots at once
+    (services/actor/realtime.py rest_ticks; only the loop's thread writes the published step).
     """
 
     def __init__(self, settings: Settings, bus: Bus, gate: SourceGate | None = None) -> None:
@@ -70,7 +76,8 @@ class WeightsInbox:
         self.gate = gate
         self.cond = threading.Condition()
         self.episode = -1
-        self.published_step = -1  # the newest transition step this actor published (this episode)
+        # the newest transition step this actor published (this episode), the held weights' trained step
+        self.marks, self.mark = np.full((1, 2), -1, dtype=np.int64), 0
         self.source: str | None = None  # the critic session whose versions are held
         # refused versions of the followed critic in a row; weights come every update_every steps
         period = settings.critic.update_every * settings.plant.sampling_time
@@ -79,10 +86,20 @@ class WeightsInbox:
         self.box = bounds if bounds is not None else (-MAX_ABS_WEIGHT_UNBOXED, MAX_ABS_WEIGHT_UNBOXED)
         self.held = HeldWeights(settings.initial_q_weights(), settings.initial_v_weights(), 0, -1, time.monotonic())
 
+    @property
+    def published_step(self) -> int:
+        return int(self.marks[self.mark, PUBLISHED])
+
+    def bind(self, marks: np.ndarray, row: int) -> None:
+        """Keep the published and trained steps in row ``row`` of ``marks`` from now on."""
+        with self.cond:
+            marks[row] = self.marks[self.mark]
+            self.marks, self.mark = marks, row
+
     def reset(self, episode: int) -> HeldWeights:
         with self.cond:
             self.episode = episode
-            self.published_step = -1
+            self.marks[self.mark] = -1
             self.source = None
             self.refusals.accepted()
             self.held = HeldWeights(
@@ -92,7 +109,7 @@ class WeightsInbox:
 
     def published(self, step: int) -> None:
         with self.cond:
-            self.published_step = max(self.published_step, step)
+            self.marks[self.mark, PUBLISHED] = max(self.published_step, step)
 
     def offer(self, message: CriticWeights, source: str | None = None) -> None:
         if self.gate is not None:
@@ -155,6 +172,7 @@ class WeightsInbox:
                 time.monotonic(),
                 (message.q_residual, message.v_residual),
             )
+            self.marks[self.mark, TRAINED] = message.trained_step
             self.bus.count("weights_accepted")
             self.cond.notify_all()
 

@@ -14,10 +14,14 @@ States are accepted only from the live plant session (its identity token, common
 in order per session and never more than :data:`MAX_SEQ_JUMP` ahead; a new session (a
 restarted plant) resynchronizes.
 
-Memory is bounded whatever the run length: the loop's statistics are fixed windows
-(:class:`common.math.stats.Window`, the newest 4096 values; max over the whole run), the cost a
-running sum, the published steps the newest :data:`RUNS_KEPT` runs, the transitions' tail the
-newest ``M``. ``tests/test_realtime_actor.py`` runs it on a fake clock and fake ports.
+What the loop keeps of its run (costs, latency and staleness windows, what its critic fits, the
+published steps and the transitions' tail) is its row of its host's
+:class:`~services.actor.ledger.Ledger` (a ledger of its own when it has no host), so that a host
+records its robots at rest as array operations (:func:`rest_ticks`). Memory is bounded whatever
+the run length: the statistics are fixed windows (the newest 4096 values; max over the whole
+run), the costs running sums, the published steps the newest
+:data:`~services.actor.ledger.RUNS_KEPT` runs, the transitions' tail the newest ``M``.
+``tests/test_realtime_actor.py`` runs it on a fake clock and fake ports.
 """
 
 from __future__ import annotations
@@ -26,35 +30,30 @@ import logging
 import math
 import threading
 import time
-from collections import deque
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any, Protocol
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
-from common.contracts.columns import layout
-from common.contracts.messages import Action, Message, PlantState, Transition
+from common.contracts.messages import Action, PlantState, Transition
 from common.contracts.summaries import RealtimeActorSummary, TrueView
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorStep
 from common.math.agents import learns
-from common.math.critic import FitsDue, Sample
 from common.math.features import stage_cost
 from common.math.stats import Window
 from common.net.provenance import RefusalRun, SequenceGuard, SourceGate
 from common.system.clock import Ticker
-from services.actor.ports import HeldWeights, WeightsInbox
+from services.actor.ledger import PUBLISH_TIMES_KEPT, Ledger
+from services.actor.ports import PUBLISHED, TRAINED, HeldWeights, WeightsInbox
 
 log = logging.getLogger(__name__)
 # A state's seq may run at most this far ahead of the last accepted one of its plant session
 # (plant_sim publishes at transport.state_rate <= 1000 Hz, the bridge at the odometry rate):
 # one forged PlantState(seq=2**62) must not make every real state "old" for the rest of the run.
 MAX_SEQ_JUMP = 10_000
-PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
-RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
 
 
 class Counts(Protocol):
@@ -82,10 +81,10 @@ class Steps(Protocol):
     def reset(self) -> None: ...
 
 
-@dataclass(frozen=True)
-class AtRest:
+class AtRest(NamedTuple):
     """One robot's tick at rest, decided with its tick group's as arrays (services/actor/host.py
-    RestCheck): its actor's arrival rule holds it and still will at ``state``."""
+    RestCheck): its actor's arrival rule holds it and still will at ``state``. A tuple: made for
+    every robot at rest at every tick (0.26 us to make here, a frozen dataclass 0.72)."""
 
     held: tuple[PlantState, float]  # the newest accepted state it was decided on, and when it came
     state: np.ndarray  # that state
@@ -95,12 +94,12 @@ class AtRest:
     hold: Callable[[], None]  # leaves the actor's memory as its step at rest does
 
 
-class RowSink(Protocol):
-    """Where a tick at rest puts its action and its transition as rows of their schema, no
-    message built (services/actor/host.py Outbox.put_row): ``values`` are the message's fields
-    but ``robot``, in the schema's order (common.contracts.columns.layout)."""
+class ColumnSink(Protocol):
+    """Where ticks at rest put their actions and their transitions as columns of their schema,
+    no message built (services/actor/host.py Outbox.put_columns): one array, or one value for
+    every row, per field (common.contracts.columns.Columns.of)."""
 
-    def put_row(self, robot: str, values: tuple[Any, ...]) -> None: ...
+    def put_columns(self, robots: Sequence[str], fields: dict[str, Any]) -> None: ...
 
 
 class RealtimeActor:
@@ -120,6 +119,8 @@ class RealtimeActor:
         episode_id: int,
         plant_gate: SourceGate | None = None,
         clock: Callable[[], float] = time.monotonic,
+        ledger: Ledger | None = None,
+        row: int = 0,
     ) -> None:
         self.settings = settings
         self.robot = settings.transport.robot
@@ -127,8 +128,8 @@ class RealtimeActor:
         self.system, self.wire = settings.system, settings.wire
         self.zero = (0.0,) * self.system.action_dim
         self.named = self.wire.named  # the fields every message takes beside its own ({} for the robot)
-        self.action_head = self._row_head(self.wire.action, ("episode", "step", "stamp_ns", "action", "state_seq"))
-        self.transition_head = self._row_head(self.wire.transition, ("episode", "step", "state", "action", "cost"))
+        # what a batch of the system's actions and transitions carries beside their own fields
+        self.named_columns = (self.wire.named_columns(self.wire.action), self.wire.named_columns(self.wire.transition))
         self.delta = settings.plant.sampling_time
         self.r_diag = settings.r_diag  # diag(R), resolved once (the system's own if [])
         # A state older than this at a tick means the plant is silent: command zero. The last
@@ -147,47 +148,47 @@ class RealtimeActor:
         self.episodes: dict[str, int] = {}  # the followed episode of each live plant session
         self.episode_run = RefusalRun()  # states of another episode refused in a row
         self.refused_at = 0.0  # when the live plant's last state was refused (a lockout shows in status)
-        # statistics, bounded
+        # what the loop keeps of its run: its row of its host's ledger (services/actor/ledger.py),
+        # or of a ledger of its own; the tick statistics, bounded
+        if ledger is None:
+            system = self.system
+            replay = settings.critic.replay_size
+            ledger = Ledger(1, system.state_dim, system.action_dim, replay, arrival_tolerances(settings))
+        self.ledger, self.row = ledger, row
+        inbox.bind(ledger.weights, row)  # its published and trained steps in the ledger's row
+        ledger.episode[row] = episode_id
         self.periods = Window()
         self.jitter = Window()
-        self.latencies = Window()
-        self.staleness_steps = Window()
-        self.staleness_ms = Window()
+        self.latencies, self.staleness_steps, self.staleness_ms = ledger.windows(row)
         self.learns = learns(settings.actor.agent)
-        self.fits = FitsDue(arrival_tolerances(settings))  # what the critic fits of what this loop sends
-        self.accumulated_cost = 0.0
-        self.tail: deque[list[float]] = deque(maxlen=settings.critic.replay_size)  # what a replay must hold
-        # when each of the last PUBLISH_TIMES_KEPT steps was published (slot k % KEPT holds step k):
-        # fixed arrays, resident from the start: the loop's memory never grows while it runs
-        self.published_step = np.full(PUBLISH_TIMES_KEPT, -1, dtype=np.int64)
-        self.published_at = np.full(PUBLISH_TIMES_KEPT, math.nan)
-        self.published_steps: deque[list[int]] = deque(maxlen=RUNS_KEPT)
-        self.steps = 0
         self.arrived = False  # the actor's arrival rule holds the robot (its last step said "arrived")
-        self.arrived_steps = 0
         self.stale_state_stops = 0
         self.plant_conflict_stops = 0
         self.start_state: np.ndarray | None = None
         # the truth, when the plant sends it with every state (a simulator; never a real robot)
         self.truth_known = True
         self.true_start: tuple[float, ...] | None = None
-        self.true_accumulated_cost = 0.0
         self.ticker: Ticker | None = None
         self.last_step = -1
-        # an actor host's outboxes of actions and transitions, which ticks at rest fill with rows
-        # (None: every tick builds its messages)
-        self.rest_rows: tuple[RowSink, RowSink] | None = None
+        # an actor host's outboxes of actions and transitions, which ticks at rest fill with
+        # columns (None: every tick builds its messages)
+        self.rest_columns: tuple[ColumnSink, ColumnSink] | None = None
 
-    def _row_head(self, schema: type[Message], own: tuple[str, ...]) -> tuple[Any, ...]:
-        """A tick's row of ``schema`` (``Outbox.put_row``) is positional, its values in the order of
-        the schema's columns: the wire's named columns (another system's ``system`` code), then
-        ``own``. Returns the named columns' values; a schema whose columns are in another order is
-        refused here, once, not misread in a batch."""
-        head = self.wire.named_columns(schema)
-        fields = tuple(column.name for column in layout(schema))
-        if fields != (*head, *own):
-            raise TypeError(f"{schema.__name__}'s batch columns are {fields}, a tick's row {(*head, *own)}")
-        return tuple(head.values())
+    @property
+    def steps(self) -> int:
+        return int(self.ledger.steps[self.row])
+
+    @property
+    def arrived_steps(self) -> int:
+        return int(self.ledger.arrived_steps[self.row])
+
+    @property
+    def accumulated_cost(self) -> float:
+        return float(self.ledger.cost[self.row])
+
+    @property
+    def true_accumulated_cost(self) -> float:
+        return float(self.ledger.true_cost[self.row])
 
     # -- inputs (Zenoh's threads) ---------------------------------------------------------
     def on_plant_identity(self, zid: str, alive: bool) -> None:
@@ -273,7 +274,7 @@ class RealtimeActor:
         else:
             try:
                 if rest is not None and rest.held is held:
-                    self._rest(k, tick, rest)
+                    rest_ticks([self], [k], tick, [rest])
                 else:
                     self._step(k, tick, held, hurry)
             except Exception:  # never let one bad tick end the loop that keeps the robot safe
@@ -342,33 +343,11 @@ class RealtimeActor:
             true_cost = self.delta * float(stage_cost(np.array(message.true_state), step.action, r_diag))
         self._record(k, tick, held, state, action, cost, true_cost, weights, step.solve_seconds, done)
 
-    def _rest(self, k: int, tick: float, rest: AtRest) -> None:
-        """A tick at rest: exactly zero, no solve; the arrival test and the costs are the tick
-        group's (RestCheck), everything else as :meth:`_step` does it."""
-        self._note_truth(rest.held[0])
-        weights = self.inbox.current()
-        rest.hold()
-        rows = self.rest_rows
-        if rows is None:
-            self.send(k, self.zero, rest.held[0].seq)
-        else:  # Action's fields
-            values = (self.episode_id, k, time.monotonic_ns(), self.zero, rest.held[0].seq)
-            rows[0].put_row(self.robot, (*self.action_head, *values))
-        done = self.clock()
-        self._record(
-            k,
-            tick,
-            rest.held,
-            rest.state,
-            self.zero,
-            rest.cost,
-            rest.true_cost,
-            weights,
-            0.0,
-            done,
-            rest.inner,
-            None if rows is None else rows[1],
-        )
+    def ready_at_rest(self, rest: AtRest, tick: float) -> bool:
+        """The tick at ``tick`` can be served at ``rest``: one live plant, and the state it was
+        decided on still the newest and fresh (else the tick is :meth:`tick`'s, a step or a stop)."""
+        held = self.latest
+        return not self.plant_gate.conflict and held is rest.held and tick - held[1] <= self.stale_after
 
     def _note_truth(self, message: PlantState) -> None:
         if message.true_state is None:
@@ -388,54 +367,36 @@ class RealtimeActor:
         weights: HeldWeights,
         solve_seconds: float,
         done: float,
-        inner: bool | None = None,
-        rows: RowSink | None = None,
     ) -> None:
         """What a step leaves once its action is out (at ``done``): its transition, its cost and
-        statistics. ``inner``: the state is inside the arrival rule's inner tolerances, when the
-        caller knows it (common.math.critic.at_rest). ``rows``: the transition goes there as a row."""
-        received = held[1]
-        self.arrived_steps += self.arrived
+        statistics, in its row of the ledger (:func:`rest_ticks` records many ticks at rest at once)."""
+        ledger, i = self.ledger, self.row
         # transport/loop latency: state arrival -> action out, minus the solve itself
-        self.latencies.append(max(0.0, done - max(received, tick) - solve_seconds))
-        self.accumulated_cost += cost
-        if true_cost is not None:
-            self.true_accumulated_cost += true_cost
+        self.latencies.append(max(0.0, done - max(held[1], tick) - solve_seconds))
         # the step fresh weights would be trained on: the previous one (ideally), or, while the
         # robot rests (the critic fits no transition of a robot at rest), the newest one fitted
-        resting = self.fits.resting
-        due = self.fits.newest if resting else k - 1
-        self.fits.sent(Sample(k, state, np.array(action), cost), inner)  # the values the transition carries
-        values = state.tolist()
+        resting, newest = ledger.record(i, k, state, action, cost, true_cost, self.arrived, None)
+        values = [*state.tolist(), *action, cost]
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
-        if rows is not None:  # Transition's fields
-            rows.put_row(self.robot, (*self.transition_head, self.episode_id, k, state, action, cost))
-        else:
-            self.publish_transition(
-                self.wire.transition(
-                    **self.named,
-                    robot=self.robot,
-                    episode=self.episode_id,
-                    step=k,
-                    state=tuple(values),
-                    action=action,
-                    cost=cost,
-                )
+        self.publish_transition(
+            self.wire.transition(
+                **self.named,
+                robot=self.robot,
+                episode=self.episode_id,
+                step=k,
+                state=tuple(values[: self.system.state_dim]),
+                action=action,
+                cost=cost,
             )
-        slot = k % PUBLISH_TIMES_KEPT
-        self.published_step[slot], self.published_at[slot] = k, self.clock()
-        self.tail.append([k, *values, *action, cost])
-        if self.published_steps and self.published_steps[-1][1] == k - 1:
-            self.published_steps[-1][1] = k
-        else:
-            self.published_steps.append([k, k])
+        )
+        ledger.published(i, k, self.clock(), values)
         if self.learns:
-            self.staleness_steps.append(due - weights.trained_step)
+            self.staleness_steps.append((newest if resting else k - 1) - weights.trained_step)
             slot = weights.trained_step % PUBLISH_TIMES_KEPT
             # at rest, the weights' age in time grows with the rest: not a delay of the critic's
-            if not resting and weights.trained_step >= 0 and self.published_step[slot] == weights.trained_step:
-                self.staleness_ms.append((done - float(self.published_at[slot])) * 1e3)
-        self.steps += 1
+            trained = weights.trained_step
+            if not resting and trained >= 0 and ledger.published_step[i, slot] == trained:
+                self.staleness_ms.append((done - float(ledger.published_at[i, slot])) * 1e3)
 
     # -- reports ------------------------------------------------------------------------------
     def lockout_suspect(self) -> bool:
@@ -524,8 +485,85 @@ class RealtimeActor:
                 "stale_state_stops": self.stale_state_stops,
                 "plant_conflict_stops": self.plant_conflict_stops,
                 "plant_sources": self.plant_gate.sources(),
-                "transitions_tail": list(self.tail),
-                "transition_steps": [list(run) for run in self.published_steps],
+                "transitions_tail": self.ledger.tail_of(self.row),
+                "transition_steps": self.ledger.runs_of(self.row),
                 "counters": {**self.counts.counters, "hurried_solves": self.actor.counters.hurried_solves},
             }
         ).to_json_dict()
+
+
+def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, rests: Sequence[AtRest]) -> None:
+    """Ticks ``ks`` of ``loops`` (each :meth:`RealtimeActor.ready_at_rest`; a host's share a ledger)
+    served at ``tick`` at their ``rests``: exactly zero, no solve; the arrival test and the costs
+    are their tick group's (services/actor/host.py RestCheck), their records the ledger's array
+    operations (:meth:`Ledger.record_rows`), their actions and transitions one batch each when the
+    loops have their host's outboxes (``rest_columns``), else a message each. What each robot
+    sends and keeps is what its own step at rest would, bit for bit (``tests/test_host_rest.py``)."""
+    first = loops[0]
+    ledger = first.ledger
+    count = next((j for j, loop in enumerate(loops) if loop.ledger is not ledger), len(loops))
+    if count < len(loops):  # loops of several ledgers: each run of one ledger's at once, in order
+        rest_ticks(loops[:count], ks[:count], tick, rests[:count])
+        rest_ticks(loops[count:], ks[count:], tick, rests[count:])
+        return
+    rows = np.array([loop.row for loop in loops], dtype=np.intp)
+    ks_array = np.array(ks, dtype=np.int64)
+    trained = ledger.weights[rows, TRAINED]  # the held weights' (WeightsInbox.marks)
+    helds, states_, costs_, true_costs_, inner_, holds = zip(*rests, strict=True)
+    for loop, held in zip(loops, helds, strict=True):
+        loop._note_truth(held[0])
+    for hold in holds:
+        hold()
+    seqs = np.array([held[0].seq for held in helds], dtype=np.int64)
+    received = np.array([held[1] for held in helds])
+    costs = np.array(costs_, dtype=float)
+    true_costs = np.array(true_costs_, dtype=float)  # None (no truth): NaN
+    inner = np.array(inner_, dtype=bool)
+    arrived = np.array([loop.arrived for loop in loops], dtype=bool)
+    states = np.array(states_, dtype=float)
+    zero = np.zeros((count, first.system.action_dim))
+    episodes = ledger.episode[rows]
+    sinks = first.rest_columns
+    robots = [loop.robot for loop in loops]
+    if sinks is not None:
+        action_fields = {"episode": episodes, "step": ks_array, "stamp_ns": time.monotonic_ns()}
+        action_fields |= {"action": zero, "state_seq": seqs}
+        sinks[0].put_columns(robots, first.named_columns[0] | action_fields)
+    else:
+        for loop, k, seq in zip(loops, ks, seqs.tolist(), strict=True):
+            loop.send(k, loop.zero, seq)
+    done = first.clock()
+    ledger.latencies.append_rows(rows, np.maximum(0.0, done - np.maximum(received, tick)))
+    resting, newest = ledger.record_rows(rows, ks_array, states, costs, true_costs, arrived, inner)
+    # WeightsInbox.published, before the transitions go out (RealtimeActor._record): only this thread writes it
+    published = ledger.weights[rows, PUBLISHED]
+    ledger.weights[rows, PUBLISHED] = np.maximum(published, ks_array)
+    values = np.column_stack([states, zero, costs])
+    if sinks is not None:
+        transition_fields = {"episode": episodes, "step": ks_array, "state": states, "action": zero, "cost": costs}
+        sinks[1].put_columns(robots, first.named_columns[1] | transition_fields)
+    else:
+        n = first.system.state_dim
+        for loop, k, row in zip(loops, ks, values.tolist(), strict=True):
+            loop.publish_transition(
+                loop.wire.transition(
+                    **loop.named,
+                    robot=loop.robot,
+                    episode=loop.episode_id,
+                    step=k,
+                    state=tuple(row[:n]),
+                    action=loop.zero,
+                    cost=row[-1],
+                )
+            )
+    ledger.published_rows(rows, ks_array, first.clock(), values)
+    if first.learns:
+        ledger.staleness_steps.append_rows(rows, np.where(resting, newest, ks_array - 1) - trained)
+        # at rest, the weights' age in time grows with the rest: not a delay of the critic's
+        slots = trained % PUBLISH_TIMES_KEPT
+        timed = ~resting & (trained >= 0) & (ledger.published_step[rows, slots] == trained)
+        if timed.any():
+            ages = (done - ledger.published_at[rows[timed], slots[timed]]) * 1e3
+            ledger.staleness_ms.append_rows(rows[timed], ages)
+    for loop, k in zip(loops, ks, strict=True):
+        loop.last_step = k

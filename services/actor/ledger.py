@@ -1,0 +1,187 @@
+"""What the real-time loops of an actor host keep of their robots' runs, one row per robot.
+
+A :class:`~services.actor.realtime.RealtimeActor` records each tick it serves (its cost, its
+latency, its weights' staleness, what its critic fits of it, the steps and the transitions it
+published) into its row of the host's :class:`Ledger`; a loop of its own (one robot) has a ledger
+of one row. A step records one row (:meth:`Ledger.record`); the robots a host serves at rest in
+one tick group record theirs as array operations, one per statistic for the whole group
+(:meth:`Ledger.record_rows`). Both keep the same values, bit for bit
+(``tests/test_host_rest.py``), and the same bounds: the statistics are windows
+(:class:`common.math.stats.WindowRows`), the published steps the newest :data:`RUNS_KEPT` runs,
+the publication times the newest :data:`PUBLISH_TIMES_KEPT` steps, the transitions' tail the
+newest ``replay_size``. Every array is allocated whole when the ledger is made: a loop's memory
+never grows while it runs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from common.math.arrival import ArrivalTolerances
+from common.math.critic import Sample, at_rest
+from common.math.stats import WindowRow, WindowRows
+
+PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
+RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
+NO_STEP = -(2**62)  # a row's previous sample before its first (no step is the one after it)
+
+
+class Ledger:
+    """``count`` robots' records, row ``i`` robot ``i``'s. ``tolerances``: the arrival rule's, for
+    what the critic fits (common.math.critic.at_rest; None: it fits every transition)."""
+
+    def __init__(
+        self, count: int, state_dim: int, action_dim: int, replay_size: int, tolerances: ArrivalTolerances | None
+    ) -> None:
+        self.state_dim, self.action_dim = state_dim, action_dim
+        self.tolerances = tolerances
+        self.steps = np.zeros(count, dtype=np.int64)
+        self.arrived_steps = np.zeros(count, dtype=np.int64)
+        self.episode = np.zeros(count, dtype=np.int64)  # each robot's episode id (its loop's)
+        # each robot's WeightsInbox.marks: the newest step published, the held weights' trained step
+        self.weights = np.full((count, 2), -1, dtype=np.int64)
+        self.cost = np.zeros(count)  # the accumulated cost, on the reported states
+        self.true_cost = np.zeros(count)  # on the true states, where the plant sends them
+        self.latencies, self.staleness_steps, self.staleness_ms = (WindowRows(count) for _ in range(3))
+        # when each of the newest steps was published (slot k % KEPT holds step k)
+        self.published_step = np.full((count, PUBLISH_TIMES_KEPT), -1, dtype=np.int64)
+        self.published_at = np.full((count, PUBLISH_TIMES_KEPT), math.nan)
+        # the transitions' tail: rows (k, state, action, cost) in a ring of replay_size
+        self.tail = np.zeros((count, replay_size, 2 + state_dim + action_dim))
+        self.tail_next = np.zeros(count, dtype=np.intp)
+        self.tail_count = np.zeros(count, dtype=np.int64)
+        # the runs of published steps: the open one as arrays, the closed ones per robot
+        self.run_first = np.full(count, -1, dtype=np.int64)
+        self.run_last = np.full(count, NO_STEP, dtype=np.int64)
+        self.closed_runs: list[deque[list[int]]] = [deque(maxlen=RUNS_KEPT - 1) for _ in range(count)]
+        # what the critic fits (common.math.critic.FitsDue, one per row): the previous sample sent,
+        # whether it was at rest, the newest step fitted (-1: none)
+        self.previous_step = np.full(count, NO_STEP, dtype=np.int64)
+        self.previous = np.zeros((count, state_dim + action_dim))
+        self.previous_cost = np.zeros(count)
+        self.resting = np.zeros(count, dtype=bool)
+        self.newest = np.full(count, -1, dtype=np.int64)
+
+    # -- one row: a step -------------------------------------------------------------------
+    def record(
+        self,
+        i: int,
+        k: int,
+        state: np.ndarray,
+        action: tuple[float, ...],
+        cost: float,
+        true_cost: float | None,
+        arrived: bool,
+        inner: bool | None,
+    ) -> tuple[bool, int]:
+        """Row ``i``'s step ``k``: its counts, costs and what its critic fits of it. Returns what the
+        critic fitted before it (whether the previous sample was at rest, and the newest step
+        fitted), from which the weights' staleness is measured."""
+        self.arrived_steps[i] += arrived
+        self.cost[i] += cost
+        if true_cost is not None:
+            self.true_cost[i] += true_cost
+        before = (bool(self.resting[i]), int(self.newest[i]))
+        n = self.state_dim
+        previous = None
+        if self.previous_step[i] != NO_STEP:
+            row = self.previous[i]
+            previous = Sample(int(self.previous_step[i]), row[:n], row[n:], float(self.previous_cost[i]))
+        sample = Sample(k, state, np.asarray(action, dtype=float), cost)
+        resting = at_rest(previous, sample, self.tolerances, inner)
+        self.resting[i] = resting
+        self.previous_step[i] = k
+        self.previous[i, :n], self.previous[i, n:] = state, action
+        self.previous_cost[i] = cost
+        if not resting:
+            self.newest[i] = k
+        return before
+
+    def published(self, i: int, k: int, now: float, values: list[float]) -> None:
+        """Row ``i``'s transition of step ``k`` (``values``: state, action, cost) went out at ``now``."""
+        slot = k % PUBLISH_TIMES_KEPT
+        self.published_step[i, slot], self.published_at[i, slot] = k, now
+        self.tail[i, self.tail_next[i]] = (k, *values)
+        self.tail_next[i] = (self.tail_next[i] + 1) % self.tail.shape[1]
+        self.tail_count[i] += 1
+        if self.run_last[i] == k - 1:
+            self.run_last[i] = k
+        else:
+            if self.run_last[i] != NO_STEP:
+                self.closed_runs[i].append([int(self.run_first[i]), int(self.run_last[i])])
+            self.run_first[i] = self.run_last[i] = k
+        self.steps[i] += 1
+
+    # -- many rows: a tick group at rest -----------------------------------------------------
+    def record_rows(
+        self,
+        rows: np.ndarray,
+        ks: np.ndarray,
+        states: np.ndarray,
+        costs: np.ndarray,
+        true_costs: np.ndarray,
+        arrived: np.ndarray,
+        inner: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`record` of the distinct ``rows`` at once, each of zero action; ``true_costs`` NaN
+        where the state carries no truth. Returns ``before`` as arrays."""
+        self.arrived_steps[rows] += arrived
+        self.cost[rows] += costs
+        known = ~np.isnan(true_costs)
+        self.true_cost[rows[known]] += true_costs[known]
+        before = (self.resting[rows], self.newest[rows])
+        n = self.state_dim
+        resting = inner.copy()
+        if self.tolerances is None or (n, self.action_dim) != (3, 2):  # at_rest's: a unicycle's rule
+            resting[:] = False
+        else:  # at_rest's comparisons: the step after, the same state, both actions zero
+            previous = self.previous[rows]
+            resting &= self.previous_step[rows] == ks - 1
+            resting &= np.logical_and.reduce(previous[:, :n] == states, axis=1)
+            resting &= np.logical_and.reduce(previous[:, n:] == 0.0, axis=1)
+        self.resting[rows] = resting
+        self.previous_step[rows] = ks
+        self.previous[rows, :n], self.previous[rows, n:] = states, 0.0
+        self.previous_cost[rows] = costs
+        self.newest[rows] = np.where(resting, before[1], ks)
+        return before
+
+    def published_rows(self, rows: np.ndarray, ks: np.ndarray, now: float, values: np.ndarray) -> None:
+        """:meth:`published` of the distinct ``rows`` at once (``values``: a row each)."""
+        slots = ks % PUBLISH_TIMES_KEPT
+        self.published_step[rows, slots], self.published_at[rows, slots] = ks, now
+        self.tail[rows, self.tail_next[rows], 0] = ks
+        self.tail[rows, self.tail_next[rows], 1:] = values
+        self.tail_next[rows] = (self.tail_next[rows] + 1) % self.tail.shape[1]
+        self.tail_count[rows] += 1
+        extends = self.run_last[rows] == ks - 1
+        for j in np.flatnonzero(~extends).tolist():  # a gap closes a run: rare, per robot
+            i = int(rows[j])
+            if self.run_last[i] != NO_STEP:
+                self.closed_runs[i].append([int(self.run_first[i]), int(self.run_last[i])])
+            self.run_first[i] = ks[j]
+        self.run_last[rows] = ks
+        self.steps[rows] += 1
+
+    # -- reading a row ---------------------------------------------------------------------
+    def windows(self, i: int) -> tuple[WindowRow, WindowRow, WindowRow]:
+        """Row ``i``'s latency, staleness (steps) and staleness (ms) windows."""
+        return self.latencies.row(i), self.staleness_steps.row(i), self.staleness_ms.row(i)
+
+    def tail_of(self, i: int) -> list[list[float]]:
+        """Row ``i``'s newest transitions, oldest first: ``[k, *state, *action, cost]`` each."""
+        size = self.tail.shape[1]
+        count = min(int(self.tail_count[i]), size)
+        start = (int(self.tail_next[i]) - count) % size
+        rows = self.tail[i, (start + np.arange(count)) % size]
+        return [[int(row[0]), *row[1:].tolist()] for row in rows]
+
+    def runs_of(self, i: int) -> list[list[int]]:
+        """Row ``i``'s runs of published steps, ``[first, last]`` each, oldest first."""
+        runs = [list(run) for run in self.closed_runs[i]]
+        if self.run_last[i] != NO_STEP:
+            runs.append([int(self.run_first[i]), int(self.run_last[i])])
+        return runs
