@@ -95,17 +95,16 @@ class WindowRows:
     robots appends one value to each of many rows as one array operation
     (:meth:`append_rows`). :meth:`row` is one row with a :class:`Window`'s interface; a value
     appended either way is the same value in the same row, and a row's summary is a
-    :class:`Window`'s of the same values, bit for bit."""
+    :class:`Window`'s of the same values, bit for bit. A row's next slot is its count modulo the
+    size, and its last value the one before it: a value costs two array reads and three writes."""
 
     def __init__(self, count: int, size: int = WINDOW) -> None:
         if size < 1 or count < 1:
             raise ValueError("window rows hold at least one row of one value")
         self.data = np.full((count, size), math.nan)  # written through at once, as a Window's
         self.size = size
-        self.next = np.zeros(count, dtype=np.intp)
         self.count = np.zeros(count, dtype=np.int64)
         self.maximum = np.full(count, -math.inf)
-        self.last = np.full(count, math.nan)
 
     def row(self, i: int) -> WindowRow:
         return WindowRow(self, i)
@@ -115,13 +114,11 @@ class WindowRows:
         if not math.isfinite(value):
             return
         value = float(value)
-        slot = int(self.next[i])
-        self.data[i, slot] = value
-        self.next[i] = 0 if slot + 1 == self.size else slot + 1
-        self.count[i] += 1
-        if value > self.maximum[i]:
+        count = self.count.item(i)
+        self.data[i, count % self.size] = value
+        self.count[i] = count + 1
+        if value > self.maximum.item(i):
             self.maximum[i] = value
-        self.last[i] = value
 
     def append_rows(self, rows: np.ndarray, values: np.ndarray) -> None:
         """``values[j]`` to row ``rows[j]``, the rows distinct; the values that are not finite are
@@ -129,14 +126,10 @@ class WindowRows:
         finite = np.isfinite(values)
         if not finite.all():
             rows, values = rows[finite], values[finite]
-        slots = self.next[rows]
-        self.data[rows, slots] = values
-        slots += 1
-        slots[slots == self.size] = 0
-        self.next[rows] = slots
-        self.count[rows] += 1
+        counts = self.count[rows]
+        self.data[rows, counts % self.size] = values
+        self.count[rows] = counts + 1
         self.maximum[rows] = np.maximum(self.maximum[rows], values)
-        self.last[rows] = values
 
 
 class WindowRow:
@@ -158,14 +151,17 @@ class WindowRow:
 
     @property
     def last(self) -> float:
-        return float(self.rows.last[self.i])
+        """The newest value (NaN: none yet)."""
+        count = self.count
+        return self.rows.data.item(self.i, (count - 1) % self.rows.size) if count else math.nan
 
     def __len__(self) -> int:
         return min(self.count, self.rows.size)
 
     def values(self) -> np.ndarray:
         """The values in the row's window, oldest first (a copy)."""
-        return _ring_values(self.rows.data[self.i], self.count, int(self.rows.next[self.i]))
+        count = self.count
+        return _ring_values(self.rows.data[self.i], count, count % self.rows.size)
 
     def summary(self, scale: float = 1.0) -> dict[str, float]:
         """As :meth:`Window.summary`."""

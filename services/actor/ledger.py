@@ -70,7 +70,7 @@ class Ledger:
         self,
         i: int,
         k: int,
-        state: np.ndarray,
+        state: list[float],
         action: tuple[float, ...],
         cost: float,
         true_cost: float | None,
@@ -79,22 +79,24 @@ class Ledger:
     ) -> tuple[bool, int]:
         """Row ``i``'s step ``k``: its counts, costs and what its critic fits of it. Returns what the
         critic fitted before it (whether the previous sample was at rest, and the newest step
-        fitted), from which the weights' staleness is measured."""
+        fitted), from which the weights' staleness is measured. (At every robot's every step:
+        Python values, one numpy read or write per array.)"""
         self.arrived_steps[i] += arrived
         self.cost[i] += cost
         if true_cost is not None:
             self.true_cost[i] += true_cost
-        before = (bool(self.resting[i]), int(self.newest[i]))
+        before = (self.resting.item(i), self.newest.item(i))
         n = self.state_dim
+        previous_step = self.previous_step.item(i)
         previous = None
-        if self.previous_step[i] != NO_STEP:
-            row = self.previous[i]
-            previous = Sample(int(self.previous_step[i]), row[:n], row[n:], float(self.previous_cost[i]))
-        sample = Sample(k, state, np.asarray(action, dtype=float), cost)
-        resting = at_rest(previous, sample, self.tolerances, inner)
+        if previous_step != NO_STEP:
+            row = self.previous[i].tolist()
+            previous = Sample(previous_step, row[:n], row[n:], self.previous_cost.item(i))
+        # at_rest compares lengths and items only: Python lists here, not arrays (~10 times faster)
+        resting = at_rest(previous, Sample(k, state, action, cost), self.tolerances, inner)  # type: ignore[arg-type]
         self.resting[i] = resting
         self.previous_step[i] = k
-        self.previous[i, :n], self.previous[i, n:] = state, action
+        self.previous[i] = (*state, *action)
         self.previous_cost[i] = cost
         if not resting:
             self.newest[i] = k
@@ -104,15 +106,16 @@ class Ledger:
         """Row ``i``'s transition of step ``k`` (``values``: state, action, cost) went out at ``now``."""
         slot = k % PUBLISH_TIMES_KEPT
         self.published_step[i, slot], self.published_at[i, slot] = k, now
-        self.tail[i, self.tail_next[i]] = (k, *values)
-        self.tail_next[i] = (self.tail_next[i] + 1) % self.tail.shape[1]
+        tail = self.tail_next.item(i)
+        self.tail[i, tail] = (k, *values)
+        self.tail_next[i] = (tail + 1) % self.tail.shape[1]
         self.tail_count[i] += 1
-        if self.run_last[i] == k - 1:
-            self.run_last[i] = k
-        else:
-            if self.run_last[i] != NO_STEP:
-                self.closed_runs[i].append([int(self.run_first[i]), int(self.run_last[i])])
-            self.run_first[i] = self.run_last[i] = k
+        last = self.run_last.item(i)
+        if last != k - 1:  # a gap: the open run is closed, a new one opens
+            if last != NO_STEP:
+                self.closed_runs[i].append([self.run_first.item(i), last])
+            self.run_first[i] = k
+        self.run_last[i] = k
         self.steps[i] += 1
 
     # -- many rows: a tick group at rest -----------------------------------------------------

@@ -321,7 +321,7 @@ class RealtimeActor:
         state = np.array(message.state)
         if self.start_state is None:
             self.start_state = state  # the robot's own start, whatever was requested
-        self._note_truth(message)
+        self.note_truth(message)
         weights = self.inbox.current()
         step = self.actor.step(state, weights.q, weights.v, hurry)  # the arrival rule acts inside (exactly zero)
         arrived = step.status == "arrived"
@@ -349,7 +349,7 @@ class RealtimeActor:
         held = self.latest
         return not self.plant_gate.conflict and held is rest.held and tick - held[1] <= self.stale_after
 
-    def _note_truth(self, message: PlantState) -> None:
+    def note_truth(self, message: PlantState) -> None:
         if message.true_state is None:
             self.truth_known = False
         elif self.true_start is None:
@@ -375,8 +375,9 @@ class RealtimeActor:
         self.latencies.append(max(0.0, done - max(held[1], tick) - solve_seconds))
         # the step fresh weights would be trained on: the previous one (ideally), or, while the
         # robot rests (the critic fits no transition of a robot at rest), the newest one fitted
-        resting, newest = ledger.record(i, k, state, action, cost, true_cost, self.arrived, None)
         values = [*state.tolist(), *action, cost]
+        n = self.system.state_dim
+        resting, newest = ledger.record(i, k, values[:n], action, cost, true_cost, self.arrived, None)
         self.inbox.published(k)  # before the transition goes out: weights trained on it may come back at once
         self.publish_transition(
             self.wire.transition(
@@ -384,7 +385,7 @@ class RealtimeActor:
                 robot=self.robot,
                 episode=self.episode_id,
                 step=k,
-                state=tuple(values[: self.system.state_dim]),
+                state=tuple(values[:n]),
                 action=action,
                 cost=cost,
             )
@@ -511,7 +512,7 @@ def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, r
     trained = ledger.weights[rows, TRAINED]  # the held weights' (WeightsInbox.marks)
     helds, states_, costs_, true_costs_, inner_, holds = zip(*rests, strict=True)
     for loop, held in zip(loops, helds, strict=True):
-        loop._note_truth(held[0])
+        loop.note_truth(held[0])
     for hold in holds:
         hold()
     seqs = np.array([held[0].seq for held in helds], dtype=np.int64)
