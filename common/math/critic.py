@@ -127,18 +127,22 @@ def at_rest_rows(
     steps: np.ndarray,
     values: np.ndarray,
     tolerances: ArrivalTolerances | None,
+    inner: np.ndarray | None = None,
 ) -> np.ndarray:
     """:func:`at_rest` of many samples at once: row ``i`` is sample ``(steps[i], values[i])``
     after ``(previous_steps[i], previous[i])``, each ``values`` row ``(x, y, alpha, v, omega)``.
     The same comparisons: the step after, both actions exactly zero, the state exactly equal,
     then the inner tolerances (:func:`~common.math.arrival.arrival_masks`, :func:`arrival_update`'s
-    test for many states)."""
+    test for many states; ``inner``: each row's, when the caller has computed them)."""
     if tolerances is None:
         return np.zeros(len(steps), dtype=bool)
     rest: np.ndarray = np.asarray(steps) == np.asarray(previous_steps) + 1
     # the state and the action exactly as before, and the action zero: both actions zero
     rest &= np.logical_and.reduce(values == previous, axis=1)
     rest &= np.logical_and.reduce(values[:, STATE_DIM:] == 0, axis=1)
+    if inner is not None:
+        rest &= inner
+        return rest
     candidates = np.flatnonzero(rest)
     if candidates.size:
         rest[candidates] = arrival_masks(values[candidates, :STATE_DIM], tolerances)[0]

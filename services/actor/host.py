@@ -417,7 +417,6 @@ class HostScheduler:
         for loop, ticker in zip(loops, self.tickers, strict=True):
             loop.ticker = ticker
         self.served = 0
-        self.rounds_due, self.manual_gc = 0, False  # rounds served since the last collection (run)
         self.started = start
         self.warned = -1e9
         self.budget = budget * period
@@ -440,7 +439,7 @@ class HostScheduler:
         heap = [(ticker.next_due, i) for i, ticker in enumerate(self.tickers)]
         heapq.heapify(heap)
         rounds, pending_gc = 0, -1
-        self.rounds_due, self.manual_gc = 0, manual_gc
+        count = len(self.loops)
         group_due, group_start = -1.0, 0.0  # the due time of the group being served, when it began
         resting: dict[int, AtRest] = {}  # its robots served at rest (RestCheck)
         deferred: list[tuple[int, AtRest, float | None]] = []  # the first group's, served with those pulled
@@ -486,7 +485,7 @@ class HostScheduler:
                     late = group_start - due > HURRY_FRACTION * self.period
                     self.loops[i].tick(k, now, hurry=over or late)  # hurry: the lighter solve
                     self._spent(now)
-                    self._count(1)
+                    self.served += 1
                     heapq.heappush(heap, (self.tickers[i].next_due, i))
                 # the group is served (the next tick due is another phase's): its actions and
                 # its transitions go out, a round each; or its first action has waited long enough
@@ -500,8 +499,7 @@ class HostScheduler:
                     for box in self.outboxes:
                         if box.overdue(flushed_at):
                             box.flush()
-                while self.rounds_due:  # a round of every robot served: its young garbage collected
-                    self.rounds_due -= 1
+                while manual_gc and rounds < self.served // count:  # a round of every robot served
                     pending_gc = max(pending_gc, 2 if rounds % 600 == 599 else 1 if rounds % 10 == 9 else 0)
                     rounds += 1
         finally:
@@ -524,7 +522,7 @@ class HostScheduler:
                 "robot %s: tick %d served %.1f ms late (%.1f s into the run; missed deadlines %d)",
                 loop.robot,
                 k,
-                1e3 * (now - (now if due is None else due)),
+                0.0 if due is None else 1e3 * (now - due),
                 now - self.started,
                 ticker.missed,
             )
@@ -556,7 +554,7 @@ class HostScheduler:
             loop.tick(k, now, rest=rest)
         self._rest_ticks(ready, ks, now, rests)
         self._spent(now, len(run))
-        self._count(len(run))
+        self.served += len(run)
         tickers = self.tickers
         for i, _, _ in run:  # an entry at its own phase, if it was pulled, is now stale
             heapq.heappush(heap, (tickers[i].next_due, i))
@@ -582,14 +580,6 @@ class HostScheduler:
             slot = served % count
             self.spent_sum = max(0.0, self.spent_sum + spent - self.spent[slot])
             self.spent[slot] = spent
-
-    def _count(self, ticks: int) -> None:
-        """``ticks`` more served; each round of every robot's tick is due a young collection (when
-        the run collects by hand)."""
-        count = len(self.loops)
-        before, self.served = self.served, self.served + ticks
-        if self.manual_gc:
-            self.rounds_due += self.served // count - before // count
 
     def _pull_rests(
         self, due: float, heap: list[tuple[float, int]], deferred: list[tuple[int, AtRest, float | None]]

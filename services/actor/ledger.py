@@ -21,7 +21,7 @@ from collections import deque
 import numpy as np
 
 from common.math.arrival import ArrivalTolerances
-from common.math.critic import Sample, at_rest
+from common.math.critic import Sample, at_rest, at_rest_rows
 from common.math.stats import WindowRow, WindowRows
 
 PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
@@ -61,7 +61,6 @@ class Ledger:
         # whether it was at rest, the newest step fitted (-1: none)
         self.previous_step = np.full(count, NO_STEP, dtype=np.int64)
         self.previous = np.zeros((count, state_dim + action_dim))
-        self.previous_cost = np.zeros(count)
         self.resting = np.zeros(count, dtype=bool)
         self.newest = np.full(count, -1, dtype=np.int64)
 
@@ -91,13 +90,12 @@ class Ledger:
         previous = None
         if previous_step != NO_STEP:
             row = self.previous[i].tolist()
-            previous = Sample(previous_step, row[:n], row[n:], self.previous_cost.item(i))
+            previous = Sample(previous_step, row[:n], row[n:], math.nan)  # at_rest reads no cost
         # at_rest compares lengths and items only: Python lists here, not arrays (~10 times faster)
         resting = at_rest(previous, Sample(k, state, action, cost), self.tolerances, inner)  # type: ignore[arg-type]
         self.resting[i] = resting
         self.previous_step[i] = k
         self.previous[i] = (*state, *action)
-        self.previous_cost[i] = cost
         if not resting:
             self.newest[i] = k
         return before
@@ -137,18 +135,15 @@ class Ledger:
         self.true_cost[rows[known]] += true_costs[known]
         before = (self.resting[rows], self.newest[rows])
         n = self.state_dim
-        resting = inner.copy()
-        if self.tolerances is None or (n, self.action_dim) != (3, 2):  # at_rest's: a unicycle's rule
-            resting[:] = False
-        else:  # at_rest's comparisons: the step after, the same state, both actions zero
-            previous = self.previous[rows]
-            resting &= self.previous_step[rows] == ks - 1
-            resting &= np.logical_and.reduce(previous[:, :n] == states, axis=1)
-            resting &= np.logical_and.reduce(previous[:, n:] == 0.0, axis=1)
+        values = np.zeros((len(rows), n + self.action_dim))
+        values[:, :n] = states
+        if (n, self.action_dim) == (3, 2):  # at_rest's rule is a unicycle's
+            resting = at_rest_rows(self.previous_step[rows], self.previous[rows], ks, values, self.tolerances, inner)
+        else:
+            resting = np.zeros(len(rows), dtype=bool)
         self.resting[rows] = resting
         self.previous_step[rows] = ks
-        self.previous[rows, :n], self.previous[rows, n:] = states, 0.0
-        self.previous_cost[rows] = costs
+        self.previous[rows] = values
         self.newest[rows] = np.where(resting, before[1], ks)
         return before
 
