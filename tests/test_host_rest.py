@@ -355,7 +355,12 @@ def test_a_robot_decided_at_rest_takes_its_step_when_its_state_changed_and_stops
     elif change == "newer state":
         loop.on_state(state.model_copy(update={"seq": 2}), "p1", fake.now)
     held: list[bool] = []
-    rest = AtRest(decided, np.array(decided[0].state), 0.25, None, False, lambda: held.append(True))
+    count = int(loop.ledger.accepted[loop.row])  # the state's identity: the states accepted so far
+    if change == "newer state":
+        count -= 1  # decided on the state before
+    message, received = decided
+    state_values = np.array(message.state)
+    rest = AtRest(count, message.seq, received, state_values, None, 0.25, None, False, lambda: held.append(True))
     loop.tick(0, fake.now, rest=rest)
     actions = [m for m in sent if isinstance(m, Action)]
     transitions = [m for m in sent if isinstance(m, Transition)]

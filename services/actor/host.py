@@ -33,6 +33,7 @@ from __future__ import annotations
 import gc
 import heapq
 import logging
+import math
 import os
 import threading
 import time
@@ -44,7 +45,7 @@ import numpy as np
 from common.config.assembly import arrival_rule, arrival_tolerances, build_actor
 from common.config.settings import Settings
 from common.contracts.columns import Columns, columns_of
-from common.contracts.messages import Action, Message, PlantState, Transition
+from common.contracts.messages import Action, Message, Transition
 from common.contracts.summaries import FleetActorSummary, RealtimeActorSummary, fleet_view, format_status_line
 from common.math.actor import StackedActor
 from common.math.actor_problem import ActorCounters, ActorMemory, ActorProblem, ActorStep
@@ -56,7 +57,7 @@ from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker, aligned_start, tick_phase_offset
 from services.actor.ledger import Ledger
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
-from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps, rest_ticks
+from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps, rest_ticks, take_states
 
 log = logging.getLogger(__name__)
 
@@ -175,9 +176,15 @@ class RestCheck:
         self.delta = settings.plant.sampling_time
         self.system = settings.system
         self.arrays_from = max(1, arrays_from)
-        # per robot, the last decision and the (state, true state) it was made on: a robot at rest
-        # reports the same state tick after tick, and the decision is a function of it alone
-        self.decided: dict[int, tuple[Any, Any, np.ndarray, bool, bool, float, float | None]] = {}
+        # per robot, the last decision and the state and true state it was made on (NaN: none): a
+        # robot at rest reports the same state tick after tick, and the decision is a function of
+        # it alone
+        n, count = self.system.state_dim, len(loops)
+        self.decided = np.zeros(count, dtype=bool)
+        self.on = np.full((count, 2 * n), math.nan)  # (state, true state)
+        self.inner = np.zeros(count, dtype=bool)
+        self.stays = np.zeros(count, dtype=bool)
+        self.costs = np.zeros((count, 2))  # (cost, true cost: NaN without the truth)
 
     def __call__(self, members: Sequence[int], now: float) -> dict[int, AtRest]:
         tolerances = self.tolerances
@@ -186,61 +193,69 @@ class RestCheck:
         # the robots whose last step said "arrived" (their newest state's freshness and plant are
         # checked at their tick, RealtimeActor.tick, as for any tick)
         picked: list[int] = []
-        helds = []
         actors: list[RobotActor] = []
         for i in members:
-            loop = self.loops[i]
-            held, actor = loop.latest, loop.actor
-            if held is not None and isinstance(actor, RobotActor) and actor.arrived:
+            actor = self.loops[i].actor
+            if isinstance(actor, RobotActor) and actor.arrived:
                 picked.append(i)
-                helds.append(held)
                 actors.append(actor)
         if len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
             return {}
-        decided = self.decided
-        new = []
-        for j, i in enumerate(picked):
-            known = decided.get(i)
-            message = helds[j][0]
-            if known is None or known[0] != message.state or known[1] != message.true_state:
-                new.append(j)
-        if new:
-            self._decide([picked[j] for j in new], [helds[j][0] for j in new])
+        ledger = self.loops[picked[0]].ledger
+        rows = np.array([self.loops[i].row for i in picked], dtype=np.intp)
+        with ledger.lock:  # the newest states, as one moment saw them
+            held, accepted, seqs = ledger.held[rows], ledger.accepted[rows], ledger.seq[rows]
+            received, values = ledger.received[rows], np.hstack([ledger.state[rows], ledger.truth[rows]])
+        at = np.array(picked, dtype=np.intp)
+        known = self.on[at]
+        same = (values == known) | (np.isnan(values) & np.isnan(known))
+        new = np.flatnonzero(held & ~(self.decided[at] & same.all(axis=1)))
+        if len(new):
+            self._decide(at[new], values[new])
+        stays = held & self.stays[at]
+        if not stays.any():
+            return {}
+        n = self.system.state_dim
+        costs = self.costs[at].tolist()
         rests = {}
-        for j, i in enumerate(picked):
-            _, _, state, inner, stays, cost, true_cost = decided[i]
-            if stays:
-                rests[i] = AtRest(helds[j], state, cost, true_cost, inner, actors[j].memory.held_at_rest)
+        for j in np.flatnonzero(stays).tolist():
+            cost, true_cost = costs[j]
+            truth = values[j, n:]
+            known_truth = true_cost == true_cost  # not NaN: the state carries its truth
+            rests[picked[j]] = AtRest(
+                int(accepted[j]),
+                int(seqs[j]),
+                float(received[j]),
+                values[j, :n],
+                truth if known_truth else None,
+                cost,
+                true_cost if known_truth else None,
+                bool(self.inner[picked[j]]),
+                actors[j].memory.held_at_rest,
+            )
         return rests
 
-    def _decide(self, robots: list[int], messages: list[PlantState]) -> None:
-        """The decisions for ``robots`` at their newest states, as arrays: the outer tolerances (still
-        arrived), the inner ones and the stage costs of a zero command."""
+    def _decide(self, robots: np.ndarray, values: np.ndarray) -> None:
+        """The decisions for ``robots`` at their newest states and true states (``values``, NaN: no
+        truth), as arrays: the outer tolerances (still arrived), the inner ones and the stage costs
+        of a zero command."""
         assert self.tolerances is not None
-        states = np.array([message.state for message in messages])
-        known = [j for j, message in enumerate(messages) if message.true_state is not None]
-        n = self.system.state_dim
-        truths = np.array([messages[j].true_state for j in known]).reshape(len(known), n)
+        n, m = self.system.state_dim, self.system.action_dim
+        states = values[:, :n]
         inner, stays = arrival_masks(states, self.tolerances)
         # the stage costs of a zero command, of the reported states and then of the true ones
-        both = np.vstack([states, truths])
-        costs = (
-            self.delta * stage_cost_rows(both, np.zeros((len(both), self.system.action_dim)), self.r_diag)
-        ).tolist()
-        true_costs: list[float | None] = [None] * len(robots)
-        for j, cost in zip(known, costs[len(robots) :], strict=True):
-            true_costs[j] = cost
-        for j, i in enumerate(robots):
-            message = messages[j]
-            self.decided[i] = (
-                message.state,
-                message.true_state,
-                states[j],
-                bool(inner[j]),
-                bool(stays[j]),
-                costs[j],
-                true_costs[j],
+        truths = values[:, n:]
+        known = ~np.isnan(truths[:, 0])
+        costs = self.delta * stage_cost_rows(states, np.zeros((len(states), m)), self.r_diag)
+        true_costs = np.full(len(states), math.nan)
+        if known.any():
+            true_costs[known] = self.delta * stage_cost_rows(
+                truths[known], np.zeros((int(known.sum()), m)), self.r_diag
             )
+        self.decided[robots] = True
+        self.on[robots] = values
+        self.inner[robots], self.stays[robots] = inner, stays
+        self.costs[robots] = np.column_stack([costs, true_costs])
 
 
 class Outbox(Generic[M]):
@@ -668,12 +683,18 @@ def run_host(
         episode = new_episode_id()
         loop = wire_realtime(own, bus, actor, inbox, count, episode, outbox.put, transitions.put, ledger, row)
         loop.rest_columns = (outbox, transitions)  # ticks at rest put columns, build no message
-        # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
-        # forged state just before a tick cannot displace the live plant's newest
-        bus.subscribe(wire.STATE, wire.STATE.key(robot), loop.on_state, with_source=True)
         loops.append(loop)
         counts.append(count)
         inboxes.append(inbox)
+    # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
+    # forged state just before a tick cannot displace the live plant's newest; a batch's states
+    # at once, as arrays where they continue their robots' streams (take_states)
+    index = {robot: loop for robot, loop in zip(robots, loops, strict=True)}
+
+    def on_states(batch: Columns[Any], source: str | None) -> None:
+        take_states([index[robot] for robot in batch.robots], batch, source, time.monotonic())
+
+    bus.subscribe_columns(wire.STATE, [wire.STATE.key(robot) for robot in robots], on_states)
     for robot, loop, inbox in zip(robots, loops, inboxes, strict=True):
         bus.declare_alive(robot)
         inbox.reset(loop.episode_id)

@@ -11,12 +11,20 @@ one tick group record theirs as array operations, one per statistic for the whol
 the publication times the newest :data:`PUBLISH_TIMES_KEPT` steps, the transitions' tail the
 newest ``replay_size``. Every array is allocated whole when the ledger is made: a loop's memory
 never grows while it runs.
+
+A row also holds its robot's newest accepted state (:meth:`Ledger.hold`, :meth:`Ledger.hold_rows`):
+its values as arrays, which a host's tick group reads at rest, and where it came from (a message,
+or a batch of states and its row), built into a message only when a step or a report reads it
+(:meth:`Ledger.newest_state`). Its loop's lock is the ledger's (:attr:`Ledger.lock`): a batch of states
+is taken for all its robots under it.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 from collections import deque
+from typing import Any
 
 import numpy as np
 
@@ -63,6 +71,26 @@ class Ledger:
         self.previous = np.zeros((count, state_dim + action_dim))
         self.resting = np.zeros(count, dtype=bool)
         self.newest = np.full(count, -1, dtype=np.int64)
+        # each robot's newest accepted state: its values, its truth (NaN: none sent), seq, when it
+        # came, and the states accepted so far (a tick decided at rest on a state is served so
+        # only while it is still the newest); ``held`` False: none yet, or forgotten (a plant gone)
+        self.lock = threading.Lock()
+        self.state = np.zeros((count, state_dim))
+        self.truth = np.full((count, state_dim), math.nan)
+        self.seq = np.zeros(count, dtype=np.int64)
+        self.received = np.zeros(count)
+        self.accepted = np.zeros(count, dtype=np.int64)
+        self.held = np.zeros(count, dtype=bool)
+        # where it came from: a message, or (a batch of states, its row); the (message, received)
+        # pair once read (None: not built yet)
+        self.came: list[Any] = [None] * count
+        self.pairs: list[tuple[Any, float] | None] = [None] * count
+        # whether a batch may take a row's next state as arrays (realtime.take_states): its last
+        # accepted state's source and episode are what it follows, and its order guard and refusal
+        # runs are as that acceptance left them (any refusal or change of plant clears it)
+        self.follow = np.zeros(count, dtype=bool)
+        self.follow_source = np.full(count, "", dtype=object)
+        self.follow_episode = np.zeros(count, dtype=np.int64)
 
     # -- one row: a step -------------------------------------------------------------------
     def record(
@@ -163,6 +191,42 @@ class Ledger:
             self.run_first[i] = ks[j]
         self.run_last[rows] = ks
         self.steps[rows] += 1
+
+    # -- the newest accepted state (under :attr:`lock`) ------------------------------------------
+    def hold(self, i: int, message: Any, received: float, source: str) -> None:
+        """Row ``i``'s newest accepted state is ``message`` (a PlantState of the system), from
+        ``source``, which arrived at ``received``; the row's next state may come as arrays."""
+        self.state[i] = message.state
+        self.truth[i] = math.nan if message.true_state is None else message.true_state
+        self.seq[i], self.received[i] = message.seq, received
+        self.accepted[i] += 1
+        self.held[i] = True
+        self.came[i], self.pairs[i] = message, (message, received)
+        self.follow[i], self.follow_source[i], self.follow_episode[i] = True, source, message.episode
+
+    def hold_rows(self, rows: np.ndarray, batch: Any, taken: np.ndarray, received: float) -> None:
+        """:meth:`hold` of the distinct ``rows`` at once: rows ``taken`` of ``batch`` (Columns of
+        states), of the source and episode each row follows already."""
+        self.state[rows] = batch.field("state")[taken]
+        self.truth[rows] = batch.field("true_state")[taken]
+        self.seq[rows] = batch.field("seq")[taken]
+        self.received[rows] = received
+        self.accepted[rows] += 1
+        self.held[rows] = True
+        came, pairs = self.came, self.pairs
+        for i, row in zip(rows.tolist(), taken.tolist(), strict=True):
+            came[i], pairs[i] = (batch, row), None
+
+    def newest_state(self, i: int) -> tuple[Any, float] | None:
+        """Row ``i``'s newest accepted state and when it came, built once (None: none yet)."""
+        pair = self.pairs[i]
+        if pair is None:
+            came = self.came[i]
+            if came is None:
+                return None
+            batch, row = came
+            pair = self.pairs[i] = (batch.item(row), self.received.item(i))
+        return pair
 
     # -- reading a row ---------------------------------------------------------------------
     def windows(self, i: int) -> tuple[WindowRow, WindowRow, WindowRow]:

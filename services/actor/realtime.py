@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple, Protocol
@@ -37,6 +36,7 @@ import numpy as np
 
 from common.config.assembly import arrival_tolerances
 from common.config.settings import Settings
+from common.contracts.columns import Columns
 from common.contracts.messages import Action, PlantState, Transition
 from common.contracts.summaries import RealtimeActorSummary, TrueView
 from common.math.actor import StackedActor
@@ -86,8 +86,11 @@ class AtRest(NamedTuple):
     RestCheck): its actor's arrival rule holds it and still will at ``state``. A tuple: made for
     every robot at rest at every tick (0.26 us to make here, a frozen dataclass 0.72)."""
 
-    held: tuple[PlantState, float]  # the newest accepted state it was decided on, and when it came
-    state: np.ndarray  # that state
+    held: int  # the newest accepted state it was decided on: its count (services/actor/ledger.py)
+    seq: int  # that state's seq
+    received: float  # when it came
+    state: np.ndarray  # its values
+    truth: np.ndarray | None  # its true state (None: the plant sends none)
     cost: float  # delta r(state, 0)
     true_cost: float | None  # delta r(true state, 0); None: the state carries no truth
     inner: bool  # inside the arrival rule's inner tolerances (common.math.critic.at_rest)
@@ -142,9 +145,6 @@ class RealtimeActor:
         self.clock = clock
         self.plant_gate = plant_gate or SourceGate("plant")
         self.order = SequenceGuard(MAX_SEQ_JUMP)
-        self.lock = threading.Lock()
-        self.latest: tuple[PlantState, float] | None = None  # the newest accepted state, when it came
-        self.last_accepted: PlantState | None = None  # for the summary: never a refused one
         self.episodes: dict[str, int] = {}  # the followed episode of each live plant session
         self.episode_run = RefusalRun()  # states of another episode refused in a row
         self.refused_at = 0.0  # when the live plant's last state was refused (a lockout shows in status)
@@ -155,6 +155,8 @@ class RealtimeActor:
             replay = settings.critic.replay_size
             ledger = Ledger(1, system.state_dim, system.action_dim, replay, arrival_tolerances(settings))
         self.ledger, self.row = ledger, row
+        # the newest accepted state is the ledger row's (Ledger.hold), guarded by the ledger's lock
+        self.lock = ledger.lock
         inbox.bind(ledger.weights, row)  # its published and trained steps in the ledger's row
         ledger.episode[row] = episode_id
         self.periods = Window()
@@ -190,14 +192,45 @@ class RealtimeActor:
     def true_accumulated_cost(self) -> float:
         return float(self.ledger.true_cost[self.row])
 
+    @property
+    def latest(self) -> tuple[PlantState, float] | None:
+        """The newest accepted state and when it came (None: none yet, or forgotten)."""
+        with self.lock:
+            return self._latest()
+
+    def _latest(self) -> tuple[PlantState, float] | None:
+        """:attr:`latest`, the lock held."""
+        return self.ledger.newest_state(self.row) if self.ledger.held[self.row] else None
+
+    @property
+    def last_accepted(self) -> PlantState | None:
+        """The newest accepted state, forgotten or not (the summary's): never a refused one."""
+        with self.lock:
+            pair = self.ledger.newest_state(self.row)
+        return None if pair is None else pair[0]
+
+    def _forget(self) -> None:
+        """The held state is no longer the robot's (the lock held): the next tick stops it."""
+        self.ledger.held[self.row] = False
+
+    def _settle(self) -> None:
+        """Before a state is judged one by one or the plants change (the lock held): the order
+        guard's reference as the ledger holds it (batches may have moved it: take_states), and no
+        batch takes the row's states as arrays until one is accepted again."""
+        ledger, i = self.ledger, self.row
+        if ledger.follow[i]:
+            self.order.last[ledger.follow_source[i]] = ledger.seq.item(i)
+            ledger.follow[i] = False
+
     # -- inputs (Zenoh's threads) ---------------------------------------------------------
     def on_plant_identity(self, zid: str, alive: bool) -> None:
         with self.lock:
+            self._settle()
             self.order.forget(set(self.plant_gate.sources()))
             if not alive:
                 self.episodes.pop(zid, None)
             if self.plant_gate.conflict:
-                self.latest = None  # follow neither of two plants
+                self._forget()  # follow neither of two plants
         if self.plant_gate.conflict:
             self.counts.count("plant_conflicts")
             log.error(
@@ -216,6 +249,7 @@ class RealtimeActor:
             return
         assert source is not None
         with self.lock:
+            self._settle()
             now = self.clock() if received is None else received
             followed = self.episodes.get(source)
             if followed is None:  # the live plant session's first state: its episode is followed
@@ -243,8 +277,7 @@ class RealtimeActor:
                 log.warning("the live plant's seq refused %d times in a row: following it", self.order.restart_after)
                 self.counts.count("state_seq_resyncs")
             self.episode_run.accepted()
-            self.latest = (message, now)
-            self.last_accepted = message
+            self.ledger.hold(self.row, message, now, source)
 
     def on_plant_token(self, alive: bool) -> None:
         """The plant (simulator or robot bridge) vanished: its last state is no longer the robot's.
@@ -252,7 +285,7 @@ class RealtimeActor:
         stale; fresh states resume the loop."""
         if not alive:
             with self.lock:
-                self.latest = None
+                self._forget()
             self.counts.count("plant_lost")
             log.warning("plant liveliness lost: commanding zero velocity until its state returns")
 
@@ -263,17 +296,21 @@ class RealtimeActor:
         StackedActor.step). ``rest``: the host's tick group found the robot held at rest
         (services/actor/host.py RestCheck): no step, when the state it was decided on is still
         the newest (else a step, as without it)."""
+        ledger, i = self.ledger, self.row
         with self.lock:
-            held = self.latest
+            accepted = ledger.accepted.item(i)
+            held = self._latest() if rest is None or rest.held != accepted else None
+            fresh = ledger.held.item(i) and tick - ledger.received.item(i) <= self.stale_after
         if self.plant_gate.conflict:
             self.plant_conflict_stops += 1
             self.stop_robot(k)
-        elif held is None or tick - held[1] > self.stale_after:
+        elif not fresh:
             self.stale_state_stops += 1
             self.stop_robot(k)
         else:
             try:
-                if rest is not None and rest.held is held:
+                if held is None:  # decided at rest on the newest state (no message read)
+                    assert rest is not None
                     rest_ticks([self], [k], tick, [rest])
                 else:
                     self._step(k, tick, held, hurry)
@@ -289,8 +326,7 @@ class RealtimeActor:
         solve, with the global phase from scratch, costs several warm ones: services/actor/host.py
         ``prime_plans``). The solve and its
         time are counted as any other. False: no state held yet."""
-        with self.lock:
-            held = self.latest
+        held = self.latest
         if held is None:
             return False
         weights = self.inbox.current()
@@ -321,7 +357,7 @@ class RealtimeActor:
         state = np.array(message.state)
         if self.start_state is None:
             self.start_state = state  # the robot's own start, whatever was requested
-        self.note_truth(message)
+        self.note_truth(message.true_state)
         weights = self.inbox.current()
         step = self.actor.step(state, weights.q, weights.v, hurry)  # the arrival rule acts inside (exactly zero)
         arrived = step.status == "arrived"
@@ -346,14 +382,21 @@ class RealtimeActor:
     def ready_at_rest(self, rest: AtRest, tick: float) -> bool:
         """The tick at ``tick`` can be served at ``rest``: one live plant, and the state it was
         decided on still the newest and fresh (else the tick is :meth:`tick`'s, a step or a stop)."""
-        held = self.latest
-        return not self.plant_gate.conflict and held is rest.held and tick - held[1] <= self.stale_after
+        ledger, i = self.ledger, self.row
+        return (
+            not self.plant_gate.conflict
+            and ledger.held.item(i)
+            and ledger.accepted.item(i) == rest.held
+            and tick - rest.received <= self.stale_after
+        )
 
-    def note_truth(self, message: PlantState) -> None:
-        if message.true_state is None:
+    def note_truth(self, truth: Any) -> None:
+        """A state used: its true state (None: none sent; a plant that sends none once is not known
+        to tell the truth, and the summary's true view is left out)."""
+        if truth is None:
             self.truth_known = False
         elif self.true_start is None:
-            self.true_start = message.true_state
+            self.true_start = tuple(float(c) for c in truth)
 
     def _record(
         self,
@@ -403,19 +446,19 @@ class RealtimeActor:
     def lockout_suspect(self) -> bool:
         """The live plant's states are being refused and none was accepted for over a second:
         the pattern a forged far-ahead sequence number or episode leaves (status)."""
-        with self.lock:
-            held = self.latest
+        ledger, i = self.ledger, self.row
         now = self.clock()
-        return now - self.refused_at < 1.0 and (held is None or now - held[1] > 1.0)
+        return now - self.refused_at < 1.0 and (not ledger.held.item(i) or now - ledger.received.item(i) > 1.0)
 
     def status(self) -> dict[str, float]:
         """The 1 Hz status counters (``srl/<robot>/status/actor``; ``srl up``'s live line)."""
         held_weights = self.inbox.current()
         solves = self.actor.counters.solve_seconds
+        ledger, i = self.ledger, self.row
         with self.lock:
-            shown = self.latest
+            shown = ledger.state[i].tolist() if ledger.held.item(i) else None
         return {
-            **self.where(None if shown is None else shown[0].state),
+            **self.where(shown),
             "accumulated_cost": self.accumulated_cost,
             "steps": self.steps,
             "missed_deadlines": self.ticker.missed if self.ticker is not None else 0,
@@ -454,8 +497,7 @@ class RealtimeActor:
         )
 
     def summary(self) -> dict[str, Any]:
-        with self.lock:
-            last = self.last_accepted
+        last = self.last_accepted
         ticker = self.ticker
         truth = self.truth(last)
         return RealtimeActorSummary.model_validate(
@@ -510,13 +552,13 @@ def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, r
     rows = np.array([loop.row for loop in loops], dtype=np.intp)
     ks_array = np.array(ks, dtype=np.int64)
     trained = ledger.weights[rows, TRAINED]  # the held weights' (WeightsInbox.marks)
-    helds, states_, costs_, true_costs_, inner_, holds = zip(*rests, strict=True)
-    for loop, held in zip(loops, helds, strict=True):
-        loop.note_truth(held[0])
+    _, seqs_, received_, states_, truths, costs_, true_costs_, inner_, holds = zip(*rests, strict=True)
+    for loop, truth in zip(loops, truths, strict=True):
+        loop.note_truth(truth)
     for hold in holds:
         hold()
-    seqs = np.array([held[0].seq for held in helds], dtype=np.int64)
-    received = np.array([held[1] for held in helds])
+    seqs = np.array(seqs_, dtype=np.int64)
+    received = np.array(received_)
     costs = np.array(costs_, dtype=float)
     true_costs = np.array(true_costs_, dtype=float)  # None (no truth): NaN
     inner = np.array(inner_, dtype=bool)
@@ -568,3 +610,35 @@ def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, r
             ledger.staleness_ms.append_rows(rows[timed], ages)
     for loop, k in zip(loops, ks, strict=True):
         loop.last_step = k
+
+
+def take_states(loops: Sequence[RealtimeActor], batch: Columns[Any], source: str | None, received: float) -> None:
+    """A batch of states from session ``source``, arrived at ``received``, row ``j`` for ``loops[j]``
+    (the loops of one ledger: a host's): each state judged as :meth:`RealtimeActor.on_state`
+    judges it, with the same verdicts, counts and order. The common one is taken as arrays: its
+    robot's last accepted state came from ``source`` and nothing refused or changed its plant
+    since (``Ledger.follow``), it is of the episode followed, its seq newer than that state's and
+    at most :data:`MAX_SEQ_JUMP` ahead, its robot once in the batch; it is held without a message
+    built (:meth:`Ledger.hold_rows`; a step builds it when it reads it). The others go through
+    :meth:`RealtimeActor.on_state` one by one, in order."""
+    if not loops:
+        return
+    ledger = loops[0].ledger
+    rows = np.array([loop.row for loop in loops], dtype=np.intp)
+    common = np.zeros(len(loops), dtype=bool)
+    if source is not None and len(set(rows.tolist())) == len(rows) and all(loop.ledger is ledger for loop in loops):
+        episodes, seqs = batch.field("episode"), batch.field("seq")
+        with ledger.lock:
+            last = ledger.seq[rows]
+            common = (
+                ledger.follow[rows]
+                & (ledger.follow_source[rows] == source)
+                & (ledger.follow_episode[rows] == episodes)
+                & (seqs > last)
+                & (seqs <= last + MAX_SEQ_JUMP)
+            )
+            taken = np.flatnonzero(common)
+            if len(taken):
+                ledger.hold_rows(rows[taken], batch, taken, received)
+    for j in np.flatnonzero(~common).tolist():
+        loops[j].on_state(batch.item(j), source, received)
