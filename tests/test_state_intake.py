@@ -142,7 +142,7 @@ def test_the_common_states_are_held_without_a_message_and_read_as_the_arrays_say
     take_states(loops, states(2, 0.2), "p1", 2.0)
     assert ledger.follow.all() and ledger.pairs == [None] * 3  # taken as arrays: nothing built
     assert ledger.state[:, 0].tolist() == [0.2] * 3 and ledger.accepted.tolist() == [2] * 3
-    assert np.isnan(ledger.truth).all() and ledger.received.tolist() == [2.0] * 3
+    assert np.isinf(ledger.truth).all() and ledger.received.tolist() == [2.0] * 3
     latest = loops[1].latest
     assert latest is not None and latest[0].seq == 2 and latest[0].state == (0.2, 0.0, 0.0) and latest[1] == 2.0
     take_states(loops, states(2 + MAX_SEQ_JUMP + 1, 0.9), "p1", 3.0)  # too far ahead: refused

@@ -55,7 +55,7 @@ from common.net.transport import Bus, bus_status, start_status_thread
 from common.process.counts import RobotCounts
 from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker, aligned_start, tick_phase_offset
-from services.actor.ledger import Ledger
+from services.actor.ledger import ACCEPTED, SEQ, Ledger
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
 from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps, rest_ticks, take_states
 
@@ -176,12 +176,10 @@ class RestCheck:
         self.delta = settings.plant.sampling_time
         self.system = settings.system
         self.arrays_from = max(1, arrays_from)
-        # per robot, the last decision and the state and true state it was made on (NaN: none): a
-        # robot at rest reports the same state tick after tick, and the decision is a function of
-        # it alone
+        # per robot, the last decision and the state and true state it was made on: a robot at
+        # rest reports the same state tick after tick, and the decision is a function of it alone
         n, count = self.system.state_dim, len(loops)
-        self.decided = np.zeros(count, dtype=bool)
-        self.on = np.full((count, 2 * n), math.nan)  # (state, true state)
+        self.on = np.full((count, 2 * n), math.nan)  # (state, true state) as Ledger.values (NaN: none yet)
         self.inner = np.zeros(count, dtype=bool)
         self.stays = np.zeros(count, dtype=bool)
         self.costs = np.zeros((count, 2))  # (cost, true cost: NaN without the truth)
@@ -204,40 +202,43 @@ class RestCheck:
         ledger = self.loops[picked[0]].ledger
         rows = np.array([self.loops[i].row for i in picked], dtype=np.intp)
         with ledger.lock:  # the newest states, as one moment saw them
-            held, accepted, seqs = ledger.held[rows], ledger.accepted[rows], ledger.seq[rows]
-            received, values = ledger.received[rows], np.hstack([ledger.state[rows], ledger.truth[rows]])
+            held, marks, received, values = (
+                ledger.held[rows],
+                ledger.marks[rows],
+                ledger.received[rows],
+                ledger.values[rows],
+            )
         at = np.array(picked, dtype=np.intp)
-        known = self.on[at]
-        same = (values == known) | (np.isnan(values) & np.isnan(known))
-        new = np.flatnonzero(held & ~(self.decided[at] & same.all(axis=1)))
+        new = np.flatnonzero(held & ~(values == self.on[at]).all(axis=1))
         if len(new):
             self._decide(at[new], values[new])
         stays = held & self.stays[at]
         if not stays.any():
             return {}
         n = self.system.state_dim
-        costs = self.costs[at].tolist()
+        states, truths = values[:, :n], values[:, n:]
+        costs, inners = self.costs[at].tolist(), self.inner[at].tolist()
+        accepted_, seqs_, received_ = marks[:, ACCEPTED].tolist(), marks[:, SEQ].tolist(), received.tolist()
         rests = {}
         for j in np.flatnonzero(stays).tolist():
             cost, true_cost = costs[j]
-            truth = values[j, n:]
-            known_truth = true_cost == true_cost  # not NaN: the state carries its truth
+            known = true_cost == true_cost  # not NaN: the state carries its truth
             rests[picked[j]] = AtRest(
-                int(accepted[j]),
-                int(seqs[j]),
-                float(received[j]),
-                values[j, :n],
-                truth if known_truth else None,
+                accepted_[j],
+                seqs_[j],
+                received_[j],
+                states[j],
+                truths[j] if known else None,
                 cost,
-                true_cost if known_truth else None,
-                bool(self.inner[picked[j]]),
+                true_cost if known else None,
+                inners[j],
                 actors[j].memory.held_at_rest,
             )
         return rests
 
     def _decide(self, robots: np.ndarray, values: np.ndarray) -> None:
-        """The decisions for ``robots`` at their newest states and true states (``values``, NaN: no
-        truth), as arrays: the outer tolerances (still arrived), the inner ones and the stage costs
+        """The decisions for ``robots`` at their newest states and true states (``values`` as the
+        ledger's, inf: no truth), as arrays: the outer tolerances (still arrived), the inner ones and the stage costs
         of a zero command."""
         assert self.tolerances is not None
         n, m = self.system.state_dim, self.system.action_dim
@@ -245,14 +246,13 @@ class RestCheck:
         inner, stays = arrival_masks(states, self.tolerances)
         # the stage costs of a zero command, of the reported states and then of the true ones
         truths = values[:, n:]
-        known = ~np.isnan(truths[:, 0])
+        known = np.isfinite(truths[:, 0])
         costs = self.delta * stage_cost_rows(states, np.zeros((len(states), m)), self.r_diag)
         true_costs = np.full(len(states), math.nan)
         if known.any():
             true_costs[known] = self.delta * stage_cost_rows(
                 truths[known], np.zeros((int(known.sum()), m)), self.r_diag
             )
-        self.decided[robots] = True
         self.on[robots] = values
         self.inner[robots], self.stays[robots] = inner, stays
         self.costs[robots] = np.column_stack([costs, true_costs])

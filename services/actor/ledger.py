@@ -35,6 +35,7 @@ from common.math.stats import WindowRow, WindowRows
 PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in ms)
 RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
 NO_STEP = -(2**62)  # a row's previous sample before its first (no step is the one after it)
+ACCEPTED, SEQ = 0, 1  # a row's marks: the states it accepted so far, the newest one's seq
 
 
 class Ledger:
@@ -71,15 +72,16 @@ class Ledger:
         self.previous = np.zeros((count, state_dim + action_dim))
         self.resting = np.zeros(count, dtype=bool)
         self.newest = np.full(count, -1, dtype=np.int64)
-        # each robot's newest accepted state: its values, its truth (NaN: none sent), seq, when it
-        # came, and the states accepted so far (a tick decided at rest on a state is served so
+        # each robot's newest accepted state: its values and its truth (a row of ``values``, read
+        # at once by a tick group), the states accepted so far and its seq (a row of ``marks``), when it
+        # came (a tick decided at rest on a state is served so
         # only while it is still the newest); ``held`` False: none yet, or forgotten (a plant gone)
         self.lock = threading.Lock()
-        self.state = np.zeros((count, state_dim))
-        self.truth = np.full((count, state_dim), math.nan)
-        self.seq = np.zeros(count, dtype=np.int64)
+        self.values = np.full((count, 2 * state_dim), math.inf)  # (state, truth): inf, none sent (a state is finite)
+        self.state, self.truth = self.values[:, :state_dim], self.values[:, state_dim:]
+        self.marks = np.zeros((count, 2), dtype=np.int64)  # (ACCEPTED, SEQ)
+        self.accepted, self.seq = self.marks[:, ACCEPTED], self.marks[:, SEQ]
         self.received = np.zeros(count)
-        self.accepted = np.zeros(count, dtype=np.int64)
         self.held = np.zeros(count, dtype=bool)
         # where it came from: a message, or (a batch of states, its row); the (message, received)
         # pair once read (None: not built yet)
@@ -197,7 +199,7 @@ class Ledger:
         """Row ``i``'s newest accepted state is ``message`` (a PlantState of the system), from
         ``source``, which arrived at ``received``; the row's next state may come as arrays."""
         self.state[i] = message.state
-        self.truth[i] = math.nan if message.true_state is None else message.true_state
+        self.truth[i] = math.inf if message.true_state is None else message.true_state
         self.seq[i], self.received[i] = message.seq, received
         self.accepted[i] += 1
         self.held[i] = True
@@ -208,7 +210,8 @@ class Ledger:
         """:meth:`hold` of the distinct ``rows`` at once: rows ``taken`` of ``batch`` (Columns of
         states), of the source and episode each row follows already."""
         self.state[rows] = batch.field("state")[taken]
-        self.truth[rows] = batch.field("true_state")[taken]
+        truth = batch.field("true_state")[taken]  # NaN rows: none sent
+        self.truth[rows] = np.where(np.isnan(truth), math.inf, truth)
         self.seq[rows] = batch.field("seq")[taken]
         self.received[rows] = received
         self.accepted[rows] += 1
