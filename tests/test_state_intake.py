@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -18,7 +19,7 @@ from common.contracts.columns import columns_of
 from common.contracts.messages import PlantState
 from common.math.actor_problem import ActorMemory
 from common.net.provenance import SourceGate
-from services.actor.host import RobotActor
+from services.actor.host import RestCheck, RobotActor
 from services.actor.ledger import Ledger
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import MAX_SEQ_JUMP, RealtimeActor, take_states
@@ -150,3 +151,12 @@ def test_the_common_states_are_held_without_a_message_and_read_as_the_arrays_say
     assert all(loop.counts.counters["rejected.state"] == 1 for loop in loops)  # type: ignore[attr-defined]
     take_states(loops, states(3, 0.3), "p1", 4.0)  # the stream goes on: one by one, then followed again
     assert ledger.follow.all() and ledger.state[:, 0].tolist() == [0.3] * 3
+
+
+def test_a_rest_check_refuses_loops_of_two_ledgers() -> None:
+    """It reads one ledger's rows: loops of two hosts are refused when it is made, not misread."""
+    clock = Clock()
+    one, other = host(clock), host(clock)
+    with pytest.raises(ValueError, match="one ledger"):
+        RestCheck(SETTINGS, [one[0], other[1]])
+    assert RestCheck(SETTINGS, one).loops == one  # the control: one host's loops

@@ -170,6 +170,8 @@ class RestCheck:
     steps (:data:`REST_ARRAYS_FROM`). A host of actors without an arrival rule rests no robot."""
 
     def __init__(self, settings: Settings, loops: Sequence[RealtimeActor], arrays_from: int = REST_ARRAYS_FROM) -> None:
+        if loops and any(loop.ledger is not loops[0].ledger for loop in loops):
+            raise ValueError("a rest check reads one ledger: its loops must be one host's")
         self.loops = loops
         self.tolerances = arrival_tolerances(settings)
         self.r_diag = settings.r_diag
@@ -199,7 +201,7 @@ class RestCheck:
                 actors.append(actor)
         if len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
             return {}
-        ledger = self.loops[picked[0]].ledger
+        ledger = self.loops[0].ledger
         rows = np.array([self.loops[i].row for i in picked], dtype=np.intp)
         with ledger.lock:  # the newest states, as one moment saw them
             held, marks, received, values = (

@@ -72,10 +72,10 @@ class Ledger:
         self.previous = np.zeros((count, state_dim + action_dim))
         self.resting = np.zeros(count, dtype=bool)
         self.newest = np.full(count, -1, dtype=np.int64)
-        # each robot's newest accepted state: its values and its truth (a row of ``values``, read
-        # at once by a tick group), the states accepted so far and its seq (a row of ``marks``), when it
-        # came (a tick decided at rest on a state is served so
-        # only while it is still the newest); ``held`` False: none yet, or forgotten (a plant gone)
+        # each robot's newest accepted state: its values and its truth (a row of ``values``, which a
+        # tick group reads at once), the count of states accepted (a tick decided at rest on a
+        # state is served so only while it is still the newest) and its seq (a row of ``marks``),
+        # when it came; ``held`` False: none yet, or forgotten (a plant gone)
         self.lock = threading.Lock()
         self.values = np.full((count, 2 * state_dim), math.inf)  # (state, truth): inf, none sent (a state is finite)
         self.state, self.truth = self.values[:, :state_dim], self.values[:, state_dim:]
