@@ -620,7 +620,10 @@ def take_states(loops: Sequence[RealtimeActor], batch: Columns[Any], source: str
     since (``Ledger.follow``), it is of the episode followed, its seq newer than that state's and
     at most :data:`MAX_SEQ_JUMP` ahead, its robot once in the batch; it is held without a message
     built (:meth:`Ledger.hold_rows`; a step builds it when it reads it). The others go through
-    :meth:`RealtimeActor.on_state` one by one, in order."""
+    :meth:`RealtimeActor.on_state` one by one, in order. A batch is judged on the plants its robots
+    followed: one that arrives between Zenoh's update of a plant gate and the loop's
+    :meth:`RealtimeActor.on_plant_identity` (microseconds) is taken as a state delivered a moment
+    earlier would have been, and a second plant stops the robot at its next tick all the same."""
     if not loops:
         return
     ledger = loops[0].ledger
