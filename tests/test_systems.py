@@ -600,8 +600,12 @@ def test_srl_up_runs_a_fleet_of_another_system_in_one_plant_host_and_one_actor_h
     summary = json.loads(done.stdout.strip().splitlines()[-1])
     fleet = summary["fleet"]
     assert summary["system"] == "pendulum" and fleet["robots"] == 3
-    assert fleet["missed_deadlines"] == 0 and fleet["parked"] == 3, fleet["rows"]
-    assert all(row["final_distance_m"] < system_row("pendulum").stabilized for row in fleet["rows"])
+    # on a failure, each robot's row whole (pytest cuts a long list) and what the actor logged
+    actor = json.loads((tmp_path / "up" / "actor.json").read_text())
+    counters = {robot: run["counters"] for robot, run in actor["per_robot"].items()}
+    said = json.dumps([fleet["rows"], summary["per_robot_final"], counters, actor["counters"]]) + done.stderr[-4000:]
+    assert fleet["missed_deadlines"] == 0 and fleet["parked"] == 3, said
+    assert all(row["final_distance_m"] < system_row("pendulum").stabilized for row in fleet["rows"]), said
     assert summary["critic"]["transitions_received"] == fleet["steps"]
     finals = summary["per_robot_final"]
     assert all(len(state) == 2 for state in finals.values())
