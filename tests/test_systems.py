@@ -586,6 +586,7 @@ def test_a_fleet_of_another_system_starts_at_its_start_and_in_its_start_box() ->
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.timing  # no deadline missed, and a swing that a starved solve can spoil: run alone
 def test_srl_up_runs_a_fleet_of_another_system_in_one_plant_host_and_one_actor_host(tmp_path: Path) -> None:
     """``srl up --system pendulum --robots 3``: one plant host and one actor host of three
     pendulums (the same hosts as the robots'), each from its own start; every one stabilized with
