@@ -1,4 +1,4 @@
-"""An actor host takes a batch of states at once (services/actor/realtime.py take_states): the
+"""An actor host takes a batch of states at once (services/actor/realtime.py StateIntake): the
 states that continue their robots' streams as arrays, the others one by one through
 RealtimeActor.on_state. Whatever comes (forged sources, other episodes, old, repeated and
 far-ahead seqs, a robot twice in a batch, plants that appear and vanish), each robot holds and
@@ -22,7 +22,7 @@ from common.net.provenance import SourceGate
 from services.actor.host import RestCheck, RobotActor
 from services.actor.ledger import Ledger
 from services.actor.ports import WeightsInbox
-from services.actor.realtime import MAX_SEQ_JUMP, RealtimeActor, take_states
+from services.actor.realtime import MAX_SEQ_JUMP, RealtimeActor, StateIntake
 from tests.harness import FakeCounts
 
 ROBOTS = ("a", "b", "c")
@@ -89,6 +89,7 @@ EVENT = st.one_of(
 def test_a_batch_of_states_is_taken_as_each_state_alone(events: list[Any], truth: bool) -> None:
     clock = Clock()
     batched, alone = host(clock), host(clock)
+    intake = StateIntake(batched)
     streams = dict.fromkeys(ROBOTS, 0)  # each robot's real seq, counting on
     for kind, source, detail in events:
         clock.now += 0.02
@@ -118,7 +119,7 @@ def test_a_batch_of_states_is_taken_as_each_state_alone(events: list[Any], truth
                     )
                 )
             batch = columns_of(PlantState, messages)
-            take_states([batched[ROBOTS.index(m.robot)] for m in messages], batch, source, clock.now)
+            intake(batch, source, clock.now)
             for message in messages:
                 alone[ROBOTS.index(message.robot)].on_state(message, source, clock.now)
         for ours, theirs in zip(batched, alone, strict=True):
@@ -131,6 +132,7 @@ def test_the_common_states_are_held_without_a_message_and_read_as_the_arrays_say
     clock = Clock()
     loops = host(clock)
     ledger = loops[0].ledger
+    intake = StateIntake(loops)
 
     def states(seq: int, x: float) -> Any:
         return columns_of(
@@ -138,18 +140,18 @@ def test_the_common_states_are_held_without_a_message_and_read_as_the_arrays_say
             [PlantState(robot=r, episode=0, seq=seq, stamp_ns=0, state=(x, 0.0, 0.0), source="sim") for r in ROBOTS],
         )
 
-    take_states(loops, states(1, 0.1), "p1", 1.0)  # the first state of each: one by one
+    intake(states(1, 0.1), "p1", 1.0)  # the first state of each: one by one
     assert ledger.follow.all() and all(pair is not None for pair in ledger.pairs)
-    take_states(loops, states(2, 0.2), "p1", 2.0)
+    intake(states(2, 0.2), "p1", 2.0)
     assert ledger.follow.all() and ledger.pairs == [None] * 3  # taken as arrays: nothing built
     assert ledger.state[:, 0].tolist() == [0.2] * 3 and ledger.accepted.tolist() == [2] * 3
     assert np.isinf(ledger.truth).all() and ledger.received.tolist() == [2.0] * 3
     latest = loops[1].latest
     assert latest is not None and latest[0].seq == 2 and latest[0].state == (0.2, 0.0, 0.0) and latest[1] == 2.0
-    take_states(loops, states(2 + MAX_SEQ_JUMP + 1, 0.9), "p1", 3.0)  # too far ahead: refused
+    intake(states(2 + MAX_SEQ_JUMP + 1, 0.9), "p1", 3.0)  # too far ahead: refused
     assert not ledger.follow.any() and ledger.accepted.tolist() == [2] * 3
     assert all(loop.counts.counters["rejected.state"] == 1 for loop in loops)  # type: ignore[attr-defined]
-    take_states(loops, states(3, 0.3), "p1", 4.0)  # the stream goes on: one by one, then followed again
+    intake(states(3, 0.3), "p1", 4.0)  # the stream goes on: one by one, then followed again
     assert ledger.follow.all() and ledger.state[:, 0].tolist() == [0.3] * 3
 
 
@@ -160,3 +162,14 @@ def test_a_rest_check_refuses_loops_of_two_ledgers() -> None:
     with pytest.raises(ValueError, match="one ledger"):
         RestCheck(SETTINGS, [one[0], other[1]])
     assert RestCheck(SETTINGS, one).loops == one  # the control: one host's loops
+
+
+def test_a_state_intake_is_made_of_one_hosts_loops_each_once() -> None:
+    """It holds states in one ledger's rows, a robot's in its own: loops of two hosts, a robot
+    twice, or none are refused when it is made (a ValueError), not misread at every batch."""
+    clock = Clock()
+    one, other = host(clock), host(clock)
+    for loops, why in (([one[0], other[1]], "one ledger"), ([one[0], one[0]], "once"), ([], "no loop")):
+        with pytest.raises(ValueError, match=why):
+            StateIntake(loops)
+    assert StateIntake(one).robots == {loop.robot: (loop, loop.row) for loop in one}  # the control

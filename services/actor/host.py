@@ -57,7 +57,7 @@ from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker, aligned_start, tick_phase_offset
 from services.actor.ledger import ACCEPTED, SEQ, Ledger
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
-from services.actor.realtime import AtRest, Counts, RealtimeActor, Steps, rest_ticks, take_states
+from services.actor.realtime import AtRest, Counts, RealtimeActor, StateIntake, Steps, rest_ticks
 
 log = logging.getLogger(__name__)
 
@@ -690,11 +690,11 @@ def run_host(
         inboxes.append(inbox)
     # every state judged as it arrives (provenance, order, episode: RealtimeActor.on_state), so a
     # forged state just before a tick cannot displace the live plant's newest; a batch's states
-    # at once, as arrays where they continue their robots' streams (take_states)
-    index = {robot: loop for robot, loop in zip(robots, loops, strict=True)}
+    # at once, as arrays where they continue their robots' streams (StateIntake)
+    intake = StateIntake(loops)
 
     def on_states(batch: Columns[Any], source: str | None) -> None:
-        take_states([index[robot] for robot in batch.robots], batch, source, time.monotonic())
+        intake(batch, source, time.monotonic())
 
     bus.subscribe_columns(wire.STATE, [wire.STATE.key(robot) for robot in robots], on_states)
     for robot, loop, inbox in zip(robots, loops, inboxes, strict=True):

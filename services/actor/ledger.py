@@ -87,7 +87,7 @@ class Ledger:
         # pair once read (None: not built yet)
         self.came: list[Any] = [None] * count
         self.pairs: list[tuple[Any, float] | None] = [None] * count
-        # whether a batch may take a row's next state as arrays (realtime.take_states): its last
+        # whether a batch may take a row's next state as arrays (realtime.StateIntake): its last
         # accepted state's source and episode are what it follows, and its order guard and refusal
         # runs are as that acceptance left them (any refusal or change of plant clears it)
         self.follow = np.zeros(count, dtype=bool)

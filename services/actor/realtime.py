@@ -215,7 +215,7 @@ class RealtimeActor:
 
     def _settle(self) -> None:
         """Before a state is judged one by one or the plants change (the lock held): the order
-        guard's reference as the ledger holds it (batches may have moved it: take_states), and no
+        guard's reference as the ledger holds it (batches may have moved it: StateIntake), and no
         batch takes the row's states as arrays until one is accepted again."""
         ledger, i = self.ledger, self.row
         if ledger.follow[i]:
@@ -298,8 +298,8 @@ class RealtimeActor:
         the newest (else a step, as without it)."""
         ledger, i = self.ledger, self.row
         with self.lock:
-            accepted = ledger.accepted.item(i)
-            held = self._latest() if rest is None or rest.held != accepted else None
+            at_rest = rest is not None and self.ready_at_rest(rest, tick)
+            held = None if at_rest else self._latest()
             fresh = ledger.held.item(i) and tick - ledger.received.item(i) <= self.stale_after
         if self.plant_gate.conflict:
             self.plant_conflict_stops += 1
@@ -612,36 +612,49 @@ def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, r
         loop.last_step = k
 
 
-def take_states(loops: Sequence[RealtimeActor], batch: Columns[Any], source: str | None, received: float) -> None:
-    """A batch of states from session ``source``, arrived at ``received``, row ``j`` for ``loops[j]``
-    (the loops of one ledger: a host's): each state judged as :meth:`RealtimeActor.on_state`
+class StateIntake:
+    """An actor host's states, a batch at once (``loops``: the host's, of one ledger, each robot's
+    loop once; made once, refused otherwise). Each state is judged as :meth:`RealtimeActor.on_state`
     judges it, with the same verdicts, counts and order. The common one is taken as arrays: its
-    robot's last accepted state came from ``source`` and nothing refused or changed its plant
-    since (``Ledger.follow``), it is of the episode followed, its seq newer than that state's and
-    at most :data:`MAX_SEQ_JUMP` ahead, its robot once in the batch; it is held without a message
-    built (:meth:`Ledger.hold_rows`; a step builds it when it reads it). The others go through
-    :meth:`RealtimeActor.on_state` one by one, in order. A batch is judged on the plants its robots
-    followed: one that arrives between Zenoh's update of a plant gate and the loop's
+    robot's last accepted state came from the batch's source and nothing refused or changed its
+    plant since (``Ledger.follow``), it is of the episode followed, its seq newer than that state's
+    and at most :data:`MAX_SEQ_JUMP` ahead, its robot once in the batch; it is held without a
+    message built (:meth:`Ledger.hold_rows`; a step builds it when it reads it). The others go
+    through :meth:`RealtimeActor.on_state` one by one, in order. A batch is judged on the plants
+    its robots followed: one that arrives between Zenoh's update of a plant gate and the loop's
     :meth:`RealtimeActor.on_plant_identity` (microseconds) is taken as a state delivered a moment
     earlier would have been, and a second plant stops the robot at its next tick all the same."""
-    if not loops:
-        return
-    ledger = loops[0].ledger
-    rows = np.array([loop.row for loop in loops], dtype=np.intp)
-    common = np.zeros(len(loops), dtype=bool)
-    if source is not None and len(set(rows.tolist())) == len(rows) and all(loop.ledger is ledger for loop in loops):
-        episodes, seqs = batch.field("episode"), batch.field("seq")
-        with ledger.lock:
-            last = ledger.seq[rows]
-            common = (
-                ledger.follow[rows]
-                & (ledger.follow_source[rows] == source)
-                & (ledger.follow_episode[rows] == episodes)
-                & (seqs > last)
-                & (seqs <= last + MAX_SEQ_JUMP)
-            )
-            taken = np.flatnonzero(common)
-            if len(taken):
-                ledger.hold_rows(rows[taken], batch, taken, received)
-    for j in np.flatnonzero(~common).tolist():
-        loops[j].on_state(batch.item(j), source, received)
+
+    def __init__(self, loops: Sequence[RealtimeActor]) -> None:
+        if not loops:
+            raise ValueError("a state intake takes the states of a host's robots: no loop given")
+        self.ledger = loops[0].ledger
+        if any(loop.ledger is not self.ledger for loop in loops):
+            raise ValueError("a state intake holds states in one ledger: its loops must be one host's")
+        # robot -> (its loop, its ledger row)
+        self.robots = {loop.robot: (loop, loop.row) for loop in loops}
+        if len(self.robots) != len(loops) or len({loop.row for loop in loops}) != len(loops):
+            raise ValueError("a state intake serves each robot, and each ledger row, once")
+
+    def __call__(self, batch: Columns[Any], source: str | None, received: float) -> None:
+        """A batch of states (rows of this host's robots) from session ``source``, arrived at ``received``."""
+        ledger, robots = self.ledger, self.robots
+        loops, row_list = zip(*(robots[robot] for robot in batch.robots), strict=True)
+        rows = np.array(row_list, dtype=np.intp)
+        common = np.zeros(len(rows), dtype=bool)
+        if source is not None and len(set(row_list)) == len(row_list):
+            episodes, seqs = batch.field("episode"), batch.field("seq")
+            with ledger.lock:
+                last = ledger.seq[rows]
+                common = (
+                    ledger.follow[rows]
+                    & (ledger.follow_source[rows] == source)
+                    & (ledger.follow_episode[rows] == episodes)
+                    & (seqs > last)
+                    & (seqs <= last + MAX_SEQ_JUMP)
+                )
+                taken = np.flatnonzero(common)
+                if len(taken):
+                    ledger.hold_rows(rows[taken], batch, taken, received)
+        for j in np.flatnonzero(~common).tolist():
+            loops[j].on_state(batch.item(j), source, received)
