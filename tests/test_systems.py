@@ -548,6 +548,7 @@ def test_srl_up_lockstep_runs_a_users_system_and_says_how_close_it_came(tmp_path
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.timing  # no deadline missed: a real-time bound, run alone
 def test_srl_up_in_real_time_runs_a_users_system_from_its_start_and_stabilizes_it(tmp_path: Path) -> None:
     """``srl up --system double_integrator`` (real time, the default; the row from SRL_PLUGINS in
     every service process): the plant waits at the start for the actor's first action (a system a
