@@ -140,6 +140,8 @@ def test_the_common_states_are_held_without_a_message_and_read_as_the_arrays_say
             [PlantState(robot=r, episode=0, seq=seq, stamp_ns=0, state=(x, 0.0, 0.0), source="sim") for r in ROBOTS],
         )
 
+    intake(columns_of(PlantState, []), "p1", 0.5)  # an empty batch: nothing
+    assert not ledger.held.any() and not ledger.follow.any()
     intake(states(1, 0.1), "p1", 1.0)  # the first state of each: one by one
     assert ledger.follow.all() and all(pair is not None for pair in ledger.pairs)
     intake(states(2, 0.2), "p1", 2.0)

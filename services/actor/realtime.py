@@ -637,8 +637,11 @@ class StateIntake:
             raise ValueError("a state intake serves each robot, and each ledger row, once")
 
     def __call__(self, batch: Columns[Any], source: str | None, received: float) -> None:
-        """A batch of states (rows of this host's robots) from session ``source``, arrived at ``received``."""
+        """A batch of states (rows of this host's robots: the bus's subscription of their keys)
+        from session ``source``, arrived at ``received``; an empty one changes nothing."""
         ledger, robots = self.ledger, self.robots
+        if not len(batch):
+            return
         loops, row_list = zip(*(robots[robot] for robot in batch.robots), strict=True)
         rows = np.array(row_list, dtype=np.intp)
         common = np.zeros(len(rows), dtype=bool)
