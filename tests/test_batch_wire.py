@@ -536,3 +536,42 @@ def test_a_batch_item_whose_handler_fails_is_counted_and_the_batchs_other_items_
     deliver(weights("b3", 5), weights("b1", 6))
     assert got[2:] == [("b3", 5, "z1"), ("b1", 6, "z1")]
     assert bus.counters["handler_errors.critic/weights"] == 1 and bus.counters["received.critic/weights"] == 5
+
+
+@pytest.mark.integration
+def test_subscribe_columns_hands_a_message_alone_to_alone_and_a_batch_as_columns() -> None:
+    """``Bus.subscribe_columns`` with ``alone`` (an actor host's states): a batch's rows of the
+    keys' robots come as columns, a message alone on its robot's key as the message it was, each
+    counted as received; without ``alone`` (the control) such a message comes as a batch of one."""
+    from common.contracts.columns import Columns
+    from tests.harness import wait_until
+
+    with router_and_buses("critic") as (_, reader, writer, _opened):
+        lock = threading.Lock()
+        got: dict[str, list[Any]] = {"batches": [], "alone": [], "plain": []}
+
+        def record(kind: str) -> Any:
+            def handler(item: Any, source: str | None) -> None:
+                with lock:
+                    got[kind].append(item)
+
+            return handler
+
+        reader.subscribe_columns(
+            WEIGHTS, [WEIGHTS.key("b1"), WEIGHTS.key("b2")], record("batches"), alone=record("alone")
+        )
+        reader.subscribe_columns(WEIGHTS, [WEIGHTS.key("b3")], record("plain"))
+        send, single = writer.round_publisher(WEIGHTS), writer.round_publisher(WEIGHTS, batches=False)
+        time.sleep(1.0)  # the subscriptions reach the writer
+        send([weights("b1", 1), weights("b2", 2), weights("b3", 3)])
+        single([weights("b1", 4), weights("b3", 5)])
+        wait_until(lambda: sum(map(len, got.values())) == 4, 10, "the batch and the messages alone")
+        time.sleep(0.3)  # nothing more comes
+    (batch,) = got["batches"]
+    assert isinstance(batch, Columns) and batch.robots == ["b1", "b2"] and batch.field("version").tolist() == [1, 2]
+    (message,) = got["alone"]
+    assert isinstance(message, CriticWeights) and (message.robot, message.version) == ("b1", 4)
+    plain = got["plain"]
+    assert all(isinstance(c, Columns) and c.robots == ["b3"] for c in plain)
+    assert [c.field("version").tolist() for c in plain] == [[3], [5]]
+    assert reader.counters["received.critic/weights"] == 5

@@ -1,7 +1,8 @@
 """An actor host takes a batch of states at once (services/actor/realtime.py StateIntake): the
 states that continue their robots' streams as arrays, the others one by one through
 RealtimeActor.on_state. Whatever comes (forged sources, other episodes, old, repeated and
-far-ahead seqs, a robot twice in a batch, plants that appear and vanish), each robot holds and
+far-ahead seqs, a robot twice in a batch, states alone on a robot's key among the batches, plants
+that appear and vanish), each robot holds and
 counts what its own on_state, fed the same states one by one, holds and counts."""
 
 from __future__ import annotations
@@ -63,6 +64,7 @@ def seen(loop: RealtimeActor) -> tuple[Any, ...]:
     last = loop.last_accepted
     return (
         None if latest is None else (latest[0].model_dump(), latest[1]),
+        None if latest is None else loop.ledger.held_state(loop.row),  # what a step reads
         None if last is None else last.model_dump(),
         dict(loop.counts.counters),  # type: ignore[attr-defined]
         loop.refused_at,
@@ -79,6 +81,7 @@ ROW = st.tuples(st.sampled_from(ROBOTS), st.sampled_from([0] * 6 + [1]), SEQS, s
 EVENT = st.one_of(
     *[st.tuples(st.just("batch"), st.just("p1"), st.lists(ROW, min_size=1, max_size=5))] * 6,
     st.tuples(st.just("batch"), st.sampled_from(["p2", None]), st.lists(ROW, min_size=1, max_size=5)),
+    st.tuples(st.just("alone"), st.sampled_from(["p1", "p1", "p2"]), st.lists(ROW, min_size=1, max_size=1)),
     st.tuples(st.just("identity"), st.sampled_from(["p1", "p2"]), st.booleans()),
     st.tuples(st.just("token"), st.just(""), st.just(False)),
 )
@@ -118,8 +121,10 @@ def test_a_batch_of_states_is_taken_as_each_state_alone(events: list[Any], truth
                         source="sim",
                     )
                 )
-            batch = columns_of(PlantState, messages)
-            intake(batch, source, clock.now)
+            if kind == "alone":  # on its robot's key (a robot bridge's)
+                intake.alone(messages[0], source, clock.now)
+            else:
+                intake(columns_of(PlantState, messages), source, clock.now)
             for message in messages:
                 alone[ROBOTS.index(message.robot)].on_state(message, source, clock.now)
         for ours, theirs in zip(batched, alone, strict=True):

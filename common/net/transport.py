@@ -406,13 +406,16 @@ class Bus:
         handler: Callable[[Columns[M], str | None], None],
         what: str | None = None,
         threaded: bool | None = None,
+        alone: Callable[[M, str | None], None] | None = None,
     ) -> None:
         """``topic``'s samples on ``keys`` as columns, one call of ``handler(columns, source)`` per
         sample: a batch's rows of the robots the keys include (from one subscription of the batch
         key, decoded and checked once: :class:`BatchReader`), a message alone on its robot's key as
         a batch of one row. A consumer that takes a batch as arrays (a plant host's actions) has
-        one path for both. Refusals and counts as :meth:`subscribe`'s (``received.<name>`` per row);
-        ``threaded`` as there."""
+        one path for both. ``alone``: a message alone goes to ``alone(message, source)`` as it came
+        instead (a consumer that judges such a message at less cost than a batch of one: an actor
+        host's states from a robot bridge). Refusals and counts as :meth:`subscribe`'s
+        (``received.<name>`` per row); ``threaded`` as there."""
         name = what or counter_name(topic)
         batch = batch_of(topic)
         if batch is None:
@@ -425,9 +428,14 @@ class Bus:
                 self.count(f"received.{name}", len(columns))
                 self._handle(name, handler, columns, source)
 
-        on_sample = self._message_reader(
-            topic, name, lambda message, source: call(columns_of(topic.schema, [message]), source)
-        )
+        def single(message: M, source: str | None) -> None:
+            if alone is None:
+                call(columns_of(topic.schema, [message]), source)
+            else:
+                self.count(f"received.{name}")
+                self._handle(name, alone, message, source)
+
+        on_sample = self._message_reader(topic, name, single)
         on_batch = self._batch_reader(topic, name, lambda columns, source: call(included(columns), source))
         for key in [] if on_demand(topic) else keys:
             self._keep.append(self._declare_subscriber(key, self._callback(on_sample, threaded), False))

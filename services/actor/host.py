@@ -696,7 +696,10 @@ def run_host(
     def on_states(batch: Columns[Any], source: str | None) -> None:
         intake(batch, source, time.monotonic())
 
-    bus.subscribe_columns(wire.STATE, [wire.STATE.key(robot) for robot in robots], on_states)
+    def on_state(message: Any, source: str | None) -> None:
+        intake.alone(message, source, time.monotonic())
+
+    bus.subscribe_columns(wire.STATE, [wire.STATE.key(robot) for robot in robots], on_states, alone=on_state)
     for robot, loop, inbox in zip(robots, loops, inboxes, strict=True):
         bus.declare_alive(robot)
         inbox.reset(loop.episode_id)

@@ -13,10 +13,10 @@ newest ``replay_size``. Every array is allocated whole when the ledger is made: 
 never grows while it runs.
 
 A row also holds its robot's newest accepted state (:meth:`Ledger.hold`, :meth:`Ledger.hold_rows`):
-its values as arrays, which a host's tick group reads at rest, and where it came from (a message,
-or a batch of states and its row), built into a message only when a step or a report reads it
-(:meth:`Ledger.newest_state`). Its loop's lock is the ledger's (:attr:`Ledger.lock`): a batch of states
-is taken for all its robots under it.
+its values as arrays, which a host's tick group reads at rest and a step reads as values
+(:meth:`Ledger.held_state`), and where it came from (a message, or a batch of states and its row),
+built into a message only when a report reads it (:meth:`Ledger.newest_state`). Its loop's lock
+is the ledger's (:attr:`Ledger.lock`): a batch of states is taken for all its robots under it.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -36,6 +36,16 @@ PUBLISH_TIMES_KEPT = 1000  # steps whose publication time is kept (weight age in
 RUNS_KEPT = 1000  # [first, last] runs of published steps kept for the summary (a gap opens a run)
 NO_STEP = -(2**62)  # a row's previous sample before its first (no step is the one after it)
 ACCEPTED, SEQ = 0, 1  # a row's marks: the states it accepted so far, the newest one's seq
+
+
+class HeldState(NamedTuple):
+    """A robot's newest accepted state as a step reads it from its ledger row (no message built):
+    its values, its true values (None: none sent), its seq and when it came."""
+
+    state: list[float]
+    truth: list[float] | None
+    seq: int
+    received: float
 
 
 class Ledger:
@@ -219,6 +229,13 @@ class Ledger:
         came, pairs = self.came, self.pairs
         for i, row in zip(rows.tolist(), taken.tolist(), strict=True):
             came[i], pairs[i] = (batch, row), None
+
+    def held_state(self, i: int) -> HeldState:
+        """Row ``i``'s newest accepted state as values (one read of the row; held or not)."""
+        values = self.values[i].tolist()
+        n = self.state_dim
+        truth = values[n:]
+        return HeldState(values[:n], None if truth[0] == math.inf else truth, self.seq.item(i), self.received.item(i))
 
     def newest_state(self, i: int) -> tuple[Any, float] | None:
         """Row ``i``'s newest accepted state and when it came, built once (None: none yet)."""

@@ -46,7 +46,7 @@ from common.math.features import stage_cost
 from common.math.stats import Window
 from common.net.provenance import RefusalRun, SequenceGuard, SourceGate
 from common.system.clock import Ticker
-from services.actor.ledger import PUBLISH_TIMES_KEPT, Ledger
+from services.actor.ledger import PUBLISH_TIMES_KEPT, HeldState, Ledger
 from services.actor.ports import PUBLISHED, TRAINED, HeldWeights, WeightsInbox
 
 log = logging.getLogger(__name__)
@@ -299,8 +299,8 @@ class RealtimeActor:
         ledger, i = self.ledger, self.row
         with self.lock:
             at_rest = rest is not None and self.ready_at_rest(rest, tick)
-            held = None if at_rest else self._latest()
             fresh = ledger.held.item(i) and tick - ledger.received.item(i) <= self.stale_after
+            held = None if at_rest or not fresh else ledger.held_state(i)  # values: no message built
         if self.plant_gate.conflict:
             self.plant_conflict_stops += 1
             self.stop_robot(k)
@@ -352,12 +352,11 @@ class RealtimeActor:
         self.send(k, self.zero, -1)
         self.actor.reset()  # the plan no longer matches the robot
 
-    def _step(self, k: int, tick: float, held: tuple[PlantState, float], hurry: bool) -> None:
-        message = held[0]
-        state = np.array(message.state)
+    def _step(self, k: int, tick: float, held: HeldState, hurry: bool) -> None:
+        state = np.array(held.state)
         if self.start_state is None:
             self.start_state = state  # the robot's own start, whatever was requested
-        self.note_truth(message.true_state)
+        self.note_truth(held.truth)
         weights = self.inbox.current()
         step = self.actor.step(state, weights.q, weights.v, hurry)  # the arrival rule acts inside (exactly zero)
         arrived = step.status == "arrived"
@@ -370,14 +369,14 @@ class RealtimeActor:
             )
         self.arrived = arrived
         action = tuple(step.action.tolist())
-        self.send(k, action, message.seq)
+        self.send(k, action, held.seq)
         done = self.clock()
         r_diag = self.r_diag
         cost = self.delta * float(stage_cost(state, step.action, r_diag))
         true_cost = None
-        if message.true_state is not None:
-            true_cost = self.delta * float(stage_cost(np.array(message.true_state), step.action, r_diag))
-        self._record(k, tick, held, state, action, cost, true_cost, weights, step.solve_seconds, done)
+        if held.truth is not None:
+            true_cost = self.delta * float(stage_cost(np.array(held.truth), step.action, r_diag))
+        self._record(k, tick, held.received, state, action, cost, true_cost, weights, step.solve_seconds, done)
 
     def ready_at_rest(self, rest: AtRest, tick: float) -> bool:
         """The tick at ``tick`` can be served at ``rest``: one live plant, and the state it was
@@ -402,7 +401,7 @@ class RealtimeActor:
         self,
         k: int,
         tick: float,
-        held: tuple[PlantState, float],
+        received: float,
         state: np.ndarray,
         action: tuple[float, ...],
         cost: float,
@@ -411,11 +410,12 @@ class RealtimeActor:
         solve_seconds: float,
         done: float,
     ) -> None:
-        """What a step leaves once its action is out (at ``done``): its transition, its cost and
-        statistics, in its row of the ledger (:func:`rest_ticks` records many ticks at rest at once)."""
+        """What a step leaves once its action is out (at ``done``; its state came at ``received``):
+        its transition, its cost and statistics, in its row of the ledger (:func:`rest_ticks`
+        records many ticks at rest at once)."""
         ledger, i = self.ledger, self.row
         # transport/loop latency: state arrival -> action out, minus the solve itself
-        self.latencies.append(max(0.0, done - max(held[1], tick) - solve_seconds))
+        self.latencies.append(max(0.0, done - max(received, tick) - solve_seconds))
         # the step fresh weights would be trained on: the previous one (ideally), or, while the
         # robot rests (the critic fits no transition of a robot at rest), the newest one fitted
         values = [*state.tolist(), *action, cost]
@@ -661,3 +661,9 @@ class StateIntake:
                     ledger.hold_rows(rows[taken], batch, taken, received)
         for j in np.flatnonzero(~common).tolist():
             loops[j].on_state(batch.item(j), source, received)
+
+    def alone(self, message: PlantState, source: str | None, received: float) -> None:
+        """A state that came alone on its robot's key (a robot bridge's, a plant of one robot's):
+        judged by its loop's :meth:`RealtimeActor.on_state`, as a batch of it would be, at the
+        cost of one message (no batch of one built)."""
+        self.robots[message.robot][0].on_state(message, source, received)
