@@ -31,6 +31,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from tests import harness
 from tests.harness import ROOT, FakeSample, Proc, buses_on_a_fake_session, free_port, open_session, wait_until
+from tools.recording.record import RowsByOne
 
 DELTA_NS = 100_000_000  # delta = 0.1 s
 
@@ -574,7 +575,7 @@ def test_a_subscription_runs_its_handler_on_a_thread_of_its_own_when_asked_whate
         assert bus._callback(print, threaded=False).indirect is False
 
 
-class KeptSink:
+class KeptSink(RowsByOne):
     """A sink that keeps (topic, data, t_ns) of every write; ``fail`` makes every write raise it."""
 
     def __init__(self) -> None:
@@ -715,7 +716,7 @@ def test_the_recorder_writes_a_batch_of_many_robots_as_it_writes_their_rows_one_
 
     import tools.recording.record as record
 
-    class Sink:
+    class Sink(record.RowsByOne):
         def __init__(self) -> None:
             self.topics: dict[str, list[tuple[str, bytes, int]]] = {}
 
@@ -899,7 +900,7 @@ def test_the_recorders_backlog_is_bounded_in_memory_by_the_rows_it_holds(monkeyp
 def test_a_fleets_recording_summary_names_its_first_robots_and_counts_them_all() -> None:
     import tools.recording.record as record
 
-    class Sink:
+    class Sink(record.RowsByOne):
         path = Path("/nonexistent/fleet.mcap")
         counts = {f"/robot{i}/odom": 3 for i in range(300)} | {"/target": 1}
 

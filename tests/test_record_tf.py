@@ -30,10 +30,12 @@ from tools.recording.record import (
     PATH_STRIDE,
     SIMULATED,
     TF_MESSAGE,
+    McapSink,
     PoseFrames,
     Recorder,
     RecordingError,
     RosMapping,
+    RowsByOne,
     SplitSink,
     describe,
     episode_recorder,
@@ -75,7 +77,7 @@ def edges(messages: list[tuple[int, Any]]) -> list[tuple[int, str, str, Pose2D]]
     return out
 
 
-class ListSink:
+class ListSink(RowsByOne):
     """A sink that keeps every sample: what the live view's FoxgloveSink is handed."""
 
     def __init__(self) -> None:
@@ -564,3 +566,106 @@ def test_a_full_disk_met_by_a_full_chunk_stops_the_writes_at_the_next_message(tm
     assert raised is not None and "No space left on device" in raised[1], raised
     assert sink.messages == raised[0]  # the message that met the error was not counted, none after
     sink.close()
+
+
+def raw_messages(path: Path) -> list[tuple[str, int, bytes]]:
+    """Every message of an MCAP file as written: (topic, log time, CDR bytes), in file order."""
+    with path.open("rb") as file:
+        return [
+            (c.topic, m.log_time, bytes(m.data)) for _, c, m in make_reader(file).iter_messages(log_time_order=False)
+        ]
+
+
+class OneByOne(RowsByOne):
+    """A sink's ``write`` alone: ``write_rows`` as a write per sample (the plain loop)."""
+
+    def __init__(self, sink: McapSink) -> None:
+        self.sink = sink
+
+    def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+        self.sink.write(topic, ros_type, definition, data, t_ns)
+
+    def close(self) -> None:
+        self.sink.close()
+
+
+def fleet_steps(recorder: Recorder, robots: list[str], steps: range, failed: Any = None) -> tuple[int, int]:
+    """Each step of ``steps``: every robot's state, then its transition, as batches; the rows taken."""
+    count, rng, taken = len(robots), np.random.default_rng(5), (0, 0)
+    episodes = np.ones(count, dtype=np.int64)
+    for k in steps:
+        states = rng.normal(size=(count, 3))
+        actions, costs = rng.normal(size=(count, 2)), rng.random(count)
+        extra = {} if failed is None else {"failed": failed}
+        stamp = ORIGIN_NS + k * 10**8
+        states_taken = recorder.states(robots, episodes, states, stamp, **extra)
+        recorder.flush_tf()
+        steps_taken = recorder.transitions(robots, episodes, np.full(count, k), states, actions, costs, stamp, **extra)
+        taken = (taken[0] + states_taken, taken[1] + steps_taken)
+    return taken
+
+
+def test_a_batchs_rows_written_at_once_are_the_messages_written_one_by_one(tmp_path: Path) -> None:
+    """McapSink.write_rows (the recorder's batches) writes what a write per sample writes: the
+    same messages, bytes, stamps and order, the same counts in the rosbag2 metadata."""
+    robots = [f"robot{i}" for i in range(7)]
+    paths = {kind: tmp_path / f"{kind}.mcap" for kind in ("rows", "one")}
+    rows_sink = McapSink(paths["rows"])
+    for sink in (rows_sink, OneByOne(McapSink(paths["one"]))):
+        recorder = Recorder(sink, 0.1)
+        recorder.gather_tf()
+        assert fleet_steps(recorder, robots, range(25)) == (7 * 25, 7 * 25)  # paths every 10 steps too
+        recorder.close()
+    rows, one = raw_messages(paths["rows"]), raw_messages(paths["one"])
+    assert rows == one and len(rows) > 7 * 25 * 3
+    assert {topic for topic, _, _ in rows} >= {
+        "/robot6/odom",
+        "/robot6/cmd_vel",
+        "/robot6/srl/transition",
+        "/robot6/path",
+    }
+    metadata = [check_rosbag2_layout(path) for path in paths.values()]
+    for info in metadata:  # but the file's own name
+        info.pop("relative_file_paths")
+        [info["file"]] = info.pop("files")
+        info["file"].pop("path")
+    assert metadata[0] == metadata[1] and metadata[0]["message_count"] == len(rows)
+
+
+@pytest.mark.parametrize("kind", ["rows by one", "mcap"])
+def test_a_sample_the_sink_refuses_costs_its_row_only_and_the_rows_after_it_are_written(
+    tmp_path: Path, kind: str
+) -> None:
+    """A sample the sink cannot write (Sink.write_rows raises RowWriteError at its row) is handed
+    to ``failed`` and its row is not taken; a command refused takes its row's transition with it,
+    as a write per sample did; every other row of the batch is written, in order. For a sink
+    with a write alone and for McapSink's own write_rows (a channel whose log fails)."""
+    refused = {"/robot2/cmd_vel", "/robot4/srl/transition", "/robot5/odom"}
+    robots = [f"robot{i}" for i in range(7)]
+    path = tmp_path / "refusing.mcap"
+    mcap = McapSink(path)
+
+    def refuse(data: bytes, t_ns: int | None = None, sink_id: int | None = None) -> None:
+        raise RuntimeError("refused by the test")
+
+    class Refusing(OneByOne):
+        def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
+            if topic in refused and t_ns > ORIGIN_NS:
+                refuse(data)
+            self.sink.write(topic, ros_type, definition, data, t_ns)
+
+    recorder = Recorder(Refusing(mcap) if kind == "rows by one" else mcap, 0.1)
+    assert fleet_steps(recorder, robots, range(1)) == (7, 7)  # step 0: every channel made, none refused
+    if kind == "mcap":
+        for topic in refused:
+            mcap.channels.logs[topic] = refuse
+    errors: list[Exception] = []
+    assert fleet_steps(recorder, robots, range(1, 2), errors.append) == (6, 5)
+    assert [str(error) for error in errors] == ["refused by the test"] * 3
+    mcap.close()
+    later = [topic for topic, t_ns, _ in raw_messages(path) if t_ns > ORIGIN_NS and topic != "/tf"]
+    expected = [f"/{robot}/odom" for robot in robots if robot != "robot5"]
+    for robot in robots:
+        expected += [f"/{robot}/cmd_vel", f"/{robot}/srl/transition"] if robot != "robot2" else []
+    expected.remove("/robot4/srl/transition")
+    assert later == expected

@@ -19,19 +19,29 @@ from typing import Any
 import foxglove
 
 from common.config.arguments import UsageError, settings_from_args
-from tools.recording.record import ODOM_FRAME, Feed, Recorder, base_frame, positive_seconds, yield_cpu_to_the_loop
+from tools.recording.record import (
+    ODOM_FRAME,
+    CdrChannels,
+    Feed,
+    Recorder,
+    RowsByOne,
+    base_frame,
+    positive_seconds,
+    yield_cpu_to_the_loop,
+)
 
 log = logging.getLogger(__name__)
 
 
-class FoxgloveSink:
-    """CDR samples onto foxglove-sdk channels (one per topic, ``ros2msg`` schema, ``cdr``),
-    served live by a WebSocket server of its own context."""
+class FoxgloveSink(RowsByOne):
+    """CDR samples onto foxglove-sdk channels (one per topic, ``ros2msg`` schema, ``cdr``:
+    :class:`~tools.recording.record.CdrChannels`), served live by a WebSocket server of its own
+    context."""
 
     def __init__(self, host: str, port: int) -> None:
         self.context = foxglove.Context()
         self.server = foxglove.start_server(name="srl", host=host, port=port, context=self.context)
-        self.channels: dict[str, foxglove.Channel] = {}
+        self.channels = CdrChannels(self.context)
         self.messages = 0
 
     @property
@@ -39,13 +49,7 @@ class FoxgloveSink:
         return int(self.server.port)
 
     def write(self, topic: str, ros_type: str, definition: str, data: bytes, t_ns: int) -> None:
-        channel = self.channels.get(topic)
-        if channel is None:
-            schema = foxglove.Schema(name=ros_type, encoding="ros2msg", data=definition.encode())
-            channel = self.channels[topic] = foxglove.Channel(
-                topic, schema=schema, message_encoding="cdr", context=self.context
-            )
-        channel.log(data, log_time=t_ns)
+        self.channels.log_of(topic, ros_type, definition)(data, t_ns)
         self.messages += 1
 
     def close(self) -> None:
