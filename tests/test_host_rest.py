@@ -23,7 +23,7 @@ from common.net.provenance import SourceGate
 from services.actor.host import HostScheduler, Outbox, RestCheck, RobotActor
 from services.actor.ledger import Ledger
 from services.actor.ports import WeightsInbox
-from services.actor.realtime import AtRest, RealtimeActor
+from services.actor.realtime import AtRest, RealtimeActor, Rests
 from tests.harness import FakeCounts
 
 DELTA = 0.1
@@ -209,13 +209,13 @@ def run_host(
     served = [0]
     check = RestCheck(settings, loops, arrays_from)
 
-    def counted(members: Any, now: float) -> dict[int, AtRest]:
+    def counted(members: Any, now: float) -> Rests | None:
         rests = check(members, now)
-        served[0] += len(rests)
+        served[0] += 0 if rests is None else len(rests)
         return rests
 
     scheduler = HostScheduler(
-        loops,  # type: ignore[arg-type]
+        loops,
         DELTA,
         threading.Event(),
         clock=fake.clock,

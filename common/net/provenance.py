@@ -62,8 +62,10 @@ class SourceGate:
 
     @property
     def conflict(self) -> bool:
-        with self.lock:
-            return len(self.live) > 1
+        """Two or more identities live. Read without the lock: the set's size is read in one step
+        (the GIL), and a verdict taken under the lock could change the moment after all the same
+        (an actor host asks it of every robot at every tick at rest)."""
+        return len(self.live) > 1
 
     def sources(self) -> list[str]:
         with self.lock:

@@ -57,7 +57,7 @@ from common.process.runtime import realtime_priority
 from common.system.clock import LATE_FRACTION, Ticker, aligned_start, tick_phase_offset
 from services.actor.ledger import ACCEPTED, SEQ, Ledger
 from services.actor.ports import WeightsInbox, new_episode_id, wire_weights
-from services.actor.realtime import AtRest, Counts, RealtimeActor, StateIntake, Steps, rest_ticks
+from services.actor.realtime import Counts, RealtimeActor, Rests, StateIntake, Steps, rest_ticks
 
 log = logging.getLogger(__name__)
 
@@ -163,7 +163,7 @@ class RestCheck:
     (what the critic fits, common.math.critic.at_rest) and the stage costs of a zero command, for
     every robot whose last step said "arrived" and whose newest state is fresh and from the one
     live plant. Each such robot's tick is then :meth:`RealtimeActor.tick
-    <services.actor.realtime.RealtimeActor.tick>` with its :class:`~services.actor.realtime.AtRest`:
+    <services.actor.realtime.RealtimeActor.tick>` with its row of :class:`~services.actor.realtime.Rests`:
     no step, its bookkeeping only (the arrival rule itself stays arrived). The
     decision and the values are those of the robot's own step, bit for bit
     (``tests/test_host_rest.py``); a group of fewer than ``arrays_from`` such robots takes its
@@ -185,24 +185,29 @@ class RestCheck:
         self.inner = np.zeros(count, dtype=bool)
         self.stays = np.zeros(count, dtype=bool)
         self.costs = np.zeros((count, 2))  # (cost, true cost: NaN without the truth)
+        self.rows = np.array([loop.row for loop in loops], dtype=np.intp)  # each robot's ledger row
 
-    def __call__(self, members: Sequence[int], now: float) -> dict[int, AtRest]:
+    def __call__(self, members: Sequence[int], now: float) -> Rests | None:
+        """Which of ``members`` (the host's robot numbers) are at rest now, a row each in their
+        order (None: none)."""
         tolerances = self.tolerances
         if tolerances is None:
-            return {}
+            return None
         # the robots whose last step said "arrived" (their newest state's freshness and plant are
         # checked at their tick, RealtimeActor.tick, as for any tick)
+        loops = self.loops
         picked: list[int] = []
-        actors: list[RobotActor] = []
+        chosen: list[RobotActor] = []
         for i in members:
-            actor = self.loops[i].actor
+            actor = loops[i].actor
             if isinstance(actor, RobotActor) and actor.arrived:
                 picked.append(i)
-                actors.append(actor)
+                chosen.append(actor)
         if len(picked) < self.arrays_from:  # a few robots: their steps cost less than numpy's calls
-            return {}
-        ledger = self.loops[0].ledger
-        rows = np.array([self.loops[i].row for i in picked], dtype=np.intp)
+            return None
+        ledger = loops[0].ledger
+        at = np.array(picked, dtype=np.intp)
+        rows = self.rows[at]
         with ledger.lock:  # the newest states, as one moment saw them
             held, marks, received, values = (
                 ledger.held[rows],
@@ -210,33 +215,29 @@ class RestCheck:
                 ledger.received[rows],
                 ledger.values[rows],
             )
-        at = np.array(picked, dtype=np.intp)
         new = np.flatnonzero(held & ~(values == self.on[at]).all(axis=1))
         if len(new):
             self._decide(at[new], values[new])
         stays = held & self.stays[at]
         if not stays.any():
-            return {}
-        n = self.system.state_dim
-        states, truths = values[:, :n], values[:, n:]
-        costs, inners = self.costs[at].tolist(), self.inner[at].tolist()
-        accepted_, seqs_, received_ = marks[:, ACCEPTED].tolist(), marks[:, SEQ].tolist(), received.tolist()
-        rests = {}
-        for j in np.flatnonzero(stays).tolist():
-            cost, true_cost = costs[j]
-            known = true_cost == true_cost  # not NaN: the state carries its truth
-            rests[picked[j]] = AtRest(
-                accepted_[j],
-                seqs_[j],
-                received_[j],
-                states[j],
-                truths[j] if known else None,
-                cost,
-                true_cost if known else None,
-                inners[j],
-                actors[j].memory.held_at_rest,
-            )
-        return rests
+            return None
+        kept = np.flatnonzero(stays)
+        n, robots = self.system.state_dim, at[kept]
+        values = values[kept]
+        truths = values[:, n:]
+        costs = self.costs[robots]
+        return Rests(
+            robots.tolist(),
+            marks[kept, ACCEPTED],
+            marks[kept, SEQ],
+            received[kept],
+            values[:, :n],
+            np.where(np.isfinite(truths[:, :1]), truths, math.nan),  # the ledger's inf: no truth
+            costs[:, 0],
+            costs[:, 1],
+            self.inner[robots],
+            [chosen[j].memory.held_at_rest for j in kept.tolist()],
+        )
 
     def _decide(self, robots: np.ndarray, values: np.ndarray) -> None:
         """The decisions for ``robots`` at their newest states and true states (``values`` as the
@@ -412,7 +413,7 @@ class HostScheduler:
         budget: float = 1.0,
         group: int = 1,
         outboxes: Sequence[Outbox[Any]] = (),
-        rests: Callable[[Sequence[int], float], dict[int, AtRest]] | None = None,
+        rests: Callable[[Sequence[int], float], Rests | None] | None = None,
         start: float | None = None,
         pull: bool = False,
     ) -> None:
@@ -458,8 +459,11 @@ class HostScheduler:
         rounds, pending_gc = 0, -1
         count = len(self.loops)
         group_due, group_start = -1.0, 0.0  # the due time of the group being served, when it began
-        resting: dict[int, AtRest] = {}  # its robots served at rest (RestCheck)
-        deferred: list[tuple[int, AtRest, float | None]] = []  # the first group's, served with those pulled
+        rests: Rests | None = None  # its robots at rest (RestCheck) ...
+        resting: dict[int, int] = {}  # ... each one's row there, until served
+        # the first group's at rest, served with those pulled: (robot, due) and their rests
+        deferred: list[tuple[int, float | None]] = []
+        deferred_rests: list[Rests] = []
         try:
             while not self.stop.is_set():
                 while heap[0][0] != self.tickers[heap[0][1]].next_due:  # a tick already served early
@@ -482,19 +486,24 @@ class HostScheduler:
                 now = self.clock()
                 if due != group_due:
                     group_due, group_start = due, now
-                    resting = {} if self.rests is None else self.rests(self.members(i, due), now)
+                    rests = None if self.rests is None else self.rests(self.members(i, due), now)
+                    resting = {} if rests is None else {robot: row for row, robot in enumerate(rests.at)}
                 over = self.spent_sum > self.budget
-                rest = resting.pop(i, None)
-                if rest is not None:  # it and the robots after it due now and at rest: served at once
-                    run: list[tuple[int, AtRest, float | None]] = [(i, rest, due)]
+                row = resting.pop(i, None)
+                if row is not None:  # it and the robots after it due now and at rest: served at once
+                    assert rests is not None
+                    run: list[tuple[int, float | None]] = [(i, due)]
+                    rows = [row]
                     while heap and heap[0][0] == due and heap[0][1] in resting:
                         j = heapq.heappop(heap)[1]
-                        run.append((j, resting.pop(j), due))
+                        run.append((j, due))
+                        rows.append(resting.pop(j))
                     self.over_budget += over * len(run)
                     if self.pull and i < self.group:  # with the robots pulled, once the group's others are served
                         deferred += run
+                        deferred_rests.append(rests.take(rows))
                     else:
-                        self._serve_rests(run, now, heap)
+                        self._serve_rests(run, rests.take(rows), now, heap)
                 else:
                     self.over_budget += over
                     k = self._serve(i, now, due)
@@ -508,8 +517,8 @@ class HostScheduler:
                 # its transitions go out, a round each; or its first action has waited long enough
                 if not heap or heap[0][0] != due:
                     if self.pull and i < self.group:
-                        self._pull_rests(due, heap, deferred)
-                        deferred = []
+                        self._pull_rests(due, heap, deferred, deferred_rests)
+                        deferred, deferred_rests = [], []
                     self.flush()
                 elif self.outboxes:
                     flushed_at = self.clock()
@@ -550,33 +559,34 @@ class HostScheduler:
         return k
 
     def _serve_rests(
-        self, run: list[tuple[int, AtRest, float | None]], now: float, heap: list[tuple[float, int]]
+        self, run: list[tuple[int, float | None]], rests: Rests, now: float, heap: list[tuple[float, int]]
     ) -> None:
-        """The robots of ``run``, ``(robot, rest, due)`` (``due`` as :meth:`_serve`'s), served at
-        ``now`` at their rests, in order: those still ready (RealtimeActor.ready_at_rest) together,
-        as arrays (services.actor.realtime.rest_ticks), any other by its own tick (a step, or a
-        stop); then each robot's next tick on the ``heap``."""
-        ready: list[RealtimeActor] = []
-        ks: list[int] = []
-        rests: list[AtRest] = []
-        for i, rest, due in run:
-            loop, k = self.loops[i], self._serve(i, now, due)
-            if loop.ready_at_rest(rest, now):
-                ready.append(loop)
-                ks.append(k)
-                rests.append(rest)
-                continue
-            self._rest_ticks(ready, ks, now, rests)
-            ready, ks, rests = [], [], []
-            loop.tick(k, now, rest=rest)
-        self._rest_ticks(ready, ks, now, rests)
+        """The robots of ``run``, ``(robot, due)`` (``due`` as :meth:`_serve`'s), served at ``now``
+        at their ``rests`` (a row each), in order: those still ready (:meth:`Rests.ready`)
+        together, as arrays (services.actor.realtime.rest_ticks), any other by its own tick (a
+        step, or a stop); then each robot's next tick on the ``heap``."""
+        loops = [self.loops[i] for i, _ in run]
+        ks = [self._serve(i, now, due) for i, due in run]
+        ready = rests.ready(loops, now)
+        if ready.all():
+            self._rest_ticks(loops, ks, now, rests)
+        else:
+            rows: list[int] = []
+            for j in range(len(run)):
+                if ready[j]:
+                    rows.append(j)
+                    continue
+                self._rest_ticks([loops[r] for r in rows], [ks[r] for r in rows], now, rests.take(rows))
+                rows = []
+                loops[j].tick(ks[j], now)  # a step (or a stop: its state changed, or a second plant)
+            self._rest_ticks([loops[r] for r in rows], [ks[r] for r in rows], now, rests.take(rows))
         self._spent(now, len(run))
         self.served += len(run)
         tickers = self.tickers
-        for i, _, _ in run:  # an entry at its own phase, if it was pulled, is now stale
+        for i, _ in run:  # an entry at its own phase, if it was pulled, is now stale
             heapq.heappush(heap, (tickers[i].next_due, i))
 
-    def _rest_ticks(self, loops: list[RealtimeActor], ks: list[int], now: float, rests: list[AtRest]) -> None:
+    def _rest_ticks(self, loops: list[RealtimeActor], ks: list[int], now: float, rests: Rests) -> None:
         if not loops:
             return
         try:
@@ -599,7 +609,11 @@ class HostScheduler:
             self.spent[slot] = spent
 
     def _pull_rests(
-        self, due: float, heap: list[tuple[float, int]], deferred: list[tuple[int, AtRest, float | None]]
+        self,
+        due: float,
+        heap: list[tuple[float, int]],
+        deferred: list[tuple[int, float | None]],
+        deferred_rests: list[Rests],
     ) -> None:
         """The first group, due at ``due``, is served but its robots at rest (``deferred``): serve
         them now, and with them, at once, the robots of the other groups still at rest whose next
@@ -613,14 +627,16 @@ class HostScheduler:
             if self.loops[j].arrived and due < self.tickers[j].next_due < due + self.period
         ]
         now = self.clock()
-        pulled: list[tuple[int, AtRest, float | None]] = []
+        run, parts = list(deferred), list(deferred_rests)
         if candidates:
             assert self.rests is not None
-            resting = self.rests(candidates, now)
-            pulled = [(j, resting[j], None) for j in candidates if j in resting]
-        if deferred or pulled:
-            self._serve_rests(deferred + pulled, now, heap)
-        self.pulled += len(pulled)
+            pulled = self.rests(candidates, now)
+            if pulled is not None:
+                run += [(j, None) for j in pulled.at]
+                parts.append(pulled)
+                self.pulled += len(pulled)
+        if run:
+            self._serve_rests(run, Rests.joined(parts), now, heap)
 
     def members(self, i: int, due: float) -> list[int]:
         """The robots of robot ``i``'s tick group whose next tick is due at ``due`` (a robot that

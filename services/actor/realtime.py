@@ -30,6 +30,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
@@ -95,6 +96,95 @@ class AtRest(NamedTuple):
     true_cost: float | None  # delta r(true state, 0); None: the state carries no truth
     inner: bool  # inside the arrival rule's inner tolerances (common.math.critic.at_rest)
     hold: Callable[[], None]  # leaves the actor's memory as its step at rest does
+
+
+@dataclass(frozen=True, slots=True)
+class Rests:
+    """Robots' ticks at rest, decided with their tick group's as arrays (services/actor/host.py
+    RestCheck), a row each: what :class:`AtRest` is for one, as columns. ``at``: the robots (the
+    host's numbers, in the rows' order); ``truths`` and ``true_costs`` NaN where the state carries
+    no truth; ``holds``: each robot's :attr:`AtRest.hold`."""
+
+    at: list[int]
+    held: np.ndarray  # int64: the newest accepted state each was decided on (its count)
+    seq: np.ndarray  # int64: that state's seq
+    received: np.ndarray  # when it came
+    states: np.ndarray  # (rows, state_dim)
+    truths: np.ndarray  # (rows, state_dim), NaN: no truth
+    costs: np.ndarray  # delta r(state, 0)
+    true_costs: np.ndarray  # delta r(true state, 0), NaN: no truth
+    inner: np.ndarray  # bool
+    holds: list[Callable[[], None]]
+
+    def __len__(self) -> int:
+        return len(self.at)
+
+    def take(self, rows: Sequence[int]) -> Rests:
+        """The rows ``rows``, in that order."""
+        pick = np.asarray(rows, dtype=np.intp)
+        return Rests(
+            [self.at[j] for j in rows],
+            self.held[pick],
+            self.seq[pick],
+            self.received[pick],
+            self.states[pick],
+            self.truths[pick],
+            self.costs[pick],
+            self.true_costs[pick],
+            self.inner[pick],
+            [self.holds[j] for j in rows],
+        )
+
+    @staticmethod
+    def joined(parts: Sequence[Rests]) -> Rests:
+        """The rows of ``parts`` (at least one), in order."""
+        if len(parts) == 1:
+            return parts[0]
+
+        def joined(name: str) -> np.ndarray:
+            return np.concatenate([getattr(part, name) for part in parts])
+
+        return Rests(
+            [i for part in parts for i in part.at],
+            joined("held"),
+            joined("seq"),
+            joined("received"),
+            joined("states"),
+            joined("truths"),
+            joined("costs"),
+            joined("true_costs"),
+            joined("inner"),
+            [hold for part in parts for hold in part.holds],
+        )
+
+    @staticmethod
+    def of(at: Sequence[int], rests: Sequence[AtRest], state_dim: int) -> Rests:
+        """Robots ``at``'s :class:`AtRest`, as rows."""
+        nan = np.full(state_dim, math.nan)
+        return Rests(
+            list(at),
+            np.array([rest.held for rest in rests], dtype=np.int64),
+            np.array([rest.seq for rest in rests], dtype=np.int64),
+            np.array([rest.received for rest in rests], dtype=float),
+            np.array([rest.state for rest in rests], dtype=float).reshape(len(rests), state_dim),
+            np.array([nan if rest.truth is None else rest.truth for rest in rests]).reshape(len(rests), state_dim),
+            np.array([rest.cost for rest in rests], dtype=float),
+            np.array([math.nan if rest.true_cost is None else rest.true_cost for rest in rests], dtype=float),
+            np.array([rest.inner for rest in rests], dtype=bool),
+            [rest.hold for rest in rests],
+        )
+
+    def ready(self, loops: Sequence[RealtimeActor], tick: float) -> np.ndarray:
+        """Per row (robot ``loops[j]``): can its tick at ``tick`` be served at rest
+        (:meth:`RealtimeActor.ready_at_rest`, for all rows at once; the loops share a ledger)."""
+        first = loops[0]
+        ledger = first.ledger
+        rows = np.fromiter((loop.row for loop in loops), dtype=np.intp, count=len(loops))
+        conflict = np.fromiter((loop.plant_gate.conflict for loop in loops), dtype=bool, count=len(loops))
+        with ledger.lock:
+            held, accepted = ledger.held[rows], ledger.accepted[rows]
+        ready: np.ndarray = ~conflict & held & (accepted == self.held) & (tick - self.received <= first.stale_after)
+        return ready
 
 
 class ColumnSink(Protocol):
@@ -311,7 +401,7 @@ class RealtimeActor:
             try:
                 if held is None:  # decided at rest on the newest state (no message read)
                     assert rest is not None
-                    rest_ticks([self], [k], tick, [rest])
+                    rest_ticks([self], [k], tick, Rests.of([0], [rest], self.system.state_dim))
                 else:
                     self._step(k, tick, held, hurry)
             except Exception:  # never let one bad tick end the loop that keeps the robot safe
@@ -535,35 +625,34 @@ class RealtimeActor:
         ).to_json_dict()
 
 
-def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, rests: Sequence[AtRest]) -> None:
+def rest_ticks(loops: Sequence[RealtimeActor], ks: Sequence[int], tick: float, rests: Rests) -> None:
     """Ticks ``ks`` of ``loops`` (each :meth:`RealtimeActor.ready_at_rest`; a host's share a ledger)
-    served at ``tick`` at their ``rests``: exactly zero, no solve; the arrival test and the costs
-    are their tick group's (services/actor/host.py RestCheck), their records the ledger's array
-    operations (:meth:`Ledger.record_rows`), their actions and transitions one batch each when the
-    loops have their host's outboxes (``rest_columns``), else a message each. What each robot
-    sends and keeps is what its own step at rest would, bit for bit (``tests/test_host_rest.py``)."""
+    served at ``tick`` at their ``rests`` (a row each, in order): exactly zero, no solve; the
+    arrival test and the costs are their tick group's (services/actor/host.py RestCheck), their
+    records the ledger's array operations (:meth:`Ledger.record_rows`), their actions and
+    transitions one batch each when the loops have their host's outboxes (``rest_columns``), else
+    a message each. What each robot sends and keeps is what its own step at rest would, bit for
+    bit (``tests/test_host_rest.py``)."""
     first = loops[0]
     ledger = first.ledger
     count = next((j for j, loop in enumerate(loops) if loop.ledger is not ledger), len(loops))
     if count < len(loops):  # loops of several ledgers: each run of one ledger's at once, in order
-        rest_ticks(loops[:count], ks[:count], tick, rests[:count])
-        rest_ticks(loops[count:], ks[count:], tick, rests[count:])
+        rest_ticks(loops[:count], ks[:count], tick, rests.take(range(count)))
+        rest_ticks(loops[count:], ks[count:], tick, rests.take(range(count, len(loops))))
         return
     rows = np.array([loop.row for loop in loops], dtype=np.intp)
     ks_array = np.array(ks, dtype=np.int64)
     trained = ledger.weights[rows, TRAINED]  # the held weights' (WeightsInbox.marks)
-    _, seqs_, received_, states_, truths, costs_, true_costs_, inner_, holds = zip(*rests, strict=True)
-    for loop, truth in zip(loops, truths, strict=True):
-        loop.note_truth(truth)
-    for hold in holds:
+    truths = rests.truths
+    known = ~np.isnan(truths[:, 0])
+    for loop, truth, told in zip(loops, truths, known.tolist(), strict=True):
+        if not told or loop.true_start is None:  # else note_truth changes nothing
+            loop.note_truth(truth if told else None)
+    for hold in rests.holds:
         hold()
-    seqs = np.array(seqs_, dtype=np.int64)
-    received = np.array(received_)
-    costs = np.array(costs_, dtype=float)
-    true_costs = np.array(true_costs_, dtype=float)  # None (no truth): NaN
-    inner = np.array(inner_, dtype=bool)
-    arrived = np.array([loop.arrived for loop in loops], dtype=bool)
-    states = np.array(states_, dtype=float)
+    seqs, received, costs, true_costs = rests.seq, rests.received, rests.costs, rests.true_costs
+    inner, states = rests.inner, rests.states
+    arrived = np.fromiter((loop.arrived for loop in loops), dtype=bool, count=count)
     zero = np.zeros((count, first.system.action_dim))
     episodes = ledger.episode[rows]
     sinks = first.rest_columns
