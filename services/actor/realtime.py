@@ -176,7 +176,8 @@ class Rests:
 
     def ready(self, loops: Sequence[RealtimeActor], tick: float) -> np.ndarray:
         """Per row (robot ``loops[j]``): can its tick at ``tick`` be served at rest
-        (:meth:`RealtimeActor.ready_at_rest`, for all rows at once; the loops share a ledger)."""
+        (:meth:`RealtimeActor.ready_at_rest`, for all rows at once: the loops are one host's, of
+        one ledger and one staleness bound)."""
         first = loops[0]
         ledger = first.ledger
         rows = np.fromiter((loop.row for loop in loops), dtype=np.intp, count=len(loops))
