@@ -30,6 +30,10 @@ deadlines (2-4 missed per robot against 2, at load 4.3 on 2 cores). One at a tim
 minutes more. ``SRL_TEST_TIMING_WORKERS=2`` runs them two at a time on a quicker machine; the tests
 marked ``alone`` too (the two above) then run after the others, one at a time, in a third phase.
 The last line counts every phase as pytest does; the exit code is non-zero if any phase failed.
+Stopped (Ctrl-C, SIGTERM, SIGHUP), the runner sends SIGINT to its pytest's process group (the
+tests' teardowns run, as after a Ctrl-C) and removes its directories (``srl-test-PID-*`` in the
+temporary directory: the JIT cache, each phase's scratch); a runner killed with SIGKILL leaves
+them, and the next run removes them.
 Before phase 1 the runner compiles the documented commands' actor problems into the run's JIT cache
 (:data:`WARM_PROBLEMS`). After each phase the runner prints its total CPU (tests' processes and
 their children: services, ``srl`` commands, the C compiler) and the tests that took the most: on a
@@ -49,6 +53,7 @@ import json
 import os
 import resource
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -61,6 +66,8 @@ from typing import Any
 
 import pytest
 
+from common.system.jit import remove_orphan_build_directories
+
 WORKERS = 4  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
 TIMING_WORKERS = 1  # the timing tests one at a time: their bounds assume a quiet machine
 RT_PRIORITY = 10  # actor.realtime_priority in common/config/srl.toml
@@ -69,6 +76,8 @@ TALLY = "SRL_TEST_TALLY"  # where a session writes its counts for the runner (ma
 JIT_CACHE = "SRL_TEST_JIT_CACHE"  # the runner's JIT cache, shared by every phase (tests/conftest.py)
 CPU_LOG = "SRL_TEST_CPU_LOG"  # a directory where each test process writes its tests' CPU seconds (the runner's table)
 CPU_TABLE_ROWS = 15
+SCRATCH_PREFIX = "srl-test-"  # + the runner's pid + "-": its JIT cache and each phase's scratch directory
+STOP_GRACE_S = 30.0  # a stopped runner's pytest: its teardowns after SIGINT, then SIGKILL
 # The actor problems compiled into the run's JIT cache before phase 1 (srl build): those that the
 # documented commands and the tests of whole runs build (srl run and srl up: the robot's method at
 # N = 12; srl experiment: the paper's at 6 and 12), each under a time limit (a docs block's 120 s)
@@ -309,7 +318,7 @@ NOTHING_COLLECTED = 5
 
 
 def _phase(args: list[str], jit_cache: Path) -> tuple[int, dict[str, int], float]:
-    with tempfile.TemporaryDirectory(prefix="srl-test-") as scratch:
+    with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as scratch:
         tally = Path(scratch) / "tally.json"
         started = time.monotonic()
         cpu_log = Path(scratch) / "cpu"
@@ -320,7 +329,7 @@ def _phase(args: list[str], jit_cache: Path) -> tuple[int, dict[str, int], float
             # srl's modules again. Kept beside the JIT cache, so the tree stays as the user keeps it
             # and the run leaves nothing behind.
             env["PYTHONPYCACHEPREFIX"] = str(jit_cache / "bytecode")
-        code = subprocess.call([sys.executable, "-m", "pytest", *args], env=env)
+        code = _call([sys.executable, "-m", "pytest", *args], env)
         took = time.monotonic() - started
         counts = json.loads(tally.read_text())["counts"] if tally.exists() else {}
         table = cpu_table(cpu_log)
@@ -328,6 +337,30 @@ def _phase(args: list[str], jit_cache: Path) -> tuple[int, dict[str, int], float
             compiled = sum(1 for _ in jit_cache.glob("*.o"))
             print(f"{table}\nJIT cache: {compiled} compiled objects after this phase", flush=True)
     return code, counts, took
+
+
+def _call(argv: list[str], env: dict[str, str]) -> int:
+    """``argv``'s exit code. The runner stopped (Ctrl-C, or SIGTERM or SIGHUP: :func:`_stop`):
+    pytest gets SIGINT, so its teardowns run as after a Ctrl-C (the services a test started
+    stopped, its files removed), and SIGKILL if it is not done within :data:`STOP_GRACE_S`."""
+    # its own process group: the SIGINT reaches the xdist workers too, as a terminal's Ctrl-C would
+    child = subprocess.Popen(argv, env=env, process_group=0)
+    try:
+        return child.wait()
+    finally:
+        if child.poll() is None:
+            os.killpg(child.pid, signal.SIGINT)
+            try:
+                child.wait(timeout=STOP_GRACE_S)
+            finally:
+                if child.poll() is None:
+                    os.killpg(child.pid, signal.SIGKILL)
+                    child.wait()
+
+
+def _stop(signum: int, _frame: object) -> None:
+    """SIGTERM or SIGHUP: the runner stops as on Ctrl-C (its pytest stopped, its directories removed)."""
+    raise KeyboardInterrupt(f"srl test: {signal.Signals(signum).name}")
 
 
 def _line(counts: dict[str, int], seconds: float) -> str:
@@ -367,7 +400,12 @@ def main(extra: list[str]) -> int:
     code, seconds = 0, 0.0
     total: dict[str, int] = {}
     done: list[str] = []
-    jit_cache = Path(tempfile.mkdtemp(prefix="srl-test-jit-"))  # private (0700): a problem compiles once per run
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, _stop)
+    # a runner killed with SIGKILL (no handler runs) left its directories: the next run removes them
+    remove_orphan_build_directories(prefix=SCRATCH_PREFIX)
+    # private (0700): a problem compiles once per run
+    jit_cache = Path(tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-jit-"))
     try:
         seconds = _warm(jit_cache)
         done.append(f"compiles before: {seconds:.0f}s")

@@ -170,10 +170,12 @@ def prune_jit_cache(path: str, keep: int = JIT_CACHE_ENTRIES) -> None:
 BUILD_PREFIX = "srl-jit-"  # + the building process's pid + "-" + mkdtemp's random part
 
 
-def remove_orphan_build_directories(parent: str | None = None) -> int:
+def remove_orphan_build_directories(parent: str | None = None, prefix: str = BUILD_PREFIX) -> int:
     """Remove the build directories (``srl-jit-PID-*`` in ``parent``, the temporary directory by
     default) of this user whose process is gone; returns how many. A directory of a running
-    process (or of a pid reused since) is kept: only its own build removes it."""
+    process (or of a pid reused since) is kept: only its own build removes it. ``prefix``: another
+    kind of directory named ``PREFIX + PID + "-" + ...`` by the process that owns it (the test
+    runner's)."""
     parent = parent or tempfile.gettempdir()
     removed = 0
     try:
@@ -181,7 +183,7 @@ def remove_orphan_build_directories(parent: str | None = None) -> int:
     except OSError:
         return 0
     for entry in entries:
-        pid = _build_owner(entry.name)
+        pid = _build_owner(entry.name, prefix)
         if pid is None or _process_alive(pid):
             continue
         try:
@@ -193,10 +195,10 @@ def remove_orphan_build_directories(parent: str | None = None) -> int:
     return removed
 
 
-def _build_owner(name: str) -> int | None:
+def _build_owner(name: str, prefix: str = BUILD_PREFIX) -> int | None:
     """The pid in a build directory's name, None for any other name."""
-    pid, dash, _ = name.removeprefix(BUILD_PREFIX).partition("-")
-    return int(pid) if name.startswith(BUILD_PREFIX) and dash and pid.isdigit() else None
+    pid, dash, _ = name.removeprefix(prefix).partition("-")
+    return int(pid) if name.startswith(prefix) and dash and pid.isdigit() else None
 
 
 def _process_alive(pid: int) -> bool:
