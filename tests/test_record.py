@@ -31,7 +31,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from tests import harness
 from tests.harness import ROOT, FakeSample, Proc, buses_on_a_fake_session, free_port, open_session, wait_until
-from tools.recording.record import RowsByOne
+from tools.recording.sinks import RowsByOne
 
 DELTA_NS = 100_000_000  # delta = 0.1 s
 
@@ -458,7 +458,8 @@ def test_a_recorded_episode_keeps_each_solve_time_after_the_robot_arrives(tmp_pa
     arrives within the run keeps the solve times of its drive."""
     from common.config.assembly import run_episode
     from common.config.settings import Settings
-    from tools.recording.record import MemorySink, Recorder, RosMapping, record_episode
+    from tools.recording.record import Recorder, RosMapping, record_episode
+    from tools.recording.sinks import MemorySink
 
     settings = Settings.load(actor={"agent": "rlqv", "jit": False}, episode={"start": [2.0, 2.0], "duration": 20.0})
     episode = run_episode(settings)
@@ -716,7 +717,7 @@ def test_the_recorder_writes_a_batch_of_many_robots_as_it_writes_their_rows_one_
 
     import tools.recording.record as record
 
-    class Sink(record.RowsByOne):
+    class Sink(RowsByOne):
         def __init__(self) -> None:
             self.topics: dict[str, list[tuple[str, bytes, int]]] = {}
 
@@ -900,7 +901,7 @@ def test_the_recorders_backlog_is_bounded_in_memory_by_the_rows_it_holds(monkeyp
 def test_a_fleets_recording_summary_names_its_first_robots_and_counts_them_all() -> None:
     import tools.recording.record as record
 
-    class Sink(record.RowsByOne):
+    class Sink(RowsByOne):
         path = Path("/nonexistent/fleet.mcap")
         counts = {f"/robot{i}/odom": 3 for i in range(300)} | {"/target": 1}
 

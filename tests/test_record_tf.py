@@ -25,24 +25,21 @@ from common.math.loop import Episode
 from tests.test_record import check_rosbag2_layout, read
 from tools.recording.record import (
     GOAL_EVERY,
+    LATCHED_TOPICS,
     PATH_EVERY,
     PATH_POSES,
     PATH_STRIDE,
     SIMULATED,
     TF_MESSAGE,
-    McapSink,
     PoseFrames,
     Recorder,
-    RecordingError,
     RosMapping,
-    RowsByOne,
-    SplitSink,
     describe,
     episode_recorder,
-    part_path,
     record_episode,
     robot_frames,
 )
+from tools.recording.sinks import McapSink, RecordingError, RowsByOne, SplitSink, part_path
 
 ORIGIN_NS = 1_700_000_000_000_000_000
 DELTA_NS = 100_000_000
@@ -163,8 +160,6 @@ def test_a_recording_is_on_the_disk_within_its_chunk_age_not_when_the_chunk_fill
     from mcap.records import Message
     from mcap.stream_reader import StreamReader
 
-    from tools.recording.record import McapSink
-
     def on_disk(path: Path) -> list[int]:  # the log times of the messages the file holds so far
         times: list[int] = []
         with path.open("rb") as file:
@@ -199,8 +194,6 @@ def test_a_recording_whose_disk_is_full_says_so_once_and_writes_nothing_more(tmp
     write raises the same at once, without reaching the writer; close lets the file go quietly."""
     import os
 
-    from tools.recording.record import McapSink, RecordingError
-
     path = tmp_path / "full.mcap"
     sink = McapSink(path)
     recorder = Recorder(sink, 0.1, clock="steps")
@@ -224,7 +217,7 @@ def test_a_recording_whose_disk_is_full_says_so_once_and_writes_nothing_more(tmp
 
 def test_a_recording_split_in_parts_has_every_message_once_and_each_file_readable_alone(tmp_path: Path) -> None:
     path = tmp_path / "split.mcap"
-    sink = SplitSink(path, {"sampling_time": "0.1"}, split_seconds=1.0)
+    sink = SplitSink(path, {"sampling_time": "0.1"}, split_seconds=1.0, latched=LATCHED_TOPICS)
     recorder = Recorder(sink, 0.1, clock="steps")
     for k in range(35):  # 3.5 s of steps: files of [0, 1), [1, 2), [2, 3) and [3, 3.5) s
         state = (1.0 - 0.01 * k, 0.0, 0.0)
@@ -546,8 +539,6 @@ def test_a_full_disk_met_by_a_full_chunk_stops_the_writes_at_the_next_message(tm
     file's seek) and fails: the next write raises RecordingError at once and the writer is handed
     nothing more (each message it refused would be a log line of its own)."""
     import os
-
-    from tools.recording.record import McapSink, RecordingError
 
     sink = McapSink(tmp_path / "full.mcap")
     full = os.open("/dev/full", os.O_WRONLY)

@@ -78,7 +78,7 @@ def main(args: argparse.Namespace) -> int:
         except RecordingError as error:
             raise UsageError(str(error)) from None
     elif args.record is not None:
-        from tools.recording.record import RecordingError, open_for_writing
+        from tools.recording.sinks import RecordingError, open_for_writing
 
         try:
             open_for_writing(args.record).close()

@@ -106,7 +106,8 @@ def view_data(
     mapping into CDR, decoded back."""
     from common.config.assembly import run_episode
     from common.config.settings import Settings
-    from tools.recording.record import MemorySink, Recorder, RosMapping, record_episode
+    from tools.recording.record import Recorder, RosMapping, record_episode
+    from tools.recording.sinks import MemorySink
 
     settings = Settings.load(
         actor={"agent": agent, "horizon": horizon, "jit": False}, episode={"start": start, "duration": duration}

@@ -213,7 +213,7 @@ def check_options(options: UpOptions, robots: list[str], settings: Settings) -> 
     if options.secure and options.count_messages:
         raise ValueError("counting every message needs to read srl/**, which no role may do with secure")
     if options.record is not None:  # a bad path is one line now, before anything starts
-        from tools.recording.record import RecordingError, open_for_writing
+        from tools.recording.sinks import RecordingError, open_for_writing
 
         try:
             open_for_writing(options.record).close()

@@ -21,21 +21,20 @@ import foxglove
 from common.config.arguments import UsageError, settings_from_args
 from tools.recording.record import (
     ODOM_FRAME,
-    CdrChannels,
     Feed,
     Recorder,
-    RowsByOne,
     base_frame,
     positive_seconds,
     yield_cpu_to_the_loop,
 )
+from tools.recording.sinks import CdrChannels, RowsByOne
 
 log = logging.getLogger(__name__)
 
 
 class FoxgloveSink(RowsByOne):
     """CDR samples onto foxglove-sdk channels (one per topic, ``ros2msg`` schema, ``cdr``:
-    :class:`~tools.recording.record.CdrChannels`), served live by a WebSocket server of its own
+    :class:`~tools.recording.sinks.CdrChannels`), served live by a WebSocket server of its own
     context."""
 
     def __init__(self, host: str, port: int) -> None:
