@@ -63,6 +63,9 @@ def test_a_stopped_runner_tears_its_tests_down_and_leaves_no_directory(tmp_path:
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        # started with SIGINT ignored, as a script's background job is (and a pytest-xdist worker,
+        # which runs this test in the suite): an ignored signal is inherited, the runner must undo it
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
     )
     group = None
     try:

@@ -402,6 +402,9 @@ def main(extra: list[str]) -> int:
     done: list[str] = []
     for signum in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, _stop)
+    # Ctrl-C heard even when started with SIGINT ignored (a background job of a script, a pytest-xdist
+    # worker); a handler, unlike an ignored signal, is not inherited: pytest then hears the SIGINT of _call
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     # a runner killed with SIGKILL (no handler runs) left its directories: the next run removes them
     remove_orphan_build_directories(prefix=SCRATCH_PREFIX)
     # private (0700): a problem compiles once per run
