@@ -45,6 +45,7 @@ def router_and_buses(sender: str) -> Iterator[tuple[str, Any, Any, list[Any]]]:
 
 
 PROBE = 1_000_000  # the version of a probe sample: never one of a test's own
+ATTEMPTS = 3  # sends of a test's samples, each after the last's went unanswered (see its use)
 
 
 def weights(robot: str, version: int = 1, q0: float = 0.0) -> CriticWeights:
@@ -598,25 +599,44 @@ def test_subscribe_columns_hands_a_message_alone_to_alone_and_a_batch_as_columns
             for items in got.values():
                 items.clear()
             before = reader.counters["received.critic/weights"]
-        send([weights("b1", 1), weights("b2", 2), weights("b3", 3)])
-        single([weights("b1", 4), weights("b3", 5)])
+        # Zenoh drops a put that finds its queue full (srl's publishers' congestion control: a late
+        # state or action is worth less than the next): with three CPU hogs beside four test
+        # workers, one sample in 24 runs never came (none with blocking publishers). So the test's
+        # five samples are sent again, with new versions (an attempt's: 10 apart), until one
+        # attempt's four deliveries all come: a path that mishandles its sample fails every attempt.
+        base = 0
 
         def own(kind: str) -> list[Any]:
-            """The test's samples that came to ``kind`` (the probes left out)."""
+            """The samples of the attempt ``base`` that came to ``kind`` (probes and others left out)."""
             with lock:
                 items = list(got[kind])
-            return [item for item in items if max(versions(item)) < PROBE]
+            return [item for item in items if base < max(versions(item)) <= base + 5]
 
-        wait_until(lambda: sum(len(own(kind)) for kind in got) == 4, 30, "the batch and the messages alone")
+        def arrived() -> bool:  # the four, or more: the assertions below say which
+            return sum(len(own(kind)) for kind in got) >= 4
+
+        for attempt in range(ATTEMPTS):
+            base = 10 * attempt
+            send([weights("b1", base + 1), weights("b2", base + 2), weights("b3", base + 3)])
+            single([weights("b1", base + 4), weights("b3", base + 5)])
+            try:
+                wait_until(arrived, 10, "the batch and the messages alone")
+                break
+            except AssertionError as error:  # say what came (the test's versions by path) and the counts
+                if attempt + 1 == ATTEMPTS:
+                    came = {kind: [max(versions(item)) for item in own(kind)] for kind in got}
+                    raise AssertionError(f"{error}: came {came}; counters {dict(reader.counters)}") from None
         time.sleep(0.3)  # nothing more comes
     with lock:
-        late_probes = sum(len(i) if isinstance(i, Columns) else 1 for items in got.values() for i in items) - 5
+        rows = sum(len(i) if isinstance(i, Columns) else 1 for items in got.values() for i in items)
     (batch,) = own("batches")
-    assert isinstance(batch, Columns) and batch.robots == ["b1", "b2"] and batch.field("version").tolist() == [1, 2]
+    versions_ = [base + 1, base + 2]
+    assert isinstance(batch, Columns) and batch.robots == ["b1", "b2"] and batch.field("version").tolist() == versions_
     (message,) = own("alone")
-    assert isinstance(message, CriticWeights) and (message.robot, message.version) == ("b1", 4)
+    assert isinstance(message, CriticWeights) and (message.robot, message.version) == ("b1", base + 4)
     plain = own("plain")
     assert all(isinstance(c, Columns) and c.robots == ["b3"] for c in plain)
-    assert [c.field("version").tolist() for c in plain] == [[3], [5]]
-    # every row received counted once, the probes that came after the count was read too
-    assert reader.counters["received.critic/weights"] - before == 5 + late_probes
+    assert [c.field("version").tolist() for c in plain] == [[base + 3], [base + 5]]
+    # every row received counted once: the test's (every attempt's), and the probes that came after
+    # the count was read
+    assert reader.counters["received.critic/weights"] - before == rows
