@@ -444,10 +444,11 @@ class RealtimeActor:
         self.actor.reset()  # the plan no longer matches the robot
 
     def _step(self, k: int, tick: float, held: HeldState, hurry: bool) -> None:
-        state = np.array(held.state)
+        values, truth, seq, received = held
+        state = np.array(values)
         if self.start_state is None:
             self.start_state = state  # the robot's own start, whatever was requested
-        self.note_truth(held.truth)
+        self.note_truth(truth)
         weights = self.inbox.current()
         step = self.actor.step(state, weights.q, weights.v, hurry)  # the arrival rule acts inside (exactly zero)
         arrived = step.status == "arrived"
@@ -460,14 +461,14 @@ class RealtimeActor:
             )
         self.arrived = arrived
         action = tuple(step.action.tolist())
-        self.send(k, action, held.seq)
+        self.send(k, action, seq)
         done = self.clock()
         r_diag = self.r_diag
         cost = self.delta * float(stage_cost(state, step.action, r_diag))
         true_cost = None
-        if held.truth is not None:
-            true_cost = self.delta * float(stage_cost(np.array(held.truth), step.action, r_diag))
-        self._record(k, tick, held.received, state, action, cost, true_cost, weights, step.solve_seconds, done)
+        if truth is not None:
+            true_cost = self.delta * float(stage_cost(np.array(truth), step.action, r_diag))
+        self._record(k, tick, received, state, action, cost, true_cost, weights, step.solve_seconds, done)
 
     def ready_at_rest(self, rest: AtRest, tick: float) -> bool:
         """The tick at ``tick`` can be served at ``rest``: one live plant, and the state it was
