@@ -67,6 +67,7 @@ from typing import Any
 import pytest
 
 from common.system.jit import remove_orphan_build_directories
+from common.system.lifeline import stop_group
 
 WORKERS = 4  # two cores: the parallel phase's tests mostly wait on processes and real-time runs
 TIMING_WORKERS = 1  # the timing tests one at a time: their bounds assume a quiet machine
@@ -348,14 +349,7 @@ def _call(argv: list[str], env: dict[str, str]) -> int:
     try:
         return child.wait()
     finally:
-        if child.poll() is None:
-            os.killpg(child.pid, signal.SIGINT)
-            try:
-                child.wait(timeout=STOP_GRACE_S)
-            finally:
-                if child.poll() is None:
-                    os.killpg(child.pid, signal.SIGKILL)
-                    child.wait()
+        stop_group(child, STOP_GRACE_S)  # nothing to do once it ended
 
 
 def _stop(signum: int, _frame: object) -> None:

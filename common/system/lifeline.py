@@ -24,15 +24,18 @@ nothing is armed.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import faulthandler
 import logging
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -115,3 +118,25 @@ def die_with_parent(stop: threading.Event) -> int | None:
 
     threading.Thread(target=watch, name="lifeline", daemon=True).start()
     return parent
+
+
+def stop_group(process: subprocess.Popen[Any], grace: float) -> bool:
+    """Stop a child started in a process group of its own (``process_group=0``) as a terminal's
+    Ctrl-C would: SIGINT to the group, then SIGKILL to it if the child is still running after
+    ``grace`` seconds, or at once if the wait is interrupted (a second Ctrl-C); waits for the
+    child. True if it had to be killed. A child already gone (or ending meanwhile) is no error."""
+    if process.poll() is not None:
+        return False
+    with contextlib.suppress(ProcessLookupError):  # it ended meanwhile
+        os.killpg(process.pid, signal.SIGINT)
+    try:
+        process.wait(timeout=grace)
+    except subprocess.TimeoutExpired:
+        pass
+    finally:
+        killed = process.poll() is None
+        if killed:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    return killed

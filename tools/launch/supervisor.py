@@ -40,6 +40,7 @@ from common.net.security import ROLES, write_credentials
 from common.net.transport import zenoh_config
 from common.process.runtime import SignalWatch
 from common.system.jit import remove_orphan_build_directories
+from common.system.lifeline import stop_group
 from common.system.ports import free_port
 
 log = logging.getLogger(__name__)
@@ -301,17 +302,8 @@ class Supervisor:
 
     def stop_one(self, name: str) -> None:
         """SIGINT one child and wait for it (SIGKILL after the grace period)."""
-        child = self.children[name]
-        if child.process.poll() is not None:
-            return
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(child.process.pid, signal.SIGINT)
-        try:
-            child.process.wait(timeout=GRACE_SECONDS)
-        except subprocess.TimeoutExpired:
-            log.warning("%s did not stop within %.0f s: killing it", name, GRACE_SECONDS)
-            os.killpg(child.process.pid, signal.SIGKILL)
-            child.process.wait()
+        if stop_group(self.children[name].process, GRACE_SECONDS):
+            log.warning("%s did not stop within %.0f s: killed", name, GRACE_SECONDS)
 
     def stop_all(self) -> None:
         """SIGINT every service still running (newest first) and wait for them, SIGKILL after the
