@@ -21,7 +21,7 @@ from common.contracts.messages import PlantState
 from common.math.actor_problem import ActorMemory
 from common.net.provenance import SourceGate
 from services.actor.host import RestCheck, RobotActor
-from services.actor.ledger import Ledger
+from services.actor.ledger import HeldState, Ledger
 from services.actor.ports import WeightsInbox
 from services.actor.realtime import MAX_SEQ_JUMP, RealtimeActor, StateIntake
 from tests.harness import FakeCounts
@@ -57,6 +57,12 @@ def host(clock: Clock) -> list[RealtimeActor]:
     return loops
 
 
+def step_reads(held: HeldState) -> tuple[Any, ...]:
+    """What a step reads of a held state: its values (a message's tuple or the arrays' list alike)."""
+    state, truth, seq, received = held
+    return list(state), None if truth is None else list(truth), seq, received
+
+
 def seen(loop: RealtimeActor) -> tuple[Any, ...]:
     """What a loop shows of its states: the held one and when it came, the newest accepted, its
     counters, the refusals' marks."""
@@ -64,7 +70,7 @@ def seen(loop: RealtimeActor) -> tuple[Any, ...]:
     last = loop.last_accepted
     return (
         None if latest is None else (latest[0].model_dump(), latest[1]),
-        None if latest is None else loop.ledger.held_state(loop.row),  # what a step reads
+        None if latest is None else step_reads(loop.ledger.held_state(loop.row)),
         None if last is None else last.model_dump(),
         dict(loop.counts.counters),  # type: ignore[attr-defined]
         loop.refused_at,

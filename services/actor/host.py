@@ -506,10 +506,11 @@ class HostScheduler:
                         self._serve_rests(run, rests.take(rows), now, heap)
                 else:
                     self.over_budget += over
-                    k = self._serve(i, now, due)
+                    k, previous = self._take(i, now, due)
                     # late: the group began late (its later ticks wait for the earlier ones by design)
                     late = group_start - due > HURRY_FRACTION * self.period
                     self.loops[i].tick(k, now, hurry=over or late)  # hurry: the lighter solve
+                    self._measure(i, now, due, previous)  # once the action is out: not on its latency
                     self._spent(now)
                     self.served += 1
                     heapq.heappush(heap, (self.tickers[i].next_due, i))
@@ -538,6 +539,13 @@ class HostScheduler:
     def _serve(self, i: int, now: float, due: float | None = None) -> int:
         """Robot ``i``'s next tick is served at ``now`` (``due``: at its own phase; None: early,
         pulled): its index ``k``, its ticker's accounting and its loop's period and jitter."""
+        k, previous = self._take(i, now, due)
+        self._measure(i, now, due, previous)
+        return k
+
+    def _take(self, i: int, now: float, due: float | None) -> tuple[int, float | None]:
+        """:meth:`_serve`'s ticker accounting alone: the tick's index ``k`` and the robot's previous
+        tick (None: its first), for :meth:`_measure` once the tick's action is out."""
         loop, ticker = self.loops[i], self.tickers[i]
         previous = ticker.last_tick if ticker.index else None
         missed = ticker.missed
@@ -552,11 +560,15 @@ class HostScheduler:
                 now - self.started,
                 ticker.missed,
             )
+        return k, previous
+
+    def _measure(self, i: int, now: float, due: float | None, previous: float | None) -> None:
+        """Robot ``i``'s period and jitter windows take its tick served at ``now`` (as :meth:`_serve`)."""
         if due is not None and previous is not None and not self.early[i]:
+            loop = self.loops[i]
             loop.periods.append(now - previous)
             loop.jitter.append(abs(now - previous - self.period))
         self.early[i] = due is None
-        return k
 
     def _serve_rests(
         self, run: list[tuple[int, float | None]], rests: Rests, now: float, heap: list[tuple[float, int]]

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,7 @@ NO_STEP = -(2**62)  # a row's previous sample before its first (no step is the o
 ACCEPTED, SEQ = 0, 1  # a row's marks: the states it accepted so far, the newest one's seq
 
 
-HeldState = tuple[list[float], "list[float] | None", int, float]
+HeldState = tuple[Sequence[float], "Sequence[float] | None", int, float]
 """A robot's newest accepted state as a step reads it from its ledger row (no message built):
 ``(state, truth, seq, received)``: its values, its true values (None: none sent), its seq and when
 it came. A plain tuple, not a NamedTuple: a step reads it on the latency's path, just after its
@@ -235,12 +236,29 @@ class Ledger:
         pair = self.pairs[i]
         if pair is not None:
             message, received = pair
-            truth = message.true_state
-            return list(message.state), None if truth is None else list(truth), message.seq, received
+            return message.state, message.true_state, message.seq, received
+        return self._row_state(i, self.received.item(i))
+
+    def fresh_state(self, i: int, now: float, stale_after: float) -> HeldState | None:
+        """:meth:`held_state` of row ``i`` if it holds a state that came at most ``stale_after``
+        before ``now``; else None (a tick then stops its robot). One read of the arrays when the
+        state came as a message: a tick calls it just after waking."""
+        if not self.held.item(i):
+            return None
+        pair = self.pairs[i]
+        if pair is not None:
+            message, received = pair
+            if now - received > stale_after:
+                return None
+            return message.state, message.true_state, message.seq, received
+        received = self.received.item(i)
+        return None if now - received > stale_after else self._row_state(i, received)
+
+    def _row_state(self, i: int, received: float) -> HeldState:
         values = self.values[i].tolist()
         n = self.state_dim
         truth = values[n:]
-        return values[:n], None if truth[0] == math.inf else truth, self.seq.item(i), self.received.item(i)
+        return values[:n], None if truth[0] == math.inf else truth, self.seq.item(i), received
 
     def newest_state(self, i: int) -> tuple[Any, float] | None:
         """Row ``i``'s newest accepted state and when it came, built once (None: none yet)."""

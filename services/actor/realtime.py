@@ -389,9 +389,9 @@ class RealtimeActor:
         the newest (else a step, as without it)."""
         ledger, i = self.ledger, self.row
         with self.lock:
-            at_rest = rest is not None and self.ready_at_rest(rest, tick)
-            fresh = ledger.held.item(i) and tick - ledger.received.item(i) <= self.stale_after
-            held = None if at_rest or not fresh else ledger.held_state(i)  # values: no message built
+            at_rest = rest is not None and self.ready_at_rest(rest, tick)  # held and fresh, then
+            held = None if at_rest else ledger.fresh_state(i, tick, self.stale_after)  # no message built
+        fresh = at_rest or held is not None
         if self.plant_gate.conflict:
             self.plant_conflict_stops += 1
             self.stop_robot(k)
