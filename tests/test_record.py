@@ -50,6 +50,28 @@ def read(path: Path) -> dict[str, list[tuple[int, Any]]]:
     return topics
 
 
+def messages_on_disk(path: Path) -> dict[str, int]:
+    """The messages per topic in the chunks of a recording already on the disk (a recorder still
+    writing it: its file ends in the middle of a record, or has no footer yet)."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    topics: dict[int, str] = {}
+    counts: dict[str, int] = {}
+    with path.open("rb") as file:
+        try:
+            for record in StreamReader(file).records:
+                if isinstance(record, Channel):
+                    topics[record.id] = record.topic
+                elif isinstance(record, Message):
+                    topic = topics[record.channel_id]
+                    counts[topic] = counts.get(topic, 0) + 1
+        except (McapError, struct.error, EOFError):  # the end of what is written so far
+            pass
+    return counts
+
+
 def check_rosbag2_layout(path: Path) -> dict[str, Any]:
     """Profile ros2, every schema a ros2msg definition, every channel cdr, the rosbag2 metadata
     record whose counts are the file's; returns the metadata."""
@@ -234,8 +256,13 @@ def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_p
         recorder = Proc("record", ["record", str(path), "--router", router])
         procs.append(recorder)
         wait_until(lambda: any("srl record: recording" in line for line in recorder.stderr), 60, "the recorder")
-        wait_until(lambda: path.stat().st_size > 0, 10, "the file")
-        time.sleep(1.5)  # ~75 states at 50 Hz
+        # on the disk, a chunk at least every 2 s (McapSink.CHUNK_SECONDS): stopped once 20 states of
+        # each robot are (~0.4 s of 50 Hz; a recorder starved of CPU, niced as it is, may take longer)
+        wait_until(
+            lambda: all(messages_on_disk(path).get(f"/{r}/odom", 0) >= 20 for r in ("r7", "r8")),
+            60,
+            "20 states of each robot in the file",
+        )
         assert recorder.stop(stop, timeout=20) == 0, recorder.stderr
         summary = [line for line in recorder.stdout if line.startswith("srl record: recorded")]
         assert len(summary) == 1 and "2 robots: r7, r8" in summary[0], recorder.stdout
