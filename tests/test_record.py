@@ -25,8 +25,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Schema
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
 from tests import harness
@@ -53,10 +55,6 @@ def read(path: Path) -> dict[str, list[tuple[int, Any]]]:
 def messages_on_disk(path: Path) -> dict[str, int]:
     """The messages per topic in the chunks of a recording already on the disk (a recorder still
     writing it: its file ends in the middle of a record, or has no footer yet)."""
-    from mcap.exceptions import McapError
-    from mcap.records import Channel, Message
-    from mcap.stream_reader import StreamReader
-
     topics: dict[int, str] = {}
     counts: dict[str, int] = {}
     with path.open("rb") as file:

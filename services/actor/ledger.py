@@ -237,28 +237,19 @@ class Ledger:
         if pair is not None:
             message, received = pair
             return message.state, message.true_state, message.seq, received
-        return self._row_state(i, self.received.item(i))
-
-    def fresh_state(self, i: int, now: float, stale_after: float) -> HeldState | None:
-        """:meth:`held_state` of row ``i`` if it holds a state that came at most ``stale_after``
-        before ``now``; else None (a tick then stops its robot). One read of the arrays when the
-        state came as a message: a tick calls it just after waking."""
-        if not self.held.item(i):
-            return None
-        pair = self.pairs[i]
-        if pair is not None:
-            message, received = pair
-            if now - received > stale_after:
-                return None
-            return message.state, message.true_state, message.seq, received
-        received = self.received.item(i)
-        return None if now - received > stale_after else self._row_state(i, received)
-
-    def _row_state(self, i: int, received: float) -> HeldState:
         values = self.values[i].tolist()
         n = self.state_dim
         truth = values[n:]
-        return values[:n], None if truth[0] == math.inf else truth, self.seq.item(i), received
+        return values[:n], None if truth[0] == math.inf else truth, self.seq.item(i), self.received.item(i)
+
+    def fresh_state(self, i: int, now: float, stale_after: float) -> HeldState | None:
+        """:meth:`held_state` of row ``i`` if it holds a state that came at most ``stale_after``
+        before ``now``; else None (a tick then stops its robot). A tick calls it just after waking:
+        when the state came as a message, one read of the arrays (``held``)."""
+        if not self.held.item(i):
+            return None
+        held = self.held_state(i)
+        return None if now - held[3] > stale_after else held
 
     def newest_state(self, i: int) -> tuple[Any, float] | None:
         """Row ``i``'s newest accepted state and when it came, built once (None: none yet)."""
