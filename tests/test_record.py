@@ -52,22 +52,22 @@ def read(path: Path) -> dict[str, list[tuple[int, Any]]]:
     return topics
 
 
-def messages_on_disk(path: Path) -> dict[str, int]:
-    """The messages per topic in the chunks of a recording already on the disk (a recorder still
-    writing it: its file ends in the middle of a record, or has no footer yet)."""
+def on_disk(path: Path) -> dict[str, list[int]]:
+    """The log times of the messages per topic in the chunks of a recording already on the disk
+    (a recorder still writing it, or killed: its file ends in the middle of a record, or has no
+    summary or footer yet)."""
     topics: dict[int, str] = {}
-    counts: dict[str, int] = {}
+    times: dict[str, list[int]] = {}
     with path.open("rb") as file:
         try:
             for record in StreamReader(file).records:
                 if isinstance(record, Channel):
                     topics[record.id] = record.topic
                 elif isinstance(record, Message):
-                    topic = topics[record.channel_id]
-                    counts[topic] = counts.get(topic, 0) + 1
+                    times.setdefault(topics[record.channel_id], []).append(record.log_time)
         except (McapError, struct.error, EOFError):  # the end of what is written so far
             pass
-    return counts
+    return times
 
 
 def check_rosbag2_layout(path: Path) -> dict[str, Any]:
@@ -257,7 +257,7 @@ def test_srl_record_joins_a_running_system_and_closes_the_file_on_a_signal(tmp_p
         # on the disk, a chunk at least every 2 s (McapSink.CHUNK_SECONDS): stopped once 20 states of
         # each robot are (~0.4 s of 50 Hz; a recorder starved of CPU, niced as it is, may take longer)
         wait_until(
-            lambda: all(messages_on_disk(path).get(f"/{r}/odom", 0) >= 20 for r in ("r7", "r8")),
+            lambda: all(len(on_disk(path).get(f"/{r}/odom", [])) >= 20 for r in ("r7", "r8")),
             60,
             "20 states of each robot in the file",
         )

@@ -22,7 +22,7 @@ from rosbags.typesys import Stores, get_typestore
 from common.config.settings import Settings
 from common.math.frames import Pose2D, from_goal_frame, to_goal_frame
 from common.math.loop import Episode
-from tests.test_record import check_rosbag2_layout, read
+from tests.test_record import check_rosbag2_layout, on_disk, read
 from tools.recording.record import (
     GOAL_EVERY,
     LATCHED_TOPICS,
@@ -156,33 +156,22 @@ def test_the_path_holds_the_last_minute_at_every_fifth_step_and_ends_at_its_own_
 def test_a_recording_is_on_the_disk_within_its_chunk_age_not_when_the_chunk_fills(tmp_path: Path) -> None:
     """What a recorder killed outright (SIGKILL, no close) leaves: every message older than
     CHUNK_SECONDS is in the file's chunks, however few bytes they are."""
-    from mcap.exceptions import EndOfFile
-    from mcap.records import Message
-    from mcap.stream_reader import StreamReader
 
-    def on_disk(path: Path) -> list[int]:  # the log times of the messages the file holds so far
-        times: list[int] = []
-        with path.open("rb") as file:
-            try:
-                for record in StreamReader(file).records:
-                    if isinstance(record, Message):
-                        times.append(record.log_time)
-            except EndOfFile:  # no summary or footer: the file of a recorder that is still running
-                pass
-        return times
+    def times(path: Path) -> list[int]:  # the log times of the messages the file holds so far
+        return [t for topic in on_disk(path).values() for t in topic]
 
     path = tmp_path / "live.mcap"
     sink = McapSink(path)
     recorder = Recorder(sink, 0.1, clock="steps")
     for k in range(20):  # a few KB: far below a chunk's CHUNK_BYTES
         recorder.transition("tb3_0", 0, k, (0.1 * k, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
-    assert on_disk(path) == []  # all in the chunk in progress
+    assert times(path) == []  # all in the chunk in progress
     before = sink.messages
     sink.chunk_started -= sink.CHUNK_SECONDS  # as if that chunk had been open that long
     recorder.transition("tb3_0", 0, 20, (2.0, 0.0, 0.0), (0.1, 0.0), 0.5, ORIGIN_NS)
     # the chunk went to the disk with the first message written after its age: every one before it too
-    assert len(on_disk(path)) == before + 1
-    assert {(t - ORIGIN_NS) // DELTA_NS for t in on_disk(path)} == set(range(21))
+    assert len(times(path)) == before + 1
+    assert {(t - ORIGIN_NS) // DELTA_NS for t in times(path)} == set(range(21))
     sink.close()
     assert len(read(path)["/tb3_0/srl/transition"]) == 21  # and the closed file is whole
 
