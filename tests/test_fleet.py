@@ -30,7 +30,7 @@ from common.math.loop import ExactPlant, run_algorithm1
 from common.math.stats import Window
 from services.actor.host import HostScheduler, RobotActor, RobotTicker
 from services.plant_sim.host import FleetPlant
-from tests.harness import free_port, srl
+from tests.harness import ROOT, free_port, srl
 
 # -- robot lists and starts -----------------------------------------------------------------
 
@@ -541,6 +541,12 @@ def test_a_fleets_cpu_is_split_where_every_robot_has_first_arrived() -> None:
     assert phases["driving"]["cpu_percent_by_service"] == pytest.approx({"actor": 50.0, "plant": 25.0})
     assert phases["at_rest"]["cpu_percent_by_service"] == pytest.approx({"actor": 50.0, "plant": 0.0})
     assert phases["at_rest"]["fewest_arrived"] == 2
+    assert "wakes_per_second" not in phases["at_rest"]  # not read: not said
+    counted = RunMeasures(
+        {"actor": 3.0}, {}, (0.0, 0.0), RssSeries(), {}, 6.0, 6.0, mark, None, {"actor": 40.0, "plant": 2.0}
+    )
+    rest = counted.phases()["at_rest"]  # type: ignore[index]
+    assert rest["wakes_per_second"] == 42.0 and rest["wakes_per_second_by_service"] == {"actor": 40.0, "plant": 2.0}
     whole = measures.fields(2)["cpu_percent"] * 6.0  # the run's CPU is the phases' together
     assert whole == pytest.approx(phases["driving"]["cpu_percent"] * 2.0 + phases["at_rest"]["cpu_percent"] * 4.0)
     # negative control: without a mark (not every robot arrived) there are no phases
@@ -744,6 +750,45 @@ def test_the_cpu_of_zenohs_threads_is_read_by_their_names() -> None:
         busy.kill()
         busy.wait()
     assert ZenohCpu({"gone": busy.pid}).seconds() == {"gone": 0.0}  # a process that is gone: nothing
+
+
+@pytest.mark.integration
+def test_wakes_count_every_threads_waits_that_ended_and_not_its_work() -> None:
+    """A process sleeping 10 ms at a time in two threads wakes ~200 times a second, one that spins
+    on a CPU (its negative control) hardly ever; a thread that ended keeps the wakes read before it
+    ended."""
+    from tools.launch.measure import Wakes, wake_rates
+
+    sleeper = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import threading, time\n"
+            "def nap():\n    for _ in range(150): time.sleep(0.01)\n"
+            "threading.Thread(target=nap).start()\nnap()\ntime.sleep(20)",
+        ]
+    )
+    spinner = subprocess.Popen(
+        [sys.executable, "-c", "import time\nend = time.time() + 20\nwhile time.time() < end: pass"]
+    )
+    try:
+        time.sleep(0.3)  # both started
+        wakes = Wakes({"sleeper": sleeper.pid, "spinner": spinner.pid})
+        first = (time.monotonic(), wakes.totals())
+        for _ in range(15):  # read as the bench reads, while the naps go on (a thread keeps what was read)
+            time.sleep(0.2)
+            last = (time.monotonic(), wakes.totals())
+        # the sleeper's naps are over (150 x >= 10 ms) and its second thread has ended
+        rates = wake_rates([first, last])
+        assert rates is not None
+        assert rates["sleeper"] * 3.0 >= 200, rates  # 2 x 150 naps, less the ~0.3 s before the first reading
+        assert rates["spinner"] * 3.0 < 30, rates
+    finally:
+        for process in (sleeper, spinner):
+            process.kill()
+            process.wait()
+    assert wake_rates([first]) is None and wake_rates([(1.0, {"p": 5.0}), (1.0, {"p": 9.0})]) is None
+    assert wake_rates([(1.0, {"p": 5.0}), (3.0, {"p": 9.0})]) == {"p": 2.0}
 
 
 # eight threads named as Zenoh names its workers, started 0.5 s in, each on a CPU for less than a
@@ -1090,3 +1135,21 @@ def test_a_robot_hurried_at_every_step_parks_as_the_unhurried_one(start: tuple[f
     for episode in (hurried, plain):
         assert math.hypot(*episode.final_state[:2]) < PARKED_WITHIN_M
     assert hurried.accumulated_cost <= 1.01 * plain.accumulated_cost
+
+
+def test_the_fleet_page_shows_each_processs_wakes_at_rest_where_the_run_measured_them() -> None:
+    """The benchmark page's at-rest cell says how often each process woke once the data has it
+    (``srl bench fleet`` from its wakes/s column on); data without it is shown as before."""
+    from tools.docs.benchmarks import fleet_body
+
+    data = json.loads((ROOT / "docs" / "benchmarks" / "data" / "fleet.json").read_text())
+    row = next(r for r in data["rows"] if r.get("cpu_phases"))
+    before = "\n".join(fleet_body({**data, "rows": [row]}))
+    assert "/s)" not in before.split("how long each phase lasted:")[1]  # no wakes in the data: none shown
+    rest = dict(row["cpu_phases"]["at_rest"])
+    rest["wakes_per_second_by_service"] = {name: 40.0 + i for i, name in enumerate(rest["cpu_percent_by_service"])}
+    counted = {**row, "cpu_phases": {**row["cpu_phases"], "at_rest": rest}}
+    page = "\n".join(fleet_body({**data, "rows": [counted]})).split("how long each phase lasted:")[1]
+    first = next(iter(rest["cpu_percent_by_service"]))
+    assert f"{first} {rest['cpu_percent_by_service'][first]:.1f} (40/s)" in page
+    assert page.count("/s)") == len(rest["cpu_percent_by_service"])  # at rest only: driving has none

@@ -147,6 +147,11 @@ def phase_ms(row: dict[str, Any], phase: str) -> float:
     return float(((row.get("cpu_phases") or {}).get(phase) or {}).get("cpu_ms_per_robot_tick", math.nan))
 
 
+def rest_wakes(row: dict[str, Any]) -> float:
+    """All processes' wakes a second at rest (tools.launch.measure.Wakes); NaN: no rest, or not read."""
+    return float(((row.get("cpu_phases") or {}).get("at_rest") or {}).get("wakes_per_second", math.nan))
+
+
 def run_header(settings: Settings, seconds: float) -> dict[str, Any]:
     """What every row of a fleet benchmark shares: run length, CPUs, agent and horizon."""
     return {
@@ -198,7 +203,7 @@ def run_fleet_benchmark(args: argparse.Namespace, settings: Settings, settings_a
 HEADER = (
     f"{'robots':>6} {'layout':<10} {'missed':>6} {'jitter p99':>10} {'latency p99':>11} {'stale p99/max':>13} "
     f"{'parked':>7} {'at target':>9} {'worst m':>7} {'CPU %':>6} {'Zenoh %':>7} {'ms/tick':>7} {'drive':>6} "
-    f"{'rest':>6} {'RSS MB':>7} "
+    f"{'rest':>6} {'wakes/s':>7} {'RSS MB':>7} "
     f"{'growth':>7} "
     f"{'procs':>5} {'RT':>5} {'hurried':>7}  "
     "load before -> after  targets"
@@ -227,7 +232,8 @@ def format_row(row: dict[str, Any]) -> str:
         f"{f['parked']:>3}/{row['robots']:<3} {f.get('at_target', 0):>4}/{row['robots']:<4} "
         f"{f.get('worst_own_final_distance_m', math.nan):>7.3f} {row['cpu_percent']:>6.0f} "
         f"{row.get('zenoh_cpu_percent', math.nan):>7.0f} {row['cpu_ms_per_robot_tick']:>7.3f} "
-        f"{phase_ms(row, 'driving'):>6.3f} {phase_ms(row, 'at_rest'):>6.3f} {row['rss_mb']:>7.0f} "
+        f"{phase_ms(row, 'driving'):>6.3f} {phase_ms(row, 'at_rest'):>6.3f} {rest_wakes(row):>7.0f} "
+        f"{row['rss_mb']:>7.0f} "
         f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5} {realtime:>5} {hurried:>7}  {load:<20} {targets}"
     )
 
@@ -245,6 +251,8 @@ def format_table(result: dict[str, Any]) -> str:
         "the handlers called on it), ms/tick: their CPU per robot per sampling interval, over the run, while the "
         "robots drive (drive: until every robot has reported itself arrived) and at rest (rest: from then on, no "
         "solve and no fit; nan: not every robot arrived); "
+        "wakes/s: at rest, how often their threads woke from a wait, a second (each wake costs a context "
+        "switch and a cold cache); "
         "growth: their RSS from the end of warm-up (the first "
         "tenth) to the end; RT: actor processes whose tick thread ran under SCHED_FIFO (actor.realtime_priority); "
         "hurried: ticks solved in a hurry (served late or over actor.host_cpu_budget); load: 1-min average",

@@ -416,7 +416,7 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
         lines += [
             "",
             "CPU of each process [% of a core] while the robots drive and once every robot has arrived (at rest: "
-            "no solve, no fit), and how long each phase lasted:",
+            "no solve, no fit; where measured, how often its threads woke a second), and how long each phase lasted:",
             "",
             "| robots | layout | driving | at rest |",
             "|---|---|---|---|",
@@ -426,7 +426,11 @@ def fleet_body(data: dict[str, Any]) -> list[str]:
             cells = []
             for phase in ("driving", "at_rest"):
                 spent = row["cpu_phases"][phase]
-                each = ", ".join(f"{name} {cpu:.1f}" for name, cpu in spent["cpu_percent_by_service"].items())
+                wakes = spent.get("wakes_per_second_by_service") or {}
+                each = ", ".join(
+                    f"{name} {cpu:.1f}" + (f" ({wakes[name]:.0f}/s)" if name in wakes else "")
+                    for name, cpu in spent["cpu_percent_by_service"].items()
+                )
                 cells.append(f"{spent['seconds']:.1f} s: {each}")
             lines.append(f"| {row['robots']} | {layout} | {cells[0]} | {cells[1]} |")
     return [*lines, ""]

@@ -14,6 +14,7 @@ import os
 import re
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -50,31 +51,34 @@ def _proc_cpu(pid: int) -> float:
 ZENOH_THREAD = re.compile(r"^(rx|tx|app|acc|net)-\d+$")
 
 
-class ZenohCpu:
-    """CPU seconds of each named process's Zenoh runtime threads (:data:`ZENOH_THREAD`: the network's
-    own work, and the handlers Zenoh calls on its network thread, Bus.subscribe) since this was made.
+class PerThread(ABC):
+    """A per-thread reading of each named process (:meth:`value`), summed over its threads since this
+    was made: what :class:`ZenohCpu` and :class:`Wakes` read.
 
-    Kept thread by thread: a thread that ends keeps what it ran until its last reading, one that starts
-    later counts from zero, so the sum never goes back when a runtime retires a worker. Each thread's
-    time is read in nanoseconds (``schedstat``) where the kernel has it, not in clock ticks (``stat``):
-    a sum over many threads of tick counts truncated one by one loses up to a tick per thread, most of
-    a quiet process's Zenoh time over a few seconds. Memory: one pair per thread ever seen."""
+    Kept thread by thread: a thread that ends keeps what it had until its last reading, one that
+    starts later counts from zero, so the sum never goes back when a runtime retires a worker.
+    Memory: one pair per thread ever seen."""
 
     def __init__(self, pids: dict[str, int]) -> None:
         self.pids = dict(pids)
-        self.since: dict[tuple[str, str], float] = {}  # (process, thread id) -> seconds when first read
+        self.since: dict[tuple[str, str], float] = {}  # (process, thread id) -> the value when first read
         self.last: dict[tuple[str, str], float] = {}
-        for key, seconds in self._read().items():
-            self.since[key] = self.last[key] = seconds
+        for key, value in self._read().items():
+            self.since[key] = self.last[key] = value
 
-    def seconds(self) -> dict[str, float]:
-        """Each process's Zenoh thread CPU seconds since construction (0 for one that is gone)."""
-        for key, seconds in self._read().items():
-            self.since.setdefault(key, 0.0)  # a thread started since: all its time is in the span
-            self.last[key] = seconds
+    @abstractmethod
+    def value(self, pid: int, task: str, name: str, stat_fields: list[str]) -> float | None:
+        """Thread ``task`` of process ``pid`` (its name, its ``stat`` fields after the name): its
+        reading, or None when it is not counted."""
+
+    def totals(self) -> dict[str, float]:
+        """Each process's sum since construction (0 for one that is gone)."""
+        for key, value in self._read().items():
+            self.since.setdefault(key, 0.0)  # a thread started since: all of it is in the span
+            self.last[key] = value
         total = dict.fromkeys(self.pids, 0.0)
-        for (name, task), seconds in self.last.items():
-            total[name] += seconds - self.since[(name, task)]
+        for (name, task), value in self.last.items():
+            total[name] += value - self.since[(name, task)]
         return total
 
     def _read(self) -> dict[tuple[str, str], float]:
@@ -84,9 +88,40 @@ class ZenohCpu:
                 for task in os.listdir(f"/proc/{pid}/task"):
                     with contextlib.suppress(OSError, ValueError), open(f"/proc/{pid}/task/{task}/stat") as stat:
                         text = stat.read()
-                        if ZENOH_THREAD.match(text[text.index("(") + 1 : text.rindex(")")]):
-                            now[(name, task)] = _thread_cpu(pid, task, text.rsplit(")", 1)[1].split())
+                        thread = text[text.index("(") + 1 : text.rindex(")")]
+                        value = self.value(pid, task, thread, text.rsplit(")", 1)[1].split())
+                        if value is not None:
+                            now[(name, task)] = value
         return now
+
+
+class ZenohCpu(PerThread):
+    """CPU seconds of each named process's Zenoh runtime threads (:data:`ZENOH_THREAD`: the network's
+    own work, and the handlers Zenoh calls on its network thread, Bus.subscribe) since this was made.
+    Each thread's time is read in nanoseconds (``schedstat``) where the kernel has it, not in clock
+    ticks (``stat``): a sum over many threads of tick counts truncated one by one loses up to a tick
+    per thread, most of a quiet process's Zenoh time over a few seconds."""
+
+    def value(self, pid: int, task: str, name: str, stat_fields: list[str]) -> float | None:
+        return _thread_cpu(pid, task, stat_fields) if ZENOH_THREAD.match(name) else None
+
+    def seconds(self) -> dict[str, float]:
+        """Each process's Zenoh thread CPU seconds since construction (0 for one that is gone)."""
+        return self.totals()
+
+
+class Wakes(PerThread):
+    """Each named process's wakes since this was made: every thread's voluntary context switches (a
+    wait or a sleep that ended; ``/proc/<pid>/task/<tid>/status``). A fleet at rest spends its CPU
+    on them more than on its arithmetic: each costs the kernel's switch and a cold cache
+    (docs/notes/at-rest-profile.md)."""
+
+    def value(self, pid: int, task: str, name: str, stat_fields: list[str]) -> float | None:
+        with open(f"/proc/{pid}/task/{task}/status") as status:
+            for line in status:
+                if line.startswith("voluntary_ctxt_switches:"):
+                    return float(line.split()[1])
+        return None
 
 
 def _thread_cpu(pid: int, task: str, stat_fields: list[str]) -> float:
@@ -366,6 +401,7 @@ class RunMeasures:
     zenoh_ran: float  # [s] the span over which the Zenoh threads' CPU was (sampled less often)
     rest: RestMark | None = None  # None: not every robot arrived while every actor ran
     outside_received: int | None = None  # what the outside subscriber received (``outside``)
+    rest_wakes: dict[str, float] | None = None  # each process's wakes a second at rest (:class:`Wakes`)
 
     def zenoh_percent(self, seconds: float) -> float:
         return 100.0 * seconds / self.zenoh_ran if self.zenoh_ran > 0 else math.nan
@@ -380,7 +416,11 @@ class RunMeasures:
         at_rest = cpu_phase(
             {name: cpu - rest.cpu_seconds.get(name, 0.0) for name, cpu in self.cpu_seconds.items()}, self.ran - rest.at
         )
-        return {"driving": driving, "at_rest": {**at_rest, "fewest_arrived": rest.fewest_arrived}}
+        at_rest["fewest_arrived"] = rest.fewest_arrived
+        if self.rest_wakes is not None:
+            at_rest["wakes_per_second"] = sum(self.rest_wakes.values())
+            at_rest["wakes_per_second_by_service"] = dict(self.rest_wakes)
+        return {"driving": driving, "at_rest": at_rest}
 
     def fields(self, processes: int) -> dict[str, Any]:
         """The fleet summary's CPU and memory fields (CPU % of one core over the measured span)."""
@@ -427,7 +467,8 @@ def measure_run(
     counter = MessageCounter(settings) if count_messages else None
     outsider = MessageCounter(settings, OUTSIDE_KEYS) if outside else None
     ready = time.monotonic()
-    cpu_before, zenoh_cpu = cpu_of(pids), ZenohCpu(pids)
+    cpu_before, zenoh_cpu, wakes = cpu_of(pids), ZenohCpu(pids), Wakes(pids)
+    rest_wakes: list[tuple[float, dict[str, float]]] = []  # (when, totals) at the rest mark, and the newest
     monitor = RobotStatuses(settings, robots[0] if one else None)
     rest: RestMark | None = None
     memory, sampled = (0.0, 0.0), ready
@@ -444,8 +485,12 @@ def measure_run(
                 cpu_now, sampled = cpu_of(pids), now
                 cpu_seconds = {name: cpu_now[name] - cpu_before[name] for name in pids}
                 rest = rest_mark(rest, now - ready, cpu_seconds, monitor.arrived(), len(robots))
+                if rest is not None and not rest_wakes:
+                    rest_wakes.append((now, wakes.totals()))
                 if now - zenoh_sampled >= ZENOH_SAMPLE_S:  # every thread's file: read less often
                     zenoh_seconds, zenoh_sampled = zenoh_cpu.seconds(), now
+                    if rest_wakes:
+                        rest_wakes[1:] = [(now, wakes.totals())]
                 if counter is not None:
                     messages = counter.snapshot()
                 if now - ready < duration - 1.0:
@@ -473,4 +518,14 @@ def measure_run(
         zenoh_sampled - ready,
         rest,
         received,
+        wake_rates(rest_wakes),
     )
+
+
+def wake_rates(readings: list[tuple[float, dict[str, float]]]) -> dict[str, float] | None:
+    """Each process's wakes a second between the first and the last of ``readings`` ``(when,
+    totals)`` (:class:`Wakes`); None without two readings apart in time."""
+    if len(readings) < 2 or readings[-1][0] <= readings[0][0]:
+        return None
+    (first, before), (last, after) = readings[0], readings[-1]
+    return {name: (after[name] - before.get(name, 0.0)) / (last - first) for name in after}
