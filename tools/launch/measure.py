@@ -1,9 +1,10 @@
-"""What a run of ``srl up`` measured: each srl process's CPU (its Zenoh threads' apart) and memory
-read from /proc, the robot messages routed, and when every robot first stood at rest, which splits
-the run's CPU into the robots' drive and their rest (docs/fleets.md, ``srl bench fleet``).
+"""What a run of ``srl up`` measured: each srl process's CPU (its Zenoh threads' apart), wakes and
+memory read from /proc, the robot messages routed, and when every robot first stood at rest, which
+splits the run's CPU into the robots' drive and their rest (docs/fleets.md, ``srl bench fleet``).
 
 Every reading is bounded in memory: the RSS series halves itself past :data:`RSS_POINTS`, the
-Zenoh threads' table keeps one pair per thread ever seen, the statuses one row per robot.
+per-thread tables (Zenoh's CPU, the wakes) keep one pair per thread ever seen, the statuses one row
+per robot.
 """
 
 from __future__ import annotations
