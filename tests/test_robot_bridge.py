@@ -624,8 +624,14 @@ def test_bridge_survives_bad_odometry_and_never_sends_bad_commands(monkeypatch: 
     assert (0.22, -2.84) in [cmd[:2] for cmd in commands]
     assert commands[-1][:2] == (0.0, 0.0)  # the shutdown zero
     seqs = [a.seq for _, _, a in commands]
-    assert seqs == list(range(1, len(seqs) + 1))  # one publisher, its sequence numbers from 1
     counters = summary["counters"]
+    # one publisher, its sequence numbers from 1, one a command sent (none skipped: the last is the
+    # bridge's count), seen in order. Zenoh's default congestion control drops a sample that meets
+    # a full queue (docs/architecture.md, "Delivery"): on a loaded machine a sample may not arrive
+    # (the parallel suite once saw 1, 2, 3, 4, 7, 8, ...), a newer command replaces it
+    assert seqs[0] == 1 and seqs == sorted(set(seqs)), seqs
+    assert seqs[-1] == counters["commands_sent"], (seqs[-1], counters["commands_sent"])
+    assert len(seqs) >= 0.9 * seqs[-1], seqs  # a drop is the exception
     assert counters["rejected.odom"] == bad
     assert counters["states_published"] == 2
     assert counters["rejected.action"] >= 2  # the NaN and the huge action, refused by the schema
