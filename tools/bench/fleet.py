@@ -142,14 +142,11 @@ def layout_label(row: dict[str, Any]) -> str:
     return str(row["layout"]) if row["layout"] == "process" else f"host x{row.get('actor_hosts', 1)}"
 
 
-def phase_ms(row: dict[str, Any], phase: str) -> float:
-    """CPU per robot tick [ms] of one phase of a row's run (NaN: not every robot arrived)."""
-    return float(((row.get("cpu_phases") or {}).get(phase) or {}).get("cpu_ms_per_robot_tick", math.nan))
-
-
-def rest_wakes(row: dict[str, Any]) -> float:
-    """All processes' wakes a second at rest (tools.launch.measure.Wakes); NaN: no rest, or not read."""
-    return float(((row.get("cpu_phases") or {}).get("at_rest") or {}).get("wakes_per_second", math.nan))
+def phase_ms(row: dict[str, Any], phase: str, figure: str = "cpu_ms_per_robot_tick") -> float:
+    """A figure of one phase of a row's run: its CPU per robot tick [ms], or another of the phase's
+    (``wakes_per_second`` at rest: tools.launch.measure.Wakes); NaN: not every robot arrived, or
+    not read."""
+    return float(((row.get("cpu_phases") or {}).get(phase) or {}).get(figure, math.nan))
 
 
 def run_header(settings: Settings, seconds: float) -> dict[str, Any]:
@@ -232,8 +229,8 @@ def format_row(row: dict[str, Any]) -> str:
         f"{f['parked']:>3}/{row['robots']:<3} {f.get('at_target', 0):>4}/{row['robots']:<4} "
         f"{f.get('worst_own_final_distance_m', math.nan):>7.3f} {row['cpu_percent']:>6.0f} "
         f"{row.get('zenoh_cpu_percent', math.nan):>7.0f} {row['cpu_ms_per_robot_tick']:>7.3f} "
-        f"{phase_ms(row, 'driving'):>6.3f} {phase_ms(row, 'at_rest'):>6.3f} {rest_wakes(row):>7.0f} "
-        f"{row['rss_mb']:>7.0f} "
+        f"{phase_ms(row, 'driving'):>6.3f} {phase_ms(row, 'at_rest'):>6.3f} "
+        f"{phase_ms(row, 'at_rest', 'wakes_per_second'):>7.0f} {row['rss_mb']:>7.0f} "
         f"{row['rss_growth_percent']:>6.1f}% {row['processes']:>5} {realtime:>5} {hurried:>7}  {load:<20} {targets}"
     )
 
